@@ -1,0 +1,247 @@
+"""The kinematic chain of the rotating laser range finder: the seed paper's eq. (3), vectorised.
+
+Frames (paper Sec. III-A): W world/marker frame, M motor (fixed), M' (turns with the motor angle lambda),
+I, I', L*, L' and L (turns with the beam angle mu). ``T_a_b`` maps points expressed in frame b into frame a.
+
+    T_W_L = T_W_M  Rz(lambda) Tx(a) Rx(alpha) Tz(b) Rz(beta) Rz(mu)
+
+and a return of range r is the point [r, 0, 0] in L. The mount pose T_W_M is a translation (x, y, z) followed by
+R = Rz(yaw) Ry(pitch) Rx(roll), as in URDF.
+
+Closed form used everywhere (phi = beta + mu):
+
+    p_M = Rz(lambda) [a + r cos(phi),  r sin(phi) cos(alpha) - b sin(alpha),  r sin(phi) sin(alpha) + b cos(alpha)]
+
+so the beam origin in M is Rz(lambda) [a, -b sin(alpha), b cos(alpha)] and its unit direction
+Rz(lambda) [cos(phi), sin(phi) cos(alpha), sin(phi) sin(alpha)].
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import InputError
+
+FloatArray = NDArray[np.float64]
+
+#: Order of the 10 calibration parameters in every vector, covariance and table.
+PARAM_NAMES: tuple[str, ...] = ("x", "y", "z", "roll", "pitch", "yaw", "a", "alpha", "b", "beta")
+DH_NAMES: tuple[str, ...] = ("a", "alpha", "b", "beta")
+MOUNT_NAMES: tuple[str, ...] = ("x", "y", "z", "roll", "pitch", "yaw")
+#: Parameters that are angles (rad); the others are lengths (m).
+ANGLE_NAMES: frozenset[str] = frozenset({"roll", "pitch", "yaw", "alpha", "beta"})
+
+
+@dataclass(frozen=True)
+class DH:
+    """The four DH parameters from the motor axis to the scan plane: a [m], alpha [rad], b [m], beta [rad]."""
+
+    a: float
+    alpha: float
+    b: float
+    beta: float
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in asdict(self).items()}
+
+
+@dataclass(frozen=True)
+class Pose:
+    """A pose T_parent_child: translation x, y, z [m]; rotation R = Rz(yaw) Ry(pitch) Rx(roll) [rad]."""
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    roll: float = 0.0
+    pitch: float = 0.0
+    yaw: float = 0.0
+
+    def matrix(self) -> FloatArray:
+        """The 4x4 homogeneous transform T_parent_child."""
+        return pose_matrix(self.x, self.y, self.z, self.roll, self.pitch, self.yaw)
+
+    @staticmethod
+    def from_matrix(T: ArrayLike) -> Pose:
+        """Inverse of :meth:`matrix` (ZYX Euler angles; pitch in [-pi/2, pi/2])."""
+        T = np.asarray(T, dtype=float)
+        R = T[:3, :3]
+        pitch = float(np.arcsin(np.clip(-R[2, 0], -1.0, 1.0)))
+        roll = float(np.arctan2(R[2, 1], R[2, 2]))
+        yaw = float(np.arctan2(R[1, 0], R[0, 0]))
+        return Pose(float(T[0, 3]), float(T[1, 3]), float(T[2, 3]), roll, pitch, yaw)
+
+    def as_dict(self) -> dict[str, float]:
+        return {k: float(v) for k, v in asdict(self).items()}
+
+
+@dataclass(frozen=True)
+class Params:
+    """The 10 calibration parameters: mount pose T_W_M and DH parameters (names as in DEVELOPERS.md)."""
+
+    mount: Pose
+    dh: DH
+
+    def vector(self) -> FloatArray:
+        """(10,) in :data:`PARAM_NAMES` order."""
+        return np.array([getattr(self.mount, n) for n in MOUNT_NAMES] + [getattr(self.dh, n) for n in DH_NAMES])
+
+    @staticmethod
+    def from_vector(v: ArrayLike) -> Params:
+        v = np.asarray(v, dtype=float).reshape(10)
+        return Params(Pose(*map(float, v[:6])), DH(*map(float, v[6:])))
+
+    def as_dict(self) -> dict[str, float]:
+        return dict(zip(PARAM_NAMES, map(float, self.vector()), strict=True))
+
+
+def dh_from_mapping(data: Any, where: str) -> DH:
+    """Build a :class:`DH` from a mapping with exactly the keys a, alpha, b, beta; ``where`` names the source."""
+    return DH(**_floats(data, DH_NAMES, where))
+
+
+def pose_from_mapping(data: Any, where: str) -> Pose:
+    """Build a :class:`Pose` from a mapping with exactly the keys x, y, z, roll, pitch, yaw."""
+    return Pose(**_floats(data, MOUNT_NAMES, where))
+
+
+def _floats(data: Any, names: tuple[str, ...], where: str) -> dict[str, float]:
+    if not isinstance(data, dict):
+        raise InputError(f"{where}: expected a mapping with keys {', '.join(names)}, got {data!r}")
+    unknown = sorted(set(data) - set(names))
+    missing = [n for n in names if n not in data]
+    if unknown:
+        raise InputError(f"{where}.{unknown[0]}: unknown key (expected {', '.join(names)})")
+    if missing:
+        raise InputError(f"{where}.{missing[0]}: missing")
+    out = {}
+    for n in names:
+        v = data[n]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise InputError(f"{where}.{n}: expected a finite number, got {v!r}")
+        out[n] = float(v)
+    return out
+
+
+# --- elementary transforms ----------------------------------------------------------------------------------
+
+def rot_x(t: ArrayLike) -> FloatArray:
+    """Rotation matrices about x, shape (..., 3, 3) for angles of shape (...)."""
+    t = np.asarray(t, dtype=float)
+    c, s = np.cos(t), np.sin(t)
+    o, z = np.ones_like(t), np.zeros_like(t)
+    return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
+
+
+def rot_y(t: ArrayLike) -> FloatArray:
+    """Rotation matrices about y, shape (..., 3, 3)."""
+    t = np.asarray(t, dtype=float)
+    c, s = np.cos(t), np.sin(t)
+    o, z = np.ones_like(t), np.zeros_like(t)
+    return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
+
+
+def rot_z(t: ArrayLike) -> FloatArray:
+    """Rotation matrices about z, shape (..., 3, 3)."""
+    t = np.asarray(t, dtype=float)
+    c, s = np.cos(t), np.sin(t)
+    o, z = np.ones_like(t), np.zeros_like(t)
+    return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
+
+
+def rpy_matrix(roll: float, pitch: float, yaw: float) -> FloatArray:
+    """R = Rz(yaw) Ry(pitch) Rx(roll), shape (3, 3) (URDF convention)."""
+    return rot_z(yaw) @ rot_y(pitch) @ rot_x(roll)
+
+
+def pose_matrix(x: float, y: float, z: float, roll: float, pitch: float, yaw: float) -> FloatArray:
+    """4x4 transform: translation (x, y, z), rotation Rz(yaw) Ry(pitch) Rx(roll)."""
+    T = np.eye(4)
+    T[:3, :3] = rpy_matrix(roll, pitch, yaw)
+    T[:3, 3] = (x, y, z)
+    return T
+
+
+def homogeneous(R: ArrayLike, t: ArrayLike) -> FloatArray:
+    """Stack rotations (..., 3, 3) and translations (..., 3) into transforms (..., 4, 4)."""
+    R = np.asarray(R, dtype=float)
+    t = np.asarray(t, dtype=float)
+    T = np.zeros(R.shape[:-2] + (4, 4))
+    T[..., :3, :3] = R
+    T[..., :3, 3] = t
+    T[..., 3, 3] = 1.0
+    return T
+
+
+# --- eq. (3) ------------------------------------------------------------------------------------------------
+
+def chain_T_M_L(lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> FloatArray:
+    """T_M_L by multiplying the paper's elementary matrices, eqs. (4)-(9): shape (K, 4, 4) for K angles.
+
+    This is the literal product, kept as the reference the closed forms below are tested against.
+    """
+    lam = np.atleast_1d(np.asarray(lambda_rad, dtype=float))
+    mu = np.atleast_1d(np.asarray(mu_rad, dtype=float))
+    lam, mu = np.broadcast_arrays(lam, mu)
+    K = lam.shape[0]
+    Tz_lam = homogeneous(rot_z(lam), np.zeros((K, 3)))
+    Tx_a = homogeneous(np.eye(3), [dh.a, 0.0, 0.0])
+    Rx_alpha = homogeneous(rot_x(dh.alpha), np.zeros(3))
+    Tz_b = homogeneous(np.eye(3), [0.0, 0.0, dh.b])
+    Rz_beta = homogeneous(rot_z(dh.beta), np.zeros(3))
+    Rz_mu = homogeneous(rot_z(mu), np.zeros((K, 3)))
+    return Tz_lam @ Tx_a @ Rx_alpha @ Tz_b @ Rz_beta @ Rz_mu
+
+
+def beam_rays_M(lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> tuple[FloatArray, FloatArray]:
+    """Origins and unit directions of beams in the motor frame M.
+
+    Args:
+        lambda_rad: (K,) motor angles.
+        mu_rad: (K,) beam angles (LaserScan bearing).
+    Returns:
+        origins_M (K, 3), directions_M (K, 3).
+    """
+    lam = np.asarray(lambda_rad, dtype=float)
+    phi = dh.beta + np.asarray(mu_rad, dtype=float)
+    lam, phi = np.broadcast_arrays(lam, phi)
+    ca, sa = np.cos(dh.alpha), np.sin(dh.alpha)
+    cl, sl = np.cos(lam), np.sin(lam)
+    # before Rz(lambda)
+    ox, oy, oz = dh.a, -dh.b * sa, dh.b * ca
+    dx, dy, dz = np.cos(phi), np.sin(phi) * ca, np.sin(phi) * sa
+    origins = np.stack([cl * ox - sl * oy, sl * ox + cl * oy, np.full(lam.shape, oz)], -1)
+    dirs = np.stack([cl * dx - sl * dy, sl * dx + cl * dy, dz], -1)
+    return origins, dirs
+
+
+def points_M(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> FloatArray:
+    """Returns [r, 0, 0] in L expressed in the motor frame M, shape (K, 3)."""
+    o, d = beam_rays_M(lambda_rad, mu_rad, dh)
+    return o + np.asarray(ranges_m, dtype=float)[..., None] * d
+
+
+def transform_points(T: ArrayLike, points: ArrayLike) -> FloatArray:
+    """Apply a 4x4 transform T_a_b to points (..., 3) expressed in b; returns them in a."""
+    T = np.asarray(T, dtype=float)
+    return np.asarray(points, dtype=float) @ T[:3, :3].T + T[:3, 3]
+
+
+def points_W(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, params: Params) -> FloatArray:
+    """Returns in the world frame W: T_W_M p_M, shape (K, 3)."""
+    return transform_points(params.mount.matrix(), points_M(ranges_m, lambda_rad, mu_rad, params.dh))
+
+
+def wrap_angle(a: ArrayLike) -> FloatArray:
+    """Wrap angles to [-pi, pi)."""
+    return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
+
+
+__all__ = [
+    "ANGLE_NAMES", "DH", "DH_NAMES", "MOUNT_NAMES", "PARAM_NAMES", "Params", "Pose", "beam_rays_M", "chain_T_M_L",
+    "dh_from_mapping", "homogeneous", "points_M", "points_W", "pose_from_mapping", "pose_matrix", "rot_x", "rot_y",
+    "rot_z", "rpy_matrix", "transform_points", "wrap_angle",
+]
