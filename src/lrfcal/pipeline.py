@@ -1,0 +1,123 @@
+"""The calibration, as in the seed paper's Sec. III and IV-C, one stage per module.
+
+1. markers from tape distances (mds)          5. start: mount pose from that alignment, DH from nominal
+2. marker returns in the intensity image      6. Levenberg-Marquardt over the 10 parameters (solve)
+   (detection)                                7. reprojection of every beam, before and after (reproject)
+3. per-beam time and motor angle (timing)     8. tunnel planes and dimensions (geometry)
+4. blobs matched to markers (association)
+
+The paper's own variant (one max-intensity beam per blob, one motor angle per scan) runs beside ours as the
+baseline, on the same detections and association, so that the gain is measured.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import association, detection, geometry, mds, reproject, solve, timing
+from .errors import CalibrationError
+from .kinematics import Params, Pose
+from .types import CalibrationResult, Observations, Recording
+
+
+@dataclass(frozen=True)
+class CalibConfig:
+    """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout)."""
+
+    range_sigma_m: float = 0.010  # UTM-30LX-EW repeatability (FACTS.md)
+    association_gate_m: float = 0.05  # blob-to-marker distance accepted after the nominal alignment
+    clock_offset_s: float = 0.0  # laser stamp minus servo stamp, if known
+    baseline: bool = True  # also run the paper's variant for comparison
+    cloud_stride: int = 1  # reproject every n-th scan into the clouds
+    geometry: bool = True  # fit tunnel planes (Table III)
+
+
+def calibrate(recording: Recording, config: CalibConfig = CalibConfig()) -> CalibrationResult:
+    """Run stages 1-8 on a recording; see the module docstring."""
+    clock = _Stopwatch()
+    scans, joints, nominal = recording.scans, recording.joints, recording.nominal
+
+    markers = mds.marker_map(recording.tape)  # 1.
+    clock.lap("mds")
+
+    detections = detection.detect(scans)  # 2.
+    if not detections.blobs:
+        raise CalibrationError(f"no marker returns found (intensity threshold {detections.threshold:.0f} counts)")
+    clock.lap("detection")
+
+    returns = detection.observations(scans, joints, detections, clock_offset_s=config.clock_offset_s)  # 3.
+    clock.lap("timing")
+
+    centres_M = detection.blob_centres_M(returns, nominal.dh, nominal.marker_radius_m)  # 4.
+    assoc = association.associate(centres_M, markers, gate_m=config.association_gate_m)
+    if assoc.mirrored:
+        markers = association.unmirror(markers)
+    matched = _with_markers(returns, assoc.blob_to_marker)
+    if len(np.unique(matched.marker)) < 4:
+        raise CalibrationError(
+            f"only {len(np.unique(matched.marker))} markers matched to detections (need >= 4); "
+            f"alignment RMS {assoc.rms_m * 1000:.1f} mm"
+        )
+    clock.lap("association")
+
+    start = Params(Pose.from_matrix(assoc.T_W_M), nominal.dh)  # 5.
+    ours = solve.solve(  # 6.
+        matched, markers.positions_W, start, model="sphere",
+        marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+    )
+    clock.lap("solve")
+
+    baseline = None
+    if config.baseline:  # the paper: the blob's brightest beam, the motor angle at the scan's stamp
+        peaks = matched.subset(matched.is_peak)
+        lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
+        peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
+        baseline = solve.solve(
+            peaks, markers.positions_W, start, model="paper",
+            marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+        )
+        clock.lap("baseline")
+
+    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=config.clock_offset_s)  # 7.
+    cloud_before, cloud_intensity = reproject.reproject_cloud(scans, lambda_beams, nominal.dh, config.cloud_stride)
+    cloud_after, _ = reproject.reproject_cloud(scans, lambda_beams, ours.params.dh, config.cloud_stride)
+    clock.lap("reprojection")
+
+    geometry_before = geometry_after = None
+    if config.geometry:  # 8.
+        geometry_before = geometry.tunnel_geometry(cloud_before)
+        geometry_after = geometry.tunnel_geometry(cloud_after)
+        clock.lap("geometry")
+
+    return CalibrationResult(
+        recording=recording, markers=markers, detections=detections, observations=matched,
+        association=assoc, start=start, solution=ours, baseline=baseline,
+        cloud_before_M=cloud_before, cloud_after_M=cloud_after, cloud_intensity=cloud_intensity,
+        geometry_before=geometry_before, geometry_after=geometry_after, timings_s=clock.laps,
+    )
+
+
+def _with_markers(returns: Observations, blob_to_marker: np.ndarray) -> Observations:
+    """Label every return with its blob's marker and keep the labelled ones."""
+    labelled = _replace(returns, marker=np.asarray(blob_to_marker)[returns.blob])
+    return labelled.subset(labelled.marker >= 0)
+
+
+def _replace(obs: Observations, **arrays: np.ndarray) -> Observations:
+    fields = {k: getattr(obs, k) for k in obs.__dataclass_fields__}
+    fields.update(arrays)
+    return Observations(**fields)
+
+
+class _Stopwatch:
+    def __init__(self) -> None:
+        self.laps: dict[str, float] = {}
+        self._t = time.perf_counter()
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = now - self._t
+        self._t = now

@@ -1,0 +1,148 @@
+"""`lrfsim run`: simulate a scenario, calibrate the recording as a real one, compare with the ground truth.
+
+    DIR/recording/     what the simulated rig recorded (docs/formats.md)
+    DIR/calibration/   what `lrfcal calibrate` writes (calibration.yaml, rig.urdf, clouds, report, figures)
+    DIR/comparison.md  Tables I and III against the truth
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rich.console import Console
+from rich.table import Table
+
+from .compare import Comparison, compare, load_truth
+from .scenario import Scenario
+
+
+@dataclass(frozen=True)
+class LoopReport:
+    out_dir: Path
+    comparison: Comparison
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def run_loop(
+    scenario: Scenario,
+    out_dir: Path,
+    *,
+    overwrite: bool = False,
+    rrd_path: Path | None = None,
+    spawn: bool = False,
+    console: Console | None = None,
+) -> LoopReport:
+    """Simulate, write the recording, calibrate it from disk, compare; write everything under ``out_dir``."""
+    from lrfcal.app import calibrate_folder
+
+    from .simulate import simulate, write_recording
+
+    console = console or Console(stderr=True)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    sim = simulate(scenario, progress=console)
+    timings["simulate"] = time.perf_counter() - t0
+
+    recording_dir = out_dir / "recording"
+    _prepare(out_dir, overwrite)
+    t0 = time.perf_counter()
+    write_recording(sim, scenario, recording_dir, overwrite=overwrite)
+    timings["write"] = time.perf_counter() - t0
+
+    truth = load_truth(recording_dir / "ground_truth.yaml")
+    t0 = time.perf_counter()
+    result = calibrate_folder(
+        recording_dir, out_dir / "calibration", overwrite=overwrite, truth=truth,
+        rrd_path=rrd_path, spawn=spawn, scene=sim.scene if hasattr(sim, "scene") else None,
+    )
+    timings["calibrate+write"] = time.perf_counter() - t0
+    timings.update({f"  {k}": v for k, v in result.timings_s.items()})
+
+    comparison = compare(result, truth, scenario.tolerances)
+    text = comparison_markdown(comparison)
+    (out_dir / "comparison.md").write_text(text)
+    return LoopReport(out_dir, comparison, timings)
+
+
+def _prepare(out_dir: Path, overwrite: bool) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+
+def _mm(v: float | None) -> str:
+    return "-" if v is None else f"{v * 1000:+.2f}"
+
+
+def _deg(v: float | None) -> str:
+    return "-" if v is None else f"{math.degrees(v):+.4f}"
+
+
+def _fmt(name: str, v: float | None) -> str:
+    return _mm(v) if name in ("a", "b") else _deg(v)
+
+
+def table_rows(c: Comparison) -> tuple[list[list[str]], list[list[str]]]:
+    """Rows of Table I and Table III as strings (mm and deg)."""
+    t1 = []
+    for r in c.dh_rows:
+        unit = "mm" if r.unit == "m" else "deg"
+        t1.append([
+            f"{r.name} ({unit})", _fmt(r.name, r.truth), _fmt(r.name, r.ours), _fmt(r.name, r.error),
+            _fmt(r.name, r.paper), _fmt(r.name, r.paper_error), "ok" if r.ok else "MISS",
+        ])
+    t1.append([
+        "mount position (mm)", "", "", _mm(c.mount_position_error_m), "", _mm(c.paper_mount_position_error_m),
+        "ok" if c.mount_position_error_m <= c.tolerances.position_m else "MISS",
+    ])
+    t1.append([
+        "mount rotation (deg)", "", "", _deg(c.mount_rotation_error_rad), "", _deg(c.paper_mount_rotation_error_rad),
+        "ok" if c.mount_rotation_error_rad <= c.tolerances.rotation_rad else "MISS",
+    ])
+    t3 = [
+        [
+            f"{r.name} (mm)", f"{r.truth * 1000:.1f}",
+            "-" if r.calibrated is None else f"{r.calibrated * 1000:.1f}",
+            "-" if r.calibrated is None else f"{(r.calibrated - r.truth) * 1000:+.1f}",
+            "-" if r.nominal is None else f"{r.nominal * 1000:.1f}",
+            "-" if r.nominal is None else f"{(r.nominal - r.truth) * 1000:+.1f}",
+            "ok" if r.ok else "MISS",
+        ]
+        for r in c.tunnel_rows
+    ]
+    return t1, t3
+
+
+T1_HEAD = ["parameter", "truth", "estimated", "error", "paper's method", "its error", "check"]
+T3_HEAD = ["dimension", "truth", "calibrated cloud", "error", "nominal cloud", "error", "check"]
+
+
+def comparison_markdown(c: Comparison) -> str:
+    t1, t3 = table_rows(c)
+
+    def md(head: list[str], rows: list[list[str]]) -> str:
+        lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        lines += ["| " + " | ".join(r) + " |" for r in rows]
+        return "\n".join(lines)
+
+    parts = ["# Recovery against the ground truth", "", "## Table I: DH parameters and mount pose", "",
+             md(T1_HEAD, t1), ""]
+    if t3:
+        parts += ["## Table III: tunnel dimensions from the reprojected cloud", "", md(T3_HEAD, t3), ""]
+    parts += ["Result: " + ("all within tolerance" if c.ok else "MISSED: " + "; ".join(c.failures)), ""]
+    return "\n".join(parts)
+
+
+def print_comparison(c: Comparison, console: Console) -> None:
+    t1, t3 = table_rows(c)
+    for title, head, rows in (("Table I: DH parameters and mount pose", T1_HEAD, t1),
+                              ("Table III: tunnel dimensions", T3_HEAD, t3)):
+        if not rows:
+            continue
+        table = Table(title=title)
+        for h in head:
+            table.add_column(h, justify="right" if h not in ("parameter", "dimension") else "left")
+        for r in rows:
+            table.add_row(*r, style=None if r[-1] == "ok" else "red")
+        console.print(table)
