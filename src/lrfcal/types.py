@@ -37,6 +37,8 @@ class Scans:
     range_min_m: float
     range_max_m: float
     frame_id: str = "laser"
+    #: where the scans came from ("<bag>: <topic>"), for error messages; "" when unknown.
+    source: str = ""
 
     @property
     def beam_times_s(self) -> FloatArray:

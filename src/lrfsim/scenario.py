@@ -113,6 +113,7 @@ class ServoConfig(_Section):
     start_rad: Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi)] = math.pi / 2
     end_rad: Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi)] = -math.pi / 2
     speed_rad_s: Annotated[float, Field(gt=0, le=10)] = math.radians(10.0)
+    accel_rad_s2: Annotated[float, Field(gt=0, le=1000)] = 2.0  # trapezoidal ramps (0.09 s at 10 deg/s)
     passes: Annotated[int, Field(ge=1, le=100)] = 1
     settle_s: NonNegFloat = 0.2  # standing still at each end
     rate_hz: Annotated[float, Field(gt=0, le=10000)] = 100.0

@@ -1,0 +1,76 @@
+"""Stage 7: reproject every valid return into the motor frame M with a set of DH parameters; PLY export.
+
+Array shapes: S scans, N beams, P cloud points.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .kinematics import DH, points_M
+from .types import Scans
+
+FloatArray = NDArray[np.float64]
+
+
+def reproject_cloud(scans: Scans, lambda_rad: ArrayLike, dh: DH, stride: int = 1) -> tuple[FloatArray, FloatArray]:
+    """Reproject the valid returns into frame M.
+
+    Args:
+        scans: S scans of N beams.
+        lambda_rad: (S, N) motor angle of every beam (timing.beam_motor_angles), or (S,) one per scan.
+        dh: the DH parameters to use.
+        stride: keep every ``stride``-th valid return (in scan-major order) to thin the cloud.
+    Returns:
+        points_M (P, 3) and intensity (P,) of the kept returns.
+    """
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    r = scans.ranges_m
+    lam = np.asarray(lambda_rad, dtype=np.float64)
+    if lam.shape == r.shape[:1]:
+        lam = np.broadcast_to(lam[:, None], r.shape)
+    if lam.shape != r.shape:
+        raise ValueError(f"lambda_rad has shape {lam.shape}, expected {r.shape} or {r.shape[:1]}")
+    ss, bb = np.nonzero(np.isfinite(r))
+    if stride > 1:
+        ss, bb = ss[::stride], bb[::stride]
+    pts = points_M(r[ss, bb], lam[ss, bb], scans.mu_rad[bb], dh)
+    return pts, scans.intensities[ss, bb].astype(np.float64)
+
+
+def write_ply(path: str | Path, points: ArrayLike, intensity: ArrayLike | None = None) -> Path:
+    """Write a binary little-endian PLY point cloud (x, y, z float32 and an ``intensity`` float32 property).
+
+    The file is written to a temporary file in the same folder and renamed, so it appears complete or not at all.
+    Args:
+        points: (P, 3) [m]; intensity: (P,) or None (zeros).
+    """
+    import trimesh
+
+    path = Path(path)
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    inten = np.zeros(len(pts)) if intensity is None else np.asarray(intensity, dtype=np.float64).reshape(-1)
+    if inten.size != len(pts):
+        raise ValueError(f"intensity has {inten.size} values for {len(pts)} points")
+    mesh = trimesh.Trimesh(vertices=pts, faces=np.zeros((0, 3), dtype=np.int64), process=False, validate=False)
+    mesh.vertex_attributes["intensity"] = inten.astype(np.float32)
+    data = trimesh.exchange.ply.export_ply(mesh, encoding="binary")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+__all__ = ["reproject_cloud", "write_ply"]

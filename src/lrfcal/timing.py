@@ -1,0 +1,106 @@
+"""Stage 3: the time of every beam and the motor angle at that time (the paper's linear interpolation).
+
+Clocks: scan stamps are on the laser clock, joint-state stamps on the servo clock; for the same instant
+``t_laser = t_servo + clock_offset_s``, so a beam time converts to servo time as ``t_laser - clock_offset_s``.
+
+Array shapes: S scans, N beams per scan, J joint-state samples.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import InputError
+from .types import JointStates, Scans
+
+FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+
+
+def beam_times(scans: Scans) -> FloatArray:
+    """(S, N) laser-clock time of every beam: stamp + i * time_increment."""
+    return scans.stamps_s[:, None] + np.arange(scans.ranges_m.shape[1]) * scans.time_increment_s
+
+
+def joint_period_s(joints: JointStates) -> float:
+    """Median sampling period of the joint states [s] (0 for fewer than 2 samples)."""
+    if joints.stamps_s.size < 2:
+        return 0.0
+    return float(np.median(np.diff(joints.stamps_s)))
+
+
+def unwrapped_positions(joints: JointStates) -> FloatArray:
+    """(J,) joint positions with +-2 pi jumps removed (a wrapping encoder reading), for interpolation."""
+    return np.unwrap(joints.positions_rad)
+
+
+def motor_angles(
+    times_s: ArrayLike,
+    joints: JointStates,
+    clock_offset_s: float = 0.0,
+    tolerance_s: float | None = None,
+) -> FloatArray:
+    """Motor angle lambda at laser-clock times, by linear interpolation of the joint states.
+
+    Args:
+        times_s: any shape, laser clock.
+        joints: J >= 2 samples sorted by stamp.
+        clock_offset_s: t_servo = t_laser - clock_offset_s.
+        tolerance_s: how far outside the joint-state span a time may fall (extrapolated linearly from the end
+            segment); default one joint sample period.
+    Returns:
+        lambda_rad with the shape of ``times_s``. Wrapped encoder readings are unwrapped first, so angles can
+        leave [-pi, pi) (the kinematics is 2 pi periodic).
+    Raises:
+        InputError: a time outside the joint-state span by more than ``tolerance_s``.
+    """
+    t = np.asarray(times_s, dtype=np.float64) - clock_offset_s
+    ts = joints.stamps_s
+    if ts.size < 2:
+        raise InputError(f"joint states {joints.name}: {ts.size} sample(s); need at least 2 to interpolate")
+    tol = joint_period_s(joints) if tolerance_s is None else float(tolerance_s)
+    q = unwrapped_positions(joints)
+    if t.size:
+        lo, hi = float(np.min(t)), float(np.max(t))
+        if lo < ts[0] - tol or hi > ts[-1] + tol:
+            bad = lo if lo < ts[0] - tol else hi
+            raise InputError(
+                f"joint states {joints.name}: time {bad + clock_offset_s:.6f} s (laser clock, offset "
+                f"{clock_offset_s:+.6f} s) outside the joint-state span [{ts[0]:.6f}, {ts[-1]:.6f}] s")
+    lam = np.interp(t, ts, q)
+    # linear extrapolation within the tolerance (np.interp holds the end values)
+    before = t < ts[0]
+    if np.any(before):
+        slope = (q[1] - q[0]) / (ts[1] - ts[0])
+        lam[before] = q[0] + slope * (t[before] - ts[0])
+    after = t > ts[-1]
+    if np.any(after):
+        slope = (q[-1] - q[-2]) / (ts[-1] - ts[-2])
+        lam[after] = q[-1] + slope * (t[after] - ts[-1])
+    return lam
+
+
+def beam_motor_angles(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0) -> FloatArray:
+    """(S, N) motor angle at every beam's own time (the motion during a scan accounted for)."""
+    return motor_angles(beam_times(scans), joints, clock_offset_s)
+
+
+def scan_angles(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0) -> FloatArray:
+    """(S,) one motor angle per scan, at its header.stamp (the paper's baseline: no motion within a scan)."""
+    return motor_angles(scans.stamps_s, joints, clock_offset_s)
+
+
+def covered_scans(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0,
+                  tolerance_s: float | None = None) -> BoolArray:
+    """(S,) True for scans whose every beam time lies within the joint-state span (+- tolerance_s, default one
+    joint sample period); use it to drop the ends of a recording before :func:`motor_angles`."""
+    tol = joint_period_s(joints) if tolerance_s is None else float(tolerance_s)
+    t0 = scans.stamps_s - clock_offset_s
+    t1 = t0 + (scans.ranges_m.shape[1] - 1) * scans.time_increment_s
+    lo, hi = np.minimum(t0, t1), np.maximum(t0, t1)
+    return (lo >= joints.stamps_s[0] - tol) & (hi <= joints.stamps_s[-1] + tol)
+
+
+__all__ = ["beam_motor_angles", "beam_times", "covered_scans", "joint_period_s", "motor_angles",
+           "scan_angles", "unwrapped_positions"]

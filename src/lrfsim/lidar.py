@@ -1,0 +1,435 @@
+"""The Hokuyo UTM-30LX-EW on the turning servo, ray cast with MuJoCo.
+
+Timing (FACTS.md). Scan s starts at t_s (true time = servo clock); beam i (i = 0 .. N-1, bearing
+mu_i = angle_min + i * angle_increment) is fired at t_s + i * time_increment (25 ms / 1440 = 17.36 us), so the
+271 deg of a scan take 18.75 ms while the servo keeps turning. Every beam is therefore cast from the rig's pose
+at its own time: lambda_si = lambda(t_s + i * time_increment).
+
+Pose of every beam. Per scan, ``mj_kinematics`` at the reference angle lambda_s (the scan's middle beam) gives
+the laser site's pose (p_s, R_s) and the hinge's world anchor a and unit axis u (``data.xanchor``,
+``data.xaxis``). A hinge moves its subtree by a rotation about (a, u), so beam i's pose is exactly
+
+    o_si = a + Rot(u, d_si) (p_s - a),   R_si = Rot(u, d_si) R_s,   d_si = lambda_si - lambda_s,
+
+with Rot the Rodrigues rotation. Sub-ray directions are R_si times fixed directions in the laser frame.
+
+Batching. ``mj_multiRay`` casts many rays from ONE origin. Beams of a scan are grouped in runs of n
+consecutive beams that share the exact origin of the run's middle beam; n is chosen per scan so that the
+largest distance from a beam's exact origin to its run's origin stays below ``origin_tol_m`` (1 um by
+default): with step length delta = max_i |o_i+1 - o_i| (an upper bound on the arc between neighbours),
+n = 2 floor(tol / delta) + 1. Directions are never shared: every sub-ray has its exact direction (direction
+error 0). The residual range error of the shared origin e = o_run - o_i is then removed to first order with the
+surface normal n returned by MuJoCo (exact for planes): r_i = t + n.e / n.d, where t is the distance from the
+run's origin along d (applied where |n.d| > 1e-4).
+
+Footprint (``divergence_rad`` full angle, unverified for the UTM-30LX, HELIOS++ default 0.3 mrad).
+``footprint_rays`` F sub-rays: the centre ray plus a ring of F-1 rays at the half-angle that makes them
+equal-area samples of a uniform disc of radius divergence/2 (ring at the centroid radius of the annulus outside
+the centre's share: rho = 2/3 (1 - q^3) / (1 - q^2) * divergence / 2 with q = 1 / sqrt(F)). F = 1: centre only.
+
+Received power per sub-ray (radar equation as in HELIOS++, with the sensor's constants folded into a gain):
+
+    P_f = gain * rho_g * g_g(theta) * (r_ref / r_f)^2,
+    g(theta) = cos(theta)                 Lambertian surfaces (HELIOS++ Lambert BRDF; Robotec T|cos theta|),
+    g(theta) = cos(theta)^0.1             retroreflective markers (glass-bead/prismatic sheeting keeps most of
+                                          its return over wide entrance angles; Gazebo's laser_retro is the
+                                          limit g = 1),
+
+rho_g the geom's reflectivity (albedo; an effective gain >> 1 for retroreflectors). Kneip et al. (ICRA 2009)
+and the Photonics 2018 UST-20LX study motivate the incidence dependence and the mixed pixels.
+
+Mixed pixel (one echo per beam): the beam's range is the received-power-weighted mean of its sub-rays'
+ranges, r = sum_f P_f r_f / sum_f P_f, and its intensity the mean received power over all F sub-rays (a miss
+contributes 0), I = sum_f P_f / F. A bright retroreflector in part of the footprint therefore dominates both.
+Real UTMs report up to 3 echoes; only the strongest-weighted mixture is modelled.
+
+Noise (``noise: true``): I <- I * max(0, 1 + relative_noise * z), then I is rounded to integer counts and
+clipped at ``saturation_counts``; I < ``min_detectable_counts`` -> no return. Range: r <- r + sigma(r) z with
+sigma from the first ``noise_bands`` entry with r <= up_to_m (the last band beyond), then quantised to
+``quantisation_m`` (1 mm; 0 = exact). Ranges outside [range_min, range_max] -> no return. No return is NaN
+(urg_node) or +inf (``no_return: inf``). ``noise: false`` skips both random terms only.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.errors import InputError
+
+from .scenario import SensorConfig
+
+if TYPE_CHECKING:
+    import mujoco
+
+FloatArray = NDArray[np.float64]
+
+#: Incidence exponent of retroreflective markers: g = cos(theta)^RETRO_EXPONENT (see module docstring).
+RETRO_EXPONENT = 0.1
+#: Rays closer than this to perpendicular to the surface get no parallax correction (|n.d| below it).
+_MIN_NORMAL_DOT = 1e-4
+
+
+class SceneLike(Protocol):
+    """What the lidar needs of ``lrfsim.scene.Scene``."""
+
+    @property
+    def model(self) -> mujoco.MjModel: ...
+    @property
+    def data(self) -> mujoco.MjData: ...
+    @property
+    def site_id(self) -> int: ...
+    @property
+    def joint_qpos_adr(self) -> int: ...
+    @property
+    def joint_id(self) -> int: ...
+    @property
+    def geom_reflectivity(self) -> FloatArray: ...
+    @property
+    def geom_is_marker(self) -> NDArray[np.bool_]: ...
+    @property
+    def lidar_geomgroup(self) -> NDArray[np.uint8]: ...
+
+
+# --- geometry of the sensor -----------------------------------------------------------------------------------
+
+def beam_angles(sensor: SensorConfig) -> FloatArray:
+    """Beam bearings mu_i = angle_min + i * angle_increment, shape (N,)."""
+    return sensor.angle_min_rad + np.arange(sensor.n_beams) * sensor.angle_increment_rad
+
+
+def ring_half_angle(sensor: SensorConfig) -> float:
+    """Angle [rad] between the centre ray and the ring sub-rays (module docstring); 0 for F = 1."""
+    F = sensor.footprint_rays
+    if F == 1:
+        return 0.0
+    q = 1.0 / math.sqrt(F)
+    return (2.0 / 3.0) * (1.0 - q**3) / (1.0 - q**2) * 0.5 * sensor.divergence_rad
+
+
+def footprint_coefficients(sensor: SensorConfig) -> FloatArray:
+    """Sub-ray directions in a beam's own frame (e, t, z), shape (F, 3), unit rows.
+
+    e = [cos mu, sin mu, 0] the beam centre, t = [-sin mu, cos mu, 0] the in-plane tangent, z the mirror axis.
+    Row 0 is the centre (1, 0, 0); row k >= 1 is tilted by :func:`ring_half_angle` rho towards
+    psi_k = 2 pi (k - 1) / (F - 1) from t to z: (cos rho, sin rho cos psi_k, sin rho sin psi_k).
+    """
+    F = sensor.footprint_rays
+    rho = ring_half_angle(sensor)
+    psi = 2.0 * math.pi * np.arange(F - 1) / max(F - 1, 1)
+    out = np.empty((F, 3))
+    out[0] = (1.0, 0.0, 0.0)
+    out[1:, 0] = math.cos(rho)
+    out[1:, 1] = math.sin(rho) * np.cos(psi)
+    out[1:, 2] = math.sin(rho) * np.sin(psi)
+    return out
+
+
+def footprint_directions_L(sensor: SensorConfig) -> FloatArray:
+    """Unit sub-ray directions in the laser frame L (+x bearing 0, +z mirror axis), shape (N, F, 3):
+    Rz(mu_i) applied to :func:`footprint_coefficients`."""
+    mu = beam_angles(sensor)
+    c = footprint_coefficients(sensor)
+    cm, sm = np.cos(mu)[:, None], np.sin(mu)[:, None]
+    return np.stack([cm * c[:, 0] - sm * c[:, 1], sm * c[:, 0] + cm * c[:, 1],
+                     np.broadcast_to(c[:, 2], cm.shape[:1] + c.shape[:1])], -1)
+
+
+def scan_start_times(duration_s: float, sensor: SensorConfig, phase_s: float = 0.0) -> FloatArray:
+    """True times (servo clock) of beam 0 of every scan lying wholly in [0, duration_s], shape (S,).
+
+    Scans start at phase_s + s * scan_period_s (phase_s in [0, scan_period_s): the laser runs free).
+    """
+    last_beam_s = (sensor.n_beams - 1) * sensor.time_increment_s
+    if last_beam_s > sensor.scan_period_s:
+        raise InputError(f"sensor: {sensor.n_beams} beams x time_increment_s {sensor.time_increment_s} do not "
+                         f"fit in scan_period_s {sensor.scan_period_s}")
+    n = int(math.floor((duration_s - last_beam_s - phase_s) / sensor.scan_period_s + 1e-9)) + 1
+    return phase_s + np.arange(max(n, 0)) * sensor.scan_period_s
+
+
+def beam_times(scan_starts_s: FloatArray, sensor: SensorConfig) -> FloatArray:
+    """Time of every beam: t_s + i * time_increment, shape (S, N)."""
+    return scan_starts_s[:, None] + np.arange(sensor.n_beams) * sensor.time_increment_s
+
+
+def rotate_about_axis(v: FloatArray, axis: FloatArray, angle: FloatArray) -> FloatArray:
+    """Rodrigues: rotate vectors v (..., 3) about the unit ``axis`` (3,) by ``angle`` (...) [rad]."""
+    c = np.cos(angle)[..., None]
+    s = np.sin(angle)[..., None]
+    K = _skew(axis)
+    return v * c + (v @ K.T) * s + (v @ axis)[..., None] * axis * (1.0 - c)
+
+
+def _skew(u: FloatArray) -> FloatArray:
+    return np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
+
+
+def site_poses_W(scene: SceneLike, lambda_rad: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
+                                                                        FloatArray]:
+    """MuJoCo forward kinematics of the laser site at motor angles lambda (K,).
+
+    Returns positions (K, 3), rotations R_W_L (K, 3, 3), and the hinge's world anchor (3,) and unit axis (3,)
+    (from the first angle; a hinge on a fixed base does not move its own axis).
+    """
+    import mujoco
+
+    m, d = scene.model, scene.data
+    lam = np.atleast_1d(np.asarray(lambda_rad, dtype=float))
+    pos = np.empty((lam.size, 3))
+    rot = np.empty((lam.size, 3, 3))
+    anchor = axis = np.zeros(3)
+    for k, q in enumerate(lam.tolist()):
+        d.qpos[scene.joint_qpos_adr] = q
+        mujoco.mj_kinematics(m, d)
+        pos[k] = d.site_xpos[scene.site_id]
+        rot[k] = d.site_xmat[scene.site_id].reshape(3, 3)
+        if k == 0:
+            anchor = d.xanchor[scene.joint_id].copy()
+            axis = d.xaxis[scene.joint_id].copy()
+    return pos, rot, anchor, axis / np.linalg.norm(axis)
+
+
+def beam_poses_W(scene: SceneLike, beam_lambda_rad: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Exact per-beam poses: origins (S, N, 3) and rotations R_W_L (S, N, 3, 3) at motor angles (S, N).
+
+    Per scan: kinematics at the middle beam's angle, then the hinge rotation by each beam's delta-lambda.
+    """
+    lam = np.asarray(beam_lambda_rad, dtype=float)
+    ref = lam[:, lam.shape[1] // 2]
+    p, R, a, u = site_poses_W(scene, ref)
+    delta = lam - ref[:, None]
+    origins = a + rotate_about_axis((p - a)[:, None, :], u, delta)
+    cols = [rotate_about_axis(np.broadcast_to(R[:, None, :, j], lam.shape + (3,)), u, delta) for j in range(3)]
+    return origins, np.stack(cols, -1)
+
+
+# --- the ray batches ------------------------------------------------------------------------------------------
+
+@dataclass
+class RayChunk:
+    """The rays of a chunk of Sc scans, in the order they are cast (views into reused buffers).
+
+    directions (Sc*N*F, 3) unit sub-ray directions; call_origins (C, 3) one origin per mj_multiRay call;
+    call_first (C,) first ray, call_count (C,) number of rays of each call; offset (Sc, N, 3) = shared origin
+    minus the beam's exact origin; scans: slice of the chunk's scans in the recording.
+    """
+
+    directions: FloatArray
+    call_origins: FloatArray
+    call_first: list[int]
+    call_count: list[int]
+    offset: FloatArray
+    scans: slice
+
+
+def plan_runs(origins: FloatArray, tol_m: float) -> int:
+    """Run length n for one scan's exact beam origins (N, 3): the largest odd n with (n-1)/2 * step < tol."""
+    N = origins.shape[0]
+    step = float(np.max(np.linalg.norm(np.diff(origins, axis=0), axis=1))) if N > 1 else 0.0
+    if step == 0.0:
+        return N
+    half = int(math.floor(tol_m / step * (1.0 - 1e-12)))
+    return max(1, min(N, 2 * half + 1))
+
+
+def iter_ray_chunks(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *,
+                    origin_tol_m: float = 1e-6, chunk_scans: int = 16) -> Iterator[RayChunk]:
+    """Generate the rays of all scans, chunk by chunk (the module docstring's poses and batching).
+
+    ``beam_lambda_rad`` (S, N): the true motor angle at every beam's time. Per beam, the hinge rotation
+    Rot(u, d) = I + sin(d) K + (1 - cos(d)) K^2 (K = [u]x) gives the beam frame B = Rot R_s Rz(mu) (columns
+    e, t, z in W) and the origin a + Rot (p_s - a); sub-ray directions are B times
+    :func:`footprint_coefficients`. The yielded arrays are reused between chunks: copy them to keep them.
+    """
+    S, N = beam_lambda_rad.shape
+    F = sensor.footprint_rays
+    mu = beam_angles(sensor)
+    cmu, smu = np.cos(mu)[None, :, None], np.sin(mu)[None, :, None]
+    coef = footprint_coefficients(sensor)
+    dirs_buf = np.empty((chunk_scans, N, F, 3))
+    B0 = np.empty((chunk_scans, N, 3, 3))
+    ar = np.arange(N)
+    K = K2 = np.zeros((3, 3))
+    for s0 in range(0, S, chunk_scans):
+        s1 = min(S, s0 + chunk_scans)
+        Sc = s1 - s0
+        lam = beam_lambda_rad[s0:s1]
+        ref = lam[:, N // 2]
+        p, R, a, u = site_poses_W(scene, ref)
+        if s0 == 0:
+            K = _skew(u)
+            K2 = K @ K
+        delta = lam - ref[:, None]  # (Sc, N)
+        Rot = np.sin(delta)[..., None, None] * K + (1.0 - np.cos(delta))[..., None, None] * K2
+        Rot += np.eye(3)
+        origins = a + np.matmul(Rot, (p - a)[:, None, :, None])[..., 0]  # (Sc, N, 3)
+        X, Y, Z = R[:, None, :, 0], R[:, None, :, 1], R[:, None, :, 2]  # (Sc, 1, 3)
+        b0 = B0[:Sc]
+        b0[..., 0] = cmu * X + smu * Y
+        b0[..., 1] = cmu * Y - smu * X
+        b0[..., 2] = Z
+        B = np.matmul(Rot, b0)
+        dirs = dirs_buf[:Sc]
+        np.matmul(coef, np.swapaxes(B, -1, -2), out=dirs)
+        # runs of beams sharing one origin
+        offset = np.empty((Sc, N, 3))
+        call_origins: list[FloatArray] = []
+        first: list[int] = []
+        count: list[int] = []
+        for k in range(Sc):
+            n = plan_runs(origins[k], origin_tol_m)
+            starts = np.arange(0, N, n)
+            stops = np.minimum(starts + n, N)
+            mids = (starts + stops - 1) // 2
+            call_origins.append(origins[k, mids])
+            first.extend((k * N * F + starts * F).tolist())
+            count.extend(((stops - starts) * F).tolist())
+            offset[k] = origins[k, mids[ar // n]] - origins[k]
+        yield RayChunk(directions=dirs.reshape(Sc * N * F, 3), call_origins=np.concatenate(call_origins),
+                       call_first=first, call_count=count, offset=offset, scans=slice(s0, s1))
+
+
+def cast_chunk(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk: RayChunk, cutoff_m: float,
+               geomid: NDArray[np.int32], dist: FloatArray, normal: FloatArray) -> None:
+    """Cast every call of a chunk with ``mujoco.mj_multiRay`` into geomid (M,), dist (M,), normal (M, 3)."""
+    import mujoco
+
+    multi_ray = mujoco.mj_multiRay
+    dflat = chunk.directions.reshape(-1)
+    nflat = normal.reshape(-1)
+    for o, a, n in zip(chunk.call_origins, chunk.call_first, chunk.call_count, strict=True):
+        b = a + n
+        multi_ray(model, data, o, dflat[3 * a:3 * b], geomgroup, 1, -1, geomid[a:b], dist[a:b],
+                  nflat[3 * a:3 * b], n, cutoff_m)
+
+
+# --- the sensor model ------------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class LidarOutput:
+    """Simulated scans: ranges_m (S, N) (NaN/inf: no return), intensities (S, N) counts, and run statistics:
+    rays cast, mj_multiRay calls, seconds inside the cast loop and in total, the largest shared-origin error
+    (m) and direction error (rad) batching introduced, and the largest parallax correction applied (m)."""
+
+    ranges_m: FloatArray
+    intensities: FloatArray
+    n_rays: int
+    n_calls: int
+    cast_time_s: float
+    total_time_s: float
+    max_origin_error_m: float
+    max_direction_error_rad: float
+    max_parallax_correction_m: float
+
+
+def range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> FloatArray:
+    """Range noise sigma [m] per range from ``noise_bands`` (first band with r <= up_to_m; last beyond)."""
+    up = np.array([b.up_to_m for b in sensor.noise_bands])
+    sig = np.array([b.sigma_m for b in sensor.noise_bands])
+    if up.size == 0:
+        return np.zeros_like(ranges_m)
+    order = np.argsort(up)
+    idx = np.searchsorted(up[order], ranges_m, side="left")
+    return sig[order][np.minimum(idx, up.size - 1)]
+
+
+def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray,
+                   rng: np.random.Generator, *, origin_tol_m: float = 1e-6, chunk_scans: int = 16,
+                   progress: Callable[[int, int], None] | None = None) -> LidarOutput:
+    """Ray cast and sensor model (module docstring) for motor angles ``beam_lambda_rad`` (S, N) at every beam.
+
+    ``rng`` draws the range and intensity noise (all of it up front, so results do not depend on the
+    chunking). ``progress(done_scans, total_scans)`` is called after every chunk.
+    """
+    t_start = time.perf_counter()
+    lam = np.ascontiguousarray(beam_lambda_rad, dtype=float)
+    if lam.ndim != 2 or lam.shape[1] != sensor.n_beams:
+        raise InputError(f"lidar: beam_lambda_rad must have shape (S, {sensor.n_beams}), got {lam.shape}")
+    S, N = lam.shape
+    F = sensor.footprint_rays
+    cfg = sensor.intensity
+    refl = np.asarray(scene.geom_reflectivity, dtype=float)
+    is_marker = np.asarray(scene.geom_is_marker, dtype=bool)
+    geomgroup = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
+    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
+    cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
+
+    if sensor.noise:
+        z_range = rng.standard_normal((S, N))
+        z_int = rng.standard_normal((S, N))
+    ranges = np.empty((S, N))
+    intens = np.empty((S, N))
+
+    M = chunk_scans * N * F
+    gid = np.empty(M, dtype=np.int32)
+    dist = np.empty(M)
+    nrm = np.empty((M, 3))
+    n_rays = n_calls = 0
+    cast_s = 0.0
+    max_off = max_corr = 0.0
+    for ch in iter_ray_chunks(scene, sensor, lam, origin_tol_m=origin_tol_m, chunk_scans=chunk_scans):
+        Sc = ch.scans.stop - ch.scans.start
+        m = Sc * N * F
+        t0 = time.perf_counter()
+        cast_chunk(scene.model, scene.data, geomgroup, ch, cutoff, gid[:m], dist[:m], nrm[:m])
+        cast_s += time.perf_counter() - t0
+        n_rays += m
+        n_calls += len(ch.call_first)
+
+        g = gid[:m].reshape(Sc, N, F)
+        hit = g >= 0
+        d = ch.directions.reshape(Sc, N, F, 3)
+        nv = nrm[:m].reshape(Sc, N, F, 3)
+        dn = np.einsum("sbfk,sbfk->sbf", d, nv)
+        en = np.einsum("sbk,sbfk->sbf", ch.offset, nv)
+        ok = hit & (np.abs(dn) > _MIN_NORMAL_DOT)
+        corr = np.divide(en, dn, out=np.zeros_like(dn), where=ok)
+        r = np.where(hit, dist[:m].reshape(Sc, N, F) + corr, 1.0)
+        max_off = max(max_off, float(np.sqrt(np.max(np.einsum("sbk,sbk->sb", ch.offset, ch.offset)))))
+        max_corr = max(max_corr, float(np.max(np.abs(corr))))
+        gi = np.where(hit, g, 0)
+        cos = np.minimum(np.abs(dn), 1.0)
+        lobe = cos
+        mk = is_marker[gi] & hit
+        if mk.any():
+            lobe = cos.copy()
+            lobe[mk] = cos[mk] ** RETRO_EXPONENT
+        P = cfg.gain_counts * refl[gi] * lobe * (cfg.ref_range_m / np.maximum(r, 1e-9)) ** 2
+        P *= hit
+        Psum = P.sum(-1)
+        PR = np.einsum("sbf,sbf->sb", P, r)
+        sl = ch.scans
+        ranges[sl] = np.divide(PR, Psum, out=np.full_like(PR, np.nan), where=Psum > 0)
+        intens[sl] = Psum / F
+        if progress is not None:
+            progress(sl.stop, S)
+
+    # sensor model on whole (S, N) arrays
+    received = intens > 0
+    if sensor.noise:
+        intens *= np.maximum(0.0, 1.0 + cfg.relative_noise * z_int)
+    np.round(intens, out=intens)
+    np.minimum(intens, cfg.saturation_counts, out=intens)
+    valid = received & (intens >= cfg.min_detectable_counts)
+    if sensor.noise:
+        ranges += range_sigma(np.where(received, ranges, 0.0), sensor) * z_range
+    if sensor.quantisation_m > 0:
+        ranges = np.round(ranges / sensor.quantisation_m) * sensor.quantisation_m
+    with np.errstate(invalid="ignore"):
+        valid &= (ranges >= sensor.range_min_m) & (ranges <= sensor.range_max_m)
+    ranges[~valid] = np.inf if sensor.no_return == "inf" else np.nan
+    return LidarOutput(ranges_m=ranges, intensities=intens, n_rays=n_rays, n_calls=n_calls, cast_time_s=cast_s,
+                       total_time_s=time.perf_counter() - t_start, max_origin_error_m=max_off,
+                       max_direction_error_rad=0.0, max_parallax_correction_m=max_corr)
+
+
+__all__ = ["RETRO_EXPONENT", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W",
+           "beam_times", "cast_chunk", "footprint_coefficients", "footprint_directions_L", "iter_ray_chunks", "plan_runs", "range_sigma",
+           "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W"]

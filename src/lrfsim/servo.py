@@ -1,0 +1,202 @@
+"""The servo: the motor trajectory lambda(t) and the joint-state stream it publishes.
+
+Clocks. The simulation's true time is the servo's clock: t = 0 is the start of the trajectory. The laser stamps
+the same instant as ``t + clock_offset_s`` (ServoConfig.clock_offset_s; laser stamp = servo stamp + offset),
+see :func:`laser_time`.
+
+Trajectory. ``settle_s`` standstill, then ``passes`` sweeps alternating start -> end -> start ..., each followed
+by ``settle_s`` standstill. Each sweep is a trapezoidal velocity profile: constant acceleration
+``accel_rad_s2`` up to ``speed_rad_s``, cruise, symmetric deceleration (a triangle when the sweep is too short
+to reach the speed). Position is C1, velocity is continuous, acceleration piecewise constant.
+
+Joint states. Samples every ``1 / rate_hz`` from t = 0 to the end of the trajectory, stamped with the servo
+clock. The reported position is the true angle passed through a backlash (play) operator of width
+``backlash_rad`` and then quantised to the encoder's grid ``2 pi / encoder_counts`` (Dynamixel MX/XM: 4096
+counts per revolution and 0.25-0.33 deg backlash, ROBOTIS e-Manual via FACTS.md). Velocity is the true
+velocity (not quantised).
+
+Backlash model (the play operator, Krasnosel'skii-Pokrovskii): the reported angle r(t) stays inside the band
+[lambda(t) - backlash/2, lambda(t) + backlash/2] and moves only when the band pushes it:
+
+    r(t) = max(r_0, lambda(t) - backlash/2)  while lambda increases,
+    r(t) = min(r_0, lambda(t) + backlash/2)  while lambda decreases,
+
+with r_0 its value when the current motion began. In steady motion the report therefore lags the truth by
+backlash/2 in the direction of motion; after a reversal it holds still until the truth has moved ``backlash``
+back. Initial state: r = lambda(0) - s_1 backlash/2 with s_1 the direction of the first sweep (the servo
+approached the start position moving that way, as after a homing move).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from lrfcal.errors import InputError
+
+from .scenario import ServoConfig
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A piecewise motion: K segments (holds and trapezoidal moves), back to back from t = 0.
+
+    All arrays (K,): start_s segment start time; duration_s; from_rad start angle; direction (+1, -1, or 0 for a
+    hold); distance_rad (>= 0); accel_rad_s2 (0 for a hold); ramp_s acceleration time; peak_rad_s cruise speed.
+    """
+
+    start_s: FloatArray
+    duration_s: FloatArray
+    from_rad: FloatArray
+    direction: FloatArray
+    distance_rad: FloatArray
+    accel_rad_s2: FloatArray
+    ramp_s: FloatArray
+    peak_rad_s: FloatArray
+    backlash_rad: float = 0.0
+
+    @property
+    def end_s(self) -> float:
+        """Total duration [s]."""
+        return float(self.start_s[-1] + self.duration_s[-1])
+
+    def _locate(self, t_s: ArrayLike) -> tuple[NDArray[np.intp], FloatArray]:
+        t = np.clip(np.asarray(t_s, dtype=float), 0.0, self.end_s)
+        k = np.searchsorted(self.start_s, t, side="right") - 1
+        k = np.clip(k, 0, self.start_s.size - 1)
+        return k, t - self.start_s[k]
+
+    def _progress(self, k: NDArray[np.intp], tau: FloatArray) -> tuple[FloatArray, FloatArray]:
+        """Distance travelled (>= 0) and speed (>= 0) into segment k at local time tau."""
+        a, ta, vp, T, D = (self.accel_rad_s2[k], self.ramp_s[k], self.peak_rad_s[k], self.duration_s[k],
+                           self.distance_rad[k])
+        tau = np.minimum(tau, T)
+        rem = T - tau
+        accel = tau < ta
+        decel = rem < ta
+        s = np.where(accel, 0.5 * a * tau**2, 0.5 * a * ta**2 + vp * (tau - ta))
+        s = np.where(decel & ~accel, D - 0.5 * a * rem**2, s)
+        v = np.where(accel, a * tau, np.where(decel, a * rem, vp))
+        return s, v
+
+    def angle(self, t_s: ArrayLike) -> FloatArray:
+        """True motor angle lambda(t) [rad], same shape as ``t_s`` (servo clock; clamped to [0, end])."""
+        k, tau = self._locate(t_s)
+        s, _ = self._progress(k, tau)
+        return self.from_rad[k] + self.direction[k] * s
+
+    def velocity(self, t_s: ArrayLike) -> FloatArray:
+        """True motor velocity d lambda / dt [rad/s], same shape as ``t_s``."""
+        k, tau = self._locate(t_s)
+        _, v = self._progress(k, tau)
+        return self.direction[k] * v
+
+    def reported_angle(self, t_s: ArrayLike) -> FloatArray:
+        """The angle after the backlash play operator (module docstring), before encoder quantisation."""
+        lam = self.angle(t_s)
+        h = 0.5 * self.backlash_rad
+        if h == 0.0:
+            return lam
+        # state r_0 at the start of every segment, propagated segment by segment (K is small)
+        moves = self.direction != 0
+        first = float(self.direction[moves][0]) if moves.any() else 1.0
+        r0 = np.empty(self.start_s.size)
+        r = float(self.from_rad[0]) - first * h
+        for j in range(self.start_s.size):
+            r0[j] = r
+            end = float(self.from_rad[j] + self.direction[j] * self.distance_rad[j])
+            if self.direction[j] > 0:
+                r = max(r, end - h)
+            elif self.direction[j] < 0:
+                r = min(r, end + h)
+        k, _ = self._locate(t_s)
+        d = self.direction[k]
+        out = np.where(d > 0, np.maximum(r0[k], lam - h), r0[k])
+        return np.where(d < 0, np.minimum(r0[k], lam + h), out)
+
+
+def move_profile(distance_rad: float, speed_rad_s: float, accel_rad_s2: float) -> tuple[float, float, float]:
+    """Trapezoidal profile of a move: (duration_s, ramp_s, peak_rad_s).
+
+    Cruise at ``speed`` if the move is long enough (distance >= speed^2 / accel): duration = D / v + v / a;
+    otherwise a triangle: ramp = sqrt(D / a), peak = a * ramp, duration = 2 ramp.
+    """
+    if distance_rad <= 0:
+        return 0.0, 0.0, 0.0
+    ramp = speed_rad_s / accel_rad_s2
+    if distance_rad >= speed_rad_s * ramp:
+        return distance_rad / speed_rad_s + ramp, ramp, speed_rad_s
+    ramp = math.sqrt(distance_rad / accel_rad_s2)
+    return 2.0 * ramp, ramp, accel_rad_s2 * ramp
+
+
+def sweep_trajectory(servo: ServoConfig) -> Trajectory:
+    """The sweep of a scenario: hold, (move, hold) x passes (module docstring)."""
+    dist = abs(servo.end_rad - servo.start_rad)
+    sign = math.copysign(1.0, servo.end_rad - servo.start_rad)
+    T, ramp, peak = move_profile(dist, servo.speed_rad_s, servo.accel_rad_s2)
+    rows: list[tuple[float, float, float, float, float, float, float]] = []  # dur, from, dir, D, a, ramp, peak
+    rows.append((servo.settle_s, servo.start_rad, 0.0, 0.0, 0.0, 0.0, 0.0))
+    at = servo.start_rad
+    for p in range(servo.passes):
+        d = sign if p % 2 == 0 else -sign
+        rows.append((T, at, d, dist, servo.accel_rad_s2, ramp, peak))
+        at = servo.end_rad if p % 2 == 0 else servo.start_rad
+        rows.append((servo.settle_s, at, 0.0, 0.0, 0.0, 0.0, 0.0))
+    arr = np.array(rows, dtype=float)
+    starts = np.concatenate([[0.0], np.cumsum(arr[:-1, 0])])
+    return Trajectory(start_s=starts, duration_s=arr[:, 0], from_rad=arr[:, 1], direction=arr[:, 2],
+                      distance_rad=arr[:, 3], accel_rad_s2=arr[:, 4], ramp_s=arr[:, 5], peak_rad_s=arr[:, 6],
+                      backlash_rad=servo.backlash_rad)
+
+
+def quantise_encoder(angle_rad: ArrayLike, encoder_counts: int) -> FloatArray:
+    """Round to the encoder grid 2 pi / counts (0 counts: unchanged). Same shape as ``angle_rad``."""
+    a = np.asarray(angle_rad, dtype=float)
+    if encoder_counts == 0:
+        return a.copy()
+    step = 2.0 * math.pi / encoder_counts
+    return np.round(a / step) * step
+
+
+@dataclass(frozen=True)
+class JointSamples:
+    """The servo's JointState stream: stamps_s (J,) servo clock, positions_rad (J,) reported (backlash +
+    encoder), velocities_rad_s (J,) true velocity, true_positions_rad (J,) the truth at the stamps."""
+
+    stamps_s: FloatArray
+    positions_rad: FloatArray
+    velocities_rad_s: FloatArray
+    true_positions_rad: FloatArray
+
+
+def joint_samples(traj: Trajectory, servo: ServoConfig) -> JointSamples:
+    """Samples at k / rate_hz, k = 0 .. floor(end * rate_hz), on the servo clock."""
+    n = int(math.floor(traj.end_s * servo.rate_hz + 1e-9)) + 1
+    t = np.arange(n, dtype=float) / servo.rate_hz
+    return JointSamples(
+        stamps_s=t,
+        positions_rad=quantise_encoder(traj.reported_angle(t), servo.encoder_counts),
+        velocities_rad_s=traj.velocity(t),
+        true_positions_rad=traj.angle(t),
+    )
+
+
+def laser_time(t_servo_s: ArrayLike, clock_offset_s: float) -> FloatArray:
+    """Laser-clock stamp of the instant the servo clock reads ``t_servo_s``: t + clock_offset_s."""
+    return np.asarray(t_servo_s, dtype=float) + clock_offset_s
+
+
+def check_trajectory(traj: Trajectory, max_duration_s: float = 3600.0) -> None:
+    """Refuse absurd recordings (hours of data) before allocating them."""
+    if traj.end_s > max_duration_s:
+        raise InputError(f"servo: the sweep lasts {traj.end_s:.0f} s, more than {max_duration_s:.0f} s")
+
+
+__all__ = ["JointSamples", "Trajectory", "check_trajectory", "joint_samples", "laser_time", "move_profile",
+           "quantise_encoder", "sweep_trajectory"]
