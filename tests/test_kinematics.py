@@ -5,13 +5,29 @@ import pytest
 
 from lrfcal.errors import InputError
 from lrfcal.kinematics import (
-    DH, Params, Pose, beam_rays_M, chain_T_M_L, dh_from_mapping, points_M, points_W, pose_matrix, rot_x, rot_y,
-    rot_z, transform_points,
+    DH,
+    Params,
+    Pose,
+    beam_rays_M,
+    chain_T_M_L,
+    dh_from_mapping,
+    points_M,
+    points_W,
+    pose_matrix,
+    rot_x,
+    rot_y,
+    rot_z,
+    transform_points,
 )
 
 
 def _random_dh(rng: np.random.Generator) -> DH:
-    return DH(rng.uniform(-0.05, 0.05), rng.uniform(-np.pi, np.pi), rng.uniform(-0.05, 0.05), rng.uniform(-np.pi, np.pi))
+    return DH(
+        rng.uniform(-0.05, 0.05),
+        rng.uniform(-np.pi, np.pi),
+        rng.uniform(-0.05, 0.05),
+        rng.uniform(-np.pi, np.pi),
+    )
 
 
 def test_closed_form_equals_matrix_product() -> None:
@@ -60,8 +76,11 @@ def test_points_W_composes_T_W_M_and_T_M_L() -> None:
 
 @pytest.mark.parametrize(
     ("data", "field"),
-    [({"a": 0, "alpha": 0, "b": 0}, "beta"), ({"a": 0, "alpha": 0, "b": 0, "beta": 0, "c": 1}, "c"),
-     ({"a": "x", "alpha": 0, "b": 0, "beta": 0}, "a")],
+    [
+        ({"a": 0, "alpha": 0, "b": 0}, "beta"),
+        ({"a": 0, "alpha": 0, "b": 0, "beta": 0, "c": 1}, "c"),
+        ({"a": "x", "alpha": 0, "b": 0, "beta": 0}, "a"),
+    ],
 )
 def test_dh_mapping_errors_name_the_field(data: dict, field: str) -> None:
     with pytest.raises(InputError, match=rf"nominal\.yaml: dh\.{field}"):

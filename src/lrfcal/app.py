@@ -20,7 +20,7 @@ def calibrate_folder(
     bag: Path | None = None,
     distances: Path | None = None,
     nominal: Path | None = None,
-    config: CalibConfig = CalibConfig(),
+    config: CalibConfig | None = None,
     overwrite: bool = False,
     truth: Any = None,
     rrd_path: Path | None = None,
@@ -34,10 +34,13 @@ def calibrate_folder(
     """
     from . import figures, output
 
+    config = config or CalibConfig()
     recording = read_recording(recording_dir, bag=bag, distances=distances, nominal=nominal)
     result = calibrate(recording, config)
     truth_dict = None if truth is None else _truth_dict(truth)
-    with tempfile.TemporaryDirectory(prefix=".figures-", dir=out_dir.parent if out_dir.parent.exists() else None) as tmp:
+    with tempfile.TemporaryDirectory(
+        prefix=".figures-", dir=out_dir.parent if out_dir.parent.exists() else None
+    ) as tmp:
         figs = figures.write_figures(result, Path(tmp))
         report = output.render_report(result, truth=truth_dict)
         report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.items()) + "\n"
@@ -70,4 +73,6 @@ def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, tr
         true_markers_W = transform_points(T_W_sim, true_sim)
         if scene is not None:
             geoms = viz.scene_geoms_from_mujoco(scene.model, scene.data, T_W_world=T_W_sim)
-    viz.log_calibration(result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W)
+    viz.log_calibration(
+        result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W
+    )

@@ -22,14 +22,24 @@ def _root() -> None:
 def calibrate_cmd(
     recording: Annotated[Path, typer.Argument(help="Recording folder (bag/, distances.csv, nominal.yaml).")],
     out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (written atomically).")],
-    bag: Annotated[Path | None, typer.Option(help="Bag to read instead of RECORDING/bag (ROS 1 .bag or ROS 2).")] = None,
-    distances: Annotated[Path | None, typer.Option(help="Tape distances CSV (default RECORDING/distances.csv).")] = None,
-    nominal: Annotated[Path | None, typer.Option(help="Nominal values YAML (default RECORDING/nominal.yaml).")] = None,
-    range_sigma: Annotated[float, typer.Option(help="Range noise sigma [m] of the scanner.", min=1e-5)] = 0.010,
+    bag: Annotated[
+        Path | None, typer.Option(help="Bag to read instead of RECORDING/bag (ROS 1 .bag or ROS 2).")
+    ] = None,
+    distances: Annotated[
+        Path | None, typer.Option(help="Tape distances CSV (default RECORDING/distances.csv).")
+    ] = None,
+    nominal: Annotated[
+        Path | None, typer.Option(help="Nominal values YAML (default RECORDING/nominal.yaml).")
+    ] = None,
+    range_sigma: Annotated[
+        float, typer.Option(help="Range noise sigma [m] of the scanner.", min=1e-5)
+    ] = 0.010,
     clock_offset: Annotated[float, typer.Option(help="Laser stamp minus servo stamp [s], if known.")] = 0.0,
     no_baseline: Annotated[bool, typer.Option("--no-baseline", help="Skip the paper's variant.")] = False,
     overwrite: Annotated[bool, typer.Option(help="Replace an existing output folder.")] = False,
-    rrd: Annotated[Path | None, typer.Option("--rrd", help="Save a rerun recording (.rrd), headless.")] = None,
+    rrd: Annotated[
+        Path | None, typer.Option("--rrd", help="Save a rerun recording (.rrd), headless.")
+    ] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer.")] = False,
 ) -> None:
     """Calibrate the 10 parameters from RECORDING and write calibration.yaml, rig.urdf, clouds and a report."""
@@ -41,8 +51,15 @@ def calibrate_cmd(
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline)
     result = calibrate_folder(
-        recording, out, bag=bag, distances=distances, nominal=nominal, config=config,
-        overwrite=overwrite, rrd_path=rrd, spawn=spawn,
+        recording,
+        out,
+        bag=bag,
+        distances=distances,
+        nominal=nominal,
+        config=config,
+        overwrite=overwrite,
+        rrd_path=rrd,
+        spawn=spawn,
     )
     print_summary(result, console)
     console.print(f"wrote {out}")
@@ -65,7 +82,10 @@ def print_summary(result, console) -> None:  # type: ignore[no-untyped-def]
     for i, n in enumerate(PARAM_NAMES):
         f, unit = (math.degrees, "deg") if n in ANGLE_NAMES else ((lambda v: v * 1000), "mm")
         table.add_row(
-            f"{n} ({unit})", f"{f(start[i]):.3f}", f"{f(est[i]):.3f}", f"{f(sol.sigma[i]):.3f}",
+            f"{n} ({unit})",
+            f"{f(start[i]):.3f}",
+            f"{f(est[i]):.3f}",
+            f"{f(sol.sigma[i]):.3f}",
             "-" if paper is None else f"{f(paper[i]):.3f}",
         )
     console.print(table)

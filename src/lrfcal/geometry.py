@@ -85,7 +85,7 @@ def _ransac(points: FloatArray, rng: np.random.Generator, threshold_m: float, n_
 def extract_planes(
     points: ArrayLike,
     threshold_m: float = 0.03,
-    max_planes: int = 8,
+    max_planes: int = 10,
     min_inliers: int | None = None,
     seed: int = 0,
     n_hyp: int = 300,
@@ -93,12 +93,12 @@ def extract_planes(
 ) -> list[FittedPlane]:
     """Sequential RANSAC on (P, 3) points; returns planes by decreasing support (inlier indices into points).
 
-    Stops when the best plane has fewer than ``min_inliers`` (default max(200, 3 % of P)) inliers.
+    Stops when the best plane has fewer than ``min_inliers`` (default max(200, 1 % of P)) inliers.
     """
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     P = len(pts)
     if min_inliers is None:
-        min_inliers = max(200, int(0.03 * P))
+        min_inliers = max(200, int(0.01 * P))
     rng = np.random.default_rng(seed)
     remaining = np.arange(P)
     found: list[tuple[FloatArray, float]] = []

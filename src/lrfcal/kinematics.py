@@ -87,7 +87,9 @@ class Params:
 
     def vector(self) -> FloatArray:
         """(10,) in :data:`PARAM_NAMES` order."""
-        return np.array([getattr(self.mount, n) for n in MOUNT_NAMES] + [getattr(self.dh, n) for n in DH_NAMES])
+        return np.array(
+            [getattr(self.mount, n) for n in MOUNT_NAMES] + [getattr(self.dh, n) for n in DH_NAMES]
+        )
 
     @staticmethod
     def from_vector(v: ArrayLike) -> Params:
@@ -127,6 +129,7 @@ def _floats(data: Any, names: tuple[str, ...], where: str) -> dict[str, float]:
 
 
 # --- elementary transforms ----------------------------------------------------------------------------------
+
 
 def rot_x(t: ArrayLike) -> FloatArray:
     """Rotation matrices about x, shape (..., 3, 3) for angles of shape (...)."""
@@ -177,6 +180,7 @@ def homogeneous(R: ArrayLike, t: ArrayLike) -> FloatArray:
 
 
 # --- eq. (3) ------------------------------------------------------------------------------------------------
+
 
 def chain_T_M_L(lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> FloatArray:
     """T_M_L by multiplying the paper's elementary matrices, eqs. (4)-(9): shape (K, 4, 4) for K angles.
@@ -241,7 +245,25 @@ def wrap_angle(a: ArrayLike) -> FloatArray:
 
 
 __all__ = [
-    "ANGLE_NAMES", "DH", "DH_NAMES", "MOUNT_NAMES", "PARAM_NAMES", "Params", "Pose", "beam_rays_M", "chain_T_M_L",
-    "dh_from_mapping", "homogeneous", "points_M", "points_W", "pose_from_mapping", "pose_matrix", "rot_x", "rot_y",
-    "rot_z", "rpy_matrix", "transform_points", "wrap_angle",
+    "ANGLE_NAMES",
+    "DH",
+    "DH_NAMES",
+    "MOUNT_NAMES",
+    "PARAM_NAMES",
+    "Params",
+    "Pose",
+    "beam_rays_M",
+    "chain_T_M_L",
+    "dh_from_mapping",
+    "homogeneous",
+    "points_M",
+    "points_W",
+    "pose_from_mapping",
+    "pose_matrix",
+    "rot_x",
+    "rot_y",
+    "rot_z",
+    "rpy_matrix",
+    "transform_points",
+    "wrap_angle",
 ]

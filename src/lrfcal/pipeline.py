@@ -35,8 +35,9 @@ class CalibConfig:
     geometry: bool = True  # fit tunnel planes (Table III)
 
 
-def calibrate(recording: Recording, config: CalibConfig = CalibConfig()) -> CalibrationResult:
+def calibrate(recording: Recording, config: CalibConfig | None = None) -> CalibrationResult:
     """Run stages 1-8 on a recording; see the module docstring."""
+    config = config or CalibConfig()
     clock = _Stopwatch()
     scans, joints, nominal = recording.scans, recording.joints, recording.nominal
 
@@ -45,7 +46,9 @@ def calibrate(recording: Recording, config: CalibConfig = CalibConfig()) -> Cali
 
     detections = detection.detect(scans)  # 2.
     if not detections.blobs:
-        raise CalibrationError(f"no marker returns found (intensity threshold {detections.threshold:.0f} counts)")
+        raise CalibrationError(
+            f"no marker returns found (intensity threshold {detections.threshold:.0f} counts)"
+        )
     clock.lap("detection")
 
     returns = detection.observations(scans, joints, detections, clock_offset_s=config.clock_offset_s)  # 3.
@@ -65,8 +68,12 @@ def calibrate(recording: Recording, config: CalibConfig = CalibConfig()) -> Cali
 
     start = Params(Pose.from_matrix(assoc.T_W_M), nominal.dh)  # 5.
     ours = solve.solve(  # 6.
-        matched, markers.positions_W, start, model="sphere",
-        marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+        matched,
+        markers.positions_W,
+        start,
+        model="sphere",
+        marker_radius_m=nominal.marker_radius_m,
+        range_sigma_m=config.range_sigma_m,
     )
     clock.lap("solve")
 
@@ -76,13 +83,19 @@ def calibrate(recording: Recording, config: CalibConfig = CalibConfig()) -> Cali
         lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
         peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
         baseline = solve.solve(
-            peaks, markers.positions_W, start, model="paper",
-            marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+            peaks,
+            markers.positions_W,
+            start,
+            model="paper",
+            marker_radius_m=nominal.marker_radius_m,
+            range_sigma_m=config.range_sigma_m,
         )
         clock.lap("baseline")
 
     lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=config.clock_offset_s)  # 7.
-    cloud_before, cloud_intensity = reproject.reproject_cloud(scans, lambda_beams, nominal.dh, config.cloud_stride)
+    cloud_before, cloud_intensity = reproject.reproject_cloud(
+        scans, lambda_beams, nominal.dh, config.cloud_stride
+    )
     cloud_after, _ = reproject.reproject_cloud(scans, lambda_beams, ours.params.dh, config.cloud_stride)
     clock.lap("reprojection")
 
@@ -93,10 +106,20 @@ def calibrate(recording: Recording, config: CalibConfig = CalibConfig()) -> Cali
         clock.lap("geometry")
 
     return CalibrationResult(
-        recording=recording, markers=markers, detections=detections, observations=matched,
-        association=assoc, start=start, solution=ours, baseline=baseline,
-        cloud_before_M=cloud_before, cloud_after_M=cloud_after, cloud_intensity=cloud_intensity,
-        geometry_before=geometry_before, geometry_after=geometry_after, timings_s=clock.laps,
+        recording=recording,
+        markers=markers,
+        detections=detections,
+        observations=matched,
+        association=assoc,
+        start=start,
+        solution=ours,
+        baseline=baseline,
+        cloud_before_M=cloud_before,
+        cloud_after_M=cloud_after,
+        cloud_intensity=cloud_intensity,
+        geometry_before=geometry_before,
+        geometry_after=geometry_after,
+        timings_s=clock.laps,
     )
 
 

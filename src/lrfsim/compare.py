@@ -15,7 +15,7 @@ import yaml
 
 from lrfcal.association import kabsch
 from lrfcal.errors import InputError
-from lrfcal.kinematics import DH_NAMES, DH, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
+from lrfcal.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
 from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
 
 from .scenario import Tolerances
@@ -107,7 +107,9 @@ class Comparison:
     def failures(self) -> list[str]:
         out = [f"{r.name}: |error| {abs(r.error):.3g} > {r.tolerance:.3g}" for r in self.dh_rows if not r.ok]
         if self.mount_position_error_m > self.tolerances.position_m:
-            out.append(f"mount position: error {self.mount_position_error_m:.3g} m > {self.tolerances.position_m}")
+            out.append(
+                f"mount position: error {self.mount_position_error_m:.3g} m > {self.tolerances.position_m}"
+            )
         if self.mount_rotation_error_rad > self.tolerances.rotation_rad:
             out.append(
                 f"mount rotation: error {self.mount_rotation_error_rad:.3g} rad > {self.tolerances.rotation_rad:.3g}"
@@ -142,7 +144,12 @@ def _mount_errors(result: CalibrationResult, solution: Solution, truth: Truth) -
 
 def compare(result: CalibrationResult, truth: Truth, tolerances: Tolerances) -> Comparison:
     """Build Tables I and III for a calibration result against the ground truth."""
-    tol = {"a": tolerances.a_m, "b": tolerances.b_m, "alpha": tolerances.alpha_rad, "beta": tolerances.beta_rad}
+    tol = {
+        "a": tolerances.a_m,
+        "b": tolerances.b_m,
+        "alpha": tolerances.alpha_rad,
+        "beta": tolerances.beta_rad,
+    }
     paper = result.baseline
     rows = tuple(
         ParamRow(

@@ -1,8 +1,8 @@
 """`lrfsim run`: simulate a scenario, calibrate the recording as a real one, compare with the ground truth.
 
-    DIR/recording/     what the simulated rig recorded (docs/formats.md)
-    DIR/calibration/   what `lrfcal calibrate` writes (calibration.yaml, rig.urdf, clouds, report, figures)
-    DIR/comparison.md  Tables I and III against the truth
+DIR/recording/     what the simulated rig recorded (docs/formats.md)
+DIR/calibration/   what `lrfcal calibrate` writes (calibration.yaml, rig.urdf, clouds, report, figures)
+DIR/comparison.md  Tables I and III against the truth
 """
 
 from __future__ import annotations
@@ -55,8 +55,13 @@ def run_loop(
     truth = load_truth(recording_dir / "ground_truth.yaml")
     t0 = time.perf_counter()
     result = calibrate_folder(
-        recording_dir, out_dir / "calibration", overwrite=overwrite, truth=truth,
-        rrd_path=rrd_path, spawn=spawn, scene=sim.scene if hasattr(sim, "scene") else None,
+        recording_dir,
+        out_dir / "calibration",
+        overwrite=overwrite,
+        truth=truth,
+        rrd_path=rrd_path,
+        spawn=spawn,
+        scene=sim.scene if hasattr(sim, "scene") else None,
     )
     timings["calibrate+write"] = time.perf_counter() - t0
     timings.update({f"  {k}": v for k, v in result.timings_s.items()})
@@ -88,21 +93,43 @@ def table_rows(c: Comparison) -> tuple[list[list[str]], list[list[str]]]:
     t1 = []
     for r in c.dh_rows:
         unit = "mm" if r.unit == "m" else "deg"
-        t1.append([
-            f"{r.name} ({unit})", _fmt(r.name, r.truth), _fmt(r.name, r.ours), _fmt(r.name, r.error),
-            _fmt(r.name, r.paper), _fmt(r.name, r.paper_error), "ok" if r.ok else "MISS",
-        ])
-    t1.append([
-        "mount position (mm)", "", "", _mm(c.mount_position_error_m), "", _mm(c.paper_mount_position_error_m),
-        "ok" if c.mount_position_error_m <= c.tolerances.position_m else "MISS",
-    ])
-    t1.append([
-        "mount rotation (deg)", "", "", _deg(c.mount_rotation_error_rad), "", _deg(c.paper_mount_rotation_error_rad),
-        "ok" if c.mount_rotation_error_rad <= c.tolerances.rotation_rad else "MISS",
-    ])
+        t1.append(
+            [
+                f"{r.name} ({unit})",
+                _fmt(r.name, r.truth),
+                _fmt(r.name, r.ours),
+                _fmt(r.name, r.error),
+                _fmt(r.name, r.paper),
+                _fmt(r.name, r.paper_error),
+                "ok" if r.ok else "MISS",
+            ]
+        )
+    t1.append(
+        [
+            "mount position (mm)",
+            "",
+            "",
+            _mm(c.mount_position_error_m),
+            "",
+            _mm(c.paper_mount_position_error_m),
+            "ok" if c.mount_position_error_m <= c.tolerances.position_m else "MISS",
+        ]
+    )
+    t1.append(
+        [
+            "mount rotation (deg)",
+            "",
+            "",
+            _deg(c.mount_rotation_error_rad),
+            "",
+            _deg(c.paper_mount_rotation_error_rad),
+            "ok" if c.mount_rotation_error_rad <= c.tolerances.rotation_rad else "MISS",
+        ]
+    )
     t3 = [
         [
-            f"{r.name} (mm)", f"{r.truth * 1000:.1f}",
+            f"{r.name} (mm)",
+            f"{r.truth * 1000:.1f}",
             "-" if r.calibrated is None else f"{r.calibrated * 1000:.1f}",
             "-" if r.calibrated is None else f"{(r.calibrated - r.truth) * 1000:+.1f}",
             "-" if r.nominal is None else f"{r.nominal * 1000:.1f}",
@@ -126,8 +153,14 @@ def comparison_markdown(c: Comparison) -> str:
         lines += ["| " + " | ".join(r) + " |" for r in rows]
         return "\n".join(lines)
 
-    parts = ["# Recovery against the ground truth", "", "## Table I: DH parameters and mount pose", "",
-             md(T1_HEAD, t1), ""]
+    parts = [
+        "# Recovery against the ground truth",
+        "",
+        "## Table I: DH parameters and mount pose",
+        "",
+        md(T1_HEAD, t1),
+        "",
+    ]
     if t3:
         parts += ["## Table III: tunnel dimensions from the reprojected cloud", "", md(T3_HEAD, t3), ""]
     parts += ["Result: " + ("all within tolerance" if c.ok else "MISSED: " + "; ".join(c.failures)), ""]
@@ -136,8 +169,10 @@ def comparison_markdown(c: Comparison) -> str:
 
 def print_comparison(c: Comparison, console: Console) -> None:
     t1, t3 = table_rows(c)
-    for title, head, rows in (("Table I: DH parameters and mount pose", T1_HEAD, t1),
-                              ("Table III: tunnel dimensions", T3_HEAD, t3)):
+    for title, head, rows in (
+        ("Table I: DH parameters and mount pose", T1_HEAD, t1),
+        ("Table III: tunnel dimensions", T3_HEAD, t3),
+    ):
         if not rows:
             continue
         table = Table(title=title)

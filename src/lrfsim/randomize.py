@@ -43,8 +43,10 @@ def random_scenario(seed: int, *, sweep_speed_deg_s: float = 20.0, passes: int =
         "b": dh["b"] + rng.uniform(-0.003, 0.003),
         "beta": sign_beta * math.pi / 2,
     }
-    nominal_mount = {k: v + (rng.uniform(-0.03, 0.03) if k in "xyz" else math.radians(rng.uniform(-3, 3)))
-                     for k, v in mount.items()}
+    nominal_mount = {
+        k: v + (rng.uniform(-0.03, 0.03) if k in "xyz" else math.radians(rng.uniform(-3, 3)))
+        for k, v in mount.items()
+    }
     radius = 0.005
     n_markers = int(rng.integers(10, 21))
     positions = _markers_on_walls(rng, n_markers, width, height, plate_x, radius)
@@ -53,7 +55,9 @@ def random_scenario(seed: int, *, sweep_speed_deg_s: float = 20.0, passes: int =
         "name": f"random_{seed}",
         "seed": seed,
         "rig": {"dh": dh, "mount": mount, "nominal_dh": nominal_dh, "nominal_mount": nominal_mount},
-        "sensor": {"noise_bands": [{"up_to_m": 10.0, "sigma_m": sigma}, {"up_to_m": 60.0, "sigma_m": 3 * sigma}]},
+        "sensor": {
+            "noise_bands": [{"up_to_m": 10.0, "sigma_m": sigma}, {"up_to_m": 60.0, "sigma_m": 3 * sigma}]
+        },
         "servo": {"speed_rad_s": math.radians(sweep_speed_deg_s), "passes": passes},
         "scene": {"tunnel": {"width_m": width, "height_m": height, "plate_x_m": plate_x, "x_min_m": -1.0}},
         "markers": {"radius_m": radius, "layout": {"kind": "points", "positions": positions}},

@@ -297,7 +297,9 @@ def load_scenario(path: str | Path) -> Scenario:
     scenario = parse_scenario(data, str(path))
     if scenario.scene.meshes:
         meshes = tuple(
-            m.model_copy(update={"file": m.file if m.file.is_absolute() else (path.parent / m.file).resolve()})
+            m.model_copy(
+                update={"file": m.file if m.file.is_absolute() else (path.parent / m.file).resolve()}
+            )
             for m in scenario.scene.meshes
         )
         scenario = scenario.model_copy(update={"scene": scenario.scene.model_copy(update={"meshes": meshes})})

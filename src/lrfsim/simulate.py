@@ -1,0 +1,140 @@
+"""One simulated recording: servo sweep, laser scans, joint states and tape, as arrays (no I/O).
+
+Time: the true time is the servo clock, 0 at the start of the sweep. The laser runs free: its first scan
+starts at a random phase in [0, scan_period) (seeded), and it stamps instants on its own clock,
+laser = servo + clock_offset_s. Random streams are seeded from ``scenario.seed`` per purpose (laser phase,
+sensor noise, tape), so changing one model does not reshuffle the others.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.kinematics import DH, Pose
+
+from .lidar import beam_angles, beam_times, scan_start_times, simulate_scans
+from .scenario import Scenario
+from .servo import JointSamples, check_trajectory, joint_samples, laser_time, sweep_trajectory
+from .tape import TapeResult, measure_tape
+
+if TYPE_CHECKING:
+    from .scene import Scene
+
+FloatArray = NDArray[np.float64]
+
+# purpose tags of the random streams: default_rng([seed, tag])
+_RNG_PHASE, _RNG_SENSOR, _RNG_TAPE = 0x70686173, 0x6E6F6973, 0x74617065
+
+
+@dataclass(frozen=True)
+class SimTruth:
+    """The ground truth of a recording (ground_truth.yaml): true DH and mount T_W_M, marker centres (n, 3)
+    in W, marker radius, clock offset (laser - servo) and the tunnel's dimensions (or None)."""
+
+    dh: DH
+    mount: Pose
+    marker_ids: tuple[str, ...]
+    markers_W: FloatArray
+    marker_radius_m: float
+    clock_offset_s: float
+    tunnel: dict[str, float] | None
+
+
+@dataclass(frozen=True)
+class SimStats:
+    """Costs and numerical checks of a run (see lrfsim.lidar for the batching errors)."""
+
+    n_rays: int
+    n_calls: int
+    cast_time_s: float
+    lidar_time_s: float
+    total_time_s: float
+    max_origin_error_m: float
+    max_direction_error_rad: float
+    max_parallax_correction_m: float
+
+    @property
+    def rays_per_s(self) -> float:
+        return self.n_rays / self.lidar_time_s if self.lidar_time_s > 0 else float("nan")
+
+
+@dataclass(frozen=True)
+class SimResult:
+    """Everything a recording holds, as arrays. S scans, N beams, J joint states.
+
+    scan_stamps_s (S,): time of beam 0 on the laser clock; mu_rad (N,); ranges_m (S, N) (no return: NaN or
+    +inf); intensities (S, N) counts; beam_lambda_rad (S, N): true motor angle at every beam (truth);
+    joints: the JointState stream (servo clock); tape; truth; stats.
+    """
+
+    name: str
+    scan_stamps_s: FloatArray
+    mu_rad: FloatArray
+    ranges_m: FloatArray
+    intensities: FloatArray
+    beam_lambda_rad: FloatArray
+    joints: JointSamples
+    tape: TapeResult
+    truth: SimTruth
+    stats: SimStats
+    duration_s: float
+
+
+def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
+             scene: Scene | None = None) -> SimResult:
+    """Simulate a scenario's recording. ``progress(done_scans, total_scans)`` is called while scanning.
+
+    ``scene`` defaults to ``lrfsim.scene.build_scene(scenario)`` (pass one to reuse or replace it).
+    """
+    t0 = time.perf_counter()
+    if scene is None:
+        from .scene import build_scene
+
+        scene = build_scene(scenario)
+    sensor, servo = scenario.sensor, scenario.servo
+    traj = sweep_trajectory(servo)
+    check_trajectory(traj)
+    phase_s = float(np.random.default_rng([scenario.seed, _RNG_PHASE]).uniform(0.0, sensor.scan_period_s))
+    starts_s = scan_start_times(traj.end_s, sensor, phase_s)
+    beam_lambda = traj.angle(beam_times(starts_s, sensor))
+    lid = simulate_scans(scene, sensor, beam_lambda, np.random.default_rng([scenario.seed, _RNG_SENSOR]),
+                         progress=progress)
+    joints = joint_samples(traj, servo)
+    tape = measure_tape(scene.marker_ids, scene.markers_W, scenario.tape,
+                        np.random.default_rng([scenario.seed, _RNG_TAPE]))
+    truth = SimTruth(dh=scenario.rig.dh.to_dh(), mount=scenario.rig.mount.to_pose(),
+                     marker_ids=tuple(scene.marker_ids), markers_W=np.array(scene.markers_W, dtype=float),
+                     marker_radius_m=float(scene.marker_radius_m), clock_offset_s=servo.clock_offset_s,
+                     tunnel=dict(scene.tunnel_truth) if scene.tunnel_truth is not None else None)
+    stats = SimStats(n_rays=lid.n_rays, n_calls=lid.n_calls, cast_time_s=lid.cast_time_s,
+                     lidar_time_s=lid.total_time_s, total_time_s=time.perf_counter() - t0,
+                     max_origin_error_m=lid.max_origin_error_m, max_direction_error_rad=lid.max_direction_error_rad,
+                     max_parallax_correction_m=lid.max_parallax_correction_m)
+    return SimResult(name=scenario.name, scan_stamps_s=laser_time(starts_s, servo.clock_offset_s),
+                     mu_rad=beam_angles(sensor), ranges_m=lid.ranges_m, intensities=lid.intensities,
+                     beam_lambda_rad=beam_lambda, joints=joints, tape=tape, truth=truth, stats=stats,
+                     duration_s=traj.end_s)
+
+
+def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Write the recording folder (docs/formats.md) atomically; see :func:`lrfsim.recording.write_recording`."""
+    from .recording import write_recording as _write
+
+    return _write(result, scenario, out_dir, overwrite=overwrite)
+
+
+def simulate_to_folder(scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,
+                       progress: Callable[[int, int], None] | None = None) -> tuple[SimResult, Path]:
+    """Simulate and write: the body of ``lrfsim simulate`` and of ``lrfsim run``'s first step."""
+    result = simulate(scenario, progress)
+    return result, write_recording(result, scenario, out_dir, overwrite=overwrite)
+
+
+__all__ = ["SimResult", "SimStats", "SimTruth", "simulate", "simulate_to_folder", "write_recording"]
