@@ -72,7 +72,10 @@ def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, tr
         T_W_sim = np.linalg.inv(kabsch(result.markers.positions_W, true_sim))
         true_markers_W = transform_points(T_W_sim, true_sim)
         if scene is not None:
-            geoms = viz.scene_geoms_from_mujoco(scene.model, scene.data, T_W_world=T_W_sim)
+            geoms = viz.scene_geoms_from_mujoco(
+                scene.model, scene.data, skip_body_ids=[scene.body_M_id], is_marker=scene.geom_is_marker,
+                T_W_world=T_W_sim,
+            )
     viz.log_calibration(
         result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W
     )

@@ -28,6 +28,8 @@ WIDTH_PX = 1600
 HEIGHT_PX = 900
 DPI = 150
 FONT_SIZE_PT = 11
+#: Rows of the intensity image drawn at most (scans are max-pooled above this).
+MAX_FIGURE_ROWS = 1200
 
 _C_BEFORE = "#e6781e"
 _C_AFTER = "#28aa50"
@@ -84,6 +86,9 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
     x0, x1 = float(mu_deg.min()) - step / 2, float(mu_deg.max()) + step / 2
     flip = N > 1 and mu_deg[-1] < mu_deg[0]  # negative angle increment: show increasing angle left to right
     img = inten[:, ::-1] if flip else inten
+    pool = max(1, int(np.ceil(S / MAX_FIGURE_ROWS)))  # max-pool scans so that thin blobs stay visible
+    if pool > 1:
+        img = np.vstack([img, np.zeros(((-S) % pool, N))]).reshape(-1, pool, N).max(axis=1)
     positive = img[np.isfinite(img) & (img > 0)]
     vmin = max(float(np.percentile(positive, 1.0)) if positive.size else 1.0, 1.0)
     vmax = max(float(positive.max()) if positive.size else 10.0, vmin * 10)
@@ -103,7 +108,8 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
         axes = fig.subplots(1, 2, sharex=True, sharey=True)
         shown = np.ma.masked_invalid(np.where(img > 0, img, np.nan))
         above = np.ma.masked_where(~(img >= thr), shown)
-        kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x1, -0.5, S - 0.5), "cmap": cmap,
+        kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x1, -0.5, img.shape[0] * pool - 0.5),
+              "cmap": cmap,
               "norm": LogNorm(vmin=vmin, vmax=vmax), "interpolation": "nearest"}
         im = axes[0].imshow(shown, **kw)
         axes[1].imshow(above, **kw)
@@ -112,24 +118,27 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
             xs = [beam_x(int(b.beam_idx.min())), beam_x(int(b.beam_idx.max()))]
             lo, hi = min(xs) - step / 2, max(xs) + step / 2
             s0, s1 = float(b.scan_idx.min()) - 0.5, float(b.scan_idx.max()) + 0.5
+            # outline with a margin, at least ~1 % of the axes in each direction so that it stays visible
+            mx = max(step, 0.005 * (x1 - x0), 0.5 * (0.01 * (x1 - x0) - (hi - lo)))
+            my = max(1.0, 0.005 * S, 0.5 * (0.015 * S - (s1 - s0)))
             for ax in axes:
-                ax.add_patch(Rectangle((lo - step, s0 - 1), hi - lo + 2 * step, s1 - s0 + 2, fill=False,
+                ax.add_patch(Rectangle((lo - mx, s0 - my), hi - lo + 2 * mx, s1 - s0 + 2 * my, fill=False,
                                        edgecolor="#00d8ff", linewidth=1.0))
             m = int(b2m[j]) if j < b2m.size else -1
             if m >= 0:  # label beside the box, on the side with more room
                 right = hi < 0.5 * (x0 + x1)
-                axes[1].annotate(ids[m], (hi + 1.5 * step if right else lo - 1.5 * step, 0.5 * (s0 + s1)),
+                axes[1].annotate(ids[m], (hi + mx + step if right else lo - mx - step, 0.5 * (s0 + s1)),
                                  color="white", fontsize=FONT_SIZE_PT - 1, ha="left" if right else "right",
                                  va="center", annotation_clip=True)
         if det.blobs:
             px = [beam_x(b.peak_beam) for b in det.blobs]
             py = [b.peak_scan for b in det.blobs]
-            axes[1].plot(px, py, "+", color="#00ff60", markersize=9, markeredgewidth=1.5, label="peak return")
-            axes[1].legend(loc="upper right", facecolor="#404040", labelcolor="white", framealpha=0.8)
+            axes[1].plot(px, py, "+", color="#00ff60", markersize=9, markeredgewidth=1.5)
         axes[0].set_xlim(x0, x1)
         axes[0].set_ylim(-0.5, S - 0.5)
-        axes[0].set_title(f"intensity, log scale ({S} scans x {N} beams)")
-        axes[1].set_title(f"thresholded at {thr:.0f} counts: {len(det.blobs)} blobs")
+        pooled = f", max over {pool} scans per row" if pool > 1 else ""
+        axes[0].set_title(f"intensity, log scale ({S} scans x {N} beams{pooled})")
+        axes[1].set_title(f">= {thr:.0f} counts (threshold): {len(det.blobs)} blobs, + = peak return")
         for ax in axes:
             ax.set_xlabel("beam angle mu [deg]")
         axes[0].set_ylabel("scan index")
@@ -272,7 +281,7 @@ def residual_figure(result: CalibrationResult, path: Path | str) -> Path:
             ax_b.set_yscale("log")
             ax_b.set_ylim(pos.min() / 3.0, pos.max() * 2.0)
             ax_b.yaxis.set_major_formatter(FuncFormatter(_plain))
-            ax_b.yaxis.set_minor_formatter(FuncFormatter(_plain))
+            ax_b.yaxis.set_minor_formatter(FuncFormatter(lambda v, _p: _plain(v) if f"{v:g}"[0] in "235" else ""))
         ax_b.set_title("per-marker RMS (markers without returns: no bar)")
         ax_b.legend(loc="upper right")
         ax_b.grid(True, axis="y", alpha=0.3, which="both")

@@ -132,7 +132,14 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
 
 def simulate_to_folder(scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,
                        progress: Callable[[int, int], None] | None = None) -> tuple[SimResult, Path]:
-    """Simulate and write: the body of ``lrfsim simulate`` and of ``lrfsim run``'s first step."""
+    """Simulate and write: the body of ``lrfsim simulate`` and of ``lrfsim run``'s first step.
+
+    The output folder is checked before simulating (InputError if it exists, is not empty and not
+    ``overwrite``), so nothing is computed or written in vain.
+    """
+    from .recording import check_output
+
+    check_output(out_dir, overwrite)
     result = simulate(scenario, progress)
     return result, write_recording(result, scenario, out_dir, overwrite=overwrite)
 

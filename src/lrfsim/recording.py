@@ -1,0 +1,184 @@
+"""Write a simulated recording folder exactly as docs/formats.md specifies, atomically.
+
+    DIR/bag/            ROS 2 bag (rosbags.rosbag2.Writer, version 9, MCAP): /scan LaserScan, /joint_states JointState
+    DIR/distances.csv   marker_i,marker_j,distance_m
+    DIR/nominal.yaml    nominal DH and mount, marker radius, topics, joint name
+    DIR/ground_truth.yaml, DIR/scenario.yaml
+
+Stamps: the simulation's times (seconds from the start of the sweep) are offset by :data:`EPOCH_NS`
+(2023-11-14 22:13:20 UTC) so the bag carries realistic ROS times; header stamps are exact integers of ns.
+Bag (log) times are the recorder's clock, taken to be the servo clock: a JointState is logged at its stamp, a
+LaserScan when urg_node would publish it, at the end of the scan (servo time of beam 0 + scan_time).
+
+Atomicity: everything is written into a hidden temporary folder next to DIR, which is renamed onto DIR when
+complete (an existing DIR is first moved aside and deleted after the rename, only with ``overwrite``); on any
+error the temporary folder is removed, so DIR is either the old content or the complete new recording.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import os
+import shutil
+import uuid
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import yaml
+
+from lrfcal.errors import InputError
+
+from .scenario import Scenario, dump_scenario
+
+if TYPE_CHECKING:
+    from .simulate import SimResult
+
+#: ROS time of t = 0 of the simulation [ns].
+EPOCH_NS = 1_700_000_000 * 10**9
+SCAN_TOPIC = "/scan"
+JOINT_TOPIC = "/joint_states"
+LASER_FRAME = "laser"
+LASERSCAN_TYPE = "sensor_msgs/msg/LaserScan"
+JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
+
+
+def _ns(t_s: float) -> int:
+    return EPOCH_NS + int(round(t_s * 1e9))
+
+
+def check_output(out_dir: str | Path, overwrite: bool) -> Path:
+    """Refuse an existing non-empty ``out_dir`` (or a file) unless ``overwrite``; return the path."""
+    out = Path(out_dir)
+    if out.exists() or out.is_symlink():
+        if not out.is_dir():
+            raise InputError(f"{out}: exists and is not a folder")
+        if any(out.iterdir()) and not overwrite:
+            raise InputError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
+    return out
+
+
+def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Write the recording folder of ``result`` to ``out_dir`` atomically (module docstring); return it."""
+    out = check_output(out_dir, overwrite).absolute()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        tmp.mkdir()
+        write_bag(result, scenario, tmp / "bag")
+        (tmp / "distances.csv").write_text(distances_csv(result), encoding="utf-8")
+        (tmp / "nominal.yaml").write_text(nominal_yaml(scenario, result.truth.marker_radius_m), encoding="utf-8")
+        (tmp / "ground_truth.yaml").write_text(ground_truth_yaml(result), encoding="utf-8")
+        (tmp / "scenario.yaml").write_text(dump_scenario(scenario), encoding="utf-8")
+        _replace_dir(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _replace_dir(tmp: Path, out: Path) -> None:
+    """Rename tmp onto out; an existing out is moved aside first and removed afterwards."""
+    if not out.exists():
+        os.rename(tmp, out)
+        return
+    old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
+    os.rename(out, old)
+    try:
+        os.rename(tmp, out)
+    except BaseException:
+        os.rename(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
+    """The ROS 2 bag (MCAP, version 9) with /scan and /joint_states, messages in log-time order."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    LaserScan = ts.types[LASERSCAN_TYPE]
+    JointState = ts.types[JOINTSTATE_TYPE]
+    Header = ts.types["std_msgs/msg/Header"]
+    Time = ts.types["builtin_interfaces/msg/Time"]
+    sensor, servo = scenario.sensor, scenario.servo
+
+    def header(t_s: float, frame: str) -> Any:
+        ns = _ns(t_s)
+        return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
+
+    n = sensor.n_beams
+    angle_max = sensor.angle_min_rad + (n - 1) * sensor.angle_increment_rad
+    ranges32 = result.ranges_m.astype(np.float32)
+    intens32 = result.intensities.astype(np.float32)
+    offset = servo.clock_offset_s
+    # (log time ns, kind, index): scans are logged at the end of the scan, on the recorder (servo) clock
+    events = [(_ns(float(t) - offset + sensor.scan_period_s), 0, k) for k, t in enumerate(result.scan_stamps_s)]
+    events += [(_ns(float(t)), 1, k) for k, t in enumerate(result.joints.stamps_s)]
+    events.sort()
+    empty = np.zeros(0, dtype=np.float64)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        c_scan = writer.add_connection(SCAN_TOPIC, LASERSCAN_TYPE, typestore=ts)
+        c_joint = writer.add_connection(JOINT_TOPIC, JOINTSTATE_TYPE, typestore=ts)
+        for log_ns, kind, k in events:
+            if kind == 0:
+                msg = LaserScan(
+                    header=header(float(result.scan_stamps_s[k]), LASER_FRAME),
+                    angle_min=float(sensor.angle_min_rad), angle_max=float(angle_max),
+                    angle_increment=float(sensor.angle_increment_rad), time_increment=float(sensor.time_increment_s),
+                    scan_time=float(sensor.scan_period_s), range_min=float(sensor.range_min_m),
+                    range_max=float(sensor.range_max_m), ranges=ranges32[k], intensities=intens32[k])
+                writer.write(c_scan, log_ns, ts.serialize_cdr(msg, LASERSCAN_TYPE))
+            else:
+                j = result.joints
+                msg = JointState(header=header(float(j.stamps_s[k]), ""), name=[servo.joint_name],
+                                 position=np.array([j.positions_rad[k]]),
+                                 velocity=np.array([j.velocities_rad_s[k]]), effort=empty)
+                writer.write(c_joint, log_ns, ts.serialize_cdr(msg, JOINTSTATE_TYPE))
+
+
+def distances_csv(result: SimResult) -> str:
+    """distances.csv: header ``marker_i,marker_j,distance_m``, one row per measured pair (0.1 um)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(["marker_i", "marker_j", "distance_m"])
+    ids = result.tape.marker_ids
+    for (i, j), d in zip(result.tape.pairs.tolist(), result.tape.distances_m.tolist(), strict=True):
+        w.writerow([ids[i], ids[j], f"{d:.7f}"])
+    return buf.getvalue()
+
+
+def _dump(data: dict[str, Any]) -> str:
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
+
+
+def nominal_yaml(scenario: Scenario, marker_radius_m: float) -> str:
+    """nominal.yaml from the scenario's design values (rig.nominal_dh, rig.nominal_mount)."""
+    rig = scenario.rig
+    return _dump({
+        "dh": rig.nominal_dh.to_dh().as_dict(),
+        "mount": rig.nominal_mount.to_pose().as_dict(),
+        "marker_radius_m": float(marker_radius_m),
+        "scan_topic": SCAN_TOPIC,
+        "joint_topic": JOINT_TOPIC,
+        "joint_name": scenario.servo.joint_name,
+    })
+
+
+def ground_truth_yaml(result: SimResult) -> str:
+    """ground_truth.yaml: true DH and mount, marker centres, radius, clock offset, tunnel dimensions."""
+    t = result.truth
+    return _dump({
+        "dh": t.dh.as_dict(),
+        "mount": t.mount.as_dict(),
+        "markers": {mid: [float(v) for v in p] for mid, p in zip(t.marker_ids, t.markers_W, strict=True)},
+        "marker_radius_m": float(t.marker_radius_m),
+        "clock_offset_s": float(t.clock_offset_s),
+        "tunnel": {k: float(v) for k, v in t.tunnel.items()} if t.tunnel is not None else None,
+    })
+
+
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "SCAN_TOPIC", "check_output", "distances_csv", "ground_truth_yaml",
+           "nominal_yaml", "write_bag", "write_recording"]
