@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lrfcal.detection import blob_centres_M, contrast, detect, observations, split_by_pass
+from lrfcal.detection import MAX_CONTRAST, MIN_CONTRAST, blob_centres_M, contrast, detect, observations, split_by_pass
 from lrfcal.kinematics import DH, points_M
 from lrfcal.types import Blob, Detections, JointStates, Scans
 
@@ -14,7 +14,7 @@ T0 = 1_700_000_000.0
 T_INC = 0.025 / 1440
 
 
-def _image(seed=0):
+def _image(seed=0, cos_min=0.3):
     """A scene whose background spans >3 orders of magnitude of intensity over range 0.4..20 m.
 
     Returns scans and the list of markers (pixels, peak pixel).
@@ -24,7 +24,7 @@ def _image(seed=0):
     b = np.arange(N)[None, :]
     # smooth range field: near on the left, far on the right, varying with scan
     r = 0.4 * np.exp(np.log(50.0) * b / (N - 1)) * (1 + 0.1 * np.sin(s / 30.0))
-    cos_inc = rng.uniform(0.3, 1.0, (S, N))
+    cos_inc = rng.uniform(cos_min, 1.0, (S, N))
     inten = 3e4 * cos_inc / r**2 * np.exp(rng.normal(0, 0.1, (S, N)))
     r = r + rng.normal(0, 0.01, (S, N))
     r[100:120, 150:180] = np.nan  # no returns
@@ -72,9 +72,10 @@ def test_detect_finds_every_marker_and_nothing_else():
     assert det.threshold > 0
 
 
-@pytest.mark.parametrize("seed", [1, 2, 3])
-def test_threshold_between_background_and_markers(seed):
-    scans, markers = _image(seed)
+@pytest.mark.parametrize("seed,cos_min", [(1, 0.3), (2, 0.05), (3, 0.01)])
+def test_threshold_between_background_and_markers(seed, cos_min):
+    """Also with a wide incidence spread (a head-on surface much brighter than the median at that range)."""
+    scans, markers = _image(seed, cos_min)
     z, t, _ = contrast(scans)
     marker_px = np.zeros(z.shape, bool)
     for pixels, _ in markers:
@@ -82,7 +83,7 @@ def test_threshold_between_background_and_markers(seed):
             marker_px[p] = True
     bg = z[~marker_px & np.isfinite(z)]
     assert bg.max() < t < z[marker_px].min()
-    assert np.log(3) <= t <= np.log(30)
+    assert np.log(MIN_CONTRAST) <= t <= np.log(MAX_CONTRAST)
 
 
 def test_min_blob_size_and_diagonal_connectivity():

@@ -66,6 +66,7 @@ def write_ply(path: str | Path, points: ArrayLike, intensity: ArrayLike | None =
     try:
         with os.fdopen(fd, "wb") as f:
             f.write(data)
+        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes 0600; give the file the usual mode
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -73,4 +74,11 @@ def write_ply(path: str | Path, points: ArrayLike, intensity: ArrayLike | None =
     return path
 
 
-__all__ = ["reproject_cloud", "write_ply"]
+def current_umask() -> int:
+    """The process umask (read by setting and restoring it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+__all__ = ["current_umask", "reproject_cloud", "write_ply"]

@@ -1,7 +1,7 @@
 """``lrfsim``: simulate recordings of the rotating laser range finder.
 
     lrfsim simulate SCENARIO -o DIR [--overwrite]   write a recording folder (docs/formats.md)
-    lrfsim run SCENARIO [-o DIR] [--overwrite]      simulate into DIR (default runs/<scenario name>) and summarise
+    lrfsim run SCENARIO [-o DIR] [--rrd FILE]        simulate, calibrate, compare with the truth (Tables I, III)
 
 Errors the project raises on purpose (lrfcal.errors.LrfError) become one line ``error: <message>`` on stderr
 and exit code 2. Heavy modules (mujoco, rosbags) are imported inside the commands.
@@ -96,23 +96,38 @@ def run(
     out: Annotated[Path | None, typer.Option("-o", "--out", help="Output folder [default: runs/<name>, "
                                              "replaced if present].", show_default=False)] = None,
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing non-empty -o folder.")] = False,
+    rrd: Annotated[Path | None, typer.Option("--rrd", help="Save the rerun recording here [default: DIR/run.rrd].",
+                                             show_default=False)] = None,
+    spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer.")] = False,
 ) -> None:
-    """Simulate SCENARIO into a run folder and print the recording's summary."""
-    result, path = run_scenario(scenario, out, overwrite)
-    _summary(result, path)
+    """Simulate SCENARIO, calibrate the recording, compare with the ground truth (Tables I and III).
 
+    Exits with code 1 when the recovery misses the tolerances declared in the scenario.
+    """
+    from rich.console import Console
 
-def run_scenario(scenario_path: Path, out: Path | None, overwrite: bool) -> tuple[SimResult, Path]:
-    """The work of ``lrfsim run``: load, simulate, write (the default folder runs/<name> is replaced)."""
+    from lrfcal.cli import print_summary
+
+    from .loop import print_comparison, run_loop
     from .scenario import load_scenario
-    from .simulate import simulate_to_folder
 
-    sc = load_scenario(scenario_path)
+    sc = load_scenario(scenario)
     if out is None:
         out, overwrite = Path("runs") / sc.name, True
     target = out
-    return _with_progress(lambda p: simulate_to_folder(sc, target, overwrite=overwrite, progress=p),
-                          f"simulating {sc.name}")
+    report = _with_progress(
+        lambda p: run_loop(sc, target, overwrite=overwrite, rrd_path=rrd, spawn=spawn, progress=p),
+        f"simulating {sc.name}",
+    )
+    console = Console()
+    print_summary(report.result, console)
+    print_comparison(report.comparison, console)
+    console.print("timings: " + ", ".join(f"{k.strip()} {v:.2f} s" for k, v in report.timings_s.items()))
+    console.print(f"wrote {report.out_dir} (recording/, calibration/, comparison.md"
+                  + (", run.rrd)" if rrd is None else f"); rerun: {rrd}"))
+    if not report.comparison.ok:
+        console.print("[red]MISSED: " + "; ".join(report.comparison.failures))
+        raise typer.Exit(1)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -2,7 +2,7 @@
 
 Timing (FACTS.md). Scan s starts at t_s (true time = servo clock); beam i (i = 0 .. N-1, bearing
 mu_i = angle_min + i * angle_increment) is fired at t_s + i * time_increment (25 ms / 1440 = 17.36 us), so the
-271 deg of a scan take 18.75 ms while the servo keeps turning. Every beam is therefore cast from the rig's pose
+270 deg of a scan take 18.75 ms while the servo keeps turning. Every beam is therefore cast from the rig's pose
 at its own time: lambda_si = lambda(t_s + i * time_increment).
 
 Pose of every beam. Per scan, ``mj_kinematics`` at the reference angle lambda_s (the scan's middle beam) gives
@@ -430,6 +430,8 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
                        max_direction_error_rad=0.0, max_parallax_correction_m=max_corr)
 
 
-__all__ = ["RETRO_EXPONENT", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W",
-           "beam_times", "cast_chunk", "footprint_coefficients", "footprint_directions_L", "iter_ray_chunks", "plan_runs", "range_sigma",
-           "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W"]
+__all__ = [
+    "RETRO_EXPONENT", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W", "beam_times", "cast_chunk",
+    "footprint_coefficients", "footprint_directions_L", "iter_ray_chunks", "plan_runs", "range_sigma",
+    "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W",
+]

@@ -8,12 +8,17 @@ DIR/comparison.md  Tables I and III against the truth
 from __future__ import annotations
 
 import math
+import shutil
+import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rich.console import Console
 from rich.table import Table
+
+from lrfcal.types import CalibrationResult
 
 from .compare import Comparison, compare, load_truth
 from .scenario import Scenario
@@ -23,6 +28,7 @@ from .scenario import Scenario
 class LoopReport:
     out_dir: Path
     comparison: Comparison
+    result: CalibrationResult
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
@@ -33,47 +39,50 @@ def run_loop(
     overwrite: bool = False,
     rrd_path: Path | None = None,
     spawn: bool = False,
-    console: Console | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> LoopReport:
-    """Simulate, write the recording, calibrate it from disk, compare; write everything under ``out_dir``."""
+    """Simulate, write the recording, calibrate it from disk as a real one, compare with the truth.
+
+    Everything is built in a temporary folder beside ``out_dir`` and renamed into place when complete.
+    ``rrd_path`` defaults to ``out_dir/run.rrd``.
+    """
     from lrfcal.app import calibrate_folder
 
+    from .recording import check_output
+    from .scene import build_scene
     from .simulate import simulate, write_recording
 
-    console = console or Console(stderr=True)
+    out_dir = Path(out_dir)
+    check_output(out_dir, overwrite)
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    sim = simulate(scenario, progress=console)
-    timings["simulate"] = time.perf_counter() - t0
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-", dir=out_dir.parent))
+    try:
+        t0 = time.perf_counter()
+        scene = build_scene(scenario)
+        sim = simulate(scenario, progress, scene=scene)
+        write_recording(sim, scenario, tmp / "recording")
+        timings["simulate + write"] = time.perf_counter() - t0
 
-    recording_dir = out_dir / "recording"
-    _prepare(out_dir, overwrite)
-    t0 = time.perf_counter()
-    write_recording(sim, scenario, recording_dir, overwrite=overwrite)
-    timings["write"] = time.perf_counter() - t0
+        truth = load_truth(tmp / "recording" / "ground_truth.yaml")
+        t0 = time.perf_counter()
+        rrd_tmp = None if rrd_path is not None else tmp / "run.rrd"
+        result = calibrate_folder(
+            tmp / "recording", tmp / "calibration", truth=truth, rrd_path=rrd_path or rrd_tmp, spawn=spawn,
+            scene=scene,
+        )
+        timings["calibrate + write"] = time.perf_counter() - t0
+        timings.update({f"  {k}": v for k, v in result.timings_s.items()})
 
-    truth = load_truth(recording_dir / "ground_truth.yaml")
-    t0 = time.perf_counter()
-    result = calibrate_folder(
-        recording_dir,
-        out_dir / "calibration",
-        overwrite=overwrite,
-        truth=truth,
-        rrd_path=rrd_path,
-        spawn=spawn,
-        scene=sim.scene if hasattr(sim, "scene") else None,
-    )
-    timings["calibrate+write"] = time.perf_counter() - t0
-    timings.update({f"  {k}": v for k, v in result.timings_s.items()})
-
-    comparison = compare(result, truth, scenario.tolerances)
-    text = comparison_markdown(comparison)
-    (out_dir / "comparison.md").write_text(text)
-    return LoopReport(out_dir, comparison, timings)
-
-
-def _prepare(out_dir: Path, overwrite: bool) -> None:
-    out_dir.mkdir(parents=True, exist_ok=True)
+        comparison = compare(result, truth, scenario.tolerances)
+        (tmp / "comparison.md").write_text(comparison_markdown(comparison))
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        tmp.rename(out_dir)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+    return LoopReport(out_dir, comparison, result, timings)
 
 
 def _mm(v: float | None) -> str:

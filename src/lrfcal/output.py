@@ -1,0 +1,420 @@
+"""Writers of a calibration: calibration.yaml, rig.urdf, the clouds (PLY) and the Markdown report.
+
+``write_calibration`` builds the whole output folder in a temporary folder beside it and renames it into place
+when complete, so a reader never sees a partial result and a failure leaves nothing behind.
+
+Frames: W is the marker frame (from the tape distances), M the motor frame; the URDF chain is
+world (= W) -> motor_base -> [servo, revolute about z] -> motor (= M') -> laser (= L', the LaserScan frame).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+from xml.sax.saxutils import quoteattr
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from .errors import InputError
+from .kinematics import ANGLE_NAMES, DH, DH_NAMES, MOUNT_NAMES, PARAM_NAMES, Params, Pose, homogeneous, rot_x, rot_z
+from .reproject import current_umask, write_ply
+from .types import CalibrationResult, Solution, TunnelGeometry
+
+FloatArray = NDArray[np.float64]
+
+FORMAT_VERSION = 1
+TUNNEL_KEYS = ("width_m", "height_m", "plate_distance_m")
+
+
+# --- small helpers --------------------------------------------------------------------------------------------
+
+def _f(v: Any) -> float | None:
+    """A plain float for YAML, None for NaN/inf/None."""
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+def dh_matrix(dh: DH) -> FloatArray:
+    """(4, 4) T_M'_L' = Tx(a) Rx(alpha) Tz(b) Rz(beta): the fixed transform from the turning motor frame to the
+    laser frame (eq. (3) without Rz(lambda) and Rz(mu))."""
+    Tx = homogeneous(np.eye(3), [dh.a, 0.0, 0.0])
+    Rx = homogeneous(rot_x(dh.alpha), np.zeros(3))
+    Tz = homogeneous(np.eye(3), [0.0, 0.0, dh.b])
+    Rz = homogeneous(rot_z(dh.beta), np.zeros(3))
+    return Tx @ Rx @ Tz @ Rz
+
+
+def _pose_of(solution: Solution) -> dict[str, dict[str, float | None]]:
+    v = solution.params.vector()
+    s = np.asarray(solution.sigma, dtype=float).reshape(-1)
+    return {n: {"value": _f(v[i]), "sigma": _f(s[i]) if i < s.size else None} for i, n in enumerate(PARAM_NAMES)}
+
+
+def _geometry_dict(g: TunnelGeometry | None) -> dict[str, Any] | None:
+    if g is None:
+        return None
+    return {
+        "width_m": _f(g.width_m),
+        "height_m": _f(g.height_m),
+        "plate_distance_m": _f(g.plate_distance_m),
+        "planes": [{"label": p.label, "normal": [float(x) for x in p.normal], "offset_m": float(p.offset_m),
+                    "n_inliers": int(p.n_inliers)} for p in g.planes],
+    }
+
+
+def _marker_counts(result: CalibrationResult) -> FloatArray:
+    n = len(result.markers.marker_ids)
+    m = np.asarray(result.observations.marker, dtype=np.int64)
+    return np.bincount(m[m >= 0], minlength=n)[:n]
+
+
+# --- calibration.yaml -----------------------------------------------------------------------------------------
+
+def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
+    """The content of calibration.yaml (plain Python types; NaN -> None)."""
+    sol = result.solution
+    ids = result.markers.marker_ids
+    counts = _marker_counts(result)
+    per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
+    params = _pose_of(sol)
+    out: dict[str, Any] = {
+        "format_version": FORMAT_VERSION,
+        "units": "m, rad; frames: W marker frame (tape distances), M motor frame; T_W_M = mount",
+        "dh": {n: params[n] for n in DH_NAMES},
+        "mount": {n: params[n] for n in MOUNT_NAMES},
+        "residual_rms_m": _f(sol.residual_rms_m),
+        "n_observations": int(sol.n_observations),
+        "n_iterations": int(sol.n_iterations),
+        "status": str(sol.status),
+        "markers": {
+            "used": [ids[i] for i in range(len(ids)) if counts[i] > 0],
+            "unused": [ids[i] for i in range(len(ids)) if counts[i] == 0],
+            "n_returns": {ids[i]: int(counts[i]) for i in range(len(ids))},
+            "residual_rms_m": {ids[i]: _f(per[i]) if i < per.size else None for i in range(len(ids))},
+        },
+        "marker_map": {
+            "stress": _f(result.markers.stress),
+            "rms_m": _f(result.markers.rms_m),
+            "planarity": _f(result.markers.planarity),
+            "coplanar": bool(result.markers.coplanar),
+        },
+        "association": {
+            "n_blobs": len(result.detections.blobs),
+            "n_matched": int(result.association.n_matched),
+            "mirrored": bool(result.association.mirrored),
+            "rms_m": _f(result.association.rms_m),
+        },
+        "detection_threshold": _f(result.detections.threshold),
+        "start": {k: float(v) for k, v in result.start.as_dict().items()},
+        "baseline": None,
+        "tunnel": {"before": _geometry_dict(result.geometry_before), "after": _geometry_dict(result.geometry_after)},
+        "timings_s": {str(k): _f(v) for k, v in result.timings_s.items()},
+    }
+    if result.baseline is not None:
+        b = result.baseline
+        bp = _pose_of(b)
+        out["baseline"] = {
+            "method": "seed paper: blob peaks only, one motor angle per scan",
+            "dh": {n: bp[n] for n in DH_NAMES},
+            "mount": {n: bp[n] for n in MOUNT_NAMES},
+            "residual_rms_m": _f(b.residual_rms_m),
+            "n_observations": int(b.n_observations),
+            "status": str(b.status),
+        }
+    return out
+
+
+# --- rig.urdf -------------------------------------------------------------------------------------------------
+
+def _xyz_rpy(T: FloatArray) -> tuple[str, str]:
+    p = Pose.from_matrix(T)
+    fmt = "{:.9g} {:.9g} {:.9g}".format
+    return fmt(p.x, p.y, p.z), fmt(p.roll, p.pitch, p.yaw)
+
+
+def urdf_snippet(params: Params, robot_name: str = "rotating_lrf") -> str:
+    """A URDF with links world/motor_base/motor/laser: a fixed joint world -> motor_base (identity; re-parent it
+    onto your robot), the revolute joint ``servo`` (axis z) whose origin is the mount pose T_W_M, and the fixed
+    joint ``laser_mount`` motor -> laser whose origin is Tx(a) Rx(alpha) Tz(b) Rz(beta)."""
+    mxyz, mrpy = _xyz_rpy(params.mount.matrix())
+    lxyz, lrpy = _xyz_rpy(dh_matrix(params.dh))
+    d = params.dh
+    return f"""<?xml version="1.0"?>
+<robot name={quoteattr(robot_name)}>
+  <!-- generated by lrfcal: DH a={d.a:.9g} m, alpha={d.alpha:.9g} rad, b={d.b:.9g} m, beta={d.beta:.9g} rad -->
+  <link name="world"/>
+  <link name="motor_base"/>
+  <link name="motor"/>
+  <link name="laser"/>
+  <joint name="world_to_motor_base" type="fixed">
+    <parent link="world"/>
+    <child link="motor_base"/>
+    <origin xyz="0 0 0" rpy="0 0 0"/>
+  </joint>
+  <joint name="servo" type="revolute">
+    <parent link="motor_base"/>
+    <child link="motor"/>
+    <origin xyz="{mxyz}" rpy="{mrpy}"/>
+    <axis xyz="0 0 1"/>
+    <limit lower="{-math.pi:.9g}" upper="{math.pi:.9g}" effort="10" velocity="10"/>
+  </joint>
+  <joint name="laser_mount" type="fixed">
+    <parent link="motor"/>
+    <child link="laser"/>
+    <origin xyz="{lxyz}" rpy="{lrpy}"/>
+  </joint>
+</robot>
+"""
+
+
+# --- report.md ------------------------------------------------------------------------------------------------
+
+def _disp(name: str, v: float | None) -> str:
+    """Value in display units: mm for lengths, deg for angles."""
+    if v is None or not math.isfinite(v):
+        return "-"
+    return f"{math.degrees(v):.3f}" if name in ANGLE_NAMES else f"{v * 1000:.2f}"
+
+
+def _unit(name: str) -> str:
+    return "deg" if name in ANGLE_NAMES else "mm"
+
+
+def _kabsch(A: FloatArray, B: FloatArray) -> tuple[FloatArray, float]:
+    """Proper rigid T (4, 4) minimising sum |T a_i - b_i|^2 over (n, 3) point sets, and its RMS [m]."""
+    ca, cb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
+    D = np.diag([1.0, 1.0, float(np.sign(np.linalg.det(Vt.T @ U.T))) or 1.0])
+    R = Vt.T @ D @ U.T
+    T = homogeneous(R, cb - R @ ca)
+    rms = float(np.sqrt(np.mean(np.sum((A @ R.T + T[:3, 3] - B) ** 2, axis=1))))
+    return T, rms
+
+
+def align_truth_frame(positions_W: FloatArray, marker_ids: tuple[str, ...], truth_markers: dict[str, Any],
+                      tol_m: float = 0.01) -> tuple[FloatArray, str] | None:
+    """T_W_sim (4, 4) aligning the truth's marker positions (simulator frame) to the marker map in W.
+
+    First by marker id (proper rigid fit). If that fails but a reflection fits -- a mirror-symmetric layout
+    (e.g. the same V on both walls) lets the map come out mirrored with the ids swapped across the symmetry --
+    the reflection is composed with reflections about the layout's principal planes and refined with
+    nearest-neighbour correspondences. Returns (T_W_sim, how) or None when no fit is within ``tol_m`` RMS.
+    """
+    ids = [i for i in marker_ids if i in truth_markers]
+    if len(ids) < 3:
+        return None
+    A = np.array([truth_markers[i] for i in ids], dtype=float).reshape(-1, 3)
+    B = np.asarray(positions_W, dtype=float)[[marker_ids.index(i) for i in ids]]
+    T, rms = _kabsch(A, B)
+    if rms < tol_m:
+        return T, "by marker id"
+    ca, cb = A.mean(0), B.mean(0)
+    U, _, Vt = np.linalg.svd((A - ca).T @ (B - cb))
+    R_imp = Vt.T @ U.T  # the unconstrained (possibly improper) fit
+    _, _, axes = np.linalg.svd(A - ca)
+    best: tuple[float, FloatArray] | None = None
+    for v in axes:
+        R = R_imp @ (np.eye(3) - 2.0 * np.outer(v, v))
+        if np.linalg.det(R) < 0:
+            continue
+        T = homogeneous(R, cb - R @ ca)
+        for _ in range(4):
+            X = A @ T[:3, :3].T + T[:3, 3]
+            nn = np.argmin(np.linalg.norm(X[:, None] - B[None], axis=2), axis=1)
+            if np.unique(nn).size != nn.size:
+                break
+            T, rms = _kabsch(A, B[nn])
+        else:
+            if best is None or rms < best[0]:
+                best = (rms, T)
+    if best is not None and best[0] < tol_m:
+        return best[1], "by geometry (marker ids mirrored across the layout's symmetry)"
+    return None
+
+
+def _truth_params(result: CalibrationResult, truth: dict[str, Any]) -> tuple[dict[str, float | None], str]:
+    """Truth in PARAM_NAMES, the mount re-expressed in the marker frame W when the truth's markers allow
+    aligning the simulator frame to W (else None for the mount); and a note on how (or why not)."""
+    out: dict[str, float | None] = dict.fromkeys(PARAM_NAMES)
+    dh = truth.get("dh") or {}
+    for n in DH_NAMES:
+        if n in dh:
+            out[n] = float(dh[n])
+    mount = truth.get("mount")
+    if mount is None:
+        return out, ""
+    fit = align_truth_frame(np.asarray(result.markers.positions_W), result.markers.marker_ids,
+                            truth.get("markers") or {})
+    if fit is None:
+        return out, "Mount truth not shown: the simulator frame could not be aligned to the marker frame W."
+    T_W_sim, how = fit
+    p = Pose.from_matrix(T_W_sim @ Pose(**{k: float(mount[k]) for k in MOUNT_NAMES}).matrix())
+    for n in MOUNT_NAMES:
+        out[n] = getattr(p, n)
+    return out, (f"Mount truth re-expressed in the marker frame W (true marker positions fitted to the tape map "
+                 f"{how}).")
+
+
+def _tunnel_truth(truth: dict[str, Any] | None) -> dict[str, float | None]:
+    t = None if truth is None else truth.get("tunnel")
+    if t is None:
+        return dict.fromkeys(TUNNEL_KEYS)
+    get = t.get if isinstance(t, dict) else (lambda k: getattr(t, k, None))
+    return {k: _f(get(k)) for k in TUNNEL_KEYS}
+
+
+def _angle_err(n: str, est: float, ref: float) -> float:
+    d = est - ref
+    return (d + math.pi) % (2 * math.pi) - math.pi if n in ANGLE_NAMES else d
+
+
+def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None) -> str:
+    """The calibration report as Markdown: parameters with sigma (and the paper's baseline, the start values
+    and, given ``truth`` as loaded from ground_truth.yaml, the truth and the errors), per-marker residuals,
+    tunnel geometry before/after."""
+    sol = result.solution
+    est = sol.params.as_dict()
+    sig = np.asarray(sol.sigma, dtype=float).reshape(-1)
+    start = result.start.as_dict()
+    base = result.baseline.params.as_dict() if result.baseline is not None else None
+    tp, truth_note = _truth_params(result, truth) if truth is not None else (None, "")
+    counts = _marker_counts(result)
+    ids = result.markers.marker_ids
+    lines = ["# Rotating LRF calibration", ""]
+    lines += [
+        f"- status: {sol.status} ({sol.n_iterations} iterations)",
+        f"- residual RMS: {sol.residual_rms_m * 1000:.2f} mm over {sol.n_observations} marker returns",
+        f"- markers used: {int((counts > 0).sum())} of {len(ids)} "
+        f"({', '.join(i for i, c in zip(ids, counts, strict=True) if c > 0) or 'none'})",
+        f"- blobs detected: {len(result.detections.blobs)}, matched to markers: {result.association.n_matched}"
+        f"{' (marker map mirrored)' if result.association.mirrored else ''}",
+        f"- marker map from the tape: RMS {result.markers.rms_m * 1000:.2f} mm, stress {result.markers.stress:.2g}"
+        f"{', coplanar layout' if result.markers.coplanar else ''}",
+    ]
+    if result.baseline is not None:
+        lines.append(f"- baseline (paper method) residual RMS: {result.baseline.residual_rms_m * 1000:.2f} mm "
+                     f"over {result.baseline.n_observations} returns")
+    lines += ["", "## Parameters", ""]
+    head = ["parameter", "unit", "start", "estimate", "sigma"]
+    if base is not None:
+        head.append("baseline (paper)")
+    if tp is not None:
+        head += ["truth", "error"] + (["baseline error"] if base is not None else [])
+    lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for i, n in enumerate(PARAM_NAMES):
+        row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]), _disp(n, sig[i] if i < sig.size else None)]
+        if base is not None:
+            row.append(_disp(n, base[n]))
+        if tp is not None:
+            t = tp[n]
+            row += [_disp(n, t), _disp(n, None if t is None else _angle_err(n, est[n], t))]
+            if base is not None:
+                row.append(_disp(n, None if t is None else _angle_err(n, base[n], t)))
+        lines.append("| " + " | ".join(row) + " |")
+    if truth_note:
+        lines += ["", truth_note]
+
+    lines += ["", "## Per-marker residuals", "", "| marker | returns | RMS [mm] |", "|---|---|---|"]
+    per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
+    for i, mid in enumerate(ids):
+        v = per[i] if i < per.size else float("nan")
+        lines.append(f"| {mid} | {int(counts[i])} | {f'{v * 1000:.2f}' if math.isfinite(v) else '-'} |")
+
+    g0, g1 = result.geometry_before, result.geometry_after
+    if g0 is not None or g1 is not None or (truth is not None and truth.get("tunnel")):
+        tt = _tunnel_truth(truth)
+        head = ["quantity", "before [m]", "after [m]"]
+        if truth is not None:
+            head += ["truth [m]", "error before [mm]", "error after [mm]"]
+        lines += ["", "## Tunnel geometry (RANSAC planes in the reprojected cloud)", "",
+                  "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+        for k, label in zip(TUNNEL_KEYS, ("width (wall to wall)", "height (floor to ceiling)",
+                                          "distance to the plate"), strict=True):
+            b = None if g0 is None else _f(getattr(g0, k))
+            a = None if g1 is None else _f(getattr(g1, k))
+            row = [label, "-" if b is None else f"{b:.4f}", "-" if a is None else f"{a:.4f}"]
+            if truth is not None:
+                t = tt[k]
+                row.append("-" if t is None else f"{t:.4f}")
+                for v in (b, a):
+                    row.append("-" if v is None or t is None else f"{(v - t) * 1000:+.1f}")
+            lines.append("| " + " | ".join(row) + " |")
+    if result.timings_s:
+        lines += ["", "## Timings", "", "| stage | s |", "|---|---|"]
+        lines += [f"| {k} | {v:.3f} |" for k, v in result.timings_s.items()]
+    return "\n".join(lines) + "\n"
+
+
+# --- the output folder ----------------------------------------------------------------------------------------
+
+def write_calibration(
+    out_dir: str | Path,
+    result: CalibrationResult,
+    report_md: str | None = None,
+    figures: dict[str, Path] | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Write calibration.yaml, rig.urdf, cloud_before.ply, cloud_after.ply, report.md and the figures.
+
+    Everything is written into a temporary folder beside ``out_dir`` that is renamed into place when complete.
+    Args:
+        report_md: the report text; default :func:`render_report` (without truth).
+        figures: name -> existing file; each is copied into the folder under its file name.
+        overwrite: replace an existing non-empty ``out_dir`` (otherwise InputError).
+    Returns:
+        out_dir.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"{out}: output exists and is not a folder")
+    if out.is_dir() and any(out.iterdir()) and not overwrite:
+        raise InputError(f"{out}: output folder exists and is not empty (use overwrite)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    try:
+        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700; give the folder the usual mode
+        text = yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=110)
+        (tmp / "calibration.yaml").write_text(text, encoding="utf-8")
+        (tmp / "rig.urdf").write_text(urdf_snippet(result.solution.params), encoding="utf-8")
+        write_ply(tmp / "cloud_before.ply", result.cloud_before_M, result.cloud_intensity)
+        after_i = result.cloud_intensity if len(result.cloud_intensity) == len(result.cloud_after_M) else None
+        write_ply(tmp / "cloud_after.ply", result.cloud_after_M, after_i)
+        report = render_report(result) if report_md is None else report_md
+        (tmp / "report.md").write_text(report, encoding="utf-8")
+        for name, src in (figures or {}).items():
+            src = Path(src)
+            if not src.is_file():
+                raise InputError(f"{src}: figure {name!r} not found")
+            shutil.copyfile(src, tmp / src.name)
+        _swap_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def _swap_into_place(tmp: Path, out: Path) -> None:
+    """Rename the finished folder tmp to out, replacing an existing out (moved aside, then deleted)."""
+    if not out.exists():
+        os.rename(tmp, out)
+        return
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    old.rmdir()
+    os.rename(out, old)
+    try:
+        os.rename(tmp, out)
+    except BaseException:
+        os.rename(old, out)
+        raise
+    shutil.rmtree(old, ignore_errors=True)
+
+
+__all__ = ["align_truth_frame", "calibration_dict", "dh_matrix", "render_report", "urdf_snippet", "write_calibration"]

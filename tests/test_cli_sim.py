@@ -1,0 +1,78 @@
+"""The lrfsim CLI: simulate/run write every file; bad input gives exit code 2, one line, and nothing written."""
+
+from __future__ import annotations
+
+import copy
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lrfsim.cli import main
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+FILES = ["bag", "distances.csv", "ground_truth.yaml", "nominal.yaml", "scenario.yaml"]
+
+
+def _write_small(tmp_path: Path, **servo: object) -> Path:
+    data = copy.deepcopy(yaml.safe_load((SCENARIOS / "tunnel_v.yaml").read_text()))
+    data["servo"].update({"start_rad": 0.05, "end_rad": -0.05, "passes": 1, "settle_s": 0.05, **servo})
+    path = tmp_path / "small.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def _main(argv: list[str]) -> int:
+    try:
+        main(argv)
+    except SystemExit as e:
+        return int(e.code or 0)
+    return 0
+
+
+def test_simulate_writes_all_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    scen = _write_small(tmp_path)
+    out = tmp_path / "rec"
+    assert _main(["simulate", str(scen), "-o", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == FILES
+    assert (out / "bag" / "metadata.yaml").is_file()
+    assert "scans" in capsys.readouterr().out
+    # a second time: refused (exit 2, one line), then replaced with --overwrite
+    assert _main(["simulate", str(scen), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "--overwrite" in err[0]
+    assert _main(["simulate", str(scen), "-o", str(out), "--overwrite"]) == 0
+
+
+def test_bad_scenario_exit_2_one_line_nothing_written(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    scen = _write_small(tmp_path, speed_rad_s=-1.0)
+    out = tmp_path / "rec"
+    assert _main(["simulate", str(scen), "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1
+    assert err[0].startswith("error: ") and str(scen) in err[0] and "servo.speed_rad_s" in err[0]
+    assert not out.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["small.yaml"]
+    # a missing file, too
+    assert _main(["run", str(tmp_path / "nope.yaml"), "-o", str(out)]) == 2
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_run_and_entry_point(tmp_path: Path) -> None:
+    scen = _write_small(tmp_path)
+    proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen)], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (tmp_path / "runs" / "tunnel_v").iterdir()) == FILES
+    for word in ("scans", "joint states", "markers", "duration", "rays/s"):
+        assert word in proc.stdout
+    # run again: the default run folder is replaced
+    proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen)], cwd=tmp_path,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    bad = subprocess.run([sys.executable, "-m", "lrfsim.cli", "simulate", "x.yaml", "-o", "o"], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and not (tmp_path / "o").exists()

@@ -1,0 +1,80 @@
+"""Servo trajectory, joint-state stream (rate, encoder, backlash) and clocks."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from lrfsim.scenario import ServoConfig
+from lrfsim.servo import joint_samples, laser_time, move_profile, quantise_encoder, sweep_trajectory
+
+
+def _servo(**kw: object) -> ServoConfig:
+    base = {"start_rad": 0.5, "end_rad": -0.5, "speed_rad_s": 0.2, "accel_rad_s2": 2.0, "passes": 2,
+            "settle_s": 0.2, "rate_hz": 100.0, "encoder_counts": 0}
+    return ServoConfig(**{**base, **kw})
+
+
+def test_trajectory_shape_speed_and_smoothness() -> None:
+    sv = _servo()
+    traj = sweep_trajectory(sv)
+    T, ramp, peak = move_profile(1.0, 0.2, 2.0)
+    assert math.isclose(T, 1.0 / 0.2 + 0.1) and math.isclose(ramp, 0.1) and peak == 0.2
+    assert math.isclose(traj.end_s, 3 * 0.2 + 2 * T)
+    t = np.linspace(0, traj.end_s, 200001)
+    lam = traj.angle(t)
+    v = traj.velocity(t)
+    assert lam[0] == 0.5 and math.isclose(lam[-1], 0.5, abs_tol=1e-12)
+    assert math.isclose(lam.min(), -0.5, abs_tol=1e-12)
+    assert np.all(lam[t < 0.2] == 0.5)  # settle
+    assert np.abs(v).max() <= 0.2 + 1e-12
+    cruise = (t > 0.2 + ramp + 1e-3) & (t < 0.2 + T - ramp - 1e-3)
+    assert np.allclose(v[cruise], -0.2)
+    # C1: the angle's numerical derivative matches the velocity, no jumps
+    dl = np.gradient(lam, t)
+    assert np.abs(dl - v)[5:-5].max() < 2e-3
+    assert np.abs(np.diff(lam)).max() < 0.2 * (t[1] - t[0]) * 1.01
+    # short sweeps are triangles
+    T2, ramp2, peak2 = move_profile(0.001, 0.2, 2.0)
+    assert math.isclose(T2, 2 * ramp2) and peak2 < 0.2
+
+
+def test_joint_samples_rate_and_encoder() -> None:
+    sv = _servo(encoder_counts=4096, rate_hz=100.0)
+    traj = sweep_trajectory(sv)
+    js = joint_samples(traj, sv)
+    assert np.allclose(np.diff(js.stamps_s), 0.01)
+    assert js.stamps_s[0] == 0.0 and js.stamps_s[-1] <= traj.end_s + 1e-12
+    step = 2 * math.pi / 4096
+    k = js.positions_rad / step
+    assert np.abs(k - np.round(k)).max() < 1e-9
+    assert np.abs(js.positions_rad - js.true_positions_rad).max() <= step / 2 + 1e-12
+    exact = joint_samples(traj, _servo(encoder_counts=0))
+    assert np.array_equal(exact.positions_rad, exact.true_positions_rad)
+    assert np.array_equal(quantise_encoder([0.1], 0), [0.1])
+
+
+def test_backlash_lags_by_half_and_holds_at_reversal() -> None:
+    b = math.radians(0.33)  # MX-28
+    sv = _servo(backlash_rad=b)
+    traj = sweep_trajectory(sv)
+    t = np.linspace(0, traj.end_s, 50001)
+    lam, rep, v = traj.angle(t), traj.reported_angle(t), traj.velocity(t)
+    moving_down = v < -1e-3
+    moving_up = v > 1e-3
+    # first pass goes down (0.5 -> -0.5): the report lags, i.e. stays above the truth by b/2
+    assert np.allclose((rep - lam)[moving_down], b / 2)
+    # after the reversal (and the dead band), the report lags from below
+    late_up = moving_up & (lam > -0.5 + 2 * b)
+    assert np.allclose((rep - lam)[late_up], -b / 2)
+    assert np.all(np.abs(rep - lam) <= b / 2 + 1e-12)
+    # at the reversal the report holds still while the truth crosses the dead band
+    first_up = np.flatnonzero(moving_up)[0]
+    assert rep[first_up] == rep[first_up - 1]
+    # continuous
+    assert np.abs(np.diff(rep)).max() < 1e-4
+
+
+def test_clock_offset() -> None:
+    assert np.allclose(laser_time(np.array([0.0, 1.0]), 0.25), [0.25, 1.25])
