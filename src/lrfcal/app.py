@@ -61,21 +61,21 @@ def _truth_dict(truth: Any) -> dict[str, Any]:
 
 def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any) -> None:
     from . import viz
-    from .association import kabsch
     from .kinematics import transform_points
+    from .output import align_truth_frame
 
     geoms = None
     true_markers_W = None
     if truth is not None:
-        ids = result.markers.marker_ids
-        true_sim = np.array([truth.markers[i] for i in ids])
-        T_W_sim = np.linalg.inv(kabsch(result.markers.positions_W, true_sim))
-        true_markers_W = transform_points(T_W_sim, true_sim)
-        if scene is not None:
-            geoms = viz.scene_geoms_from_mujoco(
-                scene.model, scene.data, skip_body_ids=[scene.body_M_id], is_marker=scene.geom_is_marker,
-                T_W_world=T_W_sim,
-            )
+        found = align_truth_frame(result.markers.positions_W, result.markers.marker_ids, truth.markers)
+        if found is not None:
+            T_W_sim = found[0]
+            true_markers_W = transform_points(T_W_sim, np.array(list(truth.markers.values())))
+            if scene is not None:
+                geoms = viz.scene_geoms_from_mujoco(
+                    scene.model, scene.data, skip_body_ids=[scene.body_M_id], is_marker=scene.geom_is_marker,
+                    T_W_world=T_W_sim,
+                )
     viz.log_calibration(
         result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W
     )

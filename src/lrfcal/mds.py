@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse.csgraph import shortest_path
+from scipy.stats import f as f_dist
 
 from .errors import InputError
 from .types import MarkerMap, TapeMeasurements
@@ -147,26 +148,18 @@ def marker_map(
     ids = tuple(tape.marker_ids)
     n = len(ids)
     complete = bool(np.all(W + np.eye(n) > 0))
-    if complete:
-        X = classical_mds(D)
-    else:
+    if not complete:
         G = np.where(W > 0, D, 0.0)
-        Dsp = shortest_path(G, method="D", directed=False)
-        if not np.all(np.isfinite(Dsp)):
+        if not np.all(np.isfinite(shortest_path(G, method="D", directed=False))):
             raise InputError("tape: the measured pairs do not connect all markers")
-        X = classical_mds(Dsp)
-    if refine if refine is not None else not complete:
-        X, best = smacof(D, W, X)
-        rng = np.random.default_rng(seed)
-        scale = float(np.sqrt((D[W > 0] ** 2).mean()))
-        for _ in range(n_starts if not complete else 0):
-            Xr, st = smacof(D, W, rng.normal(0.0, scale / 2, (n, 3)))
-            if st < best * (1 - 1e-9):
-                X, best = Xr, st
+    X3, ssr3 = _embed(D, W, 3, complete, n_starts, seed, refine)
+    X2, ssr2 = _embed(D, W, 2, complete, n_starts, seed, refine)
+    planar = _planar_fits_as_well(ssr2, ssr3, n_pairs=int(np.count_nonzero(np.triu(W, 1))), n=n)
+    X = np.column_stack([X2, np.zeros(n)]) if planar else X3
     X, s = _principal_frame(X)
     if s[1] < COLLINEAR_THRESHOLD * s[0]:
         raise InputError("tape: all markers lie on one line; their positions are not determined in 3D")
-    planarity = float(s[2] / s[0])
+    planarity = 0.0 if planar else float(s[2] / s[0])
     dist = np.sqrt(((X[:, None, :] - X[None, :, :]) ** 2).sum(-1))
     iu = np.triu_indices(n, 1)
     m = W[iu] > 0
@@ -178,8 +171,42 @@ def marker_map(
         stress=stress,
         rms_m=float(np.sqrt(np.mean(r**2))),
         planarity=planarity,
-        coplanar=planarity < COPLANAR_THRESHOLD,
+        coplanar=planar or planarity < COPLANAR_THRESHOLD,
     )
+
+
+def _embed(
+    D: FloatArray, W: FloatArray, dim: int, complete: bool, n_starts: int, seed: int, refine: bool | None
+) -> tuple[FloatArray, float]:
+    """Metric MDS in ``dim`` dimensions: classical MDS (on shortest-path distances when pairs are missing),
+    then weighted SMACOF (the least-squares fit of the measured distances). Returns (X (n, dim), raw stress)."""
+    n = len(D)
+    start = D if complete else shortest_path(np.where(W > 0, D, 0.0), method="D", directed=False)
+    X = classical_mds(start, dim)
+    if refine is False:
+        dist = np.sqrt(((X[:, None, :] - X[None, :, :]) ** 2).sum(-1))
+        return X, 0.5 * float((W * (D - dist) ** 2).sum())
+    X, best = smacof(D, W, X)
+    rng = np.random.default_rng(seed)
+    scale = float(np.sqrt((D[W > 0] ** 2).mean()))
+    for _ in range(0 if complete else n_starts):
+        Xr, st = smacof(D, W, rng.normal(0.0, scale / 2, (n, dim)))
+        if st < best * (1 - 1e-9):
+            X, best = Xr, st
+    return X, best
+
+
+def _planar_fits_as_well(ssr2: float, ssr3: float, n_pairs: int, n: int, p_value: float = 1e-3) -> bool:
+    """F-test: do the n - 3 out-of-plane coordinates of the 3D fit explain more than tape noise would?
+
+    Under a coplanar layout, (SSR2 - SSR3) / (n - 3) and SSR3 / (P - 3n + 6) both estimate the tape variance;
+    a 3D fit of noisy coplanar distances otherwise folds the noise into centimetres of spurious depth.
+    """
+    dof3 = n_pairs - (3 * n - 6)
+    if dof3 <= 0 or ssr3 <= 0:
+        return ssr2 <= 1e-18
+    F = ((ssr2 - ssr3) / (n - 3)) / (ssr3 / dof3)
+    return bool(F < f_dist.ppf(1 - p_value, n - 3, dof3))
 
 
 __all__ = ["COLLINEAR_THRESHOLD", "COPLANAR_THRESHOLD", "classical_mds", "marker_map", "smacof"]

@@ -1,8 +1,8 @@
 """Compare a calibration with the simulator's ground truth: the paper's Table I and Table III.
 
 The calibration's world frame W is the MDS frame of the tape measurements, not the simulator's world. The mount
-pose is therefore compared after aligning W: the rigid transform that maps the MDS marker coordinates onto the
-true marker positions (Kabsch, by marker id) carries the estimated T_W_M into the simulator's frame.
+pose is therefore compared after aligning W: the rigid transform that maps the true marker positions onto the
+MDS marker coordinates (see :func:`truth_alignment`) carries the estimated T_W_M into the simulator's frame.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from lrfcal.association import kabsch
-from lrfcal.errors import InputError
+from lrfcal.errors import CalibrationError, InputError
 from lrfcal.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
+from lrfcal.output import align_truth_frame
 from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
 
 from .scenario import Tolerances
@@ -122,15 +122,21 @@ class Comparison:
         return not self.failures
 
 
+def truth_alignment(result: CalibrationResult, truth: Truth) -> np.ndarray:
+    """T_W_sim (4, 4): maps the simulator's world into the calibration's marker frame W.
+
+    Fitted on the marker positions; a mirror-symmetric layout may legitimately come out of MDS mirrored with
+    its ids swapped across the symmetry, which lrfcal.output.align_truth_frame resolves geometrically.
+    """
+    found = align_truth_frame(result.markers.positions_W, result.markers.marker_ids, truth.markers)
+    if found is None:
+        raise CalibrationError("the marker map does not fit the true marker positions within 1 cm RMS")
+    return found[0]
+
+
 def mount_in_truth_frame(result: CalibrationResult, params: Params, truth: Truth) -> np.ndarray:
     """The estimated T_W_M carried into the simulator's world frame: T_sim_W @ T_W_M, shape (4, 4)."""
-    ids = result.markers.marker_ids
-    missing = [i for i in ids if i not in truth.markers]
-    if missing:
-        raise InputError(f"ground truth has no marker {missing[0]!r}")
-    true_W = np.array([truth.markers[i] for i in ids])
-    T_sim_W = kabsch(result.markers.positions_W, true_W)
-    return T_sim_W @ params.mount.matrix()
+    return np.linalg.inv(truth_alignment(result, truth)) @ params.mount.matrix()
 
 
 def _mount_errors(result: CalibrationResult, solution: Solution, truth: Truth) -> tuple[float, float]:
