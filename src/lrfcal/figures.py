@@ -136,9 +136,9 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
             axes[1].plot(px, py, "+", color="#00ff60", markersize=9, markeredgewidth=1.5)
         axes[0].set_xlim(x0, x1)
         axes[0].set_ylim(-0.5, S - 0.5)
-        pooled = f", max over {pool} scans per row" if pool > 1 else ""
-        axes[0].set_title(f"intensity, log scale ({S} scans x {N} beams{pooled})")
-        axes[1].set_title(f">= {thr:.0f} counts (threshold): {len(det.blobs)} blobs, + = peak return")
+        pooled = f", {pool}-scan max" if pool > 1 else ""
+        axes[0].set_title(f"all returns ({S} x {N}{pooled})")
+        axes[1].set_title(f"above {thr:.0f} counts: {len(det.blobs)} blobs (+ peak)")
         for ax in axes:
             ax.set_xlabel("beam angle mu [deg]")
         axes[0].set_ylabel("scan index")
