@@ -206,7 +206,7 @@ def _planar_fits_as_well(ssr2: float, ssr3: float, n_pairs: int, n: int, p_value
     if dof3 <= 0 or ssr3 <= 0:
         return ssr2 <= 1e-18
     F = ((ssr2 - ssr3) / (n - 3)) / (ssr3 / dof3)
-    return bool(F < f_dist.ppf(1 - p_value, n - 3, dof3))
+    return bool(f_dist.ppf(1 - p_value, n - 3, dof3) > F)
 
 
 __all__ = ["COLLINEAR_THRESHOLD", "COPLANAR_THRESHOLD", "classical_mds", "marker_map", "smacof"]
