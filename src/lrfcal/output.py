@@ -394,14 +394,14 @@ def write_calibration(
             if not src.is_file():
                 raise InputError(f"{src}: figure {name!r} not found")
             shutil.copyfile(src, tmp / src.name)
-        _swap_into_place(tmp, out)
+        swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
 
 
-def _swap_into_place(tmp: Path, out: Path) -> None:
+def swap_into_place(tmp: Path, out: Path) -> None:
     """Rename the finished folder tmp to out, replacing an existing out (moved aside, then deleted)."""
     if not out.exists():
         os.rename(tmp, out)

@@ -47,6 +47,7 @@ def run_loop(
     ``rrd_path`` defaults to ``out_dir/run.rrd``.
     """
     from lrfcal.app import calibrate_folder
+    from lrfcal.output import swap_into_place
 
     from .recording import check_output
     from .scene import build_scene
@@ -76,9 +77,7 @@ def run_loop(
 
         comparison = compare(result, truth, scenario.tolerances)
         (tmp / "comparison.md").write_text(comparison_markdown(comparison))
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        tmp.rename(out_dir)
+        swap_into_place(tmp, out_dir)
     finally:
         if tmp.exists():
             shutil.rmtree(tmp, ignore_errors=True)

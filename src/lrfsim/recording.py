@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import csv
 import io
-import os
 import shutil
 import uuid
 from pathlib import Path
@@ -29,6 +28,7 @@ import numpy as np
 import yaml
 
 from lrfcal.errors import InputError
+from lrfcal.output import swap_into_place
 
 from .scenario import Scenario, dump_scenario
 
@@ -71,26 +71,11 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
         (tmp / "nominal.yaml").write_text(nominal_yaml(scenario, result.truth.marker_radius_m), encoding="utf-8")
         (tmp / "ground_truth.yaml").write_text(ground_truth_yaml(result), encoding="utf-8")
         (tmp / "scenario.yaml").write_text(dump_scenario(scenario), encoding="utf-8")
-        _replace_dir(tmp, out)
+        swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
-
-
-def _replace_dir(tmp: Path, out: Path) -> None:
-    """Rename tmp onto out; an existing out is moved aside first and removed afterwards."""
-    if not out.exists():
-        os.rename(tmp, out)
-        return
-    old = out.parent / f".{out.name}.old-{uuid.uuid4().hex[:8]}"
-    os.rename(out, old)
-    try:
-        os.rename(tmp, out)
-    except BaseException:
-        os.rename(old, out)
-        raise
-    shutil.rmtree(old, ignore_errors=True)
 
 
 def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
