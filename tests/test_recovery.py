@@ -1,84 +1,214 @@
-"""Parameter recovery, system-identification style: simulate with a known truth, calibrate from the recording on
-disk (perturbed nominal start), and assert that the truth comes back within stated bounds and within 4 sigma of
-the covariance the calibration reports."""
+"""Parameter recovery, system-identification style: simulate with a known truth, write the recording, read it back
+from disk as a real one, calibrate from the perturbed nominal start, and assert that the truth comes back within
+stated absolute bounds and within 4 sigma of the covariance the calibration reports.
+
+1. 20 seeded random ground truths (lrfsim.randomize.random_scenario: random DH, mount pose, marker layout and
+   noise level), one quick sweep each;
+2. the shipped scenarios (scenarios/*.yaml), each against its own tolerances and the issue's tunnel target;
+3. the covariance itself: pooled over the random cases, error / sigma has an RMS near 1.
+
+Every case is computed once per session (lazily, so `-k` selections compute only what they need).
+"""
 
 from __future__ import annotations
 
 import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from lrfcal.pipeline import calibrate
+from lrfcal.kinematics import DH_NAMES, PARAM_NAMES
+from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.recording import read_recording
+from lrfcal.types import CalibrationResult
 from lrfsim.compare import Comparison, compare, load_truth
 from lrfsim.randomize import random_scenario
 from lrfsim.scenario import Scenario, Tolerances, load_scenario
 from lrfsim.simulate import simulate, write_recording
 
-SCENARIOS = sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))
-SEEDS = range(20)
-DH_INDEX = {"a": 6, "alpha": 7, "b": 8, "beta": 9}  # in PARAM_NAMES order
-#: Bounds for the random cases: one quick pass at 20 deg/s over 10-20 scattered markers with 5-15 mm range noise
-#: is little data, and some random layouts leave a - b poorly determined (reported sigma up to ~9 mm): measured
-#: worst cases over seeds 0-19 were 12.3 mm (a, b), 0.49 deg (beta), 16 mm / 0.47 deg (mount). The sharp check
-#: is the 4-sigma one; these bounds catch a calibration that goes astray.
-RANDOM_BOUNDS = Tolerances(a_m=0.020, b_m=0.020, alpha_rad=math.radians(0.75), beta_rad=math.radians(0.75),
-                           position_m=0.025, rotation_rad=math.radians(0.75), tunnel_m=0.005)
+SCENARIOS = {p.stem: p for p in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))}
+SEEDS = tuple(range(20))
+N_SIGMA = 4.0
+DH_INDEX = tuple(PARAM_NAMES.index(n) for n in DH_NAMES)  # a, alpha, b, beta in the (10,) sigma
+
+#: Absolute bounds for the random cases, from what they measure (seeds 0-19, commit 243828e) with margin. One pass
+#: at 20 deg/s sees each 5 mm marker with only 1-4 beams (16-43 returns in all on 10-20 markers), so some layouts
+#: leave a and b weakly determined: reported sigma(a), sigma(b) reach 9 and 15 mm. Worst measured errors:
+#: a 12.3 mm, b 12.1 mm, alpha 0.31 deg, beta 0.49 deg, mount 16.3 mm / 0.47 deg; tunnel dimensions 0.8 mm.
+#: The sharp per-case check is the 4-sigma one; these catch a calibration that goes astray (a flipped alpha,
+#: a diverged b, a wrong association), which they would by orders of magnitude.
+RANDOM_BOUNDS = Tolerances(
+    a_m=0.020,
+    b_m=0.020,
+    alpha_rad=math.radians(0.75),
+    beta_rad=math.radians(0.75),
+    position_m=0.025,
+    rotation_rad=math.radians(0.75),
+    tunnel_m=0.005,
+)
+#: The issue's target for the tunnel dimensions from the calibrated cloud (paper Table III: 8 / 20 / 20 mm).
+TUNNEL_TARGET_M = 0.003
+#: Accepted RMS of the pooled normalised errors err / sigma (1 if the covariance is right).
+Z_RMS_RANGE = (0.5, 2.0)
 
 
-def _simulate_and_calibrate(scenario: Scenario, folder: Path) -> tuple[Comparison, np.ndarray]:
-    """Returns the comparison with the truth and the DH errors / reported sigma (4,)."""
+@dataclass(frozen=True)
+class Case:
+    """One simulate + calibrate run: the comparison with the truth, DH errors, reported sigma and err / sigma,
+    each (4,) in DH_NAMES order (a, alpha, b, beta)."""
+
+    name: str
+    result: CalibrationResult
+    comparison: Comparison
+    errors: np.ndarray
+    sigma: np.ndarray
+    seconds: float
+
+    @property
+    def z(self) -> np.ndarray:
+        return self.errors / self.sigma
+
+    def describe(self) -> str:
+        """Table I in one line, for failure messages."""
+        parts = []
+        for name, e, s in zip(DH_NAMES, self.errors, self.sigma, strict=True):
+            scale, unit = (1000.0, "mm") if name in ("a", "b") else (math.degrees(1.0), "deg")
+            parts.append(f"{name} {e * scale:+.3f} +- {s * scale:.3f} {unit} ({e / s:+.1f} sigma)")
+        c = self.comparison
+        parts.append(
+            f"mount {c.mount_position_error_m * 1000:.2f} mm / {math.degrees(c.mount_rotation_error_rad):.3f} deg"
+        )
+        parts += [
+            f"{r.name} {'-' if r.calibrated is None else f'{(r.calibrated - r.truth) * 1000:+.1f}'} mm"
+            for r in c.tunnel_rows
+        ]
+        return f"{self.name}: " + "; ".join(parts) + f"; {self.result.solution.status}"
+
+
+def run_case(scenario: Scenario, folder: Path, tolerances: Tolerances | None = None) -> Case:
+    """Simulate, write the recording to ``folder``, read it back, calibrate, compare (against ``tolerances``,
+    default the scenario's own)."""
     write_recording(simulate(scenario), scenario, folder)
-    result = calibrate(read_recording(folder))
-    comparison = compare(result, load_truth(folder / "ground_truth.yaml"), scenario.tolerances)
-    sigma = result.solution.sigma
-    z = np.array([row.error / sigma[DH_INDEX[row.name]] for row in comparison.dh_rows])
-    return comparison, z
+    recording = read_recording(folder)
+    t0 = time.perf_counter()
+    result = calibrate(recording, CalibConfig())
+    seconds = time.perf_counter() - t0
+    comparison = compare(result, load_truth(folder / "ground_truth.yaml"), tolerances or scenario.tolerances)
+    errors = np.array([row.error for row in comparison.dh_rows])
+    assert [row.name for row in comparison.dh_rows] == list(DH_NAMES)
+    return Case(scenario.name, result, comparison, errors, result.solution.sigma[list(DH_INDEX)], seconds)
+
+
+class _Cases:
+    """Lazily computed, session-wide cache of cases by key."""
+
+    def __init__(self, make: Callable[[object], Case]) -> None:
+        self._make = make
+        self._done: dict[object, Case] = {}
+
+    def __getitem__(self, key: object) -> Case:
+        if key not in self._done:
+            self._done[key] = self._make(key)
+        return self._done[key]
 
 
 @pytest.fixture(scope="session")
-def random_cases(tmp_path_factory: pytest.TempPathFactory) -> dict[int, tuple[Comparison, np.ndarray]]:
+def random_cases(tmp_path_factory: pytest.TempPathFactory) -> _Cases:
     root = tmp_path_factory.mktemp("random")
-    return {seed: _simulate_and_calibrate(random_scenario(seed), root / f"seed{seed}") for seed in SEEDS}
+
+    def make(seed: object) -> Case:
+        assert isinstance(seed, int)
+        return run_case(random_scenario(seed), root / f"seed{seed}", RANDOM_BOUNDS)
+
+    return _Cases(make)
+
+
+@pytest.fixture(scope="session")
+def shipped_cases(tmp_path_factory: pytest.TempPathFactory) -> _Cases:
+    root = tmp_path_factory.mktemp("shipped")
+
+    def make(name: object) -> Case:
+        assert isinstance(name, str)
+        return run_case(load_scenario(SCENARIOS[name]), root / name)
+
+    return _Cases(make)
+
+
+def within_sigma(case: Case) -> list[str]:
+    """The DH parameters whose error exceeds N_SIGMA reported sigma."""
+    return [
+        f"{n} {z:+.2f} sigma" for n, z in zip(DH_NAMES, case.z, strict=True) if not abs(z) <= N_SIGMA
+    ]
+
+
+# --- 1. random ground truths ------------------------------------------------------------------------------------
 
 
 @pytest.mark.parametrize("seed", SEEDS)
-def test_random_truth_is_recovered(seed: int, random_cases: dict[int, tuple[Comparison, np.ndarray]]) -> None:
-    comparison, z = random_cases[seed]
-    bounded = compare_bounds(comparison, RANDOM_BOUNDS)
-    assert not bounded, f"seed {seed}: " + "; ".join(bounded)
-    assert np.all(np.abs(z) <= 4.0), f"seed {seed}: DH errors / sigma = {np.round(z, 2)} (a, alpha, b, beta)"
+def test_random_truth_is_recovered(seed: int, random_cases: _Cases) -> None:
+    case = random_cases[seed]
+    truth, start = case.comparison, case.result.start
+    # the calibration really started away from the truth (nominal alpha, beta are exactly +-90 deg)
+    assert any(
+        abs(getattr(start.dh, r.name) - r.truth) > 1e-4 for r in truth.dh_rows if r.name in ("alpha", "beta")
+    ), case.describe()
+    assert case.comparison.ok, f"outside the absolute bounds: {case.comparison.failures}\n{case.describe()}"
+    assert not within_sigma(case), f"error beyond {N_SIGMA} sigma: {within_sigma(case)}\n{case.describe()}"
 
 
-def test_reported_sigma_is_honest(random_cases: dict[int, tuple[Comparison, np.ndarray]]) -> None:
-    """Pooled over the random cases, error / sigma has an RMS near 1: the covariance is neither wildly
-    optimistic (RMS >> 1) nor pessimistic (RMS << 1)."""
-    z = np.concatenate([zs for _, zs in random_cases.values()])
+def test_reported_sigma_is_honest(random_cases: _Cases) -> None:
+    """Pooled over the random cases, err / sigma of a, b, alpha, beta has an RMS near 1: the reported covariance
+    is neither wildly optimistic (RMS >> 1) nor pessimistic (RMS << 1)."""
+    z = np.array([random_cases[seed].z for seed in SEEDS])  # (seeds, 4)
     rms = float(np.sqrt(np.mean(z**2)))
-    assert 0.5 <= rms <= 2.0, f"RMS of error/sigma over {z.size} values: {rms:.2f}"
+    per_param = ", ".join(f"{n} {np.sqrt(np.mean(z[:, i] ** 2)):.2f}" for i, n in enumerate(DH_NAMES))
+    lo, hi = Z_RMS_RANGE
+    assert lo <= rms <= hi, f"RMS of err/sigma over {z.size} values: {rms:.2f} (per parameter: {per_param})"
 
 
-def compare_bounds(c: Comparison, bounds: Tolerances) -> list[str]:
-    """The comparison's failures against other bounds than the scenario's own."""
-    out = []
-    limits = {"a": bounds.a_m, "b": bounds.b_m, "alpha": bounds.alpha_rad, "beta": bounds.beta_rad}
-    out += [f"{r.name}: |error| {abs(r.error):.3g} > {limits[r.name]:.3g}" for r in c.dh_rows
-            if abs(r.error) > limits[r.name]]
-    if c.mount_position_error_m > bounds.position_m:
-        out.append(f"mount position error {c.mount_position_error_m:.4f} m")
-    if c.mount_rotation_error_rad > bounds.rotation_rad:
-        out.append(f"mount rotation error {math.degrees(c.mount_rotation_error_rad):.3f} deg")
-    return out
+# --- 2. the shipped scenarios -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("path", SCENARIOS, ids=[p.stem for p in SCENARIOS])
-def test_shipped_scenario(path: Path, tmp_path: Path) -> None:
-    scenario = load_scenario(path)
-    comparison, z = _simulate_and_calibrate(scenario, tmp_path / "recording")
-    assert np.all(np.abs(z) <= 4.0), f"DH errors / sigma = {np.round(z, 2)} (a, alpha, b, beta)"
-    assert comparison.paper_mount_position_error_m is not None, "the paper's baseline did not run"
-    assert comparison.ok, "; ".join(comparison.failures)
-    for row in comparison.tunnel_rows:  # tunnel_v: the issue's 3 mm on width, height and plate distance
-        assert row.calibrated is not None and abs(row.calibrated - row.truth) <= 0.003, row
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_shipped_dh_within_4_sigma(name: str, shipped_cases: _Cases) -> None:
+    case = shipped_cases[name]
+    assert not within_sigma(case), f"error beyond {N_SIGMA} sigma: {within_sigma(case)}\n{case.describe()}"
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_shipped_paper_baseline_present(name: str, shipped_cases: _Cases) -> None:
+    case = shipped_cases[name]
+    baseline = case.result.baseline
+    assert baseline is not None, "the paper's baseline did not run"
+    assert np.all(np.isfinite(baseline.params.vector())), baseline.status
+    assert all(row.paper is not None for row in case.comparison.dh_rows)
+
+
+@pytest.mark.parametrize("name", [n for n in SCENARIOS if n.startswith("tunnel")])
+def test_shipped_tunnel_dimensions(name: str, shipped_cases: _Cases) -> None:
+    """The issue's target: width, height and plate distance from the calibrated cloud within 3 mm."""
+    rows = shipped_cases[name].comparison.tunnel_rows
+    assert {r.name for r in rows} == {"width", "height", "plate_distance"}
+    for r in rows:
+        assert r.calibrated is not None, f"{r.name}: no plane found in the calibrated cloud"
+        assert abs(r.calibrated - r.truth) <= TUNNEL_TARGET_M, (
+            f"{r.name}: calibrated {r.calibrated * 1000:.1f} mm vs truth {r.truth * 1000:.1f} mm "
+            f"(nominal cloud {'-' if r.nominal is None else f'{r.nominal * 1000:.1f}'} mm)"
+        )
+
+
+@pytest.mark.parametrize("name", list(SCENARIOS))
+def test_shipped_scenario_tolerances(name: str, shipped_cases: _Cases) -> None:
+    """The scenario's own tolerances (what `lrfsim run` reports as MISSED)."""
+    case = shipped_cases[name]
+    hint = (
+        " [plane_*: the coplanar board is the hard case (board MDS, a/b coupling along the motor axis); "
+        "report these numbers to the estimator's owner rather than widening the scenario's tolerances]"
+        if name.startswith("plane")
+        else ""
+    )
+    assert case.comparison.ok, f"MISSED {case.comparison.failures}{hint}\n{case.describe()}"
