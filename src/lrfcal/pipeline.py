@@ -1,10 +1,10 @@
 """The calibration, as in the seed paper's Sec. III and IV-C, one stage per module.
 
 1. markers from tape distances (mds)          5. start: mount pose from that alignment, DH from nominal
-2. marker returns in the intensity image      6. Levenberg-Marquardt over the 10 parameters (solve)
-   (detection)                                7. reprojection of every beam, before and after (reproject)
-3. per-beam time and motor angle (timing)     8. tunnel planes and dimensions (geometry)
-4. blobs matched to markers (association)
+2. marker returns in the intensity image      6. Levenberg-Marquardt over the 10 parameters (solve), then
+   (detection)                                   jointly with the surfaces the markers sit on (surfaces)
+3. per-beam time and motor angle (timing)     7. reprojection of every beam, before and after (reproject)
+4. blobs matched to markers (association)     8. tunnel planes and dimensions (geometry)
 
 The paper's own variant (one max-intensity beam per blob, one motor angle per scan) runs beside ours as the
 baseline, on the same detections and association, so that the gain is measured.
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import association, detection, geometry, mds, reproject, solve, timing
+from . import association, detection, geometry, mds, reproject, solve, surfaces, timing
 from .errors import CalibrationError
 from .kinematics import Params, Pose
 from .types import CalibrationResult, Observations, Recording
@@ -33,6 +33,8 @@ class CalibConfig:
     baseline: bool = True  # also run the paper's variant for comparison
     cloud_stride: int = 1  # reproject every n-th scan into the clouds
     geometry: bool = True  # fit tunnel planes (Table III)
+    surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
+    surface_max_returns: int = 40000  # an even subsample of them, for speed
 
 
 def calibrate(recording: Recording, config: CalibConfig | None = None) -> CalibrationResult:
@@ -52,6 +54,7 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
     clock.lap("detection")
 
     returns = detection.observations(scans, joints, detections, clock_offset_s=config.clock_offset_s)  # 3.
+    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=config.clock_offset_s)
     clock.lap("timing")
 
     centres_M = detection.blob_centres_M(returns, nominal.dh, nominal.marker_radius_m)  # 4.
@@ -77,6 +80,20 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
     )
     clock.lap("solve")
 
+    surface_list, on_surfaces = [], None
+    if config.surfaces:  # 6b. every beam on the markers' planes, jointly with the markers
+        surface_list, on_surfaces = surfaces.observe_surfaces(
+            scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, markers.positions_W,
+            nominal.marker_radius_m, ours.params, position_sigma_m=max(markers.rms_m, 0.0005),
+            max_returns=config.surface_max_returns,
+        )
+        if len(on_surfaces):
+            ours = solve.solve(
+                matched, markers.positions_W, ours.params, model="sphere", marker_radius_m=nominal.marker_radius_m,
+                range_sigma_m=config.range_sigma_m, surfaces=on_surfaces, planes=surface_list,
+            )
+        clock.lap("surfaces")
+
     baseline = None
     if config.baseline:  # the paper: the blob's brightest beam, the motor angle at the scan's stamp
         peaks = matched.subset(matched.is_peak)
@@ -92,7 +109,7 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
         )
         clock.lap("baseline")
 
-    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=config.clock_offset_s)  # 7.
+    # 7.
     cloud_before, cloud_intensity = reproject.reproject_cloud(
         scans, lambda_beams, nominal.dh, config.cloud_stride
     )
@@ -120,6 +137,8 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
         geometry_before=geometry_before,
         geometry_after=geometry_after,
         timings_s=clock.laps,
+        surfaces=tuple(surface_list),
+        surface_returns=on_surfaces,
     )
 
 

@@ -35,6 +35,7 @@ covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,6 +45,7 @@ from scipy.special import expit
 
 from .errors import CalibrationError, InputError
 from .kinematics import PARAM_NAMES, Params
+from .surfaces import Surface, SurfaceReturns
 from .types import Observations, Solution
 
 FloatArray = NDArray[np.float64]
@@ -139,6 +141,76 @@ def beam_rays_W(
 
 
 @dataclass(frozen=True)
+class _Surf:
+    """Non-marker returns (K2 rows) on P planes whose normals and offsets are nuisance parameters.
+
+    Plane j: n_j = m_j / |m_j|, m_j = n0_j + u1_j t1_j + u2_j t2_j (t1, t2 tangent to the initial normal n0),
+    n_j . p = d_j. The nuisance vector follows the 10 parameters: (u1, u2, d) per plane.
+    """
+
+    lam: FloatArray
+    mu: FloatArray
+    r: FloatArray
+    plane: NDArray[np.int64]  # (K2,) plane index
+    n0: FloatArray  # (P, 3)
+    t1: FloatArray  # (P, 3)
+    t2: FloatArray  # (P, 3)
+    prior_mean: FloatArray | None = None  # (3P,) nuisance values the markers give
+    prior_sigma: FloatArray | None = None  # (3P,) their uncertainty (None: free planes)
+
+    def subset(self, m: NDArray[np.bool_]) -> _Surf:
+        return _Surf(self.lam[m], self.mu[m], self.r[m], self.plane[m], self.n0, self.t1, self.t2,
+                     self.prior_mean, self.prior_sigma)
+
+    @property
+    def n_planes(self) -> int:
+        return int(self.n0.shape[0])
+
+
+def _plane_nuisance_start(normals: FloatArray, offsets: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
+                                                                             FloatArray]:
+    """Tangent bases t1, t2 (P, 3) of initial normals (P, 3) and the start nuisance vector (3P,)."""
+    n0 = np.asarray(normals, dtype=float).reshape(-1, 3)
+    helper = np.where(np.abs(n0[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(n0, helper)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n0, t1)
+    nu0 = np.column_stack([np.zeros(len(n0)), np.zeros(len(n0)), np.asarray(offsets, dtype=float)]).ravel()
+    return n0, t1, t2, nu0
+
+
+def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, jac: bool = True
+                       ) -> tuple[FloatArray, FloatArray | None]:
+    """Range residuals against the ray-plane distance r_p = (d - n.o) / (n.dir), whitened by sigma_r:
+    (r - r_p) / sigma_r, shape (K2,), and the Jacobian -(dr_p/d[theta, nuisance]) / sigma_r, (K2, 10 + 3P):
+        dr_p/dtheta = -(n.do + r_p n.ddir) / (n.dir),   dr_p/dd = 1 / (n.dir),
+        dr_p/dn = -(o + r_p dir) / (n.dir),   dn/du_i = (t_i - n (n.t_i)) / |m|.
+    """
+    P = s.n_planes
+    nu = th[10:].reshape(P, 3)
+    m = s.n0 + nu[:, :1] * s.t1 + nu[:, 1:2] * s.t2
+    m_norm = np.linalg.norm(m, axis=1, keepdims=True)
+    n_p = m / m_norm
+    o, d, Jo, Jd = beam_rays_W(th[:10], s.lam, s.mu)
+    n = n_p[s.plane]
+    nd = (n * d).sum(1)
+    rp = (nu[s.plane, 2] - (n * o).sum(1)) / nd
+    res = (s.r - rp) / sigma_r
+    if not jac:
+        return res, None
+    K2 = s.r.size
+    J = np.zeros((K2, 10 + 3 * P))
+    J[:, :10] = -(np.einsum("ki,kij->kj", n, Jo) + rp[:, None] * np.einsum("ki,kij->kj", n, Jd)) / nd[:, None]
+    drp_dn = -(o + rp[:, None] * d) / nd[:, None]
+    rows = np.arange(K2)
+    for i, t in enumerate((s.t1, s.t2)):
+        dn_du = (t - n_p * (n_p * t).sum(1, keepdims=True)) / m_norm  # (P, 3)
+        J[rows, 10 + 3 * s.plane + i] = (drp_dn * dn_du[s.plane]).sum(1)
+    J[rows, 10 + 3 * s.plane + 2] = 1.0 / nd
+    return res, -J / sigma_r
+
+
+@dataclass(frozen=True)
 class _Problem:
     """The data of one solve: K returns with their marker centres."""
 
@@ -149,6 +221,7 @@ class _Problem:
     model: str
     radius: float
     sigma_r: float
+    surf: _Surf | None = None
 
     @property
     def sigma_lat(self) -> float:
@@ -159,13 +232,32 @@ class _Problem:
         """Residual components per return (4 for the sphere: 1 range + 3 lateral, 3 independent)."""
         return 3 if self.model == "paper" else 4
 
-    def subset(self, m: NDArray[np.bool_]) -> _Problem:
-        return _Problem(self.lam[m], self.mu[m], self.r[m], self.c[m], self.model, self.radius, self.sigma_r)
+    def subset(self, m: NDArray[np.bool_], ms: NDArray[np.bool_] | None = None) -> _Problem:
+        surf = self.surf if self.surf is None or ms is None else self.surf.subset(ms)
+        return _Problem(self.lam[m], self.mu[m], self.r[m], self.c[m], self.model, self.radius, self.sigma_r, surf)
+
+    def stacked(self, th: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
+        """All whitened residuals as one vector (markers, then surfaces) and the (rows, 10) Jacobian."""
+        res, J = _residuals(th, self, jac=jac)
+        res_v, J_m = res.ravel(), None if J is None else J.reshape(-1, 10)
+        if self.surf is None:
+            return res_v, J_m
+        rs, Js = _surface_residuals(th, self.surf, self.sigma_r, jac=jac)
+        n_par = th.size
+        rp, Jp = np.zeros(0), np.zeros((0, n_par))
+        if self.surf.prior_sigma is not None and self.surf.prior_mean is not None:  # the markers' word on the planes
+            rp = (th[10:] - self.surf.prior_mean) / self.surf.prior_sigma
+            Jp = np.zeros((rp.size, n_par))
+            Jp[:, 10:] = np.diag(1.0 / self.surf.prior_sigma)
+        if J_m is None or Js is None:
+            return np.concatenate([res_v, rs, rp]), None
+        J_m = np.hstack([J_m, np.zeros((J_m.shape[0], n_par - 10))])
+        return np.concatenate([res_v, rs, rp]), np.vstack([J_m, Js, Jp])
 
 
 def _residuals(th: FloatArray, pb: _Problem, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
     """Whitened residuals (K, n_res) and their Jacobian (K, n_res, 10) (None when jac is False)."""
-    o, d, Jo, Jd = beam_rays_W(th, pb.lam, pb.mu)
+    o, d, Jo, Jd = beam_rays_W(th[:10], pb.lam, pb.mu)
     if pb.model == "paper":
         res = (o + pb.r[:, None] * d - pb.c) / pb.sigma_r
         J = (Jo + pb.r[:, None, None] * Jd) / pb.sigma_r if jac else None
@@ -288,12 +380,12 @@ def _problem(
 
 def _fit(th0: FloatArray, pb: _Problem, robust: bool) -> tuple[FloatArray, int, str]:
     def fun(th: FloatArray) -> FloatArray:
-        return _residuals(th, pb, jac=False)[0].ravel()
+        return pb.stacked(th, jac=False)[0]
 
     def jac(th: FloatArray) -> FloatArray:
-        J = _residuals(th, pb)[1]
+        J = pb.stacked(th)[1]
         assert J is not None
-        return J.reshape(-1, 10)
+        return J
 
     if robust:
         sol = least_squares(fun, th0, jac=jac, method="trf", loss="soft_l1", f_scale=2.0, x_scale="jac",
@@ -320,6 +412,8 @@ def solve(
     marker_radius_m: float,
     range_sigma_m: float = 0.010,
     robust: bool = True,
+    surfaces: SurfaceReturns | None = None,
+    planes: Sequence[Surface] | None = None,
 ) -> Solution:
     """Estimate the 10 parameters from marker returns (see the module docstring for the models).
 
@@ -331,6 +425,11 @@ def solve(
         marker_radius_m: marker sphere radius R_m.
         range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, FACTS.md).
         robust: soft-L1 first pass and 4-sigma rejection before the final plain least-squares pass.
+        surfaces: optional non-marker returns on the marker-carrying planes (lrfcal.surfaces), solved jointly
+            as ray-plane range residuals (whitened by range_sigma_m), rejected at 4 sigma like the markers.
+        planes: the lrfcal.surfaces.Surface of each surface index: each plane's normal and offset are nuisance
+            parameters with the markers' prior (Surface.prior_sigma); without them the planes are free
+            (only flatness counts), started from the returns' normals and offsets.
     Returns:
         Solution with angles wrapped to (-pi, pi], covariance s^2 (J^T J)^-1 (pseudo-inverse, and status says
         "rank deficient" when J^T J is singular), residuals_m (K, 3) for all K rows (NaN for unused rows),
@@ -345,9 +444,26 @@ def solve(
     if K < 4 or n_markers < 3:
         raise CalibrationError(f"solve ({model}): need >= 4 returns on >= 3 markers, got {K} on {n_markers}")
     th = start.vector().astype(float)
+    if surfaces is not None and len(surfaces):
+        ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
+        first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
+        n0, t1, t2, nu0 = _plane_nuisance_start(surfaces.normals[first], surfaces.offsets_m[first])
+        prior_sigma = None
+        if planes is not None:
+            t1 = np.array([planes[i].axes[0] for i in ids])
+            t2 = np.array([planes[i].axes[1] for i in ids])
+            prior_sigma = np.concatenate([planes[i].prior_sigma for i in ids])
+        surf = _Surf(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
+                     nu0.copy(), prior_sigma)
+        pb_all = _Problem(pb_all.lam, pb_all.mu, pb_all.r, pb_all.c, pb_all.model, pb_all.radius, pb_all.sigma_r,
+                          surf)
+        th = np.concatenate([th, nu0])
+    K2 = 0 if pb_all.surf is None else pb_all.surf.r.size
+    n_par = th.size
     nfev = 0
     keep = np.ones(K, dtype=bool)
-    dropped = 0
+    keep_s = np.ones(K2, dtype=bool)
+    dropped = dropped_s = 0
     if robust:
         th, nf, _ = _fit(th, pb_all, robust=True)
         nfev += nf
@@ -356,39 +472,46 @@ def solve(
             # robust scale of the whitened residuals (median of chi2_3 / 3 is 0.789), never below the model's
             scale = max(1.0, float(np.sqrt(np.median(chi[keep] ** 2) / 0.789)))
             new = chi <= 4.0 * scale
+            new_s = keep_s
+            if pb_all.surf is not None:
+                rs = np.abs(_surface_residuals(th, pb_all.surf, pb_all.sigma_r, jac=False)[0])
+                new_s = rs <= 4.0 * max(1.0, float(np.median(rs[keep_s]) / 0.674))
             if new.sum() < 4:
                 break
-            changed = not np.array_equal(new, keep)
-            keep = new
-            th, nf, msg = _fit(th, pb_all.subset(keep), robust=False)
+            changed = not (np.array_equal(new, keep) and np.array_equal(new_s, keep_s))
+            keep, keep_s = new, new_s
+            th, nf, msg = _fit(th, pb_all.subset(keep, keep_s), robust=False)
             nfev += nf
             if not changed:
                 break
-        dropped = int(K - keep.sum())
-    th, nf, msg = _fit(th, pb_all.subset(keep), robust=False)
+        dropped, dropped_s = int(K - keep.sum()), int(K2 - keep_s.sum())
+    th, nf, msg = _fit(th, pb_all.subset(keep, keep_s), robust=False)
     nfev += nf
 
-    pb = pb_all.subset(keep)
-    res, J = _residuals(th, pb)
+    pb = pb_all.subset(keep, keep_s)
+    res, J = pb.stacked(th)
     assert J is not None
-    res, J = res.ravel(), J.reshape(-1, 10)
     k_in = int(keep.sum())
-    dof = max(3 * k_in - 10, 1)  # 3 independent residuals per return in either model
+    k_s = int(keep_s.sum())
+    n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
+    dof = max(3 * k_in + k_s + n_prior - n_par, 1)  # 3 per marker return, 1 per surface return and prior row
     s2 = float(res @ res / dof)
     col = np.linalg.norm(J, axis=0)
     col[col == 0] = 1.0
     sv = np.linalg.svd(J / col, compute_uv=False)
     rank = int(np.sum(sv > sv[0] * 1e-9))
     JtJ = J.T @ J
-    if rank < 10:
+    if rank < n_par:
         cov = s2 * np.linalg.pinv(JtJ, rcond=1e-12)
         _, _, Vt = np.linalg.svd(J / col)
         worst = Vt[-1] / col
-        names = [PARAM_NAMES[i] for i in np.argsort(-np.abs(worst))[:3]]
-        rank_txt = f"rank deficient ({rank}/10), unobservable direction mostly {'/'.join(names)}"
+        names = [PARAM_NAMES[i] if i < 10 else f"plane{(i - 10) // 3}" for i in np.argsort(-np.abs(worst))[:3]]
+        rank_txt = f"rank deficient ({rank}/{n_par}), unobservable direction mostly {'/'.join(names)}"
     else:
         cov = s2 * np.linalg.inv(JtJ)
         rank_txt = f"full rank (condition {sv[0] / sv[-1]:.2e})"
+    cov = cov[:10, :10]  # marginal covariance of the 10 parameters (plane nuisances integrated out)
+    th = th[:10]
     th[list(_ANGLE_IDX)] = wrap_pi(th[list(_ANGLE_IDX)])
     params = Params.from_vector(th)
 
@@ -402,7 +525,8 @@ def solve(
     mk = np.asarray(obs.marker)[inl]
     for i in np.unique(mk):
         per[i] = float(np.sqrt(sq[mk == i].mean()))
-    status = (f"{model}: {msg.rstrip('.')}; {k_in}/{K} returns used ({dropped} dropped > 4 sigma), "
+    surf_txt = f", {k_s}/{K2} surface returns ({dropped_s} dropped)" if K2 else ""
+    status = (f"{model}: {msg.rstrip('.')}; {k_in}/{K} returns used ({dropped} dropped > 4 sigma){surf_txt}, "
               f"reduced chi2 {s2:.3g}, {rank_txt}")
     return Solution(
         params=params,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -224,3 +225,5 @@ class CalibrationResult:
     geometry_before: TunnelGeometry | None
     geometry_after: TunnelGeometry | None
     timings_s: dict[str, float] = field(default_factory=dict)
+    surfaces: tuple[Any, ...] = ()  # lrfcal.surfaces.Surface: the planes the markers are mounted on
+    surface_returns: Any = None  # lrfcal.surfaces.SurfaceReturns used in the joint solve, or None

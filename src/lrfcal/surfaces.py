@@ -1,0 +1,200 @@
+"""Stage 6b: the surfaces the markers are mounted on, and the ordinary (non-marker) returns from them.
+
+The paper's markers sit on planar surfaces: the board of its Gazebo study, the walls of the tunnel. A sphere of
+radius R stuck on a plane has its centre R in front of it, so the plane is known in W from the MDS coordinates:
+the plane through a coplanar group of marker centres, moved back by R (away from the sensor). Every beam that
+hits that surface near the markers is then an observation too, a range residual against the ray-plane distance,
+and there are hundreds of such beams per marker return.
+
+Candidate planes are fitted through the marker centres (greedy RANSAC, >= 5 markers, not collinear) and kept only
+if the reprojected cloud confirms them: most of the returns in a slab around the candidate, inside the markers'
+extent, must lie on it. This rejects virtual planes through parallel lines of markers on different walls (the
+two V arms of the tunnel_v layout are such a pair).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A marker-carrying plane in W: n . p = offset_m (n unit, pointing away from the sensor), its markers, and
+    the markers' extent in the plane (2 axes (2, 3), centre (3,), lower/upper bounds (2,) in m).
+
+    prior_sigma (3,): how well the markers fix the plane: tilts (rad) towards axes[0] and axes[1], and the
+    offset (m). The solver treats the plane as a nuisance with this prior, not as exactly known.
+    """
+
+    normal: FloatArray
+    offset_m: float
+    marker_idx: IntArray
+    axes: FloatArray
+    centre: FloatArray
+    lower: FloatArray
+    upper: FloatArray
+    prior_sigma: FloatArray
+
+
+@dataclass(frozen=True)
+class SurfaceReturns:
+    """Non-marker returns on the surfaces (K2 rows): scan, beam indices; lambda_rad, mu_rad, ranges_m; the
+    surface index of each; normals (K2, 3) and offsets (K2,) of their planes in W."""
+
+    scan: IntArray
+    beam: IntArray
+    lambda_rad: FloatArray
+    mu_rad: FloatArray
+    ranges_m: FloatArray
+    surface: IntArray
+    normals: FloatArray
+    offsets_m: FloatArray
+
+    def __len__(self) -> int:
+        return int(self.ranges_m.size)
+
+    def subset(self, mask: NDArray[np.bool_]) -> SurfaceReturns:
+        return SurfaceReturns(**{k: getattr(self, k)[mask] for k in self.__dataclass_fields__})
+
+
+def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
+                     n_trials: int = 400) -> list[tuple[FloatArray, float, IntArray]]:
+    """Planes through >= ``min_markers`` marker centres (within ``tol_m``), largest first: (n, offset, idx)."""
+    X = np.asarray(markers_W, dtype=float)
+    rng = np.random.default_rng(seed)
+    out: list[tuple[FloatArray, float, IntArray]] = []
+    seen: set[tuple[int, ...]] = set()
+    for _ in range(n_trials):
+        i = rng.choice(len(X), 3, replace=False)
+        n = np.cross(X[i[1]] - X[i[0]], X[i[2]] - X[i[0]])
+        norm = float(np.linalg.norm(n))
+        if norm < 1e-4:
+            continue
+        n /= norm
+        members = np.nonzero(np.abs((X - X[i[0]]) @ n) < tol_m)[0]
+        key = tuple(members.tolist())
+        if members.size < min_markers or key in seen:
+            continue
+        seen.add(key)
+        P = X[members]
+        c = P.mean(0)
+        _, s, Vt = np.linalg.svd(P - c)
+        if s[1] < 0.1 * s[0]:  # collinear markers do not fix a plane
+            continue
+        out.append((Vt[2], float(Vt[2] @ c), members))
+    out.sort(key=lambda p: -p[2].size)
+    return out
+
+
+def find_surfaces(
+    markers_W: FloatArray, radius_m: float, sensor_W: FloatArray, cloud_W: FloatArray, *,
+    position_sigma_m: float = 0.001, mounting_sigma_m: float = 0.0005,
+    margin_m: float = 0.05, slab_m: float = 0.3, on_plane_m: float = 0.03, min_support: float = 0.6,
+) -> list[Surface]:
+    """Marker planes confirmed by the cloud, moved R away from the sensor; disjoint in their markers.
+
+    Args:
+        markers_W: (n, 3) marker centres; radius_m: their radius; sensor_W: (3,) a point on the sensor side
+        (the motor frame's origin); cloud_W: (P, 3) reprojected returns (a subsample is enough).
+        position_sigma_m: uncertainty of a marker's MDS coordinates; mounting_sigma_m: of a sphere's contact
+        with the surface. With n markers spread by s_i along the plane's axes, the prior is
+        tilt_i ~ position_sigma / (s_i sqrt(n)), offset ~ sqrt(position_sigma^2 / n + mounting_sigma^2).
+    """
+    X = np.asarray(markers_W, dtype=float)
+    used: set[int] = set()
+    surfaces: list[Surface] = []
+    for n, off, members in candidate_planes(X):
+        if used & set(members.tolist()):
+            continue
+        if n @ sensor_W > off:  # orient the normal away from the sensor
+            n, off = -n, -off
+        P = X[members]
+        c = P.mean(0)
+        axes = np.linalg.svd(P - c)[2][:2]
+        q = (P - c) @ axes.T
+        lower, upper = q.min(0) - margin_m, q.max(0) + margin_m
+        k = members.size
+        prior = np.array([*(position_sigma_m / (q.std(0) * np.sqrt(k))),
+                          np.sqrt(position_sigma_m**2 / k + mounting_sigma_m**2)])
+        surface = Surface(n, off + radius_m, members, axes, c, lower, upper, prior)
+        dist, inside = _in_extent(surface, cloud_W)
+        slab = inside & (np.abs(dist) < slab_m)
+        on = slab & (np.abs(dist) < on_plane_m)
+        if slab.sum() < 50 or on.sum() < min_support * slab.sum():
+            continue
+        surfaces.append(surface)
+        used |= set(members.tolist())
+    return surfaces
+
+
+def _in_extent(surface: Surface, points_W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Signed distances (P,) of points to the surface and whether they project inside the markers' extent."""
+    dist = points_W @ surface.normal - surface.offset_m
+    q = (points_W - surface.centre) @ surface.axes.T
+    return dist, np.all((q >= surface.lower) & (q <= surface.upper), axis=1)
+
+
+def surface_returns(
+    surfaces: list[Surface], points_W: FloatArray, scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
+    mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = 0.03,
+    marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0,
+) -> SurfaceReturns:
+    """The returns (rows of the P inputs) on the surfaces, away from markers, at most ``max_returns`` (an even
+    random subsample). points_W (P, 3) are the returns reprojected with the current parameters."""
+    near_marker = cKDTree(np.asarray(markers_W)).query(points_W)[0] < marker_clearance_m
+    idx_all, which = [], []
+    for k, s in enumerate(surfaces):
+        dist, inside = _in_extent(s, points_W)
+        idx = np.nonzero(inside & (np.abs(dist) < gate_m) & ~near_marker)[0]
+        idx_all.append(idx)
+        which.append(np.full(idx.size, k))
+    idx = np.concatenate(idx_all) if idx_all else np.zeros(0, dtype=np.int64)
+    surf = np.concatenate(which) if which else np.zeros(0, dtype=np.int64)
+    if idx.size > max_returns:
+        pick = np.sort(np.random.default_rng(seed).choice(idx.size, max_returns, replace=False))
+        idx, surf = idx[pick], surf[pick]
+    normals = np.array([s.normal for s in surfaces]).reshape(-1, 3)
+    offsets = np.array([s.offset_m for s in surfaces])
+    return SurfaceReturns(
+        scan=np.asarray(scan)[idx], beam=np.asarray(beam)[idx], lambda_rad=np.asarray(lambda_rad)[idx],
+        mu_rad=np.asarray(mu_rad)[idx], ranges_m=np.asarray(ranges_m)[idx], surface=surf,
+        normals=normals[surf] if surf.size else np.zeros((0, 3)), offsets_m=offsets[surf] if surf.size else np.zeros(0),
+    )
+
+
+__all__ = ["Surface", "SurfaceReturns", "candidate_planes", "find_surfaces", "surface_returns"]
+
+
+def observe_surfaces(
+    ranges_m: FloatArray, mu_rad: FloatArray, lambda_rad: FloatArray, labels: IntArray, markers_W: FloatArray,
+    radius_m: float, params: object, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
+) -> tuple[list[Surface], SurfaceReturns]:
+    """Find the marker-carrying surfaces and their returns in a recording.
+
+    Args:
+        ranges_m (S, N) with NaN for no return; mu_rad (N,); lambda_rad (S, N) per-beam motor angles;
+        labels (S, N) blob labels (>= 0 on marker returns, excluded); markers_W (n, 3); radius_m;
+        params: lrfcal.kinematics.Params used to reproject (the marker-only estimate);
+        position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior).
+    """
+    from .kinematics import points_W
+
+    valid = np.isfinite(ranges_m) & (labels < 0)
+    scan, beam = np.nonzero(valid)
+    lam, mu, r = lambda_rad[scan, beam], np.asarray(mu_rad)[beam], ranges_m[scan, beam]
+    P = points_W(r, lam, mu, params)  # type: ignore[arg-type]
+    sensor_W = params.mount.matrix()[:3, 3]  # type: ignore[attr-defined]
+    step = max(1, P.shape[0] // 100_000)
+    surfaces = find_surfaces(markers_W, radius_m, sensor_W, P[::step], position_sigma_m=position_sigma_m)
+    returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed)
+    return surfaces, returns
+
+
+__all__ += ["observe_surfaces"]

@@ -1,0 +1,80 @@
+"""Stage 6b: marker-carrying planes from the marker map, their returns, and the joint solve's Jacobian."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lrfcal.kinematics import DH, Params, Pose, beam_rays_M, transform_points
+from lrfcal.solve import _plane_nuisance_start, _Surf, _surface_residuals
+from lrfcal.surfaces import candidate_planes, find_surfaces, surface_returns
+
+R = 0.005
+
+
+def _two_walls(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Markers in a V on two parallel walls y = +-0.39 (arms parallel across the tunnel), and a cloud of the
+    walls, floor and ceiling."""
+    xs = np.linspace(0.3, 1.9, 9)
+    zs = np.abs(np.linspace(-1, 1, 9)) * 1.4 + 0.5
+    left = np.column_stack([xs, np.full(9, 0.39 - R), zs])
+    right = np.column_stack([xs, np.full(9, -0.39 + R), zs])
+    markers = np.vstack([left, right])
+    n = 20000
+    walls = [np.column_stack([rng.uniform(0, 2.2, n), np.full(n, s * 0.39), rng.uniform(0, 2.3, n)]) for s in (1, -1)]
+    flats = [np.column_stack([rng.uniform(0, 2.2, n), rng.uniform(-0.39, 0.39, n), np.full(n, h)]) for h in (0, 2.3)]
+    return markers, np.vstack(walls + flats)
+
+
+def test_marker_planes_are_the_walls_not_the_parallel_arms() -> None:
+    rng = np.random.default_rng(0)
+    markers, cloud = _two_walls(rng)
+    # the virtual plane through two parallel arms on opposite walls holds 10 markers, more than a wall's 9 ...
+    assert max(c[2].size for c in candidate_planes(markers)) == 10
+    # ... but the cloud does not confirm it: the surfaces found are the two walls, moved R behind the markers
+    surfaces = find_surfaces(markers, R, np.array([0.0, 0.0, 1.0]), cloud)
+    assert len(surfaces) == 2
+    for s in surfaces:
+        assert s.marker_idx.size == 9
+        assert abs(abs(s.normal[1]) - 1.0) < 1e-9 and abs(s.offset_m - 0.39) < 1e-9  # normal away from sensor
+    # returns: only near the surfaces, inside the markers' extent, away from the markers
+    P = cloud
+    idx = np.arange(len(P))
+    ret = surface_returns(surfaces, P, idx, idx, np.zeros(len(P)), np.zeros(len(P)), np.ones(len(P)), markers,
+                          max_returns=10**6)
+    pts = P[ret.scan]
+    assert len(ret) > 1000 and np.all(np.abs(np.abs(pts[:, 1]) - 0.39) < 1e-9)
+    assert np.all(pts[:, 0] > 0.3 - 0.06) and np.all(pts[:, 0] < 1.9 + 0.06)
+    assert np.min(np.linalg.norm(pts[:, None] - markers[None], axis=2)) >= 0.03
+
+
+def test_no_surface_from_scattered_markers() -> None:
+    rng = np.random.default_rng(1)
+    markers = rng.uniform(-1, 1, (12, 3))
+    assert find_surfaces(markers, R, np.zeros(3), rng.uniform(-2, 2, (5000, 3))) == []
+
+
+def test_surface_jacobian_matches_finite_differences() -> None:
+    rng = np.random.default_rng(2)
+    params = Params(Pose(0.1, -0.2, 1.0, 1.5, 0.1, -1.5), DH(0.01, 1.55, 0.02, -1.6))
+    K = 200
+    lam, mu = rng.uniform(-1.5, 1.5, K), rng.uniform(-2, 2, K)
+    o, d = beam_rays_M(lam, mu, params.dh)
+    T = params.mount.matrix()
+    o, d = transform_points(T, o), d @ T[:3, :3].T
+    normals = np.array([[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
+    plane = rng.integers(0, 2, K)
+    offsets = np.array([1.0, 2.0])
+    r = (offsets[plane] - (normals[plane] * o).sum(1)) / (normals[plane] * d).sum(1) + rng.normal(0, 0.01, K)
+    n0, t1, t2, nu0 = _plane_nuisance_start(normals + rng.normal(0, 0.01, (2, 3)), offsets + 0.003)
+    n0 = n0 / np.linalg.norm(n0, axis=1, keepdims=True)
+    s = _Surf(lam, mu, r, plane.astype(np.int64), n0, t1, t2)
+    th = np.concatenate([params.vector(), nu0 + rng.normal(0, 0.01, nu0.size)])
+    _, J = _surface_residuals(th, s, 0.01)
+    assert J is not None and J.shape == (K, 16)
+    h = 1e-6
+    for j in range(th.size):
+        dp = np.zeros(th.size)
+        dp[j] = h
+        num = (_surface_residuals(th + dp, s, 0.01, jac=False)[0] - _surface_residuals(th - dp, s, 0.01, jac=False)[0])
+        num /= 2 * h
+        assert np.abs(num - J[:, j]).max() <= 1e-5 * max(1.0, np.abs(J[:, j]).max()), j
