@@ -397,6 +397,23 @@ def _fit(th0: FloatArray, pb: _Problem, robust: bool) -> tuple[FloatArray, int, 
     return sol.x, int(sol.nfev), str(sol.message)
 
 
+def _inflate_for_correlation(cov: FloatArray, J: FloatArray, res: FloatArray, cluster: NDArray[np.int64],
+                             JtJ_inv: FloatArray) -> FloatArray:
+    """Widen the covariance where errors shared within a scan make it optimistic.
+
+    The cluster-robust (sandwich) covariance (J^T J)^-1 (sum_c g_c g_c^T) (J^T J)^-1, g_c = sum over the rows of
+    scan c of J_i r_i, allows any error correlation within a scan (the motor angle of a scan comes from the same
+    few quantised encoder readings for all its beams). Each parameter's sigma is the larger of the two; the
+    model-based correlations are kept. cov (p, p), J (m, p), res (m,), cluster (m,) ids.
+    """
+    _, inverse = np.unique(cluster, return_inverse=True)
+    G = np.zeros((int(inverse.max()) + 1, J.shape[1]))
+    np.add.at(G, inverse, J * res[:, None])
+    sandwich = JtJ_inv @ (G.T @ G) @ JtJ_inv
+    scale = np.sqrt(np.maximum(1.0, np.diag(sandwich) / np.maximum(np.diag(cov), 1e-300)))
+    return cov * np.outer(scale, scale)
+
+
 def _per_return_chi(th: FloatArray, pb: _Problem) -> FloatArray:
     """Whitened residual norm per return divided by sqrt(3) (3 independent components for either model)."""
     res, _ = _residuals(th, pb, jac=False)
@@ -509,6 +526,10 @@ def solve(
         rank_txt = f"rank deficient ({rank}/{n_par}), unobservable direction mostly {'/'.join(names)}"
     else:
         cov = s2 * np.linalg.inv(JtJ)
+        clusters = [np.repeat(np.asarray(obs.scan)[use][keep], pb.n_res)]
+        if pb.surf is not None and surfaces is not None:
+            clusters += [np.asarray(surfaces.scan)[keep_s], -1 - np.arange(n_prior)]
+        cov = _inflate_for_correlation(cov, J, res, np.concatenate(clusters), np.linalg.inv(JtJ))
         rank_txt = f"full rank (condition {sv[0] / sv[-1]:.2e})"
     cov = cov[:10, :10]  # marginal covariance of the 10 parameters (plane nuisances integrated out)
     th = th[:10]
