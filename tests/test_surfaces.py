@@ -78,3 +78,23 @@ def test_surface_jacobian_matches_finite_differences() -> None:
         num = (_surface_residuals(th + dp, s, 0.01, jac=False)[0] - _surface_residuals(th - dp, s, 0.01, jac=False)[0])
         num /= 2 * h
         assert np.abs(num - J[:, j]).max() <= 1e-5 * max(1.0, np.abs(J[:, j]).max()), j
+
+
+def test_undetermined_or_diverged_solutions_are_refused() -> None:
+    import pytest
+
+    from lrfcal.errors import CalibrationError
+    from lrfcal.pipeline import _check_determined
+    from lrfcal.types import Solution
+
+    def solution(sigma_b: float, status: str = "sphere: ftol satisfied") -> Solution:
+        sigma = np.full(10, 1e-4)
+        sigma[8] = sigma_b
+        return Solution(Params(Pose(), DH(0, 0, 0, 0)), np.diag(sigma**2), sigma, 0.01, np.zeros((0, 3)),
+                        np.zeros(0), 100, 10, status)
+
+    _check_determined(solution(0.001))
+    with pytest.raises(CalibrationError, match=r"^b is not determined"):
+        _check_determined(solution(80.0))  # the valley of a board across the motor axis: b = 61 m +- 80 m
+    with pytest.raises(CalibrationError, match="did not converge"):
+        _check_determined(solution(0.001, "sphere: The maximum number of function evaluations is exceeded"))

@@ -12,6 +12,7 @@ baseline, on the same detections and association, so that the gain is measured.
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass
 
@@ -19,8 +20,8 @@ import numpy as np
 
 from . import association, detection, geometry, mds, reproject, solve, surfaces, timing
 from .errors import CalibrationError
-from .kinematics import Params, Pose
-from .types import CalibrationResult, Observations, Recording
+from .kinematics import PARAM_NAMES, Params, Pose
+from .types import CalibrationResult, Observations, Recording, Solution
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,7 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
                 range_sigma_m=config.range_sigma_m, surfaces=on_surfaces, planes=surface_list,
             )
         clock.lap("surfaces")
+    _check_determined(ours)
 
     baseline = None
     if config.baseline:  # the paper: the blob's brightest beam, the motor angle at the scan's stamp
@@ -140,6 +142,23 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
         surfaces=tuple(surface_list),
         surface_returns=on_surfaces,
     )
+
+
+#: A DH parameter this uncertain is not calibrated: the marker layout and sweep leave it (nearly) unobservable.
+MAX_SIGMA = {"a": 0.02, "alpha": math.radians(2.0), "b": 0.02, "beta": math.radians(2.0)}
+
+
+def _check_determined(solution: Solution) -> None:
+    """Refuse a solution that did not converge or whose DH parameters the data do not determine."""
+    if "maximum number of function evaluations" in solution.status:
+        raise CalibrationError(f"the solver did not converge ({solution.status})")
+    for name, limit in MAX_SIGMA.items():
+        sigma = float(solution.sigma[PARAM_NAMES.index(name)])
+        if not sigma <= limit:
+            raise CalibrationError(
+                f"{name} is not determined by this recording (1-sigma {sigma:.3g}, limit {limit:.3g}): the markers "
+                "and sweep leave it unobservable (e.g. all markers at one distance along the motor axis)"
+            )
 
 
 def _with_markers(returns: Observations, blob_to_marker: np.ndarray) -> Observations:
