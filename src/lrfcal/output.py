@@ -112,6 +112,15 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
             "mirrored": bool(result.association.mirrored),
             "rms_m": _f(result.association.rms_m),
         },
+        "surfaces": [  # the planes the markers sit on, solved jointly (stage 6b)
+            {
+                "markers": [ids[int(i)] for i in srf.marker_idx],
+                "normal": [float(v) for v in srf.normal],
+                "offset_m": float(srf.offset_m),
+                "n_returns": int(np.sum(result.surface_returns.surface == k)) if result.surface_returns else 0,
+            }
+            for k, srf in enumerate(result.surfaces)
+        ],
         "detection_threshold": _f(result.detections.threshold),
         "start": {k: float(v) for k, v in result.start.as_dict().items()},
         "baseline": None,
