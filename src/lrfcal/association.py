@@ -114,20 +114,69 @@ def _sides(X: FloatArray, tri: IntArray) -> FloatArray:
 def _score(
     R: FloatArray, t: FloatArray, P: FloatArray, X: FloatArray, w: FloatArray, gate_m: float, chunk: int = 256
 ) -> tuple[FloatArray, FloatArray]:
-    """Score hypotheses R (H,3,3), t (H,3): weighted inlier count (H,) and inlier RMS (H,) of blobs P vs X."""
+    """Score hypotheses R (H,3,3), t (H,3): weighted inlier count (H,) and inlier RMS (H,) of blobs P vs X.
+
+    Every hypothesis' values depend on its own row only (so scoring a subset gives the same numbers).
+    """
     H = len(R)
     score = np.zeros(H)
     rms = np.full(H, np.inf)
+    Xc = [np.ascontiguousarray(X[:, i]) for i in range(3)]
+    gate2 = gate_m**2
     for s in range(0, H, chunk):
         Rc, tc = R[s:s + chunk], t[s:s + chunk]
         Y = np.einsum("hij,bj->hbi", Rc, P) + tc[:, None, :]  # (h, B, 3)
-        d2 = ((Y[:, :, None, :] - X[None, None, :, :]) ** 2).sum(-1).min(-1)  # (h, B)
-        inl = d2 < gate_m**2
+        # squared distance to every marker, (h, B, n), summed over x, y, z in that order (as a sum over the
+        # last axis would), without the (h, B, n, 3) temporary
+        d2 = np.subtract(Y[:, :, 0, None], Xc[0])
+        np.multiply(d2, d2, out=d2)
+        for i in (1, 2):
+            e = np.subtract(Y[:, :, i, None], Xc[i])
+            np.multiply(e, e, out=e)
+            d2 += e
+        d2 = d2.min(-1)  # (h, B)
+        inl = d2 < gate2
         score[s:s + chunk] = (inl * w).sum(1)
         n = inl.sum(1)
         with np.errstate(invalid="ignore", divide="ignore"):
             rms[s:s + chunk] = np.where(n > 0, np.sqrt((d2 * inl).sum(1) / np.maximum(n, 1)), np.inf)
     return score, rms
+
+
+def _best_hypotheses(
+    R: FloatArray, t: FloatArray, P: FloatArray, X: FloatArray, w: FloatArray, gate_m: float, k: int = 5,
+    n_probe: int = 8,
+) -> IntArray:
+    """Indices of the k best hypotheses by (score descending, RMS ascending, index): exactly
+    ``np.lexsort((rms, -score))[:k]`` of :func:`_score` over all hypotheses, without scoring them all.
+
+    Branch and bound: every hypothesis is first scored on a few probe blobs; its score on all blobs is at most
+    that partial score plus the weight of the other blobs. Hypotheses are scored in full by decreasing bound
+    until the bound of the rest falls below the k-th best full score (they cannot enter the top k).
+    """
+    H, B = len(R), len(P)
+    if 4 * k >= H or 2 * n_probe >= B:  # few: score them all
+        score, rms = _score(R, t, P, X, w, gate_m)
+        return np.lexsort((rms, -score))[:k]
+    probe = np.unique(np.linspace(0, B - 1, n_probe).round().astype(np.int64))
+    part, _ = _score(R, t, P[probe], X, w[probe], gate_m)
+    rest = np.ones(B, dtype=bool)
+    rest[probe] = False
+    bound = part + float(w[rest].sum()) + 1e-9 * (float(w.sum()) + 1.0)  # margin for rounding
+    by_bound = np.argsort(-bound, kind="stable")
+    score = np.full(H, -np.inf)
+    rms = np.full(H, np.inf)
+    done = np.zeros(H, dtype=bool)
+    first = by_bound[: max(8 * k, 64)]
+    score[first], rms[first] = _score(R[first], t[first], P, X, w, gate_m)
+    done[first] = True
+    kth = np.sort(score[done])[::-1][min(k, int(done.sum())) - 1]
+    more = np.flatnonzero(~done & (bound >= kth))
+    if more.size:
+        score[more], rms[more] = _score(R[more], t[more], P, X, w, gate_m)
+        done[more] = True
+    idx = np.flatnonzero(done)  # ascending: lexsort's tie-break on the index is kept
+    return idx[np.lexsort((rms[idx], -score[idx]))[:k]]
 
 
 def _refine(
@@ -251,8 +300,7 @@ def associate(
     for mirrored in (False, True):
         Xs = X * _MIRROR if mirrored else X
         R, t = _kabsch_batch(Pb, Xs[mt])
-        score, rms = _score(R, t, P, Xs, w, gate_m)
-        order = np.lexsort((rms, -score))[:5]  # best few, refined
+        order = _best_hypotheses(R, t, P, Xs, w, gate_m, k=5)  # best few, refined
         cand = []
         for h in order:
             T = np.eye(4)

@@ -55,8 +55,11 @@ def background_model(ranges_m: FloatArray, intensities: FloatArray, seed: int = 
     Returns:
         knots_log_r (Q,), median_log_i (Q,): bin medians; evaluate with ``np.interp(log r, knots, medians)``.
     """
-    x = np.log(ranges_m)
-    y = np.log(intensities)
+    return _background_model_log(np.log(ranges_m), np.log(intensities), seed)
+
+
+def _background_model_log(x: FloatArray, y: FloatArray, seed: int) -> tuple[FloatArray, FloatArray]:
+    """:func:`background_model` from x = log(range), y = log(intensity) (not modified)."""
     if x.size > _MODEL_SAMPLES:
         idx = np.random.default_rng(seed).choice(x.size, _MODEL_SAMPLES, replace=False)
         x, y = x[idx], y[idx]
@@ -90,14 +93,16 @@ def contrast(scans: Scans, seed: int = 0) -> tuple[FloatArray, float, float]:
     if not np.any(valid):
         src = scans.source or "scans"
         raise InputError(f"{src}: no intensities (enable publish_intensity)")
-    kx, ky = background_model(r[valid], inten[valid], seed)
+    r_v = r[valid]
+    log_r, log_i = np.log(r_v), np.log(inten[valid])  # computed once, for the model and the contrast
+    kx, ky = _background_model_log(log_r, log_i, seed)
     z = np.full(r.shape, np.nan)
-    zv = np.log(inten[valid]) - np.interp(np.log(r[valid]), kx, ky)
+    zv = log_i - np.interp(log_r, kx, ky)
     z[valid] = zv
     med = float(np.median(zv))
     sigma = 1.4826 * float(np.median(np.abs(zv - med)))
     t = float(np.clip(med + K_SIGMA * sigma, math.log(MIN_CONTRAST), math.log(MAX_CONTRAST)))
-    r_med = float(np.median(r[valid]))
+    r_med = float(np.median(r_v))
     thr_counts = float(np.exp(np.interp(math.log(r_med), kx, ky) + t))
     return z, t, thr_counts
 

@@ -124,14 +124,16 @@ def extract_planes(
     N = np.stack([n for n, _ in found])
     D = np.array([d for _, d in found])
     member = np.abs(pts @ N.T - D) < threshold_m
-    exclusive = member & (member.sum(axis=1, keepdims=True) == 1)
+    n_member = np.count_nonzero(member, axis=1)
+    single = n_member == 1
+    at_most_one = n_member <= 1
     planes: list[FittedPlane] = []
     for k in range(len(found)):
-        idx = np.flatnonzero(exclusive[:, k])
+        idx = np.flatnonzero(member[:, k] & single)
         if idx.size < 3:
             idx = np.flatnonzero(member[:, k])
         n, d = fit_plane_lsq(pts[idx])
-        idx = np.flatnonzero((np.abs(pts @ n - d) < threshold_m) & (member.sum(axis=1) <= 1))
+        idx = np.flatnonzero((np.abs(pts @ n - d) < threshold_m) & at_most_one)
         if idx.size >= 3:
             n, d = fit_plane_lsq(pts[idx])
         planes.append(FittedPlane(normal=n, offset_m=d, inliers=idx))
@@ -167,7 +169,8 @@ def tunnel_geometry(
         labelled 'wall', 'floor/ceiling', 'plate' or 'other'.
     """
     pts = np.asarray(points_M, dtype=np.float64).reshape(-1, 3)
-    pts = pts[np.isfinite(pts).all(axis=1)]
+    if not np.isfinite(pts.sum()):  # a NaN or inf anywhere makes the sum non-finite; else nothing to drop
+        pts = pts[np.isfinite(pts).all(axis=1)]
     rng = np.random.default_rng(seed)
     if len(pts) > max_points:
         pts = pts[rng.choice(len(pts), max_points, replace=False)]

@@ -28,6 +28,9 @@ from .errors import InputError
 
 FloatArray = NDArray[np.float64]
 
+#: elements per block in :func:`points_M_trig`
+_CHUNK = 1 << 14
+
 #: Order of the 10 calibration parameters in every vector, covariance and table.
 PARAM_NAMES: tuple[str, ...] = ("x", "y", "z", "roll", "pitch", "yaw", "a", "alpha", "b", "beta")
 DH_NAMES: tuple[str, ...] = ("a", "alpha", "b", "beta")
@@ -224,8 +227,62 @@ def beam_rays_M(lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> tuple[Float
 
 def points_M(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> FloatArray:
     """Returns [r, 0, 0] in L expressed in the motor frame M, shape (K, 3)."""
-    o, d = beam_rays_M(lambda_rad, mu_rad, dh)
-    return o + np.asarray(ranges_m, dtype=float)[..., None] * d
+    lam = np.asarray(lambda_rad, dtype=float)
+    phi = dh.beta + np.asarray(mu_rad, dtype=float)
+    r = np.asarray(ranges_m, dtype=float)
+    shape = np.broadcast_shapes(lam.shape, phi.shape, r.shape)
+    lam, phi, r = (np.broadcast_to(v, shape) for v in (lam, phi, r))
+    return points_M_trig(r, np.cos(lam), np.sin(lam), np.cos(phi), np.sin(phi), dh)
+
+
+def points_M_trig(
+    ranges_m: FloatArray, cos_lambda: FloatArray, sin_lambda: FloatArray, cos_phi: FloatArray,
+    sin_phi: FloatArray, dh: DH,
+) -> FloatArray:
+    """:func:`points_M` from precomputed cos / sin of lambda and of phi = beta + mu (all of one shape (...)).
+
+    The same arithmetic as origin + r * direction of :func:`beam_rays_M` (bit for bit), written column by
+    column into one (..., 3) array without (..., 3) temporaries: for large clouds, and for reprojecting the
+    same beams with several DH sets (cos / sin of lambda shared; phi depends on the DH's beta).
+    """
+    r, cl, sl, cp, sp = (np.asarray(v, dtype=float) for v in (ranges_m, cos_lambda, sin_lambda, cos_phi, sin_phi))
+    shape = r.shape
+    r, cl, sl, cp, sp = (v.reshape(-1) for v in (r, cl, sl, cp, sp))
+    ca, sa = np.cos(dh.alpha), np.sin(dh.alpha)
+    ox, oy, oz = dh.a, -dh.b * sa, dh.b * ca
+    K = r.size
+    out = np.empty((K, 3))
+    step = max(1, min(K, _CHUNK))  # elementwise, so chunking changes no bit; the temporaries stay in cache
+    t, u, o, dy = (np.empty(step) for _ in range(4))
+    for s in range(0, K, step):
+        e = min(K, s + step)
+        m = e - s
+        r_, cl_, sl_, cp_, sp_ = r[s:e], cl[s:e], sl[s:e], cp[s:e], sp[s:e]
+        t_, u_, o_, dy_ = t[:m], u[:m], o[:m], dy[:m]
+        np.multiply(sp_, ca, out=dy_)  # dy = sin(phi) cos(alpha)
+        # x: (cl ox - sl oy) + r (cl dx - sl dy), dx = cos(phi)
+        np.multiply(cl_, cp_, out=t_)
+        np.multiply(sl_, dy_, out=u_)
+        t_ -= u_
+        t_ *= r_
+        np.multiply(cl_, ox, out=o_)
+        np.multiply(sl_, oy, out=u_)
+        o_ -= u_
+        np.add(o_, t_, out=out[s:e, 0])
+        # y: (sl ox + cl oy) + r (sl dx + cl dy)
+        np.multiply(sl_, cp_, out=t_)
+        np.multiply(cl_, dy_, out=u_)
+        t_ += u_
+        t_ *= r_
+        np.multiply(sl_, ox, out=o_)
+        np.multiply(cl_, oy, out=u_)
+        o_ += u_
+        np.add(o_, t_, out=out[s:e, 1])
+        # z: oz + r dz, dz = sin(phi) sin(alpha)
+        np.multiply(sp_, sa, out=t_)
+        t_ *= r_
+        np.add(oz, t_, out=out[s:e, 2])
+    return out.reshape(shape + (3,))
 
 
 def transform_points(T: ArrayLike, points: ArrayLike) -> FloatArray:
@@ -257,6 +314,7 @@ __all__ = [
     "dh_from_mapping",
     "homogeneous",
     "points_M",
+    "points_M_trig",
     "points_W",
     "pose_from_mapping",
     "pose_matrix",

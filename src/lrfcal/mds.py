@@ -16,6 +16,8 @@ arbitrary: the association stage finds whether the frame must be mirrored.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse.csgraph import shortest_path
@@ -57,20 +59,43 @@ def smacof(
     V = -W.copy()
     V[np.diag_indices_from(V)] = W.sum(1)
     Vp = np.linalg.pinv(V)
-    X = X0.copy()
-    WD = W * D
+    X = np.array(X0, dtype=float)
+    n, k = X.shape
+    # The plain update written with preallocated buffers and no (n, n, k) temporary, for speed (a 3D fit of a
+    # coplanar layout runs to max_iter): the arithmetic, and so every bit of the result, is that of
+    #   dist = sqrt(((X[:, None] - X[None]) ** 2).sum(-1));  stress = 0.5 * (W * (D - dist) ** 2).sum()
+    #   Bz = where(dist > 0, -W D / dist, 0), Bz_ii = -sum_j Bz_ij;  X <- V^+ (Bz X)
+    nWD = -(W * D)
+    Xt = np.empty((k, n))
+    diff = np.empty((k, n, n))
+    dist = np.empty((n, n))
+    res = np.empty((n, n))
+    Bz = np.zeros((n, n))
+    Bz_diag = Bz.reshape(-1)[:: n + 1]  # a view of Bz's diagonal
+    row = np.empty(n)
+    pos = np.empty((n, n), dtype=bool)
     prev = np.inf
     stress = np.inf
     for _ in range(max_iter):
-        dist = np.sqrt(((X[:, None, :] - X[None, :, :]) ** 2).sum(-1))
-        stress = 0.5 * float((W * (D - dist) ** 2).sum())
-        if np.isfinite(prev) and prev - stress <= tol * prev:
+        # squared coordinate differences (k, n, n), summed over k in the order a sum over the last axis takes
+        np.copyto(Xt, X.T)
+        np.subtract(Xt[:, :, None], Xt[:, None, :], out=diff)
+        np.multiply(diff, diff, out=diff)
+        np.add.reduce(diff, axis=0, out=dist)
+        np.sqrt(dist, out=dist)
+        np.subtract(D, dist, out=res)
+        np.multiply(res, res, out=res)
+        np.multiply(W, res, out=res)
+        stress = 0.5 * float(res.sum())
+        if math.isfinite(prev) and prev - stress <= tol * prev:
             break
         prev = stress
-        with np.errstate(divide="ignore", invalid="ignore"):
-            Bz = np.where(dist > 0, -WD / dist, 0.0)
-        Bz[np.diag_indices_from(Bz)] = 0.0
-        Bz[np.diag_indices_from(Bz)] = -Bz.sum(1)
+        np.greater(dist, 0.0, out=pos)
+        Bz.fill(0.0)
+        np.divide(nWD, dist, out=Bz, where=pos)
+        Bz_diag.fill(0.0)
+        np.sum(Bz, axis=1, out=row)
+        np.negative(row, out=Bz_diag)
         X = Vp @ (Bz @ X)
     return X, stress
 

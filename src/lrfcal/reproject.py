@@ -7,12 +7,13 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .kinematics import DH, points_M
+from .kinematics import DH, points_M_trig
 from .types import Scans
 
 FloatArray = NDArray[np.float64]
@@ -29,19 +30,37 @@ def reproject_cloud(scans: Scans, lambda_rad: ArrayLike, dh: DH, stride: int = 1
     Returns:
         points_M (P, 3) and intensity (P,) of the kept returns.
     """
+    clouds, intensity = reproject_clouds(scans, lambda_rad, (dh,), stride)
+    return clouds[0], intensity
+
+
+def reproject_clouds(
+    scans: Scans, lambda_rad: ArrayLike, dhs: Sequence[DH], stride: int = 1
+) -> tuple[list[FloatArray], FloatArray]:
+    """:func:`reproject_cloud` of the same returns with several DH sets (e.g. nominal and calibrated): the
+    valid returns are selected and cos / sin of their motor angles computed once. Returns one (P, 3) cloud per
+    DH set (each equal to reproject_cloud's, bit for bit) and the intensity (P,)."""
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     r = scans.ranges_m
+    S, N = r.shape
     lam = np.asarray(lambda_rad, dtype=np.float64)
-    if lam.shape == r.shape[:1]:
-        lam = np.broadcast_to(lam[:, None], r.shape)
-    if lam.shape != r.shape:
+    if lam.shape != r.shape and lam.shape != r.shape[:1]:
         raise ValueError(f"lambda_rad has shape {lam.shape}, expected {r.shape} or {r.shape[:1]}")
-    ss, bb = np.nonzero(np.isfinite(r))
+    idx = np.flatnonzero(np.isfinite(r))  # scan-major order, as np.nonzero of the (S, N) mask
     if stride > 1:
-        ss, bb = ss[::stride], bb[::stride]
-    pts = points_M(r[ss, bb], lam[ss, bb], scans.mu_rad[bb], dh)
-    return pts, scans.intensities[ss, bb].astype(np.float64)
+        idx = idx[::stride]
+    bb = idx % N if N else idx
+    rk = np.ravel(r)[idx]
+    lk = lam.ravel()[idx] if lam.ndim == 2 else lam[idx // N]
+    cl, sl = np.cos(lk), np.sin(lk)
+    mu = np.asarray(scans.mu_rad, dtype=np.float64)
+    clouds = []
+    for dh in dhs:
+        phi = dh.beta + mu  # per beam, then spread over the returns (the same values as per return)
+        clouds.append(points_M_trig(rk, cl, sl, np.cos(phi)[bb], np.sin(phi)[bb], dh))
+    intensity = np.ravel(scans.intensities)[idx].astype(np.float64, copy=False)
+    return clouds, intensity
 
 
 def write_ply(path: str | Path, points: ArrayLike, intensity: ArrayLike | None = None) -> Path:
@@ -81,4 +100,4 @@ def current_umask() -> int:
     return mask
 
 
-__all__ = ["current_umask", "reproject_cloud", "write_ply"]
+__all__ = ["current_umask", "reproject_cloud", "reproject_clouds", "write_ply"]
