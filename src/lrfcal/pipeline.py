@@ -112,10 +112,9 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
         clock.lap("baseline")
 
     # 7.
-    cloud_before, cloud_intensity = reproject.reproject_cloud(
-        scans, lambda_beams, nominal.dh, config.cloud_stride
+    (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
+        scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride
     )
-    cloud_after, _ = reproject.reproject_cloud(scans, lambda_beams, ours.params.dh, config.cloud_stride)
     clock.lap("reprojection")
 
     geometry_before = geometry_after = None

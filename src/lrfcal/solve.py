@@ -94,7 +94,7 @@ def _rz_apply(cl: FloatArray, sl: FloatArray, v: FloatArray) -> FloatArray:
 
 
 def beam_rays_W(
-    theta: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike
+    theta: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, jac: bool = True
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
     """Beam origins and unit directions in W and their Jacobians with respect to theta.
 
@@ -102,7 +102,8 @@ def beam_rays_W(
         theta: (10,) parameters in PARAM_NAMES order.
         lambda_rad, mu_rad: (K,) motor angles and beam bearings.
     Returns:
-        o (K, 3), d (K, 3), do/dtheta (K, 3, 10), dd/dtheta (K, 3, 10).
+        o (K, 3), d (K, 3), do/dtheta (K, 3, 10), dd/dtheta (K, 3, 10) (the last two empty (0, 3, 10) when
+        ``jac`` is False).
     """
     th = np.asarray(theta, dtype=float).reshape(10)
     x, y, z, roll, pitch, yaw, a, al, b, be = th
@@ -124,6 +125,9 @@ def beam_rays_W(
     d_M = _rz_apply(cl, sl, d_loc)
     o = o_M @ R.T + np.array([x, y, z])
     d = d_M @ R.T
+    if not jac:
+        empty = np.zeros((0, 3, 10))
+        return o, d, empty, empty
 
     Jo = np.zeros((K, 3, 10))
     Jd = np.zeros((K, 3, 10))
@@ -191,7 +195,7 @@ def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, jac: bool = Tru
     m = s.n0 + nu[:, :1] * s.t1 + nu[:, 1:2] * s.t2
     m_norm = np.linalg.norm(m, axis=1, keepdims=True)
     n_p = m / m_norm
-    o, d, Jo, Jd = beam_rays_W(th[:10], s.lam, s.mu)
+    o, d, Jo, Jd = beam_rays_W(th[:10], s.lam, s.mu, jac=jac)
     n = n_p[s.plane]
     nd = (n * d).sum(1)
     rp = (nu[s.plane, 2] - (n * o).sum(1)) / nd
@@ -257,7 +261,7 @@ class _Problem:
 
 def _residuals(th: FloatArray, pb: _Problem, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
     """Whitened residuals (K, n_res) and their Jacobian (K, n_res, 10) (None when jac is False)."""
-    o, d, Jo, Jd = beam_rays_W(th[:10], pb.lam, pb.mu)
+    o, d, Jo, Jd = beam_rays_W(th[:10], pb.lam, pb.mu, jac=jac)
     if pb.model == "paper":
         res = (o + pb.r[:, None] * d - pb.c) / pb.sigma_r
         J = (Jo + pb.r[:, None, None] * Jd) / pb.sigma_r if jac else None
@@ -482,8 +486,9 @@ def solve(
     keep_s = np.ones(K2, dtype=bool)
     dropped = dropped_s = 0
     if robust:
-        th, nf, _ = _fit(th, pb_all, robust=True)
-        nfev += nf
+        if pb_all.surf is None:  # the joint solve starts from the converged marker-only estimate: no soft-L1 pass
+            th, nf, _ = _fit(th, pb_all, robust=True)
+            nfev += nf
         for _ in range(5):
             chi = _per_return_chi(th, pb_all)
             # robust scale of the whitened residuals (median of chi2_3 / 3 is 0.789), never below the model's

@@ -148,11 +148,14 @@ def surface_returns(
 ) -> SurfaceReturns:
     """The returns (rows of the P inputs) on the surfaces, away from markers, at most ``max_returns`` (an even
     random subsample). points_W (P, 3) are the returns reprojected with the current parameters."""
-    near_marker = cKDTree(np.asarray(markers_W)).query(points_W)[0] < marker_clearance_m
+    tree = cKDTree(np.asarray(markers_W))
     idx_all, which = [], []
     for k, s in enumerate(surfaces):
-        dist, inside = _in_extent(s, points_W)
-        idx = np.nonzero(inside & (np.abs(dist) < gate_m) & ~near_marker)[0]
+        dist = points_W @ s.normal - s.offset_m
+        idx = np.nonzero(np.abs(dist) < gate_m)[0]
+        q = (points_W[idx] - s.centre) @ s.axes.T
+        idx = idx[np.all((q >= s.lower) & (q <= s.upper), axis=1)]
+        idx = idx[tree.query(points_W[idx])[0] >= marker_clearance_m]
         idx_all.append(idx)
         which.append(np.full(idx.size, k))
     idx = np.concatenate(idx_all) if idx_all else np.zeros(0, dtype=np.int64)
