@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass
+from functools import partial
 
 import numpy as np
 
@@ -71,14 +72,9 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
     clock.lap("association")
 
     start = Params(Pose.from_matrix(assoc.T_W_M), nominal.dh)  # 5.
-    ours = solve.solve(  # 6.
-        matched,
-        markers.positions_W,
-        start,
-        model="sphere",
-        marker_radius_m=nominal.marker_radius_m,
-        range_sigma_m=config.range_sigma_m,
-    )
+    fit = partial(solve.solve, markers_W=markers.positions_W, marker_radius_m=nominal.marker_radius_m,
+                  range_sigma_m=config.range_sigma_m)
+    ours = fit(matched, start=start, model="sphere")  # 6.
     clock.lap("solve")
 
     surface_list, on_surfaces = [], None
@@ -89,10 +85,7 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
             max_returns=config.surface_max_returns,
         )
         if len(on_surfaces):
-            ours = solve.solve(
-                matched, markers.positions_W, ours.params, model="sphere", marker_radius_m=nominal.marker_radius_m,
-                range_sigma_m=config.range_sigma_m, surfaces=on_surfaces, planes=surface_list,
-            )
+            ours = fit(matched, start=ours.params, model="sphere", surfaces=on_surfaces, planes=surface_list)
         clock.lap("surfaces")
     _check_determined(ours)
 
@@ -101,14 +94,7 @@ def calibrate(recording: Recording, config: CalibConfig | None = None) -> Calibr
         peaks = matched.subset(matched.is_peak)
         lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
         peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
-        baseline = solve.solve(
-            peaks,
-            markers.positions_W,
-            start,
-            model="paper",
-            marker_radius_m=nominal.marker_radius_m,
-            range_sigma_m=config.range_sigma_m,
-        )
+        baseline = fit(peaks, start=start, model="paper")
         clock.lap("baseline")
 
     # 7.
