@@ -31,7 +31,7 @@ from scipy import ndimage
 
 from .errors import InputError
 from .kinematics import DH, points_M
-from .timing import beam_times, motor_angles
+from .timing import motor_angles
 from .types import Blob, Detections, JointStates, Observations, Scans
 
 FloatArray = NDArray[np.float64]
@@ -257,11 +257,4 @@ def blob_centres_M(
     return out
 
 
-def peak_beam_times(scans: Scans, detections: Detections) -> FloatArray:
-    """(B,) laser-clock time of each blob's peak return."""
-    t = beam_times(scans)
-    return np.array([t[b.peak_scan, b.peak_beam] for b in detections.blobs])
-
-
-__all__ = ["background_model", "blob_centres_M", "contrast", "detect", "observations", "peak_beam_times",
-           "split_by_pass"]
+__all__ = ["background_model", "blob_centres_M", "contrast", "detect", "observations", "split_by_pass"]

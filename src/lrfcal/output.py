@@ -58,6 +58,18 @@ def _pose_of(solution: Solution) -> dict[str, dict[str, float | None]]:
     return {n: {"value": _f(v[i]), "sigma": _f(s[i]) if i < s.size else None} for i, n in enumerate(PARAM_NAMES)}
 
 
+def _solution_dict(sol: Solution) -> dict[str, Any]:
+    """DH and mount (value and 1-sigma each), residual RMS, returns used and solver status of a solution."""
+    params = _pose_of(sol)
+    return {
+        "dh": {n: params[n] for n in DH_NAMES},
+        "mount": {n: params[n] for n in MOUNT_NAMES},
+        "residual_rms_m": _f(sol.residual_rms_m),
+        "n_observations": int(sol.n_observations),
+        "status": str(sol.status),
+    }
+
+
 def _geometry_dict(g: TunnelGeometry | None) -> dict[str, Any] | None:
     if g is None:
         return None
@@ -84,16 +96,11 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
     ids = result.markers.marker_ids
     counts = _marker_counts(result)
     per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
-    params = _pose_of(sol)
     out: dict[str, Any] = {
         "format_version": FORMAT_VERSION,
         "units": "m, rad; frames: W marker frame (tape distances), M motor frame; T_W_M = mount",
-        "dh": {n: params[n] for n in DH_NAMES},
-        "mount": {n: params[n] for n in MOUNT_NAMES},
-        "residual_rms_m": _f(sol.residual_rms_m),
-        "n_observations": int(sol.n_observations),
+        **_solution_dict(sol),
         "n_iterations": int(sol.n_iterations),
-        "status": str(sol.status),
         "markers": {
             "used": [ids[i] for i in range(len(ids)) if counts[i] > 0],
             "unused": [ids[i] for i in range(len(ids)) if counts[i] == 0],
@@ -128,15 +135,9 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
         "timings_s": {str(k): _f(v) for k, v in result.timings_s.items()},
     }
     if result.baseline is not None:
-        b = result.baseline
-        bp = _pose_of(b)
         out["baseline"] = {
             "method": "seed paper: blob peaks only, one motor angle per scan",
-            "dh": {n: bp[n] for n in DH_NAMES},
-            "mount": {n: bp[n] for n in MOUNT_NAMES},
-            "residual_rms_m": _f(b.residual_rms_m),
-            "n_observations": int(b.n_observations),
-            "status": str(b.status),
+            **_solution_dict(result.baseline),
         }
     return out
 

@@ -20,6 +20,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from .kinematics import Params, points_W
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -177,7 +179,7 @@ __all__ = ["Surface", "SurfaceReturns", "candidate_planes", "find_surfaces", "su
 
 def observe_surfaces(
     ranges_m: FloatArray, mu_rad: FloatArray, lambda_rad: FloatArray, labels: IntArray, markers_W: FloatArray,
-    radius_m: float, params: object, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
+    radius_m: float, params: Params, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
 ) -> tuple[list[Surface], SurfaceReturns]:
     """Find the marker-carrying surfaces and their returns in a recording.
 
@@ -187,13 +189,11 @@ def observe_surfaces(
         params: lrfcal.kinematics.Params used to reproject (the marker-only estimate);
         position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior).
     """
-    from .kinematics import points_W
-
     valid = np.isfinite(ranges_m) & (labels < 0)
     scan, beam = np.nonzero(valid)
     lam, mu, r = lambda_rad[scan, beam], np.asarray(mu_rad)[beam], ranges_m[scan, beam]
-    P = points_W(r, lam, mu, params)  # type: ignore[arg-type]
-    sensor_W = params.mount.matrix()[:3, 3]  # type: ignore[attr-defined]
+    P = points_W(r, lam, mu, params)
+    sensor_W = params.mount.matrix()[:3, 3]
     step = max(1, P.shape[0] // 100_000)
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, P[::step], position_sigma_m=position_sigma_m)
     returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed)

@@ -27,7 +27,7 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -76,12 +76,6 @@ class SceneGeom:
     faces: IntArray | None = None
     is_marker: bool = False
     rgba: tuple[float, float, float, float] = (0.6, 0.6, 0.6, 1.0)
-
-
-def transform_scene_geoms(geoms: Sequence[SceneGeom], T_W_world: ArrayLike) -> list[SceneGeom]:
-    """Re-express geoms posed in a frame ``world`` in W: T_W_geom <- T_W_world (4, 4) @ T_world_geom."""
-    T = np.asarray(T_W_world, dtype=float).reshape(4, 4)
-    return [replace(g, T_W_geom=T @ g.T_W_geom) for g in geoms]
 
 
 def _cylinder_mesh(radius: float, half_length: float, n: int = 24) -> tuple[FloatArray, IntArray]:
@@ -513,5 +507,5 @@ def log_calibration(
 __all__ = [
     "MAX_CLOUD_POINTS", "MAX_RIG_STEPS", "SceneGeom", "build_blueprint", "dh_matrix", "intensity_colors",
     "log_calibration", "marker_returns", "motor_angle_per_scan_rad", "per_scan_rms_m",
-    "scene_geoms_from_mujoco", "subsample_indices", "transform_scene_geoms",
+    "scene_geoms_from_mujoco", "subsample_indices",
 ]
