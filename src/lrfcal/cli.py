@@ -101,7 +101,7 @@ def main() -> None:
         app(standalone_mode=False)
     except LrfError as e:
         print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(e.exit_code)
     except typer.Exit as e:
         sys.exit(e.exit_code)
     except Exception as e:  # click usage errors

@@ -1,7 +1,12 @@
 """The one exception base class of the project (both lrfcal and lrfsim raise its subclasses).
 
-The CLIs turn any :class:`LrfError` into one line on stderr and exit code 2; messages therefore name the file,
-the field and the offending value.
+The CLIs turn any :class:`LrfError` into one line on stderr and the error's ``exit_code``; messages therefore
+name the file, the field and the offending value. Exit codes (the same for every command):
+
+* 0: done (calibrated);
+* 2: bad input (:class:`InputError`): a file, field or option is wrong, and the message says how;
+* 3: the data do not support a trustworthy result (:class:`CalibrationError`): the calibration was refused,
+  and the message names the check that failed and its numbers.
 """
 
 from __future__ import annotations
@@ -10,10 +15,17 @@ from __future__ import annotations
 class LrfError(Exception):
     """Base class of every error this project raises on purpose."""
 
+    exit_code: int = 2
+
 
 class InputError(LrfError):
     """Bad user input: a scenario, a recording, a distances file, a nominal file, a CLI option."""
 
+    exit_code = 2
+
 
 class CalibrationError(LrfError):
-    """The calibration could not be carried out on otherwise well-formed input (too few markers seen, ...)."""
+    """Well-formed input from which no trustworthy calibration follows (too few markers seen, parameters the data
+    leave undetermined, ambiguous alternatives, failed consistency checks, ...)."""
+
+    exit_code = 3

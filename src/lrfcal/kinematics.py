@@ -35,8 +35,12 @@ _CHUNK = 1 << 14
 PARAM_NAMES: tuple[str, ...] = ("x", "y", "z", "roll", "pitch", "yaw", "a", "alpha", "b", "beta")
 DH_NAMES: tuple[str, ...] = ("a", "alpha", "b", "beta")
 MOUNT_NAMES: tuple[str, ...] = ("x", "y", "z", "roll", "pitch", "yaw")
+#: Order of the estimated quantities in every covariance and sigma vector: the mount's rotation is estimated on
+#: SO(3) as a small rotation vector (rx, ry, rz) [rad] applied in frame M (R = R_hat Exp([rx, ry, rz])), so its
+#: uncertainty is valid at every attitude; roll, pitch and yaw are an output format only (no sigma).
+ESTIMATE_NAMES: tuple[str, ...] = ("x", "y", "z", "rx", "ry", "rz", "a", "alpha", "b", "beta")
 #: Parameters that are angles (rad); the others are lengths (m).
-ANGLE_NAMES: frozenset[str] = frozenset({"roll", "pitch", "yaw", "alpha", "beta"})
+ANGLE_NAMES: frozenset[str] = frozenset({"roll", "pitch", "yaw", "rx", "ry", "rz", "alpha", "beta"})
 
 
 @dataclass(frozen=True)
@@ -305,6 +309,7 @@ __all__ = [
     "ANGLE_NAMES",
     "DH",
     "DH_NAMES",
+    "ESTIMATE_NAMES",
     "MOUNT_NAMES",
     "PARAM_NAMES",
     "Params",

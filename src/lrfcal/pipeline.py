@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 
@@ -39,10 +40,15 @@ class CalibConfig:
     surface_max_returns: int = 40000  # an even subsample of them, for speed
 
 
-def calibrate(recording: Recording, config: CalibConfig | None = None) -> CalibrationResult:
-    """Run stages 1-8 on a recording; see the module docstring."""
+def calibrate(
+    recording: Recording, config: CalibConfig | None = None, progress: Callable[[str], None] | None = None
+) -> CalibrationResult:
+    """Run stages 1-8 on a recording; see the module docstring.
+
+    ``progress(stage)`` is called with the name of each stage as it starts (for a CLI's status line).
+    """
     config = config or CalibConfig()
-    clock = _Stopwatch()
+    clock = _Stopwatch(progress)
     scans, joints, nominal = recording.scans, recording.joints, recording.nominal
 
     markers = mds.marker_map(recording.tape)  # 1.
@@ -159,11 +165,26 @@ def _replace(obs: Observations, **arrays: np.ndarray) -> Observations:
 
 
 class _Stopwatch:
-    def __init__(self) -> None:
+    """Times the stages; tells ``progress`` which stage comes next (the names in :data:`STAGES`)."""
+
+    def __init__(self, progress: Callable[[str], None] | None = None) -> None:
         self.laps: dict[str, float] = {}
         self._t = time.perf_counter()
+        self._progress = progress
+        self._say(STAGES[0])
+
+    def _say(self, stage: str) -> None:
+        if self._progress is not None:
+            self._progress(stage)
 
     def lap(self, name: str) -> None:
         now = time.perf_counter()
         self.laps[name] = now - self._t
         self._t = now
+        if name in STAGES and STAGES.index(name) + 1 < len(STAGES):
+            self._say(STAGES[STAGES.index(name) + 1])
+
+
+#: The stages in the order they run, as reported to ``progress`` and in CalibrationResult.timings_s.
+STAGES: tuple[str, ...] = ("mds", "detection", "timing", "association", "solve", "surfaces", "baseline",
+                           "reprojection", "geometry")

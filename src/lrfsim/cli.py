@@ -136,7 +136,7 @@ def main(argv: list[str] | None = None) -> None:
         app(args=argv, prog_name="lrfsim")
     except LrfError as e:
         print(f"error: {e}", file=sys.stderr)
-        sys.exit(2)
+        sys.exit(e.exit_code)
 
 
 if __name__ == "__main__":
