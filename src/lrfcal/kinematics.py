@@ -300,6 +300,63 @@ def points_W(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, para
     return transform_points(params.mount.matrix(), points_M(ranges_m, lambda_rad, mu_rad, params.dh))
 
 
+# --- SO(3) -------------------------------------------------------------------------------------------------
+
+
+def skew(v: ArrayLike) -> FloatArray:
+    """[v]x, shape (..., 3, 3), with [v]x u = v x u for v of shape (..., 3)."""
+    v = np.asarray(v, dtype=float)
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+
+
+def exp_so3(w: ArrayLike) -> FloatArray:
+    """Rotation matrix (3, 3) of the rotation vector w (3,) [rad] (Rodrigues' formula)."""
+    w = np.asarray(w, dtype=float).reshape(3)
+    t = float(np.linalg.norm(w))
+    K = skew(w)
+    if t < 1e-8:
+        return np.eye(3) + K + 0.5 * K @ K
+    return np.eye(3) + np.sin(t) / t * K + (1.0 - np.cos(t)) / t**2 * K @ K
+
+
+def log_so3(R: ArrayLike) -> FloatArray:
+    """Rotation vector (3,) [rad] of a rotation matrix (3, 3), angle in [0, pi]."""
+    R = np.asarray(R, dtype=float)
+    c = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    t = float(np.arccos(c))
+    v = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if t < 1e-6:
+        return 0.5 * v
+    if np.pi - t > 1e-4:
+        return t / (2.0 * np.sin(t)) * v
+    # near pi: the axis from the symmetric part, its sign from the antisymmetric part
+    B = 0.5 * (R + np.eye(3))
+    axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
+    i = int(np.argmax(axis))
+    axis = B[i] / max(axis[i], 1e-12)
+    axis /= np.linalg.norm(axis)
+    if axis @ v < 0:
+        axis = -axis
+    return t * axis
+
+
+def right_jacobian_so3(w: ArrayLike) -> FloatArray:
+    """J_r(w) (3, 3): Exp(w + dw) = Exp(w) Exp(J_r(w) dw) to first order."""
+    w = np.asarray(w, dtype=float).reshape(3)
+    t = float(np.linalg.norm(w))
+    K = skew(w)
+    if t < 1e-6:
+        return np.eye(3) - 0.5 * K + K @ K / 6.0
+    return np.eye(3) - (1.0 - np.cos(t)) / t**2 * K + (t - np.sin(t)) / t**3 * K @ K
+
+
+def rotation_angle(R: ArrayLike) -> float:
+    """The angle [rad] of a rotation matrix (3, 3), in [0, pi]."""
+    return float(np.arccos(np.clip((np.trace(np.asarray(R, dtype=float)) - 1.0) / 2.0, -1.0, 1.0)))
+
+
 def wrap_angle(a: ArrayLike) -> FloatArray:
     """Wrap angles to [-pi, pi)."""
     return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
@@ -317,6 +374,11 @@ __all__ = [
     "beam_rays_M",
     "chain_T_M_L",
     "dh_from_mapping",
+    "exp_so3",
+    "log_so3",
+    "right_jacobian_so3",
+    "rotation_angle",
+    "skew",
     "homogeneous",
     "points_M",
     "points_M_trig",

@@ -20,24 +20,68 @@ from functools import partial
 
 import numpy as np
 
-from . import association, detection, geometry, mds, reproject, solve, surfaces, timing
-from .errors import CalibrationError
-from .kinematics import PARAM_NAMES, Params, Pose
-from .types import CalibrationResult, Observations, Recording, Solution
+from . import association, detection, geometry, mds, observability, reproject, solve, start, surfaces, timing
+from .errors import CalibrationError, InputError
+from .kinematics import DH, PARAM_NAMES, Params, Pose
+from .types import (
+    Association,
+    CalibrationResult,
+    Detections,
+    JointStates,
+    MarkerMap,
+    Nominal,
+    Observations,
+    Recording,
+    Scans,
+    Solution,
+)
 
 
 @dataclass(frozen=True)
 class CalibConfig:
     """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout)."""
 
-    range_sigma_m: float = 0.010  # UTM-30LX-EW repeatability (FACTS.md)
+    range_sigma_m: float = 0.010  # UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm)
     association_gate_m: float = 0.05  # blob-to-marker distance accepted after the nominal alignment
-    clock_offset_s: float = 0.0  # laser stamp minus servo stamp, if known
+    clock_offset_s: float = 0.0  # laser stamp minus servo stamp: the start (prior) of its estimate
+    estimate_clock: bool | None = None  # estimate the clock offset; None: when the sweep goes both ways
     baseline: bool = True  # also run the paper's variant for comparison
     cloud_stride: int = 1  # reproject every n-th scan into the clouds
     geometry: bool = True  # fit tunnel planes (Table III)
     surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
     surface_max_returns: int = 40000  # an even subsample of them, for speed
+    force: bool = False  # return a result even when a consistency check fails (the failures are recorded)
+    max_reduced_chi2: float = 4.0  # residuals more than 2x the stated noise: the model does not explain the data
+    second_opinion_p: float = 1e-3  # false-alarm rate of the second-opinion test
+    #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
+    #: direction apart (a, b [m], alpha, beta [rad])
+    nominal_tolerance: tuple[float, float, float, float] = (0.010, math.radians(5.0), 0.010, math.radians(5.0))
+
+
+@dataclass(frozen=True)
+class Check:
+    """One consistency check of the result: its name, whether it passed, and the numbers."""
+
+    name: str
+    passed: bool
+    detail: str
+
+
+class _NoMatch(CalibrationError):
+    """The blobs could not be matched to the markers (for one direction of the servo)."""
+
+
+@dataclass(frozen=True)
+class _Alternative:
+    """One discrete alternative of the start: the servo's sign with its association and marker-only solution."""
+
+    sign: int
+    markers: MarkerMap
+    assoc: Association
+    matched: Observations
+    start: Params
+    clock: solve.MotorClock | None
+    solution: Solution
 
 
 def calibrate(
@@ -46,13 +90,33 @@ def calibrate(
     """Run stages 1-8 on a recording; see the module docstring.
 
     ``progress(stage)`` is called with the name of each stage as it starts (for a CLI's status line).
+    Raises CalibrationError (exit code 3) with the reason when the data do not support a trustworthy result,
+    unless ``config.force``, which records the failed checks in the result instead.
     """
     config = config or CalibConfig()
     clock = _Stopwatch(progress)
-    scans, joints, nominal = recording.scans, recording.joints, recording.nominal
+    notes: list[str] = []
+    nominal = recording.nominal
+    tau0 = config.clock_offset_s
+    if not math.isfinite(tau0):
+        raise InputError(f"clock offset: expected a finite number of seconds, got {tau0!r}")
 
     markers = mds.marker_map(recording.tape)  # 1.
     clock.lap("mds")
+
+    joints, n_spikes = timing.remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
+    if n_spikes:
+        notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
+    covered = timing.covered_scans(recording.scans, joints, tau0)
+    if not covered.any():
+        raise CalibrationError(
+            f"no scan lies within the joint states' time span at clock offset {tau0:+.3f} s (laser "
+            f"{recording.scans.stamps_s[0]:.3f}-{recording.scans.stamps_s[-1]:.3f} s, servo {joints.stamps_s[0]:.3f}-"
+            f"{joints.stamps_s[-1]:.3f} s): pass the offset with --clock-offset"
+        )
+    scans = _subset_scans(recording.scans, covered)
+    if not covered.all():
+        notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
 
     detections = detection.detect(scans)  # 2.
     if not detections.blobs:
@@ -61,49 +125,82 @@ def calibrate(
         )
     clock.lap("detection")
 
-    returns = detection.observations(scans, joints, detections, clock_offset_s=config.clock_offset_s)  # 3.
-    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=config.clock_offset_s)
+    returns = detection.observations(scans, joints, detections, clock_offset_s=tau0)  # 3.
+    scan_lambda = timing.scan_angles(scans, joints, clock_offset_s=tau0)
+    passes = timing.sweep_passes(scan_lambda)
+    estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
+    if not estimate_clock:
+        notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                     + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
+                        if config.estimate_clock is None else "as asked)"))
     clock.lap("timing")
 
-    centres_M = detection.blob_centres_M(returns, nominal.dh, nominal.marker_radius_m)  # 4.
-    assoc = association.associate(centres_M, markers, gate_m=config.association_gate_m)
-    if assoc.mirrored:
-        markers = association.unmirror(markers)
-    matched = _with_markers(returns, assoc.blob_to_marker)
-    if len(np.unique(matched.marker)) < 4:
-        raise CalibrationError(
-            f"only {len(np.unique(matched.marker))} markers matched to detections (need >= 4); "
-            f"alignment RMS {assoc.rms_m * 1000:.1f} mm"
-        )
+    # 4.-6. association and marker-only solve for each direction of the servo; the data cannot tell them apart.
+    # The DH search (lrfcal.start) runs only when neither direction associates well from the nominal values.
+    fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m)
+    signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
+    first = {sign: _associate_nominal(signed[sign], detections, markers, nominal, config) for sign in (1, -1)}
+    search = not any(_good(a, signed[s], config) for s, a in first.items() if a is not None)
+    alternatives = []
+    failures = []
+    for sign in (1, -1):
+        try:
+            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, first[sign])
+                               if search else (nominal.dh, first[sign]))
+            alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
+                                                 config, estimate_clock, fit))
+        except CalibrationError as err:
+            failures.append((sign, err))
+    if not alternatives:
+        raise failures[0][1]
+    declared_failure = next((e for sign, e in failures if sign == 1), None)
+    if declared_failure is not None and not isinstance(declared_failure, _NoMatch):
+        raise declared_failure  # e.g. the layout does not determine the DH: the other direction does not help
+    chosen = _choose_servo_sign(alternatives, nominal.dh, config)
+    markers, assoc, matched, start, motor = chosen.markers, chosen.assoc, chosen.matched, chosen.start, chosen.clock
+    ours = chosen.solution
+    if chosen.sign < 0:
+        joints = _negated(joints)
+        returns = _replace(returns, lambda_rad=-returns.lambda_rad)
     clock.lap("association")
-
-    start = Params(Pose.from_matrix(assoc.T_W_M), nominal.dh)  # 5.
-    fit = partial(solve.solve, markers_W=markers.positions_W, marker_radius_m=nominal.marker_radius_m,
-                  range_sigma_m=config.range_sigma_m)
-    ours = fit(matched, start=start, model="sphere")  # 6.
     clock.lap("solve")
 
     surface_list, on_surfaces = [], None
     if config.surfaces:  # 6b. every beam on the markers' planes, jointly with the markers
+        lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
+                                           tolerance_s=math.inf)
         surface_list, on_surfaces = surfaces.observe_surfaces(
             scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, markers.positions_W,
             nominal.marker_radius_m, ours.params, position_sigma_m=max(markers.rms_m, 0.0005),
-            max_returns=config.surface_max_returns,
+            max_returns=config.surface_max_returns, beam_times_s=scans.beam_times_s,
         )
         if len(on_surfaces):
-            ours = fit(matched, start=ours.params, model="sphere", surfaces=on_surfaces, planes=surface_list)
+            ours = fit(matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
+                       planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s)
         clock.lap("surfaces")
-    _check_determined(ours)
+
+    checks = _checks(ours, matched, markers, passes, config, fit, motor)
+    failed = [c for c in checks if not c.passed]
+    if failed and not config.force:
+        c = failed[0]
+        raise CalibrationError(f"{c.name}: {c.detail}"
+                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
+                               + "; --force writes the result anyway with the failed checks recorded")
 
     baseline = None
     if config.baseline:  # the paper: the blob's brightest beam, the motor angle at the scan's stamp
         peaks = matched.subset(matched.is_peak)
-        lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
+        lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=tau0)
         peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
-        baseline = fit(peaks, start=start, model="paper")
+        try:
+            baseline = fit(peaks, markers.positions_W, start, model="paper")
+        except CalibrationError as err:
+            notes.append(f"the paper's method could not be run: {err}")
         clock.lap("baseline")
 
     # 7.
+    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
+                                       tolerance_s=math.inf)
     (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
         scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride
     )
@@ -132,24 +229,242 @@ def calibrate(
         timings_s=clock.laps,
         surfaces=tuple(surface_list),
         surface_returns=on_surfaces,
+        checks=tuple(checks),
+        notes=tuple(notes),
+        servo_sign=chosen.sign,
     )
 
 
-#: A DH parameter this uncertain is not calibrated: the marker layout and sweep leave it (nearly) unobservable.
-MAX_SIGMA = {"a": 0.02, "alpha": math.radians(2.0), "b": 0.02, "beta": math.radians(2.0)}
+def _marker_solution(
+    sign: int, start_dh: DH, assoc: Association | None, markers: MarkerMap, returns: Observations,
+    joints: JointStates, nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+) -> _Alternative:
+    """Start, observability check and marker-only solve for one direction of the servo (``returns`` with their
+    motor angles already signed), from the association made with ``start_dh``.
+
+    Raises CalibrationError when the blobs could not be matched, when the data do not determine the DH parameters
+    (judged at the start, before any solver runs), or when blobs disagree with the marker map beyond repair.
+    """
+    if assoc is None:
+        raise _NoMatch("association: no alignment of the blobs with the marker map (check the tape "
+                               "distances' file and unit, and the marker radius)")
+    if sign < 0:
+        joints = _negated(joints)
+    if assoc.mirrored:
+        markers = association.unmirror(markers)
+    matched = _with_markers(returns, assoc.blob_to_marker)
+    n_matched = len(np.unique(matched.marker))
+    if n_matched < 4:
+        raise _NoMatch(
+            f"only {n_matched} markers matched to detections (need >= 4); alignment RMS {assoc.rms_m * 1000:.1f} mm"
+        )
+    start = Params(Pose.from_matrix(assoc.T_W_M), start_dh)  # 5.
+    motor = solve.MotorClock.from_joints(joints) if estimate_clock else None
+    info, names = solve.information_at(matched, markers.positions_W, start, model="sphere",
+                                       marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+                                       clock=motor, clock_offset_s=config.clock_offset_s)
+    obs = observability.analyse(info, names)
+    if not obs.determined:
+        raise CalibrationError(
+            f"the recording does not determine {', '.join(obs.undetermined) or 'the DH parameters'} "
+            f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
+            f"{obs.hint()}"
+        )
+    sol = fit(matched, markers.positions_W, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
+    # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
+    # that is not where the tape puts it: unassign them and solve again
+    bad = _inconsistent_blobs(matched, sol)
+    if bad.size:
+        b2m = assoc.blob_to_marker.copy()
+        b2m[bad] = -1
+        assoc = Association(b2m, assoc.mirrored, assoc.T_W_M, assoc.rms_m, int((b2m >= 0).sum()))
+        matched = _with_markers(returns, b2m)
+        if len(np.unique(matched.marker)) < 4:
+            raise CalibrationError(f"{bad.size} blobs disagree with the marker map; fewer than 4 markers remain")
+        sol = fit(matched, markers.positions_W, sol.params, model="sphere", clock=motor,
+                  clock_offset_s=sol.clock_offset_s)
+    return _Alternative(sign, markers, assoc, matched, start, motor, sol)
 
 
-def _check_determined(solution: Solution) -> None:
-    """Refuse a solution that did not converge or whose DH parameters the data do not determine."""
-    if "maximum number of function evaluations" in solution.status:
-        raise CalibrationError(f"the solver did not converge ({solution.status})")
-    for name, limit in MAX_SIGMA.items():
-        sigma = float(solution.sigma[PARAM_NAMES.index(name)])
-        if not sigma <= limit:
-            raise CalibrationError(
-                f"{name} is not determined by this recording (1-sigma {sigma:.3g}, limit {limit:.3g}): the markers "
-                "and sweep leave it unobservable (e.g. all markers at one distance along the motor axis)"
-            )
+def _attempt(returns: Observations, detections: Detections, markers: MarkerMap, dh: DH, radius_m: float,
+             config: CalibConfig) -> Association | None:
+    """Stage 4 with the blob centres reprojected with ``dh``; None when nothing matches."""
+    centres = detection.blob_centres_M(returns, dh, radius_m, n_blobs=len(detections.blobs))
+    try:
+        return association.associate(centres, markers, gate_m=config.association_gate_m)
+    except CalibrationError:
+        return None
+
+
+def _associate_nominal(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
+                       config: CalibConfig) -> Association | None:
+    return _attempt(returns, detections, markers, nominal.dh, nominal.marker_radius_m, config)
+
+
+def _good(assoc: Association, returns: Observations, config: CalibConfig) -> bool:
+    """An association that leaves nothing to search for: 90 % of the blobs matched, tight alignment."""
+    return assoc.n_matched >= 0.9 * len(np.unique(returns.blob)) and assoc.rms_m <= 0.25 * config.association_gate_m
+
+
+def _associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
+                      config: CalibConfig, from_nominal: Association | None) -> tuple[DH, Association | None]:
+    """The association from the candidates of the correspondence-free DH search (lrfcal.start) or from the nominal
+    DH, the best by (matched blobs, alignment RMS); returns the DH it used and the association (None: none)."""
+    best_dh, best = nominal.dh, from_nominal
+    for dh in start.dh_candidates(returns, len(detections.blobs), markers, nominal.dh, nominal.marker_radius_m):
+        found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
+        if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
+            best_dh, best = dh, found
+    return best_dh, best
+
+
+def _inconsistent_blobs(matched: Observations, sol: Solution, max_outlier_share: float = 0.5) -> np.ndarray:
+    """Blobs (indices) most of whose returns the solver dropped as beyond 4 sigma."""
+    if sol.inlier is None:
+        return np.zeros(0, dtype=np.int64)
+    blobs = np.unique(matched.blob)
+    out = []
+    for b in blobs:
+        m = matched.blob == b
+        if m.sum() >= 2 and (~sol.inlier[m]).mean() > max_outlier_share:
+            out.append(int(b))
+    return np.array(out, dtype=np.int64)
+
+
+def _choose_servo_sign(alts: list[_Alternative], nominal_dh: DH, config: CalibConfig) -> _Alternative:
+    """The servo's direction: the declared one (+1) unless the nominal DH contradicts it and fits the other.
+
+    A negated motor angle together with a mirrored marker map and (alpha, b) -> (pi - alpha, -b) predicts exactly
+    the same ranges (distances fix the marker map only up to a reflection), so only the nominal values can tell
+    the two apart. When they contradict the declared direction, the calibration is refused with the rig-file
+    setting that resolves it.
+    """
+    by_sign = {a.sign: a for a in alts}
+    declared = by_sign.get(1)
+    other = by_sign.get(-1)
+    if declared is None:
+        assert other is not None
+        raise CalibrationError(
+            "the markers match only with the servo angle negated: the servo turns the other way than declared; set "
+            "servo.sign: -1 in the rig file (or --servo-sign -1) if it is mounted the other way round"
+        )
+    if other is None:
+        return declared
+    d_decl, far_decl = _nominal_distance(declared.solution.params.dh, nominal_dh, config)
+    d_other, _ = _nominal_distance(other.solution.params.dh, nominal_dh, config)
+    if d_decl > 1.0 and d_other <= 1.0:
+        dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
+        raise CalibrationError(
+            f"servo direction: with the declared sign (+1) the fit gives {_dh_text(dh1)}, far from the nominal "
+            f"{_dh_text(nominal_dh)} ({far_decl}); with the servo angle negated it gives {_dh_text(dh2)}, which "
+            "explains the data equally well. If the servo turns the other way, set servo.sign: -1 in the rig file "
+            "(or --servo-sign -1)"
+        )
+    return declared
+
+
+def _nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:
+    """max over a, alpha, b, beta of |estimate - nominal| / tolerance, and the worst parameter in words."""
+    diffs = [dh.a - nominal.a, float(solve.wrap_pi(dh.alpha - nominal.alpha)), dh.b - nominal.b,
+             float(solve.wrap_pi(dh.beta - nominal.beta))]
+    ratios = [abs(d) / t for d, t in zip(diffs, config.nominal_tolerance, strict=True)]
+    k = int(np.argmax(ratios))
+    name = ("a", "alpha", "b", "beta")[k]
+    text = (f"{name} {math.degrees(diffs[k]):+.1f} deg off" if name in ("alpha", "beta")
+            else f"{name} {diffs[k] * 1000:+.1f} mm off")
+    return float(ratios[k]), text
+
+
+def _dh_text(dh: DH) -> str:
+    return (f"a {dh.a * 1000:.1f} mm, alpha {math.degrees(dh.alpha):.2f} deg, b {dh.b * 1000:.1f} mm, "
+            f"beta {math.degrees(dh.beta):.2f} deg")
+
+
+def _checks(
+    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
+    fit: Callable[..., Solution], motor: solve.MotorClock | None,
+) -> list[Check]:
+    """The consistency checks a result must pass before it is written (see docs/method.md)."""
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
+    if sol.information is not None:
+        obs = observability.analyse(sol.information, sol.information_names)
+        checks.append(Check("observability", obs.determined,
+                            f"{obs.summary()}" + ("" if obs.determined else f": {obs.hint()}")))
+    chi2 = sol.reduced_chi2
+    checks.append(Check(
+        "reduced chi-square", bool(chi2 <= config.max_reduced_chi2),
+        f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): residuals {math.sqrt(max(chi2, 0.0)):.2g} times the stated "
+        f"range noise {config.range_sigma_m * 1000:g} mm"
+        + ("" if chi2 <= config.max_reduced_chi2 else
+           "; if the scanner is this noisy, pass --range-sigma; otherwise the model does not explain the data "
+           "(an unmodelled clock offset or motion, a wrong marker radius)"),
+    ))
+    checks.append(_second_opinion(sol, matched, markers, passes, config, fit, motor))
+    return checks
+
+
+def _second_opinion(
+    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
+    fit: Callable[..., Solution], motor: solve.MotorClock | None,
+) -> Check:
+    """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
+    and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
+    (the part's data are a subset of the joint's), against the chi-square quantile with 4 degrees of freedom."""
+    from scipy.stats import chi2 as chi2_dist
+
+    scan_pass = passes[matched.scan]
+    if passes.max() >= 1:
+        groups, how = [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
+    else:
+        mid = np.median(matched.scan)
+        groups, how = [matched.scan <= mid, matched.scan > mid], "the two halves of the sweep"
+    dh = [PARAM_NAMES.index(n) for n in ("a", "alpha", "b", "beta")]
+    limit = float(chi2_dist.ppf(1.0 - config.second_opinion_p / 2.0, 4))
+    results = []
+    for g in groups:
+        part = matched.subset(g)
+        try:
+            ps = fit(part, markers.positions_W, sol.params, model="sphere", clock=None,
+                     clock_offset_s=sol.clock_offset_s)
+        except CalibrationError:
+            return Check("second opinion", True, f"not available: {how} alone have too few returns")
+        if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
+            return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+        d = ps.params.vector()[dh] - sol.params.vector()[dh]
+        d[[1, 3]] = solve.wrap_pi(d[[1, 3]])
+        C = ps.covariance[np.ix_(dh, dh)] - sol.covariance[np.ix_(dh, dh)]
+        w, V = np.linalg.eigh(0.5 * (C + C.T))
+        floor = 0.05 * np.diag(ps.covariance[np.ix_(dh, dh)]).min()
+        w = np.maximum(w, floor)  # the difference must not look more certain than 5 % of the part's own variance
+        stat = float(d @ V @ np.diag(1.0 / w) @ V.T @ d)
+        results.append((stat, d))
+    worst = max(results, key=lambda r: r[0])
+    ok = worst[0] <= limit
+    d = worst[1]
+    return Check(
+        "second opinion", ok,
+        f"{how} calibrated separately differ from the joint solution by chi2 {worst[0]:.3g} (limit {limit:.3g}, 4 dof;"
+        f" a {d[0] * 1000:+.2f} mm, alpha {math.degrees(d[1]):+.3f} deg, b {d[2] * 1000:+.2f} mm, "
+        f"beta {math.degrees(d[3]):+.3f} deg)"
+        + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled clock "
+                         "offset, markers that moved)"),
+    )
+
+
+def _negated(joints: JointStates) -> JointStates:
+    return JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
+
+
+def _subset_scans(scans: Scans, mask: np.ndarray) -> Scans:
+    """The scans where ``mask`` (S,) is True: every per-scan array field is subset, the rest kept."""
+    S = mask.size
+    if mask.all():
+        return scans
+    fields = {}
+    for k in scans.__dataclass_fields__:
+        v = getattr(scans, k)
+        fields[k] = v[mask] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == S else v
+    return Scans(**fields)
 
 
 def _with_markers(returns: Observations, blob_to_marker: np.ndarray) -> Observations:

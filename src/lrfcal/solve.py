@@ -1,11 +1,17 @@
-"""Stage 6: Levenberg-Marquardt over the 10 parameters theta = (x, y, z, roll, pitch, yaw, a, alpha, b, beta).
+"""Stage 6: Levenberg-Marquardt over the 10 parameters, and the laser-servo clock offset where the sweep shows it.
 
-Forward model (kinematics.py, eq. (3)), per return k with motor angle lambda_k, bearing mu_k, range r_k and
-phi_k = beta + mu_k:
+Unknowns (never Euler angles): the mount translation t = (x, y, z), the mount rotation on SO(3) as a reference
+R_ref and a small rotation vector w applied in frame M (R = R_ref Exp(w); after every solver pass w is folded into
+R_ref and restarts at 0, so the parameterisation has no singularity at any attitude), the DH parameters
+(a, alpha, b, beta), and optionally the clock offset tau = laser stamp - servo stamp. Their order is
+:data:`CORE_NAMES` (kinematics.ESTIMATE_NAMES + "clock_offset"); roll, pitch and yaw are only an output format.
+
+Forward model (kinematics.py, eq. (3)), per return k at laser time t_k with bearing mu_k, range r_k,
+phi_k = beta + mu_k and motor angle lambda_k = q(t_k - tau) (q: the joint states, interpolated linearly):
 
     o_M = Rz(lambda) [a, -b sin(alpha), b cos(alpha)]              beam origin in M
     d_M = Rz(lambda) [cos(phi), sin(phi) cos(alpha), sin(phi) sin(alpha)]   unit direction in M
-    o = R o_M + t,  d = R d_M,  R = Rz(yaw) Ry(pitch) Rx(roll),  t = (x, y, z)     in W
+    o = R o_M + t,  d = R d_M                                                  in W
 
 Two observation models (c = the centre of the return's marker in W, R_m its radius):
 
@@ -20,10 +26,13 @@ Two observation models (c = the centre of the return's marker in W, R_m its radi
   disc: E|e|^2 = R_m^2 / 2).
 
 Analytic Jacobian (chain rule; dX/dtheta_j written X_j):
-    translation: o_j = e_j, d_j = 0;   mount angle q: o_j = (dR/dq) o_M, d_j = (dR/dq) d_M;
+    translation: o_j = e_j, d_j = 0;
+    rotation vector w_j: o_j = -R [o_M]x J_r(w) e_j, d_j = -R [d_M]x J_r(w) e_j (J_r: SO(3) right Jacobian);
     DH parameter p: o_j = R Rz(lambda) d(o_loc)/dp, d_j = R Rz(lambda) d(d_loc)/dp with
       d o_loc/da = (1,0,0), d o_loc/dalpha = (0, -b ca, -b sa), d o_loc/db = (0, -sa, ca), d o_loc/dbeta = 0,
-      d d_loc/dalpha = (0, -sphi sa, sphi ca), d d_loc/dbeta = (-sphi, cphi ca, cphi sa), others 0.
+      d d_loc/dalpha = (0, -sphi sa, sphi ca), d d_loc/dbeta = (-sphi, cphi ca, cphi sa), others 0;
+    clock offset tau: o_tau = R (z x o_M) dlambda/dtau, d_tau = R (z x d_M) dlambda/dtau, dlambda/dtau = -omega(t_k -
+      tau) (omega: the joint's angular velocity, smoothed over ~50 ms).
     paper: (o + r d)_j / sigma_r.
     sphere: v_j = -o_j; t_j = v_j.d + v.d_j; e_j = v_j - t_j d - t d_j; |e|_j = (e/|e|).e_j;
       r_hat_j = t_j - s'(u) |e|_j;  range residual_j = -r_hat_j / sigma_r;  lateral_j = e_j / sigma_lat.
@@ -36,7 +45,7 @@ covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -44,15 +53,19 @@ from scipy.optimize import least_squares
 from scipy.special import expit
 
 from .errors import CalibrationError, InputError
-from .kinematics import PARAM_NAMES, Params
+from .kinematics import ESTIMATE_NAMES, Params, Pose, exp_so3, points_M, right_jacobian_so3, transform_points
 from .surfaces import Surface, SurfaceReturns
-from .types import Observations, Solution
+from .types import JointStates, Observations, Solution
 
 FloatArray = NDArray[np.float64]
 
 MODELS = ("paper", "sphere")
+#: The solver's core unknowns, in this order (then 3 nuisances per plane): see the module docstring.
+CORE_NAMES: tuple[str, ...] = (*ESTIMATE_NAMES, "clock_offset")
+N_CORE = len(CORE_NAMES)
+_TAU = CORE_NAMES.index("clock_offset")
 _ETA = 0.05  # softness of the sphere's rim in s(u)
-_ANGLE_IDX = (3, 4, 5, 7, 9)  # roll, pitch, yaw, alpha, beta
+_DH_ANGLES = (7, 9)  # alpha, beta
 
 
 def wrap_pi(a: ArrayLike) -> FloatArray:
@@ -77,71 +90,109 @@ def sphere_depth(u: ArrayLike, eta: float = _ETA) -> tuple[FloatArray, FloatArra
     return s, ds
 
 
-def _rot(axis: str, t: float) -> tuple[FloatArray, FloatArray]:
-    """Rotation matrix about an axis and its derivative with respect to the angle."""
-    c, s = np.cos(t), np.sin(t)
-    if axis == "x":
-        return np.array([[1, 0, 0], [0, c, -s], [0, s, c]]), np.array([[0, 0, 0], [0, -s, -c], [0, c, -s]])
-    if axis == "y":
-        return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]), np.array([[-s, 0, c], [0, 0, 0], [-c, 0, -s]])
-    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]), np.array([[-s, -c, 0], [c, -s, 0], [0, 0, 0]])
+@dataclass(frozen=True)
+class MotorClock:
+    """The motor angle at laser-clock times for a clock offset tau: lambda(t) = q(t - tau).
 
-
-def _rz_apply(cl: FloatArray, sl: FloatArray, v: FloatArray) -> FloatArray:
-    """Rz(lambda_k) v_k for (K,) cos/sin and v (K, 3) or (3,)."""
-    v = np.broadcast_to(v, (cl.size, 3))
-    return np.stack([cl * v[:, 0] - sl * v[:, 1], sl * v[:, 0] + cl * v[:, 1], v[:, 2]], -1)
-
-
-def beam_rays_W(
-    theta: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, jac: bool = True
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
-    """Beam origins and unit directions in W and their Jacobians with respect to theta.
-
-    Args:
-        theta: (10,) parameters in PARAM_NAMES order.
-        lambda_rad, mu_rad: (K,) motor angles and beam bearings.
-    Returns:
-        o (K, 3), d (K, 3), do/dtheta (K, 3, 10), dd/dtheta (K, 3, 10) (the last two empty (0, 3, 10) when
-        ``jac`` is False).
+    stamps_s (J,) servo clock; positions_rad (J,) unwrapped joint positions; velocity_rad_s (J,) their rate,
+    smoothed over about 50 ms (encoder quantisation would make the segment slopes jump), for the Jacobian.
     """
-    th = np.asarray(theta, dtype=float).reshape(10)
-    x, y, z, roll, pitch, yaw, a, al, b, be = th
-    lam = np.atleast_1d(np.asarray(lambda_rad, dtype=float))
-    phi = be + np.atleast_1d(np.asarray(mu_rad, dtype=float))
-    lam, phi = np.broadcast_arrays(lam, phi)
+
+    stamps_s: FloatArray
+    positions_rad: FloatArray
+    velocity_rad_s: FloatArray
+
+    @staticmethod
+    def from_joints(joints: JointStates, smooth_s: float = 0.05) -> MotorClock:
+        t = np.asarray(joints.stamps_s, dtype=float)
+        q = np.unwrap(np.asarray(joints.positions_rad, dtype=float))
+        if t.size < 2:
+            raise InputError(f"joint states {joints.name}: {t.size} sample(s); need at least 2")
+        period = float(np.median(np.diff(t)))
+        k = int(max(1, round(0.5 * smooth_s / max(period, 1e-9))))
+        lo = np.clip(np.arange(t.size) - k, 0, t.size - 1)
+        hi = np.clip(np.arange(t.size) + k, 0, t.size - 1)
+        v = (q[hi] - q[lo]) / np.maximum(t[hi] - t[lo], 1e-12)
+        return MotorClock(t, q, v)
+
+    def angles(self, times_s: ArrayLike, tau_s: float) -> tuple[FloatArray, FloatArray]:
+        """lambda (K,) and dlambda/dt (K,) at laser times (K,) for the clock offset tau_s."""
+        t = np.asarray(times_s, dtype=float) - tau_s
+        return np.interp(t, self.stamps_s, self.positions_rad), np.interp(t, self.stamps_s, self.velocity_rad_s)
+
+
+def _rays(
+    core: FloatArray, R_ref: FloatArray, lam: FloatArray, mu: FloatArray, omega: FloatArray | None, jac: bool
+) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
+    """Beam origins o (K, 3) and unit directions d (K, 3) in W and their Jacobians (K, 3, N_CORE) with respect to
+    the core unknowns (module docstring); the clock column is zero when ``omega`` is None."""
+    t, w = core[:3], core[3:6]
+    a, al, b, be = core[6:10]
+    lam, phi = np.broadcast_arrays(np.atleast_1d(lam), be + np.atleast_1d(mu))
     K = lam.size
     cl, sl = np.cos(lam), np.sin(lam)
     ca, sa = np.cos(al), np.sin(al)
     cp, sp = np.cos(phi), np.sin(phi)
-    Rx, dRx = _rot("x", roll)
-    Ry, dRy = _rot("y", pitch)
-    Rz, dRz = _rot("z", yaw)
-    R = Rz @ Ry @ Rx
-    dR = (Rz @ Ry @ dRx, Rz @ dRy @ Rx, dRz @ Ry @ Rx)
+    R = R_ref @ exp_so3(w)
 
-    o_M = _rz_apply(cl, sl, np.array([a, -b * sa, b * ca]))
-    d_loc = np.stack([cp, sp * ca, sp * sa], -1)
-    d_M = _rz_apply(cl, sl, d_loc)
-    o = o_M @ R.T + np.array([x, y, z])
+    def rz(v: FloatArray) -> FloatArray:  # Rz(lambda_k) v_k for v (K, 3) or (3,)
+        v = np.broadcast_to(v, (K, 3))
+        return np.stack([cl * v[:, 0] - sl * v[:, 1], sl * v[:, 0] + cl * v[:, 1], v[:, 2]], -1)
+
+    o_M = rz(np.array([a, -b * sa, b * ca]))
+    d_M = rz(np.stack([cp, sp * ca, sp * sa], -1))
+    o = o_M @ R.T + t
     d = d_M @ R.T
     if not jac:
-        empty = np.zeros((0, 3, 10))
-        return o, d, empty, empty
-
-    Jo = np.zeros((K, 3, 10))
-    Jd = np.zeros((K, 3, 10))
+        return o, d, None, None
+    Jo = np.zeros((K, 3, N_CORE))
+    Jd = np.zeros((K, 3, N_CORE))
     Jo[:, 0, 0] = Jo[:, 1, 1] = Jo[:, 2, 2] = 1.0
-    for j, D in enumerate(dR):
-        Jo[:, :, 3 + j] = o_M @ D.T
-        Jd[:, :, 3 + j] = d_M @ D.T
+    Jr = right_jacobian_so3(w)
+    for j in range(3):
+        Jo[:, :, 3 + j] = -np.cross(o_M, Jr[:, j]) @ R.T
+        Jd[:, :, 3 + j] = -np.cross(d_M, Jr[:, j]) @ R.T
     z0 = np.zeros(K)
-    Jo[:, :, 6] = _rz_apply(cl, sl, np.array([1.0, 0.0, 0.0])) @ R.T
-    Jo[:, :, 7] = _rz_apply(cl, sl, np.array([0.0, -b * ca, -b * sa])) @ R.T
-    Jo[:, :, 8] = _rz_apply(cl, sl, np.array([0.0, -sa, ca])) @ R.T
-    Jd[:, :, 7] = _rz_apply(cl, sl, np.stack([z0, -sp * sa, sp * ca], -1)) @ R.T
-    Jd[:, :, 9] = _rz_apply(cl, sl, np.stack([-sp, cp * ca, cp * sa], -1)) @ R.T
+    Jo[:, :, 6] = rz(np.array([1.0, 0.0, 0.0])) @ R.T
+    Jo[:, :, 7] = rz(np.array([0.0, -b * ca, -b * sa])) @ R.T
+    Jo[:, :, 8] = rz(np.array([0.0, -sa, ca])) @ R.T
+    Jd[:, :, 7] = rz(np.stack([z0, -sp * sa, sp * ca], -1)) @ R.T
+    Jd[:, :, 9] = rz(np.stack([-sp, cp * ca, cp * sa], -1)) @ R.T
+    if omega is not None:  # d/dlambda of Rz(lambda) v is z x (Rz v); dlambda/dtau = -omega
+        zo = np.stack([-o_M[:, 1], o_M[:, 0], z0], -1) @ R.T
+        zd = np.stack([-d_M[:, 1], d_M[:, 0], z0], -1) @ R.T
+        Jo[:, :, _TAU] = -omega[:, None] * zo
+        Jd[:, :, _TAU] = -omega[:, None] * zd
     return o, d, Jo, Jd
+
+
+def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Beam origins (K, 3) and unit directions (K, 3) in W for motor angles and bearings (K,)."""
+    core, R_ref = _core_from_params(params)
+    o, d, _, _ = _rays(core, R_ref, np.asarray(lambda_rad, dtype=float), np.asarray(mu_rad, dtype=float), None,
+                       jac=False)
+    return o, d
+
+
+def _core_from_params(params: Params, tau_s: float = 0.0) -> tuple[FloatArray, FloatArray]:
+    """The core vector (N_CORE,) with w = 0, and R_ref (3, 3), of a Params (rpy is only a format)."""
+    T = params.mount.matrix()
+    core = np.zeros(N_CORE)
+    core[:3] = T[:3, 3]
+    core[6:10] = [params.dh.a, params.dh.alpha, params.dh.b, params.dh.beta]
+    core[_TAU] = tau_s
+    return core, T[:3, :3].copy()
+
+
+def _params_from_core(core: FloatArray, R_ref: FloatArray) -> Params:
+    T = np.eye(4)
+    T[:3, :3] = R_ref @ exp_so3(core[3:6])
+    T[:3, 3] = core[:3]
+    v = np.array(core[6:10], dtype=float)
+    v[[1, 3]] = wrap_pi(v[[1, 3]])
+    from .kinematics import DH
+
+    return Params(Pose.from_matrix(T), DH(*map(float, v)))
 
 
 @dataclass(frozen=True)
@@ -149,7 +200,7 @@ class _Surf:
     """Non-marker returns (K2 rows) on P planes whose normals and offsets are nuisance parameters.
 
     Plane j: n_j = m_j / |m_j|, m_j = n0_j + u1_j t1_j + u2_j t2_j (t1, t2 tangent to the initial normal n0),
-    n_j . p = d_j. The nuisance vector follows the 10 parameters: (u1, u2, d) per plane.
+    n_j . p = d_j. The nuisance vector follows the core unknowns: (u1, u2, d) per plane.
     """
 
     lam: FloatArray
@@ -161,10 +212,11 @@ class _Surf:
     t2: FloatArray  # (P, 3)
     prior_mean: FloatArray | None = None  # (3P,) nuisance values the markers give
     prior_sigma: FloatArray | None = None  # (3P,) their uncertainty (None: free planes)
+    times: FloatArray | None = None  # (K2,) laser-clock beam times (for the clock offset)
 
     def subset(self, m: NDArray[np.bool_]) -> _Surf:
-        return _Surf(self.lam[m], self.mu[m], self.r[m], self.plane[m], self.n0, self.t1, self.t2,
-                     self.prior_mean, self.prior_sigma)
+        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
+                       times=None if self.times is None else self.times[m])
 
     @property
     def n_planes(self) -> int:
@@ -183,42 +235,52 @@ def _plane_nuisance_start(normals: FloatArray, offsets: FloatArray) -> tuple[Flo
     return n0, t1, t2, nu0
 
 
-def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, jac: bool = True
-                       ) -> tuple[FloatArray, FloatArray | None]:
+def _lambda(lam: FloatArray, times: FloatArray | None, clock: MotorClock | None, tau: float
+            ) -> tuple[FloatArray, FloatArray | None]:
+    """The motor angles to use: re-interpolated at the current clock offset when it is estimated."""
+    if clock is None or times is None:
+        return lam, None
+    return clock.angles(times, tau)
+
+
+def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, R_ref: FloatArray, jac: bool = True,
+                       clock: MotorClock | None = None) -> tuple[FloatArray, FloatArray | None]:
     """Range residuals against the ray-plane distance r_p = (d - n.o) / (n.dir), whitened by sigma_r:
-    (r - r_p) / sigma_r, shape (K2,), and the Jacobian -(dr_p/d[theta, nuisance]) / sigma_r, (K2, 10 + 3P):
-        dr_p/dtheta = -(n.do + r_p n.ddir) / (n.dir),   dr_p/dd = 1 / (n.dir),
+    (r - r_p) / sigma_r, shape (K2,), and the Jacobian -(dr_p/d[core, nuisance]) / sigma_r, (K2, N_CORE + 3P):
+        dr_p/dcore = -(n.do + r_p n.ddir) / (n.dir),   dr_p/dd = 1 / (n.dir),
         dr_p/dn = -(o + r_p dir) / (n.dir),   dn/du_i = (t_i - n (n.t_i)) / |m|.
     """
     P = s.n_planes
-    nu = th[10:].reshape(P, 3)
+    nu = th[N_CORE:].reshape(P, 3)
     m = s.n0 + nu[:, :1] * s.t1 + nu[:, 1:2] * s.t2
     m_norm = np.linalg.norm(m, axis=1, keepdims=True)
     n_p = m / m_norm
-    o, d, Jo, Jd = beam_rays_W(th[:10], s.lam, s.mu, jac=jac)
+    lam, omega = _lambda(s.lam, s.times, clock, th[_TAU])
+    o, d, Jo, Jd = _rays(th[:N_CORE], R_ref, lam, s.mu, omega, jac=jac)
     n = n_p[s.plane]
     nd = (n * d).sum(1)
     rp = (nu[s.plane, 2] - (n * o).sum(1)) / nd
     res = (s.r - rp) / sigma_r
     if not jac:
         return res, None
+    assert Jo is not None and Jd is not None
     K2 = s.r.size
-    J = np.zeros((K2, 10 + 3 * P))
-    J[:, :10] = -(np.einsum("ki,kij->kj", n, Jo) + rp[:, None] * np.einsum("ki,kij->kj", n, Jd)) / nd[:, None]
+    J = np.zeros((K2, N_CORE + 3 * P))
+    J[:, :N_CORE] = -(np.einsum("ki,kij->kj", n, Jo) + rp[:, None] * np.einsum("ki,kij->kj", n, Jd)) / nd[:, None]
     drp_dn = -(o + rp[:, None] * d) / nd[:, None]
     rows = np.arange(K2)
     for i, t in enumerate((s.t1, s.t2)):
         dn_du = (t - n_p * (n_p * t).sum(1, keepdims=True)) / m_norm  # (P, 3)
-        J[rows, 10 + 3 * s.plane + i] = (drp_dn * dn_du[s.plane]).sum(1)
-    J[rows, 10 + 3 * s.plane + 2] = 1.0 / nd
+        J[rows, N_CORE + 3 * s.plane + i] = (drp_dn * dn_du[s.plane]).sum(1)
+    J[rows, N_CORE + 3 * s.plane + 2] = 1.0 / nd
     return res, -J / sigma_r
 
 
 @dataclass(frozen=True)
 class _Problem:
-    """The data of one solve: K returns with their marker centres."""
+    """The data of one solve: K returns with their marker centres, optional surface returns, optional clock."""
 
-    lam: FloatArray  # (K,)
+    lam: FloatArray  # (K,) motor angles at the start clock offset
     mu: FloatArray  # (K,)
     r: FloatArray  # (K,)
     c: FloatArray  # (K, 3) centre of each return's marker in W
@@ -226,6 +288,8 @@ class _Problem:
     radius: float
     sigma_r: float
     surf: _Surf | None = None
+    times: FloatArray | None = None  # (K,) laser-clock beam times
+    clock: MotorClock | None = None  # set when the clock offset is estimated
 
     @property
     def sigma_lat(self) -> float:
@@ -238,33 +302,37 @@ class _Problem:
 
     def subset(self, m: NDArray[np.bool_], ms: NDArray[np.bool_] | None = None) -> _Problem:
         surf = self.surf if self.surf is None or ms is None else self.surf.subset(ms)
-        return _Problem(self.lam[m], self.mu[m], self.r[m], self.c[m], self.model, self.radius, self.sigma_r, surf)
+        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], c=self.c[m], surf=surf,
+                       times=None if self.times is None else self.times[m])
 
-    def stacked(self, th: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
-        """All whitened residuals as one vector (markers, then surfaces) and the (rows, 10) Jacobian."""
-        res, J = _residuals(th, self, jac=jac)
-        res_v, J_m = res.ravel(), None if J is None else J.reshape(-1, 10)
+    def stacked(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
+        """All whitened residuals as one vector (markers, then surfaces, then plane priors) and the Jacobian
+        (rows, N_CORE + 3P)."""
+        res, J = _residuals(th, self, R_ref, jac=jac)
+        n_par = th.size
+        res_v = res.ravel()
+        J_m = None if J is None else np.hstack([J.reshape(-1, N_CORE), np.zeros((res_v.size, n_par - N_CORE))])
         if self.surf is None:
             return res_v, J_m
-        rs, Js = _surface_residuals(th, self.surf, self.sigma_r, jac=jac)
-        n_par = th.size
+        rs, Js = _surface_residuals(th, self.surf, self.sigma_r, R_ref, jac=jac, clock=self.clock)
         rp, Jp = np.zeros(0), np.zeros((0, n_par))
         if self.surf.prior_sigma is not None and self.surf.prior_mean is not None:  # the markers' word on the planes
-            rp = (th[10:] - self.surf.prior_mean) / self.surf.prior_sigma
+            rp = (th[N_CORE:] - self.surf.prior_mean) / self.surf.prior_sigma
             Jp = np.zeros((rp.size, n_par))
-            Jp[:, 10:] = np.diag(1.0 / self.surf.prior_sigma)
+            Jp[:, N_CORE:] = np.diag(1.0 / self.surf.prior_sigma)
         if J_m is None or Js is None:
             return np.concatenate([res_v, rs, rp]), None
-        J_m = np.hstack([J_m, np.zeros((J_m.shape[0], n_par - 10))])
         return np.concatenate([res_v, rs, rp]), np.vstack([J_m, Js, Jp])
 
 
-def _residuals(th: FloatArray, pb: _Problem, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
-    """Whitened residuals (K, n_res) and their Jacobian (K, n_res, 10) (None when jac is False)."""
-    o, d, Jo, Jd = beam_rays_W(th[:10], pb.lam, pb.mu, jac=jac)
+def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
+               ) -> tuple[FloatArray, FloatArray | None]:
+    """Whitened residuals (K, n_res) and their Jacobian (K, n_res, N_CORE) (None when jac is False)."""
+    lam, omega = _lambda(pb.lam, pb.times, pb.clock, th[_TAU])
+    o, d, Jo, Jd = _rays(th[:N_CORE], R_ref, lam, pb.mu, omega, jac=jac)
     if pb.model == "paper":
         res = (o + pb.r[:, None] * d - pb.c) / pb.sigma_r
-        J = (Jo + pb.r[:, None, None] * Jd) / pb.sigma_r if jac else None
+        J = None if Jo is None or Jd is None else (Jo + pb.r[:, None, None] * Jd) / pb.sigma_r
         return res, J
     R = pb.radius
     v = pb.c - o
@@ -274,7 +342,7 @@ def _residuals(th: FloatArray, pb: _Problem, jac: bool = True) -> tuple[FloatArr
     s, ds = sphere_depth(rho / R)
     r_hat = t - R * s
     res = np.concatenate([((pb.r - r_hat) / pb.sigma_r)[:, None], e / pb.sigma_lat], 1)
-    if not jac:
+    if Jo is None or Jd is None:
         return res, None
     Jv = -Jo
     Jt = np.einsum("kij,ki->kj", Jv, d) + np.einsum("ki,kij->kj", v, Jd)
@@ -287,7 +355,7 @@ def _residuals(th: FloatArray, pb: _Problem, jac: bool = True) -> tuple[FloatArr
 
 
 def model_residuals(
-    params: Params | ArrayLike,
+    params: Params,
     obs: Observations,
     markers_W: ArrayLike,
     *,
@@ -295,19 +363,20 @@ def model_residuals(
     marker_radius_m: float,
     range_sigma_m: float = 0.010,
 ) -> tuple[FloatArray, FloatArray]:
-    """Whitened residuals (M,) and analytic Jacobian (M, 10) of the returns with a marker (obs.marker >= 0).
+    """Whitened residuals (M,) and analytic Jacobian (M, 10) of the returns with a marker (obs.marker >= 0), the
+    columns in ESTIMATE_NAMES order (the rotation as a rotation vector in frame M at w = 0).
 
     M = 3 K (paper) or 4 K (sphere: range residual then the 3 lateral components, per return).
     """
     pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
-    th = params.vector() if isinstance(params, Params) else np.asarray(params, dtype=float)
-    res, J = _residuals(th, pb)
+    core, R_ref = _core_from_params(params)
+    res, J = _residuals(core, pb, R_ref)
     assert J is not None
-    return res.ravel(), J.reshape(-1, 10)
+    return res.ravel(), J.reshape(-1, N_CORE)[:, :10]
 
 
 def jacobian_check(
-    params: Params | ArrayLike,
+    params: Params,
     obs: Observations,
     markers_W: ArrayLike,
     *,
@@ -315,22 +384,29 @@ def jacobian_check(
     marker_radius_m: float,
     range_sigma_m: float = 0.010,
     step: float = 1e-6,
+    clock: MotorClock | None = None,
+    rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
 ) -> float:
-    """Largest relative difference between the analytic Jacobian and central finite differences.
+    """Largest relative difference between the analytic Jacobian and central finite differences, over the 10
+    parameters (and the clock offset when ``clock`` is given, with obs.times_s the beam times), evaluated at the
+    rotation increment ``rotation_vector`` (to test the right Jacobian away from 0).
 
     The difference of each column is divided by max(|J_analytic| column max, 1) in whitened units.
     """
     pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
-    th = params.vector() if isinstance(params, Params) else np.asarray(params, dtype=float)
-    _, J = _residuals(th, pb)
+    if clock is not None:
+        pb = replace(pb, clock=clock)
+    th, R_ref = _core_from_params(params)
+    th[3:6] = np.asarray(rotation_vector, dtype=float)
+    _, J = _residuals(th, pb, R_ref)
     assert J is not None
-    J = J.reshape(-1, 10)
+    J = J.reshape(-1, N_CORE)
     worst = 0.0
-    for j in range(10):
-        dp = np.zeros(10)
+    for j in range(N_CORE if clock is not None else 10):
+        dp = np.zeros(N_CORE)
         dp[j] = step
-        fp = _residuals(th + dp, pb, jac=False)[0].ravel()
-        fm = _residuals(th - dp, pb, jac=False)[0].ravel()
+        fp = _residuals(th + dp, pb, R_ref, jac=False)[0].ravel()
+        fm = _residuals(th - dp, pb, R_ref, jac=False)[0].ravel()
         num = (fp - fm) / (2 * step)
         scale = max(float(np.abs(J[:, j]).max()), 1.0)
         worst = max(worst, float(np.abs(num - J[:, j]).max() / scale))
@@ -338,21 +414,22 @@ def jacobian_check(
 
 
 def residuals_3d(
-    params: Params, obs: Observations, markers_W: ArrayLike, *, model: str, marker_radius_m: float
+    params: Params, obs: Observations, markers_W: ArrayLike, *, model: str, marker_radius_m: float,
+    lambda_rad: ArrayLike | None = None,
 ) -> FloatArray:
     """3D residual of every return (K, 3), NaN where obs.marker < 0.
 
     paper: p - c (return point minus marker centre); sphere: (p - c)(1 - R / |p - c|), the return point minus
-    the nearest point of the marker's surface (norm = ||p - c| - R|).
+    the nearest point of the marker's surface (norm = ||p - c| - R|). ``lambda_rad`` (K,) replaces
+    obs.lambda_rad (e.g. re-interpolated at an estimated clock offset).
     """
     X = np.asarray(markers_W, dtype=float)
     out = np.full((len(obs), 3), np.nan)
     m = np.asarray(obs.marker) >= 0
     if not m.any():
         return out
-    from .kinematics import points_W
-
-    p = points_W(obs.ranges_m[m], obs.lambda_rad[m], obs.mu_rad[m], params)
+    lam = np.asarray(obs.lambda_rad if lambda_rad is None else lambda_rad, dtype=float)
+    p = transform_points(params.mount.matrix(), points_M(obs.ranges_m[m], lam[m], obs.mu_rad[m], params.dh))
     diff = p - X[obs.marker[m]]
     if model == "sphere":
         dist = np.linalg.norm(diff, axis=1)
@@ -378,27 +455,42 @@ def _problem(
     pb = _Problem(
         np.asarray(obs.lambda_rad, dtype=float)[use], np.asarray(obs.mu_rad, dtype=float)[use],
         np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], model, float(radius), float(sigma_r),
+        times=np.asarray(obs.times_s, dtype=float)[use],
     )
     return pb, use
 
 
-def _fit(th0: FloatArray, pb: _Problem, robust: bool) -> tuple[FloatArray, int, str]:
-    def fun(th: FloatArray) -> FloatArray:
-        return pb.stacked(th, jac=False)[0]
+def _fit(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool_], robust: bool
+         ) -> tuple[FloatArray, FloatArray, int, str]:
+    """One solver pass over the free unknowns; returns (th with w folded into R_ref, R_ref, nfev, message)."""
+    idx = np.flatnonzero(free)
 
-    def jac(th: FloatArray) -> FloatArray:
-        J = pb.stacked(th)[1]
+    def full(x: FloatArray) -> FloatArray:
+        th = th0.copy()
+        th[idx] = x
+        return th
+
+    def fun(x: FloatArray) -> FloatArray:
+        return pb.stacked(full(x), R_ref, jac=False)[0]
+
+    def jac(x: FloatArray) -> FloatArray:
+        J = pb.stacked(full(x), R_ref)[1]
         assert J is not None
-        return J
+        return J[:, idx]
 
+    x0 = th0[idx]
     if robust:
-        sol = least_squares(fun, th0, jac=jac, method="trf", loss="soft_l1", f_scale=2.0, x_scale="jac",
-                            max_nfev=200)
+        sol = least_squares(fun, x0, jac=jac, method="trf", loss="soft_l1", f_scale=2.0, x_scale="jac",
+                            max_nfev=300)
     else:
-        method = "lm" if pb.r.size * pb.n_res >= 10 else "trf"
-        sol = least_squares(fun, th0, jac=jac, method=method, x_scale="jac", xtol=1e-12, ftol=1e-12,
-                            gtol=1e-12, max_nfev=400)
-    return sol.x, int(sol.nfev), str(sol.message)
+        n_rows = pb.r.size * pb.n_res + (0 if pb.surf is None else pb.surf.r.size)
+        method = "lm" if n_rows >= idx.size else "trf"
+        sol = least_squares(fun, x0, jac=jac, method=method, x_scale="jac", xtol=1e-12, ftol=1e-12,
+                            gtol=1e-12, max_nfev=100 * max(idx.size, 4))
+    th = full(sol.x)
+    R_new = R_ref @ exp_so3(th[3:6])
+    th[3:6] = 0.0
+    return th, R_new, int(sol.nfev), str(sol.message)
 
 
 def _inflate_for_correlation(cov: FloatArray, J: FloatArray, res: FloatArray, cluster: NDArray[np.int64],
@@ -418,9 +510,9 @@ def _inflate_for_correlation(cov: FloatArray, J: FloatArray, res: FloatArray, cl
     return cov * np.outer(scale, scale)
 
 
-def _per_return_chi(th: FloatArray, pb: _Problem) -> FloatArray:
+def _per_return_chi(th: FloatArray, pb: _Problem, R_ref: FloatArray) -> FloatArray:
     """Whitened residual norm per return divided by sqrt(3) (3 independent components for either model)."""
-    res, _ = _residuals(th, pb, jac=False)
+    res, _ = _residuals(th, pb, R_ref, jac=False)
     return np.sqrt((res**2).sum(1) / 3.0)
 
 
@@ -435,26 +527,35 @@ def solve(
     robust: bool = True,
     surfaces: SurfaceReturns | None = None,
     planes: Sequence[Surface] | None = None,
+    clock: MotorClock | None = None,
+    clock_offset_s: float = 0.0,
+    hold: Sequence[str] = (),
 ) -> Solution:
-    """Estimate the 10 parameters from marker returns (see the module docstring for the models).
+    """Estimate the 10 parameters (and the clock offset) from marker returns (see the module docstring).
 
     Args:
-        obs: K returns; rows with marker < 0 or non-finite values are ignored.
+        obs: K returns; rows with marker < 0 or non-finite values are ignored. obs.lambda_rad must be the motor
+            angles at ``clock_offset_s``; obs.times_s the beam times (laser clock).
         markers_W: (n, 3) marker centres in W (the MDS frame, un-mirrored).
         start: initial parameters (mount pose from the association, DH from the nominal values).
         model: "paper" (eq. (10), return point vs marker centre) or "sphere" (ray vs sphere, sub-beam).
         marker_radius_m: marker sphere radius R_m.
-        range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, FACTS.md).
+        range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, Hokuyo's specification).
         robust: soft-L1 first pass and 4-sigma rejection before the final plain least-squares pass.
         surfaces: optional non-marker returns on the marker-carrying planes (lrfcal.surfaces), solved jointly
             as ray-plane range residuals (whitened by range_sigma_m), rejected at 4 sigma like the markers.
         planes: the lrfcal.surfaces.Surface of each surface index: each plane's normal and offset are nuisance
             parameters with the markers' prior (Surface.prior_sigma); without them the planes are free
             (only flatness counts), started from the returns' normals and offsets.
+        clock: the joint states as a MotorClock: the clock offset is then estimated, started at
+            ``clock_offset_s``; None holds it at ``clock_offset_s``.
+        hold: names from CORE_NAMES held at their start value (not estimated; their sigma is NaN).
     Returns:
-        Solution with angles wrapped to (-pi, pi], covariance s^2 (J^T J)^-1 (pseudo-inverse, and status says
-        "rank deficient" when J^T J is singular), residuals_m (K, 3) for all K rows (NaN for unused rows),
-        residual_rms_m over the returns kept, per_marker_rms_m (n,) (NaN for markers without returns).
+        Solution: estimate, covariance (10, 10) in ESTIMATE_NAMES order (the rotation as a rotation vector in
+        frame M; the marginal over plane nuisances and the clock offset; NaN rows for held parameters), the clock
+        offset and its sigma, the marginal information over the estimated core unknowns, residuals_m (K, 3) for
+        all K rows (NaN for unused rows), chi (K,) whitened residual per return, residual_rms_m over the returns
+        kept, per_marker_rms_m (n,) (NaN for markers without returns).
     Raises:
         CalibrationError: fewer than 4 usable returns or fewer than 3 distinct markers.
     """
@@ -464,7 +565,17 @@ def solve(
     n_markers = len(np.unique(np.asarray(obs.marker)[use]))
     if K < 4 or n_markers < 3:
         raise CalibrationError(f"solve ({model}): need >= 4 returns on >= 3 markers, got {K} on {n_markers}")
-    th = start.vector().astype(float)
+    unknown = sorted(set(hold) - set(CORE_NAMES))
+    if unknown:
+        raise InputError(f"solve: hold: unknown parameter {unknown[0]!r} (expected one of {', '.join(CORE_NAMES)})")
+    th, R_ref = _core_from_params(start, clock_offset_s)
+    free_core = np.ones(N_CORE, dtype=bool)
+    for name in hold:
+        free_core[CORE_NAMES.index(name)] = False
+    if clock is None:
+        free_core[_TAU] = False
+    else:
+        pb_all = replace(pb_all, clock=clock)
     if surfaces is not None and len(surfaces):
         ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
         first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
@@ -475,44 +586,47 @@ def solve(
             t2 = np.array([planes[i].axes[1] for i in ids])
             prior_sigma = np.concatenate([planes[i].prior_sigma for i in ids])
         surf = _Surf(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
-                     nu0.copy(), prior_sigma)
-        pb_all = _Problem(pb_all.lam, pb_all.mu, pb_all.r, pb_all.c, pb_all.model, pb_all.radius, pb_all.sigma_r,
-                          surf)
+                     nu0.copy(), prior_sigma, times=surfaces.times_s)
+        pb_all = replace(pb_all, surf=surf)
         th = np.concatenate([th, nu0])
+    free = np.concatenate([free_core, np.ones(th.size - N_CORE, dtype=bool)])
     K2 = 0 if pb_all.surf is None else pb_all.surf.r.size
-    n_par = th.size
     nfev = 0
     keep = np.ones(K, dtype=bool)
     keep_s = np.ones(K2, dtype=bool)
     dropped = dropped_s = 0
     if robust:
         if pb_all.surf is None:  # the joint solve starts from the converged marker-only estimate: no soft-L1 pass
-            th, nf, _ = _fit(th, pb_all, robust=True)
+            th, R_ref, nf, _ = _fit(th, R_ref, pb_all, free, robust=True)
             nfev += nf
         for _ in range(5):
-            chi = _per_return_chi(th, pb_all)
+            chi = _per_return_chi(th, pb_all, R_ref)
             # robust scale of the whitened residuals (median of chi2_3 / 3 is 0.789), never below the model's
             scale = max(1.0, float(np.sqrt(np.median(chi[keep] ** 2) / 0.789)))
             new = chi <= 4.0 * scale
             new_s = keep_s
             if pb_all.surf is not None:
-                rs = np.abs(_surface_residuals(th, pb_all.surf, pb_all.sigma_r, jac=False)[0])
+                rs = np.abs(_surface_residuals(th, pb_all.surf, pb_all.sigma_r, R_ref, jac=False,
+                                               clock=pb_all.clock)[0])
                 new_s = rs <= 4.0 * max(1.0, float(np.median(rs[keep_s]) / 0.674))
             if new.sum() < 4:
                 break
             changed = not (np.array_equal(new, keep) and np.array_equal(new_s, keep_s))
             keep, keep_s = new, new_s
-            th, nf, msg = _fit(th, pb_all.subset(keep, keep_s), robust=False)
+            th, R_ref, nf, msg = _fit(th, R_ref, pb_all.subset(keep, keep_s), free, robust=False)
             nfev += nf
             if not changed:
                 break
         dropped, dropped_s = int(K - keep.sum()), int(K2 - keep_s.sum())
-    th, nf, msg = _fit(th, pb_all.subset(keep, keep_s), robust=False)
+    th, R_ref, nf, msg = _fit(th, R_ref, pb_all.subset(keep, keep_s), free, robust=False)
     nfev += nf
 
     pb = pb_all.subset(keep, keep_s)
-    res, J = pb.stacked(th)
-    assert J is not None
+    res, J_all = pb.stacked(th, R_ref)
+    assert J_all is not None
+    idx = np.flatnonzero(free)
+    J = J_all[:, idx]
+    n_par = idx.size
     k_in = int(keep.sum())
     k_s = int(keep_s.sum())
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
@@ -520,31 +634,44 @@ def solve(
     s2 = float(res @ res / dof)
     col = np.linalg.norm(J, axis=0)
     col[col == 0] = 1.0
-    sv = np.linalg.svd(J / col, compute_uv=False)
-    rank = int(np.sum(sv > sv[0] * 1e-9))
-    JtJ = J.T @ J
+    Js = J / col  # column-scaled: the covariance is computed in these units, then scaled back
+    sv = np.linalg.svd(Js, compute_uv=False)
+    rank = int(np.sum(sv > sv[0] * 1e-12))  # only numerically null directions count as rank loss
+    JtJ_s = Js.T @ Js
+    core_pos = [i for i, k in enumerate(idx) if k < N_CORE]  # positions of the free core unknowns in idx
+    core_names = tuple(CORE_NAMES[idx[i]] for i in core_pos)
+    info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
     if rank < n_par:
-        cov = s2 * np.linalg.pinv(JtJ, rcond=1e-12)
-        _, _, Vt = np.linalg.svd(J / col)
-        worst = Vt[-1] / col
-        names = [PARAM_NAMES[i] if i < 10 else f"plane{(i - 10) // 3}" for i in np.argsort(-np.abs(worst))[:3]]
-        rank_txt = f"rank deficient ({rank}/{n_par}), unobservable direction mostly {'/'.join(names)}"
+        cov = s2 * np.linalg.pinv(JtJ_s, rcond=1e-15) / np.outer(col, col)
+        info = _schur(J.T @ J * info_scale, core_pos)
+        rank_txt = f"rank deficient ({rank}/{n_par})"
     else:
-        cov = s2 * np.linalg.inv(JtJ)
+        JtJ_inv = np.linalg.inv(JtJ_s) / np.outer(col, col)
+        cov = s2 * JtJ_inv
         clusters = [np.repeat(np.asarray(obs.scan)[use][keep], pb.n_res)]
         if pb.surf is not None and surfaces is not None:
             clusters += [np.asarray(surfaces.scan)[keep_s], -1 - np.arange(n_prior)]
-        cov = _inflate_for_correlation(cov, J, res, np.concatenate(clusters), np.linalg.inv(JtJ))
+        cov = _inflate_for_correlation(cov, J, res, np.concatenate(clusters), JtJ_inv)
+        info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
         rank_txt = f"full rank (condition {sv[0] / sv[-1]:.2e})"
-    cov = cov[:10, :10]  # marginal covariance of the 10 parameters (plane nuisances integrated out)
-    th = th[:10]
-    th[list(_ANGLE_IDX)] = wrap_pi(th[list(_ANGLE_IDX)])
-    params = Params.from_vector(th)
+    cov_core = np.full((N_CORE, N_CORE), np.nan)
+    gi = idx[core_pos]
+    cov_core[np.ix_(gi, gi)] = cov[np.ix_(core_pos, core_pos)]
+    if rank < n_par:
+        # a covariance from a singular information would be meaningless (and can be 0): none is reported
+        cov_core[np.ix_(gi, gi)] = np.inf
+    params = _params_from_core(th[:N_CORE], R_ref)
+    tau = float(th[_TAU])
 
-    res3 = residuals_3d(params, obs, X, model=model, marker_radius_m=marker_radius_m)
+    lam_all = np.asarray(obs.lambda_rad, dtype=float)
+    if pb_all.clock is not None:
+        lam_all = pb_all.clock.angles(np.asarray(obs.times_s, dtype=float), tau)[0]
+    res3 = residuals_3d(params, obs, X, model=model, marker_radius_m=marker_radius_m, lambda_rad=lam_all)
     idx_used = np.nonzero(use)[0]
     inl = np.zeros(len(obs), dtype=bool)
     inl[idx_used[keep]] = True
+    chi_all = np.full(len(obs), np.nan)
+    chi_all[idx_used] = _per_return_chi(th, pb_all, R_ref)
     sq = (res3[inl] ** 2).sum(1)
     rms = float(np.sqrt(sq.mean()))
     per = np.full(len(X), np.nan)
@@ -554,20 +681,60 @@ def solve(
     surf_txt = f", {k_s}/{K2} surface returns ({dropped_s} dropped)" if K2 else ""
     status = (f"{model}: {msg.rstrip('.')}; {k_in}/{K} returns used ({dropped} dropped > 4 sigma){surf_txt}, "
               f"reduced chi2 {s2:.3g}, {rank_txt}")
+    cov10 = cov_core[:10, :10]
     return Solution(
         params=params,
-        covariance=cov,
-        sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)),
+        covariance=cov10,
+        sigma=np.sqrt(np.clip(np.diag(cov10), 0.0, None)),
         residual_rms_m=rms,
         residuals_m=res3,
         per_marker_rms_m=per,
         n_observations=k_in,
         n_iterations=nfev,
         status=status,
+        clock_offset_s=tau,
+        clock_offset_sigma_s=float(np.sqrt(cov_core[_TAU, _TAU])) if free_core[_TAU] else float("nan"),
+        information=info,
+        information_names=core_names,
+        reduced_chi2=s2,
+        converged="maximum number of function evaluations" not in msg,
+        chi=chi_all,
+        inlier=inl,
+        lambda_rad=lam_all,
+        n_surface_returns=k_s,
     )
 
 
+def information_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
+    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
+) -> tuple[FloatArray, tuple[str, ...]]:
+    """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
+    would be estimated (the clock offset only when ``clock`` is given), and their names: what the data can
+    determine, judged before any solver runs."""
+    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
+    if clock is not None:
+        pb = replace(pb, clock=clock)
+    th, R_ref = _core_from_params(params, clock_offset_s)
+    _, J = _residuals(th, pb, R_ref)
+    assert J is not None
+    J = J.reshape(-1, N_CORE)
+    idx = list(range(N_CORE if clock is not None else 10))
+    J = J[:, idx]
+    return J.T @ J, tuple(CORE_NAMES[i] for i in idx)
+
+
+def _schur(A: FloatArray, keep: Sequence[int]) -> FloatArray:
+    """The information of the ``keep`` block with the others marginalised: A_kk - A_ko A_oo^+ A_ok."""
+    keep = list(keep)
+    other = [i for i in range(A.shape[0]) if i not in keep]
+    if not other:
+        return A[np.ix_(keep, keep)]
+    Akk, Ako, Aoo = A[np.ix_(keep, keep)], A[np.ix_(keep, other)], A[np.ix_(other, other)]
+    return Akk - Ako @ np.linalg.pinv(Aoo, rcond=1e-12) @ Ako.T
+
+
 __all__ = [
-    "MODELS", "beam_rays_W", "jacobian_check", "model_residuals", "residuals_3d", "solve", "sphere_depth",
-    "wrap_pi",
+    "CORE_NAMES", "MODELS", "MotorClock", "beam_rays_W", "information_at", "jacobian_check", "model_residuals",
+    "residuals_3d", "solve", "sphere_depth", "wrap_pi",
 ]

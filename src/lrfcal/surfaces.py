@@ -48,7 +48,8 @@ class Surface:
 @dataclass(frozen=True)
 class SurfaceReturns:
     """Non-marker returns on the surfaces (K2 rows): scan, beam indices; lambda_rad, mu_rad, ranges_m; the
-    surface index of each; normals (K2, 3) and offsets (K2,) of their planes in W."""
+    surface index of each; normals (K2, 3) and offsets (K2,) of their planes in W; times_s (K2,) their beam times
+    on the laser clock (None when unknown)."""
 
     scan: IntArray
     beam: IntArray
@@ -58,12 +59,14 @@ class SurfaceReturns:
     surface: IntArray
     normals: FloatArray
     offsets_m: FloatArray
+    times_s: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.ranges_m.size)
 
     def subset(self, mask: NDArray[np.bool_]) -> SurfaceReturns:
-        return SurfaceReturns(**{k: getattr(self, k)[mask] for k in self.__dataclass_fields__})
+        return SurfaceReturns(**{k: None if getattr(self, k) is None else getattr(self, k)[mask]
+                                 for k in self.__dataclass_fields__})
 
 
 def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
@@ -146,7 +149,7 @@ def _in_extent(surface: Surface, points_W: FloatArray) -> tuple[FloatArray, NDAr
 def surface_returns(
     surfaces: list[Surface], points_W: FloatArray, scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
     mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = 0.03,
-    marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0,
+    marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0, times_s: FloatArray | None = None,
 ) -> SurfaceReturns:
     """The returns (rows of the P inputs) on the surfaces, away from markers, at most ``max_returns`` (an even
     random subsample). points_W (P, 3) are the returns reprojected with the current parameters."""
@@ -171,6 +174,7 @@ def surface_returns(
         scan=np.asarray(scan)[idx], beam=np.asarray(beam)[idx], lambda_rad=np.asarray(lambda_rad)[idx],
         mu_rad=np.asarray(mu_rad)[idx], ranges_m=np.asarray(ranges_m)[idx], surface=surf,
         normals=normals[surf] if surf.size else np.zeros((0, 3)), offsets_m=offsets[surf] if surf.size else np.zeros(0),
+        times_s=None if times_s is None else np.asarray(times_s)[idx],
     )
 
 
@@ -180,6 +184,7 @@ __all__ = ["Surface", "SurfaceReturns", "candidate_planes", "find_surfaces", "su
 def observe_surfaces(
     ranges_m: FloatArray, mu_rad: FloatArray, lambda_rad: FloatArray, labels: IntArray, markers_W: FloatArray,
     radius_m: float, params: Params, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
+    beam_times_s: FloatArray | None = None,
 ) -> tuple[list[Surface], SurfaceReturns]:
     """Find the marker-carrying surfaces and their returns in a recording.
 
@@ -187,6 +192,7 @@ def observe_surfaces(
         ranges_m (S, N) with NaN for no return; mu_rad (N,); lambda_rad (S, N) per-beam motor angles;
         labels (S, N) blob labels (>= 0 on marker returns, excluded); markers_W (n, 3); radius_m;
         params: lrfcal.kinematics.Params used to reproject (the marker-only estimate);
+        beam_times_s (S, N): laser-clock beam times, carried with the returns (for the clock offset);
         position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior).
     """
     valid = np.isfinite(ranges_m) & (labels < 0)
@@ -196,7 +202,9 @@ def observe_surfaces(
     sensor_W = params.mount.matrix()[:3, 3]
     step = max(1, P.shape[0] // 100_000)
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, P[::step], position_sigma_m=position_sigma_m)
-    returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed)
+    times = None if beam_times_s is None else np.asarray(beam_times_s)[scan, beam]
+    returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed,
+                              times_s=times)
     return surfaces, returns
 
 

@@ -102,5 +102,61 @@ def covered_scans(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0
     return (lo >= joints.stamps_s[0] - tol) & (hi <= joints.stamps_s[-1] + tol)
 
 
-__all__ = ["beam_motor_angles", "beam_times", "covered_scans", "joint_period_s", "motor_angles",
-           "scan_angles", "unwrapped_positions"]
+__all__ = ["beam_motor_angles", "beam_times", "covered_scans", "joint_period_s", "motor_angles", "remove_spikes",
+           "scan_angles", "sweep_passes", "unwrapped_positions"]
+
+
+def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scans: int = 5) -> NDArray[np.int64]:
+    """(S,) pass index of every scan: 0, 1, 2, ... for each monotonic run of the sweep (a reversal of the motor's
+    direction starts a new pass).
+
+    Standstills carry the previous direction; runs that move less than ``min_fraction`` of the whole sweep's range
+    or last fewer than ``min_scans`` scans (encoder jitter, a spike in the joint states) are merged into the run
+    before them.
+    """
+    lam = np.asarray(scan_lambda_rad, dtype=float)
+    S = lam.size
+    if S < 2:
+        return np.zeros(S, dtype=np.int64)
+    span = float(np.ptp(lam))
+    d = np.sign(np.diff(lam))
+    d[np.abs(np.diff(lam)) < 1e-9] = 0.0
+    nz = np.flatnonzero(d)
+    if nz.size == 0:
+        return np.zeros(S, dtype=np.int64)
+    d[: nz[0]] = d[nz[0]]
+    for i in range(1, d.size):
+        if d[i] == 0:
+            d[i] = d[i - 1]
+    # runs of equal direction [start, end) over the S - 1 steps; a short run takes the previous run's direction
+    for _ in range(S):
+        starts = np.concatenate([[0], np.flatnonzero(np.diff(d) != 0) + 1])
+        ends = np.concatenate([starts[1:], [d.size]])
+        short = [k for k in range(1, starts.size)
+                 if ends[k] - starts[k] < min_scans or abs(lam[ends[k]] - lam[starts[k]]) < min_fraction * span]
+        if not short:
+            break
+        k = short[0]
+        d[starts[k]:ends[k]] = d[starts[k] - 1]
+    runs = [[int(s0), int(e0)] for s0, e0 in zip(starts, ends, strict=True)]
+    out = np.zeros(S, dtype=np.int64)
+    for k, (s0, _) in enumerate(runs):
+        out[s0 + 1:] = k
+    return out
+
+
+def remove_spikes(joints: JointStates, threshold_rad: float = 0.05, window: int = 5) -> tuple[JointStates, int]:
+    """Drop joint-state samples that jump away from their neighbours (a Hampel filter: more than ``threshold_rad``
+    from the median of the ``window`` samples on each side). Returns the cleaned joint states and the count."""
+    q = unwrapped_positions(joints)
+    n = q.size
+    if n < 2 * window + 1:
+        return joints, 0
+    pad = np.pad(q, window, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(pad, 2 * window + 1)
+    med = np.median(windows, axis=1)
+    bad = np.abs(q - med) > threshold_rad
+    if not bad.any():
+        return joints, 0
+    return JointStates(stamps_s=joints.stamps_s[~bad], positions_rad=joints.positions_rad[~bad],
+                       name=joints.name), int(bad.sum())

@@ -173,8 +173,15 @@ class Association:
 
 @dataclass(frozen=True)
 class Solution:
-    """Stage 6: estimate, covariance (10, 10) in PARAM_NAMES order, sigma (10,), RMS of the 3D residuals,
-    residuals_m (K, 3) (reprojected return minus its model point, in W), per-marker RMS (n,), status text."""
+    """Stage 6: the estimate and its uncertainty.
+
+    covariance (10, 10) and sigma (10,) in kinematics.ESTIMATE_NAMES order (x, y, z, the mount rotation as a
+    rotation vector rx, ry, rz in frame M, a, alpha, b, beta; NaN for parameters held fixed, inf where the data do
+    not determine them); residual_rms_m: RMS of the 3D residuals of the returns kept; residuals_m (K, 3): reprojected
+    return minus its model point in W; per-marker RMS (n,); clock offset (laser stamp - servo stamp) and its sigma
+    (NaN when held); information (k, k): the marginal information over ``information_names`` (the estimated core
+    unknowns, lrfcal.solve.CORE_NAMES); chi (K,): whitened residual per return (NaN for unused rows); inlier (K,):
+    returns kept; lambda_rad (K,): the motor angle of each return at the estimated clock offset."""
 
     params: Params
     covariance: FloatArray
@@ -185,6 +192,16 @@ class Solution:
     n_observations: int
     n_iterations: int
     status: str
+    clock_offset_s: float = 0.0
+    clock_offset_sigma_s: float = float("nan")
+    information: FloatArray | None = None
+    information_names: tuple[str, ...] = ()
+    reduced_chi2: float = float("nan")
+    converged: bool = True
+    chi: FloatArray | None = None
+    inlier: BoolArray | None = None
+    lambda_rad: FloatArray | None = None
+    n_surface_returns: int = 0
 
 
 @dataclass(frozen=True)
@@ -227,3 +244,6 @@ class CalibrationResult:
     timings_s: dict[str, float] = field(default_factory=dict)
     surfaces: tuple[Any, ...] = ()  # lrfcal.surfaces.Surface: the planes the markers are mounted on
     surface_returns: Any = None  # lrfcal.surfaces.SurfaceReturns used in the joint solve, or None
+    checks: tuple[Any, ...] = ()  # lrfcal.pipeline.Check: the consistency checks and their outcome
+    notes: tuple[str, ...] = ()  # what the calibration assumed, trimmed or dropped, in words
+    servo_sign: int = 1  # the servo direction used: +1 as declared, -1 negated (only with --force on an ambiguity)

@@ -1,0 +1,133 @@
+"""What the data determine, decided from the information matrix itself (never from a solver that ran away).
+
+Given the information I (k, k) of the estimated core unknowns (lrfcal.solve.CORE_NAMES: the mount, the DH
+parameters, the clock offset), the DH block is marginalised over the others (Schur complement) and normalised by
+:data:`LIMITS`, the 1-sigma beyond which a parameter counts as not calibrated: N = D I_dh D, D = diag(limits).
+An eigenvalue e of N belongs to a combination of DH parameters whose 1-sigma is 1 / sqrt(e) limits: e < 1 means
+that combination is undetermined even when each parameter's own sigma looks acceptable. The eigenvector names the
+combination in words ("b against alpha"), with what would determine it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+#: 1-sigma above which a parameter (or a normalised combination) is not calibrated by the recording: a calibration
+#: that cannot do better than a design drawing and a ruler (a few mm, about a degree) has calibrated nothing.
+LIMITS: dict[str, float] = {
+    "x": 0.02, "y": 0.02, "z": 0.02,
+    "rx": math.radians(1.0), "ry": math.radians(1.0), "rz": math.radians(1.0),
+    "a": 0.005, "alpha": math.radians(1.0), "b": 0.005, "beta": math.radians(1.0),
+    "clock_offset": 0.005,
+}
+DH = ("a", "alpha", "b", "beta")
+
+_HINTS = {
+    frozenset({"alpha", "b"}): "the markers are all at about one distance along the motor axis: place markers at "
+                               "several depths along the axis (a board extending along it, or a second board)",
+    frozenset({"a"}): "a needs markers at several ranges, seen over a wide sweep of the motor angle",
+    frozenset({"b"}): "b needs markers spread along the motor axis",
+    frozenset({"alpha"}): "alpha needs markers spread along the motor axis and seen over a wide sweep",
+    frozenset({"beta"}): "beta needs markers spread across the scan's field of view",
+}
+
+
+@dataclass(frozen=True)
+class Observability:
+    """The DH block's marginal 1-sigma (4,) (inf where undetermined), the spectrum (4,) of its normalised
+    information (ascending) and the weakest combination (4,) (unit vector over DH, in limit units)."""
+
+    sigma: FloatArray
+    spectrum: FloatArray
+    weakest: FloatArray
+
+    @property
+    def limits(self) -> FloatArray:
+        return np.array([LIMITS[n] for n in DH])
+
+    @property
+    def weakest_sigma_in_limits(self) -> float:
+        """1-sigma of the weakest combination, in units of the limits (> 1: undetermined)."""
+        e = float(self.spectrum[0])
+        return math.inf if e <= 0 else 1.0 / math.sqrt(e)
+
+    @property
+    def determined(self) -> bool:
+        return self.weakest_sigma_in_limits <= 1.0 and bool(np.all(self.sigma <= self.limits))
+
+    @property
+    def undetermined(self) -> tuple[str, ...]:
+        """DH parameters with a large share in the weakest combination when that combination is undetermined."""
+        if self.determined:
+            return ()
+        return tuple(n for n, v in zip(DH, self.weakest, strict=True) if abs(v) >= 0.3)
+
+    def describe(self) -> str:
+        """The weakest combination in words, e.g. 'b against alpha'."""
+        order = np.argsort(-np.abs(self.weakest))
+        names = [DH[i] for i in order if abs(self.weakest[i]) >= 0.3] or [DH[int(order[0])]]
+        if len(names) == 1:
+            return f"{names[0]} alone"
+        return " against ".join(names)
+
+    def hint(self) -> str:
+        names = frozenset(n for n, v in zip(DH, self.weakest, strict=True) if abs(v) >= 0.3)
+        for key, text in _HINTS.items():
+            if key <= names and len(key) > 1:
+                return text
+        for key, text in _HINTS.items():
+            if key == names:
+                return text
+        return "add markers at other ranges and motor angles, or sweep more passes"
+
+    def summary(self) -> str:
+        """One line: the weakest combination, its sigma in limits, and each DH sigma."""
+        parts = []
+        for n, s in zip(DH, self.sigma, strict=True):
+            parts.append(f"{n} {_fmt(n, s)}")
+        return (f"weakest direction {self.describe()} at {self.weakest_sigma_in_limits:.2g} of the limit; 1-sigma: "
+                + ", ".join(parts))
+
+
+def _fmt(name: str, v: float) -> str:
+    if not math.isfinite(v):
+        return "unbounded"
+    return f"{math.degrees(v):.3g} deg" if name in ("alpha", "beta") else f"{v * 1000:.3g} mm"
+
+
+def analyse(information: FloatArray, names: tuple[str, ...]) -> Observability:
+    """Observability of the DH parameters from the information (k, k) over ``names`` (must contain a, alpha, b,
+    beta; the others are marginalised)."""
+    info = np.asarray(information, dtype=float)
+    idx = [names.index(n) for n in DH]
+    other = [i for i in range(len(names)) if i not in idx]
+    A = info[np.ix_(idx, idx)]
+    if other:
+        B = info[np.ix_(idx, other)]
+        C = info[np.ix_(other, other)]
+        A = A - B @ np.linalg.pinv(C, rcond=1e-12) @ B.T
+    A = 0.5 * (A + A.T)
+    D = np.array([LIMITS[n] for n in DH])
+    N = D[:, None] * A * D[None, :]
+    vals, vecs = np.linalg.eigh(N)
+    scale = max(float(np.abs(vals).max()), 1e-300)
+    vals = np.where(vals > 1e-12 * scale, vals, 0.0)
+    # marginal sigma of each DH parameter: sqrt(diag(N^+)) * limit, infinite along null directions
+    sigma = np.empty(4)
+    for i in range(4):
+        null_share = sum(vecs[i, j] ** 2 for j in range(4) if vals[j] == 0.0)
+        if null_share > 1e-6:
+            sigma[i] = math.inf
+        else:
+            sigma[i] = math.sqrt(sum(vecs[i, j] ** 2 / vals[j] for j in range(4) if vals[j] > 0)) * D[i]
+    weakest = vecs[:, 0] * (1.0 if vecs[np.argmax(np.abs(vecs[:, 0])), 0] >= 0 else -1.0)
+    return Observability(sigma=sigma, spectrum=vals, weakest=weakest)
+
+
+__all__ = ["DH", "LIMITS", "Observability", "analyse"]

@@ -1,0 +1,131 @@
+"""Stage 5a: a start that does not need a good nominal — a correspondence-free search over the DH parameters.
+
+The association (stage 4) matches blobs to markers by their geometry in frame M, which depends on the DH
+parameters: from the nominal values it works within about 3 deg of alpha and beta and 3 cm of a and b. When it does
+not (the nominal is off, or the rig was assembled differently), the DH parameters are searched for without any
+correspondence: each blob is one point p_M(DH) (its returns' mean range pushed 2R/3 into the sphere, mean motor
+angle and bearing), and a DH set scores by how many blob-pair distances |p_i - p_j| some tape-measured marker-pair
+distance explains,
+
+    score(DH) = mean over blob pairs of exp(-(min_kl |d_ij - D_kl|)^2 / (2 tol^2)),
+
+which is invariant to the unknown mount pose and to mirroring, and needs no ids. A grid over alpha and beta
+(+-45 deg around the nominal, 1.5 deg steps) finds the basin; coordinate-wise grids over (a, b) and (alpha, beta)
+with shrinking steps refine it. The few best candidates are handed back to the association and the solver, which
+decide by the data (the method's promised basin: DH angles within 45 deg, a and b within 10 cm of the truth).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .kinematics import DH
+from .types import MarkerMap, Observations
+
+FloatArray = NDArray[np.float64]
+
+#: The basin the search covers around the nominal values.
+ANGLE_SPAN_RAD = math.radians(45.0)
+LENGTH_SPAN_M = 0.10
+
+
+def _blob_points(obs: Observations, n_blobs: int, radius_m: float) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Per blob: mean range (pushed 2R/3 into the sphere), mean motor angle, mean bearing; (B',) each, blobs with
+    returns only."""
+    cnt = np.bincount(obs.blob, minlength=n_blobs).astype(float)
+    keep = cnt > 0
+    r = np.bincount(obs.blob, obs.ranges_m, n_blobs)[keep] / cnt[keep] + 2.0 * radius_m / 3.0
+    lam = np.bincount(obs.blob, obs.lambda_rad, n_blobs)[keep] / cnt[keep]
+    mu = np.bincount(obs.blob, obs.mu_rad, n_blobs)[keep] / cnt[keep]
+    return r, lam, mu
+
+
+def pair_score(
+    dh_grid: FloatArray, r: FloatArray, lam: FloatArray, mu: FloatArray, marker_distances: FloatArray,
+    tol_m: float = 0.01, chunk: int = 512,
+) -> FloatArray:
+    """The module docstring's score for C candidate DH sets (C, 4) [a, alpha, b, beta] -> (C,).
+
+    r, lam, mu (B,) per blob; marker_distances (P,) sorted. Blob pairs closer than 5 cm (one marker seen in two
+    passes) are left out.
+    """
+    B = r.size
+    iu = np.triu_indices(B, 1)
+    D = np.asarray(marker_distances, dtype=float)
+    out = np.empty(len(dh_grid))
+    cl, sl = np.cos(lam), np.sin(lam)
+    for s in range(0, len(dh_grid), chunk):
+        g = dh_grid[s:s + chunk]
+        a, al, b, be = (g[:, i:i + 1] for i in range(4))
+        phi = be + mu
+        ca, sa = np.cos(al), np.sin(al)
+        sp = np.sin(phi)
+        x = a + r * np.cos(phi)
+        y = r * sp * ca - b * sa
+        z = r * sp * sa + b * ca
+        P = np.stack([cl * x - sl * y, sl * x + cl * y, z], -1)  # (c, B, 3)
+        d = np.linalg.norm(P[:, iu[0]] - P[:, iu[1]], axis=-1)  # (c, pairs)
+        k = np.clip(np.searchsorted(D, d), 1, D.size - 1)
+        near = np.minimum(np.abs(d - D[k - 1]), np.abs(d - D[k]))
+        valid = d > 0.05
+        w = np.exp(-0.5 * (near / tol_m) ** 2) * valid
+        out[s:s + chunk] = w.sum(1) / np.maximum(valid.sum(1), 1)
+    return out
+
+
+def dh_candidates(
+    obs: Observations, n_blobs: int, markers: MarkerMap, nominal: DH, radius_m: float, n_best: int = 3,
+) -> list[DH]:
+    """The ``n_best`` DH sets (best first) that explain the blobs' pairwise distances, within the basin around
+    ``nominal`` (module docstring). Empty when there are fewer than 4 blobs."""
+    r, lam, mu = _blob_points(obs, n_blobs, radius_m)
+    X = np.asarray(markers.positions_W, dtype=float)
+    if r.size < 4 or len(X) < 3:
+        return []
+    D = np.sort(np.linalg.norm(X[:, None] - X[None], axis=2)[np.triu_indices(len(X), 1)])
+    if D.size < 2:
+        return []
+    nom = np.array([nominal.a, nominal.alpha, nominal.b, nominal.beta])
+
+    step = math.radians(1.5)
+    g = np.arange(-ANGLE_SPAN_RAD, ANGLE_SPAN_RAD + 1e-9, step)
+    A, Bt = np.meshgrid(nom[1] + g, nom[3] + g, indexing="ij")
+    grid = np.column_stack([np.full(A.size, nom[0]), A.ravel(), np.full(A.size, nom[2]), Bt.ravel()])
+    s = pair_score(grid, r, lam, mu, D, tol_m=0.02)
+    seeds: list[FloatArray] = []
+    for i in np.argsort(-s):  # distinct peaks: at least 6 deg apart
+        if all(np.max(np.abs(grid[i, [1, 3]] - q[[1, 3]])) > math.radians(6.0) for q in seeds):
+            seeds.append(grid[i].copy())
+        if len(seeds) == n_best:
+            break
+    refined = [(_refine(q, nom, r, lam, mu, D)) for q in seeds]
+    refined.sort(key=lambda t: -t[1])
+    return [DH(float(v[0]), float(v[1]), float(v[2]), float(v[3])) for v, _ in refined]
+
+
+def _refine(x: FloatArray, nom: FloatArray, r: FloatArray, lam: FloatArray, mu: FloatArray, D: FloatArray
+            ) -> tuple[FloatArray, float]:
+    """Coordinate-wise grid refinement of (a, b) then (alpha, beta), steps shrinking, tolerance tightening."""
+    x = x.copy()
+    best = -1.0
+    for ab_step, ang_step, tol in ((0.02, math.radians(1.0), 0.015), (0.01, math.radians(0.5), 0.01),
+                                   (0.004, math.radians(0.2), 0.006)):
+        for pair, step, span in (((0, 2), ab_step, 5), ((1, 3), ang_step, 4)):
+            k = np.arange(-span, span + 1) * step
+            U, V = np.meshgrid(k, k, indexing="ij")
+            cand = np.repeat(x[None], U.size, 0)
+            cand[:, pair[0]] += U.ravel()
+            cand[:, pair[1]] += V.ravel()
+            lo = nom - np.array([LENGTH_SPAN_M, ANGLE_SPAN_RAD, LENGTH_SPAN_M, ANGLE_SPAN_RAD]) * 1.2
+            hi = nom + np.array([LENGTH_SPAN_M, ANGLE_SPAN_RAD, LENGTH_SPAN_M, ANGLE_SPAN_RAD]) * 1.2
+            cand = np.clip(cand, lo, hi)
+            s = pair_score(cand, r, lam, mu, D, tol_m=tol)
+            i = int(np.argmax(s))
+            x, best = cand[i], float(s[i])
+    return x, best
+
+
+__all__ = ["ANGLE_SPAN_RAD", "LENGTH_SPAN_M", "dh_candidates", "pair_score"]
