@@ -75,7 +75,7 @@ class _Samples:
     recv_s: np.ndarray
     values: np.ndarray
     skipped: Counter[str]
-    #: stamps already on the laser clock (a constant angle from /tf_static): no clock offset
+    #: stamps already on the laser clock (the scan's own stamps, a constant from /tf_static): no clock offset
     on_laser_clock: bool = False
 
 
@@ -112,6 +112,12 @@ def complete_types(reader: Any) -> None:
         reader.typestore.register(add)
 
 
+def ns_to_s(t_ns: int) -> float:
+    """Integer nanoseconds to seconds, rounded exactly as :func:`stamp_s` rounds sec + nanosec (float64 has
+    only ~0.2 us resolution at today's epoch times: both clocks must be converted the same way)."""
+    return float(t_ns // 1_000_000_000) + 1e-9 * float(t_ns % 1_000_000_000)
+
+
 def stamp_s(msg: Any) -> float | None:
     """header.stamp [s] of a ROS 1 / ROS 2 message, None when it has no header."""
     h = getattr(msg, "header", None)
@@ -146,7 +152,7 @@ def _messages(reader: Any, conns: list[Any], progress: Progress | None, done: in
     """(receive time [s], decoded message) of the connections, in bag order."""
     out = []
     for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
-        out.append((t_ns * 1e-9, reader.deserialize(raw, c.msgtype)))
+        out.append((ns_to_s(t_ns), reader.deserialize(raw, c.msgtype)))
         if progress is not None and k % 256 == 0:
             progress(done + k, total)
     return out
@@ -272,7 +278,7 @@ def _tagged(reader: Any, conns: list[Any], progress: Progress | None, done: int,
     for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
         if progress is not None and k % 256 == 0:
             progress(done + k, total)
-        yield c, (t_ns * 1e-9, reader.deserialize(raw, c.msgtype))
+        yield c, (ns_to_s(t_ns), reader.deserialize(raw, c.msgtype))
 
 
 def _describe_scan(scan: ScanSource) -> str:
@@ -454,7 +460,7 @@ def _servo_in_scan(items: list[tuple[float, Any]], servo: ServoSource, where: st
     assert servo.field is not None
     vals = np.array([_as_float(get_field(m, servo.field, where)) for _, m in items])
     stamps = np.array([t for t, _ in items])
-    return _Samples(stamps, stamps.copy(), vals, Counter())
+    return _Samples(stamps, stamps.copy(), vals, Counter(), True)
 
 
 def _servo_tf(items: list[tuple[float, Any, str]], servo: ServoSource, where: str, scan_stamps: np.ndarray

@@ -194,5 +194,40 @@ def load_rig(path: str | Path) -> RigFile:
     return parse_rig(data, str(path))
 
 
+def with_overrides(
+    scan: ScanSource | None, servo: ServoSource | None, *, scan_topic: str | None = None, scan_field: str | None = None,
+    scan_stamp: str | None = None, servo_topic: str | None = None, servo_field: str | None = None,
+    joint: str | None = None, unit: str | None = None, counts_per_rev: float | None = None,
+    sign: int | None = None, servo_offset: float | None = None, servo_stamp: str | None = None,
+    tf_parent: str | None = None, tf_child: str | None = None, tf_axis: str | None = None,
+) -> tuple[ScanSource | None, ServoSource | None]:
+    """The rig file's scan / servo sources (ScanSource / ServoSource, or None) with the CLI's
+    one-off options applied; bad values raise InputError naming the option."""
+    sd = scan.model_dump() if isinstance(scan, ScanSource) else {}
+    vd = servo.model_dump() if isinstance(servo, ServoSource) else {}
+    sd.update({k: v or None for k, v in (("topic", scan_topic), ("field", scan_field), ("stamp", scan_stamp))
+               if v is not None})  # an empty string clears a key (e.g. --scan-field "")
+    upd = {k: v for k, v in (("topic", servo_topic), ("field", servo_field), ("joint", joint), ("unit", unit),
+                             ("counts_per_rev", counts_per_rev), ("sign", sign), ("offset_rad", servo_offset),
+                             ("stamp", servo_stamp)) if v is not None}
+    upd = {k: (None if v == "" else v) for k, v in upd.items()}
+    if "field" in upd:
+        vd.pop("joint", None)
+    if "joint" in upd:
+        vd.pop("field", None)
+    if upd.get("unit", "counts") != "counts":
+        vd.pop("counts_per_rev", None)
+    vd.update(upd)
+    if tf_parent or tf_child:
+        vd.update(tf={"parent": tf_parent, "child": tf_child, "axis": tf_axis or "z"}, topic=None, field=None,
+                  joint=None)
+    try:
+        s = ScanSource.model_validate(sd) if (sd or isinstance(scan, ScanSource)) else None
+        v = ServoSource.model_validate(vd) if (vd or isinstance(servo, ServoSource)) else None
+    except ValidationError as err:
+        raise InputError(validation_message(err, "options").replace("options: ", "option ", 1)) from None
+    return s, v
+
+
 __all__ = ["DHModel", "MountModel", "RigFile", "ScanSource", "ServoSource", "TfSource", "load_rig",
-           "parse_rig", "validation_message"]
+           "parse_rig", "validation_message", "with_overrides"]
