@@ -169,7 +169,7 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
     console.print(f"[bold]{result.path}[/bold]: ROS {result.ros_version} bag, {result.duration_s:.1f} s")
     t = Table(title="Topics")
     for h in ("topic", "type", "messages", "rate [Hz]", "header", "receive - stamp [s]"):
-        t.add_column(h, justify="left" if h in ("topic", "type") else "right")
+        t.add_column(h, justify="left" if h in ("topic", "type") else "right", overflow="fold")
     for tp in result.topics:
         t.add_row(tp.topic, tp.msgtype, str(tp.count), "-" if tp.rate_hz is None else f"{tp.rate_hz:.2f}",
                   "yes" if tp.has_header else "no",
