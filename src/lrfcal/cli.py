@@ -119,7 +119,7 @@ CountsOpt = Annotated[float | None, typer.Option(
 SignOpt = Annotated[int | None, typer.Option(
     "--sign", help="1 or -1: -1 when the servo turns the other way (servo.sign; default 1).")]
 OffsetOpt = Annotated[float | None, typer.Option(
-    "--servo-offset", help="Added after unit and sign [rad]: the angle at lambda = 0 (servo.offset_rad; "
+    "--servo-offset", help="Added after unit and sign (rad): the angle at lambda = 0 (servo.offset_rad; "
     "default 0).")]
 ServoStampOpt = Annotated[str | None, typer.Option(
     "--servo-stamp", help="header | receive | scan: servo sample time; scan = the angle is a field of the scan's "
@@ -210,8 +210,8 @@ def reproject_cmd(
     bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).")],
     nominal: Annotated[Path, typer.Option(
         "--nominal", help="Rig file (nominal.yaml): nominal DH and where the data are in the bag.")],
-    out: Annotated[Path, typer.Option("-o", "--out", help="Output PLY (binary; x y z [m] in frame M, "
-                                      "intensity, time [s], scan, beam per point; written atomically).")],
+    out: Annotated[Path, typer.Option("-o", "--out", help="Output PLY (binary; x y z (m) in frame M, "
+                                      "intensity, time (s), scan, beam per point; written atomically).")],
     calibration: Annotated[Path | None, typer.Option(
         "--calibration", help="calibration.yaml whose dh replaces the rig file's nominal DH.")] = None,
     rrd: Annotated[Path | None, typer.Option("--rrd", help="Also save a rerun recording (.rrd).")] = None,
@@ -219,7 +219,7 @@ def reproject_cmd(
         "--bag-out", help="Also write a ROS 2 bag (MCAP) of sensor_msgs/msg/PointCloud2 on /lrf_cloud, one "
         "cloud per sweep (frame lrf_motor).")] = None,
     clock_offset: Annotated[float, typer.Option(
-        "--clock-offset", help="Fine laser-minus-servo clock offset [s] on top of the reader's coarse one "
+        "--clock-offset", help="Fine laser-minus-servo clock offset (s) on top of the reader's coarse one "
         "(default 0).")] = 0.0,
     scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
