@@ -288,6 +288,17 @@ def test_read_nominal(tmp_path):
     assert n2.mount is None and n2.scan_topic == "/scan"
 
 
+def test_read_nominal_rig_blocks(tmp_path):
+    text = ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nscan: {topic: /slice, field: laserScan}\n"
+            "servo: {field: stepAngle, unit: deg, stamp: scan, sign: -1, offset_rad: 0.1}\n")
+    n = read_nominal(_csv(tmp_path, text, "rig.yaml"))
+    assert (n.scan.topic, n.scan.field, n.scan.stamp) == ("/slice", "laserScan", "header")
+    assert (n.servo.field, n.servo.unit, n.servo.stamp, n.servo.sign) == ("stepAngle", "deg", "scan", -1)
+    assert n.servo.unit_factor() == pytest.approx(np.pi / 180) and n.servo.offset_rad == 0.1
+    legacy = read_nominal(_csv(tmp_path, NOMINAL, "nominal.yaml"))
+    assert (legacy.servo.topic, legacy.servo.joint, legacy.scan.topic) == ("/joint_states", "servo", "/scan")
+
+
 @pytest.mark.parametrize("text,pattern", [
     (NOMINAL + "extra: 1\n", r"nominal.yaml: extra: unknown key"),
     ("mount: {x: 0, y: 0, z: 0, roll: 0, pitch: 0, yaw: 0}\n", r"nominal.yaml: dh: missing"),
