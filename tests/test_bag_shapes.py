@@ -262,3 +262,23 @@ def test_wrong_sign_is_not_the_same_cloud(tmp_path, canonical):
     cloud, _ = cloud_of(write(tmp_path / "bag", "mcap", "sign_minus"), ScanSource(),
                         ServoSource(topic="/servo", offset_rad=0.25, stamp="receive"))
     assert _same(canonical, cloud) > 0.1
+
+
+def test_inspect_guesses_the_moving_tf_joint(tmp_path):
+    from lrfcal.inspection import inspect_bag
+
+    result = inspect_bag(write(tmp_path / "bag", "mcap", "tf"))
+    assert result.servo_source is not None and result.servo_source.tf == TfSource(parent="base", child="tilt")
+    assert result.report is not None and result.report.n_servo_samples == JT.size
+
+
+def test_bad_servo_sources_name_the_fix(tmp_path):
+    from lrfcal.errors import InputError
+
+    path = write(tmp_path / "bag", "mcap", "int32_deg")
+    with pytest.raises(InputError, match=r"/servo.*stamp: std_msgs/msg/Int32 has no header; set servo.stamp: rec"):
+        read_bag(path, ScanSource(), ServoSource(topic="/servo", unit="deg"))
+    with pytest.raises(InputError, match=r"field angle: no 'angle' in std_msgs/msg/Int32 \(fields: data\)"):
+        read_bag(path, ScanSource(), ServoSource(topic="/servo", field="angle", stamp="receive"))
+    with pytest.raises(InputError, match=r"bag: /scan: field laserScan: no 'laserScan' in sensor_msgs/msg/LaserS"):
+        read_bag(path, ScanSource(field="laserScan"), ServoSource(topic="/servo", stamp="receive"))

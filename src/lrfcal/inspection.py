@@ -162,7 +162,7 @@ def inspect_bag(
     stamps: dict[str, list[float]] = {}
     first: dict[str, Any] = {}
     scan_msgs: dict[str, list[Any]] = {}
-    tf_pairs: dict[tuple[str, str], int] = {}
+    tf_pairs: dict[tuple[str, str], list[float]] = {}  # rotation angle 2 acos(|w|) per sample
     try:
         with reader:
             complete_types(reader)
@@ -189,7 +189,8 @@ def inspect_bag(
                 if c.msgtype == TF_TYPE and tp == "/tf":
                     for tr in msg.transforms:
                         key = (tr.header.frame_id, tr.child_frame_id)
-                        tf_pairs[key] = tf_pairs.get(key, 0) + 1
+                        w = min(1.0, abs(float(tr.transform.rotation.w)))
+                        tf_pairs.setdefault(key, []).append(2.0 * math.acos(w))
     except InputError:
         raise
     except Exception as err:
@@ -281,7 +282,7 @@ def _guess_scan(types: dict[str, str], first: dict[str, Any], scan_msgs: dict[st
 
 
 def _guess_servo(types: dict[str, str], first: dict[str, Any], scan: ScanSource,
-                 tf_pairs: dict[tuple[str, str], int], path: Path) -> ServoSource | None:
+                 tf_pairs: dict[tuple[str, str], list[float]], path: Path) -> ServoSource | None:
     def hinted(t: str) -> bool:
         return any(h in t.lower() for h in _SERVO_HINTS)
 
@@ -317,7 +318,8 @@ def _guess_servo(types: dict[str, str], first: dict[str, Any], scan: ScanSource,
         return ServoSource(topic=tp, field=None if fld == default_field(mt) else fld, unit=unit,
                            counts_per_rev=cpr, stamp=stamp)
     if tf_pairs:
-        (parent, child), _ = max(tf_pairs.items(), key=lambda kv: kv[1])
+        # the pair whose rotation changes most (a joint, not a fixed mount)
+        (parent, child), _ = max(tf_pairs.items(), key=lambda kv: max(kv[1]) - min(kv[1]))
         return ServoSource(topic=None, tf=TfSource(parent=parent, child=child))
     return None
 
