@@ -117,7 +117,7 @@ def test_observations_per_beam_time_and_angle():
     np.testing.assert_allclose(obs.times_s, t_expect, rtol=0, atol=1e-9)
     np.testing.assert_allclose(obs.lambda_rad, -1.0 + 0.7 * (t_expect - 0.002 - T0), atol=1e-6)
     np.testing.assert_array_equal(obs.ranges_m, scans.ranges_m[obs.scan, obs.beam])
-    np.testing.assert_array_equal(obs.mu_rad, scans.mu_rad[obs.beam])
+    np.testing.assert_array_equal(obs.mu_rad, scans.mu_rad[obs.scan, obs.beam])
     np.testing.assert_array_equal(obs.marker, b2m[obs.blob])
     assert obs.is_peak.sum() == len(det.blobs)
     for k, b in enumerate(det.blobs):

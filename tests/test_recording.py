@@ -89,8 +89,8 @@ def test_bag_reads_back_with_every_field(sim: tuple[Scenario, SimResult], tmp_pa
     rows = (out / "distances.csv").read_text().splitlines()
     assert rows[0] == "marker_i,marker_j,distance_m" and len(rows) == 1 + res.tape.pairs.shape[0]
     nominal = yaml.safe_load((out / "nominal.yaml").read_text())
-    assert nominal["dh"] == sc.rig.nominal_dh.model_dump() and nominal["joint_name"] == "servo"
-    assert (nominal["scan_topic"], nominal["joint_topic"], nominal["marker_radius_m"]) == (
+    assert nominal["dh"] == sc.rig.nominal_dh.model_dump() and nominal["servo"]["joint"] == "servo"
+    assert (nominal["scan"]["topic"], nominal["servo"]["topic"], nominal["marker_radius_m"]) == (
         "/scan", "/joint_states", 0.005)
     truth = yaml.safe_load((out / "ground_truth.yaml").read_text())
     assert truth["dh"] == sc.rig.dh.model_dump() and truth["mount"] == sc.rig.mount.model_dump()

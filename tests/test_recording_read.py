@@ -8,8 +8,16 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
+from lrfcal.bag import read_bag as _read_bag
 from lrfcal.errors import InputError
-from lrfcal.recording import read_bag, read_distances, read_nominal, read_recording
+from lrfcal.recording import check_joint_coverage, read_distances, read_nominal, read_recording
+from lrfcal.rig import ScanSource, ServoSource
+
+
+def read_bag(path, scan_topic="/scan"):
+    """(scans, joints) of a bag with a LaserScan topic and JointState joint 'servo'."""
+    data = _read_bag(path, ScanSource(topic=scan_topic), ServoSource(joint="servo"))
+    return data.scans, data.joints
 
 N_BEAMS = 11
 T0 = 1_700_000_000.0
@@ -96,8 +104,8 @@ def test_read_all_bag_kinds(tmp_path, kind, name):
     np.testing.assert_allclose(scans.stamps_s - T0, 0.025 * np.arange(5), atol=1e-6)
     np.testing.assert_allclose(scans.ranges_m[:, 0], 2.0 + 0.1 * np.arange(5), atol=1e-6)
     np.testing.assert_allclose(scans.intensities[:, 3], 100.0 + np.arange(5))
-    np.testing.assert_allclose(scans.mu_rad, -0.5 + 0.1 * np.arange(N_BEAMS), atol=1e-6)
-    assert scans.time_increment_s == pytest.approx(1e-3)
+    np.testing.assert_allclose(scans.mu_rad, np.tile(-0.5 + 0.1 * np.arange(N_BEAMS), (5, 1)), atol=1e-6)
+    np.testing.assert_allclose(scans.time_increment_s, 1e-3)
     assert scans.frame_id == "laser"
     assert joints.name == "servo" and joints.stamps_s.size == 23
     np.testing.assert_allclose(joints.positions_rad, 0.5 * (joints.stamps_s - T0), atol=1e-9)
@@ -123,7 +131,7 @@ def test_invalid_ranges_become_nan(tmp_path):
 def test_negative_angle_increment(tmp_path):
     path = write_bag(tmp_path / "bag", "mcap", scan_kw={"angle_min": 0.5, "inc": -0.1})
     s, _ = read_bag(path)
-    np.testing.assert_allclose(s.mu_rad, 0.5 - 0.1 * np.arange(N_BEAMS), atol=1e-6)
+    np.testing.assert_allclose(s.mu_rad[2], 0.5 - 0.1 * np.arange(N_BEAMS), atol=1e-6)
 
 
 def test_missing_intensities_allowed_until_detection(tmp_path):
@@ -173,24 +181,32 @@ def test_missing_joint_lists_names(tmp_path):
 @pytest.mark.parametrize("span,which", [((T0 + 0.05, T0 + 0.3), "start"), ((T0 - 0.1, T0 + 0.05), "end")])
 def test_joint_states_not_covering_scans(tmp_path, span, which):
     path = write_bag(tmp_path / "bag", "mcap", joints=default_joints(*span))
+    scans, joints = read_bag(path)  # the reader no longer refuses it: the calibration trims the scans
     with pytest.raises(InputError, match=rf"/joint_states: joint states {which} at"):
-        read_bag(path)
+        check_joint_coverage(scans, joints, "/joint_states")
+    # with a clock offset that moves the beams into the joint span the check passes
+    shift = (T0 + 0.06 - scans.stamps_s[0]) if which == "start" else (T0 + 0.04 - scans.stamps_s[-1] - 0.011)
+    check_joint_coverage(scans, joints, "/joint_states", clock_offset_s=-shift)
 
 
 def test_joint_states_within_one_period_are_accepted(tmp_path):
     # last beam at T0 + 0.1 + 10 ms; joints end 5 ms earlier, with a 10 ms period
     path = write_bag(tmp_path / "bag", "mcap", joints=default_joints(T0 - 0.005, T0 + 0.105))
-    read_bag(path)
+    scans, joints = read_bag(path)
+    check_joint_coverage(scans, joints)
+    assert joints.stamps_s.size == 12
 
 
-def test_inconsistent_beam_count(tmp_path):
+def test_variable_beam_count(tmp_path):
     scans = default_scans()
     scans[3] = (scans[3][0], np.full(N_BEAMS + 1, 2.0), np.ones(N_BEAMS + 1))
-    with pytest.raises(InputError, match=r"/scan: ranges: 12 beams"):
-        read_bag(write_bag(tmp_path / "bag", "mcap", scans=scans))
+    s, _ = read_bag(write_bag(tmp_path / "bag", "mcap", scans=scans))
+    assert s.ranges_m.shape == (5, N_BEAMS + 1)
+    k = int(np.argmax(s.beam_counts))  # the 12-beam scan; the others are padded with NaN
+    assert s.beam_counts[k] == N_BEAMS + 1 and int(np.isnan(s.ranges_m[:, -1]).sum()) == 4
 
 
-def test_inconsistent_angles(tmp_path):
+def test_per_scan_angles(tmp_path):
     ts = get_typestore(Stores.ROS2_HUMBLE)
     from rosbags.rosbag2 import StoragePlugin, Writer
 
@@ -203,8 +219,8 @@ def test_inconsistent_angles(tmp_path):
             w.write(cs, k + 1, ts.serialize_cdr(m, "sensor_msgs/msg/LaserScan"))
         for k, (t, n, p) in enumerate(default_joints()):
             w.write(cj, 100 + k, ts.serialize_cdr(_joint(ts, t, n, p, False), "sensor_msgs/msg/JointState"))
-    with pytest.raises(InputError, match=r"angle_min/angle_increment: \(-0.6"):
-        read_bag(path)
+    s, _ = read_bag(path)  # each scan keeps its own angle_min
+    np.testing.assert_allclose(s.mu_rad[:, 0], [-0.5, -0.5, -0.6], atol=1e-6)
 
 
 # --- distances.csv ------------------------------------------------------------------------------------------
@@ -272,15 +288,36 @@ def test_read_nominal(tmp_path):
     assert n2.mount is None and n2.scan_topic == "/scan"
 
 
+def test_read_nominal_rig_blocks(tmp_path):
+    text = ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nscan: {topic: /slice, field: laserScan}\n"
+            "servo: {field: stepAngle, unit: deg, stamp: scan, sign: -1, offset_rad: 0.1}\n")
+    n = read_nominal(_csv(tmp_path, text, "rig.yaml"))
+    assert (n.scan.topic, n.scan.field, n.scan.stamp) == ("/slice", "laserScan", "header")
+    assert (n.servo.field, n.servo.unit, n.servo.stamp, n.servo.sign) == ("stepAngle", "deg", "scan", -1)
+    assert n.servo.unit_factor() == pytest.approx(np.pi / 180) and n.servo.offset_rad == 0.1
+    legacy = read_nominal(_csv(tmp_path, NOMINAL, "nominal.yaml"))
+    assert (legacy.servo.topic, legacy.servo.joint, legacy.scan.topic) == ("/joint_states", "servo", "/scan")
+
+
 @pytest.mark.parametrize("text,pattern", [
     (NOMINAL + "extra: 1\n", r"nominal.yaml: extra: unknown key"),
     ("mount: {x: 0, y: 0, z: 0, roll: 0, pitch: 0, yaw: 0}\n", r"nominal.yaml: dh: missing"),
-    (NOMINAL.replace("b: 0.02", "b: x"), r"nominal.yaml: dh.b: expected a finite number, got 'x'"),
+    (NOMINAL.replace("b: 0.02", "b: x"), r"nominal.yaml: dh.b: Input should be a valid number.*, got 'x'"),
     (NOMINAL.replace("beta: 1.5708", "gamma: 1"), r"nominal.yaml: dh.gamma: unknown key"),
-    (NOMINAL.replace("0.005", "-1"), r"nominal.yaml: marker_radius_m: expected a finite length >= 0, got -1"),
-    (NOMINAL.replace("joint_name: servo", "joint_name: 3"), r"nominal.yaml: joint_name: expected a non"),
+    (NOMINAL.replace("0.005", "-1"),
+     r"nominal.yaml: marker_radius_m: Input should be greater than or equal to 0, got -1"),
+    (NOMINAL.replace("joint_name: servo", "joint_name: 3"),
+     r"nominal.yaml: joint_name: Input should be a valid string, got 3"),
     ("dh: {a: 0\n", r"nominal.yaml:\d+: YAML syntax error"),
     ("- 1\n", r"nominal.yaml: expected a mapping"),
+    (NOMINAL + "scan: {topic: /x}\n", r"nominal.yaml: scan_topic and scan: both given"),
+    ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nservo: {topic: /s, unit: counts}\n",
+     r"nominal.yaml: servo: unit counts needs counts_per_rev"),
+    ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nservo: {topic: /s, unit: degree}\n",
+     r"nominal.yaml: servo.unit: Input should be 'rad', 'deg' or 'counts', got 'degree'"),
+    ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nservo: {topic: /s, sign: 2}\n", r"nominal.yaml: servo.sign: .*got 2"),
+    ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nscan: {topic: /s, stamp: now}\n", r"nominal.yaml: scan.stamp: "),
+    ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nservo: {tf: {parent: a}}\n", r"nominal.yaml: servo.tf.child: missing"),
 ])
 def test_read_nominal_bad(tmp_path, text, pattern):
     with pytest.raises(InputError, match=pattern):

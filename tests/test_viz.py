@@ -123,7 +123,7 @@ def test_rrd_read_back_has_the_entities_and_counts(result, tmp_path):
 
     # intensity image with one box and one peak per blob
     (buf,) = rows(e["intensity_image"], "Image:buffer")
-    assert buf.size == S * result.recording.scans.mu_rad.size * 3
+    assert buf.size == S * result.recording.scans.mu_rad.shape[1] * 3
     assert n_instances(e["intensity_image/blobs"], "Boxes2D:half_sizes") == B
     assert n_instances(e["intensity_image/peaks"], "Points2D:positions") == B
 
@@ -193,7 +193,7 @@ def test_logged_frame_chain_reproduces_the_cloud(result, tmp_path):
     p_L = scans[i].reshape(-1, 3)
     p_W = p_L @ (T_W_M @ Rz @ T_Mp_L)[:3, :3].T + (T_W_M @ Rz @ T_Mp_L)[:3, 3]
     ok = np.isfinite(sc.ranges_m[i])
-    expect = points_W(sc.ranges_m[i][ok], np.full(ok.sum(), lam), sc.mu_rad[ok], result.solution.params)
+    expect = points_W(sc.ranges_m[i][ok], np.full(ok.sum(), lam), sc.mu_rad[i][ok], result.solution.params)
     np.testing.assert_allclose(p_W, expect, atol=1e-4)
     np.testing.assert_allclose(lam, viz.motor_angle_per_scan_rad(result)[i], atol=1e-6)
 

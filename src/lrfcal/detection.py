@@ -217,7 +217,7 @@ def observations(
     scan = np.concatenate([b.scan_idx for b in blobs]).astype(np.int64)
     beam = np.concatenate([b.beam_idx for b in blobs]).astype(np.int64)
     is_peak = np.concatenate([(b.scan_idx == b.peak_scan) & (b.beam_idx == b.peak_beam) for b in blobs])
-    times = scans.stamps_s[scan] + beam * scans.time_increment_s
+    times = scans.beam_times_s[scan, beam]
     lam = motor_angles(times, joints, clock_offset_s)
     return Observations(
         blob=blob_idx,
@@ -225,7 +225,7 @@ def observations(
         scan=scan,
         beam=beam,
         ranges_m=scans.ranges_m[scan, beam].astype(np.float64),
-        mu_rad=scans.mu_rad[beam].astype(np.float64),
+        mu_rad=scans.mu_rad[scan, beam].astype(np.float64),
         lambda_rad=lam,
         times_s=times,
         intensity=scans.intensities[scan, beam].astype(np.float64),

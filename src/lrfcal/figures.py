@@ -81,7 +81,7 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
     sc = result.recording.scans
     inten = np.asarray(sc.intensities, dtype=float)
     S, N = inten.shape
-    mu_deg = np.rad2deg(np.asarray(sc.mu_rad, dtype=float))
+    mu_deg = np.rad2deg(np.asarray(sc.mu_rad, dtype=float)[int(np.argmax(sc.beam_counts))])  # widest scan
     step = float(np.median(np.abs(np.diff(mu_deg)))) if N > 1 else 1.0
     x0, x1 = float(mu_deg.min()) - step / 2, float(mu_deg.max()) + step / 2
     flip = N > 1 and mu_deg[-1] < mu_deg[0]  # negative angle increment: show increasing angle left to right

@@ -55,10 +55,11 @@ def reproject_clouds(
     lk = lam.ravel()[idx] if lam.ndim == 2 else lam[idx // N]
     cl, sl = np.cos(lk), np.sin(lk)
     mu = np.asarray(scans.mu_rad, dtype=np.float64)
+    mk = mu.ravel()[idx] if mu.ndim == 2 else mu[bb]  # (S, N) per-scan bearings (or (N,))
     clouds = []
     for dh in dhs:
-        phi = dh.beta + mu  # per beam, then spread over the returns (the same values as per return)
-        clouds.append(points_M_trig(rk, cl, sl, np.cos(phi)[bb], np.sin(phi)[bb], dh))
+        phi = dh.beta + mk
+        clouds.append(points_M_trig(rk, cl, sl, np.cos(phi), np.sin(phi), dh))
     intensity = np.ravel(scans.intensities)[idx].astype(np.float64, copy=False)
     return clouds, intensity
 

@@ -189,7 +189,8 @@ def observe_surfaces(
     """Find the marker-carrying surfaces and their returns in a recording.
 
     Args:
-        ranges_m (S, N) with NaN for no return; mu_rad (N,); lambda_rad (S, N) per-beam motor angles;
+        ranges_m (S, N) with NaN for no return; mu_rad (S, N) per-scan bearings (or (N,));
+        lambda_rad (S, N) per-beam motor angles;
         labels (S, N) blob labels (>= 0 on marker returns, excluded); markers_W (n, 3); radius_m;
         params: lrfcal.kinematics.Params used to reproject (the marker-only estimate);
         beam_times_s (S, N): laser-clock beam times, carried with the returns (for the clock offset);
@@ -197,7 +198,9 @@ def observe_surfaces(
     """
     valid = np.isfinite(ranges_m) & (labels < 0)
     scan, beam = np.nonzero(valid)
-    lam, mu, r = lambda_rad[scan, beam], np.asarray(mu_rad)[beam], ranges_m[scan, beam]
+    mu_all = np.asarray(mu_rad)
+    lam, r = lambda_rad[scan, beam], ranges_m[scan, beam]
+    mu = mu_all[scan, beam] if mu_all.ndim == 2 else mu_all[beam]
     P = points_W(r, lam, mu, params)
     sensor_W = params.mount.matrix()[:3, 3]
     step = max(1, P.shape[0] // 100_000)

@@ -19,8 +19,15 @@ BoolArray = NDArray[np.bool_]
 
 
 def beam_times(scans: Scans) -> FloatArray:
-    """(S, N) laser-clock time of every beam: stamp + i * time_increment."""
-    return scans.stamps_s[:, None] + np.arange(scans.ranges_m.shape[1]) * scans.time_increment_s
+    """(S, N) laser-clock time of every beam: stamp + i * time_increment (each scan's own increment)."""
+    return scans.beam_times_s
+
+
+def scan_spans(scans: Scans) -> tuple[FloatArray, FloatArray]:
+    """(S,), (S,): laser-clock times of the first and the last beam each scan carried (beam_counts)."""
+    assert scans.beam_counts is not None
+    t1 = scans.stamps_s + np.maximum(scans.beam_counts - 1, 0) * np.asarray(scans.time_increment_s)
+    return np.minimum(scans.stamps_s, t1), np.maximum(scans.stamps_s, t1)
 
 
 def joint_period_s(joints: JointStates) -> float:
@@ -96,14 +103,13 @@ def covered_scans(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0
     """(S,) True for scans whose every beam time lies within the joint-state span (+- tolerance_s, default one
     joint sample period); use it to drop the ends of a recording before :func:`motor_angles`."""
     tol = joint_period_s(joints) if tolerance_s is None else float(tolerance_s)
-    t0 = scans.stamps_s - clock_offset_s
-    t1 = t0 + (scans.ranges_m.shape[1] - 1) * scans.time_increment_s
-    lo, hi = np.minimum(t0, t1), np.maximum(t0, t1)
+    lo, hi = scan_spans(scans)
+    lo, hi = lo - clock_offset_s, hi - clock_offset_s
     return (lo >= joints.stamps_s[0] - tol) & (hi <= joints.stamps_s[-1] + tol)
 
 
 __all__ = ["beam_motor_angles", "beam_times", "covered_scans", "joint_period_s", "motor_angles", "remove_spikes",
-           "scan_angles", "sweep_passes", "unwrapped_positions"]
+           "scan_angles", "scan_spans", "sweep_passes", "unwrapped_positions"]
 
 
 def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scans: int = 5) -> NDArray[np.int64]:

@@ -396,7 +396,7 @@ def _log_rig(rec: Any, result: CalibrationResult, lam_scan: FloatArray) -> None:
         r = ranges[i]
         ok = np.isfinite(r)
         rec.log("world/M/M_prime/L/scan", rr.Points3D(
-            np.stack([r[ok] * c[ok], r[ok] * s[ok], np.zeros(int(ok.sum()))], -1), radii=0.006,
+            np.stack([r[ok] * c[i][ok], r[ok] * s[i][ok], np.zeros(int(ok.sum()))], -1), radii=0.006,
             colors=(240, 60, 60)))
 
 

@@ -2,7 +2,7 @@
 
     DIR/bag/            ROS 2 bag (rosbags.rosbag2.Writer, version 9, MCAP): /scan LaserScan, /joint_states JointState
     DIR/distances.csv   marker_i,marker_j,distance_m
-    DIR/nominal.yaml    nominal DH and mount, marker radius, topics, joint name
+    DIR/nominal.yaml    the rig file: nominal DH and mount, marker radius, scan and servo sources
     DIR/ground_truth.yaml, DIR/scenario.yaml
 
 Stamps: the simulation's times (seconds from the start of the sweep) are offset by :data:`EPOCH_NS`
@@ -140,15 +140,15 @@ def _dump(data: dict[str, Any]) -> str:
 
 
 def nominal_yaml(scenario: Scenario, marker_radius_m: float) -> str:
-    """nominal.yaml from the scenario's design values (rig.nominal_dh, rig.nominal_mount)."""
+    """nominal.yaml (the rig file, docs/formats.md) from the scenario's design values (rig.nominal_dh,
+    rig.nominal_mount) and where this bag keeps the scans and the joint."""
     rig = scenario.rig
     return _dump({
         "dh": rig.nominal_dh.to_dh().as_dict(),
         "mount": rig.nominal_mount.to_pose().as_dict(),
         "marker_radius_m": float(marker_radius_m),
-        "scan_topic": SCAN_TOPIC,
-        "joint_topic": JOINT_TOPIC,
-        "joint_name": scenario.servo.joint_name,
+        "scan": {"topic": SCAN_TOPIC, "stamp": "header"},
+        "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint_name, "unit": "rad", "stamp": "header"},
     })
 
 

@@ -1,0 +1,233 @@
+"""The rig file (nominal.yaml): design DH values and where a bag keeps the scans and the servo angle.
+
+Keys are documented in docs/formats.md ("The rig file"). Parsed with pydantic models that forbid unknown keys;
+every problem becomes one :class:`~lrfcal.errors.InputError` line naming the file, the key and the value.
+The pre-issue-8 keys ``scan_topic``, ``joint_topic``, ``joint_name`` are still accepted (they mean
+``scan: {topic}`` and ``servo: {topic, joint}``).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from .errors import InputError
+
+Stamp = Literal["header", "receive"]
+ServoStamp = Literal["header", "receive", "scan"]
+Unit = Literal["rad", "deg", "counts"]
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+
+class DHModel(_Strict):
+    """eq. (3) DH parameters [m, rad]."""
+
+    a: float
+    alpha: float
+    b: float
+    beta: float
+
+
+class MountModel(_Strict):
+    """T_W_M: translation [m], then R = Rz(yaw) Ry(pitch) Rx(roll) [rad]."""
+
+    x: float
+    y: float
+    z: float
+    roll: float
+    pitch: float
+    yaw: float
+
+
+class ScanSource(_Strict):
+    """Where the LaserScans are: ``topic``; ``field``: dotted path of a LaserScan inside a larger message
+    (None: the topic is a sensor_msgs/LaserScan); ``stamp``: header.stamp or the bag's receive time."""
+
+    topic: str = Field(default="/scan", min_length=1)
+    field: str | None = None
+    stamp: Stamp = "header"
+
+
+class TfSource(_Strict):
+    """The servo angle as the rotation of ``child`` relative to ``parent`` in /tf (and /tf_static) about
+    ``axis`` of the parent frame (the joint axis): angle = 2 atan2(q_axis, q_w)."""
+
+    parent: str = Field(min_length=1)
+    child: str = Field(min_length=1)
+    axis: Literal["x", "y", "z"] = "z"
+
+
+class ServoSource(_Strict):
+    """Where the motor angle lambda is, and how to turn the recorded number into radians.
+
+    lambda = sign * value * unit_factor + offset_rad, unit_factor = 1 (rad), pi/180 (deg) or
+    2 pi / counts_per_rev (counts). ``joint`` picks a name in sensor_msgs/JointState; ``field`` a numeric
+    field (dotted path) of any other message (default ``data`` for std_msgs, ``current_pos`` for
+    dynamixel_msgs/JointState); ``stamp: scan`` means the angle travels in the scan's own message.
+    """
+
+    topic: str | None = "/joint_states"
+    field: str | None = None
+    joint: str | None = None
+    unit: Unit = "rad"
+    counts_per_rev: float | None = Field(default=None, gt=0)
+    sign: Literal[1, -1] = 1
+    offset_rad: float = 0.0
+    stamp: ServoStamp = "header"
+    tf: TfSource | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ServoSource:
+        if self.unit == "counts" and self.counts_per_rev is None:
+            raise ValueError("unit counts needs counts_per_rev (e.g. 4096 for a Dynamixel MX)")
+        if self.unit != "counts" and self.counts_per_rev is not None:
+            raise ValueError(f"counts_per_rev is only used with unit: counts (unit is {self.unit})")
+        if self.joint is not None and self.field is not None:
+            raise ValueError("give either joint (sensor_msgs/JointState) or field (other messages), not both")
+        if self.tf is not None and (self.field is not None or self.joint is not None or self.stamp == "scan"):
+            raise ValueError("tf takes the angle from /tf: do not combine it with field, joint or stamp: scan")
+        if self.stamp == "scan" and self.field is None:
+            raise ValueError("stamp: scan needs field: the angle's dotted path inside the scan's message")
+        return self
+
+    def unit_factor(self) -> float:
+        """Radians per recorded unit."""
+        if self.unit == "deg":
+            return math.pi / 180.0
+        if self.unit == "counts":
+            assert self.counts_per_rev is not None
+            return 2.0 * math.pi / self.counts_per_rev
+        return 1.0
+
+    def describe(self) -> str:
+        """One line naming the source, e.g. ``/joint_states[servo]`` or ``/tf base->tilt``."""
+        if self.tf is not None:
+            return f"/tf {self.tf.parent}->{self.tf.child} (about {self.tf.axis})"
+        what = f"[{self.joint}]" if self.joint else (f".{self.field}" if self.field else "")
+        topic = "(the scan's message)" if self.stamp == "scan" else self.topic
+        return f"{topic}{what} ({self.unit}, sign {self.sign:+d}, offset {self.offset_rad:g} rad, " \
+               f"stamp {self.stamp})"
+
+
+class RigFile(_Strict):
+    """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``scan``, ``servo`` (and the old keys
+    ``scan_topic``, ``joint_topic``, ``joint_name``)."""
+
+    dh: DHModel
+    mount: MountModel | None = None
+    marker_radius_m: float = Field(default=0.005, ge=0.0)
+    scan: ScanSource | None = None
+    servo: ServoSource | None = None
+    scan_topic: str | None = Field(default=None, min_length=1)
+    joint_topic: str | None = Field(default=None, min_length=1)
+    joint_name: str | None = Field(default=None, min_length=1)
+
+    @model_validator(mode="after")
+    def _no_double(self) -> RigFile:
+        if self.scan is not None and self.scan_topic is not None:
+            raise ValueError("scan_topic and scan: both given; keep scan: {topic: ...} only")
+        if self.servo is not None and (self.joint_topic is not None or self.joint_name is not None):
+            raise ValueError("joint_topic/joint_name and servo: both given; keep servo: {topic, joint} only")
+        return self
+
+    def scan_source(self) -> ScanSource:
+        """The scan source, the old ``scan_topic`` key folded in."""
+        if self.scan is not None:
+            return self.scan
+        return ScanSource(topic=self.scan_topic or "/scan")
+
+    def servo_source(self) -> ServoSource:
+        """The servo source, the old ``joint_topic``/``joint_name`` keys folded in (default
+        /joint_states, joint ``servo``)."""
+        if self.servo is not None:
+            return self.servo
+        return ServoSource(topic=self.joint_topic or "/joint_states", joint=self.joint_name or "servo")
+
+
+def validation_message(err: ValidationError, where: str) -> str:
+    """The first pydantic error (an unknown key first) as one line: ``where: key.path: message, got value``."""
+    errs = err.errors()
+    e = next((x for x in errs if x.get("type") == "extra_forbidden"), errs[0])  # a typo explains the rest
+    loc = ".".join(str(p) for p in e.get("loc", ()))
+    msg = e.get("msg", "invalid").removeprefix("Value error, ")
+    if e.get("type") == "extra_forbidden":
+        msg = "unknown key"
+    elif e.get("type") == "missing":
+        msg = "missing"
+    got = e.get("input")
+    tail = "" if e.get("type") in ("extra_forbidden", "missing") or isinstance(got, dict) else f", got {got!r}"
+    return f"{where}: {loc + ': ' if loc else ''}{msg}{tail}"
+
+
+def parse_rig(data: Any, where: str) -> RigFile:
+    """Validate a mapping (the loaded YAML) as a :class:`RigFile`; ``where`` prefixes error messages."""
+    if not isinstance(data, dict):
+        raise InputError(f"{where}: expected a mapping with keys dh, mount, marker_radius_m, scan, servo, "
+                         f"got {data!r}")
+    try:
+        return RigFile.model_validate(data)
+    except ValidationError as err:
+        raise InputError(validation_message(err, where)) from None
+
+
+def load_rig(path: str | Path) -> RigFile:
+    """Read and validate a rig file (nominal.yaml)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: nominal file not found")
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except yaml.YAMLError as err:
+        mark = getattr(err, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        problem = getattr(err, "problem", None) or " ".join(str(err).split())
+        raise InputError(f"{where}: YAML syntax error: {problem}") from None
+    except (OSError, UnicodeDecodeError) as err:
+        raise InputError(f"{path}: cannot read: {' '.join(str(err).split())}") from None
+    return parse_rig(data, str(path))
+
+
+def with_overrides(
+    scan: ScanSource | None, servo: ServoSource | None, *, scan_topic: str | None = None, scan_field: str | None = None,
+    scan_stamp: str | None = None, servo_topic: str | None = None, servo_field: str | None = None,
+    joint: str | None = None, unit: str | None = None, counts_per_rev: float | None = None,
+    sign: int | None = None, servo_offset: float | None = None, servo_stamp: str | None = None,
+    tf_parent: str | None = None, tf_child: str | None = None, tf_axis: str | None = None,
+) -> tuple[ScanSource | None, ServoSource | None]:
+    """The rig file's scan / servo sources (ScanSource / ServoSource, or None) with the CLI's
+    one-off options applied; bad values raise InputError naming the option."""
+    sd = scan.model_dump() if isinstance(scan, ScanSource) else {}
+    vd = servo.model_dump() if isinstance(servo, ServoSource) else {}
+    sd.update({k: v or None for k, v in (("topic", scan_topic), ("field", scan_field), ("stamp", scan_stamp))
+               if v is not None})  # an empty string clears a key (e.g. --scan-field "")
+    upd = {k: v for k, v in (("topic", servo_topic), ("field", servo_field), ("joint", joint), ("unit", unit),
+                             ("counts_per_rev", counts_per_rev), ("sign", sign), ("offset_rad", servo_offset),
+                             ("stamp", servo_stamp)) if v is not None}
+    upd = {k: (None if v == "" else v) for k, v in upd.items()}
+    if "field" in upd:
+        vd.pop("joint", None)
+    if "joint" in upd:
+        vd.pop("field", None)
+    if upd.get("unit", "counts") != "counts":
+        vd.pop("counts_per_rev", None)
+    vd.update(upd)
+    if tf_parent or tf_child:
+        vd.update(tf={"parent": tf_parent, "child": tf_child, "axis": tf_axis or "z"}, topic=None, field=None,
+                  joint=None)
+    try:
+        s = ScanSource.model_validate(sd) if (sd or isinstance(scan, ScanSource)) else None
+        v = ServoSource.model_validate(vd) if (vd or isinstance(servo, ServoSource)) else None
+    except ValidationError as err:
+        raise InputError(validation_message(err, "options").replace("options: ", "option ", 1)) from None
+    return s, v
+
+
+__all__ = ["DHModel", "MountModel", "RigFile", "ScanSource", "ServoSource", "TfSource", "load_rig",
+           "parse_rig", "validation_message", "with_overrides"]

@@ -1,0 +1,67 @@
+"""Sweeps, uncovered scans and per-scan layouts in lrfcal.cloud.reproject_beams."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from lrfcal.cloud import reproject_beams, sweep_index
+from lrfcal.kinematics import DH, points_M
+from lrfcal.types import JointStates, Scans
+
+
+def test_sweep_index_splits_at_reversals_and_carries_over_standstills():
+    lam = np.array([0.0, 0.0, 0.1, 0.2, 0.2, 0.3, 0.2, 0.1, 0.1, 0.0, 0.1])
+    np.testing.assert_array_equal(sweep_index(lam), [0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2])
+    assert sweep_index(np.zeros(3)).tolist() == [0, 0, 0]
+
+
+def test_reproject_beams_per_scan_layout_and_uncovered_scans():
+    S, N = 6, 4
+    stamps = 10.0 + 0.1 * np.arange(S)
+    ranges = np.full((S, N), 2.0)
+    ranges[1, 3] = np.nan  # a beam the scan did not carry
+    mu = np.stack([np.linspace(-1, 1, N) * (1 if k % 2 else -1) for k in range(S)])  # negative increments too
+    t_inc = np.where(np.arange(S) % 2, 1e-3, 2e-3)
+    scans = Scans(stamps, ranges, np.ones((S, N)), mu, t_inc, 0.1, 0.01, 30.0,
+                  beam_counts=np.array([4, 3, 4, 4, 4, 4]))
+    jt = np.linspace(9.95, 10.35, 9)  # 50 ms samples: cover scans 0-3 only (scan 4 ends 6 ms after 10.40)
+    joints = JointStates(jt, jt - 9.95)
+    dh = DH(0.05, 0.2, 0.03, 0.1)
+    c = reproject_beams(scans, joints, dh)
+    assert c.n_scans_uncovered == 2 and set(c.scan.tolist()) == {0, 1, 2, 3} and len(c) == 15
+    t = stamps[c.scan] + c.beam * t_inc[c.scan]
+    lam = np.interp(t, joints.stamps_s, joints.positions_rad)
+    np.testing.assert_allclose(c.points_M, points_M(2.0, lam, mu[c.scan, c.beam], dh), atol=1e-12)
+    np.testing.assert_allclose(c.times_s, t)
+    np.testing.assert_array_equal(c.scan_sweep[4:], [-1, -1])
+
+
+def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
+    """A small lrfsim recording read as a rig file says and reprojected beam by beam equals the calibration
+    pipeline's own reprojection (lrfcal.reproject with timing.beam_motor_angles) of the same recording."""
+    import yaml
+    from test_cli_sim import _write_small
+
+    from lrfcal.recording import read_recording
+    from lrfcal.reproject import reproject_cloud
+    from lrfcal.timing import beam_motor_angles, covered_scans
+    from lrfsim.scenario import load_scenario
+    from lrfsim.simulate import simulate_to_folder
+
+    simulate_to_folder(load_scenario(_write_small(tmp_path)), tmp_path / "rec")
+    rec = read_recording(tmp_path / "rec", require_distances=False)
+    assert rec.tape is None and rec.report is not None and rec.report.n_scans == rec.scans.stamps_s.size
+    offset = float(yaml.safe_load((tmp_path / "rec" / "ground_truth.yaml").read_text())["clock_offset_s"])
+    dh = DH(**yaml.safe_load((tmp_path / "rec" / "ground_truth.yaml").read_text())["dh"])
+    c = reproject_beams(rec.scans, rec.joints, dh, offset)
+    cov = covered_scans(rec.scans, rec.joints, offset)
+    assert c.n_scans_uncovered == int((~cov).sum())
+    from dataclasses import replace
+
+    sub = replace(rec.scans, stamps_s=rec.scans.stamps_s[cov], ranges_m=rec.scans.ranges_m[cov],
+                  intensities=rec.scans.intensities[cov], mu_rad=rec.scans.mu_rad[cov],
+                  time_increment_s=rec.scans.time_increment_s[cov], beam_counts=rec.scans.beam_counts[cov])
+    ref, inten = reproject_cloud(sub, beam_motor_angles(sub, rec.joints, offset), dh)
+    assert len(c) == len(ref) > 10_000
+    np.testing.assert_allclose(c.points_M, ref, atol=1e-9)
+    np.testing.assert_array_equal(c.intensity, inten)
