@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.kinematics import DH, PARAM_NAMES, Params, Pose, beam_rays_M, transform_points
-from lrfcal.solve import jacobian_check, model_residuals, solve, sphere_depth, wrap_pi
-from lrfcal.types import Observations
+from lrfcal.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
+from lrfcal.solve import MotorClock, jacobian_check, model_residuals, solve, sphere_depth, wrap_pi
+from lrfcal.types import JointStates, Observations
 
 R_M = 0.005  # marker radius (seed paper's Gazebo study)
 SIGMA = 0.010  # UTM-30LX-EW range repeatability
@@ -85,8 +85,10 @@ def data() -> tuple[Observations, np.ndarray]:
 
 
 def _err(p: Params) -> np.ndarray:
+    """Errors in ESTIMATE_NAMES order: the rotation as the rotation vector of R_true^T R_est (frame M)."""
     e = p.vector() - TRUE.vector()
-    e[[3, 4, 5, 7, 9]] = wrap_pi(e[[3, 4, 5, 7, 9]])
+    e[[7, 9]] = wrap_pi(e[[7, 9]])
+    e[3:6] = log_so3(TRUE.mount.matrix()[:3, :3].T @ p.mount.matrix()[:3, :3])
     return e
 
 
@@ -101,12 +103,22 @@ def test_jacobian_matches_central_differences(model: str) -> None:
         is_peak=np.zeros(K, bool),
     )
     X = rng.uniform(-1.5, 1.5, (6, 3))
-    for _ in range(3):
+    # a sweep with a varying speed, so that the clock offset's column (dlambda/dtau = -omega) is exercised
+    t = np.linspace(-1.0, 11.0, 1201)
+    clock = MotorClock.from_joints(JointStates(t, 1.5 * np.sin(0.4 * t), "servo"))
+    times = rng.uniform(0.0, 10.0, K)
+    obs = Observations(**{**{k: getattr(obs, k) for k in obs.__dataclass_fields__}, "times_s": times,
+                          "lambda_rad": clock.angles(times, 0.02)[0]})
+    for pitch in (0.3, np.pi / 2, -np.pi / 2):  # the rotation is on SO(3): the Euler angles' gimbal lock is no issue
         theta = rng.uniform(-1.0, 1.0, 10) * np.r_[0.5, 0.5, 0.5, np.pi, 1.2, np.pi, 0.1, np.pi, 0.1, np.pi]
+        theta[4] = pitch
         # the sphere residuals are evaluated at scale: put the markers near the beams (|e| ~ R)
         radius = 0.3 if model == "sphere" else R_M
-        err = jacobian_check(theta, obs, X, model=model, marker_radius_m=radius)
-        assert err < 1e-6, err
+        for w in ((0.0, 0.0, 0.0), (0.4, -0.7, 1.1)):  # the right Jacobian of SO(3) away from w = 0 too
+            err = jacobian_check(Params.from_vector(theta), obs, X, model=model, marker_radius_m=radius,
+                                 clock=clock, rotation_vector=w)
+            assert err[:10].max() < 1e-6, err
+            assert err[10] < 5e-3, err  # the clock column: smoothed joint velocity (see jacobian_check)
 
 
 def test_sphere_depth_smooth_and_bounded() -> None:
@@ -127,7 +139,7 @@ def test_sphere_model_recovers_within_4_sigma_and_beats_paper(data: tuple[Observ
     paper = solve(obs, X, start, model="paper", marker_radius_m=R_M)
     e_s, e_p = _err(ours.params), _err(paper.params)
     z = e_s / ours.sigma
-    assert np.all(np.abs(z) < 4.0), dict(zip(PARAM_NAMES, np.round(z, 2), strict=True))
+    assert np.all(np.abs(z) < 4.0), dict(zip(ESTIMATE_NAMES, np.round(z, 2), strict=True))
     assert "full rank" in ours.status
     assert 0.5 < ours.residual_rms_m / SIGMA < 1.5
     # the paper's model puts the marker centre where the surface is: a range bias of about -2/3 R
