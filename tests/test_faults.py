@@ -184,3 +184,28 @@ def test_simulate_injects_and_records(clean: SimResult, tmp_path: Path) -> None:
 def test_faults_section_is_validated(faults: dict[str, Any], field: str) -> None:
     with pytest.raises(InputError, match=field):
         parse_scenario(_data(**faults), "test")
+
+
+def test_tape_outlier_end_to_end(tmp_path: Path) -> None:
+    """A misread tape (0.5 m on one pair) injected by the simulator is named and dropped by the calibration,
+    whose marker map is then back at tape noise and whose DH parameters are within 4 sigma of the truth."""
+    from lrfcal.kinematics import DH_NAMES, PARAM_NAMES
+    from lrfcal.output import calibration_dict, render_report
+    from lrfcal.pipeline import CalibConfig, calibrate
+    from lrfcal.recording import read_recording
+
+    data = _data(tape_outliers=[{"pair": ["m02", "m13"], "error_m": 0.5}])
+    data["servo"].update({"start_rad": math.pi / 2, "end_rad": -math.pi / 2, "speed_rad_s": math.radians(30)})
+    scenario = parse_scenario(data, "test")
+    write_recording(simulate(scenario), scenario, tmp_path / "rec")
+    result = calibrate(read_recording(tmp_path / "rec"), CalibConfig())
+    (dropped,) = result.markers.dropped_pairs
+    assert {dropped.id_i, dropped.id_j} == {"m02", "m13"} and abs(dropped.error_m - 0.5) < 0.005
+    assert result.markers.rms_m < 0.002
+    (written,) = calibration_dict(result)["marker_map"]["dropped_pairs"]
+    assert set(written["pair"]) == {"m02", "m13"} and written["measured_m"] > written["predicted_m"] + 0.49
+    assert "tape pair m02-m13 dropped" in render_report(result)
+    sol = result.solution
+    for name in DH_NAMES:
+        err = getattr(sol.params.dh, name) - getattr(scenario.rig.dh, name)
+        assert abs(err) <= 4 * sol.sigma[PARAM_NAMES.index(name)], (name, err)
