@@ -246,8 +246,8 @@ def _marker_map(
     if refine is not False:
         W, dropped = _drop_gross_errors(D, W, X2 if planar else X3, ids, planar, tape_sigma_m, k_sigma)
         if dropped:  # refit from the previous fits (the drops moved the markers by little)
-            X3, ssr3 = smacof(D, W, X3, max_iter=3000)
-            X2, ssr2 = smacof(D, W, X2, max_iter=3000)
+            X3, ssr3 = smacof(D, W, X3, max_iter=500)
+            X2, ssr2 = smacof(D, W, X2, max_iter=500)
             planar = _planar_fits_as_well(ssr2, ssr3, n_pairs=int(np.count_nonzero(np.triu(W, 1))), n=n)
     X = np.column_stack([X2, np.zeros(n)]) if planar else X3
     X, s = _principal_frame(X)
