@@ -16,6 +16,8 @@ from lrfsim.faults import marker_returns
 from lrfsim.randomize import (
     WIDE_AXES,
     WIDE_LAYOUTS,
+    WIDE_MIN_AXIAL_SPREAD_M,
+    axial_spread_m,
     random_scenario,
     random_scenario_wide,
     visible_markers,
@@ -109,7 +111,11 @@ def test_determinability_label() -> None:
         update={"pose": board.pose.model_copy(update={"x": p.x, "y": p.y, "z": p.z, "roll": p.roll,
                                                       "pitch": p.pitch, "yaw": p.yaw})})})})
     assert visible_markers(across).sum() >= 20
+    assert axial_spread_m(across) < 0.01 < WIDE_MIN_AXIAL_SPREAD_M < axial_spread_m(plane)
     assert not wide_dh_determined(across)
     assert np.all(wide_dh_sigma(plane) < wide_dh_sigma(across))
     labels = [wide_dh_determined(random_scenario_wide(s)) for s in SEEDS]
     assert 0.4 < np.mean(labels) < 0.95  # both kinds are generated
+    # a V on the one wall that the motor axis points at: every marker at about one axial distance
+    one_wall = [random_scenario_wide(s, layout="v_one_wall", axis="across") for s in range(5)]
+    assert not any(wide_dh_determined(sc) for sc in one_wall)

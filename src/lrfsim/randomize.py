@@ -416,11 +416,26 @@ def wide_dh_sigma(scenario: Scenario, sigma_m: float | None = None) -> np.ndarra
 WIDE_SIGMA_LIMITS = (0.05, math.radians(3.0), 0.05, math.radians(3.0))
 
 
+#: visible markers whose axial coordinates (along the motor axis) spread less than this (std) are "at one
+#: axial distance": d alpha * D then moves the returns as d b does
+WIDE_MIN_AXIAL_SPREAD_M = 0.10
+
+
+def axial_spread_m(scenario: Scenario) -> float:
+    """Standard deviation [m] of the visible markers' coordinates along the motor axis (z_M, truth)."""
+    from .scene import marker_centres_W
+
+    T = scenario.rig.mount.to_pose().matrix()
+    z = ((marker_centres_W(scenario) - T[:3, 3]) @ T[:3, 2])[visible_markers(scenario)]
+    return float(z.std()) if z.size else 0.0
+
+
 def wide_dh_determined(scenario: Scenario) -> bool:
-    """Should the layout determine all four DH parameters? At least 6 visible markers, and the point model's
-    1-sigma (:func:`wide_dh_sigma`, at the scenario's range noise) within WIDE_SIGMA_LIMITS. False e.g. when
-    every marker sits at about one axial distance along the motor axis (a V on the wall the motor axis points
-    at: alpha and b are then coupled), or when markers fill too small a part of the sweep."""
-    if int(visible_markers(scenario).sum()) < 6:
+    """Should the layout determine all four DH parameters? At least 6 visible markers, spread along the motor
+    axis (:func:`axial_spread_m` >= WIDE_MIN_AXIAL_SPREAD_M: not all at one axial distance, as on a V on the
+    wall the motor axis points at, or a board across the axis), and the point model's 1-sigma
+    (:func:`wide_dh_sigma`, at the scenario's range noise) within WIDE_SIGMA_LIMITS (False when the markers
+    fill too small a part of the sweep for another combination of parameters)."""
+    if int(visible_markers(scenario).sum()) < 6 or axial_spread_m(scenario) < WIDE_MIN_AXIAL_SPREAD_M:
         return False
     return bool(np.all(wide_dh_sigma(scenario) <= np.array(WIDE_SIGMA_LIMITS)))
