@@ -186,7 +186,8 @@ def marker_map(
 
     Args:
         tape: n marker ids and P measured pairs (repeated pairs are averaged).
-        refine: run SMACOF after classical MDS; default: only when pairs are missing.
+        refine: run SMACOF after classical MDS (default: yes); False: classical MDS only, and no gross-error
+            test.
         n_starts: extra seeded random SMACOF starts when pairs are missing.
         seed: seed of those starts.
         tape_sigma_m: the tape noise assumed at least (floor of the robust scale of the gross-error test).
