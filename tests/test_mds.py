@@ -3,13 +3,16 @@
 from __future__ import annotations
 
 from itertools import combinations
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from lrfcal.errors import InputError
+from lrfcal.errors import CalibrationError, InputError
 from lrfcal.mds import marker_map
 from lrfcal.types import TapeMeasurements
+from lrfsim.scenario import load_scenario
+from lrfsim.scene import marker_centres_W
 
 
 def _tape(
@@ -117,3 +120,98 @@ def test_validation_errors(case: str, match: str) -> None:
     with pytest.raises(InputError, match=match) as info:
         marker_map(tape)
     assert _one_line() not in str(info.value)
+
+
+# --- gross errors: a misread tape is named and dropped, or the map refused ---------------------------------------
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+
+
+def _layout(name: str) -> np.ndarray:
+    """Marker centres (n, 3) of a shipped scenario: tunnel_v (18 markers, 3D), plane_0deg (25, a board)."""
+    return marker_centres_W(load_scenario(SCENARIOS / f"{name}.yaml"))
+
+
+def _with_errors(tape: TapeMeasurements, errors: dict[int, float]) -> TapeMeasurements:
+    d = tape.distances_m.copy()
+    for k, e in errors.items():
+        d[k] += e
+    return TapeMeasurements(tape.marker_ids, tape.pairs, d)
+
+
+def _pair_ids(tape: TapeMeasurements, k: int) -> set[str]:
+    return {tape.marker_ids[int(i)] for i in tape.pairs[k]}
+
+
+@pytest.mark.parametrize("layout", ["tunnel_v", "plane_0deg"])
+@pytest.mark.parametrize("error_m", [0.05, -0.5, 1.0])
+def test_one_tape_outlier_is_named_and_dropped(layout: str, error_m: float) -> None:
+    X = _layout(layout)
+    clean = _tape(X, noise=0.001, seed=11)
+    k = int(np.nonzero(clean.distances_m > 0.8)[0][3])  # the -0.5 m error keeps the distance positive
+    mm = marker_map(_with_errors(clean, {k: error_m}))
+    assert len(mm.dropped_pairs) == 1, mm.dropped_pairs
+    dp = mm.dropped_pairs[0]
+    assert {dp.id_i, dp.id_j} == _pair_ids(clean, k)
+    assert abs(dp.error_m - error_m) < 0.005 and dp.z > 5
+    assert mm.rms_m < 0.0015, mm.rms_m  # back at tape noise (1 mm); 35-70 mm with the outlier absorbed
+    assert _procrustes_rms(mm.positions_W, X) < 0.003
+    assert mm.coplanar == (layout == "plane_0deg")
+
+
+@pytest.mark.parametrize("layout", ["tunnel_v", "plane_0deg"])
+def test_two_tape_outliers_are_dropped(layout: str) -> None:
+    X = _layout(layout)
+    clean = _tape(X, noise=0.001, seed=12)
+    bad = {5: 0.3, 60: -0.12}
+    mm = marker_map(_with_errors(clean, bad))
+    assert {frozenset((p.id_i, p.id_j)) for p in mm.dropped_pairs} == {
+        frozenset(_pair_ids(clean, k)) for k in bad
+    }
+    assert mm.rms_m < 0.0015 and _procrustes_rms(mm.positions_W, X) < 0.003
+
+
+def test_outlier_without_pairs_to_spare_is_refused() -> None:
+    """Marker 7 is taped to 4 others only: one of those 4 wrong cannot be dropped (3 partners do not check
+    it in 3D), so the map is refused, naming the pair and the marker."""
+    X = _layout("tunnel_v")
+    pairs = np.array(list(combinations(range(len(X)), 2)))
+    partners = [0, 3, 11, 15]
+    keep = ~(pairs == 7).any(1) | np.isin(pairs, partners).any(1) & (pairs == 7).any(1)
+    tape = _tape(X, keep, noise=0.001, seed=13)
+    k = int(np.nonzero((tape.pairs == 7).any(1) & (tape.pairs == 11).any(1))[0][0])
+    assert int((tape.pairs == 7).any(1).sum()) == 4
+    with pytest.raises(CalibrationError, match="cannot be dropped") as info:
+        marker_map(_with_errors(tape, {k: 0.5}))
+    msg = str(info.value)
+    assert "m7" in msg and "m7-m11" in msg and "\n" not in msg
+    assert info.value.exit_code == 3
+
+
+def test_inconsistent_tape_is_refused() -> None:
+    """Errors everywhere (20 mm tape noise): nothing stands out to drop, and the map is refused by its RMS."""
+    X = _layout("tunnel_v")
+    with pytest.raises(CalibrationError, match="RMS") as info:
+        marker_map(_tape(X, noise=0.02, seed=14))
+    assert "worst pairs" in str(info.value)
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_no_false_drops_on_noise(seed: int) -> None:
+    """1 mm tape noise only, on random 3D layouts, boards and incomplete pair sets: nothing is dropped."""
+    rng = np.random.default_rng(100 + seed)
+    n = int(rng.integers(8, 26))
+    if seed % 3 == 0:  # a board
+        X = np.c_[rng.uniform(-0.75, 0.75, (n, 2)), np.zeros(n)]
+    else:  # markers in a tunnel-sized box
+        X = rng.uniform([0.0, -0.4, 0.0], [2.5, 0.4, 2.3], (n, 3))
+    keep = None
+    if seed % 2 == 1:  # 80 % of the pairs
+        P = n * (n - 1) // 2
+        keep = rng.uniform(size=P) < 0.8
+        pairs = np.array(list(combinations(range(n), 2)))
+        deg = np.bincount(pairs[keep].ravel(), minlength=n)
+        keep |= (deg[pairs] < 5).any(1)  # every marker keeps >= 5 partners
+    mm = marker_map(_tape(X, keep, noise=0.001, seed=seed))
+    assert mm.dropped_pairs == (), mm.dropped_pairs
+    assert mm.rms_m < 0.002

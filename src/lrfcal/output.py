@@ -112,6 +112,11 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
             "rms_m": _f(result.markers.rms_m),
             "planarity": _f(result.markers.planarity),
             "coplanar": bool(result.markers.coplanar),
+            "dropped_pairs": [  # tape pairs inconsistent with the others (gross errors), left out
+                {"pair": [p.id_i, p.id_j], "measured_m": _f(p.measured_m), "predicted_m": _f(p.predicted_m),
+                 "z": _f(p.z)}
+                for p in result.markers.dropped_pairs
+            ],
         },
         "association": {
             "n_blobs": len(result.detections.blobs),
@@ -309,6 +314,9 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
         f"- marker map from the tape: RMS {result.markers.rms_m * 1000:.2f} mm, stress {result.markers.stress:.2g}"
         f"{', coplanar layout' if result.markers.coplanar else ''}",
     ]
+    for p in result.markers.dropped_pairs:
+        lines.append(f"- tape pair {p.id_i}-{p.id_j} dropped: measured {p.measured_m:.3f} m, the other pairs put it "
+                     f"at {p.predicted_m:.3f} m ({p.error_m * 1000:+.0f} mm); re-measure it")
     if result.baseline is not None:
         lines.append(f"- baseline (paper method) residual RMS: {result.baseline.residual_rms_m * 1000:.2f} mm "
                      f"over {result.baseline.n_observations} returns")

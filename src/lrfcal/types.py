@@ -177,8 +177,9 @@ class MarkerMap:
     """Stage 1: marker coordinates in W from the tape distances (MDS, then SMACOF when pairs are missing).
 
     positions_W (n, 3); stress: sqrt(sum w (d_ij - |x_i - x_j|)^2 / sum w d_ij^2) (normalised, unitless);
-    rms_m: RMS of (d_ij - |x_i - x_j|) over measured pairs; planarity: smallest / largest singular value
-    of the centred coordinates (0 for a coplanar layout).
+    rms_m: RMS of (d_ij - |x_i - x_j|) over the measured pairs kept; planarity: smallest / largest singular
+    value of the centred coordinates (0 for a coplanar layout); dropped_pairs: the tape pairs found
+    inconsistent with the others and left out of the map (gross errors, see lrfcal.mds).
     """
 
     marker_ids: tuple[str, ...]
@@ -187,6 +188,24 @@ class MarkerMap:
     rms_m: float
     planarity: float
     coplanar: bool
+    dropped_pairs: tuple[DroppedPair, ...] = ()
+
+
+@dataclass(frozen=True)
+class DroppedPair:
+    """A tape pair left out of the marker map: marker ids, the measured distance, the distance the other pairs
+    put it at (leave-one-out prediction), and that difference in units of the tape noise (z)."""
+
+    id_i: str
+    id_j: str
+    measured_m: float
+    predicted_m: float
+    z: float
+
+    @property
+    def error_m(self) -> float:
+        """measured - predicted."""
+        return self.measured_m - self.predicted_m
 
 
 @dataclass(frozen=True)

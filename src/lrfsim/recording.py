@@ -153,7 +153,8 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float) -> str:
 
 
 def ground_truth_yaml(result: SimResult) -> str:
-    """ground_truth.yaml: true DH and mount, marker centres, radius, clock offset, tunnel dimensions."""
+    """ground_truth.yaml: true DH and mount, marker centres, radius, clock offset, tunnel dimensions, and the
+    faults injected (lrfsim.faults; {} when none)."""
     t = result.truth
     return _dump({
         "dh": t.dh.as_dict(),
@@ -162,6 +163,7 @@ def ground_truth_yaml(result: SimResult) -> str:
         "marker_radius_m": float(t.marker_radius_m),
         "clock_offset_s": float(t.clock_offset_s),
         "tunnel": {k: float(v) for k, v in t.tunnel.items()} if t.tunnel is not None else None,
+        "faults": result.faults,
     })
 
 

@@ -240,6 +240,37 @@ class Tolerances(_Section):
     tunnel_m: PositiveFloat = 0.003
 
 
+class TapeOutlier(_Section):
+    """A misread tape: ``error_m`` added to one measured pair, named by its two marker ids ([id_i, id_j], either
+    order) or by its row index in distances.csv."""
+
+    pair: tuple[str, str] | Annotated[int, Field(ge=0)]
+    error_m: Annotated[float, Field(ge=-10, le=10)]
+
+
+class FaultsConfig(_Section):
+    """Faults injected into the recording (lrfsim.faults), all off by default. Applied to the simulated arrays
+    before writing, seeded from ``seed`` with a stream of their own, and listed in ground_truth.yaml under
+    ``faults``. The laser-servo clock offset is ``servo.clock_offset_s`` (laser stamp - servo stamp), which the
+    recording does not declare to the calibration."""
+
+    #: misread tape distances (distances.csv)
+    tape_outliers: tuple[TapeOutlier, ...] = ()
+    #: joint positions (and velocities) negated: a servo mounted the other way round; the truth is unchanged
+    inverted_servo: bool = False
+    #: bright spots (retroreflector-like intensity) on non-marker surfaces, each 1-3 scans x 2-4 beams
+    false_blobs: Annotated[int, Field(ge=0, le=200)] = 0
+    #: markers whose returns are removed (range and intensity those of the surface around, as if covered)
+    occluded_markers: Annotated[int, Field(ge=0, le=1000)] = 0
+    #: fraction of the scans left out of the bag (random scans)
+    dropped_scans_fraction: Annotated[float, Field(ge=0, le=0.9)] = 0.0
+    #: joint-state samples whose position jumps by +-encoder_spike_rad (random sign)
+    encoder_spikes: Annotated[int, Field(ge=0, le=100000)] = 0
+    encoder_spike_rad: Annotated[float, Field(gt=0, le=math.pi)] = 0.5
+    #: every range noise band's sigma times this (applied before simulating)
+    range_noise_scale: Annotated[float, Field(ge=0, le=100)] = 1.0
+
+
 class Scenario(_Section):
     name: str
     seed: Annotated[int, Field(ge=0)] = 0
@@ -250,6 +281,7 @@ class Scenario(_Section):
     markers: MarkersConfig
     tape: TapeConfig = TapeConfig()
     tolerances: Tolerances = Tolerances()
+    faults: FaultsConfig = FaultsConfig()
 
     @model_validator(mode="after")
     def _check(self) -> Scenario:

@@ -10,9 +10,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -71,7 +71,8 @@ class SimResult:
 
     scan_stamps_s (S,): time of beam 0 on the laser clock; mu_rad (N,); ranges_m (S, N) (no return: NaN or
     +inf); intensities (S, N) counts; beam_lambda_rad (S, N): true motor angle at every beam (truth);
-    joints: the JointState stream (servo clock); tape; truth; stats.
+    joints: the JointState stream (servo clock); tape; truth; stats; faults: what lrfsim.faults injected
+    (ground_truth.yaml ``faults``; empty without faults).
     """
 
     name: str
@@ -85,6 +86,7 @@ class SimResult:
     truth: SimTruth
     stats: SimStats
     duration_s: float
+    faults: dict[str, Any] = field(default_factory=dict)
 
 
 def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
@@ -92,8 +94,13 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     """Simulate a scenario's recording. ``progress(done_scans, total_scans)`` is called while scanning.
 
     ``scene`` defaults to ``lrfsim.scene.build_scene(scenario)`` (pass one to reuse or replace it).
+    The scenario's ``faults`` are injected (lrfsim.faults): the range noise scale before, the others after
+    simulating.
     """
+    from .faults import apply_faults, scale_range_noise
+
     t0 = time.perf_counter()
+    scenario = scale_range_noise(scenario)
     if scene is None:
         from .scene import build_scene
 
@@ -117,10 +124,11 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
                      lidar_time_s=lid.total_time_s, total_time_s=time.perf_counter() - t0,
                      max_origin_error_m=lid.max_origin_error_m, max_direction_error_rad=lid.max_direction_error_rad,
                      max_parallax_correction_m=lid.max_parallax_correction_m)
-    return SimResult(name=scenario.name, scan_stamps_s=laser_time(starts_s, servo.clock_offset_s),
-                     mu_rad=beam_angles(sensor), ranges_m=lid.ranges_m, intensities=lid.intensities,
-                     beam_lambda_rad=beam_lambda, joints=joints, tape=tape, truth=truth, stats=stats,
-                     duration_s=traj.end_s)
+    result = SimResult(name=scenario.name, scan_stamps_s=laser_time(starts_s, servo.clock_offset_s),
+                       mu_rad=beam_angles(sensor), ranges_m=lid.ranges_m, intensities=lid.intensities,
+                       beam_lambda_rad=beam_lambda, joints=joints, tape=tape, truth=truth, stats=stats,
+                       duration_s=traj.end_s)
+    return apply_faults(result, scenario)
 
 
 def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:

@@ -1,0 +1,273 @@
+"""Fault injection: what goes wrong on a real rig, applied to a simulated recording before it is written.
+
+Every fault is a pure function ``SimResult -> SimResult`` (a new result; arrays are copied, never modified in
+place) and adds what it did to ``SimResult.faults`` (written to ground_truth.yaml under ``faults``), so a test
+knows exactly what was injected. Each draws from its own random stream, ``default_rng([seed, 0x6661756C, k])``
+with k the fault's number below, so switching one fault on does not reshuffle the others (nor the sensor
+noise, tape or laser phase of lrfsim.simulate).
+
+The scenario's ``faults:`` section (lrfsim.scenario.FaultsConfig), applied in this order:
+
+0. ``range_noise_scale: k``: every ``sensor.noise_bands`` sigma times k, before simulating
+   (:func:`scale_range_noise`); recorded as ``range_noise_scale``.
+1. ``tape_outliers: [{pair: [id_i, id_j] | row, error_m}]``: error_m added to that measured pair
+   (distances.csv); recorded per pair with the true and the written distance.
+2. ``inverted_servo: true``: JointState positions and velocities negated (a servo mounted the other way
+   round); the truth (``beam_lambda_rad``, ``joints.true_positions_rad``) is unchanged.
+3. ``occluded_markers: N``: N markers (among those with returns) covered: every bright return whose ray passes
+   within the marker (radius + footprint + 2 mm) gets the range and intensity of the surface around it,
+   interpolated in its scan from the nearest unaffected beams on both sides (NaN and 0 when there are none).
+   Recorded: the marker ids and the (scan, beam) cells changed.
+4. ``false_blobs: N``: N bright spots of 1-3 scans x 2-4 beams on non-marker surfaces (every cell's
+   reprojected truth point >= 0.2 m from every marker centre, spots >= 20 beams or 10 scans apart): the
+   intensity of a retroreflector at that range, gain * rho_retro * (r_ref / r)^2 * (1 + noise), saturated.
+   Recorded: each spot's cells.
+5. ``dropped_scans_fraction: f``: round(f S) random scans removed (all arrays with a scan axis). Recorded:
+   the original indices of the removed scans.
+6. ``encoder_spikes: N``: N random joint-state samples get +-encoder_spike_rad (random sign) on their
+   position. Recorded: sample index and the jump.
+
+Not a fault of this module: ``servo.clock_offset_s`` (laser stamp - servo stamp) already simulates an unknown
+laser-servo clock offset (the recording does not declare it; ground_truth.yaml has it as clock_offset_s).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.errors import InputError
+from lrfcal.kinematics import Params, beam_rays_M, points_W, transform_points
+
+from .scenario import FaultsConfig, NoiseBand, Scenario, TapeOutlier
+from .simulate import SimResult
+from .tape import TapeResult
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+_RNG_FAULTS = 0x6661756C
+#: a return is "bright" (a marker's) above this many times the brightest Lambertian surface at its range
+BRIGHT_FACTOR = 3.0
+#: false blobs keep at least this distance from every marker centre
+FALSE_BLOB_CLEARANCE_M = 0.2
+
+
+def _rng(scenario: Scenario, k: int) -> np.random.Generator:
+    return np.random.default_rng([scenario.seed, _RNG_FAULTS, k])
+
+
+def _with_record(result: SimResult, key: str, value: Any, **changes: Any) -> SimResult:
+    return replace(result, faults={**result.faults, key: value}, **changes)
+
+
+def scale_range_noise(scenario: Scenario) -> Scenario:
+    """The scenario with every range noise band's sigma times ``faults.range_noise_scale`` (unchanged at 1)."""
+    k = scenario.faults.range_noise_scale
+    if k == 1.0:
+        return scenario
+    bands = tuple(NoiseBand(up_to_m=b.up_to_m, sigma_m=b.sigma_m * k) for b in scenario.sensor.noise_bands)
+    return scenario.model_copy(update={"sensor": scenario.sensor.model_copy(update={"noise_bands": bands})})
+
+
+def tape_outliers(result: SimResult, outliers: tuple[TapeOutlier, ...]) -> SimResult:
+    """Add each outlier's error_m to its measured pair (by ids, either order, or by row)."""
+    if not outliers:
+        return result
+    tape = result.tape
+    ids = tape.marker_ids
+    d = tape.distances_m.copy()
+    record = []
+    for o in outliers:
+        if isinstance(o.pair, int):
+            if o.pair >= len(d):
+                raise InputError(f"faults.tape_outliers: pair row {o.pair} is beyond the {len(d)} measured pairs")
+            row = o.pair
+        else:
+            try:
+                i, j = ids.index(o.pair[0]), ids.index(o.pair[1])
+            except ValueError:
+                raise InputError(f"faults.tape_outliers: unknown marker id in {list(o.pair)} "
+                                 f"(ids: {ids[0]}..{ids[-1]})") from None
+            rows = np.nonzero(((tape.pairs[:, 0] == i) & (tape.pairs[:, 1] == j))
+                              | ((tape.pairs[:, 0] == j) & (tape.pairs[:, 1] == i)))[0]
+            if rows.size == 0:
+                raise InputError(f"faults.tape_outliers: pair {list(o.pair)} is not among the measured pairs")
+            row = int(rows[0])
+        i, j = (int(v) for v in tape.pairs[row])
+        before = float(d[row])
+        d[row] += o.error_m
+        if d[row] <= 0:
+            raise InputError(f"faults.tape_outliers: pair {ids[i]}-{ids[j]} would measure {d[row]:.3f} m (<= 0)")
+        record.append({"pair": [ids[i], ids[j]], "row": row, "error_m": float(o.error_m),
+                       "measured_before_m": before, "measured_m": float(d[row])})
+    new_tape = TapeResult(marker_ids=ids, pairs=tape.pairs.copy(), distances_m=d)
+    return _with_record(result, "tape_outliers", record, tape=new_tape)
+
+
+def invert_servo(result: SimResult) -> SimResult:
+    """JointState positions and velocities negated; the truth is unchanged."""
+    j = result.joints
+    joints = replace(j, positions_rad=-j.positions_rad, velocities_rad_s=-j.velocities_rad_s)
+    return _with_record(result, "inverted_servo", True, joints=joints)
+
+
+def _truth_params(result: SimResult) -> Params:
+    return Params(result.truth.mount, result.truth.dh)
+
+
+def bright_mask(result: SimResult, scenario: Scenario) -> NDArray[np.bool_]:
+    """(S, N) returns brighter than BRIGHT_FACTOR x the brightest Lambertian surface at their range (noise
+    included): the retroreflector returns."""
+    it = scenario.sensor.intensity
+    mats = scenario.scene.materials
+    rho = max([mats.painted_steel, mats.board] + [m.reflectivity for m in scenario.scene.meshes])
+    r = result.ranges_m
+    with np.errstate(invalid="ignore", divide="ignore"):
+        surface = it.gain_counts * rho * (it.ref_range_m / r) ** 2 * (1 + 4 * it.relative_noise)
+        return np.isfinite(r) & (result.intensities > BRIGHT_FACTOR * np.minimum(surface, it.saturation_counts))
+
+
+def marker_returns(result: SimResult, scenario: Scenario) -> IntArray:
+    """(S, N) index of the marker each bright return belongs to (-1: none): its ray (truth geometry) passes
+    within radius + footprint + 2 mm of the marker centre, ahead of the scanner."""
+    S, N = result.ranges_m.shape
+    out = np.full((S, N), -1, dtype=np.int64)
+    s_idx, b_idx = np.nonzero(bright_mask(result, scenario))
+    if s_idx.size == 0:
+        return out
+    lam = result.beam_lambda_rad[s_idx, b_idx]
+    mu = result.mu_rad[b_idx]
+    o_M, d_M = beam_rays_M(lam, mu, result.truth.dh)
+    T = result.truth.mount.matrix()
+    o_W = transform_points(T, o_M)
+    d_W = d_M @ T[:3, :3].T
+    C = result.truth.markers_W  # (n, 3)
+    v = C[None, :, :] - o_W[:, None, :]  # (K, n, 3)
+    t = np.einsum("knc,kc->kn", v, d_W)
+    perp = np.linalg.norm(v - t[..., None] * d_W[:, None, :], axis=-1)
+    reach = result.truth.marker_radius_m + 0.5 * scenario.sensor.divergence_rad * np.maximum(t, 0) + 0.002
+    perp = np.where((t > 0) & (perp < reach), perp, np.inf)
+    k = perp.argmin(1)
+    ok = np.isfinite(perp[np.arange(len(k)), k])
+    out[s_idx[ok], b_idx[ok]] = k[ok]
+    return out
+
+
+def occlude_markers(result: SimResult, scenario: Scenario, n: int) -> SimResult:
+    """Cover n random markers (among those with returns); see the module docstring."""
+    if n == 0:
+        return result
+    rng = _rng(scenario, 3)
+    owner = marker_returns(result, scenario)
+    seen = np.unique(owner[owner >= 0])
+    chosen = np.sort(rng.choice(seen, size=min(n, seen.size), replace=False)) if seen.size else seen
+    hit = np.isin(owner, chosen)
+    ranges, intens = result.ranges_m.copy(), result.intensities.copy()
+    valid = np.isfinite(ranges) & ~hit
+    cells = np.argwhere(hit)
+    for s in np.unique(cells[:, 0]):
+        beams = cells[cells[:, 0] == s, 1]
+        good = np.nonzero(valid[s])[0]
+        for b in beams:
+            left, right = good[good < b], good[good > b]
+            nb = ([left[-1]] if left.size else []) + ([right[0]] if right.size else [])
+            if not nb:
+                ranges[s, b], intens[s, b] = np.nan, 0.0
+            elif len(nb) == 1:
+                ranges[s, b], intens[s, b] = ranges[s, nb[0]], intens[s, nb[0]]
+            else:
+                w = (b - nb[0]) / (nb[1] - nb[0])
+                ranges[s, b] = (1 - w) * ranges[s, nb[0]] + w * ranges[s, nb[1]]
+                intens[s, b] = np.round((1 - w) * intens[s, nb[0]] + w * intens[s, nb[1]])
+    ids = result.truth.marker_ids
+    record = {"markers": [ids[int(k)] for k in chosen], "cells": cells.tolist(), "n_cells": int(len(cells))}
+    return _with_record(result, "occluded_markers", record, ranges_m=ranges, intensities=intens)
+
+
+def add_false_blobs(result: SimResult, scenario: Scenario, n: int) -> SimResult:
+    """n bright spots on non-marker surfaces; see the module docstring."""
+    if n == 0:
+        return result
+    rng = _rng(scenario, 4)
+    it = scenario.sensor.intensity
+    rho = scenario.scene.materials.retroreflector
+    S, N = result.ranges_m.shape
+    params = _truth_params(result)
+    C = result.truth.markers_W
+    ranges, intens = result.ranges_m, result.intensities.copy()
+    bright = bright_mask(result, scenario)
+    spots: list[dict[str, Any]] = []
+    centres: list[tuple[int, int]] = []
+    for _ in range(200 * n):
+        if len(spots) == n:
+            break
+        ns, nb = int(rng.integers(1, 4)), int(rng.integers(2, 5))
+        s0, b0 = int(rng.integers(0, max(S - ns + 1, 1))), int(rng.integers(0, max(N - nb + 1, 1)))
+        if any(abs(s0 - s) < 10 and abs(b0 - b) < 20 for s, b in centres):
+            continue
+        ss, bb = np.meshgrid(np.arange(s0, min(s0 + ns, S)), np.arange(b0, min(b0 + nb, N)), indexing="ij")
+        ss, bb = ss.ravel(), bb.ravel()
+        r = ranges[ss, bb]
+        if not np.all(np.isfinite(r)) or bright[ss, bb].any():
+            continue
+        p = points_W(r, result.beam_lambda_rad[ss, bb], result.mu_rad[bb], params)
+        if np.linalg.norm(p[:, None, :] - C[None], axis=-1).min() < FALSE_BLOB_CLEARANCE_M:
+            continue
+        level = it.gain_counts * rho * (it.ref_range_m / r) ** 2
+        level = level * np.maximum(0.0, 1 + it.relative_noise * rng.standard_normal(r.size))
+        intens[ss, bb] = np.round(np.minimum(level, it.saturation_counts))
+        centres.append((s0, b0))
+        spots.append({"cells": np.column_stack([ss, bb]).tolist()})
+    return _with_record(result, "false_blobs", spots, intensities=intens)
+
+
+def drop_scans(result: SimResult, scenario: Scenario, fraction: float) -> SimResult:
+    """round(fraction S) random scans removed."""
+    S = result.ranges_m.shape[0]
+    k = int(round(fraction * S))
+    if k == 0:
+        return result
+    drop = np.sort(_rng(scenario, 5).choice(S, size=k, replace=False))
+    keep = np.ones(S, dtype=bool)
+    keep[drop] = False
+    return _with_record(result, "dropped_scans", drop.tolist(), scan_stamps_s=result.scan_stamps_s[keep],
+                        ranges_m=result.ranges_m[keep], intensities=result.intensities[keep],
+                        beam_lambda_rad=result.beam_lambda_rad[keep])
+
+
+def encoder_spikes(result: SimResult, scenario: Scenario, n: int, spike_rad: float) -> SimResult:
+    """n random joint samples get +-spike_rad on their reported position."""
+    if n == 0:
+        return result
+    rng = _rng(scenario, 6)
+    J = result.joints.positions_rad.size
+    idx = np.sort(rng.choice(J, size=min(n, J), replace=False))
+    delta = spike_rad * rng.choice([-1.0, 1.0], size=idx.size)
+    pos = result.joints.positions_rad.copy()
+    pos[idx] += delta
+    record = [{"index": int(i), "delta_rad": float(d)} for i, d in zip(idx, delta, strict=True)]
+    return _with_record(result, "encoder_spikes", record, joints=replace(result.joints, positions_rad=pos))
+
+
+def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
+    """Every fault of ``scenario.faults`` except the range noise scale (applied before simulating), in the
+    module docstring's order; the result's ``faults`` record lists what was done."""
+    f: FaultsConfig = scenario.faults
+    if f.range_noise_scale != 1.0:
+        result = _with_record(result, "range_noise_scale", float(f.range_noise_scale))
+    result = tape_outliers(result, f.tape_outliers)
+    if f.inverted_servo:
+        result = invert_servo(result)
+    result = occlude_markers(result, scenario, f.occluded_markers)
+    result = add_false_blobs(result, scenario, f.false_blobs)
+    result = drop_scans(result, scenario, f.dropped_scans_fraction)
+    return encoder_spikes(result, scenario, f.encoder_spikes, f.encoder_spike_rad)
+
+
+__all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask",
+           "drop_scans", "encoder_spikes", "invert_servo", "marker_returns", "occlude_markers",
+           "scale_range_noise", "tape_outliers"]

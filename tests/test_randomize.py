@@ -1,0 +1,121 @@
+"""The broad random-truth generator (lrfsim.randomize.random_scenario_wide) and its determinability label."""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lrfcal.detection import detect
+from lrfcal.kinematics import Pose
+from lrfcal.types import Scans
+from lrfsim.faults import marker_returns
+from lrfsim.randomize import (
+    WIDE_AXES,
+    WIDE_LAYOUTS,
+    WIDE_MIN_AXIAL_SPREAD_M,
+    axial_spread_m,
+    random_scenario,
+    random_scenario_wide,
+    visible_markers,
+    wide_dh_determined,
+    wide_dh_sigma,
+)
+from lrfsim.scenario import load_scenario
+from lrfsim.scene import build_scene, marker_centres_W
+from lrfsim.simulate import simulate
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+SEEDS = range(60)
+
+
+def test_deterministic_and_separate_from_random_scenario() -> None:
+    assert random_scenario_wide(7) == random_scenario_wide(7)
+    assert random_scenario_wide(7) != random_scenario_wide(8)
+    assert random_scenario(3) == random_scenario(3)  # the recovery suite's generator is untouched
+    assert random_scenario(3).name == "random_3"
+
+
+def test_covers_the_requested_space() -> None:
+    """Over 60 seeds: every layout and motor axis, both signs of alpha and b, beta near 0 and +-90 deg, 1-4
+    passes, 6-30 markers, DH within the stated ranges."""
+    scen = [random_scenario_wide(s) for s in SEEDS]
+    names = Counter(sc.name.split("_", 2)[2] for sc in scen)
+    assert {lay for lay in WIDE_LAYOUTS if any(n.startswith(lay) for n in names)} == set(WIDE_LAYOUTS)
+    assert {ax for ax in WIDE_AXES if any(f"_{ax}_" in n for n in names)} == set(WIDE_AXES)
+    alpha = np.array([sc.rig.dh.alpha for sc in scen])
+    beta = np.array([sc.rig.dh.beta for sc in scen])
+    b = np.array([sc.rig.dh.b for sc in scen])
+    a = np.array([sc.rig.dh.a for sc in scen])
+    assert np.all(np.abs(np.abs(alpha) - math.pi / 2) <= math.radians(3.0) + 1e-12)
+    assert (alpha > 0).any() and (alpha < 0).any() and (b > 0).any() and (b < 0).any()
+    near = [np.abs(beta - c) <= math.radians(3.0) + 1e-12 for c in (0.0, math.pi / 2, -math.pi / 2)]
+    assert np.all(near[0] | near[1] | near[2]) and all(m.any() for m in near)
+    assert np.all(np.abs(a) <= 0.02) and np.all(np.abs(b) <= 0.04)
+    assert {sc.servo.passes for sc in scen} == {1, 2, 3, 4}
+    n_markers = [len(marker_centres_W(sc)) for sc in scen]
+    assert min(n_markers) >= 6 and max(n_markers) <= 30
+    # the nominal start is off the truth, by at most 3 mm / 3 deg in the DH parameters
+    for sc in scen:
+        d = np.array([sc.rig.nominal_dh.a - sc.rig.dh.a, sc.rig.nominal_dh.b - sc.rig.dh.b])
+        assert np.all(np.abs(d) <= 0.003) and abs(sc.rig.nominal_dh.alpha - sc.rig.dh.alpha) <= math.radians(3.0)
+
+
+def test_scenes_build_and_markers_in_view() -> None:
+    """The simulator accepts every generated scenario, and the sweep can see >= 6 markers of each (geometry)."""
+    for s in range(20):
+        sc = random_scenario_wide(s)
+        build_scene(sc)
+    few = [s for s in SEEDS if visible_markers(random_scenario_wide(s)).sum() < 6]
+    assert len(few) <= 0.05 * len(SEEDS), few
+
+
+def test_forced_choices() -> None:
+    sc = random_scenario_wide(5, layout="board", axis="vertical", beta_deg=0.0, passes=1)
+    assert sc.scene.board is not None and sc.scene.tunnel is None and sc.servo.passes == 1
+    assert abs(sc.rig.dh.beta) <= math.radians(3.0) + 1e-12
+    z_M = sc.rig.mount.to_pose().matrix()[:3, 2]
+    assert abs(abs(z_M[2]) - 1.0) < 1 - math.cos(math.radians(6.0))  # motor axis vertical (5 deg jitter)
+    with pytest.raises(ValueError, match="layout"):
+        random_scenario_wide(5, layout="sphere")
+
+
+def test_simulated_markers_are_detected() -> None:
+    """One quick simulation: intensity blobs are found on (nearly) every marker the geometry says is visible."""
+    sc = random_scenario_wide(4, passes=1)  # 16 markers scattered in the tunnel, motor axis along it
+    r = simulate(sc)
+    s = sc.sensor
+    det = detect(Scans(r.scan_stamps_s, r.ranges_m, r.intensities, r.mu_rad, s.time_increment_s,
+                       s.scan_period_s, s.range_min_m, s.range_max_m))
+    owner = marker_returns(r, sc)
+    seen = {int(m) for b in det.blobs for m in owner[b.scan_idx, b.beam_idx] if m >= 0}
+    assert len(seen) >= max(6, int(visible_markers(sc).sum()) - 1), (len(seen), visible_markers(sc).sum())
+
+
+def test_determinability_label() -> None:
+    """Shipped layouts determine the DH parameters; a board ACROSS the motor axis (every marker at one axial
+    distance) does not; the label's point-model sigma is finite and ordered accordingly."""
+    plane = load_scenario(SCENARIOS / "plane_0deg.yaml")
+    assert wide_dh_determined(plane) and wide_dh_determined(load_scenario(SCENARIOS / "tunnel_v.yaml"))
+    # the same board turned to face the rig along the motor axis (+x_W), 1.5 m ahead
+    T = np.eye(4)
+    T[:3, :3] = np.column_stack([[0.0, -1.0, 0.0], [0.0, 0.0, 1.0], [-1.0, 0.0, 0.0]])  # front face to -x_W
+    T[:3, 3] = (1.5, 0.0, 1.0)
+    p = Pose.from_matrix(T)
+    board = plane.scene.board
+    assert board is not None
+    across = plane.model_copy(update={"scene": plane.scene.model_copy(update={"board": board.model_copy(
+        update={"pose": board.pose.model_copy(update={"x": p.x, "y": p.y, "z": p.z, "roll": p.roll,
+                                                      "pitch": p.pitch, "yaw": p.yaw})})})})
+    assert visible_markers(across).sum() >= 20
+    assert axial_spread_m(across) < 0.01 < WIDE_MIN_AXIAL_SPREAD_M < axial_spread_m(plane)
+    assert not wide_dh_determined(across)
+    assert np.all(wide_dh_sigma(plane) < wide_dh_sigma(across))
+    labels = [wide_dh_determined(random_scenario_wide(s)) for s in SEEDS]
+    assert 0.4 < np.mean(labels) < 0.95  # both kinds are generated
+    # a V on the one wall that the motor axis points at: every marker at about one axial distance
+    one_wall = [random_scenario_wide(s, layout="v_one_wall", axis="across") for s in range(5)]
+    assert not any(wide_dh_determined(sc) for sc in one_wall)
