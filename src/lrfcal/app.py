@@ -37,12 +37,12 @@ def calibrate_folder(
     config = config or CalibConfig()
     recording = read_recording(recording_dir, bag=bag, distances=distances, nominal=nominal)
     result = calibrate(recording, config)
-    truth_dict = None if truth is None else _truth_dict(truth)
+    truth_values = None if truth is None else output.truth_dict(truth)
     with tempfile.TemporaryDirectory(
         prefix=".figures-", dir=out_dir.parent if out_dir.parent.exists() else None
     ) as tmp:
         figs = figures.write_figures(result, Path(tmp))
-        report = output.render_report(result, truth=truth_dict)
+        report = output.render_report(result, truth=truth_values)
         report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.items()) + "\n"
         output.write_calibration(out_dir, result, report_md=report, figures=figs, overwrite=overwrite)
     if rrd_path is not None or spawn:
@@ -50,24 +50,15 @@ def calibrate_folder(
     return result
 
 
-def _truth_dict(truth: Any) -> dict[str, Any]:
-    return {
-        "dh": truth.dh.as_dict(),
-        "mount": truth.mount.as_dict(),
-        "tunnel": truth.tunnel,
-        "markers": {k: [float(x) for x in v] for k, v in truth.markers.items()},
-    }
-
-
 def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any) -> None:
     from . import viz
     from .kinematics import transform_points
-    from .output import align_truth_frame
+    from .output import truth_dict, truth_frame
 
     geoms = None
     true_markers_W = None
     if truth is not None:
-        found = align_truth_frame(result.markers.positions_W, result.markers.marker_ids, truth.markers)
+        found = truth_frame(result, truth_dict(truth))
         if found is not None:
             T_W_sim = found[0]
             true_markers_W = transform_points(T_W_sim, np.array(list(truth.markers.values())))

@@ -22,7 +22,19 @@ import yaml
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .kinematics import ANGLE_NAMES, DH, DH_NAMES, MOUNT_NAMES, PARAM_NAMES, Params, Pose, homogeneous, rot_x, rot_z
+from .kinematics import (
+    ANGLE_NAMES,
+    DH,
+    DH_NAMES,
+    ESTIMATE_NAMES,
+    MOUNT_NAMES,
+    PARAM_NAMES,
+    Params,
+    Pose,
+    homogeneous,
+    rot_x,
+    rot_z,
+)
 from .reproject import current_umask, write_ply
 from .types import CalibrationResult, Solution, TunnelGeometry
 
@@ -52,20 +64,32 @@ def dh_matrix(dh: DH) -> FloatArray:
     return Tx @ Rx @ Tz @ Rz
 
 
-def _pose_of(solution: Solution) -> dict[str, dict[str, float | None]]:
-    v = solution.params.vector()
+def param_sigma(solution: Solution, name: str) -> float | None:
+    """1-sigma of a parameter by name (ESTIMATE_NAMES: x, y, z, rx, ry, rz, a, alpha, b, beta); None for roll,
+    pitch and yaw, which are an output format whose sigma would come from the Euler angles' singularity."""
+    if name not in ESTIMATE_NAMES:
+        return None
     s = np.asarray(solution.sigma, dtype=float).reshape(-1)
-    return {n: {"value": _f(v[i]), "sigma": _f(s[i]) if i < s.size else None} for i, n in enumerate(PARAM_NAMES)}
+    i = ESTIMATE_NAMES.index(name)
+    return _f(s[i]) if i < s.size else None
 
 
 def _solution_dict(sol: Solution) -> dict[str, Any]:
-    """DH and mount (value and 1-sigma each), residual RMS, returns used and solver status of a solution."""
-    params = _pose_of(sol)
+    """DH and mount (value and 1-sigma each; the rotation's uncertainty as the 1-sigma and covariance of a rotation
+    vector in frame M, roll/pitch/yaw as values only), clock offset, residual RMS, returns used, solver status."""
+    values = sol.params.as_dict()
+    cov = np.asarray(sol.covariance, dtype=float)
     return {
-        "dh": {n: params[n] for n in DH_NAMES},
-        "mount": {n: params[n] for n in MOUNT_NAMES},
+        "dh": {n: {"value": _f(values[n]), "sigma": param_sigma(sol, n)} for n in DH_NAMES},
+        "mount": {n: ({"value": _f(values[n]), "sigma": param_sigma(sol, n)} if n in "xyz" else
+                      {"value": _f(values[n])}) for n in MOUNT_NAMES},
+        "mount_rotation_sigma_rad": {n: param_sigma(sol, n) for n in ("rx", "ry", "rz")},
+        "covariance": {"names": list(ESTIMATE_NAMES),
+                       "matrix": [[_f(v) for v in row] for row in cov] if cov.shape == (10, 10) else None},
+        "clock_offset_s": {"value": _f(sol.clock_offset_s), "sigma": _f(sol.clock_offset_sigma_s)},
         "residual_rms_m": _f(sol.residual_rms_m),
         "n_observations": int(sol.n_observations),
+        "reduced_chi2": _f(sol.reduced_chi2),
         "status": str(sol.status),
     }
 
@@ -133,6 +157,9 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
             }
             for k, srf in enumerate(result.surfaces)
         ],
+        "checks": [{"name": c.name, "passed": bool(c.passed), "detail": c.detail} for c in result.checks],
+        "notes": list(result.notes),
+        "servo_sign": int(result.servo_sign),
         "detection_threshold": _f(result.detections.threshold),
         "start": {k: float(v) for k, v in result.start.as_dict().items()},
         "baseline": None,
@@ -255,6 +282,57 @@ def align_truth_frame(positions_W: FloatArray, marker_ids: tuple[str, ...], trut
     return None
 
 
+def truth_dict(truth: Any) -> dict[str, Any]:
+    """A ground truth object (attributes dh, mount, tunnel, markers; e.g. lrfsim.compare.Truth) as the plain
+    values the writers take."""
+    return {
+        "dh": truth.dh.as_dict(),
+        "mount": truth.mount.as_dict(),
+        "tunnel": truth.tunnel,
+        "markers": {k: [float(x) for x in v] for k, v in truth.markers.items()},
+    }
+
+
+def truth_frame(result: CalibrationResult, truth: dict[str, Any], gate_m: float = 0.05
+                ) -> tuple[FloatArray, str] | None:
+    """T_W_sim (4, 4) mapping the simulator's world into the calibration's marker frame W, and how it was found.
+
+    From the marker correspondence the calibration used, never from a guess at the handedness: every matched
+    return, reprojected with the TRUE DH and mount (``truth``: "dh", "mount", "markers" as in ground_truth.yaml)
+    and the motor angle the calibration used, lands on the physical marker it came from; each marker of the map
+    is paired with the true marker most of its returns land on (within ``gate_m``), and a proper rigid fit of
+    those pairs gives T_W_sim. Falls back to :func:`align_truth_frame` (by marker id) when the returns do not
+    land on true markers (e.g. a calibration that took the wrong servo direction under --force).
+    """
+    from .kinematics import points_M, transform_points
+
+    markers = truth.get("markers") or {}
+    ids = list(markers)
+    if truth.get("dh") and truth.get("mount") and len(ids) >= 3 and len(result.observations):
+        true_W = np.array([markers[i] for i in ids], dtype=float).reshape(-1, 3)
+        dh = DH(**{k: float(truth["dh"][k]) for k in DH_NAMES})
+        T_sim_M = Pose(**{k: float(truth["mount"][k]) for k in MOUNT_NAMES}).matrix()
+        obs = result.observations
+        lam = obs.lambda_rad if result.solution.lambda_rad is None else result.solution.lambda_rad
+        radius = result.recording.nominal.marker_radius_m
+        p = transform_points(T_sim_M, points_M(obs.ranges_m + radius, lam, obs.mu_rad, dh))
+        d = np.linalg.norm(p[:, None, :] - true_W[None], axis=2)
+        nearest = np.argmin(d, axis=1)
+        near = d[np.arange(len(p)), nearest] < gate_m
+        pairs = []
+        for k in np.unique(obs.marker[near]):
+            votes = np.bincount(nearest[near & (obs.marker == k)], minlength=len(ids))
+            if votes.max() > 0.5 * votes.sum():
+                pairs.append((int(k), int(np.argmax(votes))))
+        if len(pairs) >= 3:
+            A = true_W[[j for _, j in pairs]]
+            B = np.asarray(result.markers.positions_W, dtype=float)[[k for k, _ in pairs]]
+            T, rms = _kabsch(A, B)
+            if rms < 0.01:
+                return T, f"by the markers the calibration's returns came from ({len(pairs)} markers)"
+    return align_truth_frame(np.asarray(result.markers.positions_W), result.markers.marker_ids, markers)
+
+
 def _truth_params(result: CalibrationResult, truth: dict[str, Any]) -> tuple[dict[str, float | None], str]:
     """Truth in PARAM_NAMES, the mount re-expressed in the marker frame W when the truth's markers allow
     aligning the simulator frame to W (else None for the mount); and a note on how (or why not)."""
@@ -266,8 +344,7 @@ def _truth_params(result: CalibrationResult, truth: dict[str, Any]) -> tuple[dic
     mount = truth.get("mount")
     if mount is None:
         return out, ""
-    fit = align_truth_frame(np.asarray(result.markers.positions_W), result.markers.marker_ids,
-                            truth.get("markers") or {})
+    fit = truth_frame(result, truth)
     if fit is None:
         return out, "Mount truth not shown: the simulator frame could not be aligned to the marker frame W."
     T_W_sim, how = fit
@@ -297,7 +374,6 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     tunnel geometry before/after."""
     sol = result.solution
     est = sol.params.as_dict()
-    sig = np.asarray(sol.sigma, dtype=float).reshape(-1)
     start = result.start.as_dict()
     base = result.baseline.params.as_dict() if result.baseline is not None else None
     tp, truth_note = _truth_params(result, truth) if truth is not None else (None, "")
@@ -327,8 +403,8 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     if tp is not None:
         head += ["truth", "error"] + (["baseline error"] if base is not None else [])
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for i, n in enumerate(PARAM_NAMES):
-        row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]), _disp(n, sig[i] if i < sig.size else None)]
+    for n in PARAM_NAMES:
+        row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]), _disp(n, param_sigma(sol, n))]
         if base is not None:
             row.append(_disp(n, base[n]))
         if tp is not None:
@@ -337,8 +413,24 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
             if base is not None:
                 row.append(_disp(n, None if t is None else _angle_err(n, base[n], t)))
         lines.append("| " + " | ".join(row) + " |")
+    rot = [param_sigma(sol, n) for n in ("rx", "ry", "rz")]
+    lines += ["", "The mount's rotation is estimated on SO(3): its 1-sigma is that of a small rotation vector in "
+              "frame M, (rx, ry, rz) = (" + ", ".join(_disp("rx", v) for v in rot) + ") deg; roll, pitch and yaw "
+              "are the same rotation written as URDF angles (no sigma: theirs would come from the Euler angles' "
+              "singularity)."]
+    if math.isfinite(sol.clock_offset_sigma_s):
+        lines.append(f"Clock offset (laser stamp - servo stamp): {sol.clock_offset_s * 1000:+.2f} ms, 1-sigma "
+                     f"{sol.clock_offset_sigma_s * 1000:.2f} ms (estimated).")
+    else:
+        lines.append(f"Clock offset (laser stamp - servo stamp): {sol.clock_offset_s * 1000:+.2f} ms (held, not "
+                     "estimated).")
     if truth_note:
         lines += ["", truth_note]
+    if result.checks:
+        lines += ["", "## Checks", "", "| check | result | numbers |", "|---|---|---|"]
+        lines += [f"| {c.name} | {'passed' if c.passed else '**FAILED**'} | {c.detail} |" for c in result.checks]
+    if result.notes:
+        lines += ["", "## Notes", ""] + [f"- {n}" for n in result.notes]
 
     lines += ["", "## Per-marker residuals", "", "| marker | returns | RMS [mm] |", "|---|---|---|"]
     per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
@@ -435,4 +527,5 @@ def swap_into_place(tmp: Path, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-__all__ = ["align_truth_frame", "calibration_dict", "dh_matrix", "render_report", "urdf_snippet", "write_calibration"]
+__all__ = ["align_truth_frame", "calibration_dict", "dh_matrix", "render_report", "truth_dict", "truth_frame",
+           "urdf_snippet", "write_calibration"]

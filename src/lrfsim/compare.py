@@ -15,7 +15,7 @@ import yaml
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
-from lrfcal.output import align_truth_frame
+from lrfcal.output import truth_dict, truth_frame
 from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
 
 from .scenario import Tolerances
@@ -125,10 +125,11 @@ class Comparison:
 def truth_alignment(result: CalibrationResult, truth: Truth) -> np.ndarray:
     """T_W_sim (4, 4): maps the simulator's world into the calibration's marker frame W.
 
-    Fitted on the marker positions; a mirror-symmetric layout may legitimately come out of MDS mirrored with
-    its ids swapped across the symmetry, which lrfcal.output.align_truth_frame resolves geometrically.
+    From the marker correspondence the calibration used (lrfcal.output.truth_frame): a mirror-symmetric layout
+    may legitimately come out of MDS mirrored with its ids swapped across the symmetry, and only the returns tell
+    which physical marker each map marker is.
     """
-    found = align_truth_frame(result.markers.positions_W, result.markers.marker_ids, truth.markers)
+    found = truth_frame(result, truth_dict(truth))
     if found is None:
         raise CalibrationError("the marker map does not fit the true marker positions within 1 cm RMS")
     return found[0]
