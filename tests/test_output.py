@@ -12,7 +12,7 @@ import yaml
 from synthetic import START, TRUE, make_result
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
+from lrfcal.kinematics import ESTIMATE_NAMES, PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
 from lrfcal.output import dh_matrix, render_report, urdf_snippet, write_calibration
 from lrfcal.reproject import reproject_cloud, write_ply
 from lrfcal.types import TunnelGeometry
@@ -39,7 +39,14 @@ def test_calibration_yaml_round_trip(tmp_path, result):
     for i, n in enumerate(PARAM_NAMES):
         entry = data["dh"].get(n) or data["mount"][n]
         assert entry["value"] == pytest.approx(sol.params.vector()[i])
-        assert entry["sigma"] == pytest.approx(sol.sigma[i])
+        if n in ESTIMATE_NAMES:
+            assert entry["sigma"] == pytest.approx(sol.sigma[ESTIMATE_NAMES.index(n)])
+        else:  # roll, pitch, yaw: values only; the rotation's sigma is a rotation vector's
+            assert "sigma" not in entry
+    for k, n in enumerate(("rx", "ry", "rz")):
+        assert data["mount_rotation_sigma_rad"][n] == pytest.approx(sol.sigma[3 + k])
+    assert data["covariance"]["names"] == list(ESTIMATE_NAMES)
+    np.testing.assert_allclose(np.array(data["covariance"]["matrix"], dtype=float), sol.covariance)
     assert data["residual_rms_m"] == pytest.approx(sol.residual_rms_m)
     assert data["n_observations"] == sol.n_observations
     used = data["markers"]["used"]

@@ -6,8 +6,8 @@ import numpy as np
 
 from lrfcal.kinematics import DH, Params, Pose, beam_rays_M, transform_points
 from lrfcal.solve import MotorClock, _core_from_params, _plane_nuisance_start, _Surf, _surface_residuals
-from lrfcal.types import JointStates
 from lrfcal.surfaces import candidate_planes, find_surfaces, surface_returns
+from lrfcal.types import JointStates
 
 R = 0.005
 
