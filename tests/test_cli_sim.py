@@ -73,7 +73,7 @@ def test_run_closes_the_loop(tmp_path: Path) -> None:
     assert sorted(p.name for p in (run_dir / "recording").iterdir()) == FILES
     for name in ("calibration.yaml", "rig.urdf", "cloud_before.ply", "cloud_after.ply", "report.md"):
         assert (run_dir / "calibration" / name).is_file(), name
-    for words in ("Table I", "Table III", "estimated", "paper's method", "width", "plate"):
+    for words in ("Table I", "Table III", "estimate", "paper's method", "width", "plate"):
         assert words in proc.stdout, words
     assert "Table I" in (run_dir / "comparison.md").read_text()
     # run again: the default run folder is replaced, nothing else is left beside it

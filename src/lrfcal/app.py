@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -26,25 +27,59 @@ def calibrate_folder(
     rrd_path: Path | None = None,
     spawn: bool = False,
     scene: Any = None,
+    progress: Callable[[str], None] | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> CalibrationResult:
     """Read, calibrate, write calibration.yaml / rig.urdf / clouds / report / figures atomically; log to rerun.
 
     ``truth`` (an lrfsim.compare.Truth) adds a truth column to the report and aligns the scene for rerun;
-    ``scene`` (an lrfsim.scene.Scene) adds the simulated scene geometry to the rerun recording.
+    ``scene`` (an lrfsim.scene.Scene) adds the simulated scene geometry to the rerun recording;
+    ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`).
+    ``spawn`` where no viewer can start (see :func:`lrfcal.cliutil.spawn_unavailable_reason`): ``warn`` is
+    called with one line and the recording is saved instead (to ``rrd_path``, default ``out_dir/rerun.rrd``).
+
+    Raises:
+        InputError: an output overlaps an input (is, contains or lies inside the bag, distances or nominal file,
+            or is or contains the recording folder), the output folder may not be replaced, bad input.
     """
     from . import figures, output
+    from .cliutil import spawn_unavailable_reason
 
     config = config or CalibConfig()
+    rec = Path(recording_dir) if recording_dir is not None else None
+    inputs = {
+        "recording folder": rec,
+        "bag": bag if bag is not None else (rec / "bag" if rec is not None else None),
+        "distances": distances if distances is not None else (rec / "distances.csv" if rec is not None else None),
+        "nominal": nominal if nominal is not None else (rec / "nominal.yaml" if rec is not None else None),
+    }
+    output.check_no_overlap({"-o": out_dir, "--rrd": rrd_path}, inputs, may_nest_in=("recording folder",))
+    output.check_no_overlap({"--rrd": rrd_path}, {"output folder": out_dir})
+    output.check_replaceable(out_dir, overwrite)
+    rrd_inside = None
+    if spawn:
+        reason = spawn_unavailable_reason()
+        if reason is not None:
+            spawn = False
+            if rrd_path is None:
+                rrd_inside = "rerun.rrd"
+            shown = rrd_path if rrd_path is not None else Path(out_dir) / "rerun.rrd"
+            if warn is not None:
+                warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
+                     f"(open it with: rerun {shown})")
     recording = read_recording(recording_dir, bag=bag, distances=distances, nominal=nominal)
-    result = calibrate(recording, config)
+    result = calibrate(recording, config, progress=progress)
     truth_dict = None if truth is None else _truth_dict(truth)
-    with tempfile.TemporaryDirectory(
-        prefix=".figures-", dir=out_dir.parent if out_dir.parent.exists() else None
-    ) as tmp:
+    tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
+    with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
         figs = figures.write_figures(result, Path(tmp))
         report = output.render_report(result, truth=truth_dict)
         report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.items()) + "\n"
-        output.write_calibration(out_dir, result, report_md=report, figures=figs, overwrite=overwrite)
+        files = dict(figs)
+        if rrd_inside is not None:
+            files["rerun"] = Path(tmp) / rrd_inside
+            _log_rerun(result, files["rerun"], False, truth, scene)
+        output.write_calibration(out_dir, result, report_md=report, figures=files, overwrite=overwrite)
     if rrd_path is not None or spawn:
         _log_rerun(result, rrd_path, spawn, truth, scene)
     return result

@@ -306,6 +306,15 @@ def load_scenario(path: str | Path) -> Scenario:
     return scenario
 
 
+def scenario_inputs(scenario: Scenario, path: str | Path) -> dict[str, Path]:
+    """The files a scenario reads, ``{label: path}``: the scenario file and its meshes (no output may overlap
+    them)."""
+    out: dict[str, Path] = {"scenario": Path(path)}
+    for i, m in enumerate(scenario.scene.meshes):
+        out[f"scene.meshes[{i}].file"] = Path(m.file)
+    return out
+
+
 def dump_scenario(scenario: Scenario) -> str:
     """The effective scenario (all defaults filled in) as YAML."""
     return yaml.safe_dump(scenario.model_dump(mode="json"), sort_keys=False)
