@@ -10,8 +10,9 @@ from typing import Any
 import numpy as np
 
 from .pipeline import CalibConfig, calibrate
+from .errors import InputError
 from .recording import read_recording
-from .types import CalibrationResult
+from .types import CalibrationResult, Recording
 
 
 def calibrate_folder(
@@ -68,6 +69,7 @@ def calibrate_folder(
                 warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
                      f"(open it with: rerun {shown})")
     recording = read_recording(recording_dir, bag=bag, distances=distances, nominal=nominal)
+    check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     result = calibrate(recording, config, progress=progress)
     truth_dict = None if truth is None else _truth_dict(truth)
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
@@ -83,6 +85,29 @@ def calibrate_folder(
     if rrd_path is not None or spawn:
         _log_rerun(result, rrd_path, spawn, truth, scene)
     return result
+
+
+#: Median tape distance above which the file is taken to be in mm or cm: the markers of one calibration are
+#: seen by one laser (the UTM-30LX-EW reaches 30-60 m), so metres this long are a unit mistake [m].
+MAX_MEDIAN_TAPE_M = 50.0
+
+
+def check_tape_units(recording: Recording, path: Path) -> None:
+    """Refuse tape distances that look like millimetres or centimetres (median above MAX_MEDIAN_TAPE_M).
+
+    Raises:
+        InputError: naming the file, the median and the likely unit.
+    """
+    d = np.asarray(recording.tape.distances_m, dtype=float)
+    if d.size == 0:
+        return
+    med = float(np.median(d))
+    if med <= MAX_MEDIAN_TAPE_M:
+        return
+    mm, cm = f"millimetres (median {med / 1000:.3g} m)", f"centimetres (median {med / 100:.3g} m)"
+    likely = f"{mm} or {cm}" if med >= 500.0 else f"{cm} or {mm}"  # markers are usually 0.2-3 m apart
+    raise InputError(f"{path}: distance_m: median {med:g} m is longer than any marker distance a laser sees; "
+                     f"the file looks like it is in {likely}: write metres")
 
 
 def _truth_dict(truth: Any) -> dict[str, Any]:

@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from .errors import InputError
-from .kinematics import dh_from_mapping, pose_from_mapping
+from .kinematics import ANGLE_NAMES, dh_from_mapping, pose_from_mapping
 from .types import JointStates, Nominal, Recording, Scans, TapeMeasurements
 
 LASERSCAN_TYPE = "sensor_msgs/msg/LaserScan"
@@ -332,7 +332,7 @@ def read_nominal(path: str | Path) -> Nominal:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
         problem = getattr(err, "problem", None) or _one_line(err)
         raise InputError(f"{where}: YAML syntax error: {problem}") from None
     except (OSError, UnicodeDecodeError) as err:
@@ -346,6 +346,11 @@ def read_nominal(path: str | Path) -> Nominal:
         raise InputError(f"{path}: dh: missing")
     dh = dh_from_mapping(data["dh"], f"{path}: dh")
     mount = pose_from_mapping(data["mount"], f"{path}: mount") if data.get("mount") is not None else None
+    for section, values in (("dh", dh.as_dict()), ("mount", mount.as_dict() if mount is not None else {})):
+        for name, v in values.items():
+            if name in ANGLE_NAMES and abs(v) > 2 * math.pi:  # an angle in degrees: 90 instead of 1.5708
+                raise InputError(f"{path}: {section}.{name}: {v:g} rad is beyond 2 pi: it looks like degrees; "
+                                 f"angles are in radians ({v:g} deg = {math.radians(v):.6g} rad)")
     kw: dict[str, Any] = {}
     if "marker_radius_m" in data:
         r = data["marker_radius_m"]
