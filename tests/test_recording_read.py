@@ -289,7 +289,7 @@ def test_read_nominal(tmp_path):
     (NOMINAL.replace("beta: 1.5708", "gamma: 1"), r"nominal.yaml: dh.gamma: unknown key"),
     (NOMINAL.replace("0.005", "-1"), r"nominal.yaml: marker_radius_m: expected a finite length >= 0, got -1"),
     (NOMINAL.replace("joint_name: servo", "joint_name: 3"), r"nominal.yaml: joint_name: expected a non"),
-    ("dh: {a: 0\n", r"nominal.yaml:\d+: YAML syntax error"),
+    ("dh: {a: 0\n", r"nominal.yaml:\d+:\d+: YAML syntax error"),
     ("- 1\n", r"nominal.yaml: expected a mapping"),
 ])
 def test_read_nominal_bad(tmp_path, text, pattern):

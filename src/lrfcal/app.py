@@ -9,8 +9,8 @@ from typing import Any
 
 import numpy as np
 
-from .pipeline import CalibConfig, calibrate
 from .errors import InputError
+from .pipeline import CalibConfig, calibrate
 from .recording import read_recording
 from .types import CalibrationResult, Recording
 

@@ -48,7 +48,6 @@ def _summary(result: SimResult, path: Path) -> None:
         ("markers", f"{len(result.truth.marker_ids)}"),
         ("tape pairs", f"{result.tape.pairs.shape[0]}"),
         ("duration", f"{result.duration_s:.2f} s"),
-        ("folder", str(path)),
         ("rays cast", f"{s.n_rays:,} in {s.n_calls:,} mj_multiRay calls"),
         ("rays/s", f"{s.rays_per_s:,.0f} (lidar {s.lidar_time_s:.2f} s, simulate {s.total_time_s:.2f} s)"),
         ("batching", f"origin error <= {1e9 * s.max_origin_error_m:.0f} nm, direction error "
@@ -56,7 +55,9 @@ def _summary(result: SimResult, path: Path) -> None:
     ]
     for k, v in rows:
         table.add_row(k, v)
-    Console().print(table)
+    console = Console()
+    console.print(table)
+    console.print(f"wrote {path}", markup=False)
 
 
 @app.command(cls=Command)
