@@ -30,7 +30,7 @@ from .types import CalibrationResult, Observations, Recording, Solution
 class CalibConfig:
     """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout)."""
 
-    range_sigma_m: float = 0.010  # UTM-30LX-EW repeatability (FACTS.md)
+    range_sigma_m: float = 0.010  # UTM-30LX-EW repeatability (its spec sheet)
     association_gate_m: float = 0.05  # blob-to-marker distance accepted after the nominal alignment
     clock_offset_s: float = 0.0  # laser stamp minus servo stamp, if known
     baseline: bool = True  # also run the paper's variant for comparison

@@ -444,7 +444,7 @@ def solve(
         start: initial parameters (mount pose from the association, DH from the nominal values).
         model: "paper" (eq. (10), return point vs marker centre) or "sphere" (ray vs sphere, sub-beam).
         marker_radius_m: marker sphere radius R_m.
-        range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, FACTS.md).
+        range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, its spec sheet).
         robust: soft-L1 first pass and 4-sigma rejection before the final plain least-squares pass.
         surfaces: optional non-marker returns on the marker-carrying planes (lrfcal.surfaces), solved jointly
             as ray-plane range residuals (whitened by range_sigma_m), rejected at 4 sigma like the markers.
