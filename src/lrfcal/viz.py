@@ -380,7 +380,7 @@ def _log_rig(rec: Any, result: CalibrationResult, lam_scan: FloatArray) -> None:
     rec.log("world/M/M_prime/L", rr.Transform3D(translation=T_Mp_L[:3, 3], mat3x3=T_Mp_L[:3, :3], relation=P),
             rr.TransformAxes3D(0.08), static=True)
     rec.log("world/M/M_prime", rr.TransformAxes3D(0.1), static=True)
-    # the UTM-30LX housing, 60 x 60 x 87 mm (Hokuyo UTM-30LX-EW specification sheet, hokuyo-aut.jp), below the scan plane
+    # the UTM-30LX housing, 60 x 60 x 87 mm (Hokuyo UTM-30LX-EW spec sheet, hokuyo-aut.jp), below the scan plane
     housing = rr.Boxes3D(centers=[[0, 0, -0.02]], half_sizes=[[0.03, 0.03, 0.0435]], colors=[(90, 90, 200)])
     rec.log("world/M/M_prime/L/housing", housing, static=True)
 
