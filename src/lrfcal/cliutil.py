@@ -56,10 +56,10 @@ def one_line(text: str) -> str:
     return " ".join(str(text).split())
 
 
-def _usage_line(err: Any) -> str:
+def _usage_line(err: Any, prog_name: str) -> str:
     ctx = getattr(err, "ctx", None)
     if ctx is None:
-        return ""
+        return f" (see '{prog_name} --help')"
     usage = one_line(ctx.get_usage())
     return f" ({usage}; see '{ctx.command_path} --help')"
 
@@ -83,7 +83,7 @@ def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoR
             commands = ", ".join(getattr(ctx.command, "commands", {})) if ctx is not None else ""
             print(f"error: no command given{f' (one of: {commands})' if commands else ''}", file=sys.stderr)
             sys.exit(EXIT_USAGE)
-        print(f"error: {one_line(e.format_message())}{_usage_line(e)}", file=sys.stderr)
+        print(f"error: {one_line(e.format_message())}{_usage_line(e, prog_name)}", file=sys.stderr)
         sys.exit(code)
     except typer.Abort:
         print("error: aborted", file=sys.stderr)

@@ -129,8 +129,15 @@ def run(
 
 
 @app.command(cls=Command)
-def schema() -> None:
-    """Print the JSON Schema of scenario files (every field, its unit and default)."""
+def schema(
+    markdown: Annotated[bool, typer.Option("--markdown", help="Print the page docs/scenario.md instead.")] = False,
+) -> None:
+    """Print the scenario format: every field, its unit and default (JSON Schema)."""
+    if markdown:
+        from .scenario_doc import scenario_markdown
+
+        print(scenario_markdown(), end="")
+        return
     import json
 
     from .scenario import Scenario
