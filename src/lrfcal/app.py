@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .kinematics import Params, Pose
 from .pipeline import CalibConfig, calibrate
 from .recording import read_recording
 from .types import CalibrationResult, Recording
@@ -74,16 +75,17 @@ def calibrate_folder(
     truth_dict = None if truth is None else _truth_dict(truth)
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
     with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
-        figs = figures.write_figures(result, Path(tmp))
+        before, before_label = _nominal_in_W(result, truth)
+        figs = figures.write_figures(result, Path(tmp), before, before_label)
         report = output.render_report(result, truth=truth_dict)
         report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.items()) + "\n"
         files = dict(figs)
         if rrd_inside is not None:
             files["rerun"] = Path(tmp) / rrd_inside
-            _log_rerun(result, files["rerun"], False, truth, scene)
+            _log_rerun(result, files["rerun"], False, truth, scene, warn)
         output.write_calibration(out_dir, result, report_md=report, figures=files, overwrite=overwrite)
     if rrd_path is not None or spawn:
-        _log_rerun(result, rrd_path, spawn, truth, scene)
+        _log_rerun(result, rrd_path, spawn, truth, scene, warn)
     return result
 
 
@@ -110,6 +112,23 @@ def check_tape_units(recording: Recording, path: Path) -> None:
                      f"the file looks like it is in {likely}: write metres")
 
 
+def _nominal_in_W(result: CalibrationResult, truth: Any) -> tuple[Params | None, str]:
+    """The nominal parameters (nominal.yaml) in the marker frame W, for the figures' "before": possible when the
+    true marker positions (simulator frame, the frame of the nominal mount) align to the tape's map; otherwise
+    (None, label of the default: the calibration's start)."""
+    from .output import align_truth_frame
+
+    start = (None, "nominal DH, fitted mount")
+    nominal = result.recording.nominal
+    if truth is None or nominal.mount is None:
+        return start
+    found = align_truth_frame(result.markers.positions_W, result.markers.marker_ids, truth.markers)
+    if found is None:
+        return start
+    mount_W = Pose.from_matrix(found[0] @ nominal.mount.matrix())
+    return Params(mount_W, nominal.dh), "nominal.yaml"
+
+
 def _truth_dict(truth: Any) -> dict[str, Any]:
     return {
         "dh": truth.dh.as_dict(),
@@ -119,7 +138,8 @@ def _truth_dict(truth: Any) -> dict[str, Any]:
     }
 
 
-def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any) -> None:
+def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any,
+               warn: Callable[[str], None] | None = None) -> None:
     from . import viz
     from .kinematics import transform_points
     from .output import align_truth_frame
@@ -137,5 +157,5 @@ def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, tr
                     T_W_world=T_W_sim,
                 )
     viz.log_calibration(
-        result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W
+        result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W, warn=warn
     )

@@ -79,7 +79,7 @@ def run_loop(
         rrd_tmp = None if rrd_path is not None else tmp / "run.rrd"
         result = calibrate_folder(
             tmp / "recording", tmp / "calibration", truth=truth, rrd_path=rrd_path or rrd_tmp, spawn=spawn,
-            scene=scene, progress=stage_progress,
+            scene=scene, progress=stage_progress, warn=warn,
         )
         timings["calibrate + write"] = time.perf_counter() - t0
         timings.update({f"  {k}": v for k, v in result.timings_s.items()})
