@@ -188,8 +188,10 @@ def test_unwritable_output(tmp_path: Path) -> None:
     scen = _small(tmp_path)
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    line = _one_error_line(_run("lrfsim", "simulate", scen, "-o", blocker / "rec"))
-    assert "cannot write" in line and str(blocker / "rec") in line
+    line = _one_error_line(_run("lrfsim", "simulate", scen, "-o", blocker / "sub" / "rec"))
+    assert "cannot write" in line and str(blocker / "sub" / "rec") in line
+    line = _one_error_line(_run("lrfcal", "calibrate", tmp_path, "-o", blocker / "cal"))
+    assert "cannot write" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "small.yaml"]
 
 
@@ -300,6 +302,7 @@ def test_spawn_without_viewer_saves_rrd_and_goes_on(tmp_path: Path) -> None:
     first = proc.stdout.strip().splitlines()[0].strip()
     assert first == "Calibration", first
     assert any(line.startswith("solver: ") for line in proc.stdout.splitlines())
+    assert all(f"{n} (deg)" in proc.stdout for n in ("rx", "ry", "rz"))  # the rotation's sigma rows
     # a second run into the same folder replaces only what lrfcal wrote
     proc = _run("lrfcal", "calibrate", out / "recording", "-o", cal, "--overwrite")
     assert proc.returncode == 0, proc.stderr

@@ -57,7 +57,7 @@ def calibrate_folder(
     }
     output.check_no_overlap({"-o": out_dir, "--rrd": rrd_path}, inputs, may_nest_in=("recording folder",))
     output.check_no_overlap({"--rrd": rrd_path}, {"output folder": out_dir})
-    output.check_replaceable(out_dir, overwrite)
+    output.check_writable(output.check_replaceable(out_dir, overwrite))
     rrd_inside = None
     if spawn:
         reason = spawn_unavailable_reason()

@@ -473,6 +473,24 @@ def check_replaceable(out_dir: str | Path, overwrite: bool) -> Path:
     return out
 
 
+def check_writable(out: str | Path) -> Path:
+    """Refuse an output path that cannot be created, without creating anything: its nearest existing ancestor
+    must be a writable folder.
+
+    Raises:
+        InputError: naming the path and the ancestor that blocks it.
+    """
+    out = Path(out)
+    anc = out.absolute().parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise InputError(f"{out}: cannot write the output folder here ({anc} is not a folder)")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise InputError(f"{out}: cannot write the output folder here ({anc} is not writable)")
+    return out
+
+
 def make_temp_beside(out: Path) -> Path:
     """A new hidden temporary folder next to ``out`` (created with its parents; usual permissions).
 
@@ -541,5 +559,5 @@ def swap_into_place(tmp: Path, out: Path) -> None:
 
 
 __all__ = ["MANIFEST_NAME", "align_truth_frame", "calibration_dict", "check_no_overlap", "check_replaceable",
-           "dh_matrix", "make_temp_beside", "render_report", "swap_into_place", "urdf_snippet", "write_calibration",
+           "check_writable", "dh_matrix", "make_temp_beside", "render_report", "swap_into_place", "urdf_snippet", "write_calibration",
            "write_manifest"]

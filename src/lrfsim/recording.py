@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from lrfcal.output import check_replaceable, make_temp_beside, swap_into_place, write_manifest
+from lrfcal.output import check_replaceable, check_writable, make_temp_beside, swap_into_place, write_manifest
 
 from .scenario import Scenario, dump_scenario
 
@@ -50,7 +50,7 @@ def _ns(t_s: float) -> int:
 def check_output(out_dir: str | Path, overwrite: bool) -> Path:
     """Refuse an output folder that must not be written (see :func:`lrfcal.output.check_replaceable`: an
     existing non-empty folder only with ``overwrite`` and only if this project wrote all of it); return it."""
-    return check_replaceable(out_dir, overwrite)
+    return check_writable(check_replaceable(out_dir, overwrite))
 
 
 def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
