@@ -559,5 +559,5 @@ def swap_into_place(tmp: Path, out: Path) -> None:
 
 
 __all__ = ["MANIFEST_NAME", "align_truth_frame", "calibration_dict", "check_no_overlap", "check_replaceable",
-           "check_writable", "dh_matrix", "make_temp_beside", "render_report", "swap_into_place", "urdf_snippet", "write_calibration",
-           "write_manifest"]
+           "check_writable", "dh_matrix", "make_temp_beside", "render_report", "residual_summary", "swap_into_place",
+           "urdf_snippet", "write_calibration", "write_manifest"]
