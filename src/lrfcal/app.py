@@ -36,7 +36,8 @@ def calibrate_folder(
 
     ``truth`` (an lrfsim.compare.Truth) adds a truth column to the report and aligns the scene for rerun;
     ``scene`` (an lrfsim.scene.Scene) adds the simulated scene geometry to the rerun recording;
-    ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`).
+    ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`), then with
+    "figures and report" and "rerun recording" while those are written.
     ``spawn`` where no viewer can start (see :func:`lrfcal.cliutil.spawn_unavailable_reason`): ``warn`` is
     called with one line and the recording is saved instead (to ``rrd_path``, default ``out_dir/rerun.rrd``).
 
@@ -74,6 +75,8 @@ def calibrate_folder(
     result = calibrate(recording, config, progress=progress)
     truth_dict = None if truth is None else _truth_dict(truth)
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
+    if progress is not None:
+        progress("figures and report")
     with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
         before, before_label = _nominal_in_W(result, truth)
         figs = figures.write_figures(result, Path(tmp), before, before_label)
@@ -85,6 +88,8 @@ def calibrate_folder(
             _log_rerun(result, files["rerun"], False, truth, scene, warn)
         output.write_calibration(out_dir, result, report_md=report, figures=files, overwrite=overwrite)
     if rrd_path is not None or spawn:
+        if progress is not None:
+            progress("rerun recording")
         _log_rerun(result, rrd_path, spawn, truth, scene, warn)
     return result
 

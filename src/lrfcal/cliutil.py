@@ -135,7 +135,7 @@ class ProgressHooks:
 @contextmanager
 def progress_display(label: str) -> Iterator[ProgressHooks]:
     """A transient progress line on stderr (only on a terminal): scans done while simulating, then the
-    calibration's stage (see :data:`lrfcal.pipeline.STAGES`)."""
+    calibration's stage (see :data:`lrfcal.pipeline.STAGES`), then what is being written (any other name)."""
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -150,9 +150,12 @@ def progress_display(label: str) -> Iterator[ProgressHooks]:
             bar.update(task, completed=done, total=total, what=f"{done}/{total} scans")
 
         def stage(name: str) -> None:
-            k = STAGES.index(name) if name in STAGES else 0
-            bar.update(task, description=f"calibrating: {name}", completed=k, total=len(STAGES),
-                       what=f"stage {k + 1}/{len(STAGES)}")
+            if name in STAGES:
+                k = STAGES.index(name)
+                bar.update(task, description=f"calibrating: {name}", completed=k, total=len(STAGES),
+                           what=f"stage {k + 1}/{len(STAGES)}")
+            else:  # after the calibration: writing its outputs
+                bar.update(task, description=f"writing {name}", completed=len(STAGES), total=len(STAGES), what="")
 
         yield ProgressHooks(scans=scans, stage=stage)
 
