@@ -265,8 +265,9 @@ def test_nominal_yaml_syntax_error_has_line_and_column(recording: Path, tmp_path
         .isdigit()
 
 
-@pytest.mark.parametrize(("scale", "unit"), [(1000.0, "millimetres"), (100.0, "centimetres")])
+@pytest.mark.parametrize(("scale", "unit"), [(1000.0, "millimetres"), (100.0, "centimetres"), (30.0, "centimetres")])
 def test_tape_in_mm_or_cm(recording: Path, tmp_path: Path, scale: float, unit: str) -> None:
+    """x1000 and x100: the median is too long; x30: the median passes, the longest distance exceeds the ranges."""
     rec = _copy_recording(recording, tmp_path)
     rows = (rec / "distances.csv").read_text().splitlines()
     scaled = [rows[0]] + [",".join([*r.split(",")[:2], f"{float(r.split(',')[2]) * scale:.3f}"]) for r in rows[1:]]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -97,24 +98,35 @@ def calibrate_folder(
 #: Median tape distance above which the file is taken to be in mm or cm: the markers of one calibration are
 #: seen by one laser (the UTM-30LX-EW reaches 30-60 m), so metres this long are a unit mistake [m].
 MAX_MEDIAN_TAPE_M = 50.0
+#: Two markers the laser sees are at most twice its longest range apart; tape distances beyond this factor times
+#: the longest range in the recording (its 99.9th percentile) are a unit mistake [1].
+MAX_TAPE_OVER_RANGE = 2.5
 
 
 def check_tape_units(recording: Recording, path: Path) -> None:
-    """Refuse tape distances that look like millimetres or centimetres (median above MAX_MEDIAN_TAPE_M).
+    """Refuse tape distances that look like millimetres or centimetres: a median above MAX_MEDIAN_TAPE_M, or a
+    longest distance above MAX_TAPE_OVER_RANGE x the longest range the laser measured in this recording.
 
     Raises:
-        InputError: naming the file, the median and the likely unit.
+        InputError: naming the file, the offending statistic and the likely unit.
     """
     d = np.asarray(recording.tape.distances_m, dtype=float)
     if d.size == 0:
         return
-    med = float(np.median(d))
-    if med <= MAX_MEDIAN_TAPE_M:
+    med, longest = float(np.median(d)), float(d.max())
+    r = np.asarray(recording.scans.ranges_m, dtype=float)
+    r = r[np.isfinite(r)]
+    seen = float(np.percentile(r, 99.9)) if r.size else math.inf
+    if med > MAX_MEDIAN_TAPE_M:
+        what = f"median {med:g} m is longer than any marker distance a laser sees"
+    elif longest > MAX_TAPE_OVER_RANGE * seen:
+        what = (f"the longest distance, {longest:g} m, is more than {MAX_TAPE_OVER_RANGE:g} x the longest range "
+                f"in the recording ({seen:.3g} m)")
+    else:
         return
     mm, cm = f"millimetres (median {med / 1000:.3g} m)", f"centimetres (median {med / 100:.3g} m)"
     likely = f"{mm} or {cm}" if med >= 500.0 else f"{cm} or {mm}"  # markers are usually 0.2-3 m apart
-    raise InputError(f"{path}: distance_m: median {med:g} m is longer than any marker distance a laser sees; "
-                     f"the file looks like it is in {likely}: write metres")
+    raise InputError(f"{path}: distance_m: {what}; the file looks like it is in {likely}: write metres")
 
 
 def _nominal_in_W(result: CalibrationResult, truth: Any) -> tuple[Params | None, str]:
