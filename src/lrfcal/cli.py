@@ -57,7 +57,10 @@ def calibrate_cmd(
     spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer (else save DIR/rerun.rrd).")
                      ] = False,
 ) -> None:
-    """Calibrate RECORDING: write calibration.yaml, rig.urdf, clouds, report."""
+    """Calibrate the rig from RECORDING.
+
+    Writes calibration.yaml, rig.urdf, the clouds before/after, report.md and its figures into DIR.
+    """
     from rich.console import Console
 
     from .app import calibrate_folder

@@ -68,7 +68,10 @@ def simulate(
     overwrite: Annotated[bool, typer.Option("--overwrite",
                                             help="Replace a recording folder lrfsim wrote before.")] = False,
 ) -> None:
-    """Simulate SCENARIO and write a recording folder: bag, distances, nominal values, ground truth."""
+    """Simulate SCENARIO and write a recording folder.
+
+    The folder holds the bag, the tape distances, the nominal values and the ground truth (docs/formats.md).
+    """
     from lrfcal.output import check_no_overlap
 
     from .scenario import load_scenario, scenario_inputs
@@ -92,7 +95,9 @@ def run(
                                              help="Save the rerun recording here  [default: DIR/run.rrd]")] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer too.")] = False,
 ) -> None:
-    """Simulate SCENARIO, calibrate it, compare with the truth (Tables I, III).
+    """Simulate, calibrate, compare with the truth.
+
+    Simulates SCENARIO, calibrates the recording and compares with the ground truth (Tables I and III).
 
     Exit code 1 when the recovery misses the tolerances the scenario declares. Without -o, the folder
     runs/<name> of an earlier run is replaced, but only if lrfsim wrote everything in it.
@@ -132,7 +137,10 @@ def run(
 def schema(
     markdown: Annotated[bool, typer.Option("--markdown", help="Print the page docs/scenario.md instead.")] = False,
 ) -> None:
-    """Print the scenario format: every field, its unit and default (JSON Schema)."""
+    """Print the scenario format (JSON Schema).
+
+    Every field with its unit, default and bounds; --markdown prints docs/scenario.md.
+    """
     if markdown:
         from .scenario_doc import scenario_markdown
 
