@@ -224,6 +224,10 @@ def test_recording_is_never_an_output(recording: Path, tmp_path: Path) -> None:
                                 recording / "nominal.yaml"))
     assert "--rrd" in line
     assert _tree(recording) == before and list(tmp_path.iterdir()) == []
+    # inside the recording folder but beside its inputs is allowed (REC/calibration touches no input file)
+    proc = _run("lrfcal", "calibrate", recording, "-o", recording / "calibration")
+    assert "overlap" not in proc.stderr and "Traceback" not in proc.stderr
+    assert {k: v for k, v in _tree(recording).items() if not k.startswith("calibration")} == before
 
 
 def test_overwrite_only_replaces_own_output(recording: Path, tmp_path: Path) -> None:
