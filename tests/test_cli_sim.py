@@ -10,10 +10,11 @@ from pathlib import Path
 import pytest
 import yaml
 
+from lrfcal.output import MANIFEST_NAME
 from lrfsim.cli import main
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
-FILES = ["bag", "distances.csv", "ground_truth.yaml", "nominal.yaml", "scenario.yaml"]
+FILES = sorted([MANIFEST_NAME, "bag", "distances.csv", "ground_truth.yaml", "nominal.yaml", "scenario.yaml"])
 
 
 def _write_small(tmp_path: Path, **servo: object) -> Path:
@@ -69,11 +70,12 @@ def test_run_closes_the_loop(tmp_path: Path) -> None:
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode in (0, 1), proc.stderr  # 1: tolerances missed, still a complete run
     run_dir = tmp_path / "runs" / "tunnel_v"
-    assert sorted(p.name for p in run_dir.iterdir()) == ["calibration", "comparison.md", "recording", "run.rrd"]
+    assert sorted(p.name for p in run_dir.iterdir()) == sorted([MANIFEST_NAME, "calibration", "comparison.md",
+                                                                "recording", "run.rrd"])
     assert sorted(p.name for p in (run_dir / "recording").iterdir()) == FILES
     for name in ("calibration.yaml", "rig.urdf", "cloud_before.ply", "cloud_after.ply", "report.md"):
         assert (run_dir / "calibration" / name).is_file(), name
-    for words in ("Table I", "Table III", "estimated", "paper's method", "width", "plate"):
+    for words in ("Table I", "Table III", "estimate", "paper's method", "width", "plate"):
         assert words in proc.stdout, words
     assert "Table I" in (run_dir / "comparison.md").read_text()
     # run again: the default run folder is replaced, nothing else is left beside it

@@ -13,7 +13,7 @@ from synthetic import START, TRUE, make_result
 
 from lrfcal.errors import InputError
 from lrfcal.kinematics import ESTIMATE_NAMES, PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
-from lrfcal.output import dh_matrix, render_report, urdf_snippet, write_calibration
+from lrfcal.output import MANIFEST_NAME, dh_matrix, render_report, urdf_snippet, write_calibration
 from lrfcal.reproject import reproject_cloud, write_ply
 from lrfcal.types import TunnelGeometry
 
@@ -31,7 +31,8 @@ def test_dh_matrix_matches_chain():
 def test_calibration_yaml_round_trip(tmp_path, result):
     out = write_calibration(tmp_path / "cal", result)
     names = sorted(p.name for p in out.iterdir())
-    assert names == ["calibration.yaml", "cloud_after.ply", "cloud_before.ply", "report.md", "rig.urdf"]
+    assert names == sorted([MANIFEST_NAME, "calibration.yaml", "cloud_after.ply", "cloud_before.ply", "report.md",
+                            "rig.urdf"])
     data = yaml.safe_load((out / "calibration.yaml").read_text())
     assert set(data["dh"]) == {"a", "alpha", "b", "beta"}
     assert set(data["mount"]) == {"x", "y", "z", "roll", "pitch", "yaw"}
@@ -129,15 +130,25 @@ def test_report_mount_truth_aligned(result):
     assert x_row.split("|")[-2].strip() in ("0.00", "-0.00")  # error column
 
 
-def test_refuses_non_empty_and_overwrites(tmp_path, result):
+def test_refuses_non_empty_and_overwrites_only_its_own(tmp_path, result):
     out = tmp_path / "cal"
     out.mkdir()
     (out / "keep.txt").write_text("x")
     with pytest.raises(InputError, match="exists and is not empty"):
         write_calibration(out, result)
-    assert (out / "keep.txt").exists()
-    write_calibration(out, result, report_md="# hi\n", overwrite=True)
-    assert not (out / "keep.txt").exists() and (out / "report.md").read_text() == "# hi\n"
+    # a folder we did not write is never replaced, not even with overwrite
+    with pytest.raises(InputError, match="not written by lrf-calib"):
+        write_calibration(out, result, overwrite=True)
+    assert (out / "keep.txt").read_text() == "x"
+    (out / "keep.txt").unlink()
+    write_calibration(out, result, report_md="# hi\n")
+    write_calibration(out, result, report_md="# again\n", overwrite=True)  # our own output: replaced
+    assert (out / "report.md").read_text() == "# again\n"
+    # a file the user put into our output: named, and the folder is kept
+    (out / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match=r"did not write \(notes.txt\)"):
+        write_calibration(out, result, overwrite=True)
+    assert (out / "notes.txt").read_text() == "mine" and (out / "report.md").read_text() == "# again\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["cal"]
     # an existing empty folder is fine
     (tmp_path / "empty").mkdir()

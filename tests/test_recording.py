@@ -12,6 +12,7 @@ from rosbags.highlevel import AnyReader
 
 import lrfsim.recording as recording
 from lrfcal.errors import InputError
+from lrfcal.output import MANIFEST_NAME
 from lrfsim.lidar import beam_times
 from lrfsim.scenario import Scenario, load_scenario, parse_scenario
 from lrfsim.servo import sweep_trajectory
@@ -52,8 +53,8 @@ def test_stream_timing_and_clock_offset(sim: tuple[Scenario, SimResult]) -> None
 def test_bag_reads_back_with_every_field(sim: tuple[Scenario, SimResult], tmp_path: Path) -> None:
     sc, res = sim
     out = write_recording(res, sc, tmp_path / "rec")
-    assert sorted(p.name for p in out.iterdir()) == ["bag", "distances.csv", "ground_truth.yaml", "nominal.yaml",
-                                                     "scenario.yaml"]
+    assert sorted(p.name for p in out.iterdir()) == sorted([MANIFEST_NAME, "bag", "distances.csv",
+                                                            "ground_truth.yaml", "nominal.yaml", "scenario.yaml"])
     scans, joints = [], []
     with AnyReader([out / "bag"]) as reader:
         assert {c.topic: c.msgtype for c in reader.connections} == {
@@ -120,10 +121,13 @@ def test_atomic_writes(sim: tuple[Scenario, SimResult], tmp_path: Path, monkeypa
         write_recording(res, sc, tmp_path / "new")
     assert not (tmp_path / "new").exists()
     monkeypatch.undo()
-    # overwrite replaces atomically; an empty folder is fine without overwrite
-    (out / "stale.txt").write_text("x")
+    # overwrite replaces our own recording atomically, never a file we did not write; an empty folder is fine
     write_recording(res, sc, out, overwrite=True)
-    assert not (out / "stale.txt").exists()
+    (out / "mine.txt").write_text("x")
+    with pytest.raises(InputError, match=r"did not write \(mine.txt\)"):
+        write_recording(res, sc, out, overwrite=True)
+    assert (out / "mine.txt").read_text() == "x"
+    (out / "mine.txt").unlink()
     (tmp_path / "empty").mkdir()
     write_recording(res, sc, tmp_path / "empty")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["empty", "rec"]

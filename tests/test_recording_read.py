@@ -140,8 +140,18 @@ def test_missing_intensities_allowed_until_detection(tmp_path):
     scans = [(T0 + 0.025 * k, np.full(N_BEAMS, 2.0), np.zeros(0)) for k in range(3)]
     s, _ = read_bag(write_bag(tmp_path / "bag", "mcap", scans=scans))
     assert np.all(s.intensities == 0)
-    with pytest.raises(InputError, match=r"/scan: no intensities \(enable publish_intensity\)"):
+    with pytest.raises(InputError, match=r"/scan: intensities: none in the scans \(enable .*publish_intensity\)"):
         detect(s)
+
+
+def test_all_nan_ranges_are_not_called_missing_intensities(tmp_path):
+    from lrfcal.detection import detect
+
+    scans = [(T0 + 0.025 * k, np.full(N_BEAMS, np.nan), np.full(N_BEAMS, 500.0)) for k in range(3)]
+    s, _ = read_bag(write_bag(tmp_path / "bag", "mcap", scans=scans))
+    with pytest.raises(InputError, match=r"/scan: ranges: no valid range") as info:
+        detect(s)
+    assert "intensit" not in str(info.value)
 
 
 def test_joint_picked_by_name_among_several(tmp_path):
@@ -308,7 +318,7 @@ def test_read_nominal_rig_blocks(tmp_path):
      r"nominal.yaml: marker_radius_m: Input should be greater than or equal to 0, got -1"),
     (NOMINAL.replace("joint_name: servo", "joint_name: 3"),
      r"nominal.yaml: joint_name: Input should be a valid string, got 3"),
-    ("dh: {a: 0\n", r"nominal.yaml:\d+: YAML syntax error"),
+    ("dh: {a: 0\n", r"nominal.yaml:\d+:\d+: YAML syntax error"),
     ("- 1\n", r"nominal.yaml: expected a mapping"),
     (NOMINAL + "scan: {topic: /x}\n", r"nominal.yaml: scan_topic and scan: both given"),
     ("dh: {a: 0, alpha: 0, b: 0, beta: 0}\nservo: {topic: /s, unit: counts}\n",

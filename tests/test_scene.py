@@ -187,7 +187,7 @@ def test_missing_and_unreadable_mesh_rejected(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("edit", "field"),
     [
-        (lambda d: d.update(colour="red"), r"colour: Extra inputs"),
+        (lambda d: d.update(colour="red"), r"colour: unknown key"),
         (lambda d: d["servo"].update(passes="two"), r"servo\.passes"),
         (lambda d: d["markers"].update(radius_m=-0.005), r"markers\.radius_m"),
         (lambda d: d["servo"].update(end_rad=d["servo"]["start_rad"]), 

@@ -271,3 +271,20 @@ def test_import_does_not_pull_rerun_or_matplotlib():
     code = ("import sys, lrfcal.viz, lrfcal.figures; "
             "bad = [m for m in ('rerun', 'matplotlib') if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
+
+
+def test_spawn_failure_warns_and_still_saves(result, tmp_path, monkeypatch):
+    import rerun as rr
+
+    def no_viewer(**_kw):
+        raise RuntimeError("Failed to spawn the viewer:\n no display")
+
+    monkeypatch.setattr(rr, "spawn", no_viewer)
+    said: list[str] = []
+    path = tmp_path / "x.rrd"
+    viz.log_calibration(result, rrd_path=path, spawn=True, warn=said.append)
+    assert path.stat().st_size > 0
+    assert len(said) == 1 and "\n" not in said[0] and "did not start" in said[0] and str(path) in said[0]
+    said.clear()
+    viz.log_calibration(result, spawn=True, warn=said.append)  # nothing to save: just the warning
+    assert len(said) == 1

@@ -2,15 +2,19 @@
 
 from __future__ import annotations
 
+import math
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from .errors import InputError
+from .kinematics import Params, Pose
 from .pipeline import CalibConfig, calibrate
 from .recording import read_recording
-from .types import CalibrationResult
+from .types import CalibrationResult, Recording
 
 
 def calibrate_folder(
@@ -26,31 +30,135 @@ def calibrate_folder(
     rrd_path: Path | None = None,
     spawn: bool = False,
     scene: Any = None,
+    progress: Callable[[str], None] | None = None,
+    warn: Callable[[str], None] | None = None,
+    options: dict[str, Any] | None = None,
 ) -> CalibrationResult:
     """Read, calibrate, write calibration.yaml / rig.urdf / clouds / report / figures atomically; log to rerun.
 
     ``truth`` (an lrfsim.compare.Truth) adds a truth column to the report and aligns the scene for rerun;
-    ``scene`` (an lrfsim.scene.Scene) adds the simulated scene geometry to the rerun recording.
+    ``scene`` (an lrfsim.scene.Scene) adds the simulated scene geometry to the rerun recording;
+    ``options``: one-off rig-file settings (the keywords of lrfcal.rig.with_overrides, e.g. sign=-1);
+    ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`), then with
+    "figures and report" and "rerun recording" while those are written.
+    ``spawn`` where no viewer can start (see :func:`lrfcal.cliutil.spawn_unavailable_reason`): ``warn`` is
+    called with one line and the recording is saved instead (to ``rrd_path``, default ``out_dir/rerun.rrd``).
+
+    Raises:
+        InputError: an output overlaps an input (is, contains or lies inside the bag, distances or nominal file,
+            or is or contains the recording folder), the output folder may not be replaced, bad input.
     """
     from . import figures, output
+    from .cliutil import spawn_unavailable_reason
 
     config = config or CalibConfig()
-    recording = read_recording(recording_dir, bag=bag, distances=distances, nominal=nominal)
-    result = calibrate(recording, config)
+    rec = Path(recording_dir) if recording_dir is not None else None
+    inputs = {
+        "recording folder": rec,
+        "bag": bag if bag is not None else (rec / "bag" if rec is not None else None),
+        "distances": distances if distances is not None else (rec / "distances.csv" if rec is not None else None),
+        "nominal": nominal if nominal is not None else (rec / "nominal.yaml" if rec is not None else None),
+    }
+    output.check_no_overlap({"-o": out_dir, "--rrd": rrd_path}, inputs, may_nest_in=("recording folder",))
+    output.check_no_overlap({"--rrd": rrd_path}, {"output folder": out_dir})
+    output.check_writable(output.check_replaceable(out_dir, overwrite))
+    rrd_inside = None
+    if spawn:
+        reason = spawn_unavailable_reason()
+        if reason is not None:
+            spawn = False
+            if rrd_path is None:
+                rrd_inside = "rerun.rrd"
+            shown = rrd_path if rrd_path is not None else Path(out_dir) / "rerun.rrd"
+            if warn is not None:
+                warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
+                     f"(open it with: rerun {shown})")
+    scan = servo = None
+    if options:  # one-off rig-file settings (lrfcal.rig.with_overrides keywords) from the command line
+        from .recording import read_nominal
+        from .rig import with_overrides
+
+        nom = read_nominal(nominal if nominal is not None else Path(recording_dir) / "nominal.yaml")
+        scan, servo = with_overrides(nom.scan, nom.servo, **options)
+    recording = read_recording(recording_dir, bag=bag, distances=distances, nominal=nominal, scan=scan,
+                               servo=servo, warn=warn)
+    if recording.tape is not None:
+        check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
+    result = calibrate(recording, config, progress=progress)
     truth_values = None if truth is None else output.truth_dict(truth)
-    with tempfile.TemporaryDirectory(
-        prefix=".figures-", dir=out_dir.parent if out_dir.parent.exists() else None
-    ) as tmp:
-        figs = figures.write_figures(result, Path(tmp))
+    tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
+    if progress is not None:
+        progress("figures and report")
+    with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
+        before, before_label = _nominal_in_W(result, truth)
+        figs = figures.write_figures(result, Path(tmp), before, before_label)
         report = output.render_report(result, truth=truth_values)
         report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.items()) + "\n"
-        output.write_calibration(out_dir, result, report_md=report, figures=figs, overwrite=overwrite)
+        files = dict(figs)
+        if rrd_inside is not None:
+            files["rerun"] = Path(tmp) / rrd_inside
+            _log_rerun(result, files["rerun"], False, truth, scene, warn)
+        output.write_calibration(out_dir, result, report_md=report, figures=files, overwrite=overwrite)
     if rrd_path is not None or spawn:
-        _log_rerun(result, rrd_path, spawn, truth, scene)
+        if progress is not None:
+            progress("rerun recording")
+        _log_rerun(result, rrd_path, spawn, truth, scene, warn)
     return result
 
 
-def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any) -> None:
+#: Median tape distance above which the file is taken to be in mm or cm: the markers of one calibration are
+#: seen by one laser (the UTM-30LX-EW reaches 30-60 m), so metres this long are a unit mistake [m].
+MAX_MEDIAN_TAPE_M = 50.0
+#: Two markers the laser sees are at most twice its longest range apart; tape distances beyond this factor times
+#: the longest range in the recording (its 99.9th percentile) are a unit mistake [1].
+MAX_TAPE_OVER_RANGE = 2.5
+
+
+def check_tape_units(recording: Recording, path: Path) -> None:
+    """Refuse tape distances that look like millimetres or centimetres: a median above MAX_MEDIAN_TAPE_M, or a
+    longest distance above MAX_TAPE_OVER_RANGE x the longest range the laser measured in this recording.
+
+    Raises:
+        InputError: naming the file, the offending statistic and the likely unit.
+    """
+    d = np.asarray(recording.tape.distances_m, dtype=float)
+    if d.size == 0:
+        return
+    med, longest = float(np.median(d)), float(d.max())
+    r = np.asarray(recording.scans.ranges_m, dtype=float)
+    r = r[np.isfinite(r)]
+    seen = float(np.percentile(r, 99.9)) if r.size else math.inf
+    if med > MAX_MEDIAN_TAPE_M:
+        what = f"median {med:g} m is longer than any marker distance a laser sees"
+    elif longest > MAX_TAPE_OVER_RANGE * seen:
+        what = (f"the longest distance, {longest:g} m, is more than {MAX_TAPE_OVER_RANGE:g} x the longest range "
+                f"in the recording ({seen:.3g} m)")
+    else:
+        return
+    mm, cm = f"millimetres (median {med / 1000:.3g} m)", f"centimetres (median {med / 100:.3g} m)"
+    likely = f"{mm} or {cm}" if med >= 500.0 else f"{cm} or {mm}"  # markers are usually 0.2-3 m apart
+    raise InputError(f"{path}: distance_m: {what}; the file looks like it is in {likely}: write metres")
+
+
+def _nominal_in_W(result: CalibrationResult, truth: Any) -> tuple[Params | None, str]:
+    """The nominal parameters (nominal.yaml) in the marker frame W, for the figures' "before": possible when the
+    true marker positions (simulator frame, the frame of the nominal mount) align to the tape's map; otherwise
+    (None, label of the default: the calibration's start)."""
+    from .output import truth_dict, truth_frame
+
+    start = (None, "nominal DH, fitted mount")
+    nominal = result.recording.nominal
+    if truth is None or nominal.mount is None:
+        return start
+    found = truth_frame(result, truth_dict(truth))
+    if found is None:
+        return start
+    mount_W = Pose.from_matrix(found[0] @ nominal.mount.matrix())
+    return Params(mount_W, nominal.dh), "nominal.yaml"
+
+
+def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any,
+               warn: Callable[[str], None] | None = None) -> None:
     from . import viz
     from .kinematics import transform_points
     from .output import truth_dict, truth_frame
@@ -68,5 +176,5 @@ def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, tr
                     T_W_world=T_W_sim,
                 )
     viz.log_calibration(
-        result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W
+        result, rrd_path=rrd_path, spawn=spawn, scene_geoms=geoms, truth_markers_W=true_markers_W, warn=warn
     )

@@ -1,137 +1,193 @@
-"""`lrfcal`: calibrate a rotating laser range finder from a recording (thin CLI over lrfcal.app)."""
+"""``lrfcal``: calibrate a servo-turned 2D laser range finder from a recording with reflective markers.
+
+Exit codes: 0 done; 2 bad input or usage (one line ``error: ...`` on stderr); 3 the data do not support a
+trustworthy calibration (one line naming the check).
+"""
 
 from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from .errors import LrfError
+from .cliutil import Command, finite_between, make_app, progress_display, run_app
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, help=__doc__)
+if TYPE_CHECKING:
+    from rich.console import Console
+
+    from .types import CalibrationResult
+
+app = make_app(
+    "Calibrate a servo-turned 2D laser range finder from reflective markers: the mount pose [m, rad] and the "
+    "DH parameters a, alpha, b, beta of the scan plane. Formats: docs/formats.md."
+)
 
 
 @app.callback()
 def _root() -> None:
-    """Calibration of a servo-turned 2D laser range finder from reflective markers."""
+    """Calibrate a servo-turned 2D laser range finder from reflective markers."""
 
 
-@app.command("calibrate")
+@app.command("calibrate", cls=Command)
 def calibrate_cmd(
-    recording: Annotated[Path, typer.Argument(help="Recording folder (bag/, distances.csv, nominal.yaml).")],
-    out: Annotated[Path, typer.Option("-o", "--out", help="Output folder (written atomically).")],
-    bag: Annotated[
-        Path | None, typer.Option(help="Bag to read instead of RECORDING/bag (ROS 1 .bag or ROS 2).")
-    ] = None,
-    distances: Annotated[
-        Path | None, typer.Option(help="Tape distances CSV (default RECORDING/distances.csv).")
-    ] = None,
-    nominal: Annotated[
-        Path | None, typer.Option(help="Nominal values YAML (default RECORDING/nominal.yaml).")
-    ] = None,
-    range_sigma: Annotated[
-        float, typer.Option(help="Range noise sigma [m] of the scanner.", min=1e-5)
-    ] = 0.010,
-    clock_offset: Annotated[float, typer.Option(help="Laser stamp minus servo stamp [s], if known.")] = 0.0,
-    no_baseline: Annotated[bool, typer.Option("--no-baseline", help="Skip the paper's variant.")] = False,
-    overwrite: Annotated[bool, typer.Option(help="Replace an existing output folder.")] = False,
-    rrd: Annotated[
-        Path | None, typer.Option("--rrd", help="Save a rerun recording (.rrd), headless.")
-    ] = None,
-    spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer.")] = False,
+    recording: Annotated[Path, typer.Argument(help="Recording folder: bag/, distances.csv, nominal.yaml.",
+                                              metavar="RECORDING", show_default=False)],
+    out: Annotated[Path, typer.Option("-o", "--out", metavar="DIR", show_default=False,
+                                      help="Output folder (written atomically; must not overlap an input).")],
+    bag: Annotated[Path | None, typer.Option(metavar="PATH", show_default=False,
+                                             help="Bag to read (ROS 1 .bag or ROS 2)  [default: RECORDING/bag]")
+                   ] = None,
+    distances: Annotated[Path | None, typer.Option(metavar="CSV", show_default=False,
+                                                   help="Tape distances [m]  [default: RECORDING/distances.csv]")
+                         ] = None,
+    nominal: Annotated[Path | None, typer.Option(metavar="YAML", show_default=False,
+                                                 help="Nominal values  [default: RECORDING/nominal.yaml]")] = None,
+    range_sigma: Annotated[float, typer.Option(metavar="M", callback=finite_between(1e-5, 10.0, "m"),
+                                               help="Range noise sigma of the scanner [m], 1e-5..10.")] = 0.010,
+    clock_offset: Annotated[float, typer.Option(metavar="S", callback=finite_between(-10.0, 10.0, "s"),
+                                                help="Laser stamp minus servo stamp [s], if known, -10..10.")
+                            ] = 0.0,
+    no_baseline: Annotated[bool, typer.Option("--no-baseline", help="Skip the paper's method.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite",
+                                            help="Replace an output folder lrfcal wrote before.")] = False,
+    rrd: Annotated[Path | None, typer.Option("--rrd", metavar="FILE", show_default=False,
+                                             help="Save a rerun recording (.rrd), headless.")] = None,
+    spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer (else save DIR/rerun.rrd).")
+                     ] = False,
+    force: Annotated[bool, typer.Option("--force", help="Write the result even when a consistency check fails "
+                                        "(the failed checks are recorded in calibration.yaml and the report).")
+                     ] = False,
+    scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
+    servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
+    unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
+    servo_stamp: ServoStampOpt = None, tf_parent: TfParentOpt = None, tf_child: TfChildOpt = None,
+    tf_axis: TfAxisOpt = None,
 ) -> None:
-    """Calibrate the 10 parameters from RECORDING and write calibration.yaml, rig.urdf, clouds and a report."""
+    """Calibrate the rig from RECORDING.
+
+    Writes calibration.yaml, rig.urdf, the clouds before/after, report.md and its figures into DIR. Exit code 3
+    (nothing written) when the data do not support a trustworthy calibration: the one line names the check.
+    """
     from rich.console import Console
 
     from .app import calibrate_folder
     from .pipeline import CalibConfig
 
     console = Console()
-    config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline)
-    result = calibrate_folder(
-        recording,
-        out,
-        bag=bag,
-        distances=distances,
-        nominal=nominal,
-        config=config,
-        overwrite=overwrite,
-        rrd_path=rrd,
-        spawn=spawn,
-    )
+    config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
+                         force=force)
+    options = {k: v for k, v in dict(
+        scan_topic=scan_topic, scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic,
+        servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,
+        servo_offset=servo_offset, servo_stamp=servo_stamp, tf_parent=tf_parent, tf_child=tf_child,
+        tf_axis=tf_axis).items() if v is not None}
+    with progress_display(f"calibrating {recording.name}") as hooks:
+        result = calibrate_folder(
+            recording,
+            out,
+            bag=bag,
+            distances=distances,
+            nominal=nominal,
+            config=config,
+            overwrite=overwrite,
+            rrd_path=rrd,
+            spawn=spawn,
+            progress=hooks.stage,
+            warn=lambda line: print(f"warning: {line}", file=sys.stderr),
+            options=options,
+        )
     print_summary(result, console)
-    console.print(f"wrote {out}")
+    failed = [c for c in result.checks if not c.passed]
+    for c in failed:
+        console.print(f"FAILED check (written because of --force): {c.name}: {c.detail}", markup=False)
+    for note in result.notes:
+        console.print(f"note: {note}", markup=False)
+    console.print(f"wrote {out}", markup=False)
 
 
-def print_summary(result, console) -> None:  # type: ignore[no-untyped-def]
-    """Estimated parameters with 1-sigma, residual RMS and stage timings."""
+def print_summary(result: CalibrationResult, console: Console) -> None:
+    """The estimated parameters with their 1-sigma, the solver status, the residual RMS and stage timings.
+
+    The sigma vector is in :data:`~lrfcal.kinematics.ESTIMATE_NAMES` order: the mount rotation is estimated as a
+    small rotation vector (rx, ry, rz), so roll, pitch and yaw are shown without a sigma and the rotation's
+    1-sigma gets its own rows.
+    """
     import math
 
     from rich.table import Table
 
-    from .kinematics import ANGLE_NAMES, PARAM_NAMES
+    from .kinematics import ANGLE_NAMES, ESTIMATE_NAMES, PARAM_NAMES
+    from .output import residual_summary
 
     sol = result.solution
-    table = Table(title=f"Calibration ({sol.n_observations} marker returns, {sol.status})")
+    table = Table(title="Calibration")
     for h in ("parameter", "start", "estimate", "1-sigma", "paper's method"):
         table.add_column(h, justify="right")
     start, est = result.start.vector(), sol.params.vector()
+    sigma = [float(v) for v in sol.sigma]
     paper = None if result.baseline is None else result.baseline.params.vector()
+
+    def shown(name: str, v: float) -> str:
+        return f"{math.degrees(v):.3f}" if name in ANGLE_NAMES else f"{v * 1000:.3f}"
+
+    def sigma_of(name: str) -> str:
+        i = ESTIMATE_NAMES.index(name) if name in ESTIMATE_NAMES else -1
+        return shown(name, sigma[i]) if 0 <= i < len(sigma) else "-"
+
     for i, n in enumerate(PARAM_NAMES):
-        f, unit = (math.degrees, "deg") if n in ANGLE_NAMES else ((lambda v: v * 1000), "mm")
-        table.add_row(
-            f"{n} ({unit})",
-            f"{f(start[i]):.3f}",
-            f"{f(est[i]):.3f}",
-            f"{f(sol.sigma[i]):.3f}",
-            "-" if paper is None else f"{f(paper[i]):.3f}",
-        )
+        unit = "deg" if n in ANGLE_NAMES else "mm"
+        table.add_row(f"{n} ({unit})", shown(n, start[i]), shown(n, est[i]), sigma_of(n),
+                      "-" if paper is None else shown(n, paper[i]))
+    for n in ESTIMATE_NAMES:
+        if n not in PARAM_NAMES:  # rx, ry, rz: the rotation's uncertainty about M's axes
+            table.add_row(f"{n} (deg)", "", "", sigma_of(n), "")
     console.print(table)
-    console.print(
-        f"residual RMS {sol.residual_rms_m * 1000:.2f} mm over {len(set(result.observations.marker.tolist()))} "
-        f"markers; stages: " + ", ".join(f"{k} {v:.2f}s" for k, v in result.timings_s.items())
-    )
+    console.print("rx, ry, rz: 1-sigma of the mount rotation about the motor frame's x, y, z axes", markup=False)
+    console.print(f"solver: {' '.join(str(sol.status).split())} ({sol.n_iterations} iterations)",
+                  markup=False)
+    console.print(f"{residual_summary(result)}; stages: "
+                  + ", ".join(f"{k} {v:.2f}s" for k, v in result.timings_s.items()), markup=False)
 
 
 # --- real rigs' bags: inspect and reproject (issue 8) -------------------------------------------------------
 
 ScanTopicOpt = Annotated[str | None, typer.Option(
-    "--scan-topic", help="Topic of the scans (rig file scan.topic; default /scan).")]
+    "--scan-topic", metavar="TOPIC", show_default=False, help="Topic of the scans (rig file scan.topic; default /scan).")]
 ScanFieldOpt = Annotated[str | None, typer.Option(
-    "--scan-field", help="Dotted path of a LaserScan inside a larger message (scan.field; default: none, the "
+    "--scan-field", metavar="PATH", show_default=False, help="Dotted path of a LaserScan inside a larger message (scan.field; default: none, the "
     "topic is a sensor_msgs/LaserScan).")]
 ScanStampOpt = Annotated[str | None, typer.Option(
-    "--scan-stamp", help="header | receive: scan time from header.stamp or the bag's receive time "
+    "--scan-stamp", metavar="MODE", show_default=False, help="header | receive: scan time from header.stamp or the bag's receive time "
     "(scan.stamp; default header).")]
 ServoTopicOpt = Annotated[str | None, typer.Option(
-    "--servo-topic", help="Topic of the servo angle (servo.topic; default /joint_states).")]
+    "--servo-topic", metavar="TOPIC", show_default=False, help="Topic of the servo angle (servo.topic; default /joint_states).")]
 ServoFieldOpt = Annotated[str | None, typer.Option(
-    "--servo-field", help="Dotted path of the numeric angle field (servo.field; default data for std_msgs, "
+    "--servo-field", metavar="PATH", show_default=False, help="Dotted path of the numeric angle field (servo.field; default data for std_msgs, "
     "current_pos for dynamixel_msgs/JointState).")]
 JointOpt = Annotated[str | None, typer.Option(
-    "--joint", help="Joint name in sensor_msgs/JointState (servo.joint; default servo).")]
+    "--joint", metavar="NAME", show_default=False, help="Joint name in sensor_msgs/JointState (servo.joint; default servo).")]
 UnitOpt = Annotated[str | None, typer.Option(
-    "--unit", help="rad | deg | counts: unit of the recorded angle (servo.unit; default rad).")]
+    "--unit", metavar="UNIT", show_default=False, help="rad | deg | counts: unit of the recorded angle (servo.unit; default rad).")]
 CountsOpt = Annotated[float | None, typer.Option(
-    "--counts-per-rev", help="Encoder counts per revolution with --unit counts (e.g. 4096).")]
+    "--counts-per-rev", metavar="N", show_default=False, help="Encoder counts per revolution with --unit counts (e.g. 4096).")]
 SignOpt = Annotated[int | None, typer.Option(
-    "--sign", help="1 or -1: -1 when the servo turns the other way (servo.sign; default 1).")]
+    "--sign", "--servo-sign", metavar="SIGN", show_default=False, help="1 or -1: -1 when the servo turns the other way (servo.sign; default 1).")]
 OffsetOpt = Annotated[float | None, typer.Option(
-    "--servo-offset", help="Added after unit and sign (rad): the angle at lambda = 0 (servo.offset_rad; "
+    "--servo-offset", metavar="RAD", show_default=False, help="Added after unit and sign [rad]: the angle at lambda = 0 (servo.offset_rad; "
     "default 0).")]
 ServoStampOpt = Annotated[str | None, typer.Option(
-    "--servo-stamp", help="header | receive | scan: servo sample time; scan = the angle is a field of the scan's "
+    "--servo-stamp", metavar="MODE", show_default=False, help="header | receive | scan: servo sample time; scan = the angle is a field of the scan's "
     "message (servo.stamp; default header).")]
 TfParentOpt = Annotated[str | None, typer.Option(
-    "--tf-parent", help="Take the angle from /tf: the parent frame (servo.tf.parent; with --tf-child).")]
-TfChildOpt = Annotated[str | None, typer.Option("--tf-child", help="Child frame in /tf (servo.tf.child).")]
+    "--tf-parent", metavar="FRAME", show_default=False, help="Take the angle from /tf: the parent frame (servo.tf.parent; with --tf-child).")]
+TfChildOpt = Annotated[str | None, typer.Option("--tf-child", metavar="FRAME", show_default=False, help="Child frame in /tf (servo.tf.child).")]
 TfAxisOpt = Annotated[str | None, typer.Option(
-    "--tf-axis", help="x | y | z: rotation axis of the tf joint in the parent frame (default z).")]
+    "--tf-axis", metavar="AXIS", show_default=False, help="x | y | z: rotation axis of the tf joint in the parent frame (default z).")]
 
 
-@app.command("inspect")
+@app.command("inspect", cls=Command)
 def inspect_cmd(
     bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).")],
     nominal: Annotated[Path | None, typer.Option(
@@ -205,7 +261,7 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
     console.print(Syntax(result.rig_snippet, "yaml"))
 
 
-@app.command("reproject")
+@app.command("reproject", cls=Command)
 def reproject_cmd(
     bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).")],
     nominal: Annotated[Path, typer.Option(
@@ -219,8 +275,8 @@ def reproject_cmd(
         "--bag-out", help="Also write a ROS 2 bag (MCAP) of sensor_msgs/msg/PointCloud2 on /lrf_cloud, one "
         "cloud per sweep (frame lrf_motor).")] = None,
     clock_offset: Annotated[float, typer.Option(
-        "--clock-offset", help="Fine laser-minus-servo clock offset (s) on top of the reader's coarse one "
-        "(default 0).")] = 0.0,
+        "--clock-offset", metavar="S", callback=finite_between(-10.0, 10.0, "s"),
+        help="Fine laser-minus-servo clock offset [s] on top of the reader's coarse one, -10..10.")] = 0.0,
     scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
@@ -255,24 +311,9 @@ def reproject_cmd(
         console.print(line, markup=False)
 
 
-def main() -> None:
-    """Console entry point: any LrfError becomes one line on stderr and exit code 2."""
-    try:
-        app(standalone_mode=False)
-    except LrfError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(e.exit_code)
-    except typer.Exit as e:
-        sys.exit(e.exit_code)
-    except Exception as e:  # click usage errors
-        import click
-
-        if isinstance(e, click.exceptions.ClickException):
-            e.show()
-            sys.exit(e.exit_code)
-        if isinstance(e, click.exceptions.Abort):
-            sys.exit(1)
-        raise
+def main(argv: list[str] | None = None) -> None:
+    """Console entry point: usage errors and any LrfError become one line on stderr and their exit code."""
+    run_app(app, argv, "lrfcal")
 
 
 if __name__ == "__main__":

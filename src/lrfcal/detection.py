@@ -92,7 +92,13 @@ def contrast(scans: Scans, seed: int = 0) -> tuple[FloatArray, float, float]:
     valid = np.isfinite(r) & np.isfinite(inten) & (inten > 0)
     if not np.any(valid):
         src = scans.source or "scans"
-        raise InputError(f"{src}: no intensities (enable publish_intensity)")
+        if not np.any(np.isfinite(r)):
+            raise InputError(f"{src}: ranges: no valid range in {r.size} beams (all NaN, inf or outside "
+                             f"[range_min {scans.range_min_m:g}, range_max {scans.range_max_m:g}] m)")
+        if not np.any(np.isfinite(inten) & (inten > 0)):
+            raise InputError(f"{src}: intensities: none in the scans (enable the driver's intensity output, "
+                             "e.g. urg_node's publish_intensity)")
+        raise InputError(f"{src}: no return has both a valid range and an intensity > 0")
     r_v = r[valid]
     log_r, log_i = np.log(r_v), np.log(inten[valid])  # computed once, for the model and the contrast
     kx, ky = _background_model_log(log_r, log_i, seed)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .kinematics import Params
 from .types import CalibrationResult
 from .viz import marker_returns
 
@@ -68,12 +69,48 @@ def _rms_mm(norms_m: FloatArray) -> float:
     return float(np.sqrt(np.mean(norms_m**2)) * 1e3) if norms_m.size else float("nan")
 
 
+def _place_labels(ax: Any, items: list[tuple[float, float, str, str]], fontsize: float) -> int:
+    """Write labels (x, y, text, colour) beside their points without overprinting: each label takes the first
+    free spot among 8 offsets around its point (display coordinates); a label with no free spot is skipped.
+    Returns the number of labels skipped."""
+    fig = ax.figure
+    fig.canvas.draw()  # display transforms are final only after a draw
+    to_px = ax.transData.transform
+    px_per_pt = fig.dpi / 72.0
+    h = fontsize * px_per_pt * 1.2
+    box = ax.get_window_extent()
+    taken: list[tuple[float, float, float, float]] = []
+    for x, y, _t, _c in items:  # the marks themselves are taken
+        cx, cy = to_px((x, y))
+        taken.append((cx - 6, cy - 6, cx + 6, cy + 6))
+    skipped = 0
+    offsets = [(1, 0), (-1, 0), (1, 1), (-1, 1), (1, -1), (-1, -1), (0, 1.6), (0, -1.6)]
+    for x, y, text, colour in items:
+        w = 0.62 * fontsize * px_per_pt * len(text)
+        cx, cy = to_px((x, y))
+        for dx, dy in offsets:
+            x0 = cx + (8 if dx > 0 else -8 - w if dx < 0 else -w / 2)
+            y0 = cy + dy * 0.8 * h - h / 2
+            cand = (x0, y0, x0 + w, y0 + h)
+            inside = box.x0 <= cand[0] and cand[2] <= box.x1 and box.y0 <= cand[1] and cand[3] <= box.y1
+            if inside and all(cand[2] < t[0] or cand[0] > t[2] or cand[3] < t[1] or cand[1] > t[3] for t in taken):
+                taken.append(cand)
+                ax.annotate(text, (x, y), xytext=(x0 - cx, y0 - cy), textcoords="offset pixels", color=colour,
+                            fontsize=fontsize, ha="left", va="bottom", annotation_clip=False)
+                break
+        else:
+            skipped += 1
+    return skipped
+
+
 def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
-    """The (S, N) intensity image (paper Figs. 8/9) in log scale, before and after thresholding.
+    """The (S, N) intensity image (paper Figs. 8/9) in log scale, and the detected marker returns.
 
     Left: all intensities, x = beam angle mu [deg], y = scan index, log colour scale with colorbar
-    "intensity [counts]", detected blobs outlined. Right: only returns at or above the threshold, blob boxes
-    labelled with their marker id and peak returns marked. Returns the written path.
+    "intensity [counts]", detected blobs outlined. Right: only the marker candidates (returns whose intensity is
+    above the range-dependent background by the detection's contrast threshold, see lrfcal.detection), blob
+    peaks marked and labelled with their marker id, or "unmatched" (in red) for a blob the association did not
+    give a marker; labels that would overprint are skipped. Returns the written path.
     """
     from matplotlib.colors import LogNorm
     from matplotlib.patches import Rectangle
@@ -85,15 +122,17 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
     step = float(np.median(np.abs(np.diff(mu_deg)))) if N > 1 else 1.0
     x0, x1 = float(mu_deg.min()) - step / 2, float(mu_deg.max()) + step / 2
     flip = N > 1 and mu_deg[-1] < mu_deg[0]  # negative angle increment: show increasing angle left to right
+    det = result.detections
+    cand = np.asarray(det.labels) >= 0
     img = inten[:, ::-1] if flip else inten
+    cand = cand[:, ::-1] if flip else cand
     pool = max(1, int(np.ceil(S / MAX_FIGURE_ROWS)))  # max-pool scans so that thin blobs stay visible
     if pool > 1:
         img = np.vstack([img, np.zeros(((-S) % pool, N))]).reshape(-1, pool, N).max(axis=1)
+        cand = np.vstack([cand, np.zeros(((-S) % pool, N), bool)]).reshape(-1, pool, N).any(axis=1)
     positive = img[np.isfinite(img) & (img > 0)]
     vmin = max(float(np.percentile(positive, 1.0)) if positive.size else 1.0, 1.0)
     vmax = max(float(positive.max()) if positive.size else 10.0, vmin * 10)
-    thr = float(result.detections.threshold)
-    det = result.detections
     ids = result.markers.marker_ids
     b2m = result.association.blob_to_marker
 
@@ -105,15 +144,17 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
 
         cmap = matplotlib.colormaps["inferno"].with_extremes(bad="black")
         fig = _new_figure()
-        axes = fig.subplots(1, 2, sharex=True, sharey=True)
+        axes = fig.subplots(1, 2)
         shown = np.ma.masked_invalid(np.where(img > 0, img, np.nan))
-        above = np.ma.masked_where(~(img >= thr), shown)
+        above = np.ma.masked_where(~cand, shown)
         kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x1, -0.5, img.shape[0] * pool - 0.5),
               "cmap": cmap,
               "norm": LogNorm(vmin=vmin, vmax=vmax), "interpolation": "nearest"}
         im = axes[0].imshow(shown, **kw)
         axes[1].imshow(above, **kw)
         axes[1].set_facecolor("#202020")
+        labels: list[tuple[float, float, str, str]] = []
+        n_unmatched = 0
         for j, b in enumerate(det.blobs):
             xs = [beam_x(int(b.beam_idx.min())), beam_x(int(b.beam_idx.max()))]
             lo, hi = min(xs) - step / 2, max(xs) + step / 2
@@ -121,105 +162,149 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
             # outline with a margin, at least ~1 % of the axes in each direction so that it stays visible
             mx = max(step, 0.005 * (x1 - x0), 0.5 * (0.01 * (x1 - x0) - (hi - lo)))
             my = max(1.0, 0.005 * S, 0.5 * (0.015 * S - (s1 - s0)))
-            for ax in axes:
-                ax.add_patch(Rectangle((lo - mx, s0 - my), hi - lo + 2 * mx, s1 - s0 + 2 * my, fill=False,
-                                       edgecolor="#00d8ff", linewidth=1.0))
             m = int(b2m[j]) if j < b2m.size else -1
-            if m >= 0:  # label beside the box, on the side with more room
-                right = hi < 0.5 * (x0 + x1)
-                axes[1].annotate(ids[m], (hi + mx + step if right else lo - mx - step, 0.5 * (s0 + s1)),
-                                 color="white", fontsize=FONT_SIZE_PT - 1, ha="left" if right else "right",
-                                 va="center", annotation_clip=True)
+            edge = "#00d8ff" if m >= 0 else "#ff4040"
+            axes[0].add_patch(Rectangle((lo - mx, s0 - my), hi - lo + 2 * mx, s1 - s0 + 2 * my, fill=False,
+                                        edgecolor=edge, linewidth=1.0))
+            labels.append((beam_x(b.peak_beam), float(b.peak_scan), ids[m] if m >= 0 else "unmatched",
+                           "white" if m >= 0 else "#ff6060"))
+            n_unmatched += m < 0
         if det.blobs:
             px = [beam_x(b.peak_beam) for b in det.blobs]
             py = [b.peak_scan for b in det.blobs]
             axes[1].plot(px, py, "+", color="#00ff60", markersize=9, markeredgewidth=1.5)
         axes[0].set_xlim(x0, x1)
         axes[0].set_ylim(-0.5, S - 0.5)
+        axes[1].set_xlim(x0, x1)
+        axes[1].set_ylim(-0.5, S - 0.5)
+        if det.blobs:  # the right panel zooms onto the blobs (at least a quarter of the image each way)
+            bx = np.array([beam_x(int(b.beam_idx.min())) for b in det.blobs]
+                          + [beam_x(int(b.beam_idx.max())) for b in det.blobs])
+            by = np.array([float(b.scan_idx.min()) for b in det.blobs] + [float(b.scan_idx.max()) for b in det.blobs])
+            cx, cy = 0.5 * (bx.min() + bx.max()), 0.5 * (by.min() + by.max())
+            hx = max(0.6 * (bx.max() - bx.min()) + 5 * step, 0.125 * (x1 - x0))
+            hy = max(0.6 * (by.max() - by.min()) + 5, 0.125 * S)
+            axes[1].set_xlim(max(x0, cx - hx), min(x1, cx + hx))
+            axes[1].set_ylim(max(-0.5, cy - hy), min(S - 0.5, cy + hy))
         pooled = f", {pool}-scan max" if pool > 1 else ""
-        axes[0].set_title(f"all returns ({S} x {N}{pooled})")
-        axes[1].set_title(f"above {thr:.0f} counts: {len(det.blobs)} blobs (+ peak)")
+        axes[0].set_title(f"all returns ({S} x {N}{pooled}), blobs outlined")
+        unmatched = f", {n_unmatched} unmatched" if n_unmatched else ""
+        axes[1].set_title(f"zoom: marker candidates, {len(det.blobs)} blobs{unmatched}")
         for ax in axes:
             ax.set_xlabel("beam angle mu [deg]")
-        axes[0].set_ylabel("scan index")
+            ax.set_ylabel("scan index")
         fig.colorbar(im, ax=axes, label="intensity [counts]", shrink=0.95)
         fig.suptitle("Marker detection in the (scan, beam) intensity image", fontsize=FONT_SIZE_PT + 2)
+        fig.supxlabel("candidates: brighter than the range-dependent background by the contrast threshold (bright "
+                      "walls seen head-on are not); + blob peak, label = its marker", fontsize=FONT_SIZE_PT - 2,
+                      color="#444444")
+        skipped = _place_labels(axes[1], labels, FONT_SIZE_PT - 2)
+        if skipped:
+            axes[1].text(0.99, 0.01, f"{skipped} labels skipped (no room)", transform=axes[1].transAxes,
+                         ha="right", va="bottom", color="#bbbbbb", fontsize=FONT_SIZE_PT - 2)
         return _save(fig, path)
 
 
-def _principal_axes(points: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Centroid (3,) and the 3 principal axes (3, 3) (rows, by decreasing spread) of points (n, 3).
+def _view_frame(centre_W: FloatArray, eye_W: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Two unit vectors (u, v) spanning the plane perpendicular to the view ray eye -> centre; v as close to
+    +z of W as possible ("up"), u = v x ray."""
+    ray = centre_W - eye_W
+    n = float(np.linalg.norm(ray))
+    ray = ray / n if n > 0 else np.array([1.0, 0.0, 0.0])
+    up = np.array([0.0, 0.0, 1.0])
+    if abs(float(ray @ up)) > 0.95:
+        up = np.array([0.0, 1.0, 0.0])
+    v = up - (up @ ray) * ray
+    v /= np.linalg.norm(v)
+    u = np.cross(v, ray)
+    return u, v
 
-    Each axis' largest-magnitude component is made positive so the projection does not flip between runs.
+
+#: At most this many per-marker panels in alignment.png (the markers with the most returns).
+MAX_MARKER_PANELS = 35
+
+
+def alignment_figure(result: CalibrationResult, path: Path | str, before: Params | None = None,
+                     before_label: str = "nominal DH, fitted mount") -> Path:
+    """Per-marker close-ups of the reprojected marker returns, before and after calibration (paper Figs. 11/12).
+
+    One small panel per marker (the same scale in all, in mm, so the whole layout never projects markers onto
+    each other): the returns of that marker reprojected into W with ``before`` (default: the calibration's
+    start, i.e. the nominal DH with the mount fitted to the markers) and with the calibrated parameters,
+    seen from the motor: coordinates in the plane perpendicular to the ray from the motor origin to the
+    marker centre (u to the right, v up), relative to the marker centre; the circle is the marker sphere.
+    Lateral offsets there are what the calibration corrects. Returns the written path.
     """
-    c = points.mean(axis=0)
-    if points.shape[0] < 2:
-        return c, np.eye(3)
-    _, _, Vt = np.linalg.svd(points - c, full_matrices=True)
-    idx = np.argmax(np.abs(Vt), axis=1)
-    Vt = Vt * np.sign(Vt[np.arange(3), idx])[:, None]
-    return c, Vt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Circle
 
-
-def alignment_figure(result: CalibrationResult, path: Path | str) -> Path:
-    """Markers and reprojected marker returns, before and after calibration (paper Figs. 11/12), in W.
-
-    Two panels sharing axes; points are projected on the plane of the two largest principal axes of the
-    marker positions (u, v in m, relative to the markers' centroid), residuals drawn as lines to the marker
-    surface. Each title gives the 3D residual RMS [mm]. Returns the written path.
-    """
     markers = np.asarray(result.markers.positions_W, dtype=float)
     ids = result.markers.marker_ids
-    c, V = _principal_axes(markers)
-
-    def proj(p: FloatArray) -> FloatArray:
-        return (p - c) @ V[:2].T
-
+    r_mm = float(result.recording.nominal.marker_radius_m) * 1e3
+    before = before if before is not None else result.start
+    eye = np.asarray(result.solution.params.mount.matrix(), dtype=float)[:3, 3]
     stages = {}
-    for name, params in (("before", result.start), ("after", result.solution.params)):
+    for name, params in (("before", before), ("after", result.solution.params)):
         p, to_m, mk, _ = marker_returns(result, params)
-        stages[name] = (p, to_m, mk, np.linalg.norm(to_m, axis=1))
-    m2 = proj(markers)
-    allpts = np.vstack([m2] + [proj(s[0]) for s in stages.values()])
-    allpts = allpts[np.isfinite(allpts).all(axis=1)]
-    lo, hi = allpts.min(axis=0), allpts.max(axis=0)
-    pad = 0.08 * max(float((hi - lo).max()), 0.05)
-
+        stages[name] = (p, mk, np.linalg.norm(to_m, axis=1))
+    counts = np.bincount(stages["after"][1], minlength=len(ids)) if len(ids) else np.zeros(0, int)
+    shown = [int(i) for i in np.argsort(-counts, kind="stable")[:MAX_MARKER_PANELS] if counts[i] > 0]
+    shown.sort()
+    local: dict[tuple[str, int], FloatArray] = {}
+    extent = 2.0 * r_mm
+    for m in shown:
+        u, v = _view_frame(markers[m], eye)
+        for name, (p, mk, _) in stages.items():
+            d = (p[mk == m] - markers[m]) * 1e3
+            q = np.stack([d @ u, d @ v], axis=1)
+            local[(name, m)] = q
+            if q.size and name == "after":
+                extent = max(extent, float(np.percentile(np.abs(q), 98)))
+    extent *= 1.3  # zoomed on the calibrated returns; "before" returns beyond it are shown by an arrow
+    n = max(len(shown), 1)
+    cols = int(np.ceil(np.sqrt(n * WIDTH_PX / HEIGHT_PX)))
+    rows = int(np.ceil(n / cols))
     with _rc():
         fig = _new_figure()
-        span = (hi - lo) + 2 * pad
-        stacked = span[0] > 2.2 * span[1]  # wide layouts use the width better one above the other
-        axes = fig.subplots(2 if stacked else 1, 1 if stacked else 2, sharex=True, sharey=True).ravel()
-        for ax, (name, (p, to_m, _mk, norms)) in zip(axes, stages.items(), strict=True):
-            color = _C_BEFORE if name == "before" else _C_AFTER
-            p2, q2 = proj(p), proj(p + to_m)
-            if p2.size:
-                segs = np.stack([p2, q2], axis=1)
-                from matplotlib.collections import LineCollection
-
-                ax.add_collection(LineCollection(segs, colors=color, linewidths=0.8, alpha=0.7,
-                                                 label="residual (to marker surface)"))
-            ax.scatter(p2[:, 0], p2[:, 1], s=12, color=color, zorder=3,
-                       label=f"reprojected marker returns (K = {len(p)})")
-            ax.scatter(m2[:, 0], m2[:, 1], s=110, facecolors="none", edgecolors=_C_MARKER, linewidths=1.8,
-                       label="markers (MDS from tape)", zorder=4)
-            for i, mid in enumerate(ids):
-                ax.annotate(mid, m2[i], xytext=(6, 6), textcoords="offset points", fontsize=FONT_SIZE_PT - 1,
-                            color=_C_MARKER)
-            what = "start parameters" if name == "before" else "calibrated parameters"
-            ax.set_title(f"{name} ({what}): residual RMS {_rms_mm(norms):.1f} mm")
-            if not stacked or name == "after":
-                ax.set_xlabel("u: 1st principal axis of the markers [m]")
-            if stacked or name == "before":
-                ax.set_ylabel("v: 2nd principal axis [m]")
+        axes = np.atleast_1d(fig.subplots(rows, cols, sharex=True, sharey=True, squeeze=False)).ravel()
+        for ax in axes[len(shown):]:
+            ax.set_visible(False)
+        arrows = 0
+        for ax, m in zip(axes, shown, strict=False):
+            ax.add_patch(Circle((0, 0), r_mm, fill=False, edgecolor=_C_MARKER, linewidth=1.5))
+            ax.plot([0], [0], "+", color=_C_MARKER, markersize=6)
+            rms = {}
+            for name, color in (("before", _C_BEFORE), ("after", _C_AFTER)):
+                q = local[(name, m)]
+                ax.scatter(q[:, 0], q[:, 1], s=6, color=color, alpha=0.7, linewidths=0, clip_on=True)
+                norms = stages[name][2][stages[name][1] == m]
+                rms[name] = _rms_mm(norms)
+                out = q[(np.abs(q) > extent).any(axis=1)] if q.size else q
+                if name == "before" and len(out) > 0.5 * len(q) and len(q):  # most "before" returns off the panel
+                    arrows += 1
+                    c = np.median(q, axis=0)
+                    dist = float(np.linalg.norm(c))
+                    tip = c / max(float(np.abs(c).max()), 1e-9) * 0.92 * extent
+                    ax.annotate("", xy=tip, xytext=tip * 0.35, arrowprops={"arrowstyle": "-|>", "color": color,
+                                                                          "lw": 1.8})
+                    ax.text(*(tip * 0.3), f"{dist:.0f} mm", color=color, fontsize=FONT_SIZE_PT - 3,
+                            ha="center", va="center", bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
+            ax.set_title(f"{ids[m]}: {rms['before']:.1f} -> {rms['after']:.1f} mm", fontsize=FONT_SIZE_PT - 2,
+                         pad=2)
             ax.set_aspect("equal", adjustable="box")
             ax.grid(True, alpha=0.3)
-            ax.legend(loc="center left" if stacked else "upper center",
-                      bbox_to_anchor=(1.02, 0.5) if stacked else (0.5, -0.17), ncols=1)
-        axes[0].set_xlim(lo[0] - pad, hi[0] + pad)
-        axes[0].set_ylim(lo[1] - pad, hi[1] + pad)
-        fig.suptitle("Marker returns reprojected into W (projection on the markers' principal plane)",
-                     fontsize=FONT_SIZE_PT + 2)
+            ax.tick_params(labelsize=FONT_SIZE_PT - 3)
+        axes[0].set_xlim(-extent, extent)
+        axes[0].set_ylim(-extent, extent)
+        rb, ra = (_rms_mm(stages[k][2]) for k in ("before", "after"))
+        handles = [Line2D([], [], ls="", marker="o", color=_C_BEFORE, label=f"before ({before_label}): RMS {rb:.1f} mm"
+                          + (" (arrow: towards returns off the panel)" if arrows else "")),
+                   Line2D([], [], ls="", marker="o", color=_C_AFTER, label=f"after (calibrated): RMS {ra:.1f} mm"),
+                   Line2D([], [], ls="", marker="o", mfc="none", mec=_C_MARKER, markersize=9,
+                          label=f"marker (r = {r_mm:g} mm)")]
+        fig.legend(handles=handles, loc="outside lower center", ncols=2, fontsize=FONT_SIZE_PT - 1, frameon=False)
+        fig.suptitle("Returns per marker seen from the motor [mm] (u across the ray, v up; RMS before -> after)",
+                     fontsize=FONT_SIZE_PT + 1)
         return _save(fig, path)
 
 
@@ -228,14 +313,21 @@ def _plain(v: float, _pos: object = None) -> str:
     return f"{v:g}"
 
 
-def residual_figure(result: CalibrationResult, path: Path | str) -> Path:
-    """Histogram of residual norms [mm] before/after (log bins) and per-marker RMS [mm] as grouped bars."""
+def residual_figure(result: CalibrationResult, path: Path | str, before: Params | None = None,
+                    before_label: str = "nominal DH, fitted mount") -> Path:
+    """Histogram of residual norms [mm] before/after (log bins) and per-marker RMS [mm] as grouped bars.
+
+    A return inside its marker sphere has residual 0 (see :func:`lrfcal.viz.marker_returns`); those cannot sit
+    on a log axis, so they are counted in the legend instead of drawn. ``before`` as in
+    :func:`alignment_figure`.
+    """
     from matplotlib.ticker import FuncFormatter, MaxNLocator
 
     ids = result.markers.marker_ids
     n = len(ids)
     data = {}
-    for name, params in (("before", result.start), ("after", result.solution.params)):
+    for name, params in (("before", before if before is not None else result.start),
+                         ("after", result.solution.params)):
         _, to_m, mk, _ = marker_returns(result, params)
         norms_mm = np.linalg.norm(to_m, axis=1) * 1e3
         per = np.array([_rms_mm(norms_mm[mk == m] / 1e3) for m in range(n)])
@@ -251,24 +343,27 @@ def residual_figure(result: CalibrationResult, path: Path | str) -> Path:
         ax_h, ax_b = fig.subplots(1, 2, width_ratios=[1, 1.2])
         for name, (norms_mm, _) in data.items():
             color = _C_BEFORE if name == "before" else _C_AFTER
-            v = np.clip(norms_mm[np.isfinite(norms_mm)], lo, None)
+            finite = norms_mm[np.isfinite(norms_mm)]
+            v = finite[finite > 0]
+            inside = int(finite.size - v.size)
             med = float(np.median(norms_mm)) if norms_mm.size else float("nan")
             ax_h.hist(v, bins=bins, color=color, alpha=0.6,
-                      label=f"{name}: RMS {_rms_mm(norms_mm / 1e3):.1f} mm, median {med:.1f} mm")
+                      label=f"{name}: RMS {_rms_mm(norms_mm / 1e3):.1f}, median {med:.1f} mm; {inside} at 0")
         ax_h.set_xscale("log")
         ax_h.xaxis.set_major_formatter(FuncFormatter(_plain))
         ax_h.yaxis.set_major_locator(MaxNLocator(integer=True))
-        ax_h.set_xlabel("residual norm |return - marker surface| [mm]")
+        ax_h.set_xlabel("distance of a return to its marker sphere [mm] (0: inside, not drawn)")
         ax_h.set_ylabel("number of marker returns")
         ax_h.set_title(f"residual norms (K = {data['after'][0].size} returns)")
-        ax_h.legend(loc="upper left")
+        ax_h.legend(loc="upper left", fontsize=FONT_SIZE_PT - 2)
         ax_h.grid(True, alpha=0.3, which="both")
 
         x = np.arange(n)
         w = 0.4
         for k, (name, (_, per)) in enumerate(data.items()):
             color = _C_BEFORE if name == "before" else _C_AFTER
-            bars = ax_b.bar(x + (k - 0.5) * w, np.nan_to_num(per), width=w, color=color, label=name)
+            bars = ax_b.bar(x + (k - 0.5) * w, np.nan_to_num(per), width=w, color=color,
+                            label=name if name == "after" else f"before ({before_label})")
             if n <= 16:
                 ax_b.bar_label(bars, labels=[f"{v:.1f}" if np.isfinite(v) else "" for v in per],
                                fontsize=FONT_SIZE_PT - 2, padding=2)
@@ -285,20 +380,24 @@ def residual_figure(result: CalibrationResult, path: Path | str) -> Path:
         ax_b.set_title("per-marker RMS (markers without returns: no bar)")
         ax_b.legend(loc="upper right")
         ax_b.grid(True, axis="y", alpha=0.3, which="both")
-        sol = result.solution
-        fig.suptitle(f"Marker residuals before / after calibration (solver: RMS "
-                     f"{sol.residual_rms_m * 1e3:.1f} mm, {sol.n_observations} observations, {sol.status})",
-                     fontsize=FONT_SIZE_PT + 2)
+        fig.suptitle("Marker residuals before / after calibration", fontsize=FONT_SIZE_PT + 2)
         return _save(fig, path)
 
 
-def write_figures(result: CalibrationResult, out_dir: Path | str) -> dict[str, Path]:
-    """Write intensity.png, alignment.png and residuals.png into out_dir; returns {name: path}."""
+def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params | None = None,
+                  before_label: str = "nominal DH, fitted mount") -> dict[str, Path]:
+    """Write intensity.png, alignment.png and residuals.png into out_dir; returns {name: path}.
+
+    ``before``: the parameters of the "before" views, described by ``before_label`` (default: the calibration's
+    start, the nominal DH with the mount fitted to the markers: W is the tape's frame, so a nominal mount given
+    in another frame has no place in W unless the true marker positions are known, see
+    :func:`lrfcal.app.calibrate_folder`).
+    """
     out = Path(out_dir)
     return {
         "intensity": intensity_figure(result, out / "intensity.png"),
-        "alignment": alignment_figure(result, out / "alignment.png"),
-        "residuals": residual_figure(result, out / "residuals.png"),
+        "alignment": alignment_figure(result, out / "alignment.png", before, before_label),
+        "residuals": residual_figure(result, out / "residuals.png", before, before_label),
     }
 
 

@@ -368,6 +368,14 @@ def _angle_err(n: str, est: float, ref: float) -> float:
     return (d + math.pi) % (2 * math.pi) - math.pi if n in ANGLE_NAMES else d
 
 
+def residual_summary(result: CalibrationResult) -> str:
+    """One line, the same in the terminal and the report: residual RMS over the marker returns and markers used."""
+    sol = result.solution
+    n_markers = int((_marker_counts(result) > 0).sum())
+    return (f"residual RMS {sol.residual_rms_m * 1000:.2f} mm over {sol.n_observations} marker returns on "
+            f"{n_markers} of {len(result.markers.marker_ids)} markers")
+
+
 def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None) -> str:
     """The calibration report as Markdown: parameters with sigma (and the paper's baseline, the start values
     and, given ``truth`` as loaded from ground_truth.yaml, the truth and the errors), per-marker residuals,
@@ -382,7 +390,7 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     lines = ["# Rotating LRF calibration", ""]
     lines += [
         f"- status: {sol.status} ({sol.n_iterations} iterations)",
-        f"- residual RMS: {sol.residual_rms_m * 1000:.2f} mm over {sol.n_observations} marker returns",
+        f"- {residual_summary(result)}",
         f"- markers used: {int((counts > 0).sum())} of {len(ids)} "
         f"({', '.join(i for i, c in zip(ids, counts, strict=True) if c > 0) or 'none'})",
         f"- blobs detected: {len(result.detections.blobs)}, matched to markers: {result.association.n_matched}"
@@ -478,19 +486,14 @@ def write_calibration(
     Args:
         report_md: the report text; default :func:`render_report` (without truth).
         figures: name -> existing file; each is copied into the folder under its file name.
-        overwrite: replace an existing non-empty ``out_dir`` (otherwise InputError).
+        overwrite: replace an existing non-empty ``out_dir`` that this project wrote (see
+            :func:`check_replaceable`); otherwise InputError.
     Returns:
         out_dir.
     """
-    out = Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"{out}: output exists and is not a folder")
-    if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise InputError(f"{out}: output folder exists and is not empty (use overwrite)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+    out = check_replaceable(out_dir, overwrite)
+    tmp = make_temp_beside(out)
     try:
-        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700; give the folder the usual mode
         text = yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=110)
         (tmp / "calibration.yaml").write_text(text, encoding="utf-8")
         (tmp / "rig.urdf").write_text(urdf_snippet(result.solution.params), encoding="utf-8")
@@ -504,11 +507,139 @@ def write_calibration(
             if not src.is_file():
                 raise InputError(f"{src}: figure {name!r} not found")
             shutil.copyfile(src, tmp / src.name)
+        write_manifest(tmp, "lrfcal calibrate")
         swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out
+
+
+#: The file every output folder of this project holds: which tool wrote it and the entries it wrote. Only a
+#: folder with this file and no other entries may be replaced (``--overwrite``).
+MANIFEST_NAME = ".lrf-calib-output.yaml"
+
+
+def write_manifest(folder: Path, tool: str) -> Path:
+    """Write :data:`MANIFEST_NAME` into ``folder``, listing its current top-level entries (written by ``tool``)."""
+    folder = Path(folder)
+    entries = sorted(p.name for p in folder.iterdir() if p.name != MANIFEST_NAME)
+    text = yaml.safe_dump({"written_by": tool, "entries": entries}, sort_keys=False)
+    path = folder / MANIFEST_NAME
+    path.write_text(text, encoding="utf-8")
+    return path
+
+
+def _manifest_entries(folder: Path) -> set[str] | None:
+    """The entries a manifest in ``folder`` lists, or None when there is no readable manifest."""
+    try:
+        data = yaml.safe_load((folder / MANIFEST_NAME).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return None
+    if not isinstance(data, dict) or not isinstance(data.get("entries"), list):
+        return None
+    return {str(e) for e in data["entries"]}
+
+
+def check_replaceable(out_dir: str | Path, overwrite: bool) -> Path:
+    """Refuse an output folder that must not be written: return ``out_dir`` as a Path when it may be.
+
+    Allowed: a missing or empty folder; with ``overwrite``, a folder that this project wrote (it holds the
+    manifest :data:`MANIFEST_NAME`) and that holds nothing else than the entries the manifest lists. Anything
+    else raises :class:`InputError` naming the folder and, where there are any, the files we did not write.
+    """
+    out = Path(out_dir)
+    if out.is_symlink() or (out.exists() and not out.is_dir()):
+        raise InputError(f"{out}: output exists and is not a folder")
+    if not out.is_dir():
+        return out
+    try:
+        present = sorted(p.name for p in out.iterdir())
+    except OSError as e:
+        raise InputError(f"{out}: cannot read the output folder ({e.strerror})") from None
+    if not present:
+        return out
+    if not overwrite:
+        raise InputError(f"{out}: output folder exists and is not empty (use --overwrite to replace it)")
+    listed = _manifest_entries(out)
+    if listed is None:
+        raise InputError(f"{out}: not replaced: this folder was not written by lrf-calib (no {MANIFEST_NAME}); "
+                         "choose another output folder")
+    foreign = [n for n in present if n != MANIFEST_NAME and n not in listed]
+    if foreign:
+        shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
+        raise InputError(f"{out}: not replaced: it holds files lrf-calib did not write ({shown}); move them away "
+                         "or choose another output folder")
+    return out
+
+
+def check_writable(out: str | Path) -> Path:
+    """Refuse an output path that cannot be created, without creating anything: its nearest existing ancestor
+    must be a writable folder.
+
+    Raises:
+        InputError: naming the path and the ancestor that blocks it.
+    """
+    out = Path(out)
+    anc = out.absolute().parent
+    while not anc.exists() and anc != anc.parent:
+        anc = anc.parent
+    if not anc.is_dir():
+        raise InputError(f"{out}: cannot write the output folder here ({anc} is not a folder)")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise InputError(f"{out}: cannot write the output folder here ({anc} is not writable)")
+    return out
+
+
+def make_temp_beside(out: Path) -> Path:
+    """A new hidden temporary folder next to ``out`` (created with its parents; usual permissions).
+
+    Raises:
+        InputError: the parent folder cannot be created or written.
+    """
+    out = Path(out)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        os.chmod(tmp, 0o777 & ~current_umask())  # mkdtemp makes 0700; give the folder the usual mode
+    except OSError as e:
+        raise InputError(f"{out}: cannot write the output folder here ({e.strerror or e})") from None
+    return tmp
+
+
+def _resolved(p: str | Path) -> Path:
+    return Path(p).expanduser().resolve()
+
+
+def check_no_overlap(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None],
+                     may_nest_in: tuple[str, ...] = ()) -> None:
+    """Refuse outputs that are, contain or lie inside an input.
+
+    Args:
+        outputs, inputs: ``{label: path}``; None entries are skipped.
+        may_nest_in: labels of input folders an output may lie inside (e.g. the recording folder, where
+            ``REC/calibration`` touches no input file), though never be or contain.
+    Raises:
+        InputError: naming the output, the input and how they overlap.
+    """
+    for o_label, o in outputs.items():
+        if o is None:
+            continue
+        ro = _resolved(o)
+        for i_label, i in inputs.items():
+            if i is None:
+                continue
+            ri = _resolved(i)
+            if ro == ri:
+                how = "is"
+            elif ro in ri.parents:
+                how = "contains"
+            elif ri in ro.parents and i_label not in may_nest_in:
+                how = "lies inside"
+            else:
+                continue
+            raise InputError(f"{o}: {o_label} {how} the {i_label} {i}: outputs never overlap inputs (nor each "
+                             "other); choose another path")
 
 
 def swap_into_place(tmp: Path, out: Path) -> None:
@@ -527,5 +658,6 @@ def swap_into_place(tmp: Path, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-__all__ = ["align_truth_frame", "calibration_dict", "dh_matrix", "render_report", "truth_dict", "truth_frame",
-           "urdf_snippet", "write_calibration"]
+__all__ = ["MANIFEST_NAME", "align_truth_frame", "calibration_dict", "check_no_overlap", "check_replaceable",
+           "check_writable", "dh_matrix", "make_temp_beside", "render_report", "residual_summary", "swap_into_place",
+           "truth_dict", "truth_frame", "urdf_snippet", "write_calibration", "write_manifest"]

@@ -10,10 +10,10 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import InputError
 
@@ -26,13 +26,24 @@ class _Strict(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
+def _radians(v: float) -> float:
+    """An angle in rad; beyond 2 pi it was written in degrees (90 instead of 1.5708)."""
+    if abs(v) > 2 * math.pi:
+        raise ValueError(f"{v:g} rad is beyond 2 pi: it looks like degrees; angles are in radians ({v:g} deg = "
+                         f"{math.radians(v):.6g} rad)")
+    return v
+
+
+Radians = Annotated[float, AfterValidator(_radians)]
+
+
 class DHModel(_Strict):
     """eq. (3) DH parameters [m, rad]."""
 
     a: float
-    alpha: float
+    alpha: Radians
     b: float
-    beta: float
+    beta: Radians
 
 
 class MountModel(_Strict):
@@ -41,9 +52,9 @@ class MountModel(_Strict):
     x: float
     y: float
     z: float
-    roll: float
-    pitch: float
-    yaw: float
+    roll: Radians
+    pitch: Radians
+    yaw: Radians
 
 
 class ScanSource(_Strict):
@@ -186,7 +197,7 @@ def load_rig(path: str | Path) -> RigFile:
         data = yaml.safe_load(path.read_text(encoding="utf-8"))
     except yaml.YAMLError as err:
         mark = getattr(err, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
         problem = getattr(err, "problem", None) or " ".join(str(err).split())
         raise InputError(f"{where}: YAML syntax error: {problem}") from None
     except (OSError, UnicodeDecodeError) as err:

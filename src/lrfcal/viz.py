@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import os
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -380,7 +380,7 @@ def _log_rig(rec: Any, result: CalibrationResult, lam_scan: FloatArray) -> None:
     rec.log("world/M/M_prime/L", rr.Transform3D(translation=T_Mp_L[:3, 3], mat3x3=T_Mp_L[:3, :3], relation=P),
             rr.TransformAxes3D(0.08), static=True)
     rec.log("world/M/M_prime", rr.TransformAxes3D(0.1), static=True)
-    # the UTM-30LX housing, 60 x 60 x 87 mm (FACTS.md), below the scan plane
+    # the UTM-30LX housing, 60 x 60 x 87 mm (Hokuyo UTM-30LX-EW spec sheet, hokuyo-aut.jp), below the scan plane
     housing = rr.Boxes3D(centers=[[0, 0, -0.02]], half_sizes=[[0.03, 0.03, 0.0435]], colors=[(90, 90, 200)])
     rec.log("world/M/M_prime/L/housing", housing, static=True)
 
@@ -434,8 +434,11 @@ def log_calibration(
     scene_geoms: list[SceneGeom] | None = None,
     truth_markers_W: ArrayLike | None = None,
     app_id: str = "lrfcal",
+    warn: Callable[[str], None] | None = None,
 ) -> None:
     """Log the calibration (before/after clouds, marker returns, residuals, intensity image, rig) to rerun.
+
+    If the viewer cannot be spawned, ``warn`` gets one line and the recording still goes to ``rrd_path``.
 
     Args:
         result: the pipeline's output.
@@ -461,7 +464,16 @@ def log_calibration(
         tmp = rrd_path.with_name(f".{rrd_path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     try:
         if spawn:
-            rr.spawn(connect=False)
+            try:
+                rr.spawn(connect=False)
+            except Exception as err:  # no viewer binary, no display, port taken: go on without the viewer
+                spawn = False
+                if warn is not None:
+                    warn(f"--spawn: the rerun viewer did not start ({' '.join(str(err).split())[:200]})"
+                         + (f"; saving {rrd_path}" if rrd_path is not None else ""))
+                if tmp is None:
+                    return
+        if spawn:
             sinks: list[Any] = [rr.GrpcSink()]
             if tmp is not None:
                 sinks.append(rr.FileSink(tmp))

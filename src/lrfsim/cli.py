@@ -2,47 +2,31 @@
 
     lrfsim simulate SCENARIO -o DIR [--overwrite]   write a recording folder (docs/formats.md)
     lrfsim run SCENARIO [-o DIR] [--rrd FILE]        simulate, calibrate, compare with the truth (Tables I, III)
+    lrfsim schema                                    the scenario format as JSON Schema (docs/scenario.md)
 
-Errors the project raises on purpose (lrfcal.errors.LrfError) become one line ``error: <message>`` on stderr
-and exit code 2. Heavy modules (mujoco, rosbags) are imported inside the commands.
+Usage errors and the errors the project raises on purpose (lrfcal.errors.LrfError) become one line
+``error: <message>`` on stderr and the exit code of lrfcal.errors (2 bad input). Heavy modules (mujoco,
+rosbags) are imported inside the commands.
 """
 
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Annotated, TypeVar
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.errors import LrfError
+from lrfcal.cliutil import Command, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
     from .simulate import SimResult
 
-T = TypeVar("T")
+app = make_app("MuJoCo testbench of a servo-turned Hokuyo UTM-30LX-EW: simulate recordings, calibrate them and "
+               "compare with the ground truth. Scenario format: docs/scenario.md or 'lrfsim schema'.")
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="MuJoCo testbench of a servo-turned Hokuyo UTM-30LX-EW.")
-
-ScenarioArg = Annotated[Path, typer.Argument(help="Scenario YAML file (see scenarios/).", show_default=False)]
-
-
-def _with_progress(work: Callable[[Callable[[int, int], None]], T], label: str) -> T:
-    """Run ``work(progress)`` under a rich progress bar on stderr (scans done / total)."""
-    from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    console = Console(stderr=True)
-    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TextColumn("scans"),
-                  TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal) as bar:
-        task = bar.add_task(label, total=None)
-
-        def progress(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total)
-
-        return work(progress)
+ScenarioArg = Annotated[Path, typer.Argument(help="Scenario YAML file (see scenarios/, docs/scenario.md).",
+                                             metavar="SCENARIO", show_default=False)]
 
 
 def _summary(result: SimResult, path: Path) -> None:
@@ -54,7 +38,7 @@ def _summary(result: SimResult, path: Path) -> None:
     s = result.stats
     S, N = result.ranges_m.shape
     valid = float(np.isfinite(result.ranges_m).mean())
-    table = Table(title=f"recording {path}", show_header=False)
+    table = Table(title=f"recording {path.name}", show_header=False)
     rows = [
         ("scenario", result.name),
         ("scans", f"{S}"),
@@ -71,72 +55,107 @@ def _summary(result: SimResult, path: Path) -> None:
     ]
     for k, v in rows:
         table.add_row(k, v)
-    Console().print(table)
+    console = Console()
+    console.print(table)
+    console.print(f"wrote {path}", markup=False)
 
 
-@app.command()
+@app.command(cls=Command)
 def simulate(
     scenario: ScenarioArg,
-    out: Annotated[Path, typer.Option("-o", "--out", help="Recording folder to write.", show_default=False)],
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing non-empty folder.")] = False,
+    out: Annotated[Path, typer.Option("-o", "--out", metavar="DIR", show_default=False,
+                                      help="Recording folder to write (atomically).")],
+    overwrite: Annotated[bool, typer.Option("--overwrite",
+                                            help="Replace a recording folder lrfsim wrote before.")] = False,
 ) -> None:
-    """Simulate SCENARIO and write the recording folder DIR (bag, distances, nominal, ground truth)."""
-    from .scenario import load_scenario
+    """Simulate SCENARIO and write a recording folder.
+
+    The folder holds the bag, the tape distances, the nominal values and the ground truth (docs/formats.md).
+    """
+    from lrfcal.output import check_no_overlap
+
+    from .scenario import load_scenario, scenario_inputs
     from .simulate import simulate_to_folder
 
     sc = load_scenario(scenario)
-    result, path = _with_progress(lambda p: simulate_to_folder(sc, out, overwrite=overwrite, progress=p),
-                                  f"simulating {sc.name}")
+    check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))
+    with progress_display(f"simulating {sc.name}") as hooks:
+        result, path = simulate_to_folder(sc, out, overwrite=overwrite, progress=hooks.scans)
     _summary(result, path)
 
 
-@app.command()
+@app.command(cls=Command)
 def run(
     scenario: ScenarioArg,
-    out: Annotated[Path | None, typer.Option("-o", "--out", help="Output folder [default: runs/<name>, "
-                                             "replaced if present].", show_default=False)] = None,
-    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing non-empty -o folder.")] = False,
-    rrd: Annotated[Path | None, typer.Option("--rrd", help="Save the rerun recording here [default: DIR/run.rrd].",
-                                             show_default=False)] = None,
-    spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer.")] = False,
+    out: Annotated[Path | None, typer.Option("-o", "--out", metavar="DIR", show_default=False,
+                                             help="Output folder  [default: runs/<scenario name>]")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an -o folder lrfsim wrote before.")
+                         ] = False,
+    rrd: Annotated[Path | None, typer.Option("--rrd", metavar="FILE", show_default=False,
+                                             help="Save the rerun recording here  [default: DIR/run.rrd]")] = None,
+    spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer too.")] = False,
 ) -> None:
-    """Simulate SCENARIO, calibrate the recording, compare with the ground truth (Tables I and III).
+    """Simulate, calibrate, compare with the truth.
 
-    Exits with code 1 when the recovery misses the tolerances declared in the scenario.
+    Simulates SCENARIO, calibrates the recording and compares with the ground truth (Tables I and III).
+
+    Exit code 1 when the recovery misses the tolerances the scenario declares. Without -o, the folder
+    runs/<name> of an earlier run is replaced, but only if lrfsim wrote everything in it.
     """
     from rich.console import Console
 
     from lrfcal.cli import print_summary
+    from lrfcal.output import check_no_overlap
 
     from .loop import print_comparison, run_loop
-    from .scenario import load_scenario
+    from .scenario import load_scenario, scenario_inputs
 
     sc = load_scenario(scenario)
+    default_out = out is None
     if out is None:
         out, overwrite = Path("runs") / sc.name, True
-    target = out
-    report = _with_progress(
-        lambda p: run_loop(sc, target, overwrite=overwrite, rrd_path=rrd, spawn=spawn, progress=p),
-        f"simulating {sc.name}",
-    )
+    check_no_overlap({"-o": out, "--rrd": rrd}, scenario_inputs(sc, scenario))
+    check_no_overlap({"--rrd": rrd}, {"output folder": out})
+    replaced = default_out and out.is_dir() and any(out.iterdir())
+    with progress_display(f"simulating {sc.name}") as hooks:
+        report = run_loop(sc, out, overwrite=overwrite, rrd_path=rrd, spawn=spawn, progress=hooks.scans,
+                          stage_progress=hooks.stage, warn=lambda line: print(f"warning: {line}", file=sys.stderr))
     console = Console()
     print_summary(report.result, console)
     print_comparison(report.comparison, console)
-    console.print("timings: " + ", ".join(f"{k.strip()} {v:.2f} s" for k, v in report.timings_s.items()))
+    console.print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in report.timings_s.items()
+                                          if not k.startswith(" ")), markup=False)
     console.print(f"wrote {report.out_dir} (recording/, calibration/, comparison.md"
-                  + (", run.rrd)" if rrd is None else f"); rerun: {rrd}"))
+                  + (", run.rrd)" if rrd is None else f"); rerun: {rrd}")
+                  + (" replacing the previous run" if replaced else ""), markup=False)
     if not report.comparison.ok:
-        console.print("[red]MISSED: " + "; ".join(report.comparison.failures))
+        console.print("MISSED: " + "; ".join(report.comparison.failures), style="red", markup=False)
         raise typer.Exit(1)
 
 
+@app.command(cls=Command)
+def schema(
+    markdown: Annotated[bool, typer.Option("--markdown", help="Print the page docs/scenario.md instead.")] = False,
+) -> None:
+    """Print the scenario format (JSON Schema).
+
+    Every field with its unit, default and bounds; --markdown prints docs/scenario.md.
+    """
+    if markdown:
+        from .scenario_doc import scenario_markdown
+
+        print(scenario_markdown(), end="")
+        return
+    import json
+
+    from .scenario import Scenario
+
+    print(json.dumps(Scenario.model_json_schema(), indent=2))
+
+
 def main(argv: list[str] | None = None) -> None:
-    """Entry point: run the typer app; an LrfError becomes ``error: <message>`` on stderr and exit code 2."""
-    try:
-        app(args=argv, prog_name="lrfsim")
-    except LrfError as e:
-        print(f"error: {e}", file=sys.stderr)
-        sys.exit(e.exit_code)
+    """Entry point: usage errors and any LrfError become one line on stderr and their exit code."""
+    run_app(app, argv, "lrfsim")
 
 
 if __name__ == "__main__":

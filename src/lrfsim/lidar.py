@@ -1,6 +1,8 @@
 """The Hokuyo UTM-30LX-EW on the turning servo, ray cast with MuJoCo.
 
-Timing (FACTS.md). Scan s starts at t_s (true time = servo clock); beam i (i = 0 .. N-1, bearing
+Timing (Hokuyo UTM-30LX-EW spec sheet: 25 ms per scan, 0.25 deg = 360 / 1440 deg steps; LaserScan fields as the
+ROS driver urg_node fills them, github.com/ros-drivers/urg_node). Scan s starts at t_s (true time = servo clock);
+beam i (i = 0 .. N-1, bearing
 mu_i = angle_min + i * angle_increment) is fired at t_s + i * time_increment (25 ms / 1440 = 17.36 us), so the
 270 deg of a scan take 18.75 ms while the servo keeps turning. Every beam is therefore cast from the rig's pose
 at its own time: lambda_si = lambda(t_s + i * time_increment).

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import shutil
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,14 +39,19 @@ def run_loop(
     rrd_path: Path | None = None,
     spawn: bool = False,
     progress: Callable[[int, int], None] | None = None,
+    stage_progress: Callable[[str], None] | None = None,
+    warn: Callable[[str], None] | None = None,
 ) -> LoopReport:
     """Simulate, write the recording, calibrate it from disk as a real one, compare with the truth.
 
     Everything is built in a temporary folder beside ``out_dir`` and renamed into place when complete.
-    ``rrd_path`` defaults to ``out_dir/run.rrd``.
+    ``rrd_path`` defaults to ``out_dir/run.rrd``. ``progress(done_scans, total)`` while simulating,
+    ``stage_progress(stage)`` while calibrating; ``warn(line)`` when ``spawn`` is asked for but no viewer can
+    start (the .rrd is saved all the same).
     """
     from lrfcal.app import calibrate_folder
-    from lrfcal.output import swap_into_place
+    from lrfcal.cliutil import spawn_unavailable_reason
+    from lrfcal.output import make_temp_beside, swap_into_place, write_manifest
 
     from .recording import check_output
     from .scene import build_scene
@@ -55,9 +59,14 @@ def run_loop(
 
     out_dir = Path(out_dir)
     check_output(out_dir, overwrite)
+    if spawn and (reason := spawn_unavailable_reason()) is not None:
+        spawn = False
+        shown = rrd_path or out_dir / "run.rrd"
+        if warn is not None:
+            warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
+                 f"(open it with: rerun {shown})")
     timings: dict[str, float] = {}
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}-", dir=out_dir.parent))
+    tmp = make_temp_beside(out_dir)
     try:
         t0 = time.perf_counter()
         scene = build_scene(scenario)
@@ -70,13 +79,14 @@ def run_loop(
         rrd_tmp = None if rrd_path is not None else tmp / "run.rrd"
         result = calibrate_folder(
             tmp / "recording", tmp / "calibration", truth=truth, rrd_path=rrd_path or rrd_tmp, spawn=spawn,
-            scene=scene,
+            scene=scene, progress=stage_progress, warn=warn,
         )
         timings["calibrate + write"] = time.perf_counter() - t0
         timings.update({f"  {k}": v for k, v in result.timings_s.items()})
 
         comparison = compare(result, truth, scenario.tolerances)
         (tmp / "comparison.md").write_text(comparison_markdown(comparison))
+        write_manifest(tmp, "lrfsim run")
         swap_into_place(tmp, out_dir)
     finally:
         if tmp.exists():
@@ -114,7 +124,7 @@ def table_rows(c: Comparison) -> tuple[list[list[str]], list[list[str]]]:
         )
     t1.append(
         [
-            "mount position (mm)",
+            "mount xyz (mm)",
             "",
             "",
             _mm(c.mount_position_error_m),
@@ -125,7 +135,7 @@ def table_rows(c: Comparison) -> tuple[list[list[str]], list[list[str]]]:
     )
     t1.append(
         [
-            "mount rotation (deg)",
+            "mount rot (deg)",
             "",
             "",
             _deg(c.mount_rotation_error_rad),
@@ -136,7 +146,7 @@ def table_rows(c: Comparison) -> tuple[list[list[str]], list[list[str]]]:
     )
     t3 = [
         [
-            f"{r.name} (mm)",
+            f"{r.name.replace('_distance', '').replace('_', ' ')} (mm)",
             f"{r.truth * 1000:.1f}",
             "-" if r.calibrated is None else f"{r.calibrated * 1000:.1f}",
             "-" if r.calibrated is None else f"{(r.calibrated - r.truth) * 1000:+.1f}",
@@ -149,8 +159,8 @@ def table_rows(c: Comparison) -> tuple[list[list[str]], list[list[str]]]:
     return t1, t3
 
 
-T1_HEAD = ["parameter", "truth", "estimated", "error", "paper's method", "its error", "check"]
-T3_HEAD = ["dimension", "truth", "calibrated cloud", "error", "nominal cloud", "error", "check"]
+T1_HEAD = ["parameter", "truth", "estimate", "error", "paper's method", "its error", "check"]
+T3_HEAD = ["dimension", "truth", "calibrated", "error", "nominal", "error", "check"]
 
 
 def comparison_markdown(c: Comparison) -> str:
@@ -179,13 +189,14 @@ def print_comparison(c: Comparison, console: Console) -> None:
     t1, t3 = table_rows(c)
     for title, head, rows in (
         ("Table I: DH parameters and mount pose", T1_HEAD, t1),
-        ("Table III: tunnel dimensions", T3_HEAD, t3),
+        ("Table III: tunnel dimensions from the clouds", T3_HEAD, t3),
     ):
         if not rows:
             continue
         table = Table(title=title)
         for h in head:
-            table.add_column(h, justify="right" if h not in ("parameter", "dimension") else "left")
+            table.add_column(h, justify="right" if h not in ("parameter", "dimension") else "left",
+                             no_wrap=h in ("parameter", "dimension"))
         for r in rows:
             table.add_row(*r, style=None if r[-1] == "ok" else "red")
         console.print(table)

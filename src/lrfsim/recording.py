@@ -11,7 +11,8 @@ Bag (log) times are the recorder's clock, taken to be the servo clock: a JointSt
 LaserScan when urg_node would publish it, at the end of the scan (servo time of beam 0 + scan_time).
 
 Atomicity: everything is written into a hidden temporary folder next to DIR, which is renamed onto DIR when
-complete (an existing DIR is first moved aside and deleted after the rename, only with ``overwrite``); on any
+complete (an existing DIR is first moved aside and deleted after the rename, only with ``overwrite`` and only when
+this project wrote everything in it: see lrfcal.output.check_replaceable); on any
 error the temporary folder is removed, so DIR is either the old content or the complete new recording.
 """
 
@@ -20,15 +21,13 @@ from __future__ import annotations
 import csv
 import io
 import shutil
-import uuid
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
-from lrfcal.errors import InputError
-from lrfcal.output import swap_into_place
+from lrfcal.output import check_replaceable, check_writable, make_temp_beside, swap_into_place, write_manifest
 
 from .scenario import Scenario, dump_scenario
 
@@ -49,28 +48,22 @@ def _ns(t_s: float) -> int:
 
 
 def check_output(out_dir: str | Path, overwrite: bool) -> Path:
-    """Refuse an existing non-empty ``out_dir`` (or a file) unless ``overwrite``; return the path."""
-    out = Path(out_dir)
-    if out.exists() or out.is_symlink():
-        if not out.is_dir():
-            raise InputError(f"{out}: exists and is not a folder")
-        if any(out.iterdir()) and not overwrite:
-            raise InputError(f"{out}: folder exists and is not empty (use --overwrite to replace it)")
-    return out
+    """Refuse an output folder that must not be written (see :func:`lrfcal.output.check_replaceable`: an
+    existing non-empty folder only with ``overwrite`` and only if this project wrote all of it); return it."""
+    return check_writable(check_replaceable(out_dir, overwrite))
 
 
 def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
     """Write the recording folder of ``result`` to ``out_dir`` atomically (module docstring); return it."""
     out = check_output(out_dir, overwrite).absolute()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp = make_temp_beside(out)
     try:
-        tmp.mkdir()
         write_bag(result, scenario, tmp / "bag")
         (tmp / "distances.csv").write_text(distances_csv(result), encoding="utf-8")
         (tmp / "nominal.yaml").write_text(nominal_yaml(scenario, result.truth.marker_radius_m), encoding="utf-8")
         (tmp / "ground_truth.yaml").write_text(ground_truth_yaml(result), encoding="utf-8")
         (tmp / "scenario.yaml").write_text(dump_scenario(scenario), encoding="utf-8")
+        write_manifest(tmp, "lrfsim simulate")
         swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

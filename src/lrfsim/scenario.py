@@ -7,9 +7,11 @@ plate, y to the left, z up, floor at z = 0, walls at y = +-width/2).
 
 from __future__ import annotations
 
+import difflib
 import math
+import os
 from pathlib import Path
-from typing import Annotated, Literal
+from typing import Annotated, Literal, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
@@ -21,31 +23,37 @@ PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
 
 
+def _d(text: str, **kw: object) -> object:
+    """A pydantic Field with a description (units in brackets) and optional bounds."""
+    return Field(description=text, **kw)  # type: ignore[arg-type]
+
+
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # allow_inf_nan=False: every float of every section must be finite (NaN / inf name their field)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class DHConfig(_Section):
-    """DH parameters a [m], alpha [rad], b [m], beta [rad]."""
+    """DH parameters from the motor axis to the scan plane: T = Tx(a) Rx(alpha) Tz(b) Rz(beta)."""
 
-    a: Annotated[float, Field(ge=-0.5, le=0.5)]
-    alpha: Annotated[float, Field(ge=-math.pi, le=math.pi)]
-    b: Annotated[float, Field(ge=-0.5, le=0.5)]
-    beta: Annotated[float, Field(ge=-math.pi, le=math.pi)]
+    a: Annotated[float, _d("offset along the common normal [m]", ge=-0.5, le=0.5)]
+    alpha: Annotated[float, _d("twist about the common normal [rad] (not degrees)", ge=-math.pi, le=math.pi)]
+    b: Annotated[float, _d("offset along the new z axis [m]", ge=-0.5, le=0.5)]
+    beta: Annotated[float, _d("rotation about the new z axis [rad] (not degrees)", ge=-math.pi, le=math.pi)]
 
     def to_dh(self) -> DH:
         return DH(self.a, self.alpha, self.b, self.beta)
 
 
 class PoseConfig(_Section):
-    """A pose: translation x, y, z [m], then R = Rz(yaw) Ry(pitch) Rx(roll) [rad]."""
+    """A pose: translation x, y, z [m], then R = Rz(yaw) Ry(pitch) Rx(roll) [rad] (as URDF)."""
 
-    x: Annotated[float, Field(ge=-100, le=100)] = 0.0
-    y: Annotated[float, Field(ge=-100, le=100)] = 0.0
-    z: Annotated[float, Field(ge=-100, le=100)] = 0.0
-    roll: Annotated[float, Field(ge=-math.pi, le=math.pi)] = 0.0
-    pitch: Annotated[float, Field(ge=-math.pi, le=math.pi)] = 0.0
-    yaw: Annotated[float, Field(ge=-math.pi, le=math.pi)] = 0.0
+    x: Annotated[float, _d("translation x [m]", ge=-100, le=100)] = 0.0
+    y: Annotated[float, _d("translation y [m]", ge=-100, le=100)] = 0.0
+    z: Annotated[float, _d("translation z [m]", ge=-100, le=100)] = 0.0
+    roll: Annotated[float, _d("rotation about x, applied first [rad]", ge=-math.pi, le=math.pi)] = 0.0
+    pitch: Annotated[float, _d("rotation about y [rad]", ge=-math.pi, le=math.pi)] = 0.0
+    yaw: Annotated[float, _d("rotation about z, applied last [rad]", ge=-math.pi, le=math.pi)] = 0.0
 
     def to_pose(self) -> Pose:
         return Pose(self.x, self.y, self.z, self.roll, self.pitch, self.yaw)
@@ -54,50 +62,55 @@ class PoseConfig(_Section):
 class RigConfig(_Section):
     """The rig: true DH and mount pose (ground truth) and the design-drawing (nominal) values."""
 
-    dh: DHConfig
-    mount: PoseConfig
-    nominal_dh: DHConfig
-    nominal_mount: PoseConfig
+    dh: Annotated[DHConfig, _d("true DH parameters (ground truth)")]
+    mount: Annotated[PoseConfig, _d("true mount pose T_W_M of the motor frame M in W (ground truth)")]
+    nominal_dh: Annotated[DHConfig, _d("design DH values written to nominal.yaml (the calibration's start)")]
+    nominal_mount: Annotated[PoseConfig, _d("design mount pose written to nominal.yaml")]
 
 
 class NoiseBand(_Section):
     """Range noise below ``up_to_m``: Gaussian with ``sigma_m`` (Hokuyo spec: repeatability sigma)."""
 
-    up_to_m: PositiveFloat
-    sigma_m: NonNegFloat
+    up_to_m: Annotated[float, _d("upper range of this band [m]", gt=0)]
+    sigma_m: Annotated[float, _d("range noise 1-sigma in this band [m]", ge=0)]
 
 
 class IntensityConfig(_Section):
     """Intensity model (see lrfsim.lidar): counts = gain * rho * g(theta) * (r_ref / r)^2, saturated."""
 
-    gain_counts: PositiveFloat = 4000.0  # a rho = 1 Lambertian target at r_ref, normal incidence
-    ref_range_m: PositiveFloat = 1.0
-    saturation_counts: PositiveFloat = 65535.0
-    relative_noise: Annotated[float, Field(ge=0, le=1)] = 0.05
-    min_detectable_counts: NonNegFloat = 20.0
+    gain_counts: Annotated[float, _d("counts of a rho = 1 Lambertian target at ref_range_m, normal incidence "
+                                     "[counts]", gt=0)] = 4000.0
+    ref_range_m: Annotated[float, _d("reference range of gain_counts [m]", gt=0)] = 1.0
+    saturation_counts: Annotated[float, _d("largest intensity reported [counts]", gt=0)] = 65535.0
+    relative_noise: Annotated[float, _d("multiplicative intensity noise, 1-sigma [1]", ge=0, le=1)] = 0.05
+    min_detectable_counts: Annotated[float, _d("weaker returns are dropped (no return) [counts]", ge=0)] = 20.0
 
 
 class SensorConfig(_Section):
-    """Hokuyo UTM-30LX-EW defaults (FACTS.md)."""
+    """The scanner; defaults: the Hokuyo UTM-30LX-EW (spec sheet: 270 deg in 0.25 deg steps, 25 ms per scan,
+    0.023-60 m, repeatability 10 mm below 10 m and 30 mm below 30 m; LaserScan fields as urg_node fills them)."""
 
-    n_beams: Annotated[int, Field(ge=2, le=100000)] = 1081
-    angle_min_rad: Annotated[float, Field(ge=-math.pi, le=math.pi)] = -2.356194490192345
-    angle_increment_rad: PositiveFloat = 2 * math.pi / 1440
-    scan_period_s: PositiveFloat = 0.025
-    time_increment_s: PositiveFloat = 0.025 / 1440
-    range_min_m: PositiveFloat = 0.023
-    range_max_m: PositiveFloat = 60.0
-    no_return: Literal["nan", "inf"] = "nan"
-    noise: bool = True
-    noise_bands: tuple[NoiseBand, ...] = (
+    n_beams: Annotated[int, _d("beams per scan [1]", ge=2, le=100000)] = 1081
+    angle_min_rad: Annotated[float, _d("bearing of beam 0 (LaserScan angle_min) [rad]", ge=-math.pi,
+                                       le=math.pi)] = -2.356194490192345
+    angle_increment_rad: Annotated[float, _d("bearing step between beams [rad]", gt=0)] = 2 * math.pi / 1440
+    scan_period_s: Annotated[float, _d("time from one scan to the next (LaserScan scan_time) [s]", gt=0)] = 0.025
+    time_increment_s: Annotated[float, _d("time between beams (LaserScan time_increment) [s]", gt=0)
+                                ] = 0.025 / 1440
+    range_min_m: Annotated[float, _d("shortest range reported [m]", gt=0)] = 0.023
+    range_max_m: Annotated[float, _d("longest range reported [m]", gt=0)] = 60.0
+    no_return: Annotated[Literal["nan", "inf"], _d("value written for a beam without return")] = "nan"
+    noise: Annotated[bool, _d("add range and intensity noise")] = True
+    noise_bands: Annotated[tuple[NoiseBand, ...], _d("range noise by range band, in increasing up_to_m")] = (
         NoiseBand(up_to_m=10.0, sigma_m=0.010),
         NoiseBand(up_to_m=30.0, sigma_m=0.030),
         NoiseBand(up_to_m=60.0, sigma_m=0.050),
     )
-    quantisation_m: NonNegFloat = 0.001
-    divergence_rad: NonNegFloat = 0.0044  # full angle; unverified for the UTM-30LX, see README
-    footprint_rays: Annotated[int, Field(ge=1, le=64)] = 7
-    intensity: IntensityConfig = IntensityConfig()
+    quantisation_m: Annotated[float, _d("range resolution (0: none) [m]", ge=0)] = 0.001
+    divergence_rad: Annotated[float, _d("full beam divergence angle; unverified for the UTM-30LX, see README "
+                                        "[rad]", ge=0)] = 0.0044
+    footprint_rays: Annotated[int, _d("rays per beam footprint (1: centre ray only) [1]", ge=1, le=64)] = 7
+    intensity: Annotated[IntensityConfig, _d("intensity model")] = IntensityConfig()
 
     @model_validator(mode="after")
     def _check(self) -> SensorConfig:
@@ -109,17 +122,20 @@ class SensorConfig(_Section):
 class ServoConfig(_Section):
     """The servo sweep: from ``start_rad`` to ``end_rad`` at ``speed_rad_s``, ``passes`` times (alternating)."""
 
-    joint_name: str = "servo"
-    start_rad: Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi)] = math.pi / 2
-    end_rad: Annotated[float, Field(ge=-2 * math.pi, le=2 * math.pi)] = -math.pi / 2
-    speed_rad_s: Annotated[float, Field(gt=0, le=10)] = math.radians(10.0)
-    accel_rad_s2: Annotated[float, Field(gt=0, le=1000)] = 2.0  # trapezoidal ramps (0.09 s at 10 deg/s)
-    passes: Annotated[int, Field(ge=1, le=100)] = 1
-    settle_s: NonNegFloat = 0.2  # standing still at each end
-    rate_hz: Annotated[float, Field(gt=0, le=10000)] = 100.0
-    encoder_counts: Annotated[int, Field(ge=0)] = 4096  # 0: no quantisation
-    backlash_rad: NonNegFloat = 0.0
-    clock_offset_s: Annotated[float, Field(ge=-1, le=1)] = 0.0  # laser stamp - servo stamp, same instant
+    joint_name: Annotated[str, _d("joint name in the JointState messages")] = "servo"
+    start_rad: Annotated[float, _d("motor angle where the sweep starts [rad]", ge=-2 * math.pi, le=2 * math.pi)
+                         ] = math.pi / 2
+    end_rad: Annotated[float, _d("motor angle where the first pass ends [rad]", ge=-2 * math.pi, le=2 * math.pi)
+                       ] = -math.pi / 2
+    speed_rad_s: Annotated[float, _d("cruise speed [rad/s]", gt=0, le=10)] = math.radians(10.0)
+    accel_rad_s2: Annotated[float, _d("acceleration of the trapezoidal ramps [rad/s^2]", gt=0, le=1000)] = 2.0
+    passes: Annotated[int, _d("number of passes, alternating direction [1]", ge=1, le=100)] = 1
+    settle_s: Annotated[float, _d("standing still at each end [s]", ge=0)] = 0.2
+    rate_hz: Annotated[float, _d("JointState publishing rate [Hz]", gt=0, le=10000)] = 100.0
+    encoder_counts: Annotated[int, _d("encoder counts per revolution (0: no quantisation) [1]", ge=0)] = 4096
+    backlash_rad: Annotated[float, _d("gear play, total width (play operator) [rad]", ge=0)] = 0.0
+    clock_offset_s: Annotated[float, _d("laser stamp minus servo stamp of the same instant [s]", ge=-1, le=1)
+                              ] = 0.0
 
     @model_validator(mode="after")
     def _check(self) -> ServoConfig:
@@ -131,36 +147,37 @@ class ServoConfig(_Section):
 class TapeConfig(_Section):
     """The person with the tape: Gaussian noise on each measured pair; optionally only some pairs."""
 
-    sigma_m: NonNegFloat = 0.001
-    pair_fraction: Annotated[float, Field(gt=0, le=1)] = 1.0
+    sigma_m: Annotated[float, _d("tape noise 1-sigma per measured distance [m]", ge=0)] = 0.001
+    pair_fraction: Annotated[float, _d("fraction of marker pairs measured (seeded choice) [1]", gt=0, le=1)] = 1.0
 
 
 class MaterialsConfig(_Section):
     """Lidar reflectivity per surface class (Lambertian albedo; retroreflector as an effective gain)."""
 
-    painted_steel: Annotated[float, Field(ge=0, le=1)] = 0.35
-    retroreflector: Annotated[float, Field(ge=0, le=10000)] = 200.0
-    board: Annotated[float, Field(ge=0, le=1)] = 0.6
+    painted_steel: Annotated[float, _d("albedo of the tunnel's painted steel [1]", ge=0, le=1)] = 0.35
+    retroreflector: Annotated[float, _d("effective gain of the markers' retroreflective tape [1]", ge=0,
+                                        le=10000)] = 200.0
+    board: Annotated[float, _d("albedo of the board [1]", ge=0, le=1)] = 0.6
 
 
 class ManholeConfig(_Section):
     """A rectangular opening in the plate, centred at (y, z) in W."""
 
-    width_m: PositiveFloat = 0.40
-    height_m: PositiveFloat = 0.60
-    center_y_m: float = 0.0
-    center_z_m: float = 1.15
+    width_m: Annotated[float, _d("opening width along y [m]", gt=0)] = 0.40
+    height_m: Annotated[float, _d("opening height along z [m]", gt=0)] = 0.60
+    center_y_m: Annotated[float, _d("centre y in W [m]")] = 0.0
+    center_z_m: Annotated[float, _d("centre z in W [m]")] = 1.15
 
 
 class TunnelConfig(_Section):
     """A box-girder tunnel: floor z = 0, ceiling z = height, walls y = +-width/2, plate at x = plate_x_m."""
 
-    width_m: PositiveFloat = 0.78
-    height_m: PositiveFloat = 2.30
-    x_min_m: float = -1.0
-    plate_x_m: float = 2.24
-    wall_thickness_m: PositiveFloat = 0.01
-    manhole: ManholeConfig | None = None
+    width_m: Annotated[float, _d("wall to wall [m]", gt=0)] = 0.78
+    height_m: Annotated[float, _d("floor to ceiling [m]", gt=0)] = 2.30
+    x_min_m: Annotated[float, _d("open end of the tunnel behind the rig, x in W [m]")] = -1.0
+    plate_x_m: Annotated[float, _d("the end plate, x in W [m]")] = 2.24
+    wall_thickness_m: Annotated[float, _d("thickness of walls, floor, ceiling and plate [m]", gt=0)] = 0.01
+    manhole: Annotated[ManholeConfig | None, _d("an opening in the plate (none by default)")] = None
 
     @model_validator(mode="after")
     def _check(self) -> TunnelConfig:
@@ -172,72 +189,78 @@ class TunnelConfig(_Section):
 class BoardConfig(_Section):
     """A planar board (thin box) with its centre and orientation; its front face is its local +z."""
 
-    pose: PoseConfig
-    width_m: PositiveFloat = 1.5
-    height_m: PositiveFloat = 1.0
-    thickness_m: PositiveFloat = 0.01
+    pose: Annotated[PoseConfig, _d("pose of the board's centre in W")]
+    width_m: Annotated[float, _d("size along the board's local x [m]", gt=0)] = 1.5
+    height_m: Annotated[float, _d("size along the board's local y [m]", gt=0)] = 1.0
+    thickness_m: Annotated[float, _d("size along the board's local z [m]", gt=0)] = 0.01
 
 
 class MeshConfig(_Section):
     """Extra geometry from an STL/OBJ file (loaded with trimesh), placed at ``pose`` in W."""
 
-    file: Path
-    pose: PoseConfig = PoseConfig()
-    scale: PositiveFloat = 1.0
-    reflectivity: Annotated[float, Field(ge=0, le=10000)] = 0.35
+    file: Annotated[Path, _d("STL or OBJ file, relative to the scenario file's folder")]
+    pose: Annotated[PoseConfig, _d("pose of the mesh in W")] = PoseConfig()
+    scale: Annotated[float, _d("scale applied to the mesh's coordinates (e.g. 0.001 for mm) [1]", gt=0)] = 1.0
+    reflectivity: Annotated[float, _d("albedo (or gain) of the mesh [1]", ge=0, le=10000)] = 0.35
 
 
 class SceneConfig(_Section):
-    tunnel: TunnelConfig | None = None
-    board: BoardConfig | None = None
-    meshes: tuple[MeshConfig, ...] = ()
-    materials: MaterialsConfig = MaterialsConfig()
+    """What the laser sees: a tunnel and/or a board, extra meshes, the materials."""
+
+    tunnel: Annotated[TunnelConfig | None, _d("a box-girder tunnel (none by default)")] = None
+    board: Annotated[BoardConfig | None, _d("a planar marker board (none by default)")] = None
+    meshes: Annotated[tuple[MeshConfig, ...], _d("extra geometry")] = ()
+    materials: Annotated[MaterialsConfig, _d("reflectivities")] = MaterialsConfig()
 
 
 class VLayout(_Section):
     """Markers in a V on the tunnel walls: per wall, two arms meeting at the apex (lowest point)."""
 
-    kind: Literal["v"] = "v"
-    walls: tuple[Literal["left", "right"], ...] = ("left", "right")
-    x_start_m: float = 0.3
-    x_end_m: float = 1.9
-    z_apex_m: float = 0.5
-    z_top_m: float = 1.9
-    per_arm: Annotated[int, Field(ge=1, le=50)] = 4
+    kind: Annotated[Literal["v"], _d("layout selector")] = "v"
+    walls: Annotated[tuple[Literal["left", "right"], ...], _d("walls with a V")] = ("left", "right")
+    x_start_m: Annotated[float, _d("x in W where the V starts [m]")] = 0.3
+    x_end_m: Annotated[float, _d("x in W where the V ends [m]")] = 1.9
+    z_apex_m: Annotated[float, _d("height of the apex [m]")] = 0.5
+    z_top_m: Annotated[float, _d("height of the arms' ends [m]")] = 1.9
+    per_arm: Annotated[int, _d("markers per arm, apex included [1]", ge=1, le=50)] = 4
 
 
 class BoardLayout(_Section):
     """Markers in a grid on the board's front face (requires scene.board)."""
 
-    kind: Literal["board"] = "board"
-    rows: Annotated[int, Field(ge=1, le=50)] = 4
-    cols: Annotated[int, Field(ge=1, le=50)] = 5
-    spacing_m: PositiveFloat = 0.2
-    jitter_m: NonNegFloat = 0.0  # random in-plane offsets (seeded), so the grid is not perfectly regular
+    kind: Annotated[Literal["board"], _d("layout selector")] = "board"
+    rows: Annotated[int, _d("grid rows [1]", ge=1, le=50)] = 4
+    cols: Annotated[int, _d("grid columns [1]", ge=1, le=50)] = 5
+    spacing_m: Annotated[float, _d("grid spacing [m]", gt=0)] = 0.2
+    jitter_m: Annotated[float, _d("random in-plane offsets (seeded), so the grid is not perfectly regular [m]",
+                                  ge=0)] = 0.0
 
 
 class PointsLayout(_Section):
     """Markers at explicit sphere-centre positions in W."""
 
-    kind: Literal["points"] = "points"
-    positions: tuple[tuple[float, float, float], ...]
+    kind: Annotated[Literal["points"], _d("layout selector")] = "points"
+    positions: Annotated[tuple[tuple[float, float, float], ...], _d("sphere centres [x, y, z] in W [m]")]
 
 
 class MarkersConfig(_Section):
-    radius_m: Annotated[float, Field(gt=0, le=0.2)] = 0.005
-    layout: VLayout | BoardLayout | PointsLayout = Field(discriminator="kind")
+    """The retroreflective sphere markers: size and layout."""
+
+    radius_m: Annotated[float, _d("sphere radius [m]", gt=0, le=0.2)] = 0.005
+    layout: Annotated[VLayout | BoardLayout | PointsLayout,
+                      _d("where the markers are: kind v, board or points", discriminator="kind")]
 
 
 class Tolerances(_Section):
     """What `lrfsim run` requires of the recovery (absolute errors)."""
 
-    a_m: PositiveFloat = 0.0005
-    b_m: PositiveFloat = 0.0005
-    alpha_rad: PositiveFloat = math.radians(0.02)
-    beta_rad: PositiveFloat = math.radians(0.02)
-    position_m: PositiveFloat = 0.005
-    rotation_rad: PositiveFloat = math.radians(0.2)
-    tunnel_m: PositiveFloat = 0.003
+    a_m: Annotated[float, _d("error of a [m]", gt=0)] = 0.0005
+    b_m: Annotated[float, _d("error of b [m]", gt=0)] = 0.0005
+    alpha_rad: Annotated[float, _d("error of alpha [rad]", gt=0)] = math.radians(0.02)
+    beta_rad: Annotated[float, _d("error of beta [rad]", gt=0)] = math.radians(0.02)
+    position_m: Annotated[float, _d("error of the mount position [m]", gt=0)] = 0.005
+    rotation_rad: Annotated[float, _d("error of the mount rotation (angle) [rad]", gt=0)] = math.radians(0.2)
+    tunnel_m: Annotated[float, _d("error of the tunnel dimensions from the calibrated cloud [m]", gt=0)] = 0.003
 
 
 class TapeOutlier(_Section):
@@ -272,16 +295,19 @@ class FaultsConfig(_Section):
 
 
 class Scenario(_Section):
-    name: str
-    seed: Annotated[int, Field(ge=0)] = 0
-    rig: RigConfig
-    sensor: SensorConfig = SensorConfig()
-    servo: ServoConfig = ServoConfig()
-    scene: SceneConfig
-    markers: MarkersConfig
-    tape: TapeConfig = TapeConfig()
-    tolerances: Tolerances = Tolerances()
-    faults: FaultsConfig = FaultsConfig()
+    """A scenario file: everything a simulated recording depends on (units SI, angles in rad)."""
+
+    name: Annotated[str, _d("name of the run (runs/<name>/)")]
+    seed: Annotated[int, _d("random seed of every noise stream [1]", ge=0)] = 0
+    rig: Annotated[RigConfig, _d("true and nominal rig geometry")]
+    sensor: Annotated[SensorConfig, _d("the laser scanner")] = SensorConfig()
+    servo: Annotated[ServoConfig, _d("the servo sweep and joint states")] = ServoConfig()
+    scene: Annotated[SceneConfig, _d("what the laser sees")]
+    markers: Annotated[MarkersConfig, _d("the markers")]
+    tape: Annotated[TapeConfig, _d("the tape-measured marker distances")] = TapeConfig()
+    tolerances: Annotated[Tolerances, _d("what lrfsim run requires of the recovery")] = Tolerances()
+    faults: Annotated[FaultsConfig, _d("faults injected into the recording (lrfsim.faults); none by default")] = (
+        FaultsConfig())
 
     @model_validator(mode="after")
     def _check(self) -> Scenario:
@@ -298,35 +324,133 @@ def _field_path(loc: tuple[int | str, ...]) -> str:
     for i, p in enumerate(loc):
         if i > 0 and loc[i - 1] == "layout" and p in ("v", "board", "points"):
             continue
+        if isinstance(p, int) and parts:
+            parts[-1] += f"[{p}]"
+            continue
         parts.append(str(p))
     return ".".join(parts) if parts else "(top level)"
 
 
+def _models_in(annotation: object) -> list[type[BaseModel]]:
+    """The pydantic models an annotation may hold (through Optional, unions and tuples)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    out: list[type[BaseModel]] = []
+    for arg in get_args(annotation):
+        out += _models_in(arg)
+    return out
+
+
+def _fields_at(loc: tuple[int | str, ...]) -> list[str]:
+    """The valid keys of the section that holds the last element of a pydantic error location."""
+    models: list[type[BaseModel]] = [Scenario]
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue
+        tagged = [m for m in models if part in ("v", "board", "points") and
+                  m.model_fields.get("kind") is not None and m.model_fields["kind"].default == part]
+        if tagged:
+            models = tagged
+            continue
+        nxt: list[type[BaseModel]] = []
+        for m in models:
+            if part in m.model_fields:
+                nxt += _models_in(m.model_fields[part].annotation)
+        models = nxt
+    return sorted({f for m in models for f in m.model_fields})
+
+
 def parse_scenario(data: object, source: str) -> Scenario:
-    """Validate a scenario mapping; raise :class:`InputError` naming ``source`` and the field."""
+    """Validate a scenario mapping; raise :class:`InputError` naming ``source``, the field and, for an unknown
+    key, the nearest valid one."""
     try:
         return Scenario.model_validate(data)
     except ValidationError as e:
         err = e.errors()[0]
-        field = _field_path(tuple(err["loc"]))
+        loc = tuple(err["loc"])
+        field = _field_path(loc)
         value = err.get("input")
         msg = err["msg"]
+        if err["type"] == "extra_forbidden" and loc:
+            valid = _fields_at(loc)
+            near = difflib.get_close_matches(str(loc[-1]), valid, n=1, cutoff=0.6)
+            hint = f"did you mean {near[0]!r}? " if near else ""
+            raise InputError(f"{source}: {field}: unknown key ({hint}valid keys: {', '.join(valid)})") from None
+        if err["type"] == "finite_number":
+            msg = "must be a finite number (NaN and infinity are not allowed)"
         shown = "" if isinstance(value, dict) else f" (got {value!r})"
         raise InputError(f"{source}: {field}: {msg}{shown}") from None
 
 
+#: Memory a simulated beam costs over the whole run (simulation, recording, calibration; measured on tunnel_v:
+#: 680 MB peak for 1.6 M beams) [bytes], and per footprint ray of a chunk of scans in flight [bytes].
+BYTES_PER_BEAM = 320
+BYTES_PER_CHUNK_RAY = 200
+#: Refused above this estimate [bytes] (or 80 % of the machine's memory, if smaller).
+MAX_SCENARIO_BYTES = 8 * 2**30
+
+
+def estimate_memory_bytes(scenario: Scenario) -> tuple[int, int]:
+    """(number of scans, bytes) a scenario needs: scans x beams x BYTES_PER_BEAM + a chunk's footprint rays."""
+    from .servo import move_profile
+
+    sv, se = scenario.servo, scenario.sensor
+    move_s = move_profile(abs(sv.end_rad - sv.start_rad), sv.speed_rad_s, sv.accel_rad_s2)[0]
+    duration_s = sv.settle_s + sv.passes * (move_s + sv.settle_s)
+    n_scans = int(math.ceil(duration_s / se.scan_period_s)) + 1
+    chunk_rays = 16 * se.n_beams * se.footprint_rays
+    return n_scans, n_scans * se.n_beams * BYTES_PER_BEAM + chunk_rays * BYTES_PER_CHUNK_RAY
+
+
+def _memory_limit_bytes() -> int:
+    try:
+        physical = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return MAX_SCENARIO_BYTES
+    return int(min(MAX_SCENARIO_BYTES, 0.8 * physical))
+
+
+def check_resources(scenario: Scenario, source: str) -> None:
+    """Refuse a scenario whose recording would not fit in memory, with the estimate and its factors."""
+    n_scans, need = estimate_memory_bytes(scenario)
+    limit = _memory_limit_bytes()
+    if need > limit:
+        se = scenario.sensor
+        raise InputError(
+            f"{source}: sensor/servo: this scenario needs about {need / 2**30:.3g} GiB ({n_scans:,} scans x "
+            f"{se.n_beams:,} beams x {BYTES_PER_BEAM} bytes; scan_period_s {se.scan_period_s:g}, servo.passes "
+            f"{scenario.servo.passes}), more than the {limit / 2**30:.3g} GiB allowed: use fewer beams, passes or "
+            "a longer scan_period_s")
+
+
 def load_scenario(path: str | Path) -> Scenario:
-    """Read and validate a scenario YAML file. Relative mesh paths are resolved against the file's folder."""
+    """Read and validate a scenario YAML file. Relative mesh paths are resolved against the file's folder.
+
+    Raises:
+        InputError: unreadable or non-UTF-8 file, YAML syntax error (line and column), a field that is missing,
+            unknown (the nearest valid key is suggested) or out of range, NaN or infinity, a recording that would
+            not fit in memory.
+    """
     path = Path(path)
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not a text (UTF-8) file: byte {e.object[e.start]:#04x} at offset {e.start}; "
+                         "a scenario is a YAML file (see scenarios/)") from None
     except OSError as e:
         raise InputError(f"{path}: cannot read scenario ({e.strerror})") from None
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise InputError(f"{path}: not valid YAML ({str(e).splitlines()[0]})") from None
+        mark = getattr(e, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise InputError(f"{where}: YAML syntax error: {problem}") from None
+    if not isinstance(data, dict):
+        raise InputError(f"{path}: expected a mapping of sections (name, rig, scene, markers, ...), got "
+                         f"{type(data).__name__}")
     scenario = parse_scenario(data, str(path))
+    check_resources(scenario, str(path))
     if scenario.scene.meshes:
         meshes = tuple(
             m.model_copy(
@@ -336,6 +460,15 @@ def load_scenario(path: str | Path) -> Scenario:
         )
         scenario = scenario.model_copy(update={"scene": scenario.scene.model_copy(update={"meshes": meshes})})
     return scenario
+
+
+def scenario_inputs(scenario: Scenario, path: str | Path) -> dict[str, Path]:
+    """The files a scenario reads, ``{label: path}``: the scenario file and its meshes (no output may overlap
+    them)."""
+    out: dict[str, Path] = {"scenario": Path(path)}
+    for i, m in enumerate(scenario.scene.meshes):
+        out[f"scene.meshes[{i}].file"] = Path(m.file)
+    return out
 
 
 def dump_scenario(scenario: Scenario) -> str:

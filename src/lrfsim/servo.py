@@ -12,8 +12,8 @@ to reach the speed). Position is C1, velocity is continuous, acceleration piecew
 Joint states. Samples every ``1 / rate_hz`` from t = 0 to the end of the trajectory, stamped with the servo
 clock. The reported position is the true angle passed through a backlash (play) operator of width
 ``backlash_rad`` and then quantised to the encoder's grid ``2 pi / encoder_counts`` (Dynamixel MX/XM: 4096
-counts per revolution and 0.25-0.33 deg backlash, ROBOTIS e-Manual via FACTS.md). Velocity is the true
-velocity (not quantised).
+counts per revolution and 0.25-0.33 deg backlash: ROBOTIS e-Manual, emanual.robotis.com, MX-28 and XM430
+pages). Velocity is the true velocity (not quantised).
 
 Backlash model (the play operator, Krasnosel'skii-Pokrovskii): the reported angle r(t) stays inside the band
 [lambda(t) - backlash/2, lambda(t) + backlash/2] and moves only when the band pushes it:

@@ -1,0 +1,164 @@
+"""What the two command-line programs (``lrfcal``, ``lrfsim``) share: the typer app settings, usage lines, the
+mapping of errors to one line and an exit code, option checks and the progress display.
+
+Exit codes (the same for every command; see :mod:`lrfcal.errors`): 0 done, 1 ``lrfsim run`` missed its
+tolerances, 2 bad input or usage (one line ``error: ...`` on stderr), 3 no trustworthy calibration.
+
+typer >= 0.29 vendors click as ``typer._click``; only typer's public names are used here (``typer.TyperException``
+is the base of every usage error, ``typer.BadParameter`` one of them) plus ``typer.core.TyperCommand`` /
+``TyperArgument`` / ``TyperOption`` to write usage lines as ``SCENARIO -o DIR`` instead of ``{scenario}``.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import shutil
+import sys
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import Any, NoReturn
+
+import typer
+from typer.core import TyperArgument, TyperCommand, TyperOption
+
+from .errors import LrfError
+
+#: Exit code of a usage error or bad input (the same as :class:`lrfcal.errors.InputError`).
+EXIT_USAGE = 2
+
+
+class Command(TyperCommand):
+    """A typer command whose usage line names its arguments in capitals (``SCENARIO``, optional ``[X]``) and
+    shows its required options (``-o DIR``)."""
+
+    def collect_usage_pieces(self, ctx: Any) -> list[str]:
+        pieces = [self.options_metavar] if self.options_metavar else []
+        for p in self.get_params(ctx):
+            if isinstance(p, TyperArgument):
+                name = str(p.metavar or p.name).upper()
+                pieces.append(name if p.required else f"[{name}]")
+            elif isinstance(p, TyperOption) and p.required:
+                pieces.append(f"{p.opts[0]} {p.metavar or str(p.name).upper()}")
+        return pieces
+
+
+def make_app(help_text: str) -> typer.Typer:
+    """A typer app with plain help (no rich markup: brackets such as ``[m]`` and ``[default: ...]`` are kept and
+    the text wraps at the terminal width), no completion commands and no pretty tracebacks."""
+    return typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
+                       pretty_exceptions_enable=False, help=help_text)
+
+
+def one_line(text: str) -> str:
+    """``text`` with its lines and runs of blanks joined by single spaces."""
+    return " ".join(str(text).split())
+
+
+def _usage_line(err: Any, prog_name: str) -> str:
+    ctx = getattr(err, "ctx", None)
+    if ctx is None:
+        return f" (see '{prog_name} --help')"
+    usage = one_line(ctx.get_usage())
+    return f" ({usage}; see '{ctx.command_path} --help')"
+
+
+def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoReturn:
+    """Run ``app`` and exit with its code. Never shows a traceback for a usage error or an :class:`LrfError`:
+
+    * no arguments at all: the help on stdout, one line on stderr, exit 2;
+    * a usage error (missing argument or option, bad value, unknown option or command): one line
+      ``error: <what> (Usage: ...; see '<cmd> --help')`` on stderr, exit 2;
+    * an :class:`LrfError`: one line ``error: <message>`` on stderr, exit ``e.exit_code``;
+    * an OSError or MemoryError that escaped the checks: one line, exit 2 (the cause is named).
+    """
+    try:
+        rv = app(args=list(argv) if argv is not None else None, prog_name=prog_name, standalone_mode=False)
+    except typer.TyperException as e:  # click's usage errors as vendored by typer (NoArgsIsHelpError, ...)
+        code = int(getattr(e, "exit_code", EXIT_USAGE) or EXIT_USAGE)
+        if type(e).__name__ == "NoArgsIsHelpError":
+            print(e.format_message())
+            ctx = getattr(e, "ctx", None)
+            commands = ", ".join(getattr(ctx.command, "commands", {})) if ctx is not None else ""
+            print(f"error: no command given{f' (one of: {commands})' if commands else ''}", file=sys.stderr)
+            sys.exit(EXIT_USAGE)
+        print(f"error: {one_line(e.format_message())}{_usage_line(e, prog_name)}", file=sys.stderr)
+        sys.exit(code)
+    except typer.Abort:
+        print("error: aborted", file=sys.stderr)
+        sys.exit(1)
+    except LrfError as e:
+        print(f"error: {one_line(str(e))}", file=sys.stderr)
+        sys.exit(e.exit_code)
+    except MemoryError:
+        print("error: out of memory (the input is too large for this machine)", file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+    except OSError as e:
+        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        print(f"error: {where}{e.strerror or one_line(str(e))}", file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+    sys.exit(rv if isinstance(rv, int) else 0)
+
+
+def finite_between(lo: float, hi: float, unit: str) -> Callable[[float | None], float | None]:
+    """A typer callback refusing NaN, +-inf and values outside [lo, hi] (``--clock-offset nan``)."""
+
+    def check(value: float | None) -> float | None:
+        if value is not None and not (math.isfinite(value) and lo <= value <= hi):
+            raise typer.BadParameter(f"must be a finite number from {lo:g} to {hi:g} {unit}, got {value!r}")
+        return value
+
+    return check
+
+
+def spawn_unavailable_reason() -> str | None:
+    """Why a rerun viewer cannot be started here (None when it probably can): no ``rerun`` executable, or no
+    display on Linux (neither DISPLAY nor WAYLAND_DISPLAY set). Checked before spawning so that ``--spawn``
+    never waits for a viewer that cannot come up."""
+    exe = shutil.which("rerun") or shutil.which("rerun", path=os.path.dirname(sys.executable))
+    if exe is None:
+        return "no 'rerun' executable on PATH"
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return "no display (DISPLAY and WAYLAND_DISPLAY are unset)"
+    return None
+
+
+@dataclass
+class ProgressHooks:
+    """Callbacks for a long job: ``scans(done, total)`` while simulating, ``stage(name)`` while calibrating."""
+
+    scans: Callable[[int, int], None]
+    stage: Callable[[str], None]
+
+
+@contextmanager
+def progress_display(label: str) -> Iterator[ProgressHooks]:
+    """A transient progress line on stderr (only on a terminal): scans done while simulating, then the
+    calibration's stage (see :data:`lrfcal.pipeline.STAGES`), then what is being written (any other name)."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from .pipeline import STAGES
+
+    console = Console(stderr=True)
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[what]}"),
+                  TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal) as bar:
+        task = bar.add_task(label, total=None, what="")
+
+        def scans(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total, what=f"{done}/{total} scans")
+
+        def stage(name: str) -> None:
+            if name in STAGES:
+                k = STAGES.index(name)
+                bar.update(task, description=f"calibrating: {name}", completed=k, total=len(STAGES),
+                           what=f"stage {k + 1}/{len(STAGES)}")
+            else:  # after the calibration: writing its outputs
+                bar.update(task, description=f"writing {name}", completed=len(STAGES), total=len(STAGES), what="")
+
+        yield ProgressHooks(scans=scans, stage=stage)
+
+
+__all__ = ["EXIT_USAGE", "Command", "ProgressHooks", "finite_between", "make_app", "one_line", "progress_display",
+           "run_app", "spawn_unavailable_reason"]
