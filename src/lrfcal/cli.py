@@ -154,44 +154,60 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
 # --- real rigs' bags: inspect and reproject (issue 8) -------------------------------------------------------
 
 ScanTopicOpt = Annotated[str | None, typer.Option(
-    "--scan-topic", metavar="TOPIC", show_default=False, help="Topic of the scans (rig file scan.topic; default /scan).")]
+    "--scan-topic", metavar="TOPIC", show_default=False,
+    help="Topic of the scans (rig file scan.topic; default /scan).")]
 ScanFieldOpt = Annotated[str | None, typer.Option(
-    "--scan-field", metavar="PATH", show_default=False, help="Dotted path of a LaserScan inside a larger message (scan.field; default: none, the "
+    "--scan-field", metavar="PATH", show_default=False,
+    help="Dotted path of a LaserScan inside a larger message (scan.field; default: none, the "
     "topic is a sensor_msgs/LaserScan).")]
 ScanStampOpt = Annotated[str | None, typer.Option(
-    "--scan-stamp", metavar="MODE", show_default=False, help="header | receive: scan time from header.stamp or the bag's receive time "
+    "--scan-stamp", metavar="MODE", show_default=False,
+    help="header | receive: scan time from header.stamp or the bag's receive time "
     "(scan.stamp; default header).")]
 ServoTopicOpt = Annotated[str | None, typer.Option(
-    "--servo-topic", metavar="TOPIC", show_default=False, help="Topic of the servo angle (servo.topic; default /joint_states).")]
+    "--servo-topic", metavar="TOPIC", show_default=False,
+    help="Topic of the servo angle (servo.topic; default /joint_states).")]
 ServoFieldOpt = Annotated[str | None, typer.Option(
-    "--servo-field", metavar="PATH", show_default=False, help="Dotted path of the numeric angle field (servo.field; default data for std_msgs, "
+    "--servo-field", metavar="PATH", show_default=False,
+    help="Dotted path of the numeric angle field (servo.field; default data for std_msgs, "
     "current_pos for dynamixel_msgs/JointState).")]
 JointOpt = Annotated[str | None, typer.Option(
-    "--joint", metavar="NAME", show_default=False, help="Joint name in sensor_msgs/JointState (servo.joint; default servo).")]
+    "--joint", metavar="NAME", show_default=False,
+    help="Joint name in sensor_msgs/JointState (servo.joint; default servo).")]
 UnitOpt = Annotated[str | None, typer.Option(
-    "--unit", metavar="UNIT", show_default=False, help="rad | deg | counts: unit of the recorded angle (servo.unit; default rad).")]
+    "--unit", metavar="UNIT", show_default=False,
+    help="rad | deg | counts: unit of the recorded angle (servo.unit; default rad).")]
 CountsOpt = Annotated[float | None, typer.Option(
-    "--counts-per-rev", metavar="N", show_default=False, help="Encoder counts per revolution with --unit counts (e.g. 4096).")]
+    "--counts-per-rev", metavar="N", show_default=False,
+    help="Encoder counts per revolution with --unit counts (e.g. 4096).")]
 SignOpt = Annotated[int | None, typer.Option(
-    "--sign", "--servo-sign", metavar="SIGN", show_default=False, help="1 or -1: -1 when the servo turns the other way (servo.sign; default 1).")]
+    "--sign", "--servo-sign", metavar="SIGN", show_default=False,
+    help="1 or -1: -1 when the servo turns the other way (servo.sign; default 1).")]
 OffsetOpt = Annotated[float | None, typer.Option(
-    "--servo-offset", metavar="RAD", show_default=False, help="Added after unit and sign [rad]: the angle at lambda = 0 (servo.offset_rad; "
+    "--servo-offset", metavar="RAD", show_default=False,
+    help="Added after unit and sign [rad]: the angle at lambda = 0 (servo.offset_rad; "
     "default 0).")]
 ServoStampOpt = Annotated[str | None, typer.Option(
-    "--servo-stamp", metavar="MODE", show_default=False, help="header | receive | scan: servo sample time; scan = the angle is a field of the scan's "
+    "--servo-stamp", metavar="MODE", show_default=False,
+    help="header | receive | scan: servo sample time; scan = the angle is a field of the scan's "
     "message (servo.stamp; default header).")]
 TfParentOpt = Annotated[str | None, typer.Option(
-    "--tf-parent", metavar="FRAME", show_default=False, help="Take the angle from /tf: the parent frame (servo.tf.parent; with --tf-child).")]
-TfChildOpt = Annotated[str | None, typer.Option("--tf-child", metavar="FRAME", show_default=False, help="Child frame in /tf (servo.tf.child).")]
+    "--tf-parent", metavar="FRAME", show_default=False,
+    help="Take the angle from /tf: the parent frame (servo.tf.parent; with --tf-child).")]
+TfChildOpt = Annotated[str | None, typer.Option("--tf-child", metavar="FRAME", show_default=False,
+                                                help="Child frame in /tf (servo.tf.child).")]
 TfAxisOpt = Annotated[str | None, typer.Option(
-    "--tf-axis", metavar="AXIS", show_default=False, help="x | y | z: rotation axis of the tf joint in the parent frame (default z).")]
+    "--tf-axis", metavar="AXIS", show_default=False,
+    help="x | y | z: rotation axis of the tf joint in the parent frame (default z).")]
 
 
 @app.command("inspect", cls=Command)
 def inspect_cmd(
-    bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).")],
+    bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).",
+                                        metavar="BAG", show_default=False)],
     nominal: Annotated[Path | None, typer.Option(
-        "--nominal", help="Rig file (nominal.yaml) saying where the data are; default: guess from the bag.")] = None,
+        "--nominal", metavar="YAML", show_default=False,
+        help="Rig file (nominal.yaml) saying where the data are; default: guess from the bag.")] = None,
     scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
@@ -263,16 +279,22 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
 
 @app.command("reproject", cls=Command)
 def reproject_cmd(
-    bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).")],
+    bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).",
+                                        metavar="BAG", show_default=False)],
     nominal: Annotated[Path, typer.Option(
-        "--nominal", help="Rig file (nominal.yaml): nominal DH and where the data are in the bag.")],
-    out: Annotated[Path, typer.Option("-o", "--out", help="Output PLY (binary; x y z (m) in frame M, "
+        "--nominal", metavar="YAML", show_default=False,
+        help="Rig file (nominal.yaml): nominal DH and where the data are in the bag.")],
+    out: Annotated[Path, typer.Option("-o", "--out", metavar="PLY", show_default=False,
+        help="Output PLY (binary; x y z (m) in frame M, "
                                       "intensity, time (s), scan, beam per point; written atomically).")],
     calibration: Annotated[Path | None, typer.Option(
-        "--calibration", help="calibration.yaml whose dh replaces the rig file's nominal DH.")] = None,
-    rrd: Annotated[Path | None, typer.Option("--rrd", help="Also save a rerun recording (.rrd).")] = None,
+        "--calibration", metavar="YAML", show_default=False,
+        help="calibration.yaml whose dh replaces the rig file's nominal DH.")] = None,
+    rrd: Annotated[Path | None, typer.Option("--rrd", metavar="FILE", show_default=False,
+        help="Also save a rerun recording (.rrd).")] = None,
     bag_out: Annotated[Path | None, typer.Option(
-        "--bag-out", help="Also write a ROS 2 bag (MCAP) of sensor_msgs/msg/PointCloud2 on /lrf_cloud, one "
+        "--bag-out", metavar="DIR", show_default=False,
+        help="Also write a ROS 2 bag (MCAP) of sensor_msgs/msg/PointCloud2 on /lrf_cloud, one "
         "cloud per sweep (frame lrf_motor).")] = None,
     clock_offset: Annotated[float, typer.Option(
         "--clock-offset", metavar="S", callback=finite_between(-10.0, 10.0, "s"),
