@@ -166,7 +166,13 @@ def surface_returns(
     idx = np.concatenate(idx_all) if idx_all else np.zeros(0, dtype=np.int64)
     surf = np.concatenate(which) if which else np.zeros(0, dtype=np.int64)
     if idx.size > max_returns:
-        pick = np.sort(np.random.default_rng(seed).choice(idx.size, max_returns, replace=False))
+        # an even subsample chosen by the beam itself (a hash of its scan and beam index, salted by seed), not by
+        # its position among the candidates: a slightly different estimate, which moves a few returns across the
+        # gate, keeps the same subsample of the others, so every start reaches the same solution
+        key = (np.asarray(scan, dtype=np.uint64)[idx] * np.uint64(2654435761)
+               + np.asarray(beam, dtype=np.uint64)[idx] * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) \
+            % np.uint64(1 << 31)
+        pick = np.sort(np.argsort(key, kind="stable")[:max_returns])
         idx, surf = idx[pick], surf[pick]
     normals = np.array([s.normal for s in surfaces]).reshape(-1, 3)
     offsets = np.array([s.offset_m for s in surfaces])

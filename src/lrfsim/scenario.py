@@ -267,8 +267,9 @@ class TapeOutlier(_Section):
     """A misread tape: ``error_m`` added to one measured pair, named by its two marker ids ([id_i, id_j], either
     order) or by its row index in distances.csv."""
 
-    pair: tuple[str, str] | Annotated[int, Field(ge=0)]
-    error_m: Annotated[float, Field(ge=-10, le=10)]
+    pair: Annotated[tuple[str, str] | Annotated[int, Field(ge=0)],
+                    _d("the pair: its two marker ids [id_i, id_j] or its row in distances.csv [1]")]
+    error_m: Annotated[float, _d("added to the measured distance [m]", ge=-10, le=10)]
 
 
 class FaultsConfig(_Section):
@@ -277,21 +278,20 @@ class FaultsConfig(_Section):
     ``faults``. The laser-servo clock offset is ``servo.clock_offset_s`` (laser stamp - servo stamp), which the
     recording does not declare to the calibration."""
 
-    #: misread tape distances (distances.csv)
-    tape_outliers: tuple[TapeOutlier, ...] = ()
-    #: joint positions (and velocities) negated: a servo mounted the other way round; the truth is unchanged
-    inverted_servo: bool = False
-    #: bright spots (retroreflector-like intensity) on non-marker surfaces, each 1-3 scans x 2-4 beams
-    false_blobs: Annotated[int, Field(ge=0, le=200)] = 0
-    #: markers whose returns are removed (range and intensity those of the surface around, as if covered)
-    occluded_markers: Annotated[int, Field(ge=0, le=1000)] = 0
-    #: fraction of the scans left out of the bag (random scans)
-    dropped_scans_fraction: Annotated[float, Field(ge=0, le=0.9)] = 0.0
-    #: joint-state samples whose position jumps by +-encoder_spike_rad (random sign)
-    encoder_spikes: Annotated[int, Field(ge=0, le=100000)] = 0
-    encoder_spike_rad: Annotated[float, Field(gt=0, le=math.pi)] = 0.5
-    #: every range noise band's sigma times this (applied before simulating)
-    range_noise_scale: Annotated[float, Field(ge=0, le=100)] = 1.0
+    tape_outliers: Annotated[tuple[TapeOutlier, ...], _d("misread tape distances (distances.csv)")] = ()
+    inverted_servo: Annotated[bool, _d("joint positions and velocities negated: a servo mounted the other way "
+                                       "round; the truth is unchanged")] = False
+    false_blobs: Annotated[int, _d("bright spots (retroreflector-like intensity) on non-marker surfaces, each "
+                                   "1-3 scans x 2-4 beams [1]", ge=0, le=200)] = 0
+    occluded_markers: Annotated[int, _d("markers whose returns are removed (range and intensity those of the "
+                                        "surface around, as if covered) [1]", ge=0, le=1000)] = 0
+    dropped_scans_fraction: Annotated[float, _d("fraction of the scans left out of the bag (random scans) [1]",
+                                                ge=0, le=0.9)] = 0.0
+    encoder_spikes: Annotated[int, _d("joint-state samples whose position jumps by +-encoder_spike_rad (random "
+                                      "sign) [1]", ge=0, le=100000)] = 0
+    encoder_spike_rad: Annotated[float, _d("size of an encoder spike [rad]", gt=0, le=math.pi)] = 0.5
+    range_noise_scale: Annotated[float, _d("every range noise band's sigma times this, applied before "
+                                           "simulating [1]", ge=0, le=100)] = 1.0
 
 
 class Scenario(_Section):
