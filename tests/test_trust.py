@@ -175,3 +175,18 @@ def test_force_records_the_failed_check(recordings: Callable[..., Path]) -> None
     assert forced.status == "calibrated" and forced.result is not None
     failed = [c.name for c in forced.result.checks if not c.passed]
     assert "reduced chi-square" in failed
+
+
+@pytest.mark.parametrize("seed", [4, 6, 13, 16, 19])
+def test_wide_random_truths_are_right_or_refused(tmp_path: Path, seed: int) -> None:
+    """A quick subset of the broad random truths (benchmarks/bench_trust.py runs 50): every run is within 4 sigma on
+    every DH parameter or refused with a reason; a layout labelled as determining the DH is calibrated."""
+    from lrfsim.randomize import random_scenario_wide, wide_dh_determined
+
+    sc = random_scenario_wide(seed)
+    trial = calibrate_recording(record(sc, tmp_path / sc.name))
+    assert not trial.confident_wrong, trial.describe()
+    if trial.status == "refused":
+        assert trial.exit_code == 3 and trial.reason, trial.describe()
+    if wide_dh_determined(sc):
+        _ok(trial)

@@ -33,14 +33,32 @@ LENGTH_SPAN_M = 0.10
 
 
 def _blob_points(obs: Observations, n_blobs: int, radius_m: float) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Per blob: mean range (pushed 2R/3 into the sphere), mean motor angle, mean bearing; (B',) each, blobs with
-    returns only."""
+    """Per marker sighting: mean range (pushed 2R/3 into the sphere), mean motor angle, mean bearing; (B',) each.
+
+    Blobs of one marker seen in several passes of the sweep share their motor angle, bearing and range whatever
+    the DH parameters are (within 1 deg and 3 cm): they are merged into one point, so the search works on about one
+    point per marker."""
     cnt = np.bincount(obs.blob, minlength=n_blobs).astype(float)
     keep = cnt > 0
     r = np.bincount(obs.blob, obs.ranges_m, n_blobs)[keep] / cnt[keep] + 2.0 * radius_m / 3.0
     lam = np.bincount(obs.blob, obs.lambda_rad, n_blobs)[keep] / cnt[keep]
     mu = np.bincount(obs.blob, obs.mu_rad, n_blobs)[keep] / cnt[keep]
-    return r, lam, mu
+    w = cnt[keep]
+    group = np.arange(r.size)
+    for i in range(r.size):  # greedy: each point joins the first earlier group it matches
+        for j in range(i):
+            if group[j] == j and abs(lam[i] - lam[j]) < _MERGE_RAD and abs(mu[i] - mu[j]) < _MERGE_RAD \
+                    and abs(r[i] - r[j]) < 0.03:
+                group[i] = j
+                break
+    _, g = np.unique(group, return_inverse=True)
+    tot = np.bincount(g, w)
+    return (np.bincount(g, w * r) / tot, np.bincount(g, w * lam) / tot, np.bincount(g, w * mu) / tot)
+
+
+_MERGE_RAD = math.radians(1.0)
+#: at most this many point pairs score a candidate (a seeded even sample beyond)
+_MAX_PAIRS = 1500
 
 
 def pair_score(
@@ -49,12 +67,20 @@ def pair_score(
 ) -> FloatArray:
     """The module docstring's score for C candidate DH sets (C, 4) [a, alpha, b, beta] -> (C,).
 
-    r, lam, mu (B,) per blob; marker_distances (P,) sorted. Blob pairs closer than 5 cm (one marker seen in two
-    passes) are left out.
+    r, lam, mu (B,) per point; marker_distances (P,). Point pairs closer than 5 cm are left out; beyond
+    _MAX_PAIRS pairs a seeded even sample is used. The distance to the nearest marker-pair distance comes from a
+    1 mm lookup table.
     """
     B = r.size
     iu = np.triu_indices(B, 1)
-    D = np.asarray(marker_distances, dtype=float)
+    if iu[0].size > _MAX_PAIRS:
+        pick = np.sort(np.random.default_rng(0).choice(iu[0].size, _MAX_PAIRS, replace=False))
+        iu = (iu[0][pick], iu[1][pick])
+    D = np.sort(np.asarray(marker_distances, dtype=float))
+    step = 0.001
+    grid = np.arange(0.0, D[-1] * 3.0 + 1.0, step)
+    k = np.clip(np.searchsorted(D, grid), 1, D.size - 1)
+    table = np.minimum(np.abs(grid - D[k - 1]), np.abs(grid - D[k]))  # nearest marker distance, per mm
     out = np.empty(len(dh_grid))
     cl, sl = np.cos(lam), np.sin(lam)
     for s in range(0, len(dh_grid), chunk):
@@ -68,8 +94,7 @@ def pair_score(
         z = r * sp * sa + b * ca
         P = np.stack([cl * x - sl * y, sl * x + cl * y, z], -1)  # (c, B, 3)
         d = np.linalg.norm(P[:, iu[0]] - P[:, iu[1]], axis=-1)  # (c, pairs)
-        k = np.clip(np.searchsorted(D, d), 1, D.size - 1)
-        near = np.minimum(np.abs(d - D[k - 1]), np.abs(d - D[k]))
+        near = table[np.minimum((d / step).astype(np.int64), table.size - 1)]
         valid = d > 0.05
         w = np.exp(-0.5 * (near / tol_m) ** 2) * valid
         out[s:s + chunk] = w.sum(1) / np.maximum(valid.sum(1), 1)
@@ -86,8 +111,6 @@ def dh_candidates(
     if r.size < 4 or len(X) < 3:
         return []
     D = np.sort(np.linalg.norm(X[:, None] - X[None], axis=2)[np.triu_indices(len(X), 1)])
-    if D.size < 2:
-        return []
     nom = np.array([nominal.a, nominal.alpha, nominal.b, nominal.beta])
 
     step = math.radians(1.5)

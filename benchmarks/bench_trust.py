@@ -1,0 +1,181 @@
+"""Trust benchmark (issue 7): never a confident wrong calibration.
+
+Runs the calibration on
+  1. broad random ground truths (lrfsim.randomize.random_scenario_wide: V on one or both walls, markers on walls,
+     floor and ceiling, a board; DH angles near 0 or +-90 deg with either sign; the motor axis along, across and
+     up the tunnel; 6-30 markers; 1-4 passes), and
+  2. a fault set on tunnel_v and plane_30deg (false blobs, occluded markers, dropped scans, encoder spikes,
+     undeclared clock offsets, tape outliers, an inverted servo, 3x range noise),
+and prints per case the outcome (calibrated with error / sigma, or refused with the reason), then
+  - the number of confident wrong results (exit 0 and some DH error beyond 4 sigma): must be 0;
+  - the refusal rate, over all random truths and over those whose layout the generator labels as determining
+    the DH parameters (lrfsim.randomize.wide_dh_determined; target below 10 %);
+  - the RMS of error / sigma per DH parameter over the calibrated cases (target 0.8-1.25);
+  - the calibration time against the code before the trust work (``--baseline-rev``, run from a git worktree
+    in the same run on the same recordings; target at most 2x).
+
+    python benchmarks/bench_trust.py [--seeds 50] [--baseline-rev 399a633] [--skip-faults] [--skip-timing]
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import math
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from lrfcal.kinematics import DH_NAMES
+from lrfsim.randomize import random_scenario_wide, wide_dh_determined
+from lrfsim.scenario import parse_scenario
+from lrfsim.trial import Trial, calibrate_recording, record
+
+ROOT = Path(__file__).resolve().parents[1]
+
+FAULTS: dict[str, dict[str, object]] = {
+    "false blobs (5)": {"faults.false_blobs": 5},
+    "occluded markers (3)": {"faults.occluded_markers": 3},
+    "dropped scans (5 %)": {"faults.dropped_scans_fraction": 0.05},
+    "encoder spikes (20)": {"faults.encoder_spikes": 20},
+    "clock offset 20 ms (undeclared)": {"servo.clock_offset_s": 0.02},
+    "clock offset 100 ms (undeclared)": {"servo.clock_offset_s": 0.1},
+    "tape outlier 5 cm": {"faults.tape_outliers": [{"pair": 3, "error_m": 0.05}]},
+    "tape outlier 0.5 m": {"faults.tape_outliers": [{"pair": 3, "error_m": 0.5}]},
+    "tape outlier 1 m": {"faults.tape_outliers": [{"pair": 3, "error_m": 1.0}]},
+    "inverted servo": {"faults.inverted_servo": True},
+    "3x range noise": {"faults.range_noise_scale": 3.0},
+}
+
+
+def _scenario(base: str, name: str, changes: dict[str, object]):  # type: ignore[no-untyped-def]
+    data = copy.deepcopy(yaml.safe_load((ROOT / "scenarios" / f"{base}.yaml").read_text()))
+    data["name"] = name
+    for key, value in changes.items():
+        node = data
+        *path, last = key.split(".")
+        for k in path:
+            node = node.setdefault(k, {})
+        node[last] = value
+    return parse_scenario(data, name)
+
+
+def _line(trial: Trial, tag: str = "") -> str:
+    flag = "CONFIDENT WRONG " if trial.confident_wrong else ""
+    return f"  {flag}{tag}{trial.describe()} [{trial.seconds:.1f} s]"
+
+
+def run_cases(seeds: int, faults: bool, work: Path) -> tuple[list[tuple[Trial, bool]], list[Trial]]:
+    random_trials: list[tuple[Trial, bool]] = []
+    print(f"random truths (random_scenario_wide, seeds 0-{seeds - 1}):")
+    for seed in range(seeds):
+        sc = random_scenario_wide(seed)
+        determined = wide_dh_determined(sc)
+        folder = record(sc, work / sc.name)
+        trial = calibrate_recording(folder)
+        random_trials.append((trial, determined))
+        print(_line(trial, "" if determined else "(label: weak layout) "), flush=True)
+        shutil.rmtree(folder)
+    fault_trials: list[Trial] = []
+    if faults:
+        print("fault set:")
+        for base in ("tunnel_v", "plane_30deg"):
+            for label, changes in FAULTS.items():
+                name = f"{base}: {label}"
+                sc = _scenario(base, f"{base}_{len(fault_trials)}", changes)
+                folder = record(sc, work / sc.name)
+                trial = calibrate_recording(folder, name=name)
+                fault_trials.append(trial)
+                print(_line(trial), flush=True)
+                shutil.rmtree(folder)
+    return random_trials, fault_trials
+
+
+_TIMING = """
+import sys, time
+from lrfcal.recording import read_recording
+from lrfcal.pipeline import calibrate, CalibConfig
+rec = read_recording(sys.argv[1])
+best = float("inf")
+for _ in range(int(sys.argv[2])):
+    t = time.perf_counter(); calibrate(rec, CalibConfig()); best = min(best, time.perf_counter() - t)
+print(best)
+"""
+
+
+def timing(rev: str, work: Path, repeats: int = 3) -> list[tuple[str, float, float]]:
+    """(scenario, seconds now, seconds at ``rev``): the best of ``repeats`` full calibrations each, same recording."""
+    tree = work / "baseline"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(tree), rev], check=True,
+                   capture_output=True)
+    rows = []
+    try:
+        for base in ("tunnel_v", "plane_30deg"):
+            folder = record(_scenario(base, base, {}), work / f"timing_{base}")
+            legacy = work / f"legacy_{base}"  # the old reader knows only the old rig-file keys
+            shutil.copytree(folder, legacy)
+            rig = yaml.safe_load((legacy / "nominal.yaml").read_text())
+            old = {"dh": rig["dh"], "mount": rig["mount"], "marker_radius_m": rig["marker_radius_m"],
+                   "scan_topic": rig["scan"]["topic"], "joint_topic": rig["servo"]["topic"],
+                   "joint_name": rig["servo"]["joint"]}
+            (legacy / "nominal.yaml").write_text(yaml.safe_dump(old))
+            cmd = [sys.executable, "-c", _TIMING]
+            now = float(subprocess.run([*cmd, str(folder), str(repeats)], check=True, capture_output=True, text=True,
+                                       env={"PYTHONPATH": str(ROOT / "src"), "PATH": ""}).stdout.split()[-1])
+            before = float(subprocess.run([*cmd, str(legacy), str(repeats)], check=True, capture_output=True,
+                                          text=True, env={"PYTHONPATH": str(tree / "src"), "PATH": ""}
+                                          ).stdout.split()[-1])
+            rows.append((base, now, before))
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(tree)], capture_output=True)
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--seeds", type=int, default=50)
+    ap.add_argument("--baseline-rev", default="399a633", help="the code before the trust work")
+    ap.add_argument("--skip-faults", action="store_true")
+    ap.add_argument("--skip-timing", action="store_true")
+    args = ap.parse_args()
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="bench_trust-") as tmp:
+        work = Path(tmp)
+        random_trials, fault_trials = run_cases(args.seeds, not args.skip_faults, work)
+        rows = [] if args.skip_timing else timing(args.baseline_rev, work)
+
+    every = [t for t, _ in random_trials] + fault_trials
+    wrong = [t for t in every if t.confident_wrong]
+    refused = [t for t, _ in random_trials if t.status == "refused"]
+    det = [t for t, d in random_trials if d]
+    det_refused = [t for t in det if t.status == "refused"]
+    calibrated = [t for t in every if t.status == "calibrated"]
+    z = np.array([t.z for t in calibrated]) if calibrated else np.zeros((0, 4))
+    print("\nsummary")
+    print(f"  confident wrong results (exit 0, some |error| > 4 sigma): {len(wrong)} of {len(every)} runs")
+    print(f"  random truths refused: {len(refused)} of {len(random_trials)} "
+          f"({100 * len(refused) / max(len(random_trials), 1):.0f} %); on layouts labelled as determining the DH: "
+          f"{len(det_refused)} of {len(det)} ({100 * len(det_refused) / max(len(det), 1):.0f} %, target < 10 %)")
+    if fault_trials:
+        print(f"  fault set: {sum(t.status == 'calibrated' for t in fault_trials)} calibrated within 4 sigma, "
+              f"{sum(t.status == 'refused' for t in fault_trials)} refused, of {len(fault_trials)}")
+    if len(z):
+        rms = np.sqrt(np.mean(z**2, axis=0))
+        print("  RMS of error / sigma over the calibrated runs (target 0.8-1.25): "
+              + ", ".join(f"{n} {v:.2f}" for n, v in zip(DH_NAMES, rms, strict=True)) + f" (n = {len(z)})")
+    for base, now, before in rows:
+        print(f"  calibration time {base}: {now:.2f} s now, {before:.2f} s at {args.baseline_rev} "
+              f"(ratio {now / before:.2f}, target <= 2)")
+    print(f"  benchmark wall time {time.perf_counter() - t0:.0f} s")
+    if not math.isfinite(len(wrong)) or wrong:
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()
