@@ -99,11 +99,6 @@ def calibrate_cmd(
             options=options,
         )
     print_summary(result, console)
-    failed = [c for c in result.checks if not c.passed]
-    for c in failed:
-        console.print(f"FAILED check (written because of --force): {c.name}: {c.detail}", markup=False)
-    for note in result.notes:
-        console.print(f"note: {note}", markup=False)
     console.print(f"wrote {out}", markup=False)
 
 
@@ -149,6 +144,18 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
                   markup=False)
     console.print(f"{residual_summary(result)}; stages: "
                   + ", ".join(f"{k} {v:.2f}s" for k, v in result.timings_s.items()), markup=False)
+    held = not math.isfinite(sol.clock_offset_sigma_s)
+    console.print(f"clock offset (laser - servo): {sol.clock_offset_s * 1000:+.2f} ms"
+                  + (" (held, not estimated)" if held else f" +- {sol.clock_offset_sigma_s * 1000:.2f} ms (estimated)"),
+                  markup=False)
+    if result.checks:
+        console.print("checks: " + "; ".join(f"{c.name} {'ok' if c.passed else 'FAILED'}" for c in result.checks)
+                      + " (numbers in report.md)", markup=False)
+    for c in result.checks:
+        if not c.passed:
+            console.print(f"FAILED check (written because of --force): {c.name}: {c.detail}", markup=False)
+    for note in result.notes:
+        console.print(f"note: {note}", markup=False)
 
 
 # --- real rigs' bags: inspect and reproject (issue 8) -------------------------------------------------------
