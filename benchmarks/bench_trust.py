@@ -20,7 +20,6 @@ and prints per case the outcome (calibrated with error / sigma, or refused with 
 from __future__ import annotations
 
 import argparse
-import copy
 import math
 import shutil
 import subprocess
@@ -34,7 +33,7 @@ import yaml
 
 from lrfcal.kinematics import DH_NAMES
 from lrfsim.randomize import random_scenario_wide, wide_dh_determined
-from lrfsim.scenario import parse_scenario
+from lrfsim.scenario import Scenario, parse_scenario, with_changes
 from lrfsim.trial import Trial, calibrate_recording, record
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -54,16 +53,9 @@ FAULTS: dict[str, dict[str, object]] = {
 }
 
 
-def _scenario(base: str, name: str, changes: dict[str, object]):  # type: ignore[no-untyped-def]
-    data = copy.deepcopy(yaml.safe_load((ROOT / "scenarios" / f"{base}.yaml").read_text()))
-    data["name"] = name
-    for key, value in changes.items():
-        node = data
-        *path, last = key.split(".")
-        for k in path:
-            node = node.setdefault(k, {})
-        node[last] = value
-    return parse_scenario(data, name)
+def _scenario(base: str, name: str, changes: dict[str, object]) -> Scenario:
+    data = yaml.safe_load((ROOT / "scenarios" / f"{base}.yaml").read_text())
+    return parse_scenario(with_changes(data, {"name": name, **changes}), name)
 
 
 def _line(trial: Trial, tag: str = "") -> str:

@@ -9,7 +9,6 @@ deg (the Euler angles' gimbal lock), and `lrfsim run`'s truth comparison on a mi
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import math
 import shutil
@@ -23,7 +22,7 @@ import yaml
 from lrfcal.kinematics import DH, ESTIMATE_NAMES
 from lrfcal.pipeline import CalibConfig
 from lrfcal.types import Recording
-from lrfsim.scenario import Scenario, parse_scenario
+from lrfsim.scenario import Scenario, parse_scenario, with_changes
 from lrfsim.trial import Trial, calibrate_recording, record
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
@@ -32,16 +31,8 @@ FAST = CalibConfig(baseline=False, geometry=False)
 
 def _scenario(base: str, name: str, **changes: object) -> Scenario:
     """A shipped scenario with dotted-key changes (e.g. ``{"servo.passes": 1}``), at 20 deg/s to keep it quick."""
-    data = copy.deepcopy(yaml.safe_load((SCENARIOS / f"{base}.yaml").read_text()))
-    data["name"] = name
-    data["servo"]["speed_rad_s"] = math.radians(20.0)
-    for key, value in changes.items():
-        node = data
-        *path, last = key.split(".")
-        for k in path:
-            node = node.setdefault(k, {})
-        node[last] = value
-    return parse_scenario(data, name)
+    data = yaml.safe_load((SCENARIOS / f"{base}.yaml").read_text())
+    return parse_scenario(with_changes(data, {"name": name, "servo.speed_rad_s": math.radians(20.0), **changes}), name)
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from .errors import InputError
@@ -28,6 +27,7 @@ from .kinematics import DH, points_M
 from .reproject import current_umask
 from .timing import covered_scans, motor_angles
 from .types import JointStates, Scans
+from .yamlfile import read_yaml
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -268,12 +268,7 @@ def write_cloud_rrd(path: str | Path, cloud: BeamCloud, max_points: int = 2_000_
 def read_calibration_dh(path: str | Path) -> DH:
     """The DH parameters of a calibration.yaml (``dh: {a: {value, sigma}, ...}``; plain numbers accepted)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: calibration file not found")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as err:
-        raise InputError(f"{path}: YAML syntax error: {' '.join(str(err).split())}") from None
+    data = read_yaml(path, "calibration file")
     dh = data.get("dh") if isinstance(data, dict) else None
     if not isinstance(dh, dict):
         raise InputError(f"{path}: dh: missing (expected dh: {{a: {{value: ..., sigma: ...}}, ...}})")

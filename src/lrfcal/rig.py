@@ -12,10 +12,10 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-import yaml
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import InputError
+from .yamlfile import read_yaml
 
 Stamp = Literal["header", "receive"]
 ServoStamp = Literal["header", "receive", "scan"]
@@ -191,17 +191,7 @@ def parse_rig(data: Any, where: str) -> RigFile:
 def load_rig(path: str | Path) -> RigFile:
     """Read and validate a rig file (nominal.yaml)."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(f"{path}: nominal file not found")
-    try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except yaml.YAMLError as err:
-        mark = getattr(err, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
-        problem = getattr(err, "problem", None) or " ".join(str(err).split())
-        raise InputError(f"{where}: YAML syntax error: {problem}") from None
-    except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: cannot read: {' '.join(str(err).split())}") from None
+    data = read_yaml(path, "nominal file")
     return parse_rig(data, str(path))
 
 

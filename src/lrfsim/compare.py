@@ -11,12 +11,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
 from lrfcal.output import truth_dict, truth_frame
 from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
+from lrfcal.yamlfile import read_yaml
 
 from .scenario import Tolerances
 
@@ -36,10 +36,7 @@ class Truth:
 def load_truth(path: str | Path) -> Truth:
     """Read ground_truth.yaml (docs/formats.md)."""
     path = Path(path)
-    try:
-        data = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as e:
-        raise InputError(f"{path}: cannot read ground truth ({e})") from None
+    data = read_yaml(path, "ground truth")
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping")
     try:

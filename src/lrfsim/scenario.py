@@ -7,17 +7,19 @@ plate, y to the left, z up, floor at z = 0, walls at y = +-width/2).
 
 from __future__ import annotations
 
+import copy
 import difflib
 import math
 import os
 from pathlib import Path
-from typing import Annotated, Literal, get_args
+from typing import Annotated, Any, Literal, get_args
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from lrfcal.errors import InputError
 from lrfcal.kinematics import DH, Pose
+from lrfcal.yamlfile import read_yaml
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
@@ -423,6 +425,19 @@ def check_resources(scenario: Scenario, source: str) -> None:
             "a longer scan_period_s")
 
 
+def with_changes(data: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:
+    """A deep copy of a scenario mapping with dotted-key changes applied, e.g. ``{"servo.passes": 4}``
+    (missing sections are created); validate the result with :func:`parse_scenario`."""
+    out = copy.deepcopy(data)
+    for key, value in changes.items():
+        node = out
+        *path, last = key.split(".")
+        for k in path:
+            node = node.setdefault(k, {})
+        node[last] = value
+    return out
+
+
 def load_scenario(path: str | Path) -> Scenario:
     """Read and validate a scenario YAML file. Relative mesh paths are resolved against the file's folder.
 
@@ -432,20 +447,7 @@ def load_scenario(path: str | Path) -> Scenario:
             not fit in memory.
     """
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as e:
-        raise InputError(f"{path}: not a text (UTF-8) file: byte {e.object[e.start]:#04x} at offset {e.start}; "
-                         "a scenario is a YAML file (see scenarios/)") from None
-    except OSError as e:
-        raise InputError(f"{path}: cannot read scenario ({e.strerror})") from None
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}:{mark.column + 1}" if mark is not None else str(path)
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise InputError(f"{where}: YAML syntax error: {problem}") from None
+    data = read_yaml(path, "scenario")
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping of sections (name, rig, scene, markers, ...), got "
                          f"{type(data).__name__}")
