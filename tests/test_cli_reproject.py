@@ -122,3 +122,19 @@ def test_inspect_prints_topics_problems_and_snippet(tmp_path, monkeypatch, capsy
     assert _main(monkeypatch, ["inspect", str(bag), "--nominal", str(rig)]) == 0
     out = capsys.readouterr().out
     assert "guessed" not in out and "a: 0.05" in out
+
+
+def test_reproject_applies_the_calibrations_clock_offset(tmp_path, monkeypatch, canonical_bag):
+    """calibration.yaml's estimated clock offset (laser - servo) is applied unless --clock-offset is given."""
+    calib = tmp_path / "calibration.yaml"
+    calib.write_text(yaml.safe_dump({"dh": {k: {"value": v, "sigma": 0.001} for k, v in DH_TEST.as_dict().items()},
+                                     "clock_offset_s": {"value": 0.03, "sigma": 0.0003}}))
+    data = read_bag(canonical_bag, ScanSource(), ServoSource(joint="servo"), warn=lambda _t: None)
+    for extra, offset in (([], 0.03), (["--clock-offset", "0"], 0.0)):
+        out = tmp_path / f"c{len(extra)}.ply"
+        code = _main(monkeypatch, ["reproject", str(canonical_bag), "--nominal", str(_rig(tmp_path)),
+                                   "--calibration", str(calib), "-o", str(out), *extra])
+        assert code == 0
+        expect = reproject_beams(data.scans, data.joints, DH_TEST, offset)
+        ply = read_cloud_ply(out)
+        np.testing.assert_allclose(np.c_[ply["x"], ply["y"], ply["z"]], expect.points_M, atol=1e-6)

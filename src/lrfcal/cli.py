@@ -303,9 +303,10 @@ def reproject_cmd(
         "--bag-out", metavar="DIR", show_default=False,
         help="Also write a ROS 2 bag (MCAP) of sensor_msgs/msg/PointCloud2 on /lrf_cloud, one "
         "cloud per sweep (frame lrf_motor).")] = None,
-    clock_offset: Annotated[float, typer.Option(
-        "--clock-offset", metavar="S", callback=finite_between(-10.0, 10.0, "s"),
-        help="Fine laser-minus-servo clock offset [s] on top of the reader's coarse one, -10..10.")] = 0.0,
+    clock_offset: Annotated[float | None, typer.Option(
+        "--clock-offset", metavar="S", callback=finite_between(-10.0, 10.0, "s"), show_default=False,
+        help="Fine laser-minus-servo clock offset [s] on top of the reader's coarse one, -10..10  [default: the "
+        "calibration's estimate with --calibration, else 0]")] = None,
     scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,

@@ -282,6 +282,19 @@ def read_calibration_dh(path: str | Path) -> DH:
     return DH(**out)
 
 
+def read_calibration_clock_offset(path: str | Path) -> float | None:
+    """The clock offset (laser stamp - servo stamp) [s] a calibration.yaml estimated or held
+    (``clock_offset_s: {value, sigma}``), None when the file has none (older calibrations)."""
+    data = read_yaml(Path(path), "calibration file")
+    entry = data.get("clock_offset_s") if isinstance(data, dict) else None
+    v = entry.get("value") if isinstance(entry, dict) else entry
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise InputError(f"{path}: clock_offset_s.value: expected a finite number of seconds, got {v!r}")
+    return float(v)
+
+
 # --- the command ----------------------------------------------------------------------------------------------
 
 def reproject_bag(
@@ -292,14 +305,16 @@ def reproject_bag(
     calibration: str | Path | None = None,
     rrd: str | Path | None = None,
     bag_out: str | Path | None = None,
-    clock_offset_s: float = 0.0,
+    clock_offset_s: float | None = None,
     options: dict[str, Any] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
     warn: Callable[[str], None] | None = None,
 ) -> list[str]:
     """``lrfcal reproject``: read BAG as the rig file says (``options``: lrfcal.rig.with_overrides keywords),
-    reproject every beam with the calibration's DH (else the nominal), write the PLY (and the PointCloud2 bag,
-    the rerun file). ``progress(stage, done, total)`` reports reading and reprojection. Returns summary lines.
+    reproject every beam with the calibration's DH (else the nominal) and its clock offset (``clock_offset_s``
+    when given, else the calibration's estimate, else 0; on top of the reader's coarse offset), write the PLY
+    (and the PointCloud2 bag, the rerun file). ``progress(stage, done, total)`` reports reading and
+    reprojection. Returns summary lines.
 
     Raises:
         InputError: bad input, or an output path that overlaps an input.
@@ -321,7 +336,11 @@ def reproject_bag(
     rec = read_recording(None, bag=bag, nominal=nominal, scan=scan, servo=servo, require_distances=False,
                          progress=stage("reading"), warn=warn)
     dh = read_calibration_dh(calibration) if calibration is not None else rec.nominal.dh
-    offset = float(clock_offset_s)
+    if clock_offset_s is not None:
+        offset, offset_from = float(clock_offset_s), "given"
+    else:
+        found = read_calibration_clock_offset(calibration) if calibration is not None else None
+        offset, offset_from = (0.0, "none") if found is None else (found, f"from {calibration}")
     cloud = reproject_beams(rec.scans, rec.joints, dh, offset, progress=stage("reprojecting"))
     lines = list(rec.report.lines()) if rec.report is not None else []
     n_sweeps = int(np.unique(cloud.sweep).size)
@@ -329,7 +348,7 @@ def reproject_bag(
                  f"({cloud.n_scans_uncovered} not covered by the servo samples, skipped) in {n_sweeps} sweeps, "
                  f"DH from {calibration if calibration is not None else nominal} "
                  f"(a {dh.a:.4f} m, alpha {np.degrees(dh.alpha):.3f} deg, b {dh.b:.4f} m, beta "
-                 f"{np.degrees(dh.beta):.3f} deg), fine clock offset {offset:+.6f} s")
+                 f"{np.degrees(dh.beta):.3f} deg), fine clock offset {offset:+.6f} s ({offset_from})")
     write_cloud_ply(out, cloud)
     lines.append(f"wrote {out}")
     if bag_out is not None:
@@ -342,5 +361,5 @@ def reproject_bag(
 
 
 __all__ = ["BeamCloud", "CLOUD_FRAME", "CLOUD_TOPIC", "POINT_DTYPE", "check_outputs", "point_records",
-           "read_calibration_dh", "read_cloud_ply", "reproject_bag", "reproject_beams", "sweep_index",
-           "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]
+           "read_calibration_clock_offset", "read_calibration_dh", "read_cloud_ply", "reproject_bag", "reproject_beams",
+           "sweep_index", "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]
