@@ -179,7 +179,7 @@ def calibrate(
                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s)
         clock.lap("surfaces")
 
-    checks = _checks(ours, matched, markers, passes, config, fit, motor)
+    checks = _checks(ours, chosen.solution, matched, markers, passes, config, fit, motor)
     failed = [c for c in checks if not c.passed]
     if failed and not config.force:
         c = failed[0]
@@ -381,10 +381,12 @@ def _dh_text(dh: DH) -> str:
 
 
 def _checks(
-    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
-    fit: Callable[..., Solution], motor: solve.MotorClock | None,
+    sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
+    config: CalibConfig, fit: Callable[..., Solution], motor: solve.MotorClock | None,
 ) -> list[Check]:
-    """The consistency checks a result must pass before it is written (see docs/method.md)."""
+    """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
+    compares parts of the marker returns with the marker-only solution of them all (the same model and data
+    type, so that it tests the recording's parts, not the markers against the surfaces)."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
     if sol.information is not None:
         obs = observability.analyse(sol.information, sol.information_names)
@@ -399,7 +401,7 @@ def _checks(
            "; if the scanner is this noisy, pass --range-sigma; otherwise the model does not explain the data "
            "(an unmodelled clock offset or motion, a wrong marker radius)"),
     ))
-    checks.append(_second_opinion(sol, matched, markers, passes, config, fit, motor))
+    checks.append(_second_opinion(marker_only, matched, markers, passes, config, fit, motor))
     return checks
 
 
@@ -443,7 +445,8 @@ def _second_opinion(
     d = worst[1]
     return Check(
         "second opinion", ok,
-        f"{how} calibrated separately differ from the joint solution by chi2 {worst[0]:.3g} (limit {limit:.3g}, 4 dof;"
+        f"{how} calibrated separately differ from the marker-only joint solution by chi2 {worst[0]:.3g} "
+        f"(limit {limit:.3g}, 4 dof;"
         f" a {d[0] * 1000:+.2f} mm, alpha {math.degrees(d[1]):+.3f} deg, b {d[2] * 1000:+.2f} mm, "
         f"beta {math.degrees(d[3]):+.3f} deg)"
         + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled clock "
