@@ -181,3 +181,26 @@ def test_wide_random_truths_are_right_or_refused(tmp_path: Path, seed: int) -> N
         assert trial.exit_code == 3 and trial.reason, trial.describe()
     if wide_dh_determined(sc):
         _ok(trial)
+
+
+def test_marker_moved_after_taping_is_found(recordings: Callable[..., Path], tmp_path: Path) -> None:
+    """The tape describes one marker 4 cm from where the laser sees it (it moved after taping): the tape itself is
+    consistent, so MDS cannot tell; the fit rejects that marker's returns, unassigns its blobs and the DH come out
+    within 4 sigma from the others."""
+    import csv
+
+    from lrfsim.compare import load_truth
+
+    folder = tmp_path / "moved"
+    shutil.copytree(recordings(_scenario("tunnel_v", "tunnel_fast")), folder)
+    truth = load_truth(folder / "ground_truth.yaml")
+    moved = dict(truth.markers)
+    moved["m04"] = moved["m04"] + np.array([0.04, 0.0, 0.0])  # along the wall
+    rows = list(csv.reader((folder / "distances.csv").read_text().splitlines()))
+    out = [rows[0]] + [[i, j, f"{np.linalg.norm(moved[i] - moved[j]):.7f}"] for i, j, _ in rows[1:]]
+    (folder / "distances.csv").write_text("\n".join(",".join(r) for r in out) + "\n")
+    trial = calibrate_recording(folder, FAST, keep_result=True)
+    _ok(trial)
+    assert trial.result is not None
+    used = {trial.result.markers.marker_ids[k] for k in np.unique(trial.result.observations.marker)}
+    assert "m04" not in used, sorted(used)

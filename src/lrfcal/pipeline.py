@@ -82,6 +82,7 @@ class _Alternative:
     start: Params
     clock: solve.MotorClock | None
     solution: Solution
+    notes: tuple[str, ...] = ()
 
 
 def calibrate(
@@ -159,6 +160,7 @@ def calibrate(
     chosen = _choose_servo_sign(alternatives, nominal.dh, config)
     markers, assoc, matched, start, motor = chosen.markers, chosen.assoc, chosen.matched, chosen.start, chosen.clock
     ours = chosen.solution
+    notes.extend(chosen.notes)
     if chosen.sign < 0:
         joints = _negated(joints)
         returns = _replace(returns, lambda_rad=-returns.lambda_rad)
@@ -273,17 +275,21 @@ def _marker_solution(
     sol = fit(matched, markers.positions_W, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
     # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
     # that is not where the tape puts it: unassign them and solve again
-    bad = _inconsistent_blobs(matched, sol)
-    if bad.size:
+    notes: list[str] = []
+    for _ in range(3):  # a blob matched wrongly, or a marker that is not where the tape puts it: out, and again
+        bad, why = _inconsistent_blobs(matched, sol, markers, config.range_sigma_m)
+        if not bad.size:
+            break
+        notes.append(why)
         b2m = assoc.blob_to_marker.copy()
         b2m[bad] = -1
         assoc = Association(b2m, assoc.mirrored, assoc.T_W_M, assoc.rms_m, int((b2m >= 0).sum()))
         matched = _with_markers(returns, b2m)
         if len(np.unique(matched.marker)) < 4:
-            raise CalibrationError(f"{bad.size} blobs disagree with the marker map; fewer than 4 markers remain")
+            raise CalibrationError(f"{why}; fewer than 4 markers remain")
         sol = fit(matched, markers.positions_W, sol.params, model="sphere", clock=motor,
                   clock_offset_s=sol.clock_offset_s)
-    return _Alternative(sign, markers, assoc, matched, start, motor, sol)
+    return _Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes))
 
 
 def _attempt(returns: Observations, detections: Detections, markers: MarkerMap, dh: DH, radius_m: float,
@@ -318,17 +324,38 @@ def _associate_search(returns: Observations, detections: Detections, markers: Ma
     return best_dh, best
 
 
-def _inconsistent_blobs(matched: Observations, sol: Solution, max_outlier_share: float = 0.5) -> np.ndarray:
-    """Blobs (indices) most of whose returns the solver dropped as beyond 4 sigma."""
+def _inconsistent_blobs(matched: Observations, sol: Solution, markers: MarkerMap, range_sigma_m: float,
+                        max_outlier_share: float = 0.5, floor_m: float = 0.005) -> tuple[np.ndarray, str]:
+    """Blobs (indices) that disagree with the marker map, and why in words.
+
+    First the blobs most of whose returns the solver dropped as beyond 4 sigma (matched to the wrong marker);
+    else the one marker whose returns sit, on average, furthest from its tape position beyond both ``floor_m`` and
+    4 sigma of that mean (sigma_r / sqrt(the number of scans seeing it)): a marker moved after taping leaves the
+    tape consistent, so only its returns can tell, and their mean offset grows with every return, unlike the
+    per-return test."""
+    empty = np.zeros(0, dtype=np.int64)
     if sol.inlier is None:
-        return np.zeros(0, dtype=np.int64)
-    blobs = np.unique(matched.blob)
-    out = []
-    for b in blobs:
-        m = matched.blob == b
-        if m.sum() >= 2 and (~sol.inlier[m]).mean() > max_outlier_share:
-            out.append(int(b))
-    return np.array(out, dtype=np.int64)
+        return empty, ""
+    wrong = [int(b) for b in np.unique(matched.blob)
+             if (m := matched.blob == b).sum() >= 2 and (~sol.inlier[m]).mean() > max_outlier_share]
+    if wrong:
+        return np.array(wrong, dtype=np.int64), f"{len(wrong)} blobs whose returns the fit rejects unassigned"
+    res = np.asarray(sol.residuals_m, dtype=float)
+    worst, worst_k, worst_off = 0.0, -1, 0.0
+    for k in np.unique(matched.marker):
+        m = (matched.marker == k) & np.all(np.isfinite(res), axis=1)
+        n_scans = len(np.unique(matched.scan[m]))
+        if n_scans == 0:
+            continue
+        offset = float(np.linalg.norm(res[m].mean(0)))
+        limit = max(floor_m, 4.0 * range_sigma_m / np.sqrt(n_scans))
+        if offset > limit and offset / limit > worst:
+            worst, worst_k, worst_off = offset / limit, int(k), offset
+    if worst_k < 0:
+        return empty, ""
+    blobs = np.unique(matched.blob[matched.marker == worst_k]).astype(np.int64)
+    return blobs, (f"marker {markers.marker_ids[worst_k]}: its returns sit {worst_off * 1000:.0f} mm from its tape "
+                   "position on average (moved after taping?): left out")
 
 
 def _choose_servo_sign(alts: list[_Alternative], nominal_dh: DH, config: CalibConfig) -> _Alternative:
