@@ -72,7 +72,8 @@ class SimResult:
     scan_stamps_s (S,): time of beam 0 on the laser clock; mu_rad (N,); ranges_m (S, N) (no return: NaN or
     +inf); intensities (S, N) counts; beam_lambda_rad (S, N): true motor angle at every beam (truth);
     joints: the JointState stream (servo clock); tape; truth; stats; faults: what lrfsim.faults injected
-    (ground_truth.yaml ``faults``; empty without faults).
+    (ground_truth.yaml ``faults``; empty without faults); echo_ranges_m, echo_intensities (S, N, E): the
+    multi-echo returns nearest first (NaN: no echo), None unless sensor.echoes.enabled.
     """
 
     name: str
@@ -87,6 +88,8 @@ class SimResult:
     stats: SimStats
     duration_s: float
     faults: dict[str, Any] = field(default_factory=dict)
+    echo_ranges_m: FloatArray | None = None
+    echo_intensities: FloatArray | None = None
 
 
 def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
@@ -110,9 +113,10 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     check_trajectory(traj)
     phase_s = float(np.random.default_rng([scenario.seed, _RNG_PHASE]).uniform(0.0, sensor.scan_period_s))
     starts_s = scan_start_times(traj.end_s, sensor, phase_s)
-    beam_lambda = traj.angle(beam_times(starts_s, sensor))
+    times_s = beam_times(starts_s, sensor)
+    beam_lambda = traj.angle(times_s)
     lid = simulate_scans(scene, sensor, beam_lambda, np.random.default_rng([scenario.seed, _RNG_SENSOR]),
-                         progress=progress)
+                         progress=progress, beam_times_s=times_s)
     joints = joint_samples(traj, servo)
     tape = measure_tape(scene.marker_ids, scene.markers_W, scenario.tape,
                         np.random.default_rng([scenario.seed, _RNG_TAPE]))
@@ -127,7 +131,8 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     result = SimResult(name=scenario.name, scan_stamps_s=laser_time(starts_s, servo.clock_offset_s),
                        mu_rad=beam_angles(sensor), ranges_m=lid.ranges_m, intensities=lid.intensities,
                        beam_lambda_rad=beam_lambda, joints=joints, tape=tape, truth=truth, stats=stats,
-                       duration_s=traj.end_s)
+                       duration_s=traj.end_s, echo_ranges_m=lid.echo_ranges_m,
+                       echo_intensities=lid.echo_intensities)
     return apply_faults(result, scenario)
 
 
