@@ -18,7 +18,7 @@ from lrfsim.recording import write_recording
 from lrfsim.scenario import Scenario, SystematicConfig, parse_scenario
 from lrfsim.scene import build_scene
 from lrfsim.servo import sweep_trajectory
-from lrfsim.simulate import simulate
+from lrfsim.simulate import simulate, systematic_truth
 
 
 def _with(sc: Scenario, **sensor: object) -> Scenario:
@@ -48,6 +48,15 @@ def test_defaults_are_off() -> None:
     assert sensor.systematic == SystematicConfig()
     assert lidar.systematic_bias_m(np.full((2, 3), 500.0), sensor, np.zeros((2, 3))) is None
     assert not sensor.echoes.enabled
+    assert systematic_truth(sensor) is None
+
+
+def test_ground_truth_declares_the_systematic_errors() -> None:
+    sensor = small_scenario(sensor={"systematic": {"range_offset_m": 0.01, "intensity_bias_m_per_decade": -0.002,
+                                                   "intensity_ref_counts": 100.0}}).sensor
+    t = systematic_truth(sensor)
+    assert t is not None and t["range_offset_m"] == 0.01 and "drift_amplitude_m" not in t
+    assert t["saturated_return_bias_m"] == pytest.approx(-0.002 * math.log10(65535.0 / 100.0), abs=1e-15)
 
 
 def test_constant_offset_shifts_every_range(exact_base) -> None:
@@ -182,6 +191,7 @@ def test_multiecho_bag_reads_back(tmp_path) -> None:
     res = simulate(sc)
     assert res.echo_ranges_m is not None and res.echo_ranges_m.shape[0] == res.ranges_m.shape[0]
     out = write_recording(res, sc, tmp_path / "rec")
+    assert "systematic" not in (out / "ground_truth.yaml").read_text()  # every systematic error off
     servo = ServoSource(joint="servo")
     scan = read_bag(out / "bag", ScanSource(), servo).scans
     got = {e: read_bag(out / "bag", ScanSource(topic="/echoes", echo=e), servo).scans

@@ -167,8 +167,10 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float) -> str:
 
 def ground_truth_yaml(result: SimResult) -> str:
     """ground_truth.yaml: true DH and mount, marker centres, radius, clock offset, tunnel dimensions, and the
-    faults injected (lrfsim.faults; {} when none)."""
+    faults injected (lrfsim.faults; {} when none); ``systematic`` (lrfsim.simulate.systematic_truth) only when a
+    systematic range error is on."""
     t = result.truth
+    extra = {"systematic": t.systematic} if t.systematic else {}
     return _dump({
         "dh": t.dh.as_dict(),
         "mount": t.mount.as_dict(),
@@ -177,6 +179,7 @@ def ground_truth_yaml(result: SimResult) -> str:
         "clock_offset_s": float(t.clock_offset_s),
         "tunnel": {k: float(v) for k, v in t.tunnel.items()} if t.tunnel is not None else None,
         "faults": result.faults,
+        **extra,
     })
 
 
