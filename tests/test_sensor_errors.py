@@ -12,6 +12,7 @@ from test_lidar import EXACT, _deep_update, _exact_rays_W, _marker_on_beam, _run
 
 from lrfcal.bag import read_bag, select_echo
 from lrfcal.errors import InputError
+from lrfcal.inspection import inspect_bag
 from lrfcal.rig import ScanSource, ServoSource, parse_rig
 from lrfsim import lidar
 from lrfsim.recording import write_recording
@@ -214,6 +215,10 @@ def test_multiecho_bag_reads_back(tmp_path) -> None:
     strongest = np.take_along_axis(er, pick[..., None], -1)[..., 0]
     assert np.array_equal(got["strongest"].ranges_m[has], strongest[has])
     assert np.isnan(got["first"].ranges_m[~has]).all()
+    insp = inspect_bag(out / "bag", ScanSource(topic="/echoes", echo="first"), servo)
+    assert insp.geometry is not None and insp.geometry.has_intensities and insp.geometry.beam_count == (1081, 1081)
+    assert "echo: first" in insp.rig_snippet and insp.report is not None
+    assert insp.report.n_scans == scan.stamps_s.size
     split = n_valid >= 2  # the split beams' first echo is nearer than their /scan mixture
     assert np.all(got["first"].ranges_m[split] <= got["last"].ranges_m[split])
     assert np.all(np.diff(res.echo_ranges_m[split][:, :2], axis=-1) >= 0)  # written in arrival order
