@@ -43,7 +43,7 @@ and the Photonics 2018 UST-20LX study motivate the incidence dependence and the 
 Mixed pixel (one echo per beam): the beam's range is the received-power-weighted mean of its sub-rays'
 ranges, r = sum_f P_f r_f / sum_f P_f, and its intensity the mean received power over all F sub-rays (a miss
 contributes 0), I = sum_f P_f / F. A bright retroreflector in part of the footprint therefore dominates both.
-Real UTMs report up to 3 echoes; only the strongest-weighted mixture is modelled.
+This mixture is /scan; the UTM-30LX-EW also reports up to 3 separate echoes (``sensor.echoes``, below).
 
 Noise (``noise: true``): I <- I * max(0, 1 + relative_noise * z), then I is rounded to integer counts and
 clipped at ``saturation_counts``; I < ``min_detectable_counts`` -> no return. Range: r <- r + sigma(r) z with
