@@ -20,6 +20,12 @@ mirror turns at a constant rate through a full revolution per scan_time) with a 
 skipped, masked or assumed is counted in the :class:`~lrfcal.types.ReadReport`; nothing aborts the recording
 except a missing topic or no usable scan or servo sample at all.
 
+MultiEchoLaserScan (urg_node's ``echoes`` topic: per beam a LaserEcho of up to 3 ranges and one of as many
+intensities) is read as a LaserScan with one return per beam, chosen by the rig file's ``scan.echo``: among the
+beam's valid echoes (finite, non-zero, within [range_min, range_max]) the nearest (``first``), the farthest
+(``last``) or the one with the highest intensity (``strongest``, the default; the first of equals); a beam
+without a valid echo is NaN.
+
 Clocks: per topic the median of (bag receive time - stamp); their difference is the coarse laser-minus-servo
 offset. When it exceeds :data:`COARSE_OFFSET_MIN_S` (different clocks: microcontroller uptime vs wall clock)
 the servo stamps are moved onto the laser clock by it; below, the offset is only reported (what remains is the
@@ -45,6 +51,7 @@ from .rig import ScanSource, ServoSource
 from .types import JointStates, ReadReport, Scans
 
 LASERSCAN_TYPES = ("sensor_msgs/msg/LaserScan",)
+MULTIECHO_TYPE = "sensor_msgs/msg/MultiEchoLaserScan"
 JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
 DYNAMIXEL_JOINTSTATE_TYPE = "dynamixel_msgs/msg/JointState"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -289,6 +296,41 @@ def _is_laserscan(obj: Any) -> bool:
     return all(hasattr(obj, f) for f in ("ranges", "angle_min", "angle_increment", "time_increment"))
 
 
+def _is_multiecho(ls: Any) -> bool:
+    """A MultiEchoLaserScan: its ranges are LaserEcho messages (a sequence with ``echoes``)."""
+    return len(ls.ranges) > 0 and hasattr(ls.ranges[0], "echoes")
+
+
+def select_echo(ranges: list[Any], intensities: list[Any], range_min: float, range_max: float, echo: str
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """One return per beam of a MultiEchoLaserScan (module docstring): ranges (N,) [m] (NaN: no valid echo)
+    and intensities (N,) (0 there). ``ranges`` / ``intensities``: the message's LaserEcho lists (intensities
+    may be empty or shorter: 0)."""
+    n = len(ranges)
+    E = max((len(e.echoes) for e in ranges), default=0)
+    r = np.full((n, max(E, 1)), np.nan)
+    it = np.zeros((n, max(E, 1)))
+    for b, e in enumerate(ranges):
+        k = len(e.echoes)
+        if k:
+            r[b, :k] = np.asarray(e.echoes, dtype=np.float64)
+            if b < len(intensities):
+                v = np.asarray(intensities[b].echoes, dtype=np.float64)[:k]
+                it[b, :v.size] = v
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(r) & (r != 0.0) & (r >= range_min) & (r <= range_max)
+    if echo == "first":
+        key = np.where(ok, -r, -np.inf)
+    elif echo == "last":
+        key = np.where(ok, r, -np.inf)
+    else:
+        key = np.where(ok, np.nan_to_num(it, nan=0.0), -np.inf)
+    pick = np.argmax(key, axis=1)
+    rows = np.arange(n)
+    any_ok = ok.any(axis=1)
+    return np.where(any_ok, r[rows, pick], np.nan), np.where(any_ok, it[rows, pick], 0.0)
+
+
 def _scans_from(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, where: str,
                 warn: Callable[[str], None]) -> tuple[Scans, dict[str, Any], list[str]]:
     """Stack LaserScans (each with its own layout) into Scans; count what is skipped, masked, assumed."""
@@ -337,9 +379,13 @@ def _scans_from(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, 
     n_intens_bad = 0
     for k, (_, _, ls, _) in enumerate(rows):
         n = counts[k]
-        ranges[k, :n] = np.asarray(ls.ranges, dtype=np.float64)
         mu[k] = float(ls.angle_min) + idx * float(ls.angle_increment)
         t_inc[k] = float(ls.time_increment)
+        if _is_multiecho(ls):
+            ranges[k, :n], intens[k, :n] = select_echo(list(ls.ranges), list(ls.intensities),
+                                                       float(ls.range_min), float(ls.range_max), scan.echo)
+            continue
+        ranges[k, :n] = np.asarray(ls.ranges, dtype=np.float64)
         i = np.asarray(ls.intensities, dtype=np.float64)
         if i.size == n:
             intens[k, :n] = i
@@ -521,5 +567,5 @@ def _joints_from(samples: _Samples, servo: ServoSource, scans: Scans, scan_recv:
     return JointStates(stamps_s=t, positions_rad=q, name=name), stamps[ok], samples.recv_s[ok], int(ok.sum())
 
 
-__all__ = ["BagData", "COARSE_OFFSET_MIN_S", "complete_types", "default_field", "get_field", "open_reader",
-           "read_bag", "stamp_s"]
+__all__ = ["BagData", "COARSE_OFFSET_MIN_S", "MULTIECHO_TYPE", "complete_types", "default_field", "get_field",
+           "open_reader", "read_bag", "select_echo", "stamp_s"]

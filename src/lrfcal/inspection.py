@@ -358,8 +358,16 @@ def _geometry(msgs: list[Any]) -> ScanGeometry:
         time_increment_s=span([m.time_increment for m in msgs]), scan_time_s=span([m.scan_time for m in msgs]),
         range_min_m=float(np.nanmin([m.range_min for m in msgs])),
         range_max_m=float(np.nanmax([m.range_max for m in msgs])),
-        has_intensities=any(len(m.intensities) > 0 and np.any(np.asarray(m.intensities) > 0) for m in msgs),
+        has_intensities=any(_has_intensities(m) for m in msgs),
     )
+
+
+def _has_intensities(msg: Any) -> bool:
+    """Any positive intensity in a LaserScan or a MultiEchoLaserScan (per-beam LaserEcho lists)."""
+    it = msg.intensities
+    if len(it) and hasattr(it[0], "echoes"):
+        return any(np.any(np.asarray(e.echoes) > 0) for e in it)
+    return len(it) > 0 and bool(np.any(np.asarray(it) > 0))
 
 
 def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str, float] | None = None) -> str:
@@ -367,6 +375,8 @@ def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str
     data: dict[str, Any] = {"dh": dict(dh) if dh else {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}}
     if scan is not None:
         data["scan"] = scan.model_dump(exclude_none=True)
+        if scan.echo == "strongest":  # the default, and meaningless for LaserScan topics
+            data["scan"].pop("echo")
     if servo is not None:
         s = servo.model_dump(exclude_none=True)
         if servo.tf is not None:

@@ -20,6 +20,7 @@ from .yamlfile import read_yaml
 Stamp = Literal["header", "receive"]
 ServoStamp = Literal["header", "receive", "scan"]
 Unit = Literal["rad", "deg", "counts"]
+Echo = Literal["first", "strongest", "last"]
 
 
 class _Strict(BaseModel):
@@ -59,11 +60,15 @@ class MountModel(_Strict):
 
 class ScanSource(_Strict):
     """Where the LaserScans are: ``topic``; ``field``: dotted path of a LaserScan inside a larger message
-    (None: the topic is a sensor_msgs/LaserScan); ``stamp``: header.stamp or the bag's receive time."""
+    (None: the topic is a sensor_msgs/LaserScan); ``stamp``: header.stamp or the bag's receive time;
+    ``echo``: which return of a sensor_msgs/MultiEchoLaserScan (urg_node's ``echoes``) to take per beam:
+    ``first`` (nearest valid), ``last`` (farthest valid) or ``strongest`` (highest intensity; the default).
+    Ignored for LaserScan topics."""
 
     topic: str = Field(default="/scan", min_length=1)
     field: str | None = None
     stamp: Stamp = "header"
+    echo: Echo = "strongest"
 
 
 class TfSource(_Strict):

@@ -234,9 +234,11 @@ def drop_scans(result: SimResult, scenario: Scenario, fraction: float) -> SimRes
     drop = np.sort(_rng(scenario, 5).choice(S, size=k, replace=False))
     keep = np.ones(S, dtype=bool)
     keep[drop] = False
+    echoes = {} if result.echo_ranges_m is None or result.echo_intensities is None else {
+        "echo_ranges_m": result.echo_ranges_m[keep], "echo_intensities": result.echo_intensities[keep]}
     return _with_record(result, "dropped_scans", drop.tolist(), scan_stamps_s=result.scan_stamps_s[keep],
                         ranges_m=result.ranges_m[keep], intensities=result.intensities[keep],
-                        beam_lambda_rad=result.beam_lambda_rad[keep])
+                        beam_lambda_rad=result.beam_lambda_rad[keep], **echoes)
 
 
 def encoder_spikes(result: SimResult, scenario: Scenario, n: int, spike_rad: float) -> SimResult:

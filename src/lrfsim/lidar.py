@@ -43,13 +43,31 @@ and the Photonics 2018 UST-20LX study motivate the incidence dependence and the 
 Mixed pixel (one echo per beam): the beam's range is the received-power-weighted mean of its sub-rays'
 ranges, r = sum_f P_f r_f / sum_f P_f, and its intensity the mean received power over all F sub-rays (a miss
 contributes 0), I = sum_f P_f / F. A bright retroreflector in part of the footprint therefore dominates both.
-Real UTMs report up to 3 echoes; only the strongest-weighted mixture is modelled.
+This mixture is /scan; the UTM-30LX-EW also reports up to 3 separate echoes (``sensor.echoes``, below).
 
 Noise (``noise: true``): I <- I * max(0, 1 + relative_noise * z), then I is rounded to integer counts and
 clipped at ``saturation_counts``; I < ``min_detectable_counts`` -> no return. Range: r <- r + sigma(r) z with
 sigma from the first ``noise_bands`` entry with r <= up_to_m (the last band beyond), then quantised to
 ``quantisation_m`` (1 mm; 0 = exact). Ranges outside [range_min, range_max] -> no return. No return is NaN
 (urg_node) or +inf (``no_return: inf``). ``noise: false`` skips both random terms only.
+
+Systematic errors (``sensor.systematic``, all off by default; docs/sensor_errors.md). Incidence: every sub-ray's
+range gets k_theta * theta_f (theta_f = arccos|n.d| its incidence angle) before the mixture (the received power
+still uses the true range). Then, before noise, every return (beam or echo) gets
+
+    b = offset + k_I * log10(min(I, saturation_counts) / I_ref) + A * exp(-(t_on + t) / tau),
+
+I the return's noise-free intensity (the mean received power above), t the beam's true time from the start of the
+sweep, t_on the time from power-on to that start. Every term is skipped when its coefficient is 0, so the
+defaults reproduce the ranges without the model bit for bit.
+
+Multi-echo (``sensor.echoes.enabled``). Per beam the hit sub-rays are sorted by (biased) range; a gap wider than
+``separation_m`` starts a new echo; echo e's range is the power-weighted mean of its group, its intensity the
+group's power summed over the group and divided by F (so the echoes' intensities add up to the beam's). Echoes
+are kept nearest first, at most ``max_echoes``. A beam whose hits form one group has one echo, equal bit for bit
+to its /scan return (same noise draws); further echoes get noise draws of their own. Each echo then goes through
+the same bias, noise, saturation, drop-out and quantisation as /scan; a dropped echo is NaN; the valid echoes
+are then ordered by their reported range (arrival order: noise may swap two close echoes), dropped ones last.
 """
 
 from __future__ import annotations
@@ -329,6 +347,78 @@ class LidarOutput:
     max_origin_error_m: float
     max_direction_error_rad: float
     max_parallax_correction_m: float
+    #: multi-echo returns (S, N, E) nearest first, NaN where absent, and their intensities; None without echoes
+    echo_ranges_m: FloatArray | None = None
+    echo_intensities: FloatArray | None = None
+
+
+def systematic_bias_m(intensities: FloatArray, sensor: SensorConfig,
+                      beam_times_s: FloatArray | None = None) -> FloatArray | None:
+    """The return-level systematic range bias [m] (module docstring), shape of ``intensities`` ((S, N) or
+    (S, N, E)); None when offset, intensity bias and drift are all off. ``intensities``: noise-free received
+    intensity [counts]; ``beam_times_s`` (S, N): true beam times [s], needed only for the drift."""
+    c = sensor.systematic
+    out: FloatArray | None = None
+    if c.range_offset_m != 0.0:
+        out = np.full(intensities.shape, c.range_offset_m)
+    if c.intensity_bias_m_per_decade != 0.0:
+        level = np.clip(intensities, 1e-300, sensor.intensity.saturation_counts) / c.intensity_ref_counts
+        b = c.intensity_bias_m_per_decade * np.log10(level)
+        out = b if out is None else out + b
+    if c.drift_amplitude_m != 0.0:
+        if beam_times_s is None:
+            raise InputError("lidar: sensor.systematic.drift_amplitude_m needs the beam times")
+        t = np.asarray(beam_times_s, dtype=float)
+        b = c.drift_amplitude_m * np.exp(-(c.drift_elapsed_s + t) / c.drift_time_constant_s)
+        if intensities.ndim == 3:
+            b = b[..., None]
+        out = np.broadcast_to(b, intensities.shape).copy() if out is None else out + b
+    return out
+
+
+def _sensor_model(ranges: FloatArray, intens: FloatArray, sensor: SensorConfig, z_range: FloatArray | None,
+                  z_int: FloatArray | None, bias: FloatArray | None) -> FloatArray:
+    """Bias, noise, saturation, drop-out and quantisation (module docstring) on noise-free returns of any shape;
+    ``intens`` is modified in place, the ranges are returned (no return: NaN or inf)."""
+    received = intens > 0
+    if bias is not None:
+        ranges = ranges + bias
+    if sensor.noise and z_int is not None:
+        intens *= np.maximum(0.0, 1.0 + sensor.intensity.relative_noise * z_int)
+    np.round(intens, out=intens)
+    np.minimum(intens, sensor.intensity.saturation_counts, out=intens)
+    valid = received & (intens >= sensor.intensity.min_detectable_counts)
+    if sensor.noise and z_range is not None:
+        ranges = ranges + range_sigma(np.where(received, ranges, 0.0), sensor) * z_range
+    if sensor.quantisation_m > 0:
+        ranges = np.round(ranges / sensor.quantisation_m) * sensor.quantisation_m
+    with np.errstate(invalid="ignore"):
+        valid &= (ranges >= sensor.range_min_m) & (ranges <= sensor.range_max_m)
+    ranges[~valid] = np.inf if sensor.no_return == "inf" else np.nan
+    return ranges
+
+
+def split_echoes(r_m: FloatArray, power: FloatArray, hit: NDArray[np.bool_], separation_m: float,
+                 max_echoes: int) -> tuple[FloatArray, FloatArray, NDArray[np.bool_]]:
+    """Group a beam's sub-rays into echoes (module docstring). r_m, power, hit: (..., F) per sub-ray.
+
+    Returns the echoes' power-weighted ranges (..., E) (NaN: no echo), their summed powers (..., E), and
+    whether all hit sub-rays fell into the first echo (...,) (the beam does not split)."""
+    rs = np.where(hit, r_m, np.inf)
+    order = np.argsort(rs, axis=-1, kind="stable")
+    rsort = np.take_along_axis(rs, order, -1)
+    psort = np.take_along_axis(np.where(hit, power, 0.0), order, -1)
+    hsort = np.take_along_axis(hit, order, -1)
+    with np.errstate(invalid="ignore"):
+        gap = np.diff(rsort, axis=-1) > separation_m
+    group = np.concatenate([np.zeros(gap.shape[:-1] + (1,), dtype=np.int64), np.cumsum(gap, axis=-1)], -1)
+    onehot = group[..., None] == np.arange(max_echoes)
+    rfin = np.where(hsort, rsort, 0.0)
+    pe = np.einsum("...f,...fe->...e", psort, onehot)
+    pre = np.einsum("...f,...fe->...e", psort * rfin, onehot)
+    re = np.divide(pre, pe, out=np.full_like(pe, np.nan), where=pe > 0)
+    single = np.all(~hsort | (group == 0), axis=-1)
+    return re, pe, single
 
 
 def range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> FloatArray:
@@ -344,11 +434,13 @@ def range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> FloatArray:
 
 def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray,
                    rng: np.random.Generator, *, origin_tol_m: float = 1e-6, chunk_scans: int = 16,
-                   progress: Callable[[int, int], None] | None = None) -> LidarOutput:
+                   progress: Callable[[int, int], None] | None = None,
+                   beam_times_s: FloatArray | None = None) -> LidarOutput:
     """Ray cast and sensor model (module docstring) for motor angles ``beam_lambda_rad`` (S, N) at every beam.
 
     ``rng`` draws the range and intensity noise (all of it up front, so results do not depend on the
-    chunking). ``progress(done_scans, total_scans)`` is called after every chunk.
+    chunking; the echoes' extra draws come after). ``progress(done_scans, total_scans)`` is called after every
+    chunk. ``beam_times_s`` (S, N): true beam times [s], needed only by the warm-up drift.
     """
     t_start = time.perf_counter()
     lam = np.ascontiguousarray(beam_lambda_rad, dtype=float)
@@ -363,11 +455,18 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
     sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
     cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
 
+    z_range = z_int = None
     if sensor.noise:
         z_range = rng.standard_normal((S, N))
         z_int = rng.standard_normal((S, N))
     ranges = np.empty((S, N))
     intens = np.empty((S, N))
+    k_theta = sensor.systematic.incidence_bias_m
+    ech = sensor.echoes
+    E = ech.max_echoes
+    if ech.enabled:
+        echo_r = np.full((S, N, E), np.nan)
+        echo_p = np.zeros((S, N, E))
 
     M = chunk_scans * N * F
     gid = np.empty(M, dtype=np.int32)
@@ -405,35 +504,46 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
             lobe[mk] = cos[mk] ** RETRO_EXPONENT
         P = cfg.gain_counts * refl[gi] * lobe * (cfg.ref_range_m / np.maximum(r, 1e-9)) ** 2
         P *= hit
+        if k_theta != 0.0:  # incidence bias per sub-ray; the received power keeps the true range
+            r = r + k_theta * np.arccos(cos)
         Psum = P.sum(-1)
         PR = np.einsum("sbf,sbf->sb", P, r)
         sl = ch.scans
         ranges[sl] = np.divide(PR, Psum, out=np.full_like(PR, np.nan), where=Psum > 0)
         intens[sl] = Psum / F
+        if ech.enabled:
+            re, pe, single = split_echoes(r, P, hit, ech.separation_m, E)
+            re[single, 0] = ranges[sl][single]
+            pe[single, 0] = Psum[single]
+            echo_r[sl] = re
+            echo_p[sl] = pe
         if progress is not None:
             progress(sl.stop, S)
 
     # sensor model on whole (S, N) arrays
-    received = intens > 0
-    if sensor.noise:
-        intens *= np.maximum(0.0, 1.0 + cfg.relative_noise * z_int)
-    np.round(intens, out=intens)
-    np.minimum(intens, cfg.saturation_counts, out=intens)
-    valid = received & (intens >= cfg.min_detectable_counts)
-    if sensor.noise:
-        ranges += range_sigma(np.where(received, ranges, 0.0), sensor) * z_range
-    if sensor.quantisation_m > 0:
-        ranges = np.round(ranges / sensor.quantisation_m) * sensor.quantisation_m
-    with np.errstate(invalid="ignore"):
-        valid &= (ranges >= sensor.range_min_m) & (ranges <= sensor.range_max_m)
-    ranges[~valid] = np.inf if sensor.no_return == "inf" else np.nan
+    echo_ranges = echo_intens = None
+    if ech.enabled:
+        echo_intens = echo_p / F
+        zr = zi = None
+        if sensor.noise and z_range is not None and z_int is not None:
+            zr = np.concatenate([z_range[..., None], rng.standard_normal((S, N, E - 1))], -1)
+            zi = np.concatenate([z_int[..., None], rng.standard_normal((S, N, E - 1))], -1)
+        echo_ranges = _sensor_model(echo_r, echo_intens, sensor, zr, zi,
+                                    systematic_bias_m(echo_intens, sensor, beam_times_s))
+        # reported in arrival order: noise may swap close echoes; no-return echoes last
+        order = np.argsort(np.where(np.isfinite(echo_ranges), echo_ranges, np.inf), axis=-1, kind="stable")
+        echo_ranges = np.take_along_axis(echo_ranges, order, -1)
+        echo_intens = np.take_along_axis(echo_intens, order, -1)
+    ranges = _sensor_model(ranges, intens, sensor, z_range, z_int, systematic_bias_m(intens, sensor, beam_times_s))
     return LidarOutput(ranges_m=ranges, intensities=intens, n_rays=n_rays, n_calls=n_calls, cast_time_s=cast_s,
                        total_time_s=time.perf_counter() - t_start, max_origin_error_m=max_off,
-                       max_direction_error_rad=0.0, max_parallax_correction_m=max_corr)
+                       max_direction_error_rad=0.0, max_parallax_correction_m=max_corr,
+                       echo_ranges_m=echo_ranges, echo_intensities=echo_intens)
 
 
 __all__ = [
     "RETRO_EXPONENT", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W", "beam_times", "cast_chunk",
     "footprint_coefficients", "footprint_directions_L", "iter_ray_chunks", "plan_runs", "range_sigma",
-    "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W",
+    "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W", "split_echoes",
+    "systematic_bias_m",
 ]

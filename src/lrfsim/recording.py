@@ -1,6 +1,7 @@
 """Write a simulated recording folder exactly as docs/formats.md specifies, atomically.
 
     DIR/bag/            ROS 2 bag (rosbags.rosbag2.Writer, version 9, MCAP): /scan LaserScan, /joint_states JointState
+                        (and, with sensor.echoes.enabled, /echoes MultiEchoLaserScan)
     DIR/distances.csv   marker_i,marker_j,distance_m
     DIR/nominal.yaml    the rig file: nominal DH and mount, marker radius, scan and servo sources
     DIR/ground_truth.yaml, DIR/scenario.yaml
@@ -41,6 +42,7 @@ JOINT_TOPIC = "/joint_states"
 LASER_FRAME = "laser"
 LASERSCAN_TYPE = "sensor_msgs/msg/LaserScan"
 JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
+MULTIECHO_TYPE = "sensor_msgs/msg/MultiEchoLaserScan"
 
 
 def _ns(t_s: float) -> int:
@@ -72,7 +74,9 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
 
 
 def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
-    """The ROS 2 bag (MCAP, version 9) with /scan and /joint_states, messages in log-time order."""
+    """The ROS 2 bag (MCAP, version 9) with /scan and /joint_states, messages in log-time order; with echoes
+    (``result.echo_ranges_m``) also a MultiEchoLaserScan per scan on ``sensor.echoes.topic``, logged with its
+    /scan: per beam a LaserEcho with the beam's valid echoes, nearest first (none: empty), as urg_node fills it."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
@@ -81,6 +85,9 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
     JointState = ts.types[JOINTSTATE_TYPE]
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
+    with_echoes = result.echo_ranges_m is not None and result.echo_intensities is not None
+    MultiEcho = ts.types[MULTIECHO_TYPE] if with_echoes else None
+    LaserEcho = ts.types["sensor_msgs/msg/LaserEcho"] if with_echoes else None
     sensor, servo = scenario.sensor, scenario.servo
 
     def header(t_s: float, frame: str) -> Any:
@@ -100,6 +107,7 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         c_scan = writer.add_connection(SCAN_TOPIC, LASERSCAN_TYPE, typestore=ts)
         c_joint = writer.add_connection(JOINT_TOPIC, JOINTSTATE_TYPE, typestore=ts)
+        c_echo = writer.add_connection(sensor.echoes.topic, MULTIECHO_TYPE, typestore=ts) if with_echoes else None
         for log_ns, kind, k in events:
             if kind == 0:
                 msg = LaserScan(
@@ -109,6 +117,18 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
                     scan_time=float(sensor.scan_period_s), range_min=float(sensor.range_min_m),
                     range_max=float(sensor.range_max_m), ranges=ranges32[k], intensities=intens32[k])
                 writer.write(c_scan, log_ns, ts.serialize_cdr(msg, LASERSCAN_TYPE))
+                if c_echo is not None:
+                    assert result.echo_ranges_m is not None and result.echo_intensities is not None
+                    er = result.echo_ranges_m[k].astype(np.float32)
+                    ei = result.echo_intensities[k].astype(np.float32)
+                    ok = np.isfinite(er)
+                    msg = MultiEcho(
+                        header=msg.header, angle_min=msg.angle_min, angle_max=msg.angle_max,
+                        angle_increment=msg.angle_increment, time_increment=msg.time_increment,
+                        scan_time=msg.scan_time, range_min=msg.range_min, range_max=msg.range_max,
+                        ranges=[LaserEcho(echoes=er[b][ok[b]]) for b in range(n)],
+                        intensities=[LaserEcho(echoes=ei[b][ok[b]]) for b in range(n)])
+                    writer.write(c_echo, log_ns, ts.serialize_cdr(msg, MULTIECHO_TYPE))
             else:
                 j = result.joints
                 msg = JointState(header=header(float(j.stamps_s[k]), ""), name=[servo.joint_name],
@@ -147,8 +167,10 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float) -> str:
 
 def ground_truth_yaml(result: SimResult) -> str:
     """ground_truth.yaml: true DH and mount, marker centres, radius, clock offset, tunnel dimensions, and the
-    faults injected (lrfsim.faults; {} when none)."""
+    faults injected (lrfsim.faults; {} when none); ``systematic`` (lrfsim.simulate.systematic_truth) only when a
+    systematic range error is on."""
     t = result.truth
+    extra = {"systematic": t.systematic} if t.systematic else {}
     return _dump({
         "dh": t.dh.as_dict(),
         "mount": t.mount.as_dict(),
@@ -157,8 +179,9 @@ def ground_truth_yaml(result: SimResult) -> str:
         "clock_offset_s": float(t.clock_offset_s),
         "tunnel": {k: float(v) for k, v in t.tunnel.items()} if t.tunnel is not None else None,
         "faults": result.faults,
+        **extra,
     })
 
 
-__all__ = ["EPOCH_NS", "JOINT_TOPIC", "SCAN_TOPIC", "check_output", "distances_csv", "ground_truth_yaml",
-           "nominal_yaml", "write_bag", "write_recording"]
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "check_output", "distances_csv",
+           "ground_truth_yaml", "nominal_yaml", "write_bag", "write_recording"]

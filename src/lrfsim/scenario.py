@@ -88,6 +88,52 @@ class IntensityConfig(_Section):
     min_detectable_counts: Annotated[float, _d("weaker returns are dropped (no return) [counts]", ge=0)] = 20.0
 
 
+#: Published characterisations the systematic-error defaults refer to (docs/sensor_errors.md).
+_REFS = ("Kneip et al. ICRA 2009 (URG-04LX); Okubo et al. 2009 (URG-04LX); Ye & Borenstein ICRA 2002 "
+         "(LMS 200); Pomerleau et al. CARPI 2012 (UTM-30LX)")
+
+
+class SystematicConfig(_Section):
+    """Systematic range errors of the scanner (lrfsim.lidar, docs/sensor_errors.md), all off by default: the
+    papers that characterise them (Kneip et al. 2009, Okubo et al. 2009, Pomerleau et al. 2012, Ye & Borenstein
+    2002) show each effect, but no figure for the UTM-30LX-EW could be read for this model, so every value
+    here is assumed. Added to each return before noise and quantisation:
+    b = range_offset_m + intensity_bias_m_per_decade * log10(min(I, saturation) / intensity_ref_counts)
+    + incidence_bias_m * theta / (1 rad) + drift_amplitude_m * exp(-(drift_elapsed_s + t) / drift_time_constant_s),
+    I the return's noise-free intensity, theta the incidence angle of each footprint sub-ray, t the beam's
+    time from the start of the sweep."""
+
+    range_offset_m: Annotated[float, _d("constant added to every range (the spec's +-30 mm accuracy bounds it; "
+                                        "0 = off, value assumed) [m]", ge=-1, le=1)] = 0.0
+    intensity_bias_m_per_decade: Annotated[float, _d(
+        "range bias per decade of received intensity (range walk: bright retroreflectors read short when < 0; "
+        "observed by " + _REFS + "; 0 = off, value assumed) [m]", ge=-1, le=1)] = 0.0
+    intensity_ref_counts: Annotated[float, _d("intensity at which the intensity bias is zero [counts]", gt=0)
+                                    ] = 1000.0
+    incidence_bias_m: Annotated[float, _d(
+        "range bias per radian of incidence angle (the bias at 1 rad; b = incidence_bias_m * theta / 1 rad), per "
+        "footprint sub-ray (observed by " + _REFS + "; 0 = off, value assumed) [m]", ge=-1, le=1)] = 0.0
+    drift_amplitude_m: Annotated[float, _d(
+        "warm-up drift at power-on, decaying exponentially (time drift observed by Kneip et al. 2009 and Ye & "
+        "Borenstein 2002; 0 = off, value assumed) [m]", ge=-1, le=1)] = 0.0
+    drift_time_constant_s: Annotated[float, _d("time constant of the warm-up drift (assumed) [s]", gt=0)
+                                     ] = 1200.0
+    drift_elapsed_s: Annotated[float, _d("time from power-on to the start of the sweep [s]", ge=0)] = 0.0
+
+
+class EchoesConfig(_Section):
+    """Multi-echo returns (the UTM-30LX-EW reports up to 3 echoes per beam; urg_node with publish_multiecho
+    publishes them as sensor_msgs/MultiEchoLaserScan on ``echoes``). Footprint sub-rays are grouped by range:
+    sorted by range, a gap wider than ``separation_m`` starts a new echo; each echo is the power-weighted mean
+    of its group (lrfsim.lidar). Off by default (no echoes topic written)."""
+
+    enabled: Annotated[bool, _d("write the echoes topic beside /scan")] = False
+    topic: Annotated[str, _d("topic of the MultiEchoLaserScan messages", min_length=1)] = "/echoes"
+    separation_m: Annotated[float, _d("sub-ray ranges further apart than this are separate echoes (value "
+                                      "assumed) [m]", gt=0)] = 0.1
+    max_echoes: Annotated[int, _d("echoes kept per beam, nearest first (UTM-30LX-EW: 3) [1]", ge=1, le=8)] = 3
+
+
 class SensorConfig(_Section):
     """The scanner; defaults: the Hokuyo UTM-30LX-EW (spec sheet: 270 deg in 0.25 deg steps, 25 ms per scan,
     0.023-60 m, repeatability 10 mm below 10 m and 30 mm below 30 m; LaserScan fields as urg_node fills them)."""
@@ -113,6 +159,10 @@ class SensorConfig(_Section):
                                         "[rad]", ge=0)] = 0.0044
     footprint_rays: Annotated[int, _d("rays per beam footprint (1: centre ray only) [1]", ge=1, le=64)] = 7
     intensity: Annotated[IntensityConfig, _d("intensity model")] = IntensityConfig()
+    systematic: Annotated[SystematicConfig, _d("systematic range errors (all off by default; "
+                                               "docs/sensor_errors.md)")] = SystematicConfig()
+    echoes: Annotated[EchoesConfig, _d("multi-echo returns on a MultiEchoLaserScan topic (off by default)")] = (
+        EchoesConfig())
 
     @model_validator(mode="after")
     def _check(self) -> SensorConfig:

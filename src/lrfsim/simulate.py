@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from lrfcal.kinematics import DH, Pose
 
 from .lidar import beam_angles, beam_times, scan_start_times, simulate_scans
-from .scenario import Scenario
+from .scenario import Scenario, SensorConfig
 from .servo import JointSamples, check_trajectory, joint_samples, laser_time, sweep_trajectory
 from .tape import TapeResult, measure_tape
 
@@ -36,7 +36,8 @@ _RNG_PHASE, _RNG_SENSOR, _RNG_TAPE = 0x70686173, 0x6E6F6973, 0x74617065
 @dataclass(frozen=True)
 class SimTruth:
     """The ground truth of a recording (ground_truth.yaml): true DH and mount T_W_M, marker centres (n, 3)
-    in W, marker radius, clock offset (laser - servo) and the tunnel's dimensions (or None)."""
+    in W, marker radius, clock offset (laser - servo), the tunnel's dimensions (or None) and the systematic range
+    errors switched on (:func:`systematic_truth`; None when all are off)."""
 
     dh: DH
     mount: Pose
@@ -45,6 +46,28 @@ class SimTruth:
     marker_radius_m: float
     clock_offset_s: float
     tunnel: dict[str, float] | None
+    systematic: dict[str, float] | None = None
+
+
+def systematic_truth(sensor: SensorConfig) -> dict[str, float] | None:
+    """The systematic range errors a calibration could be compared with (ground_truth.yaml ``systematic``):
+    the non-zero ``sensor.systematic`` coefficients and, with an intensity bias, ``saturated_return_bias_m`` =
+    k_I log10(saturation_counts / intensity_ref_counts), the bias of every saturated return (the markers at
+    the tunnel's ranges). None when every effect is off."""
+    c = sensor.systematic
+    out = {k: float(v) for k, v in c.model_dump().items()
+           if v != 0.0 and k in ("range_offset_m", "intensity_bias_m_per_decade", "incidence_bias_m",
+                                 "drift_amplitude_m")}
+    if not out:
+        return None
+    if "intensity_bias_m_per_decade" in out:
+        out["intensity_ref_counts"] = float(c.intensity_ref_counts)
+        out["saturated_return_bias_m"] = float(c.intensity_bias_m_per_decade * np.log10(
+            sensor.intensity.saturation_counts / c.intensity_ref_counts))
+    if "drift_amplitude_m" in out:
+        out["drift_time_constant_s"] = float(c.drift_time_constant_s)
+        out["drift_elapsed_s"] = float(c.drift_elapsed_s)
+    return out
 
 
 @dataclass(frozen=True)
@@ -72,7 +95,8 @@ class SimResult:
     scan_stamps_s (S,): time of beam 0 on the laser clock; mu_rad (N,); ranges_m (S, N) (no return: NaN or
     +inf); intensities (S, N) counts; beam_lambda_rad (S, N): true motor angle at every beam (truth);
     joints: the JointState stream (servo clock); tape; truth; stats; faults: what lrfsim.faults injected
-    (ground_truth.yaml ``faults``; empty without faults).
+    (ground_truth.yaml ``faults``; empty without faults); echo_ranges_m, echo_intensities (S, N, E): the
+    multi-echo returns nearest first (NaN: no echo), None unless sensor.echoes.enabled.
     """
 
     name: str
@@ -87,6 +111,8 @@ class SimResult:
     stats: SimStats
     duration_s: float
     faults: dict[str, Any] = field(default_factory=dict)
+    echo_ranges_m: FloatArray | None = None
+    echo_intensities: FloatArray | None = None
 
 
 def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
@@ -110,16 +136,18 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     check_trajectory(traj)
     phase_s = float(np.random.default_rng([scenario.seed, _RNG_PHASE]).uniform(0.0, sensor.scan_period_s))
     starts_s = scan_start_times(traj.end_s, sensor, phase_s)
-    beam_lambda = traj.angle(beam_times(starts_s, sensor))
+    times_s = beam_times(starts_s, sensor)
+    beam_lambda = traj.angle(times_s)
     lid = simulate_scans(scene, sensor, beam_lambda, np.random.default_rng([scenario.seed, _RNG_SENSOR]),
-                         progress=progress)
+                         progress=progress, beam_times_s=times_s)
     joints = joint_samples(traj, servo)
     tape = measure_tape(scene.marker_ids, scene.markers_W, scenario.tape,
                         np.random.default_rng([scenario.seed, _RNG_TAPE]))
     truth = SimTruth(dh=scenario.rig.dh.to_dh(), mount=scenario.rig.mount.to_pose(),
                      marker_ids=tuple(scene.marker_ids), markers_W=np.array(scene.markers_W, dtype=float),
                      marker_radius_m=float(scene.marker_radius_m), clock_offset_s=servo.clock_offset_s,
-                     tunnel=dict(scene.tunnel_truth) if scene.tunnel_truth is not None else None)
+                     tunnel=dict(scene.tunnel_truth) if scene.tunnel_truth is not None else None,
+                     systematic=systematic_truth(sensor))
     stats = SimStats(n_rays=lid.n_rays, n_calls=lid.n_calls, cast_time_s=lid.cast_time_s,
                      lidar_time_s=lid.total_time_s, total_time_s=time.perf_counter() - t0,
                      max_origin_error_m=lid.max_origin_error_m, max_direction_error_rad=lid.max_direction_error_rad,
@@ -127,7 +155,8 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     result = SimResult(name=scenario.name, scan_stamps_s=laser_time(starts_s, servo.clock_offset_s),
                        mu_rad=beam_angles(sensor), ranges_m=lid.ranges_m, intensities=lid.intensities,
                        beam_lambda_rad=beam_lambda, joints=joints, tape=tape, truth=truth, stats=stats,
-                       duration_s=traj.end_s)
+                       duration_s=traj.end_s, echo_ranges_m=lid.echo_ranges_m,
+                       echo_intensities=lid.echo_intensities)
     return apply_faults(result, scenario)
 
 
@@ -152,4 +181,5 @@ def simulate_to_folder(scenario: Scenario, out_dir: str | Path, *, overwrite: bo
     return result, write_recording(result, scenario, out_dir, overwrite=overwrite)
 
 
-__all__ = ["SimResult", "SimStats", "SimTruth", "simulate", "simulate_to_folder", "write_recording"]
+__all__ = ["SimResult", "SimStats", "SimTruth", "simulate", "simulate_to_folder", "systematic_truth",
+           "write_recording"]
