@@ -76,7 +76,7 @@ def test_surface_jacobian_matches_finite_differences() -> None:
     core[3:6] = (0.2, -0.3, 0.5)  # a rotation increment away from 0: the SO(3) right Jacobian
     th = np.concatenate([core, nu0 + rng.normal(0, 0.01, nu0.size)])
     _, J = _surface_residuals(th, s, 0.01, R_ref, clock=clock)
-    assert J is not None and J.shape == (K, 17)
+    assert J is not None and J.shape == (K, 19)
     h = 1e-6
     for j in range(th.size):
         dp = np.zeros(th.size)

@@ -204,3 +204,25 @@ def test_marker_moved_after_taping_is_found(recordings: Callable[..., Path], tmp
     assert trial.result is not None
     used = {trial.result.markers.marker_ids[k] for k in np.unique(trial.result.observations.marker)}
     assert "m04" not in used, sorted(used)
+
+
+def _range_offset(offset_m: float) -> Callable[[Recording], Recording]:
+    def mutate(rec: Recording) -> Recording:
+        return dataclasses.replace(rec, scans=dataclasses.replace(rec.scans, ranges_m=rec.scans.ranges_m + offset_m))
+
+    return mutate
+
+
+def test_range_offset_is_estimated_or_the_result_refused(recordings: Callable[..., Path]) -> None:
+    """Every range 15 mm long (a constant range offset, issue 12): with --estimate-range-bias the offset comes back
+    within 4 sigma and the DH too; without it the calibration is not confidently wrong."""
+    folder = recordings(_scenario("tunnel_v", "tunnel_fast"))
+    est = calibrate_recording(folder, dataclasses.replace(FAST, estimate_range_bias=True), mutate=_range_offset(0.015),
+                              keep_result=True)
+    _ok(est)
+    assert est.result is not None
+    sol = est.result.solution
+    assert abs(sol.range_offset_m - 0.015) <= 4 * sol.range_offset_sigma_m < 0.002, (sol.range_offset_m,
+                                                                                      sol.range_offset_sigma_m)
+    plain = calibrate_recording(folder, FAST, mutate=_range_offset(0.015))
+    assert not plain.confident_wrong, plain.describe()

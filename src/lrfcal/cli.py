@@ -56,6 +56,9 @@ def calibrate_cmd(
                                              help="Save a rerun recording (.rrd), headless.")] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer (else save DIR/rerun.rrd).")
                      ] = False,
+    estimate_range_bias: Annotated[bool, typer.Option(
+        "--estimate-range-bias", help="Also estimate a constant range offset and a marker-return range bias "
+        "(needs the surfaces the markers sit on; held at 0 where the recording does not separate them).")] = False,
     force: Annotated[bool, typer.Option("--force", help="Write the result even when a consistency check fails "
                                         "(the failed checks are recorded in calibration.yaml and the report).")
                      ] = False,
@@ -77,7 +80,7 @@ def calibrate_cmd(
 
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
-                         force=force)
+                         force=force, estimate_range_bias=estimate_range_bias)
     options = {k: v for k, v in dict(
         scan_topic=scan_topic, scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic,
         servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,
@@ -148,6 +151,10 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
     console.print(f"clock offset (laser - servo): {sol.clock_offset_s * 1000:+.2f} ms"
                   + (" (held, not estimated)" if held else f" +- {sol.clock_offset_sigma_s * 1000:.2f} ms (estimated)"),
                   markup=False)
+    if math.isfinite(sol.range_offset_sigma_m):
+        console.print(f"range offset {sol.range_offset_m * 1000:+.2f} +- {sol.range_offset_sigma_m * 1000:.2f} mm, "
+                      f"marker range bias {sol.marker_range_bias_m * 1000:+.2f} +- "
+                      f"{sol.marker_range_bias_sigma_m * 1000:.2f} mm (estimated)", markup=False)
     if result.checks:
         console.print("checks: " + "; ".join(f"{c.name} {'ok' if c.passed else 'FAILED'}" for c in result.checks)
                       + " (numbers in report.md)", markup=False)

@@ -27,6 +27,8 @@ LIMITS: dict[str, float] = {
     "clock_offset": 0.005,
 }
 DH = ("a", "alpha", "b", "beta")
+#: a range offset or marker range bias this uncertain is held at 0 rather than estimated [m]
+RANGE_BIAS_LIMIT_M = 0.005
 
 _HINTS = {
     frozenset({"alpha", "b"}): "the markers are all at about one distance along the motor axis: place markers at "
@@ -130,4 +132,4 @@ def analyse(information: FloatArray, names: tuple[str, ...]) -> Observability:
     return Observability(sigma=sigma, spectrum=vals, weakest=weakest)
 
 
-__all__ = ["DH", "LIMITS", "Observability", "analyse"]
+__all__ = ["DH", "LIMITS", "RANGE_BIAS_LIMIT_M", "Observability", "analyse"]

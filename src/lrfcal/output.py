@@ -87,6 +87,8 @@ def _solution_dict(sol: Solution) -> dict[str, Any]:
         "covariance": {"names": list(ESTIMATE_NAMES),
                        "matrix": [[_f(v) for v in row] for row in cov] if cov.shape == (10, 10) else None},
         "clock_offset_s": {"value": _f(sol.clock_offset_s), "sigma": _f(sol.clock_offset_sigma_s)},
+        "range_offset_m": {"value": _f(sol.range_offset_m), "sigma": _f(sol.range_offset_sigma_m)},
+        "marker_range_bias_m": {"value": _f(sol.marker_range_bias_m), "sigma": _f(sol.marker_range_bias_sigma_m)},
         "residual_rms_m": _f(sol.residual_rms_m),
         "n_observations": int(sol.n_observations),
         "reduced_chi2": _f(sol.reduced_chi2),
@@ -432,6 +434,11 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     else:
         lines.append(f"Clock offset (laser stamp - servo stamp): {sol.clock_offset_s * 1000:+.2f} ms (held, not "
                      "estimated).")
+    if math.isfinite(sol.range_offset_sigma_m):
+        lines.append(f"Range offset (every return): {sol.range_offset_m * 1000:+.2f} +- "
+                     f"{sol.range_offset_sigma_m * 1000:.2f} mm; marker-return range bias: "
+                     f"{sol.marker_range_bias_m * 1000:+.2f} +- {sol.marker_range_bias_sigma_m * 1000:.2f} mm "
+                     "(estimated).")
     if truth_note:
         lines += ["", truth_note]
     if result.checks:

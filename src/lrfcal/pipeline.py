@@ -51,6 +51,9 @@ class CalibConfig:
     surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
     surface_max_returns: int = 40000  # an even subsample of them, for speed
     force: bool = False  # return a result even when a consistency check fails (the failures are recorded)
+    #: estimate a constant range offset and a marker-return range bias in the joint solve with the surfaces (the
+    #: only data that separate them); held at 0 when the recording does not separate them (1-sigma > 5 mm)
+    estimate_range_bias: bool = False
     max_reduced_chi2: float = 4.0  # residuals more than 2x the stated noise: the model does not explain the data
     second_opinion_p: float = 1e-3  # false-alarm rate of the second-opinion test
     #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
@@ -177,8 +180,18 @@ def calibrate(
             max_returns=config.surface_max_returns, beam_times_s=scans.beam_times_s,
         )
         if len(on_surfaces):
-            ours = fit(matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
-                       planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s)
+            joint = partial(fit, matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
+                            planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s)
+            ours = joint(estimate_range_bias=config.estimate_range_bias)
+            if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
+                                                   <= observability.RANGE_BIAS_LIMIT_M):
+                notes.append(f"range offset and marker range bias not separable by this recording (1-sigma "
+                             f"{ours.range_offset_sigma_m * 1000:.3g} / {ours.marker_range_bias_sigma_m * 1000:.3g} "
+                             "mm): held at 0")
+                ours = joint(estimate_range_bias=False)
+        elif config.estimate_range_bias:
+            notes.append("range offset and marker range bias held at 0: without surface returns the markers alone "
+                         "do not separate them from the marker radius and the mount")
         clock.lap("surfaces")
 
     checks = _checks(ours, chosen.solution, matched, markers, passes, config, fit, motor)
@@ -415,10 +428,14 @@ def _checks(
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
     type, so that it tests the recording's parts, not the markers against the surfaces)."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
-    if sol.information is not None:
+    finite = bool(np.all(np.isfinite(sol.sigma)))
+    if sol.information is not None and finite:
         obs = observability.analyse(sol.information, sol.information_names)
         checks.append(Check("observability", obs.determined,
                             f"{obs.summary()}" + ("" if obs.determined else f": {obs.hint()}")))
+    else:  # a singular information (the solver's rank test): no covariance exists, so nothing is determined
+        checks.append(Check("observability", False, f"the final solve is {sol.status.split(', ')[-1]}: the data do "
+                            "not determine the parameters jointly (no finite covariance)"))
     chi2 = sol.reduced_chi2
     checks.append(Check(
         "reduced chi-square", bool(chi2 <= config.max_reduced_chi2),
@@ -462,6 +479,8 @@ def _second_opinion(
         d = ps.params.vector()[dh] - sol.params.vector()[dh]
         d[[1, 3]] = solve.wrap_pi(d[[1, 3]])
         C = ps.covariance[np.ix_(dh, dh)] - sol.covariance[np.ix_(dh, dh)]
+        if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
+            return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
         w, V = np.linalg.eigh(0.5 * (C + C.T))
         floor = 0.05 * np.diag(ps.covariance[np.ix_(dh, dh)]).min()
         w = np.maximum(w, floor)  # the difference must not look more certain than 5 % of the part's own variance

@@ -61,9 +61,11 @@ FloatArray = NDArray[np.float64]
 
 MODELS = ("paper", "sphere")
 #: The solver's core unknowns, in this order (then 3 nuisances per plane): see the module docstring.
-CORE_NAMES: tuple[str, ...] = (*ESTIMATE_NAMES, "clock_offset")
+CORE_NAMES: tuple[str, ...] = (*ESTIMATE_NAMES, "clock_offset", "range_offset", "marker_range_bias")
 N_CORE = len(CORE_NAMES)
 _TAU = CORE_NAMES.index("clock_offset")
+_ROFF = CORE_NAMES.index("range_offset")  # added to every range the scanner reports [m]
+_MBIAS = CORE_NAMES.index("marker_range_bias")  # added to the ranges of marker returns only [m]
 _ETA = 0.05  # softness of the sphere's rim in s(u)
 _DH_ANGLES = (7, 9)  # alpha, beta
 
@@ -260,7 +262,7 @@ def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, R_ref: FloatArr
     n = n_p[s.plane]
     nd = (n * d).sum(1)
     rp = (nu[s.plane, 2] - (n * o).sum(1)) / nd
-    res = (s.r - rp) / sigma_r
+    res = (s.r - th[_ROFF] - rp) / sigma_r
     if not jac:
         return res, None
     assert Jo is not None and Jd is not None
@@ -273,6 +275,7 @@ def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, R_ref: FloatArr
         dn_du = (t - n_p * (n_p * t).sum(1, keepdims=True)) / m_norm  # (P, 3)
         J[rows, N_CORE + 3 * s.plane + i] = (drp_dn * dn_du[s.plane]).sum(1)
     J[rows, N_CORE + 3 * s.plane + 2] = 1.0 / nd
+    J[:, _ROFF] = 1.0  # d(res)/d(range_offset) = -1 / sigma_r after the sign below
     return res, -J / sigma_r
 
 
@@ -330,9 +333,13 @@ def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
     """Whitened residuals (K, n_res) and their Jacobian (K, n_res, N_CORE) (None when jac is False)."""
     lam, omega = _lambda(pb.lam, pb.times, pb.clock, th[_TAU])
     o, d, Jo, Jd = _rays(th[:N_CORE], R_ref, lam, pb.mu, omega, jac=jac)
+    r = pb.r - th[_ROFF] - th[_MBIAS]  # the range the scanner would report without its systematic errors
     if pb.model == "paper":
-        res = (o + pb.r[:, None] * d - pb.c) / pb.sigma_r
-        J = None if Jo is None or Jd is None else (Jo + pb.r[:, None, None] * Jd) / pb.sigma_r
+        res = (o + r[:, None] * d - pb.c) / pb.sigma_r
+        if Jo is None or Jd is None:
+            return res, None
+        J = (Jo + r[:, None, None] * Jd) / pb.sigma_r
+        J[:, :, _ROFF] = J[:, :, _MBIAS] = -d / pb.sigma_r
         return res, J
     R = pb.radius
     v = pb.c - o
@@ -341,7 +348,7 @@ def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
     rho = np.linalg.norm(e, axis=1)
     s, ds = sphere_depth(rho / R)
     r_hat = t - R * s
-    res = np.concatenate([((pb.r - r_hat) / pb.sigma_r)[:, None], e / pb.sigma_lat], 1)
+    res = np.concatenate([((r - r_hat) / pb.sigma_r)[:, None], e / pb.sigma_lat], 1)
     if Jo is None or Jd is None:
         return res, None
     Jv = -Jo
@@ -351,6 +358,7 @@ def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
     Jrho = np.einsum("ki,kij->kj", n_e, Je)
     Jrhat = Jt - ds[:, None] * Jrho
     J = np.concatenate([(-Jrhat / pb.sigma_r)[:, None, :], Je / pb.sigma_lat], 1)
+    J[:, 0, _ROFF] = J[:, 0, _MBIAS] = -1.0 / pb.sigma_r
     return res, J
 
 
@@ -388,8 +396,9 @@ def jacobian_check(
     rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
 ) -> FloatArray:
     """Per column, the largest relative difference between the analytic Jacobian and central finite differences:
-    (10,) over the 10 parameters, (11,) with the clock offset when ``clock`` is given (obs.times_s the beam
-    times), evaluated at the rotation increment ``rotation_vector`` (to test the right Jacobian away from 0).
+    the 10 parameters, the clock offset when ``clock`` is given (obs.times_s the beam times), then the range
+    offset and the marker range bias (12 or 13 columns), evaluated at the rotation increment ``rotation_vector``
+    (to test the right Jacobian away from 0).
 
     Each column's difference is divided by max(|J_analytic| column max, 1) in whitened units. The clock column
     uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
@@ -403,16 +412,16 @@ def jacobian_check(
     _, J = _residuals(th, pb, R_ref)
     assert J is not None
     J = J.reshape(-1, N_CORE)
-    n = N_CORE if clock is not None else 10
-    worst = np.zeros(n)
-    for j in range(n):
+    cols = [*range(10), *([_TAU] if clock is not None else []), _ROFF, _MBIAS]
+    worst = np.zeros(len(cols))
+    for out_j, j in enumerate(cols):
         dp = np.zeros(N_CORE)
         dp[j] = step
         fp = _residuals(th + dp, pb, R_ref, jac=False)[0].ravel()
         fm = _residuals(th - dp, pb, R_ref, jac=False)[0].ravel()
         num = (fp - fm) / (2 * step)
         scale = max(float(np.abs(J[:, j]).max()), 1.0)
-        worst[j] = float(np.abs(num - J[:, j]).max() / scale)
+        worst[out_j] = float(np.abs(num - J[:, j]).max() / scale)
     return worst
 
 
@@ -533,6 +542,7 @@ def solve(
     clock: MotorClock | None = None,
     clock_offset_s: float = 0.0,
     hold: Sequence[str] = (),
+    estimate_range_bias: bool = False,
 ) -> Solution:
     """Estimate the 10 parameters (and the clock offset) from marker returns (see the module docstring).
 
@@ -553,6 +563,9 @@ def solve(
         clock: the joint states as a MotorClock: the clock offset is then estimated, started at
             ``clock_offset_s``; None holds it at ``clock_offset_s``.
         hold: names from CORE_NAMES held at their start value (not estimated; their sigma is NaN).
+        estimate_range_bias: also estimate a constant range offset (every return) and a marker-return range bias
+            (the returns of retroreflective markers only; "range walk" of strong returns), started at 0; only
+            separable with surface returns (see lrfcal.pipeline).
     Returns:
         Solution: estimate, covariance (10, 10) in ESTIMATE_NAMES order (the rotation as a rotation vector in
         frame M; the marginal over plane nuisances and the clock offset; NaN rows for held parameters), the clock
@@ -577,6 +590,8 @@ def solve(
         free_core[CORE_NAMES.index(name)] = False
     if clock is None:
         free_core[_TAU] = False
+    if not estimate_range_bias:
+        free_core[_ROFF] = free_core[_MBIAS] = False
     else:
         pb_all = replace(pb_all, clock=clock)
     if surfaces is not None and len(surfaces):
@@ -705,6 +720,10 @@ def solve(
         inlier=inl,
         lambda_rad=lam_all,
         n_surface_returns=k_s,
+        range_offset_m=float(th[_ROFF]),
+        range_offset_sigma_m=float(np.sqrt(cov_core[_ROFF, _ROFF])) if free_core[_ROFF] else float("nan"),
+        marker_range_bias_m=float(th[_MBIAS]),
+        marker_range_bias_sigma_m=float(np.sqrt(cov_core[_MBIAS, _MBIAS])) if free_core[_MBIAS] else float("nan"),
     )
 
 

@@ -307,6 +307,10 @@ class Solution:
     inlier: BoolArray | None = None
     lambda_rad: FloatArray | None = None
     n_surface_returns: int = 0
+    range_offset_m: float = 0.0  # added to every reported range (estimated with estimate_range_bias)
+    range_offset_sigma_m: float = float("nan")  # NaN when held
+    marker_range_bias_m: float = 0.0  # added to the ranges of marker returns only
+    marker_range_bias_sigma_m: float = float("nan")
 
 
 @dataclass(frozen=True)
