@@ -56,9 +56,9 @@ def calibrate_cmd(
                                              help="Save a rerun recording (.rrd), headless.")] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer (else save DIR/rerun.rrd).")
                      ] = False,
-    estimate_range_bias: Annotated[bool, typer.Option(
-        "--estimate-range-bias", help="Also estimate a constant range offset and a marker-return range bias "
-        "(needs the surfaces the markers sit on; held at 0 where the recording does not separate them).")] = False,
+    no_range_bias: Annotated[bool, typer.Option(
+        "--no-range-bias", help="Hold the range offset and the marker-return range bias at 0 (by default both are "
+        "estimated wherever the surfaces the markers sit on separate them).")] = False,
     force: Annotated[bool, typer.Option("--force", help="Write the result even when a consistency check fails "
                                         "(the failed checks are recorded in calibration.yaml and the report).")
                      ] = False,
@@ -80,7 +80,7 @@ def calibrate_cmd(
 
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
-                         force=force, estimate_range_bias=estimate_range_bias)
+                         force=force, estimate_range_bias=not no_range_bias)
     options = {k: v for k, v in dict(
         scan_topic=scan_topic, scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic,
         servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,

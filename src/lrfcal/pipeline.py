@@ -53,7 +53,7 @@ class CalibConfig:
     force: bool = False  # return a result even when a consistency check fails (the failures are recorded)
     #: estimate a constant range offset and a marker-return range bias in the joint solve with the surfaces (the
     #: only data that separate them); held at 0 when the recording does not separate them (1-sigma > 5 mm)
-    estimate_range_bias: bool = False
+    estimate_range_bias: bool = True
     max_reduced_chi2: float = 4.0  # residuals more than 2x the stated noise: the model does not explain the data
     second_opinion_p: float = 1e-3  # false-alarm rate of the second-opinion test
     #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's

@@ -590,10 +590,10 @@ def solve(
         free_core[CORE_NAMES.index(name)] = False
     if clock is None:
         free_core[_TAU] = False
-    if not estimate_range_bias:
-        free_core[_ROFF] = free_core[_MBIAS] = False
     else:
         pb_all = replace(pb_all, clock=clock)
+    if not estimate_range_bias:
+        free_core[_ROFF] = free_core[_MBIAS] = False
     if surfaces is not None and len(surfaces):
         ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
         first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
@@ -741,7 +741,7 @@ def information_at(
     _, J = _residuals(th, pb, R_ref)
     assert J is not None
     J = J.reshape(-1, N_CORE)
-    idx = list(range(N_CORE if clock is not None else 10))
+    idx = [*range(10), *([_TAU] if clock is not None else [])]
     J = J[:, idx]
     return J.T @ J, tuple(CORE_NAMES[i] for i in idx)
 
