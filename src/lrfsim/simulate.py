@@ -90,17 +90,22 @@ class SimResult:
 
 
 def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
-             scene: Scene | None = None) -> SimResult:
+             scene: Scene | None = None, noise: bool = True) -> SimResult:
     """Simulate a scenario's recording. ``progress(done_scans, total_scans)`` is called while scanning.
 
     ``scene`` defaults to ``lrfsim.scene.build_scene(scenario)`` (pass one to reuse or replace it).
     The scenario's ``faults`` are injected (lrfsim.faults): the range noise scale before, the others after
-    simulating.
+    simulating. ``noise=False`` casts the rays without the range and intensity noise and without the range
+    quantisation, whatever ``sensor.noise`` says (the mixed-pixel footprint stays): the noise-free geometry that
+    ``lrfsim plan`` predicts from.
     """
     from .faults import apply_faults, scale_range_noise
 
     t0 = time.perf_counter()
     scenario = scale_range_noise(scenario)
+    if not noise:
+        scenario = scenario.model_copy(update={"sensor": scenario.sensor.model_copy(
+            update={"noise": False, "quantisation_m": 0.0})})
     if scene is None:
         from .scene import build_scene
 
