@@ -2,6 +2,8 @@
 
     lrfsim simulate SCENARIO -o DIR [--overwrite]   write a recording folder (docs/formats.md)
     lrfsim run SCENARIO [-o DIR] [--rrd FILE]        simulate, calibrate, compare with the truth (Tables I, III)
+    lrfsim plan SCENARIO [--json]                    predicted 1-sigma of every parameter (no calibration)
+    lrfsim study SCENARIO --trials N [-o DIR]        Monte-Carlo study: errors, sigmas, refusals
     lrfsim schema                                    the scenario format as JSON Schema (docs/scenario.md)
 
 Usage errors and the errors the project raises on purpose (lrfcal.errors.LrfError) become one line
@@ -17,7 +19,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.cliutil import Command, make_app, progress_display, run_app
+from lrfcal.cliutil import Command, finite_between, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
     from .simulate import SimResult
@@ -131,6 +133,43 @@ def run(
     if not report.comparison.ok:
         console.print("MISSED: " + "; ".join(report.comparison.failures), style="red", markup=False)
         raise typer.Exit(1)
+
+
+@app.command(cls=Command)
+def plan(
+    scenario: ScenarioArg,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (SI units) instead of the table.")
+                       ] = False,
+    range_sigma: Annotated[float, typer.Option(
+        "--range-sigma", metavar="M", callback=finite_between(1e-5, 1.0, "m"),
+        help="Range noise 1-sigma of the calibration's noise model [m]")] = 0.010,
+    markers_only: Annotated[bool, typer.Option(
+        "--markers-only", help="Predict from the marker returns alone (without the surface returns).")] = False,
+) -> None:
+    """Predict the accuracy of a layout and sweep before building it.
+
+    Casts the scenario's rays once without noise and inverts the Fisher information of the calibration's own
+    observation model at the true parameters: the predicted 1-sigma of x, y, z, rx, ry, rz (rotation vector in
+    frame M), a, alpha, b, beta and the clock offset (when the sweep goes both ways), the weakest direction and
+    what would strengthen it, and whether the scenario's tolerances are reachable (>= 4 predicted sigma).
+
+    Exit code 3 when the DH parameters are not determined (the calibration would refuse).
+    """
+    import json
+
+    from .plan import format_plan
+    from .plan import plan as make_plan
+    from .scenario import load_scenario
+
+    result = make_plan(load_scenario(scenario), range_sigma_m=range_sigma, surfaces=not markers_only)
+    if as_json:
+        print(json.dumps(result.to_json(), indent=2))
+    else:
+        print(format_plan(result))
+    if not result.determined:
+        print(f"error: {result.scenario}: the DH parameters are not determined ({result.weakest}); "
+              f"{result.observability.hint()}", file=sys.stderr)
+        raise typer.Exit(3)
 
 
 @app.command(cls=Command)
