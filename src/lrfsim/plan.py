@@ -13,7 +13,9 @@ By default the surface returns of stage 6b enter too, found as the calibration f
 (``lrfcal.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
 their ray-plane range residuals and the planes' priors (from the tape noise, at least 0.5 mm as in the pipeline),
 with each plane's normal and offset marginalised out. ``surfaces=False`` predicts from the marker returns alone
-(stage 6). Not modelled: the per-scan widening of the reported covariance (cluster-robust sandwich) and the
+(stage 6). Whether the DH parameters are determined is judged as the calibration judges it before any solver
+runs: from the marker returns alone (a layout the markers leave undetermined is refused even where the surfaces
+would help). Not modelled: the per-scan widening of the reported covariance (cluster-robust sandwich) and the
 4-sigma rejection. The observability verdict (``lrfcal.observability.analyse``) is the one the
 calibration applies before solving: an undetermined combination means the calibration would refuse (exit 3).
 """
@@ -67,7 +69,8 @@ class Plan:
 
     names: the estimated parameters in order (ESTIMATE_NAMES [+ clock_offset]); covariance (k, k) over them in SI
     units (the rotation as a rotation vector in frame M); sigma: name -> predicted 1-sigma; observability: the DH
-    verdict of the calibration (lrfcal.observability); tolerances: the scenario's tolerances against 4 sigma;
+    verdict of the calibration from the marker returns (lrfcal.observability); tolerances: the scenario's
+    tolerances against 4 sigma;
     n_returns / n_markers_seen: the marker returns the information is built from; range_sigma_m: the noise model.
     """
 
@@ -191,9 +194,12 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
             source = SOURCE_SURFACES
         else:
             on_planes = planes = None
-    info, names = information_at(obs, markers_W, params, model="sphere", marker_radius_m=radius,
-                                 range_sigma_m=sigma_r, clock=motor if two_way else None, clock_offset_s=tau,
-                                 surfaces=on_planes, planes=planes)
+    common = dict(model="sphere", marker_radius_m=radius, range_sigma_m=sigma_r, clock=motor if two_way else None,
+                  clock_offset_s=tau)
+    info_markers, names = information_at(obs, markers_W, params, **common)
+    info = info_markers
+    if on_planes is not None:
+        info, _ = information_at(obs, markers_W, params, **common, surfaces=on_planes, planes=planes)
     info = 0.5 * (info + info.T)
     notes: list[str] = []
     # column-scaled inversion (the parameters mix metres, radians and seconds)
@@ -206,11 +212,15 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     else:
         cov = np.linalg.inv(scaled) / np.outer(col, col)
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
-    obsv = analyse(info, names)
+    # the verdict the calibration gives before solving: from the marker returns alone (lrfcal.pipeline)
+    obsv = analyse(0.5 * (info_markers + info_markers.T), names)
     if not obsv.determined:
         for i, n in enumerate(DH_NAMES):  # the DH verdict: an undetermined parameter has no useful sigma
             if not math.isfinite(obsv.sigma[i]):
                 sigma[n] = math.inf
+    if not obsv.determined and on_planes is not None:
+        notes.append("the sigmas include the surface returns, but the calibration judges the marker returns alone "
+                     "before solving: it would refuse this recording")
     if not two_way:
         notes.append("one-way sweep: the clock offset is held (the calibration cannot separate it from rz)")
     tol = scenario.tolerances
