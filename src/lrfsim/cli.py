@@ -173,6 +173,61 @@ def plan(
 
 
 @app.command(cls=Command)
+def study(
+    scenario: ScenarioArg,
+    trials: Annotated[int, typer.Option("--trials", "-n", metavar="N", min=1, max=100000, show_default=False,
+                                        help="Number of Monte-Carlo trials (per varied value).")],
+    out: Annotated[Path | None, typer.Option("-o", "--out", metavar="DIR", show_default=False,
+                                             help="Output folder  [default: runs/<scenario name>_study]")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an -o folder lrfsim wrote before.")
+                         ] = False,
+    workers: Annotated[int, typer.Option("--workers", "-j", metavar="K", min=1, max=1024,
+                                         help="Local worker processes (1: in this process)  [default: 1]",
+                                         show_default=False)] = 1,
+    dask: Annotated[str | None, typer.Option("--dask", metavar="ADDRESS", show_default=False,
+                                             help="Run the trials on this dask.distributed scheduler "
+                                                  "(e.g. tcp://host:8786), in batches of trials.")] = None,
+    vary: Annotated[str | None, typer.Option("--vary", metavar="KEY=V1,V2,...", show_default=False,
+                                             help="Sweep one scenario field (dotted path), e.g. "
+                                                  "servo.passes=1,2,4 or faults.range_noise_scale=1,2.")] = None,
+    seed0: Annotated[int | None, typer.Option("--seed0", metavar="S", min=0, show_default=False,
+                                              help="Seed of trial 0; trial k uses S + k  [default: the "
+                                                   "scenario's seed]")] = None,
+) -> None:
+    """Monte-Carlo study: calibrate N noisy recordings of SCENARIO.
+
+    Trial k simulates SCENARIO with seed S + k (new range, intensity, tape and encoder noise; the marker layout
+    stays), writes and reads the recording back and calibrates it. Writes DIR/trials.csv (one row per trial:
+    status, reason, P_error and P_sigma in SI units for each DH parameter P), DIR/summary.md (bias, std, RMSE,
+    the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
+    histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
+    """
+    from lrfcal.output import check_no_overlap, check_replaceable
+
+    from .scenario import load_scenario, scenario_inputs
+    from .study import parse_vary, summary_markdown, write_study
+    from .study import study as run_study
+
+    sc = load_scenario(scenario)
+    varied = parse_vary(vary) if vary is not None else None
+    if out is None:
+        out, overwrite = Path("runs") / f"{sc.name}_study", True
+    check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))
+    check_replaceable(out, overwrite)
+    if varied is not None:  # every value must make a valid scenario before any trial runs
+        from .study import with_field
+
+        for v in varied[1]:
+            with_field(sc, varied[0], v)
+    with progress_display(f"study of {sc.name}") as hooks:
+        result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied,
+                           progress=lambda value, done, total: hooks.scans(done, total))
+        path = write_study(result, out, overwrite=overwrite)
+    print(summary_markdown(result).split("## Figures")[0].rstrip())
+    print(f"wrote {path} (trials.csv, summary.md, figures)")
+
+
+@app.command(cls=Command)
 def schema(
     markdown: Annotated[bool, typer.Option("--markdown", help="Print the page docs/scenario.md instead.")] = False,
 ) -> None:

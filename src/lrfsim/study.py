@@ -71,7 +71,7 @@ class TrialRow:
     seconds: float
 
     def csv_row(self) -> list[str]:
-        """The row as CSV cells (full precision: the same seeds give the same text; no timings)."""
+        """The row as CSV cells (12 significant digits: the same seeds give the same text; no timings)."""
         cells = [self.value, str(self.trial), str(self.seed), self.status, self.reason, str(self.exit_code)]
         for e, s in zip(self.errors, self.sigma, strict=True):
             cells += [_num(e), _num(s)]
@@ -79,7 +79,9 @@ class TrialRow:
 
 
 def _num(v: float) -> str:
-    return "" if not math.isfinite(v) else repr(float(v))
+    """12 significant digits: far beyond any meaningful precision, and deaf to the last-bit differences of
+    multithreaded BLAS reductions between one process and another."""
+    return "" if not math.isfinite(v) else f"{float(v):.12g}"
 
 
 @dataclass(frozen=True)
