@@ -116,3 +116,24 @@ def test_study_help_units_and_defaults() -> None:
     for words in ("[default: runs/<scenario name>_study]", "[default: 1]", "--dask ADDRESS", "KEY=V1,V2,...",
                   "SI units", "[default: the scenario's seed]"):
         assert words in flat, words
+
+
+def test_no_wasted_casting(tiny) -> None:
+    """A trial that only changes the noise reuses the noise-free cast: the same recording as a full simulation
+    for the cast's own seed, new noise for another seed, and the cast itself is left untouched."""
+    import numpy as np
+
+    from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry
+
+    geometry = cast_geometry(tiny)
+    before = geometry.cast.ranges_m.copy()
+    full = simulate(tiny)
+    reused = simulate_from_geometry(tiny, geometry)
+    for name in ("ranges_m", "intensities", "beam_lambda_rad", "scan_stamps_s"):
+        assert np.array_equal(getattr(full, name), getattr(reused, name), equal_nan=True), name
+    assert np.array_equal(full.tape.distances_m, reused.tape.distances_m)
+    other = simulate_from_geometry(tiny.model_copy(update={"seed": tiny.seed + 1}), geometry)
+    both = np.isfinite(other.ranges_m) & np.isfinite(full.ranges_m)
+    diff = (other.ranges_m - full.ranges_m)[both]
+    assert 0.005 < diff.std() < 0.02  # sqrt(2) x the 10 mm range noise
+    assert np.array_equal(geometry.cast.ranges_m, before, equal_nan=True)

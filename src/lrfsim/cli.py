@@ -193,11 +193,14 @@ def study(
     seed0: Annotated[int | None, typer.Option("--seed0", metavar="S", min=0, show_default=False,
                                               help="Seed of trial 0; trial k uses S + k  [default: the "
                                                    "scenario's seed]")] = None,
+    recast: Annotated[bool, typer.Option("--recast", help="Cast the rays anew for every trial (a new laser phase "
+                                         "per trial) instead of reusing one noise-free cast.")] = False,
 ) -> None:
     """Monte-Carlo study: calibrate N noisy recordings of SCENARIO.
 
     Trial k simulates SCENARIO with seed S + k (new range, intensity, tape and encoder noise; the marker layout
-    stays), writes and reads the recording back and calibrates it. Writes DIR/trials.csv (one row per trial:
+    stays; the rays are cast once and reused, see --recast), writes and reads the recording back and calibrates
+    it. Writes DIR/trials.csv (one row per trial:
     status, reason, P_error and P_sigma in SI units for each DH parameter P), DIR/summary.md (bias, std, RMSE,
     the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
     histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
@@ -220,7 +223,7 @@ def study(
         for v in varied[1]:
             with_field(sc, varied[0], v)
     with progress_display(f"study of {sc.name}") as hooks:
-        result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied,
+        result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
                            progress=lambda value, done, total: hooks.scans(done, total))
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())

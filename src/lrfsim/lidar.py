@@ -348,7 +348,38 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
     """Ray cast and sensor model (module docstring) for motor angles ``beam_lambda_rad`` (S, N) at every beam.
 
     ``rng`` draws the range and intensity noise (all of it up front, so results do not depend on the
-    chunking). ``progress(done_scans, total_scans)`` is called after every chunk.
+    chunking). ``progress(done_scans, total_scans)`` is called after every chunk. The same as
+    ``sensor_model(cast_scans(...), sensor, rng)``.
+    """
+    cast = cast_scans(scene, sensor, beam_lambda_rad, origin_tol_m=origin_tol_m, chunk_scans=chunk_scans,
+                      progress=progress)
+    return sensor_model(cast, sensor, rng)
+
+
+@dataclass(frozen=True)
+class Cast:
+    """The noise-free part of a simulation: the mixed-pixel range ranges_m (S, N) (NaN: no sub-ray hit) and the
+    mean received power intensities (S, N) before the sensor model (noise, rounding, saturation, detection and
+    range limits), with the statistics of the cast (see LidarOutput). Cast once, it can take any number of noise
+    draws (:func:`sensor_model`)."""
+
+    ranges_m: FloatArray
+    intensities: FloatArray
+    n_rays: int
+    n_calls: int
+    cast_time_s: float
+    total_time_s: float
+    max_origin_error_m: float
+    max_parallax_correction_m: float
+    cutoff_m: float
+
+
+def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
+               chunk_scans: int = 16, progress: Callable[[int, int], None] | None = None) -> Cast:
+    """The ray cast and the mixed-pixel model (module docstring), without the sensor model; beam_lambda_rad (S, N).
+
+    The cast reaches range_max + 5 sigma of the largest noise band when ``sensor.noise`` is set (a return just
+    beyond range_max can be pulled back by the noise), else range_max.
     """
     t_start = time.perf_counter()
     lam = np.ascontiguousarray(beam_lambda_rad, dtype=float)
@@ -363,9 +394,6 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
     sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
     cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
 
-    if sensor.noise:
-        z_range = rng.standard_normal((S, N))
-        z_int = rng.standard_normal((S, N))
     ranges = np.empty((S, N))
     intens = np.empty((S, N))
 
@@ -413,7 +441,22 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
         if progress is not None:
             progress(sl.stop, S)
 
-    # sensor model on whole (S, N) arrays
+    return Cast(ranges_m=ranges, intensities=intens, n_rays=n_rays, n_calls=n_calls, cast_time_s=cast_s,
+                total_time_s=time.perf_counter() - t_start, max_origin_error_m=max_off,
+                max_parallax_correction_m=max_corr, cutoff_m=cutoff)
+
+
+def sensor_model(cast: Cast, sensor: SensorConfig, rng: np.random.Generator) -> LidarOutput:
+    """The sensor model (module docstring) on a cast's whole (S, N) arrays: noise drawn from ``rng`` (range, then
+    intensity, all up front), rounding, saturation, detection and range limits. ``cast`` is not modified."""
+    t_start = time.perf_counter()
+    S, N = cast.ranges_m.shape
+    cfg = sensor.intensity
+    if sensor.noise:
+        z_range = rng.standard_normal((S, N))
+        z_int = rng.standard_normal((S, N))
+    ranges = cast.ranges_m.copy()
+    intens = cast.intensities.copy()
     received = intens > 0
     if sensor.noise:
         intens *= np.maximum(0.0, 1.0 + cfg.relative_noise * z_int)
@@ -427,13 +470,15 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
     with np.errstate(invalid="ignore"):
         valid &= (ranges >= sensor.range_min_m) & (ranges <= sensor.range_max_m)
     ranges[~valid] = np.inf if sensor.no_return == "inf" else np.nan
-    return LidarOutput(ranges_m=ranges, intensities=intens, n_rays=n_rays, n_calls=n_calls, cast_time_s=cast_s,
-                       total_time_s=time.perf_counter() - t_start, max_origin_error_m=max_off,
-                       max_direction_error_rad=0.0, max_parallax_correction_m=max_corr)
+    return LidarOutput(ranges_m=ranges, intensities=intens, n_rays=cast.n_rays, n_calls=cast.n_calls,
+                       cast_time_s=cast.cast_time_s, total_time_s=cast.total_time_s + time.perf_counter() - t_start,
+                       max_origin_error_m=cast.max_origin_error_m, max_direction_error_rad=0.0,
+                       max_parallax_correction_m=cast.max_parallax_correction_m)
 
 
 __all__ = [
-    "RETRO_EXPONENT", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W", "beam_times", "cast_chunk",
+    "RETRO_EXPONENT", "Cast", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W", "beam_times",
+    "cast_chunk", "cast_scans", "sensor_model",
     "footprint_coefficients", "footprint_directions_L", "iter_ray_chunks", "plan_runs", "range_sigma",
     "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W",
 ]

@@ -3,7 +3,10 @@
 Trial k of a study uses the scenario with ``seed = seed0 + k``: new laser phase, range and intensity noise, tape
 noise and fault draws (lrfsim.simulate's and lrfsim.faults' seeded streams). The scene, and with it the marker
 layout (a jittered board grid is seeded by the scenario's seed too), is built once from the scenario as given,
-so every trial sees the same markers and only the noise changes. Each trial then runs the whole path of a real
+so every trial sees the same markers and only the noise changes. No wasted casting: the rays are cast once per
+batch (lrfsim.simulate.cast_geometry, with the laser phase of the scenario's own seed) and each trial only draws
+its noise on that cast (simulate_from_geometry); ``recast=True`` casts every trial anew instead, its laser phase
+drawn from the trial's seed as well. Each trial then runs the whole path of a real
 recording: simulate, write the recording folder, read it back, calibrate (lrfsim.trial.calibrate_recording), and
 is recorded as calibrated (errors against the truth, reported sigma) or refused (the reason).
 
@@ -186,20 +189,25 @@ def parse_vary(text: str) -> tuple[str, list[Any]]:
 
 # --- running trials -------------------------------------------------------------------------------------------
 
-def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]]) -> list[TrialRow]:
+def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False
+              ) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
-    built once from ``scenario``; each trial draws its noise from its own seed (module docstring)."""
+    built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
+    scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
+    every trial anew (the laser phase drawn from the trial's seed too)."""
     from .scene import build_scene
-    from .simulate import simulate, write_recording
+    from .simulate import cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
 
     scene = build_scene(scenario)
+    geometry = None if recast else cast_geometry(scenario, scene=scene)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
         for trial, seed in trials:
             sc = scenario.model_copy(update={"seed": int(seed)})
             folder = Path(tmp) / f"trial_{trial}"
-            write_recording(simulate(sc, scene=scene), sc, folder)
+            sim = simulate(sc, scene=scene) if geometry is None else simulate_from_geometry(sc, geometry)
+            write_recording(sim, sc, folder)
             t = calibrate_recording(folder, name=f"{scenario.name}#{trial}")
             shutil.rmtree(folder, ignore_errors=True)
             rows.append(TrialRow(value=value, trial=int(trial), seed=int(seed), status=t.status,
@@ -217,11 +225,12 @@ def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[in
 def run_trials(
     scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
     dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
+    recast: bool = False,
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: the trials spread
-    over about 2 batches per worker, at least 1 trial each)."""
+    over about 2 batches per worker, at least 1 trial each). ``recast``: see :func:`run_batch`."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
     s0 = scenario.seed if seed0 is None else int(seed0)
@@ -233,7 +242,8 @@ def run_trials(
     if dask is not None:
         client, own = _dask_client(dask)
         try:
-            futures = client.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches, pure=False)
+            futures = client.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
+                                 [recast] * len(batches), pure=False)
             for fut in futures:
                 rows += fut.result()
                 done += 1
@@ -244,14 +254,15 @@ def run_trials(
                 client.close()
     elif workers > 1:
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            for part in pool.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches):
+            for part in pool.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
+                                 [recast] * len(batches)):
                 rows += part
                 done += 1
                 if progress:
                     progress(done, len(batches))
     else:
         for b in batches:
-            rows += run_batch(scenario, value, b)
+            rows += run_batch(scenario, value, b, recast)
             done += 1
             if progress:
                 progress(done, len(batches))
@@ -275,7 +286,7 @@ def _dask_client(dask: Any) -> tuple[Any, bool]:
 def study(
     scenario: Scenario, trials: int, *, seed0: int | None = None, workers: int = 1, dask: Any = None,
     vary: tuple[str, list[Any]] | None = None, batch_size: int | None = None,
-    progress: Callable[[str, int, int], None] | None = None,
+    progress: Callable[[str, int, int], None] | None = None, recast: bool = False,
 ) -> Study:
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
     value of one field (the same seeds for every value)."""
@@ -292,7 +303,7 @@ def study(
             predicted = None
         hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
         rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
-                          progress=hook)
+                          progress=hook, recast=recast)
         parts.append(StudyPart(value=value, scenario=sc, plan=predicted, rows=tuple(rows)))
     where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
