@@ -339,13 +339,14 @@ def summary_markdown(s: Study) -> str:
         title = f"## {s.key} = {part.value}" if s.key else "## Results"
         lines += [title, "", f"calibrated {n} of {len(part.rows)}, refusal rate {100 * part.refusal_rate:.0f} %"
                   + ("" if part.plan is not None else "; plan refused (too few markers seen)"), "",
-                  "| parameter | bias | bias / std | std | RMSE | predicted sigma | RMSE / predicted | "
+                  "| parameter | bias (+- its s.e.) | bias / std | std | RMSE | predicted sigma | RMSE / predicted | "
                   "std / predicted | RMS error / reported sigma | mean reported sigma |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
         for p in DH_NAMES:
             d = st[p]
             bz = d["bias"] / d["std"] if d["std"] > 0 else math.nan
-            lines.append(f"| {p} | {_fmt(p, d['bias'])} | {bz:+.2f} | {_fmt(p, d['std'])} | {_fmt(p, d['rmse'])} | "
+            lines.append(f"| {p} | {_fmt(p, d['bias'])} +- {_fmt(p, d['bias_se'])} | {bz:+.2f} | "
+                         f"{_fmt(p, d['std'])} | {_fmt(p, d['rmse'])} | "
                          f"{_fmt(p, d['predicted'])} | {d['rmse_over_predicted']:.2f} | "
                          f"{d['std_over_predicted']:.2f} | {d['rms_z']:.2f} | {_fmt(p, d['mean_sigma'])} |")
         reasons: dict[str, int] = {}
