@@ -75,8 +75,11 @@ def test_one_way_sweep_holds_the_clock() -> None:
 
 
 def test_more_noise_more_sigma(tunnel_plan) -> None:
+    assert tunnel_plan.range_sigma_m == pytest.approx(0.010)  # the UTM-30LX-EW below 10 m, as the calibration
     noisy = plan(parse_scenario(_fast_tunnel(), "fast tunnel"), range_sigma_m=0.03)
     assert noisy.sigma["a"] > 1.5 * tunnel_plan.sigma["a"]
+    scaled = plan(parse_scenario(_fast_tunnel(**{"faults.range_noise_scale": 2.0}), "noisy"), surfaces=False)
+    assert scaled.range_sigma_m == pytest.approx(0.020)  # the scenario's own sensor noise
 
 
 def test_plan_json_cli(tmp_path: Path) -> None:
@@ -107,5 +110,5 @@ def test_plan_help_units_and_defaults() -> None:
                           env={"COLUMNS": "80", "PATH": ""})
     flat = " ".join(proc.stdout.split())
     assert proc.returncode == 0
-    assert "[m]" in flat and "[default: 0.01]" in flat and "--json" in flat
+    assert "[m]" in flat and "[default: the scenario's sensor noise" in flat and "--json" in flat
     assert proc.stdout.splitlines()[0].startswith("Usage: lrfsim plan [OPTIONS] SCENARIO")

@@ -140,9 +140,10 @@ def plan(
     scenario: ScenarioArg,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (SI units) instead of the table.")
                        ] = False,
-    range_sigma: Annotated[float, typer.Option(
-        "--range-sigma", metavar="M", callback=finite_between(1e-5, 1.0, "m"),
-        help="Range noise 1-sigma of the calibration's noise model [m]")] = 0.010,
+    range_sigma: Annotated[float | None, typer.Option(
+        "--range-sigma", metavar="M", callback=finite_between(1e-5, 1.0, "m"), show_default=False,
+        help="Range noise 1-sigma [m]  [default: the scenario's sensor noise at the marker returns, 0.01 for "
+             "the UTM-30LX-EW]")] = None,
     markers_only: Annotated[bool, typer.Option(
         "--markers-only", help="Predict from the marker returns alone (without the surface returns).")] = False,
 ) -> None:

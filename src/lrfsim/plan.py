@@ -3,8 +3,9 @@
 The scenario's rays are cast once without noise (``lrfsim.simulate.simulate(..., noise=False)``; the mixed-pixel
 footprint stays), the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return
 whose ray passes within the marker), and the calibration's own observation and noise model is evaluated at the
-TRUE parameters: ``lrfcal.solve.information_at`` (the sphere model: range residual with sigma_r = the calibration's
-range noise, lateral residual with sigma = R_m / 2; the clock offset is an unknown when the sweep goes both ways).
+TRUE parameters: ``lrfcal.solve.information_at`` (the sphere model: range residual with sigma_r = the scenario
+sensor's range noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual
+with sigma = R_m / 2; the clock offset is an unknown when the sweep goes both ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
 Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
 clock_offset when it is estimated.
@@ -169,9 +170,25 @@ def marker_observations(scenario: Scenario) -> tuple[Observations, FloatArray, P
     return obs, result.truth.markers_W, params, MotorClock.from_joints(joints), result.truth.clock_offset_s, result
 
 
+def scenario_range_sigma(scenario: Scenario, ranges_m: FloatArray) -> float:
+    """The range noise of the scenario's sensor at the marker returns (the median over ``ranges_m`` of the noise
+    band's sigma, times faults.range_noise_scale); the calibration's 10 mm (CalibConfig) for a noise-free sensor.
+    For the UTM-30LX-EW of the shipped scenarios both are 10 mm below 10 m."""
+    from .faults import scale_range_noise
+    from .lidar import range_sigma
+
+    sensor = scale_range_noise(scenario).sensor
+    r = np.asarray(ranges_m, dtype=float)
+    r = r[np.isfinite(r)]
+    if not sensor.noise or r.size == 0 or not sensor.noise_bands:
+        return CalibConfig().range_sigma_m
+    return float(np.median(range_sigma(r, sensor)))
+
+
 def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bool = True) -> Plan:
     """Predict the 1-sigma of every calibrated parameter of ``scenario`` from the Fisher information of its
-    noise-free geometry (module docstring). ``range_sigma_m`` defaults to the calibration's (CalibConfig);
+    noise-free geometry (module docstring). ``range_sigma_m`` defaults to the scenario's sensor noise at the marker
+    returns (:func:`scenario_range_sigma`);
     ``surfaces`` adds the surface returns of stage 6b (as the calibration does by default).
 
     Raises:
@@ -179,8 +196,8 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     """
     t0 = time.perf_counter()
     config = CalibConfig()
-    sigma_r = config.range_sigma_m if range_sigma_m is None else float(range_sigma_m)
     obs, markers_W, params, motor, tau, result = marker_observations(scenario)
+    sigma_r = scenario_range_sigma(scenario, obs.ranges_m) if range_sigma_m is None else float(range_sigma_m)
     n_seen = int(np.unique(obs.marker).size)
     if len(obs) < 4 or n_seen < 3:
         raise CalibrationError(f"plan {scenario.name}: {len(obs)} marker returns on {n_seen} markers seen by the "
@@ -294,4 +311,4 @@ def format_plan(p: Plan) -> str:
 
 
 __all__ = ["REACHABLE_K", "SOURCE_MARKERS", "SOURCE_SURFACES", "Plan", "ToleranceCheck", "format_plan", "format_value",
-           "marker_observations", "plan"]
+           "marker_observations", "plan", "scenario_range_sigma"]
