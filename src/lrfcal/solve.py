@@ -595,16 +595,7 @@ def solve(
     if not estimate_range_bias:
         free_core[_ROFF] = free_core[_MBIAS] = False
     if surfaces is not None and len(surfaces):
-        ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
-        first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
-        n0, t1, t2, nu0 = _plane_nuisance_start(surfaces.normals[first], surfaces.offsets_m[first])
-        prior_sigma = None
-        if planes is not None:
-            t1 = np.array([planes[i].axes[0] for i in ids])
-            t2 = np.array([planes[i].axes[1] for i in ids])
-            prior_sigma = np.concatenate([planes[i].prior_sigma for i in ids])
-        surf = _Surf(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
-                     nu0.copy(), prior_sigma, times=surfaces.times_s)
+        surf, nu0 = _surf_problem(surfaces, planes)
         pb_all = replace(pb_all, surf=surf)
         th = np.concatenate([th, nu0])
     free = np.concatenate([free_core, np.ones(th.size - N_CORE, dtype=bool)])
@@ -730,20 +721,51 @@ def solve(
 def information_at(
     obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
     range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
+    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None,
 ) -> tuple[FloatArray, tuple[str, ...]]:
     """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
-    would be estimated (the clock offset only when ``clock`` is given), and their names: what the data can
-    determine, judged before any solver runs."""
+    would be estimated (the clock offset only when ``clock`` is given; the range offset and marker range bias only
+    with ``surfaces``), and their names: what the data can determine, judged before any solver runs.
+
+    With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
+    and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
+    (Schur complement), evaluated at the planes the returns carry (their normals and offsets)."""
     pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
     if clock is not None:
         pb = replace(pb, clock=clock)
     th, R_ref = _core_from_params(params, clock_offset_s)
+    # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
+    # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
+    with_surfaces = surfaces is not None and len(surfaces) > 0
+    idx = [*range(10), *([_TAU] if clock is not None else []), *([_ROFF, _MBIAS] if with_surfaces else [])]
+    names = tuple(CORE_NAMES[i] for i in idx)
+    if surfaces is not None and with_surfaces:
+        surf, nu0 = _surf_problem(surfaces, planes)
+        pb = replace(pb, surf=surf)
+        _, J_all = pb.stacked(np.concatenate([th, nu0]), R_ref)
+        assert J_all is not None
+        keep = idx + list(range(N_CORE, J_all.shape[1]))
+        J_all = J_all[:, keep]
+        return _schur(J_all.T @ J_all, range(len(idx))), names
     _, J = _residuals(th, pb, R_ref)
     assert J is not None
-    J = J.reshape(-1, N_CORE)
-    idx = [*range(10), *([_TAU] if clock is not None else [])]
-    J = J[:, idx]
-    return J.T @ J, tuple(CORE_NAMES[i] for i in idx)
+    J = J.reshape(-1, N_CORE)[:, idx]
+    return J.T @ J, names
+
+
+def _surf_problem(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[_Surf, FloatArray]:
+    """The surface returns as a _Surf with the planes' nuisance start (3P,) (the same set-up as :func:`solve`)."""
+    ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
+    first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
+    n0, t1, t2, nu0 = _plane_nuisance_start(surfaces.normals[first], surfaces.offsets_m[first])
+    prior_sigma = None
+    if planes is not None:
+        t1 = np.array([planes[i].axes[0] for i in ids])
+        t2 = np.array([planes[i].axes[1] for i in ids])
+        prior_sigma = np.concatenate([planes[i].prior_sigma for i in ids])
+    surf = _Surf(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
+                 nu0.copy(), prior_sigma, times=surfaces.times_s)
+    return surf, nu0
 
 
 def _schur(A: FloatArray, keep: Sequence[int]) -> FloatArray:

@@ -2,6 +2,8 @@
 
     lrfsim simulate SCENARIO -o DIR [--overwrite]   write a recording folder (docs/formats.md)
     lrfsim run SCENARIO [-o DIR] [--rrd FILE]        simulate, calibrate, compare with the truth (Tables I, III)
+    lrfsim plan SCENARIO [--json]                    predicted 1-sigma of every parameter (no calibration)
+    lrfsim study SCENARIO --trials N [-o DIR]        Monte-Carlo study: errors, sigmas, refusals
     lrfsim schema                                    the scenario format as JSON Schema (docs/scenario.md)
 
 Usage errors and the errors the project raises on purpose (lrfcal.errors.LrfError) become one line
@@ -17,7 +19,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.cliutil import Command, make_app, progress_display, run_app
+from lrfcal.cliutil import Command, finite_between, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
     from .simulate import SimResult
@@ -131,6 +133,102 @@ def run(
     if not report.comparison.ok:
         console.print("MISSED: " + "; ".join(report.comparison.failures), style="red", markup=False)
         raise typer.Exit(1)
+
+
+@app.command(cls=Command)
+def plan(
+    scenario: ScenarioArg,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (SI units) instead of the table.")
+                       ] = False,
+    range_sigma: Annotated[float | None, typer.Option(
+        "--range-sigma", metavar="M", callback=finite_between(1e-5, 1.0, "m"), show_default=False,
+        help="Range noise 1-sigma [m]  [default: the scenario's sensor noise at the marker returns, 0.01 for "
+             "the UTM-30LX-EW]")] = None,
+    markers_only: Annotated[bool, typer.Option(
+        "--markers-only", help="Predict from the marker returns alone (without the surface returns).")] = False,
+) -> None:
+    """Predict the accuracy of a layout and sweep before building it.
+
+    Casts the scenario's rays once without noise and inverts the Fisher information of the calibration's own
+    observation model at the true parameters: the predicted 1-sigma of x, y, z, rx, ry, rz (rotation vector in
+    frame M), a, alpha, b, beta and the clock offset (when the sweep goes both ways), the weakest direction and
+    what would strengthen it, and whether the scenario's tolerances are reachable (>= 4 predicted sigma).
+
+    Exit code 3 when the DH parameters are not determined (the calibration would refuse).
+    """
+    import json
+
+    from .plan import format_plan
+    from .plan import plan as make_plan
+    from .scenario import load_scenario
+
+    result = make_plan(load_scenario(scenario), range_sigma_m=range_sigma, surfaces=not markers_only)
+    if as_json:
+        print(json.dumps(result.to_json(), indent=2))
+    else:
+        print(format_plan(result))
+    if not result.determined:
+        print(f"error: {result.scenario}: the DH parameters are not determined ({result.weakest}); "
+              f"{result.observability.hint()}", file=sys.stderr)
+        raise typer.Exit(3)
+
+
+@app.command(cls=Command)
+def study(
+    scenario: ScenarioArg,
+    trials: Annotated[int, typer.Option("--trials", "-n", metavar="N", min=1, max=100000, show_default=False,
+                                        help="Number of Monte-Carlo trials (per varied value).")],
+    out: Annotated[Path | None, typer.Option("-o", "--out", metavar="DIR", show_default=False,
+                                             help="Output folder  [default: runs/<scenario name>_study]")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an -o folder lrfsim wrote before.")
+                         ] = False,
+    workers: Annotated[int, typer.Option("--workers", "-j", metavar="K", min=1, max=1024,
+                                         help="Local worker processes (1: in this process)  [default: 1]",
+                                         show_default=False)] = 1,
+    dask: Annotated[str | None, typer.Option("--dask", metavar="ADDRESS", show_default=False,
+                                             help="Run the trials on this dask.distributed scheduler "
+                                                  "(e.g. tcp://host:8786), in batches of trials.")] = None,
+    vary: Annotated[str | None, typer.Option("--vary", metavar="KEY=V1,V2,...", show_default=False,
+                                             help="Sweep one scenario field (dotted path), e.g. "
+                                                  "servo.passes=1,2,4 or faults.range_noise_scale=1,2.")] = None,
+    seed0: Annotated[int | None, typer.Option("--seed0", metavar="S", min=0, show_default=False,
+                                              help="Seed of trial 0; trial k uses S + k  [default: the "
+                                                   "scenario's seed]")] = None,
+    recast: Annotated[bool, typer.Option("--recast", help="Cast the rays anew for every trial (a new laser phase "
+                                         "per trial) instead of reusing one noise-free cast.")] = False,
+) -> None:
+    """Monte-Carlo study: calibrate N noisy recordings of SCENARIO.
+
+    Trial k simulates SCENARIO with seed S + k (new range, intensity, tape and encoder noise; the marker layout
+    stays; the rays are cast once and reused, see --recast), writes and reads the recording back and calibrates
+    it. Writes DIR/trials.csv (one row per trial:
+    status, reason, P_error and P_sigma in SI units for each DH parameter P), DIR/summary.md (bias, std, RMSE,
+    the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
+    histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
+    """
+    from lrfcal.output import check_no_overlap, check_replaceable
+
+    from .scenario import load_scenario, scenario_inputs
+    from .study import parse_vary, summary_markdown, write_study
+    from .study import study as run_study
+
+    sc = load_scenario(scenario)
+    varied = parse_vary(vary) if vary is not None else None
+    if out is None:
+        out, overwrite = Path("runs") / f"{sc.name}_study", True
+    check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))
+    check_replaceable(out, overwrite)
+    if varied is not None:  # every value must make a valid scenario before any trial runs
+        from .study import with_field
+
+        for v in varied[1]:
+            with_field(sc, varied[0], v)
+    with progress_display(f"study of {sc.name}") as hooks:
+        result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
+                           progress=lambda value, done, total: hooks.scans(done, total))
+        path = write_study(result, out, overwrite=overwrite)
+    print(summary_markdown(result).split("## Figures")[0].rstrip())
+    print(f"wrote {path} (trials.csv, summary.md, figures)")
 
 
 @app.command(cls=Command)

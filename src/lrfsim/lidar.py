@@ -436,11 +436,44 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
                    rng: np.random.Generator, *, origin_tol_m: float = 1e-6, chunk_scans: int = 16,
                    progress: Callable[[int, int], None] | None = None,
                    beam_times_s: FloatArray | None = None) -> LidarOutput:
-    """Ray cast and sensor model (module docstring) for motor angles ``beam_lambda_rad`` (S, N) at every beam.
+    """Ray cast and sensor model (module docstring) for motor angles ``beam_lambda_rad`` (S, N) at every beam:
+    ``sensor_model(cast_scans(...), sensor, rng, beam_times_s)``.
 
     ``rng`` draws the range and intensity noise (all of it up front, so results do not depend on the
     chunking; the echoes' extra draws come after). ``progress(done_scans, total_scans)`` is called after every
     chunk. ``beam_times_s`` (S, N): true beam times [s], needed only by the warm-up drift.
+    """
+    cast = cast_scans(scene, sensor, beam_lambda_rad, origin_tol_m=origin_tol_m, chunk_scans=chunk_scans,
+                      progress=progress)
+    return sensor_model(cast, sensor, rng, beam_times_s)
+
+
+@dataclass(frozen=True)
+class Cast:
+    """The noise-free part of a simulation: the mixed-pixel range ranges_m (S, N) (NaN: no sub-ray hit; the
+    incidence bias, a geometric effect, already applied per sub-ray) and the mean received power intensities
+    (S, N), the echoes' ranges and received power (S, N, E) when echoes are enabled, with the statistics of the
+    cast (see LidarOutput). Cast once, it can take any number of noise draws (:func:`sensor_model`)."""
+
+    ranges_m: FloatArray
+    intensities: FloatArray
+    n_rays: int
+    n_calls: int
+    cast_time_s: float
+    total_time_s: float
+    max_origin_error_m: float
+    max_parallax_correction_m: float
+    cutoff_m: float
+    echo_ranges_m: FloatArray | None = None
+    echo_power: FloatArray | None = None
+
+
+def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
+               chunk_scans: int = 16, progress: Callable[[int, int], None] | None = None) -> Cast:
+    """The ray cast and the mixed-pixel model (module docstring), without the sensor model; beam_lambda_rad (S, N).
+
+    The cast reaches range_max + 5 sigma of the largest noise band when ``sensor.noise`` is set (a return just
+    beyond range_max can be pulled back by the noise), else range_max.
     """
     t_start = time.perf_counter()
     lam = np.ascontiguousarray(beam_lambda_rad, dtype=float)
@@ -455,15 +488,12 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
     sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
     cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
 
-    z_range = z_int = None
-    if sensor.noise:
-        z_range = rng.standard_normal((S, N))
-        z_int = rng.standard_normal((S, N))
     ranges = np.empty((S, N))
     intens = np.empty((S, N))
     k_theta = sensor.systematic.incidence_bias_m
     ech = sensor.echoes
     E = ech.max_echoes
+    echo_r = echo_p = None
     if ech.enabled:
         echo_r = np.full((S, N, E), np.nan)
         echo_p = np.zeros((S, N, E))
@@ -511,7 +541,7 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
         sl = ch.scans
         ranges[sl] = np.divide(PR, Psum, out=np.full_like(PR, np.nan), where=Psum > 0)
         intens[sl] = Psum / F
-        if ech.enabled:
+        if echo_r is not None and echo_p is not None:
             re, pe, single = split_echoes(r, P, hit, ech.separation_m, E)
             re[single, 0] = ranges[sl][single]
             pe[single, 0] = Psum[single]
@@ -519,30 +549,50 @@ def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Floa
             echo_p[sl] = pe
         if progress is not None:
             progress(sl.stop, S)
+    return Cast(ranges_m=ranges, intensities=intens, n_rays=n_rays, n_calls=n_calls, cast_time_s=cast_s,
+                total_time_s=time.perf_counter() - t_start, max_origin_error_m=max_off,
+                max_parallax_correction_m=max_corr, cutoff_m=cutoff, echo_ranges_m=echo_r, echo_power=echo_p)
 
-    # sensor model on whole (S, N) arrays
+
+def sensor_model(cast: Cast, sensor: SensorConfig, rng: np.random.Generator,
+                 beam_times_s: FloatArray | None = None) -> LidarOutput:
+    """The sensor model (module docstring) on a cast's whole (S, N) arrays: noise drawn from ``rng`` (range, then
+    intensity, all up front; the echoes' extra draws after), the systematic biases (``beam_times_s`` (S, N) for
+    the warm-up drift), rounding, saturation, detection and range limits. ``cast`` is not modified."""
+    t_start = time.perf_counter()
+    S, N = cast.ranges_m.shape
+    F = sensor.footprint_rays
+    z_range = z_int = None
+    if sensor.noise:
+        z_range = rng.standard_normal((S, N))
+        z_int = rng.standard_normal((S, N))
     echo_ranges = echo_intens = None
-    if ech.enabled:
-        echo_intens = echo_p / F
+    if cast.echo_ranges_m is not None and cast.echo_power is not None:
+        E = cast.echo_ranges_m.shape[-1]
+        echo_intens = cast.echo_power / F
         zr = zi = None
         if sensor.noise and z_range is not None and z_int is not None:
             zr = np.concatenate([z_range[..., None], rng.standard_normal((S, N, E - 1))], -1)
             zi = np.concatenate([z_int[..., None], rng.standard_normal((S, N, E - 1))], -1)
-        echo_ranges = _sensor_model(echo_r, echo_intens, sensor, zr, zi,
+        echo_ranges = _sensor_model(cast.echo_ranges_m.copy(), echo_intens, sensor, zr, zi,
                                     systematic_bias_m(echo_intens, sensor, beam_times_s))
         # reported in arrival order: noise may swap close echoes; no-return echoes last
         order = np.argsort(np.where(np.isfinite(echo_ranges), echo_ranges, np.inf), axis=-1, kind="stable")
         echo_ranges = np.take_along_axis(echo_ranges, order, -1)
         echo_intens = np.take_along_axis(echo_intens, order, -1)
-    ranges = _sensor_model(ranges, intens, sensor, z_range, z_int, systematic_bias_m(intens, sensor, beam_times_s))
-    return LidarOutput(ranges_m=ranges, intensities=intens, n_rays=n_rays, n_calls=n_calls, cast_time_s=cast_s,
-                       total_time_s=time.perf_counter() - t_start, max_origin_error_m=max_off,
-                       max_direction_error_rad=0.0, max_parallax_correction_m=max_corr,
+    intens = cast.intensities.copy()
+    ranges = _sensor_model(cast.ranges_m.copy(), intens, sensor, z_range, z_int,
+                           systematic_bias_m(intens, sensor, beam_times_s))
+    return LidarOutput(ranges_m=ranges, intensities=intens, n_rays=cast.n_rays, n_calls=cast.n_calls,
+                       cast_time_s=cast.cast_time_s, total_time_s=cast.total_time_s + time.perf_counter() - t_start,
+                       max_origin_error_m=cast.max_origin_error_m, max_direction_error_rad=0.0,
+                       max_parallax_correction_m=cast.max_parallax_correction_m,
                        echo_ranges_m=echo_ranges, echo_intensities=echo_intens)
 
 
 __all__ = [
-    "RETRO_EXPONENT", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W", "beam_times", "cast_chunk",
+    "RETRO_EXPONENT", "Cast", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W", "beam_times",
+    "cast_chunk", "cast_scans", "sensor_model",
     "footprint_coefficients", "footprint_directions_L", "iter_ray_chunks", "plan_runs", "range_sigma",
     "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W", "split_echoes",
     "systematic_bias_m",

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from lrfcal.kinematics import DH, Pose
 
-from .lidar import beam_angles, beam_times, scan_start_times, simulate_scans
+from .lidar import Cast, beam_angles, beam_times, cast_scans, scan_start_times, sensor_model
 from .scenario import Scenario, SensorConfig
 from .servo import JointSamples, check_trajectory, joint_samples, laser_time, sweep_trajectory
 from .tape import TapeResult, measure_tape
@@ -115,18 +115,31 @@ class SimResult:
     echo_intensities: FloatArray | None = None
 
 
-def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
-             scene: Scene | None = None) -> SimResult:
-    """Simulate a scenario's recording. ``progress(done_scans, total_scans)`` is called while scanning.
+@dataclass(frozen=True)
+class Geometry:
+    """The noise-free part of a recording, cast once (:func:`cast_geometry`): the scene, the laser phase and scan
+    start times (servo clock) it was cast with, the true motor angle of every beam (S, N) and the cast
+    (lrfsim.lidar.Cast). Recordings that differ only in noise reuse it (:func:`simulate_from_geometry`)."""
 
-    ``scene`` defaults to ``lrfsim.scene.build_scene(scenario)`` (pass one to reuse or replace it).
-    The scenario's ``faults`` are injected (lrfsim.faults): the range noise scale before, the others after
-    simulating.
-    """
-    from .faults import apply_faults, scale_range_noise
+    scenario_name: str
+    scene: Scene
+    phase_s: float
+    starts_s: FloatArray
+    beam_lambda_rad: FloatArray
+    duration_s: float
+    cast: Cast
+    beam_times_s: FloatArray | None = None  # (S, N) true beam times (servo clock), for the warm-up drift
 
-    t0 = time.perf_counter()
+
+def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool = True,
+                  progress: Callable[[int, int], None] | None = None) -> Geometry:
+    """Cast the scenario's rays once (no noise drawn): the laser phase comes from ``scenario.seed`` as in
+    :func:`simulate`; ``noise=False`` casts for a noise-free sensor (range_max cut-off, see simulate)."""
+    from .faults import scale_range_noise
+
     scenario = scale_range_noise(scenario)
+    if not noise:
+        scenario = _noise_free(scenario)
     if scene is None:
         from .scene import build_scene
 
@@ -138,9 +151,31 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     starts_s = scan_start_times(traj.end_s, sensor, phase_s)
     times_s = beam_times(starts_s, sensor)
     beam_lambda = traj.angle(times_s)
-    lid = simulate_scans(scene, sensor, beam_lambda, np.random.default_rng([scenario.seed, _RNG_SENSOR]),
-                         progress=progress, beam_times_s=times_s)
-    joints = joint_samples(traj, servo)
+    cast = cast_scans(scene, sensor, beam_lambda, progress=progress)
+    return Geometry(scenario_name=scenario.name, scene=scene, phase_s=phase_s, starts_s=starts_s,
+                    beam_lambda_rad=beam_lambda, duration_s=traj.end_s, cast=cast, beam_times_s=times_s)
+
+
+def _noise_free(scenario: Scenario) -> Scenario:
+    return scenario.model_copy(update={"sensor": scenario.sensor.model_copy(
+        update={"noise": False, "quantisation_m": 0.0})})
+
+
+def simulate_from_geometry(scenario: Scenario, geometry: Geometry, *, noise: bool = True) -> SimResult:
+    """A recording of ``scenario`` on a geometry cast before: only the noise is drawn (sensor noise, tape, faults,
+    from ``scenario.seed``). The laser phase is the geometry's (for a geometry cast with another seed it is not
+    the one ``scenario.seed`` would draw): the scenario must otherwise be the one the geometry was cast from."""
+    from .faults import apply_faults, scale_range_noise
+
+    t0 = time.perf_counter()
+    scenario = scale_range_noise(scenario)
+    if not noise:
+        scenario = _noise_free(scenario)
+    scene = geometry.scene
+    sensor, servo = scenario.sensor, scenario.servo
+    lid = sensor_model(geometry.cast, sensor, np.random.default_rng([scenario.seed, _RNG_SENSOR]),
+                       geometry.beam_times_s)
+    joints = joint_samples(sweep_trajectory(servo), servo)
     tape = measure_tape(scene.marker_ids, scene.markers_W, scenario.tape,
                         np.random.default_rng([scenario.seed, _RNG_TAPE]))
     truth = SimTruth(dh=scenario.rig.dh.to_dh(), mount=scenario.rig.mount.to_pose(),
@@ -149,15 +184,29 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
                      tunnel=dict(scene.tunnel_truth) if scene.tunnel_truth is not None else None,
                      systematic=systematic_truth(sensor))
     stats = SimStats(n_rays=lid.n_rays, n_calls=lid.n_calls, cast_time_s=lid.cast_time_s,
-                     lidar_time_s=lid.total_time_s, total_time_s=time.perf_counter() - t0,
+                     lidar_time_s=lid.total_time_s, total_time_s=time.perf_counter() - t0 + geometry.cast.total_time_s,
                      max_origin_error_m=lid.max_origin_error_m, max_direction_error_rad=lid.max_direction_error_rad,
                      max_parallax_correction_m=lid.max_parallax_correction_m)
-    result = SimResult(name=scenario.name, scan_stamps_s=laser_time(starts_s, servo.clock_offset_s),
+    result = SimResult(name=scenario.name, scan_stamps_s=laser_time(geometry.starts_s, servo.clock_offset_s),
                        mu_rad=beam_angles(sensor), ranges_m=lid.ranges_m, intensities=lid.intensities,
-                       beam_lambda_rad=beam_lambda, joints=joints, tape=tape, truth=truth, stats=stats,
-                       duration_s=traj.end_s, echo_ranges_m=lid.echo_ranges_m,
+                       beam_lambda_rad=geometry.beam_lambda_rad, joints=joints, tape=tape, truth=truth, stats=stats,
+                       duration_s=geometry.duration_s, echo_ranges_m=lid.echo_ranges_m,
                        echo_intensities=lid.echo_intensities)
     return apply_faults(result, scenario)
+
+
+def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
+             scene: Scene | None = None, noise: bool = True) -> SimResult:
+    """Simulate a scenario's recording. ``progress(done_scans, total_scans)`` is called while scanning.
+
+    ``scene`` defaults to ``lrfsim.scene.build_scene(scenario)`` (pass one to reuse or replace it).
+    The scenario's ``faults`` are injected (lrfsim.faults): the range noise scale before, the others after
+    simulating. ``noise=False`` casts the rays without the range and intensity noise and without the range
+    quantisation, whatever ``sensor.noise`` says (the mixed-pixel footprint stays): the noise-free geometry that
+    ``lrfsim plan`` predicts from. The same as ``simulate_from_geometry(scenario, cast_geometry(scenario))``.
+    """
+    geometry = cast_geometry(scenario, scene=scene, noise=noise, progress=progress)
+    return simulate_from_geometry(scenario, geometry, noise=noise)
 
 
 def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
@@ -181,5 +230,5 @@ def simulate_to_folder(scenario: Scenario, out_dir: str | Path, *, overwrite: bo
     return result, write_recording(result, scenario, out_dir, overwrite=overwrite)
 
 
-__all__ = ["SimResult", "SimStats", "SimTruth", "simulate", "simulate_to_folder", "systematic_truth",
-           "write_recording"]
+__all__ = ["Geometry", "SimResult", "SimStats", "SimTruth", "cast_geometry", "simulate", "simulate_from_geometry",
+           "simulate_to_folder", "systematic_truth", "write_recording"]

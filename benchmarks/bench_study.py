@@ -1,0 +1,92 @@
+"""Study benchmark (issue 10): the statistical efficiency of the whole method, and what a Monte-Carlo trial costs.
+
+For each scenario (default tunnel_v and plane_30deg), N trials (default 30) of ``lrfsim study`` (new noise per
+trial, one noise-free cast reused) and the prediction of ``lrfsim plan``; prints per DH parameter:
+  - predicted sigma (Fisher information of the noise-free geometry) and the Monte-Carlo std, and their ratio
+    (target: the prediction within +-25 % of the std, i.e. std / predicted in 0.75-1.25 — with N = 30 the std
+    itself is known to about +-13 %);
+  - RMSE / predicted sigma (the efficiency);
+  - RMS of error / reported sigma (target 0.8-1.25);
+  - bias / std (target |bias| < 0.3 std) with the bias's own standard error;
+and the refusal rate. Then the cost: a full simulation, a trial's simulation on the reused cast (the ratio,
+target <= 0.3), a whole trial (simulate + write + read + calibrate), and trials per minute on the workers used.
+
+    python benchmarks/bench_study.py [--trials 30] [--workers 1] [--scenarios tunnel_v plane_30deg] [-o DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import tempfile
+import time
+from pathlib import Path
+
+from lrfcal.kinematics import DH_NAMES
+from lrfsim.plan import format_value
+from lrfsim.scenario import load_scenario
+from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry
+from lrfsim.study import study, write_study
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _cost(name: str) -> tuple[float, float]:
+    """(seconds of a full simulation, seconds of a noise-only simulation on a reused cast)."""
+    sc = load_scenario(ROOT / "scenarios" / f"{name}.yaml")
+    t = time.perf_counter()
+    simulate(sc)
+    full = time.perf_counter() - t
+    geometry = cast_geometry(sc)
+    t = time.perf_counter()
+    simulate_from_geometry(sc.model_copy(update={"seed": sc.seed + 1}), geometry)
+    return full, time.perf_counter() - t
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--trials", type=int, default=30)
+    ap.add_argument("--workers", type=int, default=1)
+    ap.add_argument("--seed0", type=int, default=100)
+    ap.add_argument("--scenarios", nargs="+", default=["tunnel_v", "plane_30deg"])
+    ap.add_argument("-o", "--out", type=Path, default=None, help="keep each study's folder here (DIR/<scenario>)")
+    args = ap.parse_args()
+    ok = True
+    for name in args.scenarios:
+        sc = load_scenario(ROOT / "scenarios" / f"{name}.yaml")
+        full, noise = _cost(name)
+        t0 = time.perf_counter()
+        s = study(sc, args.trials, seed0=args.seed0, workers=args.workers)
+        wall = time.perf_counter() - t0
+        part = s.parts[0]
+        st = part.stats()
+        n_cal = int(st["a"]["n"])
+        print(f"\n{name}: {n_cal}/{len(part.rows)} calibrated (refusal rate {100 * part.refusal_rate:.0f} %), "
+              f"{args.workers} worker(s), {wall:.0f} s, {60 * len(part.rows) / wall:.1f} trials per minute")
+        print(f"  {'param':<6}{'predicted':>12}{'MC std':>12}{'std/pred':>10}{'RMSE/pred':>11}{'RMS z':>8}"
+              f"{'bias':>12}{'bias/std':>10}{'+-':>6}")
+        for p in DH_NAMES:
+            d = st[p]
+            se = 1 / math.sqrt(max(n_cal, 1))
+            print(f"  {p:<6}{format_value(p, d['predicted']):>12}{format_value(p, d['std']):>12}"
+                  f"{d['std_over_predicted']:>10.2f}{d['rmse_over_predicted']:>11.2f}{d['rms_z']:>8.2f}"
+                  f"{format_value(p, abs(d['bias'])):>12}{d['bias'] / d['std']:>+10.2f}{se:>6.2f}")
+            ok &= 0.75 <= d["std_over_predicted"] <= 1.25 and 0.8 <= d["rms_z"] <= 1.25
+            ok &= abs(d["bias"]) < 0.3 * d["std"]
+        for r in part.rows:
+            if r.status != "calibrated":
+                print(f"  refused trial {r.trial} (seed {r.seed}): {r.reason}")
+        mean_trial = sum(r.seconds for r in part.rows) / max(len(part.rows), 1)
+        print(f"  cost: full simulation {full:.2f} s; noise-only simulation on the reused cast {noise:.3f} s "
+              f"(ratio {noise / full:.3f}, target <= 0.3); calibration {mean_trial:.1f} s per trial; "
+              f"a whole trial {wall / len(part.rows):.1f} s of wall time on {args.workers} worker(s)")
+        if args.out is not None:
+            print(f"  wrote {write_study(s, args.out / name, overwrite=True)}")
+        else:
+            with tempfile.TemporaryDirectory() as tmp:
+                write_study(s, Path(tmp) / name)
+    print("\nall targets met" if ok else "\nsome targets missed (see above)")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,314 @@
+"""Know before you build: the predicted 1-sigma of every calibrated parameter of a scenario, without calibrating.
+
+The scenario's rays are cast once without noise (``lrfsim.simulate.simulate(..., noise=False)``; the mixed-pixel
+footprint stays), the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return
+whose ray passes within the marker), and the calibration's own observation and noise model is evaluated at the
+TRUE parameters: ``lrfcal.solve.information_at`` (the sphere model: range residual with sigma_r = the scenario
+sensor's range noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual
+with sigma = R_m / 2; the clock offset is an unknown when the sweep goes both ways).
+The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
+Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
+clock_offset when it is estimated.
+
+By default the surface returns of stage 6b enter too, found as the calibration finds them
+(``lrfcal.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
+their ray-plane range residuals and the planes' priors (from the tape noise, at least 0.5 mm as in the pipeline),
+with each plane's normal and offset marginalised out. ``surfaces=False`` predicts from the marker returns alone
+(stage 6). Whether the DH parameters are determined is judged as the calibration judges it before any solver
+runs: from the marker returns alone (a layout the markers leave undetermined is refused even where the surfaces
+would help). Not modelled: the per-scan widening of the reported covariance (cluster-robust sandwich) and the
+4-sigma rejection. The observability verdict (``lrfcal.observability.analyse``) is the one the
+calibration applies before solving: an undetermined combination means the calibration would refuse (exit 3).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.errors import CalibrationError
+from lrfcal.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
+from lrfcal.observability import LIMITS, Observability, analyse
+from lrfcal.pipeline import CalibConfig
+from lrfcal.solve import MotorClock, information_at
+from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
+from lrfcal.types import JointStates, Observations
+
+from .scenario import Scenario
+
+FloatArray = NDArray[np.float64]
+
+#: a tolerance counts as reachable when it is at least this many predicted sigmas
+REACHABLE_K = 4.0
+#: what enters the information (printed with the plan)
+SOURCE_MARKERS = "marker returns (sphere model, stage 6)"
+SOURCE_SURFACES = "marker returns (sphere model) and surface returns with plane priors (stages 6 and 6b)"
+
+
+@dataclass(frozen=True)
+class ToleranceCheck:
+    """One tolerance of the scenario against the prediction: ``predicted_m_or_rad`` is the predicted 1-sigma of
+    that quantity (for the mount position and rotation, the RMS of the error's norm, sqrt of the trace)."""
+
+    name: str
+    tolerance: float
+    predicted: float
+
+    @property
+    def reachable(self) -> bool:
+        return bool(self.tolerance >= REACHABLE_K * self.predicted)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """The prediction for one scenario.
+
+    names: the estimated parameters in order (ESTIMATE_NAMES [+ clock_offset]); covariance (k, k) over them in SI
+    units (the rotation as a rotation vector in frame M); sigma: name -> predicted 1-sigma; observability: the DH
+    verdict of the calibration from the marker returns (lrfcal.observability); tolerances: the scenario's
+    tolerances against 4 sigma;
+    n_returns / n_markers_seen: the marker returns the information is built from; range_sigma_m: the noise model.
+    """
+
+    scenario: str
+    names: tuple[str, ...]
+    covariance: FloatArray
+    sigma: dict[str, float]
+    observability: Observability
+    tolerances: tuple[ToleranceCheck, ...]
+    n_returns: int
+    n_markers_seen: int
+    n_markers: int
+    clock_estimated: bool
+    range_sigma_m: float
+    seconds: float
+    information_source: str = SOURCE_MARKERS
+    n_surface_returns: int = 0
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def determined(self) -> bool:
+        return self.observability.determined and all(math.isfinite(v) for v in self.sigma.values())
+
+    @property
+    def tolerances_reachable(self) -> bool:
+        return self.determined and all(t.reachable for t in self.tolerances)
+
+    @property
+    def weakest(self) -> str:
+        return self.observability.describe()
+
+    @property
+    def strengthen(self) -> str:
+        """What would strengthen the weakest direction, in words."""
+        hint = self.observability.hint()
+        return f"{hint}; more passes of the sweep shrink every sigma by about 1/sqrt(passes)"
+
+    def to_json(self) -> dict[str, Any]:
+        """The plan as one JSON-able mapping (SI units; infinity as null)."""
+
+        def num(v: float) -> float | None:
+            return float(v) if math.isfinite(v) else None
+
+        return {
+            "scenario": self.scenario,
+            "sigma": {n: num(self.sigma[n]) for n in self.names},
+            "units": {n: _unit(n) for n in self.names},
+            "weakest": self.weakest,
+            "weakest_sigma_in_limits": num(self.observability.weakest_sigma_in_limits),
+            "strengthen": self.strengthen,
+            "determined": self.determined,
+            "tolerances_reachable": self.tolerances_reachable,
+            "tolerances": {t.name: {"tolerance": t.tolerance, "predicted_sigma": num(t.predicted),
+                                    "reachable": t.reachable} for t in self.tolerances},
+            "clock_offset_estimated": self.clock_estimated,
+            "n_returns": self.n_returns,
+            "n_markers_seen": self.n_markers_seen,
+            "n_markers": self.n_markers,
+            "n_surface_returns": self.n_surface_returns,
+            "range_sigma_m": self.range_sigma_m,
+            "information": self.information_source,
+            "seconds": self.seconds,
+            "notes": list(self.notes),
+        }
+
+
+def _unit(name: str) -> str:
+    if name in ("x", "y", "z", "a", "b"):
+        return "m"
+    return "s" if name == "clock_offset" else "rad"
+
+
+def marker_observations(scenario: Scenario) -> tuple[Observations, FloatArray, Params, MotorClock, float, Any]:
+    """Cast the scenario's rays once without noise and return the marker returns as the calibration sees them.
+
+    Returns (observations with the true marker of each return and the true motor angles, marker centres (n, 3) in
+    W, the true Params, the servo's MotorClock (reported joint states), the true clock offset [s], the SimResult).
+    """
+    from .faults import marker_returns
+    from .simulate import simulate
+
+    result = simulate(scenario, noise=False)
+    owner = marker_returns(result, scenario)
+    s_idx, b_idx = np.nonzero(owner >= 0)
+    sensor = scenario.sensor
+    times = result.scan_stamps_s[s_idx] + b_idx * sensor.time_increment_s
+    K = s_idx.size
+    obs = Observations(
+        blob=np.zeros(K, dtype=np.int64), marker=owner[s_idx, b_idx].astype(np.int64), scan=s_idx.astype(np.int64),
+        beam=b_idx.astype(np.int64), ranges_m=result.ranges_m[s_idx, b_idx], mu_rad=result.mu_rad[b_idx],
+        lambda_rad=result.beam_lambda_rad[s_idx, b_idx], times_s=times, intensity=result.intensities[s_idx, b_idx],
+        is_peak=np.zeros(K, dtype=bool),
+    )
+    joints = JointStates(stamps_s=result.joints.stamps_s, positions_rad=result.joints.positions_rad)
+    params = Params(result.truth.mount, result.truth.dh)
+    return obs, result.truth.markers_W, params, MotorClock.from_joints(joints), result.truth.clock_offset_s, result
+
+
+def scenario_range_sigma(scenario: Scenario, ranges_m: FloatArray) -> float:
+    """The range noise of the scenario's sensor at the marker returns (the median over ``ranges_m`` of the noise
+    band's sigma, times faults.range_noise_scale); the calibration's 10 mm (CalibConfig) for a noise-free sensor.
+    For the UTM-30LX-EW of the shipped scenarios both are 10 mm below 10 m."""
+    from .faults import scale_range_noise
+    from .lidar import range_sigma
+
+    sensor = scale_range_noise(scenario).sensor
+    r = np.asarray(ranges_m, dtype=float)
+    r = r[np.isfinite(r)]
+    if not sensor.noise or r.size == 0 or not sensor.noise_bands:
+        return CalibConfig().range_sigma_m
+    return float(np.median(range_sigma(r, sensor)))
+
+
+def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bool = True) -> Plan:
+    """Predict the 1-sigma of every calibrated parameter of ``scenario`` from the Fisher information of its
+    noise-free geometry (module docstring). ``range_sigma_m`` defaults to the scenario's sensor noise at the marker
+    returns (:func:`scenario_range_sigma`);
+    ``surfaces`` adds the surface returns of stage 6b (as the calibration does by default).
+
+    Raises:
+        CalibrationError: fewer than 4 marker returns on fewer than 3 markers (nothing to predict from).
+    """
+    t0 = time.perf_counter()
+    config = CalibConfig()
+    obs, markers_W, params, motor, tau, result = marker_observations(scenario)
+    sigma_r = scenario_range_sigma(scenario, obs.ranges_m) if range_sigma_m is None else float(range_sigma_m)
+    n_seen = int(np.unique(obs.marker).size)
+    if len(obs) < 4 or n_seen < 3:
+        raise CalibrationError(f"plan {scenario.name}: {len(obs)} marker returns on {n_seen} markers seen by the "
+                               "sweep; a calibration needs >= 4 returns on >= 3 markers")
+    two_way = scenario.servo.passes >= 2
+    radius = float(scenario.markers.radius_m)
+    on_planes, planes, source = None, None, SOURCE_MARKERS
+    if surfaces and config.surfaces:
+        planes, on_planes = _surface_returns(scenario, result, obs, markers_W, params, config)
+        if len(on_planes):
+            source = SOURCE_SURFACES
+        else:
+            on_planes = planes = None
+    common = dict(model="sphere", marker_radius_m=radius, range_sigma_m=sigma_r, clock=motor if two_way else None,
+                  clock_offset_s=tau)
+    info_markers, names = information_at(obs, markers_W, params, **common)
+    info = info_markers
+    if on_planes is not None:
+        info, _ = information_at(obs, markers_W, params, **common, surfaces=on_planes, planes=planes)
+    info = 0.5 * (info + info.T)
+    notes: list[str] = []
+    # column-scaled inversion (the parameters mix metres, radians and seconds)
+    col = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    scaled = info / np.outer(col, col)
+    sv = np.linalg.svd(scaled, compute_uv=False)
+    if sv[-1] <= sv[0] * 1e-12:
+        cov = np.full(info.shape, np.inf)
+        notes.append(f"information singular (condition {sv[0] / max(sv[-1], 1e-300):.2e})")
+    else:
+        cov = np.linalg.inv(scaled) / np.outer(col, col)
+    sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
+    # the verdict the calibration gives before solving: from the marker returns alone (lrfcal.pipeline)
+    obsv = analyse(0.5 * (info_markers + info_markers.T), names)
+    if not obsv.determined:
+        for i, n in enumerate(DH_NAMES):  # the DH verdict: an undetermined parameter has no useful sigma
+            if not math.isfinite(obsv.sigma[i]):
+                sigma[n] = math.inf
+    if not obsv.determined and on_planes is not None:
+        notes.append("the sigmas include the surface returns, but the calibration judges the marker returns alone "
+                     "before solving: it would refuse this recording")
+    if not two_way:
+        notes.append("one-way sweep: the clock offset is held (the calibration cannot separate it from rz)")
+    tol = scenario.tolerances
+    pos = [names.index(n) for n in ("x", "y", "z")]
+    rot = [names.index(n) for n in ("rx", "ry", "rz")]
+    checks = (
+        ToleranceCheck("a", tol.a_m, sigma["a"]),
+        ToleranceCheck("alpha", tol.alpha_rad, sigma["alpha"]),
+        ToleranceCheck("b", tol.b_m, sigma["b"]),
+        ToleranceCheck("beta", tol.beta_rad, sigma["beta"]),
+        ToleranceCheck("position", tol.position_m, float(math.sqrt(max(np.trace(cov[np.ix_(pos, pos)]), 0.0)))),
+        ToleranceCheck("rotation", tol.rotation_rad, float(math.sqrt(max(np.trace(cov[np.ix_(rot, rot)]), 0.0)))),
+    )
+    assert tuple(names[:10]) == ESTIMATE_NAMES
+    return Plan(scenario=scenario.name, names=names, covariance=cov, sigma=sigma, observability=obsv,
+                tolerances=checks, n_returns=len(obs), n_markers_seen=n_seen, n_markers=int(len(markers_W)),
+                clock_estimated=two_way, range_sigma_m=sigma_r, seconds=time.perf_counter() - t0,
+                information_source=source, n_surface_returns=0 if on_planes is None else len(on_planes),
+                notes=tuple(notes))
+
+
+def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers_W: FloatArray, params: Params,
+                     config: CalibConfig) -> tuple[list[Surface], SurfaceReturns]:
+    """The marker-carrying planes and their returns in the noise-free recording, found as the pipeline finds them
+    (labels: the marker returns; position sigma of the markers: the tape's, at least 0.5 mm)."""
+    S, N = result.ranges_m.shape
+    labels = np.full((S, N), -1, dtype=np.int64)
+    labels[obs.scan, obs.beam] = obs.marker
+    beam_times = result.scan_stamps_s[:, None] + np.arange(N)[None, :] * scenario.sensor.time_increment_s
+    return observe_surfaces(result.ranges_m, result.mu_rad, result.beam_lambda_rad, labels, markers_W,
+                            float(scenario.markers.radius_m), params,
+                            position_sigma_m=max(scenario.tape.sigma_m, 0.0005),
+                            max_returns=config.surface_max_returns, beam_times_s=beam_times)
+
+
+def format_value(name: str, value: float) -> str:
+    """A parameter's value in display units (mm, deg, ms)."""
+    if not math.isfinite(value):
+        return "unbounded"
+    unit = _unit(name)
+    if unit == "m":
+        return f"{value * 1000:.3g} mm"
+    if unit == "s":
+        return f"{value * 1000:.3g} ms"
+    return f"{math.degrees(value):.3g} deg"
+
+
+def format_plan(p: Plan) -> str:
+    """The plan as text: the sigma table, the weakest direction, what would strengthen it, the tolerances."""
+    lines = [f"plan {p.scenario}: {p.n_returns} marker returns on {p.n_markers_seen}/{p.n_markers} markers, "
+             f"{p.n_surface_returns} surface returns, range noise {p.range_sigma_m * 1000:g} mm",
+             f"information: {p.information_source}", "",
+             f"{'parameter':<14}{'predicted 1-sigma':>20}{'limit':>14}"]
+    for n in p.names:
+        lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{format_value(n, LIMITS[n]):>14}")
+    lines.append("")
+    state = "determined" if p.determined else "NOT DETERMINED (the calibration would refuse, exit 3)"
+    lines.append(f"DH parameters: {state}; weakest direction: {p.weakest} "
+                 f"(1-sigma {p.observability.weakest_sigma_in_limits:.2g} of the limit)")
+    lines.append(f"to strengthen it: {p.strengthen}")
+    lines.append(f"tolerances (reachable when >= {REACHABLE_K:g} x predicted sigma):")
+    for t in p.tolerances:
+        ratio = t.tolerance / t.predicted if t.predicted > 0 and math.isfinite(t.predicted) else 0.0
+        name = t.name if t.name in p.sigma else ("x" if t.name == "position" else "rx")
+        lines.append(f"  {t.name:<10} {format_value(name, t.tolerance):>12} = {ratio:6.1f} sigma  "
+                     f"{'reachable' if t.reachable else 'NOT reachable'}")
+    lines.append(f"tolerances reachable: {'yes' if p.tolerances_reachable else 'no'}")
+    lines.extend(f"note: {n}" for n in p.notes)
+    lines.append(f"({p.seconds:.1f} s)")
+    return "\n".join(lines)
+
+
+__all__ = ["REACHABLE_K", "SOURCE_MARKERS", "SOURCE_SURFACES", "Plan", "ToleranceCheck", "format_plan", "format_value",
+           "marker_observations", "plan", "scenario_range_sigma"]

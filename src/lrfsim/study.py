@@ -1,0 +1,451 @@
+"""Monte-Carlo studies: many trials of one scenario, each with new noise, on one core, a process pool or a cluster.
+
+Trial k of a study uses the scenario with ``seed = seed0 + k``: new laser phase, range and intensity noise, tape
+noise and fault draws (lrfsim.simulate's and lrfsim.faults' seeded streams). The scene, and with it the marker
+layout (a jittered board grid is seeded by the scenario's seed too), is built once from the scenario as given,
+so every trial sees the same markers and only the noise changes. No wasted casting: the rays are cast once per
+batch (lrfsim.simulate.cast_geometry, with the laser phase of the scenario's own seed) and each trial only draws
+its noise on that cast (simulate_from_geometry); ``recast=True`` casts every trial anew instead, its laser phase
+drawn from the trial's seed as well. Each trial then runs the whole path of a real
+recording: simulate, write the recording folder, read it back, calibrate (lrfsim.trial.calibrate_recording), and
+is recorded as calibrated (errors against the truth, reported sigma) or refused (the reason).
+
+Execution: trials are cut into batches (one batch = one task: the scene is built once per batch); batches run
+in-process (``workers=1``), in a ``concurrent.futures.ProcessPoolExecutor`` (``workers=K``) or on a
+dask.distributed cluster (``dask_address`` or a ``distributed.Client``). A trial's outcome depends only on its
+seed, and the table is sorted by trial, so every way of running gives the same table.
+
+Outputs (:func:`write_study`, atomic): ``trials.csv`` (one row per trial and varied value), ``summary.md`` (per DH
+parameter: bias, std, RMSE, predicted sigma from lrfsim.plan, RMSE / predicted sigma, RMS of error / reported
+sigma, refusal rate), ``hist_<P>.png`` (error histograms with the predicted sigma drawn) and, with a varied
+field, ``vary_sigma.png`` (predicted and measured sigma against the value).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import os
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from numpy.typing import NDArray
+
+from lrfcal.errors import CalibrationError, InputError
+from lrfcal.kinematics import DH_NAMES
+from lrfcal.output import check_replaceable, make_temp_beside, swap_into_place, write_manifest
+
+from .plan import Plan, format_value, plan
+from .scenario import Scenario, parse_scenario
+
+FloatArray = NDArray[np.float64]
+
+#: the columns of trials.csv, in order (P_error, P_sigma for each DH parameter P, SI units)
+CSV_COLUMNS: tuple[str, ...] = (
+    "value", "trial", "seed", "status", "reason", "exit_code",
+    *(f"{p}_{k}" for p in DH_NAMES for k in ("error", "sigma")), "clock_offset_error",
+)
+
+
+@dataclass(frozen=True)
+class TrialRow:
+    """One trial of a study: value (the varied field's value as text, "" without --vary), trial index, seed,
+    status ("calibrated" | "refused"), reason and exit code when refused, errors and sigma (4,) in DH_NAMES order
+    (SI units, NaN when refused), the clock offset's error [s] and the calibration's seconds."""
+
+    value: str
+    trial: int
+    seed: int
+    status: str
+    reason: str
+    exit_code: int
+    errors: tuple[float, ...]
+    sigma: tuple[float, ...]
+    clock_offset_error_s: float
+    seconds: float
+
+    def csv_row(self) -> list[str]:
+        """The row as CSV cells (12 significant digits: the same seeds give the same text; no timings)."""
+        cells = [self.value, str(self.trial), str(self.seed), self.status, self.reason, str(self.exit_code)]
+        for e, s in zip(self.errors, self.sigma, strict=True):
+            cells += [_num(e), _num(s)]
+        return [*cells, _num(self.clock_offset_error_s)]
+
+
+def _num(v: float) -> str:
+    """12 significant digits: far beyond any meaningful precision, and deaf to the last-bit differences of
+    multithreaded BLAS reductions between one process and another."""
+    return "" if not math.isfinite(v) else f"{float(v):.12g}"
+
+
+@dataclass(frozen=True)
+class StudyPart:
+    """The trials of one scenario variant (one value of the varied field, or the scenario itself) and its plan
+    (None when the plan itself was refused: fewer than 3 markers seen)."""
+
+    value: str
+    scenario: Scenario
+    plan: Plan | None
+    rows: tuple[TrialRow, ...]
+
+    def errors(self) -> FloatArray:
+        """(n_calibrated, 4) errors of the calibrated trials."""
+        ok = [r.errors for r in self.rows if r.status == "calibrated"]
+        return np.array(ok, dtype=float).reshape(-1, 4)
+
+    def sigmas(self) -> FloatArray:
+        ok = [r.sigma for r in self.rows if r.status == "calibrated"]
+        return np.array(ok, dtype=float).reshape(-1, 4)
+
+    @property
+    def refusal_rate(self) -> float:
+        return sum(r.status != "calibrated" for r in self.rows) / max(len(self.rows), 1)
+
+    def stats(self) -> dict[str, dict[str, float]]:
+        """Per DH parameter: n, bias, bias_se, std, rmse, predicted, rmse_over_predicted, std_over_predicted,
+        rms_z (RMS of error / reported sigma), mean_sigma (SI units; NaN where undefined)."""
+        E, S = self.errors(), self.sigmas()
+        n = E.shape[0]
+        out: dict[str, dict[str, float]] = {}
+        for i, p in enumerate(DH_NAMES):
+            e = E[:, i]
+            pred = self.plan.sigma[p] if self.plan is not None else math.nan
+            bias = float(e.mean()) if n else math.nan
+            std = float(e.std(ddof=1)) if n > 1 else math.nan
+            rmse = float(np.sqrt(np.mean(e**2))) if n else math.nan
+            out[p] = {
+                "n": float(n), "bias": bias, "bias_se": std / math.sqrt(n) if n > 1 else math.nan, "std": std,
+                "rmse": rmse, "predicted": pred, "rmse_over_predicted": rmse / pred if pred > 0 else math.nan,
+                "std_over_predicted": std / pred if pred > 0 else math.nan,
+                "rms_z": float(np.sqrt(np.mean((e / S[:, i]) ** 2))) if n else math.nan,
+                "mean_sigma": float(S[:, i].mean()) if n else math.nan,
+            }
+        return out
+
+
+@dataclass(frozen=True)
+class Study:
+    """A study: the scenario's name, the varied field (or None) and one part per value; seconds of wall time."""
+
+    name: str
+    key: str | None
+    parts: tuple[StudyPart, ...]
+    seconds: float
+    workers: str = ""
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def rows(self) -> tuple[TrialRow, ...]:
+        return tuple(r for p in self.parts for r in p.rows)
+
+
+# --- scenario variants ----------------------------------------------------------------------------------------
+
+def with_field(scenario: Scenario, dotted: str, value: Any) -> Scenario:
+    """The scenario with one field (dotted path, e.g. ``servo.passes``) set to ``value`` (validated).
+
+    Raises:
+        InputError: unknown path or invalid value (naming the field).
+    """
+    data = scenario.model_dump(mode="python")
+    node: Any = data
+    *head, last = dotted.split(".")
+    for k in head:
+        if not isinstance(node, dict) or k not in node or not isinstance(node[k], dict):
+            raise InputError(f"--vary: {dotted!r}: no section {k!r} in the scenario")
+        node = node[k]
+    if not isinstance(node, dict) or last not in node:
+        raise InputError(f"--vary: {dotted!r}: no field {last!r} in the scenario")
+    node[last] = value
+    return parse_scenario(data, f"{scenario.name} with {dotted}={value!r}")
+
+
+def parse_vary(text: str) -> tuple[str, list[Any]]:
+    """``KEY=V1,V2,...`` -> (KEY, [values]); each value is read as YAML (numbers, true/false, text)."""
+    key, sep, values = text.partition("=")
+    key = key.strip()
+    if not sep or not key or not values.strip():
+        raise InputError(f"--vary: expected KEY=V1,V2,... (e.g. servo.passes=1,2,4), got {text!r}")
+    out = []
+    for v in values.split(","):
+        v = v.strip()
+        if not v:
+            raise InputError(f"--vary: empty value in {text!r}")
+        try:
+            out.append(yaml.safe_load(v))
+        except yaml.YAMLError:
+            raise InputError(f"--vary: cannot read the value {v!r}") from None
+    return key, out
+
+
+# --- running trials -------------------------------------------------------------------------------------------
+
+def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False
+              ) -> list[TrialRow]:
+    """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
+    built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
+    scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
+    every trial anew (the laser phase drawn from the trial's seed too)."""
+    from .scene import build_scene
+    from .simulate import cast_geometry, simulate, simulate_from_geometry, write_recording
+    from .trial import calibrate_recording
+
+    scene = build_scene(scenario)
+    geometry = None if recast else cast_geometry(scenario, scene=scene)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
+        for trial, seed in trials:
+            sc = scenario.model_copy(update={"seed": int(seed)})
+            folder = Path(tmp) / f"trial_{trial}"
+            sim = simulate(sc, scene=scene) if geometry is None else simulate_from_geometry(sc, geometry)
+            write_recording(sim, sc, folder)
+            t = calibrate_recording(folder, name=f"{scenario.name}#{trial}")
+            shutil.rmtree(folder, ignore_errors=True)
+            rows.append(TrialRow(value=value, trial=int(trial), seed=int(seed), status=t.status,
+                                 reason=" ".join(t.reason.split()), exit_code=int(t.exit_code),
+                                 errors=tuple(float(v) for v in t.errors), sigma=tuple(float(v) for v in t.sigma),
+                                 clock_offset_error_s=float(t.clock_offset_error_s), seconds=float(t.seconds)))
+    return rows
+
+
+def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[int, int]]]:
+    n_batches = max(1, min(n_batches, len(items)))
+    return [b for b in (items[i::n_batches] for i in range(n_batches)) if b]
+
+
+def run_trials(
+    scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
+    dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
+    recast: bool = False,
+) -> list[TrialRow]:
+    """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
+    trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
+    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: the trials spread
+    over about 2 batches per worker, at least 1 trial each). ``recast``: see :func:`run_batch`."""
+    if trials < 1:
+        raise InputError(f"study: --trials must be >= 1, got {trials}")
+    s0 = scenario.seed if seed0 is None else int(seed0)
+    items = [(k, s0 + k) for k in range(trials)]
+    n_batches = math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if workers > 1 or dask else 1
+    batches = _batches(items, n_batches)
+    rows: list[TrialRow] = []
+    done = 0
+    if dask is not None:
+        client, own = _dask_client(dask)
+        try:
+            futures = client.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
+                                 [recast] * len(batches), pure=False)
+            for fut in futures:
+                rows += fut.result()
+                done += 1
+                if progress:
+                    progress(done, len(batches))
+        finally:
+            if own:
+                client.close()
+    elif workers > 1:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            for part in pool.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
+                                 [recast] * len(batches)):
+                rows += part
+                done += 1
+                if progress:
+                    progress(done, len(batches))
+    else:
+        for b in batches:
+            rows += run_batch(scenario, value, b, recast)
+            done += 1
+            if progress:
+                progress(done, len(batches))
+    return sorted(rows, key=lambda r: r.trial)
+
+
+def _dask_client(dask: Any) -> tuple[Any, bool]:
+    """(client, whether we own it): a Client passed in is used as is; an address is connected to."""
+    if not isinstance(dask, str):
+        return dask, False
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - a dependency of the project
+        raise InputError("--dask: dask.distributed is not installed (pip install 'dask[distributed]')") from None
+    try:
+        return Client(dask, timeout="10s"), True
+    except (OSError, TimeoutError) as e:
+        raise InputError(f"--dask: cannot connect to the scheduler at {dask} ({e})") from None
+
+
+def study(
+    scenario: Scenario, trials: int, *, seed0: int | None = None, workers: int = 1, dask: Any = None,
+    vary: tuple[str, list[Any]] | None = None, batch_size: int | None = None,
+    progress: Callable[[str, int, int], None] | None = None, recast: bool = False,
+) -> Study:
+    """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
+    value of one field (the same seeds for every value)."""
+    t0 = time.perf_counter()
+    variants: list[tuple[str, Scenario]] = [("", scenario)]
+    if vary is not None:
+        key, values = vary
+        variants = [(str(v), with_field(scenario, key, v)) for v in values]
+    parts = []
+    for value, sc in variants:
+        try:
+            predicted: Plan | None = plan(sc)
+        except CalibrationError:  # too few markers seen: the trials will say how the calibration fares
+            predicted = None
+        hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
+        rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
+                          progress=hook, recast=recast)
+        parts.append(StudyPart(value=value, scenario=sc, plan=predicted, rows=tuple(rows)))
+    where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
+    return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
+                 seconds=time.perf_counter() - t0, workers=where)
+
+
+# --- outputs --------------------------------------------------------------------------------------------------
+
+def trials_csv(s: Study) -> str:
+    """trials.csv as text (CSV_COLUMNS; rows sorted by value order, then trial)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for r in s.rows:
+        w.writerow(r.csv_row())
+    return buf.getvalue()
+
+
+def _fmt(p: str, v: float) -> str:
+    return "-" if not math.isfinite(v) else format_value(p, v)
+
+
+def summary_markdown(s: Study) -> str:
+    """summary.md: per part, the efficiency table of the DH parameters and the refusals."""
+    lines = [f"# Monte-Carlo study of {s.name}", "",
+             f"{len(s.parts[0].rows)} trials per {'value' if s.key else 'study'} ({s.workers}, {s.seconds:.0f} s). "
+             "Errors against the truth; predicted sigma from `lrfsim plan` (Fisher information of the noise-free "
+             "geometry). Efficiency: RMSE / predicted sigma (1 = the method reaches the predicted accuracy); "
+             "calibration: RMS of error / reported sigma (1 = the reported sigma is honest).", ""]
+    for part in s.parts:
+        st = part.stats()
+        n = int(st["a"]["n"])
+        title = f"## {s.key} = {part.value}" if s.key else "## Results"
+        lines += [title, "", f"calibrated {n} of {len(part.rows)}, refusal rate {100 * part.refusal_rate:.0f} %"
+                  + ("" if part.plan is not None else "; plan refused (too few markers seen)"), "",
+                  "| parameter | bias (+- its s.e.) | bias / std | std | RMSE | predicted sigma | RMSE / predicted | "
+                  "std / predicted | RMS error / reported sigma | mean reported sigma |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for p in DH_NAMES:
+            d = st[p]
+            bz = d["bias"] / d["std"] if d["std"] > 0 else math.nan
+            lines.append(f"| {p} | {_fmt(p, d['bias'])} +- {_fmt(p, d['bias_se'])} | {bz:+.2f} | "
+                         f"{_fmt(p, d['std'])} | {_fmt(p, d['rmse'])} | "
+                         f"{_fmt(p, d['predicted'])} | {d['rmse_over_predicted']:.2f} | "
+                         f"{d['std_over_predicted']:.2f} | {d['rms_z']:.2f} | {_fmt(p, d['mean_sigma'])} |")
+        reasons: dict[str, int] = {}
+        for r in part.rows:
+            if r.status != "calibrated":
+                reasons[r.reason] = reasons.get(r.reason, 0) + 1
+        if reasons:
+            lines += ["", "Refusals:"] + [f"- {k} x {v}" for v, k in sorted(((v, k) for k, v in reasons.items()),
+                                                                              reverse=True)]
+        lines.append("")
+    figs = [f"![{p}](hist_{p}.png)" for p in DH_NAMES]
+    lines += ["## Figures", "", *figs]
+    if s.key:
+        lines += ["", "![predicted and measured sigma](vary_sigma.png)"]
+    return "\n".join(lines) + "\n"
+
+
+def _scale(p: str) -> tuple[float, str]:
+    return (1000.0, "mm") if p in ("a", "b") else (math.degrees(1.0), "deg")
+
+
+def write_figures(s: Study, folder: Path) -> list[Path]:
+    """hist_<P>.png per DH parameter (errors of every part, the predicted sigma drawn) and, with a varied field,
+    vary_sigma.png (predicted and measured sigma against the value)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    written = []
+    for i, p in enumerate(DH_NAMES):
+        k, unit = _scale(p)
+        fig, ax = plt.subplots(figsize=(5, 3.5))
+        for part in s.parts:
+            e = part.errors()[:, i] * k
+            label = f"{s.key}={part.value}" if s.key else "errors"
+            if e.size:
+                ax.hist(e, bins=max(5, min(30, e.size // 2)), alpha=0.6, label=f"{label} (n={e.size})")
+            if part.plan is not None and math.isfinite(part.plan.sigma[p]):
+                sig = part.plan.sigma[p] * k
+                line = ax.axvline(sig, ls="--", color="k" if not s.key else None)
+                ax.axvline(-sig, ls="--", color=line.get_color())
+        ax.set_xlabel(f"{p} error [{unit}] (dashed: +-predicted 1-sigma)")
+        ax.set_ylabel("trials")
+        ax.set_title(f"{s.name}: {p}")
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = folder / f"hist_{p}.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+    if s.key:
+        fig, axes = plt.subplots(2, 2, figsize=(8, 6))
+        labels = [part.value for part in s.parts]
+        x = np.arange(len(labels))
+        for p, ax in zip(DH_NAMES, axes.ravel(), strict=True):
+            k, unit = _scale(p)
+            pred = [part.plan.sigma[p] * k if part.plan is not None else np.nan for part in s.parts]
+            meas = [part.stats()[p]["std"] * k for part in s.parts]
+            ax.plot(x, pred, "o-", label="predicted")
+            ax.plot(x, meas, "s--", label="measured (std)")
+            ax.set_xticks(x, labels)
+            ax.set_xlabel(s.key)
+            ax.set_ylabel(f"sigma {p} [{unit}]")
+            ax.legend(fontsize=7)
+        fig.tight_layout()
+        path = folder / "vary_sigma.png"
+        fig.savefig(path, dpi=90)
+        plt.close(fig)
+        written.append(path)
+    return written
+
+
+def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Write trials.csv, summary.md and the figures into ``out_dir`` atomically (a temporary folder beside it,
+    renamed into place when complete; an existing folder is replaced only with ``overwrite`` and only if this
+    project wrote it)."""
+    out = check_replaceable(out_dir, overwrite)
+    tmp = make_temp_beside(out)
+    try:
+        (tmp / "trials.csv").write_text(trials_csv(s), encoding="utf-8")
+        (tmp / "summary.md").write_text(summary_markdown(s), encoding="utf-8")
+        write_figures(s, tmp)
+        write_manifest(tmp, "lrfsim study")
+        swap_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out
+
+
+def default_workers() -> int:
+    """One worker per available core (at least 1)."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # pragma: no cover - not Linux
+        return max(1, os.cpu_count() or 1)
+
+
+__all__ = ["CSV_COLUMNS", "Study", "StudyPart", "TrialRow", "default_workers", "parse_vary", "run_batch",
+           "run_trials", "study", "summary_markdown", "trials_csv", "with_field", "write_figures", "write_study"]

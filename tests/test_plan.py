@@ -1,0 +1,114 @@
+"""lrfsim plan (issue 10): predicted sigma from the Fisher information of the noise-free geometry."""
+
+from __future__ import annotations
+
+import copy
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lrfsim.plan import plan
+from lrfsim.scenario import parse_scenario
+
+ROOT = Path(__file__).resolve().parents[1]
+LRFSIM = [sys.executable, "-m", "lrfsim.cli"]
+NAMES = ("a", "alpha", "b", "beta", "x", "y", "z", "rx", "ry", "rz")
+
+
+def _data(base: str, **changes: object) -> dict:
+    data = copy.deepcopy(yaml.safe_load((ROOT / "scenarios" / f"{base}.yaml").read_text()))
+    for dotted, value in changes.items():
+        node = data
+        *head, last = dotted.split(".")
+        for k in head:
+            node = node.setdefault(k, {})
+        node[last] = value
+    return data
+
+
+def _fast_tunnel(**changes: object) -> dict:
+    """tunnel_v swept at 30 deg/s, 2 passes (a third of the scans)."""
+    return _data("tunnel_v", **{"servo.speed_rad_s": math.radians(30.0), "servo.passes": 2, **changes})
+
+
+def _write(tmp_path: Path, data: dict, name: str = "s.yaml") -> Path:
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+@pytest.fixture(scope="module")
+def tunnel_plan():
+    return plan(parse_scenario(_fast_tunnel(), "fast tunnel"))
+
+
+def test_plan_tunnel_finite_and_determined(tunnel_plan) -> None:
+    p = tunnel_plan
+    assert p.determined and p.clock_estimated
+    assert set(NAMES) | {"clock_offset"} == set(p.sigma)
+    for n in NAMES:
+        assert math.isfinite(p.sigma[n]) and p.sigma[n] > 0, (n, p.sigma[n])
+    # sub-millimetre and sub-0.1-degree on the paper's tunnel layout (tolerances there are ~4 sigma)
+    assert p.sigma["a"] < 1e-3 and p.sigma["b"] < 1e-3
+    assert p.sigma["alpha"] < math.radians(0.1) and p.sigma["beta"] < math.radians(0.1)
+    assert p.n_surface_returns > 0 and p.n_markers_seen == p.n_markers == 18
+
+
+def test_surface_returns_add_information(tunnel_plan) -> None:
+    markers = plan(parse_scenario(_fast_tunnel(), "fast tunnel"), surfaces=False)
+    assert markers.n_surface_returns == 0
+    # more data can only shrink a Cramer-Rao bound
+    for n in NAMES:
+        assert tunnel_plan.sigma[n] <= markers.sigma[n] * (1 + 1e-9), n
+    assert tunnel_plan.sigma["b"] < 0.8 * markers.sigma["b"]
+
+
+def test_one_way_sweep_holds_the_clock() -> None:
+    p = plan(parse_scenario(_fast_tunnel(**{"servo.passes": 1}), "one way"), surfaces=False)
+    assert "clock_offset" not in p.sigma and not p.clock_estimated
+    assert any("one-way" in n for n in p.notes)
+
+
+def test_more_noise_more_sigma(tunnel_plan) -> None:
+    assert tunnel_plan.range_sigma_m == pytest.approx(0.010)  # the UTM-30LX-EW below 10 m, as the calibration
+    noisy = plan(parse_scenario(_fast_tunnel(), "fast tunnel"), range_sigma_m=0.03)
+    assert noisy.sigma["a"] > 1.5 * tunnel_plan.sigma["a"]
+    scaled = plan(parse_scenario(_fast_tunnel(**{"faults.range_noise_scale": 2.0}), "noisy"), surfaces=False)
+    assert scaled.range_sigma_m == pytest.approx(0.020)  # the scenario's own sensor noise
+
+
+def test_plan_json_cli(tmp_path: Path) -> None:
+    proc = subprocess.run([*LRFSIM, "plan", _write(tmp_path, _fast_tunnel()), "--json"], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    out = json.loads(proc.stdout)
+    assert {"sigma", "weakest", "determined", "tolerances_reachable"} <= set(out)
+    assert set(NAMES) <= set(out["sigma"]) and all(out["sigma"][n] > 0 for n in NAMES)
+    assert out["determined"] is True and isinstance(out["tolerances_reachable"], bool)
+
+
+def test_board_across_the_axis_is_flagged(tmp_path: Path) -> None:
+    """All markers at one axial distance: alpha and b are one valley (plane_0deg.yaml's comment)."""
+    data = _data("plane_0deg", **{"scene.board.pose": {"x": 1.0, "y": 0.0, "z": 1.0, "roll": 0.0,
+                                                       "pitch": -math.pi / 2, "yaw": 0.0},
+                                  "servo.speed_rad_s": math.radians(30.0)})
+    proc = subprocess.run([*LRFSIM, "plan", _write(tmp_path, data)], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 3, proc.stderr
+    assert "NOT DETERMINED" in proc.stdout
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: ") and "not determined" in lines[0]
+    assert "along the motor axis" in lines[0]
+
+
+def test_plan_help_units_and_defaults() -> None:
+    proc = subprocess.run([*LRFSIM, "plan", "--help"], capture_output=True, text=True, timeout=60,
+                          env={"COLUMNS": "80", "PATH": ""})
+    flat = " ".join(proc.stdout.split())
+    assert proc.returncode == 0
+    assert "[m]" in flat and "[default: the scenario's sensor noise" in flat and "--json" in flat
+    assert proc.stdout.splitlines()[0].startswith("Usage: lrfsim plan [OPTIONS] SCENARIO")

@@ -1,0 +1,139 @@
+"""lrfsim study (issue 10): Monte-Carlo trials, the same table from one process, a process pool and dask."""
+
+from __future__ import annotations
+
+import csv
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import yaml
+
+from lrfcal.errors import InputError
+from lrfcal.kinematics import DH_NAMES
+from lrfsim.scenario import parse_scenario
+from lrfsim.study import CSV_COLUMNS, parse_vary, run_trials, study, trials_csv, with_field, write_study
+
+ROOT = Path(__file__).resolve().parents[1]
+LRFSIM = [sys.executable, "-m", "lrfsim.cli"]
+
+
+def _tiny_data() -> dict:
+    """tunnel_v, one pass over +-69 deg at 90 deg/s: about 0.7 s per trial, and it calibrates."""
+    data = yaml.safe_load((ROOT / "scenarios" / "tunnel_v.yaml").read_text())
+    data["servo"].update({"speed_rad_s": math.radians(90.0), "passes": 1, "start_rad": 1.2, "end_rad": -1.2})
+    data["name"] = "tiny"
+    return data
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    return parse_scenario(_tiny_data(), "tiny")
+
+
+@pytest.fixture(scope="module")
+def serial(tiny):
+    return study(tiny, 3, seed0=10, workers=1)
+
+
+def test_study_table(serial, tmp_path: Path) -> None:
+    out = write_study(serial, tmp_path / "study")
+    with (out / "trials.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert tuple(rows[0]) == CSV_COLUMNS
+    for col in ("trial", "seed", "status", "reason", *(f"{p}_{k}" for p in DH_NAMES for k in ("error", "sigma"))):
+        assert col in rows[0]
+    assert [int(r["trial"]) for r in rows] == [0, 1, 2] and [int(r["seed"]) for r in rows] == [10, 11, 12]
+    assert all(r["status"] == "calibrated" for r in rows), [r["reason"] for r in rows]
+    for r in rows:
+        for p in DH_NAMES:
+            sigma = float(r[f"{p}_sigma"])
+            assert 0 < sigma < (1e-3 if p in ("a", "b") else math.radians(0.1))
+            assert abs(float(r[f"{p}_error"])) < 5 * sigma
+    # different seeds, different noise
+    assert len({r["a_error"] for r in rows}) == 3
+    summary = (out / "summary.md").read_text()
+    assert "RMSE / predicted" in summary and "refusal rate 0 %" in summary
+    for p in DH_NAMES:
+        assert (out / f"hist_{p}.png").read_bytes()[:4] == b"\x89PNG"
+    assert serial.parts[0].plan is not None and serial.parts[0].plan.sigma["a"] > 0
+
+
+def test_process_pool_gives_the_same_table(tiny, serial) -> None:
+    rows = run_trials(tiny, 3, seed0=10, workers=2)
+    pooled = type(serial)(name=serial.name, key=None, parts=(type(serial.parts[0])(
+        value="", scenario=tiny, plan=None, rows=tuple(rows)),), seconds=0.0)
+    assert trials_csv(pooled) == trials_csv(serial)
+
+
+def test_dask_local_cluster_gives_the_same_table(tiny, serial) -> None:
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as lc, \
+            distributed.Client(lc) as client:
+        rows = run_trials(tiny, 3, seed0=10, dask=client, batch_size=2)  # 2 tasks: batches of 2 and 1 trials
+    pooled = type(serial)(name=serial.name, key=None, parts=(type(serial.parts[0])(
+        value="", scenario=tiny, plan=None, rows=tuple(rows)),), seconds=0.0)
+    assert trials_csv(pooled) == trials_csv(serial)
+
+
+def test_vary_parsing_and_fields(tiny) -> None:
+    assert parse_vary("servo.passes=1,2,4") == ("servo.passes", [1, 2, 4])
+    assert parse_vary("faults.range_noise_scale=1, 2.5") == ("faults.range_noise_scale", [1, 2.5])
+    assert with_field(tiny, "servo.passes", 2).servo.passes == 2
+    with pytest.raises(InputError, match="no field"):
+        with_field(tiny, "servo.pases", 2)
+    with pytest.raises(InputError):
+        with_field(tiny, "servo.passes", -1)
+    with pytest.raises(InputError, match="KEY=V1"):
+        parse_vary("servo.passes")
+
+
+def test_study_cli_vary(tmp_path: Path) -> None:
+    scen = tmp_path / "tiny.yaml"
+    scen.write_text(yaml.safe_dump(_tiny_data()))
+    out = tmp_path / "out"
+    proc = subprocess.run([*LRFSIM, "study", scen, "--trials", "1", "-o", out, "--vary",
+                           "faults.range_noise_scale=1,2"], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    with (out / "trials.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [r["value"] for r in rows] == ["1", "2"]
+    assert (out / "vary_sigma.png").is_file() and "faults.range_noise_scale = 2" in (out / "summary.md").read_text()
+    # an existing folder is kept without --overwrite: one line, exit 2
+    again = subprocess.run([*LRFSIM, "study", scen, "-n", "1", "-o", out], capture_output=True, text=True,
+                           timeout=120)
+    assert again.returncode == 2 and again.stderr.startswith("error: ") and len(again.stderr.splitlines()) == 1
+
+
+def test_study_help_units_and_defaults() -> None:
+    proc = subprocess.run([*LRFSIM, "study", "--help"], capture_output=True, text=True, timeout=60,
+                          env={"COLUMNS": "80", "PATH": ""})
+    flat = " ".join(proc.stdout.split())
+    assert proc.returncode == 0
+    assert proc.stdout.splitlines()[0] == "Usage: lrfsim study [OPTIONS] SCENARIO --trials N"
+    for words in ("[default: runs/<scenario name>_study]", "[default: 1]", "--dask ADDRESS", "KEY=V1,V2,...",
+                  "SI units", "[default: the scenario's seed]"):
+        assert words in flat, words
+
+
+def test_no_wasted_casting(tiny) -> None:
+    """A trial that only changes the noise reuses the noise-free cast: the same recording as a full simulation
+    for the cast's own seed, new noise for another seed, and the cast itself is left untouched."""
+    import numpy as np
+
+    from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry
+
+    geometry = cast_geometry(tiny)
+    before = geometry.cast.ranges_m.copy()
+    full = simulate(tiny)
+    reused = simulate_from_geometry(tiny, geometry)
+    for name in ("ranges_m", "intensities", "beam_lambda_rad", "scan_stamps_s"):
+        assert np.array_equal(getattr(full, name), getattr(reused, name), equal_nan=True), name
+    assert np.array_equal(full.tape.distances_m, reused.tape.distances_m)
+    other = simulate_from_geometry(tiny.model_copy(update={"seed": tiny.seed + 1}), geometry)
+    both = np.isfinite(other.ranges_m) & np.isfinite(full.ranges_m)
+    diff = (other.ranges_m - full.ranges_m)[both]
+    assert 0.005 < diff.std() < 0.02  # sqrt(2) x the 10 mm range noise
+    assert np.array_equal(geometry.cast.ranges_m, before, equal_nan=True)
