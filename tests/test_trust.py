@@ -215,7 +215,8 @@ def _range_offset(offset_m: float) -> Callable[[Recording], Recording]:
 
 def test_range_offset_is_estimated_or_the_result_refused(recordings: Callable[..., Path]) -> None:
     """Every range 15 mm long (a constant range offset, issue 12): estimated by default, the offset comes back
-    within 4 sigma and the DH too; held (--no-range-bias) the calibration is not confidently wrong."""
+    within 4 sigma and the DH too. Held (--no-range-bias), the same recording is calibrated with a worse error:
+    why the estimation is on by default."""
     folder = recordings(_scenario("tunnel_v", "tunnel_fast"))
     est = calibrate_recording(folder, dataclasses.replace(FAST, estimate_range_bias=True), mutate=_range_offset(0.015),
                               keep_result=True)
@@ -224,6 +225,7 @@ def test_range_offset_is_estimated_or_the_result_refused(recordings: Callable[..
     sol = est.result.solution
     assert abs(sol.range_offset_m - 0.015) <= 4 * sol.range_offset_sigma_m < 0.002, (sol.range_offset_m,
                                                                                       sol.range_offset_sigma_m)
-    plain = calibrate_recording(folder, dataclasses.replace(FAST, estimate_range_bias=False),
-                                mutate=_range_offset(0.015))
-    assert not plain.confident_wrong, plain.describe()
+    held = calibrate_recording(folder, dataclasses.replace(FAST, estimate_range_bias=False),
+                               mutate=_range_offset(0.015))
+    assert held.status == "refused" or np.max(np.abs(held.z)) > np.max(np.abs(est.z)), (held.describe(),
+                                                                                        est.describe())
