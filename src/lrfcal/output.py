@@ -13,6 +13,8 @@ import math
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 from xml.sax.saxutils import quoteattr
@@ -499,8 +501,7 @@ def write_calibration(
         out_dir.
     """
     out = check_replaceable(out_dir, overwrite)
-    tmp = make_temp_beside(out)
-    try:
+    with atomic_folder(out, "lrfcal calibrate") as tmp:
         text = yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=110)
         (tmp / "calibration.yaml").write_text(text, encoding="utf-8")
         (tmp / "rig.urdf").write_text(urdf_snippet(result.solution.params), encoding="utf-8")
@@ -514,11 +515,6 @@ def write_calibration(
             if not src.is_file():
                 raise InputError(f"{src}: figure {name!r} not found")
             shutil.copyfile(src, tmp / src.name)
-        write_manifest(tmp, "lrfcal calibrate")
-        swap_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
 
 
@@ -598,6 +594,22 @@ def check_writable(out: str | Path) -> Path:
     return out
 
 
+@contextmanager
+def atomic_folder(out: str | Path, tool: str) -> Iterator[Path]:
+    """Build an output folder atomically: yields a new temporary folder beside ``out`` to write into; when the
+    block completes, the manifest (which ``tool`` wrote what) is added and the folder renamed into place
+    (:func:`swap_into_place`); when it fails, the temporary folder is removed and ``out`` is left as it was."""
+    out = Path(out)
+    tmp = make_temp_beside(out)
+    try:
+        yield tmp
+        write_manifest(tmp, tool)
+        swap_into_place(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
 def make_temp_beside(out: Path) -> Path:
     """A new hidden temporary folder next to ``out`` (created with its parents; usual permissions).
 
@@ -665,6 +677,8 @@ def swap_into_place(tmp: Path, out: Path) -> None:
     shutil.rmtree(old, ignore_errors=True)
 
 
-__all__ = ["MANIFEST_NAME", "align_truth_frame", "calibration_dict", "check_no_overlap", "check_replaceable",
-           "check_writable", "dh_matrix", "make_temp_beside", "render_report", "residual_summary", "swap_into_place",
-           "truth_dict", "truth_frame", "urdf_snippet", "write_calibration", "write_manifest"]
+__all__ = [
+    "MANIFEST_NAME", "align_truth_frame", "atomic_folder", "calibration_dict", "check_no_overlap", "check_replaceable",
+    "check_writable", "dh_matrix", "make_temp_beside", "render_report", "residual_summary", "swap_into_place",
+    "truth_dict", "truth_frame", "urdf_snippet", "write_calibration", "write_manifest",
+]

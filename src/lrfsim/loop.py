@@ -8,7 +8,6 @@ DIR/comparison.md  Tables I and III against the truth
 from __future__ import annotations
 
 import math
-import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -51,7 +50,7 @@ def run_loop(
     """
     from lrfcal.app import calibrate_folder
     from lrfcal.cliutil import spawn_unavailable_reason
-    from lrfcal.output import make_temp_beside, swap_into_place, write_manifest
+    from lrfcal.output import atomic_folder
 
     from .recording import check_output
     from .scene import build_scene
@@ -66,8 +65,7 @@ def run_loop(
             warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
                  f"(open it with: rerun {shown})")
     timings: dict[str, float] = {}
-    tmp = make_temp_beside(out_dir)
-    try:
+    with atomic_folder(out_dir, "lrfsim run") as tmp:
         t0 = time.perf_counter()
         scene = build_scene(scenario)
         sim = simulate(scenario, progress, scene=scene)
@@ -86,11 +84,6 @@ def run_loop(
 
         comparison = compare(result, truth, scenario.tolerances)
         (tmp / "comparison.md").write_text(comparison_markdown(comparison))
-        write_manifest(tmp, "lrfsim run")
-        swap_into_place(tmp, out_dir)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
     return LoopReport(out_dir, comparison, result, timings)
 
 

@@ -21,14 +21,13 @@ from __future__ import annotations
 
 import csv
 import io
-import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
 
-from lrfcal.output import check_replaceable, check_writable, make_temp_beside, swap_into_place, write_manifest
+from lrfcal.output import atomic_folder, check_replaceable, check_writable
 
 from .scenario import Scenario, dump_scenario
 
@@ -58,18 +57,12 @@ def check_output(out_dir: str | Path, overwrite: bool) -> Path:
 def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
     """Write the recording folder of ``result`` to ``out_dir`` atomically (module docstring); return it."""
     out = check_output(out_dir, overwrite).absolute()
-    tmp = make_temp_beside(out)
-    try:
+    with atomic_folder(out, "lrfsim simulate") as tmp:
         write_bag(result, scenario, tmp / "bag")
         (tmp / "distances.csv").write_text(distances_csv(result), encoding="utf-8")
         (tmp / "nominal.yaml").write_text(nominal_yaml(scenario, result.truth.marker_radius_m), encoding="utf-8")
         (tmp / "ground_truth.yaml").write_text(ground_truth_yaml(result), encoding="utf-8")
         (tmp / "scenario.yaml").write_text(dump_scenario(scenario), encoding="utf-8")
-        write_manifest(tmp, "lrfsim simulate")
-        swap_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
 
 

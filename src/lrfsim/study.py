@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.kinematics import DH_NAMES
-from lrfcal.output import check_replaceable, make_temp_beside, swap_into_place, write_manifest
+from lrfcal.output import atomic_folder, check_replaceable
 
 from .plan import Plan, format_value, plan
 from .scenario import Scenario, parse_scenario
@@ -426,16 +426,10 @@ def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Pa
     renamed into place when complete; an existing folder is replaced only with ``overwrite`` and only if this
     project wrote it)."""
     out = check_replaceable(out_dir, overwrite)
-    tmp = make_temp_beside(out)
-    try:
+    with atomic_folder(out, "lrfsim study") as tmp:
         (tmp / "trials.csv").write_text(trials_csv(s), encoding="utf-8")
         (tmp / "summary.md").write_text(summary_markdown(s), encoding="utf-8")
         write_figures(s, tmp)
-        write_manifest(tmp, "lrfsim study")
-        swap_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out
 
 
