@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import copy
 import json
 import math
 import subprocess
@@ -13,7 +12,7 @@ import pytest
 import yaml
 
 from lrfsim.plan import plan
-from lrfsim.scenario import parse_scenario
+from lrfsim.scenario import parse_scenario, with_changes
 
 ROOT = Path(__file__).resolve().parents[1]
 LRFSIM = [sys.executable, "-m", "lrfsim.cli"]
@@ -21,14 +20,7 @@ NAMES = ("a", "alpha", "b", "beta", "x", "y", "z", "rx", "ry", "rz")
 
 
 def _data(base: str, **changes: object) -> dict:
-    data = copy.deepcopy(yaml.safe_load((ROOT / "scenarios" / f"{base}.yaml").read_text()))
-    for dotted, value in changes.items():
-        node = data
-        *head, last = dotted.split(".")
-        for k in head:
-            node = node.setdefault(k, {})
-        node[last] = value
-    return data
+    return with_changes(yaml.safe_load((ROOT / "scenarios" / f"{base}.yaml").read_text()), changes)
 
 
 def _fast_tunnel(**changes: object) -> dict:
