@@ -64,13 +64,13 @@ def main() -> None:
         print(f"\n{name}: {n_cal}/{len(part.rows)} calibrated (refusal rate {100 * part.refusal_rate:.0f} %), "
               f"{args.workers} worker(s), {wall:.0f} s, {60 * len(part.rows) / wall:.1f} trials per minute")
         print(f"  {'param':<6}{'predicted':>12}{'MC std':>12}{'std/pred':>10}{'RMSE/pred':>11}{'RMS z':>8}"
-              f"{'bias':>12}{'bias/std':>10}{'+-':>6}")
+              f"{'|bias|':>14}{'bias/std':>10}{'+-':>6}")
         for p in DH_NAMES:
             d = st[p]
             se = 1 / math.sqrt(max(n_cal, 1))
             print(f"  {p:<6}{format_value(p, d['predicted']):>12}{format_value(p, d['std']):>12}"
                   f"{d['std_over_predicted']:>10.2f}{d['rmse_over_predicted']:>11.2f}{d['rms_z']:>8.2f}"
-                  f"{format_value(p, abs(d['bias'])):>12}{d['bias'] / d['std']:>+10.2f}{se:>6.2f}")
+                  f" {format_value(p, abs(d['bias'])):>13}{d['bias'] / d['std']:>+10.2f}{se:>6.2f}")
             ok &= 0.75 <= d["std_over_predicted"] <= 1.25 and 0.8 <= d["rms_z"] <= 1.25
             ok &= abs(d["bias"]) < 0.3 * d["std"]
         for r in part.rows:
