@@ -16,10 +16,7 @@ import time
 
 import numpy as np
 
-from lrfcal.detection import detect
-from lrfcal.types import Scans
-from lrfsim.faults import marker_returns
-from lrfsim.randomize import random_scenario_wide, visible_markers, wide_dh_determined
+from lrfsim.randomize import detected_markers, random_scenario_wide, visible_markers, wide_dh_determined
 from lrfsim.simulate import simulate
 
 MIN_SEEN = 6
@@ -29,12 +26,7 @@ def markers_detected(seed: int) -> tuple[str, int, int, int, bool, float]:
     """(name, markers detected, visible by geometry, markers in all, determined label, seconds)."""
     sc = random_scenario_wide(seed)
     t0 = time.perf_counter()
-    r = simulate(sc)
-    s = sc.sensor
-    det = detect(Scans(r.scan_stamps_s, r.ranges_m, r.intensities, r.mu_rad, s.time_increment_s,
-                       s.scan_period_s, s.range_min_m, s.range_max_m))
-    owner = marker_returns(r, sc)
-    seen = {int(m) for b in det.blobs for m in owner[b.scan_idx, b.beam_idx] if m >= 0}
+    seen = detected_markers(simulate(sc), sc)
     vis = visible_markers(sc)
     return sc.name, len(seen), int(vis.sum()), int(vis.size), wide_dh_determined(sc), time.perf_counter() - t0
 

@@ -9,15 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lrfcal.detection import detect
 from lrfcal.kinematics import Pose
-from lrfcal.types import Scans
-from lrfsim.faults import marker_returns
 from lrfsim.randomize import (
     WIDE_AXES,
     WIDE_LAYOUTS,
     WIDE_MIN_AXIAL_SPREAD_M,
     axial_spread_m,
+    detected_markers,
     random_scenario,
     random_scenario_wide,
     visible_markers,
@@ -86,12 +84,7 @@ def test_forced_choices() -> None:
 def test_simulated_markers_are_detected() -> None:
     """One quick simulation: intensity blobs are found on (nearly) every marker the geometry says is visible."""
     sc = random_scenario_wide(4, passes=1)  # 16 markers scattered in the tunnel, motor axis along it
-    r = simulate(sc)
-    s = sc.sensor
-    det = detect(Scans(r.scan_stamps_s, r.ranges_m, r.intensities, r.mu_rad, s.time_increment_s,
-                       s.scan_period_s, s.range_min_m, s.range_max_m))
-    owner = marker_returns(r, sc)
-    seen = {int(m) for b in det.blobs for m in owner[b.scan_idx, b.beam_idx] if m >= 0}
+    seen = detected_markers(simulate(sc), sc)
     assert len(seen) >= max(6, int(visible_markers(sc).sum()) - 1), (len(seen), visible_markers(sc).sum())
 
 

@@ -145,6 +145,7 @@ def calibrate(
     signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
     first = {sign: _associate_nominal(signed[sign], detections, markers, nominal, config) for sign in (1, -1)}
     search = not any(_good(a, signed[s], config) for s, a in first.items() if a is not None)
+    clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
     alternatives = []
     failures = []
     for sign in (1, -1):
@@ -167,7 +168,6 @@ def calibrate(
     if chosen.sign < 0:
         joints = _negated(joints)
         returns = _replace(returns, lambda_rad=-returns.lambda_rad)
-    clock.lap("association")
     clock.lap("solve")
 
     surface_list, on_surfaces = [], None

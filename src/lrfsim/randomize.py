@@ -11,12 +11,16 @@ for a servo-turned UTM-30LX-EW.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lrfcal.kinematics import Pose
 
 from .scenario import Scenario, parse_scenario
+
+if TYPE_CHECKING:
+    from .simulate import SimResult
 
 
 def random_scenario(seed: int, *, sweep_speed_deg_s: float = 20.0, passes: int = 1) -> Scenario:
@@ -52,21 +56,16 @@ def random_scenario(seed: int, *, sweep_speed_deg_s: float = 20.0, passes: int =
         "b": dh["b"] + rng.uniform(-0.003, 0.003),
         "beta": sign_beta * math.pi / 2,
     }
-    nominal_mount = {
-        k: v + (rng.uniform(-0.03, 0.03) if k in "xyz" else math.radians(rng.uniform(-3, 3)))
-        for k, v in mount.items()
-    }
+    nominal_mount = _perturbed_mount(rng, mount)
     radius = 0.005
     n_markers = int(rng.integers(10, 21))
     positions = _markers_on_walls(rng, n_markers, width, height, plate_x, radius)
-    sigma = float(rng.choice([0.005, 0.010, 0.015]))
+    noise_bands = _random_noise_bands(rng)
     data = {
         "name": f"random_{seed}",
         "seed": seed,
         "rig": {"dh": dh, "mount": mount, "nominal_dh": nominal_dh, "nominal_mount": nominal_mount},
-        "sensor": {
-            "noise_bands": [{"up_to_m": 10.0, "sigma_m": sigma}, {"up_to_m": 60.0, "sigma_m": 3 * sigma}]
-        },
+        "sensor": {"noise_bands": noise_bands},
         "servo": {"speed_rad_s": math.radians(sweep_speed_deg_s), "passes": passes},
         "scene": {"tunnel": {"width_m": width, "height_m": height, "plate_x_m": plate_x, "x_min_m": -1.0}},
         "markers": {"radius_m": radius, "layout": {"kind": "points", "positions": positions}},
@@ -186,18 +185,15 @@ def random_scenario_wide(
     mount = _pose_dict(T)
     nominal_dh = {k: v + (rng.uniform(-0.003, 0.003) if k in ("a", "b") else math.radians(rng.uniform(-3, 3)))
                   for k, v in dh.items()}
-    nominal_mount = {k: v + (rng.uniform(-0.03, 0.03) if k in "xyz" else math.radians(rng.uniform(-3, 3)))
-                     for k, v in mount.items()}
-    nominal_mount = {k: (math.remainder(v, 2 * math.pi) if k not in "xyz" else v) for k, v in nominal_mount.items()}
+    nominal_mount = {k: (math.remainder(v, 2 * math.pi) if k not in "xyz" else v)
+                     for k, v in _perturbed_mount(rng, mount).items()}
     nominal_mount["pitch"] = max(-math.pi / 2, min(math.pi / 2, nominal_mount["pitch"]))
-    sigma = float(rng.choice([0.005, 0.010, 0.015]))
+    noise_bands = _random_noise_bands(rng)
     data = {
         "name": f"wide_{seed}_{layout}_{axis}_beta{round(math.degrees(beta0)):+d}",
         "seed": seed,
         "rig": {"dh": dh, "mount": mount, "nominal_dh": nominal_dh, "nominal_mount": nominal_mount},
-        "sensor": {
-            "noise_bands": [{"up_to_m": 10.0, "sigma_m": sigma}, {"up_to_m": 60.0, "sigma_m": 3 * sigma}]
-        },
+        "sensor": {"noise_bands": noise_bands},
         "servo": servo,
         "scene": scene,
         "markers": markers,
@@ -328,6 +324,33 @@ def _rotvec(w: np.ndarray) -> np.ndarray:
     k = w / t
     K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
     return np.eye(3) + math.sin(t) * K + (1 - math.cos(t)) * K @ K
+
+
+def _perturbed_mount(rng: np.random.Generator, mount: dict[str, float]) -> dict[str, float]:
+    """A tape-measured nominal mount: the true one off by up to 3 cm and 3 deg per component."""
+    return {k: v + (rng.uniform(-0.03, 0.03) if k in "xyz" else math.radians(rng.uniform(-3, 3)))
+            for k, v in mount.items()}
+
+
+def _random_noise_bands(rng: np.random.Generator) -> list[dict[str, float]]:
+    """Range noise of 5, 10 or 15 mm to 10 m (three times that beyond), as scenario noise_bands."""
+    sigma = float(rng.choice([0.005, 0.010, 0.015]))
+    return [{"up_to_m": 10.0, "sigma_m": sigma}, {"up_to_m": 60.0, "sigma_m": 3 * sigma}]
+
+
+def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
+    """Indices of the markers on which the calibration's detection (lrfcal.detection.detect) finds a blob in a
+    simulated recording; each blob's owner comes from the truth (lrfsim.faults.marker_returns)."""
+    from lrfcal.detection import detect
+    from lrfcal.types import Scans
+
+    from .faults import marker_returns
+
+    s = scenario.sensor
+    det = detect(Scans(result.scan_stamps_s, result.ranges_m, result.intensities, result.mu_rad,
+                       s.time_increment_s, s.scan_period_s, s.range_min_m, s.range_max_m))
+    owner = marker_returns(result, scenario)
+    return {int(m) for b in det.blobs for m in owner[b.scan_idx, b.beam_idx] if m >= 0}
 
 
 def visible_markers(scenario: Scenario) -> np.ndarray:
