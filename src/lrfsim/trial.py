@@ -8,6 +8,7 @@ whose error exceeds 4 reported sigma on some DH parameter: the one outcome the c
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tempfile
 import time
@@ -72,24 +73,35 @@ def record(scenario: Scenario, folder: Path) -> Path:
 
 def calibrate_recording(
     folder: Path, config: CalibConfig | None = None, *, name: str | None = None,
-    mutate: Callable[[Recording], Recording] | None = None, keep_result: bool = False,
+    mutate: Callable[[Recording], Recording] | None = None, keep_result: bool = False, paper: bool = False,
 ) -> Trial:
     """Read a recording folder written by lrfsim, calibrate it (``mutate`` may change the Recording first, e.g. the
-    nominal values), and compare the DH parameters with its ground_truth.yaml."""
+    nominal values), and compare the DH parameters with its ground_truth.yaml.
+
+    ``paper``: judge the paper's method instead of ours (``result.baseline``: the blob's brightest beam, one motor
+    angle per scan, on our detections and association). ``config`` then runs with ``baseline=True`` and
+    ``force=True``: the consistency checks are ours, the paper's method has none, so a check that our solution
+    fails does not withhold the paper's estimate."""
     truth = load_truth(folder / "ground_truth.yaml")
     recording = read_recording(folder)
     if mutate is not None:
         recording = mutate(recording)
     label = name or folder.name
     nan4 = np.full(4, np.nan)
+    config = config or CalibConfig(baseline=False, geometry=False)
+    if paper:
+        config = dataclasses.replace(config, baseline=True, force=True)
     t0 = time.perf_counter()
     try:
-        result = calibrate(recording, config or CalibConfig(baseline=False, geometry=False))
+        result = calibrate(recording, config)
     except LrfError as err:
         return Trial(label, "refused", nan4, nan4, reason=str(err), exit_code=err.exit_code,
                      seconds=time.perf_counter() - t0)
     seconds = time.perf_counter() - t0
-    sol = result.solution
+    sol = result.baseline if paper else result.solution
+    if sol is None:  # the paper's method could not run (the reason is in the notes)
+        reason = next((n for n in result.notes if "paper's method" in n), "the paper's method did not run")
+        return Trial(label, "refused", nan4, nan4, reason=reason, exit_code=3, seconds=seconds)
     est, true = sol.params.dh, truth.dh
     errors = np.array([getattr(est, n) - getattr(true, n) for n in DH_NAMES])
     errors[[1, 3]] = (errors[[1, 3]] + math.pi) % (2 * math.pi) - math.pi
