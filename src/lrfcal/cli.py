@@ -283,6 +283,8 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
         console.print(f"clocks: laser-minus-servo offset {r.clock_offset_s:+.6f} s from the receive times "
                       f"({applied}); "
                       f"{result.n_scans_covered} of {r.n_scans} scans covered by the servo samples")
+    for note in result.notes:
+        console.print(f"note: {note}", markup=False)
     if result.problems:
         console.print("[bold]problems[/bold]:")
         for p in result.problems:

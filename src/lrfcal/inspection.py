@@ -5,6 +5,12 @@ range and rate; the clock offset between laser and servo; the problems found (ev
 masked or assumed, plus coverage); and the rig-file snippet (YAML) that reads this bag. Where the rig file or
 the options do not say where the data are, the source is guessed (a LaserScan topic or a message holding one;
 a JointState, dynamixel JointState, std_msgs number, a number beside the scan, or /tf) and marked as guessed.
+
+Echo choice: where a bag has a MultiEchoLaserScan topic (urg_node's ``echoes`` with ``publish_multiecho``) beside
+LaserScan topics, the guess is the MultiEchoLaserScan with ``echo: strongest``, and a note says why: where a
+beam's footprint straddles a marker's edge it splits into a marker echo and a wall echo, and the strongest echo
+keeps the marker's return, while a LaserScan holds one return per beam fixed by the driver (the simulator's
+/scan: the power-weighted mixture of the two, a range between marker and wall; docs/sensor_errors.md).
 """
 
 from __future__ import annotations
@@ -20,8 +26,10 @@ import yaml
 from .bag import (
     DYNAMIXEL_JOINTSTATE_TYPE,
     JOINTSTATE_TYPE,
+    MULTIECHO_TYPE,
     TF_TYPE,
     _is_laserscan,
+    _is_multiecho,
     complete_types,
     default_field,
     ns_to_s,
@@ -98,6 +106,8 @@ class BagInspection:
     problems: tuple[str, ...]
     rig_snippet: str
     dh: dict[str, float] = field(default_factory=dict)
+    #: why a source was chosen (e.g. the MultiEchoLaserScan topic with its strongest echo over a LaserScan)
+    notes: tuple[str, ...] = ()
 
 
 def _rate(times: list[float]) -> float | None:
@@ -207,10 +217,13 @@ def inspect_bag(
 
     guessed: list[str] = []
     problems: list[str] = []
+    multiecho = {tp for tp, msgs in scan_msgs.items() if types.get(tp) == MULTIECHO_TYPE
+                 or any(_is_multiecho(m) for m in msgs[:50])}
     if scan is None:
-        scan = _guess_scan(types, first, scan_msgs)
+        scan = _guess_scan(first, scan_msgs, multiecho)
         if scan is not None:
             guessed.append("scan")
+    notes = _echo_notes(scan, scan_msgs, multiecho)
     if servo is None and scan is not None:
         servo = _guess_servo(types, first, scan, tf_pairs, path)
         if servo is not None:
@@ -252,10 +265,10 @@ def inspect_bag(
     if guessed:
         problems.append(f"guessed: {', '.join(guessed)} source (check the snippet, especially servo unit, sign "
                         f"and offset_rad)")
-    snippet = rig_snippet(scan, servo, dh)
+    snippet = rig_snippet(scan, servo, dh, multiecho=scan is not None and scan.topic in multiecho)
     ros = 1 if path.suffix == ".bag" else 2
     return BagInspection(path, ros, float(duration), tuple(topics), scan, servo, tuple(guessed), geometry,
-                         servo_info, report, n_cov, tuple(problems), snippet, dict(dh or {}))
+                         servo_info, report, n_cov, tuple(problems), snippet, dict(dh or {}), tuple(notes))
 
 
 def _report_problems(rep: ReadReport) -> list[str]:
@@ -270,15 +283,40 @@ def _report_problems(rep: ReadReport) -> list[str]:
     return out
 
 
-def _guess_scan(types: dict[str, str], first: dict[str, Any], scan_msgs: dict[str, list[Any]]
+#: why the strongest echo of a MultiEchoLaserScan is proposed (module docstring)
+STRONGEST_ECHO_REASON = ("where a beam's footprint straddles a marker's edge the beam splits into a marker echo and a "
+                         "wall echo: the strongest echo keeps the marker's return, a LaserScan holds one return per "
+                         "beam fixed by the driver (the simulator's /scan mixes the two into a range between "
+                         "marker and wall; docs/sensor_errors.md)")
+
+
+def _guess_scan(first: dict[str, Any], scan_msgs: dict[str, list[Any]], multiecho: set[str]
                 ) -> ScanSource | None:
-    cands = sorted(scan_msgs, key=lambda t: (t != "/scan", t))
+    """The scan source: a MultiEchoLaserScan topic first (with its strongest echo), then /scan, then the
+    alphabetically first LaserScan topic or message holding one."""
+    cands = sorted(scan_msgs, key=lambda t: (t not in multiecho, t != "/scan", t))
     if not cands:
         return None
     tp = cands[0]
     msg = first[tp]
     fld = None if _is_laserscan(msg) else _laserscan_field(msg)
-    return ScanSource(topic=tp, field=fld)
+    return ScanSource(topic=tp, field=fld)  # echo: strongest, the default (read only for MultiEchoLaserScan)
+
+
+def _echo_notes(scan: ScanSource | None, scan_msgs: dict[str, list[Any]], multiecho: set[str]) -> list[str]:
+    """Why the scan topic holds (or should hold) the MultiEchoLaserScan's strongest echo."""
+    if scan is None or not multiecho:
+        return []
+    single = sorted(set(scan_msgs) - multiecho)
+    if scan.topic in multiecho:
+        if scan.echo != "strongest":
+            return [f"scan: {scan.topic} (MultiEchoLaserScan) read with echo: {scan.echo}, as asked; echo: "
+                    f"strongest is the choice for markers: {STRONGEST_ECHO_REASON}"]
+        beside = f" rather than {', '.join(single)} (LaserScan)" if single else ""
+        return [f"scan: {scan.topic} (MultiEchoLaserScan) with echo: strongest{beside}: {STRONGEST_ECHO_REASON}"]
+    return [f"scan: {scan.topic} (LaserScan) as asked; the bag also has {', '.join(sorted(multiecho))} "
+            f"(MultiEchoLaserScan), and scan: {{topic: {sorted(multiecho)[0]}, echo: strongest}} is the choice for "
+            f"markers: {STRONGEST_ECHO_REASON}"]
 
 
 def _guess_servo(types: dict[str, str], first: dict[str, Any], scan: ScanSource,
@@ -370,12 +408,15 @@ def _has_intensities(msg: Any) -> bool:
     return len(it) > 0 and bool(np.any(np.asarray(it) > 0))
 
 
-def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str, float] | None = None) -> str:
-    """The rig-file YAML (dh, scan, servo) that reads the bag; dh placeholders when not known."""
+def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str, float] | None = None, *,
+                multiecho: bool = False) -> str:
+    """The rig-file YAML (dh, scan, servo) that reads the bag; dh placeholders when not known. ``multiecho``:
+    the scan topic is a MultiEchoLaserScan, whose ``echo`` choice is then written out even when it is the
+    default (for a LaserScan topic it is meaningless and left out)."""
     data: dict[str, Any] = {"dh": dict(dh) if dh else {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}}
     if scan is not None:
         data["scan"] = scan.model_dump(exclude_none=True)
-        if scan.echo == "strongest":  # the default, and meaningless for LaserScan topics
+        if not multiecho and scan.echo == "strongest":  # the default, and meaningless for LaserScan topics
             data["scan"].pop("echo")
     if servo is not None:
         s = servo.model_dump(exclude_none=True)
