@@ -77,6 +77,9 @@ def test_run_closes_the_loop(tmp_path: Path) -> None:
         assert (run_dir / "calibration" / name).is_file(), name
     for words in ("Table I", "Table III", "estimate", "paper's method", "width", "plate"):
         assert words in proc.stdout, words
+    # one line says the simulated scanner was idealised and where the systematic errors' cost is measured
+    sensor = [line for line in proc.stdout.splitlines() if line.startswith("sensor: ")]
+    assert len(sensor) == 1 and "idealised" in sensor[0] and sensor[0].endswith("docs/sensor_errors.md"), sensor
     assert "Table I" in (run_dir / "comparison.md").read_text()
     # run again: the default run folder is replaced, nothing else is left beside it
     proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen)], cwd=tmp_path,

@@ -28,7 +28,7 @@ from lrfcal.types import CalibrationResult
 from lrfsim.compare import Comparison, compare, load_truth
 from lrfsim.randomize import random_scenario
 from lrfsim.scenario import Scenario, Tolerances, load_scenario
-from lrfsim.simulate import simulate, write_recording
+from lrfsim.simulate import simulate, systematic_truth, write_recording
 
 SCENARIOS = {p.stem: p for p in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))}
 SEEDS = tuple(range(20))
@@ -188,9 +188,15 @@ def test_shipped_paper_baseline_present(name: str, shipped_cases: _Cases) -> Non
     assert all(row.paper is not None for row in case.comparison.dh_rows)
 
 
-@pytest.mark.parametrize("name", [n for n in SCENARIOS if n.startswith("tunnel")])
+def _idealised(name: str) -> bool:
+    """The scenario's scanner has no systematic range errors (lrfsim.simulate.systematic_truth)."""
+    return systematic_truth(load_scenario(SCENARIOS[name]).sensor) is None
+
+
+@pytest.mark.parametrize("name", [n for n in SCENARIOS if n.startswith("tunnel") and _idealised(n)])
 def test_shipped_tunnel_dimensions(name: str, shipped_cases: _Cases) -> None:
-    """The issue's target: width, height and plate distance from the calibrated cloud within 3 mm."""
+    """The issue's target: width, height and plate distance from the calibrated cloud within 3 mm (with the idealised
+    scanner; a scenario with systematic range errors is held to its own tunnel_m, docs/sensor_errors.md)."""
     rows = shipped_cases[name].comparison.tunnel_rows
     assert {r.name for r in rows} == {"width", "height", "plate_distance"}
     for r in rows:

@@ -109,7 +109,7 @@ def run(
     from lrfcal.cli import print_summary
     from lrfcal.output import check_no_overlap
 
-    from .loop import print_comparison, run_loop
+    from .loop import print_comparison, run_loop, sensor_errors_line
     from .scenario import load_scenario, scenario_inputs
 
     sc = load_scenario(scenario)
@@ -125,6 +125,7 @@ def run(
     console = Console()
     print_summary(report.result, console)
     print_comparison(report.comparison, console)
+    console.print(sensor_errors_line(sc.sensor), markup=False, soft_wrap=True)
     console.print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in report.timings_s.items()
                                           if not k.startswith(" ")), markup=False)
     console.print(f"wrote {report.out_dir} (recording/, calibration/, comparison.md"

@@ -19,7 +19,7 @@ from rich.table import Table
 from lrfcal.types import CalibrationResult
 
 from .compare import Comparison, compare, load_truth
-from .scenario import Scenario
+from .scenario import Scenario, SensorConfig
 
 
 @dataclass(frozen=True)
@@ -85,6 +85,22 @@ def run_loop(
         comparison = compare(result, truth, scenario.tolerances)
         (tmp / "comparison.md").write_text(comparison_markdown(comparison))
     return LoopReport(out_dir, comparison, result, timings)
+
+
+def sensor_errors_line(sensor: SensorConfig) -> str:
+    """One line for `lrfsim run`'s summary: whether the simulated scanner had systematic range errors (which, with
+    their magnitudes) and where their cost is measured (docs/sensor_errors.md)."""
+    c = sensor.systematic
+    parts = [f"{what} {v * 1000:+g} {unit}" for what, v, unit in (
+        ("offset", c.range_offset_m, "mm"), ("intensity", c.intensity_bias_m_per_decade, "mm/decade"),
+        ("incidence", c.incidence_bias_m, "mm/rad"), ("drift", c.drift_amplitude_m, "mm")) if v != 0.0]
+    if c.drift_amplitude_m != 0.0:
+        parts[-1] += f" (tau {c.drift_time_constant_s:g} s)"
+    echoes = f"; multi-echo returns on {sensor.echoes.topic}" if sensor.echoes.enabled else ""
+    if parts:
+        return f"sensor: systematic range errors ON ({', '.join(parts)}){echoes}; their cost: docs/sensor_errors.md"
+    return (f"sensor: idealised, no systematic range errors simulated{echoes}; their cost on a real scanner: "
+            "docs/sensor_errors.md")
 
 
 def _mm(v: float | None) -> str:
