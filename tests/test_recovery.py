@@ -31,6 +31,12 @@ from lrfsim.scenario import Scenario, Tolerances, load_scenario
 from lrfsim.simulate import simulate, systematic_truth, write_recording
 
 SCENARIOS = {p.stem: p for p in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))}
+#: Marker-less scenarios (room_box, cardboard_box) are for the targetless calibration of issue 9: skipped here
+#: until lrfcal calibrates without tape distances (tests/test_targetless_scenes.py checks their geometry).
+MARKERLESS = {name for name, path in SCENARIOS.items() if load_scenario(path).markers is None}
+SHIPPED = [pytest.param(name, marks=pytest.mark.skip(reason="marker-less: targetless calibration (issue 9) not "
+                                                     "in lrfcal yet")) if name in MARKERLESS else name
+           for name in SCENARIOS]
 SEEDS = tuple(range(20))
 N_SIGMA = 4.0
 DH_INDEX = tuple(PARAM_NAMES.index(n) for n in DH_NAMES)  # a, alpha, b, beta in the (10,) sigma
@@ -173,13 +179,13 @@ def test_reported_sigma_is_honest(random_cases: _Cases) -> None:
 # --- 2. the shipped scenarios -----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("name", list(SCENARIOS))
+@pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_dh_within_4_sigma(name: str, shipped_cases: _Cases) -> None:
     case = shipped_cases[name]
     assert not within_sigma(case), f"error beyond {N_SIGMA} sigma: {within_sigma(case)}\n{case.describe()}"
 
 
-@pytest.mark.parametrize("name", list(SCENARIOS))
+@pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_paper_baseline_present(name: str, shipped_cases: _Cases) -> None:
     case = shipped_cases[name]
     baseline = case.result.baseline
@@ -207,7 +213,7 @@ def test_shipped_tunnel_dimensions(name: str, shipped_cases: _Cases) -> None:
         )
 
 
-@pytest.mark.parametrize("name", list(SCENARIOS))
+@pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_scenario_tolerances(name: str, shipped_cases: _Cases) -> None:
     """The scenario's own tolerances (what `lrfsim run` reports as MISSED)."""
     case = shipped_cases[name]

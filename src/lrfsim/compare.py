@@ -28,7 +28,7 @@ class Truth:
     dh: DH
     mount: Pose
     markers: dict[str, np.ndarray]
-    marker_radius_m: float
+    marker_radius_m: float | None  # None: a marker-less scene
     clock_offset_s: float
     tunnel: dict[str, float] | None
 
@@ -40,12 +40,12 @@ def load_truth(path: str | Path) -> Truth:
     if not isinstance(data, dict):
         raise InputError(f"{path}: expected a mapping")
     try:
-        markers = {str(k): np.asarray(v, dtype=float).reshape(3) for k, v in data["markers"].items()}
+        markers = {str(k): np.asarray(v, dtype=float).reshape(3) for k, v in (data["markers"] or {}).items()}
         return Truth(
             dh=dh_from_mapping(data["dh"], f"{path}: dh"),
             mount=pose_from_mapping(data["mount"], f"{path}: mount"),
             markers=markers,
-            marker_radius_m=float(data["marker_radius_m"]),
+            marker_radius_m=None if data["marker_radius_m"] is None else float(data["marker_radius_m"]),
             clock_offset_s=float(data.get("clock_offset_s", 0.0)),
             tunnel=data.get("tunnel"),
         )

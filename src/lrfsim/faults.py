@@ -123,8 +123,9 @@ def bright_mask(result: SimResult, scenario: Scenario) -> NDArray[np.bool_]:
     """(S, N) returns brighter than BRIGHT_FACTOR x the brightest Lambertian surface at their range (noise
     included): the retroreflector returns."""
     it = scenario.sensor.intensity
-    mats = scenario.scene.materials
-    rho = max([mats.painted_steel, mats.board] + [m.reflectivity for m in scenario.scene.meshes])
+    sc = scenario.scene
+    rho = max([sc.materials.painted_steel, sc.materials.board] + [m.reflectivity for m in sc.meshes]
+              + [b.reflectivity for b in sc.boxes] + ([sc.room.reflectivity] if sc.room is not None else []))
     r = result.ranges_m
     with np.errstate(invalid="ignore", divide="ignore"):
         surface = it.gain_counts * rho * (it.ref_range_m / r) ** 2 * (1 + 4 * it.relative_noise)
@@ -136,6 +137,9 @@ def marker_returns(result: SimResult, scenario: Scenario) -> IntArray:
     within radius + footprint + 2 mm of the marker centre, ahead of the scanner."""
     S, N = result.ranges_m.shape
     out = np.full((S, N), -1, dtype=np.int64)
+    radius_m = result.truth.marker_radius_m
+    if radius_m is None or len(result.truth.markers_W) == 0:
+        return out
     s_idx, b_idx = np.nonzero(bright_mask(result, scenario))
     if s_idx.size == 0:
         return out
@@ -149,7 +153,7 @@ def marker_returns(result: SimResult, scenario: Scenario) -> IntArray:
     v = C[None, :, :] - o_W[:, None, :]  # (K, n, 3)
     t = np.einsum("knc,kc->kn", v, d_W)
     perp = np.linalg.norm(v - t[..., None] * d_W[:, None, :], axis=-1)
-    reach = result.truth.marker_radius_m + 0.5 * scenario.sensor.divergence_rad * np.maximum(t, 0) + 0.002
+    reach = radius_m + 0.5 * scenario.sensor.divergence_rad * np.maximum(t, 0) + 0.002
     perp = np.where((t > 0) & (perp < reach), perp, np.inf)
     k = perp.argmin(1)
     ok = np.isfinite(perp[np.arange(len(k)), k])
@@ -215,7 +219,7 @@ def add_false_blobs(result: SimResult, scenario: Scenario, n: int) -> SimResult:
         if not np.all(np.isfinite(r)) or bright[ss, bb].any():
             continue
         p = points_W(r, result.beam_lambda_rad[ss, bb], result.mu_rad[bb], params)
-        if np.linalg.norm(p[:, None, :] - C[None], axis=-1).min() < FALSE_BLOB_CLEARANCE_M:
+        if len(C) and np.linalg.norm(p[:, None, :] - C[None], axis=-1).min() < FALSE_BLOB_CLEARANCE_M:
             continue
         level = it.gain_counts * rho * (it.ref_range_m / r) ** 2
         level = level * np.maximum(0.0, 1 + it.relative_noise * rng.standard_normal(r.size))

@@ -19,7 +19,7 @@ from rich.table import Table
 from lrfcal.types import CalibrationResult
 
 from .compare import Comparison, compare, load_truth
-from .scenario import Scenario, SensorConfig
+from .scenario import Scenario, SensorConfig, require_markers
 
 
 @dataclass(frozen=True)
@@ -57,6 +57,9 @@ def run_loop(
     from .simulate import simulate, write_recording
 
     out_dir = Path(out_dir)
+    # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
+    require_markers(scenario, "lrfsim run", "calibrates with markers and tape distances; a targetless calibration "
+                    "is not available yet")
     check_output(out_dir, overwrite)
     if spawn and (reason := spawn_unavailable_reason()) is not None:
         spawn = False

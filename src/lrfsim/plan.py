@@ -39,7 +39,7 @@ from lrfcal.solve import MotorClock, information_at
 from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
 from lrfcal.types import JointStates, Observations
 
-from .scenario import Scenario
+from .scenario import Scenario, require_markers
 
 FloatArray = NDArray[np.float64]
 
@@ -192,8 +192,10 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     ``surfaces`` adds the surface returns of stage 6b (as the calibration does by default).
 
     Raises:
+        InputError: a marker-less scenario.
         CalibrationError: fewer than 4 marker returns on fewer than 3 markers (nothing to predict from).
     """
+    require_markers(scenario, "lrfsim plan", "predicts from the marker returns")
     t0 = time.perf_counter()
     config = CalibConfig()
     obs, markers_W, params, motor, tau, result = marker_observations(scenario)
@@ -203,6 +205,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
         raise CalibrationError(f"plan {scenario.name}: {len(obs)} marker returns on {n_seen} markers seen by the "
                                "sweep; a calibration needs >= 4 returns on >= 3 markers")
     two_way = scenario.servo.passes >= 2
+    assert scenario.markers is not None  # require_markers above
     radius = float(scenario.markers.radius_m)
     on_planes, planes, source = None, None, SOURCE_MARKERS
     if surfaces and config.surfaces:
@@ -268,7 +271,7 @@ def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers
     labels[obs.scan, obs.beam] = obs.marker
     beam_times = result.scan_stamps_s[:, None] + np.arange(N)[None, :] * scenario.sensor.time_increment_s
     return observe_surfaces(result.ranges_m, result.mu_rad, result.beam_lambda_rad, labels, markers_W,
-                            float(scenario.markers.radius_m), params,
+                            float(scenario.marker_radius_m or 0.0), params,
                             position_sigma_m=max(scenario.tape.sigma_m, 0.0005),
                             max_returns=config.surface_max_returns, beam_times_s=beam_times)
 

@@ -2,8 +2,8 @@
 
     DIR/bag/            ROS 2 bag (rosbags.rosbag2.Writer, version 9, MCAP): /scan LaserScan, /joint_states JointState
                         (and, with sensor.echoes.enabled, /echoes MultiEchoLaserScan)
-    DIR/distances.csv   marker_i,marker_j,distance_m
-    DIR/nominal.yaml    the rig file: nominal DH and mount, marker radius, scan and servo sources
+    DIR/distances.csv   marker_i,marker_j,distance_m (not written for a marker-less scene: no tape distances)
+    DIR/nominal.yaml    the rig file: nominal DH and mount, marker radius (with markers), scan and servo sources
     DIR/ground_truth.yaml, DIR/scenario.yaml
 
 Stamps: the simulation's times (seconds from the start of the sweep) are offset by :data:`EPOCH_NS`
@@ -59,7 +59,8 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
     out = check_output(out_dir, overwrite).absolute()
     with atomic_folder(out, "lrfsim simulate") as tmp:
         write_bag(result, scenario, tmp / "bag")
-        (tmp / "distances.csv").write_text(distances_csv(result), encoding="utf-8")
+        if scenario.markers is not None:
+            (tmp / "distances.csv").write_text(distances_csv(result), encoding="utf-8")
         (tmp / "nominal.yaml").write_text(nominal_yaml(scenario, result.truth.marker_radius_m), encoding="utf-8")
         (tmp / "ground_truth.yaml").write_text(ground_truth_yaml(result), encoding="utf-8")
         (tmp / "scenario.yaml").write_text(dump_scenario(scenario), encoding="utf-8")
@@ -145,30 +146,32 @@ def _dump(data: dict[str, Any]) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
 
 
-def nominal_yaml(scenario: Scenario, marker_radius_m: float) -> str:
+def nominal_yaml(scenario: Scenario, marker_radius_m: float | None) -> str:
     """nominal.yaml (the rig file, docs/formats.md) from the scenario's design values (rig.nominal_dh,
-    rig.nominal_mount) and where this bag keeps the scans and the joint."""
+    rig.nominal_mount) and where this bag keeps the scans and the joint; ``marker_radius_m`` only with markers
+    (None: the key is left out)."""
     rig = scenario.rig
+    radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m)}
     return _dump({
         "dh": rig.nominal_dh.to_dh().as_dict(),
         "mount": rig.nominal_mount.to_pose().as_dict(),
-        "marker_radius_m": float(marker_radius_m),
+        **radius,
         "scan": {"topic": SCAN_TOPIC, "stamp": "header"},
         "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint_name, "unit": "rad", "stamp": "header"},
     })
 
 
 def ground_truth_yaml(result: SimResult) -> str:
-    """ground_truth.yaml: true DH and mount, marker centres, radius, clock offset, tunnel dimensions, and the
-    faults injected (lrfsim.faults; {} when none); ``systematic`` (lrfsim.simulate.systematic_truth) only when a
-    systematic range error is on."""
+    """ground_truth.yaml: true DH and mount, marker centres ({} without markers), radius (null without markers),
+    clock offset, tunnel dimensions, and the faults injected (lrfsim.faults; {} when none); ``systematic``
+    (lrfsim.simulate.systematic_truth) only when a systematic range error is on."""
     t = result.truth
     extra = {"systematic": t.systematic} if t.systematic else {}
     return _dump({
         "dh": t.dh.as_dict(),
         "mount": t.mount.as_dict(),
         "markers": {mid: [float(v) for v in p] for mid, p in zip(t.marker_ids, t.markers_W, strict=True)},
-        "marker_radius_m": float(t.marker_radius_m),
+        "marker_radius_m": None if t.marker_radius_m is None else float(t.marker_radius_m),
         "clock_offset_s": float(t.clock_offset_s),
         "tunnel": {k: float(v) for k, v in t.tunnel.items()} if t.tunnel is not None else None,
         "faults": result.faults,

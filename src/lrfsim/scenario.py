@@ -1,8 +1,8 @@
 """Scenario files: one pydantic model per section, ``extra="forbid"``, bounds on every number.
 
 A scenario fully determines a simulated recording (with its seed). Units are SI; angles in rad unless the
-field name says ``_deg``. Frames: W is the simulator world (the tunnel frame: x along the tunnel towards the
-plate, y to the left, z up, floor at z = 0, walls at y = +-width/2).
+field name says ``_deg``. Frames: W is the simulator world, z up, floor at z = 0 (for a tunnel: x along the
+tunnel towards the plate, y to the left, walls at y = +-width/2; a room is placed in W by its floor centre and yaw).
 """
 
 from __future__ import annotations
@@ -256,11 +256,39 @@ class MeshConfig(_Section):
     reflectivity: Annotated[float, _d("albedo (or gain) of the mesh [1]", ge=0, le=10000)] = 0.35
 
 
+class BoxConfig(_Section):
+    """A solid box: its centre and orientation ``pose`` in W and its edge lengths along its own x, y, z axes."""
+
+    pose: Annotated[PoseConfig, _d("pose of the box's centre in W")]
+    size_x_m: Annotated[float, _d("edge length along the box's local x [m]", gt=0, le=100)]
+    size_y_m: Annotated[float, _d("edge length along the box's local y [m]", gt=0, le=100)]
+    size_z_m: Annotated[float, _d("edge length along the box's local z [m]", gt=0, le=100)]
+    reflectivity: Annotated[float, _d("Lambertian albedo of its faces [1]", ge=0, le=1)] = 0.5
+
+
+class RoomConfig(_Section):
+    """A closed rectangular room (or, without ceiling, an open box) built from boxes: inner floor at z = 0, inner
+    size size_x_m x size_y_m x size_z_m centred on (center_x_m, center_y_m) and turned by ``yaw`` about z;
+    walls, floor and ceiling ``wall_thickness_m`` thick, outside the inner size."""
+
+    size_x_m: Annotated[float, _d("inner size along the room's x (x_W at yaw 0) [m]", gt=0, le=100)]
+    size_y_m: Annotated[float, _d("inner size along the room's y [m]", gt=0, le=100)]
+    size_z_m: Annotated[float, _d("inner height, floor to ceiling [m]", gt=0, le=100)]
+    center_x_m: Annotated[float, _d("x in W of the floor's centre [m]", ge=-100, le=100)] = 0.0
+    center_y_m: Annotated[float, _d("y in W of the floor's centre [m]", ge=-100, le=100)] = 0.0
+    yaw: Annotated[float, _d("rotation of the room about z_W [rad]", ge=-math.pi, le=math.pi)] = 0.0
+    wall_thickness_m: Annotated[float, _d("thickness of walls, floor and ceiling [m]", gt=0, le=10)] = 0.05
+    ceiling: Annotated[bool, _d("close the room with a ceiling (false: an open box)")] = True
+    reflectivity: Annotated[float, _d("Lambertian albedo of walls, floor and ceiling [1]", ge=0, le=1)] = 0.5
+
+
 class SceneConfig(_Section):
-    """What the laser sees: a tunnel and/or a board, extra meshes, the materials."""
+    """What the laser sees: a tunnel, a room, a board, boxes, extra meshes, the materials."""
 
     tunnel: Annotated[TunnelConfig | None, _d("a box-girder tunnel (none by default)")] = None
+    room: Annotated[RoomConfig | None, _d("a rectangular room (none by default)")] = None
     board: Annotated[BoardConfig | None, _d("a planar marker board (none by default)")] = None
+    boxes: Annotated[tuple[BoxConfig, ...], _d("solid boxes, e.g. furniture in a room")] = ()
     meshes: Annotated[tuple[MeshConfig, ...], _d("extra geometry")] = ()
     materials: Annotated[MaterialsConfig, _d("reflectivities")] = MaterialsConfig()
 
@@ -355,19 +383,32 @@ class Scenario(_Section):
     sensor: Annotated[SensorConfig, _d("the laser scanner")] = SensorConfig()
     servo: Annotated[ServoConfig, _d("the servo sweep and joint states")] = ServoConfig()
     scene: Annotated[SceneConfig, _d("what the laser sees")]
-    markers: Annotated[MarkersConfig, _d("the markers")]
-    tape: Annotated[TapeConfig, _d("the tape-measured marker distances")] = TapeConfig()
+    markers: Annotated[MarkersConfig | None, _d(
+        "the markers; none (omitted or null): a marker-less scene, written without distances.csv (targetless "
+        "calibration)")] = None
+    tape: Annotated[TapeConfig, _d("the tape-measured marker distances (unused without markers)")] = TapeConfig()
     tolerances: Annotated[Tolerances, _d("what lrfsim run requires of the recovery")] = Tolerances()
     faults: Annotated[FaultsConfig, _d("faults injected into the recording (lrfsim.faults); none by default")] = (
         FaultsConfig())
 
     @model_validator(mode="after")
     def _check(self) -> Scenario:
+        if self.markers is None:
+            if self.faults.tape_outliers:
+                raise ValueError("faults.tape_outliers needs markers (the scenario has none)")
+            if self.faults.occluded_markers:
+                raise ValueError("faults.occluded_markers needs markers (the scenario has none)")
+            return self
         if self.markers.layout.kind == "board" and self.scene.board is None:
             raise ValueError("markers.layout is 'board' but scene.board is missing")
         if self.markers.layout.kind == "v" and self.scene.tunnel is None:
             raise ValueError("markers.layout is 'v' but scene.tunnel is missing")
         return self
+
+    @property
+    def marker_radius_m(self) -> float | None:
+        """The markers' sphere radius [m]; None for a marker-less scene."""
+        return None if self.markers is None else self.markers.radius_m
 
 
 def _field_path(loc: tuple[int | str, ...]) -> str:
@@ -473,6 +514,14 @@ def check_resources(scenario: Scenario, source: str) -> None:
             f"{se.n_beams:,} beams x {BYTES_PER_BEAM} bytes; scan_period_s {se.scan_period_s:g}, servo.passes "
             f"{scenario.servo.passes}), more than the {limit / 2**30:.3g} GiB allowed: use fewer beams, passes or "
             "a longer scan_period_s")
+
+
+def require_markers(scenario: Scenario, command: str, reason: str) -> None:
+    """Refuse a marker-less scenario for ``command`` (e.g. "lrfsim plan"), which needs markers because of
+    ``reason``: InputError naming the scenario and the ``markers`` section."""
+    if scenario.markers is None:
+        raise InputError(f"{scenario.name}: markers: the scenario has no markers; {command} {reason} "
+                         "(`lrfsim simulate` writes its recording)")
 
 
 def with_changes(data: dict[str, Any], changes: dict[str, Any]) -> dict[str, Any]:

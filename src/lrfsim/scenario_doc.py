@@ -23,9 +23,10 @@ regenerate with `lrfsim schema --markdown > docs/scenario.md` -->
 
 A scenario is a YAML file that fully determines a simulated recording (with its `seed`). Units are SI, given in
 brackets: lengths in m, angles in rad (not degrees), times in s; [1] is a plain number. Every number must be
-finite. Unknown keys are refused (the nearest valid key is suggested). Frame W is the simulator world: x along the
-tunnel towards the plate, y to the left, z up, floor at z = 0. Examples: `scenarios/*.yaml`. The same format as
-JSON Schema: `lrfsim schema`.
+finite. Unknown keys are refused (the nearest valid key is suggested). Frame W is the simulator world: z up, floor
+at z = 0; in a tunnel x runs along the tunnel towards the plate and y to the left; a room sits in W by its floor
+centre and yaw. Without `markers` the scene is marker-less (no distances.csv is written: targetless calibration).
+Examples: `scenarios/*.yaml`. The same format as JSON Schema: `lrfsim schema`.
 
 Sections marked *required* have no default. A key whose default is *required* must be given.
 """

@@ -6,7 +6,7 @@ bodies ``M`` (mount, T_W_M), ``I`` (Tx(a)), ``I_prime`` (Rx(alpha)), ``L_star`` 
 
     T_W_L' = T_W_M  Rz(lambda) Tx(a) Rx(alpha) Tz(b) Rz(beta)     (site ``laser``; lambda: hinge ``servo``)
 
-The scene (tunnel boxes, board, meshes, marker spheres) is static: all its geoms are on the world body, in
+The scene (tunnel, room, board and box geoms, meshes, marker spheres) is static: all its geoms are on the world body, in
 geom groups 0 (surfaces) and 1 (markers), the only groups the lidar sees (:data:`LIDAR_GEOMGROUP`); the rig's
 geoms are in groups 2 (visual) and 3 (collision). Each geom's user data is [reflectivity, is_marker]:
 reflectivity is the Lambertian albedo of a surface, the retroreflector gain of a marker and 0 for the rig.
@@ -25,9 +25,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import beam_rays_M, rot_x, rot_z, transform_points
+from lrfcal.kinematics import beam_rays_M, homogeneous, rot_x, rot_z, transform_points
 
-from .scenario import BoardConfig, BoardLayout, MeshConfig, PointsLayout, Scenario, TunnelConfig, VLayout
+from .scenario import (
+    BoardConfig,
+    BoardLayout,
+    MeshConfig,
+    PointsLayout,
+    RoomConfig,
+    Scenario,
+    TunnelConfig,
+    VLayout,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -45,6 +54,8 @@ USER_REFLECTIVITY, USER_IS_MARKER = 0, 1
 _EPS_M = 1e-9  # geometric slack for "touching" (markers sit exactly one radius off a surface)
 _RGBA_STEEL = (0.55, 0.6, 0.62, 0.35)
 _RGBA_BOARD = (0.85, 0.85, 0.8, 1.0)
+_RGBA_ROOM = (0.8, 0.78, 0.72, 0.3)
+_RGBA_BOX = (0.7, 0.55, 0.35, 1.0)
 _RGBA_MESH = (0.6, 0.55, 0.5, 1.0)
 _RGBA_MARKER = (0.95, 0.95, 1.0, 1.0)
 
@@ -66,11 +77,23 @@ class Scene:
     geom_reflectivity: FloatArray  # (ngeom,) Lambertian albedo or retroreflector gain; 0 for rig geoms
     geom_is_marker: NDArray[np.bool_]  # (ngeom,)
     lidar_geomgroup: NDArray[np.uint8]  # (6,) geom groups the lidar sees
-    marker_ids: tuple[str, ...]  # ("m00", "m01", ...)
-    markers_W: FloatArray  # (n, 3) sphere centres in W [m]
-    marker_radius_m: float
+    marker_ids: tuple[str, ...]  # ("m00", "m01", ...); () without markers
+    markers_W: FloatArray  # (n, 3) sphere centres in W [m]; (0, 3) without markers
+    marker_radius_m: float | None  # None without markers
     marker_geom_ids: NDArray[np.int64]  # (n,) geom id of each marker, same order as marker_ids
     tunnel_truth: dict[str, float] | None  # width_m, height_m, plate_distance_m; None without a tunnel
+
+
+@dataclass(frozen=True, eq=False)
+class SceneBox:
+    """One box geom of the scene: its name, the pose T_W_B (4, 4) of its centre, half sizes (3,) along its own
+    axes [m], Lambertian albedo [1] and display colour (4,)."""
+
+    name: str
+    T_W_B: FloatArray
+    half_m: FloatArray
+    reflectivity: float
+    rgba: tuple[float, ...]
 
 
 # --- public API -------------------------------------------------------------------------------------------
@@ -85,25 +108,19 @@ def build_scene(scenario: Scenario) -> Scene:
     if tunnel is not None and tunnel.manhole is not None:
         _check_manhole(tunnel)
     markers_W = marker_centres_W(scenario)
-    radius_m = scenario.markers.radius_m
+    radius_m = scenario.marker_radius_m
     marker_ids = tuple(f"m{i:02d}" for i in range(len(markers_W)))
     _check_markers(scenario, markers_W, marker_ids)
-    if tunnel is not None:
-        _check_optical_centre(scenario, tunnel)
+    _check_optical_centre(scenario)
     meshes = [_load_mesh(m, f"scene.meshes[{i}]") for i, m in enumerate(scenario.scene.meshes)]
 
     spec = mujoco.MjSpec.from_file(str(RIG_XML))
     _set_rig(spec, scenario)
     world = spec.worldbody
     mats = scenario.scene.materials
-    if tunnel is not None:
-        for name, size, pos in _tunnel_boxes(tunnel):
-            _add_box(world, name, size, pos, np.eye(3), mats.painted_steel, _RGBA_STEEL)
-    if scenario.scene.board is not None:
-        board = scenario.scene.board
-        T = board.pose.to_pose().matrix()
-        size = (board.width_m / 2, board.height_m / 2, board.thickness_m / 2)
-        _add_box(world, "board", size, T[:3, 3], T[:3, :3], mats.board, _RGBA_BOARD)
+    for box in scene_boxes(scenario):
+        _add_box(world, box.name, tuple(box.half_m), box.T_W_B[:3, 3], box.T_W_B[:3, :3], box.reflectivity,
+                 box.rgba)
     for i, (cfg, (verts_W, faces)) in enumerate(zip(scenario.scene.meshes, meshes, strict=True)):
         mesh = spec.add_mesh(name=f"mesh{i}_asset")
         mesh.uservert = verts_W.ravel().tolist()
@@ -112,6 +129,7 @@ def build_scene(scenario: Scenario) -> Scene:
         geom = world.add_geom(name=f"mesh{i}", type=mujoco.mjtGeom.mjGEOM_MESH, meshname=f"mesh{i}_asset")
         _scene_geom(geom, cfg.reflectivity, _RGBA_MESH)
     for mid, c in zip(marker_ids, markers_W, strict=True):
+        assert radius_m is not None  # markers exist
         geom = world.add_geom(name=mid, type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[radius_m, 0, 0], pos=c)
         _scene_geom(geom, mats.retroreflector, _RGBA_MARKER, is_marker=True)
 
@@ -144,7 +162,7 @@ def build_scene(scenario: Scenario) -> Scene:
         lidar_geomgroup=LIDAR_GEOMGROUP.copy(),
         marker_ids=marker_ids,
         markers_W=markers_W,
-        marker_radius_m=float(radius_m),
+        marker_radius_m=None if radius_m is None else float(radius_m),
         marker_geom_ids=marker_geom_ids,
         tunnel_truth=tunnel_truth,
     )
@@ -172,7 +190,10 @@ def hinge_axis_W(scene: Scene) -> tuple[FloatArray, FloatArray]:
 
 
 def marker_centres_W(scenario: Scenario) -> FloatArray:
-    """The marker sphere centres in W of the scenario's layout, shape (n, 3), in marker-id order."""
+    """The marker sphere centres in W of the scenario's layout, shape (n, 3), in marker-id order ((0, 3) for a
+    marker-less scenario)."""
+    if scenario.markers is None:
+        return np.zeros((0, 3))
     layout = scenario.markers.layout
     r = scenario.markers.radius_m
     if isinstance(layout, VLayout):
@@ -270,15 +291,15 @@ def _box_distance(p: FloatArray, T_W_B: FloatArray, half: FloatArray) -> float:
 
 
 def _check_markers(scenario: Scenario, markers_W: FloatArray, ids: tuple[str, ...]) -> None:
+    if scenario.markers is None:
+        return
     r = scenario.markers.radius_m
-    tunnel = scenario.scene.tunnel
     board = scenario.scene.board
     layout = scenario.markers.layout
     for mid, p in zip(ids, markers_W, strict=True):
-        if tunnel is not None:
-            what = _tunnel_violation(p, r, tunnel)
-            if what is not None:
-                raise InputError(f"markers.layout: marker {mid} at {_fmt(p)} {what} (radius {r} m)")
+        what = _enclosure_violation(p, r, scenario) or _box_violation(p, r, scenario)
+        if what is not None:
+            raise InputError(f"markers.layout: marker {mid} at {_fmt(p)} {what} (radius {r} m)")
         if board is not None:
             T_W_B = board.pose.to_pose().matrix()
             half = np.array([board.width_m, board.height_m, board.thickness_m]) / 2
@@ -303,14 +324,59 @@ def _check_markers(scenario: Scenario, markers_W: FloatArray, ids: tuple[str, ..
             )
 
 
-def _check_optical_centre(scenario: Scenario, tunnel: TunnelConfig) -> None:
-    """The optical centre must stay inside the tunnel over the whole sweep (it circles the motor axis)."""
+def _room_violation(p: FloatArray, r: float, room: RoomConfig) -> str | None:
+    """Which surface of the room a sphere (centre p (3,) in W, radius r) crosses, or None if it is inside."""
+    T_W_R = room_pose_W(room)
+    q = T_W_R[:3, :3].T @ (p - T_W_R[:3, 3])
+    half = (room.size_x_m / 2, room.size_y_m / 2)
+    for k, axis in enumerate("xy"):
+        for sign, side in ((1.0, "+"), (-1.0, "-")):
+            if sign * q[k] + r > half[k] + _EPS_M:
+                return (f"intersects the {side}{axis} wall of scene.room" if sign * q[k] < half[k] else
+                        f"is outside scene.room (beyond its {side}{axis} wall)")
+    if q[2] - r < -_EPS_M:
+        return "intersects the floor of scene.room" if q[2] > 0 else "is below the floor of scene.room"
+    if q[2] + r > room.size_z_m + _EPS_M:
+        if not room.ceiling:
+            return "is above the walls of scene.room (open top)"
+        return ("intersects the ceiling of scene.room" if q[2] < room.size_z_m else
+                "is above the ceiling of scene.room")
+    return None
+
+
+def _enclosure_violation(p: FloatArray, r: float, scenario: Scenario) -> str | None:
+    """Which tunnel or room surface a sphere (centre p (3,) in W, radius r) crosses, or None."""
+    tunnel, room = scenario.scene.tunnel, scenario.scene.room
+    what = _tunnel_violation(p, r, tunnel) if tunnel is not None else None
+    if what is None and room is not None:
+        what = _room_violation(p, r, room)
+    return what
+
+
+def _box_violation(p: FloatArray, r: float, scenario: Scenario) -> str | None:
+    """Which of scene.boxes a sphere (centre p (3,) in W, radius r; r = 0: a point) enters, or None."""
+    for i, box in enumerate(scenario.scene.boxes):
+        T = box.pose.to_pose().matrix()
+        half = np.array([box.size_x_m, box.size_y_m, box.size_z_m]) / 2
+        d = _box_distance(p, T, half)
+        if r == 0.0 and d == 0.0:
+            return f"is inside scene.boxes[{i}]"
+        if r > 0.0 and d < r - _EPS_M:
+            return f"intersects scene.boxes[{i}]"
+    return None
+
+
+def _check_optical_centre(scenario: Scenario) -> None:
+    """The optical centre must stay inside the tunnel and the room, and outside every box, over the whole sweep
+    (it circles the motor axis)."""
+    if scenario.scene.tunnel is None and scenario.scene.room is None and not scenario.scene.boxes:
+        return
     servo = scenario.servo
     lam = np.linspace(min(servo.start_rad, servo.end_rad), max(servo.start_rad, servo.end_rad), 73)
     origins_M, _ = beam_rays_M(lam, np.zeros_like(lam), scenario.rig.dh.to_dh())
     origins_W = transform_points(scenario.rig.mount.to_pose().matrix(), origins_M)
     for lam_k, p in zip(lam, origins_W, strict=True):
-        what = _tunnel_violation(p, 0.0, tunnel)
+        what = _enclosure_violation(p, 0.0, scenario) or _box_violation(p, 0.0, scenario)
         if what is not None:
             raise InputError(
                 f"rig.mount: the laser's optical centre at {_fmt(p)} {what} (motor angle {lam_k:.3f} rad)"
@@ -320,6 +386,57 @@ def _check_optical_centre(scenario: Scenario, tunnel: TunnelConfig) -> None:
 # --- geometry ---------------------------------------------------------------------------------------------
 
 _Box = tuple[str, tuple[float, float, float], tuple[float, float, float]]  # name, half sizes, centre
+
+
+def room_pose_W(room: RoomConfig) -> FloatArray:
+    """T_W_R (4, 4) of the room frame R: origin at the centre of the inner floor, z up, x and y along the walls."""
+    T = np.eye(4)
+    T[:3, :3] = rot_z(room.yaw)
+    T[:3, 3] = (room.center_x_m, room.center_y_m, 0.0)
+    return T
+
+
+def _room_boxes(room: RoomConfig) -> list[_Box]:
+    """The room's boxes in the room frame: inner faces at x = +-size_x/2, y = +-size_y/2, z = 0 and z = size_z;
+    the walls along y cover the corners."""
+    t = room.wall_thickness_m
+    hx, hy, h = room.size_x_m / 2, room.size_y_m / 2, room.size_z_m
+    boxes: list[_Box] = [
+        ("room_floor", (hx + t, hy + t, t / 2), (0.0, 0.0, -t / 2)),
+        ("room_wall_px", (t / 2, hy + t, h / 2), (hx + t / 2, 0.0, h / 2)),
+        ("room_wall_nx", (t / 2, hy + t, h / 2), (-hx - t / 2, 0.0, h / 2)),
+        ("room_wall_py", (hx, t / 2, h / 2), (0.0, hy + t / 2, h / 2)),
+        ("room_wall_ny", (hx, t / 2, h / 2), (0.0, -hy - t / 2, h / 2)),
+    ]
+    if room.ceiling:
+        boxes.append(("room_ceiling", (hx + t, hy + t, t / 2), (0.0, 0.0, h + t / 2)))
+    return boxes
+
+
+def scene_boxes(scenario: Scenario) -> list[SceneBox]:
+    """Every box geom of the scene, in this order: the tunnel's (walls, floor, ceiling, plate), the room's (floor,
+    walls +x, -x, +y, -y, ceiling), the board, then ``scene.boxes`` (named box0, box1, ...)."""
+    scene, mats = scenario.scene, scenario.scene.materials
+    out: list[SceneBox] = []
+
+    def add(name: str, T: FloatArray, half: Any, rho: float, rgba: tuple[float, ...]) -> None:
+        out.append(SceneBox(name, T, np.asarray(half, dtype=float), float(rho), rgba))
+
+    if scene.tunnel is not None:
+        for name, half, pos in _tunnel_boxes(scene.tunnel):
+            add(name, homogeneous(np.eye(3), pos), half, mats.painted_steel, _RGBA_STEEL)
+    if scene.room is not None:
+        T_W_R = room_pose_W(scene.room)
+        for name, half, pos in _room_boxes(scene.room):
+            add(name, T_W_R @ homogeneous(np.eye(3), pos), half, scene.room.reflectivity, _RGBA_ROOM)
+    if scene.board is not None:
+        board = scene.board
+        add("board", board.pose.to_pose().matrix(), (board.width_m / 2, board.height_m / 2, board.thickness_m / 2),
+            mats.board, _RGBA_BOARD)
+    for i, box in enumerate(scene.boxes):
+        add(f"box{i}", box.pose.to_pose().matrix(), (box.size_x_m / 2, box.size_y_m / 2, box.size_z_m / 2),
+            box.reflectivity, _RGBA_BOX)
+    return out
 
 
 def _tunnel_boxes(tunnel: TunnelConfig) -> list[_Box]:
@@ -350,6 +467,29 @@ def _tunnel_boxes(tunnel: TunnelConfig) -> list[_Box]:
         ("plate_right", (t / 2, (y_lo + yo) / 2, mh.height_m / 2), (px, (y_lo - yo) / 2, mh.center_z_m)),
     ]
     return boxes
+
+
+def nearest_box_face(points_W: FloatArray, boxes: list[SceneBox]) -> tuple[FloatArray, NDArray[np.int64],
+                                                                          FloatArray]:
+    """For points (P, 3) in W, the nearest face of the given boxes (e.g. :func:`scene_boxes`): the distance to its
+    surface (P,) [m] (|signed distance| of the box, 0 on a face), the index (P,) of the box in ``boxes`` and the
+    face's outward unit normal (P, 3) in W. A return of the simulated lidar on a box surface has distance ~ 0."""
+    pts = np.asarray(points_W, dtype=float).reshape(-1, 3)
+    best = np.full(len(pts), np.inf)
+    index = np.full(len(pts), -1, dtype=np.int64)
+    normal = np.full((len(pts), 3), np.nan)
+    for i, box in enumerate(boxes):
+        R = box.T_W_B[:3, :3]
+        q = (pts - box.T_W_B[:3, 3]) @ R  # (P, 3) in the box frame
+        excess = np.abs(q) - box.half_m  # > 0 outside along that axis
+        outside = np.linalg.norm(np.maximum(excess, 0.0), axis=1)
+        dist = np.abs(outside + np.minimum(excess.max(axis=1), 0.0))
+        k = excess.argmax(axis=1)
+        sign = np.sign(q[np.arange(len(pts)), k])
+        closer = dist < best
+        best[closer], index[closer] = dist[closer], i
+        normal[closer] = R[:, k[closer]].T * np.where(sign[closer] == 0, 1.0, sign[closer])[:, None]
+    return best, index, normal
 
 
 def _load_mesh(cfg: MeshConfig, where: str) -> tuple[FloatArray, NDArray[np.int64]]:
@@ -419,6 +559,6 @@ def _add_box(world: Any, name: str, half: tuple[float, ...], pos: Any, R: FloatA
 
 
 __all__ = [
-    "LIDAR_GEOMGROUP", "MODELS_DIR", "RIG_XML", "Scene", "build_scene", "hinge_axis_W", "laser_pose_W",
-    "marker_centres_W",
+    "LIDAR_GEOMGROUP", "MODELS_DIR", "RIG_XML", "Scene", "SceneBox", "build_scene", "hinge_axis_W", "laser_pose_W",
+    "marker_centres_W", "nearest_box_face", "room_pose_W", "scene_boxes",
 ]

@@ -36,14 +36,15 @@ _RNG_PHASE, _RNG_SENSOR, _RNG_TAPE = 0x70686173, 0x6E6F6973, 0x74617065
 @dataclass(frozen=True)
 class SimTruth:
     """The ground truth of a recording (ground_truth.yaml): true DH and mount T_W_M, marker centres (n, 3)
-    in W, marker radius, clock offset (laser - servo), the tunnel's dimensions (or None) and the systematic range
-    errors switched on (:func:`systematic_truth`; None when all are off)."""
+    in W ((0, 3) without markers), marker radius (None without markers), clock offset (laser - servo), the
+    tunnel's dimensions (or None) and the systematic range errors switched on (:func:`systematic_truth`; None
+    when all are off)."""
 
     dh: DH
     mount: Pose
     marker_ids: tuple[str, ...]
     markers_W: FloatArray
-    marker_radius_m: float
+    marker_radius_m: float | None
     clock_offset_s: float
     tunnel: dict[str, float] | None
     systematic: dict[str, float] | None = None
@@ -180,7 +181,7 @@ def simulate_from_geometry(scenario: Scenario, geometry: Geometry, *, noise: boo
                         np.random.default_rng([scenario.seed, _RNG_TAPE]))
     truth = SimTruth(dh=scenario.rig.dh.to_dh(), mount=scenario.rig.mount.to_pose(),
                      marker_ids=tuple(scene.marker_ids), markers_W=np.array(scene.markers_W, dtype=float),
-                     marker_radius_m=float(scene.marker_radius_m), clock_offset_s=servo.clock_offset_s,
+                     marker_radius_m=scene.marker_radius_m, clock_offset_s=servo.clock_offset_s,
                      tunnel=dict(scene.tunnel_truth) if scene.tunnel_truth is not None else None,
                      systematic=systematic_truth(sensor))
     stats = SimStats(n_rays=lid.n_rays, n_calls=lid.n_calls, cast_time_s=lid.cast_time_s,

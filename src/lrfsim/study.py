@@ -45,7 +45,7 @@ from lrfcal.kinematics import DH_NAMES
 from lrfcal.output import atomic_folder, check_replaceable
 
 from .plan import Plan, format_value, plan
-from .scenario import Scenario, parse_scenario
+from .scenario import Scenario, parse_scenario, require_markers
 
 FloatArray = NDArray[np.float64]
 
@@ -290,6 +290,9 @@ def study(
 ) -> Study:
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
     value of one field (the same seeds for every value)."""
+    # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
+    require_markers(scenario, "lrfsim study", "calibrates with markers and tape distances; a targetless "
+                    "calibration is not available yet")
     t0 = time.perf_counter()
     variants: list[tuple[str, Scenario]] = [("", scenario)]
     if vary is not None:
