@@ -80,9 +80,12 @@ def calibrate_folder(
 
         nom = read_nominal(nominal if nominal is not None else Path(recording_dir) / "nominal.yaml")
         scan, servo = with_overrides(nom.scan, nom.servo, **options)
-    recording = read_recording(recording_dir, bag=bag, distances=distances, nominal=nominal, scan=scan,
-                               servo=servo, warn=warn)
-    if recording.tape is not None:
+    # without tape distances (no distances.csv and none given) the calibration is targetless (lrfcal.targetless)
+    tape_path = inputs["distances"]
+    want_tape = not config.targetless and (distances is not None or (tape_path is not None and tape_path.exists()))
+    recording = read_recording(recording_dir, bag=bag, distances=distances if want_tape else None, nominal=nominal,
+                               scan=scan, servo=servo, warn=warn, require_distances=want_tape)
+    if recording.tape is not None and want_tape:
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     result = calibrate(recording, config, progress=progress)
     truth_values = None if truth is None else output.truth_dict(truth)

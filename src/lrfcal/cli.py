@@ -62,13 +62,17 @@ def calibrate_cmd(
     force: Annotated[bool, typer.Option("--force", help="Write the result even when a consistency check fails "
                                         "(the failed checks are recorded in calibration.yaml and the report).")
                      ] = False,
+    targetless: Annotated[bool, typer.Option(
+        "--targetless", help="Calibrate from the flatness of the scene's planes, without markers (also chosen when "
+        "there are no tape distances); the DH parameters the scene does not determine are held and named.")
+                          ] = False,
     scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
     servo_stamp: ServoStampOpt = None, tf_parent: TfParentOpt = None, tf_child: TfChildOpt = None,
     tf_axis: TfAxisOpt = None,
 ) -> None:
-    """Calibrate the rig from RECORDING.
+    """Calibrate the rig from RECORDING (markers and tape distances, or --targetless: the scene's planes).
 
     Writes calibration.yaml, rig.urdf, the clouds before/after, report.md and its figures into DIR. Exit code 3
     (nothing written) when the data do not support a trustworthy calibration: the one line names the check.
@@ -80,7 +84,7 @@ def calibrate_cmd(
 
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
-                         force=force, estimate_range_bias=not no_range_bias)
+                         force=force, estimate_range_bias=not no_range_bias, targetless=True if targetless else None)
     options = {k: v for k, v in dict(
         scan_topic=scan_topic, scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic,
         servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,
@@ -134,15 +138,23 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
         i = ESTIMATE_NAMES.index(name) if name in ESTIMATE_NAMES else -1
         return shown(name, sigma[i]) if 0 <= i < len(sigma) else "-"
 
+    targetless = result.markers is None
+    held_dh = result.plane_fit.held if targetless else ()
     for i, n in enumerate(PARAM_NAMES):
+        if targetless and i < 6:
+            continue  # no world frame: the mount is not estimated
         unit = "deg" if n in ANGLE_NAMES else "mm"
-        table.add_row(f"{n} ({unit})", shown(n, start[i]), shown(n, est[i]), sigma_of(n),
-                      "-" if paper is None else shown(n, paper[i]))
+        table.add_row(f"{n} ({unit})", shown(n, start[i]), shown(n, est[i]) + (" (held)" if n in held_dh else ""),
+                      sigma_of(n), "-" if paper is None else shown(n, paper[i]))
     for n in ESTIMATE_NAMES:
-        if n not in PARAM_NAMES:  # rx, ry, rz: the rotation's uncertainty about M's axes
+        if n not in PARAM_NAMES and not targetless:  # rx, ry, rz: the rotation's uncertainty about M's axes
             table.add_row(f"{n} (deg)", "", "", sigma_of(n), "")
     console.print(table)
-    console.print("rx, ry, rz: 1-sigma of the mount rotation about the motor frame's x, y, z axes", markup=False)
+    if targetless:
+        console.print("targetless: DH parameters from the scene's planes; the mount pose is not estimated (no world "
+                      "frame without markers)", markup=False)
+    else:
+        console.print("rx, ry, rz: 1-sigma of the mount rotation about the motor frame's x, y, z axes", markup=False)
     console.print(f"solver: {' '.join(str(sol.status).split())} ({sol.n_iterations} iterations)",
                   markup=False)
     console.print(f"{residual_summary(result)}; stages: "

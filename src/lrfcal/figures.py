@@ -384,6 +384,33 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
         return _save(fig, path)
 
 
+def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
+    """A targetless calibration's figure: each plane's thickness (RMS distance of its returns from their best-fit
+    plane) with the nominal and with the calibrated DH parameters (left), and the calibrated cloud seen along the
+    motor axis (right, frame M). Returns the written path."""
+    fit = result.plane_fit
+    with _rc():
+        fig = _new_figure()
+        ax, ax2 = fig.subplots(1, 2, width_ratios=(1.2, 1.0))
+        k = np.arange(len(fit.planes))
+        ax.bar(k - 0.2, np.asarray(fit.rms_before_m) * 1e3, width=0.4, color=_C_BEFORE, label="nominal DH")
+        ax.bar(k + 0.2, np.asarray(fit.rms_after_m) * 1e3, width=0.4, color=_C_AFTER, label="calibrated DH")
+        ax.set_xticks(k, [f"{i}\n{int(n)} ret." for i, n in zip(k, fit.n_returns, strict=True)])
+        ax.set_xlabel("plane of the scene")
+        ax.set_ylabel("thickness: RMS distance from the plane [mm]")
+        ax.set_title("Flatness of the scene's planes, before and after")
+        ax.legend()
+        cloud = np.asarray(result.cloud_after_M, dtype=float).reshape(-1, 3)
+        cloud = cloud[np.isfinite(cloud).all(1)]
+        cloud = cloud[:: max(1, cloud.shape[0] // 200_000)]
+        ax2.scatter(cloud[:, 0], cloud[:, 1], s=0.2, c="0.3", rasterized=True)
+        ax2.set_aspect("equal")
+        ax2.set_xlabel("x_M [m]")
+        ax2.set_ylabel("y_M [m]")
+        ax2.set_title("Calibrated cloud along the motor axis (frame M)")
+        return _save(fig, path)
+
+
 def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params | None = None,
                   before_label: str = "nominal DH, fitted mount") -> dict[str, Path]:
     """Write intensity.png, alignment.png and residuals.png into out_dir; returns {name: path}.
@@ -394,6 +421,8 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
     :func:`lrfcal.app.calibrate_folder`).
     """
     out = Path(out_dir)
+    if result.method == "targetless":
+        return {"flatness": flatness_figure(result, out / "flatness.png")}
     return {
         "intensity": intensity_figure(result, out / "intensity.png"),
         "alignment": alignment_figure(result, out / "alignment.png", before, before_label),
@@ -401,5 +430,5 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
     }
 
 
-__all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "alignment_figure", "intensity_figure", "residual_figure",
+__all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "alignment_figure", "flatness_figure", "intensity_figure", "residual_figure",
            "write_figures"]

@@ -111,6 +111,7 @@ def _geometry_dict(g: TunnelGeometry | None) -> dict[str, Any] | None:
 
 
 def _marker_counts(result: CalibrationResult) -> FloatArray:
+    assert result.markers is not None and result.observations is not None
     n = len(result.markers.marker_ids)
     m = np.asarray(result.observations.marker, dtype=np.int64)
     return np.bincount(m[m >= 0], minlength=n)[:n]
@@ -121,14 +122,56 @@ def _marker_counts(result: CalibrationResult) -> FloatArray:
 def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
     """The content of calibration.yaml (plain Python types; NaN -> None)."""
     sol = result.solution
-    ids = result.markers.marker_ids
-    counts = _marker_counts(result)
-    per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
     out: dict[str, Any] = {
         "format_version": FORMAT_VERSION,
+        "method": result.method,
         "units": "m, rad; frames: W marker frame (tape distances), M motor frame; T_W_M = mount",
         **_solution_dict(sol),
         "n_iterations": int(sol.n_iterations),
+    }
+    out.update(_marker_dict(result) if result.method == "markers" else _targetless_dict(result))
+    out.update({
+        "checks": [{"name": c.name, "passed": bool(c.passed), "detail": c.detail} for c in result.checks],
+        "notes": list(result.notes),
+        "servo_sign": int(result.servo_sign),
+        "start": {k: float(v) for k, v in result.start.as_dict().items()},
+        "baseline": None,
+        "tunnel": {"before": _geometry_dict(result.geometry_before), "after": _geometry_dict(result.geometry_after)},
+        "timings_s": {str(k): _f(v) for k, v in result.timings_s.items()},
+    })
+    if result.baseline is not None:
+        out["baseline"] = {
+            "method": "seed paper: blob peaks only, one motor angle per scan",
+            **_solution_dict(result.baseline),
+        }
+    return out
+
+
+def _targetless_dict(result: CalibrationResult) -> dict[str, Any]:
+    """A targetless calibration's own keys: no world frame (mount null), the parameters held at nominal, and the
+    scene's planes with their thickness before and after."""
+    fit = result.plane_fit
+    return {
+        "units": "m, rad; frame M (motor frame): without markers there is no world frame",
+        "mount": None,
+        "mount_rotation_sigma_rad": None,
+        "held_at_nominal": list(fit.held),
+        "planes": [
+            {"normal_M": [float(v) for v in p.normal], "offset_m": float(p.offset_m), "n_returns": int(n),
+             "thickness_rms_m": {"before": _f(b), "after": _f(a)}}
+            for p, n, b, a in zip(fit.planes, fit.n_returns, fit.rms_before_m, fit.rms_after_m, strict=True)
+        ],
+    }
+
+
+def _marker_dict(result: CalibrationResult) -> dict[str, Any]:
+    """A marker calibration's own keys: markers used, the marker map, the association, the marker surfaces."""
+    assert result.markers is not None and result.detections is not None and result.association is not None
+    sol = result.solution
+    ids = result.markers.marker_ids
+    counts = _marker_counts(result)
+    per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
+    return {
         "markers": {
             "used": [ids[i] for i in range(len(ids)) if counts[i] > 0],
             "unused": [ids[i] for i in range(len(ids)) if counts[i] == 0],
@@ -161,21 +204,8 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
             }
             for k, srf in enumerate(result.surfaces)
         ],
-        "checks": [{"name": c.name, "passed": bool(c.passed), "detail": c.detail} for c in result.checks],
-        "notes": list(result.notes),
-        "servo_sign": int(result.servo_sign),
         "detection_threshold": _f(result.detections.threshold),
-        "start": {k: float(v) for k, v in result.start.as_dict().items()},
-        "baseline": None,
-        "tunnel": {"before": _geometry_dict(result.geometry_before), "after": _geometry_dict(result.geometry_after)},
-        "timings_s": {str(k): _f(v) for k, v in result.timings_s.items()},
     }
-    if result.baseline is not None:
-        out["baseline"] = {
-            "method": "seed paper: blob peaks only, one motor angle per scan",
-            **_solution_dict(result.baseline),
-        }
-    return out
 
 
 # --- rig.urdf -------------------------------------------------------------------------------------------------
@@ -308,6 +338,8 @@ def truth_frame(result: CalibrationResult, truth: dict[str, Any], gate_m: float 
     those pairs gives T_W_sim. Falls back to :func:`align_truth_frame` (by marker id) when the returns do not
     land on true markers (e.g. a calibration that took the wrong servo direction under --force).
     """
+    if result.markers is None or result.observations is None:  # targetless: no marker frame W
+        return None
     from .kinematics import points_M, transform_points
 
     markers = truth.get("markers") or {}
@@ -348,6 +380,8 @@ def _truth_params(result: CalibrationResult, truth: dict[str, Any]) -> tuple[dic
     mount = truth.get("mount")
     if mount is None:
         return out, ""
+    if result.method != "markers":
+        return out, "Mount truth not shown: a targetless calibration has no world frame (the mount is not estimated)."
     fit = truth_frame(result, truth)
     if fit is None:
         return out, "Mount truth not shown: the simulator frame could not be aligned to the marker frame W."
@@ -375,9 +409,56 @@ def _angle_err(n: str, est: float, ref: float) -> float:
 def residual_summary(result: CalibrationResult) -> str:
     """One line, the same in the terminal and the report: residual RMS over the marker returns and markers used."""
     sol = result.solution
+    if result.markers is None:
+        return (f"plane residual RMS {sol.residual_rms_m * 1000:.2f} mm over {sol.n_surface_returns} returns on "
+                f"{len(result.plane_fit.planes)} planes of the scene (targetless)")
     n_markers = int((_marker_counts(result) > 0).sum())
     return (f"residual RMS {sol.residual_rms_m * 1000:.2f} mm over {sol.n_observations} marker returns on "
             f"{n_markers} of {len(result.markers.marker_ids)} markers")
+
+
+def _marker_lines(result: CalibrationResult) -> list[str]:
+    """The report's summary lines on the markers, blobs and tape."""
+    assert result.markers is not None and result.detections is not None and result.association is not None
+    counts = _marker_counts(result)
+    ids = result.markers.marker_ids
+    lines = [
+        f"- markers used: {int((counts > 0).sum())} of {len(ids)} "
+        f"({', '.join(i for i, c in zip(ids, counts, strict=True) if c > 0) or 'none'})",
+        f"- blobs detected: {len(result.detections.blobs)}, matched to markers: {result.association.n_matched}"
+        f"{' (marker map mirrored)' if result.association.mirrored else ''}",
+        f"- marker map from the tape: RMS {result.markers.rms_m * 1000:.2f} mm, stress {result.markers.stress:.2g}"
+        f"{', coplanar layout' if result.markers.coplanar else ''}",
+    ]
+    for p in result.markers.dropped_pairs:
+        lines.append(f"- tape pair {p.id_i}-{p.id_j} dropped: measured {p.measured_m:.3f} m, the other pairs put it "
+                     f"at {p.predicted_m:.3f} m ({p.error_m * 1000:+.0f} mm); re-measure it")
+    return lines
+
+
+def _per_marker_lines(result: CalibrationResult) -> list[str]:
+    assert result.markers is not None
+    counts = _marker_counts(result)
+    lines = ["", "## Per-marker residuals", "", "| marker | returns | RMS [mm] |", "|---|---|---|"]
+    per = np.asarray(result.solution.per_marker_rms_m, dtype=float).reshape(-1)
+    for i, mid in enumerate(result.markers.marker_ids):
+        v = per[i] if i < per.size else float("nan")
+        lines.append(f"| {mid} | {int(counts[i])} | {f'{v * 1000:.2f}' if math.isfinite(v) else '-'} |")
+    return lines
+
+
+def _plane_lines(result: CalibrationResult) -> list[str]:
+    """The scene's planes and their thickness (RMS distance of their returns from their best-fit plane) with
+    the nominal and with the calibrated DH parameters."""
+    fit = result.plane_fit
+    lines = ["", "## The scene's planes (frame M)", "",
+             "| plane | normal | offset [m] | returns | thickness before [mm] | after [mm] |",
+             "|---|---|---|---|---|---|"]
+    for k, (p, n, b, a) in enumerate(zip(fit.planes, fit.n_returns, fit.rms_before_m, fit.rms_after_m,
+                                         strict=True)):
+        lines.append(f"| {k} | ({p.normal[0]:+.3f}, {p.normal[1]:+.3f}, {p.normal[2]:+.3f}) | {p.offset_m:.3f} | "
+                     f"{int(n)} | {b * 1000:.2f} | {a * 1000:.2f} |")
+    return lines
 
 
 def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None) -> str:
@@ -389,22 +470,15 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     start = result.start.as_dict()
     base = result.baseline.params.as_dict() if result.baseline is not None else None
     tp, truth_note = _truth_params(result, truth) if truth is not None else (None, "")
-    counts = _marker_counts(result)
-    ids = result.markers.marker_ids
-    lines = ["# Rotating LRF calibration", ""]
-    lines += [
-        f"- status: {sol.status} ({sol.n_iterations} iterations)",
-        f"- {residual_summary(result)}",
-        f"- markers used: {int((counts > 0).sum())} of {len(ids)} "
-        f"({', '.join(i for i, c in zip(ids, counts, strict=True) if c > 0) or 'none'})",
-        f"- blobs detected: {len(result.detections.blobs)}, matched to markers: {result.association.n_matched}"
-        f"{' (marker map mirrored)' if result.association.mirrored else ''}",
-        f"- marker map from the tape: RMS {result.markers.rms_m * 1000:.2f} mm, stress {result.markers.stress:.2g}"
-        f"{', coplanar layout' if result.markers.coplanar else ''}",
-    ]
-    for p in result.markers.dropped_pairs:
-        lines.append(f"- tape pair {p.id_i}-{p.id_j} dropped: measured {p.measured_m:.3f} m, the other pairs put it "
-                     f"at {p.predicted_m:.3f} m ({p.error_m * 1000:+.0f} mm); re-measure it")
+    targetless = result.markers is None
+    lines = ["# Rotating LRF calibration" + (" (targetless: the scene's planes, no markers)" if targetless else ""),
+             "", f"- status: {sol.status} ({sol.n_iterations} iterations)", f"- {residual_summary(result)}"]
+    if targetless:
+        fit = result.plane_fit
+        if fit.held:
+            lines.append(f"- held at the nominal value (the scene does not determine them): {', '.join(fit.held)}")
+    else:
+        lines += _marker_lines(result)
     if result.baseline is not None:
         lines.append(f"- baseline (paper method) residual RMS: {result.baseline.residual_rms_m * 1000:.2f} mm "
                      f"over {result.baseline.n_observations} returns")
@@ -415,8 +489,10 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     if tp is not None:
         head += ["truth", "error"] + (["baseline error"] if base is not None else [])
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for n in PARAM_NAMES:
-        row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]), _disp(n, param_sigma(sol, n))]
+    for n in DH_NAMES if targetless else PARAM_NAMES:
+        held = targetless and n in result.plane_fit.held
+        row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]) + (" (held)" if held else ""),
+               _disp(n, param_sigma(sol, n))]
         if base is not None:
             row.append(_disp(n, base[n]))
         if tp is not None:
@@ -426,10 +502,15 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
                 row.append(_disp(n, None if t is None else _angle_err(n, base[n], t)))
         lines.append("| " + " | ".join(row) + " |")
     rot = [param_sigma(sol, n) for n in ("rx", "ry", "rz")]
-    lines += ["", "The mount's rotation is estimated on SO(3): its 1-sigma is that of a small rotation vector in "
-              "frame M, (rx, ry, rz) = (" + ", ".join(_disp("rx", v) for v in rot) + ") deg; roll, pitch and yaw "
-              "are the same rotation written as URDF angles (no sigma: theirs would come from the Euler angles' "
-              "singularity)."]
+    if not targetless:
+        lines += ["", "The mount's rotation is estimated on SO(3): its 1-sigma is that of a small rotation vector in "
+                  "frame M, (rx, ry, rz) = (" + ", ".join(_disp("rx", v) for v in rot) + ") deg; roll, pitch and "
+                  "yaw are the same rotation written as URDF angles (no sigma: theirs would come from the Euler "
+                  "angles' singularity)."]
+    else:
+        lines.append("")
+    if targetless:
+        lines.append("Without markers there is no world frame: the mount pose is not estimated.")
     if math.isfinite(sol.clock_offset_sigma_s):
         lines.append(f"Clock offset (laser stamp - servo stamp): {sol.clock_offset_s * 1000:+.2f} ms, 1-sigma "
                      f"{sol.clock_offset_sigma_s * 1000:.2f} ms (estimated).")
@@ -449,11 +530,7 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     if result.notes:
         lines += ["", "## Notes", ""] + [f"- {n}" for n in result.notes]
 
-    lines += ["", "## Per-marker residuals", "", "| marker | returns | RMS [mm] |", "|---|---|---|"]
-    per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
-    for i, mid in enumerate(ids):
-        v = per[i] if i < per.size else float("nan")
-        lines.append(f"| {mid} | {int(counts[i])} | {f'{v * 1000:.2f}' if math.isfinite(v) else '-'} |")
+    lines += _plane_lines(result) if targetless else _per_marker_lines(result)
 
     g0, g1 = result.geometry_before, result.geometry_after
     if g0 is not None or g1 is not None or (truth is not None and truth.get("tunnel")):

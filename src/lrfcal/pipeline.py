@@ -59,6 +59,12 @@ class CalibConfig:
     #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
     #: direction apart (a, b [m], alpha, beta [rad])
     nominal_tolerance: tuple[float, float, float, float] = (0.010, math.radians(5.0), 0.010, math.radians(5.0))
+    #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances
+    targetless: bool | None = None
+    plane_returns: int = 120000  # targetless: an even subsample of the returns, for speed
+    #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
+    #: spreads along the plane and the range reads short)
+    max_incidence_rad: float = math.radians(65.0)
 
 
 @dataclass(frozen=True)
@@ -98,6 +104,13 @@ def calibrate(
     unless ``config.force``, which records the failed checks in the result instead.
     """
     config = config or CalibConfig()
+    if config.targetless or (config.targetless is None and recording.tape is None):
+        from .targetless import calibrate_targetless
+
+        return calibrate_targetless(recording, config, progress)
+    if recording.tape is None:
+        raise InputError("calibration with markers needs the tape distances (distances.csv); without markers, "
+                         "calibrate targetless (--targetless)")
     clock = _Stopwatch(progress)
     notes: list[str] = []
     nominal = recording.nominal
@@ -108,19 +121,7 @@ def calibrate(
     markers = mds.marker_map(recording.tape)  # 1.
     clock.lap("mds")
 
-    joints, n_spikes = timing.remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
-    if n_spikes:
-        notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
-    covered = timing.covered_scans(recording.scans, joints, tau0)
-    if not covered.any():
-        raise CalibrationError(
-            f"no scan lies within the joint states' time span at clock offset {tau0:+.3f} s (laser "
-            f"{recording.scans.stamps_s[0]:.3f}-{recording.scans.stamps_s[-1]:.3f} s, servo {joints.stamps_s[0]:.3f}-"
-            f"{joints.stamps_s[-1]:.3f} s): pass the offset with --clock-offset"
-        )
-    scans = _subset_scans(recording.scans, covered)
-    if not covered.all():
-        notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
+    scans, joints = usable_scans(recording, tau0, notes)
 
     detections = detection.detect(scans)  # 2.
     if not detections.blobs:
@@ -248,6 +249,29 @@ def calibrate(
         notes=tuple(notes),
         servo_sign=chosen.sign,
     )
+
+
+def usable_scans(recording: Recording, tau0: float, notes: list[str]) -> tuple[Scans, JointStates]:
+    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0`` (what was
+    dropped is appended to ``notes``).
+
+    Raises:
+        CalibrationError: no scan lies within the joint states' time span.
+    """
+    joints, n_spikes = timing.remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
+    if n_spikes:
+        notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
+    covered = timing.covered_scans(recording.scans, joints, tau0)
+    if not covered.any():
+        raise CalibrationError(
+            f"no scan lies within the joint states' time span at clock offset {tau0:+.3f} s (laser "
+            f"{recording.scans.stamps_s[0]:.3f}-{recording.scans.stamps_s[-1]:.3f} s, servo {joints.stamps_s[0]:.3f}-"
+            f"{joints.stamps_s[-1]:.3f} s): pass the offset with --clock-offset"
+        )
+    scans = _subset_scans(recording.scans, covered)
+    if not covered.all():
+        notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
+    return scans, joints
 
 
 def _marker_solution(
@@ -531,11 +555,13 @@ def _replace(obs: Observations, **arrays: np.ndarray) -> Observations:
 class _Stopwatch:
     """Times the stages; tells ``progress`` which stage comes next (the names in :data:`STAGES`)."""
 
-    def __init__(self, progress: Callable[[str], None] | None = None) -> None:
+    def __init__(self, progress: Callable[[str], None] | None = None, stages: tuple[str, ...] | None = None
+                 ) -> None:
+        self.stages = STAGES if stages is None else stages
         self.laps: dict[str, float] = {}
         self._t = time.perf_counter()
         self._progress = progress
-        self._say(STAGES[0])
+        self._say(self.stages[0])
 
     def _say(self, stage: str) -> None:
         if self._progress is not None:
@@ -545,8 +571,8 @@ class _Stopwatch:
         now = time.perf_counter()
         self.laps[name] = now - self._t
         self._t = now
-        if name in STAGES and STAGES.index(name) + 1 < len(STAGES):
-            self._say(STAGES[STAGES.index(name) + 1])
+        if name in self.stages and self.stages.index(name) + 1 < len(self.stages):
+            self._say(self.stages[self.stages.index(name) + 1])
 
 
 #: The stages in the order they run, as reported to ``progress`` and in CalibrationResult.timings_s.

@@ -293,6 +293,7 @@ class _Problem:
     surf: _Surf | None = None
     times: FloatArray | None = None  # (K,) laser-clock beam times
     clock: MotorClock | None = None  # set when the clock offset is estimated
+    dh_prior: tuple[FloatArray, FloatArray] | None = None  # (mean (4,), sigma (4,)) of a, alpha, b, beta
 
     @property
     def sigma_lat(self) -> float:
@@ -323,6 +324,14 @@ class _Problem:
             rp = (th[N_CORE:] - self.surf.prior_mean) / self.surf.prior_sigma
             Jp = np.zeros((rp.size, n_par))
             Jp[:, N_CORE:] = np.diag(1.0 / self.surf.prior_sigma)
+        if self.dh_prior is not None:  # the design drawing's word on the DH parameters
+            mean, sig = self.dh_prior
+            d = th[6:10] - mean
+            d[[1, 3]] = wrap_pi(d[[1, 3]])
+            rp = np.concatenate([rp, d / sig])
+            Jd = np.zeros((4, n_par))
+            Jd[:, 6:10] = np.diag(1.0 / sig)
+            Jp = np.vstack([Jp, Jd])
         if J_m is None or Js is None:
             return np.concatenate([res_v, rs, rp]), None
         return np.concatenate([res_v, rs, rp]), np.vstack([J_m, Js, Jp])
@@ -522,6 +531,47 @@ def _inflate_for_correlation(cov: FloatArray, J: FloatArray, res: FloatArray, cl
     return cov * np.outer(scale, scale)
 
 
+def _uncertainty(pb: _Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
+                 cluster: NDArray[np.int64]) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str]:
+    """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
+    scan (``cluster`` (rows,): the scan of each residual row), with ``n_rows`` independent residuals.
+
+    Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
+    singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2 and
+    the rank in words."""
+    res, J_all = pb.stacked(th, R_ref)
+    assert J_all is not None
+    idx = np.flatnonzero(free)
+    J = J_all[:, idx]
+    n_par = idx.size
+    s2 = float(res @ res / max(n_rows - n_par, 1))
+    col = np.linalg.norm(J, axis=0)
+    col[col == 0] = 1.0
+    Js = J / col  # column-scaled: the covariance is computed in these units, then scaled back
+    sv = np.linalg.svd(Js, compute_uv=False)
+    rank = int(np.sum(sv > sv[0] * 1e-12))  # only numerically null directions count as rank loss
+    JtJ_s = Js.T @ Js
+    core_pos = [i for i, k in enumerate(idx) if k < N_CORE]  # positions of the free core unknowns in idx
+    core_names = tuple(CORE_NAMES[idx[i]] for i in core_pos)
+    info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
+    if rank < n_par:
+        cov = s2 * np.linalg.pinv(JtJ_s, rcond=1e-15) / np.outer(col, col)
+        info = _schur(J.T @ J * info_scale, core_pos)
+        rank_txt = f"rank deficient ({rank}/{n_par})"
+    else:
+        JtJ_inv = np.linalg.inv(JtJ_s) / np.outer(col, col)
+        cov = _inflate_for_correlation(s2 * JtJ_inv, J, res, cluster, JtJ_inv)
+        info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
+        rank_txt = f"full rank (condition {sv[0] / sv[-1]:.2e})"
+    cov_core = np.full((N_CORE, N_CORE), np.nan)
+    gi = idx[core_pos]
+    cov_core[np.ix_(gi, gi)] = cov[np.ix_(core_pos, core_pos)]
+    if rank < n_par:
+        # a covariance from a singular information would be meaningless (and can be 0): none is reported
+        cov_core[np.ix_(gi, gi)] = np.inf
+    return cov_core, info, core_names, s2, rank_txt
+
+
 def _per_return_chi(th: FloatArray, pb: _Problem, R_ref: FloatArray) -> FloatArray:
     """Whitened residual norm per return divided by sqrt(3) (3 independent components for either model)."""
     res, _ = _residuals(th, pb, R_ref, jac=False)
@@ -631,44 +681,15 @@ def solve(
     nfev += nf
 
     pb = pb_all.subset(keep, keep_s)
-    res, J_all = pb.stacked(th, R_ref)
-    assert J_all is not None
-    idx = np.flatnonzero(free)
-    J = J_all[:, idx]
-    n_par = idx.size
     k_in = int(keep.sum())
     k_s = int(keep_s.sum())
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
-    dof = max(3 * k_in + k_s + n_prior - n_par, 1)  # 3 per marker return, 1 per surface return and prior row
-    s2 = float(res @ res / dof)
-    col = np.linalg.norm(J, axis=0)
-    col[col == 0] = 1.0
-    Js = J / col  # column-scaled: the covariance is computed in these units, then scaled back
-    sv = np.linalg.svd(Js, compute_uv=False)
-    rank = int(np.sum(sv > sv[0] * 1e-12))  # only numerically null directions count as rank loss
-    JtJ_s = Js.T @ Js
-    core_pos = [i for i, k in enumerate(idx) if k < N_CORE]  # positions of the free core unknowns in idx
-    core_names = tuple(CORE_NAMES[idx[i]] for i in core_pos)
-    info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
-    if rank < n_par:
-        cov = s2 * np.linalg.pinv(JtJ_s, rcond=1e-15) / np.outer(col, col)
-        info = _schur(J.T @ J * info_scale, core_pos)
-        rank_txt = f"rank deficient ({rank}/{n_par})"
-    else:
-        JtJ_inv = np.linalg.inv(JtJ_s) / np.outer(col, col)
-        cov = s2 * JtJ_inv
-        clusters = [np.repeat(np.asarray(obs.scan)[use][keep], pb.n_res)]
-        if pb.surf is not None and surfaces is not None:
-            clusters += [np.asarray(surfaces.scan)[keep_s], -1 - np.arange(n_prior)]
-        cov = _inflate_for_correlation(cov, J, res, np.concatenate(clusters), JtJ_inv)
-        info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
-        rank_txt = f"full rank (condition {sv[0] / sv[-1]:.2e})"
-    cov_core = np.full((N_CORE, N_CORE), np.nan)
-    gi = idx[core_pos]
-    cov_core[np.ix_(gi, gi)] = cov[np.ix_(core_pos, core_pos)]
-    if rank < n_par:
-        # a covariance from a singular information would be meaningless (and can be 0): none is reported
-        cov_core[np.ix_(gi, gi)] = np.inf
+    clusters = [np.repeat(np.asarray(obs.scan)[use][keep], pb.n_res)]
+    if pb.surf is not None and surfaces is not None:
+        clusters += [np.asarray(surfaces.scan)[keep_s], -1 - np.arange(n_prior)]
+    # 3 per marker return, 1 per surface return and prior row
+    cov_core, info, core_names, s2, rank_txt = _uncertainty(pb, th, R_ref, free, 3 * k_in + k_s + n_prior,
+                                                            np.concatenate(clusters))
     params = _params_from_core(th[:N_CORE], R_ref)
     tau = float(th[_TAU])
 
@@ -753,6 +774,197 @@ def information_at(
     return J.T @ J, names
 
 
+#: the unknowns a targetless calibration never estimates: the world frame is the motor frame M (the planes are
+#: free, so the mount is a gauge freedom), and there are no marker returns to carry a marker range bias
+_TARGETLESS_HELD = ("x", "y", "z", "rx", "ry", "rz", "marker_range_bias")
+
+
+def _plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorClock | None,
+                   dh_prior: tuple[FloatArray, FloatArray] | None = None) -> tuple[_Problem, FloatArray]:
+    """A problem of surface returns only (no marker returns) on free planes, and the planes' nuisance start."""
+    if not range_sigma_m > 0:
+        raise InputError(f"solve: range_sigma_m must be > 0, got {range_sigma_m}")
+    if clock is not None and surfaces.times_s is None:
+        raise InputError("solve: the clock offset needs the surface returns' beam times (times_s)")
+    surf, nu0 = _surf_problem(surfaces, None)
+    z = np.zeros(0)
+    pb = _Problem(z, z, z, np.zeros((0, 3)), "sphere", 1.0, float(range_sigma_m), surf=surf,
+                  times=z if clock is not None else None, clock=clock, dh_prior=dh_prior)
+    return pb, nu0
+
+
+def _plane_free(n_par: int, hold: Sequence[str], clock: MotorClock | None, estimate_range_offset: bool
+                ) -> NDArray[np.bool_]:
+    unknown = sorted(set(hold) - set(CORE_NAMES))
+    if unknown:
+        raise InputError(f"solve: hold: unknown parameter {unknown[0]!r} (expected one of {', '.join(CORE_NAMES)})")
+    free = np.ones(n_par, dtype=bool)
+    for name in (*_TARGETLESS_HELD, *hold):
+        free[CORE_NAMES.index(name)] = False
+    free[_TAU] &= clock is not None
+    free[_ROFF] &= estimate_range_offset
+    return free
+
+
+def solve_planes(
+    surfaces: SurfaceReturns,
+    start: Params,
+    *,
+    range_sigma_m: float = 0.010,
+    clock: MotorClock | None = None,
+    clock_offset_s: float = 0.0,
+    hold: Sequence[str] = (),
+    estimate_range_offset: bool = False,
+    robust: bool = True,
+    dh_prior: tuple[FloatArray, FloatArray] | None = None,
+) -> Solution:
+    """Targetless: the DH parameters (and the clock offset, the range offset) from the flatness of planes alone.
+
+    Every return is a ray-plane range residual (as the surface returns of :func:`solve`) on a plane whose normal and
+    offset are free nuisance parameters. The mount is held at ``start.mount`` (without markers the world frame is
+    arbitrary: the returns and planes are expressed in the frame of the start's mount, normally M itself).
+
+    Args:
+        surfaces: K returns with their plane index (``surface``), the planes' start normals and offsets in the
+            start's frame, and beam times (``times_s``, needed with ``clock``).
+        start: the start (the mount is held; the DH parameters start from it).
+        range_sigma_m: range noise sigma_r.
+        clock: the joint states as a MotorClock to estimate the clock offset (started at ``clock_offset_s``); None
+            holds it.
+        hold: names from CORE_NAMES held at their start value (in addition to the mount).
+        estimate_range_offset: also estimate a constant range offset.
+        robust: a Huber pass, then plain least squares with returns beyond 4 robust sigma dropped.
+        dh_prior: (mean (4,), sigma (4,)) of a, alpha, b, beta: the design drawing's values and tolerance, as
+            prior residuals (None: none).
+    Returns:
+        Solution as :func:`solve` (NaN sigma for held parameters; residuals_m, per_marker_rms_m and chi are empty;
+        n_surface_returns the returns kept; inlier (K,) which of the K returns were kept; residual_rms_m the RMS of
+        their range residuals).
+    Raises:
+        CalibrationError: fewer returns than 10 per unknown.
+    """
+    pb_all, nu0 = _plane_problem(surfaces, range_sigma_m, clock, dh_prior)
+    surf = pb_all.surf
+    assert surf is not None
+    th, R_ref = _core_from_params(start, clock_offset_s)
+    th = np.concatenate([th, nu0])
+    free = _plane_free(th.size, hold, clock, estimate_range_offset)
+    K = surf.r.size
+    if 10 * int(free.sum()) > K:
+        raise CalibrationError(f"targetless solve: {K} plane returns for {int(free.sum())} unknowns (need 10 each)")
+    nfev = 0
+    keep = np.ones(K, dtype=bool)
+    none = np.zeros(0, dtype=bool)
+    if robust:  # Huber first (a plane's stray returns: edges, clutter), then 4-sigma rejection until stable
+        th, nf, _ = _gauss_newton(th, R_ref, pb_all, free, huber=2.0)
+        nfev += nf
+        for _ in range(5):
+            rs = np.abs(_surface_residuals(th, surf, pb_all.sigma_r, R_ref, jac=False, clock=clock)[0])
+            new = rs <= 4.0 * max(1.0, float(np.median(rs[keep]) / 0.674))
+            if np.array_equal(new, keep):
+                break
+            keep = new
+            th, nf, _ = _gauss_newton(th, R_ref, pb_all.subset(none, keep), free)
+            nfev += nf
+    th, nf, msg = _gauss_newton(th, R_ref, pb_all.subset(none, keep), free)
+    nfev += nf
+    pb = pb_all.subset(none, keep)
+    assert pb.surf is not None
+    n_prior = 0 if dh_prior is None else 4
+    cov_core, info, core_names, s2, rank_txt = _uncertainty(
+        pb, th, R_ref, free, int(keep.sum()) + n_prior,
+        np.concatenate([np.asarray(surfaces.scan)[keep], -1 - np.arange(n_prior)]))
+    rs = _surface_residuals(th, pb.surf, 1.0, R_ref, jac=False, clock=clock)[0]
+    status = (f"planes: {msg.rstrip('.')}; {int(keep.sum())}/{K} plane returns on {surf.n_planes} planes used "
+              f"({int(K - keep.sum())} dropped > 4 sigma), reduced chi2 {s2:.3g}, {rank_txt}")
+    cov10 = cov_core[:10, :10]
+
+    def sig(i: int) -> float:
+        return float(np.sqrt(cov_core[i, i])) if free[i] else float("nan")
+
+    return Solution(
+        params=_params_from_core(th[:N_CORE], R_ref), covariance=cov10,
+        sigma=np.sqrt(np.clip(np.diag(cov10), 0.0, None)), residual_rms_m=float(np.sqrt(np.mean(rs**2))),
+        residuals_m=np.zeros((0, 3)), per_marker_rms_m=np.zeros(0), n_observations=0, n_iterations=nfev,
+        status=status, clock_offset_s=float(th[_TAU]), clock_offset_sigma_s=sig(_TAU), information=info,
+        information_names=core_names, reduced_chi2=s2, converged=msg == "converged",
+        chi=np.zeros(0), inlier=keep, lambda_rad=None, n_surface_returns=int(keep.sum()),
+        range_offset_m=float(th[_ROFF]), range_offset_sigma_m=sig(_ROFF),
+    )
+
+
+def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool_],
+                  huber: float | None = None, max_iter: int = 60) -> tuple[FloatArray, int, str]:
+    """Levenberg-Marquardt on the normal equations (J^T W J + m diag) dx = -J^T W r over the free unknowns, W the
+    Huber weights of the whitened residuals (threshold ``huber``; None: plain least squares). For many rows and
+    few unknowns (the plane returns of a targetless calibration) this is far cheaper than scipy's trust-region
+    solvers, which factor the whole Jacobian every step. The mount must be held (R_ref is not updated).
+
+    Stops when every step is below 1e-4 of its parameter's sigma. Returns (th, evaluations, "converged" or why
+    not)."""
+    idx = np.flatnonzero(free)
+    th = th0.copy()
+
+    def cost(r: FloatArray) -> float:
+        if huber is None:
+            return float(0.5 * r @ r)
+        a = np.abs(r)
+        return float(np.where(a <= huber, 0.5 * r * r, huber * a - 0.5 * huber * huber).sum())
+
+    r, J = pb.stacked(th, R_ref)
+    assert J is not None
+    c, damp, n_eval = cost(r), 1e-4, 1
+    for _ in range(max_iter):
+        w = np.ones_like(r) if huber is None else np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-300))
+        Jf = J[:, idx]
+        H = Jf.T @ (w[:, None] * Jf)
+        g = Jf.T @ (w * r)
+        d = np.maximum(np.diag(H), 1e-300)
+        while True:
+            try:
+                step = np.linalg.solve(H + damp * np.diag(d), -g)
+            except np.linalg.LinAlgError:
+                step = np.full(idx.size, np.nan)
+            trial = th.copy()
+            trial[idx] += step
+            r_new = pb.stacked(trial, R_ref, jac=False)[0]
+            n_eval += 1
+            c_new = cost(r_new) if np.all(np.isfinite(step)) else np.inf
+            if c_new <= c:
+                break
+            damp *= 10.0
+            if damp > 1e10:
+                return th, n_eval, "converged"  # no step decreases the cost: at the minimum
+        th, c, damp = trial, c_new, max(damp / 10.0, 1e-9)
+        r, J = pb.stacked(th, R_ref)
+        assert J is not None
+        n_eval += 1
+        sig = np.sqrt(np.maximum(np.diag(np.linalg.pinv(H)), 1e-300))
+        if np.max(np.abs(step) / sig) < 1e-4:
+            return th, n_eval, "converged"
+    return th, n_eval, f"not converged in {max_iter} iterations"
+
+
+def plane_information(
+    surfaces: SurfaceReturns, params: Params, *, range_sigma_m: float = 0.010, clock: MotorClock | None = None,
+    clock_offset_s: float = 0.0, hold: Sequence[str] = (), estimate_range_offset: bool = False,
+    dh_prior: tuple[FloatArray, FloatArray] | None = None,
+) -> tuple[FloatArray, tuple[str, ...]]:
+    """The information (k, k) of plane returns at ``params`` (no fit) over the unknowns :func:`solve_planes`
+    would estimate, the planes' nuisances marginalised, and their names: what the scene determines, judged
+    before any solver runs."""
+    pb, nu0 = _plane_problem(surfaces, range_sigma_m, clock, dh_prior)
+    th, R_ref = _core_from_params(params, clock_offset_s)
+    th = np.concatenate([th, nu0])
+    free = _plane_free(th.size, hold, clock, estimate_range_offset)
+    _, J_all = pb.stacked(th, R_ref)
+    assert J_all is not None
+    idx = np.flatnonzero(free)
+    J = J_all[:, idx]
+    core_pos = [i for i, k in enumerate(idx) if k < N_CORE]
+    return _schur(J.T @ J, core_pos), tuple(CORE_NAMES[idx[i]] for i in core_pos)
+
+
 def _surf_problem(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[_Surf, FloatArray]:
     """The surface returns as a _Surf with the planes' nuisance start (3P,) (the same set-up as :func:`solve`)."""
     ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
@@ -780,5 +992,5 @@ def _schur(A: FloatArray, keep: Sequence[int]) -> FloatArray:
 
 __all__ = [
     "CORE_NAMES", "MODELS", "MotorClock", "beam_rays_W", "information_at", "jacobian_check", "model_residuals",
-    "residuals_3d", "solve", "sphere_depth", "wrap_pi",
+    "plane_information", "residuals_3d", "solve", "solve_planes", "sphere_depth", "wrap_pi",
 ]

@@ -69,6 +69,17 @@ class SurfaceReturns:
                                  for k in self.__dataclass_fields__})
 
 
+def hash_sample(scan: IntArray, beam: IntArray, n: int, seed: int = 0) -> IntArray:
+    """Indices of an even subsample of at most n of the (scan, beam) pairs (K,), chosen by a hash of the pair
+    (salted by seed), in their original order."""
+    K = len(scan)
+    if n >= K:
+        return np.arange(K)
+    key = (np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761) + np.asarray(beam, dtype=np.uint64)
+           * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) % np.uint64(1 << 31)
+    return np.sort(np.argsort(key, kind="stable")[:n])
+
+
 def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
                      n_trials: int = 400) -> list[tuple[FloatArray, float, IntArray]]:
     """Planes through >= ``min_markers`` marker centres (within ``tol_m``), largest first: (n, offset, idx)."""
@@ -166,13 +177,10 @@ def surface_returns(
     idx = np.concatenate(idx_all) if idx_all else np.zeros(0, dtype=np.int64)
     surf = np.concatenate(which) if which else np.zeros(0, dtype=np.int64)
     if idx.size > max_returns:
-        # an even subsample chosen by the beam itself (a hash of its scan and beam index, salted by seed), not by
-        # its position among the candidates: a slightly different estimate, which moves a few returns across the
-        # gate, keeps the same subsample of the others, so every start reaches the same solution
-        key = (np.asarray(scan, dtype=np.uint64)[idx] * np.uint64(2654435761)
-               + np.asarray(beam, dtype=np.uint64)[idx] * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) \
-            % np.uint64(1 << 31)
-        pick = np.sort(np.argsort(key, kind="stable")[:max_returns])
+        # chosen by the beam itself, not by its position among the candidates: a slightly different estimate, which
+        # moves a few returns across the gate, keeps the same subsample of the others, so every start reaches the
+        # same solution
+        pick = hash_sample(np.asarray(scan)[idx], np.asarray(beam)[idx], max_returns, seed)
         idx, surf = idx[pick], surf[pick]
     normals = np.array([s.normal for s in surfaces]).reshape(-1, 3)
     offsets = np.array([s.offset_m for s in surfaces])
@@ -184,7 +192,7 @@ def surface_returns(
     )
 
 
-__all__ = ["Surface", "SurfaceReturns", "candidate_planes", "find_surfaces", "surface_returns"]
+__all__ = ["Surface", "SurfaceReturns", "candidate_planes", "hash_sample", "find_surfaces", "surface_returns"]
 
 
 def observe_surfaces(

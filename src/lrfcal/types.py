@@ -338,10 +338,10 @@ class CalibrationResult:
     """Everything the pipeline produced, for the writers, the loop and the visualisation."""
 
     recording: Recording
-    markers: MarkerMap
-    detections: Detections
-    observations: Observations
-    association: Association
+    markers: MarkerMap | None  # None for a targetless calibration (method "targetless"), as the next three
+    detections: Detections | None
+    observations: Observations | None
+    association: Association | None
     start: Params
     solution: Solution
     baseline: Solution | None
@@ -355,4 +355,6 @@ class CalibrationResult:
     surface_returns: Any = None  # lrfcal.surfaces.SurfaceReturns used in the joint solve, or None
     checks: tuple[Any, ...] = ()  # lrfcal.pipeline.Check: the consistency checks and their outcome
     notes: tuple[str, ...] = ()  # what the calibration assumed, trimmed or dropped, in words
+    method: str = "markers"  # "markers" (the paper's, lrfcal.pipeline) or "targetless" (lrfcal.targetless)
+    plane_fit: Any = None  # lrfcal.targetless.PlaneFit: the scene's planes and their flatness (targetless only)
     servo_sign: int = 1  # the servo direction used: +1 as declared, -1 negated (only with --force on an ambiguity)

@@ -341,13 +341,12 @@ def _log_scene(rec: Any, geoms: Sequence[SceneGeom], truth_markers_W: FloatArray
         ), static=True)
 
 
-def _log_stage(rec: Any, result: CalibrationResult, which: Literal["before", "after"]) -> FloatArray:
-    """Log world/<which>/{cloud,returns,residuals}; return the (K,) residual norms [m]."""
+def _log_cloud(rec: Any, result: CalibrationResult, which: Literal["before", "after"]) -> None:
+    """Log world/<which>/cloud: the reprojected cloud in W (intensity colours), at most MAX_CLOUD_POINTS."""
     import rerun as rr
 
     params = result.start if which == "before" else result.solution.params
     cloud_M = result.cloud_before_M if which == "before" else result.cloud_after_M
-    color = _COLOR_BEFORE if which == "before" else _COLOR_AFTER
     cloud_M = np.asarray(cloud_M, dtype=float).reshape(-1, 3)
     inten = np.asarray(result.cloud_intensity, dtype=float).reshape(-1)
     if inten.size != cloud_M.shape[0]:
@@ -358,6 +357,15 @@ def _log_stage(rec: Any, result: CalibrationResult, which: Literal["before", "af
     rec.log(f"world/{which}/cloud", rr.Points3D(cloud_W, colors=intensity_colors(inten[ok]), radii=0.004),
             static=True)
 
+
+def _log_stage(rec: Any, result: CalibrationResult, which: Literal["before", "after"]) -> FloatArray:
+    """Log world/<which>/{cloud,returns,residuals}; return the (K,) residual norms [m]."""
+    import rerun as rr
+
+    assert result.markers is not None
+    _log_cloud(rec, result, which)
+    params = result.start if which == "before" else result.solution.params
+    color = _COLOR_BEFORE if which == "before" else _COLOR_AFTER
     p, to_marker, marker, _ = marker_returns(result, params)
     ids = result.markers.marker_ids
     rec.log(f"world/{which}/returns", rr.Points3D(
@@ -484,28 +492,12 @@ def log_calibration(
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         truth = None if truth_markers_W is None else np.asarray(truth_markers_W, dtype=float).reshape(-1, 3)
         _log_scene(rec, scene_geoms or [], truth)
-        rec.log("world/markers/mds", rr.Points3D(
-            result.markers.positions_W, radii=0.012, colors=_COLOR_MDS,
-            labels=list(result.markers.marker_ids), show_labels=True,
-        ), static=True)
-        norms = {w: _log_stage(rec, result, w) for w in ("before", "after")}  # type: ignore[arg-type]
-
-        S = int(result.recording.scans.stamps_s.size)
-        _, _, _, scan = marker_returns(result, result.start)
-        rms = np.stack([per_scan_rms_m(scan, norms[w], S) for w in ("before", "after")], -1)
-        lam = motor_angle_per_scan_rad(result)
-        _log_image(rec, result)
-        rec.log("plots/residual_rms_mm", rr.SeriesLines(names=["before", "after"],
-                                                         colors=[_COLOR_BEFORE, _COLOR_AFTER]), static=True)
-        rec.log("plots/motor_angle_deg", rr.SeriesLines(names=["motor angle lambda"]), static=True)
-        stamps = result.recording.scans.stamps_s
-        for i in range(S):
-            rec.set_time("scan", sequence=i)
-            rec.set_time("time", duration=float(stamps[i] - stamps[0]))
-            rec.log("plots/motor_angle_deg", rr.Scalars(float(np.rad2deg(lam[i]))))
-            if np.isfinite(rms[i]).all():
-                rec.log("plots/residual_rms_mm", rr.Scalars(rms[i] * 1e3))
-        _log_rig(rec, result, lam)
+        if result.markers is None:  # targetless: the clouds in frame M and the rig, nothing of markers
+            for which in ("before", "after"):
+                _log_cloud(rec, result, which)  # type: ignore[arg-type]
+            _log_rig(rec, result, motor_angle_per_scan_rad(result))
+        else:
+            _log_markers(rec, result)
         rec.flush()
         rec.disconnect()
         if tmp is not None:
@@ -514,6 +506,36 @@ def log_calibration(
     finally:
         if tmp is not None and tmp.exists():
             tmp.unlink()
+
+
+def _log_markers(rec: Any, result: CalibrationResult) -> None:
+    """A marker calibration's entities: the MDS markers, before/after returns and residuals, the intensity
+    image, per-scan plots and the rig."""
+    import rerun as rr
+
+    assert result.markers is not None
+    rec.log("world/markers/mds", rr.Points3D(
+        result.markers.positions_W, radii=0.012, colors=_COLOR_MDS,
+        labels=list(result.markers.marker_ids), show_labels=True,
+    ), static=True)
+    norms = {w: _log_stage(rec, result, w) for w in ("before", "after")}  # type: ignore[arg-type]
+
+    S = int(result.recording.scans.stamps_s.size)
+    _, _, _, scan = marker_returns(result, result.start)
+    rms = np.stack([per_scan_rms_m(scan, norms[w], S) for w in ("before", "after")], -1)
+    lam = motor_angle_per_scan_rad(result)
+    _log_image(rec, result)
+    rec.log("plots/residual_rms_mm", rr.SeriesLines(names=["before", "after"],
+                                                     colors=[_COLOR_BEFORE, _COLOR_AFTER]), static=True)
+    rec.log("plots/motor_angle_deg", rr.SeriesLines(names=["motor angle lambda"]), static=True)
+    stamps = result.recording.scans.stamps_s
+    for i in range(S):
+        rec.set_time("scan", sequence=i)
+        rec.set_time("time", duration=float(stamps[i] - stamps[0]))
+        rec.log("plots/motor_angle_deg", rr.Scalars(float(np.rad2deg(lam[i]))))
+        if np.isfinite(rms[i]).all():
+            rec.log("plots/residual_rms_mm", rr.Scalars(rms[i] * 1e3))
+    _log_rig(rec, result, lam)
 
 
 __all__ = [

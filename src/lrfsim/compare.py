@@ -7,6 +7,8 @@ MDS marker coordinates (see :func:`truth_alignment`) carries the estimated T_W_M
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -103,7 +105,7 @@ class Comparison:
     @property
     def failures(self) -> list[str]:
         out = [f"{r.name}: |error| {abs(r.error):.3g} > {r.tolerance:.3g}" for r in self.dh_rows if not r.ok]
-        if self.mount_position_error_m > self.tolerances.position_m:
+        if self.mount_position_error_m > self.tolerances.position_m:  # NaN (targetless: no mount) never fails
             out.append(
                 f"mount position: error {self.mount_position_error_m:.3g} m > {self.tolerances.position_m}"
             )
@@ -166,7 +168,9 @@ def compare(result: CalibrationResult, truth: Truth, tolerances: Tolerances) -> 
         )
         for n in DH_NAMES
     )
-    pos, rot = _mount_errors(result, result.solution, truth)
+    # a targetless calibration has no world frame and estimates no mount: its mount errors are NaN
+    pos, rot = (_mount_errors(result, result.solution, truth) if result.method == "markers"
+                else (math.nan, math.nan))
     ppos, prot = (None, None) if paper is None else _mount_errors(result, paper, truth)
     tunnel_rows: tuple[TunnelRow, ...] = ()
     if truth.tunnel:

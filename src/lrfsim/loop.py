@@ -19,7 +19,7 @@ from rich.table import Table
 from lrfcal.types import CalibrationResult
 
 from .compare import Comparison, compare, load_truth
-from .scenario import Scenario, SensorConfig, require_markers
+from .scenario import Scenario, SensorConfig
 
 
 @dataclass(frozen=True)
@@ -57,9 +57,6 @@ def run_loop(
     from .simulate import simulate, write_recording
 
     out_dir = Path(out_dir)
-    # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
-    require_markers(scenario, "lrfsim run", "calibrates with markers and tape distances; a targetless calibration "
-                    "is not available yet")
     check_output(out_dir, overwrite)
     if spawn and (reason := spawn_unavailable_reason()) is not None:
         spawn = False
@@ -134,28 +131,12 @@ def table_rows(c: Comparison) -> tuple[list[list[str]], list[list[str]]]:
                 "ok" if r.ok else "MISS",
             ]
         )
-    t1.append(
-        [
-            "mount xyz (mm)",
-            "",
-            "",
-            _mm(c.mount_position_error_m),
-            "",
-            _mm(c.paper_mount_position_error_m),
-            "ok" if c.mount_position_error_m <= c.tolerances.position_m else "MISS",
-        ]
-    )
-    t1.append(
-        [
-            "mount rot (deg)",
-            "",
-            "",
-            _deg(c.mount_rotation_error_rad),
-            "",
-            _deg(c.paper_mount_rotation_error_rad),
-            "ok" if c.mount_rotation_error_rad <= c.tolerances.rotation_rad else "MISS",
-        ]
-    )
+    if math.isfinite(c.mount_position_error_m):  # a targetless calibration estimates no mount
+        t1.append(["mount xyz (mm)", "", "", _mm(c.mount_position_error_m), "", _mm(c.paper_mount_position_error_m),
+                   "ok" if c.mount_position_error_m <= c.tolerances.position_m else "MISS"])
+        t1.append(["mount rot (deg)", "", "", _deg(c.mount_rotation_error_rad), "",
+                   _deg(c.paper_mount_rotation_error_rad),
+                   "ok" if c.mount_rotation_error_rad <= c.tolerances.rotation_rad else "MISS"])
     t3 = [
         [
             f"{r.name.replace('_distance', '').replace('_', ' ')} (mm)",

@@ -1,0 +1,386 @@
+"""Targetless calibration: the DH parameters from the flatness of the scene's own planes (no markers, no tape).
+
+1. timing: the joint states and the scans they cover          4. solve: every plane return's ray-plane range
+2. planes: segmented from the cloud reprojected with the          residual, planes free (lrfcal.solve.solve_planes);
+   current DH (lrfcal.planes), grazing returns left out          2.-4. repeated, re-segmenting with the new estimate
+3. observability: which of a, alpha, b, beta (and the clock    5. checks: convergence, observability, reduced
+   offset) the scene determines, from the information at        chi-square, a second opinion (even / odd passes)
+   the start; the others are held at the nominal value         6. reprojection, flatness before / after
+
+Without markers there is no world frame: the planes and the cloud are in the motor frame M, and the mount pose is
+not estimated. A parameter the scene does not determine (1-sigma beyond lrfcal.observability.LIMITS, e.g. b and
+alpha when every plane contains the motor axis) is held at its nominal value and named, never estimated; the
+nominal's uncertainty (CalibConfig.nominal_tolerance) is then carried into the others' covariance (a "consider"
+covariance), so that holding a wrong nominal cannot make the others confidently wrong.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from . import geometry, observability, planes, reproject, solve, timing
+from .errors import CalibrationError
+from .kinematics import DH, Params, Pose, points_M
+from .pipeline import CalibConfig, Check, _Stopwatch, usable_scans
+from .surfaces import SurfaceReturns, hash_sample
+from .types import CalibrationResult, Recording, Scans, Solution
+
+FloatArray = NDArray[np.float64]
+DH_NAMES = observability.DH
+#: The stages of a targetless calibration, as reported to ``progress`` and in CalibrationResult.timings_s.
+STAGES: tuple[str, ...] = ("timing", "planes", "solve", "checks", "reprojection", "geometry")
+#: returns used to segment the planes (the solve uses up to CalibConfig.plane_returns, labelled from these)
+SEGMENT_SAMPLES = 40000
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """What the targetless calibration found and used: the scene's planes (frame M, at the estimate), each
+    plane's thickness (RMS distance of its returns from their best-fit plane, m) with the nominal and with the
+    calibrated DH, the parameters held at nominal (with why), and the rounds of re-segmentation run."""
+
+    planes: tuple[planes.ScenePlane, ...]
+    rms_before_m: FloatArray
+    rms_after_m: FloatArray
+    n_returns: NDArray[np.int64]
+    held: tuple[str, ...]
+    held_reason: str
+    rounds: int
+
+
+@dataclass(frozen=True)
+class _Beams:
+    """The sampled returns: scan, beam (K,), ranges_m, mu_rad, times_s (K,)."""
+
+    scan: NDArray[np.int64]
+    beam: NDArray[np.int64]
+    ranges_m: FloatArray
+    mu_rad: FloatArray
+    times_s: FloatArray
+
+    def subset(self, idx: NDArray[np.int64]) -> _Beams:
+        return _Beams(self.scan[idx], self.beam[idx], self.ranges_m[idx], self.mu_rad[idx], self.times_s[idx])
+
+
+def calibrate_targetless(
+    recording: Recording, config: CalibConfig | None = None, progress: Callable[[str], None] | None = None
+) -> CalibrationResult:
+    """Stages 1-6 of the module docstring on a recording without markers (or with its markers ignored).
+
+    Raises CalibrationError (exit code 3) with the reason when the scene does not support a trustworthy result,
+    unless ``config.force``, which records the failed checks in the result instead.
+    """
+    config = config or CalibConfig()
+    clock = _Stopwatch(progress, STAGES)
+    notes: list[str] = ["targetless: the DH parameters from the flatness of the scene's planes; without markers "
+                        "there is no world frame, so the mount pose is not estimated (frame M)"]
+    nominal = recording.nominal
+    tau0 = config.clock_offset_s
+    scans, joints = usable_scans(recording, tau0, notes)
+    motor = solve.MotorClock.from_joints(joints)
+    passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
+    estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
+    beams = _sample(scans, config.plane_returns)
+    seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
+    clock.lap("timing")
+
+    dh, tau = nominal.dh, tau0
+    prior = (np.array([nominal.dh.a, nominal.dh.alpha, nominal.dh.b, nominal.dh.beta]),
+             np.array(config.nominal_tolerance, dtype=float))
+    thickness = 4.0 * config.range_sigma_m + 0.02  # the noise plus what a nominal DH bends a plane by
+    held: tuple[str, ...] = ()
+    held_reason = ""
+    sol: Solution | None = None
+    labels = np.zeros(0, dtype=np.int64)
+    found: list[planes.ScenePlane] = []
+    rounds = 0
+    for rounds in range(1, 6):  # segment, solve, re-segment with the better estimate until the DH settles
+        returns, labels, found = _plane_returns(beams, seg, motor, dh, tau, thickness, config)
+        if rounds == 1:
+            clock.lap("planes")
+            _check_scene(found, returns)
+            if estimate_clock:
+                estimate_clock = _clock_determined(returns, Params(_M, dh), motor, tau, config, notes)
+            held, held_reason = _undetermined(returns, Params(_M, dh), motor if estimate_clock else None, tau, config,
+                                              prior)
+            if held_reason:
+                notes.append(held_reason)
+            if len(held) == len(DH_NAMES):
+                raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes "
+                                       "of other orientations (across the motor axis), or calibrate with markers")
+        if not found:
+            raise CalibrationError(f"targetless: after round {rounds - 1} the cloud shows no plane: the estimate "
+                                   "does not hold the scene's planes together")
+        new = solve.solve_planes(returns, Params(_M, dh), range_sigma_m=config.range_sigma_m,
+                                 clock=motor if estimate_clock else None, clock_offset_s=tau, hold=held,
+                                 dh_prior=prior)
+        settled = sol is not None and _settled(sol, new)
+        sol, dh, tau = new, new.params.dh, new.clock_offset_s
+        thickness = 4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2))
+        if settled:
+            break
+    assert sol is not None
+    if not estimate_clock and passes.max() < 1 or config.estimate_clock is False:
+        notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                     + ("a one-way sweep does not separate it)" if config.estimate_clock is None else "as asked)"))
+    sol = _consider(sol, returns, motor if estimate_clock else None, held, config, prior)
+    clock.lap("solve")
+
+    checks = _checks(sol, returns, passes, held, config, prior)
+    failed = [c for c in checks if not c.passed]
+    clock.lap("checks")
+    if failed and not config.force:
+        c = failed[0]
+        raise CalibrationError(f"{c.name}: {c.detail}"
+                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
+                               + "; --force writes the result anyway with the failed checks recorded")
+
+    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=sol.clock_offset_s,
+                                       tolerance_s=math.inf)
+    (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
+        scans, lambda_beams, (nominal.dh, sol.params.dh), config.cloud_stride)
+    lam_b = motor.angles(beams.times_s, tau0)[0]
+    lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
+    before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels, len(found))
+    after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels, len(found))
+    fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)), held,
+                   held_reason, rounds)
+    clock.lap("reprojection")
+    geometry_before = geometry_after = None
+    if config.geometry:
+        geometry_before = geometry.tunnel_geometry(cloud_before)
+        geometry_after = geometry.tunnel_geometry(cloud_after)
+        clock.lap("geometry")
+    return CalibrationResult(
+        recording=recording, markers=None, detections=None, observations=None, association=None,
+        start=Params(_M, nominal.dh), solution=sol, baseline=None, cloud_before_M=cloud_before,
+        cloud_after_M=cloud_after, cloud_intensity=cloud_intensity, geometry_before=geometry_before,
+        geometry_after=geometry_after, timings_s=clock.laps, surface_returns=returns, checks=tuple(checks),
+        notes=tuple(notes), method="targetless", plane_fit=fit,
+    )
+
+
+#: the motor frame M as the world frame (without markers there is no other)
+_M = Pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def _sample(scans: Scans, n: int) -> _Beams:
+    """An even subsample (hash of scan and beam) of at most n finite returns."""
+    scan, beam = np.nonzero(np.isfinite(scans.ranges_m) & (scans.ranges_m > 0))
+    pick = hash_sample(scan, beam, n)
+    scan, beam = scan[pick], beam[pick]
+    mu = np.asarray(scans.mu_rad)
+    return _Beams(scan, beam, scans.ranges_m[scan, beam], mu[scan, beam] if mu.ndim == 2 else mu[beam],
+                  scans.beam_times_s[scan, beam])
+
+
+def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorClock, dh: DH, tau: float,
+                   thickness_m: float, config: CalibConfig
+                   ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
+    """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau); label every sampled return with the
+    plane of its nearest segmented neighbour when it lies within ``thickness_m`` of that plane and meets it at
+    less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane)."""
+    lam = motor.angles(beams.times_s, tau)[0]
+    P = points_M(beams.ranges_m, lam, beams.mu_rad, dh)
+    seg_labels, found = planes.segment_planes(P[seg], thickness_m=thickness_m)
+    labels = np.full(P.shape[0], -1, dtype=np.int64)
+    if found:
+        has = seg_labels >= 0
+        _, nn = cKDTree(P[seg][has]).query(P, k=1)
+        labels = seg_labels[has][nn]
+        N = np.array([p.normal for p in found])
+        off = np.array([p.offset_m for p in found])
+        o, d = solve.beam_rays_W(Params(_M, dh), lam, beams.mu_rad)
+        n = N[labels]
+        near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
+        facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
+        labels = np.where(near & facing, labels, -1)
+        # planes left with too few returns (mostly grazing) are dropped and the labels renumbered
+        counts = np.bincount(labels[labels >= 0], minlength=len(found))
+        keep = np.flatnonzero(counts >= 100)
+        remap = np.full(len(found), -1, dtype=np.int64)
+        remap[keep] = np.arange(keep.size)
+        labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
+        found = [found[k] for k in keep]
+    returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
+                                   beams.times_s)
+    return returns, labels, found
+
+
+def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> None:
+    if not found:
+        raise CalibrationError(
+            "targetless: the scene shows no plane with enough returns (at least 100 within the incidence limit): "
+            "calibrate in a room or with markers")
+
+
+def _clock_determined(returns: SurfaceReturns, start: Params, motor: solve.MotorClock, tau: float,
+                      config: CalibConfig, notes: list[str]) -> bool:
+    """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start); when not,
+    a note says it is held."""
+    info, names = solve.plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
+                                          clock_offset_s=tau)
+    k = names.index("clock_offset")
+    sigma = float(np.sqrt(np.linalg.pinv(info)[k, k]))
+    limit = observability.LIMITS["clock_offset"]
+    if sigma <= limit:
+        return True
+    notes.append(f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
+                 f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)")
+    return False
+
+
+def _undetermined(returns: SurfaceReturns, start: Params, motor: solve.MotorClock | None, tau: float,
+                  config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> tuple[tuple[str, ...], str]:
+    """The DH parameters the scene does not determine (judged at the start), held from then on, and why."""
+    held: list[str] = []
+    while True:
+        info, names = solve.plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
+                                              clock_offset_s=tau, hold=held, dh_prior=prior)
+        free = [n for n in DH_NAMES if n not in held]
+        sigma, weakest = _normalised(info, names, free)
+        bad = [n for n, s in zip(free, sigma, strict=True) if not s <= 1.0]
+        if not bad and weakest <= 1.0:
+            break
+        # hold the parameter with the largest share in the weakest combination, then judge the rest again
+        worst = free[int(np.argmax(_weakest_direction(info, names, free)))]
+        held.append(worst)
+        if len(held) == len(DH_NAMES):
+            break
+    if not held:
+        return (), ""
+    what = ", ".join(held)
+    return tuple(held), (f"the scene's planes do not determine {what} (1-sigma beyond "
+                         f"{observability.LIMITS['a'] * 1000:g} mm / {math.degrees(observability.LIMITS['alpha']):g}"
+                         f" deg, judged at the start): held at the nominal value, not estimated")
+
+
+def _marginal(info: FloatArray, names: tuple[str, ...], keep: list[str]) -> FloatArray:
+    idx = [names.index(n) for n in keep]
+    other = [i for i in range(len(names)) if i not in idx]
+    A = info[np.ix_(idx, idx)]
+    if other:
+        B, C = info[np.ix_(idx, other)], info[np.ix_(other, other)]
+        A = A - B @ np.linalg.pinv(C, rcond=1e-12) @ B.T
+    return 0.5 * (A + A.T)
+
+
+def _normalised(info: FloatArray, names: tuple[str, ...], free: list[str]) -> tuple[FloatArray, float]:
+    """Each free DH parameter's marginal 1-sigma in units of its limit (inf: undetermined) and the weakest
+    combination's."""
+    D = np.array([observability.LIMITS[n] for n in free])
+    N = D[:, None] * _marginal(info, names, free) * D[None, :]
+    w = np.linalg.eigvalsh(N)
+    if w[0] <= 1e-12 * max(float(w[-1]), 1e-300):
+        return np.full(len(free), np.inf), math.inf
+    return np.sqrt(np.diag(np.linalg.inv(N))), 1.0 / math.sqrt(float(w[0]))
+
+
+def _weakest_direction(info: FloatArray, names: tuple[str, ...], free: list[str]) -> FloatArray:
+    D = np.array([observability.LIMITS[n] for n in free])
+    N = D[:, None] * _marginal(info, names, free) * D[None, :]
+    return np.abs(np.linalg.eigh(N)[1][:, 0])
+
+
+def _settled(old: Solution, new: Solution) -> bool:
+    """The DH estimate moved by less than a tenth of its sigma between two rounds."""
+    d = new.params.vector()[6:] - old.params.vector()[6:]
+    d[[1, 3]] = solve.wrap_pi(d[[1, 3]])
+    s = new.sigma[6:]
+    ok = np.isfinite(s) & (s > 0)
+    return bool(np.all(np.abs(d[ok]) <= 0.1 * s[ok]))
+
+
+def _consider(sol: Solution, returns: SurfaceReturns, motor: solve.MotorClock | None, held: tuple[str, ...],
+              config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
+    """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
+    estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
+    if not held:
+        return sol
+    from dataclasses import replace
+
+    info, names = solve.plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
+                                          clock_offset_s=sol.clock_offset_s, dh_prior=prior)
+    info = info / max(sol.reduced_chi2, 1.0)
+    est = [i for i, n in enumerate(names) if n not in held]
+    hid = [names.index(n) for n in held]
+    S = -np.linalg.solve(info[np.ix_(est, est)], info[np.ix_(est, hid)])
+    tol = dict(zip(DH_NAMES, config.nominal_tolerance, strict=True))
+    extra = S @ np.diag([tol[n] ** 2 for n in held]) @ S.T
+    cov = sol.covariance.copy()
+    pos = {n: solve.CORE_NAMES.index(n) for n in names}
+    for i, a in enumerate(est):
+        for j, b in enumerate(est):
+            ia, ib = pos[names[a]], pos[names[b]]
+            if ia < 10 and ib < 10:
+                cov[ia, ib] += extra[i, j]
+    return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+
+
+def _checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
+            config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> list[Check]:
+    """Convergence, observability of the estimated parameters, reduced chi-square and a second opinion."""
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
+    est = [n for n in DH_NAMES if n not in held]
+    s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
+    ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())
+    checks.append(Check("observability", ok, "1-sigma " + ", ".join(
+        f"{n} {math.degrees(v):.3g} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:.3g} mm"
+        for n, v in s.items()) + (f"; held at nominal: {', '.join(held)}" if held else "")))
+    chi2 = sol.reduced_chi2
+    checks.append(Check(
+        "reduced chi-square", bool(chi2 <= config.max_reduced_chi2),
+        f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): plane residuals {math.sqrt(max(chi2, 0.0)):.2g} times the "
+        f"stated range noise {config.range_sigma_m * 1000:g} mm"
+        + ("" if chi2 <= config.max_reduced_chi2 else
+           "; if the scanner is this noisy, pass --range-sigma; otherwise the scene's surfaces are not flat enough "
+           "or the model does not explain the data (servo backlash, an unmodelled clock offset)")))
+    checks.append(_second_opinion(sol, returns, passes, held, config, prior))
+    return checks
+
+
+def _second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
+                    config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Check:
+    """Even and odd passes (or the sweep's two halves) calibrated separately and compared with each other:
+    chi2 = d^T (C_1 + C_2)^-1 d over the estimated DH parameters (independent data), clock offset held at the
+    joint estimate."""
+    from scipy.stats import chi2 as chi2_dist
+
+    scan_pass = passes[returns.scan]
+    if passes.max() >= 1:
+        groups, how = [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
+    else:
+        mid = np.median(returns.scan)
+        groups, how = [returns.scan <= mid, returns.scan > mid], "the two halves of the sweep"
+    est = [6 + DH_NAMES.index(n) for n in DH_NAMES if n not in held]
+    limit = float(chi2_dist.ppf(1.0 - config.second_opinion_p, len(est)))
+    parts = []
+    for g in groups:
+        try:
+            parts.append(solve.solve_planes(returns.subset(g), sol.params, range_sigma_m=config.range_sigma_m,
+                                            clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior))
+        except CalibrationError:
+            return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
+    d = parts[0].params.vector()[est] - parts[1].params.vector()[est]
+    d = np.where(np.isin(est, (7, 9)), solve.wrap_pi(d), d)
+    C = parts[0].covariance[np.ix_(est, est)] + parts[1].covariance[np.ix_(est, est)]
+    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
+        return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+    stat = float(d @ np.linalg.solve(C, d))
+    ok = stat <= limit
+    names = [solve.CORE_NAMES[i] for i in est]
+    diffs = ", ".join(f"{n} {math.degrees(v):+.3f} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:+.2f} mm"
+                      for n, v in zip(names, d, strict=True))
+    return Check("second opinion", ok,
+                 f"{how} calibrated separately differ by chi2 {stat:.3g} (limit {limit:.3g}, {len(est)} dof; {diffs})"
+                 + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled "
+                                  "clock offset, a scene that moved)"))
+
+
+__all__ = ["STAGES", "PlaneFit", "calibrate_targetless"]
