@@ -527,7 +527,9 @@ def _inflate_for_correlation(cov: FloatArray, J: FloatArray, res: FloatArray, cl
     G = np.zeros((int(inverse.max()) + 1, J.shape[1]))
     np.add.at(G, inverse, J * res[:, None])
     sandwich = JtJ_inv @ (G.T @ G) @ JtJ_inv
-    scale = np.sqrt(np.maximum(1.0, np.diag(sandwich) / np.maximum(np.diag(cov), 1e-300)))
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # a null-variance column stays unscaled
+        ratio = np.diag(sandwich) / np.diag(cov)
+    scale = np.sqrt(np.maximum(1.0, np.where(np.isfinite(ratio), ratio, 1.0)))
     return cov * np.outer(scale, scale)
 
 

@@ -8,7 +8,6 @@ MDS marker coordinates (see :func:`truth_alignment`) carries the estimated T_W_M
 from __future__ import annotations
 
 import math
-
 from dataclasses import dataclass
 from pathlib import Path
 

@@ -1,0 +1,216 @@
+"""The targetless calibration (issue 9): the DH parameters from the scene's planes, right within the reported sigma
+or held and named where the scene does not determine them.
+
+Simulated scenes against their ground truth: room_box and cardboard_box (no markers), tunnel_v with its markers
+ignored, random DH truths in the room; a scene whose planes all contain the motor axis and a single board, whose
+undetermined parameters must be held, not estimated.
+"""
+
+from __future__ import annotations
+
+import math
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import yaml
+
+from lrfcal.errors import CalibrationError
+from lrfcal.pipeline import CalibConfig, calibrate
+from lrfcal.planes import segment_planes
+from lrfcal.recording import read_recording
+from lrfcal.types import CalibrationResult
+from lrfsim.compare import load_truth
+from lrfsim.scenario import parse_scenario, with_changes
+from lrfsim.simulate import simulate, write_recording
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+DH = ("a", "alpha", "b", "beta")
+N_SIGMA = 4.0
+
+
+def _data(name: str) -> dict[str, Any]:
+    return yaml.safe_load((SCENARIOS / f"{name}.yaml").read_text())
+
+
+def _record(data: dict[str, Any], folder: Path) -> Path:
+    sc = parse_scenario(data, data["name"])
+    write_recording(simulate(sc), sc, folder)
+    return folder
+
+
+def _calibrate(folder: Path, **config: Any) -> CalibrationResult:
+    recording = read_recording(folder, require_distances=False)
+    return calibrate(recording, CalibConfig(targetless=True, **config))
+
+
+def _z(result: CalibrationResult, folder: Path) -> dict[str, float]:
+    """error / reported sigma of every estimated DH parameter (held ones are left out)."""
+    truth = load_truth(folder / "ground_truth.yaml").dh
+    est = result.solution.params.dh
+    out = {}
+    for i, n in enumerate(DH):
+        if n in result.plane_fit.held:
+            continue
+        err = getattr(est, n) - getattr(truth, n)
+        if n in ("alpha", "beta"):
+            err = math.remainder(err, 2 * math.pi)
+        out[n] = err / result.solution.sigma[6 + i]
+    return out
+
+
+def test_segmentation_finds_the_faces_of_a_box() -> None:
+    """Three faces of a box, 1 cm noise: three planes with the right normals, and nothing else."""
+    rng = np.random.default_rng(0)
+    faces = []
+    for axis in range(3):
+        p = rng.uniform(-0.5, 0.5, (3000, 3))
+        p[:, axis] = 0.6
+        p[:, axis] += rng.normal(0, 0.01, 3000)
+        faces.append(p)
+    labels, planes = segment_planes(np.vstack(faces), thickness_m=0.04)
+    assert len(planes) == 3
+    normals = np.abs(np.array([p.normal for p in planes]))
+    assert sorted(np.argmax(normals, axis=1).tolist()) == [0, 1, 2]
+    assert np.all(normals.max(1) > 0.999)
+    assert np.all([abs(p.offset_m - 0.6) < 0.002 for p in planes])
+    assert (labels >= 0).mean() > 0.95
+
+
+@pytest.fixture(scope="module")
+def room(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, CalibrationResult]:
+    folder = _record(_data("room_box"), tmp_path_factory.mktemp("tl") / "room")
+    return folder, _calibrate(folder)
+
+
+def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, CalibrationResult]) -> None:
+    folder, result = room
+    z = _z(result, folder)
+    assert set(z) == set(DH), f"held: {result.plane_fit.held}"
+    assert all(abs(v) <= N_SIGMA for v in z.values()), z
+    assert all(c.passed for c in result.checks), result.checks
+    assert result.method == "targetless" and result.markers is None
+    # the planes are no thicker after than before, and the clock offset was estimated (a two-way sweep)
+    fit = result.plane_fit
+    assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
+    assert math.isfinite(result.solution.clock_offset_sigma_s)
+
+
+def test_tunnel_v_with_its_markers_ignored(tmp_path: Path) -> None:
+    folder = _record(_data("tunnel_v"), tmp_path / "tv")
+    result = _calibrate(folder)
+    z = _z(result, folder)
+    assert set(z) == set(DH)
+    assert all(abs(v) <= N_SIGMA for v in z.values()), z
+
+
+def test_cardboard_box_recovers_the_truth_within_4_sigma(tmp_path: Path) -> None:
+    folder = _record(_data("cardboard_box"), tmp_path / "cb")
+    result = _calibrate(folder, range_sigma_m=0.0035)  # the scenario's range noise below 1 m
+    z = _z(result, folder)
+    assert z and all(abs(v) <= N_SIGMA for v in z.values()), z
+
+
+@pytest.mark.parametrize("seed", [11, 12])
+def test_random_dh_truths_in_the_room(seed: int, tmp_path: Path) -> None:
+    """Truths up to 5 mm / 2 deg from the nominal (within the nominal's tolerance), one two-way sweep."""
+    rng = np.random.default_rng(seed)
+    nominal = _data("room_box")["rig"]["nominal_dh"]
+    dh = {"a": nominal["a"] + rng.uniform(-0.005, 0.005), "alpha": nominal["alpha"] + math.radians(rng.uniform(-2, 2)),
+          "b": nominal["b"] + rng.uniform(-0.005, 0.005), "beta": nominal["beta"] + math.radians(rng.uniform(-2, 2))}
+    data = with_changes(_data("room_box"), {"rig.dh": dh, "seed": seed, "servo.speed_rad_s": 0.35})
+    folder = _record(data, tmp_path / f"r{seed}")
+    result = _calibrate(folder)
+    z = _z(result, folder)
+    assert set(z) == set(DH) and all(abs(v) <= N_SIGMA for v in z.values()), z
+
+
+def test_planes_along_the_motor_axis_determine_a_scan_plane_that_contains_it(tmp_path: Path) -> None:
+    """tunnel_v without its plate and markers: walls, floor and ceiling all contain the motor axis. With alpha ~ 90
+    deg (the scan plane contains the axis) b and a both act across the axis, so these planes still determine all
+    four DH parameters (only a shift along the axis is lost, and that is no DH parameter): the analysis must say
+    so, and the estimate must be right within 4 sigma."""
+    data = with_changes(_data("tunnel_v"), {"scene.tunnel.plate_x_m": 40.0, "scene.tunnel.manhole": None,
+                                            "markers": None})
+    folder = _record(data, tmp_path / "axis")
+    result = _calibrate(folder)
+    normals = np.array([p.normal for p in result.plane_fit.planes])
+    assert np.all(np.abs(normals[:, 2]) < 0.05), "every plane must contain the motor axis z_M"
+    z = _z(result, folder)
+    assert set(z) == set(DH) and all(abs(v) <= N_SIGMA for v in z.values()), z
+
+
+def test_a_single_plane_across_the_motor_axis_holds_b_and_names_it(tmp_path: Path) -> None:
+    """One wall facing along the motor axis (the tunnel_v rig before a 3 x 3 m board, nothing else): the axis
+    offset b moves every return along the wall, so the scene does not determine it. b is held at the nominal value,
+    named, without a sigma; the others are right within 4 sigma of a covariance that carries b's uncertainty."""
+    data = with_changes(_data("tunnel_v"), {
+        "markers": None, "scene.tunnel": None,
+        "scene.board": {"pose": {"x": 2.0, "y": 0.0, "z": 1.0, "pitch": -math.pi / 2}, "width_m": 3.0,
+                        "height_m": 3.0}})
+    folder = _record(data, tmp_path / "plate")
+    result = _calibrate(folder)
+    assert len(result.plane_fit.planes) == 1
+    assert result.plane_fit.held == ("b",)
+    assert result.solution.params.dh.b == pytest.approx(result.recording.nominal.dh.b, abs=1e-12)
+    assert not math.isfinite(result.solution.sigma[6 + DH.index("b")])
+    assert any("do not determine b" in note for note in result.notes)
+    z = _z(result, folder)
+    assert set(z) == {"a", "alpha", "beta"} and all(abs(v) <= N_SIGMA for v in z.values()), z
+
+
+def _script(name: str) -> str:
+    found = shutil.which(name, path=str(Path(sys.executable).parent))
+    assert found, f"console script {name} not installed beside {sys.executable}"
+    return found
+
+
+def test_cli_calibrates_a_recording_without_tape_distances(room: tuple[Path, CalibrationResult],
+                                                            tmp_path: Path) -> None:
+    """No distances.csv: `lrfcal calibrate` goes targetless by itself and writes the same outputs, with the method,
+    no mount, and the planes' thickness before and after in calibration.yaml."""
+    folder, _ = room
+    out = tmp_path / "cal"
+    proc = subprocess.run([_script("lrfcal"), "calibrate", str(folder), "-o", str(out)], capture_output=True,
+                          text=True, timeout=600, env={"OPENBLAS_NUM_THREADS": "1", "PATH": "/usr/bin:/bin"})
+    assert proc.returncode == 0, proc.stderr
+    assert "targetless" in proc.stdout
+    cal = yaml.safe_load((out / "calibration.yaml").read_text())
+    assert cal["method"] == "targetless" and cal["mount"] is None
+    assert cal["planes"] and all(p["thickness_rms_m"]["after"] > 0 for p in cal["planes"])
+    assert {"rig.urdf", "report.md", "flatness.png", "cloud_after.ply"} <= {p.name for p in out.iterdir()}
+    assert "## The scene's planes" in (out / "report.md").read_text()
+
+
+REALBOX = Path(__file__).resolve().parents[2] / "shared" / "realbags" / "cardboard_box.bag"
+
+
+@pytest.mark.skipif(not REALBOX.is_file(), reason=f"real recording not present at {REALBOX} (public bag shared "
+                    "beside the project, not part of a clone)")
+def test_real_urg04lx_box_is_refused_with_its_reason() -> None:
+    """The real URG-04LX in its cardboard box (liangfok/tilting_lidar_scanner, bags/cardboard_box.bag). No truth
+    exists, so the test asserts consistency, not values: the planes are no thicker after than before, and the
+    calibration does not pass its own checks (as measured: the estimate drifts far along the a-b direction this
+    small box determines worst, and its 1-sigma exceeds the 5 mm limit), so without --force it is refused (exit
+    3) rather than returned as a confident answer. Estimate and sigma are printed."""
+    from test_real_bags import URG_NOMINAL, URG_SCAN, URG_SERVO
+
+    from lrfcal.bag import read_bag
+    from lrfcal.types import Nominal, Recording
+
+    data = read_bag(REALBOX, URG_SCAN, URG_SERVO, warn=lambda _t: None)
+    rec = Recording(scans=data.scans, joints=data.joints, tape=None, nominal=Nominal(dh=URG_NOMINAL))
+    result = calibrate(rec, CalibConfig(targetless=True, force=True))
+    fit = result.plane_fit
+    print("real box:", result.solution.params.dh, "sigma", result.solution.sigma[6:], "checks",
+          [(c.name, c.passed) for c in result.checks])
+    assert len(fit.planes) >= 2
+    assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
+    failed = [c.name for c in result.checks if not c.passed]
+    assert failed, "the real box passed every check: update this test to assert the calibration instead"
+    with pytest.raises(CalibrationError, match=failed[0]):
+        calibrate(rec, CalibConfig(targetless=True))
