@@ -19,7 +19,6 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.errors import CalibrationError
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.planes import segment_planes
 from lrfcal.recording import read_recording
@@ -191,12 +190,7 @@ REALBOX = Path(__file__).resolve().parents[2] / "shared" / "realbags" / "cardboa
 
 @pytest.mark.skipif(not REALBOX.is_file(), reason=f"real recording not present at {REALBOX} (public bag shared "
                     "beside the project, not part of a clone)")
-def test_real_urg04lx_box_is_refused_with_its_reason() -> None:
-    """The real URG-04LX in its cardboard box (liangfok/tilting_lidar_scanner, bags/cardboard_box.bag). No truth
-    exists, so the test asserts consistency, not values: the planes are no thicker after than before, and the
-    calibration does not pass its own checks (as measured: the estimate drifts far along the a-b direction this
-    small box determines worst, and its 1-sigma exceeds the 5 mm limit), so without --force it is refused (exit
-    3) rather than returned as a confident answer. Estimate and sigma are printed."""
+def _real_box() -> CalibrationResult:
     from test_real_bags import URG_NOMINAL, URG_SCAN, URG_SERVO
 
     from lrfcal.bag import read_bag
@@ -204,13 +198,42 @@ def test_real_urg04lx_box_is_refused_with_its_reason() -> None:
 
     data = read_bag(REALBOX, URG_SCAN, URG_SERVO, warn=lambda _t: None)
     rec = Recording(scans=data.scans, joints=data.joints, tape=None, nominal=Nominal(dh=URG_NOMINAL))
-    result = calibrate(rec, CalibConfig(targetless=True, force=True))
-    fit = result.plane_fit
-    print("real box:", result.solution.params.dh, "sigma", result.solution.sigma[6:], "checks",
-          [(c.name, c.passed) for c in result.checks])
-    assert len(fit.planes) >= 2
+    return calibrate(rec, CalibConfig(targetless=True))  # raises CalibrationError if a check fails
+
+
+@pytest.fixture(scope="module")
+def real_box() -> CalibrationResult:
+    if not REALBOX.is_file():
+        pytest.skip(f"real recording not present at {REALBOX} (public bag shared beside the project, not part of a "
+                    "clone)")
+    return _real_box()
+
+
+def test_real_urg04lx_box_calibrates_what_it_determines(real_box: CalibrationResult) -> None:
+    """The real URG-04LX in its cardboard box (liangfok/tilting_lidar_scanner, bags/cardboard_box.bag). No truth
+    exists, so the test asserts consistency, not values: every check passes (else calibrate raises); what this
+    small box does not determine (as measured: a and b, once the returns near its edges and corners are left out)
+    is held at the nominal value and named, without a sigma; the planes are no thicker after than before.
+    Estimate and sigma are printed."""
+    fit, sol = real_box.plane_fit, real_box.solution
+    nominal = real_box.recording.nominal.dh
+    print("real box:", sol.params.dh, "sigma", sol.sigma[6:], "held", fit.held, "notes", real_box.notes)
+    assert len(fit.planes) >= 3
+    for n in fit.held:
+        assert not math.isfinite(sol.sigma[6 + DH.index(n)])
+        assert getattr(sol.params.dh, n) == getattr(nominal, n)
+    est = [n for n in DH if n not in fit.held]
+    assert est and all(math.isfinite(sol.sigma[6 + DH.index(n)]) for n in est)
     assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
-    failed = [c.name for c in result.checks if not c.passed]
-    assert failed, "the real box passed every check: update this test to assert the calibration instead"
-    with pytest.raises(CalibrationError, match=failed[0]):
-        calibrate(rec, CalibConfig(targetless=True))
+
+
+@pytest.mark.xfail(strict=True, reason="measured: the box's corners end further from square (mean |90 deg - angle| "
+                   "1.69 deg with the nominal DH, 2.19 deg calibrated; beta moves +2.8 +- 0.6 deg): the real rig "
+                   "is not explained by the DH model within its sigma (issue 9, left open)")
+def test_real_urg04lx_box_corners_closer_to_square(real_box: CalibrationResult) -> None:
+    from lrfcal.planes import squareness_deg
+
+    fit = real_box.plane_fit
+    sq_b, sq_a = squareness_deg(fit.normals_before), squareness_deg(fit.normals_after)
+    print("corners |90 - angle| [deg] before", sq_b, "after", sq_a)
+    assert sq_b.size >= 2 and sq_a.mean() <= sq_b.mean() + 0.05

@@ -458,6 +458,13 @@ def _plane_lines(result: CalibrationResult) -> list[str]:
                                          strict=True)):
         lines.append(f"| {k} | ({p.normal[0]:+.3f}, {p.normal[1]:+.3f}, {p.normal[2]:+.3f}) | {p.offset_m:.3f} | "
                      f"{int(n)} | {b * 1000:.2f} | {a * 1000:.2f} |")
+    from .planes import squareness_deg
+
+    sq_b, sq_a = squareness_deg(fit.normals_before), squareness_deg(fit.normals_after)
+    if sq_b.size:
+        lines += ["", f"Corners (pairs of planes within 20 deg of perpendicular, {sq_b.size}): mean |90 deg - angle| "
+                  f"{sq_b.mean():.3f} deg with the nominal DH, {sq_a.mean():.3f} deg calibrated (a box's walls are "
+                  "square to within its build)."]
     return lines
 
 

@@ -61,7 +61,7 @@ class CalibConfig:
     nominal_tolerance: tuple[float, float, float, float] = (0.010, math.radians(5.0), 0.010, math.radians(5.0))
     #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances
     targetless: bool | None = None
-    plane_returns: int = 120000  # targetless: an even subsample of the returns, for speed
+    plane_returns: int = 250000  # targetless: an even subsample of the returns, for speed
     #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
     #: spreads along the plane and the range reads short)
     max_incidence_rad: float = math.radians(65.0)

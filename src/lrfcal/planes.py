@@ -151,16 +151,30 @@ def plane_returns(
     )
 
 
-def flatness(points: FloatArray, labels: IntArray, n_planes: int) -> FloatArray:
-    """RMS distance (n_planes,) of each plane's points (labels == j) from their own best-fit plane (m): how thick
-    the plane is in this cloud (NaN with fewer than 3 points)."""
-    out = np.full(n_planes, np.nan)
+def flatness(points: FloatArray, labels: IntArray, n_planes: int) -> tuple[FloatArray, FloatArray]:
+    """Each plane's points (labels == j) fitted afresh: the RMS distance (n_planes,) from their own best-fit plane
+    (m; how thick the plane is in this cloud) and that plane's unit normal (n_planes, 3) (NaN with fewer than 3
+    points)."""
+    rms = np.full(n_planes, np.nan)
+    normals = np.full((n_planes, 3), np.nan)
     for j in range(n_planes):
         m = labels == j
         if m.sum() >= 3:
-            out[j] = fit_plane(points[m])[2]
-    return out
+            normals[j], _, rms[j] = fit_plane(points[m])
+    return rms, normals
 
 
-__all__ = ["ScenePlane", "fit_plane", "flatness", "plane_returns", "point_normals",
+def squareness_deg(normals: FloatArray, tol_deg: float = 20.0) -> FloatArray:
+    """|90 deg - angle| (deg) of every pair of planes (normals (P, 3)) within ``tol_deg`` of perpendicular: how far
+    from square the corners of a box-like scene are."""
+    out = []
+    for i in range(len(normals)):
+        for j in range(i + 1, len(normals)):
+            ang = math.degrees(math.acos(min(1.0, abs(float(normals[i] @ normals[j])))))
+            if abs(90.0 - ang) <= tol_deg:
+                out.append(abs(90.0 - ang))
+    return np.array(out)
+
+
+__all__ = ["ScenePlane", "fit_plane", "flatness", "squareness_deg", "plane_returns", "point_normals",
            "segment_planes"]

@@ -124,10 +124,12 @@ class MotorClock:
 
 
 def _rays(
-    core: FloatArray, R_ref: FloatArray, lam: FloatArray, mu: FloatArray, omega: FloatArray | None, jac: bool
+    core: FloatArray, R_ref: FloatArray, lam: FloatArray, mu: FloatArray, omega: FloatArray | None, jac: bool,
+    mount_jac: bool = True,
 ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
     """Beam origins o (K, 3) and unit directions d (K, 3) in W and their Jacobians (K, 3, N_CORE) with respect to
-    the core unknowns (module docstring); the clock column is zero when ``omega`` is None."""
+    the core unknowns (module docstring); the clock column is zero when ``omega`` is None, the mount's columns
+    when ``mount_jac`` is False (a held mount)."""
     t, w = core[:3], core[3:6]
     a, al, b, be = core[6:10]
     lam, phi = np.broadcast_arrays(np.atleast_1d(lam), be + np.atleast_1d(mu))
@@ -149,11 +151,12 @@ def _rays(
         return o, d, None, None
     Jo = np.zeros((K, 3, N_CORE))
     Jd = np.zeros((K, 3, N_CORE))
-    Jo[:, 0, 0] = Jo[:, 1, 1] = Jo[:, 2, 2] = 1.0
-    Jr = right_jacobian_so3(w)
-    for j in range(3):
-        Jo[:, :, 3 + j] = -np.cross(o_M, Jr[:, j]) @ R.T
-        Jd[:, :, 3 + j] = -np.cross(d_M, Jr[:, j]) @ R.T
+    if mount_jac:
+        Jo[:, 0, 0] = Jo[:, 1, 1] = Jo[:, 2, 2] = 1.0
+        Jr = right_jacobian_so3(w)
+        for j in range(3):
+            Jo[:, :, 3 + j] = -np.cross(o_M, Jr[:, j]) @ R.T
+            Jd[:, :, 3 + j] = -np.cross(d_M, Jr[:, j]) @ R.T
     z0 = np.zeros(K)
     Jo[:, :, 6] = rz(np.array([1.0, 0.0, 0.0])) @ R.T
     Jo[:, :, 7] = rz(np.array([0.0, -b * ca, -b * sa])) @ R.T
@@ -246,7 +249,8 @@ def _lambda(lam: FloatArray, times: FloatArray | None, clock: MotorClock | None,
 
 
 def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, R_ref: FloatArray, jac: bool = True,
-                       clock: MotorClock | None = None) -> tuple[FloatArray, FloatArray | None]:
+                       clock: MotorClock | None = None, mount_jac: bool = True
+                       ) -> tuple[FloatArray, FloatArray | None]:
     """Range residuals against the ray-plane distance r_p = (d - n.o) / (n.dir), whitened by sigma_r:
     (r - r_p) / sigma_r, shape (K2,), and the Jacobian -(dr_p/d[core, nuisance]) / sigma_r, (K2, N_CORE + 3P):
         dr_p/dcore = -(n.do + r_p n.ddir) / (n.dir),   dr_p/dd = 1 / (n.dir),
@@ -258,7 +262,7 @@ def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, R_ref: FloatArr
     m_norm = np.linalg.norm(m, axis=1, keepdims=True)
     n_p = m / m_norm
     lam, omega = _lambda(s.lam, s.times, clock, th[_TAU])
-    o, d, Jo, Jd = _rays(th[:N_CORE], R_ref, lam, s.mu, omega, jac=jac)
+    o, d, Jo, Jd = _rays(th[:N_CORE], R_ref, lam, s.mu, omega, jac=jac, mount_jac=mount_jac)
     n = n_p[s.plane]
     nd = (n * d).sum(1)
     rp = (nu[s.plane, 2] - (n * o).sum(1)) / nd
@@ -294,6 +298,7 @@ class _Problem:
     times: FloatArray | None = None  # (K,) laser-clock beam times
     clock: MotorClock | None = None  # set when the clock offset is estimated
     dh_prior: tuple[FloatArray, FloatArray] | None = None  # (mean (4,), sigma (4,)) of a, alpha, b, beta
+    mount_jac: bool = True  # False: the mount is held, its Jacobian columns are not computed (left 0)
 
     @property
     def sigma_lat(self) -> float:
@@ -318,7 +323,8 @@ class _Problem:
         J_m = None if J is None else np.hstack([J.reshape(-1, N_CORE), np.zeros((res_v.size, n_par - N_CORE))])
         if self.surf is None:
             return res_v, J_m
-        rs, Js = _surface_residuals(th, self.surf, self.sigma_r, R_ref, jac=jac, clock=self.clock)
+        rs, Js = _surface_residuals(th, self.surf, self.sigma_r, R_ref, jac=jac, clock=self.clock,
+                                    mount_jac=self.mount_jac)
         rp, Jp = np.zeros(0), np.zeros((0, n_par))
         if self.surf.prior_sigma is not None and self.surf.prior_mean is not None:  # the markers' word on the planes
             rp = (th[N_CORE:] - self.surf.prior_mean) / self.surf.prior_sigma
@@ -791,7 +797,7 @@ def _plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorC
     surf, nu0 = _surf_problem(surfaces, None)
     z = np.zeros(0)
     pb = _Problem(z, z, z, np.zeros((0, 3)), "sphere", 1.0, float(range_sigma_m), surf=surf,
-                  times=z if clock is not None else None, clock=clock, dh_prior=dh_prior)
+                  times=z if clock is not None else None, clock=clock, dh_prior=dh_prior, mount_jac=False)
     return pb, nu0
 
 
@@ -857,19 +863,20 @@ def solve_planes(
     nfev = 0
     keep = np.ones(K, dtype=bool)
     none = np.zeros(0, dtype=bool)
+    msg = "converged"
     if robust:  # Huber first (a plane's stray returns: edges, clutter), then 4-sigma rejection until stable
-        th, nf, _ = _gauss_newton(th, R_ref, pb_all, free, huber=2.0)
-        nfev += nf
-        for _ in range(5):
+        th, nfev, msg = _gauss_newton(th, R_ref, pb_all, free, huber=2.0)
+    plain = False
+    for _ in range(6 if robust else 1):
+        if robust:
             rs = np.abs(_surface_residuals(th, surf, pb_all.sigma_r, R_ref, jac=False, clock=clock)[0])
             new = rs <= 4.0 * max(1.0, float(np.median(rs[keep]) / 0.674))
-            if np.array_equal(new, keep):
+            if plain and np.array_equal(new, keep):
                 break
             keep = new
-            th, nf, _ = _gauss_newton(th, R_ref, pb_all.subset(none, keep), free)
-            nfev += nf
-    th, nf, msg = _gauss_newton(th, R_ref, pb_all.subset(none, keep), free)
-    nfev += nf
+        th, nf, msg = _gauss_newton(th, R_ref, pb_all.subset(none, keep), free)
+        nfev += nf
+        plain = True
     pb = pb_all.subset(none, keep)
     assert pb.surf is not None
     n_prior = 0 if dh_prior is None else 4
@@ -902,7 +909,7 @@ def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArra
     few unknowns (the plane returns of a targetless calibration) this is far cheaper than scipy's trust-region
     solvers, which factor the whole Jacobian every step. The mount must be held (R_ref is not updated).
 
-    Stops when every step is below 1e-4 of its parameter's sigma. Returns (th, evaluations, "converged" or why
+    Stops when every step is below 1e-3 of its parameter's sigma. Returns (th, evaluations, "converged" or why
     not)."""
     idx = np.flatnonzero(free)
     th = th0.copy()
@@ -942,7 +949,7 @@ def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArra
         assert J is not None
         n_eval += 1
         sig = np.sqrt(np.maximum(np.diag(np.linalg.pinv(H)), 1e-300))
-        if np.max(np.abs(step) / sig) < 1e-4:
+        if np.max(np.abs(step) / sig) < 1e-3:
             return th, n_eval, "converged"
     return th, n_eval, f"not converged in {max_iter} iterations"
 

@@ -42,8 +42,9 @@ SEGMENT_SAMPLES = 40000
 @dataclass(frozen=True)
 class PlaneFit:
     """What the targetless calibration found and used: the scene's planes (frame M, at the estimate), each
-    plane's thickness (RMS distance of its returns from their best-fit plane, m) with the nominal and with the
-    calibrated DH, the parameters held at nominal (with why), and the rounds of re-segmentation run."""
+    plane's thickness (RMS distance of its returns from their best-fit plane, m) and best-fit normal (P, 3) with the
+    nominal and with the calibrated DH, the parameters held at nominal (with why), and the rounds of
+    re-segmentation run."""
 
     planes: tuple[planes.ScenePlane, ...]
     rms_before_m: FloatArray
@@ -52,6 +53,8 @@ class PlaneFit:
     held: tuple[str, ...]
     held_reason: str
     rounds: int
+    normals_before: FloatArray
+    normals_after: FloatArray
 
 
 @dataclass(frozen=True)
@@ -147,10 +150,11 @@ def calibrate_targetless(
         scans, lambda_beams, (nominal.dh, sol.params.dh), config.cloud_stride)
     lam_b = motor.angles(beams.times_s, tau0)[0]
     lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
-    before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels, len(found))
-    after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels, len(found))
+    before, n_before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels, len(found))
+    after, n_after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels,
+                                     len(found))
     fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)), held,
-                   held_reason, rounds)
+                   held_reason, rounds, n_before, n_after)
     clock.lap("reprojection")
     geometry_before = geometry_after = None
     if config.geometry:
@@ -200,7 +204,12 @@ def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorCloc
         n = N[labels]
         near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
         facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
-        labels = np.where(near & facing, labels, -1)
+        # returns as close to another plane as to their own lie near an edge or a corner, where a beam's footprint
+        # straddles two surfaces (mixed pixels): left out
+        dist_all = np.abs(P @ N.T - off)  # (K, planes)
+        dist_all[np.arange(len(P)), labels] = np.inf
+        clear = dist_all.min(1) > thickness_m
+        labels = np.where(near & facing & clear, labels, -1)
         # planes left with too few returns (mostly grazing) are dropped and the labels renumbered
         counts = np.bincount(labels[labels >= 0], minlength=len(found))
         keep = np.flatnonzero(counts >= 100)
@@ -363,8 +372,10 @@ def _second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.i
     parts = []
     for g in groups:
         try:
-            parts.append(solve.solve_planes(returns.subset(g), sol.params, range_sigma_m=config.range_sigma_m,
-                                            clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior))
+            kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
+            parts.append(solve.solve_planes(returns.subset(kept), sol.params, range_sigma_m=config.range_sigma_m,
+                                            clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
+                                            robust=False))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
     d = parts[0].params.vector()[est] - parts[1].params.vector()[est]
