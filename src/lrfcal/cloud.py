@@ -89,6 +89,7 @@ def reproject_beams(
     dh: DH,
     clock_offset_s: float = 0.0,
     *,
+    range_offset_m: float = 0.0,
     chunk_scans: int = 512,
     progress: Callable[[int, int], None] | None = None,
 ) -> BeamCloud:
@@ -96,7 +97,9 @@ def reproject_beams(
 
     Args:
         scans: S scans (per-scan bearings and time increments); joints: the motor angle samples.
-        dh: DH parameters (eq. (3)); clock_offset_s: t_servo = t_laser - clock_offset_s.
+        dh: DH parameters (eq. (3)); clock_offset_s: t_servo = t_laser - clock_offset_s;
+        range_offset_m: the scanner's constant range offset (a calibration's ``range_offset_m``), subtracted from
+            every range.
         chunk_scans: scans per vectorised chunk; progress(scans_done, S) is called after each chunk.
     Returns:
         BeamCloud in scan-major, beam-minor order.
@@ -116,7 +119,7 @@ def reproject_beams(
         ss, bb = np.nonzero(ok)
         t = scans.stamps_s[sl][ss] + bb * scans.time_increment_s[sl][ss]
         lam = motor_angles(t, joints, clock_offset_s)
-        p = points_M(r[ss, bb], lam, scans.mu_rad[sl][ss, bb], dh)
+        p = points_M(r[ss, bb] - range_offset_m, lam, scans.mu_rad[sl][ss, bb], dh)
         parts.append((p, scans.intensities[sl][ss, bb], t, ss + s0, bb, lam))
         if progress is not None:
             progress(sl.stop, S)
@@ -282,6 +285,19 @@ def read_calibration_dh(path: str | Path) -> DH:
     return DH(**out)
 
 
+def read_calibration_range_offset(path: str | Path) -> float:
+    """The constant range offset [m] a calibration.yaml estimated (``range_offset_m: {value, sigma}``); 0 when it
+    was held (sigma null) or the file has none."""
+    data = read_yaml(Path(path), "calibration file")
+    entry = data.get("range_offset_m") if isinstance(data, dict) else None
+    if not isinstance(entry, dict) or entry.get("sigma") is None:
+        return 0.0
+    v = entry.get("value")
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise InputError(f"{path}: range_offset_m.value: expected a finite number of metres, got {v!r}")
+    return float(v)
+
+
 def read_calibration_clock_offset(path: str | Path) -> float | None:
     """The clock offset (laser stamp - servo stamp) [s] a calibration.yaml estimated or held
     (``clock_offset_s: {value, sigma}``), None when the file has none (older calibrations)."""
@@ -341,14 +357,17 @@ def reproject_bag(
     else:
         found = read_calibration_clock_offset(calibration) if calibration is not None else None
         offset, offset_from = (0.0, "none") if found is None else (found, f"from {calibration}")
-    cloud = reproject_beams(rec.scans, rec.joints, dh, offset, progress=stage("reprojecting"))
+    range_offset = read_calibration_range_offset(calibration) if calibration is not None else 0.0
+    cloud = reproject_beams(rec.scans, rec.joints, dh, offset, range_offset_m=range_offset,
+                            progress=stage("reprojecting"))
     lines = list(rec.report.lines()) if rec.report is not None else []
     n_sweeps = int(np.unique(cloud.sweep).size)
     lines.append(f"reprojected {len(cloud)} returns of {rec.scans.stamps_s.size - cloud.n_scans_uncovered} scans "
                  f"({cloud.n_scans_uncovered} not covered by the servo samples, skipped) in {n_sweeps} sweeps, "
                  f"DH from {calibration if calibration is not None else nominal} "
                  f"(a {dh.a:.4f} m, alpha {np.degrees(dh.alpha):.3f} deg, b {dh.b:.4f} m, beta "
-                 f"{np.degrees(dh.beta):.3f} deg), fine clock offset {offset:+.6f} s ({offset_from})")
+                 f"{np.degrees(dh.beta):.3f} deg), fine clock offset {offset:+.6f} s ({offset_from})"
+                 + (f", range offset {range_offset * 1000:+.2f} mm subtracted" if range_offset else ""))
     write_cloud_ply(out, cloud)
     lines.append(f"wrote {out}")
     if bag_out is not None:
@@ -361,5 +380,6 @@ def reproject_bag(
 
 
 __all__ = ["BeamCloud", "CLOUD_FRAME", "CLOUD_TOPIC", "POINT_DTYPE", "check_outputs", "point_records",
-           "read_calibration_clock_offset", "read_calibration_dh", "read_cloud_ply", "reproject_bag", "reproject_beams",
+           "read_calibration_clock_offset", "read_calibration_dh",
+           "read_calibration_range_offset", "read_cloud_ply", "reproject_bag", "reproject_beams",
            "sweep_index", "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]

@@ -218,8 +218,8 @@ def calibrate(
     lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
                                        tolerance_s=math.inf)
     (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
-        scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride
-    )
+        scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride,
+        (0.0, ours.range_offset_m))
     clock.lap("reprojection")
 
     geometry_before = geometry_after = None

@@ -35,11 +35,13 @@ def reproject_cloud(scans: Scans, lambda_rad: ArrayLike, dh: DH, stride: int = 1
 
 
 def reproject_clouds(
-    scans: Scans, lambda_rad: ArrayLike, dhs: Sequence[DH], stride: int = 1
+    scans: Scans, lambda_rad: ArrayLike, dhs: Sequence[DH], stride: int = 1,
+    range_offsets_m: Sequence[float] | None = None,
 ) -> tuple[list[FloatArray], FloatArray]:
     """:func:`reproject_cloud` of the same returns with several DH sets (e.g. nominal and calibrated): the
     valid returns are selected and cos / sin of their motor angles computed once. Returns one (P, 3) cloud per
-    DH set (each equal to reproject_cloud's, bit for bit) and the intensity (P,)."""
+    DH set (each equal to reproject_cloud's, bit for bit, without range offsets) and the intensity (P,).
+    ``range_offsets_m``: one per DH set, subtracted from every range (a calibration's estimated range offset)."""
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     r = scans.ranges_m
@@ -57,9 +59,10 @@ def reproject_clouds(
     mu = np.asarray(scans.mu_rad, dtype=np.float64)
     mk = mu.ravel()[idx] if mu.ndim == 2 else mu[bb]  # (S, N) per-scan bearings (or (N,))
     clouds = []
-    for dh in dhs:
+    offsets = [0.0] * len(dhs) if range_offsets_m is None else list(range_offsets_m)
+    for dh, off in zip(dhs, offsets, strict=True):
         phi = dh.beta + mk
-        clouds.append(points_M_trig(rk, cl, sl, np.cos(phi), np.sin(phi), dh))
+        clouds.append(points_M_trig(rk - off if off else rk, cl, sl, np.cos(phi), np.sin(phi), dh))
     intensity = np.ravel(scans.intensities)[idx].astype(np.float64, copy=False)
     return clouds, intensity
 

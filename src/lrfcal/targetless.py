@@ -147,7 +147,8 @@ def calibrate_targetless(
     lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=sol.clock_offset_s,
                                        tolerance_s=math.inf)
     (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
-        scans, lambda_beams, (nominal.dh, sol.params.dh), config.cloud_stride)
+        scans, lambda_beams, (nominal.dh, sol.params.dh), config.cloud_stride,
+        (0.0, sol.range_offset_m))
     lam_b = motor.angles(beams.times_s, tau0)[0]
     lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
     before, n_before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels, len(found))
