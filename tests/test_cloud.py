@@ -34,6 +34,19 @@ def test_reproject_beams_per_scan_layout_and_uncovered_scans():
     np.testing.assert_allclose(c.points_M, points_M(2.0, lam, mu[c.scan, c.beam], dh), atol=1e-12)
     np.testing.assert_allclose(c.times_s, t)
     np.testing.assert_array_equal(c.scan_sweep[4:], [-1, -1])
+    # a calibration's range offset is subtracted from every range: each point moves 0.012 m back along its ray
+    c2 = reproject_beams(scans, joints, dh, range_offset_m=0.012)
+    np.testing.assert_allclose(c2.points_M, points_M(2.0 - 0.012, lam, mu[c.scan, c.beam], dh), atol=1e-12)
+
+
+def test_calibration_range_offset_is_read_only_when_estimated(tmp_path):
+    from lrfcal.cloud import read_calibration_range_offset
+
+    est, held = tmp_path / "est.yaml", tmp_path / "held.yaml"
+    est.write_text("range_offset_m: {value: 0.0125, sigma: 0.0012}\n")
+    held.write_text("range_offset_m: {value: 0.0, sigma: null}\n")
+    assert read_calibration_range_offset(est) == 0.0125
+    assert read_calibration_range_offset(held) == 0.0
 
 
 def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
