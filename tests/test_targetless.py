@@ -99,12 +99,21 @@ def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, Calibratio
     assert math.isfinite(result.solution.clock_offset_sigma_s)
 
 
-def test_tunnel_v_with_its_markers_ignored(tmp_path: Path) -> None:
+def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(tmp_path: Path) -> None:
+    """tunnel_v calibrated with its markers and, with compare_targetless, from its planes alone: the targetless
+    estimate is right within 4 sigma, and the report shows the methods side by side with the truth."""
+    from lrfcal.output import render_report, truth_dict
+
     folder = _record(_data("tunnel_v"), tmp_path / "tv")
-    result = _calibrate(folder)
-    z = _z(result, folder)
-    assert set(z) == set(DH)
-    assert all(abs(v) <= N_SIGMA for v in z.values()), z
+    result = calibrate(read_recording(folder), CalibConfig(compare_targetless=True))
+    assert list(result.side_by_side) == ["markers only", "markers and their surfaces", "targetless (markers ignored)"]
+    truth = load_truth(folder / "ground_truth.yaml")
+    tl = result.side_by_side["targetless (markers ignored)"]
+    for i, n in enumerate(DH):
+        err = math.remainder(getattr(tl.params.dh, n) - getattr(truth.dh, n), 2 * math.pi)
+        assert abs(err) <= N_SIGMA * tl.sigma[6 + i], (n, err, tl.sigma[6 + i])
+    report = render_report(result, truth=truth_dict(truth))
+    assert "## The methods side by side" in report and "| targetless (markers ignored) |" in report
 
 
 def test_cardboard_box_recovers_the_truth_within_4_sigma(tmp_path: Path) -> None:

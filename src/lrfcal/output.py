@@ -447,6 +447,21 @@ def _per_marker_lines(result: CalibrationResult) -> list[str]:
     return lines
 
 
+def _side_by_side_lines(result: CalibrationResult, truth: dict[str, float | None] | None) -> list[str]:
+    """The DH estimates of every method run on this recording, with their 1-sigma (and the truth when known)."""
+    if len(result.side_by_side) < 3:
+        return []
+    lines = ["", "## The methods side by side (DH: estimate +- 1-sigma)", "",
+             "| method | " + " | ".join(f"{n} [{_unit(n)}]" for n in DH_NAMES) + " |", "|---|---|---|---|---|"]
+    for name, sol in result.side_by_side.items():
+        est = sol.params.as_dict()
+        lines.append(f"| {name} | " + " | ".join(f"{_disp(n, est[n])} +- {_disp(n, param_sigma(sol, n))}"
+                                                 for n in DH_NAMES) + " |")
+    if truth is not None:
+        lines.append("| truth | " + " | ".join(_disp(n, truth.get(n)) for n in DH_NAMES) + " |")
+    return lines
+
+
 def _plane_lines(result: CalibrationResult) -> list[str]:
     """The scene's planes and their thickness (RMS distance of their returns from their best-fit plane) with
     the nominal and with the calibrated DH parameters."""
@@ -538,6 +553,7 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
         lines += ["", "## Notes", ""] + [f"- {n}" for n in result.notes]
 
     lines += _plane_lines(result) if targetless else _per_marker_lines(result)
+    lines += _side_by_side_lines(result, tp)
 
     g0, g1 = result.geometry_before, result.geometry_after
     if g0 is not None or g1 is not None or (truth is not None and truth.get("tunnel")):

@@ -62,6 +62,8 @@ class CalibConfig:
     #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances
     targetless: bool | None = None
     plane_returns: int = 250000  # targetless: an even subsample of the returns, for speed
+    #: with markers: also calibrate the same recording targetless and show it beside the marker results (report)
+    compare_targetless: bool = False
     #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
     #: spreads along the plane and the range reads short)
     max_incidence_rad: float = math.radians(65.0)
@@ -214,6 +216,18 @@ def calibrate(
             notes.append(f"the paper's method could not be run: {err}")
         clock.lap("baseline")
 
+    side_by_side = {"markers only": chosen.solution, "markers and their surfaces": ours}
+    if config.compare_targetless:  # the same recording without its markers (lrfcal.targetless), for the report
+        from dataclasses import replace as _with
+
+        from .targetless import calibrate_targetless
+
+        try:
+            tl = calibrate_targetless(recording, _with(config, targetless=True, force=False, geometry=False))
+            side_by_side["targetless (markers ignored)"] = tl.solution
+        except CalibrationError as err:
+            notes.append(f"the targetless calibration of the same recording was refused: {err}")
+
     # 7.
     lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
                                        tolerance_s=math.inf)
@@ -248,6 +262,7 @@ def calibrate(
         checks=tuple(checks),
         notes=tuple(notes),
         servo_sign=chosen.sign,
+        side_by_side=side_by_side,
     )
 
 

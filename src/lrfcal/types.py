@@ -357,4 +357,7 @@ class CalibrationResult:
     notes: tuple[str, ...] = ()  # what the calibration assumed, trimmed or dropped, in words
     method: str = "markers"  # "markers" (the paper's, lrfcal.pipeline) or "targetless" (lrfcal.targetless)
     plane_fit: Any = None  # lrfcal.targetless.PlaneFit: the scene's planes and their flatness (targetless only)
+    #: the DH estimates of the methods run on this recording, by name (markers only, markers and their surfaces,
+    #: targetless), shown side by side in the report
+    side_by_side: dict[str, Solution] = field(default_factory=dict)
     servo_sign: int = 1  # the servo direction used: +1 as declared, -1 negated (only with --force on an ambiguity)
