@@ -475,17 +475,30 @@ def _checks(
     else:  # a singular information (the solver's rank test): no covariance exists, so nothing is determined
         checks.append(Check("observability", False, f"the final solve is {sol.status.split(', ')[-1]}: the data do "
                             "not determine the parameters jointly (no finite covariance)"))
-    chi2 = sol.reduced_chi2
-    checks.append(Check(
-        "reduced chi-square", bool(chi2 <= config.max_reduced_chi2),
-        f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): residuals {math.sqrt(max(chi2, 0.0)):.2g} times the stated "
-        f"range noise {config.range_sigma_m * 1000:g} mm"
-        + ("" if chi2 <= config.max_reduced_chi2 else
-           "; if the scanner is this noisy, pass --range-sigma; otherwise the model does not explain the data "
-           "(an unmodelled clock offset or motion, a wrong marker radius)"),
-    ))
+    checks.append(chi2_check(sol.reduced_chi2, config, "residuals", "the model does not explain the data (an "
+                             "unmodelled clock offset or motion, a wrong marker radius)"))
     checks.append(_second_opinion(marker_only, matched, markers, passes, config, fit, motor))
     return checks
+
+
+def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
+    """Two independent parts of a recording's returns (their scan indices (K,); passes (S,) of the sweep): the
+    even and odd passes when the sweep goes both ways, else the two halves in time; and their name."""
+    if passes.max() >= 1:
+        scan_pass = passes[scan]
+        return [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
+    mid = np.median(scan)
+    return [scan <= mid, scan > mid], "the two halves of the sweep"
+
+
+def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> Check:
+    """The reduced chi-square check: ``what`` (the residuals' name) at most sqrt(config.max_reduced_chi2) times the
+    stated range noise; the failure says what else (``otherwise``) could be wrong."""
+    ok = bool(chi2 <= config.max_reduced_chi2)
+    return Check("reduced chi-square", ok,
+                 f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): {what} {math.sqrt(max(chi2, 0.0)):.2g} times the "
+                 f"stated range noise {config.range_sigma_m * 1000:g} mm"
+                 + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
 
 
 def _second_opinion(
@@ -497,12 +510,7 @@ def _second_opinion(
     (the part's data are a subset of the joint's), against the chi-square quantile with 4 degrees of freedom."""
     from scipy.stats import chi2 as chi2_dist
 
-    scan_pass = passes[matched.scan]
-    if passes.max() >= 1:
-        groups, how = [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
-    else:
-        mid = np.median(matched.scan)
-        groups, how = [matched.scan <= mid, matched.scan > mid], "the two halves of the sweep"
+    groups, how = split_in_two(matched.scan, passes)
     dh = [PARAM_NAMES.index(n) for n in ("a", "alpha", "b", "beta")]
     limit = float(chi2_dist.ppf(1.0 - config.second_opinion_p / 2.0, 4))
     results = []

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from . import geometry, observability, planes, reproject, solve, timing
 from .errors import CalibrationError
 from .kinematics import DH, Params, Pose, points_M
-from .pipeline import CalibConfig, Check, _Stopwatch, usable_scans
+from .pipeline import CalibConfig, Check, _Stopwatch, chi2_check, split_in_two, usable_scans
 from .surfaces import SurfaceReturns, hash_sample
 from .types import CalibrationResult, Recording, Scans, Solution
 
@@ -343,14 +343,9 @@ def _checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], h
     checks.append(Check("observability", ok, "1-sigma " + ", ".join(
         f"{n} {math.degrees(v):.3g} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:.3g} mm"
         for n, v in s.items()) + (f"; held at nominal: {', '.join(held)}" if held else "")))
-    chi2 = sol.reduced_chi2
-    checks.append(Check(
-        "reduced chi-square", bool(chi2 <= config.max_reduced_chi2),
-        f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): plane residuals {math.sqrt(max(chi2, 0.0)):.2g} times the "
-        f"stated range noise {config.range_sigma_m * 1000:g} mm"
-        + ("" if chi2 <= config.max_reduced_chi2 else
-           "; if the scanner is this noisy, pass --range-sigma; otherwise the scene's surfaces are not flat enough "
-           "or the model does not explain the data (servo backlash, an unmodelled clock offset)")))
+    checks.append(chi2_check(sol.reduced_chi2, config, "plane residuals", "the scene's surfaces are not flat "
+                             "enough or the model does not explain the data (servo backlash, an unmodelled clock "
+                             "offset)"))
     checks.append(_second_opinion(sol, returns, passes, held, config, prior))
     return checks
 
@@ -362,12 +357,7 @@ def _second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.i
     joint estimate."""
     from scipy.stats import chi2 as chi2_dist
 
-    scan_pass = passes[returns.scan]
-    if passes.max() >= 1:
-        groups, how = [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
-    else:
-        mid = np.median(returns.scan)
-        groups, how = [returns.scan <= mid, returns.scan > mid], "the two halves of the sweep"
+    groups, how = split_in_two(returns.scan, passes)
     est = [6 + DH_NAMES.index(n) for n in DH_NAMES if n not in held]
     limit = float(chi2_dist.ppf(1.0 - config.second_opinion_p, len(est)))
     parts = []
