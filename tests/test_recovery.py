@@ -161,8 +161,15 @@ def test_random_truth_is_recovered(seed: int, random_cases: _Cases) -> None:
     assert any(
         abs(getattr(start.dh, r.name) - r.truth) > 1e-4 for r in truth.dh_rows if r.name in ("alpha", "beta")
     ), case.describe()
-    assert case.comparison.ok, f"outside the absolute bounds: {case.comparison.failures}\n{case.describe()}"
+    failures = [f for f in case.comparison.failures if not f.startswith("tunnel ")]
+    assert not failures, f"outside the absolute bounds: {failures}\n{case.describe()}"
     assert not within_sigma(case), f"error beyond {N_SIGMA} sigma: {within_sigma(case)}\n{case.describe()}"
+    # the calibrated cloud subtracts the estimated range offset: each dimension (two walls apart) carries twice its
+    # uncertainty, which a few surface returns leave at a few mm (4 sigma of it on top of the absolute bound)
+    s_off = case.result.solution.range_offset_sigma_m
+    bound = RANDOM_BOUNDS.tunnel_m + (8.0 * s_off if math.isfinite(s_off) else 0.0)
+    for r in case.comparison.tunnel_rows:
+        assert r.calibrated is not None and abs(r.calibrated - r.truth) <= bound, (r, bound, case.describe())
 
 
 def test_reported_sigma_is_honest(random_cases: _Cases) -> None:
