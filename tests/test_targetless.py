@@ -105,13 +105,21 @@ def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(tmp_path: Pa
     from lrfcal.output import render_report, truth_dict
 
     folder = _record(_data("tunnel_v"), tmp_path / "tv")
-    result = calibrate(read_recording(folder), CalibConfig(compare_targetless=True))
-    assert list(result.side_by_side) == ["markers only", "markers and their surfaces", "targetless (markers ignored)"]
+    recording = read_recording(folder)
+    result = calibrate(recording, CalibConfig(compare_targetless=True, all_planes=True))
+    assert list(result.side_by_side) == ["markers only", "markers and every plane", "targetless (markers ignored)"]
+    # every plane of the scene (stage 6b generalised): more returns, a smaller sigma than the markers' surfaces
+    # alone, and still right within 4 sigma
+    assert any("more planes of the scene" in n for n in result.notes), result.notes
+    plain = calibrate(recording, CalibConfig(baseline=False))
+    assert result.solution.n_surface_returns > plain.solution.n_surface_returns
+    assert result.solution.sigma[6] < plain.solution.sigma[6]  # a
+    assert all(c.passed for c in result.checks)
     truth = load_truth(folder / "ground_truth.yaml")
-    tl = result.side_by_side["targetless (markers ignored)"]
-    for i, n in enumerate(DH):
-        err = math.remainder(getattr(tl.params.dh, n) - getattr(truth.dh, n), 2 * math.pi)
-        assert abs(err) <= N_SIGMA * tl.sigma[6 + i], (n, err, tl.sigma[6 + i])
+    for sol in (result.side_by_side["targetless (markers ignored)"], result.solution):
+        for i, n in enumerate(DH):
+            err = math.remainder(getattr(sol.params.dh, n) - getattr(truth.dh, n), 2 * math.pi)
+            assert abs(err) <= N_SIGMA * sol.sigma[6 + i], (n, err, sol.sigma[6 + i])
     report = render_report(result, truth=truth_dict(truth))
     assert "## The methods side by side" in report and "| targetless (markers ignored) |" in report
 

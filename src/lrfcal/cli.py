@@ -66,6 +66,9 @@ def calibrate_cmd(
         "--targetless", help="Calibrate from the flatness of the scene's planes, without markers (also chosen when "
         "there are no tape distances); the DH parameters the scene does not determine are held and named.")
                           ] = False,
+    all_planes: Annotated[bool, typer.Option(
+        "--all-planes", help="With markers: every other plane of the scene joins the markers' surfaces in the joint "
+        "solve as a free plane (stage 6b generalised; a few seconds more).")] = False,
     compare_targetless: Annotated[bool, typer.Option(
         "--compare-targetless", help="With markers: also calibrate the recording from its planes alone and show the "
         "methods side by side in the report.")] = False,
@@ -88,7 +91,7 @@ def calibrate_cmd(
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
                          force=force, estimate_range_bias=not no_range_bias, targetless=True if targetless else None,
-                         compare_targetless=compare_targetless)
+                         compare_targetless=compare_targetless, all_planes=all_planes)
     options = {k: v for k, v in dict(
         scan_topic=scan_topic, scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic,
         servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,

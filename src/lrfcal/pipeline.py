@@ -64,6 +64,8 @@ class CalibConfig:
     plane_returns: int = 250000  # targetless: an even subsample of the returns, for speed
     #: with markers: also calibrate the same recording targetless and show it beside the marker results (report)
     compare_targetless: bool = False
+    #: with markers: every other plane of the scene joins the markers' surfaces in the joint solve (free planes)
+    all_planes: bool = False
     #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
     #: spreads along the plane and the range reads short)
     max_incidence_rad: float = math.radians(65.0)
@@ -195,6 +197,19 @@ def calibrate(
         elif config.estimate_range_bias:
             notes.append("range offset and marker range bias held at 0: without surface returns the markers alone "
                          "do not separate them from the marker radius and the mount")
+        if config.all_planes:  # 6b generalised: every other plane of the scene too, as free planes
+            from .targetless import merge_returns, scene_plane_returns
+
+            others, other_planes = scene_plane_returns(scans, joints, ours, detections.labels >= 0,
+                                                       list(surface_list), config)
+            if len(others):
+                on_surfaces = merge_returns(on_surfaces, others)
+                surface_list = [*surface_list, *other_planes]
+                ours = fit(matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
+                           planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
+                           estimate_range_bias=math.isfinite(ours.range_offset_sigma_m))
+                notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
+                             "free planes")
         clock.lap("surfaces")
 
     checks = _checks(ours, chosen.solution, matched, markers, passes, config, fit, motor)
@@ -216,7 +231,8 @@ def calibrate(
             notes.append(f"the paper's method could not be run: {err}")
         clock.lap("baseline")
 
-    side_by_side = {"markers only": chosen.solution, "markers and their surfaces": ours}
+    side_by_side = {"markers only": chosen.solution,
+                    "markers and every plane" if config.all_planes else "markers and their surfaces": ours}
     if config.compare_targetless:  # the same recording without its markers (lrfcal.targetless), for the report
         from dataclasses import replace as _with
 

@@ -28,8 +28,8 @@ from . import geometry, observability, planes, reproject, solve, timing
 from .errors import CalibrationError
 from .kinematics import DH, Params, Pose, points_M
 from .pipeline import CalibConfig, Check, _Stopwatch, chi2_check, split_in_two, usable_scans
-from .surfaces import SurfaceReturns, hash_sample
-from .types import CalibrationResult, Recording, Scans, Solution
+from .surfaces import Surface, SurfaceReturns, hash_sample
+from .types import CalibrationResult, JointStates, Recording, Scans, Solution
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -175,9 +175,10 @@ def calibrate_targetless(
 _M = Pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-def _sample(scans: Scans, n: int) -> _Beams:
-    """An even subsample (hash of scan and beam) of at most n finite returns."""
-    scan, beam = np.nonzero(np.isfinite(scans.ranges_m) & (scans.ranges_m > 0))
+def _sample(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) -> _Beams:
+    """An even subsample (hash of scan and beam) of at most n finite returns (not those where ``skip`` (S, N))."""
+    ok = np.isfinite(scans.ranges_m) & (scans.ranges_m > 0)
+    scan, beam = np.nonzero(ok if skip is None else ok & ~skip)
     pick = hash_sample(scan, beam, n)
     scan, beam = scan[pick], beam[pick]
     mu = np.asarray(scans.mu_rad)
@@ -385,4 +386,52 @@ def _second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.i
                                   "clock offset, a scene that moved)"))
 
 
-__all__ = ["STAGES", "PlaneFit", "calibrate_targetless"]
+def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: NDArray[np.bool_],
+                        marker_planes: list[Surface], config: CalibConfig) -> tuple[SurfaceReturns, list[Surface]]:
+    """Every plane of the scene other than the markers' own (stage 6b generalised): segmented in the cloud at a
+    marker calibration ``sol``, in W, as surfaces without a prior (free planes) and their returns, numbered after
+    ``marker_planes``. ``skip`` (S, N): the marker returns, left out."""
+    motor = solve.MotorClock.from_joints(joints)
+    beams = _sample(scans, config.plane_returns, skip)
+    seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
+    thickness = 4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2))
+    returns, labels, found = _plane_returns(beams, seg, motor, sol.params.dh, sol.clock_offset_s, thickness, config)
+    T = sol.params.mount.matrix()
+    R, t = T[:3, :3], T[:3, 3]
+    keep, out = [], []
+    for k, p in enumerate(found):
+        n = R @ p.normal
+        d = p.offset_m + float(n @ t)
+        if any(abs(float(n @ m.normal)) > math.cos(math.radians(5.0)) and abs(abs(d) - abs(m.offset_m)) < 0.05
+               for m in marker_planes):
+            continue  # a marker plane, already there with the markers' prior
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        out.append(Surface(n, d, np.zeros(0, dtype=np.int64), np.array([t1, np.cross(n, t1)]), R @ p.centroid + t,
+                           np.full(2, -np.inf), np.full(2, np.inf), np.full(3, np.inf)))
+        keep.append(k)
+    m = np.isin(returns.surface, keep)
+    sub = returns.subset(m)
+    remap = np.full(len(found), -1, dtype=np.int64)
+    remap[keep] = len(marker_planes) + np.arange(len(keep))
+    surf = remap[sub.surface]
+    normals = np.array([s_.normal for s_ in out]).reshape(-1, 3)
+    offsets = np.array([s_.offset_m for s_ in out])
+    local = surf - len(marker_planes)
+    from dataclasses import replace
+
+    return replace(sub, surface=surf, normals=normals[local], offsets_m=offsets[local]), out
+
+
+def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns:
+    """The surface returns of ``a`` followed by those of ``b`` (their surface indices kept)."""
+    if a is None or not len(a):
+        return b
+    fields = {}
+    for k in a.__dataclass_fields__:
+        va, vb = getattr(a, k), getattr(b, k)
+        fields[k] = None if va is None or vb is None else np.concatenate([va, vb])
+    return SurfaceReturns(**fields)
+
+
+__all__ = ["STAGES", "PlaneFit", "calibrate_targetless", "merge_returns", "scene_plane_returns"]
