@@ -206,9 +206,12 @@ def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorCloc
         n = N[labels]
         near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
         facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
-        # returns as close to another plane as to their own lie near an edge or a corner, where a beam's footprint
-        # straddles two surfaces (mixed pixels): left out
-        dist_all = np.abs(P @ N.T - off)  # (K, planes)
+        # returns near an edge or a corner, where a beam's footprint straddles two surfaces (mixed pixels), are left
+        # out: judged by where the RAY meets its plane, not by the measured point, whose range noise would keep
+        # the returns that read short on one side of a corner and those that read long on the other (a bias)
+        nd = (d * n).sum(1)
+        hit = o + ((off[labels] - (o * n).sum(1)) / np.where(np.abs(nd) > 1e-9, nd, 1e-9))[:, None] * d
+        dist_all = np.abs(hit @ N.T - off)  # (K, planes)
         dist_all[np.arange(len(P)), labels] = np.inf
         clear = dist_all.min(1) > thickness_m
         labels = np.where(near & facing & clear, labels, -1)
