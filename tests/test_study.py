@@ -14,7 +14,17 @@ import yaml
 from lrfcal.errors import InputError
 from lrfcal.kinematics import DH_NAMES
 from lrfsim.scenario import parse_scenario
-from lrfsim.study import CSV_COLUMNS, parse_vary, run_trials, study, trials_csv, with_field, write_study
+from lrfsim.study import (
+    CSV_COLUMNS,
+    PERTURB_HALF_WIDTH,
+    parse_vary,
+    perturbed_start,
+    run_trials,
+    study,
+    trials_csv,
+    with_field,
+    write_study,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 LRFSIM = [sys.executable, "-m", "lrfsim.cli"]
@@ -137,3 +147,56 @@ def test_no_wasted_casting(tiny) -> None:
     diff = (other.ranges_m - full.ranges_m)[both]
     assert 0.005 < diff.std() < 0.02  # sqrt(2) x the 10 mm range noise
     assert np.array_equal(geometry.cast.ranges_m, before, equal_nan=True)
+
+
+def _nominal(sc) -> dict[str, float]:
+    return {**sc.rig.nominal_dh.model_dump(), **sc.rig.nominal_mount.model_dump()}
+
+
+def test_perturbed_start_draws(tiny) -> None:
+    """Each nominal value moves by a uniform draw within +-scale x its half-width, from the seed alone; the truth
+    and everything else stay; scale 0 is the scenario itself; a bad scale is refused."""
+    import numpy as np
+
+    assert perturbed_start(tiny, 5, 0.0) is tiny
+    base = _nominal(tiny)
+    steps = []
+    for seed in range(40):
+        p = perturbed_start(tiny, seed, 2.0)
+        assert p.rig.dh == tiny.rig.dh and p.rig.mount == tiny.rig.mount and p.seed == tiny.seed
+        assert p.scene == tiny.scene and p.markers == tiny.markers
+        moved = _nominal(p)
+        steps.append([(moved[k] - base[k]) / (2.0 * h) for k, h in PERTURB_HALF_WIDTH.items()])
+    steps_a = np.array(steps)
+    assert np.all(np.abs(steps_a) <= 1.0 + 1e-12)
+    assert np.all(steps_a.max(0) > 0.5) and np.all(steps_a.min(0) < -0.5)  # spread over the whole width
+    assert _nominal(perturbed_start(tiny, 7, 1.0)) == _nominal(perturbed_start(tiny, 7, 1.0))
+    assert _nominal(perturbed_start(tiny, 7, 1.0)) != _nominal(perturbed_start(tiny, 8, 1.0))
+    for bad in (-1.0, math.nan):
+        with pytest.raises(InputError, match="perturb-start"):
+            perturbed_start(tiny, 0, bad)
+
+
+def test_perturbed_start_reaches_nominal_yaml_and_pool_gives_the_same_table(tiny, monkeypatch) -> None:
+    """The trial's nominal.yaml (what the calibration reads) holds the perturbed start of that trial's seed, and a
+    process pool gives the same table as one process."""
+    import lrfsim.trial
+
+    seen: dict[str, dict[str, float]] = {}
+    calibrate = lrfsim.trial.calibrate_recording
+
+    def spy(folder, *args, **kwargs):
+        data = yaml.safe_load((Path(folder) / "nominal.yaml").read_text())
+        seen[folder.name] = {**data["dh"], **data["mount"]}
+        return calibrate(folder, *args, **kwargs)
+
+    monkeypatch.setattr(lrfsim.trial, "calibrate_recording", spy)
+    serial = run_trials(tiny, 2, seed0=10, workers=1, perturb_start=1.0)
+    for trial, seed in ((0, 10), (1, 11)):
+        expected = _nominal(perturbed_start(tiny, seed, 1.0))
+        assert seen[f"trial_{trial}"] == pytest.approx(expected, abs=1e-12)
+        assert seen[f"trial_{trial}"] != pytest.approx(_nominal(tiny), abs=1e-6)
+    assert all(r.status == "calibrated" for r in serial), [r.reason for r in serial]
+    monkeypatch.undo()
+    pooled = run_trials(tiny, 2, seed0=10, workers=2, perturb_start=1.0)
+    assert [r.csv_row() for r in pooled] == [r.csv_row() for r in serial]

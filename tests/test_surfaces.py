@@ -110,3 +110,42 @@ def test_observability_names_the_weakest_combination() -> None:
     singular[2, :] = singular[:, 2] = 0.0  # b not seen at all: an infinite sigma, never 0
     s = analyse(singular, names)
     assert not s.determined and s.sigma[2] == np.inf and s.undetermined == ("b",)
+
+
+def test_surface_returns_are_chosen_by_their_ray_not_their_noisy_point() -> None:
+    """A return chosen by its measured point is chosen by its range noise: at the far edge of the markers' extent,
+    where the rays meet the wall obliquely, the returns that read short move inside and those that read long move
+    out (the cause of a Monte-Carlo bias of a and beta, issue 10). Chosen by where the ray meets the plane, the kept
+    returns' range errors are the noise's, mean 0; and no return beyond the incidence limit is kept."""
+    from lrfcal.surfaces import MAX_INCIDENCE_RAD, Surface
+
+    rng = np.random.default_rng(3)
+    K = 400_000
+    origin = np.array([0.0, 0.0, 1.0])
+    on_wall = np.column_stack([rng.uniform(0.0, 3.0, K), np.full(K, 0.39), rng.uniform(0.2, 1.8, K)])
+    true_range = np.linalg.norm(on_wall - origin, axis=1)
+    d = (on_wall - origin) / true_range[:, None]
+    o = np.broadcast_to(origin, (K, 3)).copy()
+    sigma = 0.03  # the far band's range noise: the selection's bias grows as sigma^2, the test's resolution as sigma
+    r = true_range + rng.normal(0.0, sigma, K)
+    points = o + r[:, None] * d
+    # the wall y = 0.39, markers' extent x 0.3..2.9 m (incidence up to 82 deg), z 0.3..1.7 m; one marker far away
+    wall = Surface(np.array([0.0, 1.0, 0.0]), 0.39, np.arange(1), np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]]),
+                   np.array([1.6, 0.39, 1.0]), np.array([-1.3, -0.7]), np.array([1.3, 0.7]), np.ones(3))
+    far = np.array([[10.0, 10.0, 10.0]])
+    idx = np.arange(K)
+    zeros = np.zeros(K)
+
+    def range_errors(**kw: object) -> tuple[np.ndarray, np.ndarray]:
+        ret = surface_returns([wall], points, idx, idx, zeros, zeros, r, far, max_returns=K, gate_m=0.1, **kw)
+        return ret.ranges_m - true_range[ret.scan], ret.scan
+
+    e_point, _ = range_errors(max_incidence_rad=np.pi / 2)
+    e_ray, kept = range_errors(rays_W=(o, d), max_incidence_rad=np.pi / 2)
+    se = sigma / np.sqrt(e_ray.size)
+    assert e_point.mean() < -6 * se  # the noisy point's selection reads short ...
+    assert abs(e_ray.mean()) < 3 * se  # ... the ray's does not
+    _, kept = range_errors(rays_W=(o, d))
+    incidence = np.arccos(np.abs(d[kept, 1]))
+    assert kept.size > 0.5 * e_ray.size and incidence.max() <= MAX_INCIDENCE_RAD
+    assert np.arccos(np.abs(d[:, 1])).max() > MAX_INCIDENCE_RAD + 0.02  # there were such returns to leave out

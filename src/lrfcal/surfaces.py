@@ -10,20 +10,36 @@ Candidate planes are fitted through the marker centres (greedy RANSAC, >= 5 mark
 if the reprojected cloud confirms them: most of the returns in a slab around the candidate, inside the markers'
 extent, must lie on it. This rejects virtual planes through parallel lines of markers on different walls (the
 two V arms of the tunnel_v layout are such a pair).
+
+Which returns are used is decided by where each beam's RAY meets the plane at the current estimate (inside the
+markers' extent, clear of the markers), never by its measured point: the measured point carries the range noise
+along the ray, so at the far edge of the extent, where the rays meet the plane obliquely, a selection by it keeps
+the returns that read short and drops those that read long. That selection was the cause of a Monte-Carlo bias
+of 1.2-1.7 sigma in a and beta on tunnel_v and of 0.5-0.7 sigma in alpha and b on plane_30deg (issue 10;
+``lrfsim study``). Returns beyond 80 deg of incidence are left out: a real beam's footprint is stretched along the
+surface as 1 / cos(incidence) and its mixed range reads short there (the simulator's 7 sub-rays against its centre
+ray alone, tunnel_v walls, no noise: < 0.03 mm below 70 deg, 0.04-0.11 mm at 70-80 deg, 0.6 mm on average at
+80-85 deg). A gate at 65 deg, tried, removed no bias but half the information on alpha of tunnel_v, whose walls
+are seen obliquely.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from .kinematics import Params, points_W
+from .kinematics import Params, beam_rays_M, points_W
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+#: surface returns whose ray meets the plane more obliquely than this (angle between the ray and the plane's
+#: normal) are not used (module docstring)
+MAX_INCIDENCE_RAD = math.radians(80.0)
 
 
 @dataclass(frozen=True)
@@ -161,17 +177,35 @@ def surface_returns(
     surfaces: list[Surface], points_W: FloatArray, scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
     mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = 0.03,
     marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0, times_s: FloatArray | None = None,
+    rays_W: tuple[FloatArray, FloatArray] | None = None, max_incidence_rad: float = MAX_INCIDENCE_RAD,
 ) -> SurfaceReturns:
     """The returns (rows of the P inputs) on the surfaces, away from markers, at most ``max_returns`` (an even
-    random subsample). points_W (P, 3) are the returns reprojected with the current parameters."""
+    random subsample). points_W (P, 3) are the returns reprojected with the current parameters.
+
+    rays_W: the returns' beam origins (P, 3) and unit directions (P, 3) with the same parameters. Given, a return
+    is judged by where its ray meets the plane, not by its measured (noisy) point: inside the markers' extent and
+    ``marker_clearance_m`` from every marker (a selection by the measured point keeps, at the far edge of the
+    extent, the returns that read short and drops those that read long: a bias); and returns whose incidence (the
+    angle between the ray and the plane's normal) exceeds ``max_incidence_rad`` are left out. Without it, the
+    measured points decide and every incidence is kept."""
     tree = cKDTree(np.asarray(markers_W))
+    cos_max = math.cos(max_incidence_rad)
     idx_all, which = [], []
     for k, s in enumerate(surfaces):
         dist = points_W @ s.normal - s.offset_m
-        idx = np.nonzero(np.abs(dist) < gate_m)[0]
-        q = (points_W[idx] - s.centre) @ s.axes.T
-        idx = idx[np.all((q >= s.lower) & (q <= s.upper), axis=1)]
-        idx = idx[tree.query(points_W[idx])[0] >= marker_clearance_m]
+        near = np.abs(dist) < gate_m
+        if rays_W is not None:
+            near &= np.abs(rays_W[1] @ s.normal) >= cos_max
+        idx = np.nonzero(near)[0]
+        if rays_W is None:
+            at = points_W[idx]
+        else:  # the ray's intersection with the plane: o + t d, t = (offset - n.o) / n.d
+            o, d = rays_W[0][idx], rays_W[1][idx]
+            at = o + ((s.offset_m - o @ s.normal) / (d @ s.normal))[:, None] * d
+        q = (at - s.centre) @ s.axes.T
+        inside = np.all((q >= s.lower) & (q <= s.upper), axis=1)
+        idx, at = idx[inside], at[inside]
+        idx = idx[tree.query(at)[0] >= marker_clearance_m]
         idx_all.append(idx)
         which.append(np.full(idx.size, k))
     idx = np.concatenate(idx_all) if idx_all else np.zeros(0, dtype=np.int64)
@@ -198,7 +232,7 @@ __all__ = ["Surface", "SurfaceReturns", "candidate_planes", "hash_sample", "find
 def observe_surfaces(
     ranges_m: FloatArray, mu_rad: FloatArray, lambda_rad: FloatArray, labels: IntArray, markers_W: FloatArray,
     radius_m: float, params: Params, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
-    beam_times_s: FloatArray | None = None,
+    beam_times_s: FloatArray | None = None, max_incidence_rad: float = MAX_INCIDENCE_RAD,
 ) -> tuple[list[Surface], SurfaceReturns]:
     """Find the marker-carrying surfaces and their returns in a recording.
 
@@ -208,7 +242,8 @@ def observe_surfaces(
         labels (S, N) blob labels (>= 0 on marker returns, excluded); markers_W (n, 3); radius_m;
         params: lrfcal.kinematics.Params used to reproject (the marker-only estimate);
         beam_times_s (S, N): laser-clock beam times, carried with the returns (for the clock offset);
-        position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior).
+        position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior);
+        max_incidence_rad: the most oblique incidence of a surface return used (ray directions from ``params``).
     """
     valid = np.isfinite(ranges_m) & (labels < 0)
     scan, beam = np.nonzero(valid)
@@ -220,8 +255,11 @@ def observe_surfaces(
     step = max(1, P.shape[0] // 100_000)
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, P[::step], position_sigma_m=position_sigma_m)
     times = None if beam_times_s is None else np.asarray(beam_times_s)[scan, beam]
+    T = params.mount.matrix()
+    o_M, d_M = beam_rays_M(lam, mu, params.dh)
     returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed,
-                              times_s=times)
+                              times_s=times, rays_W=(o_M @ T[:3, :3].T + T[:3, 3], d_M @ T[:3, :3].T),
+                              max_incidence_rad=max_incidence_rad)
     return surfaces, returns
 
 

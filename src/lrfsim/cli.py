@@ -197,12 +197,18 @@ def study(
                                                    "scenario's seed]")] = None,
     recast: Annotated[bool, typer.Option("--recast", help="Cast the rays anew for every trial (a new laser phase "
                                          "per trial) instead of reusing one noise-free cast.")] = False,
+    perturb_start: Annotated[float, typer.Option(
+        "--perturb-start", metavar="S", min=0.0, max=100.0, show_default=False,
+        help="Start each trial from the nominal values moved by uniform draws in +-S x (a, b: 5 mm; alpha, beta: "
+             "1 deg; mount: 2 cm, 1 deg), drawn from the trial's seed  [default: 0, the scenario's nominal "
+             "values]")] = 0.0,
 ) -> None:
     """Monte-Carlo study: calibrate N noisy recordings of SCENARIO.
 
     Trial k simulates SCENARIO with seed S + k (new range, intensity, tape and encoder noise; the marker layout
     stays; the rays are cast once and reused, see --recast), writes and reads the recording back and calibrates
-    it. Writes DIR/trials.csv (one row per trial:
+    it; --perturb-start S also moves each trial's nominal values (its nominal.yaml, where the calibration
+    starts). Writes DIR/trials.csv (one row per trial:
     status, reason, P_error and P_sigma in SI units for each DH parameter P), DIR/summary.md (bias, std, RMSE,
     the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
     histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
@@ -226,7 +232,7 @@ def study(
             with_field(sc, varied[0], v)
     with progress_display(f"study of {sc.name}") as hooks:
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
-                           progress=lambda value, done, total: hooks.scans(done, total))
+                           progress=lambda value, done, total: hooks.scans(done, total), perturb_start=perturb_start)
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())
     print(f"wrote {path} (trials.csv, summary.md, figures)")

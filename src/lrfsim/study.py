@@ -10,6 +10,13 @@ drawn from the trial's seed as well. Each trial then runs the whole path of a re
 recording: simulate, write the recording folder, read it back, calibrate (lrfsim.trial.calibrate_recording), and
 is recorded as calibrated (errors against the truth, reported sigma) or refused (the reason).
 
+Perturbed start (``perturb_start = s > 0``, ``--perturb-start S``): each trial's nominal values (the scenario's
+``rig.nominal_dh`` and ``rig.nominal_mount``, written to the trial's nominal.yaml, where the calibration starts)
+are moved by independent draws, uniform in +-s times :data:`PERTURB_HALF_WIDTH` (s = 1: a, b +-5 mm, alpha, beta
++-1 deg; mount x, y, z +-2 cm, roll, pitch, yaw +-1 deg), from the trial's seed alone
+(``default_rng([seed, 0x73746172])``, a stream of its own): the same seeds give the same starts however the
+study runs. Without it every trial starts from the scenario's nominal values.
+
 Execution: trials are cut into batches (one batch = one task: the scene is built once per batch); batches run
 in-process (``workers=1``), in a ``concurrent.futures.ProcessPoolExecutor`` (``workers=K``) or on a
 dask.distributed cluster (``dask_address`` or a ``distributed.Client``). A trial's outcome depends only on its
@@ -45,7 +52,7 @@ from lrfcal.kinematics import DH_NAMES
 from lrfcal.output import atomic_folder, check_replaceable
 
 from .plan import Plan, format_value, plan
-from .scenario import Scenario, parse_scenario, require_markers
+from .scenario import DHConfig, PoseConfig, Scenario, parse_scenario, require_markers
 
 FloatArray = NDArray[np.float64]
 
@@ -54,6 +61,14 @@ CSV_COLUMNS: tuple[str, ...] = (
     "value", "trial", "seed", "status", "reason", "exit_code",
     *(f"{p}_{k}" for p in DH_NAMES for k in ("error", "sigma")), "clock_offset_error",
 )
+
+
+#: --perturb-start 1: half-widths of the uniform perturbation of each nominal value (SI units: m, rad)
+PERTURB_HALF_WIDTH: dict[str, float] = {
+    "a": 0.005, "alpha": math.radians(1.0), "b": 0.005, "beta": math.radians(1.0),
+    "x": 0.02, "y": 0.02, "z": 0.02, "roll": math.radians(1.0), "pitch": math.radians(1.0), "yaw": math.radians(1.0),
+}
+_RNG_START = 0x73746172  # the perturbed start's random stream ("star"; lrfsim.simulate's are "phas", "nois", ...)
 
 
 @dataclass(frozen=True)
@@ -134,7 +149,8 @@ class StudyPart:
 
 @dataclass(frozen=True)
 class Study:
-    """A study: the scenario's name, the varied field (or None) and one part per value; seconds of wall time."""
+    """A study: the scenario's name, the varied field (or None) and one part per value; seconds of wall time;
+    perturb_start: the scale of the perturbed start (0: every trial starts from the scenario's nominal values)."""
 
     name: str
     key: str | None
@@ -142,6 +158,7 @@ class Study:
     seconds: float
     workers: str = ""
     notes: tuple[str, ...] = field(default=())
+    perturb_start: float = 0.0
 
     @property
     def rows(self) -> tuple[TrialRow, ...]:
@@ -187,14 +204,43 @@ def parse_vary(text: str) -> tuple[str, list[Any]]:
     return key, out
 
 
+def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
+    """The scenario with its nominal DH and mount (``rig.nominal_dh``, ``rig.nominal_mount``: the trial's
+    nominal.yaml) each moved by an independent uniform draw in +-``scale`` x :data:`PERTURB_HALF_WIDTH`, drawn
+    from ``seed`` alone (module docstring); angles wrapped to [-pi, pi]. ``scale`` = 0 returns ``scenario``.
+
+    Raises:
+        InputError: a negative or non-finite scale.
+    """
+    if not (math.isfinite(scale) and scale >= 0):
+        raise InputError(f"--perturb-start: expected a scale >= 0, got {scale}")
+    if scale == 0:
+        return scenario
+    u = np.random.default_rng([int(seed), _RNG_START]).uniform(-1.0, 1.0, len(PERTURB_HALF_WIDTH))
+    step = dict(zip(PERTURB_HALF_WIDTH, scale * u * np.array(list(PERTURB_HALF_WIDTH.values())), strict=True))
+    rig = scenario.rig
+
+    def moved(config: DHConfig | PoseConfig) -> dict[str, float]:
+        out = {}
+        for k, v in config.model_dump().items():
+            v = float(v + step[k])
+            out[k] = math.remainder(v, 2 * math.pi) if k in ("alpha", "beta", "roll", "pitch", "yaw") else v
+        return out
+
+    new_rig = rig.model_copy(update={"nominal_dh": DHConfig(**moved(rig.nominal_dh)),
+                                     "nominal_mount": PoseConfig(**moved(rig.nominal_mount))})
+    return scenario.model_copy(update={"rig": new_rig})
+
+
 # --- running trials -------------------------------------------------------------------------------------------
 
-def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False
-              ) -> list[TrialRow]:
+def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False,
+              perturb_start: float = 0.0) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
     built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
     scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
-    every trial anew (the laser phase drawn from the trial's seed too)."""
+    every trial anew (the laser phase drawn from the trial's seed too). ``perturb_start``: the scale of each
+    trial's perturbed start (:func:`perturbed_start`; 0: the scenario's nominal values)."""
     from .scene import build_scene
     from .simulate import cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
@@ -204,7 +250,7 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
     rows = []
     with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
         for trial, seed in trials:
-            sc = scenario.model_copy(update={"seed": int(seed)})
+            sc = perturbed_start(scenario.model_copy(update={"seed": int(seed)}), seed, perturb_start)
             folder = Path(tmp) / f"trial_{trial}"
             sim = simulate(sc, scene=scene) if geometry is None else simulate_from_geometry(sc, geometry)
             write_recording(sim, sc, folder)
@@ -225,14 +271,16 @@ def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[in
 def run_trials(
     scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
     dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
-    recast: bool = False,
+    recast: bool = False, perturb_start: float = 0.0,
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: the trials spread
-    over about 2 batches per worker, at least 1 trial each). ``recast``: see :func:`run_batch`."""
+    over about 2 batches per worker, at least 1 trial each). ``recast``, ``perturb_start``: see
+    :func:`run_batch`."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
+    perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
     s0 = scenario.seed if seed0 is None else int(seed0)
     items = [(k, s0 + k) for k in range(trials)]
     n_batches = math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if workers > 1 or dask else 1
@@ -243,7 +291,7 @@ def run_trials(
         client, own = _dask_client(dask)
         try:
             futures = client.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
-                                 [recast] * len(batches), pure=False)
+                                 [recast] * len(batches), [perturb_start] * len(batches), pure=False)
             for fut in futures:
                 rows += fut.result()
                 done += 1
@@ -255,14 +303,14 @@ def run_trials(
     elif workers > 1:
         with ProcessPoolExecutor(max_workers=workers) as pool:
             for part in pool.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
-                                 [recast] * len(batches)):
+                                 [recast] * len(batches), [perturb_start] * len(batches)):
                 rows += part
                 done += 1
                 if progress:
                     progress(done, len(batches))
     else:
         for b in batches:
-            rows += run_batch(scenario, value, b, recast)
+            rows += run_batch(scenario, value, b, recast, perturb_start)
             done += 1
             if progress:
                 progress(done, len(batches))
@@ -286,10 +334,11 @@ def _dask_client(dask: Any) -> tuple[Any, bool]:
 def study(
     scenario: Scenario, trials: int, *, seed0: int | None = None, workers: int = 1, dask: Any = None,
     vary: tuple[str, list[Any]] | None = None, batch_size: int | None = None,
-    progress: Callable[[str, int, int], None] | None = None, recast: bool = False,
+    progress: Callable[[str, int, int], None] | None = None, recast: bool = False, perturb_start: float = 0.0,
 ) -> Study:
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
-    value of one field (the same seeds for every value)."""
+    value of one field (the same seeds for every value); ``perturb_start``: the scale of each trial's perturbed
+    start (:func:`perturbed_start`)."""
     # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
     require_markers(scenario, "lrfsim study", "calibrates with markers and tape distances; a targetless "
                     "calibration is not available yet")
@@ -306,11 +355,11 @@ def study(
             predicted = None
         hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
         rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
-                          progress=hook, recast=recast)
+                          progress=hook, recast=recast, perturb_start=perturb_start)
         parts.append(StudyPart(value=value, scenario=sc, plan=predicted, rows=tuple(rows)))
     where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
-                 seconds=time.perf_counter() - t0, workers=where)
+                 seconds=time.perf_counter() - t0, workers=where, perturb_start=perturb_start)
 
 
 # --- outputs --------------------------------------------------------------------------------------------------
@@ -336,6 +385,11 @@ def summary_markdown(s: Study) -> str:
              "Errors against the truth; predicted sigma from `lrfsim plan` (Fisher information of the noise-free "
              "geometry). Efficiency: RMSE / predicted sigma (1 = the method reaches the predicted accuracy); "
              "calibration: RMS of error / reported sigma (1 = the reported sigma is honest).", ""]
+    if s.perturb_start > 0:
+        h = {k: s.perturb_start * v for k, v in PERTURB_HALF_WIDTH.items()}
+        lines += [f"Perturbed start (scale {s.perturb_start:g}): each trial's nominal values moved by uniform draws "
+                  f"in +-{h['a'] * 1000:g} mm (a, b), +-{math.degrees(h['alpha']):g} deg (alpha, beta), "
+                  f"+-{h['x'] * 100:g} cm and +-{math.degrees(h['roll']):g} deg (mount), from the trial's seed.", ""]
     for part in s.parts:
         st = part.stats()
         n = int(st["a"]["n"])
@@ -444,5 +498,6 @@ def default_workers() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-__all__ = ["CSV_COLUMNS", "Study", "StudyPart", "TrialRow", "default_workers", "parse_vary", "run_batch",
-           "run_trials", "study", "summary_markdown", "trials_csv", "with_field", "write_figures", "write_study"]
+__all__ = ["CSV_COLUMNS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialRow", "default_workers", "parse_vary",
+           "perturbed_start", "run_batch", "run_trials", "study", "summary_markdown", "trials_csv", "with_field",
+           "write_figures", "write_study"]
