@@ -7,7 +7,15 @@ import pytest
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
-from lrfcal.solve import MotorClock, jacobian_check, model_residuals, solve, sphere_depth, wrap_pi
+from lrfcal.solve import (
+    MotorClock,
+    footprint_depth,
+    jacobian_check,
+    model_residuals,
+    solve,
+    sphere_depth,
+    wrap_pi,
+)
 from lrfcal.types import JointStates, Observations
 
 R_M = 0.005  # marker radius (seed paper's Gazebo study)
@@ -92,8 +100,12 @@ def _err(p: Params) -> np.ndarray:
     return e
 
 
-@pytest.mark.parametrize("model", ["paper", "sphere"])
-def test_jacobian_matches_central_differences(model: str) -> None:
+@pytest.mark.parametrize(
+    ("model", "divergence"), [("paper", 0.0), ("sphere", 0.0), ("sphere", 0.09), ("sphere", 0.099)]
+)
+def test_jacobian_matches_central_differences(model: str, divergence: float) -> None:
+    """``divergence``: footprints of 0.07-0.3 marker radii at these ranges (0.5-2 m, R = 0.3 m), and for the last
+    value, with the ranges scaled up below, footprints larger than the marker (k > 1)."""
     rng = np.random.default_rng(3)
     K = 200
     obs = Observations(
@@ -102,6 +114,9 @@ def test_jacobian_matches_central_differences(model: str) -> None:
         lambda_rad=rng.uniform(-1.5, 1.5, K), times_s=np.zeros(K), intensity=np.ones(K),
         is_peak=np.zeros(K, bool),
     )
+    if divergence > 0.095:  # footprints of 1-5 marker radii: the other branch of footprint_depth
+        obs = Observations(**{**{k: getattr(obs, k) for k in obs.__dataclass_fields__},
+                              "ranges_m": obs.ranges_m * 15.0})
     X = rng.uniform(-1.5, 1.5, (6, 3))
     # a sweep with a varying speed, so that the clock offset's column (dlambda/dtau = -omega) is exercised
     t = np.linspace(-1.0, 11.0, 1201)
@@ -116,9 +131,33 @@ def test_jacobian_matches_central_differences(model: str) -> None:
         radius = 0.3 if model == "sphere" else R_M
         for w in ((0.0, 0.0, 0.0), (0.4, -0.7, 1.1)):  # the right Jacobian of SO(3) away from w = 0 too
             err = jacobian_check(Params.from_vector(theta), obs, X, model=model, marker_radius_m=radius,
-                                 clock=clock, rotation_vector=w)
+                                 clock=clock, rotation_vector=w, beam_divergence_rad=divergence)
             assert err[:10].max() < 1e-6 and err[11:].max() < 1e-6, err  # 10 parameters, range offset and bias
             assert err[10] < 5e-3, err  # the clock column: smoothed joint velocity (see jacobian_check)
+
+
+def test_footprint_depth() -> None:
+    """The footprint's mean depth: the beam's axis alone at k = 0; the mean depth of the whole sphere (2/3, the
+    footprint covering it) for a footprint much larger than the marker; shallower than the axis's depth inside
+    (the footprint reaches towards the rim) and deeper beyond the rim (part of it still hits); dS/du as the
+    finite difference."""
+    u = np.linspace(0.0, 2.5, 501)
+    assert np.array_equal(footprint_depth(u, np.zeros_like(u))[0], sphere_depth(u)[0])
+    big = footprint_depth(np.array([0.0, 0.5, 2.0]), np.array([6.0, 6.0, 6.0]))[0]
+    assert np.allclose(big, 2.0 / 3.0, atol=0.03), big
+    # the two ways of taking the mean (over the footprint, k <= 1; over the sphere, k > 1) meet at k = 1
+    u1 = np.linspace(0.0, 1.8, 37)
+    lo, hi = footprint_depth(u1, np.full_like(u1, 1.0))[0], footprint_depth(u1, np.full_like(u1, 1.0 + 1e-9))[0]
+    assert np.allclose(lo, hi, atol=0.08), np.abs(lo - hi).max()
+    k = np.full_like(u, 0.3)
+    S, dS = footprint_depth(u, k)
+    s0 = sphere_depth(u)[0]
+    assert np.all(S[u < 0.6] < s0[u < 0.6]) and np.all(S[(u > 1.05) & (u < 1.25)] > s0[(u > 1.05) & (u < 1.25)])
+    h = 1e-6
+    for kk in (k, 3.0 * k / 0.3):  # both branches
+        S, dS = footprint_depth(u, kk)
+        num = (footprint_depth(u + h, kk)[0] - footprint_depth(u - h, kk)[0]) / (2 * h)
+        assert np.allclose(num, dS, atol=1e-6)
 
 
 def test_sphere_depth_smooth_and_bounded() -> None:

@@ -200,3 +200,32 @@ def test_perturbed_start_reaches_nominal_yaml_and_pool_gives_the_same_table(tiny
     monkeypatch.undo()
     pooled = run_trials(tiny, 2, seed0=10, workers=2, perturb_start=1.0)
     assert [r.csv_row() for r in pooled] == [r.csv_row() for r in serial]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", [
+    "tunnel_v",
+    pytest.param("plane_30deg", marks=pytest.mark.xfail(strict=True, reason=(
+        "a's predicted sigma is conservative on plane_30deg: Monte-Carlo std / predicted 0.71 over these 30 trials "
+        "cast anew, 0.83 over 100 with one cast (docs/study.md); probably because the lateral residual of a "
+        "marker return treats the beams on a marker as independent uniform hits, while they fall on a grid"))),
+])
+def test_statistical_efficiency(name: str) -> None:
+    """The whole method's efficiency on the shipped scenarios, N = 30 trials (seeds 100..129; a local pool of 2):
+    for every DH parameter the plan's predicted sigma is within +-25 % of the Monte-Carlo std, and the RMS of
+    error / reported sigma is in 0.8-1.25. Every trial is cast anew (``recast``: a new laser phase), because where
+    the beams fall on the 5 mm markers is part of a recording's error, which the sigma covers; a study that reuses
+    one cast freezes that part into a bias and measures the noise alone (docs/study.md). With N = 30 the std is
+    known to about +-13 % and a bias to 1 / sqrt(30) = 0.18 std, so the bias is held to 0.3 std plus two of its
+    standard errors (the 0.3 itself is measured with N = 100 by benchmarks/bench_study.py --recast)."""
+    from lrfsim.scenario import load_scenario
+
+    s = study(load_scenario(ROOT / "scenarios" / f"{name}.yaml"), 30, seed0=100, workers=2, recast=True)
+    part = s.parts[0]
+    assert all(r.status == "calibrated" for r in part.rows), [r.reason for r in part.rows if r.reason]
+    st = part.stats()
+    for p in DH_NAMES:
+        d = st[p]
+        assert 0.75 <= d["std_over_predicted"] <= 1.25, (p, d)
+        assert 0.8 <= d["rms_z"] <= 1.25, (p, d)
+        assert abs(d["bias"]) < (0.3 + 2 / math.sqrt(30)) * d["std"], (p, d)

@@ -146,7 +146,8 @@ def calibrate(
 
     # 4.-6. association and marker-only solve for each direction of the servo; the data cannot tell them apart.
     # The DH search (lrfcal.start) runs only when neither direction associates well from the nominal values.
-    fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m)
+    fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+                  beam_divergence_rad=nominal.beam_divergence_rad)
     signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
     first = {sign: _associate_nominal(signed[sign], detections, markers, nominal, config) for sign in (1, -1)}
     search = not any(_good(a, signed[s], config) for s, a in first.items() if a is not None)
@@ -332,7 +333,8 @@ def _marker_solution(
     motor = solve.MotorClock.from_joints(joints) if estimate_clock else None
     info, names = solve.information_at(matched, markers.positions_W, start, model="sphere",
                                        marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
-                                       clock=motor, clock_offset_s=config.clock_offset_s)
+                                       clock=motor, clock_offset_s=config.clock_offset_s,
+                                       beam_divergence_rad=nominal.beam_divergence_rad)
     obs = observability.analyse(info, names)
     if not obs.determined:
         raise CalibrationError(

@@ -133,12 +133,15 @@ class ServoSource(_Strict):
 
 
 class RigFile(_Strict):
-    """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``scan``, ``servo`` (and the old keys
-    ``scan_topic``, ``joint_topic``, ``joint_name``)."""
+    """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``beam_divergence_rad``, ``scan``,
+    ``servo`` (and the old keys ``scan_topic``, ``joint_topic``, ``joint_name``)."""
 
     dh: DHModel
     mount: MountModel | None = None
     marker_radius_m: float = Field(default=0.005, ge=0.0)
+    #: the scanner's full beam divergence [rad]: its footprint on a marker (lrfcal.solve.footprint_depth); 0 (the
+    #: default) models the beam as its axis, right for a footprint much smaller than the markers
+    beam_divergence_rad: float = Field(default=0.0, ge=0.0, lt=0.1)
     scan: ScanSource | None = None
     servo: ServoSource | None = None
     scan_topic: str | None = Field(default=None, min_length=1)

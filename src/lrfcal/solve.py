@@ -24,6 +24,13 @@ Two observation models (c = the centre of the return's marker in W, R_m its radi
   rim). Residuals: (r - r_hat) / sigma_r and e / sigma_lat (3 components, one of them identically zero along
   d, hence 3 independent residuals per return), sigma_lat = R_m / 2 (hits spread uniformly over the visible
   disc: E|e|^2 = R_m^2 / 2).
+  With a finite beam (``beam_divergence_rad`` delta > 0) the footprint at the marker is a disc of radius
+  k R_m, k = r delta / (2 R_m) from the measured range r, and a retroreflector outshines whatever else it
+  covers: s(u) becomes S(u, k), the mean of s over the part of the footprint that hits the sphere
+  (footprint_depth), and sigma_lat = R_m sqrt(1 + k^2) / 2 (the beam's axis is the point hit on the marker's
+  disc minus its offset within the footprint, two independent uniform discs). Modelling the beam
+  as its axis alone biases the DH on 5 mm spheres seen through a 4.4 mrad beam by about 0.35 sigma (plane_30deg,
+  100 layouts; docs/study.md).
 
 Analytic Jacobian (chain rule; dX/dtheta_j written X_j):
     translation: o_j = e_j, d_j = 0;
@@ -90,6 +97,67 @@ def sphere_depth(u: ArrayLike, eta: float = _ETA) -> tuple[FloatArray, FloatArra
     s = np.where(far, np.sqrt(eta) * np.exp(0.5 * q), s_near)
     ds = np.where(far, -u * np.exp(0.5 * q) / np.sqrt(eta), -u * expit(qn) / s_near)
     return s, ds
+
+
+def _unit_disc(n: int) -> FloatArray:
+    """n equal-area samples (n, 2) of the unit disc (Vogel's sunflower spiral)."""
+    i = np.arange(n) + 0.5
+    rho = np.sqrt(i / n)
+    ang = i * np.pi * (3.0 - np.sqrt(5.0))
+    return np.stack([rho * np.cos(ang), rho * np.sin(ang)], -1)
+
+
+_DISC = _unit_disc(37)  # the beam's footprint, in units of its radius (37 points: the depth to ~0.04 R_m at k = 1,
+#                             0.2 mm on 5 mm markers, beside 10 mm of range noise)
+_DISC_DEPTH = np.sqrt(np.maximum(0.0, 1.0 - (_DISC ** 2).sum(1)))  # s on the sphere's own disc (k > 1)
+
+
+def footprint_depth(u: ArrayLike, k: ArrayLike, eta: float = _ETA) -> tuple[FloatArray, FloatArray]:
+    """Depth of a unit sphere below its centre plane seen through a beam with a finite footprint, and its
+    derivative in u: the mean of s(rho) (:func:`sphere_depth`) over the part of a uniform disc of radius k (the
+    footprint, in sphere radii) centred at lateral offset u that hits the sphere. A retroreflective marker
+    outshines whatever else the footprint hits, so the mixed return is the mean over the hits alone (lrfsim.lidar's
+    mixed pixel). The mean is taken over points of the smaller disc: the footprint's (k <= 1), each weighted by a
+    soft hit expit((1 - rho^2) / eta) (the rim of s), or the sphere's (k > 1), each weighted by a soft "inside the
+    footprint" expit((k^2 - |y - u|^2) / (eta k^2)). k = 0: :func:`sphere_depth`.
+
+    Args:
+        u: (K,) offset of the beam's axis from the sphere's centre, in sphere radii.
+        k: (K,) footprint radius at the sphere (range x divergence / 2), in sphere radii; broadcast with u.
+    Returns:
+        S (K,), dS/du (K,).
+    """
+    u, k = np.broadcast_arrays(np.asarray(u, dtype=float), np.asarray(k, dtype=float))
+    if not np.any(k > 0):
+        return sphere_depth(u, eta)
+    S, dS = np.empty(u.shape), np.empty(u.shape)
+    x1, x2 = _DISC[:, 0], _DISC[:, 1]
+    small = k <= 1.0
+    if np.any(small):  # points of the footprint, weighted by hitting the sphere
+        us, ks = u[small][:, None], k[small][:, None]
+        a = us + ks * x1
+        rho = np.sqrt(a * a + (ks * x2) ** 2)
+        s, ds = sphere_depth(rho, eta)
+        q = (1.0 - rho * rho) / eta
+        drho = np.where(rho > 1e-12, a / np.maximum(rho, 1e-12), 1.0)  # d rho / d u
+        S[small], dS[small] = _weighted_mean(s, ds * drho, q, -2.0 * rho * drho / eta)
+    if np.any(~small):  # points of the sphere's disc, weighted by lying in the footprint
+        ub, kb = u[~small][:, None], k[~small][:, None]
+        s = np.broadcast_to(_DISC_DEPTH, (ub.shape[0], _DISC_DEPTH.size))
+        dx = x1 - ub
+        q = (kb * kb - dx * dx - x2 * x2) / (eta * kb * kb)
+        S[~small], dS[~small] = _weighted_mean(s, np.zeros_like(s), q, 2.0 * dx / (eta * kb * kb))
+    return S, dS
+
+
+def _weighted_mean(v: FloatArray, dv: FloatArray, q: FloatArray, dq: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Mean of v (K, P) over P points with weights expit(q) (K, P), and its derivative given dv, dq (K, P)."""
+    logw = -np.logaddexp(0.0, -q)  # log expit(q), without underflow far from the region
+    w = np.exp(logw - logw.max(-1, keepdims=True))
+    dw = w * expit(-q) * dq
+    W = w.sum(-1)
+    m = (w * v).sum(-1) / W
+    return m, ((w * dv).sum(-1) + (dw * v).sum(-1) - m * dw.sum(-1)) / W
 
 
 @dataclass(frozen=True)
@@ -299,10 +367,20 @@ class _Problem:
     clock: MotorClock | None = None  # set when the clock offset is estimated
     dh_prior: tuple[FloatArray, FloatArray] | None = None  # (mean (4,), sigma (4,)) of a, alpha, b, beta
     mount_jac: bool = True  # False: the mount is held, its Jacobian columns are not computed (left 0)
+    divergence: float = 0.0  # full beam divergence [rad]: the footprint on a marker (footprint_depth)
 
     @property
-    def sigma_lat(self) -> float:
-        return 0.5 * self.radius
+    def footprint(self) -> FloatArray:
+        """(K,) footprint radius at each return's marker, in marker radii (k of :func:`footprint_depth`), from the
+        measured range (data, not a function of the unknowns)."""
+        return 0.5 * self.divergence * np.maximum(self.r, 0.0) / self.radius
+
+    @property
+    def sigma_lat(self) -> FloatArray:
+        """(K,) spread of each return's beam axis about its marker's centre, per component: the axis is the point
+        hit on the marker's disc (uniform over radius R_m, variance R_m^2 / 4 per component) minus its offset
+        within the footprint (uniform over radius k R_m, variance (k R_m)^2 / 4), so R_m sqrt(1 + k^2) / 2."""
+        return 0.5 * self.radius * np.sqrt(1.0 + self.footprint ** 2)
 
     @property
     def n_res(self) -> int:
@@ -361,9 +439,10 @@ def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
     t = (v * d).sum(1)
     e = v - t[:, None] * d
     rho = np.linalg.norm(e, axis=1)
-    s, ds = sphere_depth(rho / R)
+    s, ds = footprint_depth(rho / R, pb.footprint)
     r_hat = t - R * s
-    res = np.concatenate([((r - r_hat) / pb.sigma_r)[:, None], e / pb.sigma_lat], 1)
+    sig_lat = pb.sigma_lat[:, None]
+    res = np.concatenate([((r - r_hat) / pb.sigma_r)[:, None], e / sig_lat], 1)
     if Jo is None or Jd is None:
         return res, None
     Jv = -Jo
@@ -372,7 +451,7 @@ def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
     n_e = e / np.maximum(rho, 1e-15)[:, None]
     Jrho = np.einsum("ki,kij->kj", n_e, Je)
     Jrhat = Jt - ds[:, None] * Jrho
-    J = np.concatenate([(-Jrhat / pb.sigma_r)[:, None, :], Je / pb.sigma_lat], 1)
+    J = np.concatenate([(-Jrhat / pb.sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
     J[:, 0, _ROFF] = J[:, 0, _MBIAS] = -1.0 / pb.sigma_r
     return res, J
 
@@ -385,13 +464,14 @@ def model_residuals(
     model: str,
     marker_radius_m: float,
     range_sigma_m: float = 0.010,
+    beam_divergence_rad: float = 0.0,
 ) -> tuple[FloatArray, FloatArray]:
     """Whitened residuals (M,) and analytic Jacobian (M, 10) of the returns with a marker (obs.marker >= 0), the
     columns in ESTIMATE_NAMES order (the rotation as a rotation vector in frame M at w = 0).
 
     M = 3 K (paper) or 4 K (sphere: range residual then the 3 lateral components, per return).
     """
-    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
+    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
     core, R_ref = _core_from_params(params)
     res, J = _residuals(core, pb, R_ref)
     assert J is not None
@@ -406,6 +486,7 @@ def jacobian_check(
     model: str,
     marker_radius_m: float,
     range_sigma_m: float = 0.010,
+    beam_divergence_rad: float = 0.0,
     step: float = 1e-6,
     clock: MotorClock | None = None,
     rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
@@ -419,7 +500,7 @@ def jacobian_check(
     uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
     agrees with finite differences only to the interpolation's curvature error (~1e-3 relative).
     """
-    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
+    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
     if clock is not None:
         pb = replace(pb, clock=clock)
     th, R_ref = _core_from_params(params)
@@ -466,7 +547,7 @@ def residuals_3d(
 
 
 def _problem(
-    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float
+    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float, divergence: float = 0.0
 ) -> tuple[_Problem, NDArray[np.bool_]]:
     if model not in MODELS:
         raise InputError(f"solve: model must be one of {', '.join(MODELS)}, got {model!r}")
@@ -475,6 +556,8 @@ def _problem(
         raise InputError(f"solve: markers_W must be (n, 3), got {X.shape}")
     if not radius > 0 or not sigma_r > 0:
         raise InputError(f"solve: marker_radius_m and range_sigma_m must be > 0, got {radius}, {sigma_r}")
+    if not 0.0 <= divergence < 0.1:
+        raise InputError(f"solve: beam_divergence_rad must be in [0, 0.1) rad, got {divergence}")
     marker = np.asarray(obs.marker)
     if np.any(marker >= len(X)):
         raise InputError(f"solve: observation marker index {int(marker.max())} >= number of markers {len(X)}")
@@ -482,7 +565,7 @@ def _problem(
     pb = _Problem(
         np.asarray(obs.lambda_rad, dtype=float)[use], np.asarray(obs.mu_rad, dtype=float)[use],
         np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], model, float(radius), float(sigma_r),
-        times=np.asarray(obs.times_s, dtype=float)[use],
+        times=np.asarray(obs.times_s, dtype=float)[use], divergence=float(divergence),
     )
     return pb, use
 
@@ -601,6 +684,7 @@ def solve(
     clock_offset_s: float = 0.0,
     hold: Sequence[str] = (),
     estimate_range_bias: bool = False,
+    beam_divergence_rad: float = 0.0,
 ) -> Solution:
     """Estimate the 10 parameters (and the clock offset) from marker returns (see the module docstring).
 
@@ -611,6 +695,8 @@ def solve(
         start: initial parameters (mount pose from the association, DH from the nominal values).
         model: "paper" (eq. (10), return point vs marker centre) or "sphere" (ray vs sphere, sub-beam).
         marker_radius_m: marker sphere radius R_m.
+        beam_divergence_rad: the scanner's full beam divergence: the sphere model averages over the footprint
+            (:func:`footprint_depth`); 0: the beam's axis alone.
         range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, Hokuyo's specification).
         robust: soft-L1 first pass and 4-sigma rejection before the final plain least-squares pass.
         surfaces: optional non-marker returns on the marker-carrying planes (lrfcal.surfaces), solved jointly
@@ -633,7 +719,7 @@ def solve(
     Raises:
         CalibrationError: fewer than 4 usable returns or fewer than 3 distinct markers.
     """
-    pb_all, use = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
+    pb_all, use = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
     X = np.asarray(markers_W, dtype=float)
     K = pb_all.r.size
     n_markers = len(np.unique(np.asarray(obs.marker)[use]))
@@ -750,7 +836,7 @@ def solve(
 def information_at(
     obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
     range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
-    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None,
+    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
 ) -> tuple[FloatArray, tuple[str, ...]]:
     """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
     would be estimated (the clock offset only when ``clock`` is given; the range offset and marker range bias only
@@ -759,7 +845,7 @@ def information_at(
     With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
     and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
     (Schur complement), evaluated at the planes the returns carry (their normals and offsets)."""
-    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m)
+    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
     if clock is not None:
         pb = replace(pb, clock=clock)
     th, R_ref = _core_from_params(params, clock_offset_s)

@@ -149,6 +149,7 @@ class Nominal:
     dh: DH
     mount: Pose | None = None
     marker_radius_m: float = 0.005
+    beam_divergence_rad: float = 0.0  # full angle: the footprint on a marker (lrfcal.solve.footprint_depth)
     scan_topic: str = "/scan"
     joint_topic: str = "/joint_states"
     joint_name: str = "servo"

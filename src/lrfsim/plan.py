@@ -5,7 +5,9 @@ footprint stays), the marker returns are found with the truth (``lrfsim.faults.m
 whose ray passes within the marker), and the calibration's own observation and noise model is evaluated at the
 TRUE parameters: ``lrfcal.solve.information_at`` (the sphere model: range residual with sigma_r = the scenario
 sensor's range noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual
-with sigma = R_m / 2; the clock offset is an unknown when the sweep goes both ways).
+with sigma = R_m sqrt(1 + k^2) / 2, the depth seen through the sensor's footprint of k marker radii
+(``sensor.divergence_rad``, lrfcal.solve.footprint_depth); the clock offset is an unknown when the sweep goes both
+ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
 Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
 clock_offset when it is estimated.
@@ -215,7 +217,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
         else:
             on_planes = planes = None
     common = dict(model="sphere", marker_radius_m=radius, range_sigma_m=sigma_r, clock=motor if two_way else None,
-                  clock_offset_s=tau)
+                  clock_offset_s=tau, beam_divergence_rad=float(scenario.sensor.divergence_rad))
     info_markers, names = information_at(obs, markers_W, params, **common)
     info = info_markers
     if on_planes is not None:

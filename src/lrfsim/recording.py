@@ -148,10 +148,12 @@ def _dump(data: dict[str, Any]) -> str:
 
 def nominal_yaml(scenario: Scenario, marker_radius_m: float | None) -> str:
     """nominal.yaml (the rig file, docs/formats.md) from the scenario's design values (rig.nominal_dh,
-    rig.nominal_mount) and where this bag keeps the scans and the joint; ``marker_radius_m`` only with markers
+    rig.nominal_mount) and where this bag keeps the scans and the joint; ``marker_radius_m`` (and the sensor's
+    ``beam_divergence_rad``, which the marker model uses) only with markers
     (None: the key is left out)."""
     rig = scenario.rig
-    radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m)}
+    radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m),
+                                                  "beam_divergence_rad": float(scenario.sensor.divergence_rad)}
     return _dump({
         "dh": rig.nominal_dh.to_dh().as_dict(),
         "mount": rig.nominal_mount.to_pose().as_dict(),
