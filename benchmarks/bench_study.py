@@ -17,7 +17,7 @@ reused cast (the ratio, target <= 0.3), a whole trial (simulate + write + read +
 on the workers used.
 
     python benchmarks/bench_study.py [--trials 100] [--workers 1] [--scenarios tunnel_v plane_30deg]
-                                     [--recast] [--perturb-start S] [-o DIR]
+                                     [--recast | --new-layout] [--perturb-start S] [-o DIR]
 """
 
 from __future__ import annotations
@@ -57,6 +57,8 @@ def main() -> None:
     ap.add_argument("--scenarios", nargs="+", default=["tunnel_v", "plane_30deg"])
     ap.add_argument("--recast", action="store_true",
                     help="cast every trial anew (lrfsim study --recast): the bias over laser phases, not one cast's")
+    ap.add_argument("--new-layout", action="store_true",
+                    help="also a new marker layout per trial (lrfsim study --new-layout): the bias over layouts")
     ap.add_argument("--perturb-start", type=float, default=0.0, metavar="S",
                     help="move each trial's nominal values (lrfsim.study.perturbed_start; 0: off)")
     ap.add_argument("-o", "--out", type=Path, default=None, help="keep each study's folder here (DIR/<scenario>)")
@@ -67,13 +69,14 @@ def main() -> None:
         full, noise = _cost(name)
         t0 = time.perf_counter()
         s = study(sc, args.trials, seed0=args.seed0, workers=args.workers, perturb_start=args.perturb_start,
-                  recast=args.recast)
+                  recast=args.recast, new_layout=args.new_layout)
         wall = time.perf_counter() - t0
         part = s.parts[0]
         st = part.stats()
         n_cal = int(st["a"]["n"])
         start = f", start perturbed x{args.perturb_start:g}" if args.perturb_start > 0 else ""
-        start += ", every trial cast anew" if args.recast else ", one cast reused"
+        start += (", a new layout per trial" if args.new_layout else ", every trial cast anew" if args.recast
+                  else ", one cast reused")
         print(f"\n{name}: {n_cal}/{len(part.rows)} calibrated (refusal rate {100 * part.refusal_rate:.0f} %), "
               f"seeds {args.seed0}..{args.seed0 + args.trials - 1}{start}, {args.workers} worker(s), {wall:.0f} s, "
               f"{60 * len(part.rows) / wall:.1f} trials per minute")

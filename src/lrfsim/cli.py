@@ -197,6 +197,9 @@ def study(
                                                    "scenario's seed]")] = None,
     recast: Annotated[bool, typer.Option("--recast", help="Cast the rays anew for every trial (a new laser phase "
                                          "per trial) instead of reusing one noise-free cast.")] = False,
+    new_layout: Annotated[bool, typer.Option("--new-layout", help="Build every trial's marker layout from its own "
+                                             "seed too (a board's jitter, a random layout) and cast anew: the "
+                                             "accuracy over layouts, not of one.")] = False,
     perturb_start: Annotated[float, typer.Option(
         "--perturb-start", metavar="S", min=0.0, max=100.0, show_default=False,
         help="Start each trial from the nominal values moved by uniform draws in +-S x (a, b: 5 mm; alpha, beta: "
@@ -232,7 +235,8 @@ def study(
             with_field(sc, varied[0], v)
     with progress_display(f"study of {sc.name}") as hooks:
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
-                           progress=lambda value, done, total: hooks.scans(done, total), perturb_start=perturb_start)
+                           progress=lambda value, done, total: hooks.scans(done, total), perturb_start=perturb_start,
+                           new_layout=new_layout)
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())
     print(f"wrote {path} (trials.csv, summary.md, figures)")

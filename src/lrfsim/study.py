@@ -235,18 +235,20 @@ def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
 # --- running trials -------------------------------------------------------------------------------------------
 
 def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False,
-              perturb_start: float = 0.0) -> list[TrialRow]:
+              perturb_start: float = 0.0, new_layout: bool = False) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
     built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
     scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
     every trial anew (the laser phase drawn from the trial's seed too). ``perturb_start``: the scale of each
-    trial's perturbed start (:func:`perturbed_start`; 0: the scenario's nominal values)."""
+    trial's perturbed start (:func:`perturbed_start`; 0: the scenario's nominal values). ``new_layout``: build
+    every trial's scene from its own seed too (a board's jittered grid, a random layout: a new marker layout per
+    trial; implies ``recast``), to average over layouts rather than over the noise of one."""
     from .scene import build_scene
     from .simulate import cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
 
-    scene = build_scene(scenario)
-    geometry = None if recast else cast_geometry(scenario, scene=scene)
+    scene = None if new_layout else build_scene(scenario)
+    geometry = None if recast or new_layout else cast_geometry(scenario, scene=scene)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
         for trial, seed in trials:
@@ -271,12 +273,12 @@ def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[in
 def run_trials(
     scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
     dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
-    recast: bool = False, perturb_start: float = 0.0,
+    recast: bool = False, perturb_start: float = 0.0, new_layout: bool = False,
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: the trials spread
-    over about 2 batches per worker, at least 1 trial each). ``recast``, ``perturb_start``: see
+    over about 2 batches per worker, at least 1 trial each). ``recast``, ``perturb_start``, ``new_layout``: see
     :func:`run_batch`."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
@@ -291,7 +293,8 @@ def run_trials(
         client, own = _dask_client(dask)
         try:
             futures = client.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
-                                 [recast] * len(batches), [perturb_start] * len(batches), pure=False)
+                                 [recast] * len(batches), [perturb_start] * len(batches),
+                                 [new_layout] * len(batches), pure=False)
             for fut in futures:
                 rows += fut.result()
                 done += 1
@@ -303,14 +306,15 @@ def run_trials(
     elif workers > 1:
         with ProcessPoolExecutor(max_workers=workers) as pool:
             for part in pool.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
-                                 [recast] * len(batches), [perturb_start] * len(batches)):
+                                 [recast] * len(batches), [perturb_start] * len(batches),
+                                 [new_layout] * len(batches)):
                 rows += part
                 done += 1
                 if progress:
                     progress(done, len(batches))
     else:
         for b in batches:
-            rows += run_batch(scenario, value, b, recast, perturb_start)
+            rows += run_batch(scenario, value, b, recast, perturb_start, new_layout)
             done += 1
             if progress:
                 progress(done, len(batches))
@@ -335,10 +339,12 @@ def study(
     scenario: Scenario, trials: int, *, seed0: int | None = None, workers: int = 1, dask: Any = None,
     vary: tuple[str, list[Any]] | None = None, batch_size: int | None = None,
     progress: Callable[[str, int, int], None] | None = None, recast: bool = False, perturb_start: float = 0.0,
+    new_layout: bool = False,
 ) -> Study:
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
     value of one field (the same seeds for every value); ``perturb_start``: the scale of each trial's perturbed
-    start (:func:`perturbed_start`)."""
+    start (:func:`perturbed_start`); ``recast``, ``new_layout``: see :func:`run_batch` (the predicted sigma is then
+    the scenario's own layout's)."""
     # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
     require_markers(scenario, "lrfsim study", "calibrates with markers and tape distances; a targetless "
                     "calibration is not available yet")
@@ -355,7 +361,7 @@ def study(
             predicted = None
         hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
         rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
-                          progress=hook, recast=recast, perturb_start=perturb_start)
+                          progress=hook, recast=recast, perturb_start=perturb_start, new_layout=new_layout)
         parts.append(StudyPart(value=value, scenario=sc, plan=predicted, rows=tuple(rows)))
     where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
