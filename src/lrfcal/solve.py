@@ -29,8 +29,8 @@ Two observation models (c = the centre of the return's marker in W, R_m its radi
   covers: s(u) becomes S(u, k), the mean of s over the part of the footprint that hits the sphere
   (footprint_depth), and sigma_lat = R_m sqrt(1 + k^2) / 2 (the beam's axis is the point hit on the marker's
   disc minus its offset within the footprint, two independent uniform discs). Modelling the beam
-  as its axis alone biases the DH on 5 mm spheres seen through a 4.4 mrad beam by about 0.35 sigma (plane_30deg,
-  100 layouts; docs/study.md).
+  as its axis alone leaves the footprint in the marker returns' ranges: on lrfsim's 4.4 mrad beam and 5 mm
+  spheres a marker-return range bias of -0.9 mm (plane_30deg), +0.04 mm with the footprint (docs/study.md).
 
 Analytic Jacobian (chain rule; dX/dtheta_j written X_j):
     translation: o_j = e_j, d_j = 0;
