@@ -300,6 +300,14 @@ def points_W(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, para
     return transform_points(params.mount.matrix(), points_M(ranges_m, lambda_rad, mu_rad, params.dh))
 
 
+def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """Beam origins (K, 3) and unit directions (K, 3) in W for motor angles and bearings (K,):
+    :func:`beam_rays_M` moved by T_W_M."""
+    T = params.mount.matrix()
+    o_M, d_M = beam_rays_M(lambda_rad, mu_rad, params.dh)
+    return transform_points(T, o_M), d_M @ T[:3, :3].T
+
+
 # --- SO(3) -------------------------------------------------------------------------------------------------
 
 
@@ -372,6 +380,7 @@ __all__ = [
     "Params",
     "Pose",
     "beam_rays_M",
+    "beam_rays_W",
     "chain_T_M_L",
     "dh_from_mapping",
     "exp_so3",

@@ -15,7 +15,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -235,12 +235,10 @@ def calibrate(
     side_by_side = {"markers only": chosen.solution,
                     "markers and every plane" if config.all_planes else "markers and their surfaces": ours}
     if config.compare_targetless:  # the same recording without its markers (lrfcal.targetless), for the report
-        from dataclasses import replace as _with
-
         from .targetless import calibrate_targetless
 
         try:
-            tl = calibrate_targetless(recording, _with(config, targetless=True, force=False, geometry=False))
+            tl = calibrate_targetless(recording, replace(config, targetless=True, force=False, geometry=False))
             side_by_side["targetless (markers ignored)"] = tl.solution
         except CalibrationError as err:
             notes.append(f"the targetless calibration of the same recording was refused: {err}")

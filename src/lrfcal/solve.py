@@ -239,14 +239,6 @@ def _rays(
     return o, d, Jo, Jd
 
 
-def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tuple[FloatArray, FloatArray]:
-    """Beam origins (K, 3) and unit directions (K, 3) in W for motor angles and bearings (K,)."""
-    core, R_ref = _core_from_params(params)
-    o, d, _, _ = _rays(core, R_ref, np.asarray(lambda_rad, dtype=float), np.asarray(mu_rad, dtype=float), None,
-                       jac=False)
-    return o, d
-
-
 def _core_from_params(params: Params, tau_s: float = 0.0) -> tuple[FloatArray, FloatArray]:
     """The core vector (N_CORE,) with w = 0, and R_ref (3, 3), of a Params (rpy is only a format)."""
     T = params.mount.matrix()
@@ -1086,6 +1078,6 @@ def _schur(A: FloatArray, keep: Sequence[int]) -> FloatArray:
 
 
 __all__ = [
-    "CORE_NAMES", "MODELS", "MotorClock", "beam_rays_W", "information_at", "jacobian_check", "model_residuals",
+    "CORE_NAMES", "MODELS", "MotorClock", "information_at", "jacobian_check", "model_residuals",
     "plane_information", "residuals_3d", "solve", "solve_planes", "sphere_depth", "wrap_pi",
 ]

@@ -32,7 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from .kinematics import Params, beam_rays_M, points_W
+from .kinematics import Params, beam_rays_W, points_W
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -255,11 +255,8 @@ def observe_surfaces(
     step = max(1, P.shape[0] // 100_000)
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, P[::step], position_sigma_m=position_sigma_m)
     times = None if beam_times_s is None else np.asarray(beam_times_s)[scan, beam]
-    T = params.mount.matrix()
-    o_M, d_M = beam_rays_M(lam, mu, params.dh)
     returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed,
-                              times_s=times, rays_W=(o_M @ T[:3, :3].T + T[:3, 3], d_M @ T[:3, :3].T),
-                              max_incidence_rad=max_incidence_rad)
+                              times_s=times, rays_W=beam_rays_W(params, lam, mu), max_incidence_rad=max_incidence_rad)
     return surfaces, returns
 
 

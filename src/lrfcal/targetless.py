@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from . import geometry, observability, planes, reproject, solve, timing
 from .errors import CalibrationError
-from .kinematics import DH, Params, Pose, points_M
+from .kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .pipeline import CalibConfig, Check, _Stopwatch, chi2_check, split_in_two, usable_scans
 from .surfaces import Surface, SurfaceReturns, hash_sample
 from .types import CalibrationResult, JointStates, Recording, Scans, Solution
@@ -202,7 +202,7 @@ def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorCloc
         labels = seg_labels[has][nn]
         N = np.array([p.normal for p in found])
         off = np.array([p.offset_m for p in found])
-        o, d = solve.beam_rays_W(Params(_M, dh), lam, beams.mu_rad)
+        o, d = beam_rays_W(Params(_M, dh), lam, beams.mu_rad)
         n = N[labels]
         near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
         facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
@@ -421,8 +421,6 @@ def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: 
     normals = np.array([s_.normal for s_ in out]).reshape(-1, 3)
     offsets = np.array([s_.offset_m for s_ in out])
     local = surf - len(marker_planes)
-    from dataclasses import replace
-
     return replace(sub, surface=surf, normals=normals[local], offsets_m=offsets[local]), out
 
 

@@ -37,9 +37,10 @@ import os
 import shutil
 import tempfile
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -287,37 +288,27 @@ def run_trials(
     items = [(k, s0 + k) for k in range(trials)]
     n_batches = math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if workers > 1 or dask else 1
     batches = _batches(items, n_batches)
+    task = partial(run_batch, scenario, value, recast=recast, perturb_start=perturb_start, new_layout=new_layout)
     rows: list[TrialRow] = []
-    done = 0
+
+    def collect(parts: Iterable[list[TrialRow]]) -> None:
+        for done, part in enumerate(parts, 1):
+            rows.extend(part)
+            if progress:
+                progress(done, len(batches))
+
     if dask is not None:
         client, own = _dask_client(dask)
         try:
-            futures = client.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
-                                 [recast] * len(batches), [perturb_start] * len(batches),
-                                 [new_layout] * len(batches), pure=False)
-            for fut in futures:
-                rows += fut.result()
-                done += 1
-                if progress:
-                    progress(done, len(batches))
+            collect(fut.result() for fut in client.map(task, batches, pure=False))
         finally:
             if own:
                 client.close()
     elif workers > 1:
         with ProcessPoolExecutor(max_workers=workers) as pool:
-            for part in pool.map(run_batch, [scenario] * len(batches), [value] * len(batches), batches,
-                                 [recast] * len(batches), [perturb_start] * len(batches),
-                                 [new_layout] * len(batches)):
-                rows += part
-                done += 1
-                if progress:
-                    progress(done, len(batches))
+            collect(pool.map(task, batches))
     else:
-        for b in batches:
-            rows += run_batch(scenario, value, b, recast, perturb_start, new_layout)
-            done += 1
-            if progress:
-                progress(done, len(batches))
+        collect(map(task, batches))
     return sorted(rows, key=lambda r: r.trial)
 
 
