@@ -71,7 +71,7 @@ def test_run_closes_the_loop(tmp_path: Path) -> None:
     assert proc.returncode in (0, 1), proc.stderr  # 1: tolerances missed, still a complete run
     run_dir = tmp_path / "runs" / "tunnel_v"
     assert sorted(p.name for p in run_dir.iterdir()) == sorted([MANIFEST_NAME, "calibration", "comparison.md",
-                                                                "recording", "run.rrd"])
+                                                                "recording", "rerun.rrd"])
     assert sorted(p.name for p in (run_dir / "recording").iterdir()) == FILES
     for name in ("calibration.yaml", "rig.urdf", "cloud_before.ply", "cloud_after.ply", "report.md"):
         assert (run_dir / "calibration" / name).is_file(), name

@@ -87,7 +87,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 HELP = {
     ("lrfcal", "calibrate"): ["[m]", "[s]", "[default: 0.01", "[default: 0.0", "[default: RECORDING/bag]"],
     ("lrfsim", "simulate"): ["-o DIR", "SCENARIO"],
-    ("lrfsim", "run"): ["[default: runs/<scenario name>]", "[default: DIR/run.rrd]"],
+    ("lrfsim", "run"): ["[default: runs/<scenario name>]", "[default: DIR/rerun.rrd]"],
     ("lrfsim", "schema"): ["--markdown"],
 }
 
@@ -234,12 +234,15 @@ def test_overwrite_only_replaces_own_output(recording: Path, tmp_path: Path) -> 
     out = tmp_path / "cal"
     out.mkdir()
     (out / "thesis.tex").write_text("years of work")
-    line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out, "--overwrite"))
-    assert "not written by lrf-calib" in line
+    for extra in ((), ("--overwrite",)):  # without --overwrite the message already says it would not help
+        line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out, *extra))
+        assert "not written by lrf-calib" in line and "not even with --overwrite" in line
     (out / MANIFEST_NAME).write_text(yaml.safe_dump({"written_by": "lrfcal calibrate", "entries": ["report.md"]}))
     line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out, "--overwrite"))
     assert "thesis.tex" in line and "did not write" in line
     assert (out / "thesis.tex").read_text() == "years of work"
+    (tmp_path / "thesis.tex").write_bytes((out / "thesis.tex").read_bytes())
+    (out / "thesis.tex").unlink()  # the user moves it away: now it is our own folder, --overwrite replaces it
     line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out))
     assert "use --overwrite" in line
 
@@ -291,8 +294,8 @@ def test_spawn_without_viewer_saves_rrd_and_goes_on(tmp_path: Path) -> None:
     assert proc.returncode in (0, 1), proc.stderr  # 1: tolerances missed, still a complete run
     assert "Traceback" not in proc.stderr
     warn = proc.stderr.strip().splitlines()
-    assert len(warn) == 1 and warn[0].startswith("warning: --spawn: no rerun viewer") and "run.rrd" in warn[0]
-    assert (out / "run.rrd").stat().st_size > 0
+    assert len(warn) == 1 and warn[0].startswith("warning: --spawn: no rerun viewer") and "rerun.rrd" in warn[0]
+    assert (out / "rerun.rrd").stat().st_size > 0
     assert "residual RMS" in proc.stdout and "marker returns on" in proc.stdout
     report = (out / "calibration" / "report.md").read_text()
     assert "marker returns on" in report  # the same wording in the terminal and the report

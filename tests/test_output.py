@@ -134,14 +134,16 @@ def test_refuses_non_empty_and_overwrites_only_its_own(tmp_path, result):
     out = tmp_path / "cal"
     out.mkdir()
     (out / "keep.txt").write_text("x")
-    with pytest.raises(InputError, match="exists and is not empty"):
+    # a folder we did not write is never replaced, not even with overwrite; the first message already says so
+    with pytest.raises(InputError, match="not written by lrf-calib.*not even with --overwrite"):
         write_calibration(out, result)
-    # a folder we did not write is never replaced, not even with overwrite
     with pytest.raises(InputError, match="not written by lrf-calib"):
         write_calibration(out, result, overwrite=True)
     assert (out / "keep.txt").read_text() == "x"
     (out / "keep.txt").unlink()
     write_calibration(out, result, report_md="# hi\n")
+    with pytest.raises(InputError, match="written by lrf-calib\\): use --overwrite"):
+        write_calibration(out, result, report_md="# again\n")
     write_calibration(out, result, report_md="# again\n", overwrite=True)  # our own output: replaced
     assert (out / "report.md").read_text() == "# again\n"
     # a file the user put into our output: named, and the folder is kept

@@ -106,7 +106,7 @@ def test_atomic_writes(sim: tuple[Scenario, SimResult], tmp_path: Path, monkeypa
     out = tmp_path / "rec"
     write_recording(res, sc, out)
     before = (out / "distances.csv").read_text()
-    with pytest.raises(InputError, match="not empty"):
+    with pytest.raises(InputError, match="use --overwrite"):
         write_recording(res, sc, out)
     # a failure half-way leaves the old recording untouched and no temporary folder behind
     def boom(*a: object) -> None:

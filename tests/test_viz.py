@@ -255,7 +255,9 @@ def test_scene_geoms_from_mujoco():
 def test_figures_written_at_size(result, tmp_path):
     import matplotlib.image as mpimg
 
-    paths = write_figures(result, tmp_path / "fig")
+    figs = write_figures(result, tmp_path / "fig")
+    assert figs.skipped == {}
+    paths = figs.written
     assert set(paths) == {"intensity", "alignment", "residuals"}
     for p in paths.values():
         assert p.suffix == ".png" and p.is_file()

@@ -96,8 +96,13 @@ def calibrate_folder(
         before, before_label = _nominal_in_W(result, truth)
         figs = figures.write_figures(result, Path(tmp), before, before_label)
         report = output.render_report(result, truth=truth_values)
-        report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.items()) + "\n"
-        files = dict(figs)
+        report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())
+        report += "".join(f"\n\n{name}.png could not be drawn ({why}); the calibration is not affected"
+                          for name, why in figs.skipped.items()) + "\n"
+        if warn is not None:
+            for name, why in figs.skipped.items():
+                warn(f"figure {name}.png skipped: {why}")
+        files = dict(figs.written)
         if rrd_inside is not None:
             files["rerun"] = Path(tmp) / rrd_inside
             _log_rerun(result, files["rerun"], False, truth, scene, warn)

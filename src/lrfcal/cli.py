@@ -20,14 +20,10 @@ if TYPE_CHECKING:
     from .types import CalibrationResult
 
 app = make_app(
-    "Calibrate a servo-turned 2D laser range finder from reflective markers: the mount pose [m, rad] and the "
-    "DH parameters a, alpha, b, beta of the scan plane. Formats: docs/formats.md."
+    "Calibrate a servo-turned 2D laser range finder from reflective markers (the mount pose [m, rad] and the "
+    "DH parameters a, alpha, b, beta of the scan plane) or from the scene's planes (the DH parameters). "
+    "Formats: docs/formats.md.", "lrfcal"
 )
-
-
-@app.callback()
-def _root() -> None:
-    """Calibrate a servo-turned 2D laser range finder from reflective markers."""
 
 
 @app.command("calibrate", cls=Command)
@@ -44,8 +40,10 @@ def calibrate_cmd(
                          ] = None,
     nominal: Annotated[Path | None, typer.Option(metavar="YAML", show_default=False,
                                                  help="Nominal values  [default: RECORDING/nominal.yaml]")] = None,
-    range_sigma: Annotated[float, typer.Option(metavar="M", callback=finite_between(1e-5, 10.0, "m"),
-                                               help="Range noise sigma of the scanner [m], 1e-5..10.")] = 0.010,
+    range_sigma: Annotated[float | None, typer.Option(
+        metavar="M", callback=finite_between(1e-5, 1.0, "m"), show_default=False,
+        help="Range noise sigma of the scanner [m], 1e-5..1  [default: the rig file's range_sigma_m, else 0.01]")
+                           ] = None,
     clock_offset: Annotated[float, typer.Option(metavar="S", callback=finite_between(-10.0, 10.0, "s"),
                                                 help="Laser stamp minus servo stamp [s], if known, -10..10.")
                             ] = 0.0,

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import sys
 from collections.abc import Callable, Iterator, Sequence
@@ -44,11 +45,40 @@ class Command(TyperCommand):
         return pieces
 
 
-def make_app(help_text: str) -> typer.Typer:
+    def get_short_help_str(self, limit: int = 45) -> str:
+        """The command's first sentence, whole, in the program's list of commands (click cuts it at 45
+        characters)."""
+        return str(super().get_short_help_str(limit=max(limit, 300)))
+
+
+def version_text(prog_name: str) -> str:
+    """``<prog> <version of the lrf-calib distribution>`` (``unknown`` when it is not installed)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"{prog_name} {version('lrf-calib')}"
+    except PackageNotFoundError:
+        return f"{prog_name} unknown (lrf-calib is not installed)"
+
+
+def make_app(help_text: str, prog_name: str) -> typer.Typer:
     """A typer app with plain help (no rich markup: brackets such as ``[m]`` and ``[default: ...]`` are kept and
-    the text wraps at the terminal width), no completion commands and no pretty tracebacks."""
-    return typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
-                       pretty_exceptions_enable=False, help=help_text)
+    the text wraps at the terminal width), no completion commands, no pretty tracebacks, and ``--version``."""
+    app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
+                      pretty_exceptions_enable=False, help=help_text)
+
+    def show_version(value: bool) -> None:
+        if value:
+            print(version_text(prog_name))
+            raise typer.Exit()
+
+    @app.callback()
+    def _root(version: bool = typer.Option(False, "--version", callback=show_version, is_eager=True,
+                                           help="Show the version and exit.")) -> None:
+        pass
+
+    _root.__doc__ = help_text
+    return app
 
 
 def one_line(text: str) -> str:
@@ -95,10 +125,22 @@ def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoR
         print("error: out of memory (the input is too large for this machine)", file=sys.stderr)
         sys.exit(EXIT_USAGE)
     except OSError as e:
-        where = f"{e.filename}: " if getattr(e, "filename", None) else ""
+        where = f"{_shown_path(e.filename)}: " if getattr(e, "filename", None) else ""
         print(f"error: {where}{e.strerror or one_line(str(e))}", file=sys.stderr)
         sys.exit(EXIT_USAGE)
     sys.exit(rv if isinstance(rv, int) else 0)
+
+
+#: the names of the tools' own temporary files and folders (lrfcal.output, figures, cloud, viz, app)
+_TEMP_NAME = re.compile(r"^\.(figures-|lrf-write-probe-|.+\.(tmp|old)-|.+\.tmp$)")
+
+
+def _shown_path(filename: object) -> str:
+    """``filename`` as a message may show it: a temporary path of the tool's own is replaced by the folder it was
+    being written in (a user never made it and cannot act on its name)."""
+    path = str(filename)
+    parent, _, name = path.rpartition(os.sep)
+    return (parent or ".") if _TEMP_NAME.match(name) else path
 
 
 def finite_between(lo: float, hi: float, unit: str) -> Callable[[float | None], float | None]:
@@ -161,4 +203,4 @@ def progress_display(label: str) -> Iterator[ProgressHooks]:
 
 
 __all__ = ["EXIT_USAGE", "Command", "ProgressHooks", "finite_between", "make_app", "one_line", "progress_display",
-           "run_app", "spawn_unavailable_reason"]
+           "run_app", "spawn_unavailable_reason", "version_text"]

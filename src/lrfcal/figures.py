@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import os
 import uuid
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -151,8 +153,17 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
               "cmap": cmap,
               "norm": LogNorm(vmin=vmin, vmax=vmax), "interpolation": "nearest"}
         im = axes[0].imshow(shown, **kw)
-        axes[1].imshow(above, **kw)
-        axes[1].set_facecolor("#202020")
+        # right: every return faint grey for context, the candidates as dots (a blob is a few cells of a large
+        # image: drawn as image cells it would be invisible at this size)
+        grey = matplotlib.colormaps["Greys"].with_extremes(bad="white")
+        axes[1].imshow(shown, **{**kw, "cmap": grey, "alpha": 0.35})
+        rows, cols = np.nonzero(~np.ma.getmaskarray(above))
+        if rows.size:
+            xs = x0 + (cols + 0.5) * (x1 - x0) / N
+            ys = rows * pool + 0.5 * (pool - 1)
+            axes[1].scatter(xs, ys, color=_C_MARKER, s=12, marker="s", linewidths=0, rasterized=True,
+                            label="marker candidate return")
+        axes[1].set_facecolor("white")
         labels: list[tuple[float, float, str, str]] = []
         n_unmatched = 0
         for j, b in enumerate(det.blobs):
@@ -167,12 +178,12 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
             axes[0].add_patch(Rectangle((lo - mx, s0 - my), hi - lo + 2 * mx, s1 - s0 + 2 * my, fill=False,
                                         edgecolor=edge, linewidth=1.0))
             labels.append((beam_x(b.peak_beam), float(b.peak_scan), ids[m] if m >= 0 else "unmatched",
-                           "white" if m >= 0 else "#ff6060"))
+                           "black" if m >= 0 else "#d01010"))
             n_unmatched += m < 0
         if det.blobs:
             px = [beam_x(b.peak_beam) for b in det.blobs]
             py = [b.peak_scan for b in det.blobs]
-            axes[1].plot(px, py, "+", color="#00ff60", markersize=9, markeredgewidth=1.5)
+            axes[1].plot(px, py, "+", color="#0a8a30", markersize=9, markeredgewidth=1.5)
         axes[0].set_xlim(x0, x1)
         axes[0].set_ylim(-0.5, S - 0.5)
         axes[1].set_xlim(x0, x1)
@@ -201,7 +212,7 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
         skipped = _place_labels(axes[1], labels, FONT_SIZE_PT - 2)
         if skipped:
             axes[1].text(0.99, 0.01, f"{skipped} labels skipped (no room)", transform=axes[1].transAxes,
-                         ha="right", va="bottom", color="#bbbbbb", fontsize=FONT_SIZE_PT - 2)
+                         ha="right", va="bottom", color="#555555", fontsize=FONT_SIZE_PT - 2)
         return _save(fig, path)
 
 
@@ -386,20 +397,39 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
 
 def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
     """A targetless calibration's figure: each plane's thickness (RMS distance of its returns from their best-fit
-    plane) with the nominal and with the calibrated DH parameters (left), and the calibrated cloud seen along the
-    motor axis (right, frame M). Returns the written path."""
+    plane) with the nominal and with the calibrated DH parameters (left: one row per plane, the two values joined,
+    the axis spanning the values rather than starting at 0, so that a sub-millimetre change shows; the change
+    written beside each row), and the calibrated cloud seen along the motor axis (right, frame M). Returns the
+    written path."""
     fit = result.plane_fit
+    before_mm = np.asarray(fit.rms_before_m, dtype=float) * 1e3
+    after_mm = np.asarray(fit.rms_after_m, dtype=float) * 1e3
+    n = len(fit.planes)
     with _rc():
         fig = _new_figure()
         ax, ax2 = fig.subplots(1, 2, width_ratios=(1.2, 1.0))
-        k = np.arange(len(fit.planes))
-        ax.bar(k - 0.2, np.asarray(fit.rms_before_m) * 1e3, width=0.4, color=_C_BEFORE, label="nominal DH")
-        ax.bar(k + 0.2, np.asarray(fit.rms_after_m) * 1e3, width=0.4, color=_C_AFTER, label="calibrated DH")
-        ax.set_xticks(k, [f"{i}\n{int(n)} ret." for i, n in zip(k, fit.n_returns, strict=True)])
-        ax.set_xlabel("plane of the scene")
-        ax.set_ylabel("thickness: RMS distance from the plane [mm]")
-        ax.set_title("Flatness of the scene's planes, before and after")
-        ax.legend()
+        k = np.arange(n)
+        ax.hlines(k, np.fmin(before_mm, after_mm), np.fmax(before_mm, after_mm), color="0.6", linewidth=2)
+        ax.plot(before_mm, k, "o", color=_C_BEFORE, markersize=8, label="nominal DH")
+        ax.plot(after_mm, k, "o", color=_C_AFTER, markersize=8, label="calibrated DH")
+        values = np.r_[before_mm, after_mm]
+        values = values[np.isfinite(values)]
+        if values.size:
+            lo, hi = float(values.min()), float(values.max())
+            pad = max(0.15 * (hi - lo), 0.02 * hi, 1e-3)
+            ax.set_xlim(lo - pad, hi + 3 * pad)  # room on the right for the change
+        for i in range(n):
+            d = after_mm[i] - before_mm[i]
+            if np.isfinite(d):
+                ax.annotate(f"{d:+.2f} mm", (max(before_mm[i], after_mm[i]), i), xytext=(8, 0),
+                            textcoords="offset points", va="center", fontsize=FONT_SIZE_PT - 2,
+                            color=_C_AFTER if d < -0.005 else (_C_BEFORE if d > 0.005 else "0.4"))
+        ax.set_yticks(k, [f"plane {i} ({int(c)} returns)" for i, c in zip(k, fit.n_returns, strict=True)])
+        ax.set_ylim(n - 0.5, -0.5)
+        ax.set_xlabel("thickness: RMS distance of its returns from the plane [mm]")
+        ax.set_title("Flatness of the scene's planes, nominal -> calibrated", pad=28)
+        ax.grid(True, axis="x", alpha=0.3)
+        ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncols=2, frameon=False)
         cloud = np.asarray(result.cloud_after_M, dtype=float).reshape(-1, 3)
         cloud = cloud[np.isfinite(cloud).all(1)]
         cloud = cloud[:: max(1, cloud.shape[0] // 200_000)]
@@ -407,28 +437,47 @@ def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
         ax2.set_aspect("equal")
         ax2.set_xlabel("x_M [m]")
         ax2.set_ylabel("y_M [m]")
-        ax2.set_title("Calibrated cloud along the motor axis (frame M)")
+        ax2.set_title("Calibrated cloud, seen along\nthe motor axis (frame M)")
         return _save(fig, path)
 
 
+@dataclass(frozen=True)
+class Figures:
+    """The figures written (name -> path) and those that could not be drawn (name -> reason, for the report)."""
+
+    written: dict[str, Path]
+    skipped: dict[str, str]
+
+
 def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params | None = None,
-                  before_label: str = "nominal DH, fitted mount") -> dict[str, Path]:
-    """Write intensity.png, alignment.png and residuals.png into out_dir; returns {name: path}.
+                  before_label: str = "nominal DH, fitted mount") -> Figures:
+    """Write intensity.png, alignment.png and residuals.png (targetless: flatness.png) into out_dir.
 
     ``before``: the parameters of the "before" views, described by ``before_label`` (default: the calibration's
     start, the nominal DH with the mount fitted to the markers: W is the tape's frame, so a nominal mount given
     in another frame has no place in W unless the true marker positions are known, see
     :func:`lrfcal.app.calibrate_folder`).
+
+    A figure is an aid, the result exists without it: a figure that cannot be drawn (an exception while drawing
+    it, whatever the recording) is skipped and its reason returned, never raised after the calibration is done.
     """
     out = Path(out_dir)
-    if result.method == "targetless":
-        return {"flatness": flatness_figure(result, out / "flatness.png")}
-    return {
-        "intensity": intensity_figure(result, out / "intensity.png"),
-        "alignment": alignment_figure(result, out / "alignment.png", before, before_label),
-        "residuals": residual_figure(result, out / "residuals.png", before, before_label),
-    }
+    draw: dict[str, Callable[[], Path]]
+    if result.plane_fit is not None:
+        draw = {"flatness": lambda: flatness_figure(result, out / "flatness.png")}
+    else:
+        draw = {"intensity": lambda: intensity_figure(result, out / "intensity.png"),
+                "alignment": lambda: alignment_figure(result, out / "alignment.png", before, before_label),
+                "residuals": lambda: residual_figure(result, out / "residuals.png", before, before_label)}
+    written: dict[str, Path] = {}
+    skipped: dict[str, str] = {}
+    for name, fn in draw.items():
+        try:
+            written[name] = fn()
+        except Exception as err:  # noqa: BLE001 - a figure never costs the user the calibration
+            skipped[name] = f"{type(err).__name__}: {' '.join(str(err).split())}"
+    return Figures(written, skipped)
 
 
-__all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "alignment_figure", "flatness_figure", "intensity_figure", "residual_figure",
-           "write_figures"]
+__all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "Figures", "alignment_figure", "flatness_figure", "intensity_figure",
+           "residual_figure", "write_figures"]

@@ -662,23 +662,25 @@ def check_replaceable(out_dir: str | Path, overwrite: bool) -> Path:
         raise InputError(f"{out}: cannot read the output folder ({e.strerror})") from None
     if not present:
         return out
-    if not overwrite:
-        raise InputError(f"{out}: output folder exists and is not empty (use --overwrite to replace it)")
+    # what --overwrite would be refused for is said already without it: one message, one fix
     listed = _manifest_entries(out)
     if listed is None:
-        raise InputError(f"{out}: not replaced: this folder was not written by lrf-calib (no {MANIFEST_NAME}); "
-                         "choose another output folder")
+        raise InputError(f"{out}: output folder exists, is not empty and was not written by lrf-calib (no "
+                         f"{MANIFEST_NAME}), so it is never replaced, not even with --overwrite: choose another "
+                         "output folder")
     foreign = [n for n in present if n != MANIFEST_NAME and n not in listed]
     if foreign:
         shown = ", ".join(foreign[:5]) + (f" and {len(foreign) - 5} more" if len(foreign) > 5 else "")
-        raise InputError(f"{out}: not replaced: it holds files lrf-calib did not write ({shown}); move them away "
-                         "or choose another output folder")
+        raise InputError(f"{out}: output folder exists and holds files lrf-calib did not write ({shown}), so it is "
+                         "never replaced, not even with --overwrite: move them away or choose another output folder")
+    if not overwrite:
+        raise InputError(f"{out}: output folder exists (written by lrf-calib): use --overwrite to replace it")
     return out
 
 
 def check_writable(out: str | Path) -> Path:
-    """Refuse an output path that cannot be created, without creating anything: its nearest existing ancestor
-    must be a writable folder.
+    """Refuse an output path that cannot be created, before any work: its nearest existing ancestor must be a
+    folder in which a folder can be made (tried with an empty hidden folder, removed at once).
 
     Raises:
         InputError: naming the path and the ancestor that blocks it.
@@ -691,6 +693,10 @@ def check_writable(out: str | Path) -> Path:
         raise InputError(f"{out}: cannot write the output folder here ({anc} is not a folder)")
     if not os.access(anc, os.W_OK | os.X_OK):
         raise InputError(f"{out}: cannot write the output folder here ({anc} is not writable)")
+    try:  # permissions do not tell everything (root, /proc, read-only mounts, full disks): try it, before the work
+        os.rmdir(tempfile.mkdtemp(prefix=".lrf-write-probe-", dir=anc))
+    except OSError as e:
+        raise InputError(f"{out}: cannot write the output folder here ({anc}: {e.strerror or e})") from None
     return out
 
 

@@ -36,12 +36,17 @@ from .types import (
     Solution,
 )
 
+#: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
+DEFAULT_RANGE_SIGMA_M = 0.010
+
 
 @dataclass(frozen=True)
 class CalibConfig:
     """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout)."""
 
-    range_sigma_m: float = 0.010  # UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm)
+    #: the scanner's range noise [m]; None: the rig file's ``range_sigma_m``, else DEFAULT_RANGE_SIGMA_M (resolved
+    #: once by :func:`calibrate`, so that every stage sees a number)
+    range_sigma_m: float | None = None
     association_gate_m: float = 0.05  # blob-to-marker distance accepted after the nominal alignment
     clock_offset_s: float = 0.0  # laser stamp minus servo stamp: the start (prior) of its estimate
     estimate_clock: bool | None = None  # estimate the clock offset; None: when the sweep goes both ways
@@ -108,6 +113,9 @@ def calibrate(
     unless ``config.force``, which records the failed checks in the result instead.
     """
     config = config or CalibConfig()
+    if config.range_sigma_m is None:  # the sensor's noise as the rig file declares it, else the UTM-30LX-EW's
+        declared = recording.nominal.range_sigma_m
+        config = replace(config, range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
     if config.targetless or (config.targetless is None and recording.tape is None):
         from .targetless import calibrate_targetless
 
@@ -258,7 +266,7 @@ def calibrate(
         clock.lap("geometry")
 
     return CalibrationResult(
-        recording=recording,
+        recording=replace(recording, scans=scans),
         markers=markers,
         detections=detections,
         observations=matched,

@@ -37,22 +37,45 @@ def _radians(v: float) -> float:
 
 Radians = Annotated[float, AfterValidator(_radians)]
 
+#: Beyond these a length was written in millimetres (a: 10 for 10 mm): a scan plane's offsets from the motor axis
+#: (DH a, b) are centimetres on any rig; a marker is a few millimetres to a few centimetres; the mount lies in
+#: the frame of the markers, which the laser sees, so within its longest range (60 m, Hokuyo UTM-30LX) [m].
+MAX_DH_OFFSET_M = 2.0
+MAX_MARKER_RADIUS_M = 0.5
+MAX_MOUNT_M = 60.0
+
+
+def _metres(limit_m: float, what: str) -> AfterValidator:
+    """A length in m; beyond ``limit_m`` it was written in millimetres (or centimetres)."""
+
+    def check(v: float) -> float:
+        if abs(v) > limit_m:
+            raise ValueError(f"{v:g} m is beyond {limit_m:g} m for {what}: it looks like millimetres; lengths are in "
+                             f"metres ({v:g} mm = {v / 1000:.6g} m)")
+        return v
+
+    return AfterValidator(check)
+
+
+DHOffset = Annotated[float, _metres(MAX_DH_OFFSET_M, "a DH offset")]
+MountMetres = Annotated[float, _metres(MAX_MOUNT_M, "the mount (the laser sees its markers)")]
+
 
 class DHModel(_Strict):
     """eq. (3) DH parameters [m, rad]."""
 
-    a: float
+    a: DHOffset
     alpha: Radians
-    b: float
+    b: DHOffset
     beta: Radians
 
 
 class MountModel(_Strict):
     """T_W_M: translation [m], then R = Rz(yaw) Ry(pitch) Rx(roll) [rad]."""
 
-    x: float
-    y: float
-    z: float
+    x: MountMetres
+    y: MountMetres
+    z: MountMetres
     roll: Radians
     pitch: Radians
     yaw: Radians
@@ -133,15 +156,18 @@ class ServoSource(_Strict):
 
 
 class RigFile(_Strict):
-    """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``beam_divergence_rad``, ``scan``,
-    ``servo`` (and the old keys ``scan_topic``, ``joint_topic``, ``joint_name``)."""
+    """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``beam_divergence_rad``,
+    ``range_sigma_m``, ``scan``, ``servo`` (and the old keys ``scan_topic``, ``joint_topic``, ``joint_name``)."""
 
     dh: DHModel
     mount: MountModel | None = None
-    marker_radius_m: float = Field(default=0.005, ge=0.0)
+    marker_radius_m: Annotated[float, Field(ge=0.0), _metres(MAX_MARKER_RADIUS_M, "a marker radius")] = 0.005
     #: the scanner's full beam divergence [rad]: its footprint on a marker (lrfcal.solve.footprint_depth); 0 (the
     #: default) models the beam as its axis, right for a footprint much smaller than the markers
     beam_divergence_rad: float = Field(default=0.0, ge=0.0, lt=0.1)
+    #: the scanner's range noise, 1-sigma [m]: the calibration's default --range-sigma (absent: 0.010, the
+    #: UTM-30LX-EW's specified repeatability); lrfsim writes its sensor's noise here
+    range_sigma_m: float | None = Field(default=None, gt=0.0, le=1.0)
     scan: ScanSource | None = None
     servo: ServoSource | None = None
     scan_topic: str | None = Field(default=None, min_length=1)

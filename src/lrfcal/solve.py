@@ -796,7 +796,7 @@ def solve(
         per[i] = float(np.sqrt(sq[mk == i].mean()))
     surf_txt = f", {k_s}/{K2} surface returns ({dropped_s} dropped)" if K2 else ""
     status = (f"{model}: {msg.rstrip('.')}; {k_in}/{K} returns used ({dropped} dropped > 4 sigma){surf_txt}, "
-              f"reduced chi2 {s2:.3g}, {rank_txt}")
+              f"reduced chi2 {s2:.2f}, {rank_txt}")
     cov10 = cov_core[:10, :10]
     return Solution(
         params=params,
@@ -963,7 +963,7 @@ def solve_planes(
         np.concatenate([np.asarray(surfaces.scan)[keep], -1 - np.arange(n_prior)]))
     rs = _surface_residuals(th, pb.surf, 1.0, R_ref, jac=False, clock=clock)[0]
     status = (f"planes: {msg.rstrip('.')}; {int(keep.sum())}/{K} plane returns on {surf.n_planes} planes used "
-              f"({int(K - keep.sum())} dropped > 4 sigma), reduced chi2 {s2:.3g}, {rank_txt}")
+              f"({int(K - keep.sum())} dropped > 4 sigma), reduced chi2 {s2:.2f}, {rank_txt}")
     cov10 = cov_core[:10, :10]
 
     def sig(i: int) -> float:

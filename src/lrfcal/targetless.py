@@ -163,7 +163,7 @@ def calibrate_targetless(
         geometry_after = geometry.tunnel_geometry(cloud_after)
         clock.lap("geometry")
     return CalibrationResult(
-        recording=recording, markers=None, detections=None, observations=None, association=None,
+        recording=replace(recording, scans=scans), markers=None, detections=None, observations=None, association=None,
         start=Params(_M, nominal.dh), solution=sol, baseline=None, cloud_before_M=cloud_before,
         cloud_after_M=cloud_after, cloud_intensity=cloud_intensity, geometry_before=geometry_before,
         geometry_after=geometry_after, timings_s=clock.laps, surface_returns=returns, checks=tuple(checks),

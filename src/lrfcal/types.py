@@ -150,6 +150,7 @@ class Nominal:
     mount: Pose | None = None
     marker_radius_m: float = 0.005
     beam_divergence_rad: float = 0.0  # full angle: the footprint on a marker (lrfcal.solve.footprint_depth)
+    range_sigma_m: float | None = None  # the scanner's range noise [m] (None: not declared)
     scan_topic: str = "/scan"
     joint_topic: str = "/joint_states"
     joint_name: str = "servo"
@@ -338,6 +339,8 @@ class TunnelGeometry:
 class CalibrationResult:
     """Everything the pipeline produced, for the writers, the loop and the visualisation."""
 
+    #: the recording as calibrated: its scans are those the joint states cover (the scans trimmed at the ends are
+    #: not here), so that scan indices of detections and observations index ``recording.scans``
     recording: Recording
     markers: MarkerMap | None  # None for a targetless calibration (method "targetless"), as the next three
     detections: Detections | None

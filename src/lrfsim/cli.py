@@ -25,7 +25,7 @@ if TYPE_CHECKING:
     from .simulate import SimResult
 
 app = make_app("MuJoCo testbench of a servo-turned Hokuyo UTM-30LX-EW: simulate recordings, calibrate them and "
-               "compare with the ground truth. Scenario format: docs/scenario.md or 'lrfsim schema'.")
+               "compare with the ground truth. Scenario format: docs/scenario.md or 'lrfsim schema'.", "lrfsim")
 
 ScenarioArg = Annotated[Path, typer.Argument(help="Scenario YAML file (see scenarios/, docs/scenario.md).",
                                              metavar="SCENARIO", show_default=False)]
@@ -94,7 +94,7 @@ def run(
     overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an -o folder lrfsim wrote before.")
                          ] = False,
     rrd: Annotated[Path | None, typer.Option("--rrd", metavar="FILE", show_default=False,
-                                             help="Save the rerun recording here  [default: DIR/run.rrd]")] = None,
+                                             help="Save the rerun recording here  [default: DIR/rerun.rrd]")] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer too.")] = False,
 ) -> None:
     """Simulate, calibrate, compare with the truth.
@@ -129,7 +129,7 @@ def run(
     console.print("timings: " + ", ".join(f"{k} {v:.2f} s" for k, v in report.timings_s.items()
                                           if not k.startswith(" ")), markup=False)
     console.print(f"wrote {report.out_dir} (recording/, calibration/, comparison.md"
-                  + (", run.rrd)" if rrd is None else f"); rerun: {rrd}")
+                  + (", rerun.rrd)" if rrd is None else f"); rerun: {rrd}")
                   + (" replacing the previous run" if replaced else ""), markup=False)
     if not report.comparison.ok:
         console.print("MISSED: " + "; ".join(report.comparison.failures), style="red", markup=False)

@@ -26,6 +26,8 @@ The scenario's ``faults:`` section (lrfsim.scenario.FaultsConfig), applied in th
    the original indices of the removed scans.
 6. ``encoder_spikes: N``: N random joint-state samples get +-encoder_spike_rad (random sign) on their
    position. Recorded: sample index and the jump.
+7. ``stamp_latency_s: L``, ``stamp_jitter_s: J``: scan stamps taken at receive time, each stamp moved later by
+   L + uniform [0, J) (:func:`receive_stamps`). Recorded: L, J and the largest delay.
 
 Not a fault of this module: ``servo.clock_offset_s`` (laser stamp - servo stamp) already simulates an unknown
 laser-servo clock offset (the recording does not declare it; ground_truth.yaml has it as clock_offset_s).
@@ -259,6 +261,18 @@ def encoder_spikes(result: SimResult, scenario: Scenario, n: int, spike_rad: flo
     return _with_record(result, "encoder_spikes", record, joints=replace(result.joints, positions_rad=pos))
 
 
+def receive_stamps(result: SimResult, scenario: Scenario, latency_s: float, jitter_s: float) -> SimResult:
+    """Scan stamps taken when the scan arrives, not when its first beam fires (as urg_node stamps before its
+    latency correction): every stamp + latency_s + uniform [0, jitter_s). The beams' true times are unchanged;
+    only the stamps the recording carries move."""
+    if latency_s == 0.0 and jitter_s == 0.0:
+        return result
+    rng = _rng(scenario, 7)
+    delay = latency_s + jitter_s * rng.random(result.scan_stamps_s.size)
+    record = {"latency_s": float(latency_s), "jitter_s": float(jitter_s), "max_delay_s": float(delay.max())}
+    return _with_record(result, "receive_stamps", record, scan_stamps_s=result.scan_stamps_s + delay)
+
+
 def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     """Every fault of ``scenario.faults`` except the range noise scale (applied before simulating), in the
     module docstring's order; the result's ``faults`` record lists what was done."""
@@ -271,9 +285,10 @@ def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     result = occlude_markers(result, scenario, f.occluded_markers)
     result = add_false_blobs(result, scenario, f.false_blobs)
     result = drop_scans(result, scenario, f.dropped_scans_fraction)
-    return encoder_spikes(result, scenario, f.encoder_spikes, f.encoder_spike_rad)
+    result = encoder_spikes(result, scenario, f.encoder_spikes, f.encoder_spike_rad)
+    return receive_stamps(result, scenario, f.stamp_latency_s, f.stamp_jitter_s)
 
 
 __all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask",
            "drop_scans", "encoder_spikes", "invert_servo", "marker_returns", "occlude_markers",
-           "scale_range_noise", "tape_outliers"]
+           "receive_stamps", "scale_range_noise", "tape_outliers"]

@@ -432,6 +432,17 @@ def range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> FloatArray:
     return sig[order][np.minimum(idx, up.size - 1)]
 
 
+def typical_range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> float | None:
+    """The sensor's range noise at typical ranges [m]: the median over the finite ``ranges_m`` (any shape) of
+    :func:`range_sigma`; None for a noise-free sensor or no finite range. What a recording declares as its
+    scanner's noise (nominal.yaml ``range_sigma_m``) and what ``lrfsim plan`` predicts with."""
+    r = np.asarray(ranges_m, dtype=float)
+    r = r[np.isfinite(r)]
+    if not sensor.noise or r.size == 0 or not sensor.noise_bands:
+        return None
+    return float(np.median(range_sigma(r, sensor)))
+
+
 def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray,
                    rng: np.random.Generator, *, origin_tol_m: float = 1e-6, chunk_scans: int = 16,
                    progress: Callable[[int, int], None] | None = None,

@@ -16,6 +16,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
+from lrfcal.pipeline import CalibConfig
 from lrfcal.types import CalibrationResult
 
 from .compare import Comparison, compare, load_truth
@@ -44,7 +45,7 @@ def run_loop(
     """Simulate, write the recording, calibrate it from disk as a real one, compare with the truth.
 
     Everything is built in a temporary folder beside ``out_dir`` and renamed into place when complete.
-    ``rrd_path`` defaults to ``out_dir/run.rrd``. ``progress(done_scans, total)`` while simulating,
+    ``rrd_path`` defaults to ``out_dir/rerun.rrd``. ``progress(done_scans, total)`` while simulating,
     ``stage_progress(stage)`` while calibrating; ``warn(line)`` when ``spawn`` is asked for but no viewer can
     start (the .rrd is saved all the same).
     """
@@ -60,7 +61,7 @@ def run_loop(
     check_output(out_dir, overwrite)
     if spawn and (reason := spawn_unavailable_reason()) is not None:
         spawn = False
-        shown = rrd_path or out_dir / "run.rrd"
+        shown = rrd_path or out_dir / "rerun.rrd"
         if warn is not None:
             warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
                  f"(open it with: rerun {shown})")
@@ -74,10 +75,12 @@ def run_loop(
 
         truth = load_truth(tmp / "recording" / "ground_truth.yaml")
         t0 = time.perf_counter()
-        rrd_tmp = None if rrd_path is not None else tmp / "run.rrd"
+        rrd_tmp = None if rrd_path is not None else tmp / "rerun.rrd"
+        # the tunnel's dimensions (Table III) are measured only where the scene is a tunnel
+        config = CalibConfig(geometry=scenario.scene.tunnel is not None)
         result = calibrate_folder(
             tmp / "recording", tmp / "calibration", truth=truth, rrd_path=rrd_path or rrd_tmp, spawn=spawn,
-            scene=scene, progress=stage_progress, warn=warn,
+            scene=scene, progress=stage_progress, warn=warn, config=config,
         )
         timings["calibrate + write"] = time.perf_counter() - t0
         timings.update({f"  {k}": v for k, v in result.timings_s.items()})

@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 from lrfcal.errors import CalibrationError
 from lrfcal.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.observability import LIMITS, Observability, analyse
-from lrfcal.pipeline import CalibConfig
+from lrfcal.pipeline import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.solve import MotorClock, information_at
 from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
 from lrfcal.types import JointStates, Observations
@@ -92,6 +92,14 @@ class Plan:
     information_source: str = SOURCE_MARKERS
     n_surface_returns: int = 0
     notes: tuple[str, ...] = field(default=())
+    #: the DH verdict from all the returns the calibration solves with (the surfaces' too): what the calibration's
+    #: "observability" check reports after solving (None: the same as ``observability``, markers only)
+    observability_solved: Observability | None = None
+
+    @property
+    def final_observability(self) -> Observability:
+        """What `lrfcal calibrate`'s observability check will report (after the joint solve)."""
+        return self.observability_solved if self.observability_solved is not None else self.observability
 
     @property
     def determined(self) -> bool:
@@ -103,7 +111,7 @@ class Plan:
 
     @property
     def weakest(self) -> str:
-        return self.observability.describe()
+        return self.final_observability.describe()
 
     @property
     def strengthen(self) -> str:
@@ -122,7 +130,8 @@ class Plan:
             "sigma": {n: num(self.sigma[n]) for n in self.names},
             "units": {n: _unit(n) for n in self.names},
             "weakest": self.weakest,
-            "weakest_sigma_in_limits": num(self.observability.weakest_sigma_in_limits),
+            "weakest_sigma_in_limits": num(self.final_observability.weakest_sigma_in_limits),
+            "weakest_sigma_in_limits_markers_only": num(self.observability.weakest_sigma_in_limits),
             "strengthen": self.strengthen,
             "determined": self.determined,
             "tolerances_reachable": self.tolerances_reachable,
@@ -177,14 +186,10 @@ def scenario_range_sigma(scenario: Scenario, ranges_m: FloatArray) -> float:
     band's sigma, times faults.range_noise_scale); the calibration's 10 mm (CalibConfig) for a noise-free sensor.
     For the UTM-30LX-EW of the shipped scenarios both are 10 mm below 10 m."""
     from .faults import scale_range_noise
-    from .lidar import range_sigma
+    from .lidar import typical_range_sigma
 
-    sensor = scale_range_noise(scenario).sensor
-    r = np.asarray(ranges_m, dtype=float)
-    r = r[np.isfinite(r)]
-    if not sensor.noise or r.size == 0 or not sensor.noise_bands:
-        return CalibConfig().range_sigma_m
-    return float(np.median(range_sigma(r, sensor)))
+    sigma = typical_range_sigma(ranges_m, scale_range_noise(scenario).sensor)
+    return DEFAULT_RANGE_SIGMA_M if sigma is None else sigma
 
 
 def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bool = True) -> Plan:
@@ -261,7 +266,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 tolerances=checks, n_returns=len(obs), n_markers_seen=n_seen, n_markers=int(len(markers_W)),
                 clock_estimated=two_way, range_sigma_m=sigma_r, seconds=time.perf_counter() - t0,
                 information_source=source, n_surface_returns=0 if on_planes is None else len(on_planes),
-                notes=tuple(notes))
+                notes=tuple(notes), observability_solved=None if on_planes is None else analyse(info, names))
 
 
 def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers_W: FloatArray, params: Params,
@@ -300,8 +305,12 @@ def format_plan(p: Plan) -> str:
         lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{format_value(n, LIMITS[n]):>14}")
     lines.append("")
     state = "determined" if p.determined else "NOT DETERMINED (the calibration would refuse, exit 3)"
+    alone = ("" if p.observability_solved is None else
+             f"; {p.observability.weakest_sigma_in_limits:.2g} from the marker returns alone, the test the "
+             "calibration refuses on before solving")
     lines.append(f"DH parameters: {state}; weakest direction: {p.weakest} "
-                 f"(1-sigma {p.observability.weakest_sigma_in_limits:.2g} of the limit)")
+                 f"(1-sigma {p.final_observability.weakest_sigma_in_limits:.2g} of the limit, as `lrfcal calibrate` "
+                 f"reports it after solving{alone})")
     lines.append(f"to strengthen it: {p.strengthen}")
     lines.append(f"tolerances (reachable when >= {REACHABLE_K:g} x predicted sigma):")
     for t in p.tolerances:

@@ -29,6 +29,7 @@ import yaml
 
 from lrfcal.output import atomic_folder, check_replaceable, check_writable
 
+from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
 
 if TYPE_CHECKING:
@@ -61,7 +62,9 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
         write_bag(result, scenario, tmp / "bag")
         if scenario.markers is not None:
             (tmp / "distances.csv").write_text(distances_csv(result), encoding="utf-8")
-        (tmp / "nominal.yaml").write_text(nominal_yaml(scenario, result.truth.marker_radius_m), encoding="utf-8")
+        sigma = typical_range_sigma(result.ranges_m, scenario.sensor)  # the declared (spec) noise, faults aside
+        (tmp / "nominal.yaml").write_text(nominal_yaml(scenario, result.truth.marker_radius_m, sigma),
+                                          encoding="utf-8")
         (tmp / "ground_truth.yaml").write_text(ground_truth_yaml(result), encoding="utf-8")
         (tmp / "scenario.yaml").write_text(dump_scenario(scenario), encoding="utf-8")
     return out
@@ -125,7 +128,7 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
                     writer.write(c_echo, log_ns, ts.serialize_cdr(msg, MULTIECHO_TYPE))
             else:
                 j = result.joints
-                msg = JointState(header=header(float(j.stamps_s[k]), ""), name=[servo.joint_name],
+                msg = JointState(header=header(float(j.stamps_s[k]), ""), name=[servo.joint],
                                  position=np.array([j.positions_rad[k]]),
                                  velocity=np.array([j.velocities_rad_s[k]]), effort=empty)
                 writer.write(c_joint, log_ns, ts.serialize_cdr(msg, JOINTSTATE_TYPE))
@@ -146,20 +149,22 @@ def _dump(data: dict[str, Any]) -> str:
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None)
 
 
-def nominal_yaml(scenario: Scenario, marker_radius_m: float | None) -> str:
+def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_m: float | None = None) -> str:
     """nominal.yaml (the rig file, docs/formats.md) from the scenario's design values (rig.nominal_dh,
     rig.nominal_mount) and where this bag keeps the scans and the joint; ``marker_radius_m`` (and the sensor's
-    ``beam_divergence_rad``, which the marker model uses) only with markers
-    (None: the key is left out)."""
+    ``beam_divergence_rad``, which the marker model uses) only with markers (None: the key is left out);
+    ``range_sigma_m``: the scanner's declared range noise (None: left out)."""
     rig = scenario.rig
     radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m),
                                                   "beam_divergence_rad": float(scenario.sensor.divergence_rad)}
+    noise = {} if range_sigma_m is None else {"range_sigma_m": float(round(range_sigma_m, 9))}
     return _dump({
         "dh": rig.nominal_dh.to_dh().as_dict(),
         "mount": rig.nominal_mount.to_pose().as_dict(),
         **radius,
+        **noise,
         "scan": {"topic": SCAN_TOPIC, "stamp": "header"},
-        "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint_name, "unit": "rad", "stamp": "header"},
+        "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint, "unit": "rad", "stamp": "header"},
     })
 
 

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Annotated, Any, Literal, get_args
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from lrfcal.errors import InputError
 from lrfcal.kinematics import DH, Pose
@@ -73,8 +73,9 @@ class RigConfig(_Section):
 class NoiseBand(_Section):
     """Range noise below ``up_to_m``: Gaussian with ``sigma_m`` (Hokuyo spec: repeatability sigma)."""
 
-    up_to_m: Annotated[float, _d("upper range of this band [m]", gt=0)]
-    sigma_m: Annotated[float, _d("range noise 1-sigma in this band [m]", ge=0)]
+    up_to_m: Annotated[float, _d("upper range of this band [m]", gt=0, le=1000)]
+    sigma_m: Annotated[float, _d("range noise 1-sigma in this band (a scanner's is millimetres to centimetres) [m]",
+                                  ge=0, le=1)]
 
 
 class IntensityConfig(_Section):
@@ -82,10 +83,10 @@ class IntensityConfig(_Section):
 
     gain_counts: Annotated[float, _d("counts of a rho = 1 Lambertian target at ref_range_m, normal incidence "
                                      "[counts]", gt=0)] = 4000.0
-    ref_range_m: Annotated[float, _d("reference range of gain_counts [m]", gt=0)] = 1.0
-    saturation_counts: Annotated[float, _d("largest intensity reported [counts]", gt=0)] = 65535.0
+    ref_range_m: Annotated[float, _d("reference range of gain_counts [m]", gt=0, le=1000)] = 1.0
+    saturation_counts: Annotated[float, _d("largest intensity reported [counts]", gt=0, le=1e9)] = 65535.0
     relative_noise: Annotated[float, _d("multiplicative intensity noise, 1-sigma [1]", ge=0, le=1)] = 0.05
-    min_detectable_counts: Annotated[float, _d("weaker returns are dropped (no return) [counts]", ge=0)] = 20.0
+    min_detectable_counts: Annotated[float, _d("weaker returns are dropped (no return) [counts]", ge=0, le=1e9)] = 20.0
 
 
 #: Published characterisations the systematic-error defaults refer to (docs/sensor_errors.md).
@@ -108,7 +109,7 @@ class SystematicConfig(_Section):
     intensity_bias_m_per_decade: Annotated[float, _d(
         "range bias per decade of received intensity (range walk: bright retroreflectors read short when < 0; "
         "observed by " + _REFS + "; 0 = off, value assumed) [m]", ge=-1, le=1)] = 0.0
-    intensity_ref_counts: Annotated[float, _d("intensity at which the intensity bias is zero [counts]", gt=0)
+    intensity_ref_counts: Annotated[float, _d("intensity at which the intensity bias is zero [counts]", gt=0, le=1e9)
                                     ] = 1000.0
     incidence_bias_m: Annotated[float, _d(
         "range bias per radian of incidence angle (the bias at 1 rad; b = incidence_bias_m * theta / 1 rad), per "
@@ -116,9 +117,9 @@ class SystematicConfig(_Section):
     drift_amplitude_m: Annotated[float, _d(
         "warm-up drift at power-on, decaying exponentially (time drift observed by Kneip et al. 2009 and Ye & "
         "Borenstein 2002; 0 = off, value assumed) [m]", ge=-1, le=1)] = 0.0
-    drift_time_constant_s: Annotated[float, _d("time constant of the warm-up drift (assumed) [s]", gt=0)
+    drift_time_constant_s: Annotated[float, _d("time constant of the warm-up drift (assumed) [s]", gt=0, le=1e6)
                                      ] = 1200.0
-    drift_elapsed_s: Annotated[float, _d("time from power-on to the start of the sweep [s]", ge=0)] = 0.0
+    drift_elapsed_s: Annotated[float, _d("time from power-on to the start of the sweep [s]", ge=0, le=1e6)] = 0.0
 
 
 class EchoesConfig(_Section):
@@ -130,7 +131,7 @@ class EchoesConfig(_Section):
     enabled: Annotated[bool, _d("write the echoes topic beside /scan")] = False
     topic: Annotated[str, _d("topic of the MultiEchoLaserScan messages", min_length=1)] = "/echoes"
     separation_m: Annotated[float, _d("sub-ray ranges further apart than this are separate echoes (value "
-                                      "assumed) [m]", gt=0)] = 0.1
+                                      "assumed) [m]", gt=0, le=100)] = 0.1
     max_echoes: Annotated[int, _d("echoes kept per beam, nearest first (UTM-30LX-EW: 3) [1]", ge=1, le=8)] = 3
 
 
@@ -141,12 +142,12 @@ class SensorConfig(_Section):
     n_beams: Annotated[int, _d("beams per scan [1]", ge=2, le=100000)] = 1081
     angle_min_rad: Annotated[float, _d("bearing of beam 0 (LaserScan angle_min) [rad]", ge=-math.pi,
                                        le=math.pi)] = -2.356194490192345
-    angle_increment_rad: Annotated[float, _d("bearing step between beams [rad]", gt=0)] = 2 * math.pi / 1440
-    scan_period_s: Annotated[float, _d("time from one scan to the next (LaserScan scan_time) [s]", gt=0)] = 0.025
-    time_increment_s: Annotated[float, _d("time between beams (LaserScan time_increment) [s]", gt=0)
+    angle_increment_rad: Annotated[float, _d("bearing step between beams [rad]", gt=0, le=math.pi)] = 2 * math.pi / 1440
+    scan_period_s: Annotated[float, _d("time from one scan to the next (LaserScan scan_time) [s]", gt=0, le=10)] = 0.025
+    time_increment_s: Annotated[float, _d("time between beams (LaserScan time_increment) [s]", gt=0, le=1)
                                 ] = 0.025 / 1440
-    range_min_m: Annotated[float, _d("shortest range reported [m]", gt=0)] = 0.023
-    range_max_m: Annotated[float, _d("longest range reported [m]", gt=0)] = 60.0
+    range_min_m: Annotated[float, _d("shortest range reported [m]", gt=0, le=1000)] = 0.023
+    range_max_m: Annotated[float, _d("longest range reported [m]", gt=0, le=1000)] = 60.0
     no_return: Annotated[Literal["nan", "inf"], _d("value written for a beam without return")] = "nan"
     noise: Annotated[bool, _d("add range and intensity noise")] = True
     noise_bands: Annotated[tuple[NoiseBand, ...], _d("range noise by range band, in increasing up_to_m")] = (
@@ -154,9 +155,9 @@ class SensorConfig(_Section):
         NoiseBand(up_to_m=30.0, sigma_m=0.030),
         NoiseBand(up_to_m=60.0, sigma_m=0.050),
     )
-    quantisation_m: Annotated[float, _d("range resolution (0: none) [m]", ge=0)] = 0.001
+    quantisation_m: Annotated[float, _d("range resolution (0: none) [m]", ge=0, le=1)] = 0.001
     divergence_rad: Annotated[float, _d("full beam divergence angle; unverified for the UTM-30LX, see README "
-                                        "[rad]", ge=0)] = 0.0044
+                                        "[rad]", ge=0, lt=0.1)] = 0.0044
     footprint_rays: Annotated[int, _d("rays per beam footprint (1: centre ray only) [1]", ge=1, le=64)] = 7
     intensity: Annotated[IntensityConfig, _d("intensity model")] = IntensityConfig()
     systematic: Annotated[SystematicConfig, _d("systematic range errors (all off by default; "
@@ -168,13 +169,26 @@ class SensorConfig(_Section):
     def _check(self) -> SensorConfig:
         if self.range_min_m >= self.range_max_m:
             raise ValueError(f"range_min_m {self.range_min_m} must be below range_max_m {self.range_max_m}")
+        span_rad = (self.n_beams - 1) * self.angle_increment_rad
+        if span_rad > 2 * math.pi + 1e-9:
+            raise ValueError(f"the scan spans (n_beams - 1) x angle_increment_rad = {span_rad:.4g} rad, more than a "
+                             "turn: check angle_increment_rad (radians per beam)")
+        sweep_s = (self.n_beams - 1) * self.time_increment_s
+        if sweep_s > self.scan_period_s * (1 + 1e-9):
+            raise ValueError(f"the beams take (n_beams - 1) x time_increment_s = {sweep_s:.4g} s, longer than "
+                             f"scan_period_s {self.scan_period_s:g} s: check time_increment_s (seconds per beam)")
+        if self.intensity.min_detectable_counts >= self.intensity.saturation_counts:
+            raise ValueError(f"intensity.min_detectable_counts {self.intensity.min_detectable_counts:g} must be below "
+                             f"intensity.saturation_counts {self.intensity.saturation_counts:g}")
         return self
 
 
 class ServoConfig(_Section):
     """The servo sweep: from ``start_rad`` to ``end_rad`` at ``speed_rad_s``, ``passes`` times (alternating)."""
 
-    joint_name: Annotated[str, _d("joint name in the JointState messages")] = "servo"
+    joint: Annotated[str, _d("joint name in the JointState messages (as the rig file's servo.joint; the old key "
+                             "joint_name is still read)", min_length=1,
+                             validation_alias=AliasChoices("joint", "joint_name"))] = "servo"
     start_rad: Annotated[float, _d("motor angle where the sweep starts [rad]", ge=-2 * math.pi, le=2 * math.pi)
                          ] = math.pi / 2
     end_rad: Annotated[float, _d("motor angle where the first pass ends [rad]", ge=-2 * math.pi, le=2 * math.pi)
@@ -182,10 +196,10 @@ class ServoConfig(_Section):
     speed_rad_s: Annotated[float, _d("cruise speed [rad/s]", gt=0, le=10)] = math.radians(10.0)
     accel_rad_s2: Annotated[float, _d("acceleration of the trapezoidal ramps [rad/s^2]", gt=0, le=1000)] = 2.0
     passes: Annotated[int, _d("number of passes, alternating direction [1]", ge=1, le=100)] = 1
-    settle_s: Annotated[float, _d("standing still at each end [s]", ge=0)] = 0.2
+    settle_s: Annotated[float, _d("standing still at each end [s]", ge=0, le=3600)] = 0.2
     rate_hz: Annotated[float, _d("JointState publishing rate [Hz]", gt=0, le=10000)] = 100.0
-    encoder_counts: Annotated[int, _d("encoder counts per revolution (0: no quantisation) [1]", ge=0)] = 4096
-    backlash_rad: Annotated[float, _d("gear play, total width (play operator) [rad]", ge=0)] = 0.0
+    encoder_counts: Annotated[int, _d("encoder counts per revolution (0: no quantisation) [1]", ge=0, le=2**30)] = 4096
+    backlash_rad: Annotated[float, _d("gear play, total width (play operator) [rad]", ge=0, le=math.pi / 4)] = 0.0
     clock_offset_s: Annotated[float, _d("laser stamp minus servo stamp of the same instant [s]", ge=-1, le=1)
                               ] = 0.0
 
@@ -199,7 +213,7 @@ class ServoConfig(_Section):
 class TapeConfig(_Section):
     """The person with the tape: Gaussian noise on each measured pair; optionally only some pairs."""
 
-    sigma_m: Annotated[float, _d("tape noise 1-sigma per measured distance [m]", ge=0)] = 0.001
+    sigma_m: Annotated[float, _d("tape noise 1-sigma per measured distance [m]", ge=0, le=1)] = 0.001
     pair_fraction: Annotated[float, _d("fraction of marker pairs measured (seeded choice) [1]", gt=0, le=1)] = 1.0
 
 
@@ -215,8 +229,8 @@ class MaterialsConfig(_Section):
 class ManholeConfig(_Section):
     """A rectangular opening in the plate, centred at (y, z) in W."""
 
-    width_m: Annotated[float, _d("opening width along y [m]", gt=0)] = 0.40
-    height_m: Annotated[float, _d("opening height along z [m]", gt=0)] = 0.60
+    width_m: Annotated[float, _d("opening width along y [m]", gt=0, le=100)] = 0.40
+    height_m: Annotated[float, _d("opening height along z [m]", gt=0, le=100)] = 0.60
     center_y_m: Annotated[float, _d("centre y in W [m]")] = 0.0
     center_z_m: Annotated[float, _d("centre z in W [m]")] = 1.15
 
@@ -224,11 +238,11 @@ class ManholeConfig(_Section):
 class TunnelConfig(_Section):
     """A box-girder tunnel: floor z = 0, ceiling z = height, walls y = +-width/2, plate at x = plate_x_m."""
 
-    width_m: Annotated[float, _d("wall to wall [m]", gt=0)] = 0.78
-    height_m: Annotated[float, _d("floor to ceiling [m]", gt=0)] = 2.30
+    width_m: Annotated[float, _d("wall to wall [m]", gt=0, le=100)] = 0.78
+    height_m: Annotated[float, _d("floor to ceiling [m]", gt=0, le=100)] = 2.30
     x_min_m: Annotated[float, _d("open end of the tunnel behind the rig, x in W [m]")] = -1.0
     plate_x_m: Annotated[float, _d("the end plate, x in W [m]")] = 2.24
-    wall_thickness_m: Annotated[float, _d("thickness of walls, floor, ceiling and plate [m]", gt=0)] = 0.01
+    wall_thickness_m: Annotated[float, _d("thickness of walls, floor, ceiling and plate [m]", gt=0, le=10)] = 0.01
     manhole: Annotated[ManholeConfig | None, _d("an opening in the plate (none by default)")] = None
 
     @model_validator(mode="after")
@@ -242,9 +256,9 @@ class BoardConfig(_Section):
     """A planar board (thin box) with its centre and orientation; its front face is its local +z."""
 
     pose: Annotated[PoseConfig, _d("pose of the board's centre in W")]
-    width_m: Annotated[float, _d("size along the board's local x [m]", gt=0)] = 1.5
-    height_m: Annotated[float, _d("size along the board's local y [m]", gt=0)] = 1.0
-    thickness_m: Annotated[float, _d("size along the board's local z [m]", gt=0)] = 0.01
+    width_m: Annotated[float, _d("size along the board's local x [m]", gt=0, le=100)] = 1.5
+    height_m: Annotated[float, _d("size along the board's local y [m]", gt=0, le=100)] = 1.0
+    thickness_m: Annotated[float, _d("size along the board's local z [m]", gt=0, le=10)] = 0.01
 
 
 class MeshConfig(_Section):
@@ -252,7 +266,7 @@ class MeshConfig(_Section):
 
     file: Annotated[Path, _d("STL or OBJ file, relative to the scenario file's folder")]
     pose: Annotated[PoseConfig, _d("pose of the mesh in W")] = PoseConfig()
-    scale: Annotated[float, _d("scale applied to the mesh's coordinates (e.g. 0.001 for mm) [1]", gt=0)] = 1.0
+    scale: Annotated[float, _d("scale applied to the mesh's coordinates (e.g. 0.001 for mm) [1]", gt=0, le=1e6)] = 1.0
     reflectivity: Annotated[float, _d("albedo (or gain) of the mesh [1]", ge=0, le=10000)] = 0.35
 
 
@@ -311,9 +325,9 @@ class BoardLayout(_Section):
     kind: Annotated[Literal["board"], _d("layout selector")] = "board"
     rows: Annotated[int, _d("grid rows [1]", ge=1, le=50)] = 4
     cols: Annotated[int, _d("grid columns [1]", ge=1, le=50)] = 5
-    spacing_m: Annotated[float, _d("grid spacing [m]", gt=0)] = 0.2
+    spacing_m: Annotated[float, _d("grid spacing [m]", gt=0, le=10)] = 0.2
     jitter_m: Annotated[float, _d("random in-plane offsets (seeded), so the grid is not perfectly regular [m]",
-                                  ge=0)] = 0.0
+                                  ge=0, le=1)] = 0.0
 
 
 class PointsLayout(_Section):
@@ -372,6 +386,10 @@ class FaultsConfig(_Section):
     encoder_spike_rad: Annotated[float, _d("size of an encoder spike [rad]", gt=0, le=math.pi)] = 0.5
     range_noise_scale: Annotated[float, _d("every range noise band's sigma times this, applied before "
                                            "simulating [1]", ge=0, le=100)] = 1.0
+    stamp_latency_s: Annotated[float, _d("scan stamps taken at receive time: each stamp this much later than its "
+                                         "first beam [s]", ge=0, le=1)] = 0.0
+    stamp_jitter_s: Annotated[float, _d("and a further uniform random delay in [0, this) per scan [s]", ge=0,
+                                        le=1)] = 0.0
 
 
 class Scenario(_Section):

@@ -140,7 +140,7 @@ def build_scene(scenario: Scenario) -> Scene:
     data = mujoco.MjData(model)
     mujoco.mj_forward(model, data)
 
-    joint_id = model.joint(scenario.servo.joint_name).id
+    joint_id = model.joint(scenario.servo.joint).id
     marker_geom_ids = np.array([model.geom(mid).id for mid in marker_ids], dtype=np.int64)
     tunnel_truth = None
     if tunnel is not None:
@@ -502,7 +502,11 @@ def _load_mesh(cfg: MeshConfig, where: str) -> tuple[FloatArray, NDArray[np.int6
     try:
         mesh = trimesh.load(path, force="mesh")
     except Exception as e:  # trimesh raises many types for unreadable files
-        raise InputError(f"{where}.file: cannot read mesh '{path}' ({type(e).__name__}: {e})") from None
+        # an ImportError is trimesh reaching for an optional text decoder on bytes that are not a binary STL: the
+        # file is the problem, not the machine
+        why = "" if isinstance(e, ImportError) else f": {type(e).__name__}: {' '.join(str(e).split())}"
+        raise InputError(f"{where}.file: '{path}' is not a mesh trimesh can read (binary or ASCII STL, OBJ, PLY, "
+                         f"...){why}") from None
     faces = np.asarray(getattr(mesh, "faces", np.zeros((0, 3))), dtype=np.int64)
     verts = np.asarray(getattr(mesh, "vertices", np.zeros((0, 3))), dtype=float)
     if len(faces) == 0 or len(verts) < 3 or not np.all(np.isfinite(verts)):
@@ -532,7 +536,7 @@ def _set_rig(spec: mujoco.MjSpec, scenario: Scenario) -> None:
     _set_body(spec.body("I_prime"), (0.0, 0.0, 0.0), rot_x(dh.alpha))
     _set_body(spec.body("L_star"), (0.0, 0.0, dh.b), np.eye(3))
     _set_body(spec.body("L_prime"), (0.0, 0.0, 0.0), rot_z(dh.beta))
-    spec.joint("servo").name = scenario.servo.joint_name
+    spec.joint("servo").name = scenario.servo.joint
     # rig.xml puts the servo on +z_M, behind a laser whose front beam points along -z_M (beta ~ -pi/2). If the
     # front beam points along +z_M (beta ~ +pi/2), mirror the servo, horn and bracket to -z_M (cosmetic only:
     # the lidar never sees rig geoms).

@@ -429,6 +429,7 @@ def write_figures(s: Study, folder: Path) -> list[Path]:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
 
     written = []
     for i, p in enumerate(DH_NAMES):
@@ -445,6 +446,7 @@ def write_figures(s: Study, folder: Path) -> list[Path]:
                 ax.axvline(-sig, ls="--", color=line.get_color())
         ax.set_xlabel(f"{p} error [{unit}] (dashed: +-predicted 1-sigma)")
         ax.set_ylabel("trials")
+        ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # trials are counted, never fractions
         ax.set_title(f"{s.name}: {p}")
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
