@@ -85,7 +85,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 # --- help -----------------------------------------------------------------------------------------------------
 
 HELP = {
-    ("lrfcal", "calibrate"): ["[m]", "[s]", "[default: 0.01", "[default: 0.0", "[default: RECORDING/bag]"],
+    ("lrfcal", "calibrate"): ["[m]", "[s]", "[default: the rig file's range_sigma_m, else 0.01]", "[default: 0.0",
+                              "[default: RECORDING/bag]"],
     ("lrfsim", "simulate"): ["-o DIR", "SCENARIO"],
     ("lrfsim", "run"): ["[default: runs/<scenario name>]", "[default: DIR/rerun.rrd]"],
     ("lrfsim", "schema"): ["--markdown"],
@@ -155,8 +156,11 @@ BAD_SCENARIOS = [
     ({"scene.tunnel.plate_x_m": float("inf")}, "scene.tunnel.plate_x_m: must be a finite number"),
     ({"markers.layout": {"kind": "points", "positions": [[0.5, 0.3, 1.0], [1.0, 0.3, float("nan")]]}},
      "markers.layout.positions[1][2]: must be a finite number"),
-    ({"sensor.scan_period_s": 1e-6}, "GiB"),
-    ({"sensor.n_beams": 100000, "servo.passes": 100}, "GiB"),
+    ({"sensor.scan_period_s": 1e-6, "sensor.time_increment_s": 1e-10}, "GiB"),
+    ({"sensor.n_beams": 100000, "sensor.angle_increment_rad": 6e-5, "sensor.time_increment_s": 2.5e-7,
+      "servo.passes": 100}, "GiB"),
+    ({"sensor.n_beams": 100000}, "more than a turn"),
+    ({"sensor.scan_period_s": 1e-6}, "longer than scan_period_s"),
     ({"servo.sped_rad_s": 1.0}, "did you mean 'speed_rad_s'"),
     ({"markers.layout.z_apx_m": 1.0}, "did you mean 'z_apex_m'"),
 ]

@@ -116,6 +116,37 @@ def calibrate(
     if config.range_sigma_m is None:  # the sensor's noise as the rig file declares it, else the UTM-30LX-EW's
         declared = recording.nominal.range_sigma_m
         config = replace(config, range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
+    try:
+        return _calibrate(recording, config, progress)
+    except CalibrationError as err:
+        hint = _trimmed_hint(recording, config.clock_offset_s)
+        if not hint or "time span" in str(err):
+            raise
+        raise CalibrationError(f"{err}; {hint}") from None
+
+
+#: more scans than this fraction outside the joint states' time span suggest a wrong clock offset
+TRIMMED_HINT_FRACTION = 0.2
+
+
+def _trimmed_hint(recording: Recording, tau0: float) -> str:
+    """A hint for a refusal when many scans lie outside the joint states' time span at clock offset ``tau0``:
+    the offset, the stamps or the joint states' topic is likely wrong (empty when not)."""
+    if not math.isfinite(tau0):
+        return ""
+    joints, _ = timing.remove_spikes(recording.joints)
+    covered = timing.covered_scans(recording.scans, joints, tau0)
+    out = int((~covered).sum())
+    if out <= TRIMMED_HINT_FRACTION * covered.size:
+        return ""
+    given = f" (--clock-offset {tau0:+g} s)" if tau0 != 0.0 else ""
+    return (f"note: {out} of {covered.size} scans lie outside the joint states' time span at clock offset "
+            f"{tau0 * 1000:+.1f} ms{given}: the clock offset (or the scan stamps) is likely wrong, which would also "
+            "explain this refusal")
+
+
+def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None) -> CalibrationResult:
+    """:func:`calibrate` with ``config.range_sigma_m`` resolved."""
     if config.targetless or (config.targetless is None and recording.tape is None):
         from .targetless import calibrate_targetless
 
