@@ -179,3 +179,16 @@ def test_version() -> None:
     for prog in ("lrfcal", "lrfsim"):
         proc = _run(prog, "--version")
         assert proc.returncode == 0 and re.fullmatch(rf"{prog} \d+\.\d+\.\d+\S*\n", proc.stdout), proc.stdout
+
+
+def test_force_writes_a_refused_result_with_its_failed_checks_and_no_figures(recordings: dict[str, Path],
+                                                                             tmp_path: Path) -> None:
+    out = tmp_path / "cal"
+    proc = _run("lrfcal", "calibrate", recordings["noisy"], "-o", out, "--no-baseline", "--force", "--no-figures",
+                timeout=600)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    report = (out / "report.md").read_text()
+    assert "| reduced chi-square | **FAILED** |" in report
+    assert "not drawn (--no-figures)" in report and not list(out.glob("*.png"))
+    checks = yaml.safe_load((out / "calibration.yaml").read_text())["checks"]
+    assert any(c["name"] == "reduced chi-square" and not c["passed"] for c in checks), checks

@@ -269,6 +269,19 @@ def test_figures_written_at_size(result, tmp_path):
     assert DPI == 150
 
 
+def test_a_figure_that_cannot_be_drawn_is_skipped_with_its_reason(result, tmp_path, monkeypatch):
+    import lrfcal.figures as figures
+
+    def broken(*_a: object, **_k: object) -> Path:
+        raise IndexError("Inconsistent shape between the condition and the input")
+
+    monkeypatch.setattr(figures, "intensity_figure", broken)
+    figs = figures.write_figures(result, tmp_path / "fig")
+    assert set(figs.written) == {"alignment", "residuals"}
+    assert figs.skipped == {"intensity": "IndexError: Inconsistent shape between the condition and the input"}
+    assert sorted(p.name for p in (tmp_path / "fig").iterdir()) == ["alignment.png", "residuals.png"]
+
+
 def test_import_does_not_pull_rerun_or_matplotlib():
     code = ("import sys, lrfcal.viz, lrfcal.figures; "
             "bad = [m for m in ('rerun', 'matplotlib') if m in sys.modules]; assert not bad, bad")

@@ -33,6 +33,7 @@ def calibrate_folder(
     progress: Callable[[str], None] | None = None,
     warn: Callable[[str], None] | None = None,
     options: dict[str, Any] | None = None,
+    figures: bool = True,
 ) -> CalibrationResult:
     """Read, calibrate, write calibration.yaml / rig.urdf / clouds / report / figures atomically; log to rerun.
 
@@ -41,6 +42,7 @@ def calibrate_folder(
     ``options``: one-off rig-file settings (the keywords of lrfcal.rig.with_overrides, e.g. sign=-1);
     ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`), then with
     "figures and report" and "rerun recording" while those are written.
+    ``figures``: draw the report's PNG figures (False: the report says they were not asked for; for scripts).
     ``spawn`` where no viewer can start (see :func:`lrfcal.cliutil.spawn_unavailable_reason`): ``warn`` is
     called with one line and the recording is saved instead (to ``rrd_path``, default ``out_dir/rerun.rrd``).
 
@@ -48,7 +50,8 @@ def calibrate_folder(
         InputError: an output overlaps an input (is, contains or lies inside the bag, distances or nominal file,
             or is or contains the recording folder), the output folder may not be replaced, bad input.
     """
-    from . import figures, output
+    from . import figures as figure_writer
+    from . import output
     from .cliutil import spawn_unavailable_reason
 
     config = config or CalibConfig()
@@ -94,9 +97,11 @@ def calibrate_folder(
         progress("figures and report")
     with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
         before, before_label = _nominal_in_W(result, truth)
-        figs = figures.write_figures(result, Path(tmp), before, before_label)
+        figs = (figure_writer.write_figures(result, Path(tmp), before, before_label) if figures
+                else figure_writer.Figures({}, {}))
         report = output.render_report(result, truth=truth_values)
-        report += "\n## Figures\n\n" + "\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())
+        report += "\n## Figures\n\n" + ("\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())
+                                         if figures else "not drawn (--no-figures)")
         report += "".join(f"\n\n{name}.png could not be drawn ({why}); the calibration is not affected"
                           for name, why in figs.skipped.items()) + "\n"
         if warn is not None:

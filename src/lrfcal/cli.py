@@ -57,6 +57,8 @@ def calibrate_cmd(
     no_range_bias: Annotated[bool, typer.Option(
         "--no-range-bias", help="Hold the range offset and the marker-return range bias at 0 (by default both are "
         "estimated wherever the surfaces the markers sit on separate them).")] = False,
+    no_figures: Annotated[bool, typer.Option(
+        "--no-figures", help="Do not draw the report's PNG figures (faster, for scripts).")] = False,
     force: Annotated[bool, typer.Option("--force", help="Write the result even when a consistency check fails "
                                         "(the failed checks are recorded in calibration.yaml and the report).")
                      ] = False,
@@ -109,6 +111,7 @@ def calibrate_cmd(
             progress=hooks.stage,
             warn=lambda line: print(f"warning: {line}", file=sys.stderr),
             options=options,
+            figures=not no_figures,
         )
     print_summary(result, console)
     console.print(f"wrote {out}", markup=False)
