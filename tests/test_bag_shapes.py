@@ -175,7 +175,9 @@ SHAPES = {
     "time_increment_0": (ScanSource(), ServoSource(joint="servo")),
     "variable_beams": (ScanSource(), ServoSource(joint="servo")),
     "clocks_100s": (ScanSource(), ServoSource(joint="servo")),
-    "in_scan": (ScanSource(field="scan"), ServoSource(topic=None, field="angle_deg", unit="deg", stamp="scan")),
+    # this synthetic servo turns while the laser scans: motion continuous (stamp: scan alone means step and scan)
+    "in_scan": (ScanSource(field="scan"), ServoSource(topic=None, field="angle_deg", unit="deg", stamp="scan",
+                                                      motion="continuous")),
 }
 
 

@@ -40,7 +40,7 @@ import math
 import sys
 from collections import Counter
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -254,6 +254,8 @@ def read_bag(
         servo_receive_minus_stamp_s=servo_med, clock_offset_s=offset, clock_offset_applied=applied,
         notes=tuple(notes),
     )
+    if servo.steps():  # step and scan: every beam takes the angle of its scan
+        scans = replace(scans, angle_per_scan=True)
     return BagData(scans=scans, joints=joints, report=report)
 
 

@@ -333,7 +333,8 @@ def _guess_servo(types: dict[str, str], first: dict[str, Any], scan: ScanSource,
         if nums:
             name = next((n for n, _ in nums if hinted(n) or "step" in n.lower()), nums[0][0])
             unit, cpr = guess_unit(values_of(scan.topic, name))
-            return ServoSource(topic=None, field=name, unit=unit, counts_per_rev=cpr, stamp="scan")
+            # the angle travels with its scan: a step-and-scan rig, said explicitly in the proposed rig file
+            return ServoSource(topic=None, field=name, unit=unit, counts_per_rev=cpr, stamp="scan", motion="step")
     order = sorted(types, key=lambda t: (not hinted(t), t))
     for tp in order:
         mt = types[tp]

@@ -21,6 +21,7 @@ Stamp = Literal["header", "receive"]
 ServoStamp = Literal["header", "receive", "scan"]
 Unit = Literal["rad", "deg", "counts"]
 Echo = Literal["first", "strongest", "last"]
+Motion = Literal["continuous", "step"]
 
 
 class _Strict(BaseModel):
@@ -121,6 +122,11 @@ class ServoSource(_Strict):
     offset_rad: float = 0.0
     stamp: ServoStamp = "header"
     tf: TfSource | None = None
+    #: how the servo moves while the laser scans: ``continuous`` (it turns during a scan: every beam's angle is
+    #: interpolated at the beam's own time) or ``step`` (step and scan: it stands still while the laser scans, so
+    #: every beam of a scan takes the angle at the scan's stamp). None: ``step`` when the angle travels in the
+    #: scan's own message (stamp: scan), else ``continuous``.
+    motion: Motion | None = None
 
     @model_validator(mode="after")
     def _consistent(self) -> ServoSource:
@@ -135,6 +141,10 @@ class ServoSource(_Strict):
         if self.stamp == "scan" and self.field is None:
             raise ValueError("stamp: scan needs field: the angle's dotted path inside the scan's message")
         return self
+
+    def steps(self) -> bool:
+        """True when the servo stands still during each scan (``motion``, its default from ``stamp``)."""
+        return self.motion == "step" or (self.motion is None and self.stamp == "scan")
 
     def unit_factor(self) -> float:
         """Radians per recorded unit."""
@@ -152,7 +162,7 @@ class ServoSource(_Strict):
         what = f"[{self.joint}]" if self.joint else (f".{self.field}" if self.field else "")
         topic = "(the scan's message)" if self.stamp == "scan" else self.topic
         return f"{topic}{what} ({self.unit}, sign {self.sign:+d}, offset {self.offset_rad:g} rad, " \
-               f"stamp {self.stamp})"
+               f"stamp {self.stamp}, {'step and scan' if self.steps() else 'continuous motion'})"
 
 
 class RigFile(_Strict):

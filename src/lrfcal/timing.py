@@ -24,8 +24,11 @@ def beam_times(scans: Scans) -> FloatArray:
 
 
 def scan_spans(scans: Scans) -> tuple[FloatArray, FloatArray]:
-    """(S,), (S,): laser-clock times of the first and the last beam each scan carried (beam_counts)."""
+    """(S,), (S,): laser-clock times of the first and the last beam each scan carried (beam_counts); both the
+    stamp for a step-and-scan rig (Scans.angle_per_scan), whose beams all take the angle at the stamp."""
     assert scans.beam_counts is not None
+    if scans.angle_per_scan:  # step and scan: the angle of every beam is the one at the stamp
+        return scans.stamps_s, scans.stamps_s
     t1 = scans.stamps_s + np.maximum(scans.beam_counts - 1, 0) * np.asarray(scans.time_increment_s)
     return np.minimum(scans.stamps_s, t1), np.maximum(scans.stamps_s, t1)
 

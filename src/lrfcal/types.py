@@ -29,7 +29,9 @@ class Scans:
     intensities (S, N): counts (0 where absent); mu_rad (S, N): each scan's own bearings
     angle_min + i * angle_increment (continued past its beam count); time_increment_s (S,): each scan's time
     between beams; beam_counts (S,): beams each scan carried. The constructor also accepts mu_rad (N,) and a
-    scalar time_increment_s (the same layout for every scan) and broadcasts them.
+    scalar time_increment_s (the same layout for every scan) and broadcasts them. ``angle_per_scan``: the servo
+    stands still while the laser scans (step and scan, lrfcal.rig.ServoSource.motion), so every beam's motor
+    angle is the one at its scan's stamp (see :attr:`beam_times_s`).
     """
 
     stamps_s: FloatArray
@@ -44,6 +46,7 @@ class Scans:
     #: where the scans came from ("<bag>: <topic>"), for error messages; "" when unknown.
     source: str = ""
     beam_counts: IntArray | None = None
+    angle_per_scan: bool = False
 
     def __post_init__(self) -> None:
         S, N = np.shape(self.ranges_m)
@@ -64,8 +67,12 @@ class Scans:
 
     @property
     def beam_times_s(self) -> FloatArray:
-        """(S, N) time of every beam: stamp + i * time_increment (laser clock)."""
+        """(S, N) the laser-clock time at which every beam's motor angle is taken: the beam's own time, stamp +
+        i * time_increment, while the servo turns during the scan; the scan's stamp for every beam of a
+        step-and-scan rig (``angle_per_scan``), whose servo stands still while it scans."""
         N = self.ranges_m.shape[1]
+        if self.angle_per_scan:
+            return np.repeat(self.stamps_s[:, None], N, axis=1)
         return self.stamps_s[:, None] + np.arange(N) * np.asarray(self.time_increment_s)[:, None]
 
 
