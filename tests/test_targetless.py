@@ -97,6 +97,12 @@ def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, Calibratio
     fit = result.plane_fit
     assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
     assert math.isfinite(result.solution.clock_offset_sigma_s)
+    # every 5th scan was held out of the fit, and the held-out check measured it
+    from lrfcal.holdout import HOLDOUT_EVERY
+
+    assert not np.any(result.surface_returns.scan % HOLDOUT_EVERY == HOLDOUT_EVERY - 1)
+    held = next(c for c in result.checks if c.name == "held-out planes")
+    assert held.passed and "left out of the fit" in held.detail
 
 
 def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(tmp_path: Path) -> None:

@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from . import geometry, observability, planes, reproject, solve, timing
+from . import geometry, holdout, observability, planes, reproject, solve, timing
 from .errors import CalibrationError
 from .kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .pipeline import CalibConfig, Check, _Stopwatch, chi2_check, split_in_two, usable_scans
@@ -89,7 +89,10 @@ def calibrate_targetless(
     motor = solve.MotorClock.from_joints(joints)
     passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
     estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
-    beams = _sample(scans, config.plane_returns)
+    # every 5th scan is held out of the fit: the calibration must not make those scans' planes thicker (holdout)
+    hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
+    beams = _sample(scans, config.plane_returns, skip=hold)
+    held_beams = _sample(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
     seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
     clock.lap("timing")
 
@@ -136,6 +139,12 @@ def calibrate_targetless(
     clock.lap("solve")
 
     checks = _checks(sol, returns, passes, held, config, prior)
+    first_thickness = 4.0 * config.range_sigma_m + 0.02  # as the first round's segmentation
+    held_out = holdout.held_out_flatness(
+        points_M(held_beams.ranges_m, motor.angles(held_beams.times_s, tau0)[0], held_beams.mu_rad, nominal.dh),
+        points_M(held_beams.ranges_m, motor.angles(held_beams.times_s, sol.clock_offset_s)[0], held_beams.mu_rad,
+                 sol.params.dh), first_thickness)
+    checks.append(Check("held-out planes", held_out.passed, held_out.detail()))
     failed = [c for c in checks if not c.passed]
     clock.lap("checks")
     if failed and not config.force:
