@@ -371,6 +371,28 @@ def reproject_cmd(
         console.print(line, markup=False)
 
 
+@app.command("convert", cls=Command)
+def convert_cmd(
+    log: Annotated[Path, typer.Argument(
+        help="Scan log: a .txt, .csv or .log file, one row per scan (time, motor angle, ranges; docs/formats.md, "
+        "\"Scan logs\").", metavar="LOG", show_default=False)],
+    out: Annotated[Path, typer.Option("-o", "--out", metavar="BAG", show_default=False,
+                                      help="Output ROS 2 bag folder (MCAP; written atomically).")],
+    nominal: Annotated[Path | None, typer.Option(
+        "--nominal", metavar="YAML", show_default=False,
+        help="Rig file whose log: and servo: sections describe the log  [default: guessed from the log, as "
+        "lrfcal inspect does]")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing bag folder at BAG.")] = False,
+) -> None:
+    """Convert a scan log into a ROS 2 bag (MCAP): sensor_msgs/LaserScan on /scan and sensor_msgs/JointState
+    (joint servo, rad) on /joint_states, one of each per row; prints the rig file that reads the bag."""
+    from .logconvert import convert_log
+
+    for line in convert_log(log, out, nominal=nominal, overwrite=overwrite,
+                            warn=lambda text: print(f"warning: {text}", file=sys.stderr)):
+        print(line)
+
+
 def main(argv: list[str] | None = None) -> None:
     """Console entry point: usage errors and any LrfError become one line on stderr and their exit code."""
     run_app(app, argv, "lrfcal")
