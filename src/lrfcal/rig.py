@@ -205,13 +205,13 @@ class LogLayout(_Strict):
             raise ValueError(f"range_max_m {self.range_max_m:g} must exceed range_min_m {self.range_min_m:g}")
         return self
 
-    def time_factor(self) -> float:
-        """Seconds per unit of the time column."""
-        return {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}[self.time_unit]
+    def time_units_per_s(self) -> float:
+        """Units of the time column per second (a divisor: 5100 ms / 1000 is exactly the float 5.1)."""
+        return {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}[self.time_unit]
 
-    def range_factor(self) -> float:
-        """Metres per unit of a range."""
-        return 1e-3 if self.range_unit == "mm" else 1.0
+    def range_units_per_m(self) -> float:
+        """Units of a range per metre (a divisor)."""
+        return 1e3 if self.range_unit == "mm" else 1.0
 
 
 class RigFile(_Strict):

@@ -186,7 +186,7 @@ def load_log(path: str | Path, layout: LogLayout) -> LogRows:
         mu = vals[lead:] * (math.pi / 180.0 if layout.beam_angle_unit == "deg" else 1.0)
         step = np.diff(mu)
         with np.errstate(invalid="ignore"):
-            off = (np.sign(step) != np.sign(step[0])) | (step == 0)
+            off = (np.sign(step) != np.sign(mu[-1] - mu[0])) | (step == 0)  # against the overall direction
         bad = np.flatnonzero(~np.isfinite(mu) | np.r_[False, off])
         if bad.size:
             k = int(bad[0])
@@ -216,13 +216,13 @@ def load_log(path: str | Path, layout: LogLayout) -> LogRows:
             raise InputError(f"{path}:{line}: {len(fields)} columns, expected {want} ({what}, as {first}): a cut or "
                              f"merged line? (delete it, or check log.columns / log.intensities)")
         data[r] = numbers(path, line, fields, name)
-    ranges = data[:, lead:lead + n] * layout.range_factor()
+    ranges = data[:, lead:lead + n] / layout.range_units_per_m()
     pos = ranges[np.isfinite(ranges) & (ranges > 0)]
     if layout.range_unit == "m" and pos.size and float(np.median(pos)) > 100.0:
         raise InputError(f"{path}: log.range_unit: m, but the median range is {float(np.median(pos)):g} m: the log "
                          f"looks like it is in millimetres; set log.range_unit: mm")
     return LogRows(
-        path=path, times_s=data[:, layout.columns.index("time")] * layout.time_factor(),
+        path=path, times_s=data[:, layout.columns.index("time")] / layout.time_units_per_s(),
         angles=data[:, layout.columns.index("angle")], ranges_m=ranges,
         intensities=data[:, lead + n:] if layout.intensities else np.zeros_like(ranges), mu_rad=np.asarray(mu),
         lines=np.asarray(lines, dtype=np.int64), header_line=header_line, n_ignored_lines=ignored)
