@@ -110,7 +110,8 @@ def test_help_shows_units_defaults_and_clean_usage(prog: str, cmd: str) -> None:
 
 
 def test_top_level_help() -> None:
-    for prog, commands in (("lrfcal", ["calibrate", "inspect", "reproject", "convert"]), ("lrfsim", ["simulate", "run", "schema"])):
+    for prog, commands in (("lrfcal", ["calibrate", "inspect", "reproject", "convert"]),
+                           ("lrfsim", ["simulate", "run", "schema"])):
         proc = _run(prog, "--help")
         assert proc.returncode == 0 and "thin CLI" not in proc.stdout
         assert all(c in proc.stdout for c in commands)
