@@ -14,6 +14,7 @@ from .errors import InputError
 from .kinematics import Params, Pose
 from .pipeline import CalibConfig, calibrate
 from .recording import read_recording
+from .scanlog import resolve_recording
 from .types import CalibrationResult, Recording
 
 
@@ -42,6 +43,8 @@ def calibrate_folder(
     ``options``: one-off rig-file settings (the keywords of lrfcal.rig.with_overrides, e.g. sign=-1);
     ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`), then with
     "figures and report" and "rerun recording" while those are written.
+    ``recording_dir`` may be a scan log itself, or a folder holding one instead of ``bag/``
+    (:func:`lrfcal.scanlog.resolve_recording`).
     ``figures``: draw the report's PNG figures (False: the report says they were not asked for; for scripts).
     ``spawn`` where no viewer can start (see :func:`lrfcal.cliutil.spawn_unavailable_reason`): ``warn`` is
     called with one line and the recording is saved instead (to ``rrd_path``, default ``out_dir/rerun.rrd``).
@@ -55,6 +58,7 @@ def calibrate_folder(
     from .cliutil import spawn_unavailable_reason
 
     config = config or CalibConfig()
+    recording_dir, bag = resolve_recording(recording_dir, bag)  # type: ignore[assignment]  # a scan log, or a folder with one
     rec = Path(recording_dir) if recording_dir is not None else None
     inputs = {
         "recording folder": rec,

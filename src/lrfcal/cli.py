@@ -252,7 +252,7 @@ def inspect_cmd(
     clocks and their offset, the problems found, and the rig-file snippet (YAML) that reads it."""
     from rich.console import Console
 
-    from .inspection import inspect_bag
+    from .loginspect import inspect_path
     from .rig import load_rig, with_overrides
 
     rig = load_rig(nominal) if nominal is not None else None
@@ -261,7 +261,7 @@ def inspect_cmd(
         scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic, servo_field=servo_field,
         joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign, servo_offset=servo_offset,
         servo_stamp=servo_stamp, tf_parent=tf_parent, tf_child=tf_child, tf_axis=tf_axis)
-    result = inspect_bag(bag, scan, servo, dh=rig.dh.model_dump() if rig else None)  # type: ignore[arg-type]
+    result = inspect_path(bag, scan, servo, dh=rig.dh.model_dump() if rig else None, log=rig.log if rig else None)
     print_inspection(result, Console())
 
 
@@ -272,7 +272,8 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
     from rich.syntax import Syntax
     from rich.table import Table
 
-    console.print(f"[bold]{result.path}[/bold]: ROS {result.ros_version} bag, {result.duration_s:.1f} s")
+    kind = f"ROS {result.ros_version} bag" if result.ros_version else "scan log"
+    console.print(f"[bold]{result.path}[/bold]: {kind}, {result.duration_s:.1f} s")
     t = Table(title="Topics")
     for h in ("topic", "type", "messages", "rate [Hz]", "header", "receive - stamp [s]"):
         t.add_column(h, justify="left" if h in ("topic", "type") else "right", overflow="fold")
@@ -368,6 +369,28 @@ def reproject_cmd(
                                 warn=lambda text: console.print(f"warning: {text}", markup=False))
     for line in summary:
         console.print(line, markup=False)
+
+
+@app.command("convert", cls=Command)
+def convert_cmd(
+    log: Annotated[Path, typer.Argument(
+        help="Scan log: a .txt, .csv or .log file, one row per scan (time, motor angle, ranges; docs/formats.md, "
+        "\"Scan logs\").", metavar="LOG", show_default=False)],
+    out: Annotated[Path, typer.Option("-o", "--out", metavar="BAG", show_default=False,
+                                      help="Output ROS 2 bag folder (MCAP; written atomically).")],
+    nominal: Annotated[Path | None, typer.Option(
+        "--nominal", metavar="YAML", show_default=False,
+        help="Rig file whose log: and servo: sections describe the log  [default: guessed from the log, as "
+        "lrfcal inspect does]")] = None,
+    overwrite: Annotated[bool, typer.Option("--overwrite", help="Replace an existing bag folder at BAG.")] = False,
+) -> None:
+    """Convert a scan log into a ROS 2 bag (MCAP): sensor_msgs/LaserScan on /scan and sensor_msgs/JointState
+    (joint servo, rad) on /joint_states, one of each per row; prints the rig file that reads the bag."""
+    from .logconvert import convert_log
+
+    for line in convert_log(log, out, nominal=nominal, overwrite=overwrite,
+                            warn=lambda text: print(f"warning: {text}", file=sys.stderr)):
+        print(line)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -20,6 +20,7 @@ from .bag import Progress, read_bag
 from .errors import InputError
 from .kinematics import DH, Pose
 from .rig import ScanSource, ServoSource, load_rig
+from .scanlog import is_scan_log, read_scan_log, resolve_recording
 from .types import JointStates, Nominal, Recording, Scans, TapeMeasurements
 
 DISTANCES_HEADER = ("marker_i", "marker_j", "distance_m")
@@ -154,7 +155,8 @@ def read_nominal(path: str | Path) -> Nominal:
     scan, servo = rig.scan_source(), rig.servo_source()
     return Nominal(dh=dh, mount=mount, marker_radius_m=rig.marker_radius_m,
                    beam_divergence_rad=rig.beam_divergence_rad, range_sigma_m=rig.range_sigma_m, scan_topic=scan.topic,
-                   joint_topic=servo.topic or "", joint_name=servo.joint or "", scan=scan, servo=servo)
+                   joint_topic=servo.topic or "", joint_name=servo.joint or "", scan=scan, servo=servo,
+                   log=rig.log)
 
 
 # --- the whole folder ---------------------------------------------------------------------------------------
@@ -174,7 +176,11 @@ def read_recording(
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
 ) -> Recording:
-    """Read a recording: the bag (lrfcal.bag.read_bag), ``distances.csv`` and the rig file ``nominal.yaml``.
+    """Read a recording: the bag (lrfcal.bag.read_bag) or scan log (lrfcal.scanlog.read_scan_log, for a .txt,
+    .csv or .log file), ``distances.csv`` and the rig file ``nominal.yaml``.
+
+    ``folder`` may be a scan log itself (the folder is then the log's), and a folder without ``bag/`` is read
+    from its one scan log (lrfcal.scanlog.resolve_recording).
 
     Each path can be overridden (then ``folder`` may be None if all needed paths are given). Where the data
     are in the bag comes from the rig file, replaced by ``scan`` / ``servo`` when given, with ``scan_topic``,
@@ -182,7 +188,7 @@ def read_recording(
     distances (Recording.tape is then None unless a distances file is given). The reader does not check that
     the joint states cover the scans (see :func:`check_joint_coverage`, timing.covered_scans).
     """
-    base = Path(folder) if folder is not None else None
+    base, bag = resolve_recording(folder, bag)  # a scan log as the recording, or a folder holding one
     if base is not None and not base.is_dir():
         raise InputError(f"{base}: recording folder not found")
 
@@ -204,7 +210,11 @@ def read_recording(
     if joint_topic or joint_name:
         upd = {k: v for k, v in (("topic", joint_topic), ("joint", joint_name)) if v}
         servo_src = ServoSource.model_validate({**servo_src.model_dump(), **upd})
-    data = read_bag(pick(bag, "bag", "bag"), scan_src, servo_src, progress=progress, warn=warn)
+    bag_path = pick(bag, "bag", "bag")
+    if is_scan_log(bag_path):  # a text log, one row per scan (lrfcal.scanlog; the rig file's log: section)
+        data = read_scan_log(bag_path, nom.log, servo_src, warn=warn)
+    else:
+        data = read_bag(bag_path, scan_src, servo_src, progress=progress, warn=warn)
     nom = replace(nom, scan=scan_src, servo=servo_src, scan_topic=scan_src.topic,
                   joint_topic=servo_src.topic or "", joint_name=servo_src.joint or "")
     return Recording(scans=data.scans, joints=data.joints, tape=tape, nominal=nom, source=base,

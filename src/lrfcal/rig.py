@@ -22,6 +22,7 @@ ServoStamp = Literal["header", "receive", "scan"]
 Unit = Literal["rad", "deg", "counts"]
 Echo = Literal["first", "strongest", "last"]
 Motion = Literal["continuous", "step"]
+LogColumn = Literal["time", "angle", "ignore"]
 
 
 class _Strict(BaseModel):
@@ -165,9 +166,58 @@ class ServoSource(_Strict):
                f"stamp {self.stamp}, {'step and scan' if self.steps() else 'continuous motion'})"
 
 
+class LogLayout(_Strict):
+    """How a scan log (a text file, one row per scan; docs/formats.md "Scan logs") is laid out: the leading
+    ``columns`` before the ranges (``time`` and ``angle`` once each, ``ignore`` for anything else, e.g. a row
+    number), their units, an optional header row of beam angles, and the scanner's layout where the log has no
+    header. The motor angle's unit, sign, offset and motion are the rig file's ``servo`` keys, as for a bag."""
+
+    columns: tuple[LogColumn, ...] = ("time", "angle")
+    time_unit: Literal["s", "ms", "us", "ns"] = "s"
+    range_unit: Literal["m", "mm"] = "m"
+    #: ``none``: every row is a scan; ``angles``: the first row holds, after the leading columns, every beam's
+    #: angle (in ``beam_angle_unit``), which then replaces angle_min_rad / angle_increment_rad
+    header: Literal["none", "angles"] = "none"
+    beam_angle_unit: Literal["rad", "deg"] = "rad"
+    intensities: bool = False
+    angle_min_rad: Radians | None = None
+    angle_increment_rad: Annotated[float, Field(gt=-0.5, lt=0.5)] | None = None
+    #: time between beams [s]; absent: scan period / beams-per-revolution (as the bag reader assumes for 0)
+    time_increment_s: Annotated[float, Field(gt=0.0, lt=1.0)] | None = None
+    range_min_m: Annotated[float, Field(ge=0.0, lt=10.0)] = 0.0
+    range_max_m: Annotated[float, Field(gt=0.0, le=1000.0)] | None = None
+
+    @model_validator(mode="after")
+    def _consistent(self) -> LogLayout:
+        for need in ("time", "angle"):
+            if self.columns.count(need) != 1:
+                raise ValueError(f"columns must name {need} exactly once (got {list(self.columns)}); e.g. "
+                                 f"[ignore, time, angle] for a row number, a time and the motor angle")
+        if self.header == "angles" and (self.angle_min_rad is not None or self.angle_increment_rad is not None):
+            raise ValueError("header: angles takes the beam angles from the header row: leave out angle_min_rad "
+                             "and angle_increment_rad")
+        if self.header == "none" and (self.angle_min_rad is None or self.angle_increment_rad is None):
+            raise ValueError("a log without header row needs angle_min_rad and angle_increment_rad (the scanner's "
+                             "first beam and step, from its datasheet or driver), or header: angles")
+        if self.angle_increment_rad == 0.0:
+            raise ValueError("angle_increment_rad must not be 0")
+        if self.range_max_m is not None and self.range_max_m <= self.range_min_m:
+            raise ValueError(f"range_max_m {self.range_max_m:g} must exceed range_min_m {self.range_min_m:g}")
+        return self
+
+    def time_units_per_s(self) -> float:
+        """Units of the time column per second (a divisor: 5100 ms / 1000 is exactly the float 5.1)."""
+        return {"s": 1.0, "ms": 1e3, "us": 1e6, "ns": 1e9}[self.time_unit]
+
+    def range_units_per_m(self) -> float:
+        """Units of a range per metre (a divisor)."""
+        return 1e3 if self.range_unit == "mm" else 1.0
+
+
 class RigFile(_Strict):
     """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``beam_divergence_rad``,
-    ``range_sigma_m``, ``scan``, ``servo`` (and the old keys ``scan_topic``, ``joint_topic``, ``joint_name``)."""
+    ``range_sigma_m``, ``scan``, ``servo``, ``log`` (a scan log's layout; and the old keys ``scan_topic``,
+    ``joint_topic``, ``joint_name``)."""
 
     dh: DHModel
     mount: MountModel | None = None
@@ -180,6 +230,8 @@ class RigFile(_Strict):
     range_sigma_m: float | None = Field(default=None, gt=0.0, le=1.0)
     scan: ScanSource | None = None
     servo: ServoSource | None = None
+    #: how a scan log is laid out (lrfcal.scanlog); ignored for bags
+    log: LogLayout | None = None
     scan_topic: str | None = Field(default=None, min_length=1)
     joint_topic: str | None = Field(default=None, min_length=1)
     joint_name: str | None = Field(default=None, min_length=1)
@@ -274,5 +326,5 @@ def with_overrides(
     return s, v
 
 
-__all__ = ["DHModel", "MountModel", "RigFile", "ScanSource", "ServoSource", "TfSource", "load_rig",
+__all__ = ["DHModel", "LogLayout", "MountModel", "RigFile", "ScanSource", "ServoSource", "TfSource", "load_rig",
            "parse_rig", "validation_message", "with_overrides"]

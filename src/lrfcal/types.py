@@ -165,6 +165,8 @@ class Nominal:
     #: above, a LaserScan topic and a sensor_msgs/JointState joint).
     scan: Any = None
     servo: Any = None
+    #: lrfcal.rig.LogLayout: how a scan log is laid out (the rig file's ``log:``; None: not given)
+    log: Any = None
 
 
 @dataclass(frozen=True)
