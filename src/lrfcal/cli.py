@@ -28,13 +28,14 @@ app = make_app(
 
 @app.command("calibrate", cls=Command)
 def calibrate_cmd(
-    recording: Annotated[Path, typer.Argument(help="Recording folder: bag/, distances.csv, nominal.yaml.",
-                                              metavar="RECORDING", show_default=False)],
+    recording: Annotated[Path, typer.Argument(
+        help="Recording folder (bag/ or one scan log, distances.csv, nominal.yaml), or a scan log.",
+        metavar="RECORDING", show_default=False)],
     out: Annotated[Path, typer.Option("-o", "--out", metavar="DIR", show_default=False,
                                       help="Output folder (written atomically; must not overlap an input).")],
-    bag: Annotated[Path | None, typer.Option(metavar="PATH", show_default=False,
-                                             help="Bag to read (ROS 1 .bag or ROS 2)  [default: RECORDING/bag]")
-                   ] = None,
+    bag: Annotated[Path | None, typer.Option(
+        metavar="PATH", show_default=False,
+        help="Bag (ROS 1 .bag or ROS 2) or scan log to read  [default: RECORDING/bag]")] = None,
     distances: Annotated[Path | None, typer.Option(metavar="CSV", show_default=False,
                                                    help="Tape distances [m]  [default: RECORDING/distances.csv]")
                          ] = None,
@@ -310,7 +311,7 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
         console.print("[bold]problems[/bold]:")
         for p in result.problems:
             console.print(f"  - {p}", markup=False)
-    console.print("[bold]rig file[/bold] (nominal.yaml) that reads this bag:")
+    console.print("[bold]rig file[/bold] (nominal.yaml) that reads it:")
     console.print(Syntax(result.rig_snippet, "yaml"))
 
 
