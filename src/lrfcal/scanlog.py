@@ -64,11 +64,20 @@ def find_log(folder: Path) -> Path | None:
     return logs[0] if logs else None
 
 
+def _is_bag(path: Path) -> bool:
+    """A ROS 1 bag or a single-file ROS 2 bag (.bag, .mcap, .db3), or a ROS 2 bag folder (its metadata.yaml)."""
+    if path.is_file():
+        return path.suffix.lower() in (".bag", ".mcap", ".db3")
+    return path.is_dir() and (path / "metadata.yaml").is_file()
+
+
 def resolve_recording(folder: str | Path | None, bag: str | Path | None) -> tuple[Path | None, Path | None]:
     """(recording folder, bag or log path) for what a user gave: a recording folder (its ``bag/``, else its one
-    scan log), a scan log itself as the recording (the folder is then the log's), or explicit paths."""
+    scan log), a bag or a scan log itself as the recording (the folder is then the file's), or explicit paths."""
     base = Path(folder) if folder is not None else None
     given = Path(bag) if bag is not None else None
+    if base is not None and given is None and _is_bag(base):  # a bag itself as the recording: its folder
+        return base.parent, base
     if base is not None and is_scan_log(base):
         if given is not None and given.resolve() != base.resolve():
             raise InputError(f"{base}: a scan log given as the recording and --bag {given} as well; give one")
