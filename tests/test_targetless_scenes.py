@@ -136,7 +136,7 @@ def test_markerless_recording_has_no_distances(tmp_path: Path) -> None:
     out = write_recording(simulate(sc), sc, tmp_path / "rec")
     assert sorted(p.name for p in out.iterdir()) == MARKERLESS_FILES
     nominal = yaml.safe_load((out / "nominal.yaml").read_text())
-    assert set(nominal) == {"dh", "mount", "scan", "servo"}  # no marker_radius_m
+    assert set(nominal) == {"dh", "mount", "range_sigma_m", "scan", "servo"}  # no marker_radius_m
     truth_yaml = yaml.safe_load((out / "ground_truth.yaml").read_text())
     assert truth_yaml["markers"] == {} and truth_yaml["marker_radius_m"] is None
     truth = load_truth(out / "ground_truth.yaml")
