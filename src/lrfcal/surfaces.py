@@ -40,6 +40,8 @@ IntArray = NDArray[np.int64]
 #: surface returns whose ray meets the plane more obliquely than this (angle between the ray and the plane's
 #: normal) are not used (module docstring)
 MAX_INCIDENCE_RAD = math.radians(80.0)
+#: a return whose point lies farther than this from a surface is not one of its returns
+_GATE_M = 0.03
 
 
 @dataclass(frozen=True)
@@ -175,7 +177,7 @@ def _in_extent(surface: Surface, points_W: FloatArray) -> tuple[FloatArray, NDAr
 
 def surface_returns(
     surfaces: list[Surface], points_W: FloatArray, scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
-    mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = 0.03,
+    mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = _GATE_M,
     marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0, times_s: FloatArray | None = None,
     rays_W: tuple[FloatArray, FloatArray] | None = None, max_incidence_rad: float = MAX_INCIDENCE_RAD,
 ) -> SurfaceReturns:
@@ -254,9 +256,16 @@ def observe_surfaces(
     sensor_W = params.mount.matrix()[:3, 3]
     step = max(1, P.shape[0] // 100_000)
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, P[::step], position_sigma_m=position_sigma_m)
-    times = None if beam_times_s is None else np.asarray(beam_times_s)[scan, beam]
-    returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed,
-                              times_s=times, rays_W=beam_rays_W(params, lam, mu), max_incidence_rad=max_incidence_rad)
+    # only the returns near a surface can be its returns (surface_returns' own gate): the rays of the others are
+    # never needed, and the selection (by scan and beam, in the same order) is the same
+    near = np.zeros(P.shape[0], dtype=bool)
+    for s in surfaces:
+        near |= np.abs(P @ s.normal - s.offset_m) < _GATE_M
+    c = np.flatnonzero(near)
+    times = None if beam_times_s is None else np.asarray(beam_times_s)[scan[c], beam[c]]
+    returns = surface_returns(surfaces, P[c], scan[c], beam[c], lam[c], mu[c], r[c], markers_W, gate_m=_GATE_M,
+                              max_returns=max_returns, seed=seed, times_s=times,
+                              rays_W=beam_rays_W(params, lam[c], mu[c]), max_incidence_rad=max_incidence_rad)
     return surfaces, returns
 
 
