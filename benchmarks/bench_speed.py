@@ -10,7 +10,7 @@ imports count), all in this one run, so that a busy machine slows numerator and 
    ``lrfsim plan SCENARIO``, ``lrfsim run SCENARIO``: walls and ratios to the simulation;
 3. the calibration in-process (``lrfcal.pipeline.calibrate``, no CLI, no figures) with its stage times;
 4. ``lrfcal calibrate REC`` again with 4 busy processes beside it (started here, always killed in a finally);
-5. the simulator's cast (lrfsim.lidar.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
+5. the simulator's cast (lrfsim.raycast.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
 6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included).
 
 Targets: calibrate <= 0.5x the simulation, targetless <= 0.7x, plan <= 0.5x, calibrate beside 4 busy processes
@@ -75,11 +75,11 @@ def busy_processes(n: int) -> list[subprocess.Popen[bytes]]:
 
 
 def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
-    """(cast seconds of lrfsim.lidar.cast_scans, bare single-thread mj_multiRay seconds over the same calls,
+    """(cast seconds of lrfsim.raycast.cast_scans, bare single-thread mj_multiRay seconds over the same calls,
     rays, load) on the scenario's noise-free motor angles."""
     import mujoco
 
-    from lrfsim import lidar
+    from lrfsim import lidar, raycast
     from lrfsim.scenario import load_scenario
     from lrfsim.scene import build_scene
     from lrfsim.servo import sweep_trajectory
@@ -98,7 +98,7 @@ def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
     M = 16 * N * F
     gid, dist, nrm = np.empty(M, np.int32), np.empty(M), np.empty((M, 3))
     bare_s, n_rays = 0.0, 0
-    for ch in lidar.iter_ray_chunks(scene, sensor, lam):
+    for ch in raycast.iter_ray_chunks(scene, sensor, lam):
         dflat, nflat = ch.directions.reshape(-1), nrm.reshape(-1)
         t0 = time.perf_counter()
         for o, a, n in zip(ch.call_origins, ch.call_first, ch.call_count, strict=True):
@@ -107,7 +107,7 @@ def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
                                cutoff)
         bare_s += time.perf_counter() - t0
         n_rays += ch.directions.shape[0]
-    cast = lidar.cast_scans(scene, sensor, lam)
+    cast = raycast.cast_scans(scene, sensor, lam)
     return cast.total_time_s, bare_s, n_rays, load
 
 
