@@ -58,7 +58,6 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
 
 from .errors import CalibrationError, InputError
 from .footprint import footprint_depth, sphere_depth
@@ -418,6 +417,8 @@ def _fit(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool
         return J[:, idx]
 
     if robust:
+        from scipy.optimize import least_squares  # only here: scipy.optimize takes ~0.2 s to import
+
         sol = least_squares(fun, th0[idx], jac=jac, method="trf", loss="soft_l1", f_scale=2.0, x_scale="jac",
                             max_nfev=300)
         th, nfev, msg = full(sol.x), int(sol.nfev), str(sol.message)
