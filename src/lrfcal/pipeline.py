@@ -47,6 +47,7 @@ class CalibConfig:
     estimate_clock: bool | None = None  # estimate the clock offset; None: when the sweep goes both ways
     baseline: bool = True  # also run the paper's variant for comparison
     cloud_stride: int = 1  # reproject every n-th scan into the clouds
+    clouds: bool = True  # reproject the clouds before / after (stage 7; False: empty clouds, no geometry)
     geometry: bool = True  # fit tunnel planes (Table III)
     surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
     surface_max_returns: int = 40000  # an even subsample of them, for speed
@@ -244,15 +245,18 @@ def calibrate(
             notes.append(f"the targetless calibration of the same recording was refused: {err}")
 
     # 7.
-    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
-                                       tolerance_s=math.inf)
-    (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
-        scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride,
-        (0.0, ours.range_offset_m))
-    clock.lap("reprojection")
+    cloud_before = cloud_after = np.zeros((0, 3))
+    cloud_intensity = np.zeros(0)
+    if config.clouds:
+        lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
+                                           tolerance_s=math.inf)
+        (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
+            scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride,
+            (0.0, ours.range_offset_m))
+        clock.lap("reprojection")
 
     geometry_before = geometry_after = None
-    if config.geometry:  # 8.
+    if config.geometry and config.clouds:  # 8.
         geometry_before = geometry.tunnel_geometry(cloud_before)
         geometry_after = geometry.tunnel_geometry(cloud_after)
         clock.lap("geometry")

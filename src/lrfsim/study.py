@@ -236,26 +236,28 @@ def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
 # --- running trials -------------------------------------------------------------------------------------------
 
 def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False,
-              perturb_start: float = 0.0, new_layout: bool = False) -> list[TrialRow]:
+              perturb_start: float = 0.0, new_layout: bool = False, threads: int | None = None) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
     built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
     scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
     every trial anew (the laser phase drawn from the trial's seed too). ``perturb_start``: the scale of each
     trial's perturbed start (:func:`perturbed_start`; 0: the scenario's nominal values). ``new_layout``: build
     every trial's scene from its own seed too (a board's jittered grid, a random layout: a new marker layout per
-    trial; implies ``recast``), to average over layouts rather than over the noise of one."""
+    trial; implies ``recast``), to average over layouts rather than over the noise of one. ``threads``: the cast's
+    threads (default: the cores available; 1 when batches run in parallel processes)."""
     from .scene import build_scene
     from .simulate import cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
 
     scene = None if new_layout else build_scene(scenario)
-    geometry = None if recast or new_layout else cast_geometry(scenario, scene=scene)
+    geometry = None if recast or new_layout else cast_geometry(scenario, scene=scene, threads=threads)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
         for trial, seed in trials:
             sc = perturbed_start(scenario.model_copy(update={"seed": int(seed)}), seed, perturb_start)
             folder = Path(tmp) / f"trial_{trial}"
-            sim = simulate(sc, scene=scene) if geometry is None else simulate_from_geometry(sc, geometry)
+            sim = (simulate(sc, scene=scene, threads=threads) if geometry is None
+                   else simulate_from_geometry(sc, geometry))
             write_recording(sim, sc, folder)
             t = calibrate_recording(folder, name=f"{scenario.name}#{trial}")
             shutil.rmtree(folder, ignore_errors=True)
@@ -278,17 +280,19 @@ def run_trials(
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
-    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: the trials spread
-    over about 2 batches per worker, at least 1 trial each). ``recast``, ``perturb_start``, ``new_layout``: see
-    :func:`run_batch`."""
+    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
+    worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each). ``recast``,
+    ``perturb_start``, ``new_layout``: see :func:`run_batch`."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
     perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
     s0 = scenario.seed if seed0 is None else int(seed0)
     items = [(k, s0 + k) for k in range(trials)]
-    n_batches = math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if workers > 1 or dask else 1
+    n_batches = (math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if dask is not None
+                 else max(workers, 1))
     batches = _batches(items, n_batches)
-    task = partial(run_batch, scenario, value, recast=recast, perturb_start=perturb_start, new_layout=new_layout)
+    task = partial(run_batch, scenario, value, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
+                   threads=1 if workers > 1 or dask is not None else None)
     rows: list[TrialRow] = []
 
     def collect(parts: Iterable[list[TrialRow]]) -> None:
