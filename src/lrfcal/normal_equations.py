@@ -13,7 +13,8 @@ assembled in O(rows) without the dense (rows, N_CORE + 3P) Jacobian, and a (damp
 complement is the core unknowns' marginal information with the planes unknown.
 
 :func:`levenberg_marquardt`: LM on those normal equations (J^T W J + m diag(J^T W J)) dx = -J^T W r, W the Huber
-weights of the whitened residuals (or 1), stopped when every step is below ``step_tol`` of its unknown's sigma.
+weights of the whitened residuals (or 1), stopped when every step is below ``step_tol`` of its unknown's sigma (or
+when a step of a fraction of a sigma no longer lowers the cost: the minimum to within the Jacobian's accuracy).
 """
 
 from __future__ import annotations
@@ -165,11 +166,12 @@ def marginal_sigma(N: Normal) -> FloatArray:
 
 def levenberg_marquardt(
     th0: FloatArray, evaluate: Callable[[FloatArray, bool], Blocks], core: IntArray, n_core: int,
-    huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3,
+    huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3, stall_tol: float = 0.1,
 ) -> tuple[FloatArray, int, bool]:
     """Minimise the (Huber) cost of ``evaluate(th, jac)`` over the core unknowns ``core`` and every nuisance (the
-    entries of th from ``n_core`` on). Returns (th, evaluations, converged); converged also when no step decreases
-    the cost any more (at the minimum)."""
+    entries of th from ``n_core`` on). Returns (th, evaluations, converged): converged when a step is below
+    ``step_tol`` of every unknown's sigma, or when a barely damped step below ``stall_tol`` sigma does not lower the
+    cost, or when no step lowers it any more (at the minimum)."""
     free = np.concatenate([core, np.arange(n_core, th0.size)])
     th = th0.copy()
 
@@ -196,14 +198,19 @@ def levenberg_marquardt(
             trial = th.copy()
             trial[free] += step
             ok = bool(np.all(np.isfinite(step)))
-            small = ok and float(np.max(np.abs(step) / sigma)) < step_tol
+            ratio = float(np.max(np.abs(step) / sigma)) if ok else np.inf
+            small = ratio < step_tol
             if small and first and damp <= 1e-3:  # a negligible, barely damped step: converged, nothing to check
                 return trial, n_eval, True
-            first = False
             c_new = cost(evaluate(trial, False).residuals()) if ok else np.inf
             n_eval += ok
             if c_new <= c:
                 break
+            if first and ratio < stall_tol and damp <= 1e-3:
+                # a barely damped step of a fraction of a sigma that does not lower the cost: at the minimum to within
+                # the Jacobian's own accuracy (the clock column uses the smoothed joint velocity)
+                return th, n_eval, True
+            first = False
             damp *= 10.0
             if damp > 1e10:
                 return th, n_eval, True  # no step decreases the cost: at the minimum
