@@ -16,13 +16,15 @@ imports count), all in this one run, so that a busy machine slows numerator and 
 Targets: calibrate <= 0.5x the simulation, targetless <= 0.7x, plan <= 0.5x, calibrate beside 4 busy processes
 <= 3x the quiet one, cast <= 0.75x bare mj_multiRay, study >= 100 trials/min. Every figure carries the 1-minute
 load average when it was taken (2 cores shared with other work: compare ratios, not walls). Prints PASS/MISS per
-target and exits 0 either way (it reports; the tests assert).
+target and exits 0 either way (it reports; the tests assert). Beside each wall, the CPU seconds (user + system) of
+the run and their ratio to the simulation's: less sensitive to other work on the machine than the walls.
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -53,12 +55,25 @@ def _tool(name: str) -> str:
     return str(path) if path.exists() else name
 
 
+#: CPU seconds (user + system) of the last console-script run (timed), for the rows' "cpu" figures
+LAST_CPU = [0.0]
+
+
+def _children_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
 def timed(args: list[str], ok: tuple[int, ...] = (0,)) -> tuple[float, float]:
-    """(wall seconds, load average before) of one console-script run; a failing run stops the benchmark."""
+    """(wall seconds, load average before) of one console-script run; a failing run stops the benchmark. Its CPU
+    seconds (user + system, all its threads and processes) go to LAST_CPU: on a machine shared with other work
+    they move less than the wall."""
     load = _load()
+    cpu0 = _children_cpu()
     t0 = time.perf_counter()
     p = subprocess.run(args, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     wall = time.perf_counter() - t0
+    LAST_CPU[0] = _children_cpu() - cpu0
     if p.returncode not in ok:
         sys.exit(f"bench_speed: {' '.join(args)} exited {p.returncode}: {p.stderr.strip()[-400:]}")
     return wall, load
@@ -146,23 +161,28 @@ def main() -> None:
     try:
         rec = tmp / "rec"
         sim, load = timed([lrfsim, "simulate", sc, "-o", str(rec)])
-        row("lrfsim simulate (reference)", f"{sim:.2f} s (load {load:.1f})")
+        sim_cpu = LAST_CPU[0]
+        row("lrfsim simulate (reference)", f"{sim:.2f} s, cpu {sim_cpu:.2f} s (load {load:.1f})")
 
         cal, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal")])
         row("lrfcal calibrate", f"{cal:.2f} s = {cal / sim:.2f}x sim (target <= {TARGETS['calibrate']}x; "
-            f"load {load:.1f})", judge(cal / sim <= TARGETS["calibrate"]))
+            f"cpu {LAST_CPU[0]:.2f} s = {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})",
+            judge(cal / sim <= TARGETS["calibrate"]))
         if has_option("lrfcal", "calibrate", "--no-figures"):
             nf, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal_nf"), "--no-figures"])
-            row("lrfcal calibrate --no-figures", f"{nf:.2f} s = {nf / sim:.2f}x sim (load {load:.1f})")
+            row("lrfcal calibrate --no-figures", f"{nf:.2f} s = {nf / sim:.2f}x sim (cpu {LAST_CPU[0] / sim_cpu:.2f}x; "
+                f"load {load:.1f})")
         tl, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "tl"), "--targetless"])
         row("lrfcal calibrate --targetless", f"{tl:.2f} s = {tl / sim:.2f}x sim (target <= "
-            f"{TARGETS['targetless']}x; load {load:.1f})", judge(tl / sim <= TARGETS["targetless"]))
+            f"{TARGETS['targetless']}x; cpu {LAST_CPU[0]:.2f} s = {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})",
+            judge(tl / sim <= TARGETS["targetless"]))
         pl, load = timed([lrfsim, "plan", sc], ok=(0, 3))
-        row("lrfsim plan", f"{pl:.2f} s = {pl / sim:.2f}x sim (target <= {TARGETS['plan']}x; load {load:.1f})",
-            judge(pl / sim <= TARGETS["plan"]))
+        row("lrfsim plan", f"{pl:.2f} s = {pl / sim:.2f}x sim (target <= {TARGETS['plan']}x; cpu {LAST_CPU[0]:.2f} s "
+            f"= {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})", judge(pl / sim <= TARGETS["plan"]))
         if not args.no_run:
             rn, load = timed([lrfsim, "run", sc, "-o", str(tmp / "run")], ok=(0, 1))
-            row("lrfsim run", f"{rn:.2f} s = {rn / sim:.2f}x sim (load {load:.1f})")
+            row("lrfsim run", f"{rn:.2f} s = {rn / sim:.2f}x sim (cpu {LAST_CPU[0]:.2f} s = "
+                f"{LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})")
 
         pipe, stages, load = pipeline_inprocess(rec)
         top = ", ".join(f"{k} {v:.2f}" for k, v in sorted(stages.items(), key=lambda kv: -kv[1])[:4])
@@ -190,7 +210,8 @@ def main() -> None:
             st, load = timed([lrfsim, "study", sc, "-n", str(args.trials), "-j", "2", "-o", str(tmp / "study")])
             rate = args.trials / st * 60.0
             row(f"lrfsim study -n {args.trials} -j 2", f"{st:.1f} s = {rate:.0f} trials/min (target >= "
-                f"{TARGETS['study']:.0f}; load {load:.1f})", judge(rate >= TARGETS["study"]))
+                f"{TARGETS['study']:.0f}; cpu {LAST_CPU[0]:.1f} s = {LAST_CPU[0] / args.trials:.2f} s per trial; "
+                f"load {load:.1f})", judge(rate >= TARGETS["study"]))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
