@@ -408,10 +408,17 @@ def _fit(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool
         th[idx] = x
         return th
 
+    last: list[tuple[FloatArray, FloatArray]] = []  # the Jacobian at the last residuals' point: scipy asks for it
+
     def fun(x: FloatArray) -> FloatArray:
-        return pb.stacked(full(x), R_ref, jac=False)[0]
+        res, J = pb.stacked(full(x), R_ref)
+        assert J is not None
+        last[:] = [(x.copy(), J[:, idx])]
+        return res
 
     def jac(x: FloatArray) -> FloatArray:
+        if last and np.array_equal(last[0][0], x):
+            return last[0][1]
         J = pb.stacked(full(x), R_ref)[1]
         assert J is not None
         return J[:, idx]
