@@ -244,10 +244,8 @@ def calibrate(
         except CalibrationError as err:
             notes.append(f"the targetless calibration of the same recording was refused: {err}")
 
-    # 7.
-    cloud_before = cloud_after = np.zeros((0, 3))
-    cloud_intensity = np.zeros(0)
-    if config.clouds:
+    cloud_before, cloud_after, cloud_intensity = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    if config.clouds:  # 7.
         lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
                                            tolerance_s=math.inf)
         (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
