@@ -4,7 +4,7 @@
 
 1. bare: exactly the simulator's mj_multiRay calls (same origins, directions, counts, geomgroup, cutoff and
    output buffers), generated chunk by chunk outside the timer, timed around the call loop only;
-2. sim: lrfsim.lidar.simulate_scans on the same motor angles (poses, rays, casts, sensor model);
+2. sim: lrfsim.raycast.simulate_scans on the same motor angles (poses, rays, casts, sensor model);
 3. recording: lrfsim.simulate.simulate_to_folder (scene build, simulation, bag and side files);
 4. batching: the largest distance between a call's shared origin and a beam's exact origin, and the largest
    angle between a cast direction and the exact beam direction, both against lrfcal.kinematics (eq. (3)).
@@ -22,7 +22,7 @@ import mujoco
 import numpy as np
 
 from lrfcal.kinematics import beam_rays_M, transform_points
-from lrfsim import lidar
+from lrfsim import lidar, raycast
 from lrfsim.scenario import load_scenario
 from lrfsim.scene import build_scene
 from lrfsim.servo import sweep_trajectory
@@ -55,7 +55,7 @@ def main(path: Path) -> None:
     gid, dist, nrm = np.empty(M, np.int32), np.empty(M), np.empty((M, 3))
     bare_s, n_rays, n_calls = 0.0, 0, 0
     max_pos_err = max_dir_err = 0.0
-    for ch in lidar.iter_ray_chunks(scene, sensor, lam):
+    for ch in raycast.iter_ray_chunks(scene, sensor, lam):
         dflat, nflat = ch.directions.reshape(-1), nrm.reshape(-1)
         t0 = time.perf_counter()
         for o, a, n in zip(ch.call_origins, ch.call_first, ch.call_count, strict=True):
@@ -78,7 +78,7 @@ def main(path: Path) -> None:
     pose_err = float(np.abs(origins_W - o_ref).max())
 
     # 2. the simulator on the same angles
-    out = lidar.simulate_scans(scene, sensor, lam, np.random.default_rng(0))
+    out = raycast.simulate_scans(scene, sensor, lam, np.random.default_rng(0))
     sim_s = out.total_time_s
 
     # 3. a full recording

@@ -11,7 +11,7 @@ import pytest
 import yaml
 
 from lrfcal.kinematics import beam_rays_M, transform_points
-from lrfsim import lidar
+from lrfsim import lidar, raycast
 from lrfsim.scenario import Scenario, parse_scenario
 from lrfsim.scene import build_scene, laser_pose_W
 from lrfsim.servo import sweep_trajectory
@@ -45,7 +45,7 @@ def _run(sc: Scenario, scene=None, seed: int = 0, phase_s: float = 0.0):
     traj = sweep_trajectory(sc.servo)
     starts = lidar.scan_start_times(traj.end_s, sc.sensor, phase_s)
     lam = traj.angle(lidar.beam_times(starts, sc.sensor))
-    return scene, lam, lidar.simulate_scans(scene, sc.sensor, lam, np.random.default_rng(seed))
+    return scene, lam, raycast.simulate_scans(scene, sc.sensor, lam, np.random.default_rng(seed))
 
 
 def _exact_rays_W(sc: Scenario, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -127,7 +127,7 @@ def test_beam_poses_match_kinematics_and_move_within_a_scan() -> None:
     assert np.abs(T[:3, 3] - origins[s, -1]).max() < 1e-12
     assert np.abs(T[:3, :3] - R[s, -1]).max() < 1e-12
     # the sub-ray directions of the chunks are exact per beam
-    ch = next(lidar.iter_ray_chunks(scene, sc.sensor, lam[:4]))
+    ch = next(raycast.iter_ray_chunks(scene, sc.sensor, lam[:4]))
     assert np.abs(ch.directions.reshape(4, -1, 3) - d_ref[:4]).max() < 1e-12
 
 
@@ -215,3 +215,25 @@ def test_footprint_geometry() -> None:
     assert np.allclose(ang[:, 1:], lidar.ring_half_angle(sensor))
     assert 0.5 * 0.002 < lidar.ring_half_angle(sensor) < 0.002
     assert math.isclose(lidar.beam_angles(sensor)[540], 0.0, abs_tol=1e-12)
+
+
+def test_cast_on_threads_is_byte_identical() -> None:
+    """The cast in 1, 2 and 3 threads (chunks of 4 scans, so the threads interleave): the same bytes, echoes too,
+    and the progress callback sees every chunk in scan order."""
+    sc = small_scenario(sensor={"echoes": {"enabled": True}})
+    scene = build_scene(sc)
+    traj = sweep_trajectory(sc.servo)
+    lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor, 0.004), sc.sensor))
+    seen: list[int] = []
+    one = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=1)
+    for n in (2, 3):
+        seen.clear()
+        many = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=n,
+                                  progress=lambda done, total: seen.append(done))
+        for a, b in ((one.ranges_m, many.ranges_m), (one.intensities, many.intensities),
+                     (one.echo_ranges_m, many.echo_ranges_m), (one.echo_power, many.echo_power)):
+            assert a is not None and b is not None and a.tobytes() == b.tobytes()
+        assert (many.n_rays, many.n_calls) == (one.n_rays, one.n_calls)
+        assert many.max_parallax_correction_m == one.max_parallax_correction_m
+        assert seen == [min(lam.shape[0], s + 4) for s in range(0, lam.shape[0], 4)]
+    assert np.isfinite(one.ranges_m).mean() > 0.5  # the scans see the tunnel

@@ -231,3 +231,16 @@ def test_output_modes(tmp_path, result):
     assert (out.stat().st_mode & 0o777) == 0o777 & ~current_umask()
     assert ((out / "cloud_after.ply").stat().st_mode & 0o777) == 0o666 & ~current_umask()
     assert os.access(out / "calibration.yaml", os.R_OK)
+
+
+def test_write_ply_is_trimesh_byte_for_byte(tmp_path):
+    """The cloud files keep the bytes trimesh wrote for them (the writer no longer imports it)."""
+    import trimesh
+
+    rng = np.random.default_rng(4)
+    pts, inten = rng.normal(size=(257, 3)) * 10, rng.uniform(0, 9000, 257)
+    for i in (inten, None):
+        mesh = trimesh.Trimesh(vertices=pts, faces=np.zeros((0, 3), dtype=np.int64), process=False, validate=False)
+        mesh.vertex_attributes["intensity"] = (np.zeros(len(pts)) if i is None else i).astype(np.float32)
+        expected = trimesh.exchange.ply.export_ply(mesh, encoding="binary")
+        assert write_ply(tmp_path / "c.ply", pts, i).read_bytes() == expected

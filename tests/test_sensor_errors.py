@@ -22,7 +22,7 @@ from lrfcal.inspection import inspect_bag
 from lrfcal.pipeline import CalibConfig
 from lrfcal.recording import read_recording
 from lrfcal.rig import ScanSource, ServoSource, parse_rig
-from lrfsim import lidar
+from lrfsim import lidar, raycast
 from lrfsim.loop import sensor_errors_line
 from lrfsim.recording import write_recording
 from lrfsim.scenario import Scenario, SystematicConfig, load_scenario, parse_scenario, with_changes
@@ -41,7 +41,7 @@ def _run_timed(sc: Scenario, scene=None, seed: int = 0):
     scene = scene if scene is not None else build_scene(sc)
     traj = sweep_trajectory(sc.servo)
     t = lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor), sc.sensor)
-    out = lidar.simulate_scans(scene, sc.sensor, traj.angle(t), np.random.default_rng(seed), beam_times_s=t)
+    out = raycast.simulate_scans(scene, sc.sensor, traj.angle(t), np.random.default_rng(seed), beam_times_s=t)
     return scene, t, out
 
 

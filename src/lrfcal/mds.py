@@ -33,7 +33,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 from scipy.sparse.csgraph import shortest_path
-from scipy.stats import f as f_dist
+from scipy.special import fdtri  # the F distribution's quantile (scipy.stats costs ~1 s to import)
 
 from .errors import CalibrationError, InputError
 from .types import DroppedPair, MarkerMap, TapeMeasurements
@@ -417,7 +417,7 @@ def _planar_fits_as_well(ssr2: float, ssr3: float, n_pairs: int, n: int, p_value
     if dof3 <= 0 or ssr3 <= 0:
         return ssr2 <= 1e-18
     F = ((ssr2 - ssr3) / (n - 3)) / (ssr3 / dof3)
-    return bool(f_dist.ppf(1 - p_value, n - 3, dof3) > F)
+    return bool(fdtri(n - 3, dof3, 1 - p_value) > F)
 
 
 __all__ = ["COLLINEAR_THRESHOLD", "COPLANAR_THRESHOLD", "classical_mds", "marker_map", "smacof"]

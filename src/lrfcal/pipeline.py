@@ -52,6 +52,7 @@ class CalibConfig:
     estimate_clock: bool | None = None  # estimate the clock offset; None: when the sweep goes both ways
     baseline: bool = True  # also run the paper's variant for comparison
     cloud_stride: int = 1  # reproject every n-th scan into the clouds
+    clouds: bool = True  # reproject the clouds before / after (stage 7; False: empty clouds, no geometry)
     geometry: bool = True  # fit tunnel planes (Table III)
     surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
     surface_max_returns: int = 40000  # an even subsample of them, for speed
@@ -282,16 +283,17 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
         except CalibrationError as err:
             notes.append(f"the targetless calibration of the same recording was refused: {err}")
 
-    # 7.
-    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
-                                       tolerance_s=math.inf)
-    (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
-        scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride,
-        (0.0, ours.range_offset_m))
-    clock.lap("reprojection")
+    cloud_before, cloud_after, cloud_intensity = np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    if config.clouds:  # 7.
+        lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
+                                           tolerance_s=math.inf)
+        (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
+            scans, lambda_beams, (nominal.dh, ours.params.dh), config.cloud_stride,
+            (0.0, ours.range_offset_m))
+        clock.lap("reprojection")
 
     geometry_before = geometry_after = None
-    if config.geometry:  # 8.
+    if config.geometry and config.clouds:  # 8.
         geometry_before = geometry.tunnel_geometry(cloud_before)
         geometry_after = geometry.tunnel_geometry(cloud_after)
         clock.lap("geometry")
@@ -563,11 +565,11 @@ def _second_opinion(
     """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
     and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
     (the part's data are a subset of the joint's), against the chi-square quantile with 4 degrees of freedom."""
-    from scipy.stats import chi2 as chi2_dist
+    from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
 
     groups, how = split_in_two(matched.scan, passes)
     dh = [PARAM_NAMES.index(n) for n in ("a", "alpha", "b", "beta")]
-    limit = float(chi2_dist.ppf(1.0 - config.second_opinion_p / 2.0, 4))
+    limit = float(chdtri(4, 1.0 - (1.0 - config.second_opinion_p / 2.0)))
     results = []
     for g in groups:
         part = matched.subset(g)

@@ -108,9 +108,7 @@ def segment_planes(
         cand = np.flatnonzero(free)
         Pc, Nc = P[cand], normals[cand]
         H = normals[pick]  # (h, 3)
-        dist = np.abs(Pc @ H.T - (H * P[pick]).sum(1))  # (c, h)
-        agree = np.abs(Nc @ H.T) >= cos_tol
-        score = ((dist <= thickness_m) & agree).sum(0)
+        score = _scores(Pc, Nc, H, (H * P[pick]).sum(1), thickness_m, cos_tol)
         best = int(np.argmax(score))
         if score[best] < min_points:
             break
@@ -121,7 +119,8 @@ def segment_planes(
                 break
             n, d, _ = fit_plane(P[members])
         if members.size < min_points or _in_plane_std(P[members])[1] < min_extent_m:  # too small, or a strip
-            free[cand[(np.abs(Pc @ H[best] - (H[best] @ P[pick[best]])) <= thickness_m) & agree[:, best]]] = False
+            agree = np.abs(Nc @ H[best]) >= cos_tol
+            free[cand[(np.abs(Pc @ H[best] - (H[best] @ P[pick[best]])) <= thickness_m) & agree]] = False
             continue
         if d < 0:  # orient away from the origin of M (on the motor axis, inside the scene)
             n, d = -n, -d
@@ -130,6 +129,20 @@ def segment_planes(
         free[members] = False
         planes.append(ScenePlane(n, d, int(members.size), rms, P[members].mean(0)))
     return labels, planes
+
+
+def _scores(Pc: FloatArray, Nc: FloatArray, H: FloatArray, d: FloatArray, thickness_m: float, cos_tol: float,
+            chunk: int = 4096) -> IntArray:
+    """Each hypothesis' inliers (h,): the points of Pc (c, 3) within ``thickness_m`` of the plane H_k . p = d_k whose
+    normals Nc (c, 3) agree with H_k (|cos| >= cos_tol); counted in chunks of points (the (chunk, h) temporaries
+    stay in cache)."""
+    score = np.zeros(H.shape[0], dtype=np.int64)
+    for s in range(0, Pc.shape[0], chunk):
+        dist = np.abs(Pc[s:s + chunk] @ H.T - d)
+        ok = dist <= thickness_m
+        ok &= np.abs(Nc[s:s + chunk] @ H.T) >= cos_tol
+        score += ok.sum(0)
+    return score
 
 
 def plane_returns(

@@ -46,7 +46,9 @@ Analytic Jacobian (chain rule; dX/dtheta_j written X_j):
 
 Solver: a robust pass (trf, soft-L1 loss) from the start, then plain least squares with observations whose
 whitened residual exceeds 4 sigma dropped (repeated until the inlier set is stable), whose Jacobian gives the
-covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals.
+covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals. The plain passes, the targetless
+solve and the information run on the normal equations with the planes' nuisances eliminated by the Schur complement
+(lrfcal.normal_equations); the plane rows' Jacobian is lrfcal.rayplane's.
 """
 
 from __future__ import annotations
@@ -56,24 +58,21 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from scipy.optimize import least_squares
-from scipy.special import expit
 
 from .errors import CalibrationError, InputError
-from .kinematics import ESTIMATE_NAMES, Params, Pose, exp_so3, points_M, right_jacobian_so3, transform_points
+from .footprint import footprint_depth, sphere_depth
+from .kinematics import DH, Params, Pose, exp_so3, points_M, right_jacobian_so3, transform_points
+from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, levenberg_marquardt, schur
+from .rayplane import plane_rows
 from .surfaces import Surface, SurfaceReturns
-from .types import JointStates, Observations, Solution
+from .types import Observations, Solution
+from .unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, MotorClock, PlaneSet, motor_lambda, plane_nuisance_start
 
 FloatArray = NDArray[np.float64]
 
 MODELS = ("paper", "sphere")
-#: The solver's core unknowns, in this order (then 3 nuisances per plane): see the module docstring.
-CORE_NAMES: tuple[str, ...] = (*ESTIMATE_NAMES, "clock_offset", "range_offset", "marker_range_bias")
-N_CORE = len(CORE_NAMES)
-_TAU = CORE_NAMES.index("clock_offset")
-_ROFF = CORE_NAMES.index("range_offset")  # added to every range the scanner reports [m]
-_MBIAS = CORE_NAMES.index("marker_range_bias")  # added to the ranges of marker returns only [m]
-_ETA = 0.05  # softness of the sphere's rim in s(u)
+_TAU, _ROFF, _MBIAS = TAU, ROFF, MBIAS
+_Surf, _plane_nuisance_start, _lambda = PlaneSet, plane_nuisance_start, motor_lambda  # the names tests use
 _DH_ANGLES = (7, 9)  # alpha, beta
 
 
@@ -81,114 +80,6 @@ def wrap_pi(a: ArrayLike) -> FloatArray:
     """Wrap angles to (-pi, pi]."""
     a = np.asarray(a, dtype=float)
     return a - 2 * np.pi * np.ceil((a - np.pi) / (2 * np.pi))
-
-
-def sphere_depth(u: ArrayLike, eta: float = _ETA) -> tuple[FloatArray, FloatArray]:
-    """Smoothed depth of a unit sphere's surface below its centre plane at lateral offset u, and ds/du.
-
-    s(u) = sqrt(eta log(1 + exp((1 - u^2) / eta))) ~ sqrt(1 - u^2) inside, -> 0 beyond the rim;
-    ds/du = -u expit((1 - u^2) / eta) / s (bounded; |ds/du| <= ~1 / sqrt(eta log 2) near u = 1).
-    """
-    u = np.asarray(u, dtype=float)
-    q = (1.0 - u * u) / eta
-    far = q < -30.0  # beyond the rim: softplus(q) = exp(q) to double precision, written to avoid 0 / 0
-    qn = np.where(far, 0.0, q)
-    s_near = np.sqrt(eta * np.logaddexp(0.0, qn))
-    s = np.where(far, np.sqrt(eta) * np.exp(0.5 * q), s_near)
-    ds = np.where(far, -u * np.exp(0.5 * q) / np.sqrt(eta), -u * expit(qn) / s_near)
-    return s, ds
-
-
-def _unit_disc(n: int) -> FloatArray:
-    """n equal-area samples (n, 2) of the unit disc (Vogel's sunflower spiral)."""
-    i = np.arange(n) + 0.5
-    rho = np.sqrt(i / n)
-    ang = i * np.pi * (3.0 - np.sqrt(5.0))
-    return np.stack([rho * np.cos(ang), rho * np.sin(ang)], -1)
-
-
-_DISC = _unit_disc(37)  # the beam's footprint, in units of its radius (37 points: the depth to ~0.04 R_m at k = 1,
-#                             0.2 mm on 5 mm markers, beside 10 mm of range noise)
-_DISC_DEPTH = np.sqrt(np.maximum(0.0, 1.0 - (_DISC ** 2).sum(1)))  # s on the sphere's own disc (k > 1)
-
-
-def footprint_depth(u: ArrayLike, k: ArrayLike, eta: float = _ETA) -> tuple[FloatArray, FloatArray]:
-    """Depth of a unit sphere below its centre plane seen through a beam with a finite footprint, and its
-    derivative in u: the mean of s(rho) (:func:`sphere_depth`) over the part of a uniform disc of radius k (the
-    footprint, in sphere radii) centred at lateral offset u that hits the sphere. A retroreflective marker
-    outshines whatever else the footprint hits, so the mixed return is the mean over the hits alone (lrfsim.lidar's
-    mixed pixel). The mean is taken over points of the smaller disc: the footprint's (k <= 1), each weighted by a
-    soft hit expit((1 - rho^2) / eta) (the rim of s), or the sphere's (k > 1), each weighted by a soft "inside the
-    footprint" expit((k^2 - |y - u|^2) / (eta k^2)). k = 0: :func:`sphere_depth`.
-
-    Args:
-        u: (K,) offset of the beam's axis from the sphere's centre, in sphere radii.
-        k: (K,) footprint radius at the sphere (range x divergence / 2), in sphere radii; broadcast with u.
-    Returns:
-        S (K,), dS/du (K,).
-    """
-    u, k = np.broadcast_arrays(np.asarray(u, dtype=float), np.asarray(k, dtype=float))
-    if not np.any(k > 0):
-        return sphere_depth(u, eta)
-    S, dS = np.empty(u.shape), np.empty(u.shape)
-    x1, x2 = _DISC[:, 0], _DISC[:, 1]
-    small = k <= 1.0
-    if np.any(small):  # points of the footprint, weighted by hitting the sphere
-        us, ks = u[small][:, None], k[small][:, None]
-        a = us + ks * x1
-        rho = np.sqrt(a * a + (ks * x2) ** 2)
-        s, ds = sphere_depth(rho, eta)
-        q = (1.0 - rho * rho) / eta
-        drho = np.where(rho > 1e-12, a / np.maximum(rho, 1e-12), 1.0)  # d rho / d u
-        S[small], dS[small] = _weighted_mean(s, ds * drho, q, -2.0 * rho * drho / eta)
-    if np.any(~small):  # points of the sphere's disc, weighted by lying in the footprint
-        ub, kb = u[~small][:, None], k[~small][:, None]
-        s = np.broadcast_to(_DISC_DEPTH, (ub.shape[0], _DISC_DEPTH.size))
-        dx = x1 - ub
-        q = (kb * kb - dx * dx - x2 * x2) / (eta * kb * kb)
-        S[~small], dS[~small] = _weighted_mean(s, np.zeros_like(s), q, 2.0 * dx / (eta * kb * kb))
-    return S, dS
-
-
-def _weighted_mean(v: FloatArray, dv: FloatArray, q: FloatArray, dq: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Mean of v (K, P) over P points with weights expit(q) (K, P), and its derivative given dv, dq (K, P)."""
-    logw = -np.logaddexp(0.0, -q)  # log expit(q), without underflow far from the region
-    w = np.exp(logw - logw.max(-1, keepdims=True))
-    dw = w * expit(-q) * dq
-    W = w.sum(-1)
-    m = (w * v).sum(-1) / W
-    return m, ((w * dv).sum(-1) + (dw * v).sum(-1) - m * dw.sum(-1)) / W
-
-
-@dataclass(frozen=True)
-class MotorClock:
-    """The motor angle at laser-clock times for a clock offset tau: lambda(t) = q(t - tau).
-
-    stamps_s (J,) servo clock; positions_rad (J,) unwrapped joint positions; velocity_rad_s (J,) their rate,
-    smoothed over about 50 ms (encoder quantisation would make the segment slopes jump), for the Jacobian.
-    """
-
-    stamps_s: FloatArray
-    positions_rad: FloatArray
-    velocity_rad_s: FloatArray
-
-    @staticmethod
-    def from_joints(joints: JointStates, smooth_s: float = 0.05) -> MotorClock:
-        t = np.asarray(joints.stamps_s, dtype=float)
-        q = np.unwrap(np.asarray(joints.positions_rad, dtype=float))
-        if t.size < 2:
-            raise InputError(f"joint states {joints.name}: {t.size} sample(s); need at least 2")
-        period = float(np.median(np.diff(t)))
-        k = int(max(1, round(0.5 * smooth_s / max(period, 1e-9))))
-        lo = np.clip(np.arange(t.size) - k, 0, t.size - 1)
-        hi = np.clip(np.arange(t.size) + k, 0, t.size - 1)
-        v = (q[hi] - q[lo]) / np.maximum(t[hi] - t[lo], 1e-12)
-        return MotorClock(t, q, v)
-
-    def angles(self, times_s: ArrayLike, tau_s: float) -> tuple[FloatArray, FloatArray]:
-        """lambda (K,) and dlambda/dt (K,) at laser times (K,) for the clock offset tau_s."""
-        t = np.asarray(times_s, dtype=float) - tau_s
-        return np.interp(t, self.stamps_s, self.positions_rad), np.interp(t, self.stamps_s, self.velocity_rad_s)
 
 
 def _rays(
@@ -255,92 +146,23 @@ def _params_from_core(core: FloatArray, R_ref: FloatArray) -> Params:
     T[:3, 3] = core[:3]
     v = np.array(core[6:10], dtype=float)
     v[[1, 3]] = wrap_pi(v[[1, 3]])
-    from .kinematics import DH
-
     return Params(Pose.from_matrix(T), DH(*map(float, v)))
 
 
-@dataclass(frozen=True)
-class _Surf:
-    """Non-marker returns (K2 rows) on P planes whose normals and offsets are nuisance parameters.
-
-    Plane j: n_j = m_j / |m_j|, m_j = n0_j + u1_j t1_j + u2_j t2_j (t1, t2 tangent to the initial normal n0),
-    n_j . p = d_j. The nuisance vector follows the core unknowns: (u1, u2, d) per plane.
-    """
-
-    lam: FloatArray
-    mu: FloatArray
-    r: FloatArray
-    plane: NDArray[np.int64]  # (K2,) plane index
-    n0: FloatArray  # (P, 3)
-    t1: FloatArray  # (P, 3)
-    t2: FloatArray  # (P, 3)
-    prior_mean: FloatArray | None = None  # (3P,) nuisance values the markers give
-    prior_sigma: FloatArray | None = None  # (3P,) their uncertainty (None: free planes)
-    times: FloatArray | None = None  # (K2,) laser-clock beam times (for the clock offset)
-
-    def subset(self, m: NDArray[np.bool_]) -> _Surf:
-        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
-                       times=None if self.times is None else self.times[m])
-
-    @property
-    def n_planes(self) -> int:
-        return int(self.n0.shape[0])
-
-
-def _plane_nuisance_start(normals: FloatArray, offsets: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
-                                                                             FloatArray]:
-    """Tangent bases t1, t2 (P, 3) of initial normals (P, 3) and the start nuisance vector (3P,)."""
-    n0 = np.asarray(normals, dtype=float).reshape(-1, 3)
-    helper = np.where(np.abs(n0[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
-    t1 = np.cross(n0, helper)
-    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
-    t2 = np.cross(n0, t1)
-    nu0 = np.column_stack([np.zeros(len(n0)), np.zeros(len(n0)), np.asarray(offsets, dtype=float)]).ravel()
-    return n0, t1, t2, nu0
-
-
-def _lambda(lam: FloatArray, times: FloatArray | None, clock: MotorClock | None, tau: float
-            ) -> tuple[FloatArray, FloatArray | None]:
-    """The motor angles to use: re-interpolated at the current clock offset when it is estimated."""
-    if clock is None or times is None:
-        return lam, None
-    return clock.angles(times, tau)
-
-
-def _surface_residuals(th: FloatArray, s: _Surf, sigma_r: float, R_ref: FloatArray, jac: bool = True,
+def _surface_residuals(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, jac: bool = True,
                        clock: MotorClock | None = None, mount_jac: bool = True
                        ) -> tuple[FloatArray, FloatArray | None]:
     """Range residuals against the ray-plane distance r_p = (d - n.o) / (n.dir), whitened by sigma_r:
-    (r - r_p) / sigma_r, shape (K2,), and the Jacobian -(dr_p/d[core, nuisance]) / sigma_r, (K2, N_CORE + 3P):
-        dr_p/dcore = -(n.do + r_p n.ddir) / (n.dir),   dr_p/dd = 1 / (n.dir),
-        dr_p/dn = -(o + r_p dir) / (n.dir),   dn/du_i = (t_i - n (n.t_i)) / |m|.
-    """
-    P = s.n_planes
-    nu = th[N_CORE:].reshape(P, 3)
-    m = s.n0 + nu[:, :1] * s.t1 + nu[:, 1:2] * s.t2
-    m_norm = np.linalg.norm(m, axis=1, keepdims=True)
-    n_p = m / m_norm
-    lam, omega = _lambda(s.lam, s.times, clock, th[_TAU])
-    o, d, Jo, Jd = _rays(th[:N_CORE], R_ref, lam, s.mu, omega, jac=jac, mount_jac=mount_jac)
-    n = n_p[s.plane]
-    nd = (n * d).sum(1)
-    rp = (nu[s.plane, 2] - (n * o).sum(1)) / nd
-    res = (s.r - th[_ROFF] - rp) / sigma_r
-    if not jac:
-        return res, None
-    assert Jo is not None and Jd is not None
+    (r - r_p) / sigma_r, shape (K2,), and the dense Jacobian -(dr_p/d[core, nuisance]) / sigma_r,
+    (K2, N_CORE + 3P) (lrfcal.rayplane, whose blocks the solver uses without this dense matrix)."""
+    rows = plane_rows(th, s, sigma_r, R_ref, jac=jac, clock=clock, mount_jac=mount_jac)
+    if rows.Jc is None or rows.Jn is None:
+        return rows.res, None
     K2 = s.r.size
-    J = np.zeros((K2, N_CORE + 3 * P))
-    J[:, :N_CORE] = -(np.einsum("ki,kij->kj", n, Jo) + rp[:, None] * np.einsum("ki,kij->kj", n, Jd)) / nd[:, None]
-    drp_dn = -(o + rp[:, None] * d) / nd[:, None]
-    rows = np.arange(K2)
-    for i, t in enumerate((s.t1, s.t2)):
-        dn_du = (t - n_p * (n_p * t).sum(1, keepdims=True)) / m_norm  # (P, 3)
-        J[rows, N_CORE + 3 * s.plane + i] = (drp_dn * dn_du[s.plane]).sum(1)
-    J[rows, N_CORE + 3 * s.plane + 2] = 1.0 / nd
-    J[:, _ROFF] = 1.0  # d(res)/d(range_offset) = -1 / sigma_r after the sign below
-    return res, -J / sigma_r
+    J = np.zeros((K2, N_CORE + 3 * s.n_planes))
+    J[:, :N_CORE] = rows.Jc
+    J[np.arange(K2)[:, None], N_CORE + 3 * s.plane[:, None] + np.arange(3)] = rows.Jn
+    return rows.res, J
 
 
 @dataclass(frozen=True)
@@ -384,33 +206,47 @@ class _Problem:
         return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], c=self.c[m], surf=surf,
                        times=None if self.times is None else self.times[m])
 
-    def stacked(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
-        """All whitened residuals as one vector (markers, then surfaces, then plane priors) and the Jacobian
-        (rows, N_CORE + 3P)."""
-        res, J = _residuals(th, self, R_ref, jac=jac)
-        n_par = th.size
-        res_v = res.ravel()
-        J_m = None if J is None else np.hstack([J.reshape(-1, N_CORE), np.zeros((res_v.size, n_par - N_CORE))])
-        if self.surf is None:
-            return res_v, J_m
-        rs, Js = _surface_residuals(th, self.surf, self.sigma_r, R_ref, jac=jac, clock=self.clock,
-                                    mount_jac=self.mount_jac)
-        rp, Jp = np.zeros(0), np.zeros((0, n_par))
-        if self.surf.prior_sigma is not None and self.surf.prior_mean is not None:  # the markers' word on the planes
-            rp = (th[N_CORE:] - self.surf.prior_mean) / self.surf.prior_sigma
-            Jp = np.zeros((rp.size, n_par))
-            Jp[:, N_CORE:] = np.diag(1.0 / self.surf.prior_sigma)
+    def blocks(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> Blocks:
+        """All whitened residuals as lrfcal.normal_equations.Blocks: the marker returns and the design drawing's
+        prior on the DH parameters (dense rows), the surface returns (plane rows) and the planes' priors."""
+        z = np.zeros(0)
+        r_d, J_d = z, np.zeros((0, N_CORE))
+        if self.r.size:
+            res, J = _residuals(th, self, R_ref, jac=jac)
+            r_d, J_d = res.ravel(), (None if J is None else J.reshape(-1, N_CORE))
         if self.dh_prior is not None:  # the design drawing's word on the DH parameters
             mean, sig = self.dh_prior
             d = th[6:10] - mean
             d[[1, 3]] = wrap_pi(d[[1, 3]])
-            rp = np.concatenate([rp, d / sig])
-            Jd = np.zeros((4, n_par))
-            Jd[:, 6:10] = np.diag(1.0 / sig)
-            Jp = np.vstack([Jp, Jd])
-        if J_m is None or Js is None:
-            return np.concatenate([res_v, rs, rp]), None
-        return np.concatenate([res_v, rs, rp]), np.vstack([J_m, Js, Jp])
+            r_d = np.concatenate([r_d, d / sig])
+            if J_d is not None:
+                Jp = np.zeros((4, N_CORE))
+                Jp[:, 6:10] = np.diag(1.0 / sig)
+                J_d = np.vstack([J_d, Jp])
+        s = self.surf
+        if s is None:
+            return Blocks(r_d, J_d, z, np.zeros((0, N_CORE)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0)
+        rows = plane_rows(th, s, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
+        r_q = w_q = None
+        if s.prior_sigma is not None and s.prior_mean is not None:  # the markers' word on the planes
+            r_q, w_q = (th[N_CORE:] - s.prior_mean) / s.prior_sigma, 1.0 / s.prior_sigma
+        return Blocks(r_d, J_d, rows.res, rows.Jc, rows.Jn, s.plane, s.n_planes, r_q, w_q, s.segments)
+
+    def stacked(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
+        """All whitened residuals as one vector (dense rows, plane rows, plane priors) and the dense Jacobian
+        (rows, N_CORE + 3P) (for scipy's robust pass; the normal equations use :meth:`blocks`)."""
+        b = self.blocks(th, R_ref, jac)
+        res = b.residuals()
+        if b.J_dense is None or b.Jc_plane is None or b.Jn_plane is None:
+            return res, None
+        m, K = b.r_dense.size, b.r_plane.size
+        J = np.zeros((res.size, th.size))
+        J[:m, :N_CORE] = b.J_dense
+        J[m:m + K, :N_CORE] = b.Jc_plane
+        J[m + np.arange(K)[:, None], N_CORE + 3 * b.plane[:, None] + np.arange(3)] = b.Jn_plane
+        if b.w_prior is not None:
+            J[m + K + np.arange(b.w_prior.size), N_CORE + np.arange(b.w_prior.size)] = b.w_prior
+        return res, J
 
 
 def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
@@ -572,41 +408,46 @@ def _fit(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool
         th[idx] = x
         return th
 
+    last: list[tuple[FloatArray, FloatArray]] = []  # the Jacobian at the last residuals' point: scipy asks for it
+
     def fun(x: FloatArray) -> FloatArray:
-        return pb.stacked(full(x), R_ref, jac=False)[0]
+        res, J = pb.stacked(full(x), R_ref)
+        assert J is not None
+        last[:] = [(x.copy(), J[:, idx])]
+        return res
 
     def jac(x: FloatArray) -> FloatArray:
+        if last and np.array_equal(last[0][0], x):
+            return last[0][1]
         J = pb.stacked(full(x), R_ref)[1]
         assert J is not None
         return J[:, idx]
 
-    x0 = th0[idx]
     if robust:
-        sol = least_squares(fun, x0, jac=jac, method="trf", loss="soft_l1", f_scale=2.0, x_scale="jac",
+        from scipy.optimize import least_squares  # only here: scipy.optimize takes ~0.2 s to import
+
+        sol = least_squares(fun, th0[idx], jac=jac, method="trf", loss="soft_l1", f_scale=2.0, x_scale="jac",
                             max_nfev=300)
-    else:
-        n_rows = pb.r.size * pb.n_res + (0 if pb.surf is None else pb.surf.r.size)
-        method = "lm" if n_rows >= idx.size else "trf"
-        sol = least_squares(fun, x0, jac=jac, method=method, x_scale="jac", xtol=1e-12, ftol=1e-12,
-                            gtol=1e-12, max_nfev=100 * max(idx.size, 4))
-    th = full(sol.x)
+        th, nfev, msg = full(sol.x), int(sol.nfev), str(sol.message)
+    else:  # plain least squares on the normal equations (lrfcal.normal_equations)
+        # stopped at steps below 1e-2 sigma: the clock offset's Jacobian (smoothed joint velocity) makes the last
+        # iterations converge only linearly, by factors of ~2 per evaluation of every marker and surface return
+        th, nfev, ok = levenberg_marquardt(th0, lambda x, j: pb.blocks(x, R_ref, j), np.flatnonzero(free[:N_CORE]),
+                                           N_CORE, max_iter=100, step_tol=1e-2)
+        msg = "converged" if ok else "maximum number of function evaluations exceeded"
     R_new = R_ref @ exp_so3(th[3:6])
     th[3:6] = 0.0
-    return th, R_new, int(sol.nfev), str(sol.message)
+    return th, R_new, nfev, msg
 
 
-def _inflate_for_correlation(cov: FloatArray, J: FloatArray, res: FloatArray, cluster: NDArray[np.int64],
-                             JtJ_inv: FloatArray) -> FloatArray:
+def _inflate_for_correlation(cov: FloatArray, G: FloatArray, JtJ_inv: FloatArray) -> FloatArray:
     """Widen the covariance where errors shared within a scan make it optimistic.
 
     The cluster-robust (sandwich) covariance (J^T J)^-1 (sum_c g_c g_c^T) (J^T J)^-1, g_c = sum over the rows of
-    scan c of J_i r_i, allows any error correlation within a scan (the motor angle of a scan comes from the same
-    few quantised encoder readings for all its beams). Each parameter's sigma is the larger of the two; the
-    model-based correlations are kept. cov (p, p), J (m, p), res (m,), cluster (m,) ids.
+    scan c of J_i r_i (G (clusters, p), lrfcal.normal_equations.cluster_scores), allows any error correlation within
+    a scan (the motor angle of a scan comes from the same few quantised encoder readings for all its beams). Each
+    parameter's sigma is the larger of the two; the model-based correlations are kept. cov (p, p).
     """
-    _, inverse = np.unique(cluster, return_inverse=True)
-    G = np.zeros((int(inverse.max()) + 1, J.shape[1]))
-    np.add.at(G, inverse, J * res[:, None])
     sandwich = JtJ_inv @ (G.T @ G) @ JtJ_inv
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # a null-variance column stays unscaled
         ratio = np.diag(sandwich) / np.diag(cov)
@@ -615,43 +456,44 @@ def _inflate_for_correlation(cov: FloatArray, J: FloatArray, res: FloatArray, cl
 
 
 def _uncertainty(pb: _Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
-                 cluster: NDArray[np.int64]) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str]:
+                 cluster_dense: NDArray[np.int64], cluster_plane: NDArray[np.int64]
+                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str]:
     """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
-    scan (``cluster`` (rows,): the scan of each residual row), with ``n_rows`` independent residuals.
+    scan (``cluster_dense``, ``cluster_plane``: the scan of each dense and plane residual row; each prior row is a
+    cluster of its own), with ``n_rows`` independent residuals. J^T J from the normal equations, column-scaled; an
+    eigenvalue below RANK_TOL of the largest is rank loss.
 
     Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
     singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2 and
     the rank in words."""
-    res, J_all = pb.stacked(th, R_ref)
-    assert J_all is not None
-    idx = np.flatnonzero(free)
-    J = J_all[:, idx]
-    n_par = idx.size
+    b = pb.blocks(th, R_ref)
+    core = np.flatnonzero(free[:N_CORE])
+    H, _ = assemble(b, core).dense()
+    res = b.residuals()
+    n_par = H.shape[0]
     s2 = float(res @ res / max(n_rows - n_par, 1))
-    col = np.linalg.norm(J, axis=0)
+    col = np.sqrt(np.diag(H))
     col[col == 0] = 1.0
-    Js = J / col  # column-scaled: the covariance is computed in these units, then scaled back
-    sv = np.linalg.svd(Js, compute_uv=False)
-    rank = int(np.sum(sv > sv[0] * 1e-12))  # only numerically null directions count as rank loss
-    JtJ_s = Js.T @ Js
-    core_pos = [i for i, k in enumerate(idx) if k < N_CORE]  # positions of the free core unknowns in idx
-    core_names = tuple(CORE_NAMES[idx[i]] for i in core_pos)
+    H_s = H / np.outer(col, col)  # column-scaled: the covariance is computed in these units, then scaled back
+    eig = np.linalg.eigvalsh(H_s)
+    rank = int(np.sum(eig > eig[-1] * RANK_TOL))  # only numerically null directions count as rank loss
+    core_pos = list(range(core.size))
+    core_names = tuple(CORE_NAMES[k] for k in core)
     info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
     if rank < n_par:
-        cov = s2 * np.linalg.pinv(JtJ_s, rcond=1e-15) / np.outer(col, col)
-        info = _schur(J.T @ J * info_scale, core_pos)
+        cov = s2 * np.linalg.pinv(H_s, rcond=1e-15) / np.outer(col, col)
+        info = _schur(H * info_scale, core_pos)
         rank_txt = f"rank deficient ({rank}/{n_par})"
     else:
-        JtJ_inv = np.linalg.inv(JtJ_s) / np.outer(col, col)
-        cov = _inflate_for_correlation(s2 * JtJ_inv, J, res, cluster, JtJ_inv)
+        JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
+        cov = _inflate_for_correlation(s2 * JtJ_inv, cluster_scores(b, core, cluster_dense, cluster_plane), JtJ_inv)
         info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
-        rank_txt = f"full rank (condition {sv[0] / sv[-1]:.2e})"
+        rank_txt = f"full rank (condition {np.sqrt(eig[-1] / eig[0]):.2e})"
     cov_core = np.full((N_CORE, N_CORE), np.nan)
-    gi = idx[core_pos]
-    cov_core[np.ix_(gi, gi)] = cov[np.ix_(core_pos, core_pos)]
+    cov_core[np.ix_(core, core)] = cov[np.ix_(core_pos, core_pos)]
     if rank < n_par:
         # a covariance from a singular information would be meaningless (and can be 0): none is reported
-        cov_core[np.ix_(gi, gi)] = np.inf
+        cov_core[np.ix_(core, core)] = np.inf
     return cov_core, info, core_names, s2, rank_txt
 
 
@@ -740,6 +582,7 @@ def solve(
     keep = np.ones(K, dtype=bool)
     keep_s = np.ones(K2, dtype=bool)
     dropped = dropped_s = 0
+    changed, msg = True, ""
     if robust:
         if pb_all.surf is None:  # the joint solve starts from the converged marker-only estimate: no soft-L1 pass
             th, R_ref, nf, _ = _fit(th, R_ref, pb_all, free, robust=True)
@@ -760,22 +603,22 @@ def solve(
             keep, keep_s = new, new_s
             th, R_ref, nf, msg = _fit(th, R_ref, pb_all.subset(keep, keep_s), free, robust=False)
             nfev += nf
-            if not changed:
+            if not changed:  # the last pass was on this very set: it is the solution
                 break
         dropped, dropped_s = int(K - keep.sum()), int(K2 - keep_s.sum())
-    th, R_ref, nf, msg = _fit(th, R_ref, pb_all.subset(keep, keep_s), free, robust=False)
-    nfev += nf
+    if not robust or changed:
+        th, R_ref, nf, msg = _fit(th, R_ref, pb_all.subset(keep, keep_s), free, robust=False)
+        nfev += nf
 
     pb = pb_all.subset(keep, keep_s)
     k_in = int(keep.sum())
     k_s = int(keep_s.sum())
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
-    clusters = [np.repeat(np.asarray(obs.scan)[use][keep], pb.n_res)]
-    if pb.surf is not None and surfaces is not None:
-        clusters += [np.asarray(surfaces.scan)[keep_s], -1 - np.arange(n_prior)]
+    scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
     # 3 per marker return, 1 per surface return and prior row
     cov_core, info, core_names, s2, rank_txt = _uncertainty(pb, th, R_ref, free, 3 * k_in + k_s + n_prior,
-                                                            np.concatenate(clusters))
+                                                            np.repeat(np.asarray(obs.scan)[use][keep], pb.n_res),
+                                                            scan_s)
     params = _params_from_core(th[:N_CORE], R_ref)
     tau = float(th[_TAU])
 
@@ -849,11 +692,8 @@ def information_at(
     if surfaces is not None and with_surfaces:
         surf, nu0 = _surf_problem(surfaces, planes)
         pb = replace(pb, surf=surf)
-        _, J_all = pb.stacked(np.concatenate([th, nu0]), R_ref)
-        assert J_all is not None
-        keep = idx + list(range(N_CORE, J_all.shape[1]))
-        J_all = J_all[:, keep]
-        return _schur(J_all.T @ J_all, range(len(idx))), names
+        S, _, _ = schur(assemble(pb.blocks(np.concatenate([th, nu0]), R_ref), np.array(idx)))
+        return S, names
     _, J = _residuals(th, pb, R_ref)
     assert J is not None
     J = J.reshape(-1, N_CORE)[:, idx]
@@ -960,7 +800,7 @@ def solve_planes(
     n_prior = 0 if dh_prior is None else 4
     cov_core, info, core_names, s2, rank_txt = _uncertainty(
         pb, th, R_ref, free, int(keep.sum()) + n_prior,
-        np.concatenate([np.asarray(surfaces.scan)[keep], -1 - np.arange(n_prior)]))
+        -1 - np.arange(n_prior), np.asarray(surfaces.scan)[keep])
     rs = _surface_residuals(th, pb.surf, 1.0, R_ref, jac=False, clock=clock)[0]
     status = (f"planes: {msg.rstrip('.')}; {int(keep.sum())}/{K} plane returns on {surf.n_planes} planes used "
               f"({int(K - keep.sum())} dropped > 4 sigma), reduced chi2 {s2:.2f}, {rank_txt}")
@@ -982,54 +822,13 @@ def solve_planes(
 
 def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool_],
                   huber: float | None = None, max_iter: int = 60) -> tuple[FloatArray, int, str]:
-    """Levenberg-Marquardt on the normal equations (J^T W J + m diag) dx = -J^T W r over the free unknowns, W the
-    Huber weights of the whitened residuals (threshold ``huber``; None: plain least squares). For many rows and
-    few unknowns (the plane returns of a targetless calibration) this is far cheaper than scipy's trust-region
-    solvers, which factor the whole Jacobian every step. The mount must be held (R_ref is not updated).
-
-    Stops when every step is below 1e-3 of its parameter's sigma. Returns (th, evaluations, "converged" or why
-    not)."""
-    idx = np.flatnonzero(free)
-    th = th0.copy()
-
-    def cost(r: FloatArray) -> float:
-        if huber is None:
-            return float(0.5 * r @ r)
-        a = np.abs(r)
-        return float(np.where(a <= huber, 0.5 * r * r, huber * a - 0.5 * huber * huber).sum())
-
-    r, J = pb.stacked(th, R_ref)
-    assert J is not None
-    c, damp, n_eval = cost(r), 1e-4, 1
-    for _ in range(max_iter):
-        w = np.ones_like(r) if huber is None else np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-300))
-        Jf = J[:, idx]
-        H = Jf.T @ (w[:, None] * Jf)
-        g = Jf.T @ (w * r)
-        d = np.maximum(np.diag(H), 1e-300)
-        while True:
-            try:
-                step = np.linalg.solve(H + damp * np.diag(d), -g)
-            except np.linalg.LinAlgError:
-                step = np.full(idx.size, np.nan)
-            trial = th.copy()
-            trial[idx] += step
-            r_new = pb.stacked(trial, R_ref, jac=False)[0]
-            n_eval += 1
-            c_new = cost(r_new) if np.all(np.isfinite(step)) else np.inf
-            if c_new <= c:
-                break
-            damp *= 10.0
-            if damp > 1e10:
-                return th, n_eval, "converged"  # no step decreases the cost: at the minimum
-        th, c, damp = trial, c_new, max(damp / 10.0, 1e-9)
-        r, J = pb.stacked(th, R_ref)
-        assert J is not None
-        n_eval += 1
-        sig = np.sqrt(np.maximum(np.diag(np.linalg.pinv(H)), 1e-300))
-        if np.max(np.abs(step) / sig) < 1e-3:
-            return th, n_eval, "converged"
-    return th, n_eval, f"not converged in {max_iter} iterations"
+    """Levenberg-Marquardt on the normal equations (lrfcal.normal_equations: the planes eliminated by the Schur
+    complement) over the free unknowns, with Huber weights of threshold ``huber`` (None: plain least squares). The
+    mount must be held (R_ref is not updated). Stops when every step is below 1e-3 of its parameter's sigma.
+    Returns (th, evaluations, "converged" or why not)."""
+    th, n_eval, ok = levenberg_marquardt(th0, lambda x, j: pb.blocks(x, R_ref, j), np.flatnonzero(free[:N_CORE]),
+                                         N_CORE, huber=huber, max_iter=max_iter)
+    return th, n_eval, "converged" if ok else f"not converged in {max_iter} iterations"
 
 
 def plane_information(
@@ -1044,12 +843,9 @@ def plane_information(
     th, R_ref = _core_from_params(params, clock_offset_s)
     th = np.concatenate([th, nu0])
     free = _plane_free(th.size, hold, clock, estimate_range_offset)
-    _, J_all = pb.stacked(th, R_ref)
-    assert J_all is not None
-    idx = np.flatnonzero(free)
-    J = J_all[:, idx]
-    core_pos = [i for i, k in enumerate(idx) if k < N_CORE]
-    return _schur(J.T @ J, core_pos), tuple(CORE_NAMES[idx[i]] for i in core_pos)
+    core = np.flatnonzero(free[:N_CORE])
+    S, _, _ = schur(assemble(pb.blocks(th, R_ref), core))
+    return S, tuple(CORE_NAMES[k] for k in core)
 
 
 def _surf_problem(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[_Surf, FloatArray]:

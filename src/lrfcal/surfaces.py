@@ -26,6 +26,7 @@ are seen obliquely.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,6 +41,8 @@ IntArray = NDArray[np.int64]
 #: surface returns whose ray meets the plane more obliquely than this (angle between the ray and the plane's
 #: normal) are not used (module docstring)
 MAX_INCIDENCE_RAD = math.radians(80.0)
+#: a return whose point lies farther than this from a surface is not one of its returns
+_GATE_M = 0.03
 
 
 @dataclass(frozen=True)
@@ -85,15 +88,19 @@ class SurfaceReturns:
                                  for k in self.__dataclass_fields__})
 
 
+def hash_key(scan: IntArray, beam: IntArray, seed: int = 0) -> NDArray[np.uint64]:
+    """The hash of every (scan, beam) pair (K,) (salted by seed) that :func:`hash_sample` ranks them by."""
+    return (np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761) + np.asarray(beam, dtype=np.uint64)
+            * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) % np.uint64(1 << 31)
+
+
 def hash_sample(scan: IntArray, beam: IntArray, n: int, seed: int = 0) -> IntArray:
     """Indices of an even subsample of at most n of the (scan, beam) pairs (K,), chosen by a hash of the pair
     (salted by seed), in their original order."""
     K = len(scan)
     if n >= K:
         return np.arange(K)
-    key = (np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761) + np.asarray(beam, dtype=np.uint64)
-           * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) % np.uint64(1 << 31)
-    return np.sort(np.argsort(key, kind="stable")[:n])
+    return np.sort(np.argsort(hash_key(scan, beam, seed), kind="stable")[:n])
 
 
 def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
@@ -175,47 +182,62 @@ def _in_extent(surface: Surface, points_W: FloatArray) -> tuple[FloatArray, NDAr
 
 def surface_returns(
     surfaces: list[Surface], points_W: FloatArray, scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
-    mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = 0.03,
+    mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = _GATE_M,
     marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0, times_s: FloatArray | None = None,
-    rays_W: tuple[FloatArray, FloatArray] | None = None, max_incidence_rad: float = MAX_INCIDENCE_RAD,
+    rays_W: tuple[FloatArray, FloatArray] | Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = None,
+    max_incidence_rad: float = MAX_INCIDENCE_RAD,
 ) -> SurfaceReturns:
     """The returns (rows of the P inputs) on the surfaces, away from markers, at most ``max_returns`` (an even
     random subsample). points_W (P, 3) are the returns reprojected with the current parameters.
 
-    rays_W: the returns' beam origins (P, 3) and unit directions (P, 3) with the same parameters. Given, a return
-    is judged by where its ray meets the plane, not by its measured (noisy) point: inside the markers' extent and
-    ``marker_clearance_m`` from every marker (a selection by the measured point keeps, at the far edge of the
-    extent, the returns that read short and drops those that read long: a bias); and returns whose incidence (the
-    angle between the ray and the plane's normal) exceeds ``max_incidence_rad`` are left out. Without it, the
-    measured points decide and every incidence is kept."""
+    rays_W: the returns' beam origins (P, 3) and unit directions (P, 3) with the same parameters, or a function of
+    row indices (k,) giving theirs. Given, a return is judged by where its ray meets the plane, not by its measured
+    (noisy) point: inside the markers' extent and ``marker_clearance_m`` from every marker (a selection by the
+    measured point keeps, at the far edge of the extent, the returns that read short and drops those that read
+    long: a bias); and returns whose incidence (the angle between the ray and the plane's normal) exceeds
+    ``max_incidence_rad`` are left out. Without it, the measured points decide and every incidence is kept.
+
+    The subsample is the ``max_returns`` accepted returns of lowest :func:`hash_key` (ties: surface by surface, in
+    row order), as :func:`hash_sample` of all the accepted ones would choose; the candidates within ``gate_m`` of a
+    surface are judged in that order, in batches, until enough are accepted, so the rays of most are never needed."""
     tree = cKDTree(np.asarray(markers_W))
     cos_max = math.cos(max_incidence_rad)
-    idx_all, which = [], []
-    for k, s in enumerate(surfaces):
-        dist = points_W @ s.normal - s.offset_m
-        near = np.abs(dist) < gate_m
-        if rays_W is not None:
-            near &= np.abs(rays_W[1] @ s.normal) >= cos_max
-        idx = np.nonzero(near)[0]
-        if rays_W is None:
-            at = points_W[idx]
-        else:  # the ray's intersection with the plane: o + t d, t = (offset - n.o) / n.d
-            o, d = rays_W[0][idx], rays_W[1][idx]
-            at = o + ((s.offset_m - o @ s.normal) / (d @ s.normal))[:, None] * d
-        q = (at - s.centre) @ s.axes.T
-        inside = np.all((q >= s.lower) & (q <= s.upper), axis=1)
-        idx, at = idx[inside], at[inside]
-        idx = idx[tree.query(at)[0] >= marker_clearance_m]
-        idx_all.append(idx)
-        which.append(np.full(idx.size, k))
-    idx = np.concatenate(idx_all) if idx_all else np.zeros(0, dtype=np.int64)
-    surf = np.concatenate(which) if which else np.zeros(0, dtype=np.int64)
-    if idx.size > max_returns:
-        # chosen by the beam itself, not by its position among the candidates: a slightly different estimate, which
-        # moves a few returns across the gate, keeps the same subsample of the others, so every start reaches the
-        # same solution
-        pick = hash_sample(np.asarray(scan)[idx], np.asarray(beam)[idx], max_returns, seed)
-        idx, surf = idx[pick], surf[pick]
+    rays = (lambda i: (rays_W[0][i], rays_W[1][i])) if isinstance(rays_W, tuple) else rays_W
+    # every (row, surface) candidate, surface by surface in row order: the order of the ties
+    cand = [np.flatnonzero(np.abs(points_W @ s.normal - s.offset_m) < gate_m) for s in surfaces]
+    rows = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
+    which = np.concatenate([np.full(c.size, k) for k, c in enumerate(cand)]) if cand else np.zeros(0, dtype=np.int64)
+    order = np.argsort(hash_key(np.asarray(scan)[rows], np.asarray(beam)[rows], seed), kind="stable")
+    accepted: list[IntArray] = []
+    n_acc, batch = 0, max(4 * max_returns, 1024)
+    for b0 in range(0, order.size, batch):
+        pos = order[b0:b0 + batch]  # positions in (rows, which), in hash order
+        ok = np.zeros(pos.size, dtype=bool)
+        o = d = None
+        if rays is not None:
+            o, d = rays(rows[pos])
+        for k, s in enumerate(surfaces):
+            m = np.flatnonzero(which[pos] == k)
+            if rays is None or o is None or d is None:
+                at = points_W[rows[pos[m]]]
+            else:  # the ray's intersection with the plane: o + t d, t = (offset - n.o) / n.d
+                dn = d[m] @ s.normal
+                m = m[np.abs(dn) >= cos_max]
+                om, dm = o[m], d[m]
+                at = om + ((s.offset_m - om @ s.normal) / (dm @ s.normal))[:, None] * dm
+            q = (at - s.centre) @ s.axes.T
+            inside = np.all((q >= s.lower) & (q <= s.upper), axis=1)
+            m, at = m[inside], at[inside]
+            ok[m[tree.query(at)[0] >= marker_clearance_m]] = True
+        accepted.append(pos[ok][:max_returns - n_acc])
+        n_acc += accepted[-1].size
+        if n_acc >= max_returns:
+            break
+    # chosen by the beam itself, not by its position among the candidates: a slightly different estimate, which
+    # moves a few returns across the gate, keeps the same subsample of the others, so every start reaches the same
+    # solution
+    pick = np.sort(np.concatenate(accepted)) if accepted else np.zeros(0, dtype=np.int64)
+    idx, surf = rows[pick], which[pick]
     normals = np.array([s.normal for s in surfaces]).reshape(-1, 3)
     offsets = np.array([s.offset_m for s in surfaces])
     return SurfaceReturns(
@@ -226,7 +248,8 @@ def surface_returns(
     )
 
 
-__all__ = ["Surface", "SurfaceReturns", "candidate_planes", "hash_sample", "find_surfaces", "surface_returns"]
+__all__ = ["Surface", "SurfaceReturns", "candidate_planes", "find_surfaces", "hash_key", "hash_sample",
+           "surface_returns"]
 
 
 def observe_surfaces(
@@ -256,7 +279,8 @@ def observe_surfaces(
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, P[::step], position_sigma_m=position_sigma_m)
     times = None if beam_times_s is None else np.asarray(beam_times_s)[scan, beam]
     returns = surface_returns(surfaces, P, scan, beam, lam, mu, r, markers_W, max_returns=max_returns, seed=seed,
-                              times_s=times, rays_W=beam_rays_W(params, lam, mu), max_incidence_rad=max_incidence_rad)
+                              times_s=times, rays_W=lambda i: beam_rays_W(params, lam[i], mu[i]),
+                              max_incidence_rad=max_incidence_rad)
     return surfaces, returns
 
 

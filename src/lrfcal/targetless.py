@@ -368,11 +368,11 @@ def _second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.i
     """Even and odd passes (or the sweep's two halves) calibrated separately and compared with each other:
     chi2 = d^T (C_1 + C_2)^-1 d over the estimated DH parameters (independent data), clock offset held at the
     joint estimate."""
-    from scipy.stats import chi2 as chi2_dist
+    from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
 
     groups, how = split_in_two(returns.scan, passes)
     est = [6 + DH_NAMES.index(n) for n in DH_NAMES if n not in held]
-    limit = float(chi2_dist.ppf(1.0 - config.second_opinion_p, len(est)))
+    limit = float(chdtri(len(est), 1.0 - (1.0 - config.second_opinion_p)))
     parts = []
     for g in groups:
         try:

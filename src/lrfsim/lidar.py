@@ -1,4 +1,4 @@
-"""The Hokuyo UTM-30LX-EW on the turning servo, ray cast with MuJoCo.
+"""The Hokuyo UTM-30LX-EW on the turning servo, ray cast with MuJoCo (the cast itself: lrfsim.raycast).
 
 Timing (Hokuyo UTM-30LX-EW spec sheet: 25 ms per scan, 0.25 deg = 360 / 1440 deg steps; LaserScan fields as the
 ROS driver urg_node fills them, github.com/ros-drivers/urg_node). Scan s starts at t_s (true time = servo clock);
@@ -74,9 +74,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -191,16 +190,17 @@ def _skew(u: FloatArray) -> FloatArray:
     return np.array([[0.0, -u[2], u[1]], [u[2], 0.0, -u[0]], [-u[1], u[0], 0.0]])
 
 
-def site_poses_W(scene: SceneLike, lambda_rad: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
-                                                                        FloatArray]:
-    """MuJoCo forward kinematics of the laser site at motor angles lambda (K,).
+def site_poses_W(scene: SceneLike, lambda_rad: FloatArray, data: mujoco.MjData | None = None
+                 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """MuJoCo forward kinematics of the laser site at motor angles lambda (K,), in ``data`` (default scene.data;
+    a thread of the cast passes its own).
 
     Returns positions (K, 3), rotations R_W_L (K, 3, 3), and the hinge's world anchor (3,) and unit axis (3,)
     (from the first angle; a hinge on a fixed base does not move its own axis).
     """
     import mujoco
 
-    m, d = scene.model, scene.data
+    m, d = scene.model, (scene.data if data is None else data)
     lam = np.atleast_1d(np.asarray(lambda_rad, dtype=float))
     pos = np.empty((lam.size, 3))
     rot = np.empty((lam.size, 3, 3))
@@ -228,106 +228,6 @@ def beam_poses_W(scene: SceneLike, beam_lambda_rad: FloatArray) -> tuple[FloatAr
     origins = a + rotate_about_axis((p - a)[:, None, :], u, delta)
     cols = [rotate_about_axis(np.broadcast_to(R[:, None, :, j], lam.shape + (3,)), u, delta) for j in range(3)]
     return origins, np.stack(cols, -1)
-
-
-# --- the ray batches ------------------------------------------------------------------------------------------
-
-@dataclass
-class RayChunk:
-    """The rays of a chunk of Sc scans, in the order they are cast (views into reused buffers).
-
-    directions (Sc*N*F, 3) unit sub-ray directions; call_origins (C, 3) one origin per mj_multiRay call;
-    call_first (C,) first ray, call_count (C,) number of rays of each call; offset (Sc, N, 3) = shared origin
-    minus the beam's exact origin; scans: slice of the chunk's scans in the recording.
-    """
-
-    directions: FloatArray
-    call_origins: FloatArray
-    call_first: list[int]
-    call_count: list[int]
-    offset: FloatArray
-    scans: slice
-
-
-def plan_runs(origins: FloatArray, tol_m: float) -> int:
-    """Run length n for one scan's exact beam origins (N, 3): the largest odd n with (n-1)/2 * step < tol."""
-    N = origins.shape[0]
-    step = float(np.max(np.linalg.norm(np.diff(origins, axis=0), axis=1))) if N > 1 else 0.0
-    if step == 0.0:
-        return N
-    half = int(math.floor(tol_m / step * (1.0 - 1e-12)))
-    return max(1, min(N, 2 * half + 1))
-
-
-def iter_ray_chunks(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *,
-                    origin_tol_m: float = 1e-6, chunk_scans: int = 16) -> Iterator[RayChunk]:
-    """Generate the rays of all scans, chunk by chunk (the module docstring's poses and batching).
-
-    ``beam_lambda_rad`` (S, N): the true motor angle at every beam's time. Per beam, the hinge rotation
-    Rot(u, d) = I + sin(d) K + (1 - cos(d)) K^2 (K = [u]x) gives the beam frame B = Rot R_s Rz(mu) (columns
-    e, t, z in W) and the origin a + Rot (p_s - a); sub-ray directions are B times
-    :func:`footprint_coefficients`. The yielded arrays are reused between chunks: copy them to keep them.
-    """
-    S, N = beam_lambda_rad.shape
-    F = sensor.footprint_rays
-    mu = beam_angles(sensor)
-    cmu, smu = np.cos(mu)[None, :, None], np.sin(mu)[None, :, None]
-    coef = footprint_coefficients(sensor)
-    dirs_buf = np.empty((chunk_scans, N, F, 3))
-    B0 = np.empty((chunk_scans, N, 3, 3))
-    ar = np.arange(N)
-    K = K2 = np.zeros((3, 3))
-    for s0 in range(0, S, chunk_scans):
-        s1 = min(S, s0 + chunk_scans)
-        Sc = s1 - s0
-        lam = beam_lambda_rad[s0:s1]
-        ref = lam[:, N // 2]
-        p, R, a, u = site_poses_W(scene, ref)
-        if s0 == 0:
-            K = _skew(u)
-            K2 = K @ K
-        delta = lam - ref[:, None]  # (Sc, N)
-        Rot = np.sin(delta)[..., None, None] * K + (1.0 - np.cos(delta))[..., None, None] * K2
-        Rot += np.eye(3)
-        origins = a + np.matmul(Rot, (p - a)[:, None, :, None])[..., 0]  # (Sc, N, 3)
-        X, Y, Z = R[:, None, :, 0], R[:, None, :, 1], R[:, None, :, 2]  # (Sc, 1, 3)
-        b0 = B0[:Sc]
-        b0[..., 0] = cmu * X + smu * Y
-        b0[..., 1] = cmu * Y - smu * X
-        b0[..., 2] = Z
-        B = np.matmul(Rot, b0)
-        dirs = dirs_buf[:Sc]
-        np.matmul(coef, np.swapaxes(B, -1, -2), out=dirs)
-        # runs of beams sharing one origin
-        offset = np.empty((Sc, N, 3))
-        call_origins: list[FloatArray] = []
-        first: list[int] = []
-        count: list[int] = []
-        for k in range(Sc):
-            n = plan_runs(origins[k], origin_tol_m)
-            starts = np.arange(0, N, n)
-            stops = np.minimum(starts + n, N)
-            mids = (starts + stops - 1) // 2
-            call_origins.append(origins[k, mids])
-            first.extend((k * N * F + starts * F).tolist())
-            count.extend(((stops - starts) * F).tolist())
-            offset[k] = origins[k, mids[ar // n]] - origins[k]
-        yield RayChunk(directions=dirs.reshape(Sc * N * F, 3), call_origins=np.concatenate(call_origins),
-                       call_first=first, call_count=count, offset=offset, scans=slice(s0, s1))
-
-
-def cast_chunk(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk: RayChunk, cutoff_m: float,
-               geomid: NDArray[np.int32], dist: FloatArray, normal: FloatArray) -> None:
-    """Cast every call of a chunk with ``mujoco.mj_multiRay`` into geomid (M,), dist (M,), normal (M, 3)."""
-    import mujoco
-
-    multi_ray = mujoco.mj_multiRay
-    dflat = chunk.directions.reshape(-1)
-    nflat = normal.reshape(-1)
-    for o, a, n in zip(chunk.call_origins, chunk.call_first, chunk.call_count, strict=True):
-        b = a + n
-        multi_ray(model, data, o, dflat[3 * a:3 * b], geomgroup, 1, -1, geomid[a:b], dist[a:b],
-                  nflat[3 * a:3 * b], n, cutoff_m)
 
 
 # --- the sensor model ------------------------------------------------------------------------------------------
@@ -443,22 +343,6 @@ def typical_range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> float | N
     return float(np.median(range_sigma(r, sensor)))
 
 
-def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray,
-                   rng: np.random.Generator, *, origin_tol_m: float = 1e-6, chunk_scans: int = 16,
-                   progress: Callable[[int, int], None] | None = None,
-                   beam_times_s: FloatArray | None = None) -> LidarOutput:
-    """Ray cast and sensor model (module docstring) for motor angles ``beam_lambda_rad`` (S, N) at every beam:
-    ``sensor_model(cast_scans(...), sensor, rng, beam_times_s)``.
-
-    ``rng`` draws the range and intensity noise (all of it up front, so results do not depend on the
-    chunking; the echoes' extra draws come after). ``progress(done_scans, total_scans)`` is called after every
-    chunk. ``beam_times_s`` (S, N): true beam times [s], needed only by the warm-up drift.
-    """
-    cast = cast_scans(scene, sensor, beam_lambda_rad, origin_tol_m=origin_tol_m, chunk_scans=chunk_scans,
-                      progress=progress)
-    return sensor_model(cast, sensor, rng, beam_times_s)
-
-
 @dataclass(frozen=True)
 class Cast:
     """The noise-free part of a simulation: the mixed-pixel range ranges_m (S, N) (NaN: no sub-ray hit; the
@@ -477,92 +361,6 @@ class Cast:
     cutoff_m: float
     echo_ranges_m: FloatArray | None = None
     echo_power: FloatArray | None = None
-
-
-def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
-               chunk_scans: int = 16, progress: Callable[[int, int], None] | None = None) -> Cast:
-    """The ray cast and the mixed-pixel model (module docstring), without the sensor model; beam_lambda_rad (S, N).
-
-    The cast reaches range_max + 5 sigma of the largest noise band when ``sensor.noise`` is set (a return just
-    beyond range_max can be pulled back by the noise), else range_max.
-    """
-    t_start = time.perf_counter()
-    lam = np.ascontiguousarray(beam_lambda_rad, dtype=float)
-    if lam.ndim != 2 or lam.shape[1] != sensor.n_beams:
-        raise InputError(f"lidar: beam_lambda_rad must have shape (S, {sensor.n_beams}), got {lam.shape}")
-    S, N = lam.shape
-    F = sensor.footprint_rays
-    cfg = sensor.intensity
-    refl = np.asarray(scene.geom_reflectivity, dtype=float)
-    is_marker = np.asarray(scene.geom_is_marker, dtype=bool)
-    geomgroup = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
-    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
-    cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
-
-    ranges = np.empty((S, N))
-    intens = np.empty((S, N))
-    k_theta = sensor.systematic.incidence_bias_m
-    ech = sensor.echoes
-    E = ech.max_echoes
-    echo_r = echo_p = None
-    if ech.enabled:
-        echo_r = np.full((S, N, E), np.nan)
-        echo_p = np.zeros((S, N, E))
-
-    M = chunk_scans * N * F
-    gid = np.empty(M, dtype=np.int32)
-    dist = np.empty(M)
-    nrm = np.empty((M, 3))
-    n_rays = n_calls = 0
-    cast_s = 0.0
-    max_off = max_corr = 0.0
-    for ch in iter_ray_chunks(scene, sensor, lam, origin_tol_m=origin_tol_m, chunk_scans=chunk_scans):
-        Sc = ch.scans.stop - ch.scans.start
-        m = Sc * N * F
-        t0 = time.perf_counter()
-        cast_chunk(scene.model, scene.data, geomgroup, ch, cutoff, gid[:m], dist[:m], nrm[:m])
-        cast_s += time.perf_counter() - t0
-        n_rays += m
-        n_calls += len(ch.call_first)
-
-        g = gid[:m].reshape(Sc, N, F)
-        hit = g >= 0
-        d = ch.directions.reshape(Sc, N, F, 3)
-        nv = nrm[:m].reshape(Sc, N, F, 3)
-        dn = np.einsum("sbfk,sbfk->sbf", d, nv)
-        en = np.einsum("sbk,sbfk->sbf", ch.offset, nv)
-        ok = hit & (np.abs(dn) > _MIN_NORMAL_DOT)
-        corr = np.divide(en, dn, out=np.zeros_like(dn), where=ok)
-        r = np.where(hit, dist[:m].reshape(Sc, N, F) + corr, 1.0)
-        max_off = max(max_off, float(np.sqrt(np.max(np.einsum("sbk,sbk->sb", ch.offset, ch.offset)))))
-        max_corr = max(max_corr, float(np.max(np.abs(corr))))
-        gi = np.where(hit, g, 0)
-        cos = np.minimum(np.abs(dn), 1.0)
-        lobe = cos
-        mk = is_marker[gi] & hit
-        if mk.any():
-            lobe = cos.copy()
-            lobe[mk] = cos[mk] ** RETRO_EXPONENT
-        P = cfg.gain_counts * refl[gi] * lobe * (cfg.ref_range_m / np.maximum(r, 1e-9)) ** 2
-        P *= hit
-        if k_theta != 0.0:  # incidence bias per sub-ray; the received power keeps the true range
-            r = r + k_theta * np.arccos(cos)
-        Psum = P.sum(-1)
-        PR = np.einsum("sbf,sbf->sb", P, r)
-        sl = ch.scans
-        ranges[sl] = np.divide(PR, Psum, out=np.full_like(PR, np.nan), where=Psum > 0)
-        intens[sl] = Psum / F
-        if echo_r is not None and echo_p is not None:
-            re, pe, single = split_echoes(r, P, hit, ech.separation_m, E)
-            re[single, 0] = ranges[sl][single]
-            pe[single, 0] = Psum[single]
-            echo_r[sl] = re
-            echo_p[sl] = pe
-        if progress is not None:
-            progress(sl.stop, S)
-    return Cast(ranges_m=ranges, intensities=intens, n_rays=n_rays, n_calls=n_calls, cast_time_s=cast_s,
-                total_time_s=time.perf_counter() - t_start, max_origin_error_m=max_off,
-                max_parallax_correction_m=max_corr, cutoff_m=cutoff, echo_ranges_m=echo_r, echo_power=echo_p)
 
 
 def sensor_model(cast: Cast, sensor: SensorConfig, rng: np.random.Generator,
@@ -602,9 +400,7 @@ def sensor_model(cast: Cast, sensor: SensorConfig, rng: np.random.Generator,
 
 
 __all__ = [
-    "RETRO_EXPONENT", "Cast", "LidarOutput", "RayChunk", "SceneLike", "beam_angles", "beam_poses_W", "beam_times",
-    "cast_chunk", "cast_scans", "sensor_model",
-    "footprint_coefficients", "footprint_directions_L", "iter_ray_chunks", "plan_runs", "range_sigma",
-    "ring_half_angle", "rotate_about_axis", "scan_start_times", "simulate_scans", "site_poses_W", "split_echoes",
-    "systematic_bias_m",
+    "RETRO_EXPONENT", "Cast", "LidarOutput", "SceneLike", "beam_angles", "beam_poses_W", "beam_times",
+    "footprint_coefficients", "footprint_directions_L", "range_sigma", "ring_half_angle", "rotate_about_axis",
+    "scan_start_times", "sensor_model", "site_poses_W", "split_echoes", "systematic_bias_m",
 ]

@@ -45,7 +45,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError, InputError
@@ -53,7 +52,8 @@ from lrfcal.kinematics import DH_NAMES
 from lrfcal.output import atomic_folder, check_replaceable
 
 from .plan import Plan, format_value, plan
-from .scenario import DHConfig, PoseConfig, Scenario, parse_scenario, require_markers
+from .scenario import Scenario, require_markers
+from .variants import PERTURB_HALF_WIDTH, parse_vary, perturbed_start, with_field
 
 FloatArray = NDArray[np.float64]
 
@@ -62,14 +62,6 @@ CSV_COLUMNS: tuple[str, ...] = (
     "value", "trial", "seed", "status", "reason", "exit_code",
     *(f"{p}_{k}" for p in DH_NAMES for k in ("error", "sigma")), "clock_offset_error",
 )
-
-
-#: --perturb-start 1: half-widths of the uniform perturbation of each nominal value (SI units: m, rad)
-PERTURB_HALF_WIDTH: dict[str, float] = {
-    "a": 0.005, "alpha": math.radians(1.0), "b": 0.005, "beta": math.radians(1.0),
-    "x": 0.02, "y": 0.02, "z": 0.02, "roll": math.radians(1.0), "pitch": math.radians(1.0), "yaw": math.radians(1.0),
-}
-_RNG_START = 0x73746172  # the perturbed start's random stream ("star"; lrfsim.simulate's are "phas", "nois", ...)
 
 
 @dataclass(frozen=True)
@@ -166,96 +158,38 @@ class Study:
         return tuple(r for p in self.parts for r in p.rows)
 
 
-# --- scenario variants ----------------------------------------------------------------------------------------
-
-def with_field(scenario: Scenario, dotted: str, value: Any) -> Scenario:
-    """The scenario with one field (dotted path, e.g. ``servo.passes``) set to ``value`` (validated).
-
-    Raises:
-        InputError: unknown path or invalid value (naming the field).
-    """
-    data = scenario.model_dump(mode="python")
-    node: Any = data
-    *head, last = dotted.split(".")
-    for k in head:
-        if not isinstance(node, dict) or k not in node or not isinstance(node[k], dict):
-            raise InputError(f"--vary: {dotted!r}: no section {k!r} in the scenario")
-        node = node[k]
-    if not isinstance(node, dict) or last not in node:
-        raise InputError(f"--vary: {dotted!r}: no field {last!r} in the scenario")
-    node[last] = value
-    return parse_scenario(data, f"{scenario.name} with {dotted}={value!r}")
-
-
-def parse_vary(text: str) -> tuple[str, list[Any]]:
-    """``KEY=V1,V2,...`` -> (KEY, [values]); each value is read as YAML (numbers, true/false, text)."""
-    key, sep, values = text.partition("=")
-    key = key.strip()
-    if not sep or not key or not values.strip():
-        raise InputError(f"--vary: expected KEY=V1,V2,... (e.g. servo.passes=1,2,4), got {text!r}")
-    out = []
-    for v in values.split(","):
-        v = v.strip()
-        if not v:
-            raise InputError(f"--vary: empty value in {text!r}")
-        try:
-            out.append(yaml.safe_load(v))
-        except yaml.YAMLError:
-            raise InputError(f"--vary: cannot read the value {v!r}") from None
-    return key, out
-
-
-def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
-    """The scenario with its nominal DH and mount (``rig.nominal_dh``, ``rig.nominal_mount``: the trial's
-    nominal.yaml) each moved by an independent uniform draw in +-``scale`` x :data:`PERTURB_HALF_WIDTH`, drawn
-    from ``seed`` alone (module docstring); angles wrapped to [-pi, pi]. ``scale`` = 0 returns ``scenario``.
-
-    Raises:
-        InputError: a negative or non-finite scale.
-    """
-    if not (math.isfinite(scale) and scale >= 0):
-        raise InputError(f"--perturb-start: expected a scale >= 0, got {scale}")
-    if scale == 0:
-        return scenario
-    u = np.random.default_rng([int(seed), _RNG_START]).uniform(-1.0, 1.0, len(PERTURB_HALF_WIDTH))
-    step = dict(zip(PERTURB_HALF_WIDTH, scale * u * np.array(list(PERTURB_HALF_WIDTH.values())), strict=True))
-    rig = scenario.rig
-
-    def moved(config: DHConfig | PoseConfig) -> dict[str, float]:
-        out = {}
-        for k, v in config.model_dump().items():
-            v = float(v + step[k])
-            out[k] = math.remainder(v, 2 * math.pi) if k in ("alpha", "beta", "roll", "pitch", "yaw") else v
-        return out
-
-    new_rig = rig.model_copy(update={"nominal_dh": DHConfig(**moved(rig.nominal_dh)),
-                                     "nominal_mount": PoseConfig(**moved(rig.nominal_mount))})
-    return scenario.model_copy(update={"rig": new_rig})
-
-
 # --- running trials -------------------------------------------------------------------------------------------
 
 def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False,
-              perturb_start: float = 0.0, new_layout: bool = False) -> list[TrialRow]:
+              perturb_start: float = 0.0, new_layout: bool = False, threads: int | None = None,
+              shared_cast: dict[str, Any] | None = None) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
     built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
     scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
     every trial anew (the laser phase drawn from the trial's seed too). ``perturb_start``: the scale of each
     trial's perturbed start (:func:`perturbed_start`; 0: the scenario's nominal values). ``new_layout``: build
     every trial's scene from its own seed too (a board's jittered grid, a random layout: a new marker layout per
-    trial; implies ``recast``), to average over layouts rather than over the noise of one."""
+    trial; implies ``recast``), to average over layouts rather than over the noise of one. ``threads``: the cast's
+    threads (default: the cores available; 1 when batches run in parallel processes). ``shared_cast``: the fields
+    of a lrfsim.simulate.Geometry of ``scenario`` but its scene, cast once by the caller for every batch (the scene
+    is rebuilt here: MjSpec does not pickle); None: cast here."""
     from .scene import build_scene
-    from .simulate import cast_geometry, simulate, simulate_from_geometry, write_recording
+    from .simulate import Geometry, cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
 
     scene = None if new_layout else build_scene(scenario)
-    geometry = None if recast or new_layout else cast_geometry(scenario, scene=scene)
+    geometry = None
+    if shared_cast is not None and scene is not None:
+        geometry = Geometry(scene=scene, **shared_cast)
+    elif not (recast or new_layout):
+        geometry = cast_geometry(scenario, scene=scene, threads=threads)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
         for trial, seed in trials:
             sc = perturbed_start(scenario.model_copy(update={"seed": int(seed)}), seed, perturb_start)
             folder = Path(tmp) / f"trial_{trial}"
-            sim = simulate(sc, scene=scene) if geometry is None else simulate_from_geometry(sc, geometry)
+            sim = (simulate(sc, scene=scene, threads=threads) if geometry is None
+                   else simulate_from_geometry(sc, geometry))
             write_recording(sim, sc, folder)
             t = calibrate_recording(folder, name=f"{scenario.name}#{trial}")
             shutil.rmtree(folder, ignore_errors=True)
@@ -278,17 +212,28 @@ def run_trials(
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
-    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: the trials spread
-    over about 2 batches per worker, at least 1 trial each). ``recast``, ``perturb_start``, ``new_layout``: see
-    :func:`run_batch`."""
+    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
+    worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each). ``recast``,
+    ``perturb_start``, ``new_layout``: see :func:`run_batch`."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
     perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
     s0 = scenario.seed if seed0 is None else int(seed0)
     items = [(k, s0 + k) for k in range(trials)]
-    n_batches = math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if workers > 1 or dask else 1
+    n_batches = (math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if dask is not None
+                 else max(workers, 1))
     batches = _batches(items, n_batches)
-    task = partial(run_batch, scenario, value, recast=recast, perturb_start=perturb_start, new_layout=new_layout)
+    shared = None
+    if workers > 1 and dask is None and not (recast or new_layout) and len(batches) > 1:
+        # one cast (on every core) for all the local workers, instead of one per worker
+        from dataclasses import fields
+
+        from .simulate import cast_geometry
+
+        g = cast_geometry(scenario)
+        shared = {f.name: getattr(g, f.name) for f in fields(g) if f.name != "scene"}
+    task = partial(run_batch, scenario, value, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
+                   threads=1 if workers > 1 or dask is not None else None, shared_cast=shared)
     rows: list[TrialRow] = []
 
     def collect(parts: Iterable[list[TrialRow]]) -> None:

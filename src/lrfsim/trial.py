@@ -88,7 +88,7 @@ def calibrate_recording(
         recording = mutate(recording)
     label = name or folder.name
     nan4 = np.full(4, np.nan)
-    config = config or CalibConfig(baseline=False, geometry=False)
+    config = config or CalibConfig(baseline=False, geometry=False, clouds=False)  # a trial needs the estimate
     if paper:
         config = dataclasses.replace(config, baseline=True, force=True)
     t0 = time.perf_counter()

@@ -1,0 +1,229 @@
+"""Speed of every command against the simulation, measured in one run (issue 19, "Fast and visible").
+
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_speed.py [SCENARIO] [--trials N] [--no-study] [--no-run]
+
+The console scripts are timed as a user runs them (a subprocess of the installed ``lrfsim`` / ``lrfcal``, so the
+imports count), all in this one run, so that a busy machine slows numerator and denominator alike:
+
+1. ``lrfsim simulate SCENARIO``: the simulation, the reference of every ratio;
+2. ``lrfcal calibrate REC`` (and ``--no-figures`` when the CLI has it), ``lrfcal calibrate REC --targetless``,
+   ``lrfsim plan SCENARIO``, ``lrfsim run SCENARIO``: walls and ratios to the simulation;
+3. the calibration in-process (``lrfcal.pipeline.calibrate``, no CLI, no figures) with its stage times;
+4. ``lrfcal calibrate REC`` again with 4 busy processes beside it (started here, always killed in a finally);
+5. the simulator's cast (lrfsim.raycast.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
+6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included).
+
+Targets: calibrate <= 0.5x the simulation, targetless <= 0.7x, plan <= 0.5x, calibrate beside 4 busy processes
+<= 3x the quiet one, cast <= 0.75x bare mj_multiRay, study >= 100 trials/min. Every figure carries the 1-minute
+load average when it was taken (2 cores shared with other work: compare ratios, not walls). Prints PASS/MISS per
+target and exits 0 either way (it reports; the tests assert). Beside each wall, the CPU seconds (user + system) of
+the run and their ratio to the simulation's: less sensitive to other work on the machine than the walls.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+BIN = Path(sys.executable).parent
+TARGETS = {"calibrate": 0.5, "targetless": 0.7, "plan": 0.5, "loaded": 3.0, "cast": 0.75, "study": 100.0}
+
+
+def _env() -> dict[str, str]:
+    env = dict(os.environ)
+    env.setdefault("OPENBLAS_NUM_THREADS", "1")
+    env.setdefault("OMP_NUM_THREADS", "1")
+    return env
+
+
+def _load() -> float:
+    return os.getloadavg()[0]
+
+
+def _tool(name: str) -> str:
+    path = BIN / name
+    return str(path) if path.exists() else name
+
+
+#: CPU seconds (user + system) of the last console-script run (timed), for the rows' "cpu" figures
+LAST_CPU = [0.0]
+
+
+def _children_cpu() -> float:
+    ru = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return ru.ru_utime + ru.ru_stime
+
+
+def timed(args: list[str], ok: tuple[int, ...] = (0,)) -> tuple[float, float]:
+    """(wall seconds, load average before) of one console-script run; a failing run stops the benchmark. Its CPU
+    seconds (user + system, all its threads and processes) go to LAST_CPU: on a machine shared with other work
+    they move less than the wall."""
+    load = _load()
+    cpu0 = _children_cpu()
+    t0 = time.perf_counter()
+    p = subprocess.run(args, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    wall = time.perf_counter() - t0
+    LAST_CPU[0] = _children_cpu() - cpu0
+    if p.returncode not in ok:
+        sys.exit(f"bench_speed: {' '.join(args)} exited {p.returncode}: {p.stderr.strip()[-400:]}")
+    return wall, load
+
+
+def has_option(tool: str, command: str, option: str) -> bool:
+    p = subprocess.run([_tool(tool), command, "--help"], env=_env(), capture_output=True, text=True)
+    return option in p.stdout
+
+
+def busy_processes(n: int) -> list[subprocess.Popen[bytes]]:
+    code = "while True:\n    pass\n"
+    return [subprocess.Popen([sys.executable, "-c", code]) for _ in range(n)]
+
+
+def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
+    """(cast seconds of lrfsim.raycast.cast_scans, bare single-thread mj_multiRay seconds over the same calls,
+    rays, load) on the scenario's noise-free motor angles."""
+    import mujoco
+
+    from lrfsim import lidar, raycast
+    from lrfsim.scenario import load_scenario
+    from lrfsim.scene import build_scene
+    from lrfsim.servo import sweep_trajectory
+
+    sc = load_scenario(scenario_path)
+    scene = build_scene(sc)
+    sensor = sc.sensor
+    traj = sweep_trajectory(sc.servo)
+    lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sensor, 0.0), sensor))
+    N, F = sensor.n_beams, sensor.footprint_rays
+    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
+    cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
+    gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
+    m, d = scene.model, scene.data
+    load = _load()
+    M = 16 * N * F
+    gid, dist, nrm = np.empty(M, np.int32), np.empty(M), np.empty((M, 3))
+    bare_s, n_rays = 0.0, 0
+    for ch in raycast.iter_ray_chunks(scene, sensor, lam):
+        dflat, nflat = ch.directions.reshape(-1), nrm.reshape(-1)
+        t0 = time.perf_counter()
+        for o, a, n in zip(ch.call_origins, ch.call_first, ch.call_count, strict=True):
+            b = a + n
+            mujoco.mj_multiRay(m, d, o, dflat[3 * a:3 * b], gg, 1, -1, gid[a:b], dist[a:b], nflat[3 * a:3 * b], n,
+                               cutoff)
+        bare_s += time.perf_counter() - t0
+        n_rays += ch.directions.shape[0]
+    cast = raycast.cast_scans(scene, sensor, lam)
+    return cast.total_time_s, bare_s, n_rays, load
+
+
+def pipeline_inprocess(rec: Path) -> tuple[float, dict[str, float], float]:
+    """(seconds, stage seconds, load) of lrfcal.pipeline.calibrate on the recording (no CLI, no figures, no
+    output files; the CLI's configuration)."""
+    from lrfcal.pipeline import CalibConfig, calibrate
+    from lrfcal.recording import read_recording
+
+    recording = read_recording(rec)
+    load = _load()
+    t0 = time.perf_counter()
+    result = calibrate(recording, CalibConfig())
+    return time.perf_counter() - t0, dict(result.timings_s), load
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("scenario", nargs="?", type=Path, default=ROOT / "scenarios" / "tunnel_v.yaml")
+    ap.add_argument("--trials", type=int, default=40, help="trials of the study (default 40)")
+    ap.add_argument("--no-study", action="store_true")
+    ap.add_argument("--no-run", action="store_true")
+    args = ap.parse_args()
+    sc = str(args.scenario)
+    lrfsim, lrfcal = _tool("lrfsim"), _tool("lrfcal")
+    rows: list[tuple[str, str, str]] = []
+
+    def row(name: str, value: str, verdict: str = "") -> None:
+        rows.append((name, value, verdict))
+        print(f"  {name}: {value} {verdict}", file=sys.stderr, flush=True)
+
+    def judge(ok: bool) -> str:
+        return "PASS" if ok else "MISS"
+
+    tmp = Path(tempfile.mkdtemp(prefix="bench-speed-"))
+    try:
+        rec = tmp / "rec"
+        sim, load = timed([lrfsim, "simulate", sc, "-o", str(rec)])
+        sim_cpu = LAST_CPU[0]
+        row("lrfsim simulate (reference)", f"{sim:.2f} s, cpu {sim_cpu:.2f} s (load {load:.1f})")
+
+        cal, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal")])
+        cal_cpu = LAST_CPU[0]
+        row("lrfcal calibrate", f"{cal:.2f} s = {cal / sim:.2f}x sim (target <= {TARGETS['calibrate']}x; "
+            f"cpu {LAST_CPU[0]:.2f} s = {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})",
+            judge(cal / sim <= TARGETS["calibrate"]))
+        if has_option("lrfcal", "calibrate", "--no-figures"):
+            nf, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal_nf"), "--no-figures"])
+            row("lrfcal calibrate --no-figures", f"{nf:.2f} s = {nf / sim:.2f}x sim (cpu {LAST_CPU[0] / sim_cpu:.2f}x; "
+                f"load {load:.1f})")
+        tl, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "tl"), "--targetless"])
+        row("lrfcal calibrate --targetless", f"{tl:.2f} s = {tl / sim:.2f}x sim (target <= "
+            f"{TARGETS['targetless']}x; cpu {LAST_CPU[0]:.2f} s = {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})",
+            judge(tl / sim <= TARGETS["targetless"]))
+        pl, load = timed([lrfsim, "plan", sc], ok=(0, 3))
+        row("lrfsim plan", f"{pl:.2f} s = {pl / sim:.2f}x sim (target <= {TARGETS['plan']}x; cpu {LAST_CPU[0]:.2f} s "
+            f"= {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})", judge(pl / sim <= TARGETS["plan"]))
+        if not args.no_run:
+            rn, load = timed([lrfsim, "run", sc, "-o", str(tmp / "run")], ok=(0, 1))
+            row("lrfsim run", f"{rn:.2f} s = {rn / sim:.2f}x sim (cpu {LAST_CPU[0]:.2f} s = "
+                f"{LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})")
+
+        pipe, stages, load = pipeline_inprocess(rec)
+        top = ", ".join(f"{k} {v:.2f}" for k, v in sorted(stages.items(), key=lambda kv: -kv[1])[:4])
+        row("pipeline in-process (no CLI, no figures)", f"{pipe:.2f} s = {pipe / sim:.2f}x sim ({top}; "
+            f"load {load:.1f})")
+
+        busy = busy_processes(4)
+        try:
+            time.sleep(1.0)
+            loaded, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal_loaded")])
+        finally:
+            for p in busy:
+                p.kill()
+            for p in busy:
+                p.wait()
+        row("lrfcal calibrate beside 4 busy processes", f"{loaded:.2f} s = {loaded / cal:.2f}x quiet (target <= "
+            f"{TARGETS['loaded']}x; cpu {LAST_CPU[0]:.2f} s = {LAST_CPU[0] / cal_cpu:.2f}x quiet's; load {load:.1f})",
+            judge(loaded / cal <= TARGETS["loaded"]))
+
+        cast_s, bare_s, n_rays, load = cast_vs_bare(args.scenario)
+        row("cast vs bare mj_multiRay (1 thread)", f"{cast_s:.2f} s vs {bare_s:.2f} s = {cast_s / bare_s:.2f}x "
+            f"({n_rays / 1e6:.1f} M rays; target <= {TARGETS['cast']}x; load {load:.1f})",
+            judge(cast_s / bare_s <= TARGETS["cast"]))
+
+        if not args.no_study:
+            st, load = timed([lrfsim, "study", sc, "-n", str(args.trials), "-j", "2", "-o", str(tmp / "study")])
+            rate = args.trials / st * 60.0
+            row(f"lrfsim study -n {args.trials} -j 2", f"{st:.1f} s = {rate:.0f} trials/min (target >= "
+                f"{TARGETS['study']:.0f}; cpu {LAST_CPU[0]:.1f} s = {LAST_CPU[0] / args.trials:.2f} s per trial; "
+                f"load {load:.1f})", judge(rate >= TARGETS["study"]))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    print(f"bench_speed {args.scenario.stem} ({os.cpu_count()} cores; OPENBLAS_NUM_THREADS="
+          f"{_env()['OPENBLAS_NUM_THREADS']}; load now {_load():.1f})")
+    print("| measurement | value | target |")
+    print("|---|---|---|")
+    for name, value, verdict in rows:
+        print(f"| {name} | {value} | {verdict} |")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,328 @@
+"""The ray cast of lrfsim.lidar: the rays of every beam's sub-rays in batches, cast with ``mujoco.mj_multiRay`` on
+both cores, and the mixed-pixel model (poses, batching and mixture: lrfsim.lidar's module docstring).
+
+Threads. ``mj_multiRay`` releases the GIL (mujoco's python bindings; measured with mujoco 4.0.0: two threads cast
+1.7x as many rays per second as one on a 2-core machine already busy), so chunks of scans are cast in a thread pool,
+each thread with its own ``MjData`` (the kinematics of a chunk's scans and the ray buffers are per thread; the scene's
+geoms that the lidar sees are static, so every copy casts against the same world). Every chunk is computed by the
+same arithmetic whichever thread runs it, and writes only its own scans: the recording is byte-identical with any
+number of threads (tests/test_lidar.py). ``progress(done_scans, total_scans)`` is called from the calling thread,
+chunk by chunk in scan order.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import os
+import threading
+import time
+from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.errors import InputError
+
+from .lidar import (
+    _MIN_NORMAL_DOT,
+    RETRO_EXPONENT,
+    Cast,
+    LidarOutput,
+    SceneLike,
+    _skew,
+    beam_angles,
+    footprint_coefficients,
+    sensor_model,
+    site_poses_W,
+    split_echoes,
+)
+from .scenario import SensorConfig
+
+FloatArray = NDArray[np.float64]
+
+#: scans per chunk: one task of the thread pool
+CHUNK_SCANS = 16
+
+
+def default_threads() -> int:
+    """Threads of the cast: the cores this process may use, at most 4 (``LRFSIM_CAST_THREADS`` overrides)."""
+    env = os.environ.get("LRFSIM_CAST_THREADS", "").strip()
+    if env.isdigit() and int(env) >= 1:
+        return int(env)
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        n = os.cpu_count() or 1
+    return max(1, min(4, n))
+
+
+@dataclass
+class RayChunk:
+    """The rays of a chunk of Sc scans, in the order they are cast (views into reused buffers).
+
+    directions (Sc*N*F, 3) unit sub-ray directions; call_origins (C, 3) one origin per mj_multiRay call;
+    call_first (C,) first ray, call_count (C,) number of rays of each call; offset (Sc, N, 3) = shared origin
+    minus the beam's exact origin; scans: slice of the chunk's scans in the recording.
+    """
+
+    directions: FloatArray
+    call_origins: FloatArray
+    call_first: list[int]
+    call_count: list[int]
+    offset: FloatArray
+    scans: slice
+
+
+def plan_runs(origins: FloatArray, tol_m: float) -> int:
+    """Run length n for one scan's exact beam origins (N, 3): the largest odd n with (n-1)/2 * step < tol."""
+    N = origins.shape[0]
+    step = float(np.max(np.linalg.norm(np.diff(origins, axis=0), axis=1))) if N > 1 else 0.0
+    if step == 0.0:
+        return N
+    half = int(math.floor(tol_m / step * (1.0 - 1e-12)))
+    return max(1, min(N, 2 * half + 1))
+
+
+class _RayMaker:
+    """The rays of one chunk of scans (:func:`iter_ray_chunks`), with what all chunks share computed once."""
+
+    def __init__(self, scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, origin_tol_m: float):
+        self.scene, self.lam, self.tol = scene, beam_lambda_rad, origin_tol_m
+        N = beam_lambda_rad.shape[1]
+        mu = beam_angles(sensor)
+        self.cmu, self.smu = np.cos(mu)[None, :, None], np.sin(mu)[None, :, None]
+        self.coef = footprint_coefficients(sensor)
+        self.F = sensor.footprint_rays
+        self.ar = np.arange(N)
+        u = site_poses_W(scene, beam_lambda_rad[:1, N // 2])[3]  # the hinge's axis, as the first chunk sees it
+        self.K = _skew(u)
+        self.K2 = self.K @ self.K
+
+    def chunk(self, s0: int, s1: int, data: Any, dirs_buf: FloatArray, B0: FloatArray) -> RayChunk:
+        """Scans [s0, s1), their directions written into dirs_buf (>= s1 - s0, N, F, 3), kinematics in ``data``."""
+        N, F, ar = self.ar.size, self.F, self.ar
+        Sc = s1 - s0
+        lam = self.lam[s0:s1]
+        ref = lam[:, N // 2]
+        p, R, a, _ = site_poses_W(self.scene, ref, data)
+        delta = lam - ref[:, None]  # (Sc, N)
+        Rot = np.sin(delta)[..., None, None] * self.K + (1.0 - np.cos(delta))[..., None, None] * self.K2
+        Rot += np.eye(3)
+        origins = a + np.matmul(Rot, (p - a)[:, None, :, None])[..., 0]  # (Sc, N, 3)
+        X, Y, Z = R[:, None, :, 0], R[:, None, :, 1], R[:, None, :, 2]  # (Sc, 1, 3)
+        b0 = B0[:Sc]
+        b0[..., 0] = self.cmu * X + self.smu * Y
+        b0[..., 1] = self.cmu * Y - self.smu * X
+        b0[..., 2] = Z
+        B = np.matmul(Rot, b0)
+        dirs = dirs_buf[:Sc]
+        np.matmul(self.coef, np.swapaxes(B, -1, -2), out=dirs)
+        # runs of beams sharing one origin
+        offset = np.empty((Sc, N, 3))
+        call_origins: list[FloatArray] = []
+        first: list[int] = []
+        count: list[int] = []
+        for k in range(Sc):
+            n = plan_runs(origins[k], self.tol)
+            starts = np.arange(0, N, n)
+            stops = np.minimum(starts + n, N)
+            mids = (starts + stops - 1) // 2
+            call_origins.append(origins[k, mids])
+            first.extend((k * N * F + starts * F).tolist())
+            count.extend(((stops - starts) * F).tolist())
+            offset[k] = origins[k, mids[ar // n]] - origins[k]
+        return RayChunk(directions=dirs.reshape(Sc * N * F, 3), call_origins=np.concatenate(call_origins),
+                        call_first=first, call_count=count, offset=offset, scans=slice(s0, s1))
+
+
+def iter_ray_chunks(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *,
+                    origin_tol_m: float = 1e-6, chunk_scans: int = 16) -> Iterator[RayChunk]:
+    """Generate the rays of all scans, chunk by chunk (the module docstring's poses and batching).
+
+    ``beam_lambda_rad`` (S, N): the true motor angle at every beam's time. Per beam, the hinge rotation
+    Rot(u, d) = I + sin(d) K + (1 - cos(d)) K^2 (K = [u]x) gives the beam frame B = Rot R_s Rz(mu) (columns
+    e, t, z in W) and the origin a + Rot (p_s - a); sub-ray directions are B times
+    :func:`footprint_coefficients`. The yielded arrays are reused between chunks: copy them to keep them.
+    """
+    S, N = beam_lambda_rad.shape
+    maker = _RayMaker(scene, sensor, beam_lambda_rad, origin_tol_m)
+    dirs_buf = np.empty((chunk_scans, N, sensor.footprint_rays, 3))
+    B0 = np.empty((chunk_scans, N, 3, 3))
+    for s0 in range(0, S, chunk_scans):
+        yield maker.chunk(s0, min(S, s0 + chunk_scans), scene.data, dirs_buf, B0)
+
+
+def cast_chunk(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk: RayChunk, cutoff_m: float,
+               geomid: NDArray[np.int32], dist: FloatArray, normal: FloatArray) -> None:
+    """Cast every call of a chunk with ``mujoco.mj_multiRay`` into geomid (M,), dist (M,), normal (M, 3)."""
+    import mujoco
+
+    multi_ray = mujoco.mj_multiRay
+    dflat = chunk.directions.reshape(-1)
+    nflat = normal.reshape(-1)
+    for o, a, n in zip(chunk.call_origins, chunk.call_first, chunk.call_count, strict=True):
+        b = a + n
+        multi_ray(model, data, o, dflat[3 * a:3 * b], geomgroup, 1, -1, geomid[a:b], dist[a:b],
+                  nflat[3 * a:3 * b], n, cutoff_m)
+
+
+def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray,
+                   rng: np.random.Generator, *, origin_tol_m: float = 1e-6, chunk_scans: int = CHUNK_SCANS,
+                   progress: Callable[[int, int], None] | None = None,
+                   beam_times_s: FloatArray | None = None) -> LidarOutput:
+    """Ray cast and sensor model (module docstring) for motor angles ``beam_lambda_rad`` (S, N) at every beam:
+    ``sensor_model(cast_scans(...), sensor, rng, beam_times_s)``.
+
+    ``rng`` draws the range and intensity noise (all of it up front, so results do not depend on the
+    chunking; the echoes' extra draws come after). ``progress(done_scans, total_scans)`` is called after every
+    chunk. ``beam_times_s`` (S, N): true beam times [s], needed only by the warm-up drift.
+    """
+    cast = cast_scans(scene, sensor, beam_lambda_rad, origin_tol_m=origin_tol_m, chunk_scans=chunk_scans,
+                      progress=progress)
+    return sensor_model(cast, sensor, rng, beam_times_s)
+
+
+@dataclass
+class _Workspace:
+    """One thread's MjData and buffers for a chunk of scans."""
+
+    data: Any
+    dirs: FloatArray  # (chunk, N, F, 3)
+    B0: FloatArray  # (chunk, N, 3, 3)
+    gid: NDArray[np.int32]  # (chunk N F,)
+    dist: FloatArray  # (chunk N F,)
+    nrm: FloatArray  # (chunk N F, 3)
+
+
+@dataclass(frozen=True)
+class _ChunkStats:
+    n_rays: int
+    n_calls: int
+    cast_s: float
+    max_off: float
+    max_corr: float
+
+
+def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
+               chunk_scans: int = CHUNK_SCANS, progress: Callable[[int, int], None] | None = None,
+               threads: int | None = None) -> Cast:
+    """The ray cast and the mixed-pixel model (lrfsim.lidar's module docstring), without the sensor model;
+    beam_lambda_rad (S, N).
+
+    The cast reaches range_max + 5 sigma of the largest noise band when ``sensor.noise`` is set (a return just
+    beyond range_max can be pulled back by the noise), else range_max. ``threads``: chunks of ``chunk_scans`` scans
+    cast in that many threads (default :func:`default_threads`; the result does not depend on it);
+    ``progress(done_scans, total_scans)`` after every chunk, in scan order. Cast.cast_time_s sums the chunks' time
+    inside ``mj_multiRay`` over the threads.
+    """
+    t_start = time.perf_counter()
+    lam = np.ascontiguousarray(beam_lambda_rad, dtype=float)
+    if lam.ndim != 2 or lam.shape[1] != sensor.n_beams:
+        raise InputError(f"lidar: beam_lambda_rad must have shape (S, {sensor.n_beams}), got {lam.shape}")
+    S, N = lam.shape
+    F = sensor.footprint_rays
+    cfg = sensor.intensity
+    refl = np.asarray(scene.geom_reflectivity, dtype=float)
+    is_marker = np.asarray(scene.geom_is_marker, dtype=bool)
+    geomgroup = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
+    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
+    cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
+
+    ranges = np.empty((S, N))
+    intens = np.empty((S, N))
+    k_theta = sensor.systematic.incidence_bias_m
+    ech = sensor.echoes
+    E = ech.max_echoes
+    echo_r = echo_p = None
+    if ech.enabled:
+        echo_r = np.full((S, N, E), np.nan)
+        echo_p = np.zeros((S, N, E))
+    if S == 0:
+        return Cast(ranges_m=ranges, intensities=intens, n_rays=0, n_calls=0, cast_time_s=0.0,
+                    total_time_s=time.perf_counter() - t_start, max_origin_error_m=0.0, max_parallax_correction_m=0.0,
+                    cutoff_m=cutoff, echo_ranges_m=echo_r, echo_power=echo_p)
+    maker = _RayMaker(scene, sensor, lam, origin_tol_m)
+    n_threads = max(1, min(default_threads() if threads is None else int(threads), -(-S // chunk_scans)))
+    local = threading.local()
+    M = chunk_scans * N * F
+
+    def workspace() -> _Workspace:
+        ws = getattr(local, "ws", None)
+        if ws is None:
+            data = scene.data if n_threads == 1 else copy.copy(scene.data)  # a thread's own MjData
+            ws = local.ws = _Workspace(data, np.empty((chunk_scans, N, F, 3)), np.empty((chunk_scans, N, 3, 3)),
+                                       np.empty(M, dtype=np.int32), np.empty(M), np.empty((M, 3)))
+        return ws
+
+    def run(s0: int) -> _ChunkStats:
+        ws = workspace()
+        ch = maker.chunk(s0, min(S, s0 + chunk_scans), ws.data, ws.dirs, ws.B0)
+        Sc = ch.scans.stop - ch.scans.start
+        m = Sc * N * F
+        gid, dist, nrm = ws.gid[:m], ws.dist[:m], ws.nrm[:m]
+        t0 = time.perf_counter()
+        cast_chunk(scene.model, ws.data, geomgroup, ch, cutoff, gid, dist, nrm)
+        cast_s = time.perf_counter() - t0
+
+        g = gid.reshape(Sc, N, F)
+        hit = g >= 0
+        d = ch.directions.reshape(Sc, N, F, 3)
+        nv = nrm.reshape(Sc, N, F, 3)
+        dn = np.einsum("sbfk,sbfk->sbf", d, nv)
+        en = np.einsum("sbk,sbfk->sbf", ch.offset, nv)
+        ok = hit & (np.abs(dn) > _MIN_NORMAL_DOT)
+        corr = np.divide(en, dn, out=np.zeros_like(dn), where=ok)
+        r = np.where(hit, dist.reshape(Sc, N, F) + corr, 1.0)
+        max_off = float(np.sqrt(np.max(np.einsum("sbk,sbk->sb", ch.offset, ch.offset))))
+        max_corr = float(np.max(np.abs(corr)))
+        gi = np.where(hit, g, 0)
+        cos = np.minimum(np.abs(dn), 1.0)
+        lobe = cos
+        mk = is_marker[gi] & hit
+        if mk.any():
+            lobe = cos.copy()
+            lobe[mk] = cos[mk] ** RETRO_EXPONENT
+        P = cfg.gain_counts * refl[gi] * lobe * (cfg.ref_range_m / np.maximum(r, 1e-9)) ** 2
+        P *= hit
+        if k_theta != 0.0:  # incidence bias per sub-ray; the received power keeps the true range
+            r = r + k_theta * np.arccos(cos)
+        Psum = P.sum(-1)
+        PR = np.einsum("sbf,sbf->sb", P, r)
+        sl = ch.scans
+        ranges[sl] = np.divide(PR, Psum, out=np.full_like(PR, np.nan), where=Psum > 0)
+        intens[sl] = Psum / F
+        if echo_r is not None and echo_p is not None:
+            re, pe, single = split_echoes(r, P, hit, ech.separation_m, E)
+            re[single, 0] = ranges[sl][single]
+            pe[single, 0] = Psum[single]
+            echo_r[sl] = re
+            echo_p[sl] = pe
+        return _ChunkStats(m, len(ch.call_first), cast_s, max_off, max_corr)
+
+    starts = range(0, S, chunk_scans)
+    stats: list[_ChunkStats] = []
+
+    def collect(results: Iterator[_ChunkStats]) -> None:
+        for s0, st in zip(starts, results, strict=True):
+            stats.append(st)
+            if progress is not None:
+                progress(min(S, s0 + chunk_scans), S)
+
+    if n_threads == 1:
+        collect(map(run, starts))
+    else:
+        with ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="lrfsim-cast") as pool:
+            collect(pool.map(run, starts))
+    return Cast(ranges_m=ranges, intensities=intens, n_rays=sum(s.n_rays for s in stats),
+                n_calls=sum(s.n_calls for s in stats), cast_time_s=sum(s.cast_s for s in stats),
+                total_time_s=time.perf_counter() - t_start, max_origin_error_m=max(s.max_off for s in stats),
+                max_parallax_correction_m=max(s.max_corr for s in stats), cutoff_m=cutoff, echo_ranges_m=echo_r,
+                echo_power=echo_p)
+
+
+__all__ = ["CHUNK_SCANS", "RayChunk", "cast_chunk", "cast_scans", "default_threads", "iter_ray_chunks",
+           "plan_runs", "simulate_scans"]
