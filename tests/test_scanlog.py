@@ -362,7 +362,10 @@ def test_longarm_targetless_refuses_what_a_wedge_cannot_determine(tmp_path: Path
     proc = _run("calibrate", LONGARM_LOG, "--nominal", _longarm_rig(tmp_path), "--targetless", "-o", out,
                 "--no-figures")
     line = _one_error_line(proc, 3)
-    assert "does not determine any DH parameter" in line and not out.exists()
+    # refused, whichever way it is found first: nothing determined at the start, a solve that does not converge,
+    # or planes that fall apart (every 5th scan is held out of the fit, so 33 of the 41 scans are fitted)
+    assert any(why in line for why in ("does not determine any DH parameter", "convergence", "shows no plane")), line
+    assert not out.exists()
 
 
 @needs_longarm
