@@ -62,6 +62,16 @@ def test_targetless_stages_are_counted_as_their_own() -> None:
         assert f"calibrating: {stage}" in text and f"stage {k + 1}/{n}" in text, stage
 
 
+def test_trials_and_steps_appear_on_a_terminal() -> None:
+    console, buf = _terminal()
+    with progress_display("study of x", console=console) as hooks:
+        hooks.trials(1, 3)
+    with progress_display("reprojecting x", console=console) as hooks:
+        hooks.steps("reading", 5, 10)
+        console.print("")  # the line is drawn with the next output at the latest
+    assert "1/3 trials" in buf.getvalue() and "reprojecting x: reading" in buf.getvalue()
+
+
 def test_nothing_on_a_pipe_or_with_quiet() -> None:
     buf = io.StringIO()
     _drive(Console(file=buf))  # not a terminal
