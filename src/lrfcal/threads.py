@@ -2,10 +2,10 @@
 
 The calibration's matrix products are small (Jacobians of a few thousand rows by 10-20 columns, 11 x 11 normal
 equations): a BLAS that starts a thread per core inside each of them gains nothing on a quiet machine and loses
-badly on a busy one, where every product waits for threads that other processes keep off the cores (a targetless
-calibration took 312 s with OpenBLAS's default threads at load 4-5 on 2 cores, 47 s with one thread). So the
-programs run BLAS and OpenMP with :data:`DEFAULT_THREADS` thread(s) per process; the measurements are in the
-README ("Speed").
+badly on a busy one, where every product waits for threads that other processes keep off the cores (issue 19: a
+targetless calibration took 312 s with OpenBLAS's default threads at load 4-5 on 2 cores, 47 s with one thread).
+So the programs run BLAS and OpenMP with :data:`DEFAULT_THREADS` thread(s) per process; measured quiet and loaded
+by benchmarks/bench_threads.py (README, "Threads").
 
 Where the policy applies (one function each, used by every entry point):
 
