@@ -28,7 +28,7 @@ from lrfcal.types import CalibrationResult
 from lrfsim.compare import Comparison, compare, load_truth
 from lrfsim.randomize import random_scenario
 from lrfsim.scenario import Scenario, Tolerances, load_scenario
-from lrfsim.simulate import simulate, systematic_truth, write_recording
+from lrfsim.simulate import systematic_truth
 
 SCENARIOS = {p.stem: p for p in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))}
 #: Marker-less scenarios (room_box, cardboard_box): calibrated targetless (lrfcal.targetless), without the paper's
@@ -94,9 +94,9 @@ class Case:
 
 
 def run_case(scenario: Scenario, folder: Path, tolerances: Tolerances | None = None) -> Case:
-    """Simulate, write the recording to ``folder``, read it back, calibrate, compare (against ``tolerances``,
-    default the scenario's own)."""
-    write_recording(simulate(scenario), scenario, folder)
+    """Read the recording of ``scenario`` back from ``folder`` (simulated and written there by the session's
+    ``recording_of``, tests/conftest.py), calibrate, compare (against ``tolerances``, default the scenario's
+    own)."""
     recording = read_recording(folder, require_distances=(folder / "distances.csv").exists())
     t0 = time.perf_counter()
     # cardboard_box: the URG-04LX's range noise below 1 m, as the scenario simulates it
@@ -122,23 +122,21 @@ class _Cases:
 
 
 @pytest.fixture(scope="session")
-def random_cases(tmp_path_factory: pytest.TempPathFactory) -> _Cases:
-    root = tmp_path_factory.mktemp("random")
-
+def random_cases(recording_of: Callable[[Scenario], Path]) -> _Cases:
     def make(seed: object) -> Case:
         assert isinstance(seed, int)
-        return run_case(random_scenario(seed), root / f"seed{seed}", RANDOM_BOUNDS)
+        scenario = random_scenario(seed)
+        return run_case(scenario, recording_of(scenario), RANDOM_BOUNDS)
 
     return _Cases(make)
 
 
 @pytest.fixture(scope="session")
-def shipped_cases(tmp_path_factory: pytest.TempPathFactory) -> _Cases:
-    root = tmp_path_factory.mktemp("shipped")
-
+def shipped_cases(recording_of: Callable[[Scenario], Path]) -> _Cases:
     def make(name: object) -> Case:
         assert isinstance(name, str)
-        return run_case(load_scenario(SCENARIOS[name]), root / name)
+        scenario = load_scenario(SCENARIOS[name])
+        return run_case(scenario, recording_of(scenario))
 
     return _Cases(make)
 

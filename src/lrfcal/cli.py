@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from .cliutil import Command, finite_between, make_app, progress_display, run_app
+from .cliutil import Command, QuietOpt, finite_between, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
     from rich.console import Console
@@ -77,7 +77,7 @@ def calibrate_cmd(
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
     servo_stamp: ServoStampOpt = None, tf_parent: TfParentOpt = None, tf_child: TfChildOpt = None,
-    tf_axis: TfAxisOpt = None,
+    tf_axis: TfAxisOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """Calibrate the rig from RECORDING (markers and tape distances, or --targetless: the scene's planes).
 
@@ -98,7 +98,7 @@ def calibrate_cmd(
         servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,
         servo_offset=servo_offset, servo_stamp=servo_stamp, tf_parent=tf_parent, tf_child=tf_child,
         tf_axis=tf_axis).items() if v is not None}
-    with progress_display(f"calibrating {recording.name}") as hooks:
+    with progress_display(f"calibrating {recording.name}", quiet=quiet) as hooks:
         result = calibrate_folder(
             recording,
             out,
@@ -247,7 +247,7 @@ def inspect_cmd(
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
     servo_stamp: ServoStampOpt = None, tf_parent: TfParentOpt = None, tf_child: TfChildOpt = None,
-    tf_axis: TfAxisOpt = None,
+    tf_axis: TfAxisOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """Show what BAG holds: topics, types, counts, rates, scan geometry, the servo angle's range and rate, the
     clocks and their offset, the problems found, and the rig-file snippet (YAML) that reads it."""
@@ -262,7 +262,9 @@ def inspect_cmd(
         scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic, servo_field=servo_field,
         joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign, servo_offset=servo_offset,
         servo_stamp=servo_stamp, tf_parent=tf_parent, tf_child=tf_child, tf_axis=tf_axis)
-    result = inspect_path(bag, scan, servo, dh=rig.dh.model_dump() if rig else None, log=rig.log if rig else None)
+    with progress_display(f"inspecting {bag.name}", quiet=quiet):
+        result = inspect_path(bag, scan, servo, dh=rig.dh.model_dump() if rig else None,
+                              log=rig.log if rig else None)
     print_inspection(result, Console())
 
 
@@ -342,12 +344,11 @@ def reproject_cmd(
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
     servo_stamp: ServoStampOpt = None, tf_parent: TfParentOpt = None, tf_child: TfChildOpt = None,
-    tf_axis: TfAxisOpt = None,
+    tf_axis: TfAxisOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """Turn BAG into a 3D cloud in the motor frame M: every beam at its own time and motor angle, with the
     calibrated DH (--calibration) or the rig file's nominal DH. Needs no tape distances."""
     from rich.console import Console
-    from rich.progress import Progress
 
     from .cloud import reproject_bag
 
@@ -357,16 +358,9 @@ def reproject_cmd(
         servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,
         servo_offset=servo_offset, servo_stamp=servo_stamp, tf_parent=tf_parent, tf_child=tf_child,
         tf_axis=tf_axis).items() if v is not None}
-    with Progress(console=console, transient=True) as bar:
-        tasks: dict[str, object] = {}
-
-        def progress(stage: str, done: int, total: int) -> None:
-            if stage not in tasks:
-                tasks[stage] = bar.add_task(stage, total=max(total, 1))
-            bar.update(tasks[stage], completed=done, total=max(total, 1))  # type: ignore[arg-type]
-
+    with progress_display(f"reprojecting {bag.name}", quiet=quiet) as hooks:
         summary = reproject_bag(bag, nominal, out, calibration=calibration, rrd=rrd, bag_out=bag_out,
-                                clock_offset_s=clock_offset, options=options, progress=progress,
+                                clock_offset_s=clock_offset, options=options, progress=hooks.steps,
                                 warn=lambda text: console.print(f"warning: {text}", markup=False))
     for line in summary:
         console.print(line, markup=False)

@@ -19,12 +19,15 @@ import sys
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, NoReturn
+from typing import TYPE_CHECKING, Annotated, Any, NoReturn
 
 import typer
 from typer.core import TyperArgument, TyperCommand, TyperOption
 
 from .errors import LrfError
+
+if TYPE_CHECKING:
+    from rich.console import Console
 
 #: Exit code of a usage error or bad input (the same as :class:`lrfcal.errors.InputError`).
 EXIT_USAGE = 2
@@ -102,8 +105,14 @@ def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoR
       ``error: <what> (Usage: ...; see '<cmd> --help')`` on stderr, exit 2;
     * an :class:`LrfError`: one line ``error: <message>`` on stderr, exit ``e.exit_code``;
     * an OSError or MemoryError that escaped the checks: one line, exit 2 (the cause is named).
+
+    Before the command runs, the process's BLAS / OpenMP thread pools are limited by the programs' thread policy
+    (:func:`lrfcal.threads.apply_thread_policy`).
     """
+    from .threads import apply_thread_policy
+
     try:
+        apply_thread_policy()
         rv = app(args=list(argv) if argv is not None else None, prog_name=prog_name, standalone_mode=False)
     except typer.TyperException as e:  # click's usage errors as vendored by typer (NoArgsIsHelpError, ...)
         code = int(getattr(e, "exit_code", EXIT_USAGE) or EXIT_USAGE)
@@ -166,41 +175,75 @@ def spawn_unavailable_reason() -> str | None:
     return None
 
 
+#: The ``--quiet`` option of every command that shows a progress display.
+QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress display on stderr (it is drawn only on a "
+                                        "terminal anyway).")]
+
+
 @dataclass
 class ProgressHooks:
-    """Callbacks for a long job: ``scans(done, total)`` while simulating, ``stage(name)`` while calibrating."""
+    """Callbacks for a long job: ``scans(done, total)`` while simulating, ``stage(name)`` while calibrating,
+    ``trials(done, total)`` in a study, ``steps(name, done, total)`` for any other counted step (reading,
+    reprojecting). They cost nothing when the display is off."""
 
     scans: Callable[[int, int], None]
     stage: Callable[[str], None]
+    trials: Callable[[int, int], None]
+    steps: Callable[[str, int, int], None]
+
+
+def progress_console() -> Console:
+    """The console the progress display draws on: stderr (stdout stays for results)."""
+    from rich.console import Console
+
+    return Console(stderr=True)
 
 
 @contextmanager
-def progress_display(label: str) -> Iterator[ProgressHooks]:
-    """A transient progress line on stderr (only on a terminal): scans done while simulating, then the
-    calibration's stage (see :data:`lrfcal.pipeline.STAGES`), then what is being written (any other name)."""
-    from rich.console import Console
+def progress_display(label: str, *, quiet: bool = False, console: Console | None = None) -> Iterator[ProgressHooks]:
+    """A transient progress line on stderr: the label, a bar (pulsing while the total is unknown), what is being
+    done (scans simulated, the calibration's stage of :data:`lrfcal.pipeline.STAGES` or
+    :data:`lrfcal.targetless.STAGES`, trials, any other name: what is being written) and the time elapsed.
+
+    Drawn only on a terminal (``console``, default :func:`progress_console`), and not at all with ``quiet``
+    (the commands' ``--quiet``): a log file or a pipe gets none of it. The line is erased when the block ends.
+    """
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
     from .pipeline import STAGES
+    from .targetless import STAGES as TARGETLESS_STAGES
 
-    console = Console(stderr=True)
+    console = console if console is not None else progress_console()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[what]}"),
-                  TimeElapsedColumn(), console=console, transient=True, disable=not console.is_terminal) as bar:
+                  TimeElapsedColumn(), console=console, transient=True,
+                  disable=quiet or not console.is_terminal) as bar:
         task = bar.add_task(label, total=None, what="")
 
         def scans(done: int, total: int) -> None:
             bar.update(task, completed=done, total=total, what=f"{done}/{total} scans")
 
+        def trials(done: int, total: int) -> None:
+            bar.update(task, completed=done, total=total, what=f"{done}/{total} trials", refresh=True)
+
+        def steps(name: str, done: int, total: int) -> None:
+            bar.update(task, description=f"{label}: {name}", completed=done, total=max(total, 1),
+                       what=f"{done}/{total}")
+
+        calibration: list[tuple[str, ...]] = []  # the stages of the calibration that runs (known at its first)
+
         def stage(name: str) -> None:
-            if name in STAGES:
-                k = STAGES.index(name)
-                bar.update(task, description=f"calibrating: {name}", completed=k, total=len(STAGES),
-                           what=f"stage {k + 1}/{len(STAGES)}")
+            if not calibration:
+                calibration.append(TARGETLESS_STAGES if name == TARGETLESS_STAGES[0] else STAGES)
+            stages = calibration[0]
+            if name in stages:  # a calibration stage: every one is drawn at least once (refresh)
+                k = stages.index(name)
+                bar.update(task, description=f"calibrating: {name}", completed=k, total=len(stages),
+                           what=f"stage {k + 1}/{len(stages)}", refresh=True)
             else:  # after the calibration: writing its outputs
-                bar.update(task, description=f"writing {name}", completed=len(STAGES), total=len(STAGES), what="")
+                bar.update(task, description=f"writing {name}", completed=1, total=1, what="", refresh=True)
 
-        yield ProgressHooks(scans=scans, stage=stage)
+        yield ProgressHooks(scans=scans, stage=stage, trials=trials, steps=steps)
 
 
-__all__ = ["EXIT_USAGE", "Command", "ProgressHooks", "finite_between", "make_app", "one_line", "progress_display",
-           "run_app", "spawn_unavailable_reason", "version_text"]
+__all__ = ["EXIT_USAGE", "Command", "ProgressHooks", "QuietOpt", "finite_between", "make_app", "one_line",
+           "progress_console", "progress_display", "run_app", "spawn_unavailable_reason", "version_text"]

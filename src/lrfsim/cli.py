@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.cliutil import Command, finite_between, make_app, progress_display, run_app
+from lrfcal.cliutil import Command, QuietOpt, finite_between, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
     from .simulate import SimResult
@@ -69,6 +69,7 @@ def simulate(
                                       help="Recording folder to write (atomically).")],
     overwrite: Annotated[bool, typer.Option("--overwrite",
                                             help="Replace a recording folder lrfsim wrote before.")] = False,
+    quiet: QuietOpt = False,
 ) -> None:
     """Simulate SCENARIO and write a recording folder.
 
@@ -81,7 +82,7 @@ def simulate(
 
     sc = load_scenario(scenario)
     check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))
-    with progress_display(f"simulating {sc.name}") as hooks:
+    with progress_display(f"simulating {sc.name}", quiet=quiet) as hooks:
         result, path = simulate_to_folder(sc, out, overwrite=overwrite, progress=hooks.scans)
     _summary(result, path)
 
@@ -96,6 +97,7 @@ def run(
     rrd: Annotated[Path | None, typer.Option("--rrd", metavar="FILE", show_default=False,
                                              help="Save the rerun recording here  [default: DIR/rerun.rrd]")] = None,
     spawn: Annotated[bool, typer.Option("--spawn", help="Open the rerun viewer too.")] = False,
+    quiet: QuietOpt = False,
 ) -> None:
     """Simulate, calibrate, compare with the truth.
 
@@ -119,7 +121,7 @@ def run(
     check_no_overlap({"-o": out, "--rrd": rrd}, scenario_inputs(sc, scenario))
     check_no_overlap({"--rrd": rrd}, {"output folder": out})
     replaced = default_out and out.is_dir() and any(out.iterdir())
-    with progress_display(f"simulating {sc.name}") as hooks:
+    with progress_display(f"simulating {sc.name}", quiet=quiet) as hooks:
         report = run_loop(sc, out, overwrite=overwrite, rrd_path=rrd, spawn=spawn, progress=hooks.scans,
                           stage_progress=hooks.stage, warn=lambda line: print(f"warning: {line}", file=sys.stderr))
     console = Console()
@@ -147,6 +149,7 @@ def plan(
              "the UTM-30LX-EW]")] = None,
     markers_only: Annotated[bool, typer.Option(
         "--markers-only", help="Predict from the marker returns alone (without the surface returns).")] = False,
+    quiet: QuietOpt = False,
 ) -> None:
     """Predict the accuracy of a layout and sweep before building it.
 
@@ -163,7 +166,9 @@ def plan(
     from .plan import plan as make_plan
     from .scenario import load_scenario
 
-    result = make_plan(load_scenario(scenario), range_sigma_m=range_sigma, surfaces=not markers_only)
+    sc = load_scenario(scenario)
+    with progress_display(f"planning {sc.name}: casting the rays, inverting the information", quiet=quiet):
+        result = make_plan(sc, range_sigma_m=range_sigma, surfaces=not markers_only)
     if as_json:
         print(json.dumps(result.to_json(), indent=2))
     else:
@@ -205,6 +210,7 @@ def study(
         help="Start each trial from the nominal values moved by uniform draws in +-S x (a, b: 5 mm; alpha, beta: "
              "1 deg; mount: 2 cm, 1 deg), drawn from the trial's seed  [default: 0, the scenario's nominal "
              "values]")] = 0.0,
+    quiet: QuietOpt = False,
 ) -> None:
     """Monte-Carlo study: calibrate N noisy recordings of SCENARIO.
 
@@ -233,10 +239,13 @@ def study(
 
         for v in varied[1]:
             with_field(sc, varied[0], v)
-    with progress_display(f"study of {sc.name}") as hooks:
+    values = [""] if varied is None else [str(v) for v in varied[1]]  # the parts' labels, as lrfsim.study's
+    with progress_display(f"study of {sc.name}", quiet=quiet) as hooks:
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
-                           progress=lambda value, done, total: hooks.scans(done, total), perturb_start=perturb_start,
-                           new_layout=new_layout)
+                           progress=lambda value, done, _n: hooks.trials(values.index(value) * trials + done,
+                                                                        len(values) * trials),
+                           perturb_start=perturb_start, new_layout=new_layout)
+        hooks.stage("trials.csv, summary.md and figures")
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())
     print(f"wrote {path} (trials.csv, summary.md, figures)")

@@ -33,7 +33,6 @@ from __future__ import annotations
 import csv
 import io
 import math
-import os
 import shutil
 import tempfile
 import time
@@ -50,6 +49,7 @@ from numpy.typing import NDArray
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.kinematics import DH_NAMES
 from lrfcal.output import atomic_folder, check_replaceable
+from lrfcal.threads import apply_thread_policy, call_with_thread_policy
 
 from .plan import Plan, format_value, plan
 from .scenario import Scenario, require_markers
@@ -162,7 +162,8 @@ class Study:
 
 def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False,
               perturb_start: float = 0.0, new_layout: bool = False, threads: int | None = None,
-              shared_cast: dict[str, Any] | None = None) -> list[TrialRow]:
+              shared_cast: dict[str, Any] | None = None,
+              progress: Callable[[int], None] | None = None) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
     built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
     scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
@@ -172,7 +173,8 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
     trial; implies ``recast``), to average over layouts rather than over the noise of one. ``threads``: the cast's
     threads (default: the cores available; 1 when batches run in parallel processes). ``shared_cast``: the fields
     of a lrfsim.simulate.Geometry of ``scenario`` but its scene, cast once by the caller for every batch (the scene
-    is rebuilt here: MjSpec does not pickle); None: cast here."""
+    is rebuilt here: MjSpec does not pickle); None: cast here. ``progress(k)`` is called after the k-th trial of
+    the batch."""
     from .scene import build_scene
     from .simulate import Geometry, cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
@@ -197,6 +199,8 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
                                  reason=" ".join(t.reason.split()), exit_code=int(t.exit_code),
                                  errors=tuple(float(v) for v in t.errors), sigma=tuple(float(v) for v in t.sigma),
                                  clock_offset_error_s=float(t.clock_offset_error_s), seconds=float(t.seconds)))
+            if progress is not None:
+                progress(len(rows))
     return rows
 
 
@@ -214,7 +218,9 @@ def run_trials(
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
     worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each). ``recast``,
-    ``perturb_start``, ``new_layout``: see :func:`run_batch`."""
+    ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done, trials)`` after every trial in this
+    process, after every batch on workers. Worker processes (pool and dask) run BLAS with the programs' thread
+    limit (lrfcal.threads); this process is left as the caller set it."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
     perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
@@ -237,23 +243,24 @@ def run_trials(
     rows: list[TrialRow] = []
 
     def collect(parts: Iterable[list[TrialRow]]) -> None:
-        for done, part in enumerate(parts, 1):
+        for part in parts:
             rows.extend(part)
             if progress:
-                progress(done, len(batches))
+                progress(len(rows), trials)
 
     if dask is not None:
         client, own = _dask_client(dask)
-        try:
-            collect(fut.result() for fut in client.map(task, batches, pure=False))
+        try:  # a dask worker is not ours to change for good: the limit is restored after each batch
+            collect(fut.result() for fut in client.map(partial(call_with_thread_policy, task), batches, pure=False))
         finally:
             if own:
                 client.close()
     elif workers > 1:
-        with ProcessPoolExecutor(max_workers=workers) as pool:
+        with ProcessPoolExecutor(max_workers=workers, initializer=apply_thread_policy) as pool:
             collect(pool.map(task, batches))
     else:
-        collect(map(task, batches))
+        hook = None if progress is None else (lambda k: progress(len(rows) + k, trials))
+        collect(task(b, progress=hook) for b in batches)
     return sorted(rows, key=lambda r: r.trial)
 
 
@@ -434,14 +441,6 @@ def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Pa
     return out
 
 
-def default_workers() -> int:
-    """One worker per available core (at least 1)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
-
-
-__all__ = ["CSV_COLUMNS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialRow", "default_workers", "parse_vary",
+__all__ = ["CSV_COLUMNS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialRow", "parse_vary",
            "perturbed_start", "run_batch", "run_trials", "study", "summary_markdown", "trials_csv", "with_field",
            "write_figures", "write_study"]
