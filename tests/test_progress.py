@@ -7,7 +7,6 @@ not by importing or calling the library.
 
 from __future__ import annotations
 
-import copy
 import io
 import json
 import os
@@ -16,15 +15,13 @@ import sys
 from pathlib import Path
 
 import pytest
-import yaml
 from rich.console import Console
+from test_cli_sim import _main, _write_small
 
 import lrfcal.cliutil as cliutil
 from lrfcal.cliutil import progress_display
 from lrfcal.pipeline import STAGES
 from lrfcal.targetless import STAGES as TARGETLESS_STAGES
-
-SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
 
 def _terminal() -> tuple[Console, io.StringIO]:
@@ -81,28 +78,9 @@ def test_nothing_on_a_pipe_or_with_quiet() -> None:
     assert buf.getvalue() == ""
 
 
-def _small(tmp_path: Path) -> Path:
-    """A 30-scan tunnel_v (one pass of +-0.05 rad)."""
-    data = copy.deepcopy(yaml.safe_load((SCENARIOS / "tunnel_v.yaml").read_text()))
-    data["servo"].update({"start_rad": 0.05, "end_rad": -0.05, "passes": 1, "settle_s": 0.05})
-    path = tmp_path / "small.yaml"
-    path.write_text(yaml.safe_dump(data))
-    return path
-
-
-def _main(argv: list[str]) -> int:
-    from lrfsim.cli import main
-
-    try:
-        main(argv)
-    except SystemExit as e:
-        return int(e.code or 0)
-    return 0
-
-
 def test_lrfsim_simulate_shows_scans_on_a_terminal_only(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                         capsys: pytest.CaptureFixture[str]) -> None:
-    scen = _small(tmp_path)
+    scen = _write_small(tmp_path)
     assert _main(["simulate", str(scen), "-o", str(tmp_path / "a")]) == 0  # stderr captured: not a terminal
     assert capsys.readouterr().err == ""
     console, buf = _terminal()
@@ -120,7 +98,7 @@ def test_lrfsim_plan_shows_a_status_on_a_terminal(tmp_path: Path, monkeypatch: p
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     console, buf = _terminal()
     monkeypatch.setattr(cliutil, "progress_console", lambda: console)
-    _main(["plan", str(_small(tmp_path)), "--markers-only"])  # exit 0 or 3: the display is what is tested
+    _main(["plan", str(_write_small(tmp_path)), "--markers-only"])  # exit 0 or 3: the display is what is tested
     assert "planning tunnel_v" in buf.getvalue()
     capsys.readouterr()
 
