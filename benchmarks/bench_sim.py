@@ -18,7 +18,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import mujoco
 import numpy as np
 
 from lrfcal.kinematics import beam_rays_M, transform_points
@@ -39,8 +38,7 @@ def main(path: Path) -> None:
     starts = lidar.scan_start_times(traj.end_s, sensor, 0.0)
     lam = traj.angle(lidar.beam_times(starts, sensor))
     N, F = sensor.n_beams, sensor.footprint_rays
-    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
-    cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
+    cutoff = raycast.cast_cutoff_m(sensor)
     gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
     m, d = scene.model, scene.data
 
@@ -56,12 +54,8 @@ def main(path: Path) -> None:
     bare_s, n_rays, n_calls = 0.0, 0, 0
     max_pos_err = max_dir_err = 0.0
     for ch in raycast.iter_ray_chunks(scene, sensor, lam):
-        dflat, nflat = ch.directions.reshape(-1), nrm.reshape(-1)
         t0 = time.perf_counter()
-        for o, a, n in zip(ch.call_origins, ch.call_first, ch.call_count, strict=True):
-            b = a + n
-            mujoco.mj_multiRay(m, d, o, dflat[3 * a:3 * b], gg, 1, -1, gid[a:b], dist[a:b], nflat[3 * a:3 * b], n,
-                               cutoff)
+        raycast.cast_chunk(m, d, gg, ch, cutoff, gid, dist, nrm)  # mj_multiRay over the chunk's calls, nothing else
         bare_s += time.perf_counter() - t0
         n_rays += ch.directions.shape[0]
         n_calls += len(ch.call_first)

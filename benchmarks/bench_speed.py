@@ -92,7 +92,6 @@ def busy_processes(n: int) -> list[subprocess.Popen[bytes]]:
 def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
     """(cast seconds of lrfsim.raycast.cast_scans, bare single-thread mj_multiRay seconds over the same calls,
     rays, load) on the scenario's noise-free motor angles."""
-    import mujoco
 
     from lrfsim import lidar, raycast
     from lrfsim.scenario import load_scenario
@@ -105,8 +104,7 @@ def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
     traj = sweep_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sensor, 0.0), sensor))
     N, F = sensor.n_beams, sensor.footprint_rays
-    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
-    cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
+    cutoff = raycast.cast_cutoff_m(sensor)
     gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
     m, d = scene.model, scene.data
     load = _load()
@@ -114,12 +112,8 @@ def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
     gid, dist, nrm = np.empty(M, np.int32), np.empty(M), np.empty((M, 3))
     bare_s, n_rays = 0.0, 0
     for ch in raycast.iter_ray_chunks(scene, sensor, lam):
-        dflat, nflat = ch.directions.reshape(-1), nrm.reshape(-1)
         t0 = time.perf_counter()
-        for o, a, n in zip(ch.call_origins, ch.call_first, ch.call_count, strict=True):
-            b = a + n
-            mujoco.mj_multiRay(m, d, o, dflat[3 * a:3 * b], gg, 1, -1, gid[a:b], dist[a:b], nflat[3 * a:3 * b], n,
-                               cutoff)
+        raycast.cast_chunk(m, d, gg, ch, cutoff, gid, dist, nrm)  # mj_multiRay over the chunk's calls, nothing else
         bare_s += time.perf_counter() - t0
         n_rays += ch.directions.shape[0]
     cast = raycast.cast_scans(scene, sensor, lam)

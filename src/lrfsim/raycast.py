@@ -156,6 +156,12 @@ def iter_ray_chunks(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Flo
         yield maker.chunk(s0, min(S, s0 + chunk_scans), scene.data, dirs_buf, B0)
 
 
+def cast_cutoff_m(sensor: SensorConfig) -> float:
+    """How far a ray is cast [m]: the longest range plus 5 sigma of the widest noise band (and 1 mm)."""
+    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
+    return sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
+
+
 def cast_chunk(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk: RayChunk, cutoff_m: float,
                geomid: NDArray[np.int32], dist: FloatArray, normal: FloatArray) -> None:
     """Cast every call of a chunk with ``mujoco.mj_multiRay`` into geomid (M,), dist (M,), normal (M, 3)."""
@@ -229,8 +235,7 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
     refl = np.asarray(scene.geom_reflectivity, dtype=float)
     is_marker = np.asarray(scene.geom_is_marker, dtype=bool)
     geomgroup = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
-    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
-    cutoff = sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
+    cutoff = cast_cutoff_m(sensor)
 
     ranges = np.empty((S, N))
     intens = np.empty((S, N))
@@ -324,5 +329,5 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
                 echo_power=echo_p)
 
 
-__all__ = ["CHUNK_SCANS", "RayChunk", "cast_chunk", "cast_scans", "default_threads", "iter_ray_chunks",
+__all__ = ["CHUNK_SCANS", "RayChunk", "cast_chunk", "cast_cutoff_m", "cast_scans", "default_threads", "iter_ray_chunks",
            "plan_runs", "simulate_scans"]
