@@ -237,3 +237,27 @@ def test_cast_on_threads_is_byte_identical() -> None:
         assert many.max_parallax_correction_m == one.max_parallax_correction_m
         assert seen == [min(lam.shape[0], s + 4) for s in range(0, lam.shape[0], 4)]
     assert np.isfinite(one.ranges_m).mean() > 0.5  # the scans see the tunnel
+
+
+def test_range_noise_correlated_along_the_beams() -> None:
+    """sensor.noise_correlation rho: the range noise of beams k apart correlates as rho^k (an AR(1) process along
+    the scan, as a real URG-04LX's, docs/real-data.md), with the noise bands' sigma unchanged; rho = 0 draws the
+    same numbers as before."""
+    from lrfsim.scenario import SensorConfig
+
+    S, N = 400, 500
+    cast = lidar.Cast(ranges_m=np.full((S, N), 5.0), intensities=np.full((S, N), 5000.0), n_rays=S * N, n_calls=1,
+                      cast_time_s=0.0, total_time_s=0.0, max_origin_error_m=0.0, max_parallax_correction_m=0.0,
+                      cutoff_m=60.0)
+    plain = SensorConfig(quantisation_m=0.0)
+    e0 = lidar.sensor_model(cast, plain, np.random.default_rng(7)).ranges_m - 5.0
+    e7 = lidar.sensor_model(cast, plain.model_copy(update={"noise_correlation": 0.7}),
+                            np.random.default_rng(7)).ranges_m - 5.0
+
+    def corr(e: np.ndarray, k: int) -> float:
+        return float(np.corrcoef(e[:, :-k].ravel(), e[:, k:].ravel())[0, 1])
+
+    assert abs(e0.std() - 0.010) < 3e-4 and abs(e7.std() - 0.010) < 3e-4  # the band's 10 mm either way
+    assert abs(corr(e0, 1)) < 0.02
+    assert abs(corr(e7, 1) - 0.7) < 0.02 and abs(corr(e7, 2) - 0.49) < 0.02 and abs(corr(e7, 8) - 0.7**8) < 0.02
+    np.testing.assert_array_equal(lidar.correlated_along_beams(e0, 0.0), e0)

@@ -363,6 +363,20 @@ class Cast:
     echo_power: FloatArray | None = None
 
 
+def correlated_along_beams(z: FloatArray, rho: float) -> FloatArray:
+    """Independent standard normal draws z (S, N) made an AR(1) process along the beams of each scan, with the
+    same unit variance: e_0 = z_0, e_i = rho e_(i-1) + sqrt(1 - rho^2) z_i, so the correlation of beams k apart is
+    rho^k. ``rho`` = 0 returns ``z`` itself (the same numbers, bit for bit)."""
+    if rho == 0.0:
+        return z
+    c = math.sqrt(1.0 - rho * rho)
+    e = np.empty_like(z)
+    e[:, 0] = z[:, 0]  # the first beam of a scan: the stationary start
+    for i in range(1, z.shape[1]):
+        e[:, i] = rho * e[:, i - 1] + c * z[:, i]
+    return e
+
+
 def sensor_model(cast: Cast, sensor: SensorConfig, rng: np.random.Generator,
                  beam_times_s: FloatArray | None = None) -> LidarOutput:
     """The sensor model (module docstring) on a cast's whole (S, N) arrays: noise drawn from ``rng`` (range, then
@@ -373,7 +387,7 @@ def sensor_model(cast: Cast, sensor: SensorConfig, rng: np.random.Generator,
     F = sensor.footprint_rays
     z_range = z_int = None
     if sensor.noise:
-        z_range = rng.standard_normal((S, N))
+        z_range = correlated_along_beams(rng.standard_normal((S, N)), sensor.noise_correlation)
         z_int = rng.standard_normal((S, N))
     echo_ranges = echo_intens = None
     if cast.echo_ranges_m is not None and cast.echo_power is not None:

@@ -155,6 +155,10 @@ class SensorConfig(_Section):
         NoiseBand(up_to_m=30.0, sigma_m=0.030),
         NoiseBand(up_to_m=60.0, sigma_m=0.050),
     )
+    noise_correlation: Annotated[float, _d(
+        "correlation of the range noise of neighbouring beams in a scan: an AR(1) process along the beams, rho^k "
+        "at k beams apart (0: independent; measured 0.70 on a real URG-04LX, docs/real-data.md; no public figure "
+        "for the UTM-30LX-EW, so 0 by default) [1]", ge=0, lt=1)] = 0.0
     quantisation_m: Annotated[float, _d("range resolution (0: none) [m]", ge=0, le=1)] = 0.001
     divergence_rad: Annotated[float, _d("full beam divergence angle; unverified for the UTM-30LX, see README "
                                         "[rad]", ge=0, lt=0.1)] = 0.0044
