@@ -1,6 +1,6 @@
 """Every fault of ``lrfsim.faults`` and every crash or bad input of issue 21, through the INSTALLED console scripts.
 
-A recording with faults is simulated by ``lrfsim simulate`` and calibrated by ``lrfcal calibrate`` as a user would:
+A recording with faults (simulated once per test run) is calibrated by ``lrfcal calibrate`` as a user would:
 the exit code is the documented one (0 calibrated, 2 bad input, 3 refused), a refusal or a bad input is exactly one
 ``error:`` line on stderr, no traceback ever, and the output folder is either complete (every file the report
 links) or absent. The recordings are a short plane_30deg sweep (about 370 scans) so that the four of them and
@@ -11,11 +11,14 @@ from __future__ import annotations
 
 import copy
 import re
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
 from test_cli_usage import ROOT, _one_error_line, _run
+
+from lrfsim.scenario import Scenario, parse_scenario
 
 SCENARIO = ROOT / "scenarios" / "plane_30deg.yaml"
 
@@ -35,26 +38,27 @@ RECORDED = {"combo": {"tape_outliers", "false_blobs", "occluded_markers", "dropp
             "timing": {"receive_stamps"}, "inverted": {"inverted_servo"}, "noisy": {"range_noise_scale"}}
 
 
-def _scenario(tmp: Path, name: str, changes: dict[str, object]) -> Path:
+def _scenario_data(name: str, changes: dict[str, object]) -> dict[str, object]:
     data = copy.deepcopy(yaml.safe_load(SCENARIO.read_text()))
     data["name"] = name
     data["servo"]["speed_rad_s"] = 0.785  # 45 deg/s: 2 passes of +-90 deg in about 370 scans
     for section, values in changes.items():
         data.setdefault(section, {}).update(values)  # type: ignore[union-attr]
+    return data
+
+
+def _scenario(tmp: Path, name: str, changes: dict[str, object]) -> Path:
     path = tmp / f"{name}.yaml"
-    path.write_text(yaml.safe_dump(data, sort_keys=False))
+    path.write_text(yaml.safe_dump(_scenario_data(name, changes), sort_keys=False))
     return path
 
 
-@pytest.fixture(scope="module")
-def recordings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """The four faulty recordings, each written by the installed ``lrfsim simulate``."""
-    tmp = tmp_path_factory.mktemp("faulty")
+@pytest.fixture(scope="session")
+def recordings(recording_of: Callable[[Scenario], Path]) -> dict[str, Path]:
+    """The four faulty recordings, simulated once per test run (tests/conftest.py) and only read here."""
     out = {}
     for name, changes in FAULTS.items():
-        rec = tmp / f"rec_{name}"
-        proc = _run("lrfsim", "simulate", _scenario(tmp, name, changes), "-o", rec, timeout=300)
-        assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+        rec = recording_of(parse_scenario(_scenario_data(name, changes), f"{name}.yaml"))
         injected = yaml.safe_load((rec / "ground_truth.yaml").read_text())["faults"]
         assert set(injected) == RECORDED[name], injected  # ground_truth.yaml says what was done
         out[name] = rec
