@@ -244,3 +244,20 @@ def test_statistical_efficiency(name: str) -> None:
         assert 0.75 <= d["std_over_predicted"] <= 1.25, (p, d)
         assert 0.8 <= d["rms_z"] <= 1.25, (p, d)
         assert abs(d["bias"]) < (0.3 + 2 / math.sqrt(30)) * d["std"], (p, d)
+
+
+@pytest.mark.slow
+def test_reported_sigma_honest_with_range_noise_correlated_along_the_scan() -> None:
+    """With the range noise correlated along the scan as a real URG-04LX's (rho = 0.7 between neighbouring beams,
+    docs/real-data.md), the reported sigma (the cluster-robust covariance per scan) stays honest: RMS of error /
+    reported sigma in 0.8-1.25 for every DH parameter over 30 trials cast anew (measured 0.84-1.09 with one cast,
+    docs/study.md). The plan does not model the correlation, so its prediction is not asserted here."""
+    from lrfsim.scenario import load_scenario
+
+    sc = load_scenario(ROOT / "scenarios" / "tunnel_v.yaml")
+    sc = sc.model_copy(update={"sensor": sc.sensor.model_copy(update={"noise_correlation": 0.7})})
+    part = study(sc, 30, seed0=200, workers=2, recast=True).parts[0]
+    assert all(r.status == "calibrated" for r in part.rows), [r.reason for r in part.rows if r.reason]
+    st = part.stats()
+    for p in DH_NAMES:
+        assert 0.8 <= st[p]["rms_z"] <= 1.25, (p, st[p])
