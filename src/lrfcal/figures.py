@@ -397,7 +397,7 @@ def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
         ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncols=2, frameon=False)
         cloud = np.asarray(result.cloud_after_M, dtype=float).reshape(-1, 3)
         cloud = cloud[np.isfinite(cloud).all(1)]
-        cloud = cloud[:: max(1, cloud.shape[0] // 200_000)]
+        cloud = cloud[:: max(1, cloud.shape[0] // 50_000)]  # a view of the shape: 50k points draw it
         ax2.scatter(cloud[:, 0], cloud[:, 1], s=0.2, c="0.3", rasterized=True)
         ax2.set_aspect("equal")
         ax2.set_xlabel("x_M [m]")
