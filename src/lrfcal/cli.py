@@ -87,7 +87,7 @@ def calibrate_cmd(
     from rich.console import Console
 
     from .app import calibrate_folder
-    from .pipeline import CalibConfig
+    from .config import CalibConfig
 
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,

@@ -13,7 +13,6 @@ baseline, on the same detections and association, so that the gain is measured.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
@@ -21,8 +20,11 @@ from functools import partial
 import numpy as np
 
 from . import association, detection, geometry, mds, observability, reproject, solve, start, surfaces, timing
+from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Check, Stopwatch, chi2_check, split_in_two
 from .errors import CalibrationError, InputError
 from .kinematics import DH, PARAM_NAMES, Params, Pose
+from .targetless import calibrate_targetless, merge_returns, scene_plane_returns
+from .timing import usable_scans
 from .types import (
     Association,
     CalibrationResult,
@@ -32,58 +34,8 @@ from .types import (
     Nominal,
     Observations,
     Recording,
-    Scans,
     Solution,
 )
-
-#: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
-DEFAULT_RANGE_SIGMA_M = 0.010
-
-
-@dataclass(frozen=True)
-class CalibConfig:
-    """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout)."""
-
-    #: the scanner's range noise [m]; None: the rig file's ``range_sigma_m``, else DEFAULT_RANGE_SIGMA_M (resolved
-    #: once by :func:`calibrate`, so that every stage sees a number)
-    range_sigma_m: float | None = None
-    association_gate_m: float = 0.05  # blob-to-marker distance accepted after the nominal alignment
-    clock_offset_s: float = 0.0  # laser stamp minus servo stamp: the start (prior) of its estimate
-    estimate_clock: bool | None = None  # estimate the clock offset; None: when the sweep goes both ways
-    baseline: bool = True  # also run the paper's variant for comparison
-    cloud_stride: int = 1  # reproject every n-th scan into the clouds
-    clouds: bool = True  # reproject the clouds before / after (stage 7; False: empty clouds, no geometry)
-    geometry: bool = True  # fit tunnel planes (Table III)
-    surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
-    surface_max_returns: int = 40000  # an even subsample of them, for speed
-    force: bool = False  # return a result even when a consistency check fails (the failures are recorded)
-    #: estimate a constant range offset and a marker-return range bias in the joint solve with the surfaces (the
-    #: only data that separate them); held at 0 when the recording does not separate them (1-sigma > 5 mm)
-    estimate_range_bias: bool = True
-    max_reduced_chi2: float = 4.0  # residuals more than 2x the stated noise: the model does not explain the data
-    second_opinion_p: float = 1e-3  # false-alarm rate of the second-opinion test
-    #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
-    #: direction apart (a, b [m], alpha, beta [rad])
-    nominal_tolerance: tuple[float, float, float, float] = (0.010, math.radians(5.0), 0.010, math.radians(5.0))
-    #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances
-    targetless: bool | None = None
-    plane_returns: int = 250000  # targetless: an even subsample of the returns, for speed
-    #: with markers: also calibrate the same recording targetless and show it beside the marker results (report)
-    compare_targetless: bool = False
-    #: with markers: every other plane of the scene joins the markers' surfaces in the joint solve (free planes)
-    all_planes: bool = False
-    #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
-    #: spreads along the plane and the range reads short)
-    max_incidence_rad: float = math.radians(65.0)
-
-
-@dataclass(frozen=True)
-class Check:
-    """One consistency check of the result: its name, whether it passed, and the numbers."""
-
-    name: str
-    passed: bool
-    detail: str
 
 
 class _NoMatch(CalibrationError):
@@ -149,13 +101,11 @@ def _trimmed_hint(recording: Recording, tau0: float) -> str:
 def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None) -> CalibrationResult:
     """:func:`calibrate` with ``config.range_sigma_m`` resolved."""
     if config.targetless or (config.targetless is None and recording.tape is None):
-        from .targetless import calibrate_targetless
-
         return calibrate_targetless(recording, config, progress)
     if recording.tape is None:
         raise InputError("calibration with markers needs the tape distances (distances.csv); without markers, "
                          "calibrate targetless (--targetless)")
-    clock = _Stopwatch(progress)
+    clock = Stopwatch(progress, STAGES)
     notes: list[str] = []
     nominal = recording.nominal
     tau0 = config.clock_offset_s
@@ -239,8 +189,6 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
             notes.append("range offset and marker range bias held at 0: without surface returns the markers alone "
                          "do not separate them from the marker radius and the mount")
         if config.all_planes:  # 6b generalised: every other plane of the scene too, as free planes
-            from .targetless import merge_returns, scene_plane_returns
-
             others, other_planes = scene_plane_returns(scans, joints, ours, detections.labels >= 0,
                                                        list(surface_list), config)
             if len(others):
@@ -275,8 +223,6 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     side_by_side = {"markers only": chosen.solution,
                     "markers and every plane" if config.all_planes else "markers and their surfaces": ours}
     if config.compare_targetless:  # the same recording without its markers (lrfcal.targetless), for the report
-        from .targetless import calibrate_targetless
-
         try:
             tl = calibrate_targetless(recording, replace(config, targetless=True, force=False, geometry=False))
             side_by_side["targetless (markers ignored)"] = tl.solution
@@ -320,29 +266,6 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
         servo_sign=chosen.sign,
         side_by_side=side_by_side,
     )
-
-
-def usable_scans(recording: Recording, tau0: float, notes: list[str]) -> tuple[Scans, JointStates]:
-    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0`` (what was
-    dropped is appended to ``notes``).
-
-    Raises:
-        CalibrationError: no scan lies within the joint states' time span.
-    """
-    joints, n_spikes = timing.remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
-    if n_spikes:
-        notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
-    covered = timing.covered_scans(recording.scans, joints, tau0)
-    if not covered.any():
-        raise CalibrationError(
-            f"no scan lies within the joint states' time span at clock offset {tau0:+.3f} s (laser "
-            f"{recording.scans.stamps_s[0]:.3f}-{recording.scans.stamps_s[-1]:.3f} s, servo {joints.stamps_s[0]:.3f}-"
-            f"{joints.stamps_s[-1]:.3f} s): pass the offset with --clock-offset"
-        )
-    scans = _subset_scans(recording.scans, covered)
-    if not covered.all():
-        notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
-    return scans, joints
 
 
 def _marker_solution(
@@ -538,26 +461,6 @@ def _checks(
     return checks
 
 
-def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
-    """Two independent parts of a recording's returns (their scan indices (K,); passes (S,) of the sweep): the
-    even and odd passes when the sweep goes both ways, else the two halves in time; and their name."""
-    if passes.max() >= 1:
-        scan_pass = passes[scan]
-        return [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
-    mid = np.median(scan)
-    return [scan <= mid, scan > mid], "the two halves of the sweep"
-
-
-def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> Check:
-    """The reduced chi-square check: ``what`` (the residuals' name) at most sqrt(config.max_reduced_chi2) times the
-    stated range noise; the failure says what else (``otherwise``) could be wrong."""
-    ok = bool(chi2 <= config.max_reduced_chi2)
-    return Check("reduced chi-square", ok,
-                 f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): {what} {math.sqrt(max(chi2, 0.0)):.2g} times the "
-                 f"stated range noise {config.range_sigma_m * 1000:g} mm"
-                 + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
-
-
 def _second_opinion(
     sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
     fit: Callable[..., Solution], motor: solve.MotorClock | None,
@@ -608,18 +511,6 @@ def _negated(joints: JointStates) -> JointStates:
     return JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
 
 
-def _subset_scans(scans: Scans, mask: np.ndarray) -> Scans:
-    """The scans where ``mask`` (S,) is True: every per-scan array field is subset, the rest kept."""
-    S = mask.size
-    if mask.all():
-        return scans
-    fields = {}
-    for k in scans.__dataclass_fields__:
-        v = getattr(scans, k)
-        fields[k] = v[mask] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == S else v
-    return Scans(**fields)
-
-
 def _with_markers(returns: Observations, blob_to_marker: np.ndarray) -> Observations:
     """Label every return with its blob's marker and keep the labelled ones."""
     labelled = _replace(returns, marker=np.asarray(blob_to_marker)[returns.blob])
@@ -630,29 +521,6 @@ def _replace(obs: Observations, **arrays: np.ndarray) -> Observations:
     fields = {k: getattr(obs, k) for k in obs.__dataclass_fields__}
     fields.update(arrays)
     return Observations(**fields)
-
-
-class _Stopwatch:
-    """Times the stages; tells ``progress`` which stage comes next (the names in :data:`STAGES`)."""
-
-    def __init__(self, progress: Callable[[str], None] | None = None, stages: tuple[str, ...] | None = None
-                 ) -> None:
-        self.stages = STAGES if stages is None else stages
-        self.laps: dict[str, float] = {}
-        self._t = time.perf_counter()
-        self._progress = progress
-        self._say(self.stages[0])
-
-    def _say(self, stage: str) -> None:
-        if self._progress is not None:
-            self._progress(stage)
-
-    def lap(self, name: str) -> None:
-        now = time.perf_counter()
-        self.laps[name] = now - self._t
-        self._t = now
-        if name in self.stages and self.stages.index(name) + 1 < len(self.stages):
-            self._say(self.stages[self.stages.index(name) + 1])
 
 
 #: The stages in the order they run, as reported to ``progress`` and in CalibrationResult.timings_s.

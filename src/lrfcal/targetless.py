@@ -25,10 +25,11 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from . import geometry, holdout, observability, planes, reproject, solve, timing
+from .config import CalibConfig, Check, Stopwatch, chi2_check, split_in_two
 from .errors import CalibrationError
 from .kinematics import DH, Params, Pose, beam_rays_W, points_M
-from .pipeline import CalibConfig, Check, _Stopwatch, chi2_check, split_in_two, usable_scans
 from .surfaces import Surface, SurfaceReturns, hash_sample
+from .timing import usable_scans
 from .types import CalibrationResult, JointStates, Recording, Scans, Solution
 
 FloatArray = NDArray[np.float64]
@@ -80,7 +81,7 @@ def calibrate_targetless(
     unless ``config.force``, which records the failed checks in the result instead.
     """
     config = config or CalibConfig()
-    clock = _Stopwatch(progress, STAGES)
+    clock = Stopwatch(progress, STAGES)
     notes: list[str] = ["targetless: the DH parameters from the flatness of the scene's planes; without markers "
                         "there is no world frame, so the mount pose is not estimated (frame M)"]
     nominal = recording.nominal

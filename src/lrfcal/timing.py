@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError
-from .types import JointStates, Scans
+from .errors import CalibrationError, InputError
+from .types import JointStates, Recording, Scans
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -111,8 +111,43 @@ def covered_scans(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0
     return (lo >= joints.stamps_s[0] - tol) & (hi <= joints.stamps_s[-1] + tol)
 
 
+def subset_scans(scans: Scans, mask: np.ndarray) -> Scans:
+    """The scans where ``mask`` (S,) is True: every per-scan array field is subset, the rest kept."""
+    S = mask.size
+    if mask.all():
+        return scans
+    fields = {}
+    for k in scans.__dataclass_fields__:
+        v = getattr(scans, k)
+        fields[k] = v[mask] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == S else v
+    return Scans(**fields)
+
+
+def usable_scans(recording: Recording, tau0: float, notes: list[str]) -> tuple[Scans, JointStates]:
+    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0`` (what was
+    dropped is appended to ``notes``).
+
+    Raises:
+        CalibrationError: no scan lies within the joint states' time span.
+    """
+    joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
+    if n_spikes:
+        notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
+    covered = covered_scans(recording.scans, joints, tau0)
+    if not covered.any():
+        raise CalibrationError(
+            f"no scan lies within the joint states' time span at clock offset {tau0:+.3f} s (laser "
+            f"{recording.scans.stamps_s[0]:.3f}-{recording.scans.stamps_s[-1]:.3f} s, servo {joints.stamps_s[0]:.3f}-"
+            f"{joints.stamps_s[-1]:.3f} s): pass the offset with --clock-offset"
+        )
+    scans = subset_scans(recording.scans, covered)
+    if not covered.all():
+        notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
+    return scans, joints
+
+
 __all__ = ["beam_motor_angles", "beam_times", "covered_scans", "joint_period_s", "motor_angles", "remove_spikes",
-           "scan_angles", "scan_spans", "sweep_passes", "unwrapped_positions"]
+           "scan_angles", "scan_spans", "subset_scans", "sweep_passes", "unwrapped_positions", "usable_scans"]
 
 
 def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scans: int = 5) -> NDArray[np.int64]:

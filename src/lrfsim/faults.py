@@ -36,7 +36,7 @@ laser-servo clock offset (the recording does not declare it; ground_truth.yaml h
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -45,8 +45,10 @@ from lrfcal.errors import InputError
 from lrfcal.kinematics import Params, beam_rays_M, points_W, transform_points
 
 from .scenario import FaultsConfig, NoiseBand, Scenario, TapeOutlier
-from .simulate import SimResult
 from .tape import TapeResult
+
+if TYPE_CHECKING:  # annotations only: simulate.py applies these faults (no import circle)
+    from .simulate import SimResult
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -16,7 +16,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from lrfcal.pipeline import CalibConfig
+from lrfcal.config import CalibConfig
 from lrfcal.types import CalibrationResult
 
 from .compare import Comparison, compare, load_truth

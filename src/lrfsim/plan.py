@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.observability import LIMITS, Observability, analyse
-from lrfcal.pipeline import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.solve import MotorClock, information_at
 from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
 from lrfcal.types import JointStates, Observations

@@ -31,13 +31,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.errors import InputError
 
-from .scenario import ServoConfig
+if TYPE_CHECKING:  # annotations only: scenario.py uses this module (no import circle)
+    from .scenario import ServoConfig
 
 FloatArray = NDArray[np.float64]
 

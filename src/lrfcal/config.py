@@ -1,0 +1,106 @@
+"""What both ways of calibrating share (lrfcal.pipeline with markers, lrfcal.targetless from the scene's planes):
+the options, the consistency checks' result type and the chi-square check, the split of a recording in two
+independent parts for the second opinion, and the stopwatch that reports the stages."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+#: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
+DEFAULT_RANGE_SIGMA_M = 0.010
+
+
+@dataclass(frozen=True)
+class CalibConfig:
+    """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout)."""
+
+    #: the scanner's range noise [m]; None: the rig file's ``range_sigma_m``, else DEFAULT_RANGE_SIGMA_M (resolved
+    #: once by :func:`calibrate`, so that every stage sees a number)
+    range_sigma_m: float | None = None
+    association_gate_m: float = 0.05  # blob-to-marker distance accepted after the nominal alignment
+    clock_offset_s: float = 0.0  # laser stamp minus servo stamp: the start (prior) of its estimate
+    estimate_clock: bool | None = None  # estimate the clock offset; None: when the sweep goes both ways
+    baseline: bool = True  # also run the paper's variant for comparison
+    cloud_stride: int = 1  # reproject every n-th scan into the clouds
+    clouds: bool = True  # reproject the clouds before / after (stage 7; False: empty clouds, no geometry)
+    geometry: bool = True  # fit tunnel planes (Table III)
+    surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
+    surface_max_returns: int = 40000  # an even subsample of them, for speed
+    force: bool = False  # return a result even when a consistency check fails (the failures are recorded)
+    #: estimate a constant range offset and a marker-return range bias in the joint solve with the surfaces (the
+    #: only data that separate them); held at 0 when the recording does not separate them (1-sigma > 5 mm)
+    estimate_range_bias: bool = True
+    max_reduced_chi2: float = 4.0  # residuals more than 2x the stated noise: the model does not explain the data
+    second_opinion_p: float = 1e-3  # false-alarm rate of the second-opinion test
+    #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
+    #: direction apart (a, b [m], alpha, beta [rad])
+    nominal_tolerance: tuple[float, float, float, float] = (0.010, math.radians(5.0), 0.010, math.radians(5.0))
+    #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances
+    targetless: bool | None = None
+    plane_returns: int = 250000  # targetless: an even subsample of the returns, for speed
+    #: with markers: also calibrate the same recording targetless and show it beside the marker results (report)
+    compare_targetless: bool = False
+    #: with markers: every other plane of the scene joins the markers' surfaces in the joint solve (free planes)
+    all_planes: bool = False
+    #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
+    #: spreads along the plane and the range reads short)
+    max_incidence_rad: float = math.radians(65.0)
+
+
+@dataclass(frozen=True)
+class Check:
+    """One consistency check of the result: its name, whether it passed, and the numbers."""
+
+    name: str
+    passed: bool
+    detail: str
+
+
+def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
+    """Two independent parts of a recording's returns (their scan indices (K,); passes (S,) of the sweep): the
+    even and odd passes when the sweep goes both ways, else the two halves in time; and their name."""
+    if passes.max() >= 1:
+        scan_pass = passes[scan]
+        return [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
+    mid = np.median(scan)
+    return [scan <= mid, scan > mid], "the two halves of the sweep"
+
+
+def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> Check:
+    """The reduced chi-square check: ``what`` (the residuals' name) at most sqrt(config.max_reduced_chi2) times the
+    stated range noise; the failure says what else (``otherwise``) could be wrong."""
+    ok = bool(chi2 <= config.max_reduced_chi2)
+    return Check("reduced chi-square", ok,
+                 f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): {what} {math.sqrt(max(chi2, 0.0)):.2g} times the "
+                 f"stated range noise {config.range_sigma_m * 1000:g} mm"
+                 + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
+
+
+class Stopwatch:
+    """Times the stages; tells ``progress`` which stage comes next (the names in ``stages``, in order)."""
+
+    def __init__(self, progress: Callable[[str], None] | None, stages: tuple[str, ...]) -> None:
+        self.stages = stages
+        self.laps: dict[str, float] = {}
+        self._t = time.perf_counter()
+        self._progress = progress
+        self._say(self.stages[0])
+
+    def _say(self, stage: str) -> None:
+        if self._progress is not None:
+            self._progress(stage)
+
+    def lap(self, name: str) -> None:
+        now = time.perf_counter()
+        self.laps[name] = now - self._t
+        self._t = now
+        if name in self.stages and self.stages.index(name) + 1 < len(self.stages):
+            self._say(self.stages[self.stages.index(name) + 1])
+
+
+__all__ = ["DEFAULT_RANGE_SIGMA_M", "CalibConfig", "Check", "Stopwatch", "chi2_check", "split_in_two"]
