@@ -103,14 +103,7 @@ def calibrate_folder(
         before, before_label = _nominal_in_W(result, truth)
         figs = (figure_writer.write_figures(result, Path(tmp), before, before_label) if figures
                 else figure_writer.Figures({}, {}))
-        report = output.render_report(result, truth=truth_values)
-        report += "\n## Figures\n\n" + ("\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())
-                                         if figures else "not drawn (--no-figures)")
-        report += "".join(f"\n\n{name}.png could not be drawn ({why}); the calibration is not affected"
-                          for name, why in figs.skipped.items()) + "\n"
-        if warn is not None:
-            for name, why in figs.skipped.items():
-                warn(f"figure {name}.png skipped: {why}")
+        report = output.render_report(result, truth=truth_values) + _figures_section(figs, figures, warn)
         files = dict(figs.written)
         if rrd_inside is not None:
             files["rerun"] = Path(tmp) / rrd_inside
@@ -121,6 +114,18 @@ def calibrate_folder(
             progress("rerun recording")
         _log_rerun(result, rrd_path, spawn, truth, scene, warn)
     return result
+
+
+def _figures_section(figs: Any, drawn: bool, warn: Callable[[str], None] | None) -> str:
+    """The report's "Figures" section for ``figs`` (lrfcal.figures.Figures): the figures written, or that none
+    were asked for; each figure that could not be drawn is named with its reason (and ``warn`` told)."""
+    text = "\n## Figures\n\n" + ("\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())
+                                  if drawn else "not drawn (--no-figures)")
+    for name, why in figs.skipped.items():
+        text += f"\n\n{name}.png could not be drawn ({why}); the calibration is not affected"
+        if warn is not None:
+            warn(f"figure {name}.png skipped: {why}")
+    return text + "\n"
 
 
 #: Median tape distance above which the file is taken to be in mm or cm: the markers of one calibration are

@@ -118,7 +118,7 @@ def reproject_beams(
         ok = np.isfinite(r) & covered[sl, None]
         ss, bb = np.nonzero(ok)
         t = scans.stamps_s[sl][ss] + bb * scans.time_increment_s[sl][ss]  # the beam's own time (written out)
-        lam = motor_angles(t if not scans.angle_per_scan else scans.stamps_s[sl][ss], joints, clock_offset_s)
+        lam = motor_angles(scans.angle_times_at(ss + s0, bb), joints, clock_offset_s)
         p = points_M(r[ss, bb] - range_offset_m, lam, scans.mu_rad[sl][ss, bb], dh)
         parts.append((p, scans.intensities[sl][ss, bb], t, ss + s0, bb, lam))
         if progress is not None:

@@ -11,6 +11,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import CalibrationError
+
 #: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
 DEFAULT_RANGE_SIGMA_M = 0.010
 
@@ -61,6 +63,20 @@ class Check:
     detail: str
 
 
+def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
+    """Raise CalibrationError naming the first failed check (and how many more failed), unless ``config.force``.
+
+    Raises:
+        CalibrationError: a check failed and the result may not be written.
+    """
+    failed = [c for c in checks if not c.passed]
+    if failed and not config.force:
+        c = failed[0]
+        raise CalibrationError(f"{c.name}: {c.detail}"
+                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
+                               + "; --force writes the result anyway with the failed checks recorded")
+
+
 def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
     """Two independent parts of a recording's returns (their scan indices (K,); passes (S,) of the sweep): the
     even and odd passes when the sweep goes both ways, else the two halves in time; and their name."""
@@ -103,4 +119,5 @@ class Stopwatch:
             self._say(self.stages[self.stages.index(name) + 1])
 
 
-__all__ = ["DEFAULT_RANGE_SIGMA_M", "CalibConfig", "Check", "Stopwatch", "chi2_check", "split_in_two"]
+__all__ = ["DEFAULT_RANGE_SIGMA_M", "CalibConfig", "Check", "Stopwatch", "chi2_check", "refuse_failed",
+           "split_in_two"]

@@ -223,7 +223,7 @@ def observations(
     scan = np.concatenate([b.scan_idx for b in blobs]).astype(np.int64)
     beam = np.concatenate([b.beam_idx for b in blobs]).astype(np.int64)
     is_peak = np.concatenate([(b.scan_idx == b.peak_scan) & (b.beam_idx == b.peak_beam) for b in blobs])
-    times = scans.beam_times_s[scan, beam]
+    times = scans.angle_times_at(scan, beam)
     lam = motor_angles(times, joints, clock_offset_s)
     return Observations(
         blob=blob_idx,

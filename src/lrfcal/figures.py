@@ -75,6 +75,36 @@ def _rms_mm(norms_m: FloatArray) -> float:
     return float(np.sqrt(np.mean(norms_m**2)) * 1e3) if norms_m.size else float("nan")
 
 
+def _candidate_panel(ax: Any, shown: Any, cand: NDArray[np.bool_], kw: dict[str, Any], pool: int) -> None:
+    """The intensity figure's right panel: every return (``shown``, a masked (rows, N) image drawn with ``kw``)
+    faint grey for context, the marker candidates (``cand``) as dots: a blob is a few cells of a large image, so
+    drawn as image cells it would be invisible at this size."""
+    import matplotlib
+
+    grey = matplotlib.colormaps["Greys"].with_extremes(bad="white")
+    ax.imshow(shown[::2, ::2], **{**kw, "cmap": grey, "alpha": 0.35})  # context only: half resolution
+    rows, cols = np.nonzero(cand & ~np.ma.getmaskarray(shown))
+    if rows.size:
+        x0, x1 = kw["extent"][:2]
+        xs = x0 + (cols + 0.5) * (x1 - x0) / shown.shape[1]
+        ys = rows * pool + 0.5 * (pool - 1)
+        ax.scatter(xs, ys, color=_C_MARKER, s=12, marker="s", linewidths=0, rasterized=True,
+                   label="marker candidate return")
+    ax.set_facecolor("white")
+
+
+def _zoom(ax: Any, xs: FloatArray, ys: FloatArray, bounds: tuple[float, float, float, float],
+          margins: tuple[float, float]) -> None:
+    """Limits of ``ax`` around the points (xs, ys), 1.2 x their spread plus ``margins`` and at least a quarter of
+    ``bounds`` (x0, x1, y0, y1) each way, within ``bounds``."""
+    x0, x1, y0, y1 = bounds
+    cx, cy = 0.5 * (xs.min() + xs.max()), 0.5 * (ys.min() + ys.max())
+    hx = max(0.6 * (xs.max() - xs.min()) + margins[0], 0.125 * (x1 - x0))
+    hy = max(0.6 * (ys.max() - ys.min()) + margins[1], 0.125 * (y1 - y0))
+    ax.set_xlim(max(x0, cx - hx), min(x1, cx + hx))
+    ax.set_ylim(max(y0, cy - hy), min(y1, cy + hy))
+
+
 def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
     """The (S, N) intensity image (paper Figs. 8/9) in log scale, and the detected marker returns.
 
@@ -118,22 +148,11 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
         fig = _new_figure()
         axes = fig.subplots(1, 2)
         shown = np.ma.masked_invalid(np.where(img > 0, img, np.nan))
-        above = np.ma.masked_where(~cand, shown)
         kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x1, -0.5, img.shape[0] * pool - 0.5),
               "cmap": cmap,
               "norm": LogNorm(vmin=vmin, vmax=vmax), "interpolation": "nearest"}
         im = axes[0].imshow(shown, **kw)
-        # right: every return faint grey for context, the candidates as dots (a blob is a few cells of a large
-        # image: drawn as image cells it would be invisible at this size)
-        grey = matplotlib.colormaps["Greys"].with_extremes(bad="white")
-        axes[1].imshow(shown[::2, ::2], **{**kw, "cmap": grey, "alpha": 0.35})  # context only: half resolution
-        rows, cols = np.nonzero(~np.ma.getmaskarray(above))
-        if rows.size:
-            xs = x0 + (cols + 0.5) * (x1 - x0) / N
-            ys = rows * pool + 0.5 * (pool - 1)
-            axes[1].scatter(xs, ys, color=_C_MARKER, s=12, marker="s", linewidths=0, rasterized=True,
-                            label="marker candidate return")
-        axes[1].set_facecolor("white")
+        _candidate_panel(axes[1], shown, cand, kw, pool)
         labels: list[tuple[float, float, str, str]] = []
         n_unmatched = 0
         for j, b in enumerate(det.blobs):
@@ -162,11 +181,7 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
             bx = np.array([beam_x(int(b.beam_idx.min())) for b in det.blobs]
                           + [beam_x(int(b.beam_idx.max())) for b in det.blobs])
             by = np.array([float(b.scan_idx.min()) for b in det.blobs] + [float(b.scan_idx.max()) for b in det.blobs])
-            cx, cy = 0.5 * (bx.min() + bx.max()), 0.5 * (by.min() + by.max())
-            hx = max(0.6 * (bx.max() - bx.min()) + 5 * step, 0.125 * (x1 - x0))
-            hy = max(0.6 * (by.max() - by.min()) + 5, 0.125 * S)
-            axes[1].set_xlim(max(x0, cx - hx), min(x1, cx + hx))
-            axes[1].set_ylim(max(-0.5, cy - hy), min(S - 0.5, cy + hy))
+            _zoom(axes[1], bx, by, (x0, x1, -0.5, S - 0.5), (5 * step, 5.0))
         pooled = f", {pool}-scan max" if pool > 1 else ""
         axes[0].set_title(f"all returns ({S} x {N}{pooled}), blobs outlined")
         unmatched = f", {n_unmatched} unmatched" if n_unmatched else ""

@@ -20,7 +20,7 @@ from functools import partial
 import numpy as np
 
 from . import association, detection, geometry, mds, observability, reproject, solve, start, surfaces, timing
-from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Check, Stopwatch, chi2_check, split_in_two
+from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Check, Stopwatch, chi2_check, refuse_failed, split_in_two
 from .errors import CalibrationError, InputError
 from .kinematics import DH, PARAM_NAMES, Params, Pose
 from .targetless import calibrate_targetless, merge_returns, scene_plane_returns
@@ -168,12 +168,12 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
 
     surface_list, on_surfaces = [], None
     if config.surfaces:  # 6b. every beam on the markers' planes, jointly with the markers
-        lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=ours.clock_offset_s,
-                                           tolerance_s=math.inf)
+        beam_times = scans.beam_times_s
+        lambda_beams = timing.motor_angles(beam_times, joints, clock_offset_s=ours.clock_offset_s, tolerance_s=math.inf)
         surface_list, on_surfaces = surfaces.observe_surfaces(
             scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, markers.positions_W,
             nominal.marker_radius_m, ours.params, position_sigma_m=max(markers.rms_m, 0.0005),
-            max_returns=config.surface_max_returns, beam_times_s=scans.beam_times_s,
+            max_returns=config.surface_max_returns, beam_times_s=beam_times,
         )
         if len(on_surfaces):
             joint = partial(fit, matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
@@ -202,12 +202,7 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
         clock.lap("surfaces")
 
     checks = _checks(ours, chosen.solution, matched, markers, passes, config, fit, motor)
-    failed = [c for c in checks if not c.passed]
-    if failed and not config.force:
-        c = failed[0]
-        raise CalibrationError(f"{c.name}: {c.detail}"
-                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
-                               + "; --force writes the result anyway with the failed checks recorded")
+    refuse_failed(checks, config)
 
     baseline = None
     if config.baseline:  # the paper: the blob's brightest beam, the motor angle at the scan's stamp

@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
 from . import geometry, holdout, observability, planes, reproject, solve, timing
-from .config import CalibConfig, Check, Stopwatch, chi2_check, split_in_two
+from .config import CalibConfig, Check, Stopwatch, chi2_check, refuse_failed, split_in_two
 from .errors import CalibrationError
 from .kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .surfaces import Surface, SurfaceReturns, hash_sample
@@ -100,7 +100,7 @@ def calibrate_targetless(
     dh, tau = nominal.dh, tau0
     prior = (np.array([nominal.dh.a, nominal.dh.alpha, nominal.dh.b, nominal.dh.beta]),
              np.array(config.nominal_tolerance, dtype=float))
-    thickness = 4.0 * config.range_sigma_m + 0.02  # the noise plus what a nominal DH bends a plane by
+    thickness = first_thickness = 4.0 * config.range_sigma_m + 0.02  # the noise plus what a nominal DH bends a plane by
     held: tuple[str, ...] = ()
     held_reason = ""
     sol: Solution | None = None
@@ -140,19 +140,9 @@ def calibrate_targetless(
     clock.lap("solve")
 
     checks = _checks(sol, returns, passes, held, config, prior)
-    first_thickness = 4.0 * config.range_sigma_m + 0.02  # as the first round's segmentation
-    held_out = holdout.held_out_flatness(
-        points_M(held_beams.ranges_m, motor.angles(held_beams.times_s, tau0)[0], held_beams.mu_rad, nominal.dh),
-        points_M(held_beams.ranges_m, motor.angles(held_beams.times_s, sol.clock_offset_s)[0], held_beams.mu_rad,
-                 sol.params.dh), first_thickness)
-    checks.append(Check("held-out planes", held_out.passed, held_out.detail()))
-    failed = [c for c in checks if not c.passed]
+    checks.append(_held_out_check(held_beams, motor, Params(_M, nominal.dh), tau0, sol, first_thickness))
     clock.lap("checks")
-    if failed and not config.force:
-        c = failed[0]
-        raise CalibrationError(f"{c.name}: {c.detail}"
-                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
-                               + "; --force writes the result anyway with the failed checks recorded")
+    refuse_failed(checks, config)
 
     lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=sol.clock_offset_s,
                                        tolerance_s=math.inf)
@@ -193,7 +183,7 @@ def _sample(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) -> _Bea
     scan, beam = scan[pick], beam[pick]
     mu = np.asarray(scans.mu_rad)
     return _Beams(scan, beam, scans.ranges_m[scan, beam], mu[scan, beam] if mu.ndim == 2 else mu[beam],
-                  scans.beam_times_s[scan, beam])
+                  scans.angle_times_at(scan, beam))
 
 
 def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorClock, dh: DH, tau: float,
@@ -235,6 +225,16 @@ def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorCloc
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
     return returns, labels, found
+
+
+def _held_out_check(held: _Beams, motor: solve.MotorClock, start: Params, tau0: float, sol: Solution,
+                    thickness_m: float) -> Check:
+    """The held-out scans' planes with the start and with the calibrated parameters (lrfcal.holdout), segmented
+    with the first round's ``thickness_m``."""
+    clouds = [points_M(held.ranges_m, motor.angles(held.times_s, tau)[0], held.mu_rad, dh)
+              for dh, tau in ((start.dh, tau0), (sol.params.dh, sol.clock_offset_s))]
+    result = holdout.held_out_flatness(*clouds, thickness_m)
+    return Check("held-out planes", result.passed, result.detail())
 
 
 def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> None:

@@ -11,7 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from .kinematics import DH, Params, Pose
 
@@ -67,13 +67,19 @@ class Scans:
 
     @property
     def beam_times_s(self) -> FloatArray:
-        """(S, N) the laser-clock time at which every beam's motor angle is taken: the beam's own time, stamp +
-        i * time_increment, while the servo turns during the scan; the scan's stamp for every beam of a
-        step-and-scan rig (``angle_per_scan``), whose servo stands still while it scans."""
-        N = self.ranges_m.shape[1]
+        """(S, N) the laser-clock time at which every beam's motor angle is taken (:meth:`angle_times_at`)."""
+        S, N = self.ranges_m.shape
+        return self.angle_times_at(np.arange(S)[:, None], np.arange(N)[None, :])
+
+    def angle_times_at(self, scan: ArrayLike, beam: ArrayLike) -> FloatArray:
+        """The laser-clock time at which the motor angle of beam ``beam`` of scan ``scan`` is taken (index arrays
+        that broadcast together; the result has their shape): the beam's own time, stamp + beam * time_increment,
+        while the servo turns during the scan; the scan's stamp for every beam of a step-and-scan rig
+        (``angle_per_scan``), whose servo stands still while it scans."""
+        scan, beam = np.asarray(scan), np.asarray(beam)
         if self.angle_per_scan:
-            return np.repeat(self.stamps_s[:, None], N, axis=1)
-        return self.stamps_s[:, None] + np.arange(N) * np.asarray(self.time_increment_s)[:, None]
+            return np.broadcast_to(self.stamps_s[scan], np.broadcast_shapes(scan.shape, beam.shape)).copy()
+        return self.stamps_s[scan] + beam * np.asarray(self.time_increment_s)[scan]
 
 
 @dataclass(frozen=True)

@@ -22,7 +22,7 @@ import typer
 from lrfcal.cliutil import Command, QuietOpt, finite_between, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
-    from .simulate import SimResult
+    from .simresult import SimResult
 
 app = make_app("MuJoCo testbench of a servo-turned Hokuyo UTM-30LX-EW: simulate recordings, calibrate them and "
                "compare with the ground truth. Scenario format: docs/scenario.md or 'lrfsim schema'.", "lrfsim")
@@ -108,8 +108,8 @@ def run(
     """
     from rich.console import Console
 
-    from lrfcal.cli import print_summary
     from lrfcal.output import check_no_overlap
+    from lrfcal.summary import print_summary
 
     from .loop import print_comparison, run_loop, sensor_errors_line
     from .scenario import load_scenario, scenario_inputs

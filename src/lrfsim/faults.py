@@ -48,7 +48,7 @@ from .scenario import FaultsConfig, NoiseBand, Scenario, TapeOutlier
 from .tape import TapeResult
 
 if TYPE_CHECKING:  # annotations only: simulate.py applies these faults (no import circle)
-    from .simulate import SimResult
+    from .simresult import SimResult
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -20,7 +20,7 @@ from lrfcal.kinematics import Pose
 from .scenario import Scenario, parse_scenario
 
 if TYPE_CHECKING:
-    from .simulate import SimResult
+    from .simresult import SimResult
 
 
 def random_scenario(seed: int, *, sweep_speed_deg_s: float = 20.0, passes: int = 1) -> Scenario:

@@ -33,7 +33,7 @@ from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
 
 if TYPE_CHECKING:
-    from .simulate import SimResult
+    from .simresult import SimResult
 
 #: ROS time of t = 0 of the simulation [ns].
 EPOCH_NS = 1_700_000_000 * 10**9

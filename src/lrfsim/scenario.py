@@ -507,7 +507,7 @@ MAX_SCENARIO_BYTES = 8 * 2**30
 
 def estimate_memory_bytes(scenario: Scenario) -> tuple[int, int]:
     """(number of scans, bytes) a scenario needs: scans x beams x BYTES_PER_BEAM + a chunk's footprint rays."""
-    from .servo import move_profile
+    from .profile import move_profile
 
     sv, se = scenario.servo, scenario.sensor
     move_s = move_profile(abs(sv.end_rad - sv.start_rad), sv.speed_rad_s, sv.accel_rad_s2)[0]

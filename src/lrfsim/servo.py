@@ -38,6 +38,8 @@ from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.errors import InputError
 
+from .profile import move_profile
+
 if TYPE_CHECKING:  # annotations only: scenario.py uses this module (no import circle)
     from .scenario import ServoConfig
 
@@ -120,21 +122,6 @@ class Trajectory:
         d = self.direction[k]
         out = np.where(d > 0, np.maximum(r0[k], lam - h), r0[k])
         return np.where(d < 0, np.minimum(r0[k], lam + h), out)
-
-
-def move_profile(distance_rad: float, speed_rad_s: float, accel_rad_s2: float) -> tuple[float, float, float]:
-    """Trapezoidal profile of a move: (duration_s, ramp_s, peak_rad_s).
-
-    Cruise at ``speed`` if the move is long enough (distance >= speed^2 / accel): duration = D / v + v / a;
-    otherwise a triangle: ramp = sqrt(D / a), peak = a * ramp, duration = 2 ramp.
-    """
-    if distance_rad <= 0:
-        return 0.0, 0.0, 0.0
-    ramp = speed_rad_s / accel_rad_s2
-    if distance_rad >= speed_rad_s * ramp:
-        return distance_rad / speed_rad_s + ramp, ramp, speed_rad_s
-    ramp = math.sqrt(distance_rad / accel_rad_s2)
-    return 2.0 * ramp, ramp, accel_rad_s2 * ramp
 
 
 def sweep_trajectory(servo: ServoConfig) -> Trajectory:
