@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lrfcal.kinematics import DH_NAMES, PARAM_NAMES
+from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.recording import read_recording
 from lrfsim.compare import Comparison

@@ -7,7 +7,7 @@
 2. sim: lrfsim.raycast.simulate_scans on the same motor angles (poses, rays, casts, sensor model);
 3. recording: lrfsim.simulate.simulate_to_folder (scene build, simulation, bag and side files);
 4. batching: the largest distance between a call's shared origin and a beam's exact origin, and the largest
-   angle between a cast direction and the exact beam direction, both against lrfcal.kinematics (eq. (3)).
+   angle between a cast direction and the exact beam direction, both against lrfcal.model.kinematics (eq. (3)).
 Targets: sim / bare <= 1.5, recording < 5 s. Prints PASS/MISS per target (exit code 0 either way).
 """
 
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lrfcal.kinematics import beam_rays_M, transform_points
+from lrfcal.model.kinematics import beam_rays_M, transform_points
 from lrfsim import lidar, raycast
 from lrfsim.scenario import load_scenario
 from lrfsim.scene import build_scene

@@ -28,7 +28,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from lrfcal.kinematics import DH_NAMES
+from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan import format_value
 from lrfsim.scenario import load_scenario
 from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry

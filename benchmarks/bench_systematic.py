@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from lrfcal.kinematics import DH_NAMES
+from lrfcal.model.kinematics import DH_NAMES
 from lrfcal.pipeline import CalibConfig
 from lrfsim.scenario import Scenario, parse_scenario
 from lrfsim.trial import CONFIDENT_WRONG_Z, Trial, calibrate_recording, record

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from lrfcal.kinematics import DH_NAMES
+from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.randomize import random_scenario_wide, wide_dh_determined
 from lrfsim.scenario import Scenario, parse_scenario, with_changes
 from lrfsim.trial import Trial, calibrate_recording, record

@@ -1,7 +1,7 @@
 """A small, self-consistent synthetic :class:`CalibrationResult` for tests of the visualisation and figures.
 
 No simulator: a box-shaped room in W (the marker frame), a handful of marker spheres on the walls, a rotating
-laser with known true parameters. Every array is produced with :mod:`lrfcal.kinematics`, so the reprojected
+laser with known true parameters. Every array is produced with :mod:`lrfcal.model.kinematics`, so the reprojected
 marker returns sit on their markers with the true parameters and off them with the start parameters.
 
 Shapes: S scans, N beams, n markers, B blobs, K marker returns, Q cloud points.
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
-from lrfcal.kinematics import DH, Params, Pose, beam_rays_M, points_M, points_W, transform_points
+from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, points_M, points_W, transform_points
 from lrfcal.types import (
     Association,
     Blob,

@@ -9,7 +9,7 @@ import pytest
 
 from lrfcal.association import associate, kabsch, unmirror
 from lrfcal.errors import CalibrationError
-from lrfcal.kinematics import pose_matrix, transform_points
+from lrfcal.model.kinematics import pose_matrix, transform_points
 from lrfcal.types import MarkerMap
 
 

@@ -18,7 +18,7 @@ from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
 from lrfcal.bag import read_bag
 from lrfcal.cloud import BeamCloud, reproject_beams
-from lrfcal.kinematics import DH
+from lrfcal.model.kinematics import DH
 from lrfcal.rig import ScanSource, ServoSource, TfSource
 
 T0 = 1_700_000_000.0

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from lrfcal.cloud import reproject_beams, sweep_index
-from lrfcal.kinematics import DH, points_M
+from lrfcal.model.kinematics import DH, points_M
 from lrfcal.types import JointStates, Scans
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lrfcal.detection import MAX_CONTRAST, MIN_CONTRAST, blob_centres_M, contrast, detect, observations, split_by_pass
-from lrfcal.kinematics import DH, points_M
+from lrfcal.model.kinematics import DH, points_M
 from lrfcal.types import Blob, Detections, JointStates, Scans
 
 S, N = 240, 400
@@ -137,7 +137,7 @@ def test_observations_no_blobs():
 
 def test_blob_centres_recover_sphere_centre():
     """Returns on a sphere of radius R: the mean of r + 2R/3 lands near the centre (sub-beam)."""
-    from lrfcal.kinematics import beam_rays_M
+    from lrfcal.model.kinematics import beam_rays_M
     from lrfcal.types import Observations
 
     dh = DH(0.01, 1.5708, 0.02, 0.3)

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import (
+from lrfcal.model.kinematics import (
     DH,
     Params,
     Pose,

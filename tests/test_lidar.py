@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.kinematics import beam_rays_M, transform_points
+from lrfcal.model.kinematics import beam_rays_M, transform_points
 from lrfsim import lidar, raycast
 from lrfsim.scenario import Scenario, parse_scenario
 from lrfsim.scene import build_scene, laser_pose_W
@@ -49,7 +49,7 @@ def _run(sc: Scenario, scene=None, seed: int = 0, phase_s: float = 0.0):
 
 
 def _exact_rays_W(sc: Scenario, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-beam origins and directions (S, N, 3) from lrfcal.kinematics with the true DH and mount."""
+    """Per-beam origins and directions (S, N, 3) from lrfcal.model.kinematics with the true DH and mount."""
     mu = lidar.beam_angles(sc.sensor)
     o_M, d_M = beam_rays_M(lam, np.broadcast_to(mu, lam.shape), sc.rig.dh.to_dh())
     T = sc.rig.mount.to_pose().matrix()

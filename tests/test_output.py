@@ -12,7 +12,7 @@ import yaml
 from synthetic import START, TRUE, make_result
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import ESTIMATE_NAMES, PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
+from lrfcal.model.kinematics import ESTIMATE_NAMES, PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
 from lrfcal.output import MANIFEST_NAME, dh_matrix, render_report, urdf_snippet, write_calibration
 from lrfcal.reproject import reproject_cloud, write_ply
 from lrfcal.types import TunnelGeometry
@@ -120,7 +120,7 @@ def test_report_mount_truth_aligned(result):
     T_sim_W = pose_matrix(1.0, -2.0, 0.5, 0.1, -0.2, 0.9)
     mk_W = np.asarray(result.markers.positions_W)
     mk_sim = mk_W @ T_sim_W[:3, :3].T + T_sim_W[:3, 3]
-    from lrfcal.kinematics import Pose
+    from lrfcal.model.kinematics import Pose
 
     mount_sim = Pose.from_matrix(T_sim_W @ result.solution.params.mount.matrix())
     truth = {"dh": result.solution.params.dh.as_dict(), "mount": mount_sim.as_dict(),

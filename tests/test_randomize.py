@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lrfcal.kinematics import Pose
+from lrfcal.model.kinematics import Pose
 from lrfsim.randomize import (
     WIDE_AXES,
     WIDE_LAYOUTS,

@@ -16,7 +16,7 @@ import yaml
 from lrfcal.bag import read_bag
 from lrfcal.cloud import reproject_beams
 from lrfcal.inspection import inspect_bag
-from lrfcal.kinematics import DH
+from lrfcal.model.kinematics import DH
 from lrfcal.rig import ScanSource, ServoSource, parse_rig
 
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
@@ -147,7 +147,7 @@ def test_inspect_snippet_reads_the_bag(path, n_topics):
 
 
 def _eq3_points(r: np.ndarray, lam: np.ndarray, mu: np.ndarray, dh: DH) -> np.ndarray:
-    """Eq. (3) written out independently of lrfcal.kinematics: Rz(lam) Tx(a) Rx(alpha) Tz(b) Rz(beta + mu) [r 0 0]."""
+    """Eq. (3) written out independently of the model: Rz(lam) Tx(a) Rx(alpha) Tz(b) Rz(beta + mu) [r 0 0]."""
     th = dh.beta + mu
     x_l, y_l = r * np.cos(th), r * np.sin(th)  # in the frame after Tz(b): (x_l, y_l, b)
     ca, sa = math.cos(dh.alpha), math.sin(dh.alpha)

@@ -23,9 +23,9 @@ import yaml
 from lrfcal.bag import read_bag
 from lrfcal.cloud import read_cloud_ply, reproject_beams
 from lrfcal.errors import InputError
-from lrfcal.kinematics import DH
 from lrfcal.logconvert import convert_log
 from lrfcal.loginspect import guess_layout, inspect_path
+from lrfcal.model.kinematics import DH
 from lrfcal.recording import read_recording
 from lrfcal.rig import LogLayout, ScanSource, ServoSource, parse_rig
 from lrfcal.scanlog import read_scan_log, resolve_recording

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import DH, Pose, chain_T_M_L
+from lrfcal.model.kinematics import DH, Pose, chain_T_M_L
 from lrfsim.scenario import load_scenario, parse_scenario
 from lrfsim.scene import MODELS_DIR, build_scene, hinge_axis_W, laser_pose_W
 

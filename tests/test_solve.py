@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
+from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
 from lrfcal.solve import (
     MotorClock,
     footprint_depth,

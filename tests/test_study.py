@@ -12,7 +12,7 @@ import pytest
 import yaml
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import DH_NAMES
+from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.scenario import parse_scenario
 from lrfsim.study import (
     CSV_COLUMNS,

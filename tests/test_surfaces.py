@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from lrfcal.kinematics import DH, Params, Pose, beam_rays_M, transform_points
+from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, transform_points
 from lrfcal.solve import MotorClock, _core_from_params, _plane_nuisance_start, _Surf, _surface_residuals
 from lrfcal.surfaces import candidate_planes, find_surfaces, surface_returns
 from lrfcal.types import JointStates

@@ -20,7 +20,7 @@ import pytest
 import yaml
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import Params, points_W
+from lrfcal.model.kinematics import Params, points_W
 from lrfcal.output import MANIFEST_NAME
 from lrfcal.recording import read_recording
 from lrfsim.compare import load_truth

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.kinematics import DH, ESTIMATE_NAMES
+from lrfcal.model.kinematics import DH, ESTIMATE_NAMES
 from lrfcal.pipeline import CalibConfig
 from lrfcal.types import Recording
 from lrfsim.scenario import Scenario, parse_scenario, with_changes

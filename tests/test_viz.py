@@ -19,7 +19,7 @@ from synthetic import make_result, marker_positions_W
 
 from lrfcal import viz
 from lrfcal.figures import DPI, HEIGHT_PX, WIDTH_PX, write_figures
-from lrfcal.kinematics import points_W, pose_matrix
+from lrfcal.model.kinematics import points_W, pose_matrix
 
 rr = pytest.importorskip("rerun")
 

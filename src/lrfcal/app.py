@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
-from .kinematics import Params, Pose
+from .model.kinematics import Params, Pose
 from .pipeline import CalibConfig, calibrate
 from .recording import read_recording
 from .scanlog import resolve_recording
@@ -182,7 +182,7 @@ def _nominal_in_W(result: CalibrationResult, truth: Any) -> tuple[Params | None,
 def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any,
                warn: Callable[[str], None] | None = None) -> None:
     from . import viz
-    from .kinematics import transform_points
+    from .model.kinematics import transform_points
     from .output import truth_dict, truth_frame
 
     geoms = None

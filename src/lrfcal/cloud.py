@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .kinematics import DH, points_M
+from .model.kinematics import DH, points_M
 from .reproject import current_umask
 from .timing import covered_scans, motor_angles
 from .types import JointStates, Scans

@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from .errors import InputError
-from .kinematics import DH, points_M
+from .model.kinematics import DH, points_M
 from .timing import motor_angles
 from .types import Blob, Detections, JointStates, Observations, Scans
 

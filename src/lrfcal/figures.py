@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .figlayout import place_labels, three_ticks, view_frame
-from .kinematics import Params
+from .model.kinematics import Params
 from .types import CalibrationResult
 from .viz import marker_returns
 

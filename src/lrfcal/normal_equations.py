@@ -3,7 +3,7 @@ the planes' nuisances eliminated by the Schur complement.
 
 The whitened residual vector of a solve has three kinds of rows (:class:`Blocks`): dense rows that involve only the
 core unknowns (marker returns, the design drawing's prior on the DH parameters), plane rows that involve the core
-unknowns and the 3 nuisances of their own plane (lrfcal.rayplane), and one prior row per plane nuisance. So the
+unknowns and the 3 nuisances of their own plane (lrfcal.model.plane), and one prior row per plane nuisance. So the
 information H = J^T W J is arrow-shaped,
 
     H = [[A, B], [B^T, D]],   D = blockdiag(D_1 .. D_P) (3 x 3 per plane),

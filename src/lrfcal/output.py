@@ -24,7 +24,7 @@ import yaml
 from numpy.typing import NDArray
 
 from .errors import InputError
-from .kinematics import (
+from .model.kinematics import (
     ANGLE_NAMES,
     DH,
     DH_NAMES,
@@ -340,7 +340,7 @@ def truth_frame(result: CalibrationResult, truth: dict[str, Any], gate_m: float 
     """
     if result.markers is None or result.observations is None:  # targetless: no marker frame W
         return None
-    from .kinematics import points_M, transform_points
+    from .model.kinematics import points_M, transform_points
 
     markers = truth.get("markers") or {}
     ids = list(markers)

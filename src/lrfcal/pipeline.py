@@ -22,7 +22,7 @@ import numpy as np
 from . import association, detection, geometry, mds, observability, reproject, solve, start, surfaces, timing
 from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Check, Stopwatch, chi2_check, refuse_failed, split_in_two
 from .errors import CalibrationError, InputError
-from .kinematics import DH, PARAM_NAMES, Params, Pose
+from .model.kinematics import DH, PARAM_NAMES, Params, Pose
 from .targetless import calibrate_targetless, merge_returns, scene_plane_returns
 from .timing import usable_scans
 from .types import (

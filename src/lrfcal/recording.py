@@ -18,7 +18,7 @@ import numpy as np
 
 from .bag import Progress, read_bag
 from .errors import InputError
-from .kinematics import DH, Pose
+from .model.kinematics import DH, Pose
 from .rig import ScanSource, ServoSource, load_rig
 from .scanlog import is_scan_log, read_scan_log, resolve_recording
 from .types import JointStates, Nominal, Recording, Scans, TapeMeasurements

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .kinematics import DH, points_M_trig
+from .model.kinematics import DH, points_M_trig
 from .types import Scans
 
 FloatArray = NDArray[np.float64]

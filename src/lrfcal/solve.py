@@ -48,7 +48,7 @@ Solver: a robust pass (trf, soft-L1 loss) from the start, then plain least squar
 whitened residual exceeds 4 sigma dropped (repeated until the inlier set is stable), whose Jacobian gives the
 covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals. The plain passes, the targetless
 solve and the information run on the normal equations with the planes' nuisances eliminated by the Schur complement
-(lrfcal.normal_equations); the plane rows' Jacobian is lrfcal.rayplane's.
+(lrfcal.normal_equations); the plane rows' Jacobian is lrfcal.model.plane's.
 """
 
 from __future__ import annotations
@@ -60,13 +60,23 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError, InputError
-from .footprint import footprint_depth, sphere_depth
-from .kinematics import DH, Params, Pose, exp_so3, points_M, right_jacobian_so3, transform_points
+from .model.kinematics import DH, Params, Pose, exp_so3, points_M, right_jacobian_so3, transform_points
+from .model.plane import plane_rows
+from .model.sphere import footprint_depth, sphere_depth
+from .model.unknowns import (
+    CORE_NAMES,
+    MBIAS,
+    N_CORE,
+    ROFF,
+    TAU,
+    MotorClock,
+    PlaneSet,
+    motor_lambda,
+    plane_nuisance_start,
+)
 from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, levenberg_marquardt, schur
-from .rayplane import plane_rows
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations, Solution
-from .unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, MotorClock, PlaneSet, motor_lambda, plane_nuisance_start
 
 FloatArray = NDArray[np.float64]
 
@@ -154,7 +164,7 @@ def _surface_residuals(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: Float
                        ) -> tuple[FloatArray, FloatArray | None]:
     """Range residuals against the ray-plane distance r_p = (d - n.o) / (n.dir), whitened by sigma_r:
     (r - r_p) / sigma_r, shape (K2,), and the dense Jacobian -(dr_p/d[core, nuisance]) / sigma_r,
-    (K2, N_CORE + 3P) (lrfcal.rayplane, whose blocks the solver uses without this dense matrix)."""
+    (K2, N_CORE + 3P) (lrfcal.model.plane, whose blocks the solver uses without this dense matrix)."""
     rows = plane_rows(th, s, sigma_r, R_ref, jac=jac, clock=clock, mount_jac=mount_jac)
     if rows.Jc is None or rows.Jn is None:
         return rows.res, None

@@ -22,7 +22,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from .kinematics import DH
+from .model.kinematics import DH
 from .types import MarkerMap, Observations
 
 FloatArray = NDArray[np.float64]

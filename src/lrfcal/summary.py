@@ -14,7 +14,7 @@ if TYPE_CHECKING:
 def print_summary(result: CalibrationResult, console: Console) -> None:
     """The estimated parameters with their 1-sigma, the solver status, the residual RMS and stage timings.
 
-    The sigma vector is in :data:`~lrfcal.kinematics.ESTIMATE_NAMES` order: the mount rotation is estimated as a
+    The sigma vector is in :data:`~lrfcal.model.kinematics.ESTIMATE_NAMES` order: the mount rotation is estimated as a
     small rotation vector (rx, ry, rz), so roll, pitch and yaw are shown without a sigma and the rotation's
     1-sigma gets its own rows.
     """
@@ -22,7 +22,7 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
 
     from rich.table import Table
 
-    from .kinematics import ANGLE_NAMES, ESTIMATE_NAMES, PARAM_NAMES
+    from .model.kinematics import ANGLE_NAMES, ESTIMATE_NAMES, PARAM_NAMES
     from .output import residual_summary
 
     sol = result.solution

@@ -33,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from .kinematics import Params, beam_rays_W, points_W
+from .model.kinematics import Params, beam_rays_W, points_W
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -263,7 +263,7 @@ def observe_surfaces(
         ranges_m (S, N) with NaN for no return; mu_rad (S, N) per-scan bearings (or (N,));
         lambda_rad (S, N) per-beam motor angles;
         labels (S, N) blob labels (>= 0 on marker returns, excluded); markers_W (n, 3); radius_m;
-        params: lrfcal.kinematics.Params used to reproject (the marker-only estimate);
+        params: lrfcal.model.kinematics.Params used to reproject (the marker-only estimate);
         beam_times_s (S, N): laser-clock beam times, carried with the returns (for the clock offset);
         position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior);
         max_incidence_rad: the most oblique incidence of a surface return used (ray directions from ``params``).

@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 from . import geometry, holdout, observability, planes, reproject, solve, timing
 from .config import CalibConfig, Check, Stopwatch, chi2_check, refuse_failed, split_in_two
 from .errors import CalibrationError
-from .kinematics import DH, Params, Pose, beam_rays_W, points_M
+from .model.kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .surfaces import Surface, SurfaceReturns, hash_sample
 from .timing import usable_scans
 from .types import CalibrationResult, JointStates, Recording, Scans, Solution

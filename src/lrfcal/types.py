@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .kinematics import DH, Params, Pose
+from .model.kinematics import DH, Params, Pose
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

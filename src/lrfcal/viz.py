@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .kinematics import DH, Params, homogeneous, points_W, rot_x, rot_z, transform_points
+from .model.kinematics import DH, Params, homogeneous, points_W, rot_x, rot_z, transform_points
 from .types import CalibrationResult
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
+from lrfcal.model.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
 from lrfcal.output import truth_dict, truth_frame
 from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
 from lrfcal.yamlfile import read_yaml

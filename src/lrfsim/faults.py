@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import Params, beam_rays_M, points_W, transform_points
+from lrfcal.model.kinematics import Params, beam_rays_M, points_W, transform_points
 
 from .scenario import FaultsConfig, NoiseBand, Scenario, TapeOutlier
 from .tape import TapeResult

@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
+from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.observability import LIMITS, Observability, analyse
 from lrfcal.solve import MotorClock, information_at
 from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lrfcal.kinematics import Pose
+from lrfcal.model.kinematics import Pose
 
 from .scenario import Scenario, parse_scenario
 
@@ -395,7 +395,7 @@ def wide_dh_sigma(scenario: Scenario, sigma_m: float | None = None) -> np.ndarra
     one return per visible marker and pass at the beam through its centre, a 3D point residual with isotropic
     noise ``sigma_m`` (default: the first range noise band's), the mount (position and a local rotation vector,
     free of Euler singularities) estimated jointly. inf when the 10 parameters are not determined."""
-    from lrfcal.kinematics import DH, points_M
+    from lrfcal.model.kinematics import DH, points_M
 
     from .scene import marker_centres_W
 

@@ -18,7 +18,7 @@ import yaml
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import DH, Pose
+from lrfcal.model.kinematics import DH, Pose
 from lrfcal.yamlfile import read_yaml
 
 PositiveFloat = Annotated[float, Field(gt=0)]

@@ -25,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
-from lrfcal.kinematics import beam_rays_M, homogeneous, rot_x, rot_z, transform_points
+from lrfcal.model.kinematics import beam_rays_M, homogeneous, rot_x, rot_z, transform_points
 
 from .scenario import (
     BoardConfig,

@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.kinematics import DH, Pose
+from lrfcal.model.kinematics import DH, Pose
 
 from .servo import JointSamples
 from .tape import TapeResult

@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.kinematics import DH_NAMES
+from lrfcal.model.kinematics import DH_NAMES
 from lrfcal.output import atomic_folder, check_replaceable
 from lrfcal.threads import apply_thread_policy, call_with_thread_policy
 

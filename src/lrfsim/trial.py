@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from lrfcal.errors import LrfError
-from lrfcal.kinematics import DH_NAMES, ESTIMATE_NAMES
+from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.recording import read_recording
 from lrfcal.types import CalibrationResult, Recording

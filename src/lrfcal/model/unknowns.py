@@ -9,13 +9,16 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import InputError
+from ..errors import InputError
 from .kinematics import ESTIMATE_NAMES
-from .types import JointStates
+
+if TYPE_CHECKING:  # the joint states are data; the model needs only their arrays
+    from ..types import JointStates
 
 FloatArray = NDArray[np.float64]
 

@@ -1,6 +1,6 @@
 """Ray-plane range residuals and their Jacobian, row by row without (K, 3, N_CORE) temporaries.
 
-A return k on plane j (lrfcal.unknowns.PlaneSet) has the residual (r_k - range_offset - r_p) / sigma_r against the
+A return k on plane j (lrfcal.model.unknowns.PlaneSet) has the residual (r_k - range_offset - r_p) / sigma_r against the
 ray-plane distance r_p = (d_j - n_j . o) / (n_j . dir) (lrfcal.solve's module docstring has the forward model).
 Everything is evaluated in the frame of the beam before the motor's turn ("L0": M turned back by lambda_k), where
 the ray is fixed by the DH parameters alone, o_0 = [a, -b sin alpha, b cos alpha] and
