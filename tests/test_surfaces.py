@@ -5,7 +5,9 @@ from __future__ import annotations
 import numpy as np
 
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, transform_points
-from lrfcal.solve import MotorClock, _core_from_params, _plane_nuisance_start, _Surf, _surface_residuals
+from lrfcal.model.motor import MotorClock
+from lrfcal.model.unknowns import N_CORE, PlaneSet, pack, plane_nuisance_start
+from lrfcal.problem import Problem, no_markers
 from lrfcal.surfaces import candidate_planes, find_surfaces, surface_returns
 from lrfcal.types import JointStates
 
@@ -66,25 +68,25 @@ def test_surface_jacobian_matches_finite_differences() -> None:
     plane = rng.integers(0, 2, K)
     offsets = np.array([1.0, 2.0])
     r = (offsets[plane] - (normals[plane] * o).sum(1)) / (normals[plane] * d).sum(1) + rng.normal(0, 0.01, K)
-    n0, t1, t2, nu0 = _plane_nuisance_start(normals + rng.normal(0, 0.01, (2, 3)), offsets + 0.003)
+    n0, t1, t2, nu0 = plane_nuisance_start(normals + rng.normal(0, 0.01, (2, 3)), offsets + 0.003)
     n0 = n0 / np.linalg.norm(n0, axis=1, keepdims=True)
     t = np.linspace(-1.0, 11.0, 1201)
     clock = MotorClock.from_joints(JointStates(t, 1.5 * np.sin(0.4 * t), "servo"))
     times = rng.uniform(0.0, 10.0, K)
-    s = _Surf(clock.angles(times, 0.0)[0], mu, r, plane.astype(np.int64), n0, t1, t2, times=times)
-    core, R_ref = _core_from_params(params, 0.01)
+    s = PlaneSet(clock.angles(times, 0.0)[0], mu, r, plane.astype(np.int64), n0, t1, t2, times=times)
+    core, R_ref = pack(params, 0.01)
     core[3:6] = (0.2, -0.3, 0.5)  # a rotation increment away from 0: the SO(3) right Jacobian
     th = np.concatenate([core, nu0 + rng.normal(0, 0.01, nu0.size)])
-    _, J = _surface_residuals(th, s, 0.01, R_ref, clock=clock)
-    assert J is not None and J.shape == (K, 19)
+    pb = Problem(no_markers(), 0.01, surf=s, clock=clock)
+    _, J = pb.stacked(th, R_ref)
+    assert J is not None and J.shape == (K, N_CORE + 6)
     h = 1e-6
     for j in range(th.size):
         dp = np.zeros(th.size)
         dp[j] = h
-        num = (_surface_residuals(th + dp, s, 0.01, R_ref, jac=False, clock=clock)[0]
-               - _surface_residuals(th - dp, s, 0.01, R_ref, jac=False, clock=clock)[0])
+        num = pb.stacked(th + dp, R_ref, jac=False)[0] - pb.stacked(th - dp, R_ref, jac=False)[0]
         num /= 2 * h
-        tol = 5e-3 if j == 10 else 1e-5  # the clock column uses the smoothed joint velocity (solve.jacobian_check)
+        tol = 5e-3 if j == 10 else 1e-5  # the clock column uses the smoothed joint velocity (jacobian_check)
         assert np.abs(num - J[:, j]).max() <= tol * max(1.0, np.abs(J[:, j]).max()), j
 
 

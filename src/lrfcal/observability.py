@@ -1,6 +1,6 @@
 """What the data determine, decided from the information matrix itself (never from a solver that ran away).
 
-Given the information I (k, k) of the estimated core unknowns (lrfcal.solve.CORE_NAMES: the mount, the DH
+Given the information I (k, k) of the estimated core unknowns (lrfcal.model.unknowns.CORE_NAMES: the mount, the DH
 parameters, the clock offset), the DH block is marginalised over the others (Schur complement) and normalised by
 :data:`LIMITS`, the 1-sigma beyond which a parameter counts as not calibrated: N = D I_dh D, D = diag(limits).
 An eigenvalue e of N belongs to a combination of DH parameters whose 1-sigma is 1 / sqrt(e) limits: e < 1 means

@@ -22,7 +22,10 @@ import numpy as np
 from . import association, detection, geometry, mds, observability, reproject, solve, start, surfaces, timing
 from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Check, Stopwatch, chi2_check, refuse_failed, split_in_two
 from .errors import CalibrationError, InputError
+from .information import information_at
 from .model.kinematics import DH, PARAM_NAMES, Params, Pose
+from .model.motor import MotorClock
+from .model.unknowns import wrap_pi
 from .targetless import calibrate_targetless, merge_returns, scene_plane_returns
 from .timing import usable_scans
 from .types import (
@@ -51,7 +54,7 @@ class _Alternative:
     assoc: Association
     matched: Observations
     start: Params
-    clock: solve.MotorClock | None
+    clock: MotorClock | None
     solution: Solution
     notes: tuple[str, ...] = ()
 
@@ -287,8 +290,8 @@ def _marker_solution(
             f"only {n_matched} markers matched to detections (need >= 4); alignment RMS {assoc.rms_m * 1000:.1f} mm"
         )
     start = Params(Pose.from_matrix(assoc.T_W_M), start_dh)  # 5.
-    motor = solve.MotorClock.from_joints(joints) if estimate_clock else None
-    info, names = solve.information_at(matched, markers.positions_W, start, model="sphere",
+    motor = MotorClock.from_joints(joints) if estimate_clock else None
+    info, names = information_at(matched, markers.positions_W, start, model="sphere",
                                        marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
                                        clock=motor, clock_offset_s=config.clock_offset_s,
                                        beam_divergence_rad=nominal.beam_divergence_rad)
@@ -419,8 +422,8 @@ def _choose_servo_sign(alts: list[_Alternative], nominal_dh: DH, config: CalibCo
 
 def _nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:
     """max over a, alpha, b, beta of |estimate - nominal| / tolerance, and the worst parameter in words."""
-    diffs = [dh.a - nominal.a, float(solve.wrap_pi(dh.alpha - nominal.alpha)), dh.b - nominal.b,
-             float(solve.wrap_pi(dh.beta - nominal.beta))]
+    diffs = [dh.a - nominal.a, float(wrap_pi(dh.alpha - nominal.alpha)), dh.b - nominal.b,
+             float(wrap_pi(dh.beta - nominal.beta))]
     ratios = [abs(d) / t for d, t in zip(diffs, config.nominal_tolerance, strict=True)]
     k = int(np.argmax(ratios))
     name = ("a", "alpha", "b", "beta")[k]
@@ -436,7 +439,7 @@ def _dh_text(dh: DH) -> str:
 
 def _checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
-    config: CalibConfig, fit: Callable[..., Solution], motor: solve.MotorClock | None,
+    config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None,
 ) -> list[Check]:
     """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
@@ -458,7 +461,7 @@ def _checks(
 
 def _second_opinion(
     sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
-    fit: Callable[..., Solution], motor: solve.MotorClock | None,
+    fit: Callable[..., Solution], motor: MotorClock | None,
 ) -> Check:
     """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
     and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
@@ -479,7 +482,7 @@ def _second_opinion(
         if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
         d = ps.params.vector()[dh] - sol.params.vector()[dh]
-        d[[1, 3]] = solve.wrap_pi(d[[1, 3]])
+        d[[1, 3]] = wrap_pi(d[[1, 3]])
         C = ps.covariance[np.ix_(dh, dh)] - sol.covariance[np.ix_(dh, dh)]
         if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")

@@ -222,7 +222,7 @@ class RigFile(_Strict):
     dh: DHModel
     mount: MountModel | None = None
     marker_radius_m: Annotated[float, Field(ge=0.0), _metres(MAX_MARKER_RADIUS_M, "a marker radius")] = 0.005
-    #: the scanner's full beam divergence [rad]: its footprint on a marker (lrfcal.solve.footprint_depth); 0 (the
+    #: the scanner's full beam divergence [rad]: its footprint on a marker (lrfcal.model.sphere.footprint_depth); 0 (the
     #: default) models the beam as its axis, right for a footprint much smaller than the markers
     beam_divergence_rad: float = Field(default=0.0, ge=0.0, lt=0.1)
     #: the scanner's range noise, 1-sigma [m]: the calibration's default --range-sigma (absent: 0.010, the

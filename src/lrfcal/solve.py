@@ -1,414 +1,42 @@
-"""Stage 6: Levenberg-Marquardt over the 10 parameters, and the laser-servo clock offset where the sweep shows it.
+"""Stage 6: the one least-squares engine: Levenberg-Marquardt over the rig model's unknowns, used by the marker
+calibration (:func:`solve`), the targetless one (:func:`solve_planes`), ``plan`` and ``study``.
 
-Unknowns (never Euler angles): the mount translation t = (x, y, z), the mount rotation on SO(3) as a reference
-R_ref and a small rotation vector w applied in frame M (R = R_ref Exp(w); after every solver pass w is folded into
-R_ref and restarts at 0, so the parameterisation has no singularity at any attitude), the DH parameters
-(a, alpha, b, beta), and optionally the clock offset tau = laser stamp - servo stamp. Their order is
-:data:`CORE_NAMES` (kinematics.ESTIMATE_NAMES + "clock_offset"); roll, pitch and yaw are only an output format.
-
-Forward model (kinematics.py, eq. (3)), per return k at laser time t_k with bearing mu_k, range r_k,
-phi_k = beta + mu_k and motor angle lambda_k = q(t_k - tau) (q: the joint states, interpolated linearly):
-
-    o_M = Rz(lambda) [a, -b sin(alpha), b cos(alpha)]              beam origin in M
-    d_M = Rz(lambda) [cos(phi), sin(phi) cos(alpha), sin(phi) sin(alpha)]   unit direction in M
-    o = R o_M + t,  d = R d_M                                                  in W
-
-Two observation models (c = the centre of the return's marker in W, R_m its radius):
-
-* ``"paper"`` (seed paper eq. (10)): residual (o + r d - c) / sigma_r, 3 per return.
-* ``"sphere"`` (every return on a marker, sub-beam): v = c - o, t = v.d, e = v - t d (|e| = distance of the
-  centre from the ray), u = |e| / R_m,
-      r_hat = t - R_m s(u),   s(u) = sqrt(eta softplus((1 - u^2) / eta))   (eta = 0.05)
-  s(u) ~ sqrt(1 - u^2) (the depth of the sphere's surface below the centre plane) for u < ~0.97, and is
-  smooth with bounded slope near and beyond the rim (s -> 0: a grazing or mixed-pixel return reports the
-  rim). Residuals: (r - r_hat) / sigma_r and e / sigma_lat (3 components, one of them identically zero along
-  d, hence 3 independent residuals per return), sigma_lat = R_m / 2 (hits spread uniformly over the visible
-  disc: E|e|^2 = R_m^2 / 2).
-  With a finite beam (``beam_divergence_rad`` delta > 0) the footprint at the marker is a disc of radius
-  k R_m, k = r delta / (2 R_m) from the measured range r, and a retroreflector outshines whatever else it
-  covers: s(u) becomes S(u, k), the mean of s over the part of the footprint that hits the sphere
-  (footprint_depth), and sigma_lat = R_m sqrt(1 + k^2) / 2 (the beam's axis is the point hit on the marker's
-  disc minus its offset within the footprint, two independent uniform discs). Modelling the beam
-  as its axis alone leaves the footprint in the marker returns' ranges: on lrfsim's 4.4 mrad beam and 5 mm
-  spheres a marker-return range bias of -0.9 mm (plane_30deg), +0.04 mm with the footprint (docs/study.md).
-
-Analytic Jacobian (chain rule; dX/dtheta_j written X_j):
-    translation: o_j = e_j, d_j = 0;
-    rotation vector w_j: o_j = -R [o_M]x J_r(w) e_j, d_j = -R [d_M]x J_r(w) e_j (J_r: SO(3) right Jacobian);
-    DH parameter p: o_j = R Rz(lambda) d(o_loc)/dp, d_j = R Rz(lambda) d(d_loc)/dp with
-      d o_loc/da = (1,0,0), d o_loc/dalpha = (0, -b ca, -b sa), d o_loc/db = (0, -sa, ca), d o_loc/dbeta = 0,
-      d d_loc/dalpha = (0, -sphi sa, sphi ca), d d_loc/dbeta = (-sphi, cphi ca, cphi sa), others 0;
-    clock offset tau: o_tau = R (z x o_M) dlambda/dtau, d_tau = R (z x d_M) dlambda/dtau, dlambda/dtau = -omega(t_k -
-      tau) (omega: the joint's angular velocity, smoothed over ~50 ms).
-    paper: (o + r d)_j / sigma_r.
-    sphere: v_j = -o_j; t_j = v_j.d + v.d_j; e_j = v_j - t_j d - t d_j; |e|_j = (e/|e|).e_j;
-      r_hat_j = t_j - s'(u) |e|_j;  range residual_j = -r_hat_j / sigma_r;  lateral_j = e_j / sigma_lat.
+The unknowns (lrfcal.model.unknowns, never Euler angles): the mount translation t, the mount rotation on SO(3) as a
+reference R_ref and a small rotation vector w applied in frame M (R = R_ref Exp(w); after every solver pass w is
+folded into R_ref and restarts at 0, so the parameterisation has no singularity at any attitude), the DH parameters,
+the clock offset and the intrinsics; the observation models are lrfcal.model's (marker: ray-sphere with the beam's
+footprint, or the seed paper's eq. (10); plane: ray-plane), assembled by lrfcal.problem.
 
 Solver: a robust pass (trf, soft-L1 loss) from the start, then plain least squares with observations whose
 whitened residual exceeds 4 sigma dropped (repeated until the inlier set is stable), whose Jacobian gives the
-covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals. The plain passes, the targetless
-solve and the information run on the normal equations with the planes' nuisances eliminated by the Schur complement
-(lrfcal.normal_equations); the plane rows' Jacobian is lrfcal.model.plane's.
+covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals, widened where errors shared within
+a scan make it optimistic (cluster-robust sandwich). The plain passes, the targetless solve and the information run
+on the normal equations with the planes' nuisances eliminated by the Schur complement (lrfcal.normal_equations).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .errors import CalibrationError, InputError
-from .model.kinematics import DH, Params, Pose, exp_so3, points_M, right_jacobian_so3, transform_points
+from .errors import CalibrationError
+from .model.kinematics import Params, exp_so3
+from .model.marker import residuals_3d
+from .model.motor import MotorClock, motor_angles
 from .model.plane import plane_rows
-from .model.sphere import footprint_depth, sphere_depth
-from .model.unknowns import (
-    CORE_NAMES,
-    MBIAS,
-    N_CORE,
-    ROFF,
-    TAU,
-    MotorClock,
-    PlaneSet,
-    motor_lambda,
-    plane_nuisance_start,
-)
-from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, levenberg_marquardt, schur
+from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack, unpack
+from .normal_equations import RANK_TOL, assemble, cluster_scores, levenberg_marquardt
+from .problem import Problem, marker_problem, plane_problem, plane_set
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations, Solution
 
 FloatArray = NDArray[np.float64]
 
-MODELS = ("paper", "sphere")
-_TAU, _ROFF, _MBIAS = TAU, ROFF, MBIAS
-_Surf, _plane_nuisance_start, _lambda = PlaneSet, plane_nuisance_start, motor_lambda  # the names tests use
-_DH_ANGLES = (7, 9)  # alpha, beta
 
-
-def wrap_pi(a: ArrayLike) -> FloatArray:
-    """Wrap angles to (-pi, pi]."""
-    a = np.asarray(a, dtype=float)
-    return a - 2 * np.pi * np.ceil((a - np.pi) / (2 * np.pi))
-
-
-def _rays(
-    core: FloatArray, R_ref: FloatArray, lam: FloatArray, mu: FloatArray, omega: FloatArray | None, jac: bool,
-    mount_jac: bool = True,
-) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
-    """Beam origins o (K, 3) and unit directions d (K, 3) in W and their Jacobians (K, 3, N_CORE) with respect to
-    the core unknowns (module docstring); the clock column is zero when ``omega`` is None, the mount's columns
-    when ``mount_jac`` is False (a held mount)."""
-    t, w = core[:3], core[3:6]
-    a, al, b, be = core[6:10]
-    lam, phi = np.broadcast_arrays(np.atleast_1d(lam), be + np.atleast_1d(mu))
-    K = lam.size
-    cl, sl = np.cos(lam), np.sin(lam)
-    ca, sa = np.cos(al), np.sin(al)
-    cp, sp = np.cos(phi), np.sin(phi)
-    R = R_ref @ exp_so3(w)
-
-    def rz(v: FloatArray) -> FloatArray:  # Rz(lambda_k) v_k for v (K, 3) or (3,)
-        v = np.broadcast_to(v, (K, 3))
-        return np.stack([cl * v[:, 0] - sl * v[:, 1], sl * v[:, 0] + cl * v[:, 1], v[:, 2]], -1)
-
-    o_M = rz(np.array([a, -b * sa, b * ca]))
-    d_M = rz(np.stack([cp, sp * ca, sp * sa], -1))
-    o = o_M @ R.T + t
-    d = d_M @ R.T
-    if not jac:
-        return o, d, None, None
-    Jo = np.zeros((K, 3, N_CORE))
-    Jd = np.zeros((K, 3, N_CORE))
-    if mount_jac:
-        Jo[:, 0, 0] = Jo[:, 1, 1] = Jo[:, 2, 2] = 1.0
-        Jr = right_jacobian_so3(w)
-        for j in range(3):
-            Jo[:, :, 3 + j] = -np.cross(o_M, Jr[:, j]) @ R.T
-            Jd[:, :, 3 + j] = -np.cross(d_M, Jr[:, j]) @ R.T
-    z0 = np.zeros(K)
-    Jo[:, :, 6] = rz(np.array([1.0, 0.0, 0.0])) @ R.T
-    Jo[:, :, 7] = rz(np.array([0.0, -b * ca, -b * sa])) @ R.T
-    Jo[:, :, 8] = rz(np.array([0.0, -sa, ca])) @ R.T
-    Jd[:, :, 7] = rz(np.stack([z0, -sp * sa, sp * ca], -1)) @ R.T
-    Jd[:, :, 9] = rz(np.stack([-sp, cp * ca, cp * sa], -1)) @ R.T
-    if omega is not None:  # d/dlambda of Rz(lambda) v is z x (Rz v); dlambda/dtau = -omega
-        zo = np.stack([-o_M[:, 1], o_M[:, 0], z0], -1) @ R.T
-        zd = np.stack([-d_M[:, 1], d_M[:, 0], z0], -1) @ R.T
-        Jo[:, :, _TAU] = -omega[:, None] * zo
-        Jd[:, :, _TAU] = -omega[:, None] * zd
-    return o, d, Jo, Jd
-
-
-def _core_from_params(params: Params, tau_s: float = 0.0) -> tuple[FloatArray, FloatArray]:
-    """The core vector (N_CORE,) with w = 0, and R_ref (3, 3), of a Params (rpy is only a format)."""
-    T = params.mount.matrix()
-    core = np.zeros(N_CORE)
-    core[:3] = T[:3, 3]
-    core[6:10] = [params.dh.a, params.dh.alpha, params.dh.b, params.dh.beta]
-    core[_TAU] = tau_s
-    return core, T[:3, :3].copy()
-
-
-def _params_from_core(core: FloatArray, R_ref: FloatArray) -> Params:
-    T = np.eye(4)
-    T[:3, :3] = R_ref @ exp_so3(core[3:6])
-    T[:3, 3] = core[:3]
-    v = np.array(core[6:10], dtype=float)
-    v[[1, 3]] = wrap_pi(v[[1, 3]])
-    return Params(Pose.from_matrix(T), DH(*map(float, v)))
-
-
-def _surface_residuals(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, jac: bool = True,
-                       clock: MotorClock | None = None, mount_jac: bool = True
-                       ) -> tuple[FloatArray, FloatArray | None]:
-    """Range residuals against the ray-plane distance r_p = (d - n.o) / (n.dir), whitened by sigma_r:
-    (r - r_p) / sigma_r, shape (K2,), and the dense Jacobian -(dr_p/d[core, nuisance]) / sigma_r,
-    (K2, N_CORE + 3P) (lrfcal.model.plane, whose blocks the solver uses without this dense matrix)."""
-    rows = plane_rows(th, s, sigma_r, R_ref, jac=jac, clock=clock, mount_jac=mount_jac)
-    if rows.Jc is None or rows.Jn is None:
-        return rows.res, None
-    K2 = s.r.size
-    J = np.zeros((K2, N_CORE + 3 * s.n_planes))
-    J[:, :N_CORE] = rows.Jc
-    J[np.arange(K2)[:, None], N_CORE + 3 * s.plane[:, None] + np.arange(3)] = rows.Jn
-    return rows.res, J
-
-
-@dataclass(frozen=True)
-class _Problem:
-    """The data of one solve: K returns with their marker centres, optional surface returns, optional clock."""
-
-    lam: FloatArray  # (K,) motor angles at the start clock offset
-    mu: FloatArray  # (K,)
-    r: FloatArray  # (K,)
-    c: FloatArray  # (K, 3) centre of each return's marker in W
-    model: str
-    radius: float
-    sigma_r: float
-    surf: _Surf | None = None
-    times: FloatArray | None = None  # (K,) laser-clock beam times
-    clock: MotorClock | None = None  # set when the clock offset is estimated
-    dh_prior: tuple[FloatArray, FloatArray] | None = None  # (mean (4,), sigma (4,)) of a, alpha, b, beta
-    mount_jac: bool = True  # False: the mount is held, its Jacobian columns are not computed (left 0)
-    divergence: float = 0.0  # full beam divergence [rad]: the footprint on a marker (footprint_depth)
-
-    @property
-    def footprint(self) -> FloatArray:
-        """(K,) footprint radius at each return's marker, in marker radii (k of :func:`footprint_depth`), from the
-        measured range (data, not a function of the unknowns)."""
-        return 0.5 * self.divergence * np.maximum(self.r, 0.0) / self.radius
-
-    @property
-    def sigma_lat(self) -> FloatArray:
-        """(K,) spread of each return's beam axis about its marker's centre, per component: the axis is the point
-        hit on the marker's disc (uniform over radius R_m, variance R_m^2 / 4 per component) minus its offset
-        within the footprint (uniform over radius k R_m, variance (k R_m)^2 / 4), so R_m sqrt(1 + k^2) / 2."""
-        return 0.5 * self.radius * np.sqrt(1.0 + self.footprint ** 2)
-
-    @property
-    def n_res(self) -> int:
-        """Residual components per return (4 for the sphere: 1 range + 3 lateral, 3 independent)."""
-        return 3 if self.model == "paper" else 4
-
-    def subset(self, m: NDArray[np.bool_], ms: NDArray[np.bool_] | None = None) -> _Problem:
-        surf = self.surf if self.surf is None or ms is None else self.surf.subset(ms)
-        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], c=self.c[m], surf=surf,
-                       times=None if self.times is None else self.times[m])
-
-    def blocks(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> Blocks:
-        """All whitened residuals as lrfcal.normal_equations.Blocks: the marker returns and the design drawing's
-        prior on the DH parameters (dense rows), the surface returns (plane rows) and the planes' priors."""
-        z = np.zeros(0)
-        r_d, J_d = z, np.zeros((0, N_CORE))
-        if self.r.size:
-            res, J = _residuals(th, self, R_ref, jac=jac)
-            r_d, J_d = res.ravel(), (None if J is None else J.reshape(-1, N_CORE))
-        if self.dh_prior is not None:  # the design drawing's word on the DH parameters
-            mean, sig = self.dh_prior
-            d = th[6:10] - mean
-            d[[1, 3]] = wrap_pi(d[[1, 3]])
-            r_d = np.concatenate([r_d, d / sig])
-            if J_d is not None:
-                Jp = np.zeros((4, N_CORE))
-                Jp[:, 6:10] = np.diag(1.0 / sig)
-                J_d = np.vstack([J_d, Jp])
-        s = self.surf
-        if s is None:
-            return Blocks(r_d, J_d, z, np.zeros((0, N_CORE)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0)
-        rows = plane_rows(th, s, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
-        r_q = w_q = None
-        if s.prior_sigma is not None and s.prior_mean is not None:  # the markers' word on the planes
-            r_q, w_q = (th[N_CORE:] - s.prior_mean) / s.prior_sigma, 1.0 / s.prior_sigma
-        return Blocks(r_d, J_d, rows.res, rows.Jc, rows.Jn, s.plane, s.n_planes, r_q, w_q, s.segments)
-
-    def stacked(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
-        """All whitened residuals as one vector (dense rows, plane rows, plane priors) and the dense Jacobian
-        (rows, N_CORE + 3P) (for scipy's robust pass; the normal equations use :meth:`blocks`)."""
-        b = self.blocks(th, R_ref, jac)
-        res = b.residuals()
-        if b.J_dense is None or b.Jc_plane is None or b.Jn_plane is None:
-            return res, None
-        m, K = b.r_dense.size, b.r_plane.size
-        J = np.zeros((res.size, th.size))
-        J[:m, :N_CORE] = b.J_dense
-        J[m:m + K, :N_CORE] = b.Jc_plane
-        J[m + np.arange(K)[:, None], N_CORE + 3 * b.plane[:, None] + np.arange(3)] = b.Jn_plane
-        if b.w_prior is not None:
-            J[m + K + np.arange(b.w_prior.size), N_CORE + np.arange(b.w_prior.size)] = b.w_prior
-        return res, J
-
-
-def _residuals(th: FloatArray, pb: _Problem, R_ref: FloatArray, jac: bool = True
-               ) -> tuple[FloatArray, FloatArray | None]:
-    """Whitened residuals (K, n_res) and their Jacobian (K, n_res, N_CORE) (None when jac is False)."""
-    lam, omega = _lambda(pb.lam, pb.times, pb.clock, th[_TAU])
-    o, d, Jo, Jd = _rays(th[:N_CORE], R_ref, lam, pb.mu, omega, jac=jac)
-    r = pb.r - th[_ROFF] - th[_MBIAS]  # the range the scanner would report without its systematic errors
-    if pb.model == "paper":
-        res = (o + r[:, None] * d - pb.c) / pb.sigma_r
-        if Jo is None or Jd is None:
-            return res, None
-        J = (Jo + r[:, None, None] * Jd) / pb.sigma_r
-        J[:, :, _ROFF] = J[:, :, _MBIAS] = -d / pb.sigma_r
-        return res, J
-    R = pb.radius
-    v = pb.c - o
-    t = (v * d).sum(1)
-    e = v - t[:, None] * d
-    rho = np.linalg.norm(e, axis=1)
-    s, ds = footprint_depth(rho / R, pb.footprint)
-    r_hat = t - R * s
-    sig_lat = pb.sigma_lat[:, None]
-    res = np.concatenate([((r - r_hat) / pb.sigma_r)[:, None], e / sig_lat], 1)
-    if Jo is None or Jd is None:
-        return res, None
-    Jv = -Jo
-    Jt = np.einsum("kij,ki->kj", Jv, d) + np.einsum("ki,kij->kj", v, Jd)
-    Je = Jv - d[:, :, None] * Jt[:, None, :] - t[:, None, None] * Jd
-    n_e = e / np.maximum(rho, 1e-15)[:, None]
-    Jrho = np.einsum("ki,kij->kj", n_e, Je)
-    Jrhat = Jt - ds[:, None] * Jrho
-    J = np.concatenate([(-Jrhat / pb.sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
-    J[:, 0, _ROFF] = J[:, 0, _MBIAS] = -1.0 / pb.sigma_r
-    return res, J
-
-
-def model_residuals(
-    params: Params,
-    obs: Observations,
-    markers_W: ArrayLike,
-    *,
-    model: str,
-    marker_radius_m: float,
-    range_sigma_m: float = 0.010,
-    beam_divergence_rad: float = 0.0,
-) -> tuple[FloatArray, FloatArray]:
-    """Whitened residuals (M,) and analytic Jacobian (M, 10) of the returns with a marker (obs.marker >= 0), the
-    columns in ESTIMATE_NAMES order (the rotation as a rotation vector in frame M at w = 0).
-
-    M = 3 K (paper) or 4 K (sphere: range residual then the 3 lateral components, per return).
-    """
-    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
-    core, R_ref = _core_from_params(params)
-    res, J = _residuals(core, pb, R_ref)
-    assert J is not None
-    return res.ravel(), J.reshape(-1, N_CORE)[:, :10]
-
-
-def jacobian_check(
-    params: Params,
-    obs: Observations,
-    markers_W: ArrayLike,
-    *,
-    model: str,
-    marker_radius_m: float,
-    range_sigma_m: float = 0.010,
-    beam_divergence_rad: float = 0.0,
-    step: float = 1e-6,
-    clock: MotorClock | None = None,
-    rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
-) -> FloatArray:
-    """Per column, the largest relative difference between the analytic Jacobian and central finite differences:
-    the 10 parameters, the clock offset when ``clock`` is given (obs.times_s the beam times), then the range
-    offset and the marker range bias (12 or 13 columns), evaluated at the rotation increment ``rotation_vector``
-    (to test the right Jacobian away from 0).
-
-    Each column's difference is divided by max(|J_analytic| column max, 1) in whitened units. The clock column
-    uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
-    agrees with finite differences only to the interpolation's curvature error (~1e-3 relative).
-    """
-    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
-    if clock is not None:
-        pb = replace(pb, clock=clock)
-    th, R_ref = _core_from_params(params)
-    th[3:6] = np.asarray(rotation_vector, dtype=float)
-    _, J = _residuals(th, pb, R_ref)
-    assert J is not None
-    J = J.reshape(-1, N_CORE)
-    cols = [*range(10), *([_TAU] if clock is not None else []), _ROFF, _MBIAS]
-    worst = np.zeros(len(cols))
-    for out_j, j in enumerate(cols):
-        dp = np.zeros(N_CORE)
-        dp[j] = step
-        fp = _residuals(th + dp, pb, R_ref, jac=False)[0].ravel()
-        fm = _residuals(th - dp, pb, R_ref, jac=False)[0].ravel()
-        num = (fp - fm) / (2 * step)
-        scale = max(float(np.abs(J[:, j]).max()), 1.0)
-        worst[out_j] = float(np.abs(num - J[:, j]).max() / scale)
-    return worst
-
-
-def residuals_3d(
-    params: Params, obs: Observations, markers_W: ArrayLike, *, model: str, marker_radius_m: float,
-    lambda_rad: ArrayLike | None = None,
-) -> FloatArray:
-    """3D residual of every return (K, 3), NaN where obs.marker < 0.
-
-    paper: p - c (return point minus marker centre); sphere: (p - c)(1 - R / |p - c|), the return point minus
-    the nearest point of the marker's surface (norm = ||p - c| - R|). ``lambda_rad`` (K,) replaces
-    obs.lambda_rad (e.g. re-interpolated at an estimated clock offset).
-    """
-    X = np.asarray(markers_W, dtype=float)
-    out = np.full((len(obs), 3), np.nan)
-    m = np.asarray(obs.marker) >= 0
-    if not m.any():
-        return out
-    lam = np.asarray(obs.lambda_rad if lambda_rad is None else lambda_rad, dtype=float)
-    p = transform_points(params.mount.matrix(), points_M(obs.ranges_m[m], lam[m], obs.mu_rad[m], params.dh))
-    diff = p - X[obs.marker[m]]
-    if model == "sphere":
-        dist = np.linalg.norm(diff, axis=1)
-        diff = diff * (1.0 - marker_radius_m / np.maximum(dist, 1e-15))[:, None]
-    out[m] = diff
-    return out
-
-
-def _problem(
-    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float, divergence: float = 0.0
-) -> tuple[_Problem, NDArray[np.bool_]]:
-    if model not in MODELS:
-        raise InputError(f"solve: model must be one of {', '.join(MODELS)}, got {model!r}")
-    X = np.asarray(markers_W, dtype=float)
-    if X.ndim != 2 or X.shape[1] != 3:
-        raise InputError(f"solve: markers_W must be (n, 3), got {X.shape}")
-    if not radius > 0 or not sigma_r > 0:
-        raise InputError(f"solve: marker_radius_m and range_sigma_m must be > 0, got {radius}, {sigma_r}")
-    if not 0.0 <= divergence < 0.1:
-        raise InputError(f"solve: beam_divergence_rad must be in [0, 0.1) rad, got {divergence}")
-    marker = np.asarray(obs.marker)
-    if np.any(marker >= len(X)):
-        raise InputError(f"solve: observation marker index {int(marker.max())} >= number of markers {len(X)}")
-    use = (marker >= 0) & np.isfinite(obs.ranges_m) & np.isfinite(obs.lambda_rad) & np.isfinite(obs.mu_rad)
-    pb = _Problem(
-        np.asarray(obs.lambda_rad, dtype=float)[use], np.asarray(obs.mu_rad, dtype=float)[use],
-        np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], model, float(radius), float(sigma_r),
-        times=np.asarray(obs.times_s, dtype=float)[use], divergence=float(divergence),
-    )
-    return pb, use
-
-
-def _fit(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool_], robust: bool
+def _fit(th0: FloatArray, R_ref: FloatArray, pb: Problem, free: NDArray[np.bool_], robust: bool
          ) -> tuple[FloatArray, FloatArray, int, str]:
     """One solver pass over the free unknowns; returns (th with w folded into R_ref, R_ref, nfev, message)."""
     idx = np.flatnonzero(free)
@@ -465,7 +93,7 @@ def _inflate_for_correlation(cov: FloatArray, G: FloatArray, JtJ_inv: FloatArray
     return cov * np.outer(scale, scale)
 
 
-def _uncertainty(pb: _Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
+def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
                  cluster_dense: NDArray[np.int64], cluster_plane: NDArray[np.int64]
                  ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str]:
     """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
@@ -507,9 +135,9 @@ def _uncertainty(pb: _Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[
     return cov_core, info, core_names, s2, rank_txt
 
 
-def _per_return_chi(th: FloatArray, pb: _Problem, R_ref: FloatArray) -> FloatArray:
-    """Whitened residual norm per return divided by sqrt(3) (3 independent components for either model)."""
-    res, _ = _residuals(th, pb, R_ref, jac=False)
+def _per_return_chi(th: FloatArray, pb: Problem, R_ref: FloatArray) -> FloatArray:
+    """Whitened residual norm per marker return divided by sqrt(3) (3 independent components for either model)."""
+    res, _ = pb.marker_rows(th, R_ref, jac=False)
     return np.sqrt((res**2).sum(1) / 3.0)
 
 
@@ -530,7 +158,7 @@ def solve(
     estimate_range_bias: bool = False,
     beam_divergence_rad: float = 0.0,
 ) -> Solution:
-    """Estimate the 10 parameters (and the clock offset) from marker returns (see the module docstring).
+    """Estimate the 10 parameters (and the clock offset, the intrinsics) from marker returns.
 
     Args:
         obs: K returns; rows with marker < 0 or non-finite values are ignored. obs.lambda_rad must be the motor
@@ -540,7 +168,7 @@ def solve(
         model: "paper" (eq. (10), return point vs marker centre) or "sphere" (ray vs sphere, sub-beam).
         marker_radius_m: marker sphere radius R_m.
         beam_divergence_rad: the scanner's full beam divergence: the sphere model averages over the footprint
-            (:func:`footprint_depth`); 0: the beam's axis alone.
+            (lrfcal.model.sphere.footprint_depth); 0: the beam's axis alone.
         range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, Hokuyo's specification).
         robust: soft-L1 first pass and 4-sigma rejection before the final plain least-squares pass.
         surfaces: optional non-marker returns on the marker-carrying planes (lrfcal.surfaces), solved jointly
@@ -563,35 +191,36 @@ def solve(
     Raises:
         CalibrationError: fewer than 4 usable returns or fewer than 3 distinct markers.
     """
-    pb_all, use = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
-    X = np.asarray(markers_W, dtype=float)
-    K = pb_all.r.size
+    pb_all, use = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
+    K = pb_all.markers.r.size
     n_markers = len(np.unique(np.asarray(obs.marker)[use]))
     if K < 4 or n_markers < 3:
         raise CalibrationError(f"solve ({model}): need >= 4 returns on >= 3 markers, got {K} on {n_markers}")
-    unknown = sorted(set(hold) - set(CORE_NAMES))
-    if unknown:
-        raise InputError(f"solve: hold: unknown parameter {unknown[0]!r} (expected one of {', '.join(CORE_NAMES)})")
-    th, R_ref = _core_from_params(start, clock_offset_s)
-    free_core = np.ones(N_CORE, dtype=bool)
-    for name in hold:
-        free_core[CORE_NAMES.index(name)] = False
-    if clock is None:
-        free_core[_TAU] = False
-    else:
-        pb_all = replace(pb_all, clock=clock)
-    if not estimate_range_bias:
-        free_core[_ROFF] = free_core[_MBIAS] = False
+    free_core = free_by_default(hold)
+    free_core[TAU] &= clock is not None
+    free_core[[ROFF, MBIAS]] &= estimate_range_bias
+    th, R_ref = pack(start, clock_offset_s)
+    pb_all = replace(pb_all, clock=clock)
     if surfaces is not None and len(surfaces):
-        surf, nu0 = _surf_problem(surfaces, planes)
+        surf, nu0 = plane_set(surfaces, planes)
         pb_all = replace(pb_all, surf=surf)
         th = np.concatenate([th, nu0])
     free = np.concatenate([free_core, np.ones(th.size - N_CORE, dtype=bool)])
+    th, R_ref, keep, keep_s, nfev, msg = _marker_passes(th, R_ref, pb_all, free, robust)
+    return _marker_solution(obs, use, len(np.asarray(markers_W)), pb_all, th, R_ref, free, keep, keep_s, nfev, msg,
+                            surfaces)
+
+
+def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDArray[np.bool_], robust: bool
+                   ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], int, str]:
+    """The solver passes of :func:`solve`: soft-L1 (markers alone), then plain least squares with the returns beyond
+    4 robust sigma dropped until the kept set is stable. Returns (th, R_ref, kept marker returns (K,), kept surface
+    returns (K2,), evaluations, the last pass's message)."""
+    K = pb_all.markers.r.size
     K2 = 0 if pb_all.surf is None else pb_all.surf.r.size
     nfev = 0
     keep = np.ones(K, dtype=bool)
     keep_s = np.ones(K2, dtype=bool)
-    dropped = dropped_s = 0
     changed, msg = True, ""
     if robust:
         if pb_all.surf is None:  # the joint solve starts from the converged marker-only estimate: no soft-L1 pass
@@ -604,8 +233,7 @@ def solve(
             new = chi <= 4.0 * scale
             new_s = keep_s
             if pb_all.surf is not None:
-                rs = np.abs(_surface_residuals(th, pb_all.surf, pb_all.sigma_r, R_ref, jac=False,
-                                               clock=pb_all.clock)[0])
+                rs = np.abs(plane_rows(th, pb_all.surf, pb_all.sigma_r, R_ref, jac=False, clock=pb_all.clock).res)
                 new_s = rs <= 4.0 * max(1.0, float(np.median(rs[keep_s]) / 0.674))
             if new.sum() < 4:
                 break
@@ -615,99 +243,67 @@ def solve(
             nfev += nf
             if not changed:  # the last pass was on this very set: it is the solution
                 break
-        dropped, dropped_s = int(K - keep.sum()), int(K2 - keep_s.sum())
     if not robust or changed:
         th, R_ref, nf, msg = _fit(th, R_ref, pb_all.subset(keep, keep_s), free, robust=False)
         nfev += nf
+    return th, R_ref, keep, keep_s, nfev, msg
 
+
+def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, pb_all: Problem, th: FloatArray,
+                     R_ref: FloatArray, free: NDArray[np.bool_], keep: NDArray[np.bool_], keep_s: NDArray[np.bool_],
+                     nfev: int, msg: str, surfaces: SurfaceReturns | None) -> Solution:
+    """The Solution of :func:`solve` at the solution th: covariance, residuals per return and per marker, status."""
+    ms = pb_all.markers
+    K, K2 = ms.r.size, 0 if pb_all.surf is None else pb_all.surf.r.size
     pb = pb_all.subset(keep, keep_s)
-    k_in = int(keep.sum())
-    k_s = int(keep_s.sum())
+    k_in, k_s = int(keep.sum()), int(keep_s.sum())
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
     scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
     # 3 per marker return, 1 per surface return and prior row
     cov_core, info, core_names, s2, rank_txt = _uncertainty(pb, th, R_ref, free, 3 * k_in + k_s + n_prior,
-                                                            np.repeat(np.asarray(obs.scan)[use][keep], pb.n_res),
+                                                            np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res),
                                                             scan_s)
-    params = _params_from_core(th[:N_CORE], R_ref)
-    tau = float(th[_TAU])
-
+    params = unpack(th[:N_CORE], R_ref)
     lam_all = np.asarray(obs.lambda_rad, dtype=float)
     if pb_all.clock is not None:
-        lam_all = pb_all.clock.angles(np.asarray(obs.times_s, dtype=float), tau)[0]
-    res3 = residuals_3d(params, obs, X, model=model, marker_radius_m=marker_radius_m, lambda_rad=lam_all)
+        lam_all = motor_angles(th, lam_all, np.asarray(obs.times_s, dtype=float), pb_all.clock).lam
+    res3 = np.full((len(obs), 3), np.nan)
+    res3[use] = residuals_3d(params, ms.r, lam_all[use], ms.mu, ms.c, model=ms.model, marker_radius_m=ms.radius)
     idx_used = np.nonzero(use)[0]
     inl = np.zeros(len(obs), dtype=bool)
     inl[idx_used[keep]] = True
     chi_all = np.full(len(obs), np.nan)
     chi_all[idx_used] = _per_return_chi(th, pb_all, R_ref)
     sq = (res3[inl] ** 2).sum(1)
-    rms = float(np.sqrt(sq.mean()))
-    per = np.full(len(X), np.nan)
     mk = np.asarray(obs.marker)[inl]
+    per = np.full(n_markers, np.nan)
     for i in np.unique(mk):
         per[i] = float(np.sqrt(sq[mk == i].mean()))
-    surf_txt = f", {k_s}/{K2} surface returns ({dropped_s} dropped)" if K2 else ""
-    status = (f"{model}: {msg.rstrip('.')}; {k_in}/{K} returns used ({dropped} dropped > 4 sigma){surf_txt}, "
+    surf_txt = f", {k_s}/{K2} surface returns ({K2 - k_s} dropped)" if K2 else ""
+    status = (f"{ms.model}: {msg.rstrip('.')}; {k_in}/{K} returns used ({K - k_in} dropped > 4 sigma){surf_txt}, "
               f"reduced chi2 {s2:.2f}, {rank_txt}")
+    return _solution(th, R_ref, cov_core, free, params=params, residual_rms_m=float(np.sqrt(sq.mean())),
+                     residuals_m=res3, per_marker_rms_m=per, n_observations=k_in, n_iterations=nfev, status=status,
+                     information=info, information_names=core_names, reduced_chi2=s2,
+                     converged="maximum number of function evaluations" not in msg, chi=chi_all, inlier=inl,
+                     lambda_rad=lam_all, n_surface_returns=k_s)
+
+
+def _solution(th: FloatArray, R_ref: FloatArray, cov_core: FloatArray, free: NDArray[np.bool_], **fields: object
+              ) -> Solution:
+    """A Solution from the unknowns th, their covariance (N_CORE, N_CORE) and which were free, with ``fields``."""
     cov10 = cov_core[:10, :10]
-    return Solution(
-        params=params,
-        covariance=cov10,
-        sigma=np.sqrt(np.clip(np.diag(cov10), 0.0, None)),
-        residual_rms_m=rms,
-        residuals_m=res3,
-        per_marker_rms_m=per,
-        n_observations=k_in,
-        n_iterations=nfev,
-        status=status,
-        clock_offset_s=tau,
-        clock_offset_sigma_s=float(np.sqrt(cov_core[_TAU, _TAU])) if free_core[_TAU] else float("nan"),
-        information=info,
-        information_names=core_names,
-        reduced_chi2=s2,
-        converged="maximum number of function evaluations" not in msg,
-        chi=chi_all,
-        inlier=inl,
-        lambda_rad=lam_all,
-        n_surface_returns=k_s,
-        range_offset_m=float(th[_ROFF]),
-        range_offset_sigma_m=float(np.sqrt(cov_core[_ROFF, _ROFF])) if free_core[_ROFF] else float("nan"),
-        marker_range_bias_m=float(th[_MBIAS]),
-        marker_range_bias_sigma_m=float(np.sqrt(cov_core[_MBIAS, _MBIAS])) if free_core[_MBIAS] else float("nan"),
-    )
 
+    def sig(i: int) -> float:
+        return float(np.sqrt(cov_core[i, i])) if free[i] else float("nan")
 
-def information_at(
-    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
-    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
-    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
-) -> tuple[FloatArray, tuple[str, ...]]:
-    """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
-    would be estimated (the clock offset only when ``clock`` is given; the range offset and marker range bias only
-    with ``surfaces``), and their names: what the data can determine, judged before any solver runs.
-
-    With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
-    and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
-    (Schur complement), evaluated at the planes the returns carry (their normals and offsets)."""
-    pb, _ = _problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
-    if clock is not None:
-        pb = replace(pb, clock=clock)
-    th, R_ref = _core_from_params(params, clock_offset_s)
-    # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
-    # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
-    with_surfaces = surfaces is not None and len(surfaces) > 0
-    idx = [*range(10), *([_TAU] if clock is not None else []), *([_ROFF, _MBIAS] if with_surfaces else [])]
-    names = tuple(CORE_NAMES[i] for i in idx)
-    if surfaces is not None and with_surfaces:
-        surf, nu0 = _surf_problem(surfaces, planes)
-        pb = replace(pb, surf=surf)
-        S, _, _ = schur(assemble(pb.blocks(np.concatenate([th, nu0]), R_ref), np.array(idx)))
-        return S, names
-    _, J = _residuals(th, pb, R_ref)
-    assert J is not None
-    J = J.reshape(-1, N_CORE)[:, idx]
-    return J.T @ J, names
+    intrinsics = {n: (float(th[CORE_NAMES.index(n)]), sig(CORE_NAMES.index(n))) for n in INTRINSICS}
+    fields.setdefault("params", unpack(th[:N_CORE], R_ref))
+    return Solution(covariance=cov10, sigma=np.sqrt(np.clip(np.diag(cov10), 0.0, None)),
+                    clock_offset_s=float(th[TAU]), clock_offset_sigma_s=sig(TAU),
+                    range_offset_m=float(th[ROFF]), range_offset_sigma_m=sig(ROFF),
+                    marker_range_bias_m=float(th[MBIAS]), marker_range_bias_sigma_m=sig(MBIAS),
+                    intrinsics=intrinsics, **fields)  # type: ignore[arg-type]
 
 
 #: the unknowns a targetless calibration never estimates: the world frame is the motor frame M (the planes are
@@ -715,30 +311,14 @@ def information_at(
 _TARGETLESS_HELD = ("x", "y", "z", "rx", "ry", "rz", "marker_range_bias")
 
 
-def _plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorClock | None,
-                   dh_prior: tuple[FloatArray, FloatArray] | None = None) -> tuple[_Problem, FloatArray]:
-    """A problem of surface returns only (no marker returns) on free planes, and the planes' nuisance start."""
-    if not range_sigma_m > 0:
-        raise InputError(f"solve: range_sigma_m must be > 0, got {range_sigma_m}")
-    if clock is not None and surfaces.times_s is None:
-        raise InputError("solve: the clock offset needs the surface returns' beam times (times_s)")
-    surf, nu0 = _surf_problem(surfaces, None)
-    z = np.zeros(0)
-    pb = _Problem(z, z, z, np.zeros((0, 3)), "sphere", 1.0, float(range_sigma_m), surf=surf,
-                  times=z if clock is not None else None, clock=clock, dh_prior=dh_prior, mount_jac=False)
-    return pb, nu0
-
-
 def _plane_free(n_par: int, hold: Sequence[str], clock: MotorClock | None, estimate_range_offset: bool
                 ) -> NDArray[np.bool_]:
-    unknown = sorted(set(hold) - set(CORE_NAMES))
-    if unknown:
-        raise InputError(f"solve: hold: unknown parameter {unknown[0]!r} (expected one of {', '.join(CORE_NAMES)})")
+    """(n_par,) the unknowns :func:`solve_planes` estimates: the model's defaults without the targetless-held ones
+    and ``hold``, the clock offset with a clock, the range offset when asked; every plane nuisance."""
     free = np.ones(n_par, dtype=bool)
-    for name in (*_TARGETLESS_HELD, *hold):
-        free[CORE_NAMES.index(name)] = False
-    free[_TAU] &= clock is not None
-    free[_ROFF] &= estimate_range_offset
+    free[:N_CORE] = free_by_default((*_TARGETLESS_HELD, *hold))
+    free[TAU] &= clock is not None
+    free[ROFF] &= estimate_range_offset
     return free
 
 
@@ -779,10 +359,10 @@ def solve_planes(
     Raises:
         CalibrationError: fewer returns than 10 per unknown.
     """
-    pb_all, nu0 = _plane_problem(surfaces, range_sigma_m, clock, dh_prior)
+    pb_all, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior)
     surf = pb_all.surf
     assert surf is not None
-    th, R_ref = _core_from_params(start, clock_offset_s)
+    th, R_ref = pack(start, clock_offset_s)
     th = np.concatenate([th, nu0])
     free = _plane_free(th.size, hold, clock, estimate_range_offset)
     K = surf.r.size
@@ -797,7 +377,7 @@ def solve_planes(
     plain = False
     for _ in range(6 if robust else 1):
         if robust:
-            rs = np.abs(_surface_residuals(th, surf, pb_all.sigma_r, R_ref, jac=False, clock=clock)[0])
+            rs = np.abs(plane_rows(th, surf, pb_all.sigma_r, R_ref, jac=False, clock=clock).res)
             new = rs <= 4.0 * max(1.0, float(np.median(rs[keep]) / 0.674))
             if plain and np.array_equal(new, keep):
                 break
@@ -811,26 +391,17 @@ def solve_planes(
     cov_core, info, core_names, s2, rank_txt = _uncertainty(
         pb, th, R_ref, free, int(keep.sum()) + n_prior,
         -1 - np.arange(n_prior), np.asarray(surfaces.scan)[keep])
-    rs = _surface_residuals(th, pb.surf, 1.0, R_ref, jac=False, clock=clock)[0]
+    rs = plane_rows(th, pb.surf, 1.0, R_ref, jac=False, clock=clock).res
     status = (f"planes: {msg.rstrip('.')}; {int(keep.sum())}/{K} plane returns on {surf.n_planes} planes used "
               f"({int(K - keep.sum())} dropped > 4 sigma), reduced chi2 {s2:.2f}, {rank_txt}")
-    cov10 = cov_core[:10, :10]
-
-    def sig(i: int) -> float:
-        return float(np.sqrt(cov_core[i, i])) if free[i] else float("nan")
-
-    return Solution(
-        params=_params_from_core(th[:N_CORE], R_ref), covariance=cov10,
-        sigma=np.sqrt(np.clip(np.diag(cov10), 0.0, None)), residual_rms_m=float(np.sqrt(np.mean(rs**2))),
-        residuals_m=np.zeros((0, 3)), per_marker_rms_m=np.zeros(0), n_observations=0, n_iterations=nfev,
-        status=status, clock_offset_s=float(th[_TAU]), clock_offset_sigma_s=sig(_TAU), information=info,
-        information_names=core_names, reduced_chi2=s2, converged=msg == "converged",
-        chi=np.zeros(0), inlier=keep, lambda_rad=None, n_surface_returns=int(keep.sum()),
-        range_offset_m=float(th[_ROFF]), range_offset_sigma_m=sig(_ROFF),
-    )
+    return _solution(th, R_ref, cov_core, free, residual_rms_m=float(np.sqrt(np.mean(rs**2))),
+                     residuals_m=np.zeros((0, 3)), per_marker_rms_m=np.zeros(0), n_observations=0,
+                     n_iterations=nfev, status=status, information=info, information_names=core_names,
+                     reduced_chi2=s2, converged=msg == "converged", chi=np.zeros(0), inlier=keep, lambda_rad=None,
+                     n_surface_returns=int(keep.sum()))
 
 
-def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArray[np.bool_],
+def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: Problem, free: NDArray[np.bool_],
                   huber: float | None = None, max_iter: int = 60) -> tuple[FloatArray, int, str]:
     """Levenberg-Marquardt on the normal equations (lrfcal.normal_equations: the planes eliminated by the Schur
     complement) over the free unknowns, with Huber weights of threshold ``huber`` (None: plain least squares). The
@@ -839,38 +410,6 @@ def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: _Problem, free: NDArra
     th, n_eval, ok = levenberg_marquardt(th0, lambda x, j: pb.blocks(x, R_ref, j), np.flatnonzero(free[:N_CORE]),
                                          N_CORE, huber=huber, max_iter=max_iter)
     return th, n_eval, "converged" if ok else f"not converged in {max_iter} iterations"
-
-
-def plane_information(
-    surfaces: SurfaceReturns, params: Params, *, range_sigma_m: float = 0.010, clock: MotorClock | None = None,
-    clock_offset_s: float = 0.0, hold: Sequence[str] = (), estimate_range_offset: bool = False,
-    dh_prior: tuple[FloatArray, FloatArray] | None = None,
-) -> tuple[FloatArray, tuple[str, ...]]:
-    """The information (k, k) of plane returns at ``params`` (no fit) over the unknowns :func:`solve_planes`
-    would estimate, the planes' nuisances marginalised, and their names: what the scene determines, judged
-    before any solver runs."""
-    pb, nu0 = _plane_problem(surfaces, range_sigma_m, clock, dh_prior)
-    th, R_ref = _core_from_params(params, clock_offset_s)
-    th = np.concatenate([th, nu0])
-    free = _plane_free(th.size, hold, clock, estimate_range_offset)
-    core = np.flatnonzero(free[:N_CORE])
-    S, _, _ = schur(assemble(pb.blocks(th, R_ref), core))
-    return S, tuple(CORE_NAMES[k] for k in core)
-
-
-def _surf_problem(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[_Surf, FloatArray]:
-    """The surface returns as a _Surf with the planes' nuisance start (3P,) (the same set-up as :func:`solve`)."""
-    ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
-    first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
-    n0, t1, t2, nu0 = _plane_nuisance_start(surfaces.normals[first], surfaces.offsets_m[first])
-    prior_sigma = None
-    if planes is not None:
-        t1 = np.array([planes[i].axes[0] for i in ids])
-        t2 = np.array([planes[i].axes[1] for i in ids])
-        prior_sigma = np.concatenate([planes[i].prior_sigma for i in ids])
-    surf = _Surf(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
-                 nu0.copy(), prior_sigma, times=surfaces.times_s)
-    return surf, nu0
 
 
 def _schur(A: FloatArray, keep: Sequence[int]) -> FloatArray:
@@ -883,7 +422,4 @@ def _schur(A: FloatArray, keep: Sequence[int]) -> FloatArray:
     return Akk - Ako @ np.linalg.pinv(Aoo, rcond=1e-12) @ Ako.T
 
 
-__all__ = [
-    "CORE_NAMES", "MODELS", "MotorClock", "information_at", "jacobian_check", "model_residuals",
-    "plane_information", "residuals_3d", "solve", "solve_planes", "sphere_depth", "wrap_pi",
-]
+__all__ = ["CORE_NAMES", "MotorClock", "solve", "solve_planes"]

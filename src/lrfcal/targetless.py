@@ -27,7 +27,10 @@ from scipy.spatial import cKDTree
 from . import geometry, holdout, observability, planes, reproject, solve, timing
 from .config import CalibConfig, Check, Stopwatch, chi2_check, refuse_failed, split_in_two
 from .errors import CalibrationError
+from .information import plane_information
 from .model.kinematics import DH, Params, Pose, beam_rays_W, points_M
+from .model.motor import MotorClock
+from .model.unknowns import CORE_NAMES, wrap_pi
 from .surfaces import Surface, SurfaceReturns, hash_sample
 from .timing import usable_scans
 from .types import CalibrationResult, JointStates, Recording, Scans, Solution
@@ -87,7 +90,7 @@ def calibrate_targetless(
     nominal = recording.nominal
     tau0 = config.clock_offset_s
     scans, joints = usable_scans(recording, tau0, notes)
-    motor = solve.MotorClock.from_joints(joints)
+    motor = MotorClock.from_joints(joints)
     passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
     estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
     # every 5th scan is held out of the fit: the calibration must not make those scans' planes thicker (holdout)
@@ -186,7 +189,7 @@ def _sample(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) -> _Bea
                   scans.angle_times_at(scan, beam))
 
 
-def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorClock, dh: DH, tau: float,
+def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: MotorClock, dh: DH, tau: float,
                    thickness_m: float, config: CalibConfig
                    ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
     """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau); label every sampled return with the
@@ -227,7 +230,7 @@ def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: solve.MotorCloc
     return returns, labels, found
 
 
-def _held_out_check(held: _Beams, motor: solve.MotorClock, start: Params, tau0: float, sol: Solution,
+def _held_out_check(held: _Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
                     thickness_m: float) -> Check:
     """The held-out scans' planes with the start and with the calibrated parameters (lrfcal.holdout), segmented
     with the first round's ``thickness_m``."""
@@ -244,11 +247,11 @@ def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> Non
             "calibrate in a room or with markers")
 
 
-def _clock_determined(returns: SurfaceReturns, start: Params, motor: solve.MotorClock, tau: float,
+def _clock_determined(returns: SurfaceReturns, start: Params, motor: MotorClock, tau: float,
                       config: CalibConfig, notes: list[str]) -> bool:
     """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start); when not,
     a note says it is held."""
-    info, names = solve.plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
+    info, names = plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
                                           clock_offset_s=tau)
     k = names.index("clock_offset")
     sigma = float(np.sqrt(np.linalg.pinv(info)[k, k]))
@@ -260,12 +263,12 @@ def _clock_determined(returns: SurfaceReturns, start: Params, motor: solve.Motor
     return False
 
 
-def _undetermined(returns: SurfaceReturns, start: Params, motor: solve.MotorClock | None, tau: float,
+def _undetermined(returns: SurfaceReturns, start: Params, motor: MotorClock | None, tau: float,
                   config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> tuple[tuple[str, ...], str]:
     """The DH parameters the scene does not determine (judged at the start), held from then on, and why."""
     held: list[str] = []
     while True:
-        info, names = solve.plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
+        info, names = plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
                                               clock_offset_s=tau, hold=held, dh_prior=prior)
         free = [n for n in DH_NAMES if n not in held]
         sigma, weakest = _normalised(info, names, free)
@@ -315,13 +318,13 @@ def _weakest_direction(info: FloatArray, names: tuple[str, ...], free: list[str]
 def _settled(old: Solution, new: Solution) -> bool:
     """The DH estimate moved by less than a tenth of its sigma between two rounds."""
     d = new.params.vector()[6:] - old.params.vector()[6:]
-    d[[1, 3]] = solve.wrap_pi(d[[1, 3]])
+    d[[1, 3]] = wrap_pi(d[[1, 3]])
     s = new.sigma[6:]
     ok = np.isfinite(s) & (s > 0)
     return bool(np.all(np.abs(d[ok]) <= 0.1 * s[ok]))
 
 
-def _consider(sol: Solution, returns: SurfaceReturns, motor: solve.MotorClock | None, held: tuple[str, ...],
+def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, held: tuple[str, ...],
               config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
     """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
     estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
@@ -329,7 +332,7 @@ def _consider(sol: Solution, returns: SurfaceReturns, motor: solve.MotorClock | 
         return sol
     from dataclasses import replace
 
-    info, names = solve.plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
+    info, names = plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
                                           clock_offset_s=sol.clock_offset_s, dh_prior=prior)
     info = info / max(sol.reduced_chi2, 1.0)
     est = [i for i, n in enumerate(names) if n not in held]
@@ -338,7 +341,7 @@ def _consider(sol: Solution, returns: SurfaceReturns, motor: solve.MotorClock | 
     tol = dict(zip(DH_NAMES, config.nominal_tolerance, strict=True))
     extra = S @ np.diag([tol[n] ** 2 for n in held]) @ S.T
     cov = sol.covariance.copy()
-    pos = {n: solve.CORE_NAMES.index(n) for n in names}
+    pos = {n: CORE_NAMES.index(n) for n in names}
     for i, a in enumerate(est):
         for j, b in enumerate(est):
             ia, ib = pos[names[a]], pos[names[b]]
@@ -384,13 +387,13 @@ def _second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.i
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
     d = parts[0].params.vector()[est] - parts[1].params.vector()[est]
-    d = np.where(np.isin(est, (7, 9)), solve.wrap_pi(d), d)
+    d = np.where(np.isin(est, (7, 9)), wrap_pi(d), d)
     C = parts[0].covariance[np.ix_(est, est)] + parts[1].covariance[np.ix_(est, est)]
     if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
         return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
     stat = float(d @ np.linalg.solve(C, d))
     ok = stat <= limit
-    names = [solve.CORE_NAMES[i] for i in est]
+    names = [CORE_NAMES[i] for i in est]
     diffs = ", ".join(f"{n} {math.degrees(v):+.3f} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:+.2f} mm"
                       for n, v in zip(names, d, strict=True))
     return Check("second opinion", ok,
@@ -404,7 +407,7 @@ def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: 
     """Every plane of the scene other than the markers' own (stage 6b generalised): segmented in the cloud at a
     marker calibration ``sol``, in W, as surfaces without a prior (free planes) and their returns, numbered after
     ``marker_planes``. ``skip`` (S, N): the marker returns, left out."""
-    motor = solve.MotorClock.from_joints(joints)
+    motor = MotorClock.from_joints(joints)
     beams = _sample(scans, config.plane_returns, skip)
     seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
     thickness = 4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2))

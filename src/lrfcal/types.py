@@ -162,7 +162,7 @@ class Nominal:
     dh: DH
     mount: Pose | None = None
     marker_radius_m: float = 0.005
-    beam_divergence_rad: float = 0.0  # full angle: the footprint on a marker (lrfcal.solve.footprint_depth)
+    beam_divergence_rad: float = 0.0  # full angle: the footprint on a marker (lrfcal.model.sphere.footprint_depth)
     range_sigma_m: float | None = None  # the scanner's range noise [m] (None: not declared)
     scan_topic: str = "/scan"
     joint_topic: str = "/joint_states"
@@ -302,8 +302,8 @@ class Solution:
     not determine them); residual_rms_m: RMS of the 3D residuals of the returns kept; residuals_m (K, 3): reprojected
     return minus its model point in W; per-marker RMS (n,); clock offset (laser stamp - servo stamp) and its sigma
     (NaN when held); information (k, k): the marginal information over ``information_names`` (the estimated core
-    unknowns, lrfcal.solve.CORE_NAMES); chi (K,): whitened residual per return (NaN for unused rows); inlier (K,):
-    returns kept; lambda_rad (K,): the motor angle of each return at the estimated clock offset."""
+    unknowns, lrfcal.model.unknowns.CORE_NAMES); chi (K,): whitened residual per return (NaN for unused rows);
+    inlier (K,): returns kept; lambda_rad (K,): the motor angle of each return at the estimated clock offset."""
 
     params: Params
     covariance: FloatArray
@@ -328,6 +328,8 @@ class Solution:
     range_offset_sigma_m: float = float("nan")  # NaN when held
     marker_range_bias_m: float = 0.0  # added to the ranges of marker returns only
     marker_range_bias_sigma_m: float = float("nan")
+    #: every intrinsic of the rig model (lrfcal.model.unknowns.INTRINSICS): name -> (value, sigma; NaN when held)
+    intrinsics: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

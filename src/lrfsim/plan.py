@@ -3,10 +3,11 @@
 The scenario's rays are cast once without noise (``lrfsim.simulate.simulate(..., noise=False)``; the mixed-pixel
 footprint stays), the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return
 whose ray passes within the marker), and the calibration's own observation and noise model is evaluated at the
-TRUE parameters: ``lrfcal.solve.information_at`` (the sphere model: range residual with sigma_r = the scenario
+TRUE parameters: ``lrfcal.information.information_at`` (the sphere model: range residual with sigma_r = the scenario
 sensor's range noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual
 with sigma = R_m sqrt(1 + k^2) / 2, the depth seen through the sensor's footprint of k marker radii
-(``sensor.divergence_rad``, lrfcal.solve.footprint_depth); the clock offset is an unknown when the sweep goes both
+(``sensor.divergence_rad``, lrfcal.model.sphere.footprint_depth); the clock offset is an unknown when the
+sweep goes both
 ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
 Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
@@ -35,9 +36,10 @@ from numpy.typing import NDArray
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
+from lrfcal.information import information_at
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
+from lrfcal.model.motor import MotorClock
 from lrfcal.observability import LIMITS, Observability, analyse
-from lrfcal.solve import MotorClock, information_at
 from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
 from lrfcal.types import JointStates, Observations
 

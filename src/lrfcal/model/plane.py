@@ -10,11 +10,11 @@ n_0 = Rz(-lambda_k) R^T n_j (R the mount's rotation). Then, with nd = n_0 . dir_
     n . o = n_0 . o_0 + n . t,   n . dir = nd,
     dr_p/dt = -n / nd,   dr_p/dw = (n_M x o_M + r_p n_M x d_M)^T J_r(w) / nd   (n_M = R^T n),
     dr_p/dp = -(n_0 . do_0/dp + r_p n_0 . ddir_0/dp) / nd   for the DH parameters p,
-    dr_p/dtau = omega (n_0 . (z x o_0) + r_p n_0 . (z x dir_0)) / nd   (dlambda/dtau = -omega),
+    dr_p/dlambda = -(n_0 . (z x o_0) + r_p n_0 . (z x dir_0)) / nd   (times each dlambda/dtheta, lrfcal.model.motor),
     dr_p/dd_j = 1 / nd,   dr_p/du_i = -(x_0 . Rz(-lambda) R^T dn/du_i + t . dn/du_i) / nd,
     dn/du_i = (t_i - n (n . t_i)) / |m|.
 
-These are the same numbers as the chain rule through o and dir in W (lrfcal.solve._rays), in O(K) work: the
+These are the same numbers as the chain rule through o and dir in W (lrfcal.model.rays), in O(K) work: the
 plane returns of a targetless calibration are 10^5 and more rows.
 """
 
@@ -26,7 +26,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .kinematics import exp_so3, right_jacobian_so3
-from .unknowns import N_CORE, ROFF, TAU, MotorClock, PlaneSet, motor_lambda
+from .motor import MotorClock, motor_angles
+from .scanner import true_range
+from .unknowns import N_CORE, PlaneSet
 
 FloatArray = NDArray[np.float64]
 
@@ -53,7 +55,9 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     m = s.n0 + nu[:, :1] * s.t1 + nu[:, 1:2] * s.t2
     m_norm = np.linalg.norm(m, axis=1, keepdims=True)
     n_p = m / m_norm  # (P, 3) in W
-    lam, omega = motor_lambda(s.lam, s.times, clock, th[TAU])
+    motor = motor_angles(th, s.lam, s.times, clock)
+    lam = motor.lam
+    rng = true_range(th, s.r, on_marker=False)
     t = th[:3]
     a, al, b, be = th[6:10]
     R = R_ref @ exp_so3(th[3:6])
@@ -69,7 +73,7 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     dy, dz = sp * ca, sp * sa  # dir_0 = (cp, dy, dz)
     nd = nx * cp + ny * dy + nz * dz
     rp = ((nu[:, 2] - n_p @ t)[pl] - (nx * a + ny * oy + nz * oz)) / nd
-    res = (s.r - th[ROFF] - rp) / sigma_r
+    res = (rng.r - rp) / sigma_r
     if not jac:
         return PlaneRows(res)
     K = s.r.size
@@ -90,9 +94,12 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     Jc[:, 7] = (ny * b * ca + nz * b * sa + rp * sp * (ny * sa - nz * ca)) * q
     Jc[:, 8] = (ny * sa - nz * ca) * q
     Jc[:, 9] = -rp * (-nx * sp + (ny * ca + nz * sa) * cp) * q
-    if omega is not None:  # z x v = (-v_y, v_x, 0)
-        Jc[:, TAU] = omega * ((ny * a - nx * oy) + rp * (ny * cp - nx * dy)) * q
-    Jc[:, ROFF] = k
+    if motor.partials:  # dr_p/dlambda = -(n_0 . (z x x_0)) / nd, z x v = (-v_y, v_x, 0)
+        dres_dlam = -((ny * a - nx * oy) + rp * (ny * cp - nx * dy)) * q
+        for j, dlam in motor.partials:
+            Jc[:, j] = dres_dlam * dlam
+    for j, dr in rng.partials:
+        Jc[:, j] = dr / sigma_r
     Jn = np.empty((K, 3), order="F")
     for i, tan in enumerate((s.t1, s.t2)):
         dn = (tan - n_p * (n_p * tan).sum(1, keepdims=True)) / m_norm  # (P, 3) in W

@@ -1,64 +1,112 @@
-"""The solver's unknowns and the data they act on (split out of lrfcal.solve, which re-exports the public names).
+"""The rig model's unknowns: each one named, with its unit, its start value and whether it is estimated by default
+(and why not), and their order in the solver's vector (:data:`CORE_NAMES`), packed and unpacked here only.
 
-The core vector (:data:`CORE_NAMES`): the mount translation x, y, z, a rotation vector rx, ry, rz in frame M (the
-mount's rotation is R_ref Exp(w)), the DH parameters a, alpha, b, beta, the laser-servo clock offset, a range
-offset of every return and a range bias of the marker returns; then 3 nuisances per plane (:class:`PlaneSet`).
+The core vector: the mount translation x, y, z, a rotation vector rx, ry, rz in frame M (the mount's rotation is
+R_ref Exp(w), so the solver never meets an Euler-angle singularity; roll, pitch and yaw are an output format), the DH
+parameters a, alpha, b, beta, the laser-servo clock offset, and the servo's and scanner's intrinsics (:data:`UNKNOWNS`
+with kind "intrinsic"); then 3 nuisances per plane (:class:`PlaneSet`).
+
+Adding an unknown is adding a row to :data:`UNKNOWNS` and its effect to the model function it belongs to (the motor
+angle in :mod:`.motor`, the range in :mod:`.scanner`, the chain in :mod:`.rays` and :mod:`.plane`); the solver,
+its covariance and the written results take it from there.
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from .kinematics import ESTIMATE_NAMES
-
-if TYPE_CHECKING:  # the joint states are data; the model needs only their arrays
-    from ..types import JointStates
+from .kinematics import DH, ESTIMATE_NAMES, Params, Pose, exp_so3
 
 FloatArray = NDArray[np.float64]
 
-#: The solver's core unknowns, in this order (then 3 nuisances per plane): see the module docstring.
-CORE_NAMES: tuple[str, ...] = (*ESTIMATE_NAMES, "clock_offset", "range_offset", "marker_range_bias")
-N_CORE = len(CORE_NAMES)
-TAU = CORE_NAMES.index("clock_offset")
-ROFF = CORE_NAMES.index("range_offset")  # added to every range the scanner reports [m]
-MBIAS = CORE_NAMES.index("marker_range_bias")  # added to the ranges of marker returns only [m]
-
 
 @dataclass(frozen=True)
-class MotorClock:
-    """The motor angle at laser-clock times for a clock offset tau: lambda(t) = q(t - tau).
+class Unknown:
+    """One unknown of the rig model.
 
-    stamps_s (J,) servo clock; positions_rad (J,) unwrapped joint positions; velocity_rad_s (J,) their rate,
-    smoothed over about 50 ms (encoder quantisation would make the segment slopes jump), for the Jacobian.
+    name: as in files and APIs; unit: "m", "rad", "s" or "1"; kind: "mount", "dh", "clock" or "intrinsic";
+    start: its value before any data (and while held, unless a stage gives another); held: empty when the
+    calibration estimates it by default, else why it is held by default; meaning: one line for reports."""
+
+    name: str
+    unit: str
+    kind: str
+    start: float
+    held: str
+    meaning: str
+
+
+#: Every unknown of the rig model, in the solver's order.
+UNKNOWNS: tuple[Unknown, ...] = (
+    *(Unknown(n, "m", "mount", 0.0, "", f"mount translation {n} (T_W_M)") for n in ("x", "y", "z")),
+    *(Unknown(n, "rad", "mount", 0.0, "", "mount rotation increment, a rotation vector in M")
+      for n in ("rx", "ry", "rz")),
+    Unknown("a", "m", "dh", 0.0, "", "DH offset along the common normal"),
+    Unknown("alpha", "rad", "dh", 0.0, "", "DH twist of the scan plane's axis about the common normal"),
+    Unknown("b", "m", "dh", 0.0, "", "DH offset along the scanner's axis"),
+    Unknown("beta", "rad", "dh", 0.0, "", "DH angle of the scanner's zero beam about its axis"),
+    Unknown("clock_offset", "s", "clock", 0.0, "", "laser stamp minus servo stamp"),
+    Unknown("range_offset", "m", "intrinsic", 0.0, "", "added to every range the scanner reports"),
+    Unknown("marker_range_bias", "m", "intrinsic", 0.0, "", "added to the ranges of marker returns only"),
+)
+assert tuple(u.name for u in UNKNOWNS[:10]) == ESTIMATE_NAMES
+
+#: The solver's core unknowns, in this order (then 3 nuisances per plane): see the module docstring.
+CORE_NAMES: tuple[str, ...] = tuple(u.name for u in UNKNOWNS)
+N_CORE = len(CORE_NAMES)
+BY_NAME: dict[str, Unknown] = {u.name: u for u in UNKNOWNS}
+TAU = CORE_NAMES.index("clock_offset")
+ROFF = CORE_NAMES.index("range_offset")
+MBIAS = CORE_NAMES.index("marker_range_bias")
+DH_SLICE = slice(6, 10)
+INTRINSICS: tuple[str, ...] = tuple(u.name for u in UNKNOWNS if u.kind == "intrinsic")
+
+
+def wrap_pi(a: ArrayLike) -> FloatArray:
+    """Wrap angles to (-pi, pi]."""
+    a = np.asarray(a, dtype=float)
+    return a - 2 * np.pi * np.ceil((a - np.pi) / (2 * np.pi))
+
+
+def pack(params: Params, clock_offset_s: float = 0.0) -> tuple[FloatArray, FloatArray]:
+    """The core vector (N_CORE,) of ``params`` with w = 0 and every other unknown at its start, and R_ref (3, 3)
+    (roll, pitch and yaw are only a format)."""
+    T = params.mount.matrix()
+    core = np.array([u.start for u in UNKNOWNS])
+    core[:3] = T[:3, 3]
+    core[3:6] = 0.0
+    core[DH_SLICE] = [params.dh.a, params.dh.alpha, params.dh.b, params.dh.beta]
+    core[TAU] = clock_offset_s
+    return core, T[:3, :3].copy()
+
+
+def unpack(core: FloatArray, R_ref: FloatArray) -> Params:
+    """The 10 parameters of a core vector (N_CORE,) (the mount R_ref Exp(w); alpha and beta wrapped)."""
+    T = np.eye(4)
+    T[:3, :3] = R_ref @ exp_so3(core[3:6])
+    T[:3, 3] = core[:3]
+    v = np.array(core[DH_SLICE], dtype=float)
+    v[[1, 3]] = wrap_pi(v[[1, 3]])
+    return Params(Pose.from_matrix(T), DH(*map(float, v)))
+
+
+def free_by_default(hold: Sequence[str] = ()) -> NDArray[np.bool_]:
+    """(N_CORE,) the unknowns a calibration estimates unless a stage holds them: all but those :data:`UNKNOWNS`
+    holds by default and those named in ``hold``.
+
+    Raises:
+        InputError: a name in ``hold`` is not an unknown of the model.
     """
-
-    stamps_s: FloatArray
-    positions_rad: FloatArray
-    velocity_rad_s: FloatArray
-
-    @staticmethod
-    def from_joints(joints: JointStates, smooth_s: float = 0.05) -> MotorClock:
-        t = np.asarray(joints.stamps_s, dtype=float)
-        q = np.unwrap(np.asarray(joints.positions_rad, dtype=float))
-        if t.size < 2:
-            raise InputError(f"joint states {joints.name}: {t.size} sample(s); need at least 2")
-        period = float(np.median(np.diff(t)))
-        k = int(max(1, round(0.5 * smooth_s / max(period, 1e-9))))
-        lo = np.clip(np.arange(t.size) - k, 0, t.size - 1)
-        hi = np.clip(np.arange(t.size) + k, 0, t.size - 1)
-        v = (q[hi] - q[lo]) / np.maximum(t[hi] - t[lo], 1e-12)
-        return MotorClock(t, q, v)
-
-    def angles(self, times_s: ArrayLike, tau_s: float) -> tuple[FloatArray, FloatArray]:
-        """lambda (K,) and dlambda/dt (K,) at laser times (K,) for the clock offset tau_s."""
-        t = np.asarray(times_s, dtype=float) - tau_s
-        return np.interp(t, self.stamps_s, self.positions_rad), np.interp(t, self.stamps_s, self.velocity_rad_s)
+    unknown = sorted(set(hold) - set(CORE_NAMES))
+    if unknown:
+        raise InputError(f"solve: hold: unknown parameter {unknown[0]!r} (expected one of {', '.join(CORE_NAMES)})")
+    return np.array([not u.held and u.name not in hold for u in UNKNOWNS])
 
 
 @dataclass(frozen=True)
@@ -107,14 +155,3 @@ def plane_nuisance_start(normals: FloatArray, offsets: FloatArray) -> tuple[Floa
     return n0, t1, t2, nu0
 
 
-def motor_lambda(lam: FloatArray, times: FloatArray | None, clock: MotorClock | None, tau: float
-                 ) -> tuple[FloatArray, FloatArray | None]:
-    """The motor angles to use (K,) and their rate (K,) (None when the clock offset is not estimated):
-    re-interpolated at the current clock offset when it is estimated."""
-    if clock is None or times is None:
-        return lam, None
-    return clock.angles(times, tau)
-
-
-__all__ = ["CORE_NAMES", "MBIAS", "N_CORE", "ROFF", "TAU", "MotorClock", "PlaneSet", "motor_lambda",
-           "plane_nuisance_start"]

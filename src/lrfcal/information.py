@@ -1,0 +1,139 @@
+"""What the data can determine, judged before any solver runs: the information of marker and plane returns at
+given parameters (no fit), with the planes' nuisances marginalised; and the analytic Jacobian against finite
+differences (a test of the observation models)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .model.kinematics import Params
+from .model.motor import MotorClock
+from .model.unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, pack
+from .normal_equations import assemble, schur
+from .problem import marker_problem, plane_problem, plane_set
+from .solve import _plane_free
+from .surfaces import Surface, SurfaceReturns
+from .types import Observations
+
+FloatArray = NDArray[np.float64]
+
+
+def model_residuals(
+    params: Params,
+    obs: Observations,
+    markers_W: ArrayLike,
+    *,
+    model: str,
+    marker_radius_m: float,
+    range_sigma_m: float = 0.010,
+    beam_divergence_rad: float = 0.0,
+) -> tuple[FloatArray, FloatArray]:
+    """Whitened residuals (M,) and analytic Jacobian (M, 10) of the returns with a marker (obs.marker >= 0), the
+    columns in ESTIMATE_NAMES order (the rotation as a rotation vector in frame M at w = 0).
+
+    M = 3 K (paper) or 4 K (sphere: range residual then the 3 lateral components, per return).
+    """
+    pb, _ = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
+    core, R_ref = pack(params)
+    res, J = pb.marker_rows(core, R_ref)
+    assert J is not None
+    return res.ravel(), J.reshape(-1, N_CORE)[:, :10]
+
+
+def jacobian_check(
+    params: Params,
+    obs: Observations,
+    markers_W: ArrayLike,
+    *,
+    model: str,
+    marker_radius_m: float,
+    range_sigma_m: float = 0.010,
+    beam_divergence_rad: float = 0.0,
+    step: float = 1e-6,
+    clock: MotorClock | None = None,
+    rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
+) -> FloatArray:
+    """Per column, the largest relative difference between the analytic Jacobian and central finite differences:
+    the 10 parameters, the clock offset when ``clock`` is given (obs.times_s the beam times), then the range
+    offset and the marker range bias (12 or 13 columns), evaluated at the rotation increment ``rotation_vector``
+    (to test the right Jacobian away from 0).
+
+    Each column's difference is divided by max(|J_analytic| column max, 1) in whitened units. The clock column
+    uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
+    agrees with finite differences only to the interpolation's curvature error (~1e-3 relative).
+    """
+    pb, _ = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
+    if clock is not None:
+        pb = replace(pb, clock=clock)
+    th, R_ref = pack(params)
+    th[3:6] = np.asarray(rotation_vector, dtype=float)
+    _, J = pb.marker_rows(th, R_ref)
+    assert J is not None
+    J = J.reshape(-1, N_CORE)
+    cols = [*range(10), *([TAU] if clock is not None else []), ROFF, MBIAS]
+    worst = np.zeros(len(cols))
+    for out_j, j in enumerate(cols):
+        dp = np.zeros(N_CORE)
+        dp[j] = step
+        fp = pb.marker_rows(th + dp, R_ref, jac=False)[0].ravel()
+        fm = pb.marker_rows(th - dp, R_ref, jac=False)[0].ravel()
+        num = (fp - fm) / (2 * step)
+        scale = max(float(np.abs(J[:, j]).max()), 1.0)
+        worst[out_j] = float(np.abs(num - J[:, j]).max() / scale)
+    return worst
+
+
+def information_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
+    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
+    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
+) -> tuple[FloatArray, tuple[str, ...]]:
+    """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
+    would be estimated (the clock offset only when ``clock`` is given; the range offset and marker range bias only
+    with ``surfaces``), and their names: what the data can determine, judged before any solver runs.
+
+    With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
+    and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
+    (Schur complement), evaluated at the planes the returns carry (their normals and offsets)."""
+    pb, _ = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
+    if clock is not None:
+        pb = replace(pb, clock=clock)
+    th, R_ref = pack(params, clock_offset_s)
+    # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
+    # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
+    with_surfaces = surfaces is not None and len(surfaces) > 0
+    idx = [*range(10), *([TAU] if clock is not None else []), *([ROFF, MBIAS] if with_surfaces else [])]
+    names = tuple(CORE_NAMES[i] for i in idx)
+    if surfaces is not None and with_surfaces:
+        surf, nu0 = plane_set(surfaces, planes)
+        pb = replace(pb, surf=surf)
+        S, _, _ = schur(assemble(pb.blocks(np.concatenate([th, nu0]), R_ref), np.array(idx)))
+        return S, names
+    _, J = pb.marker_rows(th, R_ref)
+    assert J is not None
+    J = J.reshape(-1, N_CORE)[:, idx]
+    return J.T @ J, names
+
+
+def plane_information(
+    surfaces: SurfaceReturns, params: Params, *, range_sigma_m: float = 0.010, clock: MotorClock | None = None,
+    clock_offset_s: float = 0.0, hold: Sequence[str] = (), estimate_range_offset: bool = False,
+    dh_prior: tuple[FloatArray, FloatArray] | None = None,
+) -> tuple[FloatArray, tuple[str, ...]]:
+    """The information (k, k) of plane returns at ``params`` (no fit) over the unknowns :func:`solve_planes`
+    would estimate, the planes' nuisances marginalised, and their names: what the scene determines, judged
+    before any solver runs."""
+    pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior)
+    th, R_ref = pack(params, clock_offset_s)
+    th = np.concatenate([th, nu0])
+    free = _plane_free(th.size, hold, clock, estimate_range_offset)
+    core = np.flatnonzero(free[:N_CORE])
+    S, _, _ = schur(assemble(pb.blocks(th, R_ref), core))
+    return S, tuple(CORE_NAMES[k] for k in core)
+
+
+__all__ = ["information_at", "jacobian_check", "model_residuals", "plane_information"]

@@ -1,0 +1,134 @@
+"""The marker observation model: a return on a retroreflective sphere of radius R_m centred at c (in W).
+
+Two models (o, d: the beam's origin and unit direction in W, lrfcal.model.rays; r: the true range,
+lrfcal.model.scanner):
+
+* ``"paper"`` (seed paper eq. (10)): residual (o + r d - c) / sigma_r, 3 per return.
+* ``"sphere"`` (every return on a marker, sub-beam): v = c - o, t = v.d, e = v - t d (|e| = distance of the
+  centre from the ray), u = |e| / R_m,
+      r_hat = t - R_m s(u),   s(u) = sqrt(eta softplus((1 - u^2) / eta))   (eta = 0.05, lrfcal.model.sphere)
+  s(u) ~ sqrt(1 - u^2) (the depth of the sphere's surface below the centre plane) for u < ~0.97, and is
+  smooth with bounded slope near and beyond the rim (s -> 0: a grazing or mixed-pixel return reports the
+  rim). Residuals: (r - r_hat) / sigma_r and e / sigma_lat (3 components, one of them identically zero along
+  d, hence 3 independent residuals per return), sigma_lat = R_m / 2 (hits spread uniformly over the visible
+  disc: E|e|^2 = R_m^2 / 2).
+  With a finite beam (divergence delta > 0) the footprint at the marker is a disc of radius k R_m,
+  k = r delta / (2 R_m) from the measured range r, and a retroreflector outshines whatever else it covers: s(u)
+  becomes S(u, k), the mean of s over the part of the footprint that hits the sphere (footprint_depth), and
+  sigma_lat = R_m sqrt(1 + k^2) / 2 (the beam's axis is the point hit on the marker's disc minus its offset within
+  the footprint, two independent uniform discs). Modelling the beam as its axis alone leaves the footprint in the
+  marker returns' ranges: on lrfsim's 4.4 mrad beam and 5 mm spheres a marker-return range bias of -0.9 mm
+  (plane_30deg), +0.04 mm with the footprint (docs/study.md).
+
+Jacobian (chain rule from lrfcal.model.rays' o_j, d_j):
+    paper: (o + r d)_j / sigma_r, plus d dr/dtheta_j / sigma_r for the range's unknowns.
+    sphere: v_j = -o_j; t_j = v_j.d + v.d_j; e_j = v_j - t_j d - t d_j; |e|_j = (e/|e|).e_j;
+      r_hat_j = t_j - s'(u) |e|_j;  range residual_j = (dr/dtheta_j - r_hat_j) / sigma_r;  lateral_j = e_j / sigma_lat.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .kinematics import Params, points_M, transform_points
+from .motor import MotorClock, motor_angles
+from .rays import beam_rays
+from .scanner import true_range
+from .sphere import footprint_depth
+
+FloatArray = NDArray[np.float64]
+
+MODELS = ("paper", "sphere")
+
+
+@dataclass(frozen=True)
+class MarkerSet:
+    """K returns on markers: their motor angles (at the start clock offset), bearings, ranges, marker centres in W,
+    the model ("paper" or "sphere"), the marker radius R_m, the beam's full divergence [rad], laser-clock beam times."""
+
+    lam: FloatArray  # (K,)
+    mu: FloatArray  # (K,)
+    r: FloatArray  # (K,)
+    c: FloatArray  # (K, 3)
+    model: str
+    radius: float
+    divergence: float = 0.0
+    times: FloatArray | None = None  # (K,)
+
+    @property
+    def footprint(self) -> FloatArray:
+        """(K,) footprint radius at each return's marker, in marker radii (k of :func:`footprint_depth`), from the
+        measured range (data, not a function of the unknowns)."""
+        return 0.5 * self.divergence * np.maximum(self.r, 0.0) / self.radius
+
+    @property
+    def sigma_lat(self) -> FloatArray:
+        """(K,) spread of each return's beam axis about its marker's centre, per component: R_m sqrt(1 + k^2) / 2
+        (module docstring)."""
+        return 0.5 * self.radius * np.sqrt(1.0 + self.footprint ** 2)
+
+    @property
+    def n_res(self) -> int:
+        """Residual components per return (4 for the sphere: 1 range + 3 lateral, 3 independent)."""
+        return 3 if self.model == "paper" else 4
+
+    def subset(self, m: NDArray[np.bool_]) -> MarkerSet:
+        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], c=self.c[m],
+                       times=None if self.times is None else self.times[m])
+
+
+def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray, *, jac: bool = True,
+                clock: MotorClock | None = None, mount_jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
+    """Whitened residuals (K, n_res) and their Jacobian (K, n_res, N_CORE) (None when jac is False) at th."""
+    motor = motor_angles(th, ms.lam, ms.times, clock)
+    o, d, Jo, Jd = beam_rays(th, R_ref, motor, ms.mu, jac=jac, mount_jac=mount_jac)
+    rng = true_range(th, ms.r, on_marker=True)
+    r = rng.r
+    if ms.model == "paper":
+        res = (o + r[:, None] * d - ms.c) / sigma_r
+        if Jo is None or Jd is None:
+            return res, None
+        J = (Jo + r[:, None, None] * Jd) / sigma_r
+        for j, dr in rng.partials:
+            J[:, :, j] = dr[:, None] * d / sigma_r
+        return res, J
+    R = ms.radius
+    v = ms.c - o
+    t = (v * d).sum(1)
+    e = v - t[:, None] * d
+    rho = np.linalg.norm(e, axis=1)
+    s, ds = footprint_depth(rho / R, ms.footprint)
+    r_hat = t - R * s
+    sig_lat = ms.sigma_lat[:, None]
+    res = np.concatenate([((r - r_hat) / sigma_r)[:, None], e / sig_lat], 1)
+    if Jo is None or Jd is None:
+        return res, None
+    Jv = -Jo
+    Jt = np.einsum("kij,ki->kj", Jv, d) + np.einsum("ki,kij->kj", v, Jd)
+    Je = Jv - d[:, :, None] * Jt[:, None, :] - t[:, None, None] * Jd
+    n_e = e / np.maximum(rho, 1e-15)[:, None]
+    Jrho = np.einsum("ki,kij->kj", n_e, Je)
+    Jrhat = Jt - ds[:, None] * Jrho
+    J = np.concatenate([(-Jrhat / sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
+    for j, dr in rng.partials:
+        J[:, 0, j] = dr / sigma_r
+    return res, J
+
+
+def residuals_3d(params: Params, ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, centres_W: ArrayLike,
+                 *, model: str, marker_radius_m: float) -> FloatArray:
+    """3D residual (K, 3) of K returns: paper: p - c (return point minus marker centre); sphere:
+    (p - c)(1 - R / |p - c|), the return point minus the nearest point of the marker's surface (norm = ||p - c| - R|).
+    """
+    p = transform_points(params.mount.matrix(), points_M(ranges_m, lambda_rad, mu_rad, params.dh))
+    diff = p - np.asarray(centres_W, dtype=float)
+    if model == "sphere":
+        dist = np.linalg.norm(diff, axis=1)
+        diff = diff * (1.0 - marker_radius_m / np.maximum(dist, 1e-15))[:, None]
+    return diff
+
+
+__all__ = ["MODELS", "MarkerSet", "marker_rows", "residuals_3d"]

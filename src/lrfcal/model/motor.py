@@ -1,0 +1,80 @@
+"""The per-beam motor angle: the joint states interpolated at the beam's laser time minus the clock offset.
+
+    lambda_k = q(t_k - tau)
+
+q: the joint states (servo clock), interpolated linearly; t_k: the beam's time (laser clock); tau: the clock offset
+(laser stamp - servo stamp). Its partial derivatives are the motor-angle columns of every observation model's
+Jacobian (a model multiplies dX/dlambda = z x X by each, :func:`motor_angles`), so an unknown acting on the motor
+angle (a clock offset, a gear ratio) is written here once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from ..errors import InputError
+from .unknowns import TAU
+
+if TYPE_CHECKING:  # the joint states are data; the model needs only their arrays
+    from ..types import JointStates
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class MotorClock:
+    """The motor angle at laser-clock times for a clock offset tau: lambda(t) = q(t - tau).
+
+    stamps_s (J,) servo clock; positions_rad (J,) unwrapped joint positions; velocity_rad_s (J,) their rate,
+    smoothed over about 50 ms (encoder quantisation would make the segment slopes jump), for the Jacobian.
+    """
+
+    stamps_s: FloatArray
+    positions_rad: FloatArray
+    velocity_rad_s: FloatArray
+
+    @staticmethod
+    def from_joints(joints: JointStates, smooth_s: float = 0.05) -> MotorClock:
+        t = np.asarray(joints.stamps_s, dtype=float)
+        q = np.unwrap(np.asarray(joints.positions_rad, dtype=float))
+        if t.size < 2:
+            raise InputError(f"joint states {joints.name}: {t.size} sample(s); need at least 2")
+        period = float(np.median(np.diff(t)))
+        k = int(max(1, round(0.5 * smooth_s / max(period, 1e-9))))
+        lo = np.clip(np.arange(t.size) - k, 0, t.size - 1)
+        hi = np.clip(np.arange(t.size) + k, 0, t.size - 1)
+        v = (q[hi] - q[lo]) / np.maximum(t[hi] - t[lo], 1e-12)
+        return MotorClock(t, q, v)
+
+    def angles(self, times_s: ArrayLike, tau_s: float) -> tuple[FloatArray, FloatArray]:
+        """lambda (K,) and dlambda/dt (K,) at laser times (K,) for the clock offset tau_s."""
+        t = np.asarray(times_s, dtype=float) - tau_s
+        return np.interp(t, self.stamps_s, self.positions_rad), np.interp(t, self.stamps_s, self.velocity_rad_s)
+
+
+
+
+@dataclass(frozen=True)
+class MotorAngles:
+    """The motor angle of K beams (K,) and its partial derivatives: (core index, dlambda/dtheta (K,)) per unknown
+    that acts on it (none when the angles are data, e.g. interpolated once at a held clock offset)."""
+
+    lam: FloatArray
+    partials: tuple[tuple[int, FloatArray], ...] = ()
+
+
+def motor_angles(th: FloatArray, lam: FloatArray, times: FloatArray | None, clock: MotorClock | None) -> MotorAngles:
+    """The beams' motor angles at the unknowns ``th`` (N_CORE + ...,): re-interpolated at the clock offset th[TAU]
+    when it is estimated (``clock`` and the beam ``times`` (K,) given; dlambda/dtau = -omega, the joint's smoothed
+    rate), else ``lam`` (K,) as given (interpolated once at the held clock offset)."""
+    if clock is None or times is None:
+        return MotorAngles(np.asarray(lam, dtype=float))
+    q, omega = clock.angles(times, th[TAU])
+    return MotorAngles(q, ((TAU, -omega),))
+
+
+__all__ = ["MotorAngles", "MotorClock", "motor_angles"]

@@ -1,0 +1,159 @@
+"""The data of one least-squares problem and its whitened residuals: marker returns (lrfcal.model.marker), surface
+returns on planes whose normals and offsets are nuisances (lrfcal.model.plane), the planes' priors and the design
+drawing's prior on the DH parameters, all as the blocks the solver's normal equations take
+(lrfcal.normal_equations). Markers, surfaces, targetless, plan and study build one of these; one engine
+(lrfcal.solve) solves it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .errors import InputError
+from .model.marker import MODELS, MarkerSet, marker_rows
+from .model.motor import MotorClock
+from .model.plane import plane_rows
+from .model.unknowns import DH_SLICE, N_CORE, PlaneSet, plane_nuisance_start, wrap_pi
+from .normal_equations import Blocks
+from .surfaces import Surface, SurfaceReturns
+from .types import Observations
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Problem:
+    """Marker returns, optional surface returns, the range noise, optional clock (the clock offset estimated), an
+    optional prior on the DH parameters, and whether the mount's Jacobian is needed."""
+
+    markers: MarkerSet
+    sigma_r: float
+    surf: PlaneSet | None = None
+    clock: MotorClock | None = None  # set when the clock offset is estimated
+    dh_prior: tuple[FloatArray, FloatArray] | None = None  # (mean (4,), sigma (4,)) of a, alpha, b, beta
+    mount_jac: bool = True  # False: the mount is held, its Jacobian columns are not computed (left 0)
+
+    def subset(self, m: NDArray[np.bool_], ms: NDArray[np.bool_] | None = None) -> Problem:
+        """The marker returns ``m`` and the surface returns ``ms`` (all when None)."""
+        surf = self.surf if self.surf is None or ms is None else self.surf.subset(ms)
+        return replace(self, markers=self.markers.subset(m), surf=surf)
+
+    def marker_rows(self, th: FloatArray, R_ref: FloatArray, jac: bool = True
+                    ) -> tuple[FloatArray, FloatArray | None]:
+        """Whitened marker residuals (K, n_res) and Jacobian (K, n_res, N_CORE) (lrfcal.model.marker)."""
+        return marker_rows(th, self.markers, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
+
+    def blocks(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> Blocks:
+        """All whitened residuals as lrfcal.normal_equations.Blocks: the marker returns and the design drawing's
+        prior on the DH parameters (dense rows), the surface returns (plane rows) and the planes' priors."""
+        z = np.zeros(0)
+        r_d, J_d = z, np.zeros((0, N_CORE))
+        if self.markers.r.size:
+            res, J = self.marker_rows(th, R_ref, jac=jac)
+            r_d, J_d = res.ravel(), (None if J is None else J.reshape(-1, N_CORE))
+        if self.dh_prior is not None:  # the design drawing's word on the DH parameters
+            mean, sig = self.dh_prior
+            d = th[DH_SLICE] - mean
+            d[[1, 3]] = wrap_pi(d[[1, 3]])
+            r_d = np.concatenate([r_d, d / sig])
+            if J_d is not None:
+                Jp = np.zeros((4, N_CORE))
+                Jp[:, DH_SLICE] = np.diag(1.0 / sig)
+                J_d = np.vstack([J_d, Jp])
+        s = self.surf
+        if s is None:
+            return Blocks(r_d, J_d, z, np.zeros((0, N_CORE)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0)
+        rows = plane_rows(th, s, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
+        r_q = w_q = None
+        if s.prior_sigma is not None and s.prior_mean is not None:  # the markers' word on the planes
+            r_q, w_q = (th[N_CORE:] - s.prior_mean) / s.prior_sigma, 1.0 / s.prior_sigma
+        return Blocks(r_d, J_d, rows.res, rows.Jc, rows.Jn, s.plane, s.n_planes, r_q, w_q, s.segments)
+
+    def stacked(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
+        """All whitened residuals as one vector (dense rows, plane rows, plane priors) and the dense Jacobian
+        (rows, N_CORE + 3P) (for scipy's robust pass; the normal equations use :meth:`blocks`)."""
+        b = self.blocks(th, R_ref, jac)
+        res = b.residuals()
+        if b.J_dense is None or b.Jc_plane is None or b.Jn_plane is None:
+            return res, None
+        m, K = b.r_dense.size, b.r_plane.size
+        J = np.zeros((res.size, th.size))
+        J[:m, :N_CORE] = b.J_dense
+        J[m:m + K, :N_CORE] = b.Jc_plane
+        J[m + np.arange(K)[:, None], N_CORE + 3 * b.plane[:, None] + np.arange(3)] = b.Jn_plane
+        if b.w_prior is not None:
+            J[m + K + np.arange(b.w_prior.size), N_CORE + np.arange(b.w_prior.size)] = b.w_prior
+        return res, J
+
+
+def marker_problem(
+    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float, divergence: float = 0.0
+) -> tuple[Problem, NDArray[np.bool_]]:
+    """The problem of the returns of ``obs`` with a marker (and finite values), and which rows those are (K,).
+
+    Raises:
+        InputError: a model, marker array, radius, noise or divergence out of its domain.
+    """
+    if model not in MODELS:
+        raise InputError(f"solve: model must be one of {', '.join(MODELS)}, got {model!r}")
+    X = np.asarray(markers_W, dtype=float)
+    if X.ndim != 2 or X.shape[1] != 3:
+        raise InputError(f"solve: markers_W must be (n, 3), got {X.shape}")
+    if not radius > 0 or not sigma_r > 0:
+        raise InputError(f"solve: marker_radius_m and range_sigma_m must be > 0, got {radius}, {sigma_r}")
+    if not 0.0 <= divergence < 0.1:
+        raise InputError(f"solve: beam_divergence_rad must be in [0, 0.1) rad, got {divergence}")
+    marker = np.asarray(obs.marker)
+    if np.any(marker >= len(X)):
+        raise InputError(f"solve: observation marker index {int(marker.max())} >= number of markers {len(X)}")
+    use = (marker >= 0) & np.isfinite(obs.ranges_m) & np.isfinite(obs.lambda_rad) & np.isfinite(obs.mu_rad)
+    ms = MarkerSet(np.asarray(obs.lambda_rad, dtype=float)[use], np.asarray(obs.mu_rad, dtype=float)[use],
+                   np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], model, float(radius),
+                   float(divergence), np.asarray(obs.times_s, dtype=float)[use])
+    return Problem(ms, float(sigma_r)), use
+
+
+def no_markers() -> MarkerSet:
+    """An empty marker set (a problem of surface returns only)."""
+    z = np.zeros(0)
+    return MarkerSet(z, z, z, np.zeros((0, 3)), "sphere", 1.0, 0.0, z)
+
+
+def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[PlaneSet, FloatArray]:
+    """The surface returns as a PlaneSet with the planes' nuisance start (3P,): started from the returns' normals
+    and offsets; with ``planes`` (each surface index's lrfcal.surfaces.Surface), their tangent axes and the markers'
+    prior on them."""
+    ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
+    first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
+    n0, t1, t2, nu0 = plane_nuisance_start(surfaces.normals[first], surfaces.offsets_m[first])
+    prior_sigma = None
+    if planes is not None:
+        t1 = np.array([planes[i].axes[0] for i in ids])
+        t2 = np.array([planes[i].axes[1] for i in ids])
+        prior_sigma = np.concatenate([planes[i].prior_sigma for i in ids])
+    surf = PlaneSet(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
+                    nu0.copy(), prior_sigma, times=surfaces.times_s)
+    return surf, nu0
+
+
+def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorClock | None,
+                  dh_prior: tuple[FloatArray, FloatArray] | None = None) -> tuple[Problem, FloatArray]:
+    """A problem of surface returns only (no marker returns) on free planes, and the planes' nuisance start.
+
+    Raises:
+        InputError: a range noise not above 0, or a clock without the returns' beam times.
+    """
+    if not range_sigma_m > 0:
+        raise InputError(f"solve: range_sigma_m must be > 0, got {range_sigma_m}")
+    if clock is not None and surfaces.times_s is None:
+        raise InputError("solve: the clock offset needs the surface returns' beam times (times_s)")
+    surf, nu0 = plane_set(surfaces, None)
+    return Problem(no_markers(), float(range_sigma_m), surf=surf, clock=clock, dh_prior=dh_prior,
+                   mount_jac=False), nu0
+
+
+__all__ = ["Problem", "marker_problem", "no_markers", "plane_problem", "plane_set"]
