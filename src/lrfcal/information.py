@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .model.kinematics import Params
 from .model.motor import MotorClock
-from .model.unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, pack
+from .model.unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from .normal_equations import assemble, schur
 from .problem import marker_problem, plane_problem, plane_set
 from .solve import _plane_free
@@ -58,8 +58,8 @@ def jacobian_check(
     rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
 ) -> FloatArray:
     """Per column, the largest relative difference between the analytic Jacobian and central finite differences:
-    the 10 parameters, the clock offset when ``clock`` is given (obs.times_s the beam times), then the range
-    offset and the marker range bias (12 or 13 columns), evaluated at the rotation increment ``rotation_vector``
+    every core unknown in CORE_NAMES order (lrfcal.model.unknowns), the clock offset only when ``clock`` is given
+    (obs.times_s the beam times; N_CORE or N_CORE - 1 columns), evaluated at the rotation increment ``rotation_vector``
     (to test the right Jacobian away from 0).
 
     Each column's difference is divided by max(|J_analytic| column max, 1) in whitened units. The clock column
@@ -74,7 +74,7 @@ def jacobian_check(
     _, J = pb.marker_rows(th, R_ref)
     assert J is not None
     J = J.reshape(-1, N_CORE)
-    cols = [*range(10), *([TAU] if clock is not None else []), ROFF, MBIAS]
+    cols = [j for j in range(N_CORE) if j != TAU or clock is not None]
     worst = np.zeros(len(cols))
     for out_j, j in enumerate(cols):
         dp = np.zeros(N_CORE)
@@ -106,7 +106,10 @@ def information_at(
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
-    idx = [*range(10), *([TAU] if clock is not None else []), *([ROFF, MBIAS] if with_surfaces else [])]
+    free = free_by_default()
+    free[TAU] &= clock is not None
+    free[[ROFF, MBIAS]] &= with_surfaces
+    idx = [int(j) for j in np.flatnonzero(free)]
     names = tuple(CORE_NAMES[i] for i in idx)
     if surfaces is not None and with_surfaces:
         surf, nu0 = plane_set(surfaces, planes)
