@@ -1,9 +1,10 @@
 """The per-beam motor angle: the joint states interpolated at the beam's laser time minus the clock offset.
 
-    lambda_k = q(t_k - tau)
+    lambda_k = s q(t_k - tau)
 
 q: the joint states (servo clock), interpolated linearly; t_k: the beam's time (laser clock); tau: the clock offset
-(laser stamp - servo stamp). Its partial derivatives are the motor-angle columns of every observation model's
+(laser stamp - servo stamp); s: the motor-angle scale (1 for a servo whose reported angle is its true angle; a
+gear ratio or a wrong counts-per-turn makes it differ). Its partial derivatives are the motor-angle columns of every observation model's
 Jacobian (a model multiplies dX/dlambda = z x X by each, :func:`motor_angles`), so an unknown acting on the motor
 angle (a clock offset, a gear ratio) is written here once.
 """
@@ -17,7 +18,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from ..errors import InputError
-from .unknowns import TAU
+from .unknowns import SCALE, TAU
 
 if TYPE_CHECKING:  # the joint states are data; the model needs only their arrays
     from ..types import JointStates
@@ -68,13 +69,16 @@ class MotorAngles:
 
 
 def motor_angles(th: FloatArray, lam: FloatArray, times: FloatArray | None, clock: MotorClock | None) -> MotorAngles:
-    """The beams' motor angles at the unknowns ``th`` (N_CORE + ...,): re-interpolated at the clock offset th[TAU]
-    when it is estimated (``clock`` and the beam ``times`` (K,) given; dlambda/dtau = -omega, the joint's smoothed
-    rate), else ``lam`` (K,) as given (interpolated once at the held clock offset)."""
+    """The beams' motor angles at the unknowns ``th`` (N_CORE + ...,): the joint angle q re-interpolated at the clock
+    offset th[TAU] when it is estimated (``clock`` and the beam ``times`` (K,) given; dq/dtau = -omega, the joint's
+    smoothed rate), else ``lam`` (K,) as given (interpolated once at the held clock offset); times the motor-angle
+    scale th[SCALE] (dlambda/ds = q)."""
+    s = th[SCALE]
     if clock is None or times is None:
-        return MotorAngles(np.asarray(lam, dtype=float))
+        q = np.asarray(lam, dtype=float)
+        return MotorAngles(s * q, ((SCALE, q),))
     q, omega = clock.angles(times, th[TAU])
-    return MotorAngles(q, ((TAU, -omega),))
+    return MotorAngles(s * q, ((TAU, -s * omega), (SCALE, q)))
 
 
 __all__ = ["MotorAngles", "MotorClock", "motor_angles"]

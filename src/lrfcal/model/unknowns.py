@@ -54,6 +54,8 @@ UNKNOWNS: tuple[Unknown, ...] = (
     Unknown("clock_offset", "s", "clock", 0.0, "", "laser stamp minus servo stamp"),
     Unknown("range_offset", "m", "intrinsic", 0.0, "", "added to every range the scanner reports"),
     Unknown("marker_range_bias", "m", "intrinsic", 0.0, "", "added to the ranges of marker returns only"),
+    Unknown("motor_scale", "1", "intrinsic", 1.0, "the servo's angle scale (gear ratio) is trusted: held at 1",
+            "the joint's reported angle times this is the motor angle (a gear ratio or counts per turn off)"),
 )
 assert tuple(u.name for u in UNKNOWNS[:10]) == ESTIMATE_NAMES
 
@@ -64,6 +66,7 @@ BY_NAME: dict[str, Unknown] = {u.name: u for u in UNKNOWNS}
 TAU = CORE_NAMES.index("clock_offset")
 ROFF = CORE_NAMES.index("range_offset")
 MBIAS = CORE_NAMES.index("marker_range_bias")
+SCALE = CORE_NAMES.index("motor_scale")
 DH_SLICE = slice(6, 10)
 INTRINSICS: tuple[str, ...] = tuple(u.name for u in UNKNOWNS if u.kind == "intrinsic")
 

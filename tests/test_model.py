@@ -1,0 +1,75 @@
+"""The rig model layer (lrfcal.model): the table of unknowns, and an intrinsic added to it (the motor-angle scale)
+flowing through the solver without any stage knowing its name."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_solve import R_M, SIGMA, TRUE, _markers, simulate
+
+from lrfcal.information import jacobian_check
+from lrfcal.model.kinematics import DH, Params, Pose
+from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.unknowns import BY_NAME, CORE_NAMES, INTRINSICS, N_CORE, free_by_default, pack, unpack
+from lrfcal.solve import solve
+from lrfcal.types import JointStates, Observations
+
+
+def test_table_packs_and_unpacks() -> None:
+    """Every unknown has a unit and a start; pack / unpack round-trip the 10 parameters; the defaults that are held
+    say why."""
+    assert len(CORE_NAMES) == N_CORE == len(set(CORE_NAMES))
+    th, R_ref = pack(TRUE, 0.003)
+    assert th.shape == (N_CORE,)
+    assert th[CORE_NAMES.index("clock_offset")] == 0.003
+    back = unpack(th, R_ref)
+    assert np.allclose(back.vector(), TRUE.vector(), atol=1e-12)
+    for name in CORE_NAMES:
+        u = BY_NAME[name]
+        assert u.unit in ("m", "rad", "s", "1") and u.meaning
+        assert th[CORE_NAMES.index(name)] == u.start or u.kind in ("mount", "dh", "clock")
+    free = free_by_default()
+    assert all(free[CORE_NAMES.index(u)] == (not BY_NAME[u].held) for u in CORE_NAMES)
+    assert not free_by_default(("a",))[CORE_NAMES.index("a")]
+
+
+def test_motor_scale_is_an_intrinsic_held_at_one() -> None:
+    """The motor-angle scale (a servo's gear ratio): in the table, held at 1 by default with the reason, and
+    reported by a calibration as held (value 1, sigma NaN)."""
+    u = BY_NAME["motor_scale"]
+    assert u.kind == "intrinsic" and u.start == 1.0 and "held" in u.held
+    assert "motor_scale" in INTRINSICS
+    rng = np.random.default_rng(5)
+    X = _markers(rng)
+    obs = simulate(TRUE, X, rng)
+    sol = solve(obs, X, TRUE, model="sphere", marker_radius_m=R_M, range_sigma_m=SIGMA)
+    value, sigma = sol.intrinsics["motor_scale"]
+    assert value == 1.0 and np.isnan(sigma)
+
+
+def test_motor_angle_scale_and_its_jacobian() -> None:
+    """lambda = s q(t - tau): the scale multiplies the joint angle, and its Jacobian column (with every other) matches
+    central differences through the marker model."""
+    t = np.linspace(-1.0, 11.0, 1201)
+    clock = MotorClock.from_joints(JointStates(t, 1.5 * np.sin(0.4 * t), "servo"))
+    times = np.linspace(0.5, 9.5, 50)
+    th, _ = pack(TRUE)
+    k = CORE_NAMES.index("motor_scale")
+    th[k] = 1.02
+    m = motor_angles(th, np.zeros(50), times, clock)
+    assert np.allclose(m.lam, 1.02 * clock.angles(times, 0.0)[0])
+    assert dict(m.partials)[k] == pytest.approx(clock.angles(times, 0.0)[0])
+    rng = np.random.default_rng(3)
+    K = 200
+    X = rng.uniform(-1.5, 1.5, (6, 3))
+    times = rng.uniform(0.0, 10.0, K)
+    obs = Observations(
+        blob=np.zeros(K, np.int64), marker=rng.integers(0, 6, K), scan=np.zeros(K, np.int64),
+        beam=np.zeros(K, np.int64), ranges_m=rng.uniform(0.5, 2.0, K), mu_rad=rng.uniform(-2.3, 2.3, K),
+        lambda_rad=clock.angles(times, 0.0)[0], times_s=times, intensity=np.ones(K), is_peak=np.zeros(K, bool),
+    )
+    params = Params(Pose(0.2, -0.1, 0.5, 0.3, 0.2, 0.1), DH(0.02, 1.4, 0.05, -0.3))
+    for c in (None, clock):
+        err = jacobian_check(params, obs, X, model="sphere", marker_radius_m=0.3, clock=c)
+        cols = [n for n in CORE_NAMES if n != "clock_offset" or c is not None]
+        assert err[cols.index("motor_scale")] < 1e-6, err
