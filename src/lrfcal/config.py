@@ -1,6 +1,5 @@
-"""What both ways of calibrating share (lrfcal.pipeline with markers, lrfcal.targetless from the scene's planes):
-the options, the consistency checks' result type and the chi-square check, the split of a recording in two
-independent parts for the second opinion, and the stopwatch that reports the stages."""
+"""What both ways of calibrating share (lrfcal.markers, lrfcal.targetless, run by lrfcal.pipeline): the options and
+the stopwatch that reports the stages (the checks are lrfcal.checks)."""
 
 from __future__ import annotations
 
@@ -8,10 +7,6 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-
-import numpy as np
-
-from .errors import CalibrationError
 
 #: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
 DEFAULT_RANGE_SIGMA_M = 0.010
@@ -54,49 +49,6 @@ class CalibConfig:
     max_incidence_rad: float = math.radians(65.0)
 
 
-@dataclass(frozen=True)
-class Check:
-    """One consistency check of the result: its name, whether it passed, and the numbers."""
-
-    name: str
-    passed: bool
-    detail: str
-
-
-def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
-    """Raise CalibrationError naming the first failed check (and how many more failed), unless ``config.force``.
-
-    Raises:
-        CalibrationError: a check failed and the result may not be written.
-    """
-    failed = [c for c in checks if not c.passed]
-    if failed and not config.force:
-        c = failed[0]
-        raise CalibrationError(f"{c.name}: {c.detail}"
-                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
-                               + "; --force writes the result anyway with the failed checks recorded")
-
-
-def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
-    """Two independent parts of a recording's returns (their scan indices (K,); passes (S,) of the sweep): the
-    even and odd passes when the sweep goes both ways, else the two halves in time; and their name."""
-    if passes.max() >= 1:
-        scan_pass = passes[scan]
-        return [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
-    mid = np.median(scan)
-    return [scan <= mid, scan > mid], "the two halves of the sweep"
-
-
-def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> Check:
-    """The reduced chi-square check: ``what`` (the residuals' name) at most sqrt(config.max_reduced_chi2) times the
-    stated range noise; the failure says what else (``otherwise``) could be wrong."""
-    ok = bool(chi2 <= config.max_reduced_chi2)
-    return Check("reduced chi-square", ok,
-                 f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): {what} {math.sqrt(max(chi2, 0.0)):.2g} times the "
-                 f"stated range noise {config.range_sigma_m * 1000:g} mm"
-                 + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
-
-
 class Stopwatch:
     """Times the stages; tells ``progress`` which stage comes next (the names in ``stages``, in order)."""
 
@@ -119,5 +71,4 @@ class Stopwatch:
             self._say(self.stages[self.stages.index(name) + 1])
 
 
-__all__ = ["DEFAULT_RANGE_SIGMA_M", "CalibConfig", "Check", "Stopwatch", "chi2_check", "refuse_failed",
-           "split_in_two"]
+__all__ = ["DEFAULT_RANGE_SIGMA_M", "CalibConfig", "Stopwatch"]

@@ -17,23 +17,22 @@ covariance), so that holding a wrong nominal cannot make the others confidently 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from . import geometry, holdout, observability, planes, reproject, solve, timing
-from .config import CalibConfig, Check, Stopwatch, chi2_check, refuse_failed, split_in_two
+from . import holdout, observability, planes, solve, timing
+from .checks import plane_checks
+from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
 from .information import plane_information
 from .model.kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .model.motor import MotorClock
 from .model.unknowns import CORE_NAMES, wrap_pi
 from .surfaces import Surface, SurfaceReturns, hash_sample
-from .timing import usable_scans
-from .types import CalibrationResult, JointStates, Recording, Scans, Solution
+from .types import CalibrationResult, Check, JointStates, PlaneFit, Recording, Scans, Solution
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -41,24 +40,6 @@ DH_NAMES = observability.DH
 STAGES: tuple[str, ...] = ("timing", "planes", "solve", "checks", "reprojection", "geometry")
 #: returns used to segment the planes (the solve uses up to CalibConfig.plane_returns, labelled from these)
 SEGMENT_SAMPLES = 40000
-
-
-@dataclass(frozen=True)
-class PlaneFit:
-    """What the targetless calibration found and used: the scene's planes (frame M, at the estimate), each
-    plane's thickness (RMS distance of its returns from their best-fit plane, m) and best-fit normal (P, 3) with the
-    nominal and with the calibrated DH, the parameters held at nominal (with why), and the rounds of
-    re-segmentation run."""
-
-    planes: tuple[planes.ScenePlane, ...]
-    rms_before_m: FloatArray
-    rms_after_m: FloatArray
-    n_returns: NDArray[np.int64]
-    held: tuple[str, ...]
-    held_reason: str
-    rounds: int
-    normals_before: FloatArray
-    normals_after: FloatArray
 
 
 @dataclass(frozen=True)
@@ -75,21 +56,17 @@ class _Beams:
         return _Beams(self.scan[idx], self.beam[idx], self.ranges_m[idx], self.mu_rad[idx], self.times_s[idx])
 
 
-def calibrate_targetless(
-    recording: Recording, config: CalibConfig | None = None, progress: Callable[[str], None] | None = None
-) -> CalibrationResult:
-    """Stages 1-6 of the module docstring on a recording without markers (or with its markers ignored).
+def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch, notes: list[str]
+              ) -> CalibrationResult:
+    """Stages 1-5 of the module docstring on ``recording`` (its scans those the joint states cover; its markers, if
+    any, ignored) and their checks: a result without clouds (lrfcal.pipeline adds them).
 
-    Raises CalibrationError (exit code 3) with the reason when the scene does not support a trustworthy result,
-    unless ``config.force``, which records the failed checks in the result instead.
+    Raises:
+        CalibrationError: the scene shows no plane, or determines no DH parameter.
     """
-    config = config or CalibConfig()
-    clock = Stopwatch(progress, STAGES)
-    notes: list[str] = ["targetless: the DH parameters from the flatness of the scene's planes; without markers "
-                        "there is no world frame, so the mount pose is not estimated (frame M)"]
-    nominal = recording.nominal
-    tau0 = config.clock_offset_s
-    scans, joints = usable_scans(recording, tau0, notes)
+    notes.insert(0, "targetless: the DH parameters from the flatness of the scene's planes; without markers there "
+                 "is no world frame, so the mount pose is not estimated (frame M)")
+    scans, nominal, tau0 = recording.scans, recording.nominal, config.clock_offset_s
     motor = MotorClock.from_joints(joints)
     passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
     estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
@@ -142,16 +119,9 @@ def calibrate_targetless(
     sol = _consider(sol, returns, motor if estimate_clock else None, held, config, prior)
     clock.lap("solve")
 
-    checks = _checks(sol, returns, passes, held, config, prior)
+    checks = plane_checks(sol, returns, passes, held, config, prior)
     checks.append(_held_out_check(held_beams, motor, Params(_M, nominal.dh), tau0, sol, first_thickness))
     clock.lap("checks")
-    refuse_failed(checks, config)
-
-    lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=sol.clock_offset_s,
-                                       tolerance_s=math.inf)
-    (cloud_before, cloud_after), cloud_intensity = reproject.reproject_clouds(
-        scans, lambda_beams, (nominal.dh, sol.params.dh), config.cloud_stride,
-        (0.0, sol.range_offset_m))
     lam_b = motor.angles(beams.times_s, tau0)[0]
     lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
     before, n_before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels, len(found))
@@ -159,18 +129,11 @@ def calibrate_targetless(
                                      len(found))
     fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)), held,
                    held_reason, rounds, n_before, n_after)
-    clock.lap("reprojection")
-    geometry_before = geometry_after = None
-    if config.geometry:
-        geometry_before = geometry.tunnel_geometry(cloud_before)
-        geometry_after = geometry.tunnel_geometry(cloud_after)
-        clock.lap("geometry")
     return CalibrationResult(
-        recording=replace(recording, scans=scans), markers=None, detections=None, observations=None, association=None,
-        start=Params(_M, nominal.dh), solution=sol, baseline=None, cloud_before_M=cloud_before,
-        cloud_after_M=cloud_after, cloud_intensity=cloud_intensity, geometry_before=geometry_before,
-        geometry_after=geometry_after, timings_s=clock.laps, surface_returns=returns, checks=tuple(checks),
-        notes=tuple(notes), method="targetless", plane_fit=fit,
+        recording=recording, markers=None, detections=None, observations=None, association=None,
+        start=Params(_M, nominal.dh), solution=sol, baseline=None, cloud_before_M=np.zeros((0, 3)),
+        cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
+        surface_returns=returns, checks=tuple(checks), plane_fit=fit,
     )
 
 
@@ -350,58 +313,6 @@ def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, 
     return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
-def _checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
-            config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> list[Check]:
-    """Convergence, observability of the estimated parameters, reduced chi-square and a second opinion."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
-    est = [n for n in DH_NAMES if n not in held]
-    s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
-    ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())
-    checks.append(Check("observability", ok, "1-sigma " + ", ".join(
-        f"{n} {math.degrees(v):.3g} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:.3g} mm"
-        for n, v in s.items()) + (f"; held at nominal: {', '.join(held)}" if held else "")))
-    checks.append(chi2_check(sol.reduced_chi2, config, "plane residuals", "the scene's surfaces are not flat "
-                             "enough or the model does not explain the data (servo backlash, an unmodelled clock "
-                             "offset)"))
-    checks.append(_second_opinion(sol, returns, passes, held, config, prior))
-    return checks
-
-
-def _second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
-                    config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Check:
-    """Even and odd passes (or the sweep's two halves) calibrated separately and compared with each other:
-    chi2 = d^T (C_1 + C_2)^-1 d over the estimated DH parameters (independent data), clock offset held at the
-    joint estimate."""
-    from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
-
-    groups, how = split_in_two(returns.scan, passes)
-    est = [6 + DH_NAMES.index(n) for n in DH_NAMES if n not in held]
-    limit = float(chdtri(len(est), 1.0 - (1.0 - config.second_opinion_p)))
-    parts = []
-    for g in groups:
-        try:
-            kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
-            parts.append(solve.solve_planes(returns.subset(kept), sol.params, range_sigma_m=config.range_sigma_m,
-                                            clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
-                                            robust=False))
-        except CalibrationError:
-            return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
-    d = parts[0].params.vector()[est] - parts[1].params.vector()[est]
-    d = np.where(np.isin(est, (7, 9)), wrap_pi(d), d)
-    C = parts[0].covariance[np.ix_(est, est)] + parts[1].covariance[np.ix_(est, est)]
-    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
-        return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
-    stat = float(d @ np.linalg.solve(C, d))
-    ok = stat <= limit
-    names = [CORE_NAMES[i] for i in est]
-    diffs = ", ".join(f"{n} {math.degrees(v):+.3f} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:+.2f} mm"
-                      for n, v in zip(names, d, strict=True))
-    return Check("second opinion", ok,
-                 f"{how} calibrated separately differ by chi2 {stat:.3g} (limit {limit:.3g}, {len(est)} dof; {diffs})"
-                 + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled "
-                                  "clock offset, a scene that moved)"))
-
-
 def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: NDArray[np.bool_],
                         marker_planes: list[Surface], config: CalibConfig) -> tuple[SurfaceReturns, list[Surface]]:
     """Every plane of the scene other than the markers' own (stage 6b generalised): segmented in the cloud at a
@@ -448,4 +359,4 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     return SurfaceReturns(**fields)
 
 
-__all__ = ["STAGES", "PlaneFit", "calibrate_targetless", "merge_returns", "scene_plane_returns"]
+__all__ = ["STAGES", "PlaneFit", "fit_scene", "merge_returns", "scene_plane_returns"]

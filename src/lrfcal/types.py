@@ -8,12 +8,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .model.kinematics import DH, Params, Pose
+
+if TYPE_CHECKING:  # the stages' own types, named here for the reader and the type checker only
+    from .planes import ScenePlane
+    from .rig import LogLayout, ScanSource, ServoSource
+    from .surfaces import Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -169,10 +174,10 @@ class Nominal:
     joint_name: str = "servo"
     #: lrfcal.rig.ScanSource / ServoSource: where the bag keeps scans and servo angle (None: from the fields
     #: above, a LaserScan topic and a sensor_msgs/JointState joint).
-    scan: Any = None
-    servo: Any = None
+    scan: ScanSource | None = None
+    servo: ServoSource | None = None
     #: lrfcal.rig.LogLayout: how a scan log is laid out (the rig file's ``log:``; None: not given)
-    log: Any = None
+    log: LogLayout | None = None
 
 
 @dataclass(frozen=True)
@@ -353,13 +358,40 @@ class TunnelGeometry:
 
 
 @dataclass(frozen=True)
+class Check:
+    """One consistency check of the result: its name, whether it passed, and the numbers."""
+
+    name: str
+    passed: bool
+    detail: str
+
+
+@dataclass(frozen=True)
+class PlaneFit:
+    """What the targetless calibration found and used: the scene's planes (frame M, at the estimate), each
+    plane's thickness (RMS distance of its returns from their best-fit plane, m) and best-fit normal (P, 3) with the
+    nominal and with the calibrated DH, the parameters held at nominal (with why), and the rounds of
+    re-segmentation run."""
+
+    planes: tuple[ScenePlane, ...]
+    rms_before_m: FloatArray
+    rms_after_m: FloatArray
+    n_returns: NDArray[np.int64]
+    held: tuple[str, ...]
+    held_reason: str
+    rounds: int
+    normals_before: FloatArray
+    normals_after: FloatArray
+
+
+@dataclass(frozen=True)
 class CalibrationResult:
     """Everything the pipeline produced, for the writers, the loop and the visualisation."""
 
     #: the recording as calibrated: its scans are those the joint states cover (the scans trimmed at the ends are
     #: not here), so that scan indices of detections and observations index ``recording.scans``
     recording: Recording
-    markers: MarkerMap | None  # None for a targetless calibration (method "targetless"), as the next three
+    markers: MarkerMap | None  # None for a targetless calibration, as the next three
     detections: Detections | None
     observations: Observations | None
     association: Association | None
@@ -372,13 +404,18 @@ class CalibrationResult:
     geometry_before: TunnelGeometry | None
     geometry_after: TunnelGeometry | None
     timings_s: dict[str, float] = field(default_factory=dict)
-    surfaces: tuple[Any, ...] = ()  # lrfcal.surfaces.Surface: the planes the markers are mounted on
-    surface_returns: Any = None  # lrfcal.surfaces.SurfaceReturns used in the joint solve, or None
-    checks: tuple[Any, ...] = ()  # lrfcal.pipeline.Check: the consistency checks and their outcome
+    surfaces: tuple[Surface, ...] = ()  # the planes the markers are mounted on
+    surface_returns: SurfaceReturns | None = None  # used in the joint solve, or None
+    checks: tuple[Check, ...] = ()  # the consistency checks and their outcome
     notes: tuple[str, ...] = ()  # what the calibration assumed, trimmed or dropped, in words
-    method: str = "markers"  # "markers" (the paper's, lrfcal.pipeline) or "targetless" (lrfcal.targetless)
-    plane_fit: Any = None  # lrfcal.targetless.PlaneFit: the scene's planes and their flatness (targetless only)
+    plane_fit: PlaneFit | None = None  # the scene's planes and their flatness (targetless only)
     #: the DH estimates of the methods run on this recording, by name (markers only, markers and their surfaces,
     #: targetless), shown side by side in the report
     side_by_side: dict[str, Solution] = field(default_factory=dict)
     servo_sign: int = 1  # the servo direction used: +1 as declared, -1 negated (only with --force on an ambiguity)
+
+    @property
+    def method(self) -> str:
+        """How the result was found, as written in calibration.yaml: "markers" (lrfcal.markers) or "targetless"
+        (lrfcal.targetless, the result with the scene's plane fit)."""
+        return "markers" if self.plane_fit is None else "targetless"

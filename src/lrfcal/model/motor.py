@@ -4,9 +4,9 @@
 
 q: the joint states (servo clock), interpolated linearly; t_k: the beam's time (laser clock); tau: the clock offset
 (laser stamp - servo stamp); s: the motor-angle scale (1 for a servo whose reported angle is its true angle; a
-gear ratio or a wrong counts-per-turn makes it differ). Its partial derivatives are the motor-angle columns of every observation model's
-Jacobian (a model multiplies dX/dlambda = z x X by each, :func:`motor_angles`), so an unknown acting on the motor
-angle (a clock offset, a gear ratio) is written here once.
+gear ratio or a wrong counts-per-turn makes it differ). Its partial derivatives are the motor-angle columns of every
+observation model's Jacobian (a model multiplies dX/dlambda = z x X by each, :func:`motor_angles`), so an unknown
+acting on the motor angle (a clock offset, a gear ratio) is written here once.
 """
 
 from __future__ import annotations

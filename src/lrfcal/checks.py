@@ -1,0 +1,242 @@
+"""The checks a result must pass before it is written, for both ways of calibrating (lrfcal.markers, lrfcal.targetless):
+convergence, observability, the reduced chi-square, a second opinion from two independent parts of the recording, and
+the servo's direction; and the refusal when one fails.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Protocol, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from . import observability, solve
+from .config import CalibConfig
+from .errors import CalibrationError
+from .model.kinematics import DH, PARAM_NAMES
+from .model.motor import MotorClock
+from .model.unknowns import CORE_NAMES, wrap_pi
+from .surfaces import SurfaceReturns
+from .types import Check, MarkerMap, Observations, Solution
+
+
+class _Alternative(Protocol):
+    """A direction of the servo and the marker-only solution with it (lrfcal.markers.Alternative)."""
+
+    sign: int
+    solution: Solution
+
+
+A = TypeVar("A", bound=_Alternative)
+
+FloatArray = NDArray[np.float64]
+DH_NAMES = observability.DH
+
+
+def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
+    """Raise CalibrationError naming the first failed check (and how many more failed), unless ``config.force``.
+
+    Raises:
+        CalibrationError: a check failed and the result may not be written.
+    """
+    failed = [c for c in checks if not c.passed]
+    if failed and not config.force:
+        c = failed[0]
+        raise CalibrationError(f"{c.name}: {c.detail}"
+                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
+                               + "; --force writes the result anyway with the failed checks recorded")
+
+
+def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
+    """Two independent parts of a recording's returns (their scan indices (K,); passes (S,) of the sweep): the
+    even and odd passes when the sweep goes both ways, else the two halves in time; and their name."""
+    if passes.max() >= 1:
+        scan_pass = passes[scan]
+        return [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
+    mid = np.median(scan)
+    return [scan <= mid, scan > mid], "the two halves of the sweep"
+
+
+def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> Check:
+    """The reduced chi-square check: ``what`` (the residuals' name) at most sqrt(config.max_reduced_chi2) times the
+    stated range noise; the failure says what else (``otherwise``) could be wrong."""
+    ok = bool(chi2 <= config.max_reduced_chi2)
+    return Check("reduced chi-square", ok,
+                 f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): {what} {math.sqrt(max(chi2, 0.0)):.2g} times the "
+                 f"stated range noise {config.range_sigma_m * 1000:g} mm"
+                 + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
+
+
+def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
+    """The servo's direction: the declared one (+1) unless the nominal DH contradicts it and fits the other.
+
+    A negated motor angle together with a mirrored marker map and (alpha, b) -> (pi - alpha, -b) predicts exactly
+    the same ranges (distances fix the marker map only up to a reflection), so only the nominal values can tell
+    the two apart. When they contradict the declared direction, the calibration is refused with the rig-file
+    setting that resolves it.
+    """
+    by_sign = {a.sign: a for a in alts}
+    declared = by_sign.get(1)
+    other = by_sign.get(-1)
+    if declared is None:
+        assert other is not None
+        raise CalibrationError(
+            "the markers match only with the servo angle negated: the servo turns the other way than declared; set "
+            "servo.sign: -1 in the rig file (or --servo-sign -1) if it is mounted the other way round"
+        )
+    if other is None:
+        return declared
+    d_decl, far_decl = _nominal_distance(declared.solution.params.dh, nominal_dh, config)
+    d_other, _ = _nominal_distance(other.solution.params.dh, nominal_dh, config)
+    if d_decl > 1.0 and d_other <= 1.0:
+        dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
+        raise CalibrationError(
+            f"servo direction: with the declared sign (+1) the fit gives {_dh_text(dh1)}, far from the nominal "
+            f"{_dh_text(nominal_dh)} ({far_decl}); with the servo angle negated it gives {_dh_text(dh2)}, which "
+            "explains the data equally well. If the servo turns the other way, set servo.sign: -1 in the rig file "
+            "(or --servo-sign -1)"
+        )
+    return declared
+
+
+def _nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:
+    """max over a, alpha, b, beta of |estimate - nominal| / tolerance, and the worst parameter in words."""
+    diffs = [dh.a - nominal.a, float(wrap_pi(dh.alpha - nominal.alpha)), dh.b - nominal.b,
+             float(wrap_pi(dh.beta - nominal.beta))]
+    ratios = [abs(d) / t for d, t in zip(diffs, config.nominal_tolerance, strict=True)]
+    k = int(np.argmax(ratios))
+    name = ("a", "alpha", "b", "beta")[k]
+    text = (f"{name} {math.degrees(diffs[k]):+.1f} deg off" if name in ("alpha", "beta")
+            else f"{name} {diffs[k] * 1000:+.1f} mm off")
+    return float(ratios[k]), text
+
+
+def _dh_text(dh: DH) -> str:
+    return (f"a {dh.a * 1000:.1f} mm, alpha {math.degrees(dh.alpha):.2f} deg, b {dh.b * 1000:.1f} mm, "
+            f"beta {math.degrees(dh.beta):.2f} deg")
+
+
+def marker_checks(
+    sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
+    config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None,
+) -> list[Check]:
+    """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
+    compares parts of the marker returns with the marker-only solution of them all (the same model and data
+    type, so that it tests the recording's parts, not the markers against the surfaces)."""
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
+    finite = bool(np.all(np.isfinite(sol.sigma)))
+    if sol.information is not None and finite:
+        obs = observability.analyse(sol.information, sol.information_names)
+        checks.append(Check("observability", obs.determined,
+                            f"{obs.summary()}" + ("" if obs.determined else f": {obs.hint()}")))
+    else:  # a singular information (the solver's rank test): no covariance exists, so nothing is determined
+        checks.append(Check("observability", False, f"the final solve is {sol.status.split(', ')[-1]}: the data do "
+                            "not determine the parameters jointly (no finite covariance)"))
+    checks.append(chi2_check(sol.reduced_chi2, config, "residuals", "the model does not explain the data (an "
+                             "unmodelled clock offset or motion, a wrong marker radius)"))
+    checks.append(_marker_second_opinion(marker_only, matched, markers, passes, config, fit, motor))
+    return checks
+
+
+def _marker_second_opinion(
+    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
+    fit: Callable[..., Solution], motor: MotorClock | None,
+) -> Check:
+    """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
+    and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
+    (the part's data are a subset of the joint's), against the chi-square quantile with 4 degrees of freedom."""
+    from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
+
+    groups, how = split_in_two(matched.scan, passes)
+    dh = [PARAM_NAMES.index(n) for n in ("a", "alpha", "b", "beta")]
+    limit = float(chdtri(4, 1.0 - (1.0 - config.second_opinion_p / 2.0)))
+    results = []
+    for g in groups:
+        part = matched.subset(g)
+        try:
+            ps = fit(part, markers.positions_W, sol.params, model="sphere", clock=None,
+                     clock_offset_s=sol.clock_offset_s)
+        except CalibrationError:
+            return Check("second opinion", True, f"not available: {how} alone have too few returns")
+        if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
+            return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+        d = ps.params.vector()[dh] - sol.params.vector()[dh]
+        d[[1, 3]] = wrap_pi(d[[1, 3]])
+        C = ps.covariance[np.ix_(dh, dh)] - sol.covariance[np.ix_(dh, dh)]
+        if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
+            return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+        w, V = np.linalg.eigh(0.5 * (C + C.T))
+        floor = 0.05 * np.diag(ps.covariance[np.ix_(dh, dh)]).min()
+        w = np.maximum(w, floor)  # the difference must not look more certain than 5 % of the part's own variance
+        stat = float(d @ V @ np.diag(1.0 / w) @ V.T @ d)
+        results.append((stat, d))
+    worst = max(results, key=lambda r: r[0])
+    ok = worst[0] <= limit
+    d = worst[1]
+    return Check(
+        "second opinion", ok,
+        f"{how} calibrated separately differ from the marker-only joint solution by chi2 {worst[0]:.3g} "
+        f"(limit {limit:.3g}, 4 dof;"
+        f" a {d[0] * 1000:+.2f} mm, alpha {math.degrees(d[1]):+.3f} deg, b {d[2] * 1000:+.2f} mm, "
+        f"beta {math.degrees(d[3]):+.3f} deg)"
+        + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled clock "
+                         "offset, markers that moved)"),
+    )
+
+
+def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
+            config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> list[Check]:
+    """Convergence, observability of the estimated parameters, reduced chi-square and a second opinion."""
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
+    est = [n for n in DH_NAMES if n not in held]
+    s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
+    ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())
+    checks.append(Check("observability", ok, "1-sigma " + ", ".join(
+        f"{n} {math.degrees(v):.3g} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:.3g} mm"
+        for n, v in s.items()) + (f"; held at nominal: {', '.join(held)}" if held else "")))
+    checks.append(chi2_check(sol.reduced_chi2, config, "plane residuals", "the scene's surfaces are not flat "
+                             "enough or the model does not explain the data (servo backlash, an unmodelled clock "
+                             "offset)"))
+    checks.append(_plane_second_opinion(sol, returns, passes, held, config, prior))
+    return checks
+
+
+def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
+                    config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Check:
+    """Even and odd passes (or the sweep's two halves) calibrated separately and compared with each other:
+    chi2 = d^T (C_1 + C_2)^-1 d over the estimated DH parameters (independent data), clock offset held at the
+    joint estimate."""
+    from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
+
+    groups, how = split_in_two(returns.scan, passes)
+    est = [6 + DH_NAMES.index(n) for n in DH_NAMES if n not in held]
+    limit = float(chdtri(len(est), 1.0 - (1.0 - config.second_opinion_p)))
+    parts = []
+    for g in groups:
+        try:
+            kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
+            parts.append(solve.solve_planes(returns.subset(kept), sol.params, range_sigma_m=config.range_sigma_m,
+                                            clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
+                                            robust=False))
+        except CalibrationError:
+            return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
+    d = parts[0].params.vector()[est] - parts[1].params.vector()[est]
+    d = np.where(np.isin(est, (7, 9)), wrap_pi(d), d)
+    C = parts[0].covariance[np.ix_(est, est)] + parts[1].covariance[np.ix_(est, est)]
+    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
+        return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+    stat = float(d @ np.linalg.solve(C, d))
+    ok = stat <= limit
+    names = [CORE_NAMES[i] for i in est]
+    diffs = ", ".join(f"{n} {math.degrees(v):+.3f} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:+.2f} mm"
+                      for n, v in zip(names, d, strict=True))
+    return Check("second opinion", ok,
+                 f"{how} calibrated separately differ by chi2 {stat:.3g} (limit {limit:.3g}, {len(est)} dof; {diffs})"
+                 + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled "
+                                  "clock offset, a scene that moved)"))
+
+
+__all__ = ["Check", "chi2_check", "marker_checks", "plane_checks", "refuse_failed", "servo_direction",
+           "split_in_two"]

@@ -1,0 +1,341 @@
+"""Calibration with markers: the seed paper's Sec. III and IV-C as observation sets and a start.
+
+1. markers from tape distances (mds)          5. start: mount pose from that alignment, DH from nominal
+2. marker returns in the intensity image      6. the marker returns solved for each direction of the servo
+   (detection)                                   (solve), the direction chosen (lrfcal.checks.servo_direction);
+3. per-beam time and motor angle (timing)        then jointly with the surfaces the markers sit on (surfaces),
+4. blobs matched to markers (association)        and with every other plane of the scene when asked
+
+The paper's own variant (one max-intensity beam per blob, one motor angle per scan) runs beside ours as the
+baseline, on the same detections and association, so that the gain is measured. lrfcal.pipeline runs this and
+the shared stages (checks, reprojection, geometry).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+
+from . import association, detection, mds, observability, solve, start, surfaces, timing
+from .checks import marker_checks, servo_direction
+from .config import CalibConfig, Stopwatch
+from .errors import CalibrationError
+from .information import information_at
+from .model.kinematics import DH, Params, Pose
+from .model.motor import MotorClock
+from .targetless import merge_returns, scene_plane_returns
+from .types import (
+    Association,
+    CalibrationResult,
+    Detections,
+    JointStates,
+    MarkerMap,
+    Nominal,
+    Observations,
+    Recording,
+    Scans,
+    Solution,
+)
+
+
+class _NoMatch(CalibrationError):
+    """The blobs could not be matched to the markers (for one direction of the servo)."""
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """One discrete alternative of the start: the servo's sign with its association and marker-only solution."""
+
+    sign: int
+    markers: MarkerMap
+    assoc: Association
+    matched: Observations
+    start: Params
+    clock: MotorClock | None
+    solution: Solution
+    notes: tuple[str, ...] = ()
+
+
+def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
+                notes: list[str]) -> CalibrationResult:
+    """Stages 1-6 (module docstring) on ``recording`` (its scans those the joint states cover) and their checks: a
+    result without clouds (lrfcal.pipeline adds them).
+
+    Raises:
+        CalibrationError: no marker returns, no match, or the layout does not determine the DH parameters.
+    """
+    scans, nominal, tau0 = recording.scans, recording.nominal, config.clock_offset_s
+    assert recording.tape is not None
+    markers = mds.marker_map(recording.tape)  # 1.
+    clock.lap("mds")
+    detections = detection.detect(scans)  # 2.
+    if not detections.blobs:
+        raise CalibrationError(f"no marker returns found (intensity threshold {detections.threshold:.0f} counts)")
+    clock.lap("detection")
+    returns = detection.observations(scans, joints, detections, clock_offset_s=tau0)  # 3.
+    passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
+    estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
+    if not estimate_clock:
+        notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                     + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
+                        if config.estimate_clock is None else "as asked)"))
+    clock.lap("timing")
+    fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+                  beam_divergence_rad=nominal.beam_divergence_rad)
+    chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
+    notes.extend(chosen.notes)
+    if chosen.sign < 0:
+        joints = _negated(joints)
+    clock.lap("solve")
+    ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, notes)
+    if config.surfaces:
+        clock.lap("surfaces")
+    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock)
+    baseline = None
+    if config.baseline:
+        baseline = _baseline(chosen, scans, joints, config, fit, notes)
+        clock.lap("baseline")
+    return CalibrationResult(
+        recording=recording, markers=chosen.markers, detections=detections, observations=chosen.matched,
+        association=chosen.assoc, start=chosen.start, solution=ours, baseline=baseline, cloud_before_M=np.zeros((0, 3)),
+        cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
+        surfaces=tuple(surface_list), surface_returns=on_surfaces, checks=tuple(checks), servo_sign=chosen.sign,
+        side_by_side={"markers only": chosen.solution,
+                      "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
+    )
+
+
+def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap, joints: JointStates,
+                        nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+                        clock: Stopwatch) -> Alternative:
+    """4.-6.: association and marker-only solve for each direction of the servo (the data cannot tell them apart),
+    and the direction chosen. The DH search (lrfcal.start) runs only when neither direction associates well from
+    the nominal values."""
+    signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
+    first = {sign: _associate_nominal(signed[sign], detections, markers, nominal, config) for sign in (1, -1)}
+    search = not any(_good(a, signed[s], config) for s, a in first.items() if a is not None)
+    clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
+    alternatives = []
+    failures = []
+    for sign in (1, -1):
+        try:
+            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, first[sign])
+                               if search else (nominal.dh, first[sign]))
+            alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
+                                                 config, estimate_clock, fit))
+        except CalibrationError as err:
+            failures.append((sign, err))
+    if not alternatives:
+        raise failures[0][1]
+    declared_failure = next((e for sign, e in failures if sign == 1), None)
+    if declared_failure is not None and not isinstance(declared_failure, _NoMatch):
+        raise declared_failure  # e.g. the layout does not determine the DH: the other direction does not help
+    return servo_direction(alternatives, nominal.dh, config)
+
+
+def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
+                   config: CalibConfig, fit: Callable[..., Solution], notes: list[str]
+                   ) -> tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]:
+    """6b: every beam on the markers' planes solved jointly with the markers (and every other plane of the scene with
+    ``config.all_planes``); the marker-only solution when ``config.surfaces`` is off."""
+    ours, markers, matched, motor = chosen.solution, chosen.markers, chosen.matched, chosen.clock
+    if not config.surfaces:
+        return ours, [], None
+    scans, nominal = recording.scans, recording.nominal
+    beam_times = scans.beam_times_s
+    lambda_beams = timing.motor_angles(beam_times, joints, clock_offset_s=ours.clock_offset_s, tolerance_s=math.inf)
+    surface_list, on_surfaces = surfaces.observe_surfaces(
+        scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, markers.positions_W,
+        nominal.marker_radius_m, ours.params, position_sigma_m=max(markers.rms_m, 0.0005),
+        max_returns=config.surface_max_returns, beam_times_s=beam_times,
+    )
+    if len(on_surfaces):
+        joint = partial(fit, matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
+                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s)
+        ours = joint(estimate_range_bias=config.estimate_range_bias)
+        if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
+                                               <= observability.RANGE_BIAS_LIMIT_M):
+            notes.append(f"range offset and marker range bias not separable by this recording (1-sigma "
+                         f"{ours.range_offset_sigma_m * 1000:.3g} / {ours.marker_range_bias_sigma_m * 1000:.3g} "
+                         "mm): held at 0")
+            ours = joint(estimate_range_bias=False)
+    elif config.estimate_range_bias:
+        notes.append("range offset and marker range bias held at 0: without surface returns the markers alone "
+                     "do not separate them from the marker radius and the mount")
+    if config.all_planes:  # 6b generalised: every other plane of the scene too, as free planes
+        others, other_planes = scene_plane_returns(scans, joints, ours, detections.labels >= 0,
+                                                   list(surface_list), config)
+        if len(others):
+            on_surfaces = merge_returns(on_surfaces, others)
+            surface_list = [*surface_list, *other_planes]
+            ours = fit(matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
+                       planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
+                       estimate_range_bias=math.isfinite(ours.range_offset_sigma_m))
+            notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
+                         "free planes")
+    return ours, list(surface_list), on_surfaces
+
+
+def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig,
+              fit: Callable[..., Solution], notes: list[str]) -> Solution | None:
+    """The paper's method: the blob's brightest beam, the motor angle at the scan's stamp, point-to-centre residuals,
+    on the same detections and association (None, with a note, when it cannot run)."""
+    peaks = chosen.matched.subset(chosen.matched.is_peak)
+    lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
+    peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
+    try:
+        return fit(peaks, chosen.markers.positions_W, chosen.start, model="paper")
+    except CalibrationError as err:
+        notes.append(f"the paper's method could not be run: {err}")
+        return None
+
+
+def _marker_solution(
+    sign: int, start_dh: DH, assoc: Association | None, markers: MarkerMap, returns: Observations,
+    joints: JointStates, nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+) -> Alternative:
+    """Start, observability check and marker-only solve for one direction of the servo (``returns`` with their
+    motor angles already signed), from the association made with ``start_dh``.
+
+    Raises CalibrationError when the blobs could not be matched, when the data do not determine the DH parameters
+    (judged at the start, before any solver runs), or when blobs disagree with the marker map beyond repair.
+    """
+    if assoc is None:
+        raise _NoMatch("association: no alignment of the blobs with the marker map (check the tape "
+                               "distances' file and unit, and the marker radius)")
+    if sign < 0:
+        joints = _negated(joints)
+    if assoc.mirrored:
+        markers = association.unmirror(markers)
+    matched = _with_markers(returns, assoc.blob_to_marker)
+    n_matched = len(np.unique(matched.marker))
+    if n_matched < 4:
+        raise _NoMatch(
+            f"only {n_matched} markers matched to detections (need >= 4); alignment RMS {assoc.rms_m * 1000:.1f} mm"
+        )
+    start = Params(Pose.from_matrix(assoc.T_W_M), start_dh)  # 5.
+    motor = MotorClock.from_joints(joints) if estimate_clock else None
+    info, names = information_at(matched, markers.positions_W, start, model="sphere",
+                                       marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+                                       clock=motor, clock_offset_s=config.clock_offset_s,
+                                       beam_divergence_rad=nominal.beam_divergence_rad)
+    obs = observability.analyse(info, names)
+    if not obs.determined:
+        raise CalibrationError(
+            f"the recording does not determine {', '.join(obs.undetermined) or 'the DH parameters'} "
+            f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
+            f"{obs.hint()}"
+        )
+    sol = fit(matched, markers.positions_W, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
+    # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
+    # that is not where the tape puts it: unassign them and solve again
+    notes: list[str] = []
+    for _ in range(3):  # a blob matched wrongly, or a marker that is not where the tape puts it: out, and again
+        bad, why = _inconsistent_blobs(matched, sol, markers, config.range_sigma_m)
+        if not bad.size:
+            break
+        notes.append(why)
+        b2m = assoc.blob_to_marker.copy()
+        b2m[bad] = -1
+        assoc = Association(b2m, assoc.mirrored, assoc.T_W_M, assoc.rms_m, int((b2m >= 0).sum()))
+        matched = _with_markers(returns, b2m)
+        if len(np.unique(matched.marker)) < 4:
+            raise CalibrationError(f"{why}; fewer than 4 markers remain")
+        sol = fit(matched, markers.positions_W, sol.params, model="sphere", clock=motor,
+                  clock_offset_s=sol.clock_offset_s)
+    return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes))
+
+
+def _attempt(returns: Observations, detections: Detections, markers: MarkerMap, dh: DH, radius_m: float,
+             config: CalibConfig) -> Association | None:
+    """Stage 4 with the blob centres reprojected with ``dh``; None when nothing matches."""
+    centres = detection.blob_centres_M(returns, dh, radius_m, n_blobs=len(detections.blobs))
+    try:
+        return association.associate(centres, markers, gate_m=config.association_gate_m)
+    except CalibrationError:
+        return None
+
+
+def _associate_nominal(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
+                       config: CalibConfig) -> Association | None:
+    return _attempt(returns, detections, markers, nominal.dh, nominal.marker_radius_m, config)
+
+
+def _good(assoc: Association, returns: Observations, config: CalibConfig) -> bool:
+    """An association that leaves nothing to search for: 90 % of the blobs matched, tight alignment."""
+    return assoc.n_matched >= 0.9 * len(np.unique(returns.blob)) and assoc.rms_m <= 0.25 * config.association_gate_m
+
+
+def _associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
+                      config: CalibConfig, from_nominal: Association | None) -> tuple[DH, Association | None]:
+    """The association from the candidates of the correspondence-free DH search (lrfcal.start) or from the nominal
+    DH, the best by (matched blobs, alignment RMS); returns the DH it used and the association (None: none)."""
+    best_dh, best = nominal.dh, from_nominal
+    for dh in start.dh_candidates(returns, len(detections.blobs), markers, nominal.dh, nominal.marker_radius_m):
+        found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
+        if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
+            best_dh, best = dh, found
+    return best_dh, best
+
+
+def _inconsistent_blobs(matched: Observations, sol: Solution, markers: MarkerMap, range_sigma_m: float,
+                        max_outlier_share: float = 0.5, floor_m: float = 0.005) -> tuple[np.ndarray, str]:
+    """Blobs (indices) that disagree with the marker map, and why in words.
+
+    First the blobs most of whose returns the solver dropped as beyond 4 sigma (matched to the wrong marker);
+    else the one marker whose returns sit, on average, furthest from its tape position beyond both ``floor_m`` and
+    4 sigma of that mean (sigma_r / sqrt(the number of scans seeing it)): a marker moved after taping leaves the
+    tape consistent, so only its returns can tell, and their mean offset grows with every return, unlike the
+    per-return test."""
+    empty = np.zeros(0, dtype=np.int64)
+    if sol.inlier is None:
+        return empty, ""
+    wrong = [int(b) for b in np.unique(matched.blob)
+             if (m := matched.blob == b).sum() >= 2 and (~sol.inlier[m]).mean() > max_outlier_share]
+    if wrong:
+        return np.array(wrong, dtype=np.int64), f"{len(wrong)} blobs whose returns the fit rejects unassigned"
+    res = np.asarray(sol.residuals_m, dtype=float)
+    worst, worst_k, worst_off = 0.0, -1, 0.0
+    for k in np.unique(matched.marker):
+        m = (matched.marker == k) & np.all(np.isfinite(res), axis=1)
+        n_scans = len(np.unique(matched.scan[m]))
+        if n_scans == 0:
+            continue
+        offset = float(np.linalg.norm(res[m].mean(0)))
+        limit = max(floor_m, 4.0 * range_sigma_m / np.sqrt(n_scans))
+        if offset > limit and offset / limit > worst:
+            worst, worst_k, worst_off = offset / limit, int(k), offset
+    if worst_k < 0:
+        return empty, ""
+    blobs = np.unique(matched.blob[matched.marker == worst_k]).astype(np.int64)
+    return blobs, (f"marker {markers.marker_ids[worst_k]}: its returns sit {worst_off * 1000:.0f} mm from its tape "
+                   "position on average (moved after taping?): left out")
+
+
+def _negated(joints: JointStates) -> JointStates:
+    return JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
+
+
+def _with_markers(returns: Observations, blob_to_marker: np.ndarray) -> Observations:
+    """Label every return with its blob's marker and keep the labelled ones."""
+    labelled = _replace(returns, marker=np.asarray(blob_to_marker)[returns.blob])
+    return labelled.subset(labelled.marker >= 0)
+
+
+def _replace(obs: Observations, **arrays: np.ndarray) -> Observations:
+    fields = {k: getattr(obs, k) for k in obs.__dataclass_fields__}
+    fields.update(arrays)
+    return Observations(**fields)
+
+
+#: The stages of a calibration with markers in the order they run, as reported to ``progress`` and in
+#: CalibrationResult.timings_s.
+STAGES: tuple[str, ...] = ("mds", "detection", "timing", "association", "solve", "surfaces", "baseline",
+                           "reprojection", "geometry")
+
+
+__all__ = ["STAGES", "Alternative", "fit_markers"]
