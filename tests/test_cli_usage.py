@@ -341,9 +341,10 @@ def test_schema_and_docs_page_up_to_date() -> None:
 def test_every_scenario_field_has_a_description_with_unit_or_meaning() -> None:
     from pydantic import BaseModel
 
-    from lrfsim import scenario as sc
+    from lrfsim import scenario, scenario_sections
 
-    models = [m for m in vars(sc).values() if isinstance(m, type) and issubclass(m, BaseModel) and m is not BaseModel
+    models = [m for sc in (scenario, scenario_sections) for m in vars(sc).values()
+              if isinstance(m, type) and issubclass(m, BaseModel) and m is not BaseModel
               and m.__module__ == sc.__name__ and not m.__name__.startswith("_")]
     assert len(models) >= 15
     for m in models:

@@ -243,7 +243,7 @@ def test_range_noise_correlated_along_the_beams() -> None:
     """sensor.noise_correlation rho: the range noise of beams k apart correlates as rho^k (an AR(1) process along
     the scan, as a real URG-04LX's, docs/real-data.md), with the noise bands' sigma unchanged; rho = 0 draws the
     same numbers as before."""
-    from lrfsim.scenario import SensorConfig
+    from lrfsim.scenario_sections import SensorConfig
 
     S, N = 400, 500
     cast = lidar.Cast(ranges_m=np.full((S, N), 5.0), intensities=np.full((S, N), 5000.0), n_rays=S * N, n_calls=1,

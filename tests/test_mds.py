@@ -12,7 +12,7 @@ from lrfcal.errors import CalibrationError, InputError
 from lrfcal.mds import marker_map
 from lrfcal.types import TapeMeasurements
 from lrfsim.scenario import load_scenario
-from lrfsim.scene import marker_centres_W
+from lrfsim.scene_geometry import marker_centres_W
 
 
 def _tape(

@@ -23,7 +23,8 @@ from lrfsim.randomize import (
     wide_dh_sigma,
 )
 from lrfsim.scenario import load_scenario
-from lrfsim.scene import build_scene, marker_centres_W
+from lrfsim.scene import build_scene
+from lrfsim.scene_geometry import marker_centres_W
 from lrfsim.simulate import simulate
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"

@@ -139,7 +139,7 @@ def test_tape_subset_is_rigid_and_noisy(sim: tuple[Scenario, SimResult]) -> None
     deg = np.bincount(res.tape.pairs.ravel(), minlength=n)
     assert deg.min() >= 4 and res.tape.pairs.shape[0] < n * (n - 1) // 2
     assert is_rigid(res.truth.markers_W, res.tape.pairs)
-    from lrfsim.scenario import TapeConfig
+    from lrfsim.scenario_sections import TapeConfig
 
     pts = np.random.default_rng(0).uniform(-1, 1, (12, 3))
     t = measure_tape(tuple(f"p{i}" for i in range(12)), pts, TapeConfig(sigma_m=0.002), np.random.default_rng(1))

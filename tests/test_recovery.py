@@ -27,7 +27,8 @@ from lrfcal.recording import read_recording
 from lrfcal.types import CalibrationResult
 from lrfsim.compare import Comparison, compare, load_truth
 from lrfsim.randomize import random_scenario
-from lrfsim.scenario import Scenario, Tolerances, load_scenario
+from lrfsim.scenario import Scenario, load_scenario
+from lrfsim.scenario_sections import Tolerances
 from lrfsim.simulate import systematic_truth
 
 SCENARIOS = {p.stem: p for p in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))}

@@ -25,7 +25,8 @@ from lrfcal.rig import ScanSource, ServoSource, parse_rig
 from lrfsim import lidar, raycast
 from lrfsim.loop import sensor_errors_line
 from lrfsim.recording import write_recording
-from lrfsim.scenario import Scenario, SystematicConfig, load_scenario, parse_scenario, with_changes
+from lrfsim.scenario import Scenario, load_scenario, parse_scenario, with_changes
+from lrfsim.scenario_sections import SystematicConfig
 from lrfsim.scene import build_scene
 from lrfsim.servo import sweep_trajectory
 from lrfsim.simulate import simulate, systematic_truth

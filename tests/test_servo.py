@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from lrfsim.scenario import ServoConfig
+from lrfsim.scenario_sections import ServoConfig
 from lrfsim.servo import joint_samples, laser_time, move_profile, quantise_encoder, sweep_trajectory
 
 

@@ -25,7 +25,8 @@ from lrfcal.output import MANIFEST_NAME
 from lrfcal.recording import read_recording
 from lrfsim.compare import load_truth
 from lrfsim.scenario import Scenario, parse_scenario, with_changes
-from lrfsim.scene import build_scene, nearest_box_face, scene_boxes
+from lrfsim.scene import build_scene
+from lrfsim.scene_geometry import nearest_box_face, scene_boxes
 from lrfsim.simulate import SimResult, simulate, write_recording
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"

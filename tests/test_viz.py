@@ -1,4 +1,5 @@
-"""lrfcal.viz (rerun .rrd) and lrfcal.figures (PNG) on a small synthetic CalibrationResult.
+"""lrfcal.viz (rerun .rrd, with lrfcal.vizdata and lrfcal.vizscene) and lrfcal.figures (PNG) on a small synthetic
+CalibrationResult.
 
 The .rrd is read back with rerun's own reader (``rerun.chunk.RrdReader`` in rerun-sdk 0.41): every chunk's
 entity path, static flag, timelines and Arrow columns are checked, not only that a file exists.
@@ -17,7 +18,7 @@ import pyarrow as pa
 import pytest
 from synthetic import make_result, marker_positions_W
 
-from lrfcal import viz
+from lrfcal import viz, vizdata, vizscene
 from lrfcal.figures import DPI, HEIGHT_PX, WIDTH_PX, write_figures
 from lrfcal.model.kinematics import points_W, pose_matrix
 
@@ -72,13 +73,13 @@ def n_instances(chunks: list[Any], column: str) -> int:
     return row.size // width
 
 
-def scene_geoms() -> list[viz.SceneGeom]:
+def scene_geoms() -> list[vizscene.SceneGeom]:
     T = np.eye(4)
     return [
-        viz.SceneGeom("box", "floor", T, half_size_m=np.array([3.0, 1.0, 0.01])),
-        viz.SceneGeom("sphere", "marker_m00", pose_matrix(2.5, -0.4, 1.0, 0, 0, 0), radius_m=0.005,
+        vizscene.SceneGeom("box", "floor", T, half_size_m=np.array([3.0, 1.0, 0.01])),
+        vizscene.SceneGeom("sphere", "marker_m00", pose_matrix(2.5, -0.4, 1.0, 0, 0, 0), radius_m=0.005,
                       is_marker=True),
-        viz.SceneGeom("mesh", "tri", T, vertices_m=np.eye(3), faces=np.array([[0, 1, 2]])),
+        vizscene.SceneGeom("mesh", "tri", T, vertices_m=np.eye(3), faces=np.array([[0, 1, 2]])),
     ]
 
 
@@ -195,7 +196,7 @@ def test_logged_frame_chain_reproduces_the_cloud(result, tmp_path):
     ok = np.isfinite(sc.ranges_m[i])
     expect = points_W(sc.ranges_m[i][ok], np.full(ok.sum(), lam), sc.mu_rad[i][ok], result.solution.params)
     np.testing.assert_allclose(p_W, expect, atol=1e-4)
-    np.testing.assert_allclose(lam, viz.motor_angle_per_scan_rad(result)[i], atol=1e-6)
+    np.testing.assert_allclose(lam, vizdata.motor_angle_per_scan_rad(result)[i], atol=1e-6)
 
 
 def test_failed_logging_leaves_no_file(result, tmp_path, monkeypatch):
@@ -235,7 +236,7 @@ def test_scene_geoms_from_mujoco():
     mujoco.mj_kinematics(m, d)
     rig = mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, "rig")
     T = pose_matrix(1.0, 2.0, 3.0, 0.0, 0.0, np.pi / 2)
-    geoms = viz.scene_geoms_from_mujoco(m, d, skip_body_ids=[rig], T_W_world=T)
+    geoms = vizscene.scene_geoms_from_mujoco(m, d, skip_body_ids=[rig], T_W_world=T)
     by = {g.name: g for g in geoms}
     assert set(by) == {"floor", "wall", "marker_a", "post", "tetra"}  # rig and its child body skipped
     assert by["wall"].kind == "box" and by["floor"].kind == "box" and by["post"].kind == "mesh"
@@ -246,9 +247,9 @@ def test_scene_geoms_from_mujoco():
     assert by["tetra"].faces.shape == (4, 3) and by["tetra"].vertices_m.shape == (4, 3)
     flags = np.zeros(m.ngeom, bool)
     flags[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, "post")] = True
-    again = {g.name: g for g in viz.scene_geoms_from_mujoco(m, d, is_marker=flags)}
+    again = {g.name: g for g in vizscene.scene_geoms_from_mujoco(m, d, is_marker=flags)}
     assert again["post"].is_marker and not again["marker_a"].is_marker and "rig_box" in again
-    only = viz.scene_geoms_from_mujoco(m, d, geom_groups=[1])
+    only = vizscene.scene_geoms_from_mujoco(m, d, geom_groups=[1])
     assert [g.name for g in only] == ["marker_a"]
 
 
@@ -283,7 +284,7 @@ def test_a_figure_that_cannot_be_drawn_is_skipped_with_its_reason(result, tmp_pa
 
 
 def test_import_does_not_pull_rerun_or_matplotlib():
-    code = ("import sys, lrfcal.viz, lrfcal.figures; "
+    code = ("import sys, lrfcal.viz, lrfcal.vizdata, lrfcal.vizscene, lrfcal.figures; "
             "bad = [m for m in ('rerun', 'matplotlib') if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
 

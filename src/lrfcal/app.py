@@ -181,7 +181,7 @@ def _nominal_in_W(result: CalibrationResult, truth: Any) -> tuple[Params | None,
 
 def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any,
                warn: Callable[[str], None] | None = None) -> None:
-    from . import viz
+    from . import viz, vizscene
     from .model.kinematics import transform_points
     from .output import truth_dict, truth_frame
 
@@ -193,7 +193,7 @@ def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, tr
             T_W_sim = found[0]
             true_markers_W = transform_points(T_W_sim, np.array(list(truth.markers.values())))
             if scene is not None:
-                geoms = viz.scene_geoms_from_mujoco(
+                geoms = vizscene.scene_geoms_from_mujoco(
                     scene.model, scene.data, skip_body_ids=[scene.body_M_id], is_marker=scene.geom_is_marker,
                     T_W_world=T_W_sim,
                 )

@@ -251,10 +251,39 @@ def associate(
     if B < 3 or n < 3:
         raise CalibrationError(f"association needs >= 3 blobs and >= 3 markers, got {B} blobs, {n} markers")
     tol = gate_m if side_tol_m is None else float(side_tol_m)
-    rng = np.random.default_rng(seed)
+    Pb, mt = _hypotheses(P, X, gate_m, tol, max_triplets, np.random.default_rng(seed))
 
-    # marker triangles, keyed by sorted side lengths
-    mtri = np.array(list(combinations(range(n), 3)), dtype=np.int64)
+    results = {}
+    for mirrored in (False, True):
+        fit = _best_fit(P, X * _MIRROR if mirrored else X, w, Pb, mt, gate_m)
+        if fit is not None:
+            results[mirrored] = fit
+    if not results:
+        raise CalibrationError("association: no alignment matches 3 or more distinct markers "
+                               f"within the gate of {gate_m * 1000:.0f} mm")
+    best = results.get(False)
+    alt = results.get(True)
+    # the mirrored frame must be clearly better (for coplanar markers both fit equally)
+    mirrored = best is None or (
+        alt is not None and (alt[0] > best[0] or (alt[0] == best[0] and alt[1] < 0.8 * best[1]))
+    )
+    fit = alt if mirrored else best
+    assert fit is not None
+    _, _, T, assign, d = fit
+    m = assign >= 0
+    return Association(
+        blob_to_marker=assign.astype(np.int64),
+        mirrored=bool(mirrored),
+        T_W_M=T,
+        rms_m=float(np.sqrt(np.mean(d[m] ** 2))),
+        n_matched=int(m.sum()),
+    )
+
+
+def _marker_triangles(X: FloatArray, gate_m: float) -> tuple[IntArray, FloatArray]:
+    """The well-conditioned marker triangles (T, 3) and their side lengths (T, 3); for tiny layouts, where none is,
+    every non-degenerate one."""
+    mtri = np.array(list(combinations(range(len(X)), 3)), dtype=np.int64)
     msides = _sides(X, mtri)
     keep = _triangle_ok(msides, gate_m)
     if not keep.any():  # tiny layouts: accept any non-degenerate triangle
@@ -262,16 +291,22 @@ def associate(
     mtri, msides = mtri[keep], msides[keep]
     if len(mtri) == 0:
         raise CalibrationError("association: the markers form no usable triangle (all collinear?)")
-    tree = cKDTree(np.sort(msides, 1))
+    return mtri, msides
 
-    # blob triangles: all of them when few, else a random sample; keep the well-conditioned ones
+
+def _blob_triangles(P: FloatArray, gate_m: float, tol: float, longest_m: float, max_triplets: int,
+                    rng: np.random.Generator) -> tuple[IntArray, FloatArray]:
+    """At most ``max_triplets`` well-conditioned blob triangles (T, 3), none with a side longer than the longest
+    marker triangle's ``longest_m`` + tol, and their side lengths (T, 3): all of them when few, else a random
+    sample (seeded ``rng``)."""
+    B = len(P)
     if comb(B, 3) <= 20000:
         btri = np.array(list(combinations(range(B), 3)), dtype=np.int64)
     else:
         btri = np.sort(rng.integers(0, B, (30000, 3)), 1)
         btri = np.unique(btri[(btri[:, 0] < btri[:, 1]) & (btri[:, 1] < btri[:, 2])], axis=0)
     bsides = _sides(P, btri)
-    ok = _triangle_ok(bsides, gate_m) & (bsides.max(1) < msides.max() + tol)
+    ok = _triangle_ok(bsides, gate_m) & (bsides.max(1) < longest_m + tol)
     btri, bsides = btri[ok], bsides[ok]
     if len(btri) == 0:
         raise CalibrationError("association: the blobs form no usable triangle (fewer than 3 distinct, "
@@ -279,8 +314,17 @@ def associate(
     if len(btri) > max_triplets:
         pick = np.sort(rng.choice(len(btri), max_triplets, replace=False))
         btri, bsides = btri[pick], bsides[pick]
+    return btri, bsides
 
-    # candidate (blob triangle, marker triangle, vertex permutation) triples
+
+def _hypotheses(P: FloatArray, X: FloatArray, gate_m: float, tol: float, max_triplets: int,
+                rng: np.random.Generator) -> tuple[FloatArray, IntArray]:
+    """Step 1 of the module docstring: the hypotheses' blob triangles Pb (H, 3, 3) and the marker indices mt (H, 3)
+    of their vertices, in matching order: every (blob triangle, marker triangle, vertex ordering) whose sides agree
+    within ``tol``."""
+    mtri, msides = _marker_triangles(X, gate_m)
+    tree = cKDTree(np.sort(msides, 1))  # marker triangles, keyed by sorted side lengths
+    btri, bsides = _blob_triangles(P, gate_m, tol, msides.max(), max_triplets, rng)
     hits = tree.query_ball_point(np.sort(bsides, 1), r=tol, p=np.inf)
     bi = np.repeat(np.arange(len(btri)), [len(h) for h in hits])
     mi = np.fromiter((j for h in hits for j in h), dtype=np.int64, count=len(bi))
@@ -292,47 +336,27 @@ def associate(
     ps = _sides(X, mperm.reshape(-1, 3)).reshape(C, 6, 3)
     good = np.abs(ps - bsides[bi][:, None, :]).max(-1) < tol  # (C, 6)
     ci, pi = np.nonzero(good)
-    Pb = P[btri[bi[ci]]]  # (H, 3, 3)
-    mt = mperm[ci, pi]  # (H, 3)
+    return P[btri[bi[ci]]], mperm[ci, pi]
 
-    best: tuple[float, float, bool, FloatArray, IntArray, FloatArray] | None = None
-    results = {}
-    for mirrored in (False, True):
-        Xs = X * _MIRROR if mirrored else X
-        R, t = _kabsch_batch(Pb, Xs[mt])
-        order = _best_hypotheses(R, t, P, Xs, w, gate_m, k=5)  # best few, refined
-        cand = []
-        for h in order:
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R[h], t[h]
-            T, assign, d = _refine(T, P, Xs, w, gate_m)
-            m = assign >= 0
-            sc = float(w[m].sum())
-            r = float(np.sqrt(np.mean(d[m] ** 2))) if m.any() else np.inf
-            if len(np.unique(assign[m])) >= 3:
-                cand.append((sc, r, mirrored, T, assign, d))
-        if cand:
-            results[mirrored] = max(cand, key=lambda c: (c[0], -c[1]))
-    if not results:
-        raise CalibrationError("association: no alignment matches 3 or more distinct markers "
-                               f"within the gate of {gate_m * 1000:.0f} mm")
-    best = results.get(False)
-    alt = results.get(True)
-    # the mirrored frame must be clearly better (for coplanar markers both fit equally)
-    if best is None or (
-        alt is not None and (alt[0] > best[0] or (alt[0] == best[0] and alt[1] < 0.8 * best[1]))
-    ):
-        best = alt
-    assert best is not None
-    _, rms_m, mirrored, T, assign, d = best
-    m = assign >= 0
-    return Association(
-        blob_to_marker=assign.astype(np.int64),
-        mirrored=bool(mirrored),
-        T_W_M=T,
-        rms_m=float(np.sqrt(np.mean(d[m] ** 2))),
-        n_matched=int(m.sum()),
-    )
+
+def _best_fit(P: FloatArray, X: FloatArray, w: FloatArray, Pb: FloatArray, mt: IntArray, gate_m: float
+              ) -> tuple[float, float, FloatArray, IntArray, FloatArray] | None:
+    """Steps 2 and 3 of the module docstring against markers X (mirrored or not): the best refined hypothesis as
+    (weighted inlier count, inlier RMS [m], T (4, 4), assignment (B,), distances (B,)), best by count then RMS;
+    None when none matches 3 or more distinct markers."""
+    R, t = _kabsch_batch(Pb, X[mt])
+    order = _best_hypotheses(R, t, P, X, w, gate_m, k=5)  # best few, refined
+    cand = []
+    for h in order:
+        T = np.eye(4)
+        T[:3, :3], T[:3, 3] = R[h], t[h]
+        T, assign, d = _refine(T, P, X, w, gate_m)
+        m = assign >= 0
+        sc = float(w[m].sum())
+        r = float(np.sqrt(np.mean(d[m] ** 2))) if m.any() else np.inf
+        if len(np.unique(assign[m])) >= 3:
+            cand.append((sc, r, T, assign, d))
+    return max(cand, key=lambda c: (c[0], -c[1])) if cand else None
 
 
 __all__ = ["associate", "kabsch", "unmirror"]

@@ -241,7 +241,7 @@ def write_cloud_rrd(path: str | Path, cloud: BeamCloud, max_points: int = 2_000_
     intensity (at most ``max_points``, evenly subsampled); written atomically."""
     import rerun as rr
 
-    from .viz import intensity_colors, subsample_indices
+    from .vizdata import intensity_colors, subsample_indices
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@ matplotlib is imported inside the functions and only its object API is used (``m
 rendered by the Agg canvas), so no pyplot state or GUI backend is involved. Every figure is written at
 WIDTH_PX x HEIGHT_PX pixels (DPI dots per inch) to a temporary file in the target folder, then renamed.
 
-Residuals in these figures are computed as in :mod:`lrfcal.viz`: from each reprojected marker return to the
+Residuals in these figures are computed as in :mod:`lrfcal.vizdata`: from each reprojected marker return to the
 nearest point of its marker sphere (MarkerMap centre, nominal radius), with the start parameters ("before")
 and the calibrated parameters ("after").
 """
@@ -24,7 +24,7 @@ from numpy.typing import NDArray
 from .figlayout import place_labels, three_ticks, view_frame
 from .model.kinematics import Params
 from .types import CalibrationResult
-from .viz import marker_returns
+from .vizdata import marker_returns
 
 FloatArray = NDArray[np.float64]
 
@@ -308,7 +308,7 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
                     before_label: str = "nominal DH, fitted mount") -> Path:
     """Histogram of residual norms [mm] before/after (log bins) and per-marker RMS [mm] as grouped bars.
 
-    A return inside its marker sphere has residual 0 (see :func:`lrfcal.viz.marker_returns`); those cannot sit
+    A return inside its marker sphere has residual 0 (see :func:`lrfcal.vizdata.marker_returns`); those cannot sit
     on a log axis, so they are counted in the legend instead of drawn. ``before`` as in
     :func:`alignment_figure`.
     """

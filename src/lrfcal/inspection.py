@@ -167,65 +167,18 @@ def inspect_bag(
         InputError: the bag cannot be opened or read.
     """
     path = Path(path)
-    reader = open_reader(path)
-    recv: dict[str, list[float]] = {}
-    stamps: dict[str, list[float]] = {}
-    first: dict[str, Any] = {}
-    scan_msgs: dict[str, list[Any]] = {}
-    tf_pairs: dict[tuple[str, str], list[float]] = {}  # rotation angle 2 acos(|w|) per sample
-    try:
-        with reader:
-            complete_types(reader)
-            conns = reader.connections
-            types = {c.topic: c.msgtype for c in conns}
-            counts: dict[str, int] = {}
-            for c in conns:
-                counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
-            duration = (reader.end_time - reader.start_time) * 1e-9 if conns else 0.0
-            for c, t_ns, raw in reader.messages():
-                tp = c.topic
-                recv.setdefault(tp, []).append(ns_to_s(t_ns))
-                if len(recv[tp]) > MAX_DECODED and tp in first:
-                    continue
-                msg = reader.deserialize(raw, c.msgtype)
-                first.setdefault(tp, msg)
-                ls = msg if _is_laserscan(msg) else None
-                fld = None if ls is not None else _laserscan_field(msg)
-                st = stamp_s(msg) if fld is None else stamp_s(getattr(msg, fld))  # a LaserScan's own header
-                if st is not None:
-                    stamps.setdefault(tp, []).append(st)
-                if ls is not None or fld is not None:
-                    scan_msgs.setdefault(tp, []).append(ls if ls is not None else getattr(msg, fld))
-                if c.msgtype == TF_TYPE and tp == "/tf":
-                    for tr in msg.transforms:
-                        key = (tr.header.frame_id, tr.child_frame_id)
-                        w = min(1.0, abs(float(tr.transform.rotation.w)))
-                        tf_pairs.setdefault(key, []).append(2.0 * math.acos(w))
-    except InputError:
-        raise
-    except Exception as err:
-        raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
-
-    topics = []
-    for tp in sorted(types):
-        r = recv.get(tp, [])
-        st = stamps.get(tp)
-        rms = None
-        if st and len(st) == len(r[: len(st)]):
-            rms = float(np.median(np.asarray(r[: len(st)]) - np.asarray(st)))
-        topics.append(TopicInfo(tp, types[tp], counts.get(tp, 0), _rate(r), tp in stamps, rms))
-
+    sv = _survey(path)
     guessed: list[str] = []
     problems: list[str] = []
-    multiecho = {tp for tp, msgs in scan_msgs.items() if types.get(tp) == MULTIECHO_TYPE
+    multiecho = {tp for tp, msgs in sv.scan_msgs.items() if sv.types.get(tp) == MULTIECHO_TYPE
                  or any(_is_multiecho(m) for m in msgs[:50])}
     if scan is None:
-        scan = _guess_scan(first, scan_msgs, multiecho)
+        scan = _guess_scan(sv.first, sv.scan_msgs, multiecho)
         if scan is not None:
             guessed.append("scan")
-    notes = _echo_notes(scan, scan_msgs, multiecho)
+    notes = _echo_notes(scan, sv.scan_msgs, multiecho)
     if servo is None and scan is not None:
-        servo = _guess_servo(types, first, scan, tf_pairs, path)
+        servo = _guess_servo(sv.types, sv.first, scan, sv.tf_pairs, path)
         if servo is not None:
             guessed.append("servo")
     if scan is None:
@@ -235,40 +188,121 @@ def inspect_bag(
                         f"or /tf); give --servo-topic/--servo-field or --tf-parent/--tf-child")
 
     geometry = None
-    if scan is not None and scan.topic in scan_msgs:
-        geometry = _geometry(scan_msgs[scan.topic])
-
-    report = None
-    servo_info = None
-    n_cov = None
+    if scan is not None and scan.topic in sv.scan_msgs:
+        geometry = _geometry(sv.scan_msgs[scan.topic])
+    report, servo_info, n_cov = None, None, None
     if scan is not None and servo is not None:
-        try:
-            data = read_bag(path, scan, servo, warn=lambda _t: None)
-        except InputError as err:
-            problems.append(str(err))
-        else:
-            report = data.report
-            j = data.joints
-            dt = np.diff(j.stamps_s)
-            speed = np.abs(np.diff(j.positions_rad)) / np.where(dt > 0, dt, np.nan)
-            servo_info = ServoInfo(int(j.stamps_s.size), float(j.positions_rad.min()),
-                                   float(j.positions_rad.max()), _rate(list(j.stamps_s)),
-                                   float(np.nanmedian(speed)) if speed.size else 0.0)
-            cov = covered_scans(data.scans, j)
-            n_cov = int(cov.sum())
-            problems.extend(_report_problems(report))
-            if n_cov < cov.size:
-                problems.append(f"{cov.size - n_cov} of {cov.size} scans not covered by the servo samples "
-                                f"(within one sample period); reproject and calibrate skip them")
-            if geometry is not None and not geometry.has_intensities:
-                problems.append(f"{scan.topic}: no intensities: reproject works, marker calibration does not")
+        report, servo_info, n_cov = _read_and_check(path, scan, servo, geometry, problems)
     if guessed:
         problems.append(f"guessed: {', '.join(guessed)} source (check the snippet, especially servo unit, sign "
                         f"and offset_rad)")
     snippet = rig_snippet(scan, servo, dh, multiecho=scan is not None and scan.topic in multiecho)
     ros = 1 if path.suffix == ".bag" else 2
-    return BagInspection(path, ros, float(duration), tuple(topics), scan, servo, tuple(guessed), geometry,
-                         servo_info, report, n_cov, tuple(problems), snippet, dict(dh or {}), tuple(notes))
+    return BagInspection(path, ros, float(sv.duration_s), tuple(_topic_infos(sv)), scan, servo, tuple(guessed),
+                         geometry, servo_info, report, n_cov, tuple(problems), snippet, dict(dh or {}), tuple(notes))
+
+
+@dataclass
+class _Survey:
+    """One pass over a bag's messages: per topic its type, message count, receive times [s] (all messages), header
+    stamps [s], first message and LaserScans (of the first MAX_DECODED messages); per /tf frame pair the rotation
+    angle 2 acos(|w|) [rad] of each sample; the bag's duration [s]."""
+
+    types: dict[str, str]
+    counts: dict[str, int]
+    duration_s: float
+    recv: dict[str, list[float]] = field(default_factory=dict)
+    stamps: dict[str, list[float]] = field(default_factory=dict)
+    first: dict[str, Any] = field(default_factory=dict)
+    scan_msgs: dict[str, list[Any]] = field(default_factory=dict)
+    tf_pairs: dict[tuple[str, str], list[float]] = field(default_factory=dict)
+
+    def add(self, reader: Any, conn: Any, t_ns: int, raw: bytes) -> None:
+        """One message (``raw`` on connection ``conn`` of ``reader``, received at ``t_ns``); decoded while its
+        topic has had at most MAX_DECODED messages."""
+        tp = conn.topic
+        self.recv.setdefault(tp, []).append(ns_to_s(t_ns))
+        if len(self.recv[tp]) > MAX_DECODED and tp in self.first:
+            return
+        msg = reader.deserialize(raw, conn.msgtype)
+        self.first.setdefault(tp, msg)
+        ls = msg if _is_laserscan(msg) else None
+        fld = None if ls is not None else _laserscan_field(msg)
+        st = stamp_s(msg) if fld is None else stamp_s(getattr(msg, fld))  # a LaserScan's own header
+        if st is not None:
+            self.stamps.setdefault(tp, []).append(st)
+        if ls is not None or fld is not None:
+            self.scan_msgs.setdefault(tp, []).append(ls if ls is not None else getattr(msg, fld))
+        if conn.msgtype == TF_TYPE and tp == "/tf":
+            for tr in msg.transforms:
+                key = (tr.header.frame_id, tr.child_frame_id)
+                w = min(1.0, abs(float(tr.transform.rotation.w)))
+                self.tf_pairs.setdefault(key, []).append(2.0 * math.acos(w))
+
+
+def _survey(path: Path) -> _Survey:
+    """Read every message of the bag once (:class:`_Survey`).
+
+    Raises:
+        InputError: the bag cannot be opened or read.
+    """
+    reader = open_reader(path)
+    try:
+        with reader:
+            complete_types(reader)
+            conns = reader.connections
+            counts: dict[str, int] = {}
+            for c in conns:
+                counts[c.topic] = counts.get(c.topic, 0) + c.msgcount
+            duration = (reader.end_time - reader.start_time) * 1e-9 if conns else 0.0
+            sv = _Survey({c.topic: c.msgtype for c in conns}, counts, duration)
+            for c, t_ns, raw in reader.messages():
+                sv.add(reader, c, t_ns, raw)
+    except InputError:
+        raise
+    except Exception as err:
+        raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
+    return sv
+
+
+def _topic_infos(sv: _Survey) -> list[TopicInfo]:
+    """Every topic, alphabetically, with its rate and median receive - stamp."""
+    topics = []
+    for tp in sorted(sv.types):
+        r = sv.recv.get(tp, [])
+        st = sv.stamps.get(tp)
+        rms = None
+        if st and len(st) == len(r[: len(st)]):
+            rms = float(np.median(np.asarray(r[: len(st)]) - np.asarray(st)))
+        topics.append(TopicInfo(tp, sv.types[tp], sv.counts.get(tp, 0), _rate(r), tp in sv.stamps, rms))
+    return topics
+
+
+def _read_and_check(path: Path, scan: ScanSource, servo: ServoSource, geometry: ScanGeometry | None,
+                    problems: list[str]) -> tuple[ReadReport | None, ServoInfo | None, int | None]:
+    """Read the bag as the calibration will: the reader's report, the servo angle's statistics and the number of
+    scans the servo samples cover (None each when the bag cannot be read); what is wrong appended to ``problems``."""
+    try:
+        data = read_bag(path, scan, servo, warn=lambda _t: None)
+    except InputError as err:
+        problems.append(str(err))
+        return None, None, None
+    report = data.report
+    j = data.joints
+    dt = np.diff(j.stamps_s)
+    speed = np.abs(np.diff(j.positions_rad)) / np.where(dt > 0, dt, np.nan)
+    servo_info = ServoInfo(int(j.stamps_s.size), float(j.positions_rad.min()),
+                           float(j.positions_rad.max()), _rate(list(j.stamps_s)),
+                           float(np.nanmedian(speed)) if speed.size else 0.0)
+    cov = covered_scans(data.scans, j)
+    n_cov = int(cov.sum())
+    problems.extend(_report_problems(report))
+    if n_cov < cov.size:
+        problems.append(f"{cov.size - n_cov} of {cov.size} scans not covered by the servo samples "
+                        f"(within one sample period); reproject and calibrate skip them")
+    if geometry is not None and not geometry.has_intensities:
+        problems.append(f"{scan.topic}: no intensities: reproject works, marker calibration does not")
+    return report, servo_info, n_cov
 
 
 def _report_problems(rep: ReadReport) -> list[str]:

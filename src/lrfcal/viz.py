@@ -19,7 +19,8 @@ Entity tree (mirrors the frame tree; every transform is logged as T_parent_child
 
 Residuals shown here (arrows, RMS plots) go from each reprojected marker return to the nearest point on its
 marker sphere (radius ``recording.nominal.marker_radius_m``) at the MarkerMap position, for both parameter
-sets, so that before and after are computed the same way.
+sets, so that before and after are computed the same way (:func:`lrfcal.vizdata.marker_returns`). The scene
+geometry comes from :mod:`lrfcal.vizscene`.
 """
 
 from __future__ import annotations
@@ -27,21 +28,18 @@ from __future__ import annotations
 import os
 import uuid
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .model.kinematics import DH, Params, homogeneous, points_W, rot_x, rot_z, transform_points
+from .model.kinematics import DH, homogeneous, rot_x, rot_z, transform_points
 from .types import CalibrationResult
-
-if TYPE_CHECKING:  # pragma: no cover
-    import mujoco
+from .vizdata import intensity_colors, marker_returns, motor_angle_per_scan_rad, per_scan_rms_m, subsample_indices
+from .vizscene import SceneGeom
 
 FloatArray = NDArray[np.float64]
-IntArray = NDArray[np.int64]
 
 #: Upper bound on the points logged per cloud (uniform subsample above it).
 MAX_CLOUD_POINTS = 300_000
@@ -56,138 +54,7 @@ _COLOR_MDS = (220, 40, 200)
 _COLOR_TRUTH = (250, 250, 250)
 
 
-# --- scene geometry --------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class SceneGeom:
-    """One piece of scene geometry, posed in W.
-
-    kind: "box" (half_size_m = half-extents (3,)), "sphere" (radius_m) or "mesh" (vertices_m (V, 3) in the
-    geom frame, faces (F, 3) vertex indices). T_W_geom (4, 4) maps geom-frame points into W.
-    rgba (4,) in [0, 1].
-    """
-
-    kind: Literal["box", "sphere", "mesh"]
-    name: str
-    T_W_geom: FloatArray
-    half_size_m: FloatArray = field(default_factory=lambda: np.zeros(3))
-    radius_m: float = 0.0
-    vertices_m: FloatArray | None = None
-    faces: IntArray | None = None
-    is_marker: bool = False
-    rgba: tuple[float, float, float, float] = (0.6, 0.6, 0.6, 1.0)
-
-
-def _cylinder_mesh(radius: float, half_length: float, n: int = 24) -> tuple[FloatArray, IntArray]:
-    """A closed cylinder along z: vertices (2n + 2, 3), faces (4n, 3)."""
-    a = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-    ring = np.stack([radius * np.cos(a), radius * np.sin(a)], -1)
-    v = np.vstack([np.c_[ring, np.full(n, -half_length)], np.c_[ring, np.full(n, half_length)],
-                   [[0, 0, -half_length], [0, 0, half_length]]])
-    i = np.arange(n)
-    j = (i + 1) % n
-    side = np.vstack([np.c_[i, j, n + j], np.c_[i, n + j, n + i]])
-    caps = np.vstack([np.c_[np.full(n, 2 * n), j, i], np.c_[np.full(n, 2 * n + 1), n + i, n + j]])
-    return v, np.vstack([side, caps]).astype(np.int64)
-
-
-def _ellipsoid_mesh(half_sizes: ArrayLike, n: int = 16) -> tuple[FloatArray, IntArray]:
-    """A UV ellipsoid: vertices ((n + 1) * n, 3), faces (2 n^2, 3)."""
-    th = np.linspace(0.0, np.pi, n + 1)
-    ph = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
-    T, P = np.meshgrid(th, ph, indexing="ij")
-    v = np.stack([np.sin(T) * np.cos(P), np.sin(T) * np.sin(P), np.cos(T)], -1).reshape(-1, 3)
-    v = v * np.asarray(half_sizes, dtype=float)
-    r, c = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
-    a = r * n + c
-    b = r * n + (c + 1) % n
-    a, b = a.ravel(), b.ravel()
-    f = np.vstack([np.c_[a, a + n, b + n], np.c_[a, b + n, b]])
-    return v, f.astype(np.int64)
-
-
-def scene_geoms_from_mujoco(
-    model: mujoco.MjModel,
-    data: mujoco.MjData,
-    geom_ids: Sequence[int] | None = None,
-    *,
-    skip_body_ids: Sequence[int] = (),
-    geom_groups: Sequence[int] | None = None,
-    is_marker: ArrayLike | None = None,
-    T_W_world: ArrayLike | None = None,
-    plane_half_size_m: float = 5.0,
-) -> list[SceneGeom]:
-    """Extract the geometry of a compiled MuJoCo model (call ``mujoco.mj_kinematics`` first).
-
-    Args:
-        model, data: the model and its data after ``mj_kinematics`` (uses geom_xpos / geom_xmat).
-        geom_ids: which geoms (default all).
-        skip_body_ids: bodies whose geoms are left out, with all their descendant bodies (e.g. the rig:
-            ``[scene.body_M_id]`` for an lrfsim Scene).
-        geom_groups: keep only geoms in these MuJoCo geom groups (default all; lrfsim: (0, 1) = the scene
-            surfaces and markers the lidar sees, without the rig's visual/collision geoms).
-        is_marker: (ngeom,) bool flags (e.g. ``Scene.geom_is_marker``); default: the geom's name contains
-            "marker".
-        T_W_world: (4, 4) transform from the model's world frame into W (default identity).
-        plane_half_size_m: half-extent used for infinite planes (MuJoCo size 0).
-    Returns:
-        SceneGeom list: boxes (box, plane as a 1 mm thick box), spheres, and meshes (mesh, cylinder, capsule,
-        ellipsoid); height fields and SDFs are skipped.
-    """
-    import mujoco
-
-    ids = range(model.ngeom) if geom_ids is None else [int(g) for g in geom_ids]
-    skip = {int(b) for b in skip_body_ids}
-    if skip:  # close over descendants (body_parentid[b] < b for all b > 0)
-        for b in range(1, model.nbody):
-            if int(model.body_parentid[b]) in skip:
-                skip.add(b)
-    flags = None if is_marker is None else np.asarray(is_marker, dtype=bool).reshape(-1)
-    T_W = np.eye(4) if T_W_world is None else np.asarray(T_W_world, dtype=float).reshape(4, 4)
-    G = mujoco.mjtGeom
-    out: list[SceneGeom] = []
-    for g in ids:
-        if int(model.geom_bodyid[g]) in skip:
-            continue
-        if geom_groups is not None and int(model.geom_group[g]) not in geom_groups:
-            continue
-        name = mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_GEOM, g) or f"geom{g}"
-        T = T_W @ homogeneous(np.asarray(data.geom_xmat[g], dtype=float).reshape(3, 3),
-                              np.asarray(data.geom_xpos[g], dtype=float))
-        size = np.asarray(model.geom_size[g], dtype=float)
-        mat = int(model.geom_matid[g])
-        rgba = model.mat_rgba[mat] if mat >= 0 else model.geom_rgba[g]
-        common: dict[str, Any] = {
-            "name": name, "T_W_geom": T, "rgba": tuple(float(c) for c in rgba),
-            "is_marker": bool(flags[g]) if flags is not None else ("marker" in name.lower()),
-        }
-        t = int(model.geom_type[g])
-        if t == G.mjGEOM_BOX:
-            out.append(SceneGeom("box", half_size_m=size.copy(), **common))
-        elif t == G.mjGEOM_PLANE:
-            hx = size[0] if size[0] > 0 else plane_half_size_m
-            hy = size[1] if size[1] > 0 else plane_half_size_m
-            out.append(SceneGeom("box", half_size_m=np.array([hx, hy, 0.0005]), **common))
-        elif t == G.mjGEOM_SPHERE:
-            r = float(size[0])
-            out.append(SceneGeom("sphere", radius_m=r, half_size_m=np.full(3, r), **common))
-        elif t == G.mjGEOM_MESH:
-            m = int(model.geom_dataid[g])
-            va, vn = int(model.mesh_vertadr[m]), int(model.mesh_vertnum[m])
-            fa, fn = int(model.mesh_faceadr[m]), int(model.mesh_facenum[m])
-            out.append(SceneGeom("mesh", vertices_m=np.array(model.mesh_vert[va:va + vn], dtype=float),
-                                 faces=np.array(model.mesh_face[fa:fa + fn], dtype=np.int64), **common))
-        elif t in (G.mjGEOM_CYLINDER, G.mjGEOM_CAPSULE):
-            half = size[1] + (size[0] if t == G.mjGEOM_CAPSULE else 0.0)
-            v, f = _cylinder_mesh(size[0], half)
-            out.append(SceneGeom("mesh", vertices_m=v, faces=f, **common))
-        elif t == G.mjGEOM_ELLIPSOID:
-            v, f = _ellipsoid_mesh(size)
-            out.append(SceneGeom("mesh", vertices_m=v, faces=f, **common))
-    return out
-
-
-# --- helpers (pure numpy, tested through log_calibration) --------------------------------------------------
+# --- helpers ---------------------------------------------------------------------------------------------
 
 def dh_matrix(dh: DH) -> FloatArray:
     """(4, 4) T_M'_L = Tx(a) Rx(alpha) Tz(b) Rz(beta): turning motor frame M' to laser frame L."""
@@ -196,75 +63,6 @@ def dh_matrix(dh: DH) -> FloatArray:
     Tz = homogeneous(np.eye(3), [0.0, 0.0, dh.b])
     Rz = homogeneous(rot_z(dh.beta), np.zeros(3))
     return Tx @ Rx @ Tz @ Rz
-
-
-def subsample_indices(n: int, max_n: int) -> IntArray:
-    """Indices of an evenly strided subset of range(n) with at most max_n elements (all when n <= max_n)."""
-    if n <= max_n:
-        return np.arange(n, dtype=np.int64)
-    return np.unique(np.linspace(0, n - 1, max_n).round().astype(np.int64))
-
-
-def intensity_colors(intensity: ArrayLike, cmap: str = "viridis") -> NDArray[np.uint8]:
-    """(Q,) intensities [counts] -> (Q, 3) uint8 RGB; log10(1 + I) scaled between its 1st and 99.5th
-    percentiles."""
-    import matplotlib
-
-    x = np.log10(1.0 + np.clip(np.nan_to_num(np.asarray(intensity, dtype=float)), 0.0, None))
-    if x.size == 0:
-        return np.zeros((0, 3), np.uint8)
-    lo, hi = np.percentile(x, [1.0, 99.5])
-    u = np.clip((x - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
-    return (matplotlib.colormaps[cmap](u)[..., :3] * 255).astype(np.uint8)
-
-
-def marker_returns(
-    result: CalibrationResult, params: Params
-) -> tuple[FloatArray, FloatArray, IntArray, IntArray]:
-    """Marker returns reprojected with ``params`` and their residual vectors to the marker surface.
-
-    Only observations assigned to a marker (marker >= 0) are used (K of them).
-    Returns:
-        points_W (K, 3) reprojected returns; to_marker_W (K, 3) vector from each return to the nearest point
-        of its marker sphere (centre = MarkerMap position, radius = nominal marker radius); marker (K,);
-        scan (K,).
-    """
-    obs = result.observations
-    sel = obs.marker >= 0
-    p = points_W(obs.ranges_m[sel], obs.lambda_rad[sel], obs.mu_rad[sel], params)
-    centres = result.markers.positions_W[obs.marker[sel]]
-    d = centres - p
-    n = np.linalg.norm(d, axis=1, keepdims=True)
-    r = float(result.recording.nominal.marker_radius_m)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        to_surface = np.where(n > r, d * (1.0 - r / np.where(n > 0, n, 1.0)), 0.0)
-    return p, to_surface, obs.marker[sel].astype(np.int64), obs.scan[sel].astype(np.int64)
-
-
-def per_scan_rms_m(scan: IntArray, residual_norm_m: FloatArray, n_scans: int) -> FloatArray:
-    """(S,) RMS of the residual norms of the returns of each scan; NaN for scans without marker returns."""
-    ss = np.bincount(scan, weights=residual_norm_m**2, minlength=n_scans)
-    cnt = np.bincount(scan, minlength=n_scans)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.where(cnt > 0, np.sqrt(ss / np.maximum(cnt, 1)), np.nan)
-
-
-def motor_angle_per_scan_rad(result: CalibrationResult) -> FloatArray:
-    """(S,) motor angle at the middle of each scan: joint positions interpolated at stamp + scan_time / 2.
-
-    Ignores any laser/servo clock offset (good enough to animate the rig); falls back to the observations'
-    lambda (nearest observed scan) when there are no joint samples.
-    """
-    sc = result.recording.scans
-    js = result.recording.joints
-    t = sc.stamps_s + 0.5 * sc.scan_time_s
-    if js.stamps_s.size >= 2:
-        order = np.argsort(js.stamps_s)
-        return np.interp(t, js.stamps_s[order], js.positions_rad[order])
-    obs = result.observations
-    if len(obs) == 0:
-        return np.zeros(sc.stamps_s.size)
-    return np.interp(np.arange(sc.stamps_s.size), obs.scan.astype(float), obs.lambda_rad)
 
 
 def _bbox(blob: Any) -> tuple[float, float, float, float]:
@@ -538,8 +336,4 @@ def _log_markers(rec: Any, result: CalibrationResult) -> None:
     _log_rig(rec, result, lam)
 
 
-__all__ = [
-    "MAX_CLOUD_POINTS", "MAX_RIG_STEPS", "SceneGeom", "build_blueprint", "dh_matrix", "intensity_colors",
-    "log_calibration", "marker_returns", "motor_angle_per_scan_rad", "per_scan_rms_m",
-    "scene_geoms_from_mujoco", "subsample_indices",
-]
+__all__ = ["MAX_CLOUD_POINTS", "MAX_RIG_STEPS", "build_blueprint", "dh_matrix", "log_calibration"]

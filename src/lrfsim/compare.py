@@ -19,7 +19,7 @@ from lrfcal.output import truth_dict, truth_frame
 from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
 from lrfcal.yamlfile import read_yaml
 
-from .scenario import Tolerances
+from .scenario_sections import Tolerances
 
 
 @dataclass(frozen=True)

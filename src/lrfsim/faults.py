@@ -6,7 +6,7 @@ knows exactly what was injected. Each draws from its own random stream, ``defaul
 with k the fault's number below, so switching one fault on does not reshuffle the others (nor the sensor
 noise, tape or laser phase of lrfsim.simulate).
 
-The scenario's ``faults:`` section (lrfsim.scenario.FaultsConfig), applied in this order:
+The scenario's ``faults:`` section (lrfsim.scenario_sections.FaultsConfig), applied in this order:
 
 0. ``range_noise_scale: k``: every ``sensor.noise_bands`` sigma times k, before simulating
    (:func:`scale_range_noise`); recorded as ``range_noise_scale``.
@@ -44,7 +44,8 @@ from numpy.typing import NDArray
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import Params, beam_rays_M, points_W, transform_points
 
-from .scenario import FaultsConfig, NoiseBand, Scenario, TapeOutlier
+from .scenario import Scenario
+from .scenario_sections import FaultsConfig, NoiseBand, TapeOutlier
 from .tape import TapeResult
 
 if TYPE_CHECKING:  # annotations only: simulate.py applies these faults (no import circle)

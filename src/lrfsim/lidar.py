@@ -82,7 +82,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 
-from .scenario import SensorConfig
+from .scenario_sections import SensorConfig
 
 if TYPE_CHECKING:
     import mujoco

@@ -20,7 +20,8 @@ from lrfcal.config import CalibConfig
 from lrfcal.types import CalibrationResult
 
 from .compare import Comparison, compare, load_truth
-from .scenario import Scenario, SensorConfig
+from .scenario import Scenario
+from .scenario_sections import SensorConfig
 
 
 @dataclass(frozen=True)

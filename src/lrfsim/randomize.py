@@ -250,10 +250,10 @@ def _board_beside(rng: np.random.Generator, origin: np.ndarray, e_axis: np.ndarr
 
 def _board_centres(scene: dict[str, object], markers: dict[str, object], radius: float, seed: int) -> np.ndarray:
     """The marker centres (n, 3) the simulator will put on that board."""
-    from .scenario import BoardConfig, BoardLayout
-    from .scene import _board_markers
+    from .scenario_sections import BoardConfig, BoardLayout
+    from .scene_geometry import board_markers
 
-    return _board_markers(BoardLayout.model_validate(markers["layout"]),
+    return board_markers(BoardLayout.model_validate(markers["layout"]),
                           BoardConfig.model_validate(_plain(scene["board"])), radius, seed)
 
 
@@ -356,7 +356,7 @@ def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
 def visible_markers(scenario: Scenario) -> np.ndarray:
     """(n,) bool: the markers the sweep can see (within the field of view at some motor angle of the sweep,
     3 deg margin; geometry only: no occlusion, range or intensity model)."""
-    from .scene import marker_centres_W
+    from .scene_geometry import marker_centres_W
 
     C = marker_centres_W(scenario)
     T = scenario.rig.mount.to_pose().matrix()
@@ -397,7 +397,7 @@ def wide_dh_sigma(scenario: Scenario, sigma_m: float | None = None) -> np.ndarra
     free of Euler singularities) estimated jointly. inf when the 10 parameters are not determined."""
     from lrfcal.model.kinematics import DH, points_M
 
-    from .scene import marker_centres_W
+    from .scene_geometry import marker_centres_W
 
     sigma = sigma_m if sigma_m is not None else scenario.sensor.noise_bands[0].sigma_m
     C = marker_centres_W(scenario)
@@ -446,7 +446,7 @@ WIDE_MIN_AXIAL_SPREAD_M = 0.10
 
 def axial_spread_m(scenario: Scenario) -> float:
     """Standard deviation [m] of the visible markers' coordinates along the motor axis (z_M, truth)."""
-    from .scene import marker_centres_W
+    from .scene_geometry import marker_centres_W
 
     T = scenario.rig.mount.to_pose().matrix()
     z = ((marker_centres_W(scenario) - T[:3, 3]) @ T[:3, 2])[visible_markers(scenario)]

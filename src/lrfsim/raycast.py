@@ -40,7 +40,7 @@ from .lidar import (
     site_poses_W,
     split_echoes,
 )
-from .scenario import SensorConfig
+from .scenario_sections import SensorConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -213,6 +213,86 @@ class _ChunkStats:
     max_corr: float
 
 
+@dataclass(frozen=True)
+class _Mixture:
+    """What the mixed-pixel model needs besides a chunk's hits, and the arrays it writes the beams into: ranges and
+    intensities (S, N); with echoes, their ranges and powers (S, N, max_echoes), else None."""
+
+    sensor: SensorConfig
+    reflectivity: FloatArray  # (ngeom,)
+    is_marker: NDArray[np.bool_]  # (ngeom,)
+    ranges: FloatArray
+    intensities: FloatArray
+    echo_ranges: FloatArray | None
+    echo_power: FloatArray | None
+
+    def write(self, ch: RayChunk, gid: NDArray[np.int32], dist: FloatArray, normal: FloatArray) -> tuple[float, float]:
+        """The beams of a cast chunk (hits gid, dist (Sc N F,), normal (Sc N F, 3)) into the chunk's scans: each
+        sub-ray's range corrected from the call's shared origin to the beam's own (parallax), its received power
+        (Lambertian, retroreflector lobe for markers, inverse square), the incidence bias, then the power-weighted
+        range and the mean power; echoes split by range. Returns (largest origin offset, largest parallax
+        correction) [m]."""
+        cfg, F = self.sensor.intensity, self.sensor.footprint_rays
+        Sc, N = ch.offset.shape[:2]
+        g = gid.reshape(Sc, N, F)
+        hit = g >= 0
+        d = ch.directions.reshape(Sc, N, F, 3)
+        nv = normal.reshape(Sc, N, F, 3)
+        dn = np.einsum("sbfk,sbfk->sbf", d, nv)
+        en = np.einsum("sbk,sbfk->sbf", ch.offset, nv)
+        ok = hit & (np.abs(dn) > _MIN_NORMAL_DOT)
+        corr = np.divide(en, dn, out=np.zeros_like(dn), where=ok)
+        r = np.where(hit, dist.reshape(Sc, N, F) + corr, 1.0)
+        max_off = float(np.sqrt(np.max(np.einsum("sbk,sbk->sb", ch.offset, ch.offset))))
+        max_corr = float(np.max(np.abs(corr)))
+        gi = np.where(hit, g, 0)
+        cos = np.minimum(np.abs(dn), 1.0)
+        lobe = cos
+        mk = self.is_marker[gi] & hit
+        if mk.any():
+            lobe = cos.copy()
+            lobe[mk] = cos[mk] ** RETRO_EXPONENT
+        P = cfg.gain_counts * self.reflectivity[gi] * lobe * (cfg.ref_range_m / np.maximum(r, 1e-9)) ** 2
+        P *= hit
+        k_theta = self.sensor.systematic.incidence_bias_m
+        if k_theta != 0.0:  # incidence bias per sub-ray; the received power keeps the true range
+            r = r + k_theta * np.arccos(cos)
+        Psum = P.sum(-1)
+        PR = np.einsum("sbf,sbf->sb", P, r)
+        sl = ch.scans
+        self.ranges[sl] = np.divide(PR, Psum, out=np.full_like(PR, np.nan), where=Psum > 0)
+        self.intensities[sl] = Psum / F
+        if self.echo_ranges is not None and self.echo_power is not None:
+            ech = self.sensor.echoes
+            re, pe, single = split_echoes(r, P, hit, ech.separation_m, ech.max_echoes)
+            re[single, 0] = self.ranges[sl][single]
+            pe[single, 0] = Psum[single]
+            self.echo_ranges[sl] = re
+            self.echo_power[sl] = pe
+        return max_off, max_corr
+
+
+def _run_chunks(run: Callable[[int], _ChunkStats], S: int, chunk_scans: int, n_threads: int,
+                progress: Callable[[int, int], None] | None) -> list[_ChunkStats]:
+    """``run(s0)`` for every chunk of scans [s0, s0 + chunk_scans), in ``n_threads`` threads; the chunks' stats in
+    scan order, ``progress(done_scans, S)`` after each."""
+    starts = range(0, S, chunk_scans)
+    stats: list[_ChunkStats] = []
+
+    def collect(results: Iterator[_ChunkStats]) -> None:
+        for s0, st in zip(starts, results, strict=True):
+            stats.append(st)
+            if progress is not None:
+                progress(min(S, s0 + chunk_scans), S)
+
+    if n_threads == 1:
+        collect(map(run, starts))
+    else:
+        with ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="lrfsim-cast") as pool:
+            collect(pool.map(run, starts))
+    return stats
+
+
 def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
                chunk_scans: int = CHUNK_SCANS, progress: Callable[[int, int], None] | None = None,
                threads: int | None = None) -> Cast:
@@ -231,25 +311,17 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
         raise InputError(f"lidar: beam_lambda_rad must have shape (S, {sensor.n_beams}), got {lam.shape}")
     S, N = lam.shape
     F = sensor.footprint_rays
-    cfg = sensor.intensity
-    refl = np.asarray(scene.geom_reflectivity, dtype=float)
-    is_marker = np.asarray(scene.geom_is_marker, dtype=bool)
     geomgroup = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
     cutoff = cast_cutoff_m(sensor)
-
-    ranges = np.empty((S, N))
-    intens = np.empty((S, N))
-    k_theta = sensor.systematic.incidence_bias_m
-    ech = sensor.echoes
-    E = ech.max_echoes
-    echo_r = echo_p = None
-    if ech.enabled:
-        echo_r = np.full((S, N, E), np.nan)
-        echo_p = np.zeros((S, N, E))
+    E = sensor.echoes.max_echoes
+    echoes = sensor.echoes.enabled
+    mix = _Mixture(sensor, np.asarray(scene.geom_reflectivity, dtype=float),
+                   np.asarray(scene.geom_is_marker, dtype=bool), np.empty((S, N)), np.empty((S, N)),
+                   np.full((S, N, E), np.nan) if echoes else None, np.zeros((S, N, E)) if echoes else None)
     if S == 0:
-        return Cast(ranges_m=ranges, intensities=intens, n_rays=0, n_calls=0, cast_time_s=0.0,
+        return Cast(ranges_m=mix.ranges, intensities=mix.intensities, n_rays=0, n_calls=0, cast_time_s=0.0,
                     total_time_s=time.perf_counter() - t_start, max_origin_error_m=0.0, max_parallax_correction_m=0.0,
-                    cutoff_m=cutoff, echo_ranges_m=echo_r, echo_power=echo_p)
+                    cutoff_m=cutoff, echo_ranges_m=mix.echo_ranges, echo_power=mix.echo_power)
     maker = _RayMaker(scene, sensor, lam, origin_tol_m)
     n_threads = max(1, min(default_threads() if threads is None else int(threads), -(-S // chunk_scans)))
     local = threading.local()
@@ -266,67 +338,20 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
     def run(s0: int) -> _ChunkStats:
         ws = workspace()
         ch = maker.chunk(s0, min(S, s0 + chunk_scans), ws.data, ws.dirs, ws.B0)
-        Sc = ch.scans.stop - ch.scans.start
-        m = Sc * N * F
+        m = (ch.scans.stop - ch.scans.start) * N * F
         gid, dist, nrm = ws.gid[:m], ws.dist[:m], ws.nrm[:m]
         t0 = time.perf_counter()
         cast_chunk(scene.model, ws.data, geomgroup, ch, cutoff, gid, dist, nrm)
         cast_s = time.perf_counter() - t0
-
-        g = gid.reshape(Sc, N, F)
-        hit = g >= 0
-        d = ch.directions.reshape(Sc, N, F, 3)
-        nv = nrm.reshape(Sc, N, F, 3)
-        dn = np.einsum("sbfk,sbfk->sbf", d, nv)
-        en = np.einsum("sbk,sbfk->sbf", ch.offset, nv)
-        ok = hit & (np.abs(dn) > _MIN_NORMAL_DOT)
-        corr = np.divide(en, dn, out=np.zeros_like(dn), where=ok)
-        r = np.where(hit, dist.reshape(Sc, N, F) + corr, 1.0)
-        max_off = float(np.sqrt(np.max(np.einsum("sbk,sbk->sb", ch.offset, ch.offset))))
-        max_corr = float(np.max(np.abs(corr)))
-        gi = np.where(hit, g, 0)
-        cos = np.minimum(np.abs(dn), 1.0)
-        lobe = cos
-        mk = is_marker[gi] & hit
-        if mk.any():
-            lobe = cos.copy()
-            lobe[mk] = cos[mk] ** RETRO_EXPONENT
-        P = cfg.gain_counts * refl[gi] * lobe * (cfg.ref_range_m / np.maximum(r, 1e-9)) ** 2
-        P *= hit
-        if k_theta != 0.0:  # incidence bias per sub-ray; the received power keeps the true range
-            r = r + k_theta * np.arccos(cos)
-        Psum = P.sum(-1)
-        PR = np.einsum("sbf,sbf->sb", P, r)
-        sl = ch.scans
-        ranges[sl] = np.divide(PR, Psum, out=np.full_like(PR, np.nan), where=Psum > 0)
-        intens[sl] = Psum / F
-        if echo_r is not None and echo_p is not None:
-            re, pe, single = split_echoes(r, P, hit, ech.separation_m, E)
-            re[single, 0] = ranges[sl][single]
-            pe[single, 0] = Psum[single]
-            echo_r[sl] = re
-            echo_p[sl] = pe
+        max_off, max_corr = mix.write(ch, gid, dist, nrm)
         return _ChunkStats(m, len(ch.call_first), cast_s, max_off, max_corr)
 
-    starts = range(0, S, chunk_scans)
-    stats: list[_ChunkStats] = []
-
-    def collect(results: Iterator[_ChunkStats]) -> None:
-        for s0, st in zip(starts, results, strict=True):
-            stats.append(st)
-            if progress is not None:
-                progress(min(S, s0 + chunk_scans), S)
-
-    if n_threads == 1:
-        collect(map(run, starts))
-    else:
-        with ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="lrfsim-cast") as pool:
-            collect(pool.map(run, starts))
-    return Cast(ranges_m=ranges, intensities=intens, n_rays=sum(s.n_rays for s in stats),
+    stats = _run_chunks(run, S, chunk_scans, n_threads, progress)
+    return Cast(ranges_m=mix.ranges, intensities=mix.intensities, n_rays=sum(s.n_rays for s in stats),
                 n_calls=sum(s.n_calls for s in stats), cast_time_s=sum(s.cast_s for s in stats),
                 total_time_s=time.perf_counter() - t_start, max_origin_error_m=max(s.max_off for s in stats),
-                max_parallax_correction_m=max(s.max_corr for s in stats), cutoff_m=cutoff, echo_ranges_m=echo_r,
-                echo_power=echo_p)
+                max_parallax_correction_m=max(s.max_corr for s in stats), cutoff_m=cutoff,
+                echo_ranges_m=mix.echo_ranges, echo_power=mix.echo_power)
 
 
 __all__ = ["CHUNK_SCANS", "RayChunk", "cast_chunk", "cast_cutoff_m", "cast_scans", "default_threads", "iter_ray_chunks",

@@ -41,7 +41,7 @@ from lrfcal.errors import InputError
 from .profile import move_profile
 
 if TYPE_CHECKING:  # annotations only: scenario.py uses this module (no import circle)
-    from .scenario import ServoConfig
+    from .scenario_sections import ServoConfig
 
 FloatArray = NDArray[np.float64]
 

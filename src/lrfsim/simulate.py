@@ -19,7 +19,8 @@ from numpy.typing import NDArray
 
 from .lidar import Cast, beam_angles, beam_times, scan_start_times, sensor_model
 from .raycast import cast_scans
-from .scenario import Scenario, SensorConfig
+from .scenario import Scenario
+from .scenario_sections import SensorConfig
 from .servo import check_trajectory, joint_samples, laser_time, sweep_trajectory
 from .simresult import SimResult, SimStats, SimTruth
 from .tape import measure_tape

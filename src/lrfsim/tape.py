@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 
-from .scenario import TapeConfig
+from .scenario_sections import TapeConfig
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -11,7 +11,8 @@ import yaml
 
 from lrfcal.errors import InputError
 
-from .scenario import DHConfig, PoseConfig, Scenario, parse_scenario
+from .scenario import Scenario, parse_scenario
+from .scenario_sections import DHConfig, PoseConfig
 
 #: --perturb-start 1: half-widths of the uniform perturbation of each nominal value (SI units: m, rad)
 PERTURB_HALF_WIDTH: dict[str, float] = {
