@@ -24,9 +24,9 @@ sets, so that before and after are computed the same way.
 
 from __future__ import annotations
 
-import os
 import uuid
 from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
@@ -34,7 +34,9 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .model.kinematics import DH, Params, homogeneous, points_W, rot_x, rot_z, transform_points
+from .io.files import atomic_file
+from .io.urdf import dh_matrix
+from .model.kinematics import Params, homogeneous, points_W, transform_points
 from .types import CalibrationResult
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -188,15 +190,6 @@ def scene_geoms_from_mujoco(
 
 
 # --- helpers (pure numpy, tested through log_calibration) --------------------------------------------------
-
-def dh_matrix(dh: DH) -> FloatArray:
-    """(4, 4) T_M'_L = Tx(a) Rx(alpha) Tz(b) Rz(beta): turning motor frame M' to laser frame L."""
-    Tx = homogeneous(np.eye(3), [dh.a, 0.0, 0.0])
-    Rx = homogeneous(rot_x(dh.alpha), np.zeros(3))
-    Tz = homogeneous(np.eye(3), [0.0, 0.0, dh.b])
-    Rz = homogeneous(rot_z(dh.beta), np.zeros(3))
-    return Tx @ Rx @ Tz @ Rz
-
 
 def subsample_indices(n: int, max_n: int) -> IntArray:
     """Indices of an evenly strided subset of range(n) with at most max_n elements (all when n <= max_n)."""
@@ -465,12 +458,8 @@ def log_calibration(
         raise ValueError("log_calibration: give rrd_path and/or spawn=True")
     blueprint = build_blueprint()
     rec = rr.RecordingStream(app_id, recording_id=str(uuid.uuid4()))
-    tmp: Path | None = None
-    if rrd_path is not None:
-        rrd_path = Path(rrd_path)
-        rrd_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = rrd_path.with_name(f".{rrd_path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
+    with ExitStack() as stack:
+        tmp = None if rrd_path is None else stack.enter_context(atomic_file(rrd_path))
         if spawn:
             try:
                 rr.spawn(connect=False)
@@ -500,12 +489,6 @@ def log_calibration(
             _log_markers(rec, result)
         rec.flush()
         rec.disconnect()
-        if tmp is not None:
-            os.replace(tmp, rrd_path)  # type: ignore[arg-type]
-            tmp = None
-    finally:
-        if tmp is not None and tmp.exists():
-            tmp.unlink()
 
 
 def _log_markers(rec: Any, result: CalibrationResult) -> None:
@@ -539,7 +522,7 @@ def _log_markers(rec: Any, result: CalibrationResult) -> None:
 
 
 __all__ = [
-    "MAX_CLOUD_POINTS", "MAX_RIG_STEPS", "SceneGeom", "build_blueprint", "dh_matrix", "intensity_colors",
+    "MAX_CLOUD_POINTS", "MAX_RIG_STEPS", "SceneGeom", "build_blueprint", "intensity_colors",
     "log_calibration", "marker_returns", "motor_angle_per_scan_rad", "per_scan_rms_m",
     "scene_geoms_from_mujoco", "subsample_indices",
 ]

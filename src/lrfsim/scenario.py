@@ -18,8 +18,8 @@ import yaml
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from lrfcal.errors import InputError
+from lrfcal.io.yamlfile import read_yaml
 from lrfcal.model.kinematics import DH, Pose
-from lrfcal.yamlfile import read_yaml
 
 PositiveFloat = Annotated[float, Field(gt=0)]
 NonNegFloat = Annotated[float, Field(ge=0)]
