@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
+from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.recording import read_recording
 from lrfsim.compare import Comparison
 from lrfsim.loop import run_loop
 from lrfsim.randomize import random_scenario

@@ -25,8 +25,8 @@ import numpy as np
 import yaml
 
 from lrfcal.cloud import BeamCloud, reproject_bag, reproject_beams, write_cloud_ply
+from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH
-from lrfcal.recording import read_recording
 from lrfsim.scenario import load_scenario
 from lrfsim.simulate import simulate_to_folder
 

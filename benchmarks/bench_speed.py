@@ -123,8 +123,8 @@ def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
 def pipeline_inprocess(rec: Path) -> tuple[float, dict[str, float], float]:
     """(seconds, stage seconds, load) of lrfcal.pipeline.calibrate on the recording (no CLI, no figures, no
     output files; the CLI's configuration)."""
+    from lrfcal.io.recording import read_recording
     from lrfcal.pipeline import CalibConfig, calibrate
-    from lrfcal.recording import read_recording
 
     recording = read_recording(rec)
     load = _load()

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.recording import read_recording
 from lrfsim.compare import load_truth
 from lrfsim.scenario import load_scenario
 from lrfsim.simulate import simulate, write_recording

@@ -91,7 +91,7 @@ def run_cases(seeds: int, faults: bool, work: Path) -> tuple[list[tuple[Trial, b
 
 _TIMING = """
 import sys, time
-from lrfcal.recording import read_recording
+from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import calibrate, CalibConfig
 rec = read_recording(sys.argv[1])
 best = float("inf")

@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-from lrfcal.bag import read_bag
 from lrfcal.cloud import BeamCloud, reproject_beams
+from lrfcal.io.bag import read_bag
 from lrfcal.model.kinematics import DH
 from lrfcal.rig import ScanSource, ServoSource, TfSource
 

@@ -11,9 +11,9 @@ import pytest
 import yaml
 from test_bag_shapes import DH_TEST, S, write
 
-from lrfcal.bag import read_bag
 from lrfcal.cli import main
 from lrfcal.cloud import POINT_DTYPE, read_cloud_ply, reproject_beams
+from lrfcal.io.bag import read_bag
 from lrfcal.model.kinematics import DH
 from lrfcal.rig import ScanSource, ServoSource
 

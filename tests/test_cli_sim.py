@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from lrfcal.output import MANIFEST_NAME
+from lrfcal.io.files import MANIFEST_NAME
 from lrfsim.cli import main
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"

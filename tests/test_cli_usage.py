@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from lrfcal.output import MANIFEST_NAME
+from lrfcal.io.files import MANIFEST_NAME
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"

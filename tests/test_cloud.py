@@ -55,7 +55,7 @@ def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
     import yaml
     from test_cli_sim import _write_small
 
-    from lrfcal.recording import read_recording
+    from lrfcal.io.recording import read_recording
     from lrfcal.reproject import reproject_cloud
     from lrfcal.timing import beam_motor_angles, covered_scans
     from lrfsim.scenario import load_scenario

@@ -189,10 +189,11 @@ def test_faults_section_is_validated(faults: dict[str, Any], field: str) -> None
 def test_tape_outlier_end_to_end(tmp_path: Path) -> None:
     """A misread tape (0.5 m on one pair) injected by the simulator is named and dropped by the calibration,
     whose marker map is then back at tape noise and whose DH parameters are within 4 sigma of the truth."""
+    from lrfcal.io.calibration_yaml import calibration_dict
+    from lrfcal.io.recording import read_recording
+    from lrfcal.io.report import render_report
     from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
-    from lrfcal.output import calibration_dict, render_report
     from lrfcal.pipeline import CalibConfig, calibrate
-    from lrfcal.recording import read_recording
 
     data = _data(tape_outliers=[{"pair": ["m02", "m13"], "error_m": 0.5}])
     data["servo"].update({"start_rad": math.pi / 2, "end_rad": -math.pi / 2, "speed_rad_s": math.radians(30)})

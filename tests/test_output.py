@@ -12,9 +12,13 @@ import yaml
 from synthetic import START, TRUE, make_result
 
 from lrfcal.errors import InputError
+from lrfcal.io.calibration_folder import write_calibration
+from lrfcal.io.files import MANIFEST_NAME
+from lrfcal.io.ply import write_ply
+from lrfcal.io.report import render_report
+from lrfcal.io.urdf import dh_matrix, urdf_snippet
 from lrfcal.model.kinematics import ESTIMATE_NAMES, PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
-from lrfcal.output import MANIFEST_NAME, dh_matrix, render_report, urdf_snippet, write_calibration
-from lrfcal.reproject import reproject_cloud, write_ply
+from lrfcal.reproject import reproject_cloud
 from lrfcal.types import TunnelGeometry
 
 
@@ -199,7 +203,7 @@ def test_write_ply_atomic(tmp_path):
 
 
 def test_align_truth_frame_by_id_and_mirrored_symmetric_layout():
-    from lrfcal.output import align_truth_frame
+    from lrfcal.io.truth import align_truth_frame
 
     # a V on both walls (mirror-symmetric about y = 0), ids left l0.. and right r0..
     zs = [1.7, 0.9, 0.5, 1.3]  # not collinear: a coplanar layout would make the mirror a rotation
@@ -225,7 +229,7 @@ def test_align_truth_frame_by_id_and_mirrored_symmetric_layout():
 def test_output_modes(tmp_path, result):
     import os
 
-    from lrfcal.reproject import current_umask
+    from lrfcal.io.files import current_umask
 
     out = write_calibration(tmp_path / "cal", result)
     assert (out.stat().st_mode & 0o777) == 0o777 & ~current_umask()

@@ -1,4 +1,4 @@
-"""The programs' progress display (lrfcal.cliutil.progress_display) and BLAS thread policy (lrfcal.threads).
+"""The programs' progress display (lrfcal.progress.progress_display) and BLAS thread policy (lrfcal.threads).
 
 The display is drawn on a terminal only, never with --quiet: stage names, scans and trials appear on a (forced)
 terminal, nothing of them on a pipe or a file. The thread limit is set by the console scripts' entry (run_app),
@@ -18,9 +18,9 @@ import pytest
 from rich.console import Console
 from test_cli_sim import _main, _write_small
 
-import lrfcal.cliutil as cliutil
-from lrfcal.cliutil import progress_display
+import lrfcal.progress as progress
 from lrfcal.pipeline import STAGES
+from lrfcal.progress import progress_display
 from lrfcal.targetless import STAGES as TARGETLESS_STAGES
 
 
@@ -84,11 +84,11 @@ def test_lrfsim_simulate_shows_scans_on_a_terminal_only(tmp_path: Path, monkeypa
     assert _main(["simulate", str(scen), "-o", str(tmp_path / "a")]) == 0  # stderr captured: not a terminal
     assert capsys.readouterr().err == ""
     console, buf = _terminal()
-    monkeypatch.setattr(cliutil, "progress_console", lambda: console)
+    monkeypatch.setattr(progress, "progress_console", lambda: console)
     assert _main(["simulate", str(scen), "-o", str(tmp_path / "b")]) == 0
     assert "simulating tunnel_v" in buf.getvalue()
     console, buf = _terminal()
-    monkeypatch.setattr(cliutil, "progress_console", lambda: console)
+    monkeypatch.setattr(progress, "progress_console", lambda: console)
     assert _main(["simulate", str(scen), "-o", str(tmp_path / "c"), "--quiet"]) == 0
     assert buf.getvalue() == ""
     assert capsys.readouterr().err == ""
@@ -97,7 +97,7 @@ def test_lrfsim_simulate_shows_scans_on_a_terminal_only(tmp_path: Path, monkeypa
 def test_lrfsim_plan_shows_a_status_on_a_terminal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                   capsys: pytest.CaptureFixture[str]) -> None:
     console, buf = _terminal()
-    monkeypatch.setattr(cliutil, "progress_console", lambda: console)
+    monkeypatch.setattr(progress, "progress_console", lambda: console)
     _main(["plan", str(_write_small(tmp_path)), "--markers-only"])  # exit 0 or 3: the display is what is tested
     assert "planning tunnel_v" in buf.getvalue()
     capsys.readouterr()

@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.bag import read_bag
 from lrfcal.cloud import reproject_beams
 from lrfcal.inspection import inspect_bag
+from lrfcal.io.bag import read_bag
 from lrfcal.model.kinematics import DH
 from lrfcal.rig import ScanSource, ServoSource, parse_rig
 

@@ -12,7 +12,7 @@ from rosbags.highlevel import AnyReader
 
 import lrfsim.recording as recording
 from lrfcal.errors import InputError
-from lrfcal.output import MANIFEST_NAME
+from lrfcal.io.files import MANIFEST_NAME
 from lrfsim.lidar import beam_times
 from lrfsim.scenario import Scenario, load_scenario, parse_scenario
 from lrfsim.servo import sweep_trajectory

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_typestore
 
-from lrfcal.bag import read_bag as _read_bag
 from lrfcal.errors import InputError
-from lrfcal.recording import check_joint_coverage, read_distances, read_nominal, read_recording
+from lrfcal.io.bag import read_bag as _read_bag
+from lrfcal.io.recording import check_joint_coverage, read_distances, read_nominal, read_recording
 from lrfcal.rig import ScanSource, ServoSource
 
 

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.recording import read_recording
 from lrfcal.types import CalibrationResult
 from lrfsim.compare import Comparison, compare, load_truth
 from lrfsim.randomize import random_scenario

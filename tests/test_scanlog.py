@@ -20,15 +20,15 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.bag import read_bag
 from lrfcal.cloud import read_cloud_ply, reproject_beams
 from lrfcal.errors import InputError
+from lrfcal.io.bag import read_bag
+from lrfcal.io.recording import read_recording
+from lrfcal.io.scanlog import read_scan_log, resolve_recording
 from lrfcal.logconvert import convert_log
 from lrfcal.loginspect import guess_layout, inspect_path
 from lrfcal.model.kinematics import DH
-from lrfcal.recording import read_recording
 from lrfcal.rig import LogLayout, ScanSource, ServoSource, parse_rig
-from lrfcal.scanlog import read_scan_log, resolve_recording
 
 LONGARM = Path(__file__).resolve().parents[2] / "shared" / "realbags" / "longarm"
 LONGARM_LOG = LONGARM / "batchScanned20191114103039.txt"
@@ -196,7 +196,7 @@ def test_guess_finds_the_header_layout(tmp_path: Path) -> None:
 
 
 def _assert_same_as_log(bag: Path, log: Path, layout: LogLayout, servo: ServoSource) -> None:
-    """The converted bag, read back by lrfcal.bag.read_bag, holds the log's scans and angles."""
+    """The converted bag, read back by lrfcal.io.bag.read_bag, holds the log's scans and angles."""
     a = read_scan_log(log, layout, servo, warn=lambda _t: None)
     b = read_bag(bag, ScanSource(), ServoSource(joint="servo", motion="step"), warn=lambda _t: None)
     assert b.scans.ranges_m.shape == a.scans.ranges_m.shape and b.scans.angle_per_scan

@@ -1,6 +1,6 @@
 """Issue 12: each systematic error switched on alone changes the ranges as documented (lrfsim.lidar,
 docs/sensor_errors.md), multi-echo returns split at edges, and the MultiEchoLaserScan topic reads back through
-lrfcal.bag; a multi-echo recording calibrates through /echoes as through /scan, the strongest echo keeps a split
+lrfcal.io.bag; a multi-echo recording calibrates through /echoes as through /scan, the strongest echo keeps a split
 marker beam's marker return, `lrfcal inspect` proposes the strongest echo, and `lrfsim run` says whether the
 scanner had systematic errors."""
 
@@ -16,11 +16,12 @@ import pytest
 import yaml
 from test_lidar import EXACT, _deep_update, _exact_rays_W, _marker_on_beam, _run, _tunnel_hits, small_scenario
 
-from lrfcal.bag import read_bag, select_echo
 from lrfcal.errors import InputError
 from lrfcal.inspection import inspect_bag
+from lrfcal.io.bag import read_bag
+from lrfcal.io.bag_scans import select_echo
+from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig
-from lrfcal.recording import read_recording
 from lrfcal.rig import ScanSource, ServoSource, parse_rig
 from lrfsim import lidar, raycast
 from lrfsim.loop import sensor_errors_line

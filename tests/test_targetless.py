@@ -20,9 +20,9 @@ import numpy as np
 import pytest
 import yaml
 
+from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.planes import segment_planes
-from lrfcal.recording import read_recording
 from lrfcal.types import CalibrationResult
 from lrfsim.compare import load_truth
 from lrfsim.scenario import parse_scenario, with_changes
@@ -110,7 +110,8 @@ def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(shipped_reco
                                                                    ) -> None:
     """tunnel_v calibrated with its markers and, with compare_targetless, from its planes alone: the targetless
     estimate is right within 4 sigma, and the report shows the methods side by side with the truth."""
-    from lrfcal.output import render_report, truth_dict
+    from lrfcal.io.report import render_report
+    from lrfcal.io.truth import truth_dict
 
     folder = shipped_recording("tunnel_v")
     recording = read_recording(folder)
@@ -220,7 +221,7 @@ REALBOX = Path(__file__).resolve().parents[2] / "shared" / "realbags" / "cardboa
 def _real_box() -> CalibrationResult:
     from test_real_bags import URG_NOMINAL, URG_SCAN, URG_SERVO
 
-    from lrfcal.bag import read_bag
+    from lrfcal.io.bag import read_bag
     from lrfcal.types import Nominal, Recording
 
     data = read_bag(REALBOX, URG_SCAN, URG_SERVO, warn=lambda _t: None)

@@ -20,9 +20,9 @@ import pytest
 import yaml
 
 from lrfcal.errors import InputError
+from lrfcal.io.files import MANIFEST_NAME
+from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import Params, points_W
-from lrfcal.output import MANIFEST_NAME
-from lrfcal.recording import read_recording
 from lrfsim.compare import load_truth
 from lrfsim.scenario import Scenario, parse_scenario, with_changes
 from lrfsim.scene import build_scene

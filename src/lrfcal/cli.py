@@ -12,7 +12,8 @@ from typing import Annotated
 
 import typer
 
-from .cliutil import Command, QuietOpt, finite_between, make_app, progress_display, run_app
+from .cliutil import Command, QuietOpt, finite_between, make_app, run_app
+from .progress import progress_display
 
 app = make_app(
     "Calibrate a servo-turned 2D laser range finder from reflective markers (the mount pose [m, rad] and the "
@@ -81,9 +82,9 @@ def calibrate_cmd(
     """
     from rich.console import Console
 
-    from .app import calibrate_folder
     from .config import CalibConfig
     from .summary import print_summary
+    from .workflow import calibrate_folder
 
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,

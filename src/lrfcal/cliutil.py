@@ -1,5 +1,5 @@
 """What the two command-line programs (``lrfcal``, ``lrfsim``) share: the typer app settings, usage lines, the
-mapping of errors to one line and an exit code, option checks and the progress display.
+mapping of errors to one line and an exit code and option checks (their progress display: lrfcal.progress).
 
 Exit codes (the same for every command; see :mod:`lrfcal.errors`): 0 done, 1 ``lrfsim run`` missed its
 tolerances, 2 bad input or usage (one line ``error: ...`` on stderr), 3 no trustworthy calibration.
@@ -12,22 +12,15 @@ is the base of every usage error, ``typer.BadParameter`` one of them) plus ``typ
 from __future__ import annotations
 
 import math
-import os
-import re
-import shutil
 import sys
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
-from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any, NoReturn
+from collections.abc import Callable, Sequence
+from typing import Annotated, Any, NoReturn
 
 import typer
 from typer.core import TyperArgument, TyperCommand, TyperOption
 
 from .errors import LrfError
-
-if TYPE_CHECKING:
-    from rich.console import Console
+from .io.files import shown_path
 
 #: Exit code of a usage error or bad input (the same as :class:`lrfcal.errors.InputError`).
 EXIT_USAGE = 2
@@ -134,22 +127,10 @@ def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoR
         print("error: out of memory (the input is too large for this machine)", file=sys.stderr)
         sys.exit(EXIT_USAGE)
     except OSError as e:
-        where = f"{_shown_path(e.filename)}: " if getattr(e, "filename", None) else ""
+        where = f"{shown_path(e.filename)}: " if getattr(e, "filename", None) else ""
         print(f"error: {where}{e.strerror or one_line(str(e))}", file=sys.stderr)
         sys.exit(EXIT_USAGE)
     sys.exit(rv if isinstance(rv, int) else 0)
-
-
-#: the names of the tools' own temporary files and folders (lrfcal.output, figures, cloud, viz, app)
-_TEMP_NAME = re.compile(r"^\.(figures-|lrf-write-probe-|.+\.(tmp|old)-|.+\.tmp$)")
-
-
-def _shown_path(filename: object) -> str:
-    """``filename`` as a message may show it: a temporary path of the tool's own is replaced by the folder it was
-    being written in (a user never made it and cannot act on its name)."""
-    path = str(filename)
-    parent, _, name = path.rpartition(os.sep)
-    return (parent or ".") if _TEMP_NAME.match(name) else path
 
 
 def finite_between(lo: float, hi: float, unit: str) -> Callable[[float | None], float | None]:
@@ -163,87 +144,9 @@ def finite_between(lo: float, hi: float, unit: str) -> Callable[[float | None], 
     return check
 
 
-def spawn_unavailable_reason() -> str | None:
-    """Why a rerun viewer cannot be started here (None when it probably can): no ``rerun`` executable, or no
-    display on Linux (neither DISPLAY nor WAYLAND_DISPLAY set). Checked before spawning so that ``--spawn``
-    never waits for a viewer that cannot come up."""
-    exe = shutil.which("rerun") or shutil.which("rerun", path=os.path.dirname(sys.executable))
-    if exe is None:
-        return "no 'rerun' executable on PATH"
-    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
-        return "no display (DISPLAY and WAYLAND_DISPLAY are unset)"
-    return None
-
-
 #: The ``--quiet`` option of every command that shows a progress display.
 QuietOpt = Annotated[bool, typer.Option("--quiet", "-q", help="No progress display on stderr (it is drawn only on a "
                                         "terminal anyway).")]
 
 
-@dataclass
-class ProgressHooks:
-    """Callbacks for a long job: ``scans(done, total)`` while simulating, ``stage(name)`` while calibrating,
-    ``trials(done, total)`` in a study, ``steps(name, done, total)`` for any other counted step (reading,
-    reprojecting). They cost nothing when the display is off."""
-
-    scans: Callable[[int, int], None]
-    stage: Callable[[str], None]
-    trials: Callable[[int, int], None]
-    steps: Callable[[str, int, int], None]
-
-
-def progress_console() -> Console:
-    """The console the progress display draws on: stderr (stdout stays for results)."""
-    from rich.console import Console
-
-    return Console(stderr=True)
-
-
-@contextmanager
-def progress_display(label: str, *, quiet: bool = False, console: Console | None = None) -> Iterator[ProgressHooks]:
-    """A transient progress line on stderr: the label, a bar (pulsing while the total is unknown), what is being
-    done (scans simulated, the calibration's stage of :data:`lrfcal.pipeline.STAGES` or
-    :data:`lrfcal.targetless.STAGES`, trials, any other name: what is being written) and the time elapsed.
-
-    Drawn only on a terminal (``console``, default :func:`progress_console`), and not at all with ``quiet``
-    (the commands' ``--quiet``): a log file or a pipe gets none of it. The line is erased when the block ends.
-    """
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    from .pipeline import STAGES
-    from .targetless import STAGES as TARGETLESS_STAGES
-
-    console = console if console is not None else progress_console()
-    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[what]}"),
-                  TimeElapsedColumn(), console=console, transient=True,
-                  disable=quiet or not console.is_terminal) as bar:
-        task = bar.add_task(label, total=None, what="")
-
-        def scans(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total, what=f"{done}/{total} scans")
-
-        def trials(done: int, total: int) -> None:
-            bar.update(task, completed=done, total=total, what=f"{done}/{total} trials", refresh=True)
-
-        def steps(name: str, done: int, total: int) -> None:
-            bar.update(task, description=f"{label}: {name}", completed=done, total=max(total, 1),
-                       what=f"{done}/{total}")
-
-        calibration: list[tuple[str, ...]] = []  # the stages of the calibration that runs (known at its first)
-
-        def stage(name: str) -> None:
-            if not calibration:
-                calibration.append(TARGETLESS_STAGES if name == TARGETLESS_STAGES[0] else STAGES)
-            stages = calibration[0]
-            if name in stages:  # a calibration stage: every one is drawn at least once (refresh)
-                k = stages.index(name)
-                bar.update(task, description=f"calibrating: {name}", completed=k, total=len(stages),
-                           what=f"stage {k + 1}/{len(stages)}", refresh=True)
-            else:  # after the calibration: writing its outputs
-                bar.update(task, description=f"writing {name}", completed=1, total=1, what="", refresh=True)
-
-        yield ProgressHooks(scans=scans, stage=stage, trials=trials, steps=steps)
-
-
-__all__ = ["EXIT_USAGE", "Command", "ProgressHooks", "QuietOpt", "finite_between", "make_app", "one_line",
-           "progress_console", "progress_display", "run_app", "spawn_unavailable_reason", "version_text"]
+__all__ = ["EXIT_USAGE", "Command", "QuietOpt", "finite_between", "make_app", "one_line", "run_app", "version_text"]

@@ -11,8 +11,6 @@ Array shapes: S scans, N beams, P points.
 
 from __future__ import annotations
 
-import os
-import tempfile
 import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -23,11 +21,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import InputError
+from .io.files import atomic_file, check_outputs, swapped_folder, write_bytes_atomic
+from .io.yamlfile import read_yaml
 from .model.kinematics import DH, points_M
-from .reproject import current_umask
 from .timing import covered_scans, motor_angles
 from .types import JointStates, Scans
-from .yamlfile import read_yaml
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -147,33 +145,6 @@ def point_records(cloud: BeamCloud, sel: Any = slice(None)) -> NDArray[Any]:
 
 # --- writers (atomic: a temporary sibling renamed into place) ------------------------------------------------
 
-def check_outputs(inputs: list[Path], outputs: list[Path]) -> None:
-    """Refuse outputs that equal, contain or lie inside an input, or each other."""
-    ins = [p.resolve() for p in inputs]
-    outs = [p.resolve() for p in outputs]
-    for o in outs:
-        for i in ins:
-            if o == i or i.is_relative_to(o) or o.is_relative_to(i):
-                raise InputError(f"{o}: output overlaps the input {i}; choose another output path")
-    if len(set(outs)) != len(outs):
-        raise InputError(f"outputs: the same path given twice ({', '.join(map(str, outputs))})")
-
-
-def _atomic_bytes(path: Path, chunks: list[bytes | memoryview]) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            for c in chunks:
-                f.write(c)
-        os.chmod(tmp, 0o666 & ~current_umask())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
 def write_cloud_ply(path: str | Path, cloud: BeamCloud) -> Path:
     """Binary little-endian PLY: float x, y, z [m], float intensity, double time [s, laser clock],
     uint scan, uint beam per point; written atomically."""
@@ -183,7 +154,7 @@ def write_cloud_ply(path: str | Path, cloud: BeamCloud) -> Path:
         f"element vertex {rec.size}\nproperty float x\nproperty float y\nproperty float z\n"
         "property float intensity\nproperty double time\nproperty uint scan\nproperty uint beam\nend_header\n"
     )
-    return _atomic_bytes(Path(path), [header.encode("ascii"), memoryview(rec).cast("B")])
+    return write_bytes_atomic(Path(path), [header.encode("ascii"), memoryview(rec).cast("B")])
 
 
 def read_cloud_ply(path: str | Path) -> NDArray[Any]:
@@ -201,8 +172,6 @@ def write_cloud_bag(path: str | Path, cloud: BeamCloud, frame_id: str = CLOUD_FR
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from .output import swap_into_place
-
     path = Path(path)
     ts = get_typestore(Stores.ROS2_HUMBLE)
     PC2 = ts.types[POINTCLOUD2_TYPE]
@@ -212,27 +181,19 @@ def write_cloud_bag(path: str | Path, cloud: BeamCloud, frame_id: str = CLOUD_FR
     fields = [PF(name=n, offset=POINT_DTYPE.fields[n][1], datatype=d, count=1) for n, d in (
         ("x", _PF_FLOAT32), ("y", _PF_FLOAT32), ("z", _PF_FLOAT32), ("intensity", _PF_FLOAT32),
         ("time", _PF_FLOAT64), ("scan", _PF_UINT32), ("beam", _PF_UINT32))]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.parent / f".{path.name}.tmp-{uuid.uuid4().hex[:8]}"
-    try:
-        with Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-            conn = w.add_connection(topic, POINTCLOUD2_TYPE, typestore=ts)
-            for sw in np.unique(cloud.sweep):
-                sel = np.flatnonzero(cloud.sweep == sw)
-                rec = point_records(cloud, sel)
-                t0, t1 = float(cloud.times_s[sel].min()), float(cloud.times_s[sel].max())
-                ns0 = int(round(t0 * 1e9))
-                msg = PC2(header=Header(stamp=Time(sec=ns0 // 10**9, nanosec=ns0 % 10**9), frame_id=frame_id),
-                          height=1, width=rec.size, fields=fields, is_bigendian=False,
-                          point_step=POINT_DTYPE.itemsize, row_step=POINT_DTYPE.itemsize * rec.size,
-                          data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=True)
-                w.write(conn, max(0, int(round(t1 * 1e9))), ts.serialize_cdr(msg, POINTCLOUD2_TYPE))
-        swap_into_place(tmp, path)
-    except BaseException:
-        import shutil
-
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    # rosbags' Writer makes the bag folder itself: swapped_folder only names it
+    with swapped_folder(path, make=False) as tmp, Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conn = w.add_connection(topic, POINTCLOUD2_TYPE, typestore=ts)
+        for sw in np.unique(cloud.sweep):
+            sel = np.flatnonzero(cloud.sweep == sw)
+            rec = point_records(cloud, sel)
+            t0, t1 = float(cloud.times_s[sel].min()), float(cloud.times_s[sel].max())
+            ns0 = int(round(t0 * 1e9))
+            msg = PC2(header=Header(stamp=Time(sec=ns0 // 10**9, nanosec=ns0 % 10**9), frame_id=frame_id),
+                      height=1, width=rec.size, fields=fields, is_bigendian=False,
+                      point_step=POINT_DTYPE.itemsize, row_step=POINT_DTYPE.itemsize * rec.size,
+                      data=np.frombuffer(rec.tobytes(), dtype=np.uint8), is_dense=True)
+            w.write(conn, max(0, int(round(t1 * 1e9))), ts.serialize_cdr(msg, POINTCLOUD2_TYPE))
     return path
 
 
@@ -244,11 +205,9 @@ def write_cloud_rrd(path: str | Path, cloud: BeamCloud, max_points: int = 2_000_
     from .vizdata import intensity_colors, subsample_indices
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
     keep = subsample_indices(len(cloud), max_points)
     rec = rr.RecordingStream("lrfcal_reproject", recording_id=str(uuid.uuid4()))
-    try:
+    with atomic_file(path) as tmp:
         rec.save(tmp)
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         sweeps = cloud.sweep[keep]
@@ -259,10 +218,6 @@ def write_cloud_rrd(path: str | Path, cloud: BeamCloud, max_points: int = 2_000_
             rec.log("world/M/cloud", rr.Points3D(cloud.points_M[sel], colors=colors[sweeps == sw], radii=0.004))
         rec.flush()
         rec.disconnect()
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path
 
 
@@ -335,13 +290,13 @@ def reproject_bag(
     Raises:
         InputError: bad input, or an output path that overlaps an input.
     """
-    from .recording import read_recording
+    from .io.recording import read_recording
     from .rig import with_overrides
 
     bag, nominal, out = Path(bag), Path(nominal), Path(out)
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
     check_outputs([p for p in (bag, nominal, Path(calibration) if calibration else None) if p is not None], outs)
-    from .recording import read_nominal
+    from .io.recording import read_nominal
 
     nom = read_nominal(nominal)
     scan, servo = with_overrides(nom.scan, nom.servo, **(options or {}))
@@ -379,7 +334,7 @@ def reproject_bag(
     return lines
 
 
-__all__ = ["BeamCloud", "CLOUD_FRAME", "CLOUD_TOPIC", "POINT_DTYPE", "check_outputs", "point_records",
+__all__ = ["BeamCloud", "CLOUD_FRAME", "CLOUD_TOPIC", "POINT_DTYPE", "point_records",
            "read_calibration_clock_offset", "read_calibration_dh",
            "read_calibration_range_offset", "read_cloud_ply", "reproject_bag", "reproject_beams",
            "sweep_index", "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]

@@ -11,8 +11,6 @@ and the calibrated parameters ("after").
 
 from __future__ import annotations
 
-import os
-import uuid
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .figlayout import place_labels, three_ticks, view_frame
+from .io.files import atomic_file
 from .model.kinematics import Params
 from .types import CalibrationResult
 from .vizdata import marker_returns
@@ -51,15 +50,9 @@ def _new_figure(constrained: bool = True) -> Any:
 def _save(fig: Any, path: Path | str) -> Path:
     """Write ``fig`` as PNG at WIDTH_PX x HEIGHT_PX, atomically (temp file in the folder, then rename)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
+    with atomic_file(path) as tmp:
         # zlib level 1: a third of the default level's encoding time for files about 10 % larger
         fig.savefig(tmp, format="png", dpi=DPI, pil_kwargs={"compress_level": 1})
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
     return path
 
 
@@ -436,7 +429,7 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
     ``before``: the parameters of the "before" views, described by ``before_label`` (default: the calibration's
     start, the nominal DH with the mount fitted to the markers: W is the tape's frame, so a nominal mount given
     in another frame has no place in W unless the true marker positions are known, see
-    :func:`lrfcal.app.calibrate_folder`).
+    :func:`lrfcal.workflow.calibrate_folder`).
 
     A figure is an aid, the result exists without it: a figure that cannot be drawn (an exception while drawing
     it, whatever the recording) is skipped and its reason returned, never raised after the calibration is done.

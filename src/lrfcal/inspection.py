@@ -23,22 +23,22 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .bag import (
+from .errors import InputError
+from .io.bag import read_bag
+from .io.bag_messages import (
     DYNAMIXEL_JOINTSTATE_TYPE,
     JOINTSTATE_TYPE,
     MULTIECHO_TYPE,
     TF_TYPE,
-    _is_laserscan,
-    _is_multiecho,
     complete_types,
-    default_field,
+    get_field,
     ns_to_s,
     one_line,
     open_reader,
-    read_bag,
     stamp_s,
 )
-from .errors import InputError
+from .io.bag_scans import is_laserscan, is_multiecho
+from .io.bag_servo import default_field
 from .rig import ScanSource, ServoSource, TfSource
 from .timing import covered_scans
 from .types import ReadReport
@@ -128,14 +128,14 @@ def _numeric_fields(msg: Any, prefix: str = "", depth: int = 0) -> list[tuple[st
             continue
         if isinstance(v, (int, float)):
             out.append((path, float(v)))
-        elif hasattr(v, "__dataclass_fields__") and not _is_laserscan(v) and depth < 3:
+        elif hasattr(v, "__dataclass_fields__") and not is_laserscan(v) and depth < 3:
             out.extend(_numeric_fields(v, path + ".", depth + 1))
     return out
 
 
 def _laserscan_field(msg: Any) -> str | None:
     for name in getattr(msg, "__dataclass_fields__", {}):
-        if name != "__msgtype__" and _is_laserscan(getattr(msg, name)):
+        if name != "__msgtype__" and is_laserscan(getattr(msg, name)):
             return name
     return None
 
@@ -171,7 +171,7 @@ def inspect_bag(
     guessed: list[str] = []
     problems: list[str] = []
     multiecho = {tp for tp, msgs in sv.scan_msgs.items() if sv.types.get(tp) == MULTIECHO_TYPE
-                 or any(_is_multiecho(m) for m in msgs[:50])}
+                 or any(is_multiecho(m) for m in msgs[:50])}
     if scan is None:
         scan = _guess_scan(sv.first, sv.scan_msgs, multiecho)
         if scan is not None:
@@ -226,7 +226,7 @@ class _Survey:
             return
         msg = reader.deserialize(raw, conn.msgtype)
         self.first.setdefault(tp, msg)
-        ls = msg if _is_laserscan(msg) else None
+        ls = msg if is_laserscan(msg) else None
         fld = None if ls is not None else _laserscan_field(msg)
         st = stamp_s(msg) if fld is None else stamp_s(getattr(msg, fld))  # a LaserScan's own header
         if st is not None:
@@ -333,7 +333,7 @@ def _guess_scan(first: dict[str, Any], scan_msgs: dict[str, list[Any]], multiech
         return None
     tp = cands[0]
     msg = first[tp]
-    fld = None if _is_laserscan(msg) else _laserscan_field(msg)
+    fld = None if is_laserscan(msg) else _laserscan_field(msg)
     return ScanSource(topic=tp, field=fld)  # echo: strongest, the default (read only for MultiEchoLaserScan)
 
 
@@ -399,8 +399,6 @@ def _guess_servo(types: dict[str, str], first: dict[str, Any], scan: ScanSource,
 
 def _values(path: Path, topic: str, fld: str | None, joint: str | None = None) -> np.ndarray:
     """The numeric values of a field (first MAX_DECODED messages) for the unit guess."""
-    from .bag import get_field
-
     reader = open_reader(path)
     out: list[float] = []
     with reader:

@@ -1,8 +1,8 @@
-"""``lrfcal convert LOG -o BAG``: a scan log (lrfcal.scanlog) as a ROS 2 bag (MCAP, as lrfsim writes its bags):
+"""``lrfcal convert LOG -o BAG``: a scan log (lrfcal.io.scanlog) as a ROS 2 bag (MCAP, as lrfsim writes its bags):
 one sensor_msgs/msg/LaserScan per row on /scan and one sensor_msgs/msg/JointState per row on /joint_states.
 
-What is written is what the log says, so that lrfcal.bag.read_bag reads the bag back to the scans and angles
-lrfcal.scanlog.read_scan_log reads from the log:
+What is written is what the log says, so that lrfcal.io.bag.read_bag reads the bag back to the scans and angles
+lrfcal.io.scanlog.read_scan_log reads from the log:
 
 * LaserScan: header.stamp = the row's time, frame_id ``laser``; angle_min / angle_increment / angle_max of the
   beams (a header row's angles must lie on a grid within GRID_TOLERANCE_RAD: a LaserScan has nothing else);
@@ -20,8 +20,6 @@ lrfcal.scanlog.read_scan_log reads from the log:
 from __future__ import annotations
 
 import math
-import shutil
-import uuid
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -29,11 +27,11 @@ from typing import Any
 import numpy as np
 import yaml
 
-from .cloud import check_outputs
 from .errors import InputError
+from .io.files import check_outputs, swapped_folder
+from .io.scanlog import beam_time_increment_s, is_scan_log, load_log, log_servo, scan_period_s
 from .loginspect import guess_layout
 from .rig import LogLayout, ServoSource, load_rig
-from .scanlog import beam_time_increment_s, is_scan_log, load_log, log_servo, scan_period_s
 
 LASERSCAN_TYPE = "sensor_msgs/msg/LaserScan"
 JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
@@ -75,8 +73,6 @@ def convert_log(log: str | Path, out: str | Path, *, nominal: str | Path | None 
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
-    from .output import swap_into_place
-
     log, out = Path(log), Path(out)
     nom = Path(nominal) if nominal is not None else None
     if not is_scan_log(log):
@@ -117,29 +113,23 @@ def convert_log(log: str | Path, out: str | Path, *, nominal: str | Path | None 
     def header(ns: int, frame: str) -> Any:
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
 
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.parent / f".{out.name}.tmp-{uuid.uuid4().hex[:8]}"
-    try:
-        with Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-            c_scan = w.add_connection(SCAN_TOPIC, LASERSCAN_TYPE, typestore=ts)
-            c_joint = w.add_connection(JOINT_TOPIC, JOINTSTATE_TYPE, typestore=ts)
-            for ns, kind, k in events:
-                if kind == 0:
-                    msg = LaserScan(header=header(ns, LASER_FRAME), angle_min=a0, angle_max=a0 + (n - 1) * inc,
-                                    angle_increment=inc, time_increment=0.0 if assumed else ti, scan_time=period,
-                                    range_min=layout.range_min_m, range_max=rmax,
-                                    ranges=rows.ranges_m[k].astype(np.float32),
-                                    intensities=(rows.intensities[k].astype(np.float32) if layout.intensities
-                                                 else np.zeros(0, dtype=np.float32)))
-                    w.write(c_scan, ns, ts.serialize_cdr(msg, LASERSCAN_TYPE))
-                else:
-                    msg = JointState(header=header(ns, ""), name=[JOINT_NAME], position=np.array([lam[k]]),
-                                     velocity=empty, effort=empty)
-                    w.write(c_joint, ns, ts.serialize_cdr(msg, JOINTSTATE_TYPE))
-        swap_into_place(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+    # rosbags' Writer makes the bag folder itself: swapped_folder only names it
+    with swapped_folder(out, make=False) as tmp, Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        c_scan = w.add_connection(SCAN_TOPIC, LASERSCAN_TYPE, typestore=ts)
+        c_joint = w.add_connection(JOINT_TOPIC, JOINTSTATE_TYPE, typestore=ts)
+        for ns, kind, k in events:
+            if kind == 0:
+                msg = LaserScan(header=header(ns, LASER_FRAME), angle_min=a0, angle_max=a0 + (n - 1) * inc,
+                                angle_increment=inc, time_increment=0.0 if assumed else ti, scan_time=period,
+                                range_min=layout.range_min_m, range_max=rmax,
+                                ranges=rows.ranges_m[k].astype(np.float32),
+                                intensities=(rows.intensities[k].astype(np.float32) if layout.intensities
+                                             else np.zeros(0, dtype=np.float32)))
+                w.write(c_scan, ns, ts.serialize_cdr(msg, LASERSCAN_TYPE))
+            else:
+                msg = JointState(header=header(ns, ""), name=[JOINT_NAME], position=np.array([lam[k]]),
+                                 velocity=empty, effort=empty)
+                w.write(c_joint, ns, ts.serialize_cdr(msg, JOINTSTATE_TYPE))
     n_scan, n_joint = int(ok_scan.sum()), int(ok_joint.sum())
     lines.append(f"read {rows.times_s.size} rows of {n} beams from {log}"
                  + (f"; {rows.times_s.size - n_scan} rows without a finite time left out" if n_scan < t.size else "")

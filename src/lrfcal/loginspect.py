@@ -23,8 +23,8 @@ from pydantic import ValidationError
 
 from .errors import InputError
 from .inspection import BagInspection, ScanGeometry, ServoInfo, TopicInfo, _report_problems, inspect_bag, rig_snippet
+from .io.scanlog import describe_layout, is_scan_log, load_log, log_servo, numbers, parse_rows, read_scan_log
 from .rig import LogLayout, ScanSource, ServoSource, validation_message
-from .scanlog import describe_layout, is_scan_log, load_log, log_servo, numbers, parse_rows, read_scan_log
 from .timing import covered_scans
 
 #: rows parsed to guess the layout
@@ -153,7 +153,8 @@ def _leading(cols: np.ndarray, notes: list[str], problems: list[str]) -> list[st
 
 def inspect_path(path: str | Path, scan: ScanSource | None = None, servo: ServoSource | None = None,
                  dh: dict[str, float] | None = None, log: LogLayout | None = None) -> BagInspection:
-    """:func:`inspect_log` for a scan log (lrfcal.scanlog.is_scan_log), else :func:`lrfcal.inspection.inspect_bag`."""
+    """:func:`inspect_log` for a scan log (lrfcal.io.scanlog.is_scan_log), else
+    :func:`lrfcal.inspection.inspect_bag`."""
     if is_scan_log(path):
         return inspect_log(path, log, servo, dh)
     return inspect_bag(path, scan, servo, dh=dh)

@@ -1,14 +1,12 @@
-"""Stage 7: reproject every valid return into the motor frame M with a set of DH parameters; PLY export.
+"""Stage 7: reproject every valid return into the motor frame M with a set of DH parameters (the clouds' PLY
+file: lrfcal.io.ply).
 
 Array shapes: S scans, N beams, P cloud points.
 """
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,47 +65,4 @@ def reproject_clouds(
     return clouds, intensity
 
 
-#: the header trimesh writes for a vertex-only cloud with an intensity (the format of the files so far, kept byte for
-#: byte without importing trimesh, which takes about a second)
-_PLY_HEADER = ("ply\nformat binary_little_endian 1.0\ncomment https://github.com/mikedh/trimesh\nelement vertex {n}\n"
-               "property float x\nproperty float y\nproperty float z\nproperty float intensity\nelement face 0\n"
-               "property list uchar int vertex_indices\nend_header\n")
-
-
-def write_ply(path: str | Path, points: ArrayLike, intensity: ArrayLike | None = None) -> Path:
-    """Write a binary little-endian PLY point cloud (x, y, z float32 and an ``intensity`` float32 property).
-
-    The file is written to a temporary file in the same folder and renamed, so it appears complete or not at all.
-    Args:
-        points: (P, 3) [m]; intensity: (P,) or None (zeros).
-    """
-    path = Path(path)
-    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-    inten = np.zeros(len(pts)) if intensity is None else np.asarray(intensity, dtype=np.float64).reshape(-1)
-    if inten.size != len(pts):
-        raise ValueError(f"intensity has {inten.size} values for {len(pts)} points")
-    rows = np.empty((len(pts), 4), dtype="<f4")
-    rows[:, :3] = pts
-    rows[:, 3] = inten
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(_PLY_HEADER.format(n=len(pts)).encode("ascii"))
-            f.write(rows.tobytes())
-        os.chmod(tmp, 0o666 & ~current_umask())  # mkstemp makes 0600; give the file the usual mode
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
-
-
-def current_umask() -> int:
-    """The process umask (read by setting and restoring it)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-__all__ = ["current_umask", "reproject_cloud", "reproject_clouds", "write_ply"]
+__all__ = ["reproject_cloud", "reproject_clouds"]

@@ -15,7 +15,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from .errors import InputError
-from .yamlfile import read_yaml
+from .io.yamlfile import read_yaml
 
 Stamp = Literal["header", "receive"]
 ServoStamp = Literal["header", "receive", "scan"]
@@ -230,7 +230,7 @@ class RigFile(_Strict):
     range_sigma_m: float | None = Field(default=None, gt=0.0, le=1.0)
     scan: ScanSource | None = None
     servo: ServoSource | None = None
-    #: how a scan log is laid out (lrfcal.scanlog); ignored for bags
+    #: how a scan log is laid out (lrfcal.io.scanlog); ignored for bags
     log: LogLayout | None = None
     scan_topic: str | None = Field(default=None, min_length=1)
     joint_topic: str | None = Field(default=None, min_length=1)

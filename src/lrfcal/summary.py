@@ -22,8 +22,8 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
 
     from rich.table import Table
 
+    from .io.report import residual_summary
     from .model.kinematics import ANGLE_NAMES, ESTIMATE_NAMES, PARAM_NAMES
-    from .output import residual_summary
 
     sol = result.solution
     table = Table(title="Calibration")

@@ -25,16 +25,18 @@ geometry comes from :mod:`lrfcal.vizscene`.
 
 from __future__ import annotations
 
-import os
 import uuid
 from collections.abc import Callable, Sequence
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .model.kinematics import DH, homogeneous, rot_x, rot_z, transform_points
+from .io.files import atomic_file
+from .io.urdf import dh_matrix
+from .model.kinematics import transform_points
 from .types import CalibrationResult
 from .vizdata import intensity_colors, marker_returns, motor_angle_per_scan_rad, per_scan_rms_m, subsample_indices
 from .vizscene import SceneGeom
@@ -55,15 +57,6 @@ _COLOR_TRUTH = (250, 250, 250)
 
 
 # --- helpers ---------------------------------------------------------------------------------------------
-
-def dh_matrix(dh: DH) -> FloatArray:
-    """(4, 4) T_M'_L = Tx(a) Rx(alpha) Tz(b) Rz(beta): turning motor frame M' to laser frame L."""
-    Tx = homogeneous(np.eye(3), [dh.a, 0.0, 0.0])
-    Rx = homogeneous(rot_x(dh.alpha), np.zeros(3))
-    Tz = homogeneous(np.eye(3), [0.0, 0.0, dh.b])
-    Rz = homogeneous(rot_z(dh.beta), np.zeros(3))
-    return Tx @ Rx @ Tz @ Rz
-
 
 def _bbox(blob: Any) -> tuple[float, float, float, float]:
     """Pixel bbox of a blob as (beam_min, scan_min, beam_max, scan_max), inclusive pixel indices."""
@@ -263,12 +256,8 @@ def log_calibration(
         raise ValueError("log_calibration: give rrd_path and/or spawn=True")
     blueprint = build_blueprint()
     rec = rr.RecordingStream(app_id, recording_id=str(uuid.uuid4()))
-    tmp: Path | None = None
-    if rrd_path is not None:
-        rrd_path = Path(rrd_path)
-        rrd_path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = rrd_path.with_name(f".{rrd_path.name}.{os.getpid()}.{uuid.uuid4().hex[:8]}.tmp")
-    try:
+    with ExitStack() as stack:
+        tmp = None if rrd_path is None else stack.enter_context(atomic_file(rrd_path))
         if spawn:
             try:
                 rr.spawn(connect=False)
@@ -298,12 +287,6 @@ def log_calibration(
             _log_markers(rec, result)
         rec.flush()
         rec.disconnect()
-        if tmp is not None:
-            os.replace(tmp, rrd_path)  # type: ignore[arg-type]
-            tmp = None
-    finally:
-        if tmp is not None and tmp.exists():
-            tmp.unlink()
 
 
 def _log_markers(rec: Any, result: CalibrationResult) -> None:
@@ -336,4 +319,4 @@ def _log_markers(rec: Any, result: CalibrationResult) -> None:
     _log_rig(rec, result, lam)
 
 
-__all__ = ["MAX_CLOUD_POINTS", "MAX_RIG_STEPS", "build_blueprint", "dh_matrix", "log_calibration"]
+__all__ = ["MAX_CLOUD_POINTS", "MAX_RIG_STEPS", "build_blueprint", "log_calibration"]

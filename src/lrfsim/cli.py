@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.cliutil import Command, QuietOpt, finite_between, make_app, progress_display, run_app
+from lrfcal.cliutil import Command, QuietOpt, finite_between, make_app, run_app
+from lrfcal.progress import progress_display
 
 if TYPE_CHECKING:
     from .simresult import SimResult
@@ -75,7 +76,7 @@ def simulate(
 
     The folder holds the bag, the tape distances, the nominal values and the ground truth (docs/formats.md).
     """
-    from lrfcal.output import check_no_overlap
+    from lrfcal.io.files import check_no_overlap
 
     from .scenario import load_scenario, scenario_inputs
     from .simulate import simulate_to_folder
@@ -108,7 +109,7 @@ def run(
     """
     from rich.console import Console
 
-    from lrfcal.output import check_no_overlap
+    from lrfcal.io.files import check_no_overlap
     from lrfcal.summary import print_summary
 
     from .loop import print_comparison, run_loop, sensor_errors_line
@@ -222,7 +223,7 @@ def study(
     the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
     histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
     """
-    from lrfcal.output import check_no_overlap, check_replaceable
+    from lrfcal.io.files import check_no_overlap, check_replaceable
 
     from .scenario import load_scenario, scenario_inputs
     from .study import parse_vary, summary_markdown, write_study

@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from lrfcal.errors import CalibrationError, InputError
+from lrfcal.io.truth import truth_dict, truth_frame
+from lrfcal.io.yamlfile import read_yaml
 from lrfcal.model.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
-from lrfcal.output import truth_dict, truth_frame
 from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
-from lrfcal.yamlfile import read_yaml
 
 from .scenario_sections import Tolerances
 
@@ -123,7 +123,7 @@ class Comparison:
 def truth_alignment(result: CalibrationResult, truth: Truth) -> np.ndarray:
     """T_W_sim (4, 4): maps the simulator's world into the calibration's marker frame W.
 
-    From the marker correspondence the calibration used (lrfcal.output.truth_frame): a mirror-symmetric layout
+    From the marker correspondence the calibration used (lrfcal.io.truth.truth_frame): a mirror-symmetric layout
     may legitimately come out of MDS mirrored with its ids swapped across the symmetry, and only the returns tell
     which physical marker each map marker is.
     """

@@ -50,9 +50,8 @@ def run_loop(
     ``stage_progress(stage)`` while calibrating; ``warn(line)`` when ``spawn`` is asked for but no viewer can
     start (the .rrd is saved all the same).
     """
-    from lrfcal.app import calibrate_folder
-    from lrfcal.cliutil import spawn_unavailable_reason
-    from lrfcal.output import atomic_folder
+    from lrfcal.io.files import atomic_folder
+    from lrfcal.workflow import calibrate_folder, viewer_can_spawn
 
     from .recording import check_output
     from .scene import build_scene
@@ -60,12 +59,7 @@ def run_loop(
 
     out_dir = Path(out_dir)
     check_output(out_dir, overwrite)
-    if spawn and (reason := spawn_unavailable_reason()) is not None:
-        spawn = False
-        shown = rrd_path or out_dir / "rerun.rrd"
-        if warn is not None:
-            warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
-                 f"(open it with: rerun {shown})")
+    spawn = viewer_can_spawn(spawn, rrd_path or out_dir / "rerun.rrd", warn)
     timings: dict[str, float] = {}
     with atomic_folder(out_dir, "lrfsim run") as tmp:
         t0 = time.perf_counter()

@@ -13,7 +13,7 @@ LaserScan when urg_node would publish it, at the end of the scan (servo time of 
 
 Atomicity: everything is written into a hidden temporary folder next to DIR, which is renamed onto DIR when
 complete (an existing DIR is first moved aside and deleted after the rename, only with ``overwrite`` and only when
-this project wrote everything in it: see lrfcal.output.check_replaceable); on any
+this project wrote everything in it: see lrfcal.io.files.check_replaceable); on any
 error the temporary folder is removed, so DIR is either the old content or the complete new recording.
 """
 
@@ -27,7 +27,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import yaml
 
-from lrfcal.output import atomic_folder, check_replaceable, check_writable
+from lrfcal.io.files import atomic_folder, check_replaceable, check_writable
 
 from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
@@ -50,7 +50,7 @@ def _ns(t_s: float) -> int:
 
 
 def check_output(out_dir: str | Path, overwrite: bool) -> Path:
-    """Refuse an output folder that must not be written (see :func:`lrfcal.output.check_replaceable`: an
+    """Refuse an output folder that must not be written (see :func:`lrfcal.io.files.check_replaceable`: an
     existing non-empty folder only with ``overwrite`` and only if this project wrote all of it); return it."""
     return check_writable(check_replaceable(out_dir, overwrite))
 

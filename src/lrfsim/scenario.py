@@ -20,7 +20,7 @@ import yaml
 from pydantic import BaseModel, ValidationError, model_validator
 
 from lrfcal.errors import InputError
-from lrfcal.yamlfile import read_yaml
+from lrfcal.io.yamlfile import read_yaml
 
 from .scenario_sections import (
     FaultsConfig,

@@ -47,8 +47,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError, InputError
+from lrfcal.io.files import atomic_folder, check_replaceable
 from lrfcal.model.kinematics import DH_NAMES
-from lrfcal.output import atomic_folder, check_replaceable
 from lrfcal.threads import apply_thread_policy, call_with_thread_policy
 
 from .plan import Plan, format_value, plan

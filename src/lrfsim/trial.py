@@ -19,9 +19,9 @@ from pathlib import Path
 import numpy as np
 
 from lrfcal.errors import LrfError
+from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.recording import read_recording
 from lrfcal.types import CalibrationResult, Recording
 
 from .compare import load_truth

@@ -1,8 +1,12 @@
-"""Calibrate a recording folder and write the results: the use case behind `lrfcal calibrate` and `lrfsim run`."""
+"""Calibrate a recording folder and write the results: the use case behind `lrfcal calibrate` and `lrfsim run`
+(no command-line code: lrfcal.cli and lrfsim.loop call it)."""
 
 from __future__ import annotations
 
 import math
+import os
+import shutil
+import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -11,10 +15,14 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .io import files
+from .io.calibration_folder import write_calibration
+from .io.recording import read_nominal, read_recording
+from .io.report import render_report
+from .io.scanlog import resolve_recording
+from .io.truth import truth_dict, truth_frame
 from .model.kinematics import Params, Pose
 from .pipeline import CalibConfig, calibrate
-from .recording import read_recording
-from .scanlog import resolve_recording
 from .types import CalibrationResult, Recording
 
 
@@ -44,9 +52,9 @@ def calibrate_folder(
     ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`), then with
     "figures and report" and "rerun recording" while those are written.
     ``recording_dir`` may be a scan log itself, or a folder holding one instead of ``bag/``
-    (:func:`lrfcal.scanlog.resolve_recording`).
+    (:func:`lrfcal.io.scanlog.resolve_recording`).
     ``figures``: draw the report's PNG figures (False: the report says they were not asked for; for scripts).
-    ``spawn`` where no viewer can start (see :func:`lrfcal.cliutil.spawn_unavailable_reason`): ``warn`` is
+    ``spawn`` where no viewer can start (see :func:`spawn_unavailable_reason`): ``warn`` is
     called with one line and the recording is saved instead (to ``rrd_path``, default ``out_dir/rerun.rrd``).
 
     Raises:
@@ -54,8 +62,6 @@ def calibrate_folder(
             or is or contains the recording folder), the output folder may not be replaced, bad input.
     """
     from . import figures as figure_writer
-    from . import output
-    from .cliutil import spawn_unavailable_reason
 
     config = config or CalibConfig()
     recording_dir, bag = resolve_recording(recording_dir, bag)  # type: ignore[assignment]  # a scan log, or a folder with one
@@ -66,23 +72,14 @@ def calibrate_folder(
         "distances": distances if distances is not None else (rec / "distances.csv" if rec is not None else None),
         "nominal": nominal if nominal is not None else (rec / "nominal.yaml" if rec is not None else None),
     }
-    output.check_no_overlap({"-o": out_dir, "--rrd": rrd_path}, inputs, may_nest_in=("recording folder",))
-    output.check_no_overlap({"--rrd": rrd_path}, {"output folder": out_dir})
-    output.check_writable(output.check_replaceable(out_dir, overwrite))
-    rrd_inside = None
-    if spawn:
-        reason = spawn_unavailable_reason()
-        if reason is not None:
-            spawn = False
-            if rrd_path is None:
-                rrd_inside = "rerun.rrd"
-            shown = rrd_path if rrd_path is not None else Path(out_dir) / "rerun.rrd"
-            if warn is not None:
-                warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
-                     f"(open it with: rerun {shown})")
+    files.check_no_overlap({"-o": out_dir, "--rrd": rrd_path}, inputs, may_nest_in=("recording folder",))
+    files.check_no_overlap({"--rrd": rrd_path}, {"output folder": out_dir})
+    files.check_writable(files.check_replaceable(out_dir, overwrite))
+    asked = spawn
+    spawn = viewer_can_spawn(spawn, rrd_path if rrd_path is not None else Path(out_dir) / "rerun.rrd", warn)
+    rrd_inside = "rerun.rrd" if asked and not spawn and rrd_path is None else None
     scan = servo = None
     if options:  # one-off rig-file settings (lrfcal.rig.with_overrides keywords) from the command line
-        from .recording import read_nominal
         from .rig import with_overrides
 
         nom = read_nominal(nominal if nominal is not None else Path(recording_dir) / "nominal.yaml")
@@ -95,7 +92,7 @@ def calibrate_folder(
     if recording.tape is not None and want_tape:
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     result = calibrate(recording, config, progress=progress)
-    truth_values = None if truth is None else output.truth_dict(truth)
+    truth_values = None if truth is None else truth_dict(truth)
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
     if progress is not None:
         progress("figures and report")
@@ -103,17 +100,43 @@ def calibrate_folder(
         before, before_label = _nominal_in_W(result, truth)
         figs = (figure_writer.write_figures(result, Path(tmp), before, before_label) if figures
                 else figure_writer.Figures({}, {}))
-        report = output.render_report(result, truth=truth_values) + _figures_section(figs, figures, warn)
-        files = dict(figs.written)
+        report = render_report(result, truth=truth_values) + _figures_section(figs, figures, warn)
+        written = dict(figs.written)
         if rrd_inside is not None:
-            files["rerun"] = Path(tmp) / rrd_inside
-            _log_rerun(result, files["rerun"], False, truth, scene, warn)
-        output.write_calibration(out_dir, result, report_md=report, figures=files, overwrite=overwrite)
+            written["rerun"] = Path(tmp) / rrd_inside
+            _log_rerun(result, written["rerun"], False, truth, scene, warn)
+        write_calibration(out_dir, result, report_md=report, figures=written, overwrite=overwrite)
     if rrd_path is not None or spawn:
         if progress is not None:
             progress("rerun recording")
         _log_rerun(result, rrd_path, spawn, truth, scene, warn)
     return result
+
+
+def spawn_unavailable_reason() -> str | None:
+    """Why a rerun viewer cannot be started here (None when it probably can): no ``rerun`` executable, or no
+    display on Linux (neither DISPLAY nor WAYLAND_DISPLAY set). Checked before spawning so that ``--spawn``
+    never waits for a viewer that cannot come up."""
+    exe = shutil.which("rerun") or shutil.which("rerun", path=os.path.dirname(sys.executable))
+    if exe is None:
+        return "no 'rerun' executable on PATH"
+    if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
+        return "no display (DISPLAY and WAYLAND_DISPLAY are unset)"
+    return None
+
+
+def viewer_can_spawn(spawn: bool, shown: Path, warn: Callable[[str], None] | None) -> bool:
+    """``spawn`` unless no rerun viewer can start here (:func:`spawn_unavailable_reason`); then False, and
+    ``warn`` is told in one line that the recording is saved to ``shown`` instead."""
+    if not spawn:
+        return False
+    reason = spawn_unavailable_reason()
+    if reason is None:
+        return True
+    if warn is not None:
+        warn(f"--spawn: no rerun viewer can start here ({reason}); saved {shown} instead "
+             f"(open it with: rerun {shown})")
+    return False
 
 
 def _figures_section(figs: Any, drawn: bool, warn: Callable[[str], None] | None) -> str:
@@ -166,8 +189,6 @@ def _nominal_in_W(result: CalibrationResult, truth: Any) -> tuple[Params | None,
     """The nominal parameters (nominal.yaml) in the marker frame W, for the figures' "before": possible when the
     true marker positions (simulator frame, the frame of the nominal mount) align to the tape's map; otherwise
     (None, label of the default: the calibration's start)."""
-    from .output import truth_dict, truth_frame
-
     start = (None, "nominal DH, fitted mount")
     nominal = result.recording.nominal
     if truth is None or nominal.mount is None:
@@ -183,7 +204,6 @@ def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, tr
                warn: Callable[[str], None] | None = None) -> None:
     from . import viz, vizscene
     from .model.kinematics import transform_points
-    from .output import truth_dict, truth_frame
 
     geoms = None
     true_markers_W = None

@@ -1,4 +1,4 @@
-"""Reading a recording: the bag (lrfcal.bag), the tape distances and the rig file (lrfcal.rig).
+"""Reading a recording: the bag (lrfcal.io.bag), the tape distances and the rig file (lrfcal.rig).
 
 Formats: docs/formats.md. Every problem raises :class:`~lrfcal.errors.InputError` with a one-line message
 naming the file, the topic or field, and the offending value.
@@ -16,20 +16,16 @@ from pathlib import Path
 
 import numpy as np
 
+from ..errors import InputError
+from ..model.kinematics import DH, Pose
+from ..rig import ScanSource, ServoSource, load_rig
+from ..types import JointStates, Nominal, Recording, Scans, TapeMeasurements
 from .bag import Progress, read_bag
-from .errors import InputError
-from .model.kinematics import DH, Pose
-from .rig import ScanSource, ServoSource, load_rig
+from .bag_messages import one_line
 from .scanlog import is_scan_log, read_scan_log, resolve_recording
-from .types import JointStates, Nominal, Recording, Scans, TapeMeasurements
 
 DISTANCES_HEADER = ("marker_i", "marker_j", "distance_m")
 MIN_MARKERS = 4
-
-
-def _one_line(err: BaseException) -> str:
-    text = " ".join(str(err).split())
-    return text or type(err).__name__
 
 
 def check_joint_coverage(scans: Scans, joints: JointStates, where: str = "joint states",
@@ -39,7 +35,7 @@ def check_joint_coverage(scans: Scans, joints: JointStates, where: str = "joint 
     Beam times (laser clock) are converted to the servo clock as t - clock_offset_s. For reporting: the
     reader does not call it (the calibration trims uncovered scans, timing.covered_scans).
     """
-    from .timing import joint_period_s, scan_spans
+    from ..timing import joint_period_s, scan_spans
 
     period = joint_period_s(joints)
     lo, hi = scan_spans(scans)
@@ -73,7 +69,7 @@ def read_distances(path: str | Path, tolerance_m: float = 1e-6) -> TapeMeasureme
     try:
         text = path.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as err:
-        raise InputError(f"{path}: cannot read: {_one_line(err)}") from None
+        raise InputError(f"{path}: cannot read: {one_line(err)}") from None
     rows = [(n, row) for n, row in enumerate(csv.reader(text.splitlines()), start=1)
             if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")]
     if not rows:
@@ -176,11 +172,11 @@ def read_recording(
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
 ) -> Recording:
-    """Read a recording: the bag (lrfcal.bag.read_bag) or scan log (lrfcal.scanlog.read_scan_log, for a .txt,
+    """Read a recording: the bag (lrfcal.io.bag.read_bag) or scan log (lrfcal.io.scanlog.read_scan_log, for a .txt,
     .csv or .log file), ``distances.csv`` and the rig file ``nominal.yaml``.
 
     ``folder`` may be a scan log itself (the folder is then the log's), and a folder without ``bag/`` is read
-    from its one scan log (lrfcal.scanlog.resolve_recording).
+    from its one scan log (lrfcal.io.scanlog.resolve_recording).
 
     Each path can be overridden (then ``folder`` may be None if all needed paths are given). Where the data
     are in the bag comes from the rig file, replaced by ``scan`` / ``servo`` when given, with ``scan_topic``,
@@ -211,7 +207,7 @@ def read_recording(
         upd = {k: v for k, v in (("topic", joint_topic), ("joint", joint_name)) if v}
         servo_src = ServoSource.model_validate({**servo_src.model_dump(), **upd})
     bag_path = pick(bag, "bag", "bag")
-    if is_scan_log(bag_path):  # a text log, one row per scan (lrfcal.scanlog; the rig file's log: section)
+    if is_scan_log(bag_path):  # a text log, one row per scan (lrfcal.io.scanlog; the rig file's log: section)
         data = read_scan_log(bag_path, nom.log, servo_src, warn=warn)
     else:
         data = read_bag(bag_path, scan_src, servo_src, progress=progress, warn=warn)

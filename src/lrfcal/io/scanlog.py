@@ -1,5 +1,5 @@
 """Scan logs: the text files hobby and lab rigs write over a serial line, one row per scan (docs/formats.md,
-"Scan logs"), read into the same :class:`~lrfcal.bag.BagData` as a bag.
+"Scan logs"), read into the same :class:`~lrfcal.io.bag.BagData` as a bag.
 
 A row is a few leading columns (the rig file's ``log.columns``: ``time`` and ``angle`` once each, ``ignore`` for
 anything else such as a row number), then one range per beam, then (``log.intensities: true``) as many
@@ -33,10 +33,12 @@ from types import SimpleNamespace
 import numpy as np
 from numpy.typing import NDArray
 
-from .bag import BagData, _joints_from, _Samples, _scans_from, _timing_notes
-from .errors import InputError
-from .rig import LogLayout, ScanSource, ServoSource
-from .types import ReadReport
+from ..errors import InputError
+from ..rig import LogLayout, ScanSource, ServoSource
+from ..types import ReadReport
+from .bag import BagData, timing_notes
+from .bag_scans import scans_from
+from .bag_servo import Samples, joints_from
 
 FloatArray = NDArray[np.float64]
 #: file name endings of a scan log (a ROS 1 bag is ``.bag``; a ROS 2 bag a folder, ``.mcap`` or ``.db3``)
@@ -277,7 +279,7 @@ def read_scan_log(
     *,
     warn: Callable[[str], None] | None = None,
 ) -> BagData:
-    """Read a scan log (module docstring) as a bag is read (lrfcal.bag.read_bag).
+    """Read a scan log (module docstring) as a bag is read (lrfcal.io.bag.read_bag).
 
     Args:
         path: the log; layout: the rig file's ``log:``; servo: the rig file's ``servo:`` (unit, sign, offset_rad,
@@ -313,18 +315,18 @@ def read_scan_log(
                               range_min=layout.range_min_m, range_max=rmax, header=SimpleNamespace(frame_id="laser"))
         items.append((float(rows.times_s[k]), msg))
     where = str(path)
-    scans, srep, more = _scans_from(items, ScanSource(stamp="receive"), "scan log", where, warn)
+    scans, srep, more = scans_from(items, ScanSource(stamp="receive"), "scan log", where, warn)
     notes.extend(more)
     R, n = rows.ranges_m.shape
     scans = replace(scans, mu_rad=np.broadcast_to(rows.mu_rad, (scans.stamps_s.size, n)).copy(),
                     time_increment_s=np.full(scans.stamps_s.size, ti), source=where)
     src = log_servo(servo)
     ok = np.isfinite(rows.times_s)
-    samples = _Samples(rows.times_s[ok], rows.times_s[ok], rows.angles[ok], Counter(), True)
+    samples = Samples(rows.times_s[ok], rows.times_s[ok], rows.angles[ok], Counter(), True)
     where_servo = f"{path}: column angle"
-    joints, _, _, n_used = _joints_from(samples, src, scans, srep["recv_s"], where_servo)
+    joints, _, _, n_used = joints_from(samples, src, scans, srep["recv_s"], where_servo)
     notes.extend(_gap_notes(rows, period))
-    notes.extend(_timing_notes(scans, joints, where, where_servo))
+    notes.extend(timing_notes(scans, joints, where, where_servo))
     if rows.n_ignored_lines:
         notes.append(f"{path}: {rows.n_ignored_lines} blank or comment lines ignored")
     scans = replace(scans, angle_per_scan=src.steps())

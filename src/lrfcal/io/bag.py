@@ -1,0 +1,199 @@
+"""Read the scans and the servo angle from the bags real tilting / rotating 2D lidar rigs record.
+
+One entry point, :func:`read_bag`. Its parts: opening the bag and reading messages' fields
+(lrfcal.io.bag_messages), the LaserScans stacked into Scans (lrfcal.io.bag_scans: what is skipped, masked and
+assumed), and one function per bag shape of the servo angle (lrfcal.io.bag_servo: JointState, a numeric field of
+any message, the angle inside the scan's message, /tf). Everything skipped, masked or assumed is counted in the
+:class:`~lrfcal.types.ReadReport`; nothing aborts the recording except a missing topic or no usable scan or servo
+sample at all.
+
+Clocks: per topic the median of (bag receive time - stamp); their difference is the coarse laser-minus-servo
+offset. When it exceeds :data:`COARSE_OFFSET_MIN_S` (different clocks: microcontroller uptime vs wall clock)
+the servo stamps are moved onto the laser clock by it; below, the offset is only reported (what remains is the
+fine offset: ``--clock-offset`` or the calibration's estimate). Joint-state coverage is not checked here.
+
+Array shapes: S scans, N beams (the largest beam count), J servo samples.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError
+from ..rig import ScanSource, ServoSource
+from ..types import JointStates, ReadReport, Scans
+from .bag_messages import JOINTSTATE_TYPE, complete_types, ns_to_s, one_line, open_reader
+from .bag_scans import scans_from
+from .bag_servo import joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
+
+#: a coarse clock offset above this is applied (clocks differ); below it is reported only [s]
+COARSE_OFFSET_MIN_S = 1.0
+
+Progress = Callable[[int, int], None]
+
+
+@dataclass(frozen=True)
+class BagData:
+    """What :func:`read_bag` returns: scans (laser clock), joints (laser clock when the coarse offset was
+    applied), and the report."""
+
+    scans: Scans
+    joints: JointStates
+    report: ReadReport
+
+
+def _connections(reader: Any, path: Path, topic: str) -> list[Any]:
+    conns = [c for c in reader.connections if c.topic == topic]
+    if not conns:
+        have = sorted({c.topic for c in reader.connections})
+        raise InputError(f"{path}: topic {topic}: not in bag (topics: {', '.join(have) or 'none'})")
+    return conns
+
+
+def _messages(reader: Any, conns: list[Any], progress: Progress | None, done: int, total: int
+              ) -> list[tuple[float, Any]]:
+    """(receive time [s], decoded message) of the connections, in bag order."""
+    out = []
+    for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
+        out.append((ns_to_s(t_ns), reader.deserialize(raw, c.msgtype)))
+        if progress is not None and k % 256 == 0:
+            progress(done + k, total)
+    return out
+
+
+def read_bag(
+    path: str | Path,
+    scan: ScanSource | None = None,
+    servo: ServoSource | None = None,
+    *,
+    progress: Progress | None = None,
+    warn: Callable[[str], None] | None = None,
+) -> BagData:
+    """Read the scans and the servo angle of a bag (module docstring).
+
+    Args:
+        path: a ROS 1 ``.bag`` file, a ROS 2 bag folder (sqlite3 or MCAP) or a single ``.mcap``/``.db3`` file.
+        scan, servo: where the data are (lrfcal.rig; defaults: /scan LaserScan, /joint_states joint ``servo``).
+        progress: called as progress(messages_done, messages_total) while reading.
+        warn: called once with each assumption the reader makes (default: printed to stderr).
+    Returns:
+        BagData: Scans sorted by stamp (S, N); JointStates (J,) lambda [rad] sorted by stamp, duplicate stamps
+        averaged; the ReadReport.
+    Raises:
+        InputError: unreadable bag, missing topic or field, wrong message type, no usable scan, fewer than two
+            usable servo samples.
+    """
+    path = Path(path)
+    scan = scan or ScanSource()
+    servo = servo or ServoSource(joint="servo")
+    warn = warn or (lambda text: print(f"warning: {text}", file=sys.stderr))
+    reader = open_reader(path)
+    try:
+        with reader:
+            complete_types(reader)
+            scan_conns = _connections(reader, path, scan.topic)
+            servo_conns: list[Any] = []
+            if servo.tf is not None:
+                servo_conns = [c for c in reader.connections if c.topic in ("/tf", "/tf_static")]
+                if not servo_conns:
+                    raise InputError(f"{path}: servo.tf: no /tf or /tf_static topic in bag")
+            elif servo.stamp != "scan":
+                if servo.topic is None:
+                    raise InputError(f"{path}: servo.topic: missing (or use servo.tf / stamp: scan)")
+                servo_conns = _connections(reader, path, servo.topic)
+            total = sum(c.msgcount for c in scan_conns + servo_conns)
+            scan_items = _messages(reader, scan_conns, progress, 0, total)
+            servo_items = [] if not servo_conns else [
+                (t, m, c.topic) for c, (t, m) in _tagged(reader, servo_conns, progress, len(scan_items), total)]
+            scan_type = scan_conns[0].msgtype
+            servo_type = servo_conns[0].msgtype if servo_conns else scan_type
+    except InputError:
+        raise
+    except Exception as err:
+        raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
+    if progress is not None:
+        progress(total, total)
+    where_scan = f"{path}: {scan.topic}"
+    if not scan_items:
+        raise InputError(f"{where_scan}: no messages")
+    scans, srep, notes = scans_from(scan_items, scan, scan_type, where_scan, warn)
+    where_servo = f"{path}: {servo.describe()}"
+    if servo.tf is not None:
+        samples = servo_tf(servo_items, servo, where_servo, scans.stamps_s)
+    elif servo.stamp == "scan":
+        samples = servo_in_scan(srep.pop("_kept_items"), servo, where_servo)
+    elif servo_type == JOINTSTATE_TYPE:
+        samples = servo_joint_state([(t, m) for t, m, _ in servo_items], servo, where_servo)
+    else:
+        samples = servo_field([(t, m) for t, m, _ in servo_items], servo, servo_type, where_servo)
+    srep.pop("_kept_items", None)
+    joints, servo_stamps, servo_recv, n_used = joints_from(samples, servo, scans, srep["recv_s"], where_servo)
+    scan_med = float(np.median(srep["recv_s"] - scans.stamps_s))
+    servo_med = float(np.median(servo_recv - servo_stamps))
+    offset = 0.0 if samples.on_laser_clock else servo_med - scan_med
+    applied = abs(offset) > COARSE_OFFSET_MIN_S
+    if applied:
+        joints = JointStates(stamps_s=joints.stamps_s + offset, positions_rad=joints.positions_rad, name=joints.name)
+        notes.append(f"clocks: laser and servo stamps {offset:+.3f} s apart (median receive-minus-stamp "
+                     f"{scan_med:+.3f} s on {scan.topic}, {servo_med:+.3f} s on the servo); servo stamps moved "
+                     f"onto the laser clock by it (coarse, from the bag's receive times)")
+    notes.extend(timing_notes(scans, joints, where_scan, where_servo))
+    report = ReadReport(
+        bag=str(path), scan_source=_describe_scan(scan), servo_source=servo.describe(),
+        n_scan_messages=len(scan_items), n_scans=int(scans.stamps_s.size),
+        n_beams=int(np.sum(scans.beam_counts)), n_valid_returns=int(np.isfinite(scans.ranges_m).sum()),
+        beam_count_min=int(scans.beam_counts.min()), beam_count_max=int(scans.beam_counts.max()),
+        skipped=dict(srep["skipped"]), masked=dict(srep["masked"]),
+        n_time_increment_assumed=int(srep["n_assumed"]), assumed_time_increment_s=srep["assumed"],
+        n_servo_messages=len(servo_items) if servo_items else len(scan_items), n_servo_samples=n_used,
+        servo_skipped=dict(samples.skipped), scan_receive_minus_stamp_s=scan_med,
+        servo_receive_minus_stamp_s=servo_med, clock_offset_s=offset, clock_offset_applied=applied,
+        notes=tuple(notes),
+    )
+    if servo.steps():  # step and scan: every beam takes the angle of its scan
+        scans = replace(scans, angle_per_scan=True)
+    return BagData(scans=scans, joints=joints, report=report)
+
+
+def timing_notes(scans: Scans, joints: JointStates, where_scan: str, where_servo: str) -> list[str]:
+    """Timing problems worth naming: scan_time disagreeing with the stamps' period, irregular servo samples,
+    servo samples sparser than the scans."""
+    out = []
+    if scans.stamps_s.size > 2:
+        period = float(np.median(np.diff(scans.stamps_s)))
+        if scans.scan_time_s > 0 and abs(period - scans.scan_time_s) > 0.2 * scans.scan_time_s:
+            out.append(f"{where_scan}: scan_time {scans.scan_time_s:.4g} s but the stamps are {period:.4g} s apart "
+                       f"(median): the driver's scan_time (and a time_increment derived from it) is doubtful")
+    dt = np.diff(joints.stamps_s)
+    if dt.size > 2:
+        med = float(np.median(dt))
+        spread = float(np.percentile(dt, 90) - np.percentile(dt, 10))
+        if med > 0 and spread > 0.5 * med:
+            out.append(f"{where_servo}: irregular servo samples: intervals {np.percentile(dt, 10):.4g}-"
+                       f"{np.percentile(dt, 90):.4g} s (10-90 %), median {med:.4g} s")
+        if scans.stamps_s.size > 2 and med > float(np.median(np.diff(scans.stamps_s))):
+            out.append(f"{where_servo}: fewer servo samples ({1 / med:.3g} Hz) than scans "
+                       f"({1 / float(np.median(np.diff(scans.stamps_s))):.3g} Hz): the angle within a scan is "
+                       f"interpolated over more than a scan period")
+    return out
+
+
+def _tagged(reader: Any, conns: list[Any], progress: Progress | None, done: int, total: int
+            ) -> Iterable[tuple[Any, tuple[float, Any]]]:
+    for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
+        if progress is not None and k % 256 == 0:
+            progress(done + k, total)
+        yield c, (ns_to_s(t_ns), reader.deserialize(raw, c.msgtype))
+
+
+def _describe_scan(scan: ScanSource) -> str:
+    return f"{scan.topic}{'.' + scan.field if scan.field else ''} (stamp {scan.stamp})"
+
+
+__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "Progress", "read_bag", "timing_notes"]

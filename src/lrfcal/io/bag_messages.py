@@ -1,0 +1,85 @@
+"""Opening a bag and reading its decoded messages' fields: what the bag reader (lrfcal.io.bag) and ``lrfcal
+inspect`` (lrfcal.inspection) share.
+
+Messages are decoded with the definitions the bag carries (rosbags' AnyReader registers them from every
+connection's message definition, ROS 1 and ROS 2 alike), so custom types need no ROS installation; types a bag
+does not define fall back to the ROS 2 Humble store.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+
+LASERSCAN_TYPES = ("sensor_msgs/msg/LaserScan",)
+MULTIECHO_TYPE = "sensor_msgs/msg/MultiEchoLaserScan"
+JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
+DYNAMIXEL_JOINTSTATE_TYPE = "dynamixel_msgs/msg/JointState"
+TF_TYPE = "tf2_msgs/msg/TFMessage"
+
+
+def one_line(err: BaseException) -> str:
+    """An exception's message on one line (the exception's type name when it has none)."""
+    text = " ".join(str(err).split())
+    return text or type(err).__name__
+
+
+def open_reader(path: Path) -> Any:
+    """An unopened AnyReader for a ROS 1 .bag file, a ROS 2 bag folder, or a single .mcap/.db3 file."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    if not path.exists():
+        raise InputError(f"{path}: bag not found")
+    try:
+        return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+    except Exception as err:  # rosbags raises several unrelated types for unreadable input
+        raise InputError(f"{path}: cannot open bag: {one_line(err)}") from None
+
+
+def complete_types(reader: Any) -> None:
+    """Register types a bag does not define (a ROS 2 bag with definitions for only some connections) from the
+    ROS 2 Humble store, so every connection can be decoded."""
+    from rosbags.typesys import Stores, get_typestore
+
+    have = reader.typestore.fielddefs
+    missing = {c.msgtype for c in reader.connections if c.msgtype not in have}
+    if not missing:
+        return
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    add = {k: v for k, v in store.fielddefs.items() if k not in have}
+    if add:
+        reader.typestore.register(add)
+
+
+def ns_to_s(t_ns: int) -> float:
+    """Integer nanoseconds to seconds, rounded exactly as :func:`stamp_s` rounds sec + nanosec (float64 has
+    only ~0.2 us resolution at today's epoch times: both clocks must be converted the same way)."""
+    return float(t_ns // 1_000_000_000) + 1e-9 * float(t_ns % 1_000_000_000)
+
+
+def stamp_s(msg: Any) -> float | None:
+    """header.stamp [s] of a ROS 1 / ROS 2 message, None when it has no header."""
+    h = getattr(msg, "header", None)
+    st = getattr(h, "stamp", None)
+    if st is None:
+        return None
+    return float(st.sec) + 1e-9 * float(st.nanosec)
+
+
+def get_field(msg: Any, dotted: str, where: str) -> Any:
+    """``msg.a.b.c`` for ``dotted = "a.b.c"``; a missing field names the fields that exist."""
+    cur = msg
+    for part in dotted.split("."):
+        if not hasattr(cur, part):
+            have = [f for f in getattr(cur, "__dataclass_fields__", {}) if f != "__msgtype__"]
+            raise InputError(f"{where}: field {dotted}: no {part!r} in {getattr(cur, '__msgtype__', type(cur))} "
+                             f"(fields: {', '.join(have) or 'none'})")
+        cur = getattr(cur, part)
+    return cur
+
+
+__all__ = ["DYNAMIXEL_JOINTSTATE_TYPE", "JOINTSTATE_TYPE", "LASERSCAN_TYPES", "MULTIECHO_TYPE", "TF_TYPE",
+           "complete_types", "get_field", "ns_to_s", "one_line", "open_reader", "stamp_s"]

@@ -1,0 +1,177 @@
+"""calibration.yaml: the content of a calibration's result file as plain Python values (docs/formats.md).
+
+Frames: W is the marker frame (from the tape distances), M the motor frame; the mount is T_W_M. NaN and infinite
+values are written as null.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..model.kinematics import DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES
+from ..types import CalibrationResult, Solution, TunnelGeometry
+
+FloatArray = NDArray[np.float64]
+
+FORMAT_VERSION = 1
+
+
+def plain_float(v: Any) -> float | None:
+    """A plain float for YAML, None for NaN/inf/None."""
+    if v is None:
+        return None
+    v = float(v)
+    return v if math.isfinite(v) else None
+
+
+_f = plain_float  # the short name the dicts below use
+
+
+def param_sigma(solution: Solution, name: str) -> float | None:
+    """1-sigma of a parameter by name (ESTIMATE_NAMES: x, y, z, rx, ry, rz, a, alpha, b, beta); None for roll,
+    pitch and yaw, which are an output format whose sigma would come from the Euler angles' singularity."""
+    if name not in ESTIMATE_NAMES:
+        return None
+    s = np.asarray(solution.sigma, dtype=float).reshape(-1)
+    i = ESTIMATE_NAMES.index(name)
+    return _f(s[i]) if i < s.size else None
+
+
+def _solution_dict(sol: Solution) -> dict[str, Any]:
+    """DH and mount (value and 1-sigma each; the rotation's uncertainty as the 1-sigma and covariance of a rotation
+    vector in frame M, roll/pitch/yaw as values only), clock offset, residual RMS, returns used, solver status."""
+    values = sol.params.as_dict()
+    cov = np.asarray(sol.covariance, dtype=float)
+    return {
+        "dh": {n: {"value": _f(values[n]), "sigma": param_sigma(sol, n)} for n in DH_NAMES},
+        "mount": {n: ({"value": _f(values[n]), "sigma": param_sigma(sol, n)} if n in "xyz" else
+                      {"value": _f(values[n])}) for n in MOUNT_NAMES},
+        "mount_rotation_sigma_rad": {n: param_sigma(sol, n) for n in ("rx", "ry", "rz")},
+        "covariance": {"names": list(ESTIMATE_NAMES),
+                       "matrix": [[_f(v) for v in row] for row in cov] if cov.shape == (10, 10) else None},
+        "clock_offset_s": {"value": _f(sol.clock_offset_s), "sigma": _f(sol.clock_offset_sigma_s)},
+        "range_offset_m": {"value": _f(sol.range_offset_m), "sigma": _f(sol.range_offset_sigma_m)},
+        "marker_range_bias_m": {"value": _f(sol.marker_range_bias_m), "sigma": _f(sol.marker_range_bias_sigma_m)},
+        "residual_rms_m": _f(sol.residual_rms_m),
+        "n_observations": int(sol.n_observations),
+        "reduced_chi2": _f(sol.reduced_chi2),
+        "status": str(sol.status),
+    }
+
+
+def _geometry_dict(g: TunnelGeometry | None) -> dict[str, Any] | None:
+    if g is None:
+        return None
+    return {
+        "width_m": _f(g.width_m),
+        "height_m": _f(g.height_m),
+        "plate_distance_m": _f(g.plate_distance_m),
+        "planes": [{"label": p.label, "normal": [float(x) for x in p.normal], "offset_m": float(p.offset_m),
+                    "n_inliers": int(p.n_inliers)} for p in g.planes],
+    }
+
+
+def marker_counts(result: CalibrationResult) -> FloatArray:
+    """(n,) the number of returns the solution used on each marker of the map."""
+    assert result.markers is not None and result.observations is not None
+    n = len(result.markers.marker_ids)
+    m = np.asarray(result.observations.marker, dtype=np.int64)
+    return np.bincount(m[m >= 0], minlength=n)[:n]
+
+
+# --- calibration.yaml -----------------------------------------------------------------------------------------
+
+def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
+    """The content of calibration.yaml (plain Python types; NaN -> None)."""
+    sol = result.solution
+    out: dict[str, Any] = {
+        "format_version": FORMAT_VERSION,
+        "method": result.method,
+        "units": "m, rad; frames: W marker frame (tape distances), M motor frame; T_W_M = mount",
+        **_solution_dict(sol),
+        "n_iterations": int(sol.n_iterations),
+    }
+    out.update(_marker_dict(result) if result.method == "markers" else _targetless_dict(result))
+    out.update({
+        "checks": [{"name": c.name, "passed": bool(c.passed), "detail": c.detail} for c in result.checks],
+        "notes": list(result.notes),
+        "servo_sign": int(result.servo_sign),
+        "start": {k: float(v) for k, v in result.start.as_dict().items()},
+        "baseline": None,
+        "tunnel": {"before": _geometry_dict(result.geometry_before), "after": _geometry_dict(result.geometry_after)},
+        "timings_s": {str(k): _f(v) for k, v in result.timings_s.items()},
+    })
+    if result.baseline is not None:
+        out["baseline"] = {
+            "method": "seed paper: blob peaks only, one motor angle per scan",
+            **_solution_dict(result.baseline),
+        }
+    return out
+
+
+def _targetless_dict(result: CalibrationResult) -> dict[str, Any]:
+    """A targetless calibration's own keys: no world frame (mount null), the parameters held at nominal, and the
+    scene's planes with their thickness before and after."""
+    fit = result.plane_fit
+    return {
+        "units": "m, rad; frame M (motor frame): without markers there is no world frame",
+        "mount": None,
+        "mount_rotation_sigma_rad": None,
+        "held_at_nominal": list(fit.held),
+        "planes": [
+            {"normal_M": [float(v) for v in p.normal], "offset_m": float(p.offset_m), "n_returns": int(n),
+             "thickness_rms_m": {"before": _f(b), "after": _f(a)}}
+            for p, n, b, a in zip(fit.planes, fit.n_returns, fit.rms_before_m, fit.rms_after_m, strict=True)
+        ],
+    }
+
+
+def _marker_dict(result: CalibrationResult) -> dict[str, Any]:
+    """A marker calibration's own keys: markers used, the marker map, the association, the marker surfaces."""
+    assert result.markers is not None and result.detections is not None and result.association is not None
+    sol = result.solution
+    ids = result.markers.marker_ids
+    counts = marker_counts(result)
+    per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
+    return {
+        "markers": {
+            "used": [ids[i] for i in range(len(ids)) if counts[i] > 0],
+            "unused": [ids[i] for i in range(len(ids)) if counts[i] == 0],
+            "n_returns": {ids[i]: int(counts[i]) for i in range(len(ids))},
+            "residual_rms_m": {ids[i]: _f(per[i]) if i < per.size else None for i in range(len(ids))},
+        },
+        "marker_map": {
+            "stress": _f(result.markers.stress),
+            "rms_m": _f(result.markers.rms_m),
+            "planarity": _f(result.markers.planarity),
+            "coplanar": bool(result.markers.coplanar),
+            "dropped_pairs": [  # tape pairs inconsistent with the others (gross errors), left out
+                {"pair": [p.id_i, p.id_j], "measured_m": _f(p.measured_m), "predicted_m": _f(p.predicted_m),
+                 "z": _f(p.z)}
+                for p in result.markers.dropped_pairs
+            ],
+        },
+        "association": {
+            "n_blobs": len(result.detections.blobs),
+            "n_matched": int(result.association.n_matched),
+            "mirrored": bool(result.association.mirrored),
+            "rms_m": _f(result.association.rms_m),
+        },
+        "surfaces": [  # the planes the markers sit on, solved jointly (stage 6b)
+            {
+                "markers": [ids[int(i)] for i in srf.marker_idx],
+                "normal": [float(v) for v in srf.normal],
+                "offset_m": float(srf.offset_m),
+                "n_returns": int(np.sum(result.surface_returns.surface == k)) if result.surface_returns else 0,
+            }
+            for k, srf in enumerate(result.surfaces)
+        ],
+        "detection_threshold": _f(result.detections.threshold),
+    }
+
+
+__all__ = ["FORMAT_VERSION", "calibration_dict", "marker_counts", "param_sigma", "plain_float"]
