@@ -4,15 +4,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from lrfcal.cloud import reproject_beams, sweep_index
+from lrfcal.cloud import reproject_beams
 from lrfcal.model.kinematics import DH, points_M
+from lrfcal.timing import sweep_passes
 from lrfcal.types import JointStates, Scans
 
 
 def test_sweep_index_splits_at_reversals_and_carries_over_standstills():
     lam = np.array([0.0, 0.0, 0.1, 0.2, 0.2, 0.3, 0.2, 0.1, 0.1, 0.0, 0.1])
-    np.testing.assert_array_equal(sweep_index(lam), [0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2])
-    assert sweep_index(np.zeros(3)).tolist() == [0, 0, 0]
+    np.testing.assert_array_equal(sweep_passes(lam, min_fraction=0.0, min_scans=1), [0, 0, 0, 0, 0, 0, 1, 1, 1, 1, 2])
+    assert sweep_passes(np.zeros(3), min_fraction=0.0, min_scans=1).tolist() == [0, 0, 0]
 
 
 def test_reproject_beams_per_scan_layout_and_uncovered_scans():

@@ -24,7 +24,7 @@ from .errors import InputError
 from .io.files import atomic_file, check_outputs, swapped_folder, write_bytes_atomic
 from .io.yamlfile import read_yaml
 from .model.kinematics import DH, points_M
-from .timing import covered_scans, motor_angles
+from .timing import covered_scans, motor_angles, sweep_passes
 from .types import JointStates, Scans
 
 FloatArray = NDArray[np.float64]
@@ -64,23 +64,6 @@ class BeamCloud:
         return int(self.times_s.size)
 
 
-def sweep_index(scan_lambda_rad: FloatArray) -> IntArray:
-    """(S,) sweep number of every scan: a new sweep starts where the motor angle reverses direction
-    (standstills carry the previous direction)."""
-    lam = np.asarray(scan_lambda_rad, dtype=float)
-    if lam.size < 2:
-        return np.zeros(lam.size, dtype=np.int64)
-    d = np.sign(np.diff(lam))
-    nz = np.flatnonzero(d)
-    if nz.size == 0:
-        return np.zeros(lam.size, dtype=np.int64)
-    d[: nz[0]] = d[nz[0]]
-    last = d[nz]  # carry the last non-zero direction forward over zeros
-    d = last[np.maximum(np.searchsorted(nz, np.arange(d.size), side="right") - 1, 0)]
-    starts = np.concatenate([[0], np.cumsum(d[1:] != d[:-1])])
-    return np.concatenate([[0], starts]).astype(np.int64)
-
-
 def reproject_beams(
     scans: Scans,
     joints: JointStates,
@@ -108,7 +91,7 @@ def reproject_beams(
     scan_sweep = np.full(S, -1, dtype=np.int64)
     if covered.any():
         lam_mid = motor_angles(mid_t[covered], joints, clock_offset_s)
-        scan_sweep[covered] = sweep_index(lam_mid)
+        scan_sweep[covered] = sweep_passes(lam_mid, min_fraction=0.0, min_scans=1)
     parts: list[tuple[FloatArray, ...]] = []
     for s0 in range(0, S, chunk_scans):
         sl = slice(s0, min(S, s0 + chunk_scans))
@@ -337,4 +320,4 @@ def reproject_bag(
 __all__ = ["BeamCloud", "CLOUD_FRAME", "CLOUD_TOPIC", "POINT_DTYPE", "point_records",
            "read_calibration_clock_offset", "read_calibration_dh",
            "read_calibration_range_offset", "read_cloud_ply", "reproject_bag", "reproject_beams",
-           "sweep_index", "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]
+           "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]

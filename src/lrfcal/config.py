@@ -6,47 +6,75 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+
+from .errors import InputError
 
 #: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
 DEFAULT_RANGE_SIGMA_M = 0.010
 
+PositiveFloat = Annotated[float, Field(gt=0.0)]
 
-@dataclass(frozen=True)
-class CalibConfig:
-    """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout)."""
+
+class CalibConfig(BaseModel):
+    """Options of the calibration (defaults: the UTM-30LX-EW and a hand-taped marker layout), validated with bounds;
+    written into calibration.yaml as the effective configuration (``config``).
+
+    Raises:
+        InputError: an option out of its bounds (named, with the bound).
+    """
+
+    model_config = ConfigDict(frozen=True, extra="forbid")
 
     #: the scanner's range noise [m]; None: the rig file's ``range_sigma_m``, else DEFAULT_RANGE_SIGMA_M (resolved
-    #: once by :func:`calibrate`, so that every stage sees a number)
-    range_sigma_m: float | None = None
-    association_gate_m: float = 0.05  # blob-to-marker distance accepted after the nominal alignment
-    clock_offset_s: float = 0.0  # laser stamp minus servo stamp: the start (prior) of its estimate
+    #: once by :func:`lrfcal.pipeline.calibrate`, so that every stage sees a number)
+    range_sigma_m: float | None = Field(None, gt=0.0, le=1.0)
+    #: blob-to-marker distance accepted after the nominal alignment [m]
+    association_gate_m: float = Field(0.05, gt=0.0, le=10.0)
+    #: laser stamp minus servo stamp: the start (prior) of its estimate [s] (checked finite by the pipeline)
+    clock_offset_s: float = 0.0
     estimate_clock: bool | None = None  # estimate the clock offset; None: when the sweep goes both ways
     baseline: bool = True  # also run the paper's variant for comparison
-    cloud_stride: int = 1  # reproject every n-th scan into the clouds
+    cloud_stride: int = Field(1, ge=1)  # reproject every n-th scan into the clouds
     clouds: bool = True  # reproject the clouds before / after (stage 7; False: empty clouds, no geometry)
     geometry: bool = True  # fit tunnel planes (Table III)
     surfaces: bool = True  # use the returns from the planes the markers are mounted on (stage 6b)
-    surface_max_returns: int = 40000  # an even subsample of them, for speed
+    surface_max_returns: int = Field(40000, ge=100)  # an even subsample of them, for speed
     force: bool = False  # return a result even when a consistency check fails (the failures are recorded)
     #: estimate a constant range offset and a marker-return range bias in the joint solve with the surfaces (the
     #: only data that separate them); held at 0 when the recording does not separate them (1-sigma > 5 mm)
     estimate_range_bias: bool = True
-    max_reduced_chi2: float = 4.0  # residuals more than 2x the stated noise: the model does not explain the data
-    second_opinion_p: float = 1e-3  # false-alarm rate of the second-opinion test
+    #: residuals more than 2x the stated noise: the model does not explain the data
+    max_reduced_chi2: float = Field(4.0, gt=0.0)
+    second_opinion_p: float = Field(1e-3, gt=0.0, lt=1.0)  # false-alarm rate of the second-opinion test
     #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
     #: direction apart (a, b [m], alpha, beta [rad])
-    nominal_tolerance: tuple[float, float, float, float] = (0.010, math.radians(5.0), 0.010, math.radians(5.0))
+    nominal_tolerance: tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat] = (
+        0.010, math.radians(5.0), 0.010, math.radians(5.0))
     #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances
     targetless: bool | None = None
-    plane_returns: int = 250000  # targetless: an even subsample of the returns, for speed
+    plane_returns: int = Field(250000, ge=1000)  # targetless: an even subsample of the returns, for speed
     #: with markers: also calibrate the same recording targetless and show it beside the marker results (report)
     compare_targetless: bool = False
     #: with markers: every other plane of the scene joins the markers' surfaces in the joint solve (free planes)
     all_planes: bool = False
     #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
-    #: spreads along the plane and the range reads short)
-    max_incidence_rad: float = math.radians(65.0)
+    #: spreads along the plane and the range reads short) [rad]
+    max_incidence_rad: float = Field(math.radians(65.0), gt=0.0, le=math.pi / 2)
+
+    def __init__(self, **options: Any) -> None:
+        try:
+            super().__init__(**options)
+        except ValidationError as err:
+            e = err.errors()[0]
+            where = ".".join(str(x) for x in e["loc"]) or "options"
+            raise InputError(f"calibration option {where}: {e['msg']} (got {e.get('input')!r})") from None
+
+    def replace(self, **changes: Any) -> CalibConfig:
+        """A copy with ``changes``, validated."""
+        return CalibConfig(**{**self.model_dump(), **changes})
 
 
 class Stopwatch:

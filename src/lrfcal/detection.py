@@ -31,7 +31,7 @@ from scipy import ndimage
 
 from .errors import InputError
 from .model.kinematics import DH, points_M
-from .timing import motor_angles
+from .timing import motor_angles, sweep_passes
 from .types import Blob, Detections, JointStates, Observations, Scans
 
 FloatArray = NDArray[np.float64]
@@ -166,17 +166,8 @@ def split_by_pass(detections: Detections, scan_lambda_rad: FloatArray, intensiti
     Returns:
         Detections with the same threshold; blobs re-sorted and labels rebuilt.
     """
-    lam = np.asarray(scan_lambda_rad, dtype=float)
-    d = np.sign(np.diff(lam))
-    # carry the last non-zero direction over standstills so a pause does not start a new pass
-    nz = np.flatnonzero(d)
-    if nz.size:
-        d[: nz[0]] = d[nz[0]]
-    for i in range(1, d.size):
-        if d[i] == 0:
-            d[i] = d[i - 1]
-    pass_id = np.concatenate([[0], np.cumsum(np.abs(np.diff(d)) > 0)]) if d.size else np.zeros(0, int)
-    pass_of_scan = np.concatenate([[0], pass_id]) if lam.size else np.zeros(0, int)
+    # every reversal starts a pass, however short (a blob must not span one)
+    pass_of_scan = sweep_passes(scan_lambda_rad, min_fraction=0.0, min_scans=1)
     out: list[Blob] = []
     for blob in detections.blobs:
         p = pass_of_scan[blob.scan_idx]

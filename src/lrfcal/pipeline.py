@@ -42,7 +42,7 @@ def calibrate(
     config = config or CalibConfig()
     if config.range_sigma_m is None:  # the sensor's noise as the rig file declares it, else the UTM-30LX-EW's
         declared = recording.nominal.range_sigma_m
-        config = replace(config, range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
+        config = config.replace(range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
     try:
         return _calibrate(recording, config, progress)
     except CalibrationError as err:
@@ -87,7 +87,8 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     if config.compare_targetless and not targetless:  # the same recording without its markers, for the report
         side_by_side.update(_targetless_opinion(recording, config, notes))
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
-    return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side)
+    return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side,
+                   config=config)
 
 
 def _targetless(recording: Recording, config: CalibConfig) -> bool:
@@ -109,7 +110,7 @@ def _targetless_opinion(recording: Recording, config: CalibConfig, notes: list[s
     """The targetless calibration of a recording with markers, beside the marker results (empty, with a note, when it
     is refused)."""
     try:
-        tl = calibrate(recording, replace(config, targetless=True, force=False, geometry=False, clouds=False))
+        tl = calibrate(recording, config.replace(targetless=True, force=False, geometry=False, clouds=False))
         return {"targetless (markers ignored)": tl.solution}
     except CalibrationError as err:
         notes.append(f"the targetless calibration of the same recording was refused: {err}")

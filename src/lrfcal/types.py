@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .config import CalibConfig
 from .model.kinematics import DH, Params, Pose
 
 if TYPE_CHECKING:  # the stages' own types, named here for the reader and the type checker only
@@ -412,6 +413,7 @@ class CalibrationResult:
     #: the DH estimates of the methods run on this recording, by name (markers only, markers and their surfaces,
     #: targetless), shown side by side in the report
     side_by_side: dict[str, Solution] = field(default_factory=dict)
+    config: CalibConfig | None = None  # the effective configuration (lrfcal.pipeline resolves its defaults)
     servo_sign: int = 1  # the servo direction used: +1 as declared, -1 negated (only with --force on an ambiguity)
 
     @property

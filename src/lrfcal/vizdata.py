@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .model.kinematics import Params, points_W
+from .model.marker import residuals_3d
 from .types import CalibrationResult
 
 FloatArray = NDArray[np.float64]
@@ -53,11 +54,10 @@ def marker_returns(
     sel = obs.marker >= 0
     p = points_W(obs.ranges_m[sel], obs.lambda_rad[sel], obs.mu_rad[sel], params)
     centres = result.markers.positions_W[obs.marker[sel]]
-    d = centres - p
-    n = np.linalg.norm(d, axis=1, keepdims=True)
     r = float(result.recording.nominal.marker_radius_m)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        to_surface = np.where(n > r, d * (1.0 - r / np.where(n > 0, n, 1.0)), 0.0)
+    to_surface = -residuals_3d(params, obs.ranges_m[sel], obs.lambda_rad[sel], obs.mu_rad[sel], centres,
+                               model="sphere", marker_radius_m=r)
+    to_surface[np.linalg.norm(p - centres, axis=1) <= r] = 0.0  # inside the sphere: no arrow
     return p, to_surface, obs.marker[sel].astype(np.int64), obs.scan[sel].astype(np.int64)
 
 

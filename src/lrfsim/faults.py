@@ -43,6 +43,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import Params, beam_rays_M, points_W, transform_points
+from lrfcal.model.marker import footprint_radius_m, ray_to_centre
 
 from .scenario import Scenario
 from .scenario_sections import FaultsConfig, NoiseBand, TapeOutlier
@@ -154,11 +155,9 @@ def marker_returns(result: SimResult, scenario: Scenario) -> IntArray:
     T = result.truth.mount.matrix()
     o_W = transform_points(T, o_M)
     d_W = d_M @ T[:3, :3].T
-    C = result.truth.markers_W  # (n, 3)
-    v = C[None, :, :] - o_W[:, None, :]  # (K, n, 3)
-    t = np.einsum("knc,kc->kn", v, d_W)
-    perp = np.linalg.norm(v - t[..., None] * d_W[:, None, :], axis=-1)
-    reach = radius_m + 0.5 * scenario.sensor.divergence_rad * np.maximum(t, 0) + 0.002
+    _, t, e = ray_to_centre(o_W[:, None, :], d_W[:, None, :], result.truth.markers_W[None, :, :])  # (K, n)
+    perp = np.linalg.norm(e, axis=-1)
+    reach = radius_m + footprint_radius_m(t, scenario.sensor.divergence_rad) + 0.002
     perp = np.where((t > 0) & (perp < reach), perp, np.inf)
     k = perp.argmin(1)
     ok = np.isfinite(perp[np.arange(len(k)), k])

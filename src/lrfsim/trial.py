@@ -8,7 +8,6 @@ whose error exceeds 4 reported sigma on some DH parameter: the one outcome the c
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import tempfile
 import time
@@ -90,7 +89,7 @@ def calibrate_recording(
     nan4 = np.full(4, np.nan)
     config = config or CalibConfig(baseline=False, geometry=False, clouds=False)  # a trial needs the estimate
     if paper:
-        config = dataclasses.replace(config, baseline=True, force=True)
+        config = config.replace(baseline=True, force=True)
     t0 = time.perf_counter()
     try:
         result = calibrate(recording, config)

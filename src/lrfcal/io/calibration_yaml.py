@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..model.kinematics import DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES
+from ..model.unknowns import BY_NAME
 from ..types import CalibrationResult, Solution, TunnelGeometry
 
 FloatArray = NDArray[np.float64]
@@ -56,11 +57,24 @@ def _solution_dict(sol: Solution) -> dict[str, Any]:
         "clock_offset_s": {"value": _f(sol.clock_offset_s), "sigma": _f(sol.clock_offset_sigma_s)},
         "range_offset_m": {"value": _f(sol.range_offset_m), "sigma": _f(sol.range_offset_sigma_m)},
         "marker_range_bias_m": {"value": _f(sol.marker_range_bias_m), "sigma": _f(sol.marker_range_bias_sigma_m)},
+        "intrinsics": _intrinsics_dict(sol),
         "residual_rms_m": _f(sol.residual_rms_m),
         "n_observations": int(sol.n_observations),
         "reduced_chi2": _f(sol.reduced_chi2),
         "status": str(sol.status),
     }
+
+
+def _intrinsics_dict(sol: Solution) -> dict[str, Any]:
+    """Every intrinsic of the rig model (lrfcal.model.unknowns): value, 1-sigma (null when held), unit, and whether
+    it was estimated or held (and, when held by default, why)."""
+    out: dict[str, Any] = {}
+    for name, (value, sigma) in sol.intrinsics.items():
+        u = BY_NAME[name]
+        estimated = math.isfinite(sigma)
+        out[name] = {"value": _f(value), "sigma": _f(sigma), "unit": u.unit,
+                     "estimated": estimated, "held": None if estimated else (u.held or "held by this calibration")}
+    return out
 
 
 def _geometry_dict(g: TunnelGeometry | None) -> dict[str, Any] | None:
@@ -81,6 +95,17 @@ def marker_counts(result: CalibrationResult) -> FloatArray:
     n = len(result.markers.marker_ids)
     m = np.asarray(result.observations.marker, dtype=np.int64)
     return np.bincount(m[m >= 0], minlength=n)[:n]
+
+
+def _plain(v: Any) -> Any:
+    """Plain YAML values of a configuration: tuples as lists, NaN and inf as null."""
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, tuple | list):
+        return [_plain(x) for x in v]
+    if isinstance(v, float):
+        return _f(v)
+    return v
 
 
 # --- calibration.yaml -----------------------------------------------------------------------------------------
@@ -104,6 +129,7 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
         "baseline": None,
         "tunnel": {"before": _geometry_dict(result.geometry_before), "after": _geometry_dict(result.geometry_after)},
         "timings_s": {str(k): _f(v) for k, v in result.timings_s.items()},
+        "config": None if result.config is None else _plain(result.config.model_dump()),
     })
     if result.baseline is not None:
         out["baseline"] = {

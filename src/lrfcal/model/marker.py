@@ -44,6 +44,20 @@ FloatArray = NDArray[np.float64]
 MODELS = ("paper", "sphere")
 
 
+def ray_to_centre(o: FloatArray, d: FloatArray, c: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Where marker centres c sit relative to rays (origin o, unit direction d), broadcast over leading axes (..., 3):
+    v = c - o, the distance t = v.d along the ray (...,) and the perpendicular offset e = v - t d (..., 3), |e| the
+    centre's distance from the ray."""
+    v = c - o
+    t = (v * d).sum(-1)
+    return v, t, v - t[..., None] * d
+
+
+def footprint_radius_m(range_m: ArrayLike, divergence_rad: float) -> FloatArray:
+    """The beam's footprint radius [m] at ``range_m`` for a full divergence ``divergence_rad`` (0 behind it)."""
+    return 0.5 * divergence_rad * np.maximum(np.asarray(range_m, dtype=float), 0.0)
+
+
 @dataclass(frozen=True)
 class MarkerSet:
     """K returns on markers: their motor angles (at the start clock offset), bearings, ranges, marker centres in W,
@@ -62,7 +76,7 @@ class MarkerSet:
     def footprint(self) -> FloatArray:
         """(K,) footprint radius at each return's marker, in marker radii (k of :func:`footprint_depth`), from the
         measured range (data, not a function of the unknowns)."""
-        return 0.5 * self.divergence * np.maximum(self.r, 0.0) / self.radius
+        return footprint_radius_m(self.r, self.divergence) / self.radius
 
     @property
     def sigma_lat(self) -> FloatArray:
@@ -96,9 +110,7 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
             J[:, :, j] = dr[:, None] * d / sigma_r
         return res, J
     R = ms.radius
-    v = ms.c - o
-    t = (v * d).sum(1)
-    e = v - t[:, None] * d
+    v, t, e = ray_to_centre(o, d, ms.c)
     rho = np.linalg.norm(e, axis=1)
     s, ds = footprint_depth(rho / R, ms.footprint)
     r_hat = t - R * s
@@ -131,4 +143,4 @@ def residuals_3d(params: Params, ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_
     return diff
 
 
-__all__ = ["MODELS", "MarkerSet", "marker_rows", "residuals_3d"]
+__all__ = ["MODELS", "MarkerSet", "footprint_radius_m", "marker_rows", "ray_to_centre", "residuals_3d"]
