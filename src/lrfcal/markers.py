@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
@@ -91,7 +91,17 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     if chosen.sign < 0:
         joints = _negated(joints)
     clock.lap("solve")
-    ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, notes)
+    tried: list[str] = []
+    ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, tried)
+    off = _scales_off(ours, notes)
+    if off:  # an intrinsic held at 1 is not: estimate it in every solve, from the marker-only one on
+        fit = partial(fit, estimate=off)
+        chosen = replace(chosen, solution=fit(chosen.matched, chosen.markers.positions_W, chosen.solution.params,
+                                              model="sphere", clock=chosen.clock,
+                                              clock_offset_s=chosen.solution.clock_offset_s))
+        tried = []
+        ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, tried)
+    notes.extend(tried)
     if config.surfaces:
         clock.lap("surfaces")
     checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock)
@@ -135,6 +145,25 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
     if declared_failure is not None and not isinstance(declared_failure, _NoMatch):
         raise declared_failure  # e.g. the layout does not determine the DH: the other direction does not help
     return servo_direction(alternatives, nominal.dh, config)
+
+
+#: an intrinsic scale whose score test steps this many sigma from 1 is estimated (a gear ratio, an angle increment)
+SCALE_Z_LIMIT = 4.0
+#: what is off when a scale held at 1 by default is not 1 (lrfcal.model.unknowns, kind "intrinsic")
+SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts per turn in the joint states?)",
+          "beam_scale": "the scan's bearing scale (the LaserScan's angle_increment declared wrongly?)"}
+
+
+def _scales_off(sol: Solution, notes: list[str]) -> tuple[str, ...]:
+    """The scales held at 1 that the data contradict (their score test, lrfcal.solve, beyond SCALE_Z_LIMIT sigma),
+    each named in a note with the value it steps to."""
+    off = []
+    for name, (value, sigma) in sol.held_score.items():
+        if name in SCALES and math.isfinite(sigma) and sigma > 0 and abs(value - 1.0) > SCALE_Z_LIMIT * sigma:
+            off.append(name)
+            notes.append(f"{SCALES[name]} is off: about {value:.5f} +- {sigma:.5f} ({abs(value - 1.0) / sigma:.0f} "
+                         "sigma from 1): estimated in every solve")
+    return tuple(off)
 
 
 def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,

@@ -34,12 +34,15 @@ def reproject_cloud(scans: Scans, lambda_rad: ArrayLike, dh: DH, stride: int = 1
 
 def reproject_clouds(
     scans: Scans, lambda_rad: ArrayLike, dhs: Sequence[DH], stride: int = 1,
-    range_offsets_m: Sequence[float] | None = None,
+    range_offsets_m: Sequence[float] | None = None, motor_scales: Sequence[float] | None = None,
+    beam_scales: Sequence[float] | None = None,
 ) -> tuple[list[FloatArray], FloatArray]:
     """:func:`reproject_cloud` of the same returns with several DH sets (e.g. nominal and calibrated): the
     valid returns are selected and cos / sin of their motor angles computed once. Returns one (P, 3) cloud per
     DH set (each equal to reproject_cloud's, bit for bit, without range offsets) and the intensity (P,).
-    ``range_offsets_m``: one per DH set, subtracted from every range (a calibration's estimated range offset)."""
+    ``range_offsets_m``: one per DH set, subtracted from every range (a calibration's estimated range offset);
+    ``motor_scales``, ``beam_scales``: one per DH set, multiplying every motor angle and every bearing
+    (lrfcal.model.motor, lrfcal.model.scanner: an estimated gear ratio or angle increment)."""
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     r = scans.ranges_m
@@ -58,9 +61,12 @@ def reproject_clouds(
     mk = mu.ravel()[idx] if mu.ndim == 2 else mu[bb]  # (S, N) per-scan bearings (or (N,))
     clouds = []
     offsets = [0.0] * len(dhs) if range_offsets_m is None else list(range_offsets_m)
-    for dh, off in zip(dhs, offsets, strict=True):
-        phi = dh.beta + mk
-        clouds.append(points_M_trig(rk - off if off else rk, cl, sl, np.cos(phi), np.sin(phi), dh))
+    scales = [1.0] * len(dhs) if motor_scales is None else list(motor_scales)
+    bscales = [1.0] * len(dhs) if beam_scales is None else list(beam_scales)
+    for dh, off, s, k in zip(dhs, offsets, scales, bscales, strict=True):
+        phi = dh.beta + (mk if k == 1.0 else k * mk)
+        c, sn = (cl, sl) if s == 1.0 else (np.cos(s * lk), np.sin(s * lk))
+        clouds.append(points_M_trig(rk - off if off else rk, c, sn, np.cos(phi), np.sin(phi), dh))
     intensity = np.ravel(scans.intensities)[idx].astype(np.float64, copy=False)
     return clouds, intensity
 

@@ -27,8 +27,8 @@ from .model.kinematics import Params, exp_so3
 from .model.marker import residuals_3d
 from .model.motor import MotorClock, motor_angles
 from .model.plane import plane_rows
-from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack, unpack
-from .normal_equations import RANK_TOL, assemble, cluster_scores, levenberg_marquardt
+from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, UNKNOWNS, free_by_default, pack, unpack
+from .normal_equations import RANK_TOL, assemble, cluster_scores, levenberg_marquardt, schur
 from .problem import Problem, marker_problem, plane_problem, plane_set
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations, Solution
@@ -157,6 +157,7 @@ def solve(
     hold: Sequence[str] = (),
     estimate_range_bias: bool = False,
     beam_divergence_rad: float = 0.0,
+    estimate: Sequence[str] = (),
 ) -> Solution:
     """Estimate the 10 parameters (and the clock offset, the intrinsics) from marker returns.
 
@@ -181,7 +182,8 @@ def solve(
         hold: names from CORE_NAMES held at their start value (not estimated; their sigma is NaN).
         estimate_range_bias: also estimate a constant range offset (every return) and a marker-return range bias
             (the returns of retroreflective markers only; "range walk" of strong returns), started at 0; only
-            separable with surface returns (see lrfcal.pipeline).
+            separable with surface returns (see lrfcal.markers).
+        estimate: names of unknowns the model holds by default (lrfcal.model.unknowns.UNKNOWNS) to estimate here.
     Returns:
         Solution: estimate, covariance (10, 10) in ESTIMATE_NAMES order (the rotation as a rotation vector in
         frame M; the marginal over plane nuisances and the clock offset; NaN rows for held parameters), the clock
@@ -196,7 +198,7 @@ def solve(
     n_markers = len(np.unique(np.asarray(obs.marker)[use]))
     if K < 4 or n_markers < 3:
         raise CalibrationError(f"solve ({model}): need >= 4 returns on >= 3 markers, got {K} on {n_markers}")
-    free_core = free_by_default(hold)
+    free_core = free_by_default(hold, estimate)
     free_core[TAU] &= clock is not None
     free_core[[ROFF, MBIAS]] &= estimate_range_bias
     th, R_ref = pack(start, clock_offset_s)
@@ -264,9 +266,9 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
                                                             np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res),
                                                             scan_s)
     params = unpack(th[:N_CORE], R_ref)
-    lam_all = np.asarray(obs.lambda_rad, dtype=float)
-    if pb_all.clock is not None:
-        lam_all = motor_angles(th, lam_all, np.asarray(obs.times_s, dtype=float), pb_all.clock).lam
+    score = _held_score(pb, th, R_ref, free, s2)
+    lam_all = motor_angles(th, np.asarray(obs.lambda_rad, dtype=float), np.asarray(obs.times_s, dtype=float),
+                           pb_all.clock).lam
     res3 = np.full((len(obs), 3), np.nan)
     res3[use] = residuals_3d(params, ms.r, lam_all[use], ms.mu, ms.c, model=ms.model, marker_radius_m=ms.radius)
     idx_used = np.nonzero(use)[0]
@@ -286,7 +288,30 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
                      residuals_m=res3, per_marker_rms_m=per, n_observations=k_in, n_iterations=nfev, status=status,
                      information=info, information_names=core_names, reduced_chi2=s2,
                      converged="maximum number of function evaluations" not in msg, chi=chi_all, inlier=inl,
-                     lambda_rad=lam_all, n_surface_returns=k_s)
+                     lambda_rad=lam_all, n_surface_returns=k_s, held_score=score)
+
+
+def _held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], s2: float
+                ) -> dict[str, tuple[float, float]]:
+    """The score test of every unknown the model holds by default and this solve held (lrfcal.model.unknowns): one
+    Gauss-Newton step from the solution with those unknowns freed, the planes eliminated; per name the value it
+    steps to and its 1-sigma (widened by the reduced chi-square above 1). A value many sigma from the held one says
+    the data contradict holding it, without a second solve."""
+    tested = [i for i, u in enumerate(UNKNOWNS) if u.held and not free[i]]
+    if not tested:
+        return {}
+    cols = np.concatenate([np.flatnonzero(free[:N_CORE]), tested]).astype(np.int64)
+    S, rhs, _ = schur(assemble(pb.blocks(th, R_ref), cols))
+    col = np.sqrt(np.maximum(np.diag(S), 1e-300))
+    try:
+        cov = np.linalg.inv(S / np.outer(col, col)) / np.outer(col, col)
+    except np.linalg.LinAlgError:
+        return {}
+    dx = cov @ rhs
+    first = cols.size - len(tested)
+    return {CORE_NAMES[i]: (float(th[i] + dx[first + k]), float(np.sqrt(max(s2, 1.0) * max(cov[first + k, first + k],
+                                                                                          0.0))))
+            for k, i in enumerate(tested)}
 
 
 def _solution(th: FloatArray, R_ref: FloatArray, cov_core: FloatArray, free: NDArray[np.bool_], **fields: object

@@ -336,6 +336,9 @@ class Solution:
     marker_range_bias_sigma_m: float = float("nan")
     #: every intrinsic of the rig model (lrfcal.model.unknowns.INTRINSICS): name -> (value, sigma; NaN when held)
     intrinsics: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: every unknown held by default that this solve held: name -> (the value one Gauss-Newton step with it freed
+    #: reaches, its 1-sigma) (lrfcal.solve's score test)
+    held_score: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

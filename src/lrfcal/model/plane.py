@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 
 from .kinematics import exp_so3, right_jacobian_so3
 from .motor import MotorClock, motor_angles
-from .scanner import true_range
+from .scanner import true_bearing, true_range
 from .unknowns import N_CORE, PlaneSet
 
 FloatArray = NDArray[np.float64]
@@ -62,7 +62,8 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     a, al, b, be = th[6:10]
     R = R_ref @ exp_so3(th[3:6])
     ca, sa = np.cos(al), np.sin(al)
-    phi = be + s.mu
+    bearing = true_bearing(th, s.mu)
+    phi = be + bearing.mu
     cp, sp = np.cos(phi), np.sin(phi)
     cl, sl = np.cos(lam), np.sin(lam)
     pl = s.plane
@@ -94,6 +95,8 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     Jc[:, 7] = (ny * b * ca + nz * b * sa + rp * sp * (ny * sa - nz * ca)) * q
     Jc[:, 8] = (ny * sa - nz * ca) * q
     Jc[:, 9] = -rp * (-nx * sp + (ny * ca + nz * sa) * cp) * q
+    for j, dmu in bearing.partials:  # the bearing enters as beta does
+        Jc[:, j] = Jc[:, 9] * dmu
     if motor.partials:  # dr_p/dlambda = -(n_0 . (z x x_0)) / nd, z x v = (-v_y, v_x, 0)
         dres_dlam = -((ny * a - nx * oy) + rp * (ny * cp - nx * dy)) * q
         for j, dlam in motor.partials:

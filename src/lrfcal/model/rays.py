@@ -1,7 +1,8 @@
 """Each beam's origin and unit direction in W (the seed paper's eq. (3)) and their analytic Jacobian with respect to
 the core unknowns (lrfcal.model.unknowns).
 
-Per beam k with motor angle lambda_k (lrfcal.model.motor) and bearing mu_k, phi_k = beta + mu_k:
+Per beam k with motor angle lambda_k (lrfcal.model.motor) and true bearing mu_k (lrfcal.model.scanner),
+phi_k = beta + mu_k:
 
     o_M = Rz(lambda) [a, -b sin(alpha), b cos(alpha)]                              beam origin in M
     d_M = Rz(lambda) [cos(phi), sin(phi) cos(alpha), sin(phi) sin(alpha)]           unit direction in M
@@ -13,7 +14,8 @@ Jacobian (X_j = dX/dtheta_j):
     DH parameter p: o_j = R Rz(lambda) d(o_loc)/dp, d_j = R Rz(lambda) d(d_loc)/dp with
       d o_loc/da = (1,0,0), d o_loc/dalpha = (0, -b ca, -b sa), d o_loc/db = (0, -sa, ca), d o_loc/dbeta = 0,
       d d_loc/dalpha = (0, -sphi sa, sphi ca), d d_loc/dbeta = (-sphi, cphi ca, cphi sa), others 0;
-    an unknown acting on the motor angle: o_j = R (z x o_M) dlambda/dtheta_j, likewise d_j.
+    an unknown acting on the motor angle: o_j = R (z x o_M) dlambda/dtheta_j, likewise d_j;
+    an unknown acting on the bearing: o_j = 0, d_j = d_beta dmu/dtheta_j.
 """
 
 from __future__ import annotations
@@ -23,6 +25,7 @@ from numpy.typing import NDArray
 
 from .kinematics import exp_so3, right_jacobian_so3
 from .motor import MotorAngles
+from .scanner import true_bearing
 from .unknowns import N_CORE
 
 FloatArray = NDArray[np.float64]
@@ -36,7 +39,8 @@ def beam_rays(
     mount), the motor angle's when ``motor`` carries no partials."""
     t, w = core[:3], core[3:6]
     a, al, b, be = core[6:10]
-    lam, phi = np.broadcast_arrays(np.atleast_1d(motor.lam), be + np.atleast_1d(mu))
+    bearing = true_bearing(core, np.atleast_1d(mu))
+    lam, phi = np.broadcast_arrays(np.atleast_1d(motor.lam), be + bearing.mu)
     K = lam.size
     cl, sl = np.cos(lam), np.sin(lam)
     ca, sa = np.cos(al), np.sin(al)
@@ -67,6 +71,8 @@ def beam_rays(
     Jo[:, :, 8] = rz(np.array([0.0, -sa, ca])) @ R.T
     Jd[:, :, 7] = rz(np.stack([z0, -sp * sa, sp * ca], -1)) @ R.T
     Jd[:, :, 9] = rz(np.stack([-sp, cp * ca, cp * sa], -1)) @ R.T
+    for j, dmu in bearing.partials:
+        Jd[:, :, j] = np.broadcast_to(dmu, (K,))[:, None] * Jd[:, :, 9]
     if motor.partials:  # d/dlambda of Rz(lambda) v is z x (Rz v)
         zo = np.stack([-o_M[:, 1], o_M[:, 0], z0], -1) @ R.T
         zd = np.stack([-d_M[:, 1], d_M[:, 0], z0], -1) @ R.T

@@ -1,10 +1,12 @@
-"""The scanner's reported range and its intrinsics: what the scanner would report without its systematic errors.
+"""The scanner's intrinsics: the true range of a reported one, and the true bearing of a declared one.
 
     r_true = r - range_offset - marker_range_bias [marker returns only]
+    mu_true = beam_scale mu          (mu = angle_min + i angle_increment as the scan declares it; beta, the DH
+                                      angle, absorbs any constant, so a wrongly declared increment is a scale)
 
-Every observation model compares its predicted range with r_true; the partial derivatives dr_true/dtheta are the
-range columns of its Jacobian (:func:`true_range`), so an unknown acting on the range (an offset, a bias of strong
-returns, a scale) is written here once.
+Every observation model compares its predicted range with r_true and casts its beam at beta + mu_true; the partial
+derivatives are the range and bearing columns of its Jacobian (:func:`true_range`, :func:`true_bearing`), so an
+unknown acting on the range or the bearing is written here once.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .unknowns import MBIAS, ROFF
+from .unknowns import BSCALE, MBIAS, ROFF
 
 FloatArray = NDArray[np.float64]
 
@@ -37,4 +39,18 @@ def true_range(th: FloatArray, r: FloatArray, on_marker: bool) -> TrueRange:
     return TrueRange(r - th[ROFF], ((ROFF, one),))
 
 
-__all__ = ["TrueRange", "true_range"]
+@dataclass(frozen=True)
+class TrueBearing:
+    """The bearings mu_true (K,) and their partials: (core index, dmu_true/dtheta (K,)) per unknown acting on them."""
+
+    mu: FloatArray
+    partials: tuple[tuple[int, FloatArray], ...]
+
+
+def true_bearing(th: FloatArray, mu: FloatArray) -> TrueBearing:
+    """mu_true of the declared bearings ``mu`` (K,) at the unknowns ``th`` (module docstring)."""
+    mu = np.asarray(mu, dtype=float)
+    return TrueBearing(th[BSCALE] * mu, ((BSCALE, mu),))
+
+
+__all__ = ["TrueBearing", "TrueRange", "true_bearing", "true_range"]

@@ -56,6 +56,8 @@ UNKNOWNS: tuple[Unknown, ...] = (
     Unknown("marker_range_bias", "m", "intrinsic", 0.0, "", "added to the ranges of marker returns only"),
     Unknown("motor_scale", "1", "intrinsic", 1.0, "the servo's angle scale (gear ratio) is trusted: held at 1",
             "the joint's reported angle times this is the motor angle (a gear ratio or counts per turn off)"),
+    Unknown("beam_scale", "1", "intrinsic", 1.0, "the scan's declared angle increment is trusted: held at 1",
+            "the declared bearing times this is the beam's bearing (an angle increment declared wrongly)"),
 )
 assert tuple(u.name for u in UNKNOWNS[:10]) == ESTIMATE_NAMES
 
@@ -67,6 +69,7 @@ TAU = CORE_NAMES.index("clock_offset")
 ROFF = CORE_NAMES.index("range_offset")
 MBIAS = CORE_NAMES.index("marker_range_bias")
 SCALE = CORE_NAMES.index("motor_scale")
+BSCALE = CORE_NAMES.index("beam_scale")
 DH_SLICE = slice(6, 10)
 INTRINSICS: tuple[str, ...] = tuple(u.name for u in UNKNOWNS if u.kind == "intrinsic")
 
@@ -99,17 +102,19 @@ def unpack(core: FloatArray, R_ref: FloatArray) -> Params:
     return Params(Pose.from_matrix(T), DH(*map(float, v)))
 
 
-def free_by_default(hold: Sequence[str] = ()) -> NDArray[np.bool_]:
+def free_by_default(hold: Sequence[str] = (), estimate: Sequence[str] = ()) -> NDArray[np.bool_]:
     """(N_CORE,) the unknowns a calibration estimates unless a stage holds them: all but those :data:`UNKNOWNS`
-    holds by default and those named in ``hold``.
+    holds by default (unless named in ``estimate``) and those named in ``hold``.
 
     Raises:
-        InputError: a name in ``hold`` is not an unknown of the model.
+        InputError: a name in ``hold`` or ``estimate`` is not an unknown of the model.
     """
-    unknown = sorted(set(hold) - set(CORE_NAMES))
-    if unknown:
-        raise InputError(f"solve: hold: unknown parameter {unknown[0]!r} (expected one of {', '.join(CORE_NAMES)})")
-    return np.array([not u.held and u.name not in hold for u in UNKNOWNS])
+    for what, names in (("hold", hold), ("estimate", estimate)):
+        unknown = sorted(set(names) - set(CORE_NAMES))
+        if unknown:
+            raise InputError(f"solve: {what}: unknown parameter {unknown[0]!r} (expected one of "
+                             f"{', '.join(CORE_NAMES)})")
+    return np.array([(not u.held or u.name in estimate) and u.name not in hold for u in UNKNOWNS])
 
 
 @dataclass(frozen=True)
