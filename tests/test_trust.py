@@ -100,7 +100,7 @@ def test_servo_sign_in_the_rig_file_resolves_it(recordings: Callable[..., Path],
 def test_clock_offsets_declared_or_not(recordings: Callable[..., Path], offset_s: float, declared: bool) -> None:
     """The offset is estimated (both-way sweep): within 4 sigma, and the offset itself within 2 ms."""
     sc = _scenario("tunnel_v", f"clock_{int(offset_s * 1000)}ms", **{"servo.clock_offset_s": offset_s})
-    config = dataclasses.replace(FAST, clock_offset_s=offset_s if declared else 0.0)
+    config = FAST.replace(clock_offset_s=offset_s if declared else 0.0)
     trial = calibrate_recording(recordings(sc), config)
     _ok(trial)
     assert abs(trial.clock_offset_error_s) < 0.002, trial.clock_offset_error_s
@@ -159,9 +159,9 @@ def test_force_records_the_failed_check(recordings: Callable[..., Path]) -> None
     """--force: the refused board-across case... is refused before solving, so force cannot help there; a failed
     consistency check (a range sigma claimed 3x too small) is written with the check recorded instead."""
     folder = recordings(_scenario("tunnel_v", "tunnel_fast"))
-    strict = calibrate_recording(folder, dataclasses.replace(FAST, range_sigma_m=0.003))
+    strict = calibrate_recording(folder, FAST.replace(range_sigma_m=0.003))
     _refused(strict, "reduced chi-square", "--range-sigma")
-    forced = calibrate_recording(folder, dataclasses.replace(FAST, range_sigma_m=0.003, force=True),
+    forced = calibrate_recording(folder, FAST.replace(range_sigma_m=0.003, force=True),
                                  keep_result=True)
     assert forced.status == "calibrated" and forced.result is not None
     failed = [c.name for c in forced.result.checks if not c.passed]
@@ -218,14 +218,14 @@ def test_range_offset_is_estimated_or_the_result_refused(recordings: Callable[..
     within 4 sigma and the DH too. Held (--no-range-bias), the same recording is calibrated with a worse error:
     why the estimation is on by default."""
     folder = recordings(_scenario("tunnel_v", "tunnel_fast"))
-    est = calibrate_recording(folder, dataclasses.replace(FAST, estimate_range_bias=True), mutate=_range_offset(0.015),
+    est = calibrate_recording(folder, FAST.replace(estimate_range_bias=True), mutate=_range_offset(0.015),
                               keep_result=True)
     _ok(est)
     assert est.result is not None
     sol = est.result.solution
     assert abs(sol.range_offset_m - 0.015) <= 4 * sol.range_offset_sigma_m < 0.002, (sol.range_offset_m,
                                                                                       sol.range_offset_sigma_m)
-    held = calibrate_recording(folder, dataclasses.replace(FAST, estimate_range_bias=False),
+    held = calibrate_recording(folder, FAST.replace(estimate_range_bias=False),
                                mutate=_range_offset(0.015))
     assert held.status == "refused" or np.max(np.abs(held.z)) > np.max(np.abs(est.z)), (held.describe(),
                                                                                         est.describe())

@@ -149,9 +149,10 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
 
 #: an intrinsic scale whose score test steps this many sigma from 1 is estimated (a gear ratio, an angle increment)
 SCALE_Z_LIMIT = 4.0
-#: what is off when a scale held at 1 by default is not 1 (lrfcal.model.unknowns, kind "intrinsic")
-SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts per turn in the joint states?)",
-          "beam_scale": "the scan's bearing scale (the LaserScan's angle_increment declared wrongly?)"}
+#: what is off when a scale held at 1 by default is not 1 (lrfcal.model.unknowns, kind "intrinsic"). The bearing
+#: scale (beam_scale) is not tested: on tunnel_v_systematic the unmodelled range errors move its score test 15 sigma
+#: from 1 (0.99147 +- 0.00057, truth 1), and estimating it puts the mount 10 mm off
+SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts per turn in the joint states?)"}
 
 
 def _scales_off(sol: Solution, notes: list[str]) -> tuple[str, ...]:
