@@ -118,6 +118,27 @@ def _dh_text(dh: DH) -> str:
             f"beta {math.degrees(dh.beta):.2f} deg")
 
 
+#: the scan plane within this angle of perpendicular to the motor axis (alpha within it of 0 or 180 deg) is refused
+NEAR_PERPENDICULAR_RAD = math.radians(15.0)
+
+
+def attitude_check(sol: Solution) -> Check:
+    """The DH chain is near-singular when the scan plane is nearly perpendicular to the motor axis (alpha near 0 or
+    180 deg): at alpha = 0, Tz(b) commutes with Rz(lambda), so b is the mount's own offset along the motor axis, and
+    near it the servo's two directions predict nearly mirror-image clouds. The DH parameterisation does not give
+    trustworthy results there (random truths with alpha of 4-10 deg came back with alpha's sign flipped and every
+    other check passed), so such a result is refused until the model has a regular parameterisation."""
+    alpha = sol.params.dh.alpha
+    tilt = math.asin(min(1.0, abs(math.sin(alpha))))  # the scan plane's angle from perpendicular to the motor axis
+    ok = tilt >= NEAR_PERPENDICULAR_RAD
+    return Check("scan plane attitude", ok,
+                 f"alpha {math.degrees(alpha):.1f} deg: the scan plane is {math.degrees(tilt):.1f} deg from "
+                 f"perpendicular to the motor axis (limit {math.degrees(NEAR_PERPENDICULAR_RAD):g} deg)"
+                 + ("" if ok else ": the DH chain is near-singular there (b is the mount's offset along the motor "
+                                  "axis, the servo's two directions nearly mirror each other); this calibration does "
+                                  "not give a trustworthy result for such a rig"))
+
+
 def marker_checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
     config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None,
@@ -125,7 +146,7 @@ def marker_checks(
     """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
     type, so that it tests the recording's parts, not the markers against the surfaces)."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol)]
     finite = bool(np.all(np.isfinite(sol.sigma)))
     if sol.information is not None and finite:
         obs = observability.analyse(sol.information, sol.information_names)
@@ -189,7 +210,7 @@ def _marker_second_opinion(
 def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
             config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> list[Check]:
     """Convergence, observability of the estimated parameters, reduced chi-square and a second opinion."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0])]
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol)]
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
     ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())

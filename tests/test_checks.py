@@ -1,0 +1,31 @@
+"""lrfcal.checks: the scan plane's attitude (a DH chain near its singularity is refused, not trusted)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lrfcal.checks import NEAR_PERPENDICULAR_RAD, attitude_check
+from lrfcal.model.kinematics import DH, Params, Pose
+from lrfcal.types import Solution
+
+
+def _solution(alpha: float) -> Solution:
+    return Solution(params=Params(Pose(), DH(0.01, alpha, 0.02, 0.0)), covariance=np.eye(10), sigma=np.ones(10),
+                    residual_rms_m=0.0, residuals_m=np.zeros((0, 3)), per_marker_rms_m=np.zeros(0), n_observations=0,
+                    n_iterations=0, status="")
+
+
+@pytest.mark.parametrize("alpha_deg", [0.0, 4.0, -8.1, 14.0, 180.0, -172.0])
+def test_near_perpendicular_scan_plane_is_refused(alpha_deg: float) -> None:
+    check = attitude_check(_solution(math.radians(alpha_deg)))
+    assert not check.passed
+    assert "near-singular" in check.detail and f"{alpha_deg:.1f}" in check.detail
+
+
+@pytest.mark.parametrize("alpha_deg", [90.0, -90.0, 20.0, 160.0, 45.0])
+def test_other_attitudes_pass(alpha_deg: float) -> None:
+    assert math.degrees(NEAR_PERPENDICULAR_RAD) <= 20.0
+    assert attitude_check(_solution(math.radians(alpha_deg))).passed
