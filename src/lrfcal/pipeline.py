@@ -77,7 +77,7 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     targetless = _targetless(recording, config)
     clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES)
     notes: list[str] = []
-    scans, joints = usable_scans(recording, config.clock_offset_s, notes)  # 1.
+    scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
     refuse_failed(list(fit.checks), config)  # 3.

@@ -123,12 +123,63 @@ def subset_scans(scans: Scans, mask: np.ndarray) -> Scans:
     return Scans(**fields)
 
 
-def usable_scans(recording: Recording, tau0: float, notes: list[str]) -> tuple[Scans, JointStates]:
-    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0`` (what was
-    dropped is appended to ``notes``).
+#: a scan whose motor angle the joint states interpolate worse than this share of the range noise (at its median
+#: range) is left out; more than MAX_TRIMMED_SHARE of the scans so: refused
+INTERPOLATION_SHARE = 0.5
+MAX_TRIMMED_SHARE = 0.5
+
+
+def interpolation_error_rad(joints: JointStates) -> FloatArray:
+    """(J - 1,) a bound on how far the linear interpolation of the joint states can be from the motor's angle within
+    each interval between samples: half the largest second difference at its two ends, beyond two encoder steps.
+
+    A change of the motor's speed by dv between samples h apart leaves the interpolation up to dv h / 4 off, and
+    makes a second difference of at least dv h / 2 at one end of the interval; a steady motion (a sweep's cruise, a
+    standstill) leaves none. Encoder quantisation (the smallest step the joint states report) is not counted: the
+    per-scan widening of the covariance carries it."""
+    q = unwrapped_positions(joints)
+    J = q.size
+    out = np.zeros(max(J - 1, 0))
+    if J < 3:
+        return out
+    steps = np.abs(np.diff(q))
+    quantum = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0
+    kink = np.maximum(np.abs(np.diff(q, 2)) - 2.0 * quantum, 0.0) / 2.0  # at samples 1 .. J - 2
+    out[:-1] = kink  # interval j ends at sample j + 1
+    out[1:] = np.maximum(out[1:], kink)  # ... and starts at sample j
+    return out
+
+
+def _poorly_interpolated(scans: Scans, joints: JointStates, tau0: float, range_sigma_m: float
+                         ) -> tuple[NDArray[np.bool_], float]:
+    """(S,) the scans whose motor angle the joint states interpolate worse than INTERPOLATION_SHARE of the range
+    noise at their median range (none for a step-and-scan rig, whose angle is its scan's own), and the worst bound
+    [rad]."""
+    S = scans.stamps_s.size
+    if scans.angle_per_scan or joints.stamps_s.size < 3:
+        return np.zeros(S, dtype=bool), 0.0
+    err = interpolation_error_rad(joints)
+    t0, t1 = scan_spans(scans)
+    last = err.size - 1
+    i0 = np.clip(np.searchsorted(joints.stamps_s, t0 - tau0) - 1, 0, last)
+    i1 = np.clip(np.searchsorted(joints.stamps_s, t1 - tau0) - 1, 0, last)
+    bound = np.maximum(err[i0], err[i1])
+    with np.errstate(all="ignore"):
+        reach = np.nanmedian(np.where(np.isfinite(scans.ranges_m), scans.ranges_m, np.nan), axis=1)
+    bad = np.nan_to_num(bound * reach) > INTERPOLATION_SHARE * range_sigma_m
+    return bad, float(bound.max(initial=0.0))
+
+
+def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigma_m: float | None = None
+                 ) -> tuple[Scans, JointStates]:
+    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0``; with the range
+    noise ``range_sigma_m``, also without the scans whose motor angle the joint states do not interpolate well
+    enough (a speed change between sparse samples, :func:`interpolation_error_rad`). What was dropped is appended
+    to ``notes``.
 
     Raises:
-        CalibrationError: no scan lies within the joint states' time span.
+        CalibrationError: no scan lies within the joint states' time span, or most scans fall between joint states
+            too sparse to interpolate their motor angle.
     """
     joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
     if n_spikes:
@@ -143,11 +194,23 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str]) -> tuple[S
     scans = subset_scans(recording.scans, covered)
     if not covered.all():
         notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
+    if range_sigma_m is None:
+        return scans, joints
+    poor, worst = _poorly_interpolated(scans, joints, tau0, range_sigma_m)
+    if poor.any():
+        why = (f"the joint states (every {joint_period_s(joints) * 1000:.0f} ms) interpolate their motor angle only to "
+               f"{worst * 1000:.2g} mrad where the servo changes speed between samples")
+        if poor.mean() > MAX_TRIMMED_SHARE:
+            raise CalibrationError(f"{int(poor.sum())} of {poor.size} scans: {why}; record the joint states faster "
+                                   "(at least the scan rate)")
+        notes.append(f"{int(poor.sum())} of {poor.size} scans left out: {why}")
+        scans = subset_scans(scans, ~poor)
     return scans, joints
 
 
-__all__ = ["beam_motor_angles", "beam_times", "covered_scans", "joint_period_s", "motor_angles", "remove_spikes",
-           "scan_angles", "scan_spans", "subset_scans", "sweep_passes", "unwrapped_positions", "usable_scans"]
+__all__ = ["beam_motor_angles", "beam_times", "covered_scans", "interpolation_error_rad", "joint_period_s",
+           "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "subset_scans", "sweep_passes",
+           "unwrapped_positions", "usable_scans"]
 
 
 def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scans: int = 5) -> NDArray[np.int64]:
