@@ -176,10 +176,74 @@ def test_simulate_injects_and_records(clean: SimResult, tmp_path: Path) -> None:
     assert gt["faults"]["tape_outliers"][0]["row"] == 3 and len(gt["faults"]["encoder_spikes"]) == 2
 
 
+def test_gear_ratio(clean: SimResult) -> None:
+    out = apply_faults(clean, _scenario(gear_ratio=1.5))
+    assert np.allclose(out.joints.positions_rad, 1.5 * clean.joints.positions_rad, rtol=0, atol=1e-15)
+    assert np.allclose(out.joints.velocities_rad_s, 1.5 * clean.joints.velocities_rad_s, rtol=0, atol=1e-15)
+    assert np.array_equal(out.joints.true_positions_rad, clean.joints.true_positions_rad)  # truth unchanged
+    assert np.array_equal(out.beam_lambda_rad, clean.beam_lambda_rad) and out.faults == {"gear_ratio": 1.5}
+
+
+@pytest.mark.parametrize(("rate_hz", "every"), [(30.0, 4), (50.0, 2), (100.0, 1), (1000.0, 1)])
+def test_joint_rate(clean: SimResult, rate_hz: float, every: int) -> None:
+    """The joint states thinned to every n-th sample, n = ceil(100 Hz / f): at most f."""
+    out = apply_faults(clean, _scenario(joint_rate_hz=rate_hz))
+    j, c = out.joints, clean.joints
+    for name in ("stamps_s", "positions_rad", "velocities_rad_s", "true_positions_rad"):
+        assert np.array_equal(getattr(j, name), getattr(c, name)[::every]), name
+    assert 1.0 / np.diff(j.stamps_s).min() <= rate_hz * (1 + 1e-9)
+    assert out.faults == {"joint_rate_hz": {"requested_hz": rate_hz, "keep_every": every, "rate_hz": 100.0 / every}}
+
+
+def test_angle_increment_off_by_one(clean: SimResult) -> None:
+    sensor = _scenario().sensor
+    out = apply_faults(clean, _scenario(angle_increment_off_by_one=True))
+    n = sensor.n_beams
+    span = (n - 1) * sensor.angle_increment_rad
+    assert out.declared_angle_increment_rad == pytest.approx(span / n, rel=1e-15)
+    assert clean.declared_angle_increment_rad is None
+    assert _same(out.ranges_m, clean.ranges_m) and np.array_equal(out.mu_rad, clean.mu_rad)  # the beams stay
+    rec = out.faults["angle_increment_off_by_one"]
+    assert rec["true_angle_increment_rad"] == sensor.angle_increment_rad
+    assert rec["declared_angle_increment_rad"] == out.declared_angle_increment_rad
+
+
+def test_new_faults_in_the_written_recording(clean: SimResult, tmp_path: Path) -> None:
+    """gear_ratio, joint_rate_hz and angle_increment_off_by_one as the calibration's reader sees them: the joint
+    positions scaled by k and thinned to every 4th sample (25 Hz), the LaserScans' declared increment span / N with
+    angle_min and angle_max unchanged; the ranges as they were."""
+    from rosbags.highlevel import AnyReader
+
+    from lrfcal.io.recording import read_recording
+
+    scenario = _scenario(gear_ratio=0.9, joint_rate_hz=30.0, angle_increment_off_by_one=True)
+    out = apply_faults(clean, scenario)
+    write_recording(out, scenario, tmp_path / "rec")
+    rec = read_recording(tmp_path / "rec")
+    assert np.allclose(rec.joints.positions_rad, 0.9 * clean.joints.positions_rad[::4], rtol=0, atol=1e-12)
+    assert np.allclose(np.diff(rec.joints.stamps_s), 0.04, atol=1e-6)
+    s = scenario.sensor
+    declared = (s.n_beams - 1) * s.angle_increment_rad / s.n_beams
+    mu = rec.scans.mu_rad[0]
+    assert np.diff(mu) == pytest.approx(declared, rel=1e-6)
+    assert mu[-1] - mu[0] == pytest.approx((s.n_beams - 1) * declared, rel=1e-6)
+    assert _same(rec.scans.ranges_m[:, :10], clean.ranges_m[:, :10].astype(np.float32))
+    with AnyReader([tmp_path / "rec" / "bag"]) as reader:
+        conn = next(c for c in reader.connections if c.topic == "/scan")
+        _, _, raw = next(iter(reader.messages(connections=[conn])))
+        msg = reader.deserialize(raw, conn.msgtype)
+    assert msg.angle_min == pytest.approx(s.angle_min_rad, abs=1e-7)
+    assert msg.angle_max == pytest.approx(s.angle_min_rad + (s.n_beams - 1) * s.angle_increment_rad, abs=1e-6)
+    assert msg.angle_increment == pytest.approx(declared, rel=1e-6)
+    gt = yaml.safe_load((tmp_path / "rec" / "ground_truth.yaml").read_text())
+    assert set(gt["faults"]) == {"gear_ratio", "joint_rate_hz", "angle_increment_off_by_one"}
+
+
 @pytest.mark.parametrize(
     ("faults", "field"),
     [({"false_blobs": -1}, "faults.false_blobs"), ({"dropped_scans_fraction": 0.95}, "dropped_scans_fraction"),
-     ({"smoke": 1}, "faults.smoke"), ({"tape_outliers": [{"pair": 1}]}, "error_m")],
+     ({"smoke": 1}, "faults.smoke"), ({"tape_outliers": [{"pair": 1}]}, "error_m"),
+     ({"gear_ratio": 0.0}, "faults.gear_ratio"), ({"joint_rate_hz": -5}, "faults.joint_rate_hz")],
 )
 def test_faults_section_is_validated(faults: dict[str, Any], field: str) -> None:
     with pytest.raises(InputError, match=field):

@@ -193,8 +193,12 @@ def test_missing_and_unreadable_mesh_rejected(tmp_path: Path) -> None:
         (lambda d: d["servo"].update(end_rad=d["servo"]["start_rad"]), 
          r"servo: .*start_rad and end_rad are equal"),
         (lambda d: d["markers"]["layout"].update(per_arm=0), r"markers\.layout\.per_arm"),
+        (lambda d: d["servo"].update(mode="spin", passes=2), r"servo: .*passes must be 1"),
+        (lambda d: d["servo"].update(mode="spin", revolutions=0), r"servo\.revolutions"),
+        (lambda d: d["servo"].update(mode="turn"), r"servo\.mode"),
     ],
-    ids=["unknown-key", "wrong-type", "negative-radius", "servo-limits-equal", "zero-per-arm"],
+    ids=["unknown-key", "wrong-type", "negative-radius", "servo-limits-equal", "zero-per-arm", "spin-passes",
+         "spin-zero-turns", "unknown-mode"],
 )
 def test_bad_yaml_rejected_by_load_scenario(tmp_path: Path, edit: Any, field: str) -> None:
     d = copy.deepcopy(_tunnel_dict())

@@ -1,13 +1,27 @@
-"""Servo trajectory, joint-state stream (rate, encoder, backlash) and clocks."""
+"""Servo trajectory (sweep and spin), joint-state stream (rate, encoder, backlash) and clocks."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
+import pytest
+from pydantic import ValidationError
 
 from lrfsim.scenario_sections import ServoConfig
-from lrfsim.servo import joint_samples, laser_time, move_profile, quantise_encoder, sweep_trajectory
+from lrfsim.servo import (
+    covered_angles_rad,
+    joint_samples,
+    laser_time,
+    move_profile,
+    quantise_encoder,
+    servo_trajectory,
+    sweep_trajectory,
+)
+
+SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
 
 def _servo(**kw: object) -> ServoConfig:
@@ -78,3 +92,75 @@ def test_backlash_lags_by_half_and_holds_at_reversal() -> None:
 
 def test_clock_offset() -> None:
     assert np.allclose(laser_time(np.array([0.0, 1.0]), 0.25), [0.25, 1.25])
+
+
+# --- the spinning servo (servo.mode: spin) -------------------------------------------------------------------
+
+
+def _spin(**kw: object) -> ServoConfig:
+    base = {"mode": "spin", "start_rad": 0.3, "revolutions": 2.5, "speed_rad_s": 3.0, "accel_rad_s2": 6.0,
+            "settle_s": 0.2, "rate_hz": 100.0, "encoder_counts": 0}
+    return ServoConfig(**{**base, **kw})
+
+
+@pytest.mark.parametrize("direction", [1, -1])
+def test_spin_turns_the_revolutions_monotonically(direction: int) -> None:
+    sv = _spin(spin_direction=direction)
+    traj = servo_trajectory(sv)
+    total = 2 * math.pi * 2.5
+    T, ramp, peak = move_profile(total, 3.0, 6.0)
+    assert peak == 3.0 and math.isclose(traj.end_s, 0.2 + T + 0.2)
+    t = np.linspace(0, traj.end_s, 100001)
+    lam, v = traj.angle(t), traj.velocity(t)
+    assert np.all(lam[t < 0.2] == 0.3) and math.isclose(lam[-1], 0.3 + direction * total, abs_tol=1e-9)
+    assert np.all(direction * np.diff(lam) >= 0)  # unwrapped: one way, through +-pi and beyond
+    assert np.abs(lam - 0.3).max() > 2 * math.pi * 2.4
+    cruise = (t > 0.2 + ramp + 1e-3) & (t < 0.2 + T - ramp - 1e-3)
+    assert np.allclose(v[cruise], direction * 3.0) and np.abs(v).max() <= 3.0 + 1e-12
+    assert np.abs(np.gradient(lam, t) - v)[5:-5].max() < 2e-3  # C1 as a sweep
+    assert covered_angles_rad(sv) == (min(0.3, 0.3 + direction * total), max(0.3, 0.3 + direction * total))
+
+
+def test_spin_joint_states_unwrapped_with_encoder_and_backlash() -> None:
+    b = math.radians(0.33)
+    sv = _spin(encoder_counts=4096, backlash_rad=b)
+    traj = servo_trajectory(sv)
+    js = joint_samples(traj, sv)
+    step = 2 * math.pi / 4096
+    k = js.positions_rad / step
+    assert np.abs(k - np.round(k)).max() < 1e-6 and np.all(np.diff(js.positions_rad) >= 0)
+    assert js.positions_rad.max() > 5 * math.pi and np.allclose(np.diff(js.stamps_s), 0.01)
+    # one direction only: the report lags the truth by b/2 (plus the encoder's half step), never reverses
+    lag = js.positions_rad - js.true_positions_rad
+    assert np.abs(lag + b / 2).max() <= step / 2 + 1e-9
+
+
+def test_spin_is_validated_and_sized() -> None:
+    assert _spin(end_rad=0.3).end_rad == 0.3  # end_rad not used: equal to start_rad is fine
+    with pytest.raises(ValidationError, match="passes must be 1"):
+        _spin(passes=2)
+    with pytest.raises(ValidationError, match="revolutions"):
+        _spin(revolutions=0.0)
+    with pytest.raises(ValueError, match="servo_trajectory"):
+        sweep_trajectory(_spin())
+    sweep = _servo()
+    a, b = servo_trajectory(sweep), sweep_trajectory(sweep)
+    assert all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("start_s", "from_rad", "direction"))
+    assert covered_angles_rad(sweep) == (-0.5, 0.5)
+
+
+def test_spinning_scenario_bag_has_unwrapped_joint_states(shipped_recording: Callable[[str], Path]) -> None:
+    """scenarios/spinning_tilted.yaml: written and read back as a real recording, its joint states run
+    monotonically from 0 to 4 pi (two turns), every marker is seen, and the scene's checks accept the spin."""
+    from lrfcal.io.recording import read_recording
+    from lrfsim.randomize import visible_markers
+    from lrfsim.scenario import load_scenario
+
+    scenario = load_scenario(SCENARIOS / "spinning_tilted.yaml")
+    assert scenario.servo.mode == "spin" and abs(scenario.rig.dh.alpha - 0.35) < 0.02
+    assert visible_markers(scenario).all()
+    rec = read_recording(shipped_recording("spinning_tilted"))
+    p = rec.joints.positions_rad
+    assert np.all(np.diff(p) >= 0) and p[0] == 0.0
+    assert abs(p[-1] - 4 * math.pi) <= math.pi / 4096 + 1e-9
+    assert (p > math.pi).sum() > len(p) / 2

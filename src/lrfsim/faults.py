@@ -2,11 +2,12 @@
 
 Every fault is a pure function ``SimResult -> SimResult`` (a new result; arrays are copied, never modified in
 place) and adds what it did to ``SimResult.faults`` (written to ground_truth.yaml under ``faults``), so a test
-knows exactly what was injected. Each draws from its own random stream, ``default_rng([seed, 0x6661756C, k])``
-with k the fault's number below, so switching one fault on does not reshuffle the others (nor the sensor
+knows exactly what was injected. Each has a fixed number k (below; a new fault takes the next free number,
+wherever it is applied), and those that draw random numbers draw from their own stream,
+``default_rng([seed, 0x6661756C, k])``, so switching one fault on does not reshuffle the others (nor the sensor
 noise, tape or laser phase of lrfsim.simulate).
 
-The scenario's ``faults:`` section (lrfsim.scenario_sections.FaultsConfig), applied in this order:
+The scenario's ``faults:`` section (lrfsim.scenario_sections.FaultsConfig), applied in the order listed:
 
 0. ``range_noise_scale: k``: every ``sensor.noise_bands`` sigma times k, before simulating
    (:func:`scale_range_noise`); recorded as ``range_noise_scale``.
@@ -14,6 +15,9 @@ The scenario's ``faults:`` section (lrfsim.scenario_sections.FaultsConfig), appl
    (distances.csv); recorded per pair with the true and the written distance.
 2. ``inverted_servo: true``: JointState positions and velocities negated (a servo mounted the other way
    round); the truth (``beam_lambda_rad``, ``joints.true_positions_rad``) is unchanged.
+8. ``gear_ratio: k``: JointState positions and velocities times k (a wrong gear ratio or encoder counts per
+   revolution in the driver; after the inversion, before the encoder spikes, which are then in the published
+   angle); the truth is unchanged. Recorded as ``gear_ratio`` (k).
 3. ``occluded_markers: N``: N markers (among those with returns) covered: every bright return whose ray passes
    within the marker (radius + footprint + 2 mm) gets the range and intensity of the surface around it,
    interpolated in its scan from the nearest unaffected beams on both sides (NaN and 0 when there are none).
@@ -24,10 +28,18 @@ The scenario's ``faults:`` section (lrfsim.scenario_sections.FaultsConfig), appl
    Recorded: each spot's cells.
 5. ``dropped_scans_fraction: f``: round(f S) random scans removed (all arrays with a scan axis). Recorded:
    the original indices of the removed scans.
+9. ``joint_rate_hz: f``: the joint states thinned to at most f: every n-th sample kept from the first, n =
+   ceil(servo.rate_hz / f) (a servo polled slowly; before the encoder spikes, so their indices are those of
+   the written stream). Recorded: f (requested_hz), n (keep_every) and the rate written, servo.rate_hz / n.
 6. ``encoder_spikes: N``: N random joint-state samples get +-encoder_spike_rad (random sign) on their
    position. Recorded: sample index and the jump.
 7. ``stamp_latency_s: L``, ``stamp_jitter_s: J``: scan stamps taken at receive time, each stamp moved later by
    L + uniform [0, J) (:func:`receive_stamps`). Recorded: L, J and the largest delay.
+10. ``angle_increment_off_by_one: true``: the LaserScans declare angle_increment = (angle_max - angle_min) / N
+    instead of / (N - 1) (N beams; a driver's off-by-one), angle_min and angle_max unchanged: a reader that
+    places beam i at angle_min + i angle_increment puts the last beam (N - 1) / N of the span from the first.
+    The ranges stay where the beams truly were (only ``SimResult.declared_angle_increment_rad``, which the bag
+    writer declares, changes). Recorded: the true and the declared increment.
 
 Not a fault of this module: ``servo.clock_offset_s`` (laser stamp - servo stamp) already simulates an unknown
 laser-servo clock offset (the recording does not declare it; ground_truth.yaml has it as clock_offset_s).
@@ -35,6 +47,7 @@ laser-servo clock offset (the recording does not declare it; ground_truth.yaml h
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any
 
@@ -275,6 +288,37 @@ def receive_stamps(result: SimResult, scenario: Scenario, latency_s: float, jitt
     return _with_record(result, "receive_stamps", record, scan_stamps_s=result.scan_stamps_s + delay)
 
 
+def scale_joints(result: SimResult, ratio: float) -> SimResult:
+    """JointState positions and velocities times ``ratio`` (a wrong gear ratio); the truth is unchanged."""
+    if ratio == 1.0:
+        return result
+    j = result.joints
+    joints = replace(j, positions_rad=j.positions_rad * ratio, velocities_rad_s=j.velocities_rad_s * ratio)
+    return _with_record(result, "gear_ratio", float(ratio), joints=joints)
+
+
+def thin_joints(result: SimResult, scenario: Scenario, rate_hz: float | None) -> SimResult:
+    """Every n-th joint state kept (from the first), n = ceil(servo.rate_hz / rate_hz): at most ``rate_hz``."""
+    if rate_hz is None:
+        return result
+    n = max(1, math.ceil(scenario.servo.rate_hz / rate_hz * (1.0 - 1e-12)))
+    j = result.joints
+    joints = replace(j, stamps_s=j.stamps_s[::n], positions_rad=j.positions_rad[::n],
+                     velocities_rad_s=j.velocities_rad_s[::n], true_positions_rad=j.true_positions_rad[::n])
+    record = {"requested_hz": float(rate_hz), "keep_every": int(n), "rate_hz": float(scenario.servo.rate_hz / n)}
+    return _with_record(result, "joint_rate_hz", record, joints=joints)
+
+
+def off_by_one_increment(result: SimResult, scenario: Scenario) -> SimResult:
+    """The LaserScans declare (angle_max - angle_min) / N as angle_increment instead of / (N - 1)."""
+    sensor = scenario.sensor
+    n = sensor.n_beams
+    declared = (n - 1) * sensor.angle_increment_rad / n
+    record = {"true_angle_increment_rad": float(sensor.angle_increment_rad), "declared_angle_increment_rad":
+              float(declared)}
+    return _with_record(result, "angle_increment_off_by_one", record, declared_angle_increment_rad=declared)
+
+
 def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     """Every fault of ``scenario.faults`` except the range noise scale (applied before simulating), in the
     module docstring's order; the result's ``faults`` record lists what was done."""
@@ -284,13 +328,17 @@ def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     result = tape_outliers(result, f.tape_outliers)
     if f.inverted_servo:
         result = invert_servo(result)
+    result = scale_joints(result, f.gear_ratio)
     result = occlude_markers(result, scenario, f.occluded_markers)
     result = add_false_blobs(result, scenario, f.false_blobs)
     result = drop_scans(result, scenario, f.dropped_scans_fraction)
+    result = thin_joints(result, scenario, f.joint_rate_hz)
     result = encoder_spikes(result, scenario, f.encoder_spikes, f.encoder_spike_rad)
-    return receive_stamps(result, scenario, f.stamp_latency_s, f.stamp_jitter_s)
+    result = receive_stamps(result, scenario, f.stamp_latency_s, f.stamp_jitter_s)
+    return off_by_one_increment(result, scenario) if f.angle_increment_off_by_one else result
 
 
 __all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask",
            "drop_scans", "encoder_spikes", "invert_servo", "marker_returns", "occlude_markers",
-           "receive_stamps", "scale_range_noise", "tape_outliers"]
+           "off_by_one_increment", "receive_stamps", "scale_joints", "scale_range_noise", "tape_outliers",
+           "thin_joints"]

@@ -119,7 +119,7 @@ class Plan:
     def strengthen(self) -> str:
         """What would strengthen the weakest direction, in words."""
         hint = self.observability.hint()
-        return f"{hint}; more passes of the sweep shrink every sigma by about 1/sqrt(passes)"
+        return f"{hint}; more passes of the sweep (turns of a spin) shrink every sigma by about 1/sqrt(passes)"
 
     def to_json(self) -> dict[str, Any]:
         """The plan as one JSON-able mapping (SI units; infinity as null)."""
@@ -251,7 +251,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
         notes.append("the sigmas include the surface returns, but the calibration judges the marker returns alone "
                      "before solving: it would refuse this recording")
     if not two_way:
-        notes.append("one-way sweep: the clock offset is held (the calibration cannot separate it from rz)")
+        notes.append("one-way sweep (or spin): the clock offset is held (the calibration cannot separate it from rz)")
     tol = scenario.tolerances
     pos = [names.index(n) for n in ("x", "y", "z")]
     rot = [names.index(n) for n in ("rx", "ry", "rz")]

@@ -18,6 +18,7 @@ import numpy as np
 from lrfcal.model.kinematics import Pose
 
 from .scenario import Scenario, parse_scenario
+from .servo import covered_angles_rad
 
 if TYPE_CHECKING:
     from .simresult import SimResult
@@ -362,8 +363,22 @@ def visible_markers(scenario: Scenario) -> np.ndarray:
     T = scenario.rig.mount.to_pose().matrix()
     dh = scenario.rig.dh
     u_M = (C - T[:3, 3]) @ T[:3, :3]
-    lo, hi = sorted((scenario.servo.start_rad, scenario.servo.end_rad))
+    lo, hi = _motor_range_rad(scenario)
     return _visible_in_M(u_M, dh.alpha, dh.beta, lo, hi)
+
+
+def _motor_range_rad(scenario: Scenario) -> tuple[float, float]:
+    """The motor angles the servo covers (lrfsim.servo.covered_angles_rad) as the visibility tests take them
+    (their candidate angles lie within [-7 pi / 2, 9 pi / 2]): a sweep's as they are; a spin's moved by whole
+    turns to start in [-pi, pi); a spin that turns a full circle beyond the margins: (-pi, pi) widened by the
+    margin, the whole circle."""
+    lo, hi = covered_angles_rad(scenario.servo)
+    if scenario.servo.mode == "sweep":
+        return lo, hi
+    if hi - lo >= 2 * math.pi + 2 * _VIS_MARGIN_RAD:
+        return -math.pi - _VIS_MARGIN_RAD, math.pi + _VIS_MARGIN_RAD
+    shift = 2 * math.pi * math.floor((lo + math.pi) / (2 * math.pi))
+    return lo - shift, hi - shift
 
 
 def _beam_through(u_M: np.ndarray, alpha: float, beta: float, lam_lo: float, lam_hi: float
@@ -404,7 +419,7 @@ def wide_dh_sigma(scenario: Scenario, sigma_m: float | None = None) -> np.ndarra
     T = scenario.rig.mount.to_pose().matrix()
     R0, t0 = T[:3, :3], T[:3, 3]
     dh0 = scenario.rig.dh
-    lo, hi = sorted((scenario.servo.start_rad, scenario.servo.end_rad))
+    lo, hi = _motor_range_rad(scenario)
     vis, lam, mu = _beam_through((C - t0) @ R0, dh0.alpha, dh0.beta, lo, hi)
     if vis.sum() < 4:
         return np.full(4, np.inf)
@@ -428,7 +443,9 @@ def wide_dh_sigma(scenario: Scenario, sigma_m: float | None = None) -> np.ndarra
     sv = np.linalg.svd(Js, compute_uv=False)
     if sv[-1] < 1e-9 * sv[0]:
         return np.full(4, np.inf)
-    cov = np.linalg.inv(Js.T @ Js) / np.outer(scale, scale) * sigma**2 / scenario.servo.passes
+    servo = scenario.servo  # a sweep sees each marker once a pass, a spin (at least) once a turn
+    looks = servo.passes if servo.mode == "sweep" else max(1.0, servo.revolutions)
+    cov = np.linalg.inv(Js.T @ Js) / np.outer(scale, scale) * sigma**2 / looks
     return np.sqrt(np.diag(cov)[:4])
 
 

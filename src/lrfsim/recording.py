@@ -71,7 +71,8 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
 
 
 def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
-    """The ROS 2 bag (MCAP, version 9) with /scan and /joint_states, messages in log-time order; with echoes
+    """The ROS 2 bag (MCAP, version 9) with /scan and /joint_states, messages in log-time order (the LaserScans
+    declare ``result.declared_angle_increment_rad`` when a fault set it, else the sensor's); with echoes
     (``result.echo_ranges_m``) also a MultiEchoLaserScan per scan on ``sensor.echoes.topic``, logged with its
     /scan: per beam a LaserEcho with the beam's valid echoes, nearest first (none: empty), as urg_node fills it."""
     from rosbags.rosbag2 import StoragePlugin, Writer
@@ -92,7 +93,9 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
 
     n = sensor.n_beams
-    angle_max = sensor.angle_min_rad + (n - 1) * sensor.angle_increment_rad
+    angle_max = sensor.angle_min_rad + (n - 1) * sensor.angle_increment_rad  # the true span, faults aside
+    increment = (sensor.angle_increment_rad if result.declared_angle_increment_rad is None
+                 else result.declared_angle_increment_rad)
     ranges32 = result.ranges_m.astype(np.float32)
     intens32 = result.intensities.astype(np.float32)
     offset = servo.clock_offset_s
@@ -110,7 +113,7 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
                 msg = LaserScan(
                     header=header(float(result.scan_stamps_s[k]), LASER_FRAME),
                     angle_min=float(sensor.angle_min_rad), angle_max=float(angle_max),
-                    angle_increment=float(sensor.angle_increment_rad), time_increment=float(sensor.time_increment_s),
+                    angle_increment=float(increment), time_increment=float(sensor.time_increment_s),
                     scan_time=float(sensor.scan_period_s), range_min=float(sensor.range_min_m),
                     range_max=float(sensor.range_max_m), ranges=ranges32[k], intensities=intens32[k])
                 writer.write(c_scan, log_ns, ts.serialize_cdr(msg, LASERSCAN_TYPE))

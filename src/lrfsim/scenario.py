@@ -147,12 +147,10 @@ MAX_SCENARIO_BYTES = 8 * 2**30
 
 def estimate_memory_bytes(scenario: Scenario) -> tuple[int, int]:
     """(number of scans, bytes) a scenario needs: scans x beams x BYTES_PER_BEAM + a chunk's footprint rays."""
-    from .profile import move_profile
+    from .servo import servo_trajectory
 
-    sv, se = scenario.servo, scenario.sensor
-    move_s = move_profile(abs(sv.end_rad - sv.start_rad), sv.speed_rad_s, sv.accel_rad_s2)[0]
-    duration_s = sv.settle_s + sv.passes * (move_s + sv.settle_s)
-    n_scans = int(math.ceil(duration_s / se.scan_period_s)) + 1
+    se = scenario.sensor
+    n_scans = int(math.ceil(servo_trajectory(scenario.servo).end_s / se.scan_period_s)) + 1
     chunk_rays = 16 * se.n_beams * se.footprint_rays
     return n_scans, n_scans * se.n_beams * BYTES_PER_BEAM + chunk_rays * BYTES_PER_CHUNK_RAY
 
@@ -170,12 +168,13 @@ def check_resources(scenario: Scenario, source: str) -> None:
     n_scans, need = estimate_memory_bytes(scenario)
     limit = _memory_limit_bytes()
     if need > limit:
-        se = scenario.sensor
+        se, sv = scenario.sensor, scenario.servo
+        key, value = ("passes", sv.passes) if sv.mode == "sweep" else ("revolutions", sv.revolutions)
         raise InputError(
             f"{source}: sensor/servo: this scenario needs about {need / 2**30:.3g} GiB ({n_scans:,} scans x "
-            f"{se.n_beams:,} beams x {BYTES_PER_BEAM} bytes; scan_period_s {se.scan_period_s:g}, servo.passes "
-            f"{scenario.servo.passes}), more than the {limit / 2**30:.3g} GiB allowed: use fewer beams, passes or "
-            "a longer scan_period_s")
+            f"{se.n_beams:,} beams x {BYTES_PER_BEAM} bytes; scan_period_s {se.scan_period_s:g}, servo.{key} "
+            f"{value:g}), more than the {limit / 2**30:.3g} GiB allowed: use fewer beams, {key} or a longer "
+            "scan_period_s")
 
 
 def require_markers(scenario: Scenario, command: str, reason: str) -> None:

@@ -187,18 +187,29 @@ class SensorConfig(Section):
 
 
 class ServoConfig(Section):
-    """The servo sweep: from ``start_rad`` to ``end_rad`` at ``speed_rad_s``, ``passes`` times (alternating)."""
+    """The servo's motion (lrfsim.servo): ``mode: sweep`` turns from ``start_rad`` to ``end_rad`` at ``speed_rad_s``,
+    ``passes`` times (alternating); ``mode: spin`` turns continuously one way for ``revolutions`` full turns from
+    ``start_rad`` (a continuous joint: the joint states carry the unwrapped angle, beyond +-pi)."""
 
     joint: Annotated[str, doc("joint name in the JointState messages (as the rig file's servo.joint; the old key "
                               "joint_name is still read)", min_length=1,
                               validation_alias=AliasChoices("joint", "joint_name"))] = "servo"
-    start_rad: Annotated[float, doc("motor angle where the sweep starts [rad]", ge=-2 * math.pi, le=2 * math.pi)
+    mode: Annotated[Literal["sweep", "spin"], doc(
+        "sweep: back and forth between start_rad and end_rad; spin: one way for `revolutions` full turns from "
+        "start_rad (accelerate, cruise, decelerate and stop; the ramps count in the turns), end_rad not used")
+                    ] = "sweep"
+    start_rad: Annotated[float, doc("motor angle where the motion starts [rad]", ge=-2 * math.pi, le=2 * math.pi)
                          ] = math.pi / 2
-    end_rad: Annotated[float, doc("motor angle where the first pass ends [rad]", ge=-2 * math.pi, le=2 * math.pi)
-                       ] = -math.pi / 2
+    end_rad: Annotated[float, doc("motor angle where the first pass ends (mode sweep; not used with mode spin) "
+                                  "[rad]", ge=-2 * math.pi, le=2 * math.pi)] = -math.pi / 2
+    revolutions: Annotated[float, doc("mode spin: full turns from start to stop, ramps included (may be "
+                                      "fractional; not used with mode sweep) [1]", gt=0, le=1000)] = 1.0
+    spin_direction: Annotated[Literal[1, -1], doc("mode spin: +1 turns towards increasing motor angle, -1 "
+                                                  "towards decreasing [1]")] = 1
     speed_rad_s: Annotated[float, doc("cruise speed [rad/s]", gt=0, le=10)] = math.radians(10.0)
     accel_rad_s2: Annotated[float, doc("acceleration of the trapezoidal ramps [rad/s^2]", gt=0, le=1000)] = 2.0
-    passes: Annotated[int, doc("number of passes, alternating direction [1]", ge=1, le=100)] = 1
+    passes: Annotated[int, doc("number of passes, alternating direction (mode spin: must be 1) [1]", ge=1, le=100)
+                      ] = 1
     settle_s: Annotated[float, doc("standing still at each end [s]", ge=0, le=3600)] = 0.2
     rate_hz: Annotated[float, doc("JointState publishing rate [Hz]", gt=0, le=10000)] = 100.0
     encoder_counts: Annotated[int, doc("encoder counts per revolution (0: no quantisation) [1]", ge=0, le=2**30)] = 4096
@@ -208,7 +219,11 @@ class ServoConfig(Section):
 
     @model_validator(mode="after")
     def _check(self) -> ServoConfig:
-        if self.start_rad == self.end_rad:
+        if self.mode == "spin":
+            if self.passes != 1:
+                raise ValueError(f"passes is {self.passes}: a spin (mode spin) turns one way, passes must be 1 "
+                                 "(more turns: revolutions)")
+        elif self.start_rad == self.end_rad:
             raise ValueError(f"start_rad and end_rad are equal ({self.start_rad}): nothing to sweep")
         return self
 
@@ -393,3 +408,12 @@ class FaultsConfig(Section):
                                           "first beam [s]", ge=0, le=1)] = 0.0
     stamp_jitter_s: Annotated[float, doc("and a further uniform random delay in [0, this) per scan [s]", ge=0,
                                         le=1)] = 0.0
+    gear_ratio: Annotated[float, doc("joint positions and velocities published times this (a wrong gear ratio or "
+                                     "counts per revolution in the driver; 1: off); the truth is unchanged [1]",
+                                     gt=0, le=100)] = 1.0
+    joint_rate_hz: Annotated[float | None, doc("joint states thinned to at most this rate, every n-th sample kept "
+                                               "with n = ceil(servo.rate_hz / this) (a servo polled slowly; null: "
+                                               "off) [Hz]", gt=0, le=10000)] = None
+    angle_increment_off_by_one: Annotated[bool, doc(
+        "the LaserScans declare angle_increment = (angle_max - angle_min) / N instead of / (N - 1) (a driver's "
+        "off-by-one, N beams); angle_min, angle_max and the ranges are unchanged")] = False

@@ -5,7 +5,7 @@ naming the field, e.g. "markers.layout: marker m03 at (...) intersects the left 
 - ``markers.layout``: every marker inside the tunnel and the room, outside every box and the board, on the board
   for a board layout, and no two markers overlapping;
 - ``rig.mount``: the laser's optical centre inside the tunnel and the room and outside every box over the whole
-  sweep (it circles the motor axis).
+  sweep or spin (it circles the motor axis).
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ from lrfcal.model.kinematics import beam_rays_M, transform_points
 from .scenario import Scenario
 from .scenario_sections import BoardLayout, RoomConfig, TunnelConfig
 from .scene_geometry import room_pose_W
+from .servo import covered_angles_rad
 
 FloatArray = NDArray[np.float64]
 
@@ -166,11 +167,11 @@ def _box_violation(p: FloatArray, r: float, scenario: Scenario) -> str | None:
 
 def _check_optical_centre(scenario: Scenario) -> None:
     """The optical centre must stay inside the tunnel and the room, and outside every box, over the whole sweep
-    (it circles the motor axis)."""
+    or spin (it circles the motor axis; a spin of a turn or more: the whole circle)."""
     if scenario.scene.tunnel is None and scenario.scene.room is None and not scenario.scene.boxes:
         return
-    servo = scenario.servo
-    lam = np.linspace(min(servo.start_rad, servo.end_rad), max(servo.start_rad, servo.end_rad), 73)
+    lo, hi = covered_angles_rad(scenario.servo)
+    lam = np.linspace(lo, min(hi, lo + 2 * np.pi), 73)
     origins_M, _ = beam_rays_M(lam, np.zeros_like(lam), scenario.rig.dh.to_dh())
     origins_W = transform_points(scenario.rig.mount.to_pose().matrix(), origins_M)
     for lam_k, p in zip(lam, origins_W, strict=True):

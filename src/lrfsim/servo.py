@@ -4,10 +4,15 @@ Clocks. The simulation's true time is the servo's clock: t = 0 is the start of t
 the same instant as ``t + clock_offset_s`` (ServoConfig.clock_offset_s; laser stamp = servo stamp + offset),
 see :func:`laser_time`.
 
-Trajectory. ``settle_s`` standstill, then ``passes`` sweeps alternating start -> end -> start ..., each followed
-by ``settle_s`` standstill. Each sweep is a trapezoidal velocity profile: constant acceleration
-``accel_rad_s2`` up to ``speed_rad_s``, cruise, symmetric deceleration (a triangle when the sweep is too short
-to reach the speed). Position is C1, velocity is continuous, acceleration piecewise constant.
+Trajectory (``mode``, :func:`servo_trajectory`). ``sweep`` (:func:`sweep_trajectory`): ``settle_s``
+standstill, then ``passes`` sweeps alternating start -> end -> start ..., each followed by ``settle_s``
+standstill. ``spin`` (:func:`spin_trajectory`, a continuously turning motor): ``settle_s`` standstill at
+``start_rad``, one move of ``revolutions`` full turns in ``spin_direction`` (the ramps included: it stops at
+start_rad + spin_direction 2 pi revolutions), ``settle_s`` standstill; ``end_rad`` is not used. Each move is a
+trapezoidal velocity profile: constant acceleration ``accel_rad_s2`` up to ``speed_rad_s``, cruise, symmetric
+deceleration (a triangle when the move is too short to reach the speed). Position is C1, velocity is
+continuous, acceleration piecewise constant. Angles are never wrapped: a spin's angle runs monotonically beyond
++-pi, as a ROS continuous joint publishes it.
 
 Joint states. Samples every ``1 / rate_hz`` from t = 0 to the end of the trajectory, stamped with the servo
 clock. The reported position is the true angle passed through a backlash (play) operator of width
@@ -124,24 +129,68 @@ class Trajectory:
         return np.where(d < 0, np.minimum(r0[k], lam + h), out)
 
 
-def sweep_trajectory(servo: ServoConfig) -> Trajectory:
-    """The sweep of a scenario: hold, (move, hold) x passes (module docstring)."""
-    dist = abs(servo.end_rad - servo.start_rad)
-    sign = math.copysign(1.0, servo.end_rad - servo.start_rad)
-    T, ramp, peak = move_profile(dist, servo.speed_rad_s, servo.accel_rad_s2)
-    rows: list[tuple[float, float, float, float, float, float, float]] = []  # dur, from, dir, D, a, ramp, peak
-    rows.append((servo.settle_s, servo.start_rad, 0.0, 0.0, 0.0, 0.0, 0.0))
-    at = servo.start_rad
-    for p in range(servo.passes):
-        d = sign if p % 2 == 0 else -sign
-        rows.append((T, at, d, dist, servo.accel_rad_s2, ramp, peak))
-        at = servo.end_rad if p % 2 == 0 else servo.start_rad
-        rows.append((servo.settle_s, at, 0.0, 0.0, 0.0, 0.0, 0.0))
+#: one row of a trajectory: (duration_s, from_rad, direction, distance_rad, accel_rad_s2, ramp_s, peak_rad_s)
+_Row = tuple[float, float, float, float, float, float, float]
+
+
+def _hold(duration_s: float, at_rad: float) -> _Row:
+    return (duration_s, at_rad, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def _move(from_rad: float, direction: float, distance_rad: float, servo: ServoConfig) -> _Row:
+    T, ramp, peak = move_profile(distance_rad, servo.speed_rad_s, servo.accel_rad_s2)
+    return (T, from_rad, direction, distance_rad, servo.accel_rad_s2, ramp, peak)
+
+
+def _trajectory(rows: list[_Row], backlash_rad: float) -> Trajectory:
     arr = np.array(rows, dtype=float)
     starts = np.concatenate([[0.0], np.cumsum(arr[:-1, 0])])
     return Trajectory(start_s=starts, duration_s=arr[:, 0], from_rad=arr[:, 1], direction=arr[:, 2],
                       distance_rad=arr[:, 3], accel_rad_s2=arr[:, 4], ramp_s=arr[:, 5], peak_rad_s=arr[:, 6],
-                      backlash_rad=servo.backlash_rad)
+                      backlash_rad=backlash_rad)
+
+
+def sweep_trajectory(servo: ServoConfig) -> Trajectory:
+    """The sweep of a scenario: hold, (move, hold) x passes (module docstring). A spin is
+    :func:`spin_trajectory`; :func:`servo_trajectory` picks by ``servo.mode``."""
+    if servo.mode != "sweep":
+        raise ValueError(f"sweep_trajectory: servo.mode is {servo.mode!r} (use servo_trajectory)")
+    dist = abs(servo.end_rad - servo.start_rad)
+    sign = math.copysign(1.0, servo.end_rad - servo.start_rad)
+    rows = [_hold(servo.settle_s, servo.start_rad)]
+    at = servo.start_rad
+    for p in range(servo.passes):
+        rows.append(_move(at, sign if p % 2 == 0 else -sign, dist, servo))
+        at = servo.end_rad if p % 2 == 0 else servo.start_rad
+        rows.append(_hold(servo.settle_s, at))
+    return _trajectory(rows, servo.backlash_rad)
+
+
+def spin_trajectory(servo: ServoConfig) -> Trajectory:
+    """The spin of a scenario: hold at start_rad, one move of 2 pi revolutions in spin_direction (ramps
+    included), hold (module docstring)."""
+    rows = [_hold(servo.settle_s, servo.start_rad),
+            _move(servo.start_rad, float(servo.spin_direction), 2.0 * math.pi * servo.revolutions, servo),
+            _hold(servo.settle_s, _spin_stop_rad(servo))]
+    return _trajectory(rows, servo.backlash_rad)
+
+
+def _spin_stop_rad(servo: ServoConfig) -> float:
+    """Where a spin stops: start_rad + spin_direction 2 pi revolutions (unwrapped)."""
+    return servo.start_rad + servo.spin_direction * 2.0 * math.pi * servo.revolutions
+
+
+def servo_trajectory(servo: ServoConfig) -> Trajectory:
+    """The scenario's motor trajectory: :func:`sweep_trajectory` or :func:`spin_trajectory` by ``servo.mode``."""
+    return spin_trajectory(servo) if servo.mode == "spin" else sweep_trajectory(servo)
+
+
+def covered_angles_rad(servo: ServoConfig) -> tuple[float, float]:
+    """(lo, hi), lo < hi: the motor angles [rad] the trajectory passes through (unwrapped): a sweep's start and
+    end, sorted; a spin's start_rad and where it stops (hi - lo = 2 pi revolutions, more than a turn when it
+    turns more than once)."""
+    end = _spin_stop_rad(servo) if servo.mode == "spin" else servo.end_rad
+    return min(servo.start_rad, end), max(servo.start_rad, end)
 
 
 def quantise_encoder(angle_rad: ArrayLike, encoder_counts: int) -> FloatArray:
@@ -184,8 +233,8 @@ def laser_time(t_servo_s: ArrayLike, clock_offset_s: float) -> FloatArray:
 def check_trajectory(traj: Trajectory, max_duration_s: float = 3600.0) -> None:
     """Refuse absurd recordings (hours of data) before allocating them."""
     if traj.end_s > max_duration_s:
-        raise InputError(f"servo: the sweep lasts {traj.end_s:.0f} s, more than {max_duration_s:.0f} s")
+        raise InputError(f"servo: the motion lasts {traj.end_s:.0f} s, more than {max_duration_s:.0f} s")
 
 
-__all__ = ["JointSamples", "Trajectory", "check_trajectory", "joint_samples", "laser_time", "move_profile",
-           "quantise_encoder", "sweep_trajectory"]
+__all__ = ["JointSamples", "Trajectory", "check_trajectory", "covered_angles_rad", "joint_samples", "laser_time",
+           "move_profile", "quantise_encoder", "servo_trajectory", "spin_trajectory", "sweep_trajectory"]

@@ -61,7 +61,9 @@ class SimResult:
     +inf); intensities (S, N) counts; beam_lambda_rad (S, N): true motor angle at every beam (truth);
     joints: the JointState stream (servo clock); tape; truth; stats; faults: what lrfsim.faults injected
     (ground_truth.yaml ``faults``; empty without faults); echo_ranges_m, echo_intensities (S, N, E): the
-    multi-echo returns nearest first (NaN: no echo), None unless sensor.echoes.enabled.
+    multi-echo returns nearest first (NaN: no echo), None unless sensor.echoes.enabled;
+    declared_angle_increment_rad: the angle_increment the LaserScan messages declare (None: the sensor's, the true
+    one; lrfsim.faults changes it, the beams stay where they are).
     """
 
     name: str
@@ -78,6 +80,7 @@ class SimResult:
     faults: dict[str, Any] = field(default_factory=dict)
     echo_ranges_m: FloatArray | None = None
     echo_intensities: FloatArray | None = None
+    declared_angle_increment_rad: float | None = None
 
 
 __all__ = ["SimResult", "SimStats", "SimTruth"]

@@ -21,7 +21,7 @@ from .lidar import Cast, beam_angles, beam_times, scan_start_times, sensor_model
 from .raycast import cast_scans
 from .scenario import Scenario
 from .scenario_sections import SensorConfig
-from .servo import check_trajectory, joint_samples, laser_time, sweep_trajectory
+from .servo import check_trajectory, joint_samples, laser_time, servo_trajectory
 from .simresult import SimResult, SimStats, SimTruth
 from .tape import measure_tape
 
@@ -86,7 +86,7 @@ def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool
 
         scene = build_scene(scenario)
     sensor, servo = scenario.sensor, scenario.servo
-    traj = sweep_trajectory(servo)
+    traj = servo_trajectory(servo)
     check_trajectory(traj)
     phase_s = float(np.random.default_rng([scenario.seed, _RNG_PHASE]).uniform(0.0, sensor.scan_period_s))
     starts_s = scan_start_times(traj.end_s, sensor, phase_s)
@@ -116,7 +116,7 @@ def simulate_from_geometry(scenario: Scenario, geometry: Geometry, *, noise: boo
     sensor, servo = scenario.sensor, scenario.servo
     lid = sensor_model(geometry.cast, sensor, np.random.default_rng([scenario.seed, _RNG_SENSOR]),
                        geometry.beam_times_s)
-    joints = joint_samples(sweep_trajectory(servo), servo)
+    joints = joint_samples(servo_trajectory(servo), servo)
     tape = measure_tape(scene.marker_ids, scene.markers_W, scenario.tape,
                         np.random.default_rng([scenario.seed, _RNG_TAPE]))
     truth = SimTruth(dh=scenario.rig.dh.to_dh(), mount=scenario.rig.mount.to_pose(),
