@@ -24,7 +24,7 @@ from lrfcal.model.kinematics import beam_rays_M, transform_points
 from lrfsim import lidar, raycast
 from lrfsim.scenario import load_scenario
 from lrfsim.scene import build_scene
-from lrfsim.servo import sweep_trajectory
+from lrfsim.servo import servo_trajectory
 from lrfsim.simulate import simulate_to_folder
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -34,7 +34,7 @@ def main(path: Path) -> None:
     sc = load_scenario(path)
     scene = build_scene(sc)
     sensor = sc.sensor
-    traj = sweep_trajectory(sc.servo)
+    traj = servo_trajectory(sc.servo)
     starts = lidar.scan_start_times(traj.end_s, sensor, 0.0)
     lam = traj.angle(lidar.beam_times(starts, sensor))
     N, F = sensor.n_beams, sensor.footprint_rays

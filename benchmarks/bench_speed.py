@@ -96,12 +96,12 @@ def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
     from lrfsim import lidar, raycast
     from lrfsim.scenario import load_scenario
     from lrfsim.scene import build_scene
-    from lrfsim.servo import sweep_trajectory
+    from lrfsim.servo import servo_trajectory
 
     sc = load_scenario(scenario_path)
     scene = build_scene(sc)
     sensor = sc.sensor
-    traj = sweep_trajectory(sc.servo)
+    traj = servo_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sensor, 0.0), sensor))
     N, F = sensor.n_beams, sensor.footprint_rays
     cutoff = raycast.cast_cutoff_m(sensor)
