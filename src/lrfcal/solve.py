@@ -39,40 +39,12 @@ FloatArray = NDArray[np.float64]
 def _fit(th0: FloatArray, R_ref: FloatArray, pb: Problem, free: NDArray[np.bool_], robust: bool
          ) -> tuple[FloatArray, FloatArray, int, str]:
     """One solver pass over the free unknowns; returns (th with w folded into R_ref, R_ref, nfev, message)."""
-    idx = np.flatnonzero(free)
-
-    def full(x: FloatArray) -> FloatArray:
-        th = th0.copy()
-        th[idx] = x
-        return th
-
-    last: list[tuple[FloatArray, FloatArray]] = []  # the Jacobian at the last residuals' point: scipy asks for it
-
-    def fun(x: FloatArray) -> FloatArray:
-        res, J = pb.stacked(full(x), R_ref)
-        assert J is not None
-        last[:] = [(x.copy(), J[:, idx])]
-        return res
-
-    def jac(x: FloatArray) -> FloatArray:
-        if last and np.array_equal(last[0][0], x):
-            return last[0][1]
-        J = pb.stacked(full(x), R_ref)[1]
-        assert J is not None
-        return J[:, idx]
-
-    if robust:
-        from scipy.optimize import least_squares  # only here: scipy.optimize takes ~0.2 s to import
-
-        sol = least_squares(fun, th0[idx], jac=jac, method="trf", loss="soft_l1", f_scale=2.0, x_scale="jac",
-                            max_nfev=300)
-        th, nfev, msg = full(sol.x), int(sol.nfev), str(sol.message)
-    else:  # plain least squares on the normal equations (lrfcal.normal_equations)
-        # stopped at steps below 1e-2 sigma: the clock offset's Jacobian (smoothed joint velocity) makes the last
-        # iterations converge only linearly, by factors of ~2 per evaluation of every marker and surface return
-        th, nfev, ok = levenberg_marquardt(th0, lambda x, j: pb.blocks(x, R_ref, j), np.flatnonzero(free[:N_CORE]),
-                                           N_CORE, max_iter=100, step_tol=1e-2)
-        msg = "converged" if ok else "maximum number of function evaluations exceeded"
+    # robust: Huber weights (threshold 2 sigma) against stray returns; plain: least squares, stopped at steps below
+    # 1e-2 sigma (the clock offset's Jacobian, a smoothed joint velocity, makes the last iterations converge only
+    # linearly, by factors of ~2 per evaluation of every marker and surface return)
+    th, nfev, ok = levenberg_marquardt(th0, lambda x, j: pb.blocks(x, R_ref, j), np.flatnonzero(free[:N_CORE]),
+                                       N_CORE, huber=2.0 if robust else None, max_iter=100, step_tol=1e-2)
+    msg = "converged" if ok else "maximum number of function evaluations exceeded"
     R_new = R_ref @ exp_so3(th[3:6])
     th[3:6] = 0.0
     return th, R_new, nfev, msg

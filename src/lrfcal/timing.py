@@ -164,9 +164,11 @@ def _poorly_interpolated(scans: Scans, joints: JointStates, tau0: float, range_s
     i0 = np.clip(np.searchsorted(joints.stamps_s, t0 - tau0) - 1, 0, last)
     i1 = np.clip(np.searchsorted(joints.stamps_s, t1 - tau0) - 1, 0, last)
     bound = np.maximum(err[i0], err[i1])
-    with np.errstate(all="ignore"):
-        reach = np.nanmedian(np.where(np.isfinite(scans.ranges_m), scans.ranges_m, np.nan), axis=1)
-    bad = np.nan_to_num(bound * reach) > INTERPOLATION_SHARE * range_sigma_m
+    r = np.where(np.isfinite(scans.ranges_m), scans.ranges_m, np.nan)
+    some = np.isfinite(r).any(axis=1)
+    reach = np.zeros(S)
+    reach[some] = np.nanmedian(r[some], axis=1)  # a scan without returns has nothing to misplace
+    bad = bound * reach > INTERPOLATION_SHARE * range_sigma_m
     return bad, float(bound.max(initial=0.0))
 
 
