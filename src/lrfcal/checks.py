@@ -122,13 +122,13 @@ def _dh_text(dh: DH) -> str:
 NEAR_PERPENDICULAR_RAD = math.radians(15.0)
 
 
-def attitude_check(sol: Solution) -> Check:
+def attitude_check(dh: DH) -> Check:
     """The DH chain is near-singular when the scan plane is nearly perpendicular to the motor axis (alpha near 0 or
     180 deg): at alpha = 0, Tz(b) commutes with Rz(lambda), so b is the mount's own offset along the motor axis, and
     near it the servo's two directions predict nearly mirror-image clouds. The DH parameterisation does not give
     trustworthy results there (random truths with alpha of 4-10 deg came back with alpha's sign flipped and every
     other check passed), so such a result is refused until the model has a regular parameterisation."""
-    alpha = sol.params.dh.alpha
+    alpha = dh.alpha
     tilt = math.asin(min(1.0, abs(math.sin(alpha))))  # the scan plane's angle from perpendicular to the motor axis
     ok = tilt >= NEAR_PERPENDICULAR_RAD
     return Check("scan plane attitude", ok,
@@ -146,7 +146,7 @@ def marker_checks(
     """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
     type, so that it tests the recording's parts, not the markers against the surfaces)."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol)]
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh)]
     finite = bool(np.all(np.isfinite(sol.sigma)))
     if sol.information is not None and finite:
         obs = observability.analyse(sol.information, sol.information_names)
@@ -210,7 +210,7 @@ def _marker_second_opinion(
 def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
             config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> list[Check]:
     """Convergence, observability of the estimated parameters, reduced chi-square and a second opinion."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol)]
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh)]
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
     ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())

@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal.checks import attitude_check
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.information import information_at
@@ -94,6 +95,8 @@ class Plan:
     information_source: str = SOURCE_MARKERS
     n_surface_returns: int = 0
     notes: tuple[str, ...] = field(default=())
+    #: the scan plane's attitude passes the calibration's check (lrfcal.checks.attitude_check)
+    attitude_ok: bool = True
     #: the DH verdict from all the returns the calibration solves with (the surfaces' too): what the calibration's
     #: "observability" check reports after solving (None: the same as ``observability``, markers only)
     observability_solved: Observability | None = None
@@ -105,7 +108,8 @@ class Plan:
 
     @property
     def determined(self) -> bool:
-        return self.observability.determined and all(math.isfinite(v) for v in self.sigma.values())
+        return (self.attitude_ok and self.observability.determined
+                and all(math.isfinite(v) for v in self.sigma.values()))
 
     @property
     def tolerances_reachable(self) -> bool:
@@ -250,6 +254,9 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     if not obsv.determined and on_planes is not None:
         notes.append("the sigmas include the surface returns, but the calibration judges the marker returns alone "
                      "before solving: it would refuse this recording")
+    attitude = attitude_check(params.dh)
+    if not attitude.passed:
+        notes.append(f"the calibration would refuse this rig: {attitude.detail}")
     if not two_way:
         notes.append("one-way sweep (or spin): the clock offset is held (the calibration cannot separate it from rz)")
     tol = scenario.tolerances
@@ -268,7 +275,8 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 tolerances=checks, n_returns=len(obs), n_markers_seen=n_seen, n_markers=int(len(markers_W)),
                 clock_estimated=two_way, range_sigma_m=sigma_r, seconds=time.perf_counter() - t0,
                 information_source=source, n_surface_returns=0 if on_planes is None else len(on_planes),
-                notes=tuple(notes), observability_solved=None if on_planes is None else analyse(info, names))
+                notes=tuple(notes), attitude_ok=attitude.passed,
+                observability_solved=None if on_planes is None else analyse(info, names))
 
 
 def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers_W: FloatArray, params: Params,
