@@ -4,8 +4,10 @@ for a servo-turned UTM-30LX-EW.
 * :func:`random_scenario`: the recovery suite's generator (tunnel, markers on walls, floor and ceiling, motor
   axis along the tunnel, alpha = -beta = +-90 deg);
 * :func:`random_scenario_wide`: a broader one (V on one or both walls, scattered markers, a board; either sign
-  of alpha and beta, beta 0 or +-90 deg; motor axis along, across or vertical; 1-4 passes), with
-  :func:`wide_dh_determined` labelling whether a layout determines the four DH parameters.
+  of alpha and beta, beta 0 or +-90 deg; motor axis along, across or vertical; 1-4 passes; with ``alpha_kind``
+  or ``broad=True`` also scan planes tilted 20-70 deg or near perpendicular to the motor axis, markers placed on
+  their beams), with :func:`wide_dh_determined` (lrfsim.visibility, re-exported here) labelling whether a layout
+  determines the four DH parameters and :func:`alpha_kind_of` naming the scan plane's attitude.
 """
 
 from __future__ import annotations
