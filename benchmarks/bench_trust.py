@@ -14,25 +14,33 @@ and prints per case the outcome (calibrated with error / sigma, or refused with 
   - the calibration time against the code before the trust work (``--baseline-rev``, run from a git worktree
     in the same run on the same recordings; target at most 2x).
 
-    python benchmarks/bench_trust.py [--seeds 50] [--baseline-rev 399a633] [--skip-faults] [--skip-timing]
+With ``--broad`` the random truths also tilt the scan plane (random_scenario_wide(seed, broad=True): by seed in
+turn, alpha along the motor axis (+-90 +- 3 deg), tilted (|alpha| 20-70 deg, a sweep or a spin) and near
+perpendicular to it (|alpha| 0-15 deg, a spin), a third each), and the summary adds per attitude kind: calibrated,
+refused (by the first words of the reason; the near-perpendicular ones are to be refused by the "scan plane
+attitude" check), confident wrong (must be 0) and the RMS of error / sigma per DH parameter.
+
+    python benchmarks/bench_trust.py [--seeds 50] [--broad] [--baseline-rev 399a633] [--skip-faults] [--skip-timing]
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+import re
 import shutil
 import subprocess
 import sys
 import tempfile
 import time
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
 import yaml
 
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.randomize import random_scenario_wide, wide_dh_determined
+from lrfsim.randomize import ALPHA_KINDS, alpha_kind_of, random_scenario_wide, wide_dh_determined
 from lrfsim.scenario import Scenario, parse_scenario, with_changes
 from lrfsim.trial import Trial, calibrate_recording, record
 
@@ -63,15 +71,17 @@ def _line(trial: Trial, tag: str = "") -> str:
     return f"  {flag}{tag}{trial.describe()} [{trial.seconds:.1f} s]"
 
 
-def run_cases(seeds: int, faults: bool, work: Path) -> tuple[list[tuple[Trial, bool]], list[Trial]]:
-    random_trials: list[tuple[Trial, bool]] = []
-    print(f"random truths (random_scenario_wide, seeds 0-{seeds - 1}):")
+def run_cases(seeds: int, faults: bool, work: Path, broad: bool = False
+              ) -> tuple[list[tuple[Trial, bool, str]], list[Trial]]:
+    """The random truths as (trial, labelled as determining the DH, attitude kind), and the fault set."""
+    random_trials: list[tuple[Trial, bool, str]] = []
+    print(f"random truths (random_scenario_wide{', broad' if broad else ''}, seeds 0-{seeds - 1}):")
     for seed in range(seeds):
-        sc = random_scenario_wide(seed)
+        sc = random_scenario_wide(seed, broad=broad)
         determined = wide_dh_determined(sc)
         folder = record(sc, work / sc.name)
         trial = calibrate_recording(folder)
-        random_trials.append((trial, determined))
+        random_trials.append((trial, determined, alpha_kind_of(sc)))
         print(_line(trial, "" if determined else "(label: weak layout) "), flush=True)
         shutil.rmtree(folder)
     fault_trials: list[Trial] = []
@@ -99,6 +109,33 @@ for _ in range(int(sys.argv[2])):
     t = time.perf_counter(); calibrate(rec, CalibConfig()); best = min(best, time.perf_counter() - t)
 print(best)
 """
+
+
+def _reason_head(reason: str, words: int = 8) -> str:
+    """The first words of a refusal: the failed check's name, or its sentence up to the first colon or bracket."""
+    return " ".join(re.split(r"[:(]", reason)[0].split()[:words]).rstrip(",")
+
+
+def by_kind(random_trials: list[tuple[Trial, bool, str]]) -> list[str]:
+    """Summary lines per attitude kind (ALPHA_KINDS): calibrated, refused by reason, confident wrong, RMS of
+    error / sigma per DH parameter over the calibrated ones."""
+    lines = []
+    for kind in ALPHA_KINDS:
+        trials = [(t, d) for t, d, k in random_trials if k == kind]
+        if not trials:
+            continue
+        cal = [t for t, _ in trials if t.status == "calibrated"]
+        refused = Counter(_reason_head(t.reason) for t, _ in trials if t.status == "refused")
+        labelled = sum(d for _, d in trials)
+        lines.append(f"  {kind} ({len(trials)} truths, {labelled} labelled as determining the DH): "
+                     f"{len(cal)} calibrated, {sum(refused.values())} refused, "
+                     f"{sum(t.confident_wrong for t in cal)} confident wrong")
+        lines += [f"    refused {n}x: {head}" for head, n in refused.most_common()]
+        if cal:
+            rms = np.sqrt(np.mean(np.array([t.z for t in cal]) ** 2, axis=0))
+            lines.append("    RMS of error / sigma: " + ", ".join(f"{n} {v:.2f}" for n, v in zip(DH_NAMES, rms,
+                                                                                                 strict=True)))
+    return lines
 
 
 def timing(rev: str, work: Path, repeats: int = 3) -> list[tuple[str, float, float]]:
@@ -133,19 +170,21 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--seeds", type=int, default=50)
     ap.add_argument("--baseline-rev", default="399a633", help="the code before the trust work")
+    ap.add_argument("--broad", action="store_true", help="random truths with tilted and near-perpendicular scan "
+                    "planes too (a third each), summarised per attitude kind")
     ap.add_argument("--skip-faults", action="store_true")
     ap.add_argument("--skip-timing", action="store_true")
     args = ap.parse_args()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory(prefix="bench_trust-") as tmp:
         work = Path(tmp)
-        random_trials, fault_trials = run_cases(args.seeds, not args.skip_faults, work)
+        random_trials, fault_trials = run_cases(args.seeds, not args.skip_faults, work, args.broad)
         rows = [] if args.skip_timing else timing(args.baseline_rev, work)
 
-    every = [t for t, _ in random_trials] + fault_trials
+    every = [t for t, _, _ in random_trials] + fault_trials
     wrong = [t for t in every if t.confident_wrong]
-    refused = [t for t, _ in random_trials if t.status == "refused"]
-    det = [t for t, d in random_trials if d]
+    refused = [t for t, _, _ in random_trials if t.status == "refused"]
+    det = [t for t, d, _ in random_trials if d]
     det_refused = [t for t in det if t.status == "refused"]
     calibrated = [t for t in every if t.status == "calibrated"]
     z = np.array([t.z for t in calibrated]) if calibrated else np.zeros((0, 4))
@@ -161,6 +200,9 @@ def main() -> None:
         rms = np.sqrt(np.mean(z**2, axis=0))
         print("  RMS of error / sigma over the calibrated runs (target 0.8-1.25): "
               + ", ".join(f"{n} {v:.2f}" for n, v in zip(DH_NAMES, rms, strict=True)) + f" (n = {len(z)})")
+    if args.broad:
+        print("  per scan-plane attitude (alpha_kind_of the truth):")
+        print("\n".join(by_kind(random_trials)))
     for base, now, before in rows:
         print(f"  calibration time {base}: {now:.2f} s now, {before:.2f} s at {args.baseline_rev} "
               f"(ratio {now / before:.2f}, target <= 2)")

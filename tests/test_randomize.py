@@ -1,4 +1,5 @@
-"""The broad random-truth generator (lrfsim.randomize.random_scenario_wide) and its determinability label."""
+"""The broad random-truth generator (lrfsim.randomize.random_scenario_wide), its scan-plane attitudes (broad=True)
+and its determinability label."""
 
 from __future__ import annotations
 
@@ -11,10 +12,14 @@ import pytest
 
 from lrfcal.model.kinematics import Pose
 from lrfsim.randomize import (
+    ALPHA_KINDS,
+    ALPHA_RANGES_DEG,
     WIDE_AXES,
     WIDE_LAYOUTS,
     WIDE_MIN_AXIAL_SPREAD_M,
+    alpha_kind_of,
     axial_spread_m,
+    broad_alpha_kind,
     detected_markers,
     random_scenario,
     random_scenario_wide,
@@ -113,3 +118,53 @@ def test_determinability_label() -> None:
     # a V on the one wall that the motor axis points at: every marker at about one axial distance
     one_wall = [random_scenario_wide(s, layout="v_one_wall", axis="across") for s in range(5)]
     assert not any(wide_dh_determined(sc) for sc in one_wall)
+
+
+def test_broad_draws_every_scan_plane_attitude_with_markers_in_view() -> None:
+    """broad=True: a third each of alpha along the motor axis (as the default draws, the same scenarios), tilted
+    (|alpha| 20-70 deg) and near perpendicular (|alpha| 0-15 deg, spinning), either sign; every marker in view of
+    the sweep or spin (geometry), at least 6; the nominal start within 3 deg of the true alpha and beta."""
+    scen = [random_scenario_wide(s, broad=True) for s in SEEDS]
+    assert Counter(alpha_kind_of(sc) for sc in scen) == {k: len(SEEDS) // 3 for k in ALPHA_KINDS}
+    for s, sc in zip(SEEDS, scen, strict=True):
+        kind, alpha = broad_alpha_kind(s), abs(math.degrees(sc.rig.dh.alpha))
+        assert alpha_kind_of(sc) == kind, sc.name
+        if kind == "axis":
+            assert sc == random_scenario_wide(s)
+        else:
+            lo, hi = ALPHA_RANGES_DEG[kind]
+            assert lo <= alpha <= hi and kind in sc.name, (sc.name, alpha)
+        if kind == "near_perpendicular":
+            assert sc.servo.mode == "spin", sc.name
+        vis = visible_markers(sc)
+        assert vis.sum() >= 6 and (kind == "axis" or vis.all()), (sc.name, vis)
+        nominal, truth = sc.rig.nominal_dh, sc.rig.dh
+        assert max(abs(nominal.alpha - truth.alpha), abs(nominal.beta - truth.beta)) <= math.radians(3.0) + 1e-12
+    for kind in ("tilted", "near_perpendicular"):
+        alpha = np.array([sc.rig.dh.alpha for sc in scen if alpha_kind_of(sc) == kind])
+        assert (alpha > 0).any() and (alpha < 0).any(), kind
+    assert {sc.servo.mode for sc in scen if alpha_kind_of(sc) == "tilted"} == {"sweep", "spin"}
+    for sc in scen[1:3]:
+        build_scene(sc)
+    forced = random_scenario_wide(3, alpha_kind="tilted", axis="along")
+    assert alpha_kind_of(forced) == "tilted" and "_along_" in forced.name
+    with pytest.raises(ValueError, match="alpha_kind"):
+        random_scenario_wide(3, alpha_kind="flat")
+    with pytest.raises(ValueError, match="layout"):
+        random_scenario_wide(3, alpha_kind="tilted", layout="board")
+
+
+def test_near_perpendicular_truth_is_refused_by_the_attitude_check(tmp_path: Path) -> None:
+    """A near-perpendicular random truth (alpha -4 deg, spinning): its markers are seen, and the calibration
+    refuses it with the scan plane attitude check (exit 3) rather than writing a result."""
+    from lrfsim.simulate import write_recording
+    from lrfsim.trial import calibrate_recording
+
+    sc = random_scenario_wide(2, broad=True)
+    assert alpha_kind_of(sc) == "near_perpendicular" and sc.servo.mode == "spin"
+    result = simulate(sc)
+    assert len(detected_markers(result, sc)) >= int(visible_markers(sc).sum()) - 1
+    write_recording(result, sc, tmp_path / sc.name)
+    trial = calibrate_recording(tmp_path / sc.name)
+    assert trial.status == "refused" and trial.exit_code == 3, trial.describe()
+    assert trial.reason.startswith("scan plane attitude"), trial.describe()

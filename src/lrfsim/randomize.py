@@ -4,24 +4,35 @@ for a servo-turned UTM-30LX-EW.
 * :func:`random_scenario`: the recovery suite's generator (tunnel, markers on walls, floor and ceiling, motor
   axis along the tunnel, alpha = -beta = +-90 deg);
 * :func:`random_scenario_wide`: a broader one (V on one or both walls, scattered markers, a board; either sign
-  of alpha and beta, beta 0 or +-90 deg; motor axis along, across or vertical; 1-4 passes), with
-  :func:`wide_dh_determined` labelling whether a layout determines the four DH parameters.
+  of alpha and beta, beta 0 or +-90 deg; motor axis along, across or vertical; 1-4 passes; with ``alpha_kind``
+  or ``broad=True`` also scan planes tilted 20-70 deg or near perpendicular to the motor axis, markers placed on
+  their beams), with :func:`wide_dh_determined` (lrfsim.visibility, re-exported here) labelling whether a layout
+  determines the four DH parameters and :func:`alpha_kind_of` naming the scan plane's attitude.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from lrfcal.model.kinematics import Pose
 
 from .scenario import Scenario, parse_scenario
-from .servo import covered_angles_rad
-
-if TYPE_CHECKING:
-    from .simresult import SimResult
+from .visibility import (
+    HALF_FOV_RAD,
+    VIS_MARGIN_RAD,
+    WIDE_MIN_AXIAL_SPREAD_M,
+    WIDE_SIGMA_LIMITS,
+    axial_spread_m,
+    detected_markers,
+    motor_range_rad,
+    rotvec,
+    visible_in_M,
+    visible_markers,
+    wide_dh_determined,
+    wide_dh_sigma,
+)
 
 
 def random_scenario(seed: int, *, sweep_speed_deg_s: float = 20.0, passes: int = 1) -> Scenario:
@@ -112,10 +123,27 @@ WIDE_LAYOUTS = ("v_one_wall", "v_both_walls", "scattered", "board")
 WIDE_AXES = {"along": (1.0, 0.0, 0.0), "across": (0.0, 1.0, 0.0), "vertical": (0.0, 0.0, 1.0)}
 #: nominal DH beta before its jitter: the front beam across the motor axis (0) or along it (+-90 deg)
 WIDE_BETAS_DEG = (0.0, 90.0, -90.0)
-#: margin inside the scanner's field of view and the sweep for a marker to count as visible
-_VIS_MARGIN_RAD = math.radians(3.0)
-#: half field of view of the UTM-30LX (270 deg)
-_HALF_FOV_RAD = math.radians(135.0)
+
+
+#: scan-plane attitudes of :func:`random_scenario_wide` (``alpha_kind``), by the plane's angle from perpendicular to
+#: the motor axis: along it (|alpha| = 90 +- 3 deg), tilted (|alpha| 20-70 deg) and near perpendicular (|alpha|
+#: 0-15 deg, which the calibration's "scan plane attitude" check refuses)
+ALPHA_KINDS = ("axis", "tilted", "near_perpendicular")
+#: |alpha| ranges [deg] of the tilted and near-perpendicular kinds (either sign is drawn)
+ALPHA_RANGES_DEG = {"tilted": (20.0, 70.0), "near_perpendicular": (0.0, 15.0)}
+
+
+def broad_alpha_kind(seed: int) -> str:
+    """The attitude ``random_scenario_wide(seed, broad=True)`` draws: ALPHA_KINDS in turn by seed (a third each
+    over consecutive seeds)."""
+    return ALPHA_KINDS[seed % len(ALPHA_KINDS)]
+
+
+def alpha_kind_of(scenario: Scenario) -> str:
+    """The ALPHA_KINDS entry of a scenario's true alpha: near_perpendicular within 15 deg of perpendicular to the
+    motor axis, axis within 15 deg of along it, tilted between."""
+    tilt = math.degrees(math.asin(min(1.0, abs(math.sin(scenario.rig.dh.alpha)))))
+    return "near_perpendicular" if tilt < 15.0 else "axis" if tilt > 75.0 else "tilted"
 
 
 def random_scenario_wide(
@@ -125,16 +153,18 @@ def random_scenario_wide(
     axis: str | None = None,
     beta_deg: float | None = None,
     passes: int | None = None,
+    alpha_kind: str | None = None,
+    broad: bool = False,
 ) -> Scenario:
     """A broad random truth (deterministic in ``seed``; pass ``layout``/``axis``/``beta_deg``/``passes`` to fix
-    one choice):
+    one choice; ``alpha_kind`` (ALPHA_KINDS) the scan plane's attitude, default "axis", or ``broad=True`` to take
+    it from the seed, :func:`broad_alpha_kind`):
 
     * layout (WIDE_LAYOUTS): a V on one tunnel wall, a V on both walls, markers scattered on the walls, floor and
       ceiling, or a board beside the rig (no tunnel) extending ALONG the motor axis; 6-30 markers of radius
       5-10 mm;
     * DH: alpha = +-90 deg (either sign) and beta = 0 or +-90 deg, each +-3 deg; a in +-2 cm, |b| <= 4 cm with
-      either sign. (alpha near 0 is not generated: the scan plane would be perpendicular to the motor axis,
-      and turning it would not scan in 3D.);
+      either sign;
     * motor axis (WIDE_AXES) along the tunnel, across it or vertical, either direction; the rotation about
       the axis is chosen (from 12, ties at random) so that the most markers are in view: outside the
       scanner's 90 deg blind sector, which sits around -+z_M when beta ~ +-90 deg; mount rotation jittered by
@@ -142,22 +172,25 @@ def random_scenario_wide(
     * 1-4 passes at 10-20 deg/s over +-90 deg; range noise sigma 5, 10 or 15 mm;
     * nominal start: a, b within 3 mm of the truth, alpha, beta within 3 deg, mount within 3 cm / 3 deg.
 
-    Label the result with :func:`wide_dh_determined`; :func:`visible_markers` says which markers the sweep
-    can see (geometry only).
+    alpha_kind "tilted" or "near_perpendicular" (a stream of draws of their own): |alpha| in ALPHA_RANGES_DEG
+    instead, markers "scattered" (the only layout) where the true beams meet the tunnel (:func:`_markers_on_beams`),
+    the rotation about the motor axis at random; a near-perpendicular plane spins (servo.mode spin, 1-2 turns at
+    0.6-1.2 rad/s, either way), a tilted one sweeps as above or spins, at random. Defaults draw as before.
+
+    Label the result with :func:`wide_dh_determined` and :func:`alpha_kind_of`; :func:`visible_markers` says
+    which markers the sweep can see (geometry only).
     """
+    kind = alpha_kind if alpha_kind is not None else broad_alpha_kind(seed) if broad else "axis"
+    if kind not in ALPHA_KINDS:
+        raise ValueError(f"alpha_kind must be one of {ALPHA_KINDS}")
+    if kind != "axis":
+        return _random_scenario_tilted(seed, kind, layout=layout, axis=axis, beta_deg=beta_deg, passes=passes)
     rng = np.random.default_rng([seed, 0x77696465])  # "wide": a stream apart from random_scenario's
     layout = layout if layout is not None else str(rng.choice(WIDE_LAYOUTS))
     axis = axis if axis is not None else str(rng.choice(list(WIDE_AXES)))
     if layout not in WIDE_LAYOUTS or axis not in WIDE_AXES:
         raise ValueError(f"layout must be one of {WIDE_LAYOUTS}, axis one of {tuple(WIDE_AXES)}")
-    sign_alpha = float(rng.choice([-1.0, 1.0]))
-    beta0 = math.radians(beta_deg if beta_deg is not None else float(rng.choice(WIDE_BETAS_DEG)))
-    dh = {
-        "a": rng.uniform(-0.02, 0.02),
-        "alpha": sign_alpha * math.pi / 2 + math.radians(rng.uniform(-3, 3)),
-        "b": float(rng.choice([-1.0, 1.0])) * rng.uniform(0.0, 0.04),
-        "beta": beta0 + math.radians(rng.uniform(-3, 3)),
-    }
+    dh, beta0 = _wide_dh(rng, kind, beta_deg)
     radius = float(rng.uniform(0.005, 0.010))
     e_axis = np.array(WIDE_AXES[axis])
     scene: dict[str, object]
@@ -167,9 +200,8 @@ def random_scenario_wide(
         scene, markers = _board_beside(rng, origin, e_axis, radius)
         positions = _board_centres(scene, markers, radius, seed)
     else:
-        width, height, plate_x = rng.uniform(0.7, 1.2), rng.uniform(1.8, 2.6), rng.uniform(1.8, 3.0)
-        origin = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1) * width, height * rng.uniform(0.4, 0.6)])
-        scene = {"tunnel": {"width_m": width, "height_m": height, "plate_x_m": plate_x, "x_min_m": -1.0}}
+        scene, origin = _tunnel_and_origin(rng)
+        width, height, plate_x = (scene["tunnel"][k] for k in ("width_m", "height_m", "plate_x_m"))
         if layout == "scattered":
             positions = _markers_on_walls(rng, int(rng.integers(6, 31)), width, height, plate_x, radius)
         else:
@@ -181,6 +213,36 @@ def random_scenario_wide(
     n_passes = passes if passes is not None else int(rng.integers(1, 5))
     servo = {"speed_rad_s": math.radians(speed_deg_s), "passes": n_passes}
     R = _best_mount_rotation(rng, np.asarray(positions, dtype=float), origin, e_axis, dh)
+    name = f"wide_{seed}_{layout}_{axis}_beta{round(math.degrees(beta0)):+d}"
+    return _wide_scenario(rng, seed, name, dh, R, origin, {"servo": servo, "scene": scene, "markers": markers})
+
+
+def _wide_dh(rng: np.random.Generator, kind: str, beta_deg: float | None) -> tuple[dict[str, float], float]:
+    """The true DH set of an ALPHA_KINDS attitude (the sign of alpha, then beta's nominal, a, alpha, b, beta's
+    jitter drawn in that order) and beta's nominal [rad]."""
+    sign_alpha = float(rng.choice([-1.0, 1.0]))
+    beta0 = math.radians(beta_deg if beta_deg is not None else float(rng.choice(WIDE_BETAS_DEG)))
+    a = rng.uniform(-0.02, 0.02)
+    if kind == "axis":
+        alpha = sign_alpha * math.pi / 2 + math.radians(rng.uniform(-3, 3))
+    else:
+        alpha = sign_alpha * math.radians(rng.uniform(*ALPHA_RANGES_DEG[kind]))
+    dh = {"a": a, "alpha": alpha, "b": float(rng.choice([-1.0, 1.0])) * rng.uniform(0.0, 0.04),
+          "beta": beta0 + math.radians(rng.uniform(-3, 3))}
+    return dh, beta0
+
+
+def _tunnel_and_origin(rng: np.random.Generator) -> tuple[dict[str, dict[str, float]], np.ndarray]:
+    """A random tunnel (scene section) and the rig's position in it (3,)."""
+    width, height, plate_x = rng.uniform(0.7, 1.2), rng.uniform(1.8, 2.6), rng.uniform(1.8, 3.0)
+    origin = np.array([rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1) * width, height * rng.uniform(0.4, 0.6)])
+    return {"tunnel": {"width_m": width, "height_m": height, "plate_x_m": plate_x, "x_min_m": -1.0}}, origin
+
+
+def _wide_scenario(rng: np.random.Generator, seed: int, name: str, dh: dict[str, float], R: np.ndarray,
+                   origin: np.ndarray, sections: dict[str, object]) -> Scenario:
+    """The scenario of a drawn truth (mount rotation R (3, 3) at origin (3,); the servo, scene and markers
+    sections), with its nominal start and range noise drawn last."""
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, origin
     mount = _pose_dict(T)
@@ -191,15 +253,85 @@ def random_scenario_wide(
     nominal_mount["pitch"] = max(-math.pi / 2, min(math.pi / 2, nominal_mount["pitch"]))
     noise_bands = _random_noise_bands(rng)
     data = {
-        "name": f"wide_{seed}_{layout}_{axis}_beta{round(math.degrees(beta0)):+d}",
+        "name": name,
         "seed": seed,
         "rig": {"dh": dh, "mount": mount, "nominal_dh": nominal_dh, "nominal_mount": nominal_mount},
         "sensor": {"noise_bands": noise_bands},
-        "servo": servo,
-        "scene": scene,
-        "markers": markers,
+        "servo": sections["servo"],
+        "scene": sections["scene"],
+        "markers": sections["markers"],
     }
     return parse_scenario(_plain(data), f"random_scenario_wide({seed})")
+
+
+def _random_scenario_tilted(seed: int, kind: str, *, layout: str | None, axis: str | None,
+                            beta_deg: float | None, passes: int | None) -> Scenario:
+    """random_scenario_wide for a tilted or near-perpendicular scan plane (its docstring)."""
+    if layout not in (None, "scattered"):
+        raise ValueError(f"layout must be 'scattered' with alpha_kind {kind!r} (markers where the beams meet the "
+                         "tunnel)")
+    rng = np.random.default_rng([seed, 0x77696465, ALPHA_KINDS.index(kind)])
+    axis = axis if axis is not None else str(rng.choice(list(WIDE_AXES)))
+    if axis not in WIDE_AXES:
+        raise ValueError(f"axis must be one of {tuple(WIDE_AXES)}")
+    dh, beta0 = _wide_dh(rng, kind, beta_deg)
+    radius = float(rng.uniform(0.005, 0.010))
+    scene, origin = _tunnel_and_origin(rng)
+    servo: dict[str, object]
+    if kind == "near_perpendicular" or rng.random() < 0.5:
+        servo = {"mode": "spin", "start_rad": rng.uniform(-math.pi, math.pi), "revolutions": rng.uniform(1.0, 2.0),
+                 "spin_direction": int(rng.choice([1, -1])), "speed_rad_s": rng.uniform(0.6, 1.2)}
+    else:
+        servo = {"speed_rad_s": math.radians(rng.uniform(10.0, 20.0)),
+                 "passes": passes if passes is not None else int(rng.integers(1, 5))}
+    R = _axis_frame(float(rng.choice([-1.0, 1.0])) * np.array(WIDE_AXES[axis]), rng.uniform(0, 2 * math.pi))
+    R = rotvec(rng.normal(size=3) * math.radians(5.0) / math.sqrt(3)) @ R
+    positions = _markers_on_beams(rng, int(rng.integers(6, 31)), scene["tunnel"], R, origin, dh, servo, radius)
+    markers = {"radius_m": radius, "layout": {"kind": "points", "positions": positions}}
+    name = (f"wide_{seed}_scattered_{axis}_beta{round(math.degrees(beta0)):+d}_{kind}_"
+            f"{servo.get('mode', 'sweep')}")
+    return _wide_scenario(rng, seed, name, dh, R, origin, {"servo": servo, "scene": scene, "markers": markers})
+
+
+def _markers_on_beams(rng: np.random.Generator, n: int, tunnel: dict[str, float], R: np.ndarray,
+                      origin: np.ndarray, dh: dict[str, float], servo: dict[str, object], radius: float
+                      ) -> list[list[float]]:
+    """Up to n sphere centres, each on a true beam (eq. 3 with the true DH; motor angle and bearing drawn within
+    the sweep or spin and the field of view, 3 deg margins) and touching the tunnel surface that beam meets (a
+    wall, the floor, the ceiling or the plate; not the open end behind the rig), at incidence within 70 deg of
+    its normal, 0.3 m or more from the optical centre, 10 cm or more apart, and visible to the labels' geometry
+    (:func:`lrfsim.visibility.visible_markers`). Fewer when 40 batches of 512 beams find no more room."""
+    from lrfcal.model.kinematics import DH, beam_rays_M
+
+    from .scenario_sections import ServoConfig
+
+    lo, hi = motor_range_rad(ServoConfig.model_validate(_plain(servo)))
+    box_lo = np.array([tunnel["x_min_m"], -tunnel["width_m"] / 2, 0.0])
+    box_hi = np.array([tunnel["plate_x_m"], tunnel["width_m"] / 2, tunnel["height_m"]])
+    axial = np.array([0.0, 0.0, dh["b"] * math.cos(dh["alpha"])])  # the optical centre on the motor axis
+    out: list[np.ndarray] = []
+    for _ in range(40):
+        lam = rng.uniform(lo + VIS_MARGIN_RAD, hi - VIS_MARGIN_RAD, 512)
+        mu = rng.uniform(-1.0, 1.0, 512) * (HALF_FOV_RAD - VIS_MARGIN_RAD)
+        o_M, d_M = beam_rays_M(lam, mu, DH(**dh))
+        o, d = o_M @ R.T + origin, d_M @ R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_face = np.where(d > 0, (box_hi - o) / d, (box_lo - o) / d)  # along the beam to each bounding plane
+        t_face[~np.isfinite(t_face)] = np.inf
+        face = np.argmin(t_face, axis=1)
+        rows = np.arange(len(lam))
+        cos_i = np.maximum(np.abs(d[rows, face]), 1e-9)
+        t_c = t_face[rows, face] - radius / cos_i  # the centre one radius off that surface
+        centres = o + t_c[:, None] * d
+        ok = ~((face == 0) & (d[:, 0] < 0)) & (cos_i >= math.cos(math.radians(70.0))) & (t_c >= 0.3)
+        ok &= np.all((centres >= box_lo + radius - 1e-9) & (centres <= box_hi - radius + 1e-9), axis=1)
+        ok &= visible_in_M((centres - origin) @ R - axial, dh["alpha"], dh["beta"], lo, hi)
+        for c in centres[ok]:
+            if all(np.linalg.norm(c - q) > 0.10 for q in out):
+                out.append(c)
+            if len(out) == n:
+                return [[float(v) for v in p] for p in out]
+    return [[float(v) for v in p] for p in out]
 
 
 def _v_points(rng: np.random.Generator, walls: list[str], per_arm: int, width: float, height: float,
@@ -224,6 +356,13 @@ def _perpendicular_basis(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     p1 = np.cross(helper, e)
     p1 /= np.linalg.norm(p1)
     return p1, np.cross(e, p1)
+
+
+def _axis_frame(z: np.ndarray, psi: float) -> np.ndarray:
+    """The rotation (3, 3) with z axis z (unit) and x axis at angle psi from _perpendicular_basis(z)'s first."""
+    p1, p2 = _perpendicular_basis(z)
+    x = math.cos(psi) * p1 + math.sin(psi) * p2
+    return np.column_stack([x, np.cross(z, x), z])
 
 
 def _board_beside(rng: np.random.Generator, origin: np.ndarray, e_axis: np.ndarray, radius: float
@@ -258,47 +397,19 @@ def _board_centres(scene: dict[str, object], markers: dict[str, object], radius:
                           BoardConfig.model_validate(_plain(scene["board"])), radius, seed)
 
 
-def _visible_in_M(u_M: np.ndarray, alpha: float, beta: float, lam_lo: float, lam_hi: float,
-                  margin: float = _VIS_MARGIN_RAD) -> np.ndarray:
-    """(k,) bool: is direction u_M (k, 3) (from the optical centre, taken at the origin of M) on some beam within
-    the field of view (|mu| <= 135 deg - margin) at some motor angle in [lam_lo + margin, lam_hi - margin]?
-    The scan plane at lambda is Rz(lambda) span{x, (0, cos alpha, sin alpha)} (eq. 3 with a = b = 0)."""
-    u = u_M / np.linalg.norm(u_M, axis=1, keepdims=True)
-    theta, rho = np.arctan2(u[:, 1], u[:, 0]), np.hypot(u[:, 0], u[:, 1])
-    sa, ca = math.sin(alpha), math.cos(alpha)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = -ca * u[:, 2] / (rho * sa)
-    ok_q = np.abs(q) <= 1
-    asq = np.arcsin(np.clip(q, -1, 1))
-    seen = np.zeros(len(u), dtype=bool)
-    for lam in (theta + asq, theta + math.pi - asq):
-        for shift in (-2 * math.pi, 0.0, 2 * math.pi):
-            lk = lam + shift
-            in_sweep = (lk >= lam_lo + margin) & (lk <= lam_hi - margin)
-            c, s = np.cos(lk), np.sin(lk)
-            w = np.column_stack([c * u[:, 0] + s * u[:, 1], -s * u[:, 0] + c * u[:, 1], u[:, 2]])
-            phi = np.arctan2(w[:, 1] * ca + w[:, 2] * sa, w[:, 0])
-            mu = np.remainder(phi - beta + math.pi, 2 * math.pi) - math.pi
-            seen |= ok_q & in_sweep & (np.abs(mu) <= _HALF_FOV_RAD - margin)
-    return seen
-
-
 def _best_mount_rotation(rng: np.random.Generator, positions: np.ndarray, origin: np.ndarray, e_axis: np.ndarray,
                          dh: dict[str, float], n_roll: int = 12) -> np.ndarray:
     """R_W_M (3, 3) with z_M = +-e_axis (jittered up to 5 deg) that sees the most markers over the default
     +-90 deg sweep; ties broken at random."""
-    jitter = _rotvec(rng.normal(size=3) * math.radians(5.0) / math.sqrt(3))
+    jitter = rotvec(rng.normal(size=3) * math.radians(5.0) / math.sqrt(3))
     best: list[np.ndarray] = []
     best_n = -1
     for sign in (1.0, -1.0):
         z = sign * e_axis
-        p1, p2 = _perpendicular_basis(z)
         for k in range(n_roll):
-            psi = 2 * math.pi * k / n_roll
-            x = math.cos(psi) * p1 + math.sin(psi) * p2
-            R = jitter @ np.column_stack([x, np.cross(z, x), z])
+            R = jitter @ _axis_frame(z, 2 * math.pi * k / n_roll)
             u_M = (positions - origin) @ R  # R^T (p - o) row-wise
-            n = int(_visible_in_M(u_M, dh["alpha"], dh["beta"], -math.pi / 2, math.pi / 2).sum())
+            n = int(visible_in_M(u_M, dh["alpha"], dh["beta"], -math.pi / 2, math.pi / 2).sum())
             if n > best_n:
                 best, best_n = [R], n
             elif n == best_n:
@@ -317,16 +428,6 @@ def _pose_dict(T: np.ndarray) -> dict[str, float]:
     return pose
 
 
-def _rotvec(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) of the rotation vector w (3,) (Rodrigues)."""
-    t = float(np.linalg.norm(w))
-    if t < 1e-15:
-        return np.eye(3)
-    k = w / t
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + math.sin(t) * K + (1 - math.cos(t)) * K @ K
-
-
 def _perturbed_mount(rng: np.random.Generator, mount: dict[str, float]) -> dict[str, float]:
     """A tape-measured nominal mount: the true one off by up to 3 cm and 3 deg per component."""
     return {k: v + (rng.uniform(-0.03, 0.03) if k in "xyz" else math.radians(rng.uniform(-3, 3)))
@@ -339,143 +440,6 @@ def _random_noise_bands(rng: np.random.Generator) -> list[dict[str, float]]:
     return [{"up_to_m": 10.0, "sigma_m": sigma}, {"up_to_m": 60.0, "sigma_m": 3 * sigma}]
 
 
-def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
-    """Indices of the markers on which the calibration's detection (lrfcal.detection.detect) finds a blob in a
-    simulated recording; each blob's owner comes from the truth (lrfsim.faults.marker_returns)."""
-    from lrfcal.detection import detect
-    from lrfcal.types import Scans
-
-    from .faults import marker_returns
-
-    s = scenario.sensor
-    det = detect(Scans(result.scan_stamps_s, result.ranges_m, result.intensities, result.mu_rad,
-                       s.time_increment_s, s.scan_period_s, s.range_min_m, s.range_max_m))
-    owner = marker_returns(result, scenario)
-    return {int(m) for b in det.blobs for m in owner[b.scan_idx, b.beam_idx] if m >= 0}
-
-
-def visible_markers(scenario: Scenario) -> np.ndarray:
-    """(n,) bool: the markers the sweep can see (within the field of view at some motor angle of the sweep,
-    3 deg margin; geometry only: no occlusion, range or intensity model)."""
-    from .scene_geometry import marker_centres_W
-
-    C = marker_centres_W(scenario)
-    T = scenario.rig.mount.to_pose().matrix()
-    dh = scenario.rig.dh
-    u_M = (C - T[:3, 3]) @ T[:3, :3]
-    lo, hi = _motor_range_rad(scenario)
-    return _visible_in_M(u_M, dh.alpha, dh.beta, lo, hi)
-
-
-def _motor_range_rad(scenario: Scenario) -> tuple[float, float]:
-    """The motor angles the servo covers (lrfsim.servo.covered_angles_rad) as the visibility tests take them
-    (their candidate angles lie within [-7 pi / 2, 9 pi / 2]): a sweep's as they are; a spin's moved by whole
-    turns to start in [-pi, pi); a spin that turns a full circle beyond the margins: (-pi, pi) widened by the
-    margin, the whole circle."""
-    lo, hi = covered_angles_rad(scenario.servo)
-    if scenario.servo.mode == "sweep":
-        return lo, hi
-    if hi - lo >= 2 * math.pi + 2 * _VIS_MARGIN_RAD:
-        return -math.pi - _VIS_MARGIN_RAD, math.pi + _VIS_MARGIN_RAD
-    shift = 2 * math.pi * math.floor((lo + math.pi) / (2 * math.pi))
-    return lo - shift, hi - shift
-
-
-def _beam_through(u_M: np.ndarray, alpha: float, beta: float, lam_lo: float, lam_hi: float
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For directions u_M (k, 3): (visible (k,), lambda (k,), mu (k,)) of one beam through each (a = b = 0),
-    the first solution found; NaN where not visible."""
-    k = len(u_M)
-    lam_out, mu_out = np.full(k, np.nan), np.full(k, np.nan)
-    u = u_M / np.linalg.norm(u_M, axis=1, keepdims=True)
-    theta, rho = np.arctan2(u[:, 1], u[:, 0]), np.hypot(u[:, 0], u[:, 1])
-    sa, ca = math.sin(alpha), math.cos(alpha)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        q = -ca * u[:, 2] / (rho * sa)
-    asq = np.arcsin(np.clip(q, -1, 1))
-    for lam in (theta + asq, theta + math.pi - asq):
-        for shift in (-2 * math.pi, 0.0, 2 * math.pi):
-            lk = lam + shift
-            c, s = np.cos(lk), np.sin(lk)
-            w = np.column_stack([c * u[:, 0] + s * u[:, 1], -s * u[:, 0] + c * u[:, 1], u[:, 2]])
-            mu = np.remainder(np.arctan2(w[:, 1] * ca + w[:, 2] * sa, w[:, 0]) - beta + math.pi, 2 * math.pi) - math.pi
-            ok = (np.abs(q) <= 1) & (lk >= lam_lo + _VIS_MARGIN_RAD) & (lk <= lam_hi - _VIS_MARGIN_RAD)
-            ok &= (np.abs(mu) <= _HALF_FOV_RAD - _VIS_MARGIN_RAD) & np.isnan(lam_out)
-            lam_out[ok], mu_out[ok] = lk[ok], mu[ok]
-    return ~np.isnan(lam_out), lam_out, mu_out
-
-
-def wide_dh_sigma(scenario: Scenario, sigma_m: float | None = None) -> np.ndarray:
-    """(4,) 1-sigma of (a, alpha, b, beta) [m, rad, m, rad] that the layout allows in the paper's point model:
-    one return per visible marker and pass at the beam through its centre, a 3D point residual with isotropic
-    noise ``sigma_m`` (default: the first range noise band's), the mount (position and a local rotation vector,
-    free of Euler singularities) estimated jointly. inf when the 10 parameters are not determined."""
-    from lrfcal.model.kinematics import DH, points_M
-
-    from .scene_geometry import marker_centres_W
-
-    sigma = sigma_m if sigma_m is not None else scenario.sensor.noise_bands[0].sigma_m
-    C = marker_centres_W(scenario)
-    T = scenario.rig.mount.to_pose().matrix()
-    R0, t0 = T[:3, :3], T[:3, 3]
-    dh0 = scenario.rig.dh
-    lo, hi = _motor_range_rad(scenario)
-    vis, lam, mu = _beam_through((C - t0) @ R0, dh0.alpha, dh0.beta, lo, hi)
-    if vis.sum() < 4:
-        return np.full(4, np.inf)
-    C, lam, mu = C[vis], lam[vis], mu[vis]
-    r = np.linalg.norm(C - t0, axis=1)
-    x0 = np.array([dh0.a, dh0.alpha, dh0.b, dh0.beta])
-
-    def model(v: np.ndarray) -> np.ndarray:
-        p_M = points_M(r, lam, mu, DH(*map(float, v[:4])))
-        return (p_M @ (R0 @ _rotvec(v[7:10])).T + t0 + v[4:7]).ravel()
-
-    v0 = np.concatenate([x0, np.zeros(6)])
-    J = np.empty((3 * len(C), 10))
-    for i in range(10):
-        h = 1e-6
-        dv = np.zeros(10)
-        dv[i] = h
-        J[:, i] = (model(v0 + dv) - model(v0 - dv)) / (2 * h)
-    scale = np.linalg.norm(J, axis=0)
-    Js = J / np.where(scale > 0, scale, 1.0)
-    sv = np.linalg.svd(Js, compute_uv=False)
-    if sv[-1] < 1e-9 * sv[0]:
-        return np.full(4, np.inf)
-    servo = scenario.servo  # a sweep sees each marker once a pass, a spin (at least) once a turn
-    looks = servo.passes if servo.mode == "sweep" else max(1.0, servo.revolutions)
-    cov = np.linalg.inv(Js.T @ Js) / np.outer(scale, scale) * sigma**2 / looks
-    return np.sqrt(np.diag(cov)[:4])
-
-
-#: a layout determines the DH parameters when the point model's 1-sigma stays below these (a, alpha, b, beta).
-#: The point model is 3-120x more pessimistic than the calibration's own sigma (which uses every beam on a
-#: marker and the surfaces; measured on 8 wide scenarios: calibrated sigma(b) 0.2-14 mm where the point model
-#: gives 10-50 mm), so these limits flag ill-conditioned geometry, not the final accuracy.
-WIDE_SIGMA_LIMITS = (0.05, math.radians(3.0), 0.05, math.radians(3.0))
-
-
-#: visible markers whose axial coordinates (along the motor axis) spread less than this (std) are "at one
-#: axial distance": d alpha * D then moves the returns as d b does
-WIDE_MIN_AXIAL_SPREAD_M = 0.10
-
-
-def axial_spread_m(scenario: Scenario) -> float:
-    """Standard deviation [m] of the visible markers' coordinates along the motor axis (z_M, truth)."""
-    from .scene_geometry import marker_centres_W
-
-    T = scenario.rig.mount.to_pose().matrix()
-    z = ((marker_centres_W(scenario) - T[:3, 3]) @ T[:3, 2])[visible_markers(scenario)]
-    return float(z.std()) if z.size else 0.0
-
-
-def wide_dh_determined(scenario: Scenario) -> bool:
-    """Should the layout determine all four DH parameters? At least 6 visible markers, spread along the motor
-    axis (:func:`axial_spread_m` >= WIDE_MIN_AXIAL_SPREAD_M: not all at one axial distance, as on a V on the
-    wall the motor axis points at, or a board across the axis), and the point model's 1-sigma
-    (:func:`wide_dh_sigma`, at the scenario's range noise) within WIDE_SIGMA_LIMITS (False when the markers
-    fill too small a part of the sweep for another combination of parameters)."""
-    if int(visible_markers(scenario).sum()) < 6 or axial_spread_m(scenario) < WIDE_MIN_AXIAL_SPREAD_M:
-        return False
-    return bool(np.all(wide_dh_sigma(scenario) <= np.array(WIDE_SIGMA_LIMITS)))
+__all__ = ["ALPHA_KINDS", "ALPHA_RANGES_DEG", "WIDE_AXES", "WIDE_BETAS_DEG", "WIDE_LAYOUTS", "WIDE_MIN_AXIAL_SPREAD_M",
+           "WIDE_SIGMA_LIMITS", "alpha_kind_of", "axial_spread_m", "broad_alpha_kind", "detected_markers",
+           "random_scenario", "random_scenario_wide", "visible_markers", "wide_dh_determined", "wide_dh_sigma"]
