@@ -199,7 +199,6 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
     """Print a lrfcal.inspection.BagInspection with rich tables."""
     import math
 
-    from rich.syntax import Syntax
     from rich.table import Table
 
     kind = f"ROS {result.ros_version} bag" if result.ros_version else "scan log"
@@ -241,7 +240,7 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
         for p in result.problems:
             console.print(f"  - {p}", markup=False)
     console.print("[bold]rig file[/bold] (nominal.yaml) that reads it:")
-    console.print(Syntax(result.rig_snippet, "yaml"))
+    console.out(result.rig_snippet.rstrip("\n"), highlight=False)  # plain: no padding to copy along with it
 
 
 @app.command("reproject", cls=Command)
