@@ -75,7 +75,7 @@ class Problem:
 
     def stacked(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
         """All whitened residuals as one vector (dense rows, plane rows, plane priors) and the dense Jacobian
-        (rows, N_CORE + 3P) (for scipy's robust pass; the normal equations use :meth:`blocks`)."""
+        (rows, N_CORE + 3P) (to check the blocks against finite differences; the solver uses :meth:`blocks`)."""
         b = self.blocks(th, R_ref, jac)
         res = b.residuals()
         if b.J_dense is None or b.Jc_plane is None or b.Jn_plane is None:

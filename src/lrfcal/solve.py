@@ -7,7 +7,7 @@ folded into R_ref and restarts at 0, so the parameterisation has no singularity 
 the clock offset and the intrinsics; the observation models are lrfcal.model's (marker: ray-sphere with the beam's
 footprint, or the seed paper's eq. (10); plane: ray-plane), assembled by lrfcal.problem.
 
-Solver: a robust pass (trf, soft-L1 loss) from the start, then plain least squares with observations whose
+Solver: a robust pass (Huber weights at 2 sigma) from the start, then plain least squares with observations whose
 whitened residual exceeds 4 sigma dropped (repeated until the inlier set is stable), whose Jacobian gives the
 covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals, widened where errors shared within
 a scan make it optimistic (cluster-robust sandwich). The plain passes, the targetless solve and the information run
@@ -143,7 +143,7 @@ def solve(
         beam_divergence_rad: the scanner's full beam divergence: the sphere model averages over the footprint
             (lrfcal.model.sphere.footprint_depth); 0: the beam's axis alone.
         range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, Hokuyo's specification).
-        robust: soft-L1 first pass and 4-sigma rejection before the final plain least-squares pass.
+        robust: Huber first pass and 4-sigma rejection before the final plain least-squares pass.
         surfaces: optional non-marker returns on the marker-carrying planes (lrfcal.surfaces), solved jointly
             as ray-plane range residuals (whitened by range_sigma_m), rejected at 4 sigma like the markers.
         planes: the lrfcal.surfaces.Surface of each surface index: each plane's normal and offset are nuisance
@@ -187,8 +187,8 @@ def solve(
 
 def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDArray[np.bool_], robust: bool
                    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], int, str]:
-    """The solver passes of :func:`solve`: soft-L1 (markers alone), then plain least squares with the returns beyond
-    4 robust sigma dropped until the kept set is stable. Returns (th, R_ref, kept marker returns (K,), kept surface
+    """The solver passes of :func:`solve`: Huber-weighted (markers alone), then plain least squares with the returns
+    beyond 4 robust sigma dropped until the kept set is stable. Returns (th, R_ref, kept marker returns (K,), kept surface
     returns (K2,), evaluations, the last pass's message)."""
     K = pb_all.markers.r.size
     K2 = 0 if pb_all.surf is None else pb_all.surf.r.size
@@ -197,7 +197,7 @@ def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDA
     keep_s = np.ones(K2, dtype=bool)
     changed, msg = True, ""
     if robust:
-        if pb_all.surf is None:  # the joint solve starts from the converged marker-only estimate: no soft-L1 pass
+        if pb_all.surf is None:  # the joint solve starts from the converged marker-only estimate: no robust pass
             th, R_ref, nf, _ = _fit(th, R_ref, pb_all, free, robust=True)
             nfev += nf
         for _ in range(5):
