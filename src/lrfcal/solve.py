@@ -188,8 +188,8 @@ def solve(
 def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDArray[np.bool_], robust: bool
                    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], int, str]:
     """The solver passes of :func:`solve`: Huber-weighted (markers alone), then plain least squares with the returns
-    beyond 4 robust sigma dropped until the kept set is stable. Returns (th, R_ref, kept marker returns (K,), kept surface
-    returns (K2,), evaluations, the last pass's message)."""
+    beyond 4 robust sigma dropped until the kept set is stable. Returns (th, R_ref, kept marker returns (K,), kept
+    surface returns (K2,), evaluations, the last pass's message)."""
     K = pb_all.markers.r.size
     K2 = 0 if pb_all.surf is None else pb_all.surf.r.size
     nfev = 0
