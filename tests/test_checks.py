@@ -46,3 +46,23 @@ def test_plan_says_a_near_perpendicular_rig_would_be_refused() -> None:
     p = plan(parse_scenario(flat, "tilted_25"))
     assert not p.attitude_ok and not p.determined
     assert any("near-singular" in n for n in p.notes), p.notes
+
+
+def test_placeholder_dh_is_refused_naming_the_key(shipped_recording, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    """A rig file whose DH are all 0 (what `lrfcal inspect` writes to be filled in): exit 2 naming ``dh``, before any
+    work, through the installed console script."""
+    import shutil
+    import subprocess
+
+    import yaml
+
+    rec = tmp_path / "rec"
+    shutil.copytree(shipped_recording("tunnel_v"), rec)
+    rig = yaml.safe_load((rec / "nominal.yaml").read_text())
+    rig["dh"] = {"a": 0, "alpha": 0, "b": 0, "beta": 0}
+    (rec / "nominal.yaml").write_text(yaml.safe_dump(rig))
+    out = subprocess.run([shutil.which("lrfcal") or "lrfcal", "calibrate", str(rec), "-o", str(tmp_path / "cal"),
+                          "--quiet"], capture_output=True, text=True)
+    assert out.returncode == 2, out.stderr
+    assert "dh" in out.stderr and "placeholder" in out.stderr and "Traceback" not in out.stderr
+    assert not (tmp_path / "cal").exists()

@@ -99,6 +99,10 @@ def _targetless(recording: Recording, config: CalibConfig) -> bool:
     """
     if not math.isfinite(config.clock_offset_s):
         raise InputError(f"clock offset: expected a finite number of seconds, got {config.clock_offset_s!r}")
+    dh = recording.nominal.dh
+    if (dh.a, dh.alpha, dh.b, dh.beta) == (0.0, 0.0, 0.0, 0.0):
+        raise InputError("nominal.yaml: dh: a, alpha, b and beta are all 0, the placeholder `lrfcal inspect` writes: "
+                         "fill in the design values (m, rad; docs/formats.md) before calibrating")
     targetless = config.targetless or (config.targetless is None and recording.tape is None)
     if not targetless and recording.tape is None:
         raise InputError("calibration with markers needs the tape distances (distances.csv); without markers, "
