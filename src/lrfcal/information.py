@@ -14,12 +14,22 @@ from .model.kinematics import Params
 from .model.motor import MotorClock
 from .model.unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from .normal_equations import assemble, schur
-from .problem import marker_problem, plane_problem, plane_set
-from .solve import _plane_free
+from .problem import Problem, marker_problem, plane_problem, plane_set
+from .solve import plane_free
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations
 
 FloatArray = NDArray[np.float64]
+
+
+def _at(params: Params, obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float,
+        divergence: float, clock: MotorClock | None = None, clock_offset_s: float = 0.0
+        ) -> tuple[Problem, FloatArray, FloatArray]:
+    """The marker problem of ``obs`` (with ``clock``: the clock offset an unknown) and the unknowns at ``params``
+    (the core vector and R_ref)."""
+    pb, _ = marker_problem(obs, markers_W, model, radius, sigma_r, divergence)
+    th, R_ref = pack(params, clock_offset_s)
+    return replace(pb, clock=clock), th, R_ref
 
 
 def model_residuals(
@@ -37,8 +47,7 @@ def model_residuals(
 
     M = 3 K (paper) or 4 K (sphere: range residual then the 3 lateral components, per return).
     """
-    pb, _ = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
-    core, R_ref = pack(params)
+    pb, core, R_ref = _at(params, obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
     res, J = pb.marker_rows(core, R_ref)
     assert J is not None
     return res.ravel(), J.reshape(-1, N_CORE)[:, :10]
@@ -66,10 +75,7 @@ def jacobian_check(
     uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
     agrees with finite differences only to the interpolation's curvature error (~1e-3 relative).
     """
-    pb, _ = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
-    if clock is not None:
-        pb = replace(pb, clock=clock)
-    th, R_ref = pack(params)
+    pb, th, R_ref = _at(params, obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad, clock)
     th[3:6] = np.asarray(rotation_vector, dtype=float)
     _, J = pb.marker_rows(th, R_ref)
     assert J is not None
@@ -99,10 +105,8 @@ def information_at(
     With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
     and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
     (Schur complement), evaluated at the planes the returns carry (their normals and offsets)."""
-    pb, _ = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
-    if clock is not None:
-        pb = replace(pb, clock=clock)
-    th, R_ref = pack(params, clock_offset_s)
+    pb, th, R_ref = _at(params, obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad, clock,
+                        clock_offset_s)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
@@ -133,7 +137,7 @@ def plane_information(
     pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior)
     th, R_ref = pack(params, clock_offset_s)
     th = np.concatenate([th, nu0])
-    free = _plane_free(th.size, hold, clock, estimate_range_offset)
+    free = plane_free(th.size, hold, clock, estimate_range_offset)
     core = np.flatnonzero(free[:N_CORE])
     S, _, _ = schur(assemble(pb.blocks(th, R_ref), core))
     return S, tuple(CORE_NAMES[k] for k in core)

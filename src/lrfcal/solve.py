@@ -298,8 +298,6 @@ def _solution(th: FloatArray, R_ref: FloatArray, cov_core: FloatArray, free: NDA
     fields.setdefault("params", unpack(th[:N_CORE], R_ref))
     return Solution(covariance=cov10, sigma=np.sqrt(np.clip(np.diag(cov10), 0.0, None)),
                     clock_offset_s=float(th[TAU]), clock_offset_sigma_s=sig(TAU),
-                    range_offset_m=float(th[ROFF]), range_offset_sigma_m=sig(ROFF),
-                    marker_range_bias_m=float(th[MBIAS]), marker_range_bias_sigma_m=sig(MBIAS),
                     intrinsics=intrinsics, **fields)  # type: ignore[arg-type]
 
 
@@ -308,7 +306,7 @@ def _solution(th: FloatArray, R_ref: FloatArray, cov_core: FloatArray, free: NDA
 _TARGETLESS_HELD = ("x", "y", "z", "rx", "ry", "rz", "marker_range_bias")
 
 
-def _plane_free(n_par: int, hold: Sequence[str], clock: MotorClock | None, estimate_range_offset: bool
+def plane_free(n_par: int, hold: Sequence[str], clock: MotorClock | None, estimate_range_offset: bool
                 ) -> NDArray[np.bool_]:
     """(n_par,) the unknowns :func:`solve_planes` estimates: the model's defaults without the targetless-held ones
     and ``hold``, the clock offset with a clock, the range offset when asked; every plane nuisance."""
@@ -361,7 +359,7 @@ def solve_planes(
     assert surf is not None
     th, R_ref = pack(start, clock_offset_s)
     th = np.concatenate([th, nu0])
-    free = _plane_free(th.size, hold, clock, estimate_range_offset)
+    free = plane_free(th.size, hold, clock, estimate_range_offset)
     K = surf.r.size
     if 10 * int(free.sum()) > K:
         raise CalibrationError(f"targetless solve: {K} plane returns for {int(free.sum())} unknowns (need 10 each)")

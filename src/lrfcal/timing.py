@@ -164,11 +164,14 @@ def _poorly_interpolated(scans: Scans, joints: JointStates, tau0: float, range_s
     i0 = np.clip(np.searchsorted(joints.stamps_s, t0 - tau0) - 1, 0, last)
     i1 = np.clip(np.searchsorted(joints.stamps_s, t1 - tau0) - 1, 0, last)
     bound = np.maximum(err[i0], err[i1])
-    r = np.where(np.isfinite(scans.ranges_m), scans.ranges_m, np.nan)
-    some = np.isfinite(r).any(axis=1)
-    reach = np.zeros(S)
-    reach[some] = np.nanmedian(r[some], axis=1)  # a scan without returns has nothing to misplace
-    bad = bound * reach > INTERPOLATION_SHARE * range_sigma_m
+    bad = np.zeros(S, dtype=bool)
+    near = np.flatnonzero(bound > 0)  # only scans next to a speed change can be misplaced: their ranges are read
+    if near.size:
+        r = np.where(np.isfinite(scans.ranges_m[near]), scans.ranges_m[near], np.nan)
+        some = np.isfinite(r).any(axis=1)  # a scan without returns has nothing to misplace
+        reach = np.zeros(near.size)
+        reach[some] = np.nanmedian(r[some], axis=1)
+        bad[near] = bound[near] * reach > INTERPOLATION_SHARE * range_sigma_m
     return bad, float(bound.max(initial=0.0))
 
 

@@ -6,6 +6,7 @@ K marker returns (observations).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -330,15 +331,31 @@ class Solution:
     inlier: BoolArray | None = None
     lambda_rad: FloatArray | None = None
     n_surface_returns: int = 0
-    range_offset_m: float = 0.0  # added to every reported range (estimated with estimate_range_bias)
-    range_offset_sigma_m: float = float("nan")  # NaN when held
-    marker_range_bias_m: float = 0.0  # added to the ranges of marker returns only
-    marker_range_bias_sigma_m: float = float("nan")
     #: every intrinsic of the rig model (lrfcal.model.unknowns.INTRINSICS): name -> (value, sigma; NaN when held)
     intrinsics: dict[str, tuple[float, float]] = field(default_factory=dict)
     #: every unknown held by default that this solve held: name -> (the value one Gauss-Newton step with it freed
     #: reaches, its 1-sigma) (lrfcal.solve's score test)
     held_score: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+    @property
+    def range_offset_m(self) -> float:
+        """Added to every reported range (estimated with estimate_range_bias; 0 when held)."""
+        return self.intrinsics.get("range_offset", (0.0, math.nan))[0]
+
+    @property
+    def range_offset_sigma_m(self) -> float:
+        """Its 1-sigma, NaN when held."""
+        return self.intrinsics.get("range_offset", (0.0, math.nan))[1]
+
+    @property
+    def marker_range_bias_m(self) -> float:
+        """Added to the ranges of marker returns only."""
+        return self.intrinsics.get("marker_range_bias", (0.0, math.nan))[0]
+
+    @property
+    def marker_range_bias_sigma_m(self) -> float:
+        """Its 1-sigma, NaN when held."""
+        return self.intrinsics.get("marker_range_bias", (0.0, math.nan))[1]
 
 
 @dataclass(frozen=True)

@@ -27,8 +27,8 @@ from ..errors import InputError
 #: folder with this file and no other entries may be replaced (``--overwrite``).
 MANIFEST_NAME = ".lrf-calib-output.yaml"
 
-#: the names of the tools' own temporary files and folders: a file being written (``.NAME.XXXX.tmp``), a folder
-#: being written or moved aside (``.NAME.tmp-XXXX``, ``.NAME.old-XXXX``), the write probe of
+#: the names of the tools' own temporary files and folders: a file being written (``.NAME.<random>.tmp``), a
+#: folder being written or moved aside (``.NAME.tmp-<random>``, ``.NAME.old-<random>``), the write probe of
 #: :func:`check_writable` and the figures' scratch folder (lrfcal.workflow)
 TEMP_NAME = re.compile(r"^\.(figures-|lrf-write-probe-|.+\.(tmp|old)-|.+\.tmp$)")
 
