@@ -81,11 +81,18 @@ def test_run_closes_the_loop(tmp_path: Path) -> None:
     sensor = [line for line in proc.stdout.splitlines() if line.startswith("sensor: ")]
     assert len(sensor) == 1 and "idealised" in sensor[0] and sensor[0].endswith("docs/sensor_errors.md"), sensor
     assert "Table I" in (run_dir / "comparison.md").read_text()
-    # run again: the default run folder is replaced, nothing else is left beside it
-    proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen)], cwd=tmp_path,
+    # run again, with --spawn where no viewer can start: the default run folder is replaced, nothing else is left
+    # beside it, and one warning line says where the rerun recording went
+    proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen), "--spawn"], cwd=tmp_path,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode in (0, 1), proc.stderr
     assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["tunnel_v"]
+    assert "Traceback" not in proc.stderr
+    warn = proc.stderr.strip().splitlines()
+    assert len(warn) == 1 and warn[0].startswith("warning: --spawn: no rerun viewer") and "rerun.rrd" in warn[0]
+    assert (run_dir / "rerun.rrd").stat().st_size > 0
+    assert "residual RMS" in proc.stdout and "marker returns on" in proc.stdout
+    assert "marker returns on" in (run_dir / "calibration" / "report.md").read_text()  # the terminal's wording
     bad = subprocess.run([sys.executable, "-m", "lrfsim.cli", "simulate", "x.yaml", "-o", "o"], cwd=tmp_path,
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and bad.stderr.count("\n") == 1 and not (tmp_path / "o").exists()

@@ -269,10 +269,13 @@ def test_echoes_recording_calibrates_like_scan(tmp_path: Path) -> None:
     assert np.array_equal(a.stamps_s, b.stamps_s)
     differ = (a.ranges_m != b.ranges_m) & (np.isfinite(a.ranges_m) | np.isfinite(b.ranges_m))
     assert differ.mean() < 1e-3, f"{differ.sum()} of {differ.size} beams differ"
-    scan, echo = calibrate_recording(folder, FAST), calibrate_recording(echoes, FAST)
-    assert scan.status == echo.status == "calibrated", (scan.describe(), echo.describe())
-    assert np.all(np.abs(scan.z) <= 4.0), scan.describe()
-    assert np.all(np.abs(echo.errors - scan.errors) <= 0.1 * scan.sigma), (scan.describe(), echo.describe())
+    echo = calibrate_recording(echoes, FAST)
+    assert echo.status == "calibrated", echo.describe()
+    assert np.all(np.abs(echo.z) <= 4.0), echo.describe()
+    if differ.any():  # identical scans calibrate identically: /scan needs its own run only where a beam differs
+        scan = calibrate_recording(folder, FAST)
+        assert scan.status == "calibrated", scan.describe()
+        assert np.all(np.abs(echo.errors - scan.errors) <= 0.1 * scan.sigma), (scan.describe(), echo.describe())
 
 
 def test_strongest_echo_keeps_the_marker_where_scan_mixes(tmp_path: Path) -> None:

@@ -17,8 +17,9 @@ def place_labels(ax: Any, items: list[tuple[float, float, str, str]], fontsize: 
     free spot among 8 offsets around its point (display coordinates); a label with no free spot is skipped.
     Returns the number of labels skipped."""
     fig = ax.figure
-    fig.draw_without_rendering()  # display transforms are final only after the layout has run
-    fig.set_layout_engine("none")  # and the layout stays as it is: saving does not lay the figure out again
+    if fig.get_layout_engine() is not None:
+        fig.draw_without_rendering()  # display transforms are final only after the layout has run
+        fig.set_layout_engine("none")  # and the layout stays as it is: saving does not lay the figure out again
     to_px = ax.transData.transform
     px_per_pt = fig.dpi / 72.0
     h = fontsize * px_per_pt * 1.2

@@ -138,7 +138,9 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
         import matplotlib
 
         cmap = matplotlib.colormaps["inferno"].with_extremes(bad="black")
-        fig = _new_figure()
+        # a fixed layout (no constrained layout): the labels are placed without a first full draw of the figure
+        fig = _new_figure(constrained=False)
+        fig.subplots_adjust(left=0.065, right=0.875, bottom=0.115, top=0.885, wspace=0.2)
         axes = fig.subplots(1, 2)
         shown = np.ma.masked_invalid(np.where(img > 0, img, np.nan))
         kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x1, -0.5, img.shape[0] * pool - 0.5),
@@ -182,7 +184,7 @@ def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
         for ax in axes:
             ax.set_xlabel("beam angle mu [deg]")
             ax.set_ylabel("scan index")
-        fig.colorbar(im, ax=axes, label="intensity [counts]", shrink=0.95)
+        fig.colorbar(im, cax=fig.add_axes((0.895, 0.115, 0.012, 0.77)), label="intensity [counts]")
         fig.suptitle("Marker detection in the (scan, beam) intensity image", fontsize=FONT_SIZE_PT + 2)
         fig.supxlabel("candidates: brighter than the range-dependent background by the contrast threshold (bright "
                       "walls seen head-on are not); + blob peak, label = its marker", fontsize=FONT_SIZE_PT - 2,

@@ -138,12 +138,11 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
             alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
                                                  config, estimate_clock, fit))
         except CalibrationError as err:
+            if sign == 1 and not isinstance(err, _NoMatch):
+                raise  # e.g. the layout does not determine the DH: the other direction does not help
             failures.append((sign, err))
     if not alternatives:
         raise failures[0][1]
-    declared_failure = next((e for sign, e in failures if sign == 1), None)
-    if declared_failure is not None and not isinstance(declared_failure, _NoMatch):
-        raise declared_failure  # e.g. the layout does not determine the DH: the other direction does not help
     return servo_direction(alternatives, nominal.dh, config)
 
 
