@@ -105,8 +105,8 @@ class DHProposal:
         if self.dh is None:
             return f"# dh: not proposed: {self.reason}; fill in from the drawings (m, rad; docs/formats.md)"
         s = self.sigma
-        parts = [f"a +-{s['a'] * 1000:.1f} mm", f"alpha +-{math.degrees(s['alpha']):.1f} deg",
-                 f"b +-{s['b'] * 1000:.1f} mm", f"beta +-{math.degrees(s['beta']):.1f} deg"]
+        parts = [f"a +-{s['a'] * 1000:.1f} mm", f"alpha +-{math.degrees(s['alpha']):.2f} deg",
+                 f"b +-{s['b'] * 1000:.1f} mm", f"beta +-{math.degrees(s['beta']):.2f} deg"]
         undet = self.undetermined
         tail = f"; not determined by the scene: {', '.join(undet)}" if undet else ""
         return (f"# dh: proposed from the scene's planes, not measured ({self.n_agreeing} of {self.n_starts} search "
