@@ -269,7 +269,7 @@ def test_wrong_sign_is_not_the_same_cloud(tmp_path, canonical):
 def test_inspect_guesses_the_moving_tf_joint(tmp_path):
     from lrfcal.inspection import inspect_bag
 
-    result = inspect_bag(write(tmp_path / "bag", "mcap", "tf"))
+    result = inspect_bag(write(tmp_path / "bag", "mcap", "tf"), propose=False)
     assert result.servo_source is not None and result.servo_source.tf == TfSource(parent="base", child="tilt")
     assert result.report is not None and result.report.n_servo_samples == JT.size
 

@@ -112,7 +112,7 @@ def test_reproject_refuses_output_inside_input(tmp_path, monkeypatch, capsys):
 
 def test_inspect_prints_topics_problems_and_snippet(tmp_path, monkeypatch, capsys):
     bag = write(tmp_path / "bag", "mcap", "time_increment_0")
-    assert _main(monkeypatch, ["inspect", str(bag)]) == 0
+    assert _main(monkeypatch, ["inspect", str(bag), "--no-dh"]) == 0
     out = capsys.readouterr().out
     for phrase in ("/joint_states", "sensor_msgs/msg/LaserScan", "time_increment is 0", "joint: servo",
                    "rig file"):

@@ -132,7 +132,7 @@ def test_rplidar_reads_and_names_its_timing_problems():
 
 @pytest.mark.parametrize("path,n_topics", [(BOX, 1), (RPLIDAR, 3)], ids=["cardboard_box", "rplidar"])
 def test_inspect_snippet_reads_the_bag(path, n_topics):
-    result = inspect_bag(path)
+    result = inspect_bag(path, propose=False)  # the DH proposal: tests/test_inspect_dh.py
     assert len(result.topics) == n_topics and result.report is not None
     rig = parse_rig(yaml.safe_load(result.rig_snippet), "snippet")
     data = read_bag(path, rig.scan_source(), rig.servo_source(), warn=lambda _t: None)

@@ -227,7 +227,7 @@ def test_multiecho_bag_reads_back(tmp_path) -> None:
     strongest = np.take_along_axis(er, pick[..., None], -1)[..., 0]
     assert np.array_equal(got["strongest"].ranges_m[has], strongest[has])
     assert np.isnan(got["first"].ranges_m[~has]).all()
-    insp = inspect_bag(out / "bag", ScanSource(topic="/echoes", echo="first"), servo)
+    insp = inspect_bag(out / "bag", ScanSource(topic="/echoes", echo="first"), servo, propose=False)
     assert insp.geometry is not None and insp.geometry.has_intensities and insp.geometry.beam_count == (1081, 1081)
     assert "echo: first" in insp.rig_snippet and insp.report is not None
     assert insp.report.n_scans == scan.stamps_s.size
@@ -312,7 +312,7 @@ def test_inspect_proposes_the_multiecho_topic_with_strongest(tmp_path: Path) -> 
     with_echoes = write_recording(simulate(small_scenario(sensor={"echoes": {"enabled": True}})), small_scenario(
         sensor={"echoes": {"enabled": True}}), tmp_path / "echoes")
     plain = write_recording(simulate(small_scenario()), small_scenario(), tmp_path / "plain")
-    guessed = inspect_bag(with_echoes / "bag")
+    guessed = inspect_bag(with_echoes / "bag", propose=False)
     assert guessed.scan_source is not None and guessed.scan_source.topic == "/echoes"
     rig = yaml.safe_load(guessed.rig_snippet)
     assert rig["scan"]["topic"] == "/echoes" and rig["scan"]["echo"] == "strongest"
@@ -321,10 +321,10 @@ def test_inspect_proposes_the_multiecho_topic_with_strongest(tmp_path: Path) -> 
     for words in ("/echoes", "strongest", "/scan", "marker", "splits"):
         assert words in note, (words, note)
     assert guessed.report is not None and guessed.report.n_scans > 50
-    asked = inspect_bag(with_echoes / "bag", ScanSource(topic="/scan"))
+    asked = inspect_bag(with_echoes / "bag", ScanSource(topic="/scan"), propose=False)
     assert asked.scan_source == ScanSource(topic="/scan") and "echo" not in yaml.safe_load(asked.rig_snippet)["scan"]
     assert len(asked.notes) == 1 and "/echoes" in asked.notes[0] and "echo: strongest" in asked.notes[0]
-    none = inspect_bag(plain / "bag")
+    none = inspect_bag(plain / "bag", propose=False)
     assert none.scan_source is not None and none.scan_source.topic == "/scan" and not none.notes
     assert "echo" not in yaml.safe_load(none.rig_snippet)["scan"]
 
@@ -338,7 +338,7 @@ def test_inspect_prints_the_echo_note(tmp_path: Path) -> None:
     sc = small_scenario(sensor={"echoes": {"enabled": True}})
     out = write_recording(simulate(sc), sc, tmp_path / "rec")
     console = Console(width=200, record=True, file=io.StringIO())
-    print_inspection(inspect_bag(out / "bag"), console)
+    print_inspection(inspect_bag(out / "bag", propose=False), console)
     text = console.export_text()
     assert "note: scan: /echoes (MultiEchoLaserScan) with echo: strongest" in text
     assert "echo: strongest" in text.split("rig file")[1]

@@ -170,6 +170,12 @@ def inspect_cmd(
     nominal: Annotated[Path | None, typer.Option(
         "--nominal", metavar="YAML", show_default=False,
         help="Rig file (nominal.yaml) saying where the data are; default: guess from the bag.")] = None,
+    out: Annotated[Path | None, typer.Option(
+        "-o", "--out", metavar="YAML", show_default=False,
+        help="Also write the rig file (the snippet printed last) to YAML (atomically).")] = None,
+    no_dh: Annotated[bool, typer.Option(
+        "--no-dh", help="Do not propose the DH from the scene's planes (a search of 5-20 s): placeholders.")
+                     ] = False,
     scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
@@ -177,22 +183,31 @@ def inspect_cmd(
     tf_axis: TfAxisOpt = None, quiet: QuietOpt = False,
 ) -> None:
     """Show what BAG holds: topics, types, counts, rates, scan geometry, the servo angle's range and rate, the
-    clocks and their offset, the problems found, and the rig-file snippet (YAML) that reads it."""
+    clocks and their offset, the problems found, and the rig-file snippet (YAML) that reads it, its DH proposed
+    from the scene's planes (with their uncertainty) unless the rig file gives them or --no-dh."""
     from rich.console import Console
 
+    from .io.files import atomic_file, check_outputs
     from .loginspect import inspect_path
     from .rig import load_rig, with_overrides
 
+    if out is not None:
+        check_outputs([p for p in (bag, nominal) if p is not None], [out])
     rig = load_rig(nominal) if nominal is not None else None
     scan, servo = with_overrides(
         rig.scan_source() if rig else None, rig.servo_source() if rig else None, scan_topic=scan_topic,
         scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic, servo_field=servo_field,
         joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign, servo_offset=servo_offset,
         servo_stamp=servo_stamp, tf_parent=tf_parent, tf_child=tf_child, tf_axis=tf_axis)
-    with progress_display(f"inspecting {bag.name}", quiet=quiet):
+    with progress_display(f"inspecting {bag.name}", quiet=quiet) as hooks:
         result = inspect_path(bag, scan, servo, dh=rig.dh.model_dump() if rig else None,
-                              log=rig.log if rig else None)
+                              log=rig.log if rig else None, propose=not no_dh,
+                              progress=lambda done, total: hooks.steps("proposing dh", done, total))
     print_inspection(result, Console())
+    if out is not None:
+        with atomic_file(out) as tmp:
+            tmp.write_text(result.rig_snippet)
+        print(f"wrote {out}")
 
 
 def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
@@ -239,6 +254,11 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
         console.print("[bold]problems[/bold]:")
         for p in result.problems:
             console.print(f"  - {p}", markup=False)
+    p = result.proposal
+    if p is not None:
+        what = (f"proposed from the scene's planes in {p.seconds:.1f} s ({p.n_agreeing} of {p.n_starts} search starts "
+                f"agree)" if p.dh is not None else f"not proposed: {p.reason}")
+        console.print(f"dh: {what}", markup=False, soft_wrap=True)
     console.print("[bold]rig file[/bold] (nominal.yaml) that reads it:")
     console.out(result.rig_snippet.rstrip("\n"), highlight=False)  # plain: no padding to copy along with it
 

@@ -274,7 +274,7 @@ def reproject_bag(
         InputError: bad input, or an output path that overlaps an input.
     """
     from .io.recording import read_recording
-    from .rig import with_overrides
+    from .rig import refuse_placeholder_dh, with_overrides
 
     bag, nominal, out = Path(bag), Path(nominal), Path(out)
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
@@ -282,6 +282,8 @@ def reproject_bag(
     from .io.recording import read_nominal
 
     nom = read_nominal(nominal)
+    if calibration is None:  # the DH come from the rig file: not its placeholder
+        refuse_placeholder_dh(nom.dh, str(nominal), "reprojecting (or give --calibration)")
     scan, servo = with_overrides(nom.scan, nom.servo, **(options or {}))
 
     def stage(name: str) -> Callable[[int, int], None] | None:

@@ -16,6 +16,7 @@ keeps the marker's return, while a LaserScan holds one return per beam fixed by 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ import numpy as np
 import yaml
 
 from .errors import InputError
-from .io.bag import read_bag
+from .io.bag import BagData, read_bag
 from .io.bag_messages import (
     DYNAMIXEL_JOINTSTATE_TYPE,
     JOINTSTATE_TYPE,
@@ -39,6 +40,7 @@ from .io.bag_messages import (
 )
 from .io.bag_scans import is_laserscan, is_multiecho
 from .io.bag_servo import default_field
+from .propose import DHProposal, proposed_dh
 from .rig import ScanSource, ServoSource, TfSource
 from .timing import covered_scans
 from .types import ReadReport
@@ -108,6 +110,8 @@ class BagInspection:
     dh: dict[str, float] = field(default_factory=dict)
     #: why a source was chosen (e.g. the MultiEchoLaserScan topic with its strongest echo over a LaserScan)
     notes: tuple[str, ...] = ()
+    #: the DH proposed from the scene's planes (lrfcal.propose; None: not searched, the dh were given or skipped)
+    proposal: DHProposal | None = None
 
 
 def _rate(times: list[float]) -> float | None:
@@ -159,9 +163,13 @@ def inspect_bag(
     scan: ScanSource | None = None,
     servo: ServoSource | None = None,
     dh: dict[str, float] | None = None,
+    *,
+    propose: bool = True,
+    progress: Callable[[int, int], None] | None = None,
 ) -> BagInspection:
     """Inspect a bag (module docstring). ``scan`` / ``servo``: where the data are (from a rig file or options);
-    None: guessed. ``dh``: the nominal DH for the snippet (placeholders when None).
+    None: guessed. ``dh``: the nominal DH for the snippet; when None (or the placeholder) and ``propose``, the DH
+    proposed from the scene's planes (lrfcal.propose; ``progress(done, total)`` over its search), else placeholders.
 
     Raises:
         InputError: the bag cannot be opened or read.
@@ -190,16 +198,20 @@ def inspect_bag(
     geometry = None
     if scan is not None and scan.topic in sv.scan_msgs:
         geometry = _geometry(sv.scan_msgs[scan.topic])
-    report, servo_info, n_cov = None, None, None
+    report, servo_info, n_cov, data = None, None, None, None
     if scan is not None and servo is not None:
-        report, servo_info, n_cov = _read_and_check(path, scan, servo, geometry, problems)
+        report, servo_info, n_cov, data = _read_and_check(path, scan, servo, geometry, problems)
     if guessed:
         problems.append(f"guessed: {', '.join(guessed)} source (check the snippet, especially servo unit, sign "
                         f"and offset_rad)")
-    snippet = rig_snippet(scan, servo, dh, multiecho=scan is not None and scan.topic in multiecho)
+    proposal = proposed_dh(data, dh, propose, progress)
+    snippet = rig_snippet(scan, servo, dh if proposal is None else proposal.values(),
+                          multiecho=scan is not None and scan.topic in multiecho,
+                          comment=None if proposal is None else proposal.comment())
     ros = 1 if path.suffix == ".bag" else 2
     return BagInspection(path, ros, float(sv.duration_s), tuple(_topic_infos(sv)), scan, servo, tuple(guessed),
-                         geometry, servo_info, report, n_cov, tuple(problems), snippet, dict(dh or {}), tuple(notes))
+                         geometry, servo_info, report, n_cov, tuple(problems), snippet, dict(dh or {}), tuple(notes),
+                         proposal)
 
 
 @dataclass
@@ -279,14 +291,16 @@ def _topic_infos(sv: _Survey) -> list[TopicInfo]:
 
 
 def _read_and_check(path: Path, scan: ScanSource, servo: ServoSource, geometry: ScanGeometry | None,
-                    problems: list[str]) -> tuple[ReadReport | None, ServoInfo | None, int | None]:
-    """Read the bag as the calibration will: the reader's report, the servo angle's statistics and the number of
-    scans the servo samples cover (None each when the bag cannot be read); what is wrong appended to ``problems``."""
+                    problems: list[str]
+                    ) -> tuple[ReadReport | None, ServoInfo | None, int | None, BagData | None]:
+    """Read the bag as the calibration will: the reader's report, the servo angle's statistics, the number of
+    scans the servo samples cover and what was read (None each when the bag cannot be read); what is wrong
+    appended to ``problems``."""
     try:
         data = read_bag(path, scan, servo, warn=lambda _t: None)
     except InputError as err:
         problems.append(str(err))
-        return None, None, None
+        return None, None, None, None
     report = data.report
     j = data.joints
     dt = np.diff(j.stamps_s)
@@ -302,7 +316,7 @@ def _read_and_check(path: Path, scan: ScanSource, servo: ServoSource, geometry: 
                         f"(within one sample period); reproject and calibrate skip them")
     if geometry is not None and not geometry.has_intensities:
         problems.append(f"{scan.topic}: no intensities: reproject works, marker calibration does not")
-    return report, servo_info, n_cov
+    return report, servo_info, n_cov, data
 
 
 def _report_problems(rep: ReadReport) -> list[str]:
@@ -442,10 +456,11 @@ def _has_intensities(msg: Any) -> bool:
 
 
 def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str, float] | None = None, *,
-                multiecho: bool = False) -> str:
+                multiecho: bool = False, comment: str | None = None) -> str:
     """The rig-file YAML (dh, scan, servo) that reads the bag; dh placeholders when not known. ``multiecho``:
     the scan topic is a MultiEchoLaserScan, whose ``echo`` choice is then written out even when it is the
-    default (for a LaserScan topic it is meaningless and left out)."""
+    default (for a LaserScan topic it is meaningless and left out). ``comment``: the line above ``dh`` (a
+    proposal's uncertainty, or why there is none; default: fill in the placeholders)."""
     data: dict[str, Any] = {"dh": dict(dh) if dh else {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}}
     if scan is not None:
         data["scan"] = scan.model_dump(exclude_none=True)
@@ -457,7 +472,9 @@ def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str
             s.pop("topic", None)
         data["servo"] = s
     text = yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
-    if not dh:
+    if comment is not None:
+        text = comment.rstrip() + "\n" + text
+    elif not dh:
         text = "# dh: fill in from the drawings (m, rad; docs/formats.md)\n" + text
     return text
 

@@ -14,6 +14,7 @@ Array shapes: R rows, N beams.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -24,6 +25,7 @@ from pydantic import ValidationError
 from .errors import InputError
 from .inspection import BagInspection, ScanGeometry, ServoInfo, TopicInfo, _report_problems, inspect_bag, rig_snippet
 from .io.scanlog import describe_layout, is_scan_log, load_log, log_servo, numbers, parse_rows, read_scan_log
+from .propose import proposed_dh
 from .rig import LogLayout, ScanSource, ServoSource, validation_message
 from .timing import covered_scans
 
@@ -152,18 +154,21 @@ def _leading(cols: np.ndarray, notes: list[str], problems: list[str]) -> list[st
 
 
 def inspect_path(path: str | Path, scan: ScanSource | None = None, servo: ServoSource | None = None,
-                 dh: dict[str, float] | None = None, log: LogLayout | None = None) -> BagInspection:
+                 dh: dict[str, float] | None = None, log: LogLayout | None = None, *, propose: bool = True,
+                 progress: Callable[[int, int], None] | None = None) -> BagInspection:
     """:func:`inspect_log` for a scan log (lrfcal.io.scanlog.is_scan_log), else
-    :func:`lrfcal.inspection.inspect_bag`."""
+    :func:`lrfcal.inspection.inspect_bag`; ``propose``, ``progress``: the DH proposal (lrfcal.propose)."""
     if is_scan_log(path):
-        return inspect_log(path, log, servo, dh)
-    return inspect_bag(path, scan, servo, dh=dh)
+        return inspect_log(path, log, servo, dh, propose=propose, progress=progress)
+    return inspect_bag(path, scan, servo, dh=dh, propose=propose, progress=progress)
 
 
 def inspect_log(path: str | Path, layout: LogLayout | None = None, servo: ServoSource | None = None,
-                dh: dict[str, float] | None = None) -> BagInspection:
+                dh: dict[str, float] | None = None, *, propose: bool = True,
+                progress: Callable[[int, int], None] | None = None) -> BagInspection:
     """Inspect a scan log: ``layout`` / ``servo`` from a rig file or options (None: guessed); ``dh`` for the
-    snippet. The result has ``ros_version`` 0 and one "topic", the log itself.
+    snippet (when None and ``propose``: proposed from the scene's planes, lrfcal.propose). The result has
+    ``ros_version`` 0 and one "topic", the log itself.
 
     Raises:
         InputError: the log cannot be read or is not numeric.
@@ -189,7 +194,7 @@ def inspect_log(path: str | Path, layout: LogLayout | None = None, servo: ServoS
     servo_keys = {k: v for k, v in src.model_dump(exclude_none=True, exclude_defaults=True).items() if k != "topic"}
     servo_keys["motion"] = src.motion
     topics: tuple[TopicInfo, ...] = ()
-    geometry = report = servo_info = n_cov = None
+    geometry = report = servo_info = n_cov = data = None
     duration = 0.0
     if layout is not None:
         try:
@@ -226,12 +231,14 @@ def inspect_log(path: str | Path, layout: LogLayout | None = None, servo: ServoS
     if guessed:
         problems.append(f"guessed: {', '.join(guessed)} (check the snippet, especially columns, time_unit and "
                         f"servo.unit, sign and offset_rad)")
-    snippet = rig_snippet(None, None, dh)
+    proposal = proposed_dh(data, dh, propose, progress)
+    snippet = rig_snippet(None, None, dh if proposal is None else proposal.values(),
+                          comment=None if proposal is None else proposal.comment())
     snippet += _yaml_block({"servo": servo_keys, "log": log_keys})
     if layout is None and "angle_min_rad" in log_keys:
         snippet += "# log.angle_min_rad, log.angle_increment_rad: fill in (rad) from the scanner's datasheet\n"
     return BagInspection(path, 0, duration, topics, None, shown, tuple(guessed), geometry, servo_info, report, n_cov,
-                         tuple(problems), snippet, dict(dh or {}), tuple(notes))
+                         tuple(problems), snippet, dict(dh or {}), tuple(notes), proposal)
 
 
 def _yaml_block(data: dict[str, Any]) -> str:

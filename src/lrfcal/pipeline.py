@@ -24,6 +24,7 @@ from .checks import refuse_failed
 from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from .errors import CalibrationError, InputError
 from .markers import STAGES, fit_markers
+from .rig import refuse_placeholder_dh
 from .targetless import STAGES as TARGETLESS_STAGES
 from .targetless import fit_scene
 from .timing import usable_scans
@@ -99,10 +100,7 @@ def _targetless(recording: Recording, config: CalibConfig) -> bool:
     """
     if not math.isfinite(config.clock_offset_s):
         raise InputError(f"clock offset: expected a finite number of seconds, got {config.clock_offset_s!r}")
-    dh = recording.nominal.dh
-    if (dh.a, dh.alpha, dh.b, dh.beta) == (0.0, 0.0, 0.0, 0.0):
-        raise InputError("nominal.yaml: dh: a, alpha, b and beta are all 0, the placeholder `lrfcal inspect` writes: "
-                         "fill in the design values (m, rad; docs/formats.md) before calibrating")
+    refuse_placeholder_dh(recording.nominal.dh, "nominal.yaml", "calibrating")
     targetless = config.targetless or (config.targetless is None and recording.tape is None)
     if not targetless and recording.tape is None:
         raise InputError("calibration with markers needs the tape distances (distances.csv); without markers, "

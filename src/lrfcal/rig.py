@@ -258,6 +258,24 @@ class RigFile(_Strict):
         return ServoSource(topic=self.joint_topic or "/joint_states", joint=self.joint_name or "servo")
 
 
+def is_placeholder_dh(dh: Any) -> bool:
+    """Whether DH values (a mapping or an object with a, alpha, b, beta) are all 0: the placeholder a rig file from
+    ``lrfcal inspect`` holds when the recording did not determine a proposal."""
+    get = dh.get if isinstance(dh, dict) else (lambda n, default=None: getattr(dh, n, default))
+    return all(get(n, None) == 0.0 for n in ("a", "alpha", "b", "beta"))
+
+
+def refuse_placeholder_dh(dh: Any, where: str, before: str) -> None:
+    """The one check of calibrate and reproject: a rig file whose DH are the placeholder is refused.
+
+    Raises:
+        InputError: ``dh`` is the placeholder (the line names ``where``, the key ``dh`` and what to do ``before``).
+    """
+    if is_placeholder_dh(dh):
+        raise InputError(f"{where}: dh: a, alpha, b and beta are all 0, the placeholder `lrfcal inspect` writes: fill "
+                         f"in the design values (m, rad; docs/formats.md) before {before}")
+
+
 def validation_message(err: ValidationError, where: str) -> str:
     """The first pydantic error (an unknown key first) as one line: ``where: key.path: message, got value``."""
     errs = err.errors()

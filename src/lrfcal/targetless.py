@@ -359,4 +359,11 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     return SurfaceReturns(**fields)
 
 
-__all__ = ["STAGES", "PlaneFit", "fit_scene", "merge_returns", "scene_plane_returns"]
+#: the search of a DH proposal (lrfcal.propose) uses the same sample, segmentation and frame
+Beams = _Beams
+MOTOR_FRAME = _M
+sample_returns = _sample
+plane_returns_at = _plane_returns
+
+__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "fit_scene", "merge_returns", "plane_returns_at",
+           "sample_returns", "scene_plane_returns"]

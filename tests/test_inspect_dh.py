@@ -1,0 +1,190 @@
+"""``lrfcal inspect`` proposes the DH from the scene's planes (lrfcal.propose), and ``reproject`` refuses the
+placeholder DH (issue 20, item 2).
+
+The real recordings are read from ../shared/realbags beside the repository (not part of a clone): those tests skip
+with the reason when it is absent. The authors of the URG-04LX stand use alpha = 90 deg, b = 0.08 m (a nominal, not
+a measurement: tests/test_real_bags.py).
+"""
+
+from __future__ import annotations
+
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from test_bag_shapes import write
+
+from lrfcal.cli import main
+from lrfcal.loginspect import inspect_path
+from lrfcal.model.kinematics import DH, points_M
+from lrfcal.propose import DETERMINED, DHProposal, canonical
+from lrfsim.compare import load_truth
+
+REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
+ABSENT = f"real recordings not present at {REALBAGS} (public recordings shared beside the project, not part of a clone)"
+BOX, ROOM = REALBAGS / "cardboard_box.bag", REALBAGS / "room_240.bag"
+LONGARM = REALBAGS / "longarm" / "batchScanned20191114103039.txt"
+RPLIDAR = REALBAGS / "rplidar_servo_3hz"
+#: the authors' model of the URG-04LX stand (liangfok/tilting_lidar_scanner)
+URG_ALPHA, URG_B = math.pi / 2, 0.08
+
+
+def _main(monkeypatch: pytest.MonkeyPatch, argv: list[str]) -> int:
+    monkeypatch.setattr(sys, "argv", ["lrfcal", *argv])
+    monkeypatch.setenv("COLUMNS", "250")
+    try:
+        main()
+    except SystemExit as e:
+        return int(e.code or 0)
+    return 0
+
+
+def test_equivalent_dh_give_the_same_cloud_up_to_an_isometry() -> None:
+    """What canonical() folds together are the same cloud up to a rigid motion and a mirror (all pairwise distances
+    equal): (a, -alpha, -b, beta) and (-a, alpha, -b, beta + 180 deg); the representative has alpha in [0, 180]
+    deg and b >= 0."""
+    rng = np.random.default_rng(3)
+    r, lam, mu = rng.uniform(0.5, 5, 200), rng.uniform(-1.5, 1.5, 200), rng.uniform(-2, 2, 200)
+    dh = DH(a=0.03, alpha=1.2, b=0.07, beta=0.4)
+
+    def dist(d: DH) -> np.ndarray:
+        P = points_M(r, lam, mu, d)
+        return np.linalg.norm(P[:, None] - P[None], axis=2)
+
+    for other in (DH(a=0.03, alpha=-1.2, b=-0.07, beta=0.4), DH(a=-0.03, alpha=1.2, b=-0.07, beta=0.4 + math.pi)):
+        np.testing.assert_allclose(dist(other), dist(dh), atol=1e-9)
+        c = canonical(other)
+        assert (c.a, c.alpha, c.b, c.beta) == pytest.approx((dh.a, dh.alpha, dh.b, dh.beta), abs=1e-12)
+
+
+@pytest.fixture(scope="module")
+def room_box_inspected(shipped_recording, tmp_path_factory) -> tuple[Path, Path, str]:  # type: ignore[no-untyped-def]
+    """room_box (the simulated UTM-30LX-EW rig in a room with boxes; its shipped sweep: one quick pass leaves the
+    attitude ambiguous, and the proposal says so) inspected through the CLI with -o: the recording, the written rig
+    file and stdout."""
+    folder = shipped_recording("room_box")
+    out = tmp_path_factory.mktemp("inspect") / "rig.yaml"
+    mp = pytest.MonkeyPatch()
+    try:
+        import contextlib
+        import io
+
+        buf = io.StringIO()
+        with contextlib.redirect_stdout(buf):
+            code = _main(mp, ["inspect", str(folder / "bag"), "-o", str(out), "--quiet"])
+    finally:
+        mp.undo()
+    assert code == 0
+    return folder, out, buf.getvalue()
+
+
+def test_inspect_proposes_the_simulated_truth(room_box_inspected) -> None:  # type: ignore[no-untyped-def]
+    """On a simulated recording with known truth, the proposed DH (canonical representative) are within 3 of their
+    stated 1-sigma or a coarse tolerance (1 cm, 2 deg) of the truth, and every value is called determined."""
+    folder, out, stdout = room_box_inspected
+    truth = canonical(load_truth(folder / "ground_truth.yaml").dh)
+    rig = yaml.safe_load(out.read_text())
+    first = out.read_text().splitlines()[0]
+    assert first.startswith("# dh: proposed from the scene's planes") and "1-sigma" in first
+    sig = {k: float(v) for k, v in zip(("a", "alpha", "b", "beta"), _sigmas(first), strict=True)}
+    coarse = {"a": 0.01, "alpha": math.radians(2), "b": 0.01, "beta": math.radians(2)}
+    for n in ("a", "alpha", "b", "beta"):
+        err = abs(rig["dh"][n] - getattr(truth, n))
+        assert err <= max(3 * sig[n], coarse[n]), (n, rig["dh"][n], getattr(truth, n), sig[n])
+        assert sig[n] <= DETERMINED[n]
+    assert "not determined" not in first and "proposed from the scene's planes" in stdout
+
+
+def _sigmas(comment: str) -> list[float]:
+    """(a [m], alpha [rad], b [m], beta [rad]) 1-sigma from a proposal's comment line."""
+    import re
+
+    v = [float(x) for x in re.findall(r"\+-([0-9.]+) (?:mm|deg)", comment)]
+    return [v[0] / 1000, math.radians(v[1]), v[2] / 1000, math.radians(v[3])]
+
+
+def test_written_rig_file_reads_back_one_line_each(room_box_inspected) -> None:  # type: ignore[no-untyped-def]
+    """inspect -o writes the rig file printed last: no trailing spaces, no wrapped line (the comment is one line),
+    and it reads as a rig file whose dh are not the placeholder."""
+    from lrfcal.rig import is_placeholder_dh, load_rig
+
+    _, out, stdout = room_box_inspected
+    text = out.read_text()
+    assert all(line == line.rstrip() for line in text.splitlines())
+    assert sum(line.startswith("#") for line in text.splitlines()) == 1
+    assert text.rstrip("\n") in stdout
+    assert not is_placeholder_dh(load_rig(out).dh)
+
+
+def test_reproject_refuses_the_placeholder_dh(tmp_path, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    """A rig file whose dh are all 0 (what inspect writes when the scene determines no proposal): reproject exits 2
+    naming the key dh, and writes nothing."""
+    bag = write(tmp_path / "bag", "mcap", "canonical")
+    rig = tmp_path / "rig.yaml"
+    rig.write_text(yaml.safe_dump({"dh": {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0},
+                                   "servo": {"joint": "servo"}}))
+    code = _main(monkeypatch, ["reproject", str(bag), "--nominal", str(rig), "-o", str(tmp_path / "c.ply"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "dh:" in err and "placeholder" in err and "Traceback" not in err
+    assert not (tmp_path / "c.ply").exists()
+
+
+def test_inspect_no_dh_keeps_the_placeholder(tmp_path, monkeypatch, capsys) -> None:  # type: ignore[no-untyped-def]
+    bag = write(tmp_path / "bag", "mcap", "canonical")
+    out = tmp_path / "rig.yaml"
+    assert _main(monkeypatch, ["inspect", str(bag), "--no-dh", "-o", str(out), "-q"]) == 0
+    assert yaml.safe_load(out.read_text())["dh"] == {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}
+    assert out.read_text().startswith("# dh: fill in from the drawings")
+
+
+# --- real recordings --------------------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def urg_proposals() -> dict[str, DHProposal]:
+    if not REALBAGS.is_dir():
+        pytest.skip(ABSENT)
+    out = {}
+    for name, path in (("cardboard_box", BOX), ("room_240", ROOM)):
+        p = inspect_path(path).proposal
+        assert p is not None
+        print(name, p.dh, {k: round(v, 4) for k, v in p.sigma.items()}, p.comment(), f"{p.seconds:.1f} s")
+        out[name] = p
+    return out
+
+
+@pytest.mark.parametrize("name", ["cardboard_box", "room_240"])
+def test_real_urg_stand_proposes_alpha_90(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
+    """The URG-04LX stand: alpha within 15 deg of the authors' 90 deg, and called determined."""
+    p = urg_proposals[name]
+    assert p.dh is not None, p.reason
+    assert abs(p.dh.alpha - URG_ALPHA) <= math.radians(15.0)
+    assert "alpha" not in p.undetermined
+
+
+@pytest.mark.parametrize("name", [
+    pytest.param("cardboard_box", marks=pytest.mark.xfail(
+        strict=True, reason="measured: the box proposes b 12 +- 19 mm (3 of 12 starts agree; a and beta not "
+        "determined), 68 mm from the authors' 0.08 m: the small box hardly constrains b (targetless holds it)")),
+    "room_240"])
+def test_real_urg_stand_proposes_b_near_the_authors(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
+    """b within 4 cm of the authors' 0.08 m (the issue's target; on room_240 the proposal meets it but calls b not
+    determined: 1-sigma 82 mm)."""
+    p = urg_proposals[name]
+    assert p.dh is not None, p.reason
+    assert abs(p.dh.b - URG_B) <= 0.04
+
+
+@pytest.mark.skipif(not REALBAGS.is_dir(), reason=ABSENT)
+@pytest.mark.parametrize("path", [LONGARM, RPLIDAR], ids=["longarm", "rplidar_servo_3hz"])
+def test_poor_recordings_get_no_proposal_and_the_reason(path) -> None:  # type: ignore[no-untyped-def]
+    """2.9 deg of motor turn (the long-arm log), or a motor angle the joint states cannot interpolate (the RPLIDAR
+    servo): no proposal, the placeholder kept, and the reason in the rig file's one comment line."""
+    res = inspect_path(path)
+    assert res.proposal is not None and res.proposal.dh is None
+    first = res.rig_snippet.splitlines()[0]
+    assert first.startswith("# dh: not proposed: ") and len(res.rig_snippet.splitlines()[0]) > 40
+    assert yaml.safe_load(res.rig_snippet)["dh"] == {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}
