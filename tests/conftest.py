@@ -34,16 +34,16 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.hookimpl(tryfirst=True)
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     """Under ``pytest -n N --dist loadgroup`` (pyproject's addopts) the tests of one module form one group and run
-    on one worker, so that a module's fixtures are built once. The two longest modules are split where no fixture
-    is shared: test_recovery into its random truths and its shipped scenarios, test_targetless into its tests
-    (the two on the real box share theirs)."""
+    on one worker, so that a module's fixtures are built once. The longest modules are split where no fixture is
+    shared (recordings are: on disk, below): test_recovery into its random truths and its shipped scenarios,
+    test_targetless into its tests (the two on the real box share theirs), test_trust into its tests."""
     for item in items:
         if item.get_closest_marker("xdist_group") is None:
             group = item.module.__name__ if item.module is not None else item.nodeid.split("::")[0]
             if group == "test_recovery" and "shipped" in item.name:
                 group = "test_recovery_shipped"
-            elif group == "test_targetless" and "real_urg04lx" not in item.name:
-                group = f"test_targetless::{item.name}"
+            elif group == "test_targetless" and "real_urg04lx" not in item.name or group == "test_trust":
+                group = f"{group}::{item.name}"
             item.add_marker(pytest.mark.xdist_group(group))
 
 

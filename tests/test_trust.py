@@ -35,18 +35,11 @@ def _scenario(base: str, name: str, **changes: object) -> Scenario:
     return parse_scenario(with_changes(data, {"name": name, "servo.speed_rad_s": math.radians(20.0), **changes}), name)
 
 
-@pytest.fixture(scope="module")
-def recordings(tmp_path_factory: pytest.TempPathFactory) -> Callable[[Scenario], Path]:
-    """Simulate each scenario once per module; returns its recording folder."""
-    root = tmp_path_factory.mktemp("trust")
-    cache: dict[str, Path] = {}
-
-    def get(scenario: Scenario) -> Path:
-        if scenario.name not in cache:
-            cache[scenario.name] = record(scenario, root / scenario.name)
-        return cache[scenario.name]
-
-    return get
+@pytest.fixture(scope="session")
+def recordings(recording_of: Callable[[Scenario], Path]) -> Callable[[Scenario], Path]:
+    """Each scenario's recording, simulated once per test run and shared between the workers (tests/conftest.py):
+    the tests of this module run on both workers (one xdist group per test)."""
+    return recording_of
 
 
 def _ok(trial: Trial) -> None:

@@ -88,9 +88,9 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
         )
     if other is None:
         return declared
-    d_decl, far_decl = _nominal_distance(declared.solution.params.dh, nominal_dh, config)
-    d_other, _ = _nominal_distance(other.solution.params.dh, nominal_dh, config)
-    if d_decl > 1.0 and d_other <= 1.0:
+    _, far_decl = _nominal_distance(declared.solution.params.dh, nominal_dh, config)
+    if far_from_nominal(declared.solution.params.dh, nominal_dh, config) and not far_from_nominal(
+            other.solution.params.dh, nominal_dh, config):
         dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
         raise CalibrationError(
             f"servo direction: with the declared sign (+1) the fit gives {_dh_text(dh1)}, far from the nominal "
@@ -99,6 +99,13 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
             "(or --servo-sign -1)"
         )
     return declared
+
+
+def far_from_nominal(dh: DH, nominal: DH, config: CalibConfig) -> bool:
+    """Whether a DH estimate is beyond the nominal tolerance (config.nominal_tolerance) in any parameter: a
+    declared servo direction whose estimate is not far is kept whatever the other direction gives
+    (:func:`servo_direction`)."""
+    return _nominal_distance(dh, nominal, config)[0] > 1.0
 
 
 def _nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:

@@ -21,7 +21,7 @@ from functools import partial
 import numpy as np
 
 from . import association, detection, mds, observability, solve, start, surfaces, timing
-from .checks import marker_checks, servo_direction
+from .checks import far_from_nominal, marker_checks, servo_direction
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
 from .information import information_at
@@ -132,6 +132,9 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
     alternatives = []
     failures = []
     for sign in (1, -1):
+        if sign == -1 and alternatives and not far_from_nominal(alternatives[0].solution.params.dh, nominal.dh,
+                                                                config):
+            break  # the declared direction fits near the nominal: servo_direction keeps it whatever the other gives
         try:
             start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, first[sign])
                                if search else (nominal.dh, first[sign]))
