@@ -167,8 +167,9 @@ def test_real_urg_stand_proposes_alpha_90(urg_proposals, name) -> None:  # type:
 
 @pytest.mark.parametrize("name", [
     pytest.param("cardboard_box", marks=pytest.mark.xfail(
-        strict=True, reason="measured: the box proposes b 12 +- 19 mm (3 of 12 starts agree; a and beta not "
-        "determined), 68 mm from the authors' 0.08 m: the small box hardly constrains b (targetless holds it)")),
+        strict=True, reason="measured: the box proposes b 12 +- 80 mm, not determined (3 of 12 starts agree, at b "
+        "12, 13 and 127 mm; a and beta not determined either), 68 mm from the authors' 0.08 m: the small box hardly "
+        "constrains b (targetless holds it)")),
     "room_240"])
 def test_real_urg_stand_proposes_b_near_the_authors(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
     """b within 4 cm of the authors' 0.08 m (the issue's target; on room_240 the proposal meets it but calls b not
@@ -176,6 +177,16 @@ def test_real_urg_stand_proposes_b_near_the_authors(urg_proposals, name) -> None
     p = urg_proposals[name]
     assert p.dh is not None, p.reason
     assert abs(p.dh.b - URG_B) <= 0.04
+
+
+@pytest.mark.parametrize("name", ["cardboard_box", "room_240"])
+def test_real_urg_stand_b_is_near_the_authors_or_not_determined(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
+    """Never a confident b far from the authors' 0.08 m: b within 4 cm of it, or named not determined with the
+    authors' value within 2 of its sigma."""
+    p = urg_proposals[name]
+    assert p.dh is not None, p.reason
+    if abs(p.dh.b - URG_B) > 0.04:
+        assert "b" in p.undetermined and abs(p.dh.b - URG_B) <= 2.0 * p.sigma["b"], (p.dh, p.sigma)
 
 
 @pytest.mark.skipif(not REALBAGS.is_dir(), reason=ABSENT)

@@ -76,6 +76,8 @@ MIN_TURN_RAD = math.radians(10.0)
 AGREE_ALPHA_DEG = 15.0
 AGREE_BETA_DEG = 20.0
 MIN_AGREEING = 3
+#: a group smaller than this gives each value's spread as the larger of the MAD's and the standard deviation
+SMALL_GROUP = 5
 #: a proposed value whose 1-sigma exceeds this is not determined by the scene [m, rad]
 DETERMINED = {"a": 0.05, "alpha": math.radians(10.0), "b": 0.05, "beta": math.radians(15.0)}
 
@@ -256,6 +258,8 @@ def _consensus(found: list[tuple[DH, FloatArray]], n_starts: int) -> _Consensus:
     X = np.array([_aligned(found[best][0], found[i][0]) for i in group])
     med = np.median(X, axis=0)
     spread = 1.4826 * np.median(np.abs(X - med), axis=0)
+    if group.size < SMALL_GROUP:  # the MAD of a few values can hide one far off: their standard deviation too
+        spread = np.maximum(spread, np.std(X, axis=0, ddof=1))
     own = np.median(np.array([found[i][1] for i in group]), axis=0)
     sigma = np.maximum(spread, own)
     dh = canonical(DH(a=float(med[0]), alpha=float(med[1]), b=float(med[2]), beta=float(med[3])))
