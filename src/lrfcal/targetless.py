@@ -106,7 +106,7 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
                                    "does not hold the scene's planes together")
         new = solve.solve_planes(returns, Params(_M, dh), range_sigma_m=config.range_sigma_m,
                                  clock=motor if estimate_clock else None, clock_offset_s=tau, hold=held,
-                                 dh_prior=prior)
+                                 dh_prior=prior, huber_first=rounds == 1)  # later rounds start from a robust fit
         settled = sol is not None and _settled(sol, new)
         sol, dh, tau = new, new.params.dh, new.clock_offset_s
         thickness = 4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2))
