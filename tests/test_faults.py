@@ -214,12 +214,16 @@ def test_new_faults_in_the_written_recording(clean: SimResult, tmp_path: Path) -
     angle_min and angle_max unchanged; the ranges as they were."""
     from rosbags.highlevel import AnyReader
 
+    from lrfcal.errors import InputError
     from lrfcal.io.recording import read_recording
+    from lrfcal.rig import ScanSource
 
     scenario = _scenario(gear_ratio=0.9, joint_rate_hz=30.0, angle_increment_off_by_one=True)
     out = apply_faults(clean, scenario)
     write_recording(out, scenario, tmp_path / "rec")
-    rec = read_recording(tmp_path / "rec")
+    with pytest.raises(InputError, match="scan.angles"):  # the scans' own fields disagree: the rig file must say
+        read_recording(tmp_path / "rec")
+    rec = read_recording(tmp_path / "rec", scan=ScanSource(angles="increment"))  # as the LaserScans declare it
     assert np.allclose(rec.joints.positions_rad, 0.9 * clean.joints.positions_rad[::4], rtol=0, atol=1e-12)
     assert np.allclose(np.diff(rec.joints.stamps_s), 0.04, atol=1e-6)
     s = scenario.sensor

@@ -57,3 +57,48 @@ def test_clean_recording_keeps_the_scale_held(tmp_path: Path, name: str) -> None
     assert trial.result is not None
     assert trial.result.solution.intrinsics["motor_scale"][0] == 1.0
     assert not any("scale" in n for n in trial.result.notes), trial.result.notes
+
+
+def test_span_off_by_one_is_seen_and_a_full_revolution_is_not() -> None:
+    """A scan's own fields: angle_max one increment beyond angle_min + (N - 1) angle_increment is a disagreement
+    (+1); a 360 deg scan whose last beam lies one increment before angle_max (an RPLIDAR's) is not; nor is a
+    consistent one."""
+    from types import SimpleNamespace
+
+    from lrfcal.io.bag_scans import _span_off
+
+    def ls(a0: float, a1: float, inc: float) -> SimpleNamespace:
+        return SimpleNamespace(angle_min=a0, angle_max=a1, angle_increment=inc)
+
+    n, inc = 1081, math.radians(0.25)
+    assert _span_off(ls(-math.radians(135), math.radians(135), inc), n) == pytest.approx(0.0, abs=1e-6)
+    assert _span_off(ls(-math.radians(135), math.radians(135), inc * 1080 / 1081), n) == pytest.approx(1.0, abs=1e-6)
+    assert _span_off(ls(0.0, 2 * math.pi, 2 * math.pi / 508), 508) == 0.0
+
+
+def test_angle_increment_off_by_one_is_refused_naming_the_key_then_read_from_the_span(
+        tmp_path: Path, recording_of) -> None:  # type: ignore[no-untyped-def]
+    """LaserScans whose angle_increment is declared for one beam too many (lrfsim.faults): the reader refuses them,
+    exit 2 naming scan.angles, before any work (read from the increment, the same recording gave beta 9.9 sigma
+    off with every check passed); with ``scan: {angles: span}`` in the rig file the DH come back within 4 sigma."""
+    import shutil
+    import subprocess
+
+    folder = tmp_path / "rec"
+    shutil.copytree(recording_of(_scenario("off_by_one", **{"faults.angle_increment_off_by_one": True,
+                                                            "servo.passes": 1})), folder)
+    out = subprocess.run([shutil.which("lrfcal") or "lrfcal", "calibrate", str(folder), "-o", str(tmp_path / "cal"),
+                          "--quiet"], capture_output=True, text=True)
+    assert out.returncode == 2, out.stderr
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1 and "scan.angles" in lines[0] and "angle_max" in lines[0], lines
+    assert not (tmp_path / "cal").exists()
+    rig = yaml.safe_load((folder / "nominal.yaml").read_text())
+    rig.setdefault("scan", {})["angles"] = "span"
+    (folder / "nominal.yaml").write_text(yaml.safe_dump(rig))
+    trial = calibrate_recording(folder, FAST, keep_result=True)
+    assert trial.status == "calibrated", trial.describe()
+    assert np.all(np.abs(trial.z) <= 4.0), trial.describe()
+    assert trial.result is not None and trial.result.recording.report is not None
+    assert any("from the span (scan.angles)" in n for n in trial.result.recording.report.notes), \
+        trial.result.recording.report.notes

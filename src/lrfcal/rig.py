@@ -22,6 +22,7 @@ ServoStamp = Literal["header", "receive", "scan"]
 Unit = Literal["rad", "deg", "counts"]
 Echo = Literal["first", "strongest", "last"]
 Motion = Literal["continuous", "step"]
+Angles = Literal["increment", "span"]
 LogColumn = Literal["time", "angle", "ignore"]
 
 
@@ -88,12 +89,16 @@ class ScanSource(_Strict):
     (None: the topic is a sensor_msgs/LaserScan); ``stamp``: header.stamp or the bag's receive time;
     ``echo``: which return of a sensor_msgs/MultiEchoLaserScan (urg_node's ``echoes``) to take per beam:
     ``first`` (nearest valid), ``last`` (farthest valid) or ``strongest`` (highest intensity; the default).
-    Ignored for LaserScan topics."""
+    Ignored for LaserScan topics. ``angles``: where beam i points when a scan's angle_increment and angle_max
+    disagree (a driver's off-by-one): ``increment``, angle_min + i angle_increment; ``span``, angle_min + i
+    (angle_max - angle_min) / (N - 1); None (the default): such a scan is refused, naming this key
+    (lrfcal.io.bag_scans)."""
 
     topic: str = Field(default="/scan", min_length=1)
     field: str | None = None
     stamp: Stamp = "header"
     echo: Echo = "strongest"
+    angles: Angles | None = None
 
 
 class TfSource(_Strict):

@@ -91,11 +91,12 @@ def scans_from(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, w
     scan_time = np.array([float(ls.scan_time) for ls in scans_ls])
     rmin = np.array([float(ls.range_min) for ls in scans_ls])
     rmax = np.array([float(ls.range_max) for ls in scans_ls])
-    ranges, intens, mu, t_inc, n_intens_bad = _stack(scans_ls, counts, scan.echo)
+    span, span_note = _angle_span(scans_ls, counts, scan, where)
+    ranges, intens, mu, t_inc, n_intens_bad = _stack(scans_ls, counts, scan.echo, span)
     # time_increment = 0 (or non-finite): the mirror turns 2 pi per scan_time at a constant rate
     bad_ti = ~np.isfinite(t_inc) | (t_inc == 0.0)
     assumed: float | None = None
-    notes: list[str] = []
+    notes: list[str] = [span_note] if span_note else []
     if np.any(bad_ti):
         period = np.where(np.isfinite(scan_time) & (scan_time > 0), scan_time, np.nan)
         fallback = float(np.median(np.diff(stamps))) if S > 1 else 0.0
@@ -159,11 +160,56 @@ def _usable_rows(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str,
     return [rows[k] for k in order], skipped
 
 
-def _stack(scans: list[Any], counts: np.ndarray, echo: str
+#: a scan whose angle_max lies this many increments or more from angle_min + (N - 1) angle_increment (and that is
+#: not a full revolution) has fields that disagree: which of them is right is the rig file's ``scan.angles``
+SPAN_TOLERANCE = 0.5
+
+
+def _span_off(ls: Any, n: int) -> float:
+    """(angle_max - angle_min) / angle_increment - (N - 1) of one scan of N beams: 0 when its fields agree, 0 too for
+    a full revolution whose last beam lies one increment before angle_max (a 360 deg scanner); NaN without
+    angle_max or with fewer than 2 beams."""
+    amax = getattr(ls, "angle_max", None)
+    a0, inc = float(ls.angle_min), float(ls.angle_increment)
+    if amax is None or n < 2 or not math.isfinite(float(amax)):
+        return math.nan
+    span = float(amax) - a0
+    off = span / inc - (n - 1)
+    if abs(off - 1.0) < SPAN_TOLERANCE and abs(abs(span) - 2.0 * math.pi) < 1.5 * abs(inc):
+        return 0.0
+    return off
+
+
+def _angle_span(scans: list[Any], counts: np.ndarray, scan: ScanSource, where: str) -> tuple[bool, str]:
+    """Whether the beams' bearings come from the span (angle_max - angle_min) / (N - 1) rather than the increment,
+    and the note saying so ("" when the scans' fields agree).
+
+    Raises:
+        InputError: the fields disagree (median over the scans) and the rig file does not say which to use.
+    """
+    offs = np.array([_span_off(ls, int(n)) for ls, n in zip(scans, counts, strict=True)])
+    offs = offs[np.isfinite(offs)]
+    off = float(np.median(offs)) if offs.size else 0.0
+    if abs(off) < SPAN_TOLERANCE:
+        return False, ""
+    first = next(ls for ls, n in zip(scans, counts, strict=True) if np.isfinite(_span_off(ls, int(n))))
+    n = len(first.ranges)
+    last = float(first.angle_min) + (n - 1) * float(first.angle_increment)
+    what = (f"angle_increment {float(first.angle_increment):.7g} rad puts the last of {n} beams at {last:.6g} rad, "
+            f"but angle_max is {float(first.angle_max):.6g} rad ({off:+.2f} increments, median over the scans)")
+    if scan.angles is None:
+        raise InputError(f"{where}: {what}: the scan's fields disagree (a driver's off-by-one?); set scan.angles in "
+                         "the rig file: increment (beam i at angle_min + i angle_increment) or span (at angle_min "
+                         "+ i (angle_max - angle_min) / (N - 1))")
+    return scan.angles == "span", f"{where}: {what}; the bearings from the {scan.angles} (scan.angles)"
+
+
+def _stack(scans: list[Any], counts: np.ndarray, echo: str, span: bool = False
            ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
     """Ranges, intensities and bearings (S, N; padded with NaN, 0) and time increments (S,) of the LaserScans
     (one echo per beam of a MultiEchoLaserScan, :func:`select_echo`), and the number of scans whose intensities
-    do not match their ranges (left 0)."""
+    do not match their ranges (left 0). ``span``: beam i at angle_min + i (angle_max - angle_min) / (N - 1)
+    instead of angle_min + i angle_increment."""
     S, N = len(scans), int(counts.max())
     ranges = np.full((S, N), np.nan)
     intens = np.zeros((S, N))
@@ -173,7 +219,8 @@ def _stack(scans: list[Any], counts: np.ndarray, echo: str
     n_intens_bad = 0
     for k, ls in enumerate(scans):
         n = counts[k]
-        mu[k] = float(ls.angle_min) + idx * float(ls.angle_increment)
+        step = (float(ls.angle_max) - float(ls.angle_min)) / max(n - 1, 1) if span else float(ls.angle_increment)
+        mu[k] = float(ls.angle_min) + idx * step
         t_inc[k] = float(ls.time_increment)
         if is_multiecho(ls):
             ranges[k, :n], intens[k, :n] = select_echo(list(ls.ranges), list(ls.intensities),
