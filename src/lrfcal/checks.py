@@ -88,10 +88,9 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
         )
     if other is None:
         return declared
-    _, far_decl = _nominal_distance(declared.solution.params.dh, nominal_dh, config)
-    if far_from_nominal(declared.solution.params.dh, nominal_dh, config) and not far_from_nominal(
-            other.solution.params.dh, nominal_dh, config):
-        dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
+    dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
+    if far_from_nominal(dh1, nominal_dh, config) and not far_from_nominal(dh2, nominal_dh, config):
+        _, far_decl = _nominal_distance(dh1, nominal_dh, config)
         raise CalibrationError(
             f"servo direction: with the declared sign (+1) the fit gives {_dh_text(dh1)}, far from the nominal "
             f"{_dh_text(nominal_dh)} ({far_decl}); with the servo angle negated it gives {_dh_text(dh2)}, which "

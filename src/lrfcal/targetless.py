@@ -43,8 +43,9 @@ SEGMENT_SAMPLES = 40000
 
 
 @dataclass(frozen=True)
-class _Beams:
-    """The sampled returns: scan, beam (K,), ranges_m, mu_rad, times_s (K,)."""
+class Beams:
+    """The sampled returns: scan, beam (K,), ranges_m, mu_rad, times_s (K,) (also the DH proposal's,
+    lrfcal.propose)."""
 
     scan: NDArray[np.int64]
     beam: NDArray[np.int64]
@@ -52,8 +53,8 @@ class _Beams:
     mu_rad: FloatArray
     times_s: FloatArray
 
-    def subset(self, idx: NDArray[np.int64]) -> _Beams:
-        return _Beams(self.scan[idx], self.beam[idx], self.ranges_m[idx], self.mu_rad[idx], self.times_s[idx])
+    def subset(self, idx: NDArray[np.int64]) -> Beams:
+        return Beams(self.scan[idx], self.beam[idx], self.ranges_m[idx], self.mu_rad[idx], self.times_s[idx])
 
 
 def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch, notes: list[str]
@@ -72,8 +73,8 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
     # every 5th scan is held out of the fit: the calibration must not make those scans' planes thicker (holdout)
     hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
-    beams = _sample(scans, config.plane_returns, skip=hold)
-    held_beams = _sample(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
+    beams = sample_returns(scans, config.plane_returns, skip=hold)
+    held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
     seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
     clock.lap("timing")
 
@@ -88,14 +89,14 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     found: list[planes.ScenePlane] = []
     rounds = 0
     for rounds in range(1, 6):  # segment, solve, re-segment with the better estimate until the DH settles
-        returns, labels, found = _plane_returns(beams, seg, motor, dh, tau, thickness, config)
+        returns, labels, found = plane_returns_at(beams, seg, motor, dh, tau, thickness, config)
         if rounds == 1:
             clock.lap("planes")
             _check_scene(found, returns)
             if estimate_clock:
-                estimate_clock = _clock_determined(returns, Params(_M, dh), motor, tau, config, notes)
-            held, held_reason = _undetermined(returns, Params(_M, dh), motor if estimate_clock else None, tau, config,
-                                              prior)
+                estimate_clock = _clock_determined(returns, Params(MOTOR_FRAME, dh), motor, tau, config, notes)
+            held, held_reason = _undetermined(returns, Params(MOTOR_FRAME, dh), motor if estimate_clock else None,
+                                              tau, config, prior)
             if held_reason:
                 notes.append(held_reason)
             if len(held) == len(DH_NAMES):
@@ -104,7 +105,7 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
         if not found:
             raise CalibrationError(f"targetless: after round {rounds - 1} the cloud shows no plane: the estimate "
                                    "does not hold the scene's planes together")
-        new = solve.solve_planes(returns, Params(_M, dh), range_sigma_m=config.range_sigma_m,
+        new = solve.solve_planes(returns, Params(MOTOR_FRAME, dh), range_sigma_m=config.range_sigma_m,
                                  clock=motor if estimate_clock else None, clock_offset_s=tau, hold=held,
                                  dh_prior=prior, huber_first=rounds == 1)  # later rounds start from a robust fit
         settled = sol is not None and _settled(sol, new)
@@ -120,7 +121,7 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     clock.lap("solve")
 
     checks = plane_checks(sol, returns, passes, held, config, prior)
-    checks.append(_held_out_check(held_beams, motor, Params(_M, nominal.dh), tau0, sol, first_thickness))
+    checks.append(_held_out_check(held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol, first_thickness))
     clock.lap("checks")
     lam_b = motor.angles(beams.times_s, tau0)[0]
     lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
@@ -131,28 +132,28 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
                    held_reason, rounds, n_before, n_after)
     return CalibrationResult(
         recording=recording, markers=None, detections=None, observations=None, association=None,
-        start=Params(_M, nominal.dh), solution=sol, baseline=None, cloud_before_M=np.zeros((0, 3)),
+        start=Params(MOTOR_FRAME, nominal.dh), solution=sol, baseline=None, cloud_before_M=np.zeros((0, 3)),
         cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
         surface_returns=returns, checks=tuple(checks), plane_fit=fit,
     )
 
 
 #: the motor frame M as the world frame (without markers there is no other)
-_M = Pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+MOTOR_FRAME = Pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
-def _sample(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) -> _Beams:
+def sample_returns(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) -> Beams:
     """An even subsample (hash of scan and beam) of at most n finite returns (not those where ``skip`` (S, N))."""
     ok = np.isfinite(scans.ranges_m) & (scans.ranges_m > 0)
     scan, beam = np.nonzero(ok if skip is None else ok & ~skip)
     pick = hash_sample(scan, beam, n)
     scan, beam = scan[pick], beam[pick]
     mu = np.asarray(scans.mu_rad)
-    return _Beams(scan, beam, scans.ranges_m[scan, beam], mu[scan, beam] if mu.ndim == 2 else mu[beam],
+    return Beams(scan, beam, scans.ranges_m[scan, beam], mu[scan, beam] if mu.ndim == 2 else mu[beam],
                   scans.angle_times_at(scan, beam))
 
 
-def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: MotorClock, dh: DH, tau: float,
+def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh: DH, tau: float,
                    thickness_m: float, config: CalibConfig
                    ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
     """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau); label every sampled return with the
@@ -168,7 +169,7 @@ def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: MotorClock, dh:
         labels = seg_labels[has][nn]
         N = np.array([p.normal for p in found])
         off = np.array([p.offset_m for p in found])
-        o, d = beam_rays_W(Params(_M, dh), lam, beams.mu_rad)
+        o, d = beam_rays_W(Params(MOTOR_FRAME, dh), lam, beams.mu_rad)
         n = N[labels]
         near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
         facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
@@ -193,7 +194,7 @@ def _plane_returns(beams: _Beams, seg: NDArray[np.int64], motor: MotorClock, dh:
     return returns, labels, found
 
 
-def _held_out_check(held: _Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
+def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
                     thickness_m: float) -> Check:
     """The held-out scans' planes with the start and with the calibrated parameters (lrfcal.holdout), segmented
     with the first round's ``thickness_m``."""
@@ -319,10 +320,10 @@ def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: 
     marker calibration ``sol``, in W, as surfaces without a prior (free planes) and their returns, numbered after
     ``marker_planes``. ``skip`` (S, N): the marker returns, left out."""
     motor = MotorClock.from_joints(joints)
-    beams = _sample(scans, config.plane_returns, skip)
+    beams = sample_returns(scans, config.plane_returns, skip)
     seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
     thickness = 4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2))
-    returns, labels, found = _plane_returns(beams, seg, motor, sol.params.dh, sol.clock_offset_s, thickness, config)
+    returns, labels, found = plane_returns_at(beams, seg, motor, sol.params.dh, sol.clock_offset_s, thickness, config)
     T = sol.params.mount.matrix()
     R, t = T[:3, :3], T[:3, 3]
     keep, out = [], []
@@ -358,12 +359,6 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
         fields[k] = None if va is None or vb is None else np.concatenate([va, vb])
     return SurfaceReturns(**fields)
 
-
-#: the search of a DH proposal (lrfcal.propose) uses the same sample, segmentation and frame
-Beams = _Beams
-MOTOR_FRAME = _M
-sample_returns = _sample
-plane_returns_at = _plane_returns
 
 __all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "fit_scene", "merge_returns", "plane_returns_at",
            "sample_returns", "scene_plane_returns"]

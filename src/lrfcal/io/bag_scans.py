@@ -188,11 +188,11 @@ def _angle_span(scans: list[Any], counts: np.ndarray, scan: ScanSource, where: s
         InputError: the fields disagree (median over the scans) and the rig file does not say which to use.
     """
     offs = np.array([_span_off(ls, int(n)) for ls, n in zip(scans, counts, strict=True)])
-    offs = offs[np.isfinite(offs)]
-    off = float(np.median(offs)) if offs.size else 0.0
+    finite = np.flatnonzero(np.isfinite(offs))
+    off = float(np.median(offs[finite])) if finite.size else 0.0
     if abs(off) < SPAN_TOLERANCE:
         return False, ""
-    first = next(ls for ls, n in zip(scans, counts, strict=True) if np.isfinite(_span_off(ls, int(n))))
+    first = scans[int(finite[0])]
     n = len(first.ranges)
     last = float(first.angle_min) + (n - 1) * float(first.angle_increment)
     what = (f"angle_increment {float(first.angle_increment):.7g} rad puts the last of {n} beams at {last:.6g} rad, "
