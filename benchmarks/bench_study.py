@@ -16,7 +16,7 @@ and the refusal rate; every missed target is named. Then the cost: a full simula
 reused cast (the ratio, target <= 0.3), a whole trial (simulate + write + read + calibrate), and trials per minute
 on the workers used.
 
-    python benchmarks/bench_study.py [--trials 100] [--workers 1] [--scenarios tunnel_v plane_30deg]
+    python benchmarks/bench_study.py [--trials 100] [--workers 1] [--scenarios tunnel_v plane_30deg FILE.yaml]
                                      [--recast | --new-layout] [--perturb-start S] [-o DIR]
 """
 
@@ -30,16 +30,22 @@ from pathlib import Path
 
 from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan import format_value
-from lrfsim.scenario import load_scenario
+from lrfsim.scenario import Scenario, load_scenario
 from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry
 from lrfsim.study import study, write_study
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _load(name: str) -> Scenario:
+    """A shipped scenario by name (scenarios/NAME.yaml), else a scenario file (e.g. benchmarks/layouts/*.yaml)."""
+    shipped = ROOT / "scenarios" / f"{name}.yaml"
+    return load_scenario(shipped if shipped.is_file() else Path(name))
+
+
 def _cost(name: str) -> tuple[float, float]:
     """(seconds of a full simulation, seconds of a noise-only simulation on a reused cast)."""
-    sc = load_scenario(ROOT / "scenarios" / f"{name}.yaml")
+    sc = _load(name)
     t = time.perf_counter()
     simulate(sc)
     full = time.perf_counter() - t
@@ -65,7 +71,7 @@ def main() -> None:
     args = ap.parse_args()
     missed: list[str] = []
     for name in args.scenarios:
-        sc = load_scenario(ROOT / "scenarios" / f"{name}.yaml")
+        sc = _load(name)
         full, noise = _cost(name)
         t0 = time.perf_counter()
         s = study(sc, args.trials, seed0=args.seed0, workers=args.workers, perturb_start=args.perturb_start,
@@ -104,10 +110,10 @@ def main() -> None:
               f"(ratio {noise / full:.3f}, target <= 0.3); calibration {mean_trial:.1f} s per trial; "
               f"a whole trial {wall / len(part.rows):.1f} s of wall time on {args.workers} worker(s)")
         if args.out is not None:
-            print(f"  wrote {write_study(s, args.out / name, overwrite=True)}")
+            print(f"  wrote {write_study(s, args.out / sc.name, overwrite=True)}")
         else:
             with tempfile.TemporaryDirectory() as tmp:
-                write_study(s, Path(tmp) / name)
+                write_study(s, Path(tmp) / sc.name)
     print("\nall targets met" if not missed else "\ntargets missed:\n  " + "\n  ".join(missed))
 
 

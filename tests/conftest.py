@@ -31,20 +31,34 @@ def pytest_configure(config: pytest.Config) -> None:
     apply_thread_policy()
 
 
-@pytest.hookimpl(tryfirst=True)
-def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
-    """Under ``pytest -n N --dist loadgroup`` (pyproject's addopts) the tests of one module form one group and run
-    on one worker, so that a module's fixtures are built once. The longest modules are split where no fixture is
-    shared (recordings are: on disk, below): test_recovery into its random truths and its shipped scenarios,
-    test_targetless into its tests (the two on the real box share theirs), test_trust into its tests."""
-    for item in items:
-        if item.get_closest_marker("xdist_group") is None:
-            group = item.module.__name__ if item.module is not None else item.nodeid.split("::")[0]
-            if group == "test_recovery" and "shipped" in item.name:
-                group = "test_recovery_shipped"
-            elif group == "test_targetless" and "real_urg04lx" not in item.name or group == "test_trust":
-                group = f"{group}::{item.name}"
-            item.add_marker(pytest.mark.xdist_group(group))
+def test_group(nodeid: str) -> str:
+    """The group of a test (``tests/test_x.py::test_y[param]``): the tests of one group run on one worker, in order,
+    so that a module's fixtures are built once. A group is the test's module, except where the longest modules are
+    split and no fixture is shared (recordings are: on disk, below): test_recovery into its random truths and its
+    shipped scenarios, test_targetless into its tests (the two on the real box share theirs), test_trust into its
+    tests."""
+    path, _, name = nodeid.partition("::")
+    module = Path(path).stem
+    if module == "test_recovery" and "shipped" in name:
+        return "test_recovery_shipped"
+    if module == "test_targetless" and "real_urg04lx" not in name or module == "test_trust":
+        return f"{module}::{name}"
+    return module
+
+
+def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
+    """Under ``pytest -n N --dist loadscope`` (pyproject's addopts) the scope of a test is its :func:`test_group`.
+    (This replaces ``--dist loadgroup`` with xdist_group marks, which pytest 9.2 silently broke: xdist 3.8 writes the
+    group into the node id, which pytest 9.2 no longer reads: pytest-dev/pytest-xdist#1386.)"""
+    if config.getvalue("dist") != "loadscope":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class Groups(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return test_group(nodeid)
+
+    return Groups(config, log)  # type: ignore[arg-type]
 
 
 @contextmanager

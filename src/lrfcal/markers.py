@@ -126,8 +126,15 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
     and the direction chosen. The DH search (lrfcal.start) runs only when neither direction associates well from
     the nominal values."""
     signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
-    first = {sign: _associate_nominal(signed[sign], detections, markers, nominal, config) for sign in (1, -1)}
-    search = not any(_good(a, signed[s], config) for s, a in first.items() if a is not None)
+    first: dict[int, Association | None] = {}
+
+    def associated(sign: int) -> Association | None:  # from the nominal DH, once, when first needed
+        if sign not in first:
+            first[sign] = _associate_nominal(signed[sign], detections, markers, nominal, config)
+        return first[sign]
+
+    # the DH search runs when neither direction associates well (the other is associated only if the declared fails)
+    search = not any((a := associated(s)) is not None and _good(a, signed[s], config) for s in (1, -1))
     clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
     alternatives = []
     failures = []
@@ -136,8 +143,8 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
                                                                 config):
             break  # the declared direction fits near the nominal: servo_direction keeps it whatever the other gives
         try:
-            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, first[sign])
-                               if search else (nominal.dh, first[sign]))
+            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, associated(sign))
+                               if search else (nominal.dh, associated(sign)))
             alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
                                                  config, estimate_clock, fit))
         except CalibrationError as err:
