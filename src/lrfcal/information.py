@@ -13,13 +13,14 @@ from numpy.typing import ArrayLike, NDArray
 from .model.kinematics import Params
 from .model.motor import MotorClock
 from .model.unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
-from .normal_equations import assemble, schur
+from .normal_equations import assemble, cluster_scores, schur, solve_step
 from .problem import Problem, marker_problem, plane_problem, plane_set
 from .solve import plane_free
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
 
 
 def _at(params: Params, obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float,
@@ -105,25 +106,74 @@ def information_at(
     With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
     and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
     (Schur complement), evaluated at the planes the returns carry (their normals and offsets)."""
-    pb, th, R_ref = _at(params, obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad, clock,
-                        clock_offset_s)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
+                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+    names = tuple(CORE_NAMES[i] for i in idx)
+    if pb.surf is not None:
+        S, _, _ = schur(assemble(pb.blocks(th, R_ref), idx))
+        return S, names
+    _, J = pb.marker_rows(th, R_ref)
+    assert J is not None
+    J = J.reshape(-1, N_CORE)[:, idx]
+    return J.T @ J, names
+
+
+def model_error_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
+    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
+    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
+) -> FloatArray:
+    """The covariance (k, k) that the model's own errors add to an estimate, over the unknowns (and in the order)
+    of :func:`information_at`, from returns without noise (``obs`` and ``surfaces`` of a noise-free simulation at
+    the true ``params``): their range residuals are then what the model does not explain (the footprint on the
+    markers and on an oblique wall, the joint states' interpolation). It is the cluster-robust (sandwich)
+    covariance H^-1 (sum_c g_c g_c^T) H^-1 of those residuals, g_c the score of scan c, one Gauss-Newton step from
+    the truth (at the noise-free optimum): the part of the calibration's per-scan widening (lrfcal.solve) that
+    noise does not explain. ``lrfsim plan`` adds it to the statistical covariance, as a noisy recording's sandwich
+    holds both."""
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
+                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+    # one Gauss-Newton step to the noise-free optimum: what the unknowns absorb (the marker range bias of a
+    # footprint, the planes' offsets) is a shift of the estimate, not a scatter
+    step = solve_step(assemble(pb.blocks(th, R_ref), idx), 0.0)
+    th = th.copy()
+    th[np.concatenate([idx, np.arange(N_CORE, th.size)])] += step
+    b = pb.blocks(th, R_ref)
+    H, _ = assemble(b, idx).dense()
+    # a marker return's lateral residual is where its beam passes the marker's centre: noise to the model (the
+    # sigma of a filled disc, in the statistical covariance already), so only its range residual is model error
+    r_m = b.r_dense.reshape(-1, pb.markers.n_res).copy()
+    r_m[:, 0 if pb.markers.model == "paper" else 1:] = 0.0
+    b = replace(b, r_dense=r_m.ravel())
+    scan_m = np.repeat(np.asarray(obs.scan), pb.markers.n_res)
+    scan_s = np.zeros(0, dtype=np.int64) if pb.surf is None or surfaces is None else np.asarray(surfaces.scan)
+    G = cluster_scores(b, idx, scan_m, scan_s)
+    col = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    H_inv = np.linalg.pinv(H / np.outer(col, col), rcond=1e-12) / np.outer(col, col)
+    k = idx.size
+    sandwich = H_inv @ (G.T @ G) @ H_inv
+    return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
+
+
+def _problem_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, model: str, radius: float, sigma_r: float,
+    clock: MotorClock | None, clock_offset_s: float, surfaces: SurfaceReturns | None,
+    planes: Sequence[Surface] | None, divergence: float,
+) -> tuple[Problem, FloatArray, FloatArray, IntArray]:
+    """The problem of :func:`information_at` (marker rows; plane rows and priors with non-empty ``surfaces``), the
+    unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices)."""
+    pb, th, R_ref = _at(params, obs, markers_W, model, radius, sigma_r, divergence, clock, clock_offset_s)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
     free = free_by_default()
     free[TAU] &= clock is not None
     free[[ROFF, MBIAS]] &= with_surfaces
-    idx = [int(j) for j in np.flatnonzero(free)]
-    names = tuple(CORE_NAMES[i] for i in idx)
+    idx = np.flatnonzero(free).astype(np.int64)
     if surfaces is not None and with_surfaces:
         surf, nu0 = plane_set(surfaces, planes)
-        pb = replace(pb, surf=surf)
-        S, _, _ = schur(assemble(pb.blocks(np.concatenate([th, nu0]), R_ref), np.array(idx)))
-        return S, names
-    _, J = pb.marker_rows(th, R_ref)
-    assert J is not None
-    J = J.reshape(-1, N_CORE)[:, idx]
-    return J.T @ J, names
+        return replace(pb, surf=surf), np.concatenate([th, nu0]), R_ref, idx
+    return pb, th, R_ref, idx
 
 
 def plane_information(
@@ -143,4 +193,4 @@ def plane_information(
     return S, tuple(CORE_NAMES[k] for k in core)
 
 
-__all__ = ["information_at", "jacobian_check", "model_residuals", "plane_information"]
+__all__ = ["information_at", "jacobian_check", "model_error_at", "model_residuals", "plane_information"]

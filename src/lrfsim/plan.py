@@ -11,7 +11,10 @@ sweep goes both
 ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
 Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
-clock_offset when it is estimated.
+clock_offset when it is estimated. To it is added what the model's own errors contribute
+(``lrfcal.information.model_error_at``: the per-scan sandwich of the noise-free returns' range residuals, which
+the calibration's reported sigma holds too, as its per-scan widening): negligible beside 10 mm range noise, it is
+most of the sigma of a precise scanner (issue 18; docs/study.md, "Model error").
 
 By default the surface returns of stage 6b enter too, found as the calibration finds them
 (``lrfcal.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
@@ -37,7 +40,7 @@ from numpy.typing import NDArray
 from lrfcal.checks import attitude_check
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.information import information_at
+from lrfcal.information import information_at, model_error_at
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.model.motor import MotorClock
 from lrfcal.observability import LIMITS, Observability, analyse
@@ -100,6 +103,9 @@ class Plan:
     #: the DH verdict from all the returns the calibration solves with (the surfaces' too): what the calibration's
     #: "observability" check reports after solving (None: the same as ``observability``, markers only)
     observability_solved: Observability | None = None
+    #: name -> the 1-sigma the model's own errors contribute (lrfcal.information.model_error_at), included in
+    #: ``sigma`` (added in variance)
+    model_sigma: dict[str, float] = field(default_factory=dict)
 
     @property
     def final_observability(self) -> Observability:
@@ -134,6 +140,7 @@ class Plan:
         return {
             "scenario": self.scenario,
             "sigma": {n: num(self.sigma[n]) for n in self.names},
+            "model_error_sigma": {n: num(self.model_sigma[n]) for n in self.names if n in self.model_sigma},
             "units": {n: _unit(n) for n in self.names},
             "weakest": self.weakest,
             "weakest_sigma_in_limits": num(self.final_observability.weakest_sigma_in_limits),
@@ -231,8 +238,9 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                   clock_offset_s=tau, beam_divergence_rad=float(scenario.sensor.divergence_rad))
     info_markers, names = information_at(obs, markers_W, params, **common)
     info = info_markers
+    both: dict[str, Any] = {} if on_planes is None else {"surfaces": on_planes, "planes": planes}
     if on_planes is not None:
-        info, _ = information_at(obs, markers_W, params, **common, surfaces=on_planes, planes=planes)
+        info, _ = information_at(obs, markers_W, params, **common, **both)
     info = 0.5 * (info + info.T)
     notes: list[str] = []
     # column-scaled inversion (the parameters mix metres, radians and seconds)
@@ -242,8 +250,13 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     if sv[-1] <= sv[0] * 1e-12:
         cov = np.full(info.shape, np.inf)
         notes.append(f"information singular (condition {sv[0] / max(sv[-1], 1e-300):.2e})")
+        model_sigma = {}
     else:
-        cov = np.linalg.inv(scaled) / np.outer(col, col)
+        # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns
+        # at the truth: lrfcal.information.model_error_at), as the calibration's per-scan widening holds both
+        model_cov = model_error_at(obs, markers_W, params, **common, **both)
+        cov = np.linalg.inv(scaled) / np.outer(col, col) + model_cov
+        model_sigma = {n: float(math.sqrt(max(model_cov[i, i], 0.0))) for i, n in enumerate(names)}
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     # the verdict the calibration gives before solving: from the marker returns alone (lrfcal.pipeline)
     obsv = analyse(0.5 * (info_markers + info_markers.T), names)
@@ -276,7 +289,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 clock_estimated=two_way, range_sigma_m=sigma_r, seconds=time.perf_counter() - t0,
                 information_source=source, n_surface_returns=0 if on_planes is None else len(on_planes),
                 notes=tuple(notes), attitude_ok=attitude.passed,
-                observability_solved=None if on_planes is None else analyse(info, names))
+                observability_solved=None if on_planes is None else analyse(info, names), model_sigma=model_sigma)
 
 
 def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers_W: FloatArray, params: Params,
@@ -310,9 +323,10 @@ def format_plan(p: Plan) -> str:
     lines = [f"plan {p.scenario}: {p.n_returns} marker returns on {p.n_markers_seen}/{p.n_markers} markers, "
              f"{p.n_surface_returns} surface returns, range noise {p.range_sigma_m * 1000:g} mm",
              f"information: {p.information_source}", "",
-             f"{'parameter':<14}{'predicted 1-sigma':>20}{'limit':>14}"]
+             f"{'parameter':<14}{'predicted 1-sigma':>20}{'model-error part':>20}{'limit':>14}"]
     for n in p.names:
-        lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{format_value(n, LIMITS[n]):>14}")
+        model = format_value(n, p.model_sigma[n]) if n in p.model_sigma else "-"
+        lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{model:>20}{format_value(n, LIMITS[n]):>14}")
     lines.append("")
     state = "determined" if p.determined else "NOT DETERMINED (the calibration would refuse, exit 3)"
     alone = ("" if p.observability_solved is None else
