@@ -11,6 +11,7 @@ and the calibrated parameters ("after").
 
 from __future__ import annotations
 
+import contextlib
 import os
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -474,31 +475,36 @@ def _draw_pending(name: str) -> tuple[bool, str]:
 
 def _draw_in_parallel(draw: dict[str, Callable[[], Path]]) -> dict[str, tuple[bool, str]]:
     """Draw the first figure here and the others in forked processes, which inherit the result and the imported
-    matplotlib: the figures take about half the wall time on 2 cores (issue 19). Where fork is unavailable, or a
-    child dies, the figure is drawn here."""
+    matplotlib: the figures take about half the wall time on 2 cores (issue 19). Where no child can be forked (no
+    fork on this platform, a daemonic process such as a pool's worker) or a child dies, the figure is drawn here."""
     import multiprocessing
-    from concurrent.futures import ProcessPoolExecutor
+    from concurrent.futures import Future, ProcessPoolExecutor
 
     import matplotlib.backends.backend_agg  # noqa: F401 - imported once, before the fork, for every child
     import matplotlib.figure  # noqa: F401
 
-    if "fork" not in multiprocessing.get_all_start_methods():
+    if "fork" not in multiprocessing.get_all_start_methods() or multiprocessing.current_process().daemon:
         return {n: _attempt(fn) for n, fn in draw.items()}
     names = list(draw)
+    outcomes: dict[str, tuple[bool, str]] = {}
     _PENDING.clear()
     _PENDING.update(draw)
     try:
         with ProcessPoolExecutor(max_workers=len(names) - 1, mp_context=multiprocessing.get_context("fork")) as pool:
-            futures = {n: pool.submit(_draw_pending, n) for n in names[1:]}
-            outcomes = {names[0]: _attempt(draw[names[0]])}
-            for n, fut in futures.items():
+            futures: dict[str, Future[tuple[bool, str]]] = {}
+            for n in names[1:]:
                 try:
+                    futures[n] = pool.submit(_draw_pending, n)
+                except Exception:  # noqa: BLE001 - no child could be started: drawn here below
+                    break
+            outcomes[names[0]] = _attempt(draw[names[0]])
+            for n, fut in futures.items():
+                with contextlib.suppress(Exception):  # a child that died (e.g. out of memory): drawn here below
                     outcomes[n] = fut.result()
-                except Exception:  # noqa: BLE001 - a child that died (e.g. out of memory): draw it here
-                    outcomes[n] = _attempt(draw[n])
     finally:
         _PENDING.clear()
-    return outcomes
+    return {n: outcomes[n] if n in outcomes else _attempt(draw[n]) for n in names}
+
 
 __all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "Figures", "alignment_figure", "flatness_figure", "intensity_figure",
            "residual_figure", "write_figures"]
