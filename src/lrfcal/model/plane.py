@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 from .kinematics import exp_so3, right_jacobian_so3
 from .motor import MotorClock, motor_angles
 from .scanner import true_bearing, true_range
-from .unknowns import N_CORE, PlaneSet
+from .unknowns import BSCALE, N_CORE, SCALE, PlaneSet
 
 FloatArray = NDArray[np.float64]
 
@@ -63,9 +63,8 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     R = R_ref @ exp_so3(th[3:6])
     ca, sa = np.cos(al), np.sin(al)
     bearing = true_bearing(th, s.mu)
-    phi = be + bearing.mu
-    cp, sp = np.cos(phi), np.sin(phi)
-    cl, sl = np.cos(lam), np.sin(lam)
+    cp, sp = _cos_sin_sum(be, bearing.mu, s.trig_mu, th[BSCALE] == 1.0)  # phi = beta + mu_true
+    cl, sl = _cos_sin_sum(0.0, lam, s.trig_lam, clock is None and th[SCALE] == 1.0)
     pl = s.plane
     nM = n_p @ R  # (P, 3): R^T n per plane
     gx, gy = nM[:, 0][pl], nM[:, 1][pl]
@@ -111,6 +110,20 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
         Jn[:, i] = -(xx * (cl * gx + sl * gy) + xy * (cl * gy - sl * gx) + xz * vM[:, 2][pl] + (dn @ t)[pl]) * q
     Jn[:, 2] = q
     return PlaneRows(res, Jc, Jn)
+
+
+def _cos_sin_sum(c: float, x: FloatArray, trig: tuple[FloatArray, FloatArray], declared: bool
+                 ) -> tuple[FloatArray, FloatArray]:
+    """cos and sin of c + x (K,); where x is the declared angles themselves (``declared``: x unchanged by the
+    unknowns), by the angle sum from their cached ``trig`` (a few multiplications, not two transcendental passes
+    over the K rows)."""
+    if not declared:
+        return np.cos(c + x), np.sin(c + x)
+    cx, sx = trig
+    if c == 0.0:
+        return cx, sx
+    cc, sc = np.cos(c), np.sin(c)
+    return cc * cx - sc * sx, sc * cx + cc * sx
 
 
 __all__ = ["PlaneRows", "plane_rows"]

@@ -145,6 +145,16 @@ class PlaneSet:
         return int(self.n0.shape[0])
 
     @cached_property
+    def trig_lam(self) -> tuple[FloatArray, FloatArray]:
+        """cos and sin (K2,) of the declared motor angles ``lam`` (computed once: lrfcal.model.plane)."""
+        return np.cos(self.lam), np.sin(self.lam)
+
+    @cached_property
+    def trig_mu(self) -> tuple[FloatArray, FloatArray]:
+        """cos and sin (K2,) of the declared bearings ``mu`` (computed once: lrfcal.model.plane)."""
+        return np.cos(self.mu), np.sin(self.mu)
+
+    @cached_property
     def segments(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """The rows in a stable order by plane (K2,) and each plane's [start, stop) in it (P + 1,)."""
         order = np.argsort(self.plane, kind="stable")
