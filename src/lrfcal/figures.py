@@ -11,10 +11,9 @@ and the calibrated parameters ("after").
 
 from __future__ import annotations
 
-import contextlib
-import os
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .figlayout import place_labels, three_ticks, view_frame
+from .forked import call_forked
 from .io.files import atomic_file
 from .model.kinematics import Params
 from .types import CalibrationResult
@@ -446,8 +446,11 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
         draw = {"intensity": lambda: intensity_figure(result, out / "intensity.png"),
                 "alignment": lambda: alignment_figure(result, out / "alignment.png", before, before_label),
                 "residuals": lambda: residual_figure(result, out / "residuals.png", before, before_label)}
-    outcomes = _draw_in_parallel(draw) if len(draw) > 1 and _cores() > 1 else {n: _attempt(fn) for n, fn in
-                                                                                draw.items()}
+    if len(draw) > 1:
+        # drawn on every core (lrfcal.forked): matplotlib is imported once, before the fork, for every child
+        import matplotlib.backends.backend_agg  # noqa: F401
+        import matplotlib.figure  # noqa: F401
+    outcomes = call_forked({n: partial(_attempt, fn) for n, fn in draw.items()})
     written = {n: Path(v) for n, (ok, v) in outcomes.items() if ok}
     skipped = {n: v for n, (ok, v) in outcomes.items() if not ok}
     return Figures(written, skipped)
@@ -459,51 +462,6 @@ def _attempt(fn: Callable[[], Path]) -> tuple[bool, str]:
         return True, str(fn())
     except Exception as err:  # noqa: BLE001 - a figure never costs the user the calibration
         return False, f"{type(err).__name__}: {' '.join(str(err).split())}"
-
-
-def _cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
-#: the figures a forked child draws: set just before the fork, read by the child (nothing is pickled)
-_PENDING: dict[str, Callable[[], Path]] = {}
-
-
-def _draw_pending(name: str) -> tuple[bool, str]:
-    return _attempt(_PENDING[name])
-
-
-def _draw_in_parallel(draw: dict[str, Callable[[], Path]]) -> dict[str, tuple[bool, str]]:
-    """Draw the first figure here and the others in forked processes, which inherit the result and the imported
-    matplotlib: the figures take about half the wall time on 2 cores (issue 19). Where no child can be forked (no
-    fork on this platform, a daemonic process such as a pool's worker) or a child dies, the figure is drawn here."""
-    import multiprocessing
-    from concurrent.futures import Future, ProcessPoolExecutor
-
-    import matplotlib.backends.backend_agg  # noqa: F401 - imported once, before the fork, for every child
-    import matplotlib.figure  # noqa: F401
-
-    if "fork" not in multiprocessing.get_all_start_methods() or multiprocessing.current_process().daemon:
-        return {n: _attempt(fn) for n, fn in draw.items()}
-    names = list(draw)
-    outcomes: dict[str, tuple[bool, str]] = {}
-    _PENDING.clear()
-    _PENDING.update(draw)
-    try:
-        with ProcessPoolExecutor(max_workers=len(names) - 1, mp_context=multiprocessing.get_context("fork")) as pool:
-            futures: dict[str, Future[tuple[bool, str]]] = {}
-            for n in names[1:]:
-                try:
-                    futures[n] = pool.submit(_draw_pending, n)
-                except Exception:  # noqa: BLE001 - no child could be started: drawn here below
-                    break
-            outcomes[names[0]] = _attempt(draw[names[0]])
-            for n, fut in futures.items():
-                with contextlib.suppress(Exception):  # a child that died (e.g. out of memory): drawn here below
-                    outcomes[n] = fut.result()
-    finally:
-        _PENDING.clear()
-    return {n: outcomes[n] if n in outcomes else _attempt(draw[n]) for n in names}
 
 
 __all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "Figures", "alignment_figure", "flatness_figure", "intensity_figure",

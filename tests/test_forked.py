@@ -1,0 +1,55 @@
+"""lrfcal.forked: tasks on every core without pickling their inputs, and the fallbacks that run a task here."""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+
+import pytest
+
+from lrfcal.forked import call_forked, cores
+
+PARENT = os.getpid()
+
+
+def _pid() -> int:
+    return os.getpid()
+
+
+def _dies_in_a_child() -> str:
+    if os.getpid() != PARENT:
+        os._exit(3)  # a child that dies (as out of memory would): the task must run again in the parent
+    return "here"
+
+
+FORKS = cores() >= 2 and "fork" in multiprocessing.get_all_start_methods()
+NO_FORKS = "one core or no fork: every task runs in the process (the fallback tested below)"
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_tasks_run_in_forked_children_that_read_the_parents_data() -> None:
+    big = list(range(100_000))  # read by the children without being pickled
+
+    def total() -> int:
+        return sum(big)
+
+    out = call_forked({"first": _pid, "second": _pid, "sum": total})
+    assert list(out) == ["first", "second", "sum"]
+    assert out["first"] == os.getpid() and out["second"] != os.getpid()
+    assert out["sum"] == sum(big)
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_a_task_whose_child_dies_runs_here() -> None:
+    assert call_forked({"first": _pid, "dies": _dies_in_a_child}) == {"first": os.getpid(), "dies": "here"}
+
+
+def _in_a_daemon(_: int) -> list[bool]:
+    out = call_forked({"a": _pid, "b": _pid})
+    return [v == os.getpid() for v in out.values()]
+
+
+def test_a_daemonic_process_runs_every_task_itself() -> None:
+    """A pool's worker may not have children: its tasks run in it."""
+    with multiprocessing.get_context("fork").Pool(1) as pool:
+        assert pool.map(_in_a_daemon, [0]) == [[True, True]]
