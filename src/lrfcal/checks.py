@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from . import observability, solve
 from .config import CalibConfig
 from .errors import CalibrationError
-from .model.kinematics import DH, PARAM_NAMES
+from .model.kinematics import DH, PARAM_NAMES, dh_twins
 from .model.motor import MotorClock
 from .model.unknowns import CORE_NAMES, wrap_pi
 from .surfaces import SurfaceReturns
@@ -100,6 +100,29 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
     return declared
 
 
+#: a mirror image of the rig must be this many times farther from the nominal DH than the estimate, unless the
+#: estimate is within the nominal tolerance (:func:`mirror_check`)
+MIRROR_MARGIN = 2.0
+
+
+def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
+    """The rig or its mirror image: each mirror twin of the estimate (lrfcal.model.kinematics.dh_twins) explains the
+    data exactly as well (with the marker map mirrored; flatness alike), so only the nominal DH tell them apart.
+    Passed when the estimate is within the nominal tolerance (config.nominal_tolerance) of the nominal, or
+    MIRROR_MARGIN times closer to it than the nearest mirror twin; else refused naming both."""
+    d_est, _ = _nominal_distance(dh, nominal, config)
+    twins = [(name, twin, _nominal_distance(twin, nominal, config)[0]) for name, twin, Q in dh_twins(dh)
+             if np.linalg.det(Q) < 0]
+    name, twin, d_twin = min(twins, key=lambda t: t[2])
+    ok = d_est <= 1.0 or d_twin >= MIRROR_MARGIN * d_est
+    return Check("mirror image", ok,
+                 f"the estimate is {d_est:.1f} nominal tolerances from the nominal DH, its nearest mirror image "
+                 f"({name}: {_dh_text(twin)}) {d_twin:.1f}"
+                 + ("" if ok else ": the data fit the rig and its mirror image equally well (tape distances fix the "
+                                  "marker map only up to a reflection) and the nominal DH do not tell which; check "
+                                  "the signs of alpha and b in the rig file's dh against the drawings"))
+
+
 def far_from_nominal(dh: DH, nominal: DH, config: CalibConfig) -> bool:
     """Whether a DH estimate is beyond the nominal tolerance (config.nominal_tolerance) in any parameter: a
     declared servo direction whose estimate is not far is kept whatever the other direction gives
@@ -150,12 +173,13 @@ def attitude_check(dh: DH) -> Check:
 
 def marker_checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
-    config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None,
+    config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None, nominal: DH,
 ) -> list[Check]:
     """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
     type, so that it tests the recording's parts, not the markers against the surfaces)."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh)]
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh),
+              mirror_check(sol.params.dh, nominal, config)]
     finite = bool(np.all(np.isfinite(sol.sigma)))
     if sol.information is not None and finite:
         obs = observability.analyse(sol.information, sol.information_names)
@@ -217,9 +241,11 @@ def _marker_second_opinion(
 
 
 def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
-            config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> list[Check]:
-    """Convergence, observability of the estimated parameters, reduced chi-square and a second opinion."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh)]
+            config: CalibConfig, prior: tuple[FloatArray, FloatArray], nominal: DH) -> list[Check]:
+    """Convergence, attitude, mirror image, observability of the estimated parameters, reduced chi-square and a
+    second opinion."""
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh),
+              mirror_check(sol.params.dh, nominal, config)]
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
     ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())

@@ -104,7 +104,8 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     notes.extend(tried)
     if config.surfaces:
         clock.lap("surfaces")
-    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock)
+    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock,
+                           nominal.dh)
     baseline = None
     if config.baseline:
         baseline = _baseline(chosen, scans, joints, config, fit, notes)

@@ -44,7 +44,7 @@ from . import solve, targetless
 from .config import CalibConfig
 from .errors import CalibrationError
 from .io.bag import BagData
-from .model.kinematics import DH, Params
+from .model.kinematics import DH, Params, dh_twins
 from .model.motor import MotorClock
 from .model.unknowns import wrap_pi
 from .rig import is_placeholder_dh
@@ -124,14 +124,13 @@ class DHProposal:
 
 
 def canonical(dh: DH) -> DH:
-    """The representative of the DH parameters that give the same cloud up to a rigid motion and a mirror (module
-    docstring): alpha in [0, pi], b >= 0, beta in (-pi, pi]."""
-    a, alpha, b, beta = dh.a, float(wrap_pi(dh.alpha)), dh.b, float(wrap_pi(dh.beta))
-    if alpha < 0.0:
-        alpha, b = -alpha, -b
-    if b < 0.0:
-        a, b, beta = -a, -b, float(wrap_pi(beta + math.pi))
-    return DH(a=a, alpha=alpha, b=b, beta=beta)
+    """The representative of the DH parameters that give the same cloud up to a rigid motion and a mirror (the
+    chain's twins, lrfcal.model.kinematics.dh_twins): alpha in [0, pi], b >= 0, beta in (-pi, pi]."""
+    wrapped = DH(a=dh.a, alpha=float(wrap_pi(dh.alpha)), b=dh.b, beta=float(wrap_pi(dh.beta)))
+    for d in (wrapped, *(twin for _, twin, _ in dh_twins(wrapped))):
+        if 0.0 <= d.alpha <= math.pi and d.b >= 0.0:
+            return DH(a=d.a, alpha=d.alpha, b=d.b, beta=float(wrap_pi(d.beta)))
+    raise AssertionError("one of the four twins has alpha in [0, pi] and b >= 0")
 
 
 def motor_turn_rad(joints: JointStates) -> float:

@@ -120,7 +120,7 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     sol = _consider(sol, returns, motor if estimate_clock else None, held, config, prior)
     clock.lap("solve")
 
-    checks = plane_checks(sol, returns, passes, held, config, prior)
+    checks = plane_checks(sol, returns, passes, held, config, prior, nominal.dh)
     checks.append(_held_out_check(held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol, first_thickness))
     clock.lap("checks")
     lam_b = motor.angles(beams.times_s, tau0)[0]

@@ -239,6 +239,28 @@ def points_M(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: 
     return points_M_trig(r, np.cos(lam), np.sin(lam), np.cos(phi), np.sin(phi), dh)
 
 
+def dh_twins(dh: DH) -> tuple[tuple[str, DH, FloatArray], ...]:
+    """The exact symmetries of eq. (3): the three other DH parameter sets whose cloud in M is the cloud of ``dh``
+    moved by a fixed isometry Q of M that commutes with the motor's turn, points_M(r, lambda, mu, twin) =
+    Q points_M(r, lambda, mu, dh) for every range, motor angle and bearing. Each as (name, twin, Q (3, 3)):
+
+    - "turned": (-a, -alpha, b, beta + pi), Q = Rz(pi), the mount turned by pi about the motor axis: the same rig
+      in another DH representative (the mount absorbs Q);
+    - "mirrored": (a, -alpha, -b, beta), Q = diag(1, 1, -1), the rig's mirror image through the plane normal to
+      the motor axis;
+    - "mirrored, turned": (-a, alpha, -b, beta + pi), Q = -I.
+
+    A mirror image explains the same data with the marker map mirrored too (tape distances fix the map only up to
+    a reflection; flatness cannot tell a cloud from its mirror image): only the rig's drawings can tell it from the
+    rig (lrfcal.checks.mirror_check)."""
+    turned = wrap_angle(dh.beta + np.pi).item()
+    return (
+        ("turned", DH(a=-dh.a, alpha=-dh.alpha, b=dh.b, beta=turned), np.diag([-1.0, -1.0, 1.0])),
+        ("mirrored", DH(a=dh.a, alpha=-dh.alpha, b=-dh.b, beta=dh.beta), np.diag([1.0, 1.0, -1.0])),
+        ("mirrored, turned", DH(a=-dh.a, alpha=dh.alpha, b=-dh.b, beta=turned), -np.eye(3)),
+    )
+
+
 def points_M_trig(
     ranges_m: FloatArray, cos_lambda: FloatArray, sin_lambda: FloatArray, cos_phi: FloatArray,
     sin_phi: FloatArray, dh: DH,
@@ -383,6 +405,7 @@ __all__ = [
     "beam_rays_W",
     "chain_T_M_L",
     "dh_from_mapping",
+    "dh_twins",
     "exp_so3",
     "log_so3",
     "right_jacobian_so3",
