@@ -447,13 +447,17 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
                 "alignment": lambda: alignment_figure(result, out / "alignment.png", before, before_label),
                 "residuals": lambda: residual_figure(result, out / "residuals.png", before, before_label)}
     if len(draw) > 1:
-        # drawn on every core (lrfcal.forked): matplotlib is imported once, before the fork, for every child
-        import matplotlib.backends.backend_agg  # noqa: F401
-        import matplotlib.figure  # noqa: F401
+        preload()  # drawn on every core (lrfcal.forked): matplotlib imported once, before the fork, for every child
     outcomes = call_forked({n: partial(_attempt, fn) for n, fn in draw.items()})
     written = {n: Path(v) for n, (ok, v) in outcomes.items() if ok}
     skipped = {n: v for n, (ok, v) in outcomes.items() if not ok}
     return Figures(written, skipped)
+
+
+def preload() -> None:
+    """Import what drawing needs (matplotlib's figure and Agg canvas), e.g. in a thread while the data are made."""
+    import matplotlib.backends.backend_agg  # noqa: F401
+    import matplotlib.figure  # noqa: F401
 
 
 def _attempt(fn: Callable[[], Path]) -> tuple[bool, str]:

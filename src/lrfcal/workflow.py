@@ -8,6 +8,7 @@ import os
 import shutil
 import sys
 import tempfile
+import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -91,6 +92,9 @@ def calibrate_folder(
                                scan=scan, servo=servo, warn=warn, require_distances=want_tape)
     if recording.tape is not None and want_tape:
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
+    if figures:  # matplotlib imported beside the calibration (mostly numpy, which releases the GIL), not after it
+        preload = threading.Thread(target=figure_writer.preload, daemon=True)
+        preload.start()
     result = calibrate(recording, config, progress=progress)
     truth_values = None if truth is None else truth_dict(truth)
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
