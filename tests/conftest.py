@@ -31,7 +31,7 @@ def pytest_configure(config: pytest.Config) -> None:
     apply_thread_policy()
 
 
-def test_group(nodeid: str) -> str:
+def group_of(nodeid: str) -> str:
     """The group of a test (``tests/test_x.py::test_y[param]``): the tests of one group run on one worker, in order,
     so that a module's fixtures are built once. A group is the test's module, except where the longest modules are
     split and no fixture is shared (recordings are: on disk, below): test_recovery into its random truths and its
@@ -47,7 +47,7 @@ def test_group(nodeid: str) -> str:
 
 
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
-    """Under ``pytest -n N --dist loadscope`` (pyproject's addopts) the scope of a test is its :func:`test_group`.
+    """Under ``pytest -n N --dist loadscope`` (pyproject's addopts) the scope of a test is its :func:`group_of`.
     (This replaces ``--dist loadgroup`` with xdist_group marks, which pytest 9.2 silently broke: xdist 3.8 writes the
     group into the node id, which pytest 9.2 no longer reads: pytest-dev/pytest-xdist#1386.)"""
     if config.getvalue("dist") != "loadscope":
@@ -56,7 +56,7 @@ def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
 
     class Groups(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            return test_group(nodeid)
+            return group_of(nodeid)
 
     return Groups(config, log)  # type: ignore[arg-type]
 

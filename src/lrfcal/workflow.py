@@ -93,8 +93,7 @@ def calibrate_folder(
     if recording.tape is not None and want_tape:
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     if figures:  # matplotlib imported beside the calibration (mostly numpy, which releases the GIL), not after it
-        preload = threading.Thread(target=figure_writer.preload, daemon=True)
-        preload.start()
+        threading.Thread(target=figure_writer.preload, daemon=True).start()
     result = calibrate(recording, config, progress=progress)
     truth_values = None if truth is None else truth_dict(truth)
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None

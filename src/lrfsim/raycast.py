@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
+from lrfcal.forked import cores
 
 from .lidar import (
     _MIN_NORMAL_DOT,
@@ -53,11 +54,7 @@ def default_threads() -> int:
     env = os.environ.get("LRFSIM_CAST_THREADS", "").strip()
     if env.isdigit() and int(env) >= 1:
         return int(env)
-    try:
-        n = len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        n = os.cpu_count() or 1
-    return max(1, min(4, n))
+    return max(1, min(4, cores()))
 
 
 @dataclass
