@@ -1,4 +1,5 @@
-"""lrfcal.checks: the scan plane's attitude (a DH chain near its singularity is refused, not trusted)."""
+"""lrfcal.checks and the observability verdict's hints: a scan plane near perpendicular to the motor axis, the
+mirror images of the chain, the placeholder DH."""
 
 from __future__ import annotations
 
@@ -7,7 +8,6 @@ import math
 import numpy as np
 import pytest
 
-from lrfcal.checks import NEAR_PERPENDICULAR_RAD, attitude_check
 from lrfcal.model.kinematics import DH, Params, Pose
 from lrfcal.types import Solution
 
@@ -18,34 +18,40 @@ def _solution(alpha: float) -> Solution:
                     n_iterations=0, status="")
 
 
-@pytest.mark.parametrize("alpha_deg", [0.0, 4.0, -8.1, 14.0, 20.1, -26.6, 180.0, -172.0, 155.0])
-def test_near_perpendicular_scan_plane_is_refused(alpha_deg: float) -> None:
-    check = attitude_check(_solution(math.radians(alpha_deg)).params.dh)
-    assert not check.passed
-    assert "near-singular" in check.detail and f"{alpha_deg:.1f}" in check.detail
+def test_hint_names_a_scan_plane_near_perpendicular_to_the_motor_axis() -> None:
+    """With b the undetermined direction, the hint says why when the scan plane is within 20 deg of perpendicular
+    (b is then the mount's own offset along the motor axis), and gives the layout hint otherwise."""
+    from lrfcal.observability import NEAR_PERPENDICULAR_RAD, analyse
+
+    info = np.diag([1e8, 1e10, 1e2, 1e10])  # b (the third) barely determined
+    names = ("a", "alpha", "b", "beta")
+    near = analyse(info, names, math.radians(-3.0))
+    assert near.undetermined == ("b",) and "3.0 deg from perpendicular" in near.hint()
+    assert math.degrees(NEAR_PERPENDICULAR_RAD) == pytest.approx(20.0)
+    for alpha_deg in (90.0, 35.0, -150.0):
+        assert "perpendicular" not in analyse(info, names, math.radians(alpha_deg)).hint()
+    assert "perpendicular" not in analyse(info, names).hint()
 
 
-@pytest.mark.parametrize("alpha_deg", [90.0, -90.0, 35.0, 140.0, 45.0])
-def test_other_attitudes_pass(alpha_deg: float) -> None:
-    assert math.degrees(NEAR_PERPENDICULAR_RAD) <= 35.0
-    assert attitude_check(_solution(math.radians(alpha_deg)).params.dh).passed
-
-
-def test_plan_says_a_near_perpendicular_rig_would_be_refused() -> None:
-    """`lrfsim plan` applies the same attitude check: the spinning rig tilted 35 deg is determined, at 25 deg not."""
+def test_plan_of_a_scan_plane_near_perpendicular() -> None:
+    """`lrfsim plan` of a random spinning truth 0.4 deg from perpendicular: b undetermined, and the hint says why;
+    the shipped spinning rig tilted 20 deg instead of 35 is determined (no attitude is refused as such)."""
     from pathlib import Path
 
     import yaml
 
     from lrfsim.plan import plan
+    from lrfsim.randomize import random_scenario_wide
     from lrfsim.scenario import parse_scenario, with_changes
 
+    sc = random_scenario_wide(41, broad=True)
+    assert abs(math.degrees(sc.rig.dh.alpha)) < 1.0
+    p = plan(sc)
+    assert not p.determined and p.observability.undetermined == ("b",)
+    assert "from perpendicular to the motor axis" in p.strengthen
     data = yaml.safe_load((Path(__file__).resolve().parents[1] / "scenarios" / "spinning_tilted.yaml").read_text())
-    assert plan(parse_scenario(data, "tilted_35")).attitude_ok
-    flat = with_changes(data, {"rig.dh.alpha": math.radians(25.0), "rig.nominal_dh.alpha": math.radians(25.0)})
-    p = plan(parse_scenario(flat, "tilted_25"))
-    assert not p.attitude_ok and not p.determined
-    assert any("near-singular" in n for n in p.notes), p.notes
+    tilted = with_changes(data, {"rig.dh.alpha": math.radians(20.0), "rig.nominal_dh.alpha": math.radians(20.0)})
+    assert plan(parse_scenario(tilted, "tilted_20")).determined
 
 
 def test_placeholder_dh_is_refused_naming_the_key(shipped_recording, tmp_path) -> None:  # type: ignore[no-untyped-def]

@@ -154,9 +154,10 @@ def test_broad_draws_every_scan_plane_attitude_with_markers_in_view() -> None:
         random_scenario_wide(3, alpha_kind="tilted", layout="board")
 
 
-def test_near_perpendicular_truth_is_refused_by_the_attitude_check(tmp_path: Path) -> None:
-    """A near-perpendicular random truth (alpha -4 deg, spinning): its markers are seen, and the calibration
-    refuses it with the scan plane attitude check (exit 3) rather than writing a result."""
+def test_near_perpendicular_truth_is_calibrated_within_4_sigma(tmp_path: Path) -> None:
+    """A near-perpendicular random truth (alpha -4 deg, spinning): its markers are seen, and the calibration comes
+    back within 4 sigma (before the marker map's uncertainty and the per-marker widening entered the sigma, such
+    truths came back 5-9 sigma off and were refused by an attitude limit)."""
     from lrfsim.simulate import write_recording
     from lrfsim.trial import calibrate_recording
 
@@ -166,5 +167,6 @@ def test_near_perpendicular_truth_is_refused_by_the_attitude_check(tmp_path: Pat
     assert len(detected_markers(result, sc)) >= int(visible_markers(sc).sum()) - 1
     write_recording(result, sc, tmp_path / sc.name)
     trial = calibrate_recording(tmp_path / sc.name)
-    assert trial.status == "refused" and trial.exit_code == 3, trial.describe()
-    assert trial.reason.startswith("scan plane attitude"), trial.describe()
+    assert abs(math.degrees(sc.rig.dh.alpha)) < 15.0
+    assert trial.status == "calibrated", trial.describe()
+    assert np.all(np.abs(trial.z) < 4.0), trial.describe()

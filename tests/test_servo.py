@@ -157,7 +157,7 @@ def test_spinning_scenario_bag_has_unwrapped_joint_states(shipped_recording: Cal
     from lrfsim.scenario import load_scenario
 
     scenario = load_scenario(SCENARIOS / "spinning_tilted.yaml")
-    assert scenario.servo.mode == "spin" and abs(scenario.rig.dh.alpha - 0.616) < 0.02
+    assert scenario.servo.mode == "spin" and abs(scenario.rig.dh.alpha - 0.494) < 0.02
     assert visible_markers(scenario).all()
     rec = read_recording(shipped_recording("spinning_tilted"))
     p = rec.joints.positions_rad

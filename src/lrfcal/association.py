@@ -20,6 +20,7 @@ layout itself, and ``mirrored`` stays False unless the mirrored fit is clearly b
 
 from __future__ import annotations
 
+from dataclasses import replace
 from itertools import combinations
 from math import comb
 
@@ -84,14 +85,9 @@ def _kabsch_batch(P: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray]
 
 def unmirror(markers: MarkerMap) -> MarkerMap:
     """The MarkerMap with its z axis negated: the frame :func:`associate` matched when ``mirrored``."""
-    return MarkerMap(
-        marker_ids=markers.marker_ids,
-        positions_W=np.asarray(markers.positions_W, dtype=float) * _MIRROR,
-        stress=markers.stress,
-        rms_m=markers.rms_m,
-        planarity=markers.planarity,
-        coplanar=markers.coplanar,
-    )
+    flip = np.tile(_MIRROR, len(markers.marker_ids))  # each marker's z negated, in the covariance too
+    cov = None if markers.covariance is None else markers.covariance * np.outer(flip, flip)
+    return replace(markers, positions_W=np.asarray(markers.positions_W, dtype=float) * _MIRROR, covariance=cov)
 
 
 def _triangle_ok(sides: FloatArray, gate_m: float) -> NDArray[np.bool_]:

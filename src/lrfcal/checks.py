@@ -147,30 +147,6 @@ def _dh_text(dh: DH) -> str:
             f"beta {math.degrees(dh.beta):.2f} deg")
 
 
-#: the scan plane within this angle of perpendicular to the motor axis (alpha within it of 0 or 180 deg) is refused:
-#: of 20 random tilted truths (|alpha| 20-70 deg, bench_trust.py --broad), two at 20 and 27 deg came back more than
-#: 4 sigma off with every other check passed, one at 24 deg was refused, the 13 at 30 deg and beyond were within 2.3
-NEAR_PERPENDICULAR_RAD = math.radians(30.0)
-
-
-def attitude_check(dh: DH) -> Check:
-    """The DH chain is near-singular when the scan plane is nearly perpendicular to the motor axis (alpha near 0 or
-    180 deg): at alpha = 0, Tz(b) commutes with Rz(lambda), so b is the mount's own offset along the motor axis, and
-    near it the servo's two directions predict nearly mirror-image clouds. The DH parameterisation does not give
-    trustworthy results there (random truths with alpha of 4-10 deg came back with alpha's sign flipped and every
-    other check passed; tilted ones at 20 and 27 deg came back 4-11 sigma off), so such a result is refused until
-    the model has a regular parameterisation."""
-    alpha = dh.alpha
-    tilt = math.asin(min(1.0, abs(math.sin(alpha))))  # the scan plane's angle from perpendicular to the motor axis
-    ok = tilt >= NEAR_PERPENDICULAR_RAD
-    return Check("scan plane attitude", ok,
-                 f"alpha {math.degrees(alpha):.1f} deg: the scan plane is {math.degrees(tilt):.1f} deg from "
-                 f"perpendicular to the motor axis (limit {math.degrees(NEAR_PERPENDICULAR_RAD):g} deg)"
-                 + ("" if ok else ": the DH chain is near-singular there (b is the mount's offset along the motor "
-                                  "axis, the servo's two directions nearly mirror each other); this calibration does "
-                                  "not give a trustworthy result for such a rig"))
-
-
 def marker_checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
     config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None, nominal: DH,
@@ -178,11 +154,11 @@ def marker_checks(
     """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
     type, so that it tests the recording's parts, not the markers against the surfaces)."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh),
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
               mirror_check(sol.params.dh, nominal, config)]
     finite = bool(np.all(np.isfinite(sol.sigma)))
     if sol.information is not None and finite:
-        obs = observability.analyse(sol.information, sol.information_names)
+        obs = observability.analyse(sol.information, sol.information_names, sol.params.dh.alpha)
         checks.append(Check("observability", obs.determined,
                             f"{obs.summary()}" + ("" if obs.determined else f": {obs.hint()}")))
     else:  # a singular information (the solver's rank test): no covariance exists, so nothing is determined
@@ -200,7 +176,8 @@ def _marker_second_opinion(
 ) -> Check:
     """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
     and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
-    (the part's data are a subset of the joint's), against the chi-square quantile with 4 degrees of freedom."""
+    (the part's data are a subset of the joint's; the marker map's shared error enters as (G_part - G_joint) C_map
+    (G_part - G_joint)^T), against the chi-square quantile with 4 degrees of freedom."""
     from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
 
     groups, how = split_in_two(matched.scan, passes)
@@ -210,7 +187,7 @@ def _marker_second_opinion(
     for g in groups:
         part = matched.subset(g)
         try:
-            ps = fit(part, markers.positions_W, sol.params, model="sphere", clock=None,
+            ps = fit(part, markers, sol.params, model="sphere", clock=None,
                      clock_offset_s=sol.clock_offset_s)
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few returns")
@@ -219,6 +196,11 @@ def _marker_second_opinion(
         d = ps.params.vector()[dh] - sol.params.vector()[dh]
         d[[1, 3]] = wrap_pi(d[[1, 3]])
         C = ps.covariance[np.ix_(dh, dh)] - sol.covariance[np.ix_(dh, dh)]
+        if markers.covariance is not None and ps.map_sensitivity is not None and sol.map_sensitivity is not None:
+            # the map's error is shared: it moves the part and the joint solution by G dc each, the difference
+            # by (G_part - G_joint) dc, not by the difference of their covariances
+            Gp, Gj, Cm = ps.map_sensitivity[dh], sol.map_sensitivity[dh], markers.covariance
+            C += Gj @ Cm @ Gj.T - Gp @ Cm @ Gp.T + (Gp - Gj) @ Cm @ (Gp - Gj).T
         if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
         w, V = np.linalg.eigh(0.5 * (C + C.T))
@@ -242,9 +224,9 @@ def _marker_second_opinion(
 
 def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
             config: CalibConfig, prior: tuple[FloatArray, FloatArray], nominal: DH) -> list[Check]:
-    """Convergence, attitude, mirror image, observability of the estimated parameters, reduced chi-square and a
+    """Convergence, mirror image, observability of the estimated parameters, reduced chi-square and a
     second opinion."""
-    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]), attitude_check(sol.params.dh),
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
               mirror_check(sol.params.dh, nominal, config)]
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}

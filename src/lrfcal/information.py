@@ -15,7 +15,7 @@ from .model.motor import MotorClock
 from .model.unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from .normal_equations import assemble, cluster_scores, schur, solve_step
 from .problem import Problem, marker_problem, plane_problem, plane_set
-from .solve import plane_free
+from .solve import plane_free, with_sides
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations
 
@@ -155,6 +155,24 @@ def model_error_at(
     return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
 
 
+def map_error_at(
+    info: FloatArray, obs: Observations, markers_W: ArrayLike, params: Params, map_cov: FloatArray, *, model: str,
+    marker_radius_m: float, range_sigma_m: float = 0.010, clock: MotorClock | None = None,
+    clock_offset_s: float = 0.0, surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None,
+    beam_divergence_rad: float = 0.0,
+) -> FloatArray:
+    """The covariance (k, k) the marker map's own uncertainty ``map_cov`` (3n, 3n) (lrfcal.mds.map_covariance) adds
+    to an estimate, over the unknowns (and in the order) of :func:`information_at`, whose ``info`` it takes:
+    G map_cov G^T with G = -info^-1 J_m^T J_c (lrfcal.problem.Problem.centre_cross), as lrfcal.solve adds it to a
+    calibration's covariance."""
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
+                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+    col = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    G = -(np.linalg.pinv(info / np.outer(col, col), rcond=1e-12) / np.outer(col, col)) @ pb.centre_cross(
+        th, R_ref, idx, len(map_cov) // 3)
+    return G @ map_cov @ G.T
+
+
 def _problem_at(
     obs: Observations, markers_W: ArrayLike, params: Params, model: str, radius: float, sigma_r: float,
     clock: MotorClock | None, clock_offset_s: float, surfaces: SurfaceReturns | None,
@@ -163,6 +181,7 @@ def _problem_at(
     """The problem of :func:`information_at` (marker rows; plane rows and priors with non-empty ``surfaces``), the
     unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices)."""
     pb, th, R_ref = _at(params, obs, markers_W, model, radius, sigma_r, divergence, clock, clock_offset_s)
+    pb = with_sides(pb, th, R_ref)  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
@@ -193,4 +212,5 @@ def plane_information(
     return S, tuple(CORE_NAMES[k] for k in core)
 
 
-__all__ = ["information_at", "jacobian_check", "model_error_at", "model_residuals", "plane_information"]
+__all__ = ["information_at", "jacobian_check", "map_error_at", "model_error_at", "model_residuals",
+           "plane_information"]

@@ -96,7 +96,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     off = _scales_off(ours, notes)
     if off:  # an intrinsic held at 1 is not: estimate it in every solve, from the marker-only one on
         fit = partial(fit, estimate=off)
-        chosen = replace(chosen, solution=fit(chosen.matched, chosen.markers.positions_W, chosen.solution.params,
+        chosen = replace(chosen, solution=fit(chosen.matched, chosen.markers, chosen.solution.params,
                                               model="sphere", clock=chosen.clock,
                                               clock_offset_s=chosen.solution.clock_offset_s))
         tried = []
@@ -194,7 +194,7 @@ def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointState
         max_returns=config.surface_max_returns, beam_times_s=beam_times,
     )
     if len(on_surfaces):
-        joint = partial(fit, matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
+        joint = partial(fit, matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
                         planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s)
         ours = joint(estimate_range_bias=config.estimate_range_bias)
         if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
@@ -212,7 +212,7 @@ def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointState
         if len(others):
             on_surfaces = merge_returns(on_surfaces, others)
             surface_list = [*surface_list, *other_planes]
-            ours = fit(matched, markers.positions_W, ours.params, model="sphere", surfaces=on_surfaces,
+            ours = fit(matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
                        estimate_range_bias=math.isfinite(ours.range_offset_sigma_m))
             notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
@@ -228,7 +228,7 @@ def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: Ca
     lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
     peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
     try:
-        return fit(peaks, chosen.markers.positions_W, chosen.start, model="paper")
+        return fit(peaks, chosen.markers, chosen.start, model="paper")
     except CalibrationError as err:
         notes.append(f"the paper's method could not be run: {err}")
         return None
@@ -263,14 +263,14 @@ def _marker_solution(
                                        marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
                                        clock=motor, clock_offset_s=config.clock_offset_s,
                                        beam_divergence_rad=nominal.beam_divergence_rad)
-    obs = observability.analyse(info, names)
+    obs = observability.analyse(info, names, start.dh.alpha)
     if not obs.determined:
         raise CalibrationError(
             f"the recording does not determine {', '.join(obs.undetermined) or 'the DH parameters'} "
             f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
             f"{obs.hint()}"
         )
-    sol = fit(matched, markers.positions_W, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
+    sol = fit(matched, markers, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
     # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
     # that is not where the tape puts it: unassign them and solve again
     notes: list[str] = []
@@ -285,7 +285,7 @@ def _marker_solution(
         matched = _with_markers(returns, b2m)
         if len(np.unique(matched.marker)) < 4:
             raise CalibrationError(f"{why}; fewer than 4 markers remain")
-        sol = fit(matched, markers.positions_W, sol.params, model="sphere", clock=motor,
+        sol = fit(matched, markers, sol.params, model="sphere", clock=motor,
                   clock_offset_s=sol.clock_offset_s)
     return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes))
 

@@ -50,6 +50,8 @@ TAPE_SIGMA_M = 0.001
 K_SIGMA = 5.0
 #: the map is refused when its RMS over the kept pairs is still above this
 MAX_RMS_M = 0.005
+#: fewer redundant pairs than this: the tape noise of the map's covariance is at least TAPE_SIGMA_M
+MIN_DOF_SIGMA = 10
 #: pairs refitted per round (the largest first-order z)
 _N_CANDIDATES = 3
 
@@ -278,6 +280,11 @@ def _marker_map(
             f"{max_rms_m * 1000:.1f} mm): the tape distances contradict each other; worst pairs: {named}; "
             "re-measure them"
         )
+    pi, pj = iu[0][m], iu[1][m]
+    dof = r.size - (2 * n - 3 if planar else 3 * n - 6)  # the map's redundancy
+    sigma = float(np.sqrt((r**2).sum() / dof)) if dof > 0 else 0.0
+    if dof < MIN_DOF_SIGMA:  # too few redundant pairs to trust the estimate alone
+        sigma = max(sigma, tape_sigma_m)
     return MarkerMap(
         marker_ids=ids,
         positions_W=X,
@@ -286,7 +293,33 @@ def _marker_map(
         planarity=planarity,
         coplanar=planar or planarity < COPLANAR_THRESHOLD,
         dropped_pairs=tuple(dropped),
+        covariance=map_covariance(X, pi, pj, sigma, planar),
+        tape_sigma_m=sigma,
     )
+
+
+def map_covariance(X: FloatArray, pi: NDArray[np.intp], pj: NDArray[np.intp], sigma_m: float, planar: bool = False
+                   ) -> FloatArray:
+    """The covariance (3n, 3n) of the marker coordinates X (n, 3) (of X.ravel()) fitted to the distances of the pairs
+    (pi, pj) (P,) with independent tape noise ``sigma_m``: sigma^2 (A^T A)^+, A (P, n k) the distances' Jacobian with
+    respect to the coordinates (k = 2 in the plane z = 0 when ``planar``: the out-of-plane ones are taken as exact).
+
+    The pseudo-inverse leaves out the rigid motions, which distances cannot see: the covariance is that of the map
+    best aligned with the true one, and a calibration's mount absorbs the rest."""
+    n = len(X)
+    k = 2 if planar else 3
+    diff = X[pi, :k] - X[pj, :k]
+    u = diff / np.maximum(np.linalg.norm(diff, axis=1, keepdims=True), 1e-300)
+    A = np.zeros((len(pi), n * k))
+    rows = np.arange(len(pi))
+    for c in range(k):
+        A[rows, pi * k + c] = u[:, c]
+        A[rows, pj * k + c] = -u[:, c]
+    cov_k = sigma_m**2 * np.linalg.pinv(A.T @ A, rcond=1e-10, hermitian=True)
+    idx = (3 * np.arange(n)[:, None] + np.arange(k)).ravel()
+    cov = np.zeros((3 * n, 3 * n))
+    cov[np.ix_(idx, idx)] = cov_k
+    return cov
 
 
 def _leverage(X: FloatArray, pi: NDArray[np.intp], pj: NDArray[np.intp]) -> FloatArray:
@@ -420,4 +453,4 @@ def _planar_fits_as_well(ssr2: float, ssr3: float, n_pairs: int, n: int, p_value
     return bool(fdtri(n - 3, dof3, 1 - p_value) > F)
 
 
-__all__ = ["COLLINEAR_THRESHOLD", "COPLANAR_THRESHOLD", "classical_mds", "marker_map", "smacof"]
+__all__ = ["COLLINEAR_THRESHOLD", "COPLANAR_THRESHOLD", "classical_mds", "map_covariance", "marker_map", "smacof"]

@@ -27,6 +27,9 @@ LIMITS: dict[str, float] = {
     "clock_offset": 0.005,
 }
 DH = ("a", "alpha", "b", "beta")
+#: a scan plane within this angle of perpendicular to the motor axis (DH alpha near 0 or 180 deg): b and the
+#: mount's offset along the motor axis are nearly one quantity (Tz(b) commutes with Rz(lambda) at alpha = 0)
+NEAR_PERPENDICULAR_RAD = math.radians(20.0)
 #: a range offset or marker range bias this uncertain is held at 0 rather than estimated [m]
 RANGE_BIAS_LIMIT_M = 0.005
 
@@ -48,6 +51,8 @@ class Observability:
     sigma: FloatArray
     spectrum: FloatArray
     weakest: FloatArray
+    #: the scan plane's angle from perpendicular to the motor axis [rad] (NaN: not given)
+    tilt_rad: float = math.nan
 
     @property
     def limits(self) -> FloatArray:
@@ -80,6 +85,11 @@ class Observability:
 
     def hint(self) -> str:
         names = frozenset(n for n, v in zip(DH, self.weakest, strict=True) if abs(v) >= 0.3)
+        if "b" in names and self.tilt_rad < NEAR_PERPENDICULAR_RAD:
+            return (f"the scan plane is {math.degrees(self.tilt_rad):.1f} deg from perpendicular to the motor axis: "
+                    "there b (the scanner's offset along its own axis) and the mount's offset along the motor axis "
+                    "are nearly one quantity (exactly so at 0 deg) and only their sum is determined; tilt the scan "
+                    "plane further from perpendicular, or spread markers far along the motor axis")
         for key, text in _HINTS.items():
             if key <= names and len(key) > 1:
                 return text
@@ -103,9 +113,10 @@ def _fmt(name: str, v: float) -> str:
     return f"{math.degrees(v):.3g} deg" if name in ("alpha", "beta") else f"{v * 1000:.3g} mm"
 
 
-def analyse(information: FloatArray, names: tuple[str, ...]) -> Observability:
+def analyse(information: FloatArray, names: tuple[str, ...], alpha: float | None = None) -> Observability:
     """Observability of the DH parameters from the information (k, k) over ``names`` (must contain a, alpha, b,
-    beta; the others are marginalised)."""
+    beta; the others are marginalised); ``alpha`` [rad], the DH twist, lets the hint name a scan plane nearly
+    perpendicular to the motor axis."""
     info = np.asarray(information, dtype=float)
     idx = [names.index(n) for n in DH]
     other = [i for i in range(len(names)) if i not in idx]
@@ -129,7 +140,8 @@ def analyse(information: FloatArray, names: tuple[str, ...]) -> Observability:
         else:
             sigma[i] = math.sqrt(sum(vecs[i, j] ** 2 / vals[j] for j in range(4) if vals[j] > 0)) * D[i]
     weakest = vecs[:, 0] * (1.0 if vecs[np.argmax(np.abs(vecs[:, 0])), 0] >= 0 else -1.0)
-    return Observability(sigma=sigma, spectrum=vals, weakest=weakest)
+    tilt = math.nan if alpha is None else math.asin(min(1.0, abs(math.sin(alpha))))
+    return Observability(sigma=sigma, spectrum=vals, weakest=weakest, tilt_rad=tilt)
 
 
-__all__ = ["DH", "LIMITS", "RANGE_BIAS_LIMIT_M", "Observability", "analyse"]
+__all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Observability", "analyse"]

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import InputError
-from .model.marker import MODELS, MarkerSet, marker_rows
+from .model.marker import MODELS, MarkerSet, centre_jacobian, marker_rows
 from .model.motor import MotorClock
 from .model.plane import plane_rows
 from .model.unknowns import DH_SLICE, N_CORE, PlaneSet, plane_nuisance_start, wrap_pi
@@ -46,6 +46,29 @@ class Problem:
                     ) -> tuple[FloatArray, FloatArray | None]:
         """Whitened marker residuals (K, n_res) and Jacobian (K, n_res, N_CORE) (lrfcal.model.marker)."""
         return marker_rows(th, self.markers, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
+
+    def centre_cross(self, th: FloatArray, R_ref: FloatArray, core: NDArray[np.intp], n_markers: int) -> FloatArray:
+        """J_m^T J_c (len(core), 3 n_markers): the marker rows' core columns against their derivatives with respect
+        to the marker centres (lrfcal.model.marker.centre_jacobian), summed per marker (each marker's x, y, z).
+        Only marker rows depend on the centres among the residuals, and none of them on a plane's nuisances (the
+        planes' priors do: :meth:`prior_cross`)."""
+        ms = self.markers
+        _, J = self.marker_rows(th, R_ref)
+        assert J is not None and ms.marker is not None
+        Jc = centre_jacobian(th, ms, self.sigma_r, R_ref, self.clock)
+        per_return = np.einsum("kri,krj->kij", J[:, :, core], Jc)  # (K, len(core), 3)
+        B = np.zeros((n_markers, core.size, 3))
+        np.add.at(B, ms.marker, per_return)
+        return B.transpose(1, 0, 2).reshape(core.size, 3 * n_markers)
+
+    def prior_cross(self, n_markers: int) -> FloatArray | None:
+        """J_q^T J_qc (3P, 3 n_markers) of the planes' prior rows (th_nu - mean(c)) / sigma against the marker
+        coordinates: -diag(1 / sigma^2) d mean / dc (lrfcal.surfaces.plane_prior_jacobian); None without it."""
+        s = self.surf
+        if s is None or s.prior_sigma is None or s.prior_mean is None or s.prior_jacobian is None:
+            return None
+        assert s.prior_jacobian.shape[1] == 3 * n_markers
+        return -s.prior_jacobian / s.prior_sigma[:, None] ** 2
 
     def blocks(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> Blocks:
         """All whitened residuals as lrfcal.normal_equations.Blocks: the marker returns and the design drawing's
@@ -113,7 +136,7 @@ def marker_problem(
     use = (marker >= 0) & np.isfinite(obs.ranges_m) & np.isfinite(obs.lambda_rad) & np.isfinite(obs.mu_rad)
     ms = MarkerSet(np.asarray(obs.lambda_rad, dtype=float)[use], np.asarray(obs.mu_rad, dtype=float)[use],
                    np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], model, float(radius),
-                   float(divergence), np.asarray(obs.times_s, dtype=float)[use])
+                   float(divergence), np.asarray(obs.times_s, dtype=float)[use], marker[use].astype(np.int64))
     return Problem(ms, float(sigma_r)), use
 
 
@@ -130,13 +153,16 @@ def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tup
     ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
     first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
     n0, t1, t2, nu0 = plane_nuisance_start(surfaces.normals[first], surfaces.offsets_m[first])
-    prior_sigma = None
+    prior_sigma = prior_jacobian = None
     if planes is not None:
         t1 = np.array([planes[i].axes[0] for i in ids])
         t2 = np.array([planes[i].axes[1] for i in ids])
         prior_sigma = np.concatenate([planes[i].prior_sigma for i in ids])
+        jacobians = [planes[i].prior_jacobian for i in ids]
+        if all(j is not None for j in jacobians):
+            prior_jacobian = np.vstack(jacobians)  # type: ignore[arg-type]
     surf = PlaneSet(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
-                    nu0.copy(), prior_sigma, times=surfaces.times_s)
+                    nu0.copy(), prior_sigma, times=surfaces.times_s, prior_jacobian=prior_jacobian)
     return surf, nu0
 
 

@@ -24,14 +24,14 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError
 from .model.kinematics import Params, exp_so3
-from .model.marker import residuals_3d
+from .model.marker import residuals_3d, two_sided
 from .model.motor import MotorClock, motor_angles
 from .model.plane import plane_rows
 from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, UNKNOWNS, free_by_default, pack, unpack
-from .normal_equations import RANK_TOL, assemble, cluster_scores, levenberg_marquardt, schur
+from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, levenberg_marquardt, schur
 from .problem import Problem, marker_problem, plane_problem, plane_set
 from .surfaces import Surface, SurfaceReturns
-from .types import Observations, Solution
+from .types import MarkerMap, Observations, Solution
 
 FloatArray = NDArray[np.float64]
 
@@ -65,17 +65,45 @@ def _inflate_for_correlation(cov: FloatArray, G: FloatArray, JtJ_inv: FloatArray
     return cov * np.outer(scale, scale)
 
 
+#: markers needed for the per-marker sandwich (fewer: it says nothing)
+_MIN_MARKER_CLUSTERS = 4
+
+
+def _inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], marker_dense: NDArray[np.int64],
+                         scan_plane: NDArray[np.int64], JtJ_inv: FloatArray) -> FloatArray:
+    """Widen ``cov`` (p, p) per parameter to the cluster-robust covariance with every marker's returns one cluster
+    (each scan's surface returns one, as before), times G / (G - 1) for G markers: the errors the returns of one
+    marker share (an uneven coverage of its disc by the beams, the marker map's error of it) are then counted once
+    per marker, not as independent per return. The larger of the two per parameter, the correlations kept."""
+    n_markers = np.unique(marker_dense).size
+    if n_markers < _MIN_MARKER_CLUSTERS:
+        return cov
+    ids = marker_dense + (int(scan_plane.max()) + 1 if scan_plane.size else 0)  # apart from the scans' ids
+    G = cluster_scores(b, core, ids, scan_plane)
+    sandwich = JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1))
+    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+        ratio = np.diag(sandwich) / np.diag(cov)
+    scale = np.sqrt(np.maximum(1.0, np.where(np.isfinite(ratio), ratio, 1.0)))
+    return cov * np.outer(scale, scale)
+
+
 def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
-                 cluster_dense: NDArray[np.int64], cluster_plane: NDArray[np.int64]
-                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str]:
+                 cluster_dense: NDArray[np.int64], cluster_plane: NDArray[np.int64],
+                 map_cov: FloatArray | None = None, marker_dense: NDArray[np.int64] | None = None
+                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None]:
     """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
     scan (``cluster_dense``, ``cluster_plane``: the scan of each dense and plane residual row; each prior row is a
-    cluster of its own), with ``n_rows`` independent residuals. J^T J from the normal equations, column-scaled; an
-    eigenvalue below RANK_TOL of the largest is rank loss.
+    cluster of its own), with ``n_rows`` independent residuals, plus the marker map's own uncertainty ``map_cov``
+    (3n, 3n) carried through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c (lrfcal.problem.Problem.
+    centre_cross). Then widened again where the errors shared by all returns of one marker (``marker_dense``: the
+    marker of each dense row) say more: where the beams cover a marker unevenly (lines fanning across it, or the
+    same lines in every pass), the mean of its returns' lateral offsets is not its centre, and that error is common
+    to the marker (:func:`_inflate_for_markers`). J^T J from the normal equations, column-scaled; an eigenvalue below
+    RANK_TOL of the largest is rank loss.
 
     Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
-    singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2 and
-    the rank in words."""
+    singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2,
+    the rank in words and G (N_CORE, 3n) (None without ``map_cov`` or with rank loss)."""
     b = pb.blocks(th, R_ref)
     core = np.flatnonzero(free[:N_CORE])
     H, _ = assemble(b, core).dense()
@@ -89,6 +117,7 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
     rank = int(np.sum(eig > eig[-1] * RANK_TOL))  # only numerically null directions count as rank loss
     core_pos = list(range(core.size))
     core_names = tuple(CORE_NAMES[k] for k in core)
+    G: FloatArray | None = None
     info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
     if rank < n_par:
         cov = s2 * np.linalg.pinv(H_s, rcond=1e-15) / np.outer(col, col)
@@ -97,6 +126,20 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
     else:
         JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
         cov = _inflate_for_correlation(s2 * JtJ_inv, cluster_scores(b, core, cluster_dense, cluster_plane), JtJ_inv)
+        if map_cov is not None:
+            # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the
+            # marker rows (core columns) and the planes' priors (nuisance columns)
+            n_m = len(map_cov) // 3
+            cross = pb.centre_cross(th, R_ref, core, n_m)
+            prior = pb.prior_cross(n_m)
+            if prior is not None and H.shape[0] == core.size + prior.shape[0]:
+                cross = np.vstack([cross, prior])
+            G_free = -JtJ_inv[core_pos, :cross.shape[0]] @ cross
+            cov[np.ix_(core_pos, core_pos)] += G_free @ map_cov @ G_free.T
+            G = np.zeros((N_CORE, len(map_cov)))
+            G[core] = G_free
+        if marker_dense is not None:
+            cov = _inflate_for_markers(cov, b, core, marker_dense, cluster_plane, JtJ_inv)
         info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
         rank_txt = f"full rank (condition {np.sqrt(eig[-1] / eig[0]):.2e})"
     cov_core = np.full((N_CORE, N_CORE), np.nan)
@@ -104,18 +147,21 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
     if rank < n_par:
         # a covariance from a singular information would be meaningless (and can be 0): none is reported
         cov_core[np.ix_(core, core)] = np.inf
-    return cov_core, info, core_names, s2, rank_txt
+    return cov_core, info, core_names, s2, rank_txt, G
 
 
 def _per_return_chi(th: FloatArray, pb: Problem, R_ref: FloatArray) -> FloatArray:
-    """Whitened residual norm per marker return divided by sqrt(3) (3 independent components for either model)."""
+    """Whitened residual norm per marker return divided by the square root of its independent components (3 for
+    either model, 1 for a sphere return whose lateral residual is left out)."""
     res, _ = pb.marker_rows(th, R_ref, jac=False)
-    return np.sqrt((res**2).sum(1) / 3.0)
+    lateral = pb.markers.lateral
+    dof = np.where(lateral, 3.0, 1.0) if lateral is not None and pb.markers.model == "sphere" else 3.0
+    return np.sqrt((res**2).sum(1) / dof)
 
 
 def solve(
     obs: Observations,
-    markers_W: ArrayLike,
+    markers_W: ArrayLike | MarkerMap,
     start: Params,
     *,
     model: str,
@@ -136,7 +182,8 @@ def solve(
     Args:
         obs: K returns; rows with marker < 0 or non-finite values are ignored. obs.lambda_rad must be the motor
             angles at ``clock_offset_s``; obs.times_s the beam times (laser clock).
-        markers_W: (n, 3) marker centres in W (the MDS frame, un-mirrored).
+        markers_W: the marker map (lrfcal.mds; its covariance, the tape's noise, joins the estimate's), or the
+            marker centres (n, 3) in W taken as exact (the MDS frame, un-mirrored).
         start: initial parameters (mount pose from the association, DH from the nominal values).
         model: "paper" (eq. (10), return point vs marker centre) or "sphere" (ray vs sphere, sub-beam).
         marker_radius_m: marker sphere radius R_m.
@@ -165,7 +212,9 @@ def solve(
     Raises:
         CalibrationError: fewer than 4 usable returns or fewer than 3 distinct markers.
     """
-    pb_all, use = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
+    map_cov = markers_W.covariance if isinstance(markers_W, MarkerMap) else None
+    X = markers_W.positions_W if isinstance(markers_W, MarkerMap) else np.asarray(markers_W, dtype=float)
+    pb_all, use = marker_problem(obs, X, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
     K = pb_all.markers.r.size
     n_markers = len(np.unique(np.asarray(obs.marker)[use]))
     if K < 4 or n_markers < 3:
@@ -180,16 +229,16 @@ def solve(
         pb_all = replace(pb_all, surf=surf)
         th = np.concatenate([th, nu0])
     free = np.concatenate([free_core, np.ones(th.size - N_CORE, dtype=bool)])
-    th, R_ref, keep, keep_s, nfev, msg = _marker_passes(th, R_ref, pb_all, free, robust)
-    return _marker_solution(obs, use, len(np.asarray(markers_W)), pb_all, th, R_ref, free, keep, keep_s, nfev, msg,
-                            surfaces)
+    th, R_ref, keep, keep_s, nfev, msg, pb_all = _marker_passes(th, R_ref, pb_all, free, robust)
+    return _marker_solution(obs, use, len(X), pb_all, th, R_ref, free, keep, keep_s, nfev, msg, surfaces, map_cov)
 
 
 def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDArray[np.bool_], robust: bool
-                   ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], int, str]:
+                   ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], NDArray[np.bool_], int, str, Problem]:
     """The solver passes of :func:`solve`: Huber-weighted (markers alone), then plain least squares with the returns
-    beyond 4 robust sigma dropped until the kept set is stable. Returns (th, R_ref, kept marker returns (K,), kept
-    surface returns (K2,), evaluations, the last pass's message)."""
+    beyond 4 robust sigma dropped until the kept set is stable, each on the lateral residuals of the markers crossed
+    on both sides (:func:`with_sides`). Returns (th, R_ref, kept marker returns (K,), kept surface returns (K2,),
+    evaluations, the last pass's message, the problem as last solved)."""
     K = pb_all.markers.r.size
     K2 = 0 if pb_all.surf is None else pb_all.surf.r.size
     nfev = 0
@@ -201,6 +250,7 @@ def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDA
             th, R_ref, nf, _ = _fit(th, R_ref, pb_all, free, robust=True)
             nfev += nf
         for _ in range(5):
+            pb_all = with_sides(pb_all, th, R_ref)
             chi = _per_return_chi(th, pb_all, R_ref)
             # robust scale of the whitened residuals (median of chi2_3 / 3 is 0.789), never below the model's
             scale = max(1.0, float(np.sqrt(np.median(chi[keep] ** 2) / 0.789)))
@@ -218,14 +268,21 @@ def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDA
             if not changed:  # the last pass was on this very set: it is the solution
                 break
     if not robust or changed:
+        pb_all = with_sides(pb_all, th, R_ref)
         th, R_ref, nf, msg = _fit(th, R_ref, pb_all.subset(keep, keep_s), free, robust=False)
         nfev += nf
-    return th, R_ref, keep, keep_s, nfev, msg
+    return th, R_ref, keep, keep_s, nfev, msg, pb_all
+
+
+def with_sides(pb: Problem, th: FloatArray, R_ref: FloatArray) -> Problem:
+    """``pb`` with the lateral residuals of the markers the scan plane crosses on one side only left out
+    (lrfcal.model.marker.two_sided, at th)."""
+    return replace(pb, markers=replace(pb.markers, lateral=two_sided(th, pb.markers, R_ref, pb.clock)))
 
 
 def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, pb_all: Problem, th: FloatArray,
                      R_ref: FloatArray, free: NDArray[np.bool_], keep: NDArray[np.bool_], keep_s: NDArray[np.bool_],
-                     nfev: int, msg: str, surfaces: SurfaceReturns | None) -> Solution:
+                     nfev: int, msg: str, surfaces: SurfaceReturns | None, map_cov: FloatArray | None) -> Solution:
     """The Solution of :func:`solve` at the solution th: covariance, residuals per return and per marker, status."""
     ms = pb_all.markers
     K, K2 = ms.r.size, 0 if pb_all.surf is None else pb_all.surf.r.size
@@ -233,10 +290,11 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
     k_in, k_s = int(keep.sum()), int(keep_s.sum())
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
     scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
-    # 3 per marker return, 1 per surface return and prior row
-    cov_core, info, core_names, s2, rank_txt = _uncertainty(pb, th, R_ref, free, 3 * k_in + k_s + n_prior,
-                                                            np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res),
-                                                            scan_s)
+    # 3 per marker return (1 without its lateral residual), 1 per surface return and prior row
+    cov_core, info, core_names, s2, rank_txt, G = _uncertainty(
+        pb, th, R_ref, free, pb.markers.n_independent + k_s + n_prior,
+        np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res), scan_s, map_cov,
+        np.repeat(np.asarray(obs.marker)[use][keep], ms.n_res))
     params = unpack(th[:N_CORE], R_ref)
     score = _held_score(pb, th, R_ref, free, s2)
     lam_all = motor_angles(th, np.asarray(obs.lambda_rad, dtype=float), np.asarray(obs.times_s, dtype=float),
@@ -260,7 +318,8 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
                      residuals_m=res3, per_marker_rms_m=per, n_observations=k_in, n_iterations=nfev, status=status,
                      information=info, information_names=core_names, reduced_chi2=s2,
                      converged="maximum number of function evaluations" not in msg, chi=chi_all, inlier=inl,
-                     lambda_rad=lam_all, n_surface_returns=k_s, held_score=score)
+                     lambda_rad=lam_all, n_surface_returns=k_s, held_score=score,
+                     map_sensitivity=None if G is None else G[:10])
 
 
 def _held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], s2: float
@@ -387,7 +446,7 @@ def solve_planes(
     pb = pb_all.subset(none, keep)
     assert pb.surf is not None
     n_prior = 0 if dh_prior is None else 4
-    cov_core, info, core_names, s2, rank_txt = _uncertainty(
+    cov_core, info, core_names, s2, rank_txt, _ = _uncertainty(
         pb, th, R_ref, free, int(keep.sum()) + n_prior,
         -1 - np.arange(n_prior), np.asarray(surfaces.scan)[keep])
     rs = plane_rows(th, pb.surf, 1.0, R_ref, jac=False, clock=clock).res

@@ -52,6 +52,8 @@ class Surface:
 
     prior_sigma (3,): how well the markers fix the plane: tilts (rad) towards axes[0] and axes[1], and the
     offset (m). The solver treats the plane as a nuisance with this prior, not as exactly known.
+    prior_jacobian (3, 3n): how the prior's mean (those tilts and the offset) moves with the n markers' coordinates
+    (:func:`plane_prior_jacobian`; None when the plane is not the markers'), for the marker map's own uncertainty.
     """
 
     normal: FloatArray
@@ -62,6 +64,7 @@ class Surface:
     lower: FloatArray
     upper: FloatArray
     prior_sigma: FloatArray
+    prior_jacobian: FloatArray | None = None
 
 
 @dataclass(frozen=True)
@@ -162,7 +165,8 @@ def find_surfaces(
         k = members.size
         prior = np.array([*(position_sigma_m / (q.std(0) * np.sqrt(k))),
                           np.sqrt(position_sigma_m**2 / k + mounting_sigma_m**2)])
-        surface = Surface(n, off + radius_m, members, axes, c, lower, upper, prior)
+        surface = Surface(n, off + radius_m, members, axes, c, lower, upper, prior,
+                          plane_prior_jacobian(n, axes, c, q, members, len(X)))
         dist, inside = _in_extent(surface, cloud_W)
         slab = inside & (np.abs(dist) < slab_m)
         on = slab & (np.abs(dist) < on_plane_m)
@@ -171,6 +175,23 @@ def find_surfaces(
         surfaces.append(surface)
         used |= set(members.tolist())
     return surfaces
+
+
+def plane_prior_jacobian(normal: FloatArray, axes: FloatArray, centre: FloatArray, q: FloatArray,
+                         members: IntArray, n_markers: int) -> FloatArray:
+    """(3, 3 n_markers): the derivative of a marker plane's (u1, u2, offset) (the nuisances of
+    lrfcal.model.unknowns.PlaneSet about this plane: m = n + u1 axes[0] + u2 axes[1]) with respect to the markers'
+    coordinates. The plane is the least-squares fit through its members (in-plane coordinates q (k, 2) about their
+    centroid ``centre``): moving member i along the normal by h_i tilts it by g = P h, P = (Q^T Q)^-1 Q^T, and
+    lifts it by mean(h), so u_l = -g_l and offset = n . centre + mean(h) - g . (axes centre); moves within the
+    plane change nothing to first order."""
+    P = np.linalg.pinv(q)  # (2, k)
+    d_offset = 1.0 / len(members) - P.T @ (axes @ centre)  # (k,)
+    J = np.zeros((3, n_markers, 3))
+    J[0, members] = -P[0][:, None] * normal
+    J[1, members] = -P[1][:, None] * normal
+    J[2, members] = d_offset[:, None] * normal
+    return J.reshape(3, 3 * n_markers)
 
 
 def _in_extent(surface: Surface, points_W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:

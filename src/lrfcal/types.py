@@ -203,7 +203,8 @@ class MarkerMap:
     positions_W (n, 3); stress: sqrt(sum w (d_ij - |x_i - x_j|)^2 / sum w d_ij^2) (normalised, unitless);
     rms_m: RMS of (d_ij - |x_i - x_j|) over the measured pairs kept; planarity: smallest / largest singular
     value of the centred coordinates (0 for a coplanar layout); dropped_pairs: the tape pairs found
-    inconsistent with the others and left out of the map (gross errors, see lrfcal.mds).
+    inconsistent with the others and left out of the map (gross errors, see lrfcal.mds); covariance (3n, 3n):
+    of positions_W.ravel() from the tape noise ``tape_sigma_m`` (lrfcal.mds.map_covariance; None: taken as exact).
     """
 
     marker_ids: tuple[str, ...]
@@ -213,6 +214,8 @@ class MarkerMap:
     planarity: float
     coplanar: bool
     dropped_pairs: tuple[DroppedPair, ...] = ()
+    covariance: FloatArray | None = None
+    tape_sigma_m: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -336,6 +339,9 @@ class Solution:
     #: every unknown held by default that this solve held: name -> (the value one Gauss-Newton step with it freed
     #: reaches, its 1-sigma) (lrfcal.solve's score test)
     held_score: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.solve._uncertainty); the
+    #: covariance holds the map's part, G C_map G^T (None: the map was taken as exact)
+    map_sensitivity: FloatArray | None = None
 
     @property
     def range_offset_m(self) -> float:

@@ -37,10 +37,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.checks import attitude_check
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.information import information_at, model_error_at
+from lrfcal.information import information_at, map_error_at, model_error_at
+from lrfcal.mds import map_covariance
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.model.motor import MotorClock
 from lrfcal.observability import LIMITS, Observability, analyse
@@ -98,14 +98,15 @@ class Plan:
     information_source: str = SOURCE_MARKERS
     n_surface_returns: int = 0
     notes: tuple[str, ...] = field(default=())
-    #: the scan plane's attitude passes the calibration's check (lrfcal.checks.attitude_check)
-    attitude_ok: bool = True
     #: the DH verdict from all the returns the calibration solves with (the surfaces' too): what the calibration's
     #: "observability" check reports after solving (None: the same as ``observability``, markers only)
     observability_solved: Observability | None = None
     #: name -> the 1-sigma the model's own errors contribute (lrfcal.information.model_error_at), included in
     #: ``sigma`` (added in variance)
     model_sigma: dict[str, float] = field(default_factory=dict)
+    #: name -> the 1-sigma the marker map's own uncertainty (the tape's noise) contributes
+    #: (lrfcal.information.map_error_at), included in ``sigma``
+    map_sigma: dict[str, float] = field(default_factory=dict)
 
     @property
     def final_observability(self) -> Observability:
@@ -114,7 +115,7 @@ class Plan:
 
     @property
     def determined(self) -> bool:
-        return (self.attitude_ok and self.observability.determined
+        return (self.observability.determined
                 and all(math.isfinite(v) for v in self.sigma.values()))
 
     @property
@@ -141,6 +142,7 @@ class Plan:
             "scenario": self.scenario,
             "sigma": {n: num(self.sigma[n]) for n in self.names},
             "model_error_sigma": {n: num(self.model_sigma[n]) for n in self.names if n in self.model_sigma},
+            "tape_sigma": {n: num(self.map_sigma[n]) for n in self.names if n in self.map_sigma},
             "units": {n: _unit(n) for n in self.names},
             "weakest": self.weakest,
             "weakest_sigma_in_limits": num(self.final_observability.weakest_sigma_in_limits),
@@ -192,6 +194,22 @@ def marker_observations(scenario: Scenario) -> tuple[Observations, FloatArray, P
     joints = JointStates(stamps_s=result.joints.stamps_s, positions_rad=result.joints.positions_rad)
     params = Params(result.truth.mount, result.truth.dh)
     return obs, result.truth.markers_W, params, MotorClock.from_joints(joints), result.truth.clock_offset_s, result
+
+
+def expected_map_covariance(scenario: Scenario, markers_W: FloatArray) -> FloatArray:
+    """The covariance (3n, 3n) of the marker map the calibration will build from this scenario's tape: every pair
+    measured with the tape's sigma, a fraction f of them as f times the information (lrfcal.mds.map_covariance;
+    in the plane of a coplanar layout)."""
+    from .tape import affine_dimension
+
+    i, j = np.triu_indices(len(markers_W), 1)
+    sigma = scenario.tape.sigma_m / math.sqrt(max(scenario.tape.pair_fraction, 1e-9))
+    X = np.asarray(markers_W, dtype=float)
+    if affine_dimension(X) == 3:
+        return map_covariance(X, i, j, sigma)
+    Vt = np.linalg.svd(X - X.mean(0))[2]  # the layout's plane is z = 0 in the frame of its principal axes
+    R = np.kron(np.eye(len(X)), Vt.T)
+    return R @ map_covariance((X - X.mean(0)) @ Vt.T, i, j, sigma, planar=True) @ R.T
 
 
 def scenario_range_sigma(scenario: Scenario, ranges_m: FloatArray) -> float:
@@ -250,16 +268,20 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     if sv[-1] <= sv[0] * 1e-12:
         cov = np.full(info.shape, np.inf)
         notes.append(f"information singular (condition {sv[0] / max(sv[-1], 1e-300):.2e})")
-        model_sigma = {}
+        model_sigma, map_sigma = {}, {}
     else:
         # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns
         # at the truth: lrfcal.information.model_error_at), as the calibration's per-scan widening holds both
         model_cov = model_error_at(obs, markers_W, params, **common, **both)
-        cov = np.linalg.inv(scaled) / np.outer(col, col) + model_cov
+        # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
+        tape_cov = map_error_at(info, obs, markers_W, params, expected_map_covariance(scenario, markers_W), **common,
+                                **both)
+        cov = np.linalg.inv(scaled) / np.outer(col, col) + model_cov + tape_cov
         model_sigma = {n: float(math.sqrt(max(model_cov[i, i], 0.0))) for i, n in enumerate(names)}
+        map_sigma = {n: float(math.sqrt(max(tape_cov[i, i], 0.0))) for i, n in enumerate(names)}
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     # the verdict the calibration gives before solving: from the marker returns alone (lrfcal.pipeline)
-    obsv = analyse(0.5 * (info_markers + info_markers.T), names)
+    obsv = analyse(0.5 * (info_markers + info_markers.T), names, params.dh.alpha)
     if not obsv.determined:
         for i, n in enumerate(DH_NAMES):  # the DH verdict: an undetermined parameter has no useful sigma
             if not math.isfinite(obsv.sigma[i]):
@@ -267,9 +289,6 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     if not obsv.determined and on_planes is not None:
         notes.append("the sigmas include the surface returns, but the calibration judges the marker returns alone "
                      "before solving: it would refuse this recording")
-    attitude = attitude_check(params.dh)
-    if not attitude.passed:
-        notes.append(f"the calibration would refuse this rig: {attitude.detail}")
     if not two_way:
         notes.append("one-way sweep (or spin): the clock offset is held (the calibration cannot separate it from rz)")
     tol = scenario.tolerances
@@ -288,8 +307,10 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 tolerances=checks, n_returns=len(obs), n_markers_seen=n_seen, n_markers=int(len(markers_W)),
                 clock_estimated=two_way, range_sigma_m=sigma_r, seconds=time.perf_counter() - t0,
                 information_source=source, n_surface_returns=0 if on_planes is None else len(on_planes),
-                notes=tuple(notes), attitude_ok=attitude.passed,
-                observability_solved=None if on_planes is None else analyse(info, names), model_sigma=model_sigma)
+                notes=tuple(notes),
+                observability_solved=None if on_planes is None else analyse(info, names, params.dh.alpha),
+                model_sigma=model_sigma,
+                map_sigma=map_sigma)
 
 
 def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers_W: FloatArray, params: Params,
@@ -323,10 +344,11 @@ def format_plan(p: Plan) -> str:
     lines = [f"plan {p.scenario}: {p.n_returns} marker returns on {p.n_markers_seen}/{p.n_markers} markers, "
              f"{p.n_surface_returns} surface returns, range noise {p.range_sigma_m * 1000:g} mm",
              f"information: {p.information_source}", "",
-             f"{'parameter':<14}{'predicted 1-sigma':>20}{'model-error part':>20}{'limit':>14}"]
+             f"{'parameter':<14}{'predicted 1-sigma':>20}{'model-error part':>20}{'tape part':>14}{'limit':>14}"]
     for n in p.names:
         model = format_value(n, p.model_sigma[n]) if n in p.model_sigma else "-"
-        lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{model:>20}{format_value(n, LIMITS[n]):>14}")
+        tape = format_value(n, p.map_sigma[n]) if n in p.map_sigma else "-"
+        lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{model:>20}{tape:>14}{format_value(n, LIMITS[n]):>14}")
     lines.append("")
     state = "determined" if p.determined else "NOT DETERMINED (the calibration would refuse, exit 3)"
     alone = ("" if p.observability_solved is None else

@@ -127,7 +127,7 @@ WIDE_BETAS_DEG = (0.0, 90.0, -90.0)
 
 #: scan-plane attitudes of :func:`random_scenario_wide` (``alpha_kind``), by the plane's angle from perpendicular to
 #: the motor axis: along it (|alpha| = 90 +- 3 deg), tilted (|alpha| 20-70 deg) and near perpendicular (|alpha|
-#: 0-15 deg, which the calibration's "scan plane attitude" check refuses)
+#: 0-15 deg, where b and the mount's offset along the motor axis become one quantity)
 ALPHA_KINDS = ("axis", "tilted", "near_perpendicular")
 #: |alpha| ranges [deg] of the tilted and near-perpendicular kinds (either sign is drawn)
 ALPHA_RANGES_DEG = {"tilted": (20.0, 70.0), "near_perpendicular": (0.0, 15.0)}

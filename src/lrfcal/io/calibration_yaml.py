@@ -156,6 +156,15 @@ def _targetless_dict(result: CalibrationResult) -> dict[str, Any]:
     }
 
 
+def map_sigma(result: CalibrationResult) -> dict[str, float | None]:
+    """Per DH parameter, the 1-sigma the marker map's own uncertainty contributes (None when not computed)."""
+    G, C = result.solution.map_sensitivity, None if result.markers is None else result.markers.covariance
+    if G is None or C is None:
+        return {n: None for n in DH_NAMES}
+    var = np.einsum("ij,jk,ik->i", G, C, G)
+    return {n: _f(float(np.sqrt(max(var[ESTIMATE_NAMES.index(n)], 0.0)))) for n in DH_NAMES}
+
+
 def _marker_dict(result: CalibrationResult) -> dict[str, Any]:
     """A marker calibration's own keys: markers used, the marker map, the association, the marker surfaces."""
     assert result.markers is not None and result.detections is not None and result.association is not None
@@ -175,6 +184,10 @@ def _marker_dict(result: CalibrationResult) -> dict[str, Any]:
             "rms_m": _f(result.markers.rms_m),
             "planarity": _f(result.markers.planarity),
             "coplanar": bool(result.markers.coplanar),
+            # the tape's noise as the map's redundant pairs show it, and the part of each DH sigma it makes
+            # (the map's covariance carried through the solution; included in the covariance above)
+            "tape_sigma_m": _f(result.markers.tape_sigma_m),
+            "dh_sigma_from_map": map_sigma(result),
             "dropped_pairs": [  # tape pairs inconsistent with the others (gross errors), left out
                 {"pair": [p.id_i, p.id_j], "measured_m": _f(p.measured_m), "predicted_m": _f(p.predicted_m),
                  "z": _f(p.z)}

@@ -14,7 +14,7 @@ import numpy as np
 
 from ..model.kinematics import ANGLE_NAMES, DH_NAMES, MOUNT_NAMES, PARAM_NAMES, Pose
 from ..types import CalibrationResult
-from .calibration_yaml import marker_counts, param_sigma
+from .calibration_yaml import map_sigma, marker_counts, param_sigma
 from .calibration_yaml import plain_float as _f
 from .truth import truth_frame
 
@@ -91,7 +91,10 @@ def _marker_lines(result: CalibrationResult) -> list[str]:
         f"- blobs detected: {len(result.detections.blobs)}, matched to markers: {result.association.n_matched}"
         f"{' (marker map mirrored)' if result.association.mirrored else ''}",
         f"- marker map from the tape: RMS {result.markers.rms_m * 1000:.2f} mm, stress {result.markers.stress:.2g}"
-        f"{', coplanar layout' if result.markers.coplanar else ''}",
+        f"{', coplanar layout' if result.markers.coplanar else ''}; tape noise "
+        f"{result.markers.tape_sigma_m * 1000:.2f} mm, which through the map makes "
+        + ", ".join(f"{n} {_disp(n, v)} {_unit(n)}" for n, v in map_sigma(result).items())
+        + " of the 1-sigma (in variance)",
     ]
     for p in result.markers.dropped_pairs:
         lines.append(f"- tape pair {p.id_i}-{p.id_j} dropped: measured {p.measured_m:.3f} m, the other pairs put it "

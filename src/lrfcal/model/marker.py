@@ -33,11 +33,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .kinematics import Params, points_M, transform_points
+from .kinematics import Params, exp_so3, points_M, transform_points
 from .motor import MotorClock, motor_angles
 from .rays import beam_rays
 from .scanner import true_range
 from .sphere import footprint_depth
+from .unknowns import DH_SLICE
 
 FloatArray = NDArray[np.float64]
 
@@ -61,7 +62,8 @@ def footprint_radius_m(range_m: ArrayLike, divergence_rad: float) -> FloatArray:
 @dataclass(frozen=True)
 class MarkerSet:
     """K returns on markers: their motor angles (at the start clock offset), bearings, ranges, marker centres in W,
-    the model ("paper" or "sphere"), the marker radius R_m, the beam's full divergence [rad], laser-clock beam times."""
+    the model ("paper" or "sphere"), the marker radius R_m, the beam's full divergence [rad], laser-clock beam times,
+    and each return's marker (its index in the marker map, for the map's own uncertainty)."""
 
     lam: FloatArray  # (K,)
     mu: FloatArray  # (K,)
@@ -71,6 +73,9 @@ class MarkerSet:
     radius: float
     divergence: float = 0.0
     times: FloatArray | None = None  # (K,)
+    marker: NDArray[np.int64] | None = None  # (K,)
+    #: (K,) whether the return's lateral residual is used (None: all); see :func:`two_sided`
+    lateral: NDArray[np.bool_] | None = None
 
     @property
     def footprint(self) -> FloatArray:
@@ -91,7 +96,17 @@ class MarkerSet:
 
     def subset(self, m: NDArray[np.bool_]) -> MarkerSet:
         return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], c=self.c[m],
-                       times=None if self.times is None else self.times[m])
+                       times=None if self.times is None else self.times[m],
+                       marker=None if self.marker is None else self.marker[m],
+                       lateral=None if self.lateral is None else self.lateral[m])
+
+    @property
+    def n_independent(self) -> int:
+        """Independent residuals: 3 per return (the paper's model, or the sphere's range and 2 lateral), 1 per
+        sphere return whose lateral residual is not used."""
+        if self.model == "paper" or self.lateral is None:
+            return 3 * self.r.size
+        return int(self.r.size + 2 * np.count_nonzero(self.lateral))
 
 
 def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray, *, jac: bool = True,
@@ -116,6 +131,8 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     r_hat = t - R * s
     sig_lat = ms.sigma_lat[:, None]
     res = np.concatenate([((r - r_hat) / sigma_r)[:, None], e / sig_lat], 1)
+    if ms.lateral is not None:
+        res[~ms.lateral, 1:] = 0.0
     if Jo is None or Jd is None:
         return res, None
     Jv = -Jo
@@ -127,7 +144,59 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     J = np.concatenate([(-Jrhat / sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
     for j, dr in rng.partials:
         J[:, 0, j] = dr / sigma_r
+    if ms.lateral is not None:
+        J[~ms.lateral, 1:] = 0.0
     return res, J
+
+
+def centre_jacobian(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray,
+                    clock: MotorClock | None = None) -> FloatArray:
+    """(K, n_res, 3): the whitened residuals' derivatives with respect to each return's marker centre c (in W).
+
+    paper: -I / sigma_r. sphere (v = c - o, so v_c = I): t_c = d^T, e_c = I - d d^T, |e|_c = (e / |e|)^T (e is
+    normal to d), r_hat_c = d^T - s'(u) (e / |e|)^T; range row -r_hat_c / sigma_r, lateral rows e_c / sigma_lat."""
+    motor = motor_angles(th, ms.lam, ms.times, clock)
+    o, d, _, _ = beam_rays(th, R_ref, motor, ms.mu, jac=False)
+    K = ms.r.size
+    if ms.model == "paper":
+        return np.broadcast_to(-np.eye(3) / sigma_r, (K, 3, 3)).copy()
+    R = ms.radius
+    _, _, e = ray_to_centre(o, d, ms.c)
+    rho = np.linalg.norm(e, axis=1)
+    _, ds = footprint_depth(rho / R, ms.footprint)
+    n_e = e / np.maximum(rho, 1e-15)[:, None]
+    Ec = np.eye(3) - d[:, :, None] * d[:, None, :]
+    r_hat_c = d - ds[:, None] * n_e
+    Jc = np.concatenate([(-r_hat_c / sigma_r)[:, None, :], Ec / ms.sigma_lat[:, None, None]], 1)
+    if ms.lateral is not None:
+        Jc[~ms.lateral, 1:] = 0.0
+    return Jc
+
+
+def two_sided(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorClock | None = None
+              ) -> NDArray[np.bool_]:
+    """(K,) whether each return's marker is crossed by the scan plane on both sides of its centre.
+
+    A return's lateral residual says "the marker's centre is on my ray, give or take a filled disc": unbiased
+    when the scan lines that hit the marker pass on both sides of its centre. A marker the scan plane only grazes
+    (at the edge of the band a tilted plane sweeps, or seen by one line) is hit on one cap only, and the mean of its
+    lateral offsets is not its centre: a spinning scan plane tilted 28 deg came back 4 sigma off in alpha that way.
+    Its returns keep their range residual; their lateral one is dropped (MarkerSet.lateral). The side of a return
+    is the sign of the centre's distance from the scan plane, (c - o) . z_L, z_L the scanner's axis in W."""
+    if ms.model != "sphere" or ms.marker is None or ms.r.size == 0:
+        return np.ones(ms.r.size, dtype=bool)
+    motor = motor_angles(th, ms.lam, ms.times, clock)
+    o, _, _, _ = beam_rays(th, R_ref, motor, ms.mu, jac=False)
+    al = th[DH_SLICE][1]
+    cl, sl = np.cos(motor.lam), np.sin(motor.lam)
+    z_M = np.stack([sl * np.sin(al), -cl * np.sin(al), np.full_like(cl, np.cos(al))], -1)  # Rz(lam) [0, -sa, ca]
+    R = R_ref @ exp_so3(th[3:6])
+    side = np.sign(((ms.c - o) * (z_M @ R.T)).sum(1))
+    lo = np.full(int(ms.marker.max()) + 1, 2.0)
+    hi = np.full(lo.size, -2.0)
+    np.minimum.at(lo, ms.marker, side)
+    np.maximum.at(hi, ms.marker, side)
+    return (lo < 0)[ms.marker] & (hi > 0)[ms.marker]
 
 
 def residuals_3d(params: Params, ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, centres_W: ArrayLike,
@@ -143,4 +212,5 @@ def residuals_3d(params: Params, ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_
     return diff
 
 
-__all__ = ["MODELS", "MarkerSet", "footprint_radius_m", "marker_rows", "ray_to_centre", "residuals_3d"]
+__all__ = ["MODELS", "MarkerSet", "centre_jacobian", "footprint_radius_m", "marker_rows", "ray_to_centre",
+           "residuals_3d", "two_sided"]

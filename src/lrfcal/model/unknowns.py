@@ -135,6 +135,7 @@ class PlaneSet:
     prior_mean: FloatArray | None = None  # (3P,) nuisance values the markers give
     prior_sigma: FloatArray | None = None  # (3P,) their uncertainty (None: free planes)
     times: FloatArray | None = None  # (K2,) laser-clock beam times (for the clock offset)
+    prior_jacobian: FloatArray | None = None  # (3P, 3n) d prior_mean / d marker coordinates (the map's uncertainty)
 
     def subset(self, m: NDArray[np.bool_]) -> PlaneSet:
         return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
