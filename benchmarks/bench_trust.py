@@ -17,8 +17,8 @@ and prints per case the outcome (calibrated with error / sigma, or refused with 
 With ``--broad`` the random truths also tilt the scan plane (random_scenario_wide(seed, broad=True): by seed in
 turn, alpha along the motor axis (+-90 +- 3 deg), tilted (|alpha| 20-70 deg, a sweep or a spin) and near
 perpendicular to it (|alpha| 0-15 deg, a spin), a third each), and the summary adds per attitude kind: calibrated,
-refused (by the first words of the reason; the near-perpendicular ones are to be refused by the "scan plane
-attitude" check), confident wrong (must be 0) and the RMS of error / sigma per DH parameter.
+refused (by the first words of the reason; near perpendicular, b is the mount's own offset along the motor axis
+and is refused when not determined), confident wrong (must be 0) and the RMS of error / sigma per DH parameter.
 
     python benchmarks/bench_trust.py [--seeds 50] [--broad] [--baseline-rev 399a633] [--skip-faults] [--skip-timing]
 """

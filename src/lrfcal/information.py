@@ -98,6 +98,7 @@ def information_at(
     obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
     range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
     surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
+    sides: bool = True,
 ) -> tuple[FloatArray, tuple[str, ...]]:
     """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
     would be estimated (the clock offset only when ``clock`` is given; the range offset and marker range bias only
@@ -105,9 +106,11 @@ def information_at(
 
     With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
     and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
-    (Schur complement), evaluated at the planes the returns carry (their normals and offsets)."""
+    (Schur complement), evaluated at the planes the returns carry (their normals and offsets). ``sides``: only
+    the lateral residuals of markers the scan plane crosses on both sides at ``params`` (as the solve does; False
+    where ``params`` are a start that may be far off, e.g. with the servo's direction not yet known)."""
     pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
-                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+                                     clock_offset_s, surfaces, planes, beam_divergence_rad, sides)
     names = tuple(CORE_NAMES[i] for i in idx)
     if pb.surf is not None:
         S, _, _ = schur(assemble(pb.blocks(th, R_ref), idx))
@@ -176,12 +179,13 @@ def map_error_at(
 def _problem_at(
     obs: Observations, markers_W: ArrayLike, params: Params, model: str, radius: float, sigma_r: float,
     clock: MotorClock | None, clock_offset_s: float, surfaces: SurfaceReturns | None,
-    planes: Sequence[Surface] | None, divergence: float,
+    planes: Sequence[Surface] | None, divergence: float, sides: bool = True,
 ) -> tuple[Problem, FloatArray, FloatArray, IntArray]:
     """The problem of :func:`information_at` (marker rows; plane rows and priors with non-empty ``surfaces``), the
     unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices)."""
     pb, th, R_ref = _at(params, obs, markers_W, model, radius, sigma_r, divergence, clock, clock_offset_s)
-    pb = with_sides(pb, th, R_ref)  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
+    if sides:  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
+        pb = with_sides(pb, th, R_ref)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0

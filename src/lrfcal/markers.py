@@ -262,7 +262,7 @@ def _marker_solution(
     info, names = information_at(matched, markers.positions_W, start, model="sphere",
                                        marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
                                        clock=motor, clock_offset_s=config.clock_offset_s,
-                                       beam_divergence_rad=nominal.beam_divergence_rad)
+                                       beam_divergence_rad=nominal.beam_divergence_rad, sides=False)
     obs = observability.analyse(info, names, start.dh.alpha)
     if not obs.determined:
         raise CalibrationError(

@@ -308,13 +308,7 @@ def map_covariance(X: FloatArray, pi: NDArray[np.intp], pj: NDArray[np.intp], si
     best aligned with the true one, and a calibration's mount absorbs the rest."""
     n = len(X)
     k = 2 if planar else 3
-    diff = X[pi, :k] - X[pj, :k]
-    u = diff / np.maximum(np.linalg.norm(diff, axis=1, keepdims=True), 1e-300)
-    A = np.zeros((len(pi), n * k))
-    rows = np.arange(len(pi))
-    for c in range(k):
-        A[rows, pi * k + c] = u[:, c]
-        A[rows, pj * k + c] = -u[:, c]
+    A = _distance_jacobian(X[:, :k], pi, pj)
     cov_k = sigma_m**2 * np.linalg.pinv(A.T @ A, rcond=1e-10, hermitian=True)
     idx = (3 * np.arange(n)[:, None] + np.arange(k)).ravel()
     cov = np.zeros((3 * n, 3 * n))
@@ -325,6 +319,14 @@ def map_covariance(X: FloatArray, pi: NDArray[np.intp], pj: NDArray[np.intp], si
 def _leverage(X: FloatArray, pi: NDArray[np.intp], pj: NDArray[np.intp]) -> FloatArray:
     """Leverages h (P,) of the measured distances |x_i - x_j| in the linearised fit of the coordinates X (n, k):
     the diagonal of A A^+ with A (P, n k) the Jacobian; h_p = 1 for a pair no other pair constrains."""
+    U, sv, _ = np.linalg.svd(_distance_jacobian(X, pi, pj), full_matrices=False)
+    rank = int(np.sum(sv > 1e-9 * max(float(sv[0]), 1e-300)))
+    return np.clip((U[:, :rank] ** 2).sum(1), 0.0, 1.0)
+
+
+def _distance_jacobian(X: FloatArray, pi: NDArray[np.intp], pj: NDArray[np.intp]) -> FloatArray:
+    """(P, n k): the derivatives of the distances |x_i - x_j| of the pairs (pi, pj) with respect to the coordinates
+    X (n, k) (row-major: marker i's coordinate c is column i k + c)."""
     n, k = X.shape
     diff = X[pi] - X[pj]
     u = diff / np.maximum(np.linalg.norm(diff, axis=1, keepdims=True), 1e-300)
@@ -333,9 +335,7 @@ def _leverage(X: FloatArray, pi: NDArray[np.intp], pj: NDArray[np.intp]) -> Floa
     for c in range(k):
         A[rows, pi * k + c] = u[:, c]
         A[rows, pj * k + c] = -u[:, c]
-    U, sv, _ = np.linalg.svd(A, full_matrices=False)
-    rank = int(np.sum(sv > 1e-9 * max(float(sv[0]), 1e-300)))
-    return np.clip((U[:, :rank] ** 2).sum(1), 0.0, 1.0)
+    return A
 
 
 def _robust_sigma(r: FloatArray, h: FloatArray, floor_m: float) -> float:
