@@ -10,8 +10,11 @@ footprint, or the seed paper's eq. (10); plane: ray-plane), assembled by lrfcal.
 Solver: a robust pass (Huber weights at 2 sigma) from the start, then plain least squares with observations whose
 whitened residual exceeds 4 sigma dropped (repeated until the inlier set is stable), whose Jacobian gives the
 covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals, widened where errors shared within
-a scan make it optimistic (cluster-robust sandwich). The plain passes, the targetless solve and the information run
-on the normal equations with the planes' nuisances eliminated by the Schur complement (lrfcal.normal_equations).
+a scan or by the returns of one marker make it optimistic (cluster-robust sandwiches), plus the marker map's own
+uncertainty carried through the solution (:func:`_uncertainty`). The markers the scan plane crosses on one side
+only keep their range residuals (lrfcal.model.marker.two_sided, :func:`with_sides`). The plain passes, the
+targetless solve and the information run on the normal equations with the planes' nuisances eliminated by the Schur
+complement (lrfcal.normal_equations).
 """
 
 from __future__ import annotations
