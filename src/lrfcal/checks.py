@@ -105,6 +105,19 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
 MIRROR_MARGIN = 2.0
 
 
+def nearer_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float] | None:
+    """The mirror twin of ``dh`` (lrfcal.model.kinematics.dh_twins) that the nominal DH prefer: (name, twin DH, its
+    isometry Q (3, 3) in M, the estimate's and the twin's distance from the nominal in nominal tolerances), when the
+    estimate is beyond the nominal tolerance and the twin at least MIRROR_MARGIN times closer; else None."""
+    d_est, _ = _nominal_distance(dh, nominal, config)
+    name, twin, Q = min(((n, t, q) for n, t, q in dh_twins(dh) if np.linalg.det(q) < 0),
+                        key=lambda t: _nominal_distance(t[1], nominal, config)[0])
+    d_twin = _nominal_distance(twin, nominal, config)[0]
+    if d_est <= 1.0 or MIRROR_MARGIN * d_twin > d_est:
+        return None
+    return name, twin, Q, d_est, d_twin
+
+
 def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
     """The rig or its mirror image: each mirror twin of the estimate (lrfcal.model.kinematics.dh_twins) explains the
     data exactly as well (with the marker map mirrored; flatness alike), so only the nominal DH tell them apart.
@@ -276,5 +289,5 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
                                   "clock offset, a scene that moved)"))
 
 
-__all__ = ["Check", "chi2_check", "marker_checks", "plane_checks", "refuse_failed", "servo_direction",
-           "split_in_two"]
+__all__ = ["Check", "chi2_check", "marker_checks", "mirror_check", "nearer_mirror", "plane_checks", "refuse_failed",
+           "servo_direction", "split_in_two"]

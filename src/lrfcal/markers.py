@@ -21,7 +21,7 @@ from functools import partial
 import numpy as np
 
 from . import association, detection, mds, observability, solve, start, surfaces, timing
-from .checks import far_from_nominal, marker_checks, servo_direction
+from .checks import far_from_nominal, marker_checks, mirror_check, nearer_mirror, servo_direction
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
 from .information import information_at
@@ -87,6 +87,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
                   beam_divergence_rad=nominal.beam_divergence_rad)
     chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
+    chosen = _handedness(chosen, nominal.dh, config, fit)
     notes.extend(chosen.notes)
     if chosen.sign < 0:
         joints = _negated(joints)
@@ -118,6 +119,36 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
         side_by_side={"markers only": chosen.solution,
                       "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
     )
+
+
+def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Callable[..., Solution]) -> Alternative:
+    """The marker-only solution in the marker map's other handedness, when the nominal DH prefer it.
+
+    Tape distances fix the map only up to a reflection. With the map mirrored, the estimate's mirror twin
+    (lrfcal.checks.nearer_mirror) explains the data exactly as well, its mount F T_W_M Q (F the map's reflection,
+    Q the twin's isometry in M). Near a scan plane perpendicular to the motor axis the association cannot tell the
+    handedness, so it is chosen here by the nominal DH: solved again from that twin. The result must then pass the
+    mirror check; otherwise the first solution stays (and the check refuses it)."""
+    found = nearer_mirror(chosen.solution.params.dh, nominal, config)
+    if found is None:
+        return chosen
+    name, twin, Q, d_est, d_twin = found
+    F = np.diag([1.0, 1.0, -1.0, 1.0])
+    Q4 = np.eye(4)
+    Q4[:3, :3] = Q
+    T = F @ chosen.solution.params.mount.matrix() @ Q4
+    markers = association.unmirror(chosen.markers)
+    try:
+        sol = fit(chosen.matched, markers, Params(Pose.from_matrix(T), twin), model="sphere", clock=chosen.clock,
+                  clock_offset_s=chosen.solution.clock_offset_s)
+    except CalibrationError:
+        return chosen
+    if not mirror_check(sol.params.dh, nominal, config).passed:
+        return chosen
+    note = (f"the marker map matched in the other handedness: its mirror image ({name}) is {d_twin:.1f} nominal "
+            f"tolerances from the nominal DH, the first estimate {d_est:.1f}; solved again in the map's mirror image")
+    assoc = replace(chosen.assoc, mirrored=not chosen.assoc.mirrored, T_W_M=T)
+    return replace(chosen, markers=markers, assoc=assoc, solution=sol, notes=(*chosen.notes, note))
 
 
 def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap, joints: JointStates,
