@@ -105,17 +105,22 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
 MIRROR_MARGIN = 2.0
 
 
-def nearer_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float] | None:
-    """The mirror twin of ``dh`` (lrfcal.model.kinematics.dh_twins) that the nominal DH prefer: (name, twin DH, its
-    isometry Q (3, 3) in M, the estimate's and the twin's distance from the nominal in nominal tolerances), when the
-    estimate is beyond the nominal tolerance and the twin at least MIRROR_MARGIN times closer; else None."""
+def _nearest_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float]:
+    """The mirror twin of ``dh`` (lrfcal.model.kinematics.dh_twins, improper Q) nearest the nominal DH: (name, twin
+    DH, its isometry Q (3, 3) in M, the estimate's and the twin's distance from the nominal in nominal tolerances)."""
     d_est, _ = _nominal_distance(dh, nominal, config)
-    name, twin, Q = min(((n, t, q) for n, t, q in dh_twins(dh) if np.linalg.det(q) < 0),
-                        key=lambda t: _nominal_distance(t[1], nominal, config)[0])
-    d_twin = _nominal_distance(twin, nominal, config)[0]
-    if d_est <= 1.0 or MIRROR_MARGIN * d_twin > d_est:
-        return None
+    twins = [(name, twin, Q, _nominal_distance(twin, nominal, config)[0]) for name, twin, Q in dh_twins(dh)
+             if np.linalg.det(Q) < 0]
+    name, twin, Q, d_twin = min(twins, key=lambda t: t[3])
     return name, twin, Q, d_est, d_twin
+
+
+def nearer_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float] | None:
+    """The nearest mirror twin of ``dh`` (as :func:`_nearest_mirror`) when the nominal DH prefer it: the estimate is
+    beyond the nominal tolerance and the twin at least MIRROR_MARGIN times closer; else None."""
+    found = _nearest_mirror(dh, nominal, config)
+    d_est, d_twin = found[3], found[4]
+    return found if d_est > 1.0 and MIRROR_MARGIN * d_twin <= d_est else None
 
 
 def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
@@ -123,10 +128,7 @@ def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
     data exactly as well (with the marker map mirrored; flatness alike), so only the nominal DH tell them apart.
     Passed when the estimate is within the nominal tolerance (config.nominal_tolerance) of the nominal, or
     MIRROR_MARGIN times closer to it than the nearest mirror twin; else refused naming both."""
-    d_est, _ = _nominal_distance(dh, nominal, config)
-    twins = [(name, twin, _nominal_distance(twin, nominal, config)[0]) for name, twin, Q in dh_twins(dh)
-             if np.linalg.det(Q) < 0]
-    name, twin, d_twin = min(twins, key=lambda t: t[2])
+    name, twin, _, d_est, d_twin = _nearest_mirror(dh, nominal, config)
     ok = d_est <= 1.0 or d_twin >= MIRROR_MARGIN * d_est
     return Check("mirror image", ok,
                  f"the estimate is {d_est:.1f} nominal tolerances from the nominal DH, its nearest mirror image "

@@ -134,8 +134,8 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
             # marker rows (core columns) and the planes' priors (nuisance columns)
             n_m = len(map_cov) // 3
             cross = pb.centre_cross(th, R_ref, core, n_m)
-            prior = pb.prior_cross(n_m)
-            if prior is not None and H.shape[0] == core.size + prior.shape[0]:
+            prior = pb.prior_cross(n_m)  # one row per nuisance, in H's order after the core
+            if prior is not None:
                 cross = np.vstack([cross, prior])
             G_free = -JtJ_inv[core_pos, :cross.shape[0]] @ cross
             cov[np.ix_(core_pos, core_pos)] += G_free @ map_cov @ G_free.T
@@ -215,8 +215,10 @@ def solve(
     Raises:
         CalibrationError: fewer than 4 usable returns or fewer than 3 distinct markers.
     """
-    map_cov = markers_W.covariance if isinstance(markers_W, MarkerMap) else None
-    X = markers_W.positions_W if isinstance(markers_W, MarkerMap) else np.asarray(markers_W, dtype=float)
+    if isinstance(markers_W, MarkerMap):
+        X, map_cov = markers_W.positions_W, markers_W.covariance
+    else:
+        X, map_cov = np.asarray(markers_W, dtype=float), None
     pb_all, use = marker_problem(obs, X, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
     K = pb_all.markers.r.size
     n_markers = len(np.unique(np.asarray(obs.marker)[use]))
@@ -297,7 +299,7 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
     cov_core, info, core_names, s2, rank_txt, G = _uncertainty(
         pb, th, R_ref, free, pb.markers.n_independent + k_s + n_prior,
         np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res), scan_s, map_cov,
-        np.repeat(np.asarray(obs.marker)[use][keep], ms.n_res))
+        np.repeat(pb.markers.marker, ms.n_res))
     params = unpack(th[:N_CORE], R_ref)
     score = _held_score(pb, th, R_ref, free, s2)
     lam_all = motor_angles(th, np.asarray(obs.lambda_rad, dtype=float), np.asarray(obs.times_s, dtype=float),
