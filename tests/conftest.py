@@ -46,6 +46,7 @@ def group_of(nodeid: str) -> str:
     return module
 
 
+@pytest.hookimpl(optionalhook=True)
 def pytest_xdist_make_scheduler(config: pytest.Config, log: object) -> object:
     """Under ``pytest -n N --dist loadscope`` (pyproject's addopts) the scope of a test is its :func:`group_of`.
     (This replaces ``--dist loadgroup`` with xdist_group marks, which pytest 9.2 silently broke: xdist 3.8 writes the

@@ -8,8 +8,10 @@ and turns their returns into the ray-plane observations of lrfcal.solve.solve_pl
 Segmentation (:func:`segment_planes`): every point's normal and flatness from the k nearest neighbours (PCA) of the
 nearest point of a coarse subsample (so that a neighbourhood spans many times the range noise);
 then greedy RANSAC, each hypothesis a flat point with its own normal, scored by the points within ``thickness_m``
-of the hypothesis whose normals agree within ``normal_tol_rad``; the best is refitted to its inliers (SVD), its
-points removed, and the search repeats until no plane has ``min_points``. Deterministic for a given seed.
+of the hypothesis whose normals agree within ``normal_tol_rad`` (preemptively: all hypotheses on the coarse
+subsample, the few best of them on every point: Nister, "Preemptive RANSAC", ICCV 2003); the best is refitted
+to its inliers (SVD), its points removed, and the search repeats until no plane has ``min_points``.
+Deterministic for a given seed.
 """
 
 from __future__ import annotations
@@ -25,6 +27,9 @@ from .surfaces import SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
+
+#: hypotheses scored on all free points, the best by their score on the coarse subsample
+_FINALISTS = 8
 
 
 @dataclass(frozen=True)
@@ -108,9 +113,13 @@ def segment_planes(
         cand = np.flatnonzero(free)
         Pc, Nc = P[cand], normals[cand]
         H = normals[pick]  # (h, 3)
-        score = _scores(Pc, Nc, H, (H * P[pick]).sum(1), thickness_m, cos_tol)
-        best = int(np.argmax(score))
-        if score[best] < min_points:
+        hd = (H * P[pick]).sum(1)
+        # preemptive scoring: every hypothesis on the free coarse points, the few best of them on all free points
+        cf = np.flatnonzero(free & is_coarse)
+        top = np.argsort(_scores(P[cf], normals[cf], H, hd, thickness_m, cos_tol), kind="stable")[-_FINALISTS:]
+        score = _scores(Pc, Nc, H[top], hd[top], thickness_m, cos_tol)
+        best = int(top[int(np.argmax(score))])
+        if score.max() < min_points:
             break
         n, d = H[best], float(H[best] @ P[pick[best]])
         for _ in range(3):  # refit to the inliers, then re-gate
