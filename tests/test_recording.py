@@ -151,3 +151,32 @@ def test_tape_subset_is_rigid_and_noisy(sim: tuple[Scenario, SimResult]) -> None
     assert affine_dimension(flat) == 2
     t2 = measure_tape(t.marker_ids, flat, TapeConfig(pair_fraction=0.2), np.random.default_rng(2))
     assert is_rigid(flat, t2.pairs)
+
+
+def _differences(a: object, b: object, path: str = "") -> list[str]:
+    """The fields (dotted paths) in which two dataclass trees differ (arrays compared exactly, NaN equal to NaN)."""
+    import dataclasses
+
+    if dataclasses.is_dataclass(a) and not isinstance(a, type):
+        return [d for f in dataclasses.fields(a) for d in _differences(getattr(a, f.name), getattr(b, f.name),
+                                                                          f"{path}.{f.name}")]
+    if isinstance(a, np.ndarray):
+        same = isinstance(b, np.ndarray) and a.dtype == b.dtype and np.array_equal(a, b, equal_nan=a.dtype.kind == "f")
+        return [] if same else [path]
+    return [] if a == b else [path]
+
+
+def test_in_memory_bag_reads_as_the_written_bag(sim: tuple[Scenario, SimResult], tmp_path: Path) -> None:
+    """A study's trial reads the simulation's messages from memory (recording.in_memory_bag): the Recording is the
+    one the written bag gives, field by field and bit by bit, but for the names of where it came from."""
+    from lrfcal.io.recording import read_recording
+
+    sc, res = sim
+    from_file = read_recording(write_recording(res, sc, tmp_path / "file"))
+    folder = write_recording(res, sc, tmp_path / "memory", bag=False)
+    assert not (folder / "bag").exists()
+    from_memory = read_recording(folder, bag_reader=recording.in_memory_bag(res, sc))
+    assert sorted(_differences(from_file, from_memory)) == [".report.bag", ".scans.source", ".source"]
+    assert from_memory.report.bag == "simulated bag"
+    with pytest.raises(InputError, match="topics /nope and /joint_states expected"):
+        read_recording(folder, bag_reader=recording.in_memory_bag(res, sc), scan_topic="/nope")

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -33,7 +34,13 @@ from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
 
 if TYPE_CHECKING:
+    from lrfcal.io.bag import BagData
+    from lrfcal.rig import ScanSource, ServoSource
+
     from .simresult import SimResult
+
+#: reads a bag's scans and servo angle from where the rig file says they are (lrfcal.io.recording.read_recording)
+BagReader = Callable[["ScanSource", "ServoSource", "Callable[[str], None] | None"], "BagData"]
 
 #: ROS time of t = 0 of the simulation [ns].
 EPOCH_NS = 1_700_000_000 * 10**9
@@ -55,11 +62,14 @@ def check_output(out_dir: str | Path, overwrite: bool) -> Path:
     return check_writable(check_replaceable(out_dir, overwrite))
 
 
-def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
-    """Write the recording folder of ``result`` to ``out_dir`` atomically (module docstring); return it."""
+def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,
+                    bag: bool = True) -> Path:
+    """Write the recording folder of ``result`` to ``out_dir`` atomically (module docstring); return it. ``bag``
+    False: everything but the bag (a study's trial reads its messages from memory: :func:`in_memory_bag`)."""
     out = check_output(out_dir, overwrite).absolute()
     with atomic_folder(out, "lrfsim simulate") as tmp:
-        write_bag(result, scenario, tmp / "bag")
+        if bag:
+            write_bag(result, scenario, tmp / "bag")
         if scenario.markers is not None:
             (tmp / "distances.csv").write_text(distances_csv(result), encoding="utf-8")
         sigma = typical_range_sigma(result.ranges_m, scenario.sensor)  # the declared (spec) noise, faults aside
@@ -71,14 +81,31 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
 
 
 def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
-    """The ROS 2 bag (MCAP, version 9) with /scan and /joint_states, messages in log-time order (the LaserScans
-    declare ``result.declared_angle_increment_rad`` when a fault set it, else the sensor's); with echoes
-    (``result.echo_ranges_m``) also a MultiEchoLaserScan per scan on ``sensor.echoes.topic``, logged with its
-    /scan: per beam a LaserEcho with the beam's valid echoes, nearest first (none: empty), as urg_node fills it."""
+    """The ROS 2 bag (MCAP, version 9) of :func:`bag_messages`, one connection per topic in the order listed."""
     from rosbags.rosbag2 import StoragePlugin, Writer
+
+    topics, events = bag_messages(result, scenario)
+    ts = _typestore()
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in topics}
+        for log_ns, topic, msgtype, msg in events:
+            writer.write(conns[topic], log_ns, ts.serialize_cdr(msg, msgtype))
+
+
+def _typestore() -> Any:
     from rosbags.typesys import Stores, get_typestore
 
-    ts = get_typestore(Stores.ROS2_HUMBLE)
+    return get_typestore(Stores.ROS2_HUMBLE)
+
+
+def bag_messages(result: SimResult, scenario: Scenario
+                 ) -> tuple[list[tuple[str, str]], list[tuple[int, str, str, Any]]]:
+    """The bag's topics [(topic, type)] and its messages [(log time ns, topic, type, message)] in log-time order:
+    /scan and /joint_states; the LaserScans declare ``result.declared_angle_increment_rad`` when a fault set it,
+    else the sensor's; with echoes (``result.echo_ranges_m``) also a MultiEchoLaserScan per scan on
+    ``sensor.echoes.topic``, logged with its /scan: per beam a LaserEcho with the beam's valid echoes, nearest first
+    (none: empty), as urg_node fills it. A message's float32 fields hold float32 values, as a reader decodes them."""
+    ts = _typestore()
     LaserScan = ts.types[LASERSCAN_TYPE]
     JointState = ts.types[JOINTSTATE_TYPE]
     Header = ts.types["std_msgs/msg/Header"]
@@ -92,6 +119,9 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
         ns = _ns(t_s)
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
 
+    def f32(v: float) -> float:
+        return float(np.float32(v))
+
     n = sensor.n_beams
     angle_max = sensor.angle_min_rad + (n - 1) * sensor.angle_increment_rad  # the true span, faults aside
     increment = (sensor.angle_increment_rad if result.declared_angle_increment_rad is None
@@ -100,41 +130,67 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
     intens32 = result.intensities.astype(np.float32)
     offset = servo.clock_offset_s
     # (log time ns, kind, index): scans are logged at the end of the scan, on the recorder (servo) clock
-    events = [(_ns(float(t) - offset + sensor.scan_period_s), 0, k) for k, t in enumerate(result.scan_stamps_s)]
-    events += [(_ns(float(t)), 1, k) for k, t in enumerate(result.joints.stamps_s)]
-    events.sort()
+    order = [(_ns(float(t) - offset + sensor.scan_period_s), 0, k) for k, t in enumerate(result.scan_stamps_s)]
+    order += [(_ns(float(t)), 1, k) for k, t in enumerate(result.joints.stamps_s)]
+    order.sort()
     empty = np.zeros(0, dtype=np.float64)
-    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-        c_scan = writer.add_connection(SCAN_TOPIC, LASERSCAN_TYPE, typestore=ts)
-        c_joint = writer.add_connection(JOINT_TOPIC, JOINTSTATE_TYPE, typestore=ts)
-        c_echo = writer.add_connection(sensor.echoes.topic, MULTIECHO_TYPE, typestore=ts) if with_echoes else None
-        for log_ns, kind, k in events:
-            if kind == 0:
-                msg = LaserScan(
-                    header=header(float(result.scan_stamps_s[k]), LASER_FRAME),
-                    angle_min=float(sensor.angle_min_rad), angle_max=float(angle_max),
-                    angle_increment=float(increment), time_increment=float(sensor.time_increment_s),
-                    scan_time=float(sensor.scan_period_s), range_min=float(sensor.range_min_m),
-                    range_max=float(sensor.range_max_m), ranges=ranges32[k], intensities=intens32[k])
-                writer.write(c_scan, log_ns, ts.serialize_cdr(msg, LASERSCAN_TYPE))
-                if c_echo is not None:
-                    assert result.echo_ranges_m is not None and result.echo_intensities is not None
-                    er = result.echo_ranges_m[k].astype(np.float32)
-                    ei = result.echo_intensities[k].astype(np.float32)
-                    ok = np.isfinite(er)
-                    msg = MultiEcho(
-                        header=msg.header, angle_min=msg.angle_min, angle_max=msg.angle_max,
-                        angle_increment=msg.angle_increment, time_increment=msg.time_increment,
-                        scan_time=msg.scan_time, range_min=msg.range_min, range_max=msg.range_max,
-                        ranges=[LaserEcho(echoes=er[b][ok[b]]) for b in range(n)],
-                        intensities=[LaserEcho(echoes=ei[b][ok[b]]) for b in range(n)])
-                    writer.write(c_echo, log_ns, ts.serialize_cdr(msg, MULTIECHO_TYPE))
-            else:
-                j = result.joints
-                msg = JointState(header=header(float(j.stamps_s[k]), ""), name=[servo.joint],
-                                 position=np.array([j.positions_rad[k]]),
-                                 velocity=np.array([j.velocities_rad_s[k]]), effort=empty)
-                writer.write(c_joint, log_ns, ts.serialize_cdr(msg, JOINTSTATE_TYPE))
+    topics = [(SCAN_TOPIC, LASERSCAN_TYPE), (JOINT_TOPIC, JOINTSTATE_TYPE)]
+    if with_echoes:
+        topics.append((sensor.echoes.topic, MULTIECHO_TYPE))
+    events: list[tuple[int, str, str, Any]] = []
+    for log_ns, kind, k in order:
+        if kind == 0:
+            msg = LaserScan(
+                header=header(float(result.scan_stamps_s[k]), LASER_FRAME),
+                angle_min=f32(sensor.angle_min_rad), angle_max=f32(angle_max),
+                angle_increment=f32(increment), time_increment=f32(sensor.time_increment_s),
+                scan_time=f32(sensor.scan_period_s), range_min=f32(sensor.range_min_m),
+                range_max=f32(sensor.range_max_m), ranges=ranges32[k], intensities=intens32[k])
+            events.append((log_ns, SCAN_TOPIC, LASERSCAN_TYPE, msg))
+            if with_echoes:
+                assert result.echo_ranges_m is not None and result.echo_intensities is not None
+                assert MultiEcho is not None and LaserEcho is not None
+                er = result.echo_ranges_m[k].astype(np.float32)
+                ei = result.echo_intensities[k].astype(np.float32)
+                ok = np.isfinite(er)
+                echo = MultiEcho(
+                    header=msg.header, angle_min=msg.angle_min, angle_max=msg.angle_max,
+                    angle_increment=msg.angle_increment, time_increment=msg.time_increment,
+                    scan_time=msg.scan_time, range_min=msg.range_min, range_max=msg.range_max,
+                    ranges=[LaserEcho(echoes=er[b][ok[b]]) for b in range(n)],
+                    intensities=[LaserEcho(echoes=ei[b][ok[b]]) for b in range(n)])
+                events.append((log_ns, sensor.echoes.topic, MULTIECHO_TYPE, echo))
+        else:
+            j = result.joints
+            msg = JointState(header=header(float(j.stamps_s[k]), ""), name=[servo.joint],
+                             position=np.array([j.positions_rad[k]]),
+                             velocity=np.array([j.velocities_rad_s[k]]), effort=empty)
+            events.append((log_ns, JOINT_TOPIC, JOINTSTATE_TYPE, msg))
+    return topics, events
+
+
+def in_memory_bag(result: SimResult, scenario: Scenario) -> BagReader:
+    """A bag reader for lrfcal.io.recording.read_recording (its ``bag_reader``) that hands :func:`bag_messages` to
+    the bag reader's decoding (lrfcal.io.bag.bag_data) without writing or parsing a file: the Scans, JointStates
+    and report of the bag :func:`write_bag` writes, in a fraction of the time (tests/test_recording.py). For
+    studies, whose trials need the estimate, not the file."""
+    from lrfcal.errors import InputError
+    from lrfcal.io.bag import bag_data
+    from lrfcal.io.bag_messages import ns_to_s
+
+    topics, events = bag_messages(result, scenario)
+    types = dict(topics)
+
+    def read(scan: ScanSource, servo: ServoSource, warn: Callable[[str], None] | None) -> BagData:
+        if scan.topic not in types or servo.topic not in types or servo.tf is not None or servo.stamp == "scan":
+            raise InputError(f"simulated bag: topics {scan.topic} and {servo.topic} expected (it has "
+                             f"{', '.join(types)})")
+        scans = [(ns_to_s(t), m) for t, topic, _, m in events if topic == scan.topic]
+        servo_items = [(ns_to_s(t), m, topic) for t, topic, _, m in events if topic == servo.topic]
+        return bag_data("simulated bag", scans, servo_items, types[scan.topic], types[servo.topic], scan, servo,
+                        warn)
+
+    return read
 
 
 def distances_csv(result: SimResult) -> str:
@@ -189,5 +245,5 @@ def ground_truth_yaml(result: SimResult) -> str:
     })
 
 
-__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "check_output", "distances_csv",
-           "ground_truth_yaml", "nominal_yaml", "write_bag", "write_recording"]
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "BagReader", "bag_messages", "check_output",
+           "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag", "write_recording"]

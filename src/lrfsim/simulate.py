@@ -151,11 +151,12 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     return simulate_from_geometry(scenario, geometry, noise=noise)
 
 
-def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,
+                    bag: bool = True) -> Path:
     """Write the recording folder (docs/formats.md) atomically; see :func:`lrfsim.recording.write_recording`."""
     from .recording import write_recording as _write
 
-    return _write(result, scenario, out_dir, overwrite=overwrite)
+    return _write(result, scenario, out_dir, overwrite=overwrite, bag=bag)
 
 
 def simulate_to_folder(scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,

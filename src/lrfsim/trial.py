@@ -24,6 +24,7 @@ from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.types import CalibrationResult, Recording
 
 from .compare import load_truth
+from .recording import BagReader
 from .scenario import Scenario
 from .simulate import simulate, write_recording
 
@@ -73,6 +74,7 @@ def record(scenario: Scenario, folder: Path) -> Path:
 def calibrate_recording(
     folder: Path, config: CalibConfig | None = None, *, name: str | None = None,
     mutate: Callable[[Recording], Recording] | None = None, keep_result: bool = False, paper: bool = False,
+    bag_reader: BagReader | None = None,
 ) -> Trial:
     """Read a recording folder written by lrfsim, calibrate it (``mutate`` may change the Recording first, e.g. the
     nominal values), and compare the DH parameters with its ground_truth.yaml.
@@ -80,9 +82,10 @@ def calibrate_recording(
     ``paper``: judge the paper's method instead of ours (``result.baseline``: the blob's brightest beam, one motor
     angle per scan, on our detections and association). ``config`` then runs with ``baseline=True`` and
     ``force=True``: the consistency checks are ours, the paper's method has none, so a check that our solution
-    fails does not withhold the paper's estimate."""
+    fails does not withhold the paper's estimate. ``bag_reader``: the bag's data from memory
+    (lrfsim.recording.in_memory_bag; the folder then needs no bag)."""
     truth = load_truth(folder / "ground_truth.yaml")
-    recording = read_recording(folder)
+    recording = read_recording(folder, bag_reader=bag_reader)
     if mutate is not None:
         recording = mutate(recording)
     label = name or folder.name

@@ -92,7 +92,6 @@ def read_bag(
     path = Path(path)
     scan = scan or ScanSource()
     servo = servo or ServoSource(joint="servo")
-    warn = warn or (lambda text: print(f"warning: {text}", file=sys.stderr))
     reader = open_reader(path)
     try:
         with reader:
@@ -119,11 +118,22 @@ def read_bag(
         raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
     if progress is not None:
         progress(total, total)
-    where_scan = f"{path}: {scan.topic}"
+    return bag_data(str(path), scan_items, servo_items, scan_type, servo_type, scan, servo, warn)
+
+
+def bag_data(label: str, scan_items: list[tuple[float, Any]], servo_items: list[tuple[float, Any, str]],
+             scan_type: str, servo_type: str, scan: ScanSource, servo: ServoSource,
+             warn: Callable[[str], None] | None = None) -> BagData:
+    """What :func:`read_bag` makes of a bag's decoded messages: ``scan_items`` (receive time [s], message) of the
+    scan topic and ``servo_items`` (receive time [s], message, topic) of the servo's, in bag order; ``label``
+    names the bag in messages. A simulation's messages, never serialised, give what its bag file would
+    (lrfsim.recording.in_memory_bag). ``warn``: as in :func:`read_bag`."""
+    warn = warn or (lambda text: print(f"warning: {text}", file=sys.stderr))
+    where_scan = f"{label}: {scan.topic}"
     if not scan_items:
         raise InputError(f"{where_scan}: no messages")
     scans, srep, notes = scans_from(scan_items, scan, scan_type, where_scan, warn)
-    where_servo = f"{path}: {servo.describe()}"
+    where_servo = f"{label}: {servo.describe()}"
     if servo.tf is not None:
         samples = servo_tf(servo_items, servo, where_servo, scans.stamps_s)
     elif servo.stamp == "scan":
@@ -145,7 +155,7 @@ def read_bag(
                      f"onto the laser clock by it (coarse, from the bag's receive times)")
     notes.extend(timing_notes(scans, joints, where_scan, where_servo))
     report = ReadReport(
-        bag=str(path), scan_source=_describe_scan(scan), servo_source=servo.describe(),
+        bag=label, scan_source=_describe_scan(scan), servo_source=servo.describe(),
         n_scan_messages=len(scan_items), n_scans=int(scans.stamps_s.size),
         n_beams=int(np.sum(scans.beam_counts)), n_valid_returns=int(np.isfinite(scans.ranges_m).sum()),
         beam_count_min=int(scans.beam_counts.min()), beam_count_max=int(scans.beam_counts.max()),
@@ -196,4 +206,4 @@ def _describe_scan(scan: ScanSource) -> str:
     return f"{scan.topic}{'.' + scan.field if scan.field else ''} (stamp {scan.stamp})"
 
 
-__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "Progress", "read_bag", "timing_notes"]
+__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "Progress", "bag_data", "read_bag", "timing_notes"]

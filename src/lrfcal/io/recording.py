@@ -20,7 +20,7 @@ from ..errors import InputError
 from ..model.kinematics import DH, Pose
 from ..rig import ScanSource, ServoSource, load_rig
 from ..types import JointStates, Nominal, Recording, Scans, TapeMeasurements
-from .bag import Progress, read_bag
+from .bag import BagData, Progress, read_bag
 from .bag_messages import one_line
 from .scanlog import is_scan_log, read_scan_log, resolve_recording
 
@@ -171,6 +171,7 @@ def read_recording(
     require_distances: bool = True,
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
+    bag_reader: Callable[[ScanSource, ServoSource, Callable[[str], None] | None], BagData] | None = None,
 ) -> Recording:
     """Read a recording: the bag (lrfcal.io.bag.read_bag) or scan log (lrfcal.io.scanlog.read_scan_log, for a .txt,
     .csv or .log file), ``distances.csv`` and the rig file ``nominal.yaml``.
@@ -182,9 +183,13 @@ def read_recording(
     are in the bag comes from the rig file, replaced by ``scan`` / ``servo`` when given, with ``scan_topic``,
     ``joint_topic``, ``joint_name`` overriding single keys. ``require_distances=False`` skips the tape
     distances (Recording.tape is then None unless a distances file is given). The reader does not check that
-    the joint states cover the scans (see :func:`check_joint_coverage`, timing.covered_scans).
+    the joint states cover the scans (see :func:`check_joint_coverage`, timing.covered_scans). ``bag_reader(scan,
+    servo, warn)``: the bag's data from elsewhere than a file (a simulation's messages: lrfsim.recording).
     """
-    base, bag = resolve_recording(folder, bag)  # a scan log as the recording, or a folder holding one
+    if bag_reader is None:
+        base, bag = resolve_recording(folder, bag)  # a scan log as the recording, or a folder holding one
+    else:
+        base = None if folder is None else Path(folder)
     if base is not None and not base.is_dir():
         raise InputError(f"{base}: recording folder not found")
 
@@ -206,8 +211,9 @@ def read_recording(
     if joint_topic or joint_name:
         upd = {k: v for k, v in (("topic", joint_topic), ("joint", joint_name)) if v}
         servo_src = ServoSource.model_validate({**servo_src.model_dump(), **upd})
-    bag_path = pick(bag, "bag", "bag")
-    if is_scan_log(bag_path):  # a text log, one row per scan (lrfcal.io.scanlog; the rig file's log: section)
+    if bag_reader is not None:
+        data = bag_reader(scan_src, servo_src, warn)
+    elif is_scan_log(bag_path := pick(bag, "bag", "bag")):  # a text log (lrfcal.io.scanlog; the rig's log: section)
         data = read_scan_log(bag_path, nom.log, servo_src, warn=warn)
     else:
         data = read_bag(bag_path, scan_src, servo_src, progress=progress, warn=warn)
