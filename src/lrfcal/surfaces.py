@@ -167,10 +167,10 @@ def find_surfaces(
                           np.sqrt(position_sigma_m**2 / k + mounting_sigma_m**2)])
         surface = Surface(n, off + radius_m, members, axes, c, lower, upper, prior,
                           plane_prior_jacobian(n, axes, c, q, members, len(X)))
-        dist, inside = _in_extent(surface, cloud_W)
-        slab = inside & (np.abs(dist) < slab_m)
-        on = slab & (np.abs(dist) < on_plane_m)
-        if slab.sum() < 50 or on.sum() < min_support * slab.sum():
+        near = cloud_W[np.abs(cloud_W @ surface.normal - surface.offset_m) < slab_m]  # the slab, any extent
+        dist, inside = _in_extent(surface, near)
+        slab = dist[inside]
+        if slab.size < 50 or np.count_nonzero(np.abs(slab) < on_plane_m) < min_support * slab.size:
             continue
         surfaces.append(surface)
         used |= set(members.tolist())
@@ -290,25 +290,33 @@ def observe_surfaces(
         max_incidence_rad: the most oblique incidence of a surface return used (ray directions from ``params``).
     """
     valid = np.isfinite(ranges_m) & (labels < 0)
-    scan, beam = np.nonzero(valid)
+    flat = np.flatnonzero(valid)  # the valid returns, row-major as np.nonzero orders them
+    scan, beam = np.divmod(flat, valid.shape[1])
     mu_all = np.asarray(mu_rad)
-    lam, r = lambda_rad[scan, beam], ranges_m[scan, beam]
-    mu = mu_all[scan, beam] if mu_all.ndim == 2 else mu_all[beam]
-    times = None if beam_times_s is None else np.asarray(beam_times_s)[scan, beam]
+    lam_f, r_f = np.asarray(lambda_rad).ravel(), np.asarray(ranges_m).ravel()
+    mu_f = mu_all.ravel() if mu_all.ndim == 2 else None
+    times_f = None if beam_times_s is None else np.asarray(beam_times_s).ravel()
+
+    def take(rows: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """motor angles, bearings and ranges of the valid returns ``rows`` (gathered only for those rows)"""
+        i = flat[rows]
+        return lam_f[i], (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
+
     sensor_W = params.mount.matrix()[:3, 3]
-    step = max(1, scan.size // 100_000)
-    surfaces = find_surfaces(markers_W, radius_m, sensor_W, points_W(r[::step], lam[::step], mu[::step], params),
+    step = max(1, flat.size // 100_000)
+    lam_s, mu_s, r_s = take(np.arange(0, flat.size, step))
+    surfaces = find_surfaces(markers_W, radius_m, sensor_W, points_W(r_s, lam_s, mu_s, params),
                              position_sigma_m=position_sigma_m)
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
     # them all once they hold max_returns accepted ones, so only those rows are reprojected (the same returns as
     # from every row, at a fraction of the work); the threshold doubles until they do
     key = hash_key(scan, beam, seed)
     for frac in (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0):
-        rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(scan.size)
-        lam_k, mu_k = lam[rows], mu[rows]
-        returns = surface_returns(surfaces, points_W(r[rows], lam_k, mu_k, params), scan[rows], beam[rows], lam_k,
-                                  mu_k, r[rows], markers_W, max_returns=max_returns, seed=seed,
-                                  times_s=None if times is None else times[rows],
+        rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
+        lam_k, mu_k, r_k = take(rows)
+        returns = surface_returns(surfaces, points_W(r_k, lam_k, mu_k, params), scan[rows], beam[rows], lam_k,
+                                  mu_k, r_k, markers_W, max_returns=max_returns, seed=seed,
+                                  times_s=None if times_f is None else times_f[flat[rows]],
                                   rays_W=lambda i, lam_k=lam_k, mu_k=mu_k: beam_rays_W(params, lam_k[i], mu_k[i]),
                                   max_incidence_rad=max_incidence_rad)
         if len(returns) >= max_returns:
