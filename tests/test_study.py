@@ -219,7 +219,10 @@ def test_perturbed_start_reaches_nominal_yaml_and_pool_gives_the_same_table(tiny
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", [
-    "tunnel_v",
+    pytest.param("tunnel_v", marks=pytest.mark.xfail(strict=True, reason=(
+        "beta's sigma is conservative on tunnel_v since the marker map's uncertainty and the per-marker widening "
+        "joined it: over these 30 trials cast anew beta's Monte-Carlo std / predicted is 0.74 and its RMS z 0.79 "
+        "(a 0.78 / 0.80, alpha 1.11 / 1.08, b 0.97 / 0.91; measured 2026-12-02)"))),
     pytest.param("plane_30deg", marks=pytest.mark.xfail(strict=True, reason=(
         "a's predicted sigma is conservative on plane_30deg: Monte-Carlo std / predicted 0.70 over these 30 trials "
         "cast anew (beta 0.70, RMS z a 0.68, beta 0.67; measured with the model-error part of plan, which adds "
