@@ -27,6 +27,10 @@ the solves' own 1-sigma (scaled by the square root of their reduced chi-square).
 :data:`DETERMINED` is named as not determined by the scene (its value is the search's best guess, not a
 measurement).
 
+The starts are independent: they are solved in groups on the machine's cores, the first group in this process and
+the others in forked children (lrfcal.forked), and collected in start order, so the proposal does not depend on how
+many cores there are.
+
 Array shapes: K returns.
 """
 
@@ -36,6 +40,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,6 +48,7 @@ from numpy.typing import NDArray
 from . import solve, targetless
 from .config import CalibConfig
 from .errors import CalibrationError
+from .forked import call_forked, cores
 from .io.bag import BagData
 from .model.kinematics import DH, Params, dh_twins
 from .model.motor import MotorClock
@@ -62,6 +68,8 @@ START_B_M = (0.0, 0.1)
 PRIOR_SIGMA = (0.05, math.radians(30.0), 0.10, math.radians(30.0))
 #: segment-and-solve rounds per start; the first round's inlier half-width [m]
 ROUNDS = 3
+#: the starts are solved in at most this many groups at once, one per core (the first in this process)
+MAX_GROUPS = 4
 START_THICKNESS_M = 0.04
 #: returns sampled for the solves, and the subsample each start segments its planes on
 FIT_RETURNS = 12000
@@ -154,14 +162,24 @@ def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int],
     config = CalibConfig()
     beams = targetless.sample_returns(scans, FIT_RETURNS)
     motor = MotorClock.from_joints(joints)
-    found: list[tuple[DH, FloatArray]] = []
-    for k, start in enumerate(starts):
-        seg = hash_sample(beams.scan, beams.beam, SEGMENT_RETURNS, seed=100 + k)
-        cand = _candidate(beams, seg, motor, start, config)
-        if cand is not None:
-            found.append(cand)
-        if progress is not None:
-            progress(k + 1, len(starts))
+    n_groups = max(1, min(cores(), MAX_GROUPS, len(starts)))
+
+    def group(g: int) -> list[tuple[int, tuple[DH, FloatArray] | None]]:
+        """the starts g, g + n_groups, ... solved (progress from the first group, which runs in this process)"""
+        out = []
+        for k in range(g, len(starts), n_groups):
+            seg = hash_sample(beams.scan, beams.beam, SEGMENT_RETURNS, seed=100 + k)
+            out.append((k, _candidate(beams, seg, motor, starts[k], config)))
+            if progress is not None and g == 0:
+                progress(min(len(starts) - 1, len(out) * n_groups), len(starts))
+        return out
+
+    # the starts are independent: solved in groups on the cores (lrfcal.forked), collected in start order
+    solved = sorted(kc for part in call_forked({str(g): partial(group, g) for g in range(n_groups)}).values()
+                    for kc in part)
+    if progress is not None:
+        progress(len(starts), len(starts))
+    found = [cand for _, cand in solved if cand is not None]
     out = _consensus(found, len(starts))
     return DHProposal(out.dh, out.sigma, out.n_converged, out.n_agreeing, len(starts), out.reason,
                       time.perf_counter() - t0)
