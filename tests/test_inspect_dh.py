@@ -199,3 +199,40 @@ def test_poor_recordings_get_no_proposal_and_the_reason(path) -> None:  # type: 
     first = res.rig_snippet.splitlines()[0]
     assert first.startswith("# dh: not proposed: ") and len(res.rig_snippet.splitlines()[0]) > 40
     assert yaml.safe_load(res.rig_snippet)["dh"] == {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}
+
+
+def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The DH search's starts are solved in groups on the cores (one in this process, the others in forked children)
+    and collected in start order: the candidates reach the consensus in the same order whatever the number of cores,
+    and the progress ends at the number of starts."""
+    import lrfcal.propose as propose
+    from lrfcal.types import JointStates, Scans
+
+    def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]
+        # a cheap stand-in for a solve: fails on some starts, else depends on the start and its own subsample
+        if start.b > 0 and start.beta < 0:
+            return None
+        return start, np.array([float(seg[:50].sum()), start.alpha])
+
+    seen: dict[int, list] = {}
+
+    def consensus(found, n_starts):  # type: ignore[no-untyped-def]
+        seen[n_cores] = [(c[0], c[1].tolist()) for c in found]
+        return propose._Consensus(None, {}, len(found), 0, "stand-in")
+
+    monkeypatch.setattr(propose, "_candidate", candidate)
+    monkeypatch.setattr(propose, "_consensus", consensus)
+    rng = np.random.default_rng(3)
+    S, N = 40, 200
+    scans = Scans(stamps_s=np.arange(S) * 0.025, ranges_m=rng.uniform(1.0, 5.0, (S, N)), intensities=np.ones((S, N)),
+                  mu_rad=np.linspace(-2.0, 2.0, N), time_increment_s=np.full(S, 1e-5), scan_time_s=0.025,
+                  range_min_m=0.1, range_max_m=30.0)
+    joints = JointStates(stamps_s=np.linspace(-0.1, 1.1, 50), positions_rad=np.linspace(-1.0, 1.0, 50))
+    for n_cores in (1, 2, 3):
+        monkeypatch.setattr(propose, "cores", lambda n=n_cores: n)
+        ticks: list[tuple[int, int]] = []
+        propose.propose_dh(scans, joints, progress=lambda done, total, t=ticks: t.append((done, total)))
+        n_starts = len(propose.START_ALPHA_DEG) * len(propose.START_BETA_DEG) * len(propose.START_B_M)
+        assert ticks[-1] == (n_starts, n_starts) and all(d <= n_starts for d, _ in ticks)
+    assert seen[1] == seen[2] == seen[3]
+    assert 0 < len(seen[1]) < n_starts  # some starts failed, in the middle of the groups
