@@ -27,6 +27,7 @@ from . import holdout, observability, planes, solve, timing
 from .checks import plane_checks
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
+from .forked import cores
 from .information import plane_information
 from .model.kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .model.motor import MotorClock
@@ -138,6 +139,9 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     )
 
 
+#: returns above which the labelling's nearest-neighbour query runs in a thread per core (scipy's workers)
+PARALLEL_QUERY = 50_000
+
 #: the motor frame M as the world frame (without markers there is no other)
 MOTOR_FRAME = Pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
@@ -165,7 +169,8 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
     labels = np.full(P.shape[0], -1, dtype=np.int64)
     if found:
         has = seg_labels >= 0
-        _, nn = cKDTree(P[seg][has]).query(P, k=1)
+        # the nearest segmented neighbour of every return: exact whatever the threads, on the cores for a big cloud
+        _, nn = cKDTree(P[seg][has]).query(P, k=1, workers=cores() if len(P) > PARALLEL_QUERY else 1)
         labels = seg_labels[has][nn]
         N = np.array([p.normal for p in found])
         off = np.array([p.offset_m for p in found])
