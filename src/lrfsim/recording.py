@@ -34,13 +34,10 @@ from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
 
 if TYPE_CHECKING:
-    from lrfcal.io.bag import BagData
+    from lrfcal.io.bag import BagData, BagReader
     from lrfcal.rig import ScanSource, ServoSource
 
     from .simresult import SimResult
-
-#: reads a bag's scans and servo angle from where the rig file says they are (lrfcal.io.recording.read_recording)
-BagReader = Callable[["ScanSource", "ServoSource", "Callable[[str], None] | None"], "BagData"]
 
 #: ROS time of t = 0 of the simulation [ns].
 EPOCH_NS = 1_700_000_000 * 10**9
@@ -245,5 +242,5 @@ def ground_truth_yaml(result: SimResult) -> str:
     })
 
 
-__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "BagReader", "bag_messages", "check_output",
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_messages", "check_output",
            "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag", "write_recording"]

@@ -18,13 +18,13 @@ from pathlib import Path
 import numpy as np
 
 from lrfcal.errors import LrfError
+from lrfcal.io.bag import BagReader
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.types import CalibrationResult, Recording
 
 from .compare import load_truth
-from .recording import BagReader
 from .scenario import Scenario
 from .simulate import simulate, write_recording
 

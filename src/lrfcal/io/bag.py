@@ -48,6 +48,11 @@ class BagData:
     report: ReadReport
 
 
+#: the bag's data where the rig file says they are, from elsewhere than a file: (scan, servo, warn) -> BagData
+#: (lrfcal.io.recording.read_recording's ``bag_reader``; a simulation's messages: lrfsim.recording.in_memory_bag)
+BagReader = Callable[[ScanSource, ServoSource, "Callable[[str], None] | None"], "BagData"]
+
+
 def _connections(reader: Any, path: Path, topic: str) -> list[Any]:
     conns = [c for c in reader.connections if c.topic == topic]
     if not conns:
@@ -206,4 +211,4 @@ def _describe_scan(scan: ScanSource) -> str:
     return f"{scan.topic}{'.' + scan.field if scan.field else ''} (stamp {scan.stamp})"
 
 
-__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "Progress", "bag_data", "read_bag", "timing_notes"]
+__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "BagReader", "Progress", "bag_data", "read_bag", "timing_notes"]

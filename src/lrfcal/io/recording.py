@@ -20,7 +20,7 @@ from ..errors import InputError
 from ..model.kinematics import DH, Pose
 from ..rig import ScanSource, ServoSource, load_rig
 from ..types import JointStates, Nominal, Recording, Scans, TapeMeasurements
-from .bag import BagData, Progress, read_bag
+from .bag import BagReader, Progress, read_bag
 from .bag_messages import one_line
 from .scanlog import is_scan_log, read_scan_log, resolve_recording
 
@@ -171,7 +171,7 @@ def read_recording(
     require_distances: bool = True,
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
-    bag_reader: Callable[[ScanSource, ServoSource, Callable[[str], None] | None], BagData] | None = None,
+    bag_reader: BagReader | None = None,
 ) -> Recording:
     """Read a recording: the bag (lrfcal.io.bag.read_bag) or scan log (lrfcal.io.scanlog.read_scan_log, for a .txt,
     .csv or .log file), ``distances.csv`` and the rig file ``nominal.yaml``.
