@@ -51,16 +51,20 @@ def select_echo(ranges: list[Any], intensities: list[Any], range_min: float, ran
     and intensities (N,) (0 there). ``ranges`` / ``intensities``: the message's LaserEcho lists (intensities
     may be empty or shorter: 0)."""
     n = len(ranges)
-    E = max((len(e.echoes) for e in ranges), default=0)
+    lens = np.array([len(e.echoes) for e in ranges], dtype=np.int64)
+    E = int(lens.max()) if n else 0
     r = np.full((n, max(E, 1)), np.nan)
     it = np.zeros((n, max(E, 1)))
-    for b, e in enumerate(ranges):
-        k = len(e.echoes)
-        if k:
-            r[b, :k] = np.asarray(e.echoes, dtype=np.float64)
-            if b < len(intensities):
-                v = np.asarray(intensities[b].echoes, dtype=np.float64)[:k]
-                it[b, :v.size] = v
+    if E:  # every beam's echoes in one array, scattered to (beam, echo); a beam's intensities cut to its echoes
+        rows, cols = _slots(lens)
+        r[rows, cols] = np.concatenate([e.echoes for e in ranges]).astype(np.float64)
+        m = min(len(intensities), n)
+        ilens = np.array([len(intensities[b].echoes) for b in range(m)], dtype=np.int64)
+        if ilens.sum():
+            irows, icols = _slots(ilens)
+            keep = icols < lens[irows]
+            flat = np.concatenate([intensities[b].echoes for b in range(m)]).astype(np.float64)
+            it[irows[keep], icols[keep]] = flat[keep]
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(r) & (r != 0.0) & (r >= range_min) & (r <= range_max)
     if echo == "first":
@@ -73,6 +77,12 @@ def select_echo(ranges: list[Any], intensities: list[Any], range_min: float, ran
     rows = np.arange(n)
     any_ok = ok.any(axis=1)
     return np.where(any_ok, r[rows, pick], np.nan), np.where(any_ok, it[rows, pick], 0.0)
+
+
+def _slots(lens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(row, column) (sum(lens),) of each element of rows of ``lens`` (B,) elements laid end to end."""
+    rows = np.repeat(np.arange(lens.size), lens)
+    return rows, np.arange(rows.size) - np.repeat(np.cumsum(lens) - lens, lens)
 
 
 def scans_from(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, where: str,
