@@ -202,7 +202,8 @@ def levenberg_marquardt(
             small = ratio < step_tol
             if small and first and damp <= 1e-3:  # a negligible, barely damped step: converged, nothing to check
                 return trial, n_eval, True
-            c_new = cost(evaluate(trial, False).residuals()) if ok else np.inf
+            b_new = evaluate(trial, True) if ok else None  # with its Jacobian: the next iteration's, if accepted
+            c_new = cost(b_new.residuals()) if b_new is not None else np.inf
             n_eval += ok
             if c_new <= c:
                 break
@@ -217,8 +218,8 @@ def levenberg_marquardt(
         th, c, damp = trial, c_new, max(damp / 10.0, 1e-9)
         if small:
             return th, n_eval, True
-        b = evaluate(th, True)
-        n_eval += 1
+        assert b_new is not None
+        b = b_new
     return th, n_eval, False
 
 
