@@ -47,13 +47,18 @@ class Problem:
         """Whitened marker residuals (K, n_res) and Jacobian (K, n_res, N_CORE) (lrfcal.model.marker)."""
         return marker_rows(th, self.markers, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
 
-    def centre_cross(self, th: FloatArray, R_ref: FloatArray, core: NDArray[np.intp], n_markers: int) -> FloatArray:
+    def centre_cross(self, th: FloatArray, R_ref: FloatArray, core: NDArray[np.intp], n_markers: int,
+                     J_dense: FloatArray | None = None) -> FloatArray:
         """J_m^T J_c (len(core), 3 n_markers): the marker rows' core columns against their derivatives with respect
         to the marker centres (lrfcal.model.marker.centre_jacobian), summed per marker (each marker's x, y, z).
         Only marker rows depend on the centres among the residuals, and none of them on a plane's nuisances (the
-        planes' priors do: :meth:`prior_cross`)."""
+        planes' priors do: :meth:`prior_cross`). ``J_dense``: :meth:`blocks`' dense Jacobian at th, when already
+        computed (its first rows are the marker rows)."""
         ms = self.markers
-        _, J = self.marker_rows(th, R_ref)
+        if J_dense is None:
+            _, J = self.marker_rows(th, R_ref)
+        else:
+            J = J_dense[:ms.r.size * ms.n_res].reshape(ms.r.size, ms.n_res, N_CORE)
         assert J is not None and ms.marker is not None
         Jc = centre_jacobian(th, ms, self.sigma_r, R_ref, self.clock)
         per_return = np.einsum("kri,krj->kij", J[:, :, core], Jc)  # (K, len(core), 3)

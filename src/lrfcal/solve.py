@@ -61,7 +61,12 @@ def _inflate_for_correlation(cov: FloatArray, G: FloatArray, JtJ_inv: FloatArray
     a scan (the motor angle of a scan comes from the same few quantised encoder readings for all its beams). Each
     parameter's sigma is the larger of the two; the model-based correlations are kept. cov (p, p).
     """
-    sandwich = JtJ_inv @ (G.T @ G) @ JtJ_inv
+    return _widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv)
+
+
+def _widen(cov: FloatArray, sandwich: FloatArray) -> FloatArray:
+    """``cov`` (p, p) with each parameter's sigma the larger of its own and the ``sandwich``'s (p, p), the
+    correlations kept."""
     with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # a null-variance column stays unscaled
         ratio = np.diag(sandwich) / np.diag(cov)
     scale = np.sqrt(np.maximum(1.0, np.where(np.isfinite(ratio), ratio, 1.0)))
@@ -83,11 +88,7 @@ def _inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], mar
         return cov
     ids = marker_dense + (int(scan_plane.max()) + 1 if scan_plane.size else 0)  # apart from the scans' ids
     G = cluster_scores(b, core, ids, scan_plane)
-    sandwich = JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1))
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-        ratio = np.diag(sandwich) / np.diag(cov)
-    scale = np.sqrt(np.maximum(1.0, np.where(np.isfinite(ratio), ratio, 1.0)))
-    return cov * np.outer(scale, scale)
+    return _widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1)))
 
 
 def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
@@ -133,7 +134,7 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
             # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the
             # marker rows (core columns) and the planes' priors (nuisance columns)
             n_m = len(map_cov) // 3
-            cross = pb.centre_cross(th, R_ref, core, n_m)
+            cross = pb.centre_cross(th, R_ref, core, n_m, b.J_dense)
             prior = pb.prior_cross(n_m)  # one row per nuisance, in H's order after the core
             if prior is not None:
                 cross = np.vstack([cross, prior])

@@ -50,7 +50,7 @@ class BagData:
 
 #: the bag's data where the rig file says they are, from elsewhere than a file: (scan, servo, warn) -> BagData
 #: (lrfcal.io.recording.read_recording's ``bag_reader``; a simulation's messages: lrfsim.recording.in_memory_bag)
-BagReader = Callable[[ScanSource, ServoSource, "Callable[[str], None] | None"], "BagData"]
+BagReader = Callable[[ScanSource, ServoSource, "Callable[[str], None] | None"], BagData]
 
 
 def _connections(reader: Any, path: Path, topic: str) -> list[Any]:
