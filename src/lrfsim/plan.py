@@ -51,6 +51,8 @@ from .scenario import Scenario, require_markers
 
 FloatArray = NDArray[np.float64]
 
+#: plan's noise-free cast: the footprint's ring only where it can change a beam (lrfsim.raychunks.cast_chunk_edges)
+FOOTPRINT = "edges"
 #: a tolerance counts as reachable when it is at least this many predicted sigmas
 REACHABLE_K = 4.0
 #: what enters the information (printed with the plan)
@@ -179,7 +181,7 @@ def marker_observations(scenario: Scenario) -> tuple[Observations, FloatArray, P
     from .faults import marker_returns
     from .simulate import simulate
 
-    result = simulate(scenario, noise=False)
+    result = simulate(scenario, noise=False, footprint=FOOTPRINT)
     owner = marker_returns(result, scenario)
     s_idx, b_idx = np.nonzero(owner >= 0)
     sensor = scenario.sensor

@@ -7,13 +7,13 @@ each thread with its own ``MjData`` (the kinematics of a chunk's scans and the r
 geoms that the lidar sees are static, so every copy casts against the same world). Every chunk is computed by the
 same arithmetic whichever thread runs it, and writes only its own scans: the recording is byte-identical with any
 number of threads (tests/test_lidar.py). ``progress(done_scans, total_scans)`` is called from the calling thread,
-chunk by chunk in scan order.
+chunk by chunk in scan order. The rays of a chunk and their casts: lrfsim.raychunks (``footprint="edges"``, plan's
+cast, casts the footprint's ring only where it can change a beam).
 """
 
 from __future__ import annotations
 
 import copy
-import math
 import os
 import threading
 import time
@@ -34,13 +34,11 @@ from .lidar import (
     Cast,
     LidarOutput,
     SceneLike,
-    _skew,
-    beam_angles,
-    footprint_coefficients,
+    ring_half_angle,
     sensor_model,
-    site_poses_W,
     split_echoes,
 )
+from .raychunks import RayChunk, _RayMaker, cast_chunk, cast_chunk_edges, cast_cutoff_m, iter_ray_chunks, plan_runs
 from .scenario_sections import SensorConfig
 
 FloatArray = NDArray[np.float64]
@@ -55,122 +53,6 @@ def default_threads() -> int:
     if env.isdigit() and int(env) >= 1:
         return int(env)
     return max(1, min(4, cores()))
-
-
-@dataclass
-class RayChunk:
-    """The rays of a chunk of Sc scans, in the order they are cast (views into reused buffers).
-
-    directions (Sc*N*F, 3) unit sub-ray directions; call_origins (C, 3) one origin per mj_multiRay call;
-    call_first (C,) first ray, call_count (C,) number of rays of each call; offset (Sc, N, 3) = shared origin
-    minus the beam's exact origin; scans: slice of the chunk's scans in the recording.
-    """
-
-    directions: FloatArray
-    call_origins: FloatArray
-    call_first: list[int]
-    call_count: list[int]
-    offset: FloatArray
-    scans: slice
-
-
-def plan_runs(origins: FloatArray, tol_m: float) -> int:
-    """Run length n for one scan's exact beam origins (N, 3): the largest odd n with (n-1)/2 * step < tol."""
-    N = origins.shape[0]
-    step = float(np.max(np.linalg.norm(np.diff(origins, axis=0), axis=1))) if N > 1 else 0.0
-    if step == 0.0:
-        return N
-    half = int(math.floor(tol_m / step * (1.0 - 1e-12)))
-    return max(1, min(N, 2 * half + 1))
-
-
-class _RayMaker:
-    """The rays of one chunk of scans (:func:`iter_ray_chunks`), with what all chunks share computed once."""
-
-    def __init__(self, scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, origin_tol_m: float):
-        self.scene, self.lam, self.tol = scene, beam_lambda_rad, origin_tol_m
-        N = beam_lambda_rad.shape[1]
-        mu = beam_angles(sensor)
-        self.cmu, self.smu = np.cos(mu)[None, :, None], np.sin(mu)[None, :, None]
-        self.coef = footprint_coefficients(sensor)
-        self.F = sensor.footprint_rays
-        self.ar = np.arange(N)
-        u = site_poses_W(scene, beam_lambda_rad[:1, N // 2])[3]  # the hinge's axis, as the first chunk sees it
-        self.K = _skew(u)
-        self.K2 = self.K @ self.K
-
-    def chunk(self, s0: int, s1: int, data: Any, dirs_buf: FloatArray, B0: FloatArray) -> RayChunk:
-        """Scans [s0, s1), their directions written into dirs_buf (>= s1 - s0, N, F, 3), kinematics in ``data``."""
-        N, F, ar = self.ar.size, self.F, self.ar
-        Sc = s1 - s0
-        lam = self.lam[s0:s1]
-        ref = lam[:, N // 2]
-        p, R, a, _ = site_poses_W(self.scene, ref, data)
-        delta = lam - ref[:, None]  # (Sc, N)
-        Rot = np.sin(delta)[..., None, None] * self.K + (1.0 - np.cos(delta))[..., None, None] * self.K2
-        Rot += np.eye(3)
-        origins = a + np.matmul(Rot, (p - a)[:, None, :, None])[..., 0]  # (Sc, N, 3)
-        X, Y, Z = R[:, None, :, 0], R[:, None, :, 1], R[:, None, :, 2]  # (Sc, 1, 3)
-        b0 = B0[:Sc]
-        b0[..., 0] = self.cmu * X + self.smu * Y
-        b0[..., 1] = self.cmu * Y - self.smu * X
-        b0[..., 2] = Z
-        B = np.matmul(Rot, b0)
-        dirs = dirs_buf[:Sc]
-        np.matmul(self.coef, np.swapaxes(B, -1, -2), out=dirs)
-        # runs of beams sharing one origin
-        offset = np.empty((Sc, N, 3))
-        call_origins: list[FloatArray] = []
-        first: list[int] = []
-        count: list[int] = []
-        for k in range(Sc):
-            n = plan_runs(origins[k], self.tol)
-            starts = np.arange(0, N, n)
-            stops = np.minimum(starts + n, N)
-            mids = (starts + stops - 1) // 2
-            call_origins.append(origins[k, mids])
-            first.extend((k * N * F + starts * F).tolist())
-            count.extend(((stops - starts) * F).tolist())
-            offset[k] = origins[k, mids[ar // n]] - origins[k]
-        return RayChunk(directions=dirs.reshape(Sc * N * F, 3), call_origins=np.concatenate(call_origins),
-                        call_first=first, call_count=count, offset=offset, scans=slice(s0, s1))
-
-
-def iter_ray_chunks(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *,
-                    origin_tol_m: float = 1e-6, chunk_scans: int = 16) -> Iterator[RayChunk]:
-    """Generate the rays of all scans, chunk by chunk (the module docstring's poses and batching).
-
-    ``beam_lambda_rad`` (S, N): the true motor angle at every beam's time. Per beam, the hinge rotation
-    Rot(u, d) = I + sin(d) K + (1 - cos(d)) K^2 (K = [u]x) gives the beam frame B = Rot R_s Rz(mu) (columns
-    e, t, z in W) and the origin a + Rot (p_s - a); sub-ray directions are B times
-    :func:`footprint_coefficients`. The yielded arrays are reused between chunks: copy them to keep them.
-    """
-    S, N = beam_lambda_rad.shape
-    maker = _RayMaker(scene, sensor, beam_lambda_rad, origin_tol_m)
-    dirs_buf = np.empty((chunk_scans, N, sensor.footprint_rays, 3))
-    B0 = np.empty((chunk_scans, N, 3, 3))
-    for s0 in range(0, S, chunk_scans):
-        yield maker.chunk(s0, min(S, s0 + chunk_scans), scene.data, dirs_buf, B0)
-
-
-def cast_cutoff_m(sensor: SensorConfig) -> float:
-    """How far a ray is cast [m]: the longest range plus 5 sigma of the widest noise band (and 1 mm)."""
-    sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
-    return sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
-
-
-def cast_chunk(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk: RayChunk, cutoff_m: float,
-               geomid: NDArray[np.int32], dist: FloatArray, normal: FloatArray) -> None:
-    """Cast every call of a chunk with ``mujoco.mj_multiRay`` into geomid (M,), dist (M,), normal (M, 3)."""
-    import mujoco
-
-    multi_ray = mujoco.mj_multiRay
-    dflat = chunk.directions.reshape(-1)
-    nflat = normal.reshape(-1)
-    for o, a, n in zip(chunk.call_origins, chunk.call_first, chunk.call_count, strict=True):
-        b = a + n
-        multi_ray(model, data, o, dflat[3 * a:3 * b], geomgroup, 1, -1, geomid[a:b], dist[a:b],
-                  nflat[3 * a:3 * b], n, cutoff_m)
 
 
 def simulate_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray,
@@ -223,19 +105,21 @@ class _Mixture:
     echo_ranges: FloatArray | None
     echo_power: FloatArray | None
 
-    def write(self, ch: RayChunk, gid: NDArray[np.int32], dist: FloatArray, normal: FloatArray) -> tuple[float, float]:
+    def write(self, ch: RayChunk, gid: NDArray[np.int32], dist: FloatArray, normal: FloatArray,
+              dn: FloatArray | None = None) -> tuple[float, float]:
         """The beams of a cast chunk (hits gid, dist (Sc N F,), normal (Sc N F, 3)) into the chunk's scans: each
         sub-ray's range corrected from the call's shared origin to the beam's own (parallax), its received power
         (Lambertian, retroreflector lobe for markers, inverse square), the incidence bias, then the power-weighted
-        range and the mean power; echoes split by range. Returns (largest origin offset, largest parallax
-        correction) [m]."""
+        range and the mean power; echoes split by range. ``dn`` (Sc, N, F): each sub-ray's direction dotted with
+        its normal, when the chunk holds the centre rays only (:func:`cast_chunk_edges`). Returns (largest origin
+        offset, largest parallax correction) [m]."""
         cfg, F = self.sensor.intensity, self.sensor.footprint_rays
         Sc, N = ch.offset.shape[:2]
         g = gid.reshape(Sc, N, F)
         hit = g >= 0
-        d = ch.directions.reshape(Sc, N, F, 3)
         nv = normal.reshape(Sc, N, F, 3)
-        dn = np.einsum("sbfk,sbfk->sbf", d, nv)
+        if dn is None:
+            dn = np.einsum("sbfk,sbfk->sbf", ch.directions.reshape(Sc, N, F, 3), nv)
         en = np.einsum("sbk,sbfk->sbf", ch.offset, nv)
         ok = hit & (np.abs(dn) > _MIN_NORMAL_DOT)
         corr = np.divide(en, dn, out=np.zeros_like(dn), where=ok)
@@ -292,9 +176,14 @@ def _run_chunks(run: Callable[[int], _ChunkStats], S: int, chunk_scans: int, n_t
 
 def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
                chunk_scans: int = CHUNK_SCANS, progress: Callable[[int, int], None] | None = None,
-               threads: int | None = None) -> Cast:
+               threads: int | None = None, footprint: str = "full") -> Cast:
     """The ray cast and the mixed-pixel model (lrfsim.lidar's module docstring), without the sensor model;
     beam_lambda_rad (S, N).
+
+    ``footprint``: "full" casts every sub-ray of every beam (the simulator); "edges" casts the footprint's ring only
+    where it can change a beam (:func:`cast_chunk_edges`: at edges and near markers), elsewhere each sub-ray takes the
+    centre ray's tangent plane: `lrfsim plan`'s noise-free cast, about a fifth of the rays, with the ranges of
+    "full" to rounding on planes (a ring wider than the angle between beams: "full").
 
     The cast reaches range_max + 5 sigma of the largest noise band when ``sensor.noise`` is set (a return just
     beyond range_max can be pulled back by the noise), else range_max. ``threads``: chunks of ``chunk_scans`` scans
@@ -319,28 +208,46 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
         return Cast(ranges_m=mix.ranges, intensities=mix.intensities, n_rays=0, n_calls=0, cast_time_s=0.0,
                     total_time_s=time.perf_counter() - t_start, max_origin_error_m=0.0, max_parallax_correction_m=0.0,
                     cutoff_m=cutoff, echo_ranges_m=mix.echo_ranges, echo_power=mix.echo_power)
-    maker = _RayMaker(scene, sensor, lam, origin_tol_m)
+    if footprint not in ("full", "edges"):
+        raise InputError(f"lidar: footprint must be 'full' or 'edges', got {footprint!r}")
+    maker = _RayMaker(scene, sensor, lam, origin_tol_m)  # (its kinematics placed scene.data's geoms)
+    # the edge test compares a beam with its neighbours: it sees every edge the ring can reach while the ring's
+    # diameter is within the angle between neighbouring beams (else every sub-ray is cast)
+    edges = footprint == "edges" and F > 1 and 2.0 * ring_half_angle(sensor) < abs(sensor.angle_increment_rad)
+    mk = np.flatnonzero(np.asarray(scene.geom_is_marker, dtype=bool))
+    markers = (scene.data.geom_xpos[mk].copy(), scene.model.geom_rbound[mk].copy(), ring_half_angle(sensor))
     n_threads = max(1, min(default_threads() if threads is None else int(threads), -(-S // chunk_scans)))
     local = threading.local()
-    M = chunk_scans * N * F
+    halo = 1 if edges else 0  # "edges" compares a chunk's first and last scans with their neighbours outside it
+    M = (chunk_scans + 2 * halo) * N * F
 
     def workspace() -> _Workspace:
         ws = getattr(local, "ws", None)
         if ws is None:
             data = scene.data if n_threads == 1 else copy.copy(scene.data)  # a thread's own MjData
-            ws = local.ws = _Workspace(data, np.empty((chunk_scans, N, F, 3)), np.empty((chunk_scans, N, 3, 3)),
+            ws = local.ws = _Workspace(data, np.empty((chunk_scans + 2 * halo, N, F, 3)),
+                                       np.empty((chunk_scans + 2 * halo, N, 3, 3)),
                                        np.empty(M, dtype=np.int32), np.empty(M), np.empty((M, 3)))
         return ws
 
     def run(s0: int) -> _ChunkStats:
         ws = workspace()
-        ch = maker.chunk(s0, min(S, s0 + chunk_scans), ws.data, ws.dirs, ws.B0)
-        m = (ch.scans.stop - ch.scans.start) * N * F
-        gid, dist, nrm = ws.gid[:m], ws.dist[:m], ws.nrm[:m]
+        s1 = min(S, s0 + chunk_scans)
+        h0, h1 = max(0, s0 - halo), min(S, s1 + halo)
+        ch = maker.chunk(h0, h1, ws.data, ws.dirs, ws.B0, centre_only=edges)
         t0 = time.perf_counter()
-        cast_chunk(scene.model, ws.data, geomgroup, ch, cutoff, gid, dist, nrm)
+        dn = None
+        if edges:
+            k0, k1 = s0 - h0, s1 - h0
+            gid, dist, nrm, dn, m = cast_chunk_edges(scene.model, ws.data, geomgroup, ch, cutoff, maker.coef, markers,
+                                                     (k0, k1))
+            ch = ch.inner(k0, k1)
+        else:
+            m = (h1 - h0) * N * F
+            gid, dist, nrm = ws.gid[:m], ws.dist[:m], ws.nrm[:m]
+            cast_chunk(scene.model, ws.data, geomgroup, ch, cutoff, gid, dist, nrm)
         cast_s = time.perf_counter() - t0
-        max_off, max_corr = mix.write(ch, gid, dist, nrm)
+        max_off, max_corr = mix.write(ch, gid, dist, nrm, dn)
         return _ChunkStats(m, len(ch.call_first), cast_s, max_off, max_corr)
 
     stats = _run_chunks(run, S, chunk_scans, n_threads, progress)
@@ -351,5 +258,5 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
                 echo_ranges_m=mix.echo_ranges, echo_power=mix.echo_power)
 
 
-__all__ = ["CHUNK_SCANS", "RayChunk", "cast_chunk", "cast_cutoff_m", "cast_scans", "default_threads", "iter_ray_chunks",
-           "plan_runs", "simulate_scans"]
+__all__ = ["CHUNK_SCANS", "RayChunk", "cast_chunk", "cast_chunk_edges", "cast_cutoff_m", "cast_scans",
+           "default_threads", "iter_ray_chunks", "plan_runs", "simulate_scans"]

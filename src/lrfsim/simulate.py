@@ -72,10 +72,12 @@ class Geometry:
 
 
 def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool = True,
-                  progress: Callable[[int, int], None] | None = None, threads: int | None = None) -> Geometry:
+                  progress: Callable[[int, int], None] | None = None, threads: int | None = None,
+                  footprint: str = "full") -> Geometry:
     """Cast the scenario's rays once (no noise drawn): the laser phase comes from ``scenario.seed`` as in
     :func:`simulate`; ``noise=False`` casts for a noise-free sensor (range_max cut-off, see simulate); ``threads``:
-    the cast's threads (lrfsim.raycast.cast_scans; the result does not depend on it)."""
+    the cast's threads (lrfsim.raycast.cast_scans; the result does not depend on it); ``footprint``: "full", or
+    "edges" for the footprint's ring cast only where it can change a beam (lrfsim.raychunks.cast_chunk_edges)."""
     from .faults import scale_range_noise
 
     scenario = scale_range_noise(scenario)
@@ -92,7 +94,7 @@ def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool
     starts_s = scan_start_times(traj.end_s, sensor, phase_s)
     times_s = beam_times(starts_s, sensor)
     beam_lambda = traj.angle(times_s)
-    cast = cast_scans(scene, sensor, beam_lambda, progress=progress, threads=threads)
+    cast = cast_scans(scene, sensor, beam_lambda, progress=progress, threads=threads, footprint=footprint)
     return Geometry(scenario_name=scenario.name, scene=scene, phase_s=phase_s, starts_s=starts_s,
                     beam_lambda_rad=beam_lambda, duration_s=traj.end_s, cast=cast, beam_times_s=times_s)
 
@@ -137,7 +139,8 @@ def simulate_from_geometry(scenario: Scenario, geometry: Geometry, *, noise: boo
 
 
 def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
-             scene: Scene | None = None, noise: bool = True, threads: int | None = None) -> SimResult:
+             scene: Scene | None = None, noise: bool = True, threads: int | None = None,
+             footprint: str = "full") -> SimResult:
     """Simulate a scenario's recording. ``progress(done_scans, total_scans)`` is called while scanning.
 
     ``scene`` defaults to ``lrfsim.scene.build_scene(scenario)`` (pass one to reuse or replace it).
@@ -145,9 +148,11 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     simulating. ``noise=False`` casts the rays without the range and intensity noise and without the range
     quantisation, whatever ``sensor.noise`` says (the mixed-pixel footprint stays): the noise-free geometry that
     ``lrfsim plan`` predicts from. The same as ``simulate_from_geometry(scenario, cast_geometry(scenario))``.
-    ``threads``: the cast's threads (default: the cores available, lrfsim.raycast.default_threads).
+    ``threads``: the cast's threads (default: the cores available, lrfsim.raycast.default_threads); ``footprint``:
+    see :func:`cast_geometry` ("edges": plan's cast, not a recording's).
     """
-    geometry = cast_geometry(scenario, scene=scene, noise=noise, progress=progress, threads=threads)
+    geometry = cast_geometry(scenario, scene=scene, noise=noise, progress=progress, threads=threads,
+                             footprint=footprint)
     return simulate_from_geometry(scenario, geometry, noise=noise)
 
 
