@@ -160,20 +160,20 @@ EDGE_NORMAL_RAD = math.radians(1.0)
 
 
 def _edge_beams(gid: NDArray[np.int32], normal: FloatArray) -> NDArray[np.bool_]:
-    """(Sc, N) the beams whose centre ray hit (gid (Sc, N), normal (Sc, N, 3)) differs from a neighbour's (the next
-    or previous beam of its scan, the same beam of the next or previous scan of the chunk): another geom, a miss
-    beside a hit, or a normal turned by more than :data:`EDGE_NORMAL_RAD` (a box's other face, a curved geom)."""
+    """(Sc, N) the beams whose centre ray hit (gid (Sc, N), normal (Sc, N, 3)) differs from one of its 8 neighbours'
+    (the beams beside it in its scan and the next and previous scans of the chunk: an edge that runs diagonally
+    through the grid of beams passes between a beam and a diagonal neighbour): another geom, a miss beside a hit, or
+    a normal turned by more than :data:`EDGE_NORMAL_RAD` (a box's other face, a curved geom)."""
     cos_lim = math.cos(EDGE_NORMAL_RAD)
+    S, N = gid.shape
     edge = np.zeros(gid.shape, dtype=bool)
-    for axis in (0, 1):
-        lo = [slice(None)] * 2
-        hi = [slice(None)] * 2
-        lo[axis], hi[axis] = slice(None, -1), slice(1, None)
-        g_lo, g_hi = gid[tuple(lo)], gid[tuple(hi)]
-        turned = np.einsum("...k,...k->...", normal[tuple(lo)], normal[tuple(hi)]) < cos_lim
-        differ = (g_lo != g_hi) | (turned & (g_lo >= 0))  # a miss's normal means nothing
-        edge[tuple(lo)] |= differ
-        edge[tuple(hi)] |= differ
+    for ds, db in ((1, 0), (0, 1), (1, 1), (1, -1)):
+        a = (slice(0, S - ds), slice(max(0, -db), N - max(0, db)))  # a beam ...
+        b = (slice(ds, S), slice(max(0, db), N - max(0, -db)))  # ... and its neighbour (ds, db) further on
+        turned = np.einsum("...k,...k->...", normal[a], normal[b]) < cos_lim
+        differ = (gid[a] != gid[b]) | (turned & (gid[a] >= 0))  # a miss's normal means nothing
+        edge[a] |= differ
+        edge[b] |= differ
     return edge
 
 
@@ -215,12 +215,16 @@ def cast_chunk_edges(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk:
     coef (F, 3).
 
     Every beam's centre ray is cast; the ring's F - 1 sub-rays are cast for the beams at an edge
-    (:func:`_edge_beams`) or near a marker (``markers``: centres (m, 3), bounding radii (m,) and the ring's half
+    (:func:`_edge_beams`; a scan's first and last beams and the recording's first and last scans too) or near a
+    marker (``markers``: centres (m, 3), bounding radii (m,) and the ring's half
     angle; :func:`_near_markers`), among the chunk's scans ``inner`` [k0, k1) (the others, one on each side, are
     cast for their centre rays only: the neighbours of the inner scans at the chunk's borders). Elsewhere the ring's
     sub-rays meet the centre ray's tangent plane (geom, normal, and the distance along their own direction): exact on
     a plane, and within r rho^2 of the full cast on a curved geom whose normal turns by less than
-    :data:`EDGE_NORMAL_RAD` between neighbours (rho the ring's half angle).
+    :data:`EDGE_NORMAL_RAD` between neighbours (rho the ring's half angle). What the neighbours cannot see: a feature
+    thinner than the beam spacing that only the ring touches (a plane's edge at grazing incidence, a box's corner,
+    while the servo stands still). Measured against the full cast (noise-free, the shipped scenarios): 0 (tunnel_v,
+    spinning_tilted), 6 (room_box) and 62 (plane_30deg) of 1.6 million beams differ; plan's sigmas agree to 1e-13.
 
     Returns the inner scans' sub-ray hits as :meth:`_Mixture.write` takes them: geomid, distance (Si N F,),
     normals (Si N F, 3), n . d (Si, N, F), and the number of rays cast.
@@ -241,7 +245,10 @@ def cast_chunk_edges(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk:
     k0, k1 = inner
     lo, hi = k0 * N, k1 * N
     n0 = n0.reshape(Sc * N, 3)
-    ring = _edge_beams(g0.reshape(Sc, N), n0.reshape(Sc, N, 3))[k0:k1].ravel()
+    ring = _edge_beams(g0.reshape(Sc, N), n0.reshape(Sc, N, 3))
+    ring[:, [0, -1]] = True  # a scan's first and last beams, and the recording's first and last scans: a neighbour
+    ring[[0, -1]] = True  # is missing (in the chunk's scans, the first and last are halo unless the recording's own)
+    ring = ring[k0:k1].ravel()
     origins = chunk.call_origins[call_of[lo:hi]]
     near = _markers_near_scans(origins.reshape(k1 - k0, N, 3), chunk.frames[k0:k1], markers)
     if near.any():
