@@ -13,6 +13,7 @@ import yaml
 
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import DH_NAMES
+from lrfsim.plan import plan
 from lrfsim.scenario import parse_scenario
 from lrfsim.study import (
     CSV_COLUMNS,
@@ -71,11 +72,24 @@ def test_study_table(serial, tmp_path: Path) -> None:
     assert serial.parts[0].plan is not None and serial.parts[0].plan.sigma["a"] > 0
 
 
-def test_process_pool_gives_the_same_table(tiny, serial) -> None:
-    rows = run_trials(tiny, 3, seed0=10, workers=2)
-    pooled = type(serial)(name=serial.name, key=None, parts=(type(serial.parts[0])(
-        value="", scenario=tiny, plan=None, rows=tuple(rows)),), seconds=0.0)
+def test_process_pool_gives_the_same_table(tiny, serial, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Two workers share one cast, which plan reads too (no cast of its own): the same table and prediction."""
+    import lrfsim.study as study_module
+
+    given = []
+
+    def spy(sc, **kw):
+        given.append(kw.get("geometry"))
+        return plan(sc, **kw)
+
+    monkeypatch.setattr(study_module, "plan", spy)
+    pooled = study(tiny, 3, seed0=10, workers=2)
+    assert len(given) == 1 and given[0] is not None
     assert trials_csv(pooled) == trials_csv(serial)
+    mine, theirs = pooled.parts[0].plan, serial.parts[0].plan
+    assert mine is not None and theirs is not None
+    for n in theirs.names:
+        assert mine.sigma[n] == pytest.approx(theirs.sigma[n], rel=1e-9), n
 
 
 def test_dask_local_cluster_gives_the_same_table(tiny, serial) -> None:

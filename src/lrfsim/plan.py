@@ -2,14 +2,14 @@
 
 The scenario's rays are cast once without noise (``lrfsim.simulate.simulate(..., noise=False)``; the mixed-pixel
 footprint stays, its ring cast only where it can change a beam: ``footprint="edges"``, lrfsim.raychunks, a fifth of
-the rays, the same sigmas to 1e-13 on the shipped scenarios), the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return
-whose ray passes within the marker), and the calibration's own observation and noise model is evaluated at the
-TRUE parameters: ``lrfcal.information.information_at`` (the sphere model: range residual with sigma_r = the scenario
-sensor's range noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual
-with sigma = R_m sqrt(1 + k^2) / 2, the depth seen through the sensor's footprint of k marker radii
-(``sensor.divergence_rad``, lrfcal.model.sphere.footprint_depth); the clock offset is an unknown when the
-sweep goes both
-ways).
+the rays, the same sigmas to 1e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share),
+the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return whose ray passes
+within the marker), and the calibration's own observation and noise model is evaluated at the TRUE parameters:
+``lrfcal.information.information_at`` (the sphere model: range residual with sigma_r = the scenario sensor's range
+noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual with
+sigma = R_m sqrt(1 + k^2) / 2, the depth seen through the sensor's footprint of k marker radii
+(``sensor.divergence_rad``, lrfcal.model.sphere.footprint_depth); the clock offset is an unknown when the sweep goes
+both ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
 Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
 clock_offset when it is estimated. To it is added what the model's own errors contribute
@@ -33,7 +33,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -49,6 +49,9 @@ from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
 from lrfcal.types import JointStates, Observations
 
 from .scenario import Scenario, require_markers
+
+if TYPE_CHECKING:
+    from .simulate import Geometry
 
 FloatArray = NDArray[np.float64]
 
@@ -173,16 +176,20 @@ def _unit(name: str) -> str:
     return "s" if name == "clock_offset" else "rad"
 
 
-def marker_observations(scenario: Scenario) -> tuple[Observations, FloatArray, Params, MotorClock, float, Any]:
+def marker_observations(scenario: Scenario, geometry: Geometry | None = None
+                        ) -> tuple[Observations, FloatArray, Params, MotorClock, float, Any]:
     """Cast the scenario's rays once without noise and return the marker returns as the calibration sees them.
+    ``geometry``: the scenario's cast made before (lrfsim.simulate.cast_geometry, as `lrfsim study` shares it with
+    its trials), read without noise instead of casting (the same sigmas to 1e-11 on the shipped scenarios).
 
     Returns (observations with the true marker of each return and the true motor angles, marker centres (n, 3) in
     W, the true Params, the servo's MotorClock (reported joint states), the true clock offset [s], the SimResult).
     """
     from .faults import marker_returns
-    from .simulate import simulate
+    from .simulate import simulate, simulate_from_geometry
 
-    result = simulate(scenario, noise=False, footprint=FOOTPRINT)
+    result = (simulate(scenario, noise=False, footprint=FOOTPRINT) if geometry is None
+              else simulate_from_geometry(scenario, geometry, noise=False))
     owner = marker_returns(result, scenario)
     s_idx, b_idx = np.nonzero(owner >= 0)
     sensor = scenario.sensor
@@ -226,11 +233,13 @@ def scenario_range_sigma(scenario: Scenario, ranges_m: FloatArray) -> float:
     return DEFAULT_RANGE_SIGMA_M if sigma is None else sigma
 
 
-def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bool = True) -> Plan:
+def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bool = True,
+         geometry: Geometry | None = None) -> Plan:
     """Predict the 1-sigma of every calibrated parameter of ``scenario`` from the Fisher information of its
     noise-free geometry (module docstring). ``range_sigma_m`` defaults to the scenario's sensor noise at the marker
     returns (:func:`scenario_range_sigma`);
-    ``surfaces`` adds the surface returns of stage 6b (as the calibration does by default).
+    ``surfaces`` adds the surface returns of stage 6b (as the calibration does by default); ``geometry``: the
+    scenario's cast, when the caller has made it (:func:`marker_observations`).
 
     Raises:
         InputError: a marker-less scenario.
@@ -239,7 +248,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     require_markers(scenario, "lrfsim plan", "predicts from the marker returns")
     t0 = time.perf_counter()
     config = CalibConfig()
-    obs, markers_W, params, motor, tau, result = marker_observations(scenario)
+    obs, markers_W, params, motor, tau, result = marker_observations(scenario, geometry)
     sigma_r = scenario_range_sigma(scenario, obs.ranges_m) if range_sigma_m is None else float(range_sigma_m)
     n_seen = int(np.unique(obs.marker).size)
     if len(obs) < 4 or n_seen < 3:

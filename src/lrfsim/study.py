@@ -41,7 +41,7 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -54,6 +54,9 @@ from lrfcal.threads import apply_thread_policy, call_with_thread_policy
 from .plan import Plan, format_value, plan
 from .scenario import Scenario, require_markers
 from .variants import PERTURB_HALF_WIDTH, parse_vary, perturbed_start, with_field
+
+if TYPE_CHECKING:
+    from .simulate import Geometry
 
 FloatArray = NDArray[np.float64]
 
@@ -213,12 +216,13 @@ def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[in
 def run_trials(
     scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
     dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
-    recast: bool = False, perturb_start: float = 0.0, new_layout: bool = False,
+    recast: bool = False, perturb_start: float = 0.0, new_layout: bool = False, geometry: Geometry | None = None,
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
-    worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each). ``recast``,
+    worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each); the local workers
+    share one cast (:func:`_shares_cast`: ``geometry`` when the caller has made it). ``recast``,
     ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done, trials)`` after every trial in this
     process, after every batch on workers. Worker processes (pool and dask) run BLAS with the programs' thread
     limit (lrfcal.threads); this process is left as the caller set it."""
@@ -227,18 +231,16 @@ def run_trials(
     perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
     s0 = scenario.seed if seed0 is None else int(seed0)
     items = [(k, s0 + k) for k in range(trials)]
-    n_batches = (math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if dask is not None
-                 else max(workers, 1))
-    batches = _batches(items, n_batches)
+    batches = _batches(items, _n_batches(trials, workers, dask, batch_size))
     shared = None
-    if workers > 1 and dask is None and not (recast or new_layout) and len(batches) > 1:
-        # one cast (on every core) for all the local workers, instead of one per worker
-        from dataclasses import fields
-
+    if geometry is None and _shares_cast(trials, workers, dask, batch_size, recast, new_layout):
         from .simulate import cast_geometry
 
-        g = cast_geometry(scenario)
-        shared = {f.name: getattr(g, f.name) for f in fields(g) if f.name != "scene"}
+        geometry = cast_geometry(scenario)
+    if geometry is not None:  # one cast (on every core) for all the local workers, instead of one per worker
+        from dataclasses import fields
+
+        shared = {f.name: getattr(geometry, f.name) for f in fields(geometry) if f.name != "scene"}
     task = partial(run_batch, scenario, value, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
                    threads=1 if workers > 1 or dask is not None else None, shared_cast=shared)
     rows: list[TrialRow] = []
@@ -263,6 +265,19 @@ def run_trials(
         hook = None if progress is None else (lambda k: progress(len(rows) + k, trials))
         collect(task(b, progress=hook) for b in batches)
     return sorted(rows, key=lambda r: r.trial)
+
+
+def _n_batches(trials: int, workers: int, dask: Any, batch_size: int | None) -> int:
+    return (math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if dask is not None
+            else max(workers, 1))
+
+
+def _shares_cast(trials: int, workers: int, dask: Any, batch_size: int | None, recast: bool, new_layout: bool
+                 ) -> bool:
+    """Whether :func:`run_trials` casts the rays once for all its batches: local workers (no dask), one layout and
+    one laser phase (no ``recast``, no ``new_layout``), more than one batch."""
+    return (workers > 1 and dask is None and not (recast or new_layout)
+            and min(trials, _n_batches(trials, workers, dask, batch_size)) > 1)
 
 
 def _dask_client(dask: Any) -> tuple[Any, bool]:
@@ -299,13 +314,19 @@ def study(
         variants = [(str(v), with_field(scenario, key, v)) for v in values]
     parts = []
     for value, sc in variants:
+        geometry = None
+        if _shares_cast(trials, workers, dask, batch_size, recast, new_layout):  # the trials' cast is plan's too
+            from .simulate import cast_geometry
+
+            geometry = cast_geometry(sc)
         try:
-            predicted: Plan | None = plan(sc)
+            predicted: Plan | None = plan(sc, geometry=geometry)
         except CalibrationError:  # too few markers seen: the trials will say how the calibration fares
             predicted = None
         hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
         rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
-                          progress=hook, recast=recast, perturb_start=perturb_start, new_layout=new_layout)
+                          progress=hook, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
+                          geometry=geometry)
         parts.append(StudyPart(value=value, scenario=sc, plan=predicted, rows=tuple(rows)))
     where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
