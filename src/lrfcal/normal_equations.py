@@ -164,6 +164,13 @@ def marginal_sigma(N: Normal) -> FloatArray:
     return np.sqrt(np.maximum(np.concatenate(var), 1e-300))
 
 
+#: a barely damped step below ``stall_tol`` sigma that lowers the cost (0.5 chi^2) by less than this is converged:
+#: a Gauss-Newton step to the minimum of a quadratic cost lowers it by 0.5 d^2 for a step of d sigma (Mahalanobis,
+#: at least the largest marginal ratio), so such a step zig-zags across a valley the Jacobian does not describe to
+#: that accuracy (the sphere model's rim) within a tenth of a sigma of its floor
+FLAT_COST = 1e-5
+
+
 def levenberg_marquardt(
     th0: FloatArray, evaluate: Callable[[FloatArray, bool], Blocks], core: IntArray, n_core: int,
     huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3, stall_tol: float = 0.1,
@@ -171,7 +178,7 @@ def levenberg_marquardt(
     """Minimise the (Huber) cost of ``evaluate(th, jac)`` over the core unknowns ``core`` and every nuisance (the
     entries of th from ``n_core`` on). Returns (th, evaluations, converged): converged when a step is below
     ``step_tol`` of every unknown's sigma, or when a barely damped step below ``stall_tol`` sigma does not lower the
-    cost, or when no step lowers it any more (at the minimum)."""
+    cost or lowers it by less than :data:`FLAT_COST`, or when no step lowers it any more (at the minimum)."""
     free = np.concatenate([core, np.arange(n_core, th0.size)])
     th = th0.copy()
 
@@ -215,8 +222,9 @@ def levenberg_marquardt(
             damp *= 10.0
             if damp > 1e10:
                 return th, n_eval, True  # no step decreases the cost: at the minimum
+        flat = first and damp <= 1e-3 and ratio < stall_tol and c - c_new < FLAT_COST
         th, c, damp = trial, c_new, max(damp / 10.0, 1e-9)
-        if small:
+        if small or flat:
             return th, n_eval, True
         assert b_new is not None
         b = b_new
