@@ -219,13 +219,13 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
     n_threads = max(1, min(default_threads() if threads is None else int(threads), -(-S // chunk_scans)))
     local = threading.local()
     halo = 1 if edges else 0  # "edges" compares a chunk's first and last scans with their neighbours outside it
-    M = (chunk_scans + 2 * halo) * N * F
+    M = chunk_scans * N * F  # the full cast's hits (the edges' are cast_chunk_edges' own)
 
     def workspace() -> _Workspace:
         ws = getattr(local, "ws", None)
         if ws is None:
             data = scene.data if n_threads == 1 else copy.copy(scene.data)  # a thread's own MjData
-            ws = local.ws = _Workspace(data, np.empty((chunk_scans + 2 * halo, N, F, 3)),
+            ws = local.ws = _Workspace(data, np.empty((chunk_scans, N, F, 3)),
                                        np.empty((chunk_scans + 2 * halo, N, 3, 3)),
                                        np.empty(M, dtype=np.int32), np.empty(M), np.empty((M, 3)))
         return ws

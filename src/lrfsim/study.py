@@ -222,7 +222,8 @@ def run_trials(
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
     worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each); the local workers
-    share one cast (:func:`_shares_cast`: ``geometry`` when the caller has made it). ``recast``,
+    share one cast (:func:`_shares_cast`: ``geometry`` when the caller has made it; not with ``recast`` or
+    ``new_layout``). ``recast``,
     ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done, trials)`` after every trial in this
     process, after every batch on workers. Worker processes (pool and dask) run BLAS with the programs' thread
     limit (lrfcal.threads); this process is left as the caller set it."""
@@ -233,7 +234,9 @@ def run_trials(
     items = [(k, s0 + k) for k in range(trials)]
     batches = _batches(items, _n_batches(trials, workers, dask, batch_size))
     shared = None
-    if geometry is None and _shares_cast(trials, workers, dask, batch_size, recast, new_layout):
+    if recast or new_layout:  # every trial casts its own
+        geometry = None
+    elif geometry is None and _shares_cast(trials, workers, dask, batch_size, recast, new_layout):
         from .simulate import cast_geometry
 
         geometry = cast_geometry(scenario)
