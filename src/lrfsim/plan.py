@@ -2,7 +2,7 @@
 
 The scenario's rays are cast once without noise (``lrfsim.simulate.simulate(..., noise=False)``; the mixed-pixel
 footprint stays, its ring cast only where it can change a beam: ``footprint="edges"``, lrfsim.raychunks, a fifth of
-the rays, the same sigmas to 1e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share),
+the rays, the same sigmas to 3e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share),
 the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return whose ray passes
 within the marker), and the calibration's own observation and noise model is evaluated at the TRUE parameters:
 ``lrfcal.information.information_at`` (the sphere model: range residual with sigma_r = the scenario sensor's range
