@@ -6,6 +6,7 @@ import csv
 import math
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import pytest
@@ -17,11 +18,13 @@ from lrfsim.plan import plan
 from lrfsim.scenario import parse_scenario
 from lrfsim.study import (
     CSV_COLUMNS,
+    DRAWS,
     PERTURB_HALF_WIDTH,
     parse_vary,
     perturbed_start,
     run_trials,
     study,
+    summary_markdown,
     trials_csv,
     with_field,
     write_study,
@@ -67,6 +70,9 @@ def test_study_table(serial, tmp_path: Path) -> None:
     assert len({r["a_error"] for r in rows}) == 3
     summary = (out / "summary.md").read_text()
     assert "RMSE / predicted" in summary and "refusal rate 0 %" in summary
+    assert DRAWS["noise"] in summary  # one cast for every trial: says what that hides and how to measure it
+    recast = summary_markdown(replace(serial, draws="cast"))
+    assert DRAWS["cast"] in recast and DRAWS["noise"] not in recast
     for p in DH_NAMES:
         assert (out / f"hist_{p}.png").read_bytes()[:4] == b"\x89PNG"
     assert serial.parts[0].plan is not None and serial.parts[0].plan.sigma["a"] > 0

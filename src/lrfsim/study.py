@@ -146,7 +146,8 @@ class StudyPart:
 @dataclass(frozen=True)
 class Study:
     """A study: the scenario's name, the varied field (or None) and one part per value; seconds of wall time;
-    perturb_start: the scale of the perturbed start (0: every trial starts from the scenario's nominal values)."""
+    perturb_start: the scale of the perturbed start (0: every trial starts from the scenario's nominal values);
+    draws: what a trial draws from its seed besides the noise and the tape (:data:`DRAWS`)."""
 
     name: str
     key: str | None
@@ -155,10 +156,23 @@ class Study:
     workers: str = ""
     notes: tuple[str, ...] = field(default=())
     perturb_start: float = 0.0
+    draws: str = "noise"
 
     @property
     def rows(self) -> tuple[TrialRow, ...]:
         return tuple(r for p in self.parts for r in p.rows)
+
+
+#: what summary.md says a trial draws from its seed: the noise alone on one cast (the default), a cast of its own
+#: (``recast``), a marker layout and cast of its own (``new_layout``)
+DRAWS = {
+    "noise": "One cast for every trial (the laser phase of the scenario's seed), each trial drawing its noise and "
+             "tape: the beams cut the same pattern on the markers in every trial, so the pattern's error is a bias "
+             "here (bias / std), where across recordings it is a scatter; `--recast` draws the pattern anew for "
+             "every trial (docs/study.md, \"The spinning rig\").",
+    "cast": "Every trial cast anew (its laser phase, noise and tape from its seed).",
+    "layout": "Every trial a marker layout and cast of its own (from its seed): the figures average over layouts.",
+}
 
 
 # --- running trials -------------------------------------------------------------------------------------------
@@ -333,7 +347,8 @@ def study(
         parts.append(StudyPart(value=value, scenario=sc, plan=predicted, rows=tuple(rows)))
     where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
-                 seconds=time.perf_counter() - t0, workers=where, perturb_start=perturb_start)
+                 seconds=time.perf_counter() - t0, workers=where, perturb_start=perturb_start,
+                 draws="layout" if new_layout else "cast" if recast else "noise")
 
 
 # --- outputs --------------------------------------------------------------------------------------------------
@@ -358,7 +373,8 @@ def summary_markdown(s: Study) -> str:
              f"{len(s.parts[0].rows)} trials per {'value' if s.key else 'study'} ({s.workers}, {s.seconds:.0f} s). "
              "Errors against the truth; predicted sigma from `lrfsim plan` (Fisher information of the noise-free "
              "geometry). Efficiency: RMSE / predicted sigma (1 = the method reaches the predicted accuracy); "
-             "calibration: RMS of error / reported sigma (1 = the reported sigma is honest).", ""]
+             "calibration: RMS of error / reported sigma (1 = the reported sigma is honest).", "",
+             DRAWS[s.draws], ""]
     if s.perturb_start > 0:
         h = {k: s.perturb_start * v for k, v in PERTURB_HALF_WIDTH.items()}
         lines += [f"Perturbed start (scale {s.perturb_start:g}): each trial's nominal values moved by uniform draws "
@@ -466,6 +482,6 @@ def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Pa
     return out
 
 
-__all__ = ["CSV_COLUMNS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialRow", "parse_vary",
+__all__ = ["CSV_COLUMNS", "DRAWS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialRow", "parse_vary",
            "perturbed_start", "run_batch", "run_trials", "study", "summary_markdown", "trials_csv", "with_field",
            "write_figures", "write_study"]
