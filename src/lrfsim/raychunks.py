@@ -235,16 +235,11 @@ def cast_chunk_edges(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk:
     assert chunk.frames is not None
     Sc, N = chunk.offset.shape[:2]
     F = coef.shape[0]
-    d0 = chunk.directions.reshape(-1)
-    g0, t0, n0 = np.empty(Sc * N, dtype=np.int32), np.empty(Sc * N), np.empty(Sc * N * 3)
-    call_of = np.empty(Sc * N, dtype=np.int64)
-    for c, (o, a, n) in enumerate(zip(chunk.call_origins, chunk.call_first, chunk.call_count, strict=True)):
-        multi_ray(model, data, o, d0[3 * a:3 * (a + n)], geomgroup, 1, -1, g0[a:a + n], t0[a:a + n],
-                  n0[3 * a:3 * (a + n)], n, cutoff_m)
-        call_of[a:a + n] = c
+    g0, t0, n0 = np.empty(Sc * N, dtype=np.int32), np.empty(Sc * N), np.empty((Sc * N, 3))
+    cast_chunk(model, data, geomgroup, chunk, cutoff_m, g0, t0, n0)  # the centre rays: one per beam
+    call_of = np.repeat(np.arange(len(chunk.call_count)), chunk.call_count)  # the calls cover the beams in order
     k0, k1 = inner
     lo, hi = k0 * N, k1 * N
-    n0 = n0.reshape(Sc * N, 3)
     ring = _edge_beams(g0.reshape(Sc, N), n0.reshape(Sc, N, 3))
     ring[:, [0, -1]] = True  # a scan's first and last beams, and the recording's first and last scans: a neighbour
     ring[[0, -1]] = True  # is missing (in the chunk's scans, the first and last are halo unless the recording's own)

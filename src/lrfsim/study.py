@@ -236,7 +236,7 @@ def run_trials(
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
     worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each); the local workers
-    share one cast (:func:`_shares_cast`: ``geometry`` when the caller has made it; not with ``recast`` or
+    share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with ``recast`` or
     ``new_layout``). ``recast``,
     ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done, trials)`` after every trial in this
     process, after every batch on workers. Worker processes (pool and dask) run BLAS with the programs' thread
@@ -250,10 +250,8 @@ def run_trials(
     shared = None
     if recast or new_layout:  # every trial casts its own
         geometry = None
-    elif geometry is None and _shares_cast(trials, workers, dask, batch_size, recast, new_layout):
-        from .simulate import cast_geometry
-
-        geometry = cast_geometry(scenario)
+    elif geometry is None:
+        geometry = _shared_cast(scenario, trials, workers, dask, batch_size, recast, new_layout)
     if geometry is not None:  # one cast (on every core) for all the local workers, instead of one per worker
         from dataclasses import fields
 
@@ -289,12 +287,17 @@ def _n_batches(trials: int, workers: int, dask: Any, batch_size: int | None) -> 
             else max(workers, 1))
 
 
-def _shares_cast(trials: int, workers: int, dask: Any, batch_size: int | None, recast: bool, new_layout: bool
-                 ) -> bool:
-    """Whether :func:`run_trials` casts the rays once for all its batches: local workers (no dask), one layout and
-    one laser phase (no ``recast``, no ``new_layout``), more than one batch."""
-    return (workers > 1 and dask is None and not (recast or new_layout)
-            and min(trials, _n_batches(trials, workers, dask, batch_size)) > 1)
+def _shared_cast(scenario: Scenario, trials: int, workers: int, dask: Any, batch_size: int | None, recast: bool,
+                 new_layout: bool) -> Geometry | None:
+    """The cast :func:`run_trials` makes once for all its batches (lrfsim.simulate.cast_geometry), when it makes
+    one: local workers (no dask), one layout and one laser phase (no ``recast``, no ``new_layout``), more than one
+    batch; else None (each batch casts its own)."""
+    if not (workers > 1 and dask is None and not (recast or new_layout)
+            and min(trials, _n_batches(trials, workers, dask, batch_size)) > 1):
+        return None
+    from .simulate import cast_geometry
+
+    return cast_geometry(scenario)
 
 
 def _dask_client(dask: Any) -> tuple[Any, bool]:
@@ -331,11 +334,7 @@ def study(
         variants = [(str(v), with_field(scenario, key, v)) for v in values]
     parts = []
     for value, sc in variants:
-        geometry = None
-        if _shares_cast(trials, workers, dask, batch_size, recast, new_layout):  # the trials' cast is plan's too
-            from .simulate import cast_geometry
-
-            geometry = cast_geometry(sc)
+        geometry = _shared_cast(sc, trials, workers, dask, batch_size, recast, new_layout)  # plan's cast too
         try:
             predicted: Plan | None = plan(sc, geometry=geometry)
         except CalibrationError:  # too few markers seen: the trials will say how the calibration fares
