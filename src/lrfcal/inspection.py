@@ -32,6 +32,7 @@ from .io.bag_messages import (
     MULTIECHO_TYPE,
     TF_TYPE,
     complete_types,
+    decode_message,
     get_field,
     ns_to_s,
     one_line,
@@ -40,6 +41,7 @@ from .io.bag_messages import (
 )
 from .io.bag_scans import is_laserscan, is_multiecho
 from .io.bag_servo import default_field
+from .io.multiecho import Echoes
 from .propose import DHProposal, proposed_dh
 from .rig import ScanSource, ServoSource, TfSource
 from .timing import covered_scans
@@ -236,7 +238,7 @@ class _Survey:
         self.recv.setdefault(tp, []).append(ns_to_s(t_ns))
         if len(self.recv[tp]) > MAX_DECODED and tp in self.first:
             return
-        msg = reader.deserialize(raw, conn.msgtype)
+        msg = decode_message(reader, raw, conn.msgtype)
         self.first.setdefault(tp, msg)
         ls = msg if is_laserscan(msg) else None
         fld = None if ls is not None else _laserscan_field(msg)
@@ -419,7 +421,7 @@ def _values(path: Path, topic: str, fld: str | None, joint: str | None = None) -
         complete_types(reader)
         conns = [c for c in reader.connections if c.topic == topic]
         for c, _, raw in reader.messages(connections=conns):
-            m = reader.deserialize(raw, c.msgtype)
+            m = decode_message(reader, raw, c.msgtype)
             try:
                 out.append(float(get_field(m, fld, topic)) if fld else math.nan)
             except (InputError, TypeError, ValueError):
@@ -450,8 +452,8 @@ def _geometry(msgs: list[Any]) -> ScanGeometry:
 def _has_intensities(msg: Any) -> bool:
     """Any positive intensity in a LaserScan or a MultiEchoLaserScan (per-beam LaserEcho lists)."""
     it = msg.intensities
-    if len(it) and hasattr(it[0], "echoes"):
-        return any(np.any(np.asarray(e.echoes) > 0) for e in it)
+    if is_multiecho(msg):
+        return bool(np.any(Echoes.of(it).values > 0))
     return len(it) > 0 and bool(np.any(np.asarray(it) > 0))
 
 

@@ -29,6 +29,7 @@ import numpy as np
 import yaml
 
 from lrfcal.io.files import atomic_folder, check_replaceable, check_writable
+from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, MultiEchoScan, encode_cdr
 
 from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
@@ -46,7 +47,6 @@ JOINT_TOPIC = "/joint_states"
 LASER_FRAME = "laser"
 LASERSCAN_TYPE = "sensor_msgs/msg/LaserScan"
 JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
-MULTIECHO_TYPE = "sensor_msgs/msg/MultiEchoLaserScan"
 
 
 def _ns(t_s: float) -> int:
@@ -86,7 +86,8 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in topics}
         for log_ns, topic, msgtype, msg in events:
-            writer.write(conns[topic], log_ns, ts.serialize_cdr(msg, msgtype))
+            raw = encode_cdr(msg) if isinstance(msg, MultiEchoScan) else ts.serialize_cdr(msg, msgtype)
+            writer.write(conns[topic], log_ns, raw)
 
 
 def _typestore() -> Any:
@@ -101,15 +102,14 @@ def bag_messages(result: SimResult, scenario: Scenario
     /scan and /joint_states; the LaserScans declare ``result.declared_angle_increment_rad`` when a fault set it,
     else the sensor's; with echoes (``result.echo_ranges_m``) also a MultiEchoLaserScan per scan on
     ``sensor.echoes.topic``, logged with its /scan: per beam a LaserEcho with the beam's valid echoes, nearest first
-    (none: empty), as urg_node fills it. A message's float32 fields hold float32 values, as a reader decodes them."""
+    (none: empty), as urg_node fills it, as lrfcal.io.multiecho's MultiEchoScan (written by its encoder, a fortieth of
+rosbags' time). A message's float32 fields hold float32 values, as a reader decodes them."""
     ts = _typestore()
     LaserScan = ts.types[LASERSCAN_TYPE]
     JointState = ts.types[JOINTSTATE_TYPE]
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
     with_echoes = result.echo_ranges_m is not None and result.echo_intensities is not None
-    MultiEcho = ts.types[MULTIECHO_TYPE] if with_echoes else None
-    LaserEcho = ts.types["sensor_msgs/msg/LaserEcho"] if with_echoes else None
     sensor, servo = scenario.sensor, scenario.servo
 
     def header(t_s: float, frame: str) -> Any:
@@ -146,16 +146,13 @@ def bag_messages(result: SimResult, scenario: Scenario
             events.append((log_ns, SCAN_TOPIC, LASERSCAN_TYPE, msg))
             if with_echoes:
                 assert result.echo_ranges_m is not None and result.echo_intensities is not None
-                assert MultiEcho is not None and LaserEcho is not None
-                er = result.echo_ranges_m[k].astype(np.float32)
-                ei = result.echo_intensities[k].astype(np.float32)
+                er = result.echo_ranges_m[k]
                 ok = np.isfinite(er)
-                echo = MultiEcho(
+                echo = MultiEchoScan(
                     header=msg.header, angle_min=msg.angle_min, angle_max=msg.angle_max,
                     angle_increment=msg.angle_increment, time_increment=msg.time_increment,
                     scan_time=msg.scan_time, range_min=msg.range_min, range_max=msg.range_max,
-                    ranges=[LaserEcho(echoes=er[b][ok[b]]) for b in range(n)],
-                    intensities=[LaserEcho(echoes=ei[b][ok[b]]) for b in range(n)])
+                    ranges=Echoes.of_rows(er, ok), intensities=Echoes.of_rows(result.echo_intensities[k], ok))
                 events.append((log_ns, sensor.echoes.topic, MULTIECHO_TYPE, echo))
         else:
             j = result.joints

@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import InputError
 from ..rig import ScanSource, ServoSource
 from ..types import JointStates, ReadReport, Scans
-from .bag_messages import JOINTSTATE_TYPE, complete_types, ns_to_s, one_line, open_reader
+from .bag_messages import JOINTSTATE_TYPE, complete_types, decode_message, ns_to_s, one_line, open_reader
 from .bag_scans import scans_from
 from .bag_servo import joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
 
@@ -66,7 +66,7 @@ def _messages(reader: Any, conns: list[Any], progress: Progress | None, done: in
     """(receive time [s], decoded message) of the connections, in bag order."""
     out = []
     for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
-        out.append((ns_to_s(t_ns), reader.deserialize(raw, c.msgtype)))
+        out.append((ns_to_s(t_ns), decode_message(reader, raw, c.msgtype)))
         if progress is not None and k % 256 == 0:
             progress(done + k, total)
     return out
@@ -204,7 +204,7 @@ def _tagged(reader: Any, conns: list[Any], progress: Progress | None, done: int,
     for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
         if progress is not None and k % 256 == 0:
             progress(done + k, total)
-        yield c, (ns_to_s(t_ns), reader.deserialize(raw, c.msgtype))
+        yield c, (ns_to_s(t_ns), decode_message(reader, raw, c.msgtype))
 
 
 def _describe_scan(scan: ScanSource) -> str:

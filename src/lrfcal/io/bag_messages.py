@@ -3,18 +3,21 @@ inspect`` (lrfcal.inspection) share.
 
 Messages are decoded with the definitions the bag carries (rosbags' AnyReader registers them from every
 connection's message definition, ROS 1 and ROS 2 alike), so custom types need no ROS installation; types a bag
-does not define fall back to the ROS 2 Humble store.
+does not define fall back to the ROS 2 Humble store. MultiEchoLaserScan, a scanner's every echo, is decoded with
+numpy instead (lrfcal.io.multiecho: a tenth of the time).
 """
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from . import multiecho
+from .multiecho import MULTIECHO_TYPE
 
 LASERSCAN_TYPES = ("sensor_msgs/msg/LaserScan",)
-MULTIECHO_TYPE = "sensor_msgs/msg/MultiEchoLaserScan"
 JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
 DYNAMIXEL_JOINTSTATE_TYPE = "dynamixel_msgs/msg/JointState"
 TF_TYPE = "tf2_msgs/msg/TFMessage"
@@ -52,6 +55,17 @@ def complete_types(reader: Any) -> None:
     add = {k: v for k, v in store.fielddefs.items() if k not in have}
     if add:
         reader.typestore.register(add)
+
+
+def decode_message(reader: Any, raw: bytes, msgtype: str) -> Any:
+    """A message of an open AnyReader decoded: a MultiEchoLaserScan by lrfcal.io.multiecho (rosbags' decoder where
+    that cannot: big-endian CDR), every other type by rosbags."""
+    if msgtype == MULTIECHO_TYPE:
+        try:
+            return multiecho.decode(raw, cdr=reader.is2)
+        except (ValueError, struct.error):
+            pass
+    return reader.deserialize(raw, msgtype)
 
 
 def ns_to_s(t_ns: int) -> float:

@@ -30,6 +30,7 @@ from ..errors import InputError
 from ..rig import ScanSource
 from ..types import Scans
 from .bag_messages import get_field, stamp_s
+from .multiecho import Echoes
 
 #: one usable scan: (stamp [s], receive time [s], the LaserScan, the message that holds it)
 Row = tuple[float, float, Any, Any]
@@ -41,30 +42,31 @@ def is_laserscan(obj: Any) -> bool:
 
 
 def is_multiecho(ls: Any) -> bool:
-    """A MultiEchoLaserScan: its ranges are LaserEcho messages (a sequence with ``echoes``)."""
-    return len(ls.ranges) > 0 and hasattr(ls.ranges[0], "echoes")
+    """A MultiEchoLaserScan: its ranges are LaserEcho messages (a sequence with ``echoes``), or lrfcal.io.multiecho's
+    Echoes."""
+    return isinstance(ls.ranges, Echoes) or (len(ls.ranges) > 0 and hasattr(ls.ranges[0], "echoes"))
 
 
-def select_echo(ranges: list[Any], intensities: list[Any], range_min: float, range_max: float, echo: str
+def select_echo(ranges: Any, intensities: Any, range_min: float, range_max: float, echo: str
                 ) -> tuple[np.ndarray, np.ndarray]:
     """One return per beam of a MultiEchoLaserScan (module docstring): ranges (N,) [m] (NaN: no valid echo)
-    and intensities (N,) (0 there). ``ranges`` / ``intensities``: the message's LaserEcho lists (intensities
-    may be empty or shorter: 0)."""
-    n = len(ranges)
-    lens = np.array([len(e.echoes) for e in ranges], dtype=np.int64)
+    and intensities (N,) (0 there). ``ranges`` / ``intensities``: the message's LaserEcho[] fields, as decoded
+    LaserEcho lists or as lrfcal.io.multiecho.Echoes (intensities may be empty or shorter: 0)."""
+    rng, ins = Echoes.of(ranges), Echoes.of(intensities)
+    lens = rng.counts
+    n = lens.size
     E = int(lens.max()) if n else 0
     r = np.full((n, max(E, 1)), np.nan)
     it = np.zeros((n, max(E, 1)))
     if E:  # every beam's echoes in one array, scattered to (beam, echo); a beam's intensities cut to its echoes
         rows, cols = _slots(lens)
-        r[rows, cols] = np.concatenate([e.echoes for e in ranges]).astype(np.float64)
-        m = min(len(intensities), n)
-        ilens = np.array([len(intensities[b].echoes) for b in range(m)], dtype=np.int64)
+        r[rows, cols] = rng.values
+        m = min(ins.counts.size, n)
+        ilens = ins.counts[:m]
         if ilens.sum():
             irows, icols = _slots(ilens)
             keep = icols < lens[irows]
-            flat = np.concatenate([intensities[b].echoes for b in range(m)]).astype(np.float64)
-            it[irows[keep], icols[keep]] = flat[keep]
+            it[irows[keep], icols[keep]] = ins.values[:irows.size][keep]
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(r) & (r != 0.0) & (r >= range_min) & (r <= range_max)
     if echo == "first":
@@ -233,7 +235,7 @@ def _stack(scans: list[Any], counts: np.ndarray, echo: str, span: bool = False
         mu[k] = float(ls.angle_min) + idx * step
         t_inc[k] = float(ls.time_increment)
         if is_multiecho(ls):
-            ranges[k, :n], intens[k, :n] = select_echo(list(ls.ranges), list(ls.intensities),
+            ranges[k, :n], intens[k, :n] = select_echo(ls.ranges, ls.intensities,
                                                        float(ls.range_min), float(ls.range_max), echo)
             continue
         ranges[k, :n] = np.asarray(ls.ranges, dtype=np.float64)
