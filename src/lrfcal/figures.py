@@ -33,6 +33,9 @@ WIDTH_PX = 1600
 HEIGHT_PX = 900
 DPI = 150
 FONT_SIZE_PT = 11
+#: a tick label's width per character and font point, as a fraction of the figure's width (DejaVu Sans' average
+#: character is about 0.6 em)
+_LABEL_EM = 0.6 * DPI / 72 / WIDTH_PX
 #: Rows of the intensity image drawn at most (scans are max-pooled above this).
 MAX_FIGURE_ROWS = 1200
 
@@ -385,7 +388,11 @@ def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
     after_mm = np.asarray(fit.rms_after_m, dtype=float) * 1e3
     n = len(fit.planes)
     with _rc():
-        fig = _new_figure()
+        labels = [f"plane {i} ({int(c)} returns)" for i, c in zip(range(n), fit.n_returns, strict=True)]
+        # a fixed layout (constrained layout was most of this figure's time): room on the left for the labels
+        fig = _new_figure(constrained=False)
+        left = min(0.35, 0.025 + _LABEL_EM * (FONT_SIZE_PT - 1) * max(map(len, labels), default=0))
+        fig.subplots_adjust(left=left, right=0.985, bottom=0.1, top=0.86, wspace=0.22)
         ax, ax2 = fig.subplots(1, 2, width_ratios=(1.2, 1.0))
         k = np.arange(n)
         ax.hlines(k, np.fmin(before_mm, after_mm), np.fmax(before_mm, after_mm), color="0.6", linewidth=2)
@@ -403,7 +410,7 @@ def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
                 ax.annotate(f"{d:+.2f} mm", (max(before_mm[i], after_mm[i]), i), xytext=(8, 0),
                             textcoords="offset points", va="center", fontsize=FONT_SIZE_PT - 2,
                             color=_C_AFTER if d < -0.005 else (_C_BEFORE if d > 0.005 else "0.4"))
-        ax.set_yticks(k, [f"plane {i} ({int(c)} returns)" for i, c in zip(k, fit.n_returns, strict=True)])
+        ax.set_yticks(k, labels)
         ax.set_ylim(n - 0.5, -0.5)
         ax.set_xlabel("thickness: RMS distance of its returns from the plane [mm]")
         ax.set_title("Flatness of the scene's planes, nominal -> calibrated", pad=28)
