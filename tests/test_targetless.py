@@ -20,9 +20,12 @@ import numpy as np
 import pytest
 import yaml
 
+from lrfcal.checks import refuse_failed
+from lrfcal.errors import CalibrationError
 from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.planes import segment_planes
+from lrfcal.planes import segment_planes, squareness_deg
+from lrfcal.targetless import MAX_ROUNDS, SEGMENT_SAMPLES
 from lrfcal.types import CalibrationResult
 from lrfsim.compare import compare, load_truth
 from lrfsim.scenario import parse_scenario, with_changes
@@ -114,6 +117,10 @@ def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, Calibratio
     assert not np.any(result.surface_returns.scan % HOLDOUT_EVERY == HOLDOUT_EVERY - 1)
     held = next(c for c in result.checks if c.name == "held-out planes")
     assert held.passed and "left out of the fit" in held.detail
+    # the coarse rounds settled, then one round on every sampled return (more returns than the coarse rounds')
+    settle = result.checks[0]
+    assert settle.name == "rounds settled" and "moved by less than a tenth of a sigma" in settle.detail
+    assert len(result.surface_returns) > SEGMENT_SAMPLES and 3 <= fit.rounds < MAX_ROUNDS + 1
 
 
 def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(shipped_recording: Callable[[str], Path]
@@ -228,6 +235,7 @@ REALBOX = Path(__file__).resolve().parents[2] / "shared" / "realbags" / "cardboa
 
 
 def _real_box() -> CalibrationResult:
+    """The targetless calibration of the real box with --force: the result with its failed checks recorded."""
     from test_real_bags import URG_NOMINAL, URG_SCAN, URG_SERVO
 
     from lrfcal.io.bag import read_bag
@@ -235,7 +243,7 @@ def _real_box() -> CalibrationResult:
 
     data = read_bag(REALBOX, URG_SCAN, URG_SERVO, warn=lambda _t: None)
     rec = Recording(scans=data.scans, joints=data.joints, tape=None, nominal=Nominal(dh=URG_NOMINAL))
-    return calibrate(rec, CalibConfig(targetless=True))  # raises CalibrationError if a check fails
+    return calibrate(rec, CalibConfig(targetless=True, force=True))
 
 
 @pytest.fixture(scope="session")  # session: a module fixture is built again when xdist interleaves other modules
@@ -246,15 +254,23 @@ def real_box() -> CalibrationResult:
     return _real_box()
 
 
-def test_real_urg04lx_box_calibrates_what_it_determines(real_box: CalibrationResult) -> None:
+def test_real_urg04lx_box_is_refused_because_its_rounds_do_not_settle(real_box: CalibrationResult) -> None:
     """The real URG-04LX in its cardboard box (liangfok/tilting_lidar_scanner, bags/cardboard_box.bag). No truth
-    exists, so the test asserts consistency, not values: every check passes (else calibrate raises); what this
-    small box does not determine (as measured: a and b, once the returns near its edges and corners are left out)
-    is held at the nominal value and named, without a sigma; the planes are no thicker after than before.
-    Estimate and sigma are printed."""
+    exists. Its segment-and-solve rounds swing between two states: beta about 1.6 and 2.7-4.2 deg, alpha 89.6-89.8
+    deg (measured, in this version and the last), while the statistical sigma of beta is about 0.5 deg. Which round
+    it stops at decides the answer, so the rounds' difference joins the covariance and the result is refused
+    naming it (exit 3) rather than reported at 0.5 deg. What the result says otherwise: this small box does not
+    determine a and b (once the returns near its edges and corners are left out), held at the nominal value and
+    named without a sigma; the planes are no thicker after than before. The box's corners (mean |90 deg - angle|,
+    printed) are a symptom, not a test: 1.30 deg nominal against 1.87 deg calibrated at one state, 1.65 against 1.46
+    at the other. Estimate and sigma are printed."""
     fit, sol = real_box.plane_fit, real_box.solution
     nominal = real_box.recording.nominal.dh
-    print("real box:", sol.params.dh, "sigma", sol.sigma[6:], "held", fit.held, "notes", real_box.notes)
+    print("real box:", sol.params.dh, "sigma", sol.sigma[6:], "held", fit.held, "checks", real_box.checks)
+    settle = real_box.checks[0]
+    assert settle.name == "rounds settled" and not settle.passed, settle
+    with pytest.raises(CalibrationError, match="^rounds settled: .* did not settle .* sigma"):
+        refuse_failed(list(real_box.checks), CalibConfig(targetless=True))
     assert len(fit.planes) >= 3
     for n in fit.held:
         assert not math.isfinite(sol.sigma[6 + DH.index(n)])
@@ -262,16 +278,6 @@ def test_real_urg04lx_box_calibrates_what_it_determines(real_box: CalibrationRes
     est = [n for n in DH if n not in fit.held]
     assert est and all(math.isfinite(sol.sigma[6 + DH.index(n)]) for n in est)
     assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
-
-
-def test_real_urg04lx_box_corners_as_square_as_before(real_box: CalibrationResult) -> None:
-    """The calibration does not bend the real box: the mean |90 deg - angle| of its corners moves by less than
-    0.3 deg. It is no evidence either way: measured 1.65 -> 1.46 deg (nominal -> calibrated) with the coarse
-    rounds, 1.36 -> 1.46 deg with full rounds only (the last version), which segment slightly different returns;
-    the rounds do not settle on this recording (alpha and beta still move by more than a tenth of a sigma)."""
-    from lrfcal.planes import squareness_deg
-
-    fit = real_box.plane_fit
     sq_b, sq_a = squareness_deg(fit.normals_before), squareness_deg(fit.normals_after)
-    print("corners |90 - angle| [deg] before", sq_b, "after", sq_a)
-    assert sq_b.size >= 2 and abs(sq_a.mean() - sq_b.mean()) < 0.3
+    print("corners |90 - angle| [deg] nominal", sq_b, "calibrated", sq_a)
+    assert sq_b.size >= 2 and sq_a.size == sq_b.size and np.all(np.isfinite(sq_a))

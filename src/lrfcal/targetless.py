@@ -3,13 +3,17 @@
 1. timing: the joint states and the scans they cover          4. solve: every plane return's ray-plane range
 2. planes: segmented from the cloud reprojected with the          residual, planes free (lrfcal.solve.solve_planes);
    current DH (lrfcal.planes), grazing returns left out          2.-4. repeated, re-segmenting with the new estimate
-3. observability: which of a, alpha, b, beta (and the clock    5. checks: convergence, observability, reduced
-   offset) the scene determines, from the information at        chi-square, a second opinion (even / odd passes)
-   the start; the others are held at the nominal value         6. reprojection, flatness before / after
+3. observability: which of a, alpha, b, beta (and the clock    5. checks: the rounds settled, convergence,
+   offset) the scene determines, from the information at        observability, reduced chi-square, a second
+   the start; the others are held at the nominal value            opinion (even / odd passes), held-out planes
+                                                               6. reprojection, flatness before / after
 
 The rounds of 2.-4. before the DH settle segment and solve the segmentation's own sample (SEGMENT_SAMPLES returns)
 when it is at most COARSE_FRACTION of the sampled returns; the settled estimate then segments and solves every
 sampled return once (the same DH to 0.1 sigma in a third to two fifths less time: benchmarks/bench_targetless.py).
+Rounds that do not settle in MAX_ROUNDS end with two rounds on every return: their difference is added to the
+covariance (which returns the segmentation keeps is a model error), and beyond SETTLE_LIMIT_SIGMA the result is
+refused, since it would depend on the round the loop stopped at (the real URG-04LX box: docs/real-data.md).
 
 Without markers there is no world frame: the planes and the cloud are in the motor frame M, and the mount pose is
 not estimated. A parameter the scene does not determine (1-sigma beyond lrfcal.observability.LIMITS, e.g. b and
@@ -104,29 +108,34 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     solve_at = partial(solve.solve_planes, range_sigma_m=config.range_sigma_m,
                        clock=motor if estimate_clock else None, hold=held, dh_prior=prior)
     sol: Solution | None = None
+    before_last: Solution | None = None
+    settled = False
     rounds = 0
     coarse = _coarse(beams, seg)
-    for rounds in range(1, 6):  # segment, solve, re-segment with the better estimate until the DH settles
+    for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
         if rounds > 1 or coarse is not None:
             returns, labels, found = plane_returns_at(*(coarse or (beams, seg)), motor, start.dh, start.tau,
                                                       start.thickness_m, config)
         new = _solve_round(solve_at, returns, found, start, rounds)
         settled = sol is not None and _settled(sol, new)
-        sol, start = new, _Round.after(new, config)
+        before_last, sol, start = sol, new, _Round.after(new, config)
         if settled:
             break
-    if coarse is not None:  # the settled estimate on every sampled return, segmented at it
+    # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
+    for _ in range(0 if coarse is None else 1 if settled else 2):
         returns, labels, found = plane_returns_at(beams, seg, motor, start.dh, start.tau, start.thickness_m, config)
-        assert sol is not None
-        sol, rounds = _solve_round(solve_at, returns, found, start, rounds + 1), rounds + 1
+        before_last, sol = sol, _solve_round(solve_at, returns, found, start, rounds + 1)
+        start, rounds = _Round.after(sol, config), rounds + 1
     assert sol is not None
+    settle = _settle_check(None if settled else before_last, sol, rounds)
+    sol = _with_round_difference(sol, None if settled else before_last)
     if not estimate_clock and passes.max() < 1 or config.estimate_clock is False:
         notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
                      + ("a one-way sweep does not separate it)" if config.estimate_clock is None else "as asked)"))
     sol = _consider(sol, returns, motor if estimate_clock else None, held, config, prior)
     clock.lap("solve")
 
-    checks = plane_checks(sol, returns, passes, held, config, prior, nominal.dh)
+    checks = [settle, *plane_checks(sol, returns, passes, held, config, prior, nominal.dh)]
     checks.append(_held_out_check(held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol, first_thickness))
     clock.lap("checks")
     lam_b = motor.angles(beams.times_s, tau0)[0]
@@ -143,6 +152,12 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
         surface_returns=returns, checks=tuple(checks), plane_fit=fit,
     )
 
+
+#: segment-and-solve rounds at most before the DH settle (then the last two on every return are compared)
+MAX_ROUNDS = 5
+#: the last two rounds on every return may differ by this many sigma at most when the rounds do not settle: more,
+#: and the estimate depends on the round it stops at (the planes are not segmented consistently): refused
+SETTLE_LIMIT_SIGMA = 1.0
 
 #: the rounds before the DH settle solve the segmentation's own sample (SEGMENT_SAMPLES returns) when it is at most
 #: this fraction of the sampled returns; one round on every sampled return follows (module docstring)
@@ -170,6 +185,47 @@ def _coarse(beams: Beams, seg: NDArray[np.int64]) -> tuple[Beams, NDArray[np.int
     if seg.size > COARSE_FRACTION * beams.scan.size:
         return None
     return beams.subset(seg), np.arange(seg.size)
+
+
+def _round_difference(a: Solution, b: Solution) -> FloatArray:
+    """b's DH minus a's (4,), angles wrapped; 0 where a parameter is held (no sigma)."""
+    d = b.params.vector()[6:] - a.params.vector()[6:]
+    d[[1, 3]] = wrap_pi(d[[1, 3]])
+    return np.where(np.isfinite(b.sigma[6:10]), d, 0.0)
+
+
+def _settle_check(before_last: Solution | None, last: Solution, rounds: int) -> Check:
+    """Whether the segment-and-solve rounds settled (``before_last`` None), or else the last two rounds on every
+    return differ by at most SETTLE_LIMIT_SIGMA of the last one's sigma (statistical, before the difference is added
+    to it by :func:`_with_round_difference`)."""
+    if before_last is None:
+        return Check("rounds settled", True, f"the DH moved by less than a tenth of a sigma between two rounds "
+                     f"({rounds} rounds)")
+    d = _round_difference(before_last, last)
+    s = last.sigma[6:10]
+    z = np.where(d != 0.0, np.abs(d) / np.where(s > 0, s, np.inf), 0.0)
+    k = int(np.argmax(z))
+    name = DH_NAMES[k]
+    text = f"{math.degrees(d[k]):+.3g} deg" if name in ("alpha", "beta") else f"{d[k] * 1000:+.3g} mm"
+    ok = bool(z[k] <= SETTLE_LIMIT_SIGMA)
+    detail = (f"the planes' segmentation and the DH did not settle in {rounds} rounds: the last two on every return "
+              f"differ by {name} {text} ({z[k]:.1f} sigma), added to the covariance")
+    if not ok:
+        detail += (f" (limit {SETTLE_LIMIT_SIGMA:g} sigma): the estimate depends on the round it stops at, the scene's "
+                   "planes are not segmented the same way twice (small planes, edges, clutter); calibrate in a larger "
+                   "scene or with markers")
+    return Check("rounds settled", ok, detail)
+
+
+def _with_round_difference(sol: Solution, before_last: Solution | None) -> Solution:
+    """``sol`` with the difference d (4,) from the round before it added to its DH covariance (d d^T, a model error:
+    which returns the segmentation keeps), when the rounds did not settle (``before_last`` not None)."""
+    if before_last is None:
+        return sol
+    d = _round_difference(before_last, sol)
+    cov = np.array(sol.covariance, dtype=float)
+    cov[6:10, 6:10] += np.outer(d, d)
+    return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
 def _solve_round(fit: Callable[..., Solution], returns: SurfaceReturns, found: list[planes.ScenePlane], start: _Round,
@@ -328,9 +384,7 @@ def _weakest_direction(info: FloatArray, names: tuple[str, ...], free: list[str]
 
 def _settled(old: Solution, new: Solution) -> bool:
     """The DH estimate moved by less than a tenth of its sigma between two rounds."""
-    d = new.params.vector()[6:] - old.params.vector()[6:]
-    d[[1, 3]] = wrap_pi(d[[1, 3]])
-    s = new.sigma[6:]
+    d, s = _round_difference(old, new), new.sigma[6:10]
     ok = np.isfinite(s) & (s > 0)
     return bool(np.all(np.abs(d[ok]) <= 0.1 * s[ok]))
 
