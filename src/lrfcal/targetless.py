@@ -93,7 +93,7 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
              np.array(config.nominal_tolerance, dtype=float))
     first_thickness = 4.0 * config.range_sigma_m + 0.02  # the noise plus what a nominal DH bends a plane by
     start = _Round(nominal.dh, tau0, first_thickness)
-    returns, labels, found = plane_returns_at(beams, seg, motor, start.dh, tau0, first_thickness, config)
+    returns, labels, found = start.segment(beams, seg, motor, config)
     clock.lap("planes")
     _check_scene(found, returns)
     if estimate_clock:
@@ -114,8 +114,7 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     coarse = _coarse(beams, seg)
     for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
         if rounds > 1 or coarse is not None:
-            returns, labels, found = plane_returns_at(*(coarse or (beams, seg)), motor, start.dh, start.tau,
-                                                      start.thickness_m, config)
+            returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
         new = _solve_round(solve_at, returns, found, start, rounds)
         settled = sol is not None and _settled(sol, new)
         before_last, sol, start = sol, new, _Round.after(new, config)
@@ -123,12 +122,13 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
             break
     # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
     for _ in range(0 if coarse is None else 1 if settled else 2):
-        returns, labels, found = plane_returns_at(beams, seg, motor, start.dh, start.tau, start.thickness_m, config)
+        returns, labels, found = start.segment(beams, seg, motor, config)
         before_last, sol = sol, _solve_round(solve_at, returns, found, start, rounds + 1)
         start, rounds = _Round.after(sol, config), rounds + 1
     assert sol is not None
-    settle = _settle_check(None if settled else before_last, sol, rounds)
-    sol = _with_round_difference(sol, None if settled else before_last)
+    unsettled = None if settled else before_last  # the round before the last, to compare with it
+    settle = _settle_check(unsettled, sol, rounds)
+    sol = _with_round_difference(sol, unsettled)
     if not estimate_clock and passes.max() < 1 or config.estimate_clock is False:
         notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
                      + ("a one-way sweep does not separate it)" if config.estimate_clock is None else "as asked)"))
@@ -177,6 +177,11 @@ class _Round:
         """The next round's, from a round's solution: its estimate, the noise it found."""
         return _Round(sol.params.dh, sol.clock_offset_s,
                       4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2)))
+
+    def segment(self, beams: Beams, seg: NDArray[np.int64], motor: MotorClock, config: CalibConfig
+                ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
+        """:func:`plane_returns_at` here."""
+        return plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config)
 
 
 def _coarse(beams: Beams, seg: NDArray[np.int64]) -> tuple[Beams, NDArray[np.int64]] | None:
@@ -423,8 +428,7 @@ def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: 
     motor = MotorClock.from_joints(joints)
     beams = sample_returns(scans, config.plane_returns, skip)
     seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
-    at = _Round.after(sol, config)
-    returns, labels, found = plane_returns_at(beams, seg, motor, at.dh, at.tau, at.thickness_m, config)
+    returns, labels, found = _Round.after(sol, config).segment(beams, seg, motor, config)
     T = sol.params.mount.matrix()
     R, t = T[:3, :3], T[:3, 3]
     keep, out = [], []

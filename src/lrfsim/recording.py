@@ -102,8 +102,8 @@ def bag_messages(result: SimResult, scenario: Scenario
     /scan and /joint_states; the LaserScans declare ``result.declared_angle_increment_rad`` when a fault set it,
     else the sensor's; with echoes (``result.echo_ranges_m``) also a MultiEchoLaserScan per scan on
     ``sensor.echoes.topic``, logged with its /scan: per beam a LaserEcho with the beam's valid echoes, nearest first
-    (none: empty), as urg_node fills it, as lrfcal.io.multiecho's MultiEchoScan (written by its encoder, a fortieth of
-rosbags' time). A message's float32 fields hold float32 values, as a reader decodes them."""
+    (none: empty), as urg_node fills it, as lrfcal.io.multiecho's MultiEchoScan (written by its encoder, a fortieth
+    of rosbags' time). A message's float32 fields hold float32 values, as a reader decodes them."""
     ts = _typestore()
     LaserScan = ts.types[LASERSCAN_TYPE]
     JointState = ts.types[JOINTSTATE_TYPE]

@@ -132,11 +132,17 @@ def _echoes(buf: bytes, off: int) -> tuple[Echoes, int]:
     if p > len(w):
         raise ValueError("LaserEcho[] longer than the message")
     cnt = np.array(counts, dtype=np.int64)
-    is_count = np.zeros(p, dtype=bool)
-    is_count[0] = True
-    is_count[np.cumsum(cnt + 1) - cnt] = True  # the word of beam b's count: 1 + sum_{c < b} (1 + count_c)
-    values = words[:p][~is_count].view("<f4").astype(np.float32)
+    values = words[:p][~_count_words(cnt)].view("<f4").astype(np.float32)
     return Echoes(cnt, values), off + 4 * p
+
+
+def _count_words(counts: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Which words (1 + N + sum(counts),) of a LaserEcho[] of beams with ``counts`` (N,) echoes are counts: the first
+    (the beam count), and beam b's at 1 + sum_{c < b} (1 + counts_c)."""
+    is_count = np.zeros(1 + counts.size + int(counts.sum()), dtype=bool)
+    is_count[0] = True
+    is_count[np.cumsum(counts + 1) - counts] = True
+    return is_count
 
 
 def encode_cdr(msg: MultiEchoScan) -> bytes:
@@ -151,14 +157,9 @@ def encode_cdr(msg: MultiEchoScan) -> bytes:
 
 def _echo_words(e: Echoes) -> bytes:
     """A LaserEcho[] as words: the beam count, then each beam's count and its echoes."""
-    cnt = e.counts
-    words = np.empty(1 + cnt.size + int(cnt.sum()), dtype="<u4")
-    words[0] = cnt.size
-    at = np.cumsum(cnt + 1) - cnt  # the word of each beam's count
-    is_count = np.zeros(words.size, dtype=bool)
-    is_count[at] = True
-    is_count[0] = True
-    words[at] = cnt
+    is_count = _count_words(e.counts)
+    words = np.empty(is_count.size, dtype="<u4")
+    words[is_count] = np.r_[e.counts.size, e.counts]
     words[~is_count] = np.asarray(e.values, dtype="<f4").view("<u4")
     return words.tobytes()
 
