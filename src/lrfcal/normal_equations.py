@@ -174,13 +174,24 @@ FLAT_COST = 1e-5
 def levenberg_marquardt(
     th0: FloatArray, evaluate: Callable[[FloatArray, bool], Blocks], core: IntArray, n_core: int,
     huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3, stall_tol: float = 0.1,
+    retract: Callable[[FloatArray, IntArray, FloatArray], FloatArray] | None = None,
 ) -> tuple[FloatArray, int, bool]:
     """Minimise the (Huber) cost of ``evaluate(th, jac)`` over the core unknowns ``core`` and every nuisance (the
     entries of th from ``n_core`` on). Returns (th, evaluations, converged): converged when a step is below
     ``step_tol`` of every unknown's sigma, or when a barely damped step below ``stall_tol`` sigma does not lower the
-    cost or lowers it by less than :data:`FLAT_COST`, or when no step lowers it any more (at the minimum)."""
+    cost or lowers it by less than :data:`FLAT_COST`, or when no step lowers it any more (at the minimum).
+    ``retract(th, free, step)``: th moved by a step (free.size,) over the entries ``free`` of th, for unknowns whose
+    Jacobian columns are those of a chart at th rather than derivatives by th's own entries (th[free] + step when
+    None)."""
     free = np.concatenate([core, np.arange(n_core, th0.size)])
     th = th0.copy()
+
+    def add(th: FloatArray, free: IntArray, step: FloatArray) -> FloatArray:
+        trial = th.copy()
+        trial[free] += step
+        return trial
+
+    move = add if retract is None else retract
 
     def cost(r: FloatArray) -> float:
         if huber is None:
@@ -202,9 +213,8 @@ def levenberg_marquardt(
                 step = solve_step(N, damp)
             except np.linalg.LinAlgError:
                 step = np.full(free.size, np.nan)
-            trial = th.copy()
-            trial[free] += step
             ok = bool(np.all(np.isfinite(step)))
+            trial = move(th, free, step) if ok else th.copy()
             ratio = float(np.max(np.abs(step) / sigma)) if ok else np.inf
             small = ratio < step_tol
             if small and first and damp <= 1e-3:  # a negligible, barely damped step: converged, nothing to check

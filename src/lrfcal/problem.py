@@ -42,10 +42,12 @@ class Problem:
         surf = self.surf if self.surf is None or ms is None else self.surf.subset(ms)
         return replace(self, markers=self.markers.subset(m), surf=surf)
 
-    def marker_rows(self, th: FloatArray, R_ref: FloatArray, jac: bool = True
+    def marker_rows(self, th: FloatArray, R_ref: FloatArray, jac: bool = True, chart: FloatArray | None = None
                     ) -> tuple[FloatArray, FloatArray | None]:
-        """Whitened marker residuals (K, n_res) and Jacobian (K, n_res, N_CORE) (lrfcal.model.marker)."""
-        return marker_rows(th, self.markers, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
+        """Whitened marker residuals (K, n_res) and Jacobian (K, n_res, N_CORE) (lrfcal.model.marker; ``chart``:
+        lrfcal.model.chart, None for the DH parameters)."""
+        return marker_rows(th, self.markers, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac,
+                           chart=chart)
 
     def centre_cross(self, th: FloatArray, R_ref: FloatArray, core: NDArray[np.intp], n_markers: int,
                      J_dense: FloatArray | None = None) -> FloatArray:
@@ -75,13 +77,17 @@ class Problem:
         assert s.prior_jacobian.shape[1] == 3 * n_markers
         return -s.prior_jacobian / s.prior_sigma[:, None] ** 2
 
-    def blocks(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> Blocks:
+    def blocks(self, th: FloatArray, R_ref: FloatArray, jac: bool = True, chart: FloatArray | None = None
+               ) -> Blocks:
         """All whitened residuals as lrfcal.normal_equations.Blocks: the marker returns and the design drawing's
-        prior on the DH parameters (dense rows), the surface returns (plane rows) and the planes' priors."""
+        prior on the DH parameters (dense rows), the surface returns (plane rows) and the planes' priors. ``chart``
+        (6, 4): what the scan-plane columns are derivatives by (lrfcal.model.chart; None: the DH parameters, as
+        the prior's rows are)."""
+        assert chart is None or self.dh_prior is None, "a prior on the DH parameters needs the DH chart"
         z = np.zeros(0)
         r_d, J_d = z, np.zeros((0, N_CORE))
         if self.markers.r.size:
-            res, J = self.marker_rows(th, R_ref, jac=jac)
+            res, J = self.marker_rows(th, R_ref, jac=jac, chart=chart)
             r_d, J_d = res.ravel(), (None if J is None else J.reshape(-1, N_CORE))
         if self.dh_prior is not None:  # the design drawing's word on the DH parameters
             mean, sig = self.dh_prior
@@ -95,7 +101,8 @@ class Problem:
         s = self.surf
         if s is None:
             return Blocks(r_d, J_d, z, np.zeros((0, N_CORE)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0)
-        rows = plane_rows(th, s, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac)
+        rows = plane_rows(th, s, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac,
+                          chart=chart)
         r_q = w_q = None
         if s.prior_sigma is not None and s.prior_mean is not None:  # the markers' word on the planes
             r_q, w_q = (th[N_CORE:] - s.prior_mean) / s.prior_sigma, 1.0 / s.prior_sigma

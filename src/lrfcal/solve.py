@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError
+from .model.chart import regular_chart_at, regular_step
 from .model.kinematics import Params, exp_so3
 from .model.marker import residuals_3d, two_sided
 from .model.motor import MotorClock, motor_angles
@@ -41,12 +42,19 @@ FloatArray = NDArray[np.float64]
 
 def _fit(th0: FloatArray, R_ref: FloatArray, pb: Problem, free: NDArray[np.bool_], robust: bool
          ) -> tuple[FloatArray, FloatArray, int, str]:
-    """One solver pass over the free unknowns; returns (th with w folded into R_ref, R_ref, nfev, message)."""
+    """One solver pass over the free unknowns; returns (th with w folded into R_ref, R_ref, nfev, message).
+
+    With the mount and every DH parameter free and no prior on them, the scan plane moves in the regular chart
+    (lrfcal.model.chart), the gauge into the mount after every step: regular at every geometry, the scan plane
+    perpendicular to the motor axis included. Otherwise in the DH parameters themselves."""
     # robust: Huber weights (threshold 2 sigma) against stray returns; plain: least squares, stopped at steps below
     # 1e-2 sigma (the clock offset's Jacobian, a smoothed joint velocity, makes the last iterations converge only
     # linearly, by factors of ~2 per evaluation of every marker and surface return)
-    th, nfev, ok = levenberg_marquardt(th0, lambda x, j: pb.blocks(x, R_ref, j), np.flatnonzero(free[:N_CORE]),
-                                       N_CORE, huber=2.0 if robust else None, max_iter=100, step_tol=1e-2)
+    regular = pb.mount_jac and pb.dh_prior is None and bool(free[:10].all())
+    th, nfev, ok = levenberg_marquardt(
+        th0, lambda x, j: pb.blocks(x, R_ref, j, chart=regular_chart_at(x) if regular else None),
+        np.flatnonzero(free[:N_CORE]), N_CORE, huber=2.0 if robust else None, max_iter=100, step_tol=1e-2,
+        retract=regular_step(R_ref) if regular else None)
     msg = "converged" if ok else "maximum number of function evaluations exceeded"
     R_new = R_ref @ exp_so3(th[3:6])
     th[3:6] = 0.0

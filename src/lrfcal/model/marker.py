@@ -110,10 +110,12 @@ class MarkerSet:
 
 
 def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray, *, jac: bool = True,
-                clock: MotorClock | None = None, mount_jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
-    """Whitened residuals (K, n_res) and their Jacobian (K, n_res, N_CORE) (None when jac is False) at th."""
+                clock: MotorClock | None = None, mount_jac: bool = True, chart: FloatArray | None = None
+                ) -> tuple[FloatArray, FloatArray | None]:
+    """Whitened residuals (K, n_res) and their Jacobian (K, n_res, N_CORE) (None when jac is False) at th;
+    ``chart``: what the scan-plane columns are derivatives by (lrfcal.model.rays.beam_rays)."""
     motor = motor_angles(th, ms.lam, ms.times, clock)
-    o, d, Jo, Jd = beam_rays(th, R_ref, motor, ms.mu, jac=jac, mount_jac=mount_jac)
+    o, d, Jo, Jd = beam_rays(th, R_ref, motor, ms.mu, jac=jac, mount_jac=mount_jac, chart=chart)
     rng = true_range(th, ms.r, on_marker=True)
     r = rng.r
     if ms.model == "paper":

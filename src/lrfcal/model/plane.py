@@ -9,7 +9,9 @@ n_0 = Rz(-lambda_k) R^T n_j (R the mount's rotation). Then, with nd = n_0 . dir_
 
     n . o = n_0 . o_0 + n . t,   n . dir = nd,
     dr_p/dt = -n / nd,   dr_p/dw = (n_M x o_M + r_p n_M x d_M)^T J_r(w) / nd   (n_M = R^T n),
-    dr_p/dp = -(n_0 . do_0/dp + r_p n_0 . ddir_0/dp) / nd   for the DH parameters p,
+    dr_p/dk = -(n_0 . do_k + r_p dw_k . (dir_0 x n_0)) / nd   for a scan-plane unknown k with the chart column
+        (do_k, dw_k) (lrfcal.model.chart; ddir_0 = dw_k x dir_0); for the DH parameters p in closed form,
+        dr_p/dp = -(n_0 . do_0/dp + r_p n_0 . ddir_0/dp) / nd,
     dr_p/dlambda = -(n_0 . (z x o_0) + r_p n_0 . (z x dir_0)) / nd   (times each dlambda/dtheta, lrfcal.model.motor),
     dr_p/dd_j = 1 / nd,   dr_p/du_i = -(x_0 . Rz(-lambda) R^T dn/du_i + t . dn/du_i) / nd,
     dn/du_i = (t_i - n (n . t_i)) / |m|.
@@ -44,11 +46,13 @@ class PlaneRows:
 
 
 def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *, jac: bool = True,
-               clock: MotorClock | None = None, mount_jac: bool = True) -> PlaneRows:
+               clock: MotorClock | None = None, mount_jac: bool = True, chart: FloatArray | None = None
+               ) -> PlaneRows:
     """The plane returns' whitened residuals and Jacobian blocks at th (N_CORE + 3P,) (module docstring).
 
     ``clock``: the clock offset is an unknown (its column is 0 otherwise); ``mount_jac`` False leaves the mount's
-    columns 0 (a held mount). Per-plane quantities are gathered to the rows as scalars (K,), and the Jacobian blocks
+    columns 0 (a held mount); ``chart`` (6, 4): what the scan-plane columns are derivatives by (None: the DH
+    parameters). Per-plane quantities are gathered to the rows as scalars (K,), and the Jacobian blocks
     are column-major: both keep the work a few passes over (K,) arrays."""
     P = s.n_planes
     nu = th[N_CORE:].reshape(P, 3)
@@ -90,12 +94,18 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
         Jr = right_jacobian_so3(th[3:6])
         for j in range(3):
             Jc[:, 3 + j] = (cMx * Jr[0, j] + cMy * Jr[1, j] + cz * Jr[2, j]) * q
-    Jc[:, 6] = -nx * q
-    Jc[:, 7] = (ny * b * ca + nz * b * sa + rp * sp * (ny * sa - nz * ca)) * q
-    Jc[:, 8] = (ny * sa - nz * ca) * q
-    Jc[:, 9] = -rp * (-nx * sp + (ny * ca + nz * sa) * cp) * q
-    for j, dmu in bearing.partials:  # the bearing enters as beta does
-        Jc[:, j] = Jc[:, 9] * dmu
+    if chart is None:  # the DH parameters: the chart columns below in closed form
+        Jc[:, 6] = -nx * q
+        Jc[:, 7] = (ny * b * ca + nz * b * sa + rp * sp * (ny * sa - nz * ca)) * q
+        Jc[:, 8] = (ny * sa - nz * ca) * q
+        Jc[:, 9] = turn = -rp * (-nx * sp + (ny * ca + nz * sa) * cp) * q
+    else:
+        g = (dy * nz - dz * ny, dz * nx - cp * nz, cp * ny - dy * nx)  # dir_0 x n_0
+        for k in range(4):
+            Jc[:, 6 + k] = -(_dot(chart[:3, k], (nx, ny, nz)) + rp * _dot(chart[3:, k], g)) * q
+        turn = -rp * _dot((0.0, -sa, ca), g) * q
+    for j, dmu in bearing.partials:  # the bearing enters as beta does: a turn about the scanner's axis
+        Jc[:, j] = turn * dmu
     if motor.partials:  # dr_p/dlambda = -(n_0 . (z x x_0)) / nd, z x v = (-v_y, v_x, 0)
         dres_dlam = -((ny * a - nx * oy) + rp * (ny * cp - nx * dy)) * q
         for j, dlam in motor.partials:
@@ -110,6 +120,16 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
         Jn[:, i] = -(xx * (cl * gx + sl * gy) + xy * (cl * gy - sl * gx) + xz * vM[:, 2][pl] + (dn @ t)[pl]) * q
     Jn[:, 2] = q
     return PlaneRows(res, Jc, Jn)
+
+
+def _dot(c: FloatArray | tuple[float, float, float], v: tuple[FloatArray, FloatArray, FloatArray]) -> FloatArray:
+    """sum_i c_i v_i (K,) of a constant 3-vector c and three (K,) arrays, skipping the zeros of c (a DH chart's
+    columns are mostly zeros)."""
+    out: FloatArray = np.zeros_like(v[0])
+    for ci, vi in zip(c, v, strict=True):
+        if ci != 0.0:
+            out = out + ci * vi
+    return out
 
 
 def _cos_sin_sum(c: float, x: FloatArray, trig: tuple[FloatArray, FloatArray], declared: bool

@@ -14,6 +14,8 @@ Jacobian (X_j = dX/dtheta_j):
     DH parameter p: o_j = R Rz(lambda) d(o_loc)/dp, d_j = R Rz(lambda) d(d_loc)/dp with
       d o_loc/da = (1,0,0), d o_loc/dalpha = (0, -b ca, -b sa), d o_loc/db = (0, -sa, ca), d o_loc/dbeta = 0,
       d d_loc/dalpha = (0, -sphi sa, sphi ca), d d_loc/dbeta = (-sphi, cphi ca, cphi sa), others 0;
+    or, in another chart of the scan plane's pose (lrfcal.model.chart; the solver's regular one), the unknown k with
+      the chart column (do_k, dw_k): o_j = R Rz(lambda) do_k, d_j = R Rz(lambda) (dw_k x d_loc);
     an unknown acting on the motor angle: o_j = R (z x o_M) dlambda/dtheta_j, likewise d_j;
     an unknown acting on the bearing: o_j = 0, d_j = d_beta dmu/dtheta_j.
 """
@@ -33,10 +35,12 @@ FloatArray = NDArray[np.float64]
 
 def beam_rays(
     core: FloatArray, R_ref: FloatArray, motor: MotorAngles, mu: FloatArray, jac: bool, mount_jac: bool = True,
+    chart: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
     """Beam origins o (K, 3) and unit directions d (K, 3) in W and their Jacobians (K, 3, N_CORE) with respect to
     the core unknowns (module docstring); the mount's columns are left 0 when ``mount_jac`` is False (a held
-    mount), the motor angle's when ``motor`` carries no partials."""
+    mount), the motor angle's when ``motor`` carries no partials. ``chart`` (6, 4): what the four scan-plane
+    columns are derivatives by (lrfcal.model.chart; None: the DH parameters)."""
     t, w = core[:3], core[3:6]
     a, al, b, be = core[6:10]
     bearing = true_bearing(core, np.atleast_1d(mu))
@@ -52,7 +56,8 @@ def beam_rays(
         return np.stack([cl * v[:, 0] - sl * v[:, 1], sl * v[:, 0] + cl * v[:, 1], v[:, 2]], -1)
 
     o_M = rz(np.array([a, -b * sa, b * ca]))
-    d_M = rz(np.stack([cp, sp * ca, sp * sa], -1))
+    d_loc = np.stack([cp, sp * ca, sp * sa], -1)  # the direction before Rz(lambda)
+    d_M = rz(d_loc)
     o = o_M @ R.T + t
     d = d_M @ R.T
     if not jac:
@@ -66,13 +71,19 @@ def beam_rays(
             Jo[:, :, 3 + j] = -np.cross(o_M, Jr[:, j]) @ R.T
             Jd[:, :, 3 + j] = -np.cross(d_M, Jr[:, j]) @ R.T
     z0 = np.zeros(K)
-    Jo[:, :, 6] = rz(np.array([1.0, 0.0, 0.0])) @ R.T
-    Jo[:, :, 7] = rz(np.array([0.0, -b * ca, -b * sa])) @ R.T
-    Jo[:, :, 8] = rz(np.array([0.0, -sa, ca])) @ R.T
-    Jd[:, :, 7] = rz(np.stack([z0, -sp * sa, sp * ca], -1)) @ R.T
-    Jd[:, :, 9] = rz(np.stack([-sp, cp * ca, cp * sa], -1)) @ R.T
-    for j, dmu in bearing.partials:
-        Jd[:, :, j] = np.broadcast_to(dmu, (K,))[:, None] * Jd[:, :, 9]
+    if chart is None:  # the DH parameters: the chart columns below in closed form
+        Jo[:, :, 6] = rz(np.array([1.0, 0.0, 0.0])) @ R.T
+        Jo[:, :, 7] = rz(np.array([0.0, -b * ca, -b * sa])) @ R.T
+        Jo[:, :, 8] = rz(np.array([0.0, -sa, ca])) @ R.T
+        Jd[:, :, 7] = rz(np.stack([z0, -sp * sa, sp * ca], -1)) @ R.T
+        Jd[:, :, 9] = turn = rz(np.stack([-sp, cp * ca, cp * sa], -1)) @ R.T
+    else:
+        for k in range(4):
+            Jo[:, :, 6 + k] = rz(chart[:3, k]) @ R.T
+            Jd[:, :, 6 + k] = rz(np.cross(chart[3:, k], d_loc)) @ R.T
+        turn = rz(np.cross([0.0, -sa, ca], d_loc)) @ R.T
+    for j, dmu in bearing.partials:  # a turn about the scanner's axis, as beta's
+        Jd[:, :, j] = np.broadcast_to(dmu, (K,))[:, None] * turn
     if motor.partials:  # d/dlambda of Rz(lambda) v is z x (Rz v)
         zo = np.stack([-o_M[:, 1], o_M[:, 0], z0], -1) @ R.T
         zd = np.stack([-d_M[:, 1], d_M[:, 0], z0], -1) @ R.T
