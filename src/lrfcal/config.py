@@ -50,7 +50,8 @@ class CalibConfig(BaseModel):
     max_reduced_chi2: float = Field(4.0, gt=0.0)
     second_opinion_p: float = Field(1e-3, gt=0.0, lt=1.0)  # false-alarm rate of the second-opinion test
     #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
-    #: direction apart (a, b [m], alpha, beta [rad])
+    #: direction apart (a, b [m], alpha, beta [rad]); the checks compare the scanner's poses (lrfcal.checks), the
+    #: larger of a's and b's against the offset, of alpha's and beta's against the angle
     nominal_tolerance: tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat] = (
         0.010, math.radians(5.0), 0.010, math.radians(5.0))
     #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances

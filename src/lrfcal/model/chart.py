@@ -111,6 +111,27 @@ def canonical_dh(o: ArrayLike, R_X: ArrayLike) -> tuple[FloatArray, float, float
     return np.array([a, alpha, b, beta]), theta, d
 
 
+def gauge_distance(p: ArrayLike, q: ArrayLike, length_m: float, angle_rad: float) -> tuple[float, float, float]:
+    """How far apart the scanner poses of the DH parameters p and q (4,) are, modulo the gauge: the minimum over a
+    turn theta about and a shift d along the motor axis of max(|o_q - o'| / length_m, angle(R_q, R') / angle_rad),
+    (o', R') the pose Rz(theta) Tz(d) X(p). Returns (that distance, the origins' offset [m] and the attitudes' angle
+    [rad] at the minimum). Regular where DH differences are not (a scanner tilted a fraction of a degree towards the
+    motor axis is b of metres from an untilted one in DH, and millimetres and that fraction here), and the same for
+    the two DH representatives of one rig (the "turned" twin, lrfcal.model.kinematics.dh_twins). theta on a grid
+    of 0.05 deg."""
+    o_p, R_p = scan_plane_pose(p)
+    o_q, R_q = scan_plane_pose(q)
+    theta = np.linspace(-np.pi, np.pi, 7201)
+    c, s = np.cos(theta), np.sin(theta)
+    offset = np.hypot(c * o_p[0] - s * o_p[1] - o_q[0], s * o_p[0] + c * o_p[1] - o_q[1])  # d takes up z
+    M = R_p @ R_q.T  # tr(R_q^T Rz(theta) R_p) = tr(Rz(theta) M)
+    trace = c * (M[0, 0] + M[1, 1]) + s * (M[0, 1] - M[1, 0]) + M[2, 2]
+    angle = np.arccos(np.clip((trace - 1.0) / 2.0, -1.0, 1.0))
+    score = np.maximum(offset / length_m, angle / angle_rad)
+    k = int(np.argmin(score))
+    return float(score[k]), float(offset[k]), float(angle[k])
+
+
 def regular_step(R_ref: FloatArray) -> Callable[[FloatArray, NDArray[np.int64], FloatArray], FloatArray]:
     """The solver's step for the regular chart: th moved by ``step`` over its entries ``free``, the scan plane's four
     in the chart at th (lrfcal.model.chart.regular_chart), back to the canonical DH with the gauge Rz(theta) Tz(d)
@@ -131,5 +152,5 @@ def regular_step(R_ref: FloatArray) -> Callable[[FloatArray, NDArray[np.int64], 
 #: the DH parameters' entries in the solver's vector (lrfcal.model.unknowns)
 DH_INDEX = np.arange(DH_SLICE.start, DH_SLICE.stop)
 
-__all__ = ["PARALLEL_SIN", "canonical_dh", "dh_chart", "move", "regular_chart", "regular_chart_at", "regular_step",
-           "scan_plane_pose"]
+__all__ = ["PARALLEL_SIN", "canonical_dh", "dh_chart", "gauge_distance", "move", "regular_chart", "regular_chart_at",
+           "regular_step", "scan_plane_pose"]
