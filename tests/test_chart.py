@@ -7,16 +7,20 @@ into the mount, and reports DH in a canonical branch."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import pytest
 
+from lrfcal.config import CalibConfig
+from lrfcal.minima import other_minimum
 from lrfcal.model.chart import canonical_dh, dh_chart, regular_chart, regular_chart_at, regular_step, scan_plane_pose
-from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, rot_x, rot_z
+from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, rot_x, rot_z, transform_points
 from lrfcal.model.marker import MarkerSet
 from lrfcal.model.unknowns import N_CORE, PlaneSet, pack, plane_nuisance_start, wrap_pi
 from lrfcal.problem import Problem
 from lrfcal.solve import solve
-from lrfcal.types import Observations
+from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
 
 
 def _pose(dh: np.ndarray, theta: float = 0.0, d: float = 0.0) -> np.ndarray:
@@ -108,16 +112,24 @@ def test_regular_chart_jacobian_is_the_derivative_of_the_solver_step(alpha: floa
     assert np.allclose(np.vstack([b_c.J_dense, b_c.Jc_plane])[:, :10], J_dh, rtol=1e-10, atol=1e-9)
 
 
-def _tilted_rig(seed: int, tilt_deg: float, towards_deg: float) -> tuple[Params, np.ndarray, Observations]:
+def _tilted_rig(seed: int, tilt_deg: float, towards_deg: float, flat: float | None = None
+                ) -> tuple[Params, np.ndarray, Observations]:
     """A scanner 4 cm off a spinning motor's axis, its axis tilted ``tilt_deg`` from the motor axis about a
     horizontal direction ``towards_deg`` from the offset (90: towards the motor axis, so that the two axes meet far
-    away and DH's b is metres); 40 markers (R 5 cm) around it, 2 turns of 1081 beams, 5 mm range noise."""
+    away and DH's b is metres); 40 markers (R 5 cm) around it, 2 turns of 1081 beams, 5 mm range noise. ``flat``:
+    the markers 1.5-4 m out, within this height [m] of the plane through the motor's origin perpendicular to its
+    axis, the scanner 2 cm above it (0: all in that plane, where the rig's mirror image through it sees them exactly
+    as the rig does)."""
     rng = np.random.default_rng(seed)
     ax = np.radians(towards_deg)
     R_X = rot_z(ax) @ rot_x(np.radians(tilt_deg)) @ rot_z(-ax) @ rot_z(0.3)
-    dh, theta, d = canonical_dh([0.04, 0.0, 0.06], R_X)
+    dh, theta, d = canonical_dh([0.04, 0.0, 0.06 if flat is None else 0.02], R_X)
     truth = Params(Pose(0.2, -0.1, 0.5 + d, 0.1, -0.05, 0.2 + theta), DH(*map(float, dh)))
-    C = rng.uniform([-4, -4, -1], [4, 4, 2.0], (40, 3))
+    if flat is not None:
+        az, rho, h = rng.uniform(-np.pi, np.pi, 40), rng.uniform(1.5, 4.0, 40), rng.uniform(-flat, flat, 40)
+        C = transform_points(truth.mount.matrix(), np.column_stack([rho * np.cos(az), rho * np.sin(az), h]))
+    else:
+        C = rng.uniform([-4, -4, -1], [4, 4, 2.0], (40, 3))
     lam = np.repeat(np.linspace(0, 4 * np.pi, 400), 1081)
     mu = np.tile(np.radians(np.linspace(-135, 135, 1081)), 400)
     o, dirs = beam_rays_W(truth, lam, mu)
@@ -161,3 +173,34 @@ def test_solver_reaches_a_scanner_tilted_towards_the_motor_axis_from_alpha_0(see
     lam, mu = np.repeat([0.0, 1.0, 2.5], 3), np.tile([-1.0, 0.0, 1.0], 3)
     true_pts, est_pts = (o + 2.0 * d for o, d in (beam_rays_W(p, lam, mu) for p in (truth, sol.params)))
     assert np.abs(est_pts - true_pts).max() < 0.003
+
+
+def _other_minimum(truth: Params, C: np.ndarray, obs: Observations, nominal_dh: DH) -> tuple[Solution, Check]:
+    """The marker-only solve from the nominal (the mount 2-5 cm and 1-3 deg off) and lrfcal.minima's check of it."""
+    fit = partial(solve, marker_radius_m=0.05, range_sigma_m=0.005)
+    m = truth.mount
+    start = Params(Pose(m.x + 0.02, m.y - 0.02, m.z + 0.01, m.roll + 0.02, m.pitch, m.yaw + 0.05), nominal_dh)
+    sol = fit(obs, C, start, model="sphere")
+    markers = MarkerMap(tuple(map(str, range(len(C)))), C, 0.0, 0.0, 1.0, False)
+    nominal = Nominal(nominal_dh, marker_radius_m=0.05)
+    return sol, other_minimum(sol, obs, markers, nominal, CalibConfig(range_sigma_m=0.005), fit)
+
+
+def test_a_distinct_rig_that_explains_the_data_equally_well_is_refused() -> None:
+    """A scanner 1 deg from perpendicular to the motor axis, the markers in the plane perpendicular to the axis
+    through the motor: the rig's mirror image through that plane (alpha -1 deg, b negated) sees every marker as the
+    rig does, and with the drawing's alpha 0 the nominal cannot tell them (both within its 5 deg). From the
+    estimate's mirror image the solver finds that other rig, 2 deg apart in alpha at a sigma of hundredths of a
+    degree, explaining the data as well: refused naming both, whichever the first solve landed in."""
+    truth, C, obs = _tilted_rig(3, 1.0, 0.0, flat=0.0)
+    sol, check = _other_minimum(truth, C, obs, DH(0.04, 0.0, 0.0, 0.3))
+    assert sol.converged
+    assert not check.passed and "explain the data equally well" in check.detail, check.detail
+
+
+def test_the_other_minimum_search_returns_to_a_determined_estimate() -> None:
+    """The same rig with the markers up to 6 cm above and below that plane: the mirror image 2 deg away in alpha
+    explains them far worse, and the solve from it returns to the estimate (or finds a worse minimum): passed."""
+    truth, C, obs = _tilted_rig(3, 1.0, 0.0, flat=0.06)
+    sol, check = _other_minimum(truth, C, obs, DH(0.04, 0.0, 0.0, 0.3))
+    assert check.passed and ("returned to it" in check.detail or "worse" in check.detail), check.detail

@@ -118,23 +118,23 @@ def test_mirror_check_refuses_a_nominal_nearer_the_mirror_image_naming_both() ->
     assert "mirrored" in c.detail and "alpha -35.00 deg" in c.detail and "signs of alpha and b" in c.detail
 
 
-def test_nominal_distance_compares_poses_not_dh_near_perpendicular() -> None:
+def testnominal_distance_compares_poses_not_dh_near_perpendicular() -> None:
     """Seed 50 of bench_trust's broad truths: a scanner tilted 0.04 deg towards the motor axis is b = -3.3 m in DH,
     333 nominal tolerances from its nominal (alpha 0, b 0) in DH differences, and was refused as a mirror image.
     As the scanner's poses modulo the gauge it is 2.6 mm and 1.25 deg from the nominal: within tolerance, and the
     mirror check passes (what b the data determine is observability's to say). The two DH representatives of one
     rig ("turned") are at one distance."""
-    from lrfcal.checks import _nominal_distance, far_from_nominal, mirror_check
+    from lrfcal.checks import far_from_nominal, mirror_check, nominal_distance
     from lrfcal.config import CalibConfig
     from lrfcal.model.kinematics import dh_twins
 
     config = CalibConfig()
     est = DH(a=0.0174, alpha=math.radians(0.04), b=-3.2953, beta=math.radians(108.6))
     nominal = DH(a=0.02, alpha=0.0, b=0.0, beta=math.radians(105.0))
-    d, text = _nominal_distance(est, nominal, config)
+    d, text = nominal_distance(est, nominal, config)
     assert d < 1.0 and "2.6 mm" in text and not far_from_nominal(est, nominal, config)
     assert mirror_check(est, nominal, config).passed
     turned = dh_twins(est)[0][1]
-    assert math.isclose(_nominal_distance(turned, nominal, config)[0], d, abs_tol=1e-9)
+    assert math.isclose(nominal_distance(turned, nominal, config)[0], d, abs_tol=1e-9)
     # far in pose: the servo direction and the mirror check still see it
     assert far_from_nominal(DH(0.01, math.radians(90.0), -0.018, 0.0), DH(0.01, math.radians(90.0), 0.02, 0.0), config)

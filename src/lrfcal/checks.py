@@ -91,10 +91,10 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
         return declared
     dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
     if far_from_nominal(dh1, nominal_dh, config) and not far_from_nominal(dh2, nominal_dh, config):
-        _, far_decl = _nominal_distance(dh1, nominal_dh, config)
+        _, far_decl = nominal_distance(dh1, nominal_dh, config)
         raise CalibrationError(
-            f"servo direction: with the declared sign (+1) the fit gives {_dh_text(dh1)}, far from the nominal "
-            f"{_dh_text(nominal_dh)} ({far_decl}); with the servo angle negated it gives {_dh_text(dh2)}, which "
+            f"servo direction: with the declared sign (+1) the fit gives {dh_text(dh1)}, far from the nominal "
+            f"{dh_text(nominal_dh)} ({far_decl}); with the servo angle negated it gives {dh_text(dh2)}, which "
             "explains the data equally well. If the servo turns the other way, set servo.sign: -1 in the rig file "
             "(or --servo-sign -1)"
         )
@@ -103,7 +103,7 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
 
 #: a mirror image of the rig must be this many times farther from the nominal DH than the estimate, unless the
 #: estimate is within the nominal tolerance (:func:`mirror_check`). The distances are the scanner's poses'
-#: (:func:`_nominal_distance`), and a mirror image has the estimate's origin: the attitudes tell them apart. A scan
+#: (:func:`nominal_distance`), and a mirror image has the estimate's origin: the attitudes tell them apart. A scan
 #: plane along the motor axis and its mirror image are 180 deg apart, so 1.5 accepts a nominal up to 72 deg off
 #: in attitude (45 deg off in both alpha and beta is 61 deg, tests/test_trust.py's far starts)
 MIRROR_MARGIN = 1.5
@@ -112,8 +112,8 @@ MIRROR_MARGIN = 1.5
 def _nearest_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float]:
     """The mirror twin of ``dh`` (lrfcal.model.kinematics.dh_twins, improper Q) nearest the nominal DH: (name, twin
     DH, its isometry Q (3, 3) in M, the estimate's and the twin's distance from the nominal in nominal tolerances)."""
-    d_est, _ = _nominal_distance(dh, nominal, config)
-    twins = [(name, twin, Q, _nominal_distance(twin, nominal, config)[0]) for name, twin, Q in dh_twins(dh)
+    d_est, _ = nominal_distance(dh, nominal, config)
+    twins = [(name, twin, Q, nominal_distance(twin, nominal, config)[0]) for name, twin, Q in dh_twins(dh)
              if np.linalg.det(Q) < 0]
     name, twin, Q, d_twin = min(twins, key=lambda t: t[3])
     return name, twin, Q, d_est, d_twin
@@ -136,20 +136,20 @@ def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
     ok = d_est <= 1.0 or d_twin >= MIRROR_MARGIN * d_est
     return Check("mirror image", ok,
                  f"the estimate is {d_est:.1f} nominal tolerances from the nominal DH, its nearest mirror image "
-                 f"({name}: {_dh_text(twin)}) {d_twin:.1f}"
+                 f"({name}: {dh_text(twin)}) {d_twin:.1f}"
                  + ("" if ok else ": the data fit the rig and its mirror image equally well (tape distances fix the "
                                   "marker map only up to a reflection) and the nominal DH do not tell which; check "
                                   "the signs of alpha and b in the rig file's dh against the drawings"))
 
 
 def far_from_nominal(dh: DH, nominal: DH, config: CalibConfig) -> bool:
-    """Whether a DH estimate is beyond the nominal tolerance (config.nominal_tolerance, :func:`_nominal_distance`): a
+    """Whether a DH estimate is beyond the nominal tolerance (config.nominal_tolerance, :func:`nominal_distance`): a
     declared servo direction whose estimate is not far is kept whatever the other direction gives
     (:func:`servo_direction`)."""
-    return _nominal_distance(dh, nominal, config)[0] > 1.0
+    return nominal_distance(dh, nominal, config)[0] > 1.0
 
 
-def _nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:
+def nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:
     """How far a DH estimate is from the nominal DH in nominal tolerances, and that in words. Compared as the
     scanner's poses in M' modulo the gauge (lrfcal.model.chart.gauge_distance): the larger of the origins' offset
     over the length tolerance (a's and b's, the larger) and the attitudes' angle over the angle tolerance (alpha's
@@ -164,7 +164,7 @@ def _vector(dh: DH) -> FloatArray:
     return np.array([dh.a, dh.alpha, dh.b, dh.beta])
 
 
-def _dh_text(dh: DH) -> str:
+def dh_text(dh: DH) -> str:
     return (f"a {dh.a * 1000:.1f} mm, alpha {math.degrees(dh.alpha):.2f} deg, b {dh.b * 1000:.1f} mm, "
             f"beta {math.degrees(dh.beta):.2f} deg")
 
@@ -298,5 +298,5 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
                                   "clock offset, a scene that moved)"))
 
 
-__all__ = ["Check", "chi2_check", "marker_checks", "mirror_check", "nearer_mirror", "plane_checks", "refuse_failed",
-           "servo_direction", "split_in_two"]
+__all__ = ["Check", "chi2_check", "dh_text", "marker_checks", "mirror_check", "nearer_mirror", "nominal_distance",
+           "plane_checks", "refuse_failed", "servo_direction", "split_in_two"]

@@ -20,7 +20,7 @@ from functools import partial
 
 import numpy as np
 
-from . import association, detection, mds, observability, solve, start, surfaces, timing
+from . import association, detection, mds, minima, observability, solve, start, surfaces, timing
 from .checks import far_from_nominal, marker_checks, mirror_check, nearer_mirror, servo_direction
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
@@ -107,6 +107,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
         clock.lap("surfaces")
     checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock,
                            nominal.dh)
+    checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
     baseline = None
     if config.baseline:
         baseline = _baseline(chosen, scans, joints, config, fit, notes)
