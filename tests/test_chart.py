@@ -112,11 +112,12 @@ def test_regular_chart_jacobian_is_the_derivative_of_the_solver_step(alpha: floa
     assert np.allclose(np.vstack([b_c.J_dense, b_c.Jc_plane])[:, :10], J_dh, rtol=1e-10, atol=1e-9)
 
 
-def _tilted_rig(seed: int, tilt_deg: float, towards_deg: float, flat: float | None = None
+def _tilted_rig(seed: int, tilt_deg: float, towards_deg: float, flat: float | None = None, scans: int = 400
                 ) -> tuple[Params, np.ndarray, Observations]:
     """A scanner 4 cm off a spinning motor's axis, its axis tilted ``tilt_deg`` from the motor axis about a
     horizontal direction ``towards_deg`` from the offset (90: towards the motor axis, so that the two axes meet far
-    away and DH's b is metres); 40 markers (R 5 cm) around it, 2 turns of 1081 beams, 5 mm range noise. ``flat``:
+    away and DH's b is metres); 40 markers (R 5 cm) around it, 2 turns of ``scans`` scans of 1081 beams, 5 mm range
+    noise. ``flat``:
     the markers 1.5-4 m out, within this height [m] of the plane through the motor's origin perpendicular to its
     axis, the scanner 2 cm above it (0: all in that plane, where the rig's mirror image through it sees them exactly
     as the rig does)."""
@@ -130,8 +131,8 @@ def _tilted_rig(seed: int, tilt_deg: float, towards_deg: float, flat: float | No
         C = transform_points(truth.mount.matrix(), np.column_stack([rho * np.cos(az), rho * np.sin(az), h]))
     else:
         C = rng.uniform([-4, -4, -1], [4, 4, 2.0], (40, 3))
-    lam = np.repeat(np.linspace(0, 4 * np.pi, 400), 1081)
-    mu = np.tile(np.radians(np.linspace(-135, 135, 1081)), 400)
+    lam = np.repeat(np.linspace(0, 4 * np.pi, scans), 1081)
+    mu = np.tile(np.radians(np.linspace(-135, 135, 1081)), scans)
     o, dirs = beam_rays_W(truth, lam, mu)
     r, marker = np.full(lam.size, np.inf), np.full(lam.size, -1)
     for j, c in enumerate(C):
@@ -192,7 +193,7 @@ def test_a_distinct_rig_that_explains_the_data_equally_well_is_refused() -> None
     rig does, and with the drawing's alpha 0 the nominal cannot tell them (both within its 5 deg). From the
     estimate's mirror image the solver finds that other rig, 2 deg apart in alpha at a sigma of hundredths of a
     degree, explaining the data as well: refused naming both, whichever the first solve landed in."""
-    truth, C, obs = _tilted_rig(3, 1.0, 0.0, flat=0.0)
+    truth, C, obs = _tilted_rig(3, 1.0, 0.0, flat=0.0, scans=120)
     sol, check = _other_minimum(truth, C, obs, DH(0.04, 0.0, 0.0, 0.3))
     assert sol.converged
     assert not check.passed and "explain the data equally well" in check.detail, check.detail
@@ -201,6 +202,6 @@ def test_a_distinct_rig_that_explains_the_data_equally_well_is_refused() -> None
 def test_the_other_minimum_search_returns_to_a_determined_estimate() -> None:
     """The same rig with the markers up to 6 cm above and below that plane: the mirror image 2 deg away in alpha
     explains them far worse, and the solve from it returns to the estimate (or finds a worse minimum): passed."""
-    truth, C, obs = _tilted_rig(3, 1.0, 0.0, flat=0.06)
+    truth, C, obs = _tilted_rig(3, 1.0, 0.0, flat=0.06, scans=120)
     sol, check = _other_minimum(truth, C, obs, DH(0.04, 0.0, 0.0, 0.3))
     assert check.passed and ("returned to it" in check.detail or "worse" in check.detail), check.detail
