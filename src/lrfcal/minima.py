@@ -49,7 +49,8 @@ NAME = "other minimum"
 def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CalibConfig,
                   fit: Callable[..., Solution]) -> Check:
     """The marker-only solution ``sol`` of the returns ``matched`` against the minimum its mirror image leads to
-    (module docstring): passed unless a distinct rig explains the data as well or better."""
+    (module docstring), the clock offset held at the estimate's: passed unless a distinct rig explains the data as
+    well or better."""
     twin = dh_twins(sol.params.dh)[1][1]  # "mirrored", the marker map as it is
     if nominal_distance(twin, nominal.dh, config)[0] > 1.0:
         return Check(NAME, True, f"not searched: the estimate's mirror image ({dh_text(twin)}) is beyond the "
@@ -60,10 +61,11 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
     except CalibrationError:
         return Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
     z = _dh_z(alt.params.dh, sol)
-    if not alt.converged or not np.all(np.isfinite(z)) or np.abs(z).max() <= SAME_SIGMA:
+    if not alt.converged or not np.all(np.isfinite(z)):
+        return Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
+    if np.abs(z).max() <= SAME_SIGMA:
         return Check(NAME, True, f"the solve from the estimate's mirror image returned to it (DH within "
-                                 f"{np.nanmax(np.abs(z)):.1f} sigma)" if alt.converged and np.all(np.isfinite(z))
-                     else "the solve from the estimate's mirror image found no other minimum")
+                                 f"{np.abs(z).max():.1f} sigma)")
     lr = (_cost(alt, matched, markers, nominal, config, sol) - _cost(sol, matched, markers, nominal, config, alt))
     lr /= max(1.0, sol.reduced_chi2)
     ok = lr >= LR_LIMIT

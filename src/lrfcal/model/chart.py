@@ -39,6 +39,8 @@ FloatArray = NDArray[np.float64]
 
 #: |sin(alpha)| below which the scanner's axis counts as parallel to the motor axis (alpha exactly 0 or pi)
 PARALLEL_SIN = 1e-12
+#: the DH parameters' entries in the solver's vector (lrfcal.model.unknowns)
+DH_INDEX = np.arange(DH_SLICE.start, DH_SLICE.stop)
 
 
 def scan_plane_pose(dh: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -148,9 +150,6 @@ def regular_step(R_ref: FloatArray) -> Callable[[FloatArray, NDArray[np.int64], 
 
     return step_to
 
-
-#: the DH parameters' entries in the solver's vector (lrfcal.model.unknowns)
-DH_INDEX = np.arange(DH_SLICE.start, DH_SLICE.stop)
 
 __all__ = ["PARALLEL_SIN", "canonical_dh", "dh_chart", "gauge_distance", "move", "regular_chart", "regular_chart_at",
            "regular_step", "scan_plane_pose"]
