@@ -16,7 +16,7 @@ from lrfcal.config import CalibConfig
 from lrfcal.minima import other_minimum
 from lrfcal.model.chart import canonical_dh, dh_chart, regular_chart, regular_chart_at, regular_step, scan_plane_pose
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, rot_x, rot_z, transform_points
-from lrfcal.model.marker import MarkerSet
+from lrfcal.model.marker import MarkerSet, ray_to_centre
 from lrfcal.model.unknowns import N_CORE, PlaneSet, pack, plane_nuisance_start, wrap_pi
 from lrfcal.problem import Problem
 from lrfcal.solve import solve
@@ -136,9 +136,8 @@ def _tilted_rig(seed: int, tilt_deg: float, towards_deg: float, flat: float | No
     o, dirs = beam_rays_W(truth, lam, mu)
     r, marker = np.full(lam.size, np.inf), np.full(lam.size, -1)
     for j, c in enumerate(C):
-        v = c - o
-        t = (v * dirs).sum(1)
-        e2 = (v * v).sum(1) - t * t
+        _, t, e = ray_to_centre(o, dirs, c)
+        e2 = (e * e).sum(1)
         rr = t - np.sqrt(np.maximum(0.05**2 - e2, 0.0))
         hit = (e2 < 0.05**2) & (t > 0.2) & (rr < r)
         r[hit], marker[hit] = rr[hit], j

@@ -156,12 +156,9 @@ def nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, s
     and beta's). DH differences themselves are singular near a scan plane perpendicular to the motor axis: a
     scanner tilted 0.04 deg towards the motor axis is b of 3.3 m in DH, and 2.6 mm from an untilted one here."""
     tol = config.nominal_tolerance
-    dist, offset_m, angle_rad = gauge_distance(_vector(dh), _vector(nominal), max(tol[0], tol[2]), max(tol[1], tol[3]))
+    dist, offset_m, angle_rad = gauge_distance(dh.vector(), nominal.vector(), max(tol[0], tol[2]),
+                                               max(tol[1], tol[3]))
     return dist, f"the scanner {offset_m * 1000:.1f} mm and {math.degrees(angle_rad):.1f} deg from the nominal's pose"
-
-
-def _vector(dh: DH) -> FloatArray:
-    return np.array([dh.a, dh.alpha, dh.b, dh.beta])
 
 
 def dh_text(dh: DH) -> str:

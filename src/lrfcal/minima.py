@@ -55,14 +55,15 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
     if nominal_distance(twin, nominal.dh, config)[0] > 1.0:
         return Check(NAME, True, f"not searched: the estimate's mirror image ({dh_text(twin)}) is beyond the "
                                  "nominal tolerance")
+    none = Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
     try:
         alt = fit(matched, markers, Params(sol.params.mount, twin), model="sphere", clock=None,
                   clock_offset_s=sol.clock_offset_s)
     except CalibrationError:
-        return Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
+        return none
     z = _dh_z(alt.params.dh, sol)
     if not alt.converged or not np.all(np.isfinite(z)):
-        return Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
+        return none
     if np.abs(z).max() <= SAME_SIGMA:
         return Check(NAME, True, f"the solve from the estimate's mirror image returned to it (DH within "
                                  f"{np.abs(z).max():.1f} sigma)")
@@ -83,17 +84,12 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
 def _dh_z(dh: DH, sol: Solution) -> FloatArray:
     """(4,) DH differences of ``dh`` (or of its "turned" representative, whichever is nearer) from ``sol``'s, in
     ``sol``'s sigma."""
-    ref = np.array([sol.params.dh.a, sol.params.dh.alpha, sol.params.dh.b, sol.params.dh.beta])
-    sigma = np.asarray(sol.sigma[6:10], dtype=float)
-    best = None
-    for cand in (dh, dh_twins(dh)[0][1]):
-        d = np.array([cand.a, cand.alpha, cand.b, cand.beta]) - ref
+    def z(cand: DH) -> FloatArray:
+        d = cand.vector() - sol.params.dh.vector()
         d[[1, 3]] = wrap_pi(d[[1, 3]])
-        z = d / sigma
-        if best is None or np.nanmax(np.abs(z)) < np.nanmax(np.abs(best)):
-            best = z
-    assert best is not None
-    return best
+        return d / np.asarray(sol.sigma[6:10], dtype=float)
+
+    return min((z(dh), z(dh_twins(dh)[0][1])), key=lambda v: float(np.nanmax(np.abs(v))))
 
 
 def _cost(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CalibConfig,

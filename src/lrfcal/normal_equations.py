@@ -171,6 +171,13 @@ def marginal_sigma(N: Normal) -> FloatArray:
 FLAT_COST = 1e-5
 
 
+def _add_step(th: FloatArray, free: IntArray, step: FloatArray) -> FloatArray:
+    """th with ``step`` (free.size,) added to its entries ``free`` (the default step of :func:`levenberg_marquardt`)."""
+    trial = th.copy()
+    trial[free] += step
+    return trial
+
+
 def levenberg_marquardt(
     th0: FloatArray, evaluate: Callable[[FloatArray, bool], Blocks], core: IntArray, n_core: int,
     huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3, stall_tol: float = 0.1,
@@ -185,13 +192,7 @@ def levenberg_marquardt(
     None)."""
     free = np.concatenate([core, np.arange(n_core, th0.size)])
     th = th0.copy()
-
-    def add(th: FloatArray, free: IntArray, step: FloatArray) -> FloatArray:
-        trial = th.copy()
-        trial[free] += step
-        return trial
-
-    move = add if retract is None else retract
+    move = retract or _add_step
 
     def cost(r: FloatArray) -> float:
         if huber is None:

@@ -215,7 +215,7 @@ def _candidate(beams: targetless.Beams, seg: NDArray[np.int64], motor: MotorCloc
                ) -> tuple[DH, FloatArray] | None:
     """One start solved: the canonical DH and its 1-sigma (4,) scaled by sqrt(reduced chi-square), or None when the
     planes are lost, the solve fails or the offsets run off."""
-    prior = (np.array([start.a, start.alpha, start.b, start.beta]), np.array(PRIOR_SIGMA))
+    prior = (start.vector(), np.array(PRIOR_SIGMA))
     dh, thickness = start, START_THICKNESS_M
     sol = None
     for _ in range(ROUNDS):

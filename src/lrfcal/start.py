@@ -111,7 +111,7 @@ def dh_candidates(
     if r.size < 4 or len(X) < 3:
         return []
     D = np.sort(np.linalg.norm(X[:, None] - X[None], axis=2)[np.triu_indices(len(X), 1)])
-    nom = np.array([nominal.a, nominal.alpha, nominal.b, nominal.beta])
+    nom = nominal.vector()
 
     step = math.radians(1.5)
     g = np.arange(-ANGLE_SPAN_RAD, ANGLE_SPAN_RAD + 1e-9, step)

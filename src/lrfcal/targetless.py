@@ -89,8 +89,7 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
     clock.lap("timing")
 
-    prior = (np.array([nominal.dh.a, nominal.dh.alpha, nominal.dh.b, nominal.dh.beta]),
-             np.array(config.nominal_tolerance, dtype=float))
+    prior = (nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))
     first_thickness = 4.0 * config.range_sigma_m + 0.02  # the noise plus what a nominal DH bends a plane by
     start = _Round(nominal.dh, tau0, first_thickness)
     returns, labels, found = start.segment(beams, seg, motor, config)

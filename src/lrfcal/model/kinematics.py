@@ -55,6 +55,10 @@ class DH:
     def as_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in asdict(self).items()}
 
+    def vector(self) -> FloatArray:
+        """(4,) a, alpha, b, beta (:data:`DH_NAMES` order)."""
+        return np.array([self.a, self.alpha, self.b, self.beta], dtype=float)
+
 
 @dataclass(frozen=True)
 class Pose:

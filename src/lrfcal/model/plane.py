@@ -123,13 +123,8 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
 
 
 def _dot(c: FloatArray | tuple[float, float, float], v: tuple[FloatArray, FloatArray, FloatArray]) -> FloatArray:
-    """sum_i c_i v_i (K,) of a constant 3-vector c and three (K,) arrays, skipping the zeros of c (a DH chart's
-    columns are mostly zeros)."""
-    out: FloatArray = np.zeros_like(v[0])
-    for ci, vi in zip(c, v, strict=True):
-        if ci != 0.0:
-            out = out + ci * vi
-    return out
+    """sum_i c_i v_i (K,) of a constant 3-vector c and three (K,) arrays."""
+    return c[0] * v[0] + c[1] * v[1] + c[2] * v[2]
 
 
 def _cos_sin_sum(c: float, x: FloatArray, trig: tuple[FloatArray, FloatArray], declared: bool

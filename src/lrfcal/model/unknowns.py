@@ -87,7 +87,7 @@ def pack(params: Params, clock_offset_s: float = 0.0) -> tuple[FloatArray, Float
     core = np.array([u.start for u in UNKNOWNS])
     core[:3] = T[:3, 3]
     core[3:6] = 0.0
-    core[DH_SLICE] = [params.dh.a, params.dh.alpha, params.dh.b, params.dh.beta]
+    core[DH_SLICE] = params.dh.vector()
     core[TAU] = clock_offset_s
     return core, T[:3, :3].copy()
 
