@@ -127,6 +127,11 @@ def nearer_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, Fl
     return found if d_est > 1.0 and MIRROR_MARGIN * d_twin <= d_est else None
 
 
+#: nominal tolerances beyond which a nominal DH far from both the estimate and its mirror image (50 deg at the 5 deg
+#: default) is named as the likely culprit of a mirror-image refusal (rather than the signs of alpha and b)
+FAR_FROM_BOTH = 10.0
+
+
 def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
     """The rig or its mirror image: each mirror twin of the estimate (lrfcal.model.kinematics.dh_twins) explains the
     data exactly as well (with the marker map mirrored; flatness alike), so only the nominal DH tell them apart.
@@ -134,12 +139,17 @@ def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
     MIRROR_MARGIN times closer to it than the nearest mirror twin; else refused naming both."""
     name, twin, _, d_est, d_twin = _nearest_mirror(dh, nominal, config)
     ok = d_est <= 1.0 or d_twin >= MIRROR_MARGIN * d_est
+    why = ": the data fit the rig and its mirror image equally well (tape distances fix the marker map only up to a "
+    if min(d_est, d_twin) <= FAR_FROM_BOTH:
+        why += "reflection) and the nominal DH do not tell which; check the signs of alpha and b in the rig file's dh "
+        why += "against the drawings"
+    else:  # e.g. a nominal beta 90 deg off: the DH search found the rig (lrfcal.start), the nominal cannot judge it
+        why += (f"reflection), and the nominal DH, far from both, cannot tell which: the rig file's dh is likely wrong "
+                f"(the estimate: {dh_text(dh)}); set it to whichever of the two the drawings confirm and calibrate "
+                "again")
     return Check("mirror image", ok,
                  f"the estimate is {d_est:.1f} nominal tolerances from the nominal DH, its nearest mirror image "
-                 f"({name}: {dh_text(twin)}) {d_twin:.1f}"
-                 + ("" if ok else ": the data fit the rig and its mirror image equally well (tape distances fix the "
-                                  "marker map only up to a reflection) and the nominal DH do not tell which; check "
-                                  "the signs of alpha and b in the rig file's dh against the drawings"))
+                 f"({name}: {dh_text(twin)}) {d_twin:.1f}" + ("" if ok else why))
 
 
 def far_from_nominal(dh: DH, nominal: DH, config: CalibConfig) -> bool:

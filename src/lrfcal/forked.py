@@ -4,6 +4,9 @@ Only each task's return value travels back (pickled). Used for the report's figu
 
 Where no child can be forked (no fork on this platform, one core, a daemonic process such as a pool's worker), or
 a child dies (e.g. out of memory), its task runs here: the outcome is the same, only slower.
+
+:func:`on_cores` runs numpy work on large arrays (which releases the GIL) in threads instead: the clouds of stage 7
+and their geometry, one per DH set.
 """
 
 from __future__ import annotations
@@ -11,7 +14,7 @@ from __future__ import annotations
 import contextlib
 import os
 from collections.abc import Callable
-from typing import TypeVar
+from typing import Any, TypeVar
 
 T = TypeVar("T")
 
@@ -58,4 +61,15 @@ def call_forked(tasks: dict[str, Callable[[], T]]) -> dict[str, T]:
     return {n: done[n] if n in done else tasks[n]() for n in names}
 
 
-__all__ = ["call_forked", "cores"]
+def on_cores(fn: Callable[..., T], calls: list[tuple[Any, ...]], parallel: bool = True) -> list[T]:
+    """``fn(*args)`` for every ``args`` of ``calls``, in order: in threads on the machine's cores when ``parallel``
+    (for numpy work on large arrays, which releases the GIL: nothing is forked or pickled), else here in turn."""
+    if not parallel or len(calls) < 2 or cores() < 2:
+        return [fn(*args) for args in calls]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=min(len(calls), cores()), thread_name_prefix="lrfcal") as pool:
+        return list(pool.map(lambda args: fn(*args), calls))
+
+
+__all__ = ["call_forked", "cores", "on_cores"]

@@ -345,12 +345,18 @@ def _good(assoc: Association, returns: Observations, config: CalibConfig) -> boo
 def _associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
                       config: CalibConfig, from_nominal: Association | None) -> tuple[DH, Association | None]:
     """The association from the candidates of the correspondence-free DH search (lrfcal.start) or from the nominal
-    DH, the best by (matched blobs, alignment RMS); returns the DH it used and the association (None: none)."""
+    DH, the best by (matched blobs, alignment RMS); returns the DH it used and the association (None: none). The
+    search covers the basin around the nominal first, and every attitude of the scan plane (the coarse global start)
+    when no candidate there associates well: a nominal DH far from the rig's is then found, not landed on."""
     best_dh, best = nominal.dh, from_nominal
-    for dh in start.dh_candidates(returns, len(detections.blobs), markers, nominal.dh, nominal.marker_radius_m):
-        found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
-        if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
-            best_dh, best = dh, found
+    for span in (start.ANGLE_SPAN_RAD, start.GLOBAL_SPAN_RAD):
+        for dh in start.dh_candidates(returns, len(detections.blobs), markers, nominal.dh, nominal.marker_radius_m,
+                                      span_rad=span):
+            found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
+            if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
+                best_dh, best = dh, found
+        if best is not None and _good(best, returns, config):
+            break
     return best_dh, best
 
 

@@ -23,6 +23,7 @@ from . import geometry, reproject, timing
 from .checks import refuse_failed
 from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from .errors import CalibrationError, InputError
+from .forked import on_cores
 from .markers import STAGES, fit_markers
 from .rig import refuse_placeholder_dh
 from .targetless import STAGES as TARGETLESS_STAGES
@@ -136,7 +137,7 @@ def _reproject(recording: Recording, joints: JointStates, sol: Solution, config:
     clock.lap("reprojection")
     out: dict[str, object] = {"cloud_before_M": before, "cloud_after_M": after, "cloud_intensity": intensity}
     if config.geometry:
-        out.update(geometry_before=geometry.tunnel_geometry(before), geometry_after=geometry.tunnel_geometry(after))
+        out["geometry_before"], out["geometry_after"] = on_cores(geometry.tunnel_geometry, [(before,), (after,)])
         clock.lap("geometry")
     return out
 

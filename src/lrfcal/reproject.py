@@ -11,10 +11,14 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .forked import on_cores
 from .model.kinematics import DH, points_M_trig
 from .types import Scans
 
 FloatArray = NDArray[np.float64]
+
+#: returns above which the DH sets' clouds are reprojected in threads, one per core (lrfcal.forked.on_cores)
+PARALLEL_RETURNS = 100_000
 
 
 def reproject_cloud(scans: Scans, lambda_rad: ArrayLike, dh: DH, stride: int = 1) -> tuple[FloatArray, FloatArray]:
@@ -59,14 +63,16 @@ def reproject_clouds(
     cl, sl = np.cos(lk), np.sin(lk)
     mu = np.asarray(scans.mu_rad, dtype=np.float64)
     mk = mu.ravel()[idx] if mu.ndim == 2 else mu[bb]  # (S, N) per-scan bearings (or (N,))
-    clouds = []
     offsets = [0.0] * len(dhs) if range_offsets_m is None else list(range_offsets_m)
     scales = [1.0] * len(dhs) if motor_scales is None else list(motor_scales)
     bscales = [1.0] * len(dhs) if beam_scales is None else list(beam_scales)
-    for dh, off, s, k in zip(dhs, offsets, scales, bscales, strict=True):
+
+    def cloud(dh: DH, off: float, s: float, k: float) -> FloatArray:
         phi = dh.beta + (mk if k == 1.0 else k * mk)
         c, sn = (cl, sl) if s == 1.0 else (np.cos(s * lk), np.sin(s * lk))
-        clouds.append(points_M_trig(rk - off if off else rk, c, sn, np.cos(phi), np.sin(phi), dh))
+        return points_M_trig(rk - off if off else rk, c, sn, np.cos(phi), np.sin(phi), dh)
+
+    clouds = on_cores(cloud, list(zip(dhs, offsets, scales, bscales, strict=True)), parallel=rk.size > PARALLEL_RETURNS)
     intensity = np.ravel(scans.intensities)[idx].astype(np.float64, copy=False)
     return clouds, intensity
 

@@ -13,6 +13,9 @@ which is invariant to the unknown mount pose and to mirroring, and needs no ids.
 (+-45 deg around the nominal, 1.5 deg steps) finds the basin; coordinate-wise grids over (a, b) and (alpha, beta)
 with shrinking steps refine it. The few best candidates are handed back to the association and the solver, which
 decide by the data (the method's promised basin: DH angles within 45 deg, a and b within 10 cm of the truth).
+The same search over every attitude (``span_rad=GLOBAL_SPAN_RAD``, 16x the grid) is the coarse global start, run
+by lrfcal.markers when no candidate of the basin associates well. The score cannot tell the mirror twins apart, so
+its peaks come in twins (lrfcal.model.kinematics.dh_twins); the mirror check then judges them by the nominal.
 """
 
 from __future__ import annotations
@@ -22,13 +25,16 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from .model.kinematics import DH
+from .model.kinematics import DH, dh_twins
+from .model.unknowns import wrap_pi
 from .types import MarkerMap, Observations
 
 FloatArray = NDArray[np.float64]
 
 #: The basin the search covers around the nominal values.
 ANGLE_SPAN_RAD = math.radians(45.0)
+#: The span of the global search: every attitude of the scan plane.
+GLOBAL_SPAN_RAD = math.pi
 LENGTH_SPAN_M = 0.10
 
 
@@ -103,9 +109,11 @@ def pair_score(
 
 def dh_candidates(
     obs: Observations, n_blobs: int, markers: MarkerMap, nominal: DH, radius_m: float, n_best: int = 3,
+    span_rad: float = ANGLE_SPAN_RAD,
 ) -> list[DH]:
     """The ``n_best`` DH sets (best first) that explain the blobs' pairwise distances, within the basin around
-    ``nominal`` (module docstring). Empty when there are fewer than 4 blobs."""
+    ``nominal`` (module docstring), alpha and beta within ``span_rad`` of it (:data:`GLOBAL_SPAN_RAD`: every
+    attitude). Empty when there are fewer than 4 blobs."""
     r, lam, mu = _blob_points(obs, n_blobs, radius_m)
     X = np.asarray(markers.positions_W, dtype=float)
     if r.size < 4 or len(X) < 3:
@@ -114,7 +122,7 @@ def dh_candidates(
     nom = nominal.vector()
 
     step = math.radians(1.5)
-    g = np.arange(-ANGLE_SPAN_RAD, ANGLE_SPAN_RAD + 1e-9, step)
+    g = np.arange(-span_rad, span_rad - 1e-9 if span_rad >= math.pi else span_rad + 1e-9, step)
     A, Bt = np.meshgrid(nom[1] + g, nom[3] + g, indexing="ij")
     grid = np.column_stack([np.full(A.size, nom[0]), A.ravel(), np.full(A.size, nom[2]), Bt.ravel()])
     s = pair_score(grid, r, lam, mu, D, tol_m=0.02)
@@ -124,9 +132,25 @@ def dh_candidates(
             seeds.append(grid[i].copy())
         if len(seeds) == n_best:
             break
-    refined = [(_refine(q, nom, r, lam, mu, D)) for q in seeds]
+    refined = [(_refine(q, q if span_rad > ANGLE_SPAN_RAD else nom, r, lam, mu, D)) for q in seeds]
     refined.sort(key=lambda t: -t[1])
-    return [DH(float(v[0]), float(v[1]), float(v[2]), float(v[3])) for v, _ in refined]
+    found = [DH(float(v[0]), float(v[1]), float(v[2]), float(v[3])) for v, _ in refined]
+    return [nearest_representative(dh, nominal) for dh in found]
+
+
+def nearest_representative(dh: DH, nominal: DH) -> DH:
+    """``dh`` or its turned twin (-a, -alpha, b, beta + pi: the same rig, the mount turned by pi about the motor
+    axis, lrfcal.model.kinematics.dh_twins), whichever is nearer ``nominal`` (the larger of the DH differences in
+    units of 10 cm and 45 deg): the result is then reported in the nominal's representative."""
+    turned = dh_twins(dh)[0][1]
+
+    def far(d: DH) -> float:
+        diff = d.vector() - nominal.vector()
+        return float(max(np.abs(diff[[0, 2]]).max() / LENGTH_SPAN_M,
+                         np.abs(wrap_pi(diff[[1, 3]])).max() / ANGLE_SPAN_RAD))
+
+    near = turned if far(turned) < far(dh) else dh
+    return DH(near.a, float(wrap_pi(near.alpha)), near.b, float(wrap_pi(near.beta)))
 
 
 def _refine(x: FloatArray, nom: FloatArray, r: FloatArray, lam: FloatArray, mu: FloatArray, D: FloatArray
@@ -151,4 +175,5 @@ def _refine(x: FloatArray, nom: FloatArray, r: FloatArray, lam: FloatArray, mu: 
     return x, best
 
 
-__all__ = ["ANGLE_SPAN_RAD", "LENGTH_SPAN_M", "dh_candidates", "pair_score"]
+__all__ = ["ANGLE_SPAN_RAD", "GLOBAL_SPAN_RAD", "LENGTH_SPAN_M", "dh_candidates", "nearest_representative",
+           "pair_score"]
