@@ -184,7 +184,7 @@ def _problem_at(
     """The problem of :func:`information_at` (marker rows; plane rows and priors with non-empty ``surfaces``), the
     unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices)."""
     pb, th, R_ref = _at(params, obs, markers_W, model, radius, sigma_r, divergence, clock, clock_offset_s)
-    if sides:  # the lateral residuals the calibration uses (lrfcal.model.marker.crossings)
+    if sides:  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
         pb = with_sides(pb, th, R_ref)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)

@@ -12,8 +12,7 @@ whitened residual exceeds 4 sigma dropped (repeated until the inlier set is stab
 covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals, widened where errors shared within
 a scan or by the returns of one marker make it optimistic (cluster-robust sandwiches), plus the marker map's own
 uncertainty carried through the solution (:func:`_uncertainty`). The markers the scan plane crosses on one side
-only keep their range residuals, and those of a crossing that turns on its marker only the in-plane part of their
-lateral residual (lrfcal.model.marker.crossings, :func:`with_sides`). The plain passes, the
+only keep their range residuals (lrfcal.model.marker.two_sided, :func:`with_sides`). The plain passes, the
 targetless solve and the information run on the normal equations with the planes' nuisances eliminated by the Schur
 complement (lrfcal.normal_equations).
 """
@@ -29,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import CalibrationError
 from .model.chart import regular_chart_at, regular_step
 from .model.kinematics import Params, exp_so3
-from .model.marker import crossings, residuals_3d
+from .model.marker import residuals_3d, two_sided
 from .model.motor import MotorClock, motor_angles
 from .model.plane import plane_rows
 from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, UNKNOWNS, free_by_default, pack, unpack
@@ -164,10 +163,12 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
 
 
 def _per_return_chi(th: FloatArray, pb: Problem, R_ref: FloatArray) -> FloatArray:
-    """Whitened residual norm per marker return divided by the square root of its independent components
-    (lrfcal.model.marker.MarkerSet.dof)."""
+    """Whitened residual norm per marker return divided by the square root of its independent components (3 for
+    either model, 1 for a sphere return whose lateral residual is left out)."""
     res, _ = pb.marker_rows(th, R_ref, jac=False)
-    return np.sqrt((res**2).sum(1) / pb.markers.dof())
+    lateral = pb.markers.lateral
+    dof = np.where(lateral, 3.0, 1.0) if lateral is not None and pb.markers.model == "sphere" else 3.0
+    return np.sqrt((res**2).sum(1) / dof)
 
 
 def solve(
@@ -288,10 +289,9 @@ def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDA
 
 
 def with_sides(pb: Problem, th: FloatArray, R_ref: FloatArray) -> Problem:
-    """``pb`` with the lateral residuals judged at th (lrfcal.model.marker.crossings): left out where the scan
-    plane crosses a marker on one side only, their in-plane part only where a crossing turns on its marker."""
-    lateral, across = crossings(th, pb.markers, R_ref, pb.clock)
-    return replace(pb, markers=replace(pb.markers, lateral=lateral, across=across))
+    """``pb`` with the lateral residuals of the markers the scan plane crosses on one side only left out
+    (lrfcal.model.marker.two_sided, at th)."""
+    return replace(pb, markers=replace(pb.markers, lateral=two_sided(th, pb.markers, R_ref, pb.clock)))
 
 
 def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, pb_all: Problem, th: FloatArray,
@@ -304,8 +304,7 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
     k_in, k_s = int(keep.sum()), int(keep_s.sum())
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
     scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
-    # 3 per marker return (2 with the in-plane part of its lateral residual, 1 without it), 1 per surface return and
-    # prior row
+    # 3 per marker return (1 without its lateral residual), 1 per surface return and prior row
     cov_core, info, core_names, s2, rank_txt, G = _uncertainty(
         pb, th, R_ref, free, pb.markers.n_independent + k_s + n_prior,
         np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res), scan_s, map_cov,
