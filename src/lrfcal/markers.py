@@ -21,12 +21,15 @@ from functools import partial
 import numpy as np
 
 from . import association, detection, mds, minima, observability, solve, start, surfaces, timing
-from .checks import far_from_nominal, marker_checks, mirror_check, nearer_mirror, servo_direction
+from .checks import dh_text, far_from_nominal, marker_checks, mirror_check, nearer_mirror, servo_direction
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
 from .information import information_at
 from .model.kinematics import DH, Params, Pose
+from .model.marker import crossings
 from .model.motor import MotorClock
+from .model.unknowns import pack, wrap_pi
+from .problem import marker_problem
 from .targetless import merge_returns, scene_plane_returns
 from .types import (
     Association,
@@ -108,6 +111,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock,
                            nominal.dh)
     checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
+    ours = _with_turning_systematic(ours, chosen, nominal, config, fit, notes)  # after the checks: they judge the fit
     baseline = None
     if config.baseline:
         baseline = _baseline(chosen, scans, joints, config, fit, notes)
@@ -120,6 +124,34 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
         side_by_side={"markers only": chosen.solution,
                       "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
     )
+
+
+def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nominal, config: CalibConfig,
+                             fit: Callable[..., Solution], notes: list[str]) -> Solution:
+    """``ours`` with the DH covariance widened by d d^T, d the difference the model variant makes where the sweep
+    turns on a marker (lrfcal.model.marker.crossings: only the in-plane part of those crossings' lateral residual,
+    solve(in_plane_at_turns=True)), between the two marker-only solutions. The lines of a turning crossing crowd
+    about the turning point and bias the part across the scan plane; the variant leaves that part out and loses its
+    information, so neither is right alone, and their difference is a model error the noise's sigma does not hold
+    (docs/study.md, "A crossing that turns on its marker"). Unchanged where no crossing turns."""
+    sol = chosen.solution
+    pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, "sphere", nominal.marker_radius_m,
+                           config.range_sigma_m, nominal.beam_divergence_rad)
+    th, R_ref = pack(sol.params, sol.clock_offset_s)
+    if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
+        return ours
+    try:
+        variant = fit(chosen.matched, chosen.markers, sol.params, model="sphere", clock=chosen.clock,
+                      clock_offset_s=sol.clock_offset_s, in_plane_at_turns=True)
+    except CalibrationError:
+        return ours
+    d = variant.params.vector()[6:] - sol.params.vector()[6:]
+    d[[1, 3]] = wrap_pi(d[[1, 3]])
+    cov = np.array(ours.covariance, dtype=float)
+    cov[6:10, 6:10] += np.outer(d, d)
+    notes.append("crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral "
+                 f"residual differ by {dh_text(DH(*d))}, added to the covariance")
+    return replace(ours, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
 def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Callable[..., Solution]) -> Alternative:

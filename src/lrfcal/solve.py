@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 from .errors import CalibrationError
 from .model.chart import regular_chart_at, regular_step
 from .model.kinematics import Params, exp_so3
-from .model.marker import residuals_3d, two_sided
+from .model.marker import crossings, residuals_3d
 from .model.motor import MotorClock, motor_angles
 from .model.plane import plane_rows
 from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, UNKNOWNS, free_by_default, pack, unpack
@@ -163,12 +163,10 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
 
 
 def _per_return_chi(th: FloatArray, pb: Problem, R_ref: FloatArray) -> FloatArray:
-    """Whitened residual norm per marker return divided by the square root of its independent components (3 for
-    either model, 1 for a sphere return whose lateral residual is left out)."""
+    """Whitened residual norm per marker return divided by the square root of its independent components
+    (lrfcal.model.marker.MarkerSet.dof)."""
     res, _ = pb.marker_rows(th, R_ref, jac=False)
-    lateral = pb.markers.lateral
-    dof = np.where(lateral, 3.0, 1.0) if lateral is not None and pb.markers.model == "sphere" else 3.0
-    return np.sqrt((res**2).sum(1) / dof)
+    return np.sqrt((res**2).sum(1) / pb.markers.dof())
 
 
 def solve(
@@ -188,6 +186,7 @@ def solve(
     estimate_range_bias: bool = False,
     beam_divergence_rad: float = 0.0,
     estimate: Sequence[str] = (),
+    in_plane_at_turns: bool = False,
 ) -> Solution:
     """Estimate the 10 parameters (and the clock offset, the intrinsics) from marker returns.
 
@@ -215,6 +214,7 @@ def solve(
             (the returns of retroreflective markers only; "range walk" of strong returns), started at 0; only
             separable with surface returns (see lrfcal.markers).
         estimate: names of unknowns the model holds by default (lrfcal.model.unknowns.UNKNOWNS) to estimate here.
+        in_plane_at_turns: the model variant (lrfcal.model.marker.MarkerSet.in_plane_at_turns).
     Returns:
         Solution: estimate, covariance (10, 10) in ESTIMATE_NAMES order (the rotation as a rotation vector in
         frame M; the marginal over plane nuisances and the clock offset; NaN rows for held parameters), the clock
@@ -237,7 +237,7 @@ def solve(
     free_core[TAU] &= clock is not None
     free_core[[ROFF, MBIAS]] &= estimate_range_bias
     th, R_ref = pack(start, clock_offset_s)
-    pb_all = replace(pb_all, clock=clock)
+    pb_all = replace(pb_all, clock=clock, markers=replace(pb_all.markers, in_plane_at_turns=in_plane_at_turns))
     if surfaces is not None and len(surfaces):
         surf, nu0 = plane_set(surfaces, planes)
         pb_all = replace(pb_all, surf=surf)
@@ -289,9 +289,12 @@ def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDA
 
 
 def with_sides(pb: Problem, th: FloatArray, R_ref: FloatArray) -> Problem:
-    """``pb`` with the lateral residuals of the markers the scan plane crosses on one side only left out
-    (lrfcal.model.marker.two_sided, at th)."""
-    return replace(pb, markers=replace(pb.markers, lateral=two_sided(th, pb.markers, R_ref, pb.clock)))
+    """``pb`` with the lateral residuals of the markers the scan plane crosses on one side only left out, and in
+    the model variant ``in_plane_at_turns`` only their in-plane part in crossings that turn on their marker
+    (lrfcal.model.marker.crossings, at th)."""
+    lateral, across = crossings(th, pb.markers, R_ref, pb.clock)
+    return replace(pb, markers=replace(pb.markers, lateral=lateral,
+                                       across=across if pb.markers.in_plane_at_turns else None))
 
 
 def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, pb_all: Problem, th: FloatArray,
