@@ -163,8 +163,7 @@ def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[n
 
 
 def _per_return_chi(th: FloatArray, pb: Problem, R_ref: FloatArray) -> FloatArray:
-    """Whitened residual norm per marker return divided by the square root of its independent components
-    (lrfcal.model.marker.MarkerSet.dof)."""
+    """Whitened residual norm per marker return over the square root of its independent components (MarkerSet.dof)."""
     res, _ = pb.marker_rows(th, R_ref, jac=False)
     return np.sqrt((res**2).sum(1) / pb.markers.dof())
 
@@ -307,7 +306,7 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
     k_in, k_s = int(keep.sum()), int(keep_s.sum())
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
     scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
-    # 3 per marker return (1 without its lateral residual), 1 per surface return and prior row
+    # per marker return its independent residuals (MarkerSet.n_independent), 1 per surface return and prior row
     cov_core, info, core_names, s2, rank_txt, G = _uncertainty(
         pb, th, R_ref, free, pb.markers.n_independent + k_s + n_prior,
         np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res), scan_s, map_cov,
