@@ -18,7 +18,7 @@ from .errors import CalibrationError
 from .model.chart import gauge_distance
 from .model.kinematics import DH, PARAM_NAMES, dh_twins
 from .model.motor import MotorClock
-from .model.unknowns import CORE_NAMES, wrap_pi
+from .model.unknowns import CORE_NAMES, dh_difference, wrap_pi
 from .surfaces import SurfaceReturns
 from .types import Check, MarkerMap, Observations, Solution
 
@@ -222,8 +222,7 @@ def _marker_second_opinion(
             return Check("second opinion", True, f"not available: {how} alone have too few returns")
         if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
-        d = ps.params.vector()[dh] - sol.params.vector()[dh]
-        d[[1, 3]] = wrap_pi(d[[1, 3]])
+        d = dh_difference(ps.params.vector()[dh], sol.params.vector()[dh])
         C = ps.covariance[np.ix_(dh, dh)] - sol.covariance[np.ix_(dh, dh)]
         if markers.covariance is not None and ps.map_sensitivity is not None and sol.map_sensitivity is not None:
             # the map's error is shared: it moves the part and the joint solution by G dc each, the difference

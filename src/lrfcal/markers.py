@@ -28,7 +28,7 @@ from .information import information_at
 from .model.kinematics import DH, Params, Pose
 from .model.marker import crossings
 from .model.motor import MotorClock
-from .model.unknowns import pack, wrap_pi
+from .model.unknowns import dh_difference, pack
 from .problem import marker_problem
 from .targetless import merge_returns, scene_plane_returns
 from .types import (
@@ -145,8 +145,7 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
                       clock_offset_s=sol.clock_offset_s, in_plane_at_turns=True)
     except CalibrationError:
         return ours
-    d = variant.params.vector()[6:] - sol.params.vector()[6:]
-    d[[1, 3]] = wrap_pi(d[[1, 3]])
+    d = dh_difference(variant.params.dh.vector(), sol.params.dh.vector())
     cov = np.array(ours.covariance, dtype=float)
     cov[6:10, 6:10] += np.outer(d, d)
     notes.append("crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral "

@@ -32,7 +32,7 @@ from .config import CalibConfig
 from .errors import CalibrationError
 from .information import model_residuals
 from .model.kinematics import DH, Params, dh_twins
-from .model.unknowns import wrap_pi
+from .model.unknowns import dh_difference
 from .types import Check, MarkerMap, Nominal, Observations, Solution
 
 FloatArray = NDArray[np.float64]
@@ -85,9 +85,7 @@ def _dh_z(dh: DH, sol: Solution) -> FloatArray:
     """(4,) DH differences of ``dh`` (or of its "turned" representative, whichever is nearer) from ``sol``'s, in
     ``sol``'s sigma."""
     def z(cand: DH) -> FloatArray:
-        d = cand.vector() - sol.params.dh.vector()
-        d[[1, 3]] = wrap_pi(d[[1, 3]])
-        return d / np.asarray(sol.sigma[6:10], dtype=float)
+        return dh_difference(cand.vector(), sol.params.dh.vector()) / np.asarray(sol.sigma[6:10], dtype=float)
 
     return min((z(dh), z(dh_twins(dh)[0][1])), key=lambda v: float(np.nanmax(np.abs(v))))
 

@@ -17,7 +17,7 @@ from .errors import InputError
 from .model.marker import MODELS, MarkerSet, centre_jacobian, marker_rows
 from .model.motor import MotorClock
 from .model.plane import plane_rows
-from .model.unknowns import DH_SLICE, N_CORE, PlaneSet, plane_nuisance_start, wrap_pi
+from .model.unknowns import DH_SLICE, N_CORE, PlaneSet, dh_difference, plane_nuisance_start
 from .normal_equations import Blocks
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations
@@ -91,8 +91,7 @@ class Problem:
             r_d, J_d = res.ravel(), (None if J is None else J.reshape(-1, N_CORE))
         if self.dh_prior is not None:  # the design drawing's word on the DH parameters
             mean, sig = self.dh_prior
-            d = th[DH_SLICE] - mean
-            d[[1, 3]] = wrap_pi(d[[1, 3]])
+            d = dh_difference(th[DH_SLICE], mean)
             r_d = np.concatenate([r_d, d / sig])
             if J_d is not None:
                 Jp = np.zeros((4, N_CORE))

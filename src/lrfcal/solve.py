@@ -291,9 +291,9 @@ def with_sides(pb: Problem, th: FloatArray, R_ref: FloatArray) -> Problem:
     """``pb`` with the lateral residuals of the markers the scan plane crosses on one side only left out, and in
     the model variant ``in_plane_at_turns`` only their in-plane part in crossings that turn on their marker
     (lrfcal.model.marker.crossings, at th)."""
-    lateral, across = crossings(th, pb.markers, R_ref, pb.clock)
-    return replace(pb, markers=replace(pb.markers, lateral=lateral,
-                                       across=across if pb.markers.in_plane_at_turns else None))
+    turns = pb.markers.in_plane_at_turns
+    lateral, across = crossings(th, pb.markers, R_ref, pb.clock, turns=turns)
+    return replace(pb, markers=replace(pb.markers, lateral=lateral, across=across if turns else None))
 
 
 def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, pb_all: Problem, th: FloatArray,

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .model.kinematics import DH, dh_twins
-from .model.unknowns import wrap_pi
+from .model.unknowns import dh_difference, wrap_pi
 from .types import MarkerMap, Observations
 
 FloatArray = NDArray[np.float64]
@@ -145,9 +145,8 @@ def nearest_representative(dh: DH, nominal: DH) -> DH:
     turned = dh_twins(dh)[0][1]
 
     def far(d: DH) -> float:
-        diff = d.vector() - nominal.vector()
-        return float(max(np.abs(diff[[0, 2]]).max() / LENGTH_SPAN_M,
-                         np.abs(wrap_pi(diff[[1, 3]])).max() / ANGLE_SPAN_RAD))
+        diff = np.abs(dh_difference(d.vector(), nominal.vector()))
+        return float(max(diff[[0, 2]].max() / LENGTH_SPAN_M, diff[[1, 3]].max() / ANGLE_SPAN_RAD))
 
     near = turned if far(turned) < far(dh) else dh
     return DH(near.a, float(wrap_pi(near.alpha)), near.b, float(wrap_pi(near.beta)))

@@ -41,7 +41,7 @@ from .forked import cores
 from .information import plane_information
 from .model.kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .model.motor import MotorClock
-from .model.unknowns import CORE_NAMES, wrap_pi
+from .model.unknowns import CORE_NAMES, dh_difference
 from .surfaces import Surface, SurfaceReturns, hash_sample
 from .types import CalibrationResult, Check, JointStates, PlaneFit, Recording, Scans, Solution
 
@@ -193,8 +193,7 @@ def _coarse(beams: Beams, seg: NDArray[np.int64]) -> tuple[Beams, NDArray[np.int
 
 def _round_difference(a: Solution, b: Solution) -> FloatArray:
     """b's DH minus a's (4,), angles wrapped; 0 where a parameter is held (no sigma)."""
-    d = b.params.vector()[6:] - a.params.vector()[6:]
-    d[[1, 3]] = wrap_pi(d[[1, 3]])
+    d = dh_difference(b.params.vector()[6:], a.params.vector()[6:])
     return np.where(np.isfinite(b.sigma[6:10]), d, 0.0)
 
 

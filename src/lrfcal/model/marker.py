@@ -211,14 +211,15 @@ def two_sided(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
               ) -> NDArray[np.bool_]:
     """(K,) whether each return's marker is crossed by the scan plane on both sides of its centre
     (:func:`crossings`' first part)."""
-    return crossings(th, ms, R_ref, clock)[0]
+    return crossings(th, ms, R_ref, clock, turns=False)[0]
 
 
-def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorClock | None = None
-              ) -> tuple[NDArray[np.bool_], FloatArray]:
+def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorClock | None = None,
+              turns: bool = True) -> tuple[NDArray[np.bool_], FloatArray]:
     """Which part of each return's lateral residual is used: (K,) whether its marker is crossed by the scan plane on
     both sides of its centre (else none of it), and (K, 3) the scan plane's unit normal where only its part in
-    the scan plane is (a crossing that turns on its marker, :func:`_turning`), 0 elsewhere.
+    the scan plane is (a crossing that turns on its marker, :func:`_turning`), 0 elsewhere (everywhere when not
+    ``turns``: only the first part is wanted).
 
     A return's lateral residual says "the marker's centre is on my ray, give or take a filled disc": unbiased
     when the scan lines that hit the marker pass on both sides of its centre. A marker the scan plane only grazes
@@ -243,8 +244,8 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
     np.maximum.at(hi, ms.marker, side)
     both = (lo < 0)[ms.marker] & (hi > 0)[ms.marker]
     tilted = abs(math.sin(al)) >= math.sin(TILT_FOR_IN_PLANE_RAD)
-    turning = (np.zeros(h.size, bool) if ms.times is None or not tilted
-               else _turning(h, ms.marker, ms.times, ms.radius))
+    turning = (_turning(h, ms.marker, ms.times, ms.radius) if turns and tilted and ms.times is not None
+               else np.zeros(h.size, bool))
     return both, np.where(turning[:, None], n, 0.0)
 
 

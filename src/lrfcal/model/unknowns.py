@@ -80,6 +80,13 @@ def wrap_pi(a: ArrayLike) -> FloatArray:
     return a - 2 * np.pi * np.ceil((a - np.pi) / (2 * np.pi))
 
 
+def dh_difference(p: ArrayLike, q: ArrayLike) -> FloatArray:
+    """(4,) the DH vector p - q (a, alpha, b, beta), alpha's and beta's differences wrapped to (-pi, pi]."""
+    d = np.asarray(p, dtype=float) - np.asarray(q, dtype=float)
+    d[[1, 3]] = wrap_pi(d[[1, 3]])
+    return d
+
+
 def pack(params: Params, clock_offset_s: float = 0.0) -> tuple[FloatArray, FloatArray]:
     """The core vector (N_CORE,) of ``params`` with w = 0 and every other unknown at its start, and R_ref (3, 3)
     (roll, pitch and yaw are only a format)."""
