@@ -124,3 +124,32 @@ def test_plan_predicts_the_sigma_a_precise_scanner_reports(recording_of) -> None
     for i, n in enumerate(("a", "alpha", "b", "beta")):
         assert 0.75 <= t.sigma[i] / p.sigma[n] <= 1.25, (n, t.sigma[i], p.sigma[n], p.model_sigma[n])
     assert "model_error_sigma" in p.to_json() and "model-error part" in format_plan(p)
+
+
+@pytest.mark.parametrize("which", ["fast tunnel", "tilted broad truth"])
+def test_sparse_cast_has_every_marker_return(which: str) -> None:
+    """plan casts only the scans that can see a marker and every SURFACE_SCAN_STEP-th other one: the marker
+    returns are those of the full cast, bit for bit, from fewer scans; joined with the rest it is the full cast;
+    the predicted sigmas move by what another sample of the surface returns moves them (a few %)."""
+    import numpy as np
+
+    from lrfsim.plan import FOOTPRINT, marker_observations, sparse_geometry
+    from lrfsim.randomize import random_scenario_wide
+    from lrfsim.simulate import cast_geometry
+
+    sc = (parse_scenario(_fast_tunnel(), "fast tunnel") if which == "fast tunnel"
+          else random_scenario_wide(12, alpha_kind="tilted"))
+    full = cast_geometry(sc, noise=False, footprint=FOOTPRINT)
+    sparse = sparse_geometry(sc)
+    cast = np.isfinite(sparse.cast.ranges_m).any(axis=1)
+    assert cast.mean() < (0.5 if which == "fast tunnel" else 1.0), cast.mean()  # a tilted plane sees markers longer
+    a, b = marker_observations(sc, full)[0], marker_observations(sc, sparse)[0]
+    assert len(a) > 20
+    for f in ("scan", "beam", "marker", "ranges_m", "intensity", "lambda_rad"):
+        assert np.array_equal(getattr(a, f), getattr(b, f)), f
+    both = sparse_geometry(sc, rest_of=sparse).cast.ranges_m
+    assert np.array_equal(np.isnan(both), np.isnan(full.cast.ranges_m))
+    assert np.nanmax(np.abs(both - full.cast.ranges_m)) < 1e-3
+    p_sparse, p_full = plan(sc), plan(sc, geometry=full)
+    for n in ("a", "alpha", "b", "beta"):
+        assert abs(p_sparse.sigma[n] / p_full.sigma[n] - 1) < 0.1, (n, p_sparse.sigma[n], p_full.sigma[n])

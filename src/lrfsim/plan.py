@@ -1,8 +1,11 @@
 """Know before you build: the predicted 1-sigma of every calibrated parameter of a scenario, without calibrating.
 
-The scenario's rays are cast once without noise (``lrfsim.simulate.simulate(..., noise=False)``; the mixed-pixel
+The scenario's rays are cast once without noise (``lrfsim.simulate.cast_geometry(..., noise=False)``; the mixed-pixel
 footprint stays, its ring cast only where it can change a beam: ``footprint="edges"``, lrfsim.raychunks, a fifth of
-the rays, the same sigmas to 3e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share),
+the rays, the same sigmas to 3e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share).
+Only the scans that can see a marker are cast, and every SURFACE_SCAN_STEP-th other one for the surface returns
+(:func:`sparse_geometry`: the same marker returns; half the scans of tunnel_v; the rest too when those scans hold
+fewer surface returns than the calibration samples),
 the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return whose ray passes
 within the marker), and the calibration's own observation and noise model is evaluated at the TRUE parameters:
 ``lrfcal.information.information_at`` (the sphere model: range residual with sigma_r = the scenario sensor's range
@@ -33,6 +36,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -180,16 +184,18 @@ def marker_observations(scenario: Scenario, geometry: Geometry | None = None
                         ) -> tuple[Observations, FloatArray, Params, MotorClock, float, Any]:
     """Cast the scenario's rays once without noise and return the marker returns as the calibration sees them.
     ``geometry``: the scenario's cast made before (lrfsim.simulate.cast_geometry, as `lrfsim study` shares it with
-    its trials), read without noise instead of casting (the same sigmas to 1e-11 on the shipped scenarios).
+    its trials, or :func:`sparse_geometry`), read without noise instead of casting (the same sigmas to 1e-11 on the
+    shipped scenarios).
 
     Returns (observations with the true marker of each return and the true motor angles, marker centres (n, 3) in
     W, the true Params, the servo's MotorClock (reported joint states), the true clock offset [s], the SimResult).
     """
     from .faults import marker_returns
-    from .simulate import simulate, simulate_from_geometry
+    from .simulate import cast_geometry, simulate_from_geometry
 
-    result = (simulate(scenario, noise=False, footprint=FOOTPRINT) if geometry is None
-              else simulate_from_geometry(scenario, geometry, noise=False))
+    if geometry is None:
+        geometry = cast_geometry(scenario, noise=False, footprint=FOOTPRINT)
+    result = simulate_from_geometry(scenario, geometry, noise=False)
     owner = marker_returns(result, scenario)
     s_idx, b_idx = np.nonzero(owner >= 0)
     sensor = scenario.sensor
@@ -204,6 +210,44 @@ def marker_observations(scenario: Scenario, geometry: Geometry | None = None
     joints = JointStates(stamps_s=result.joints.stamps_s, positions_rad=result.joints.positions_rad)
     params = Params(result.truth.mount, result.truth.dh)
     return obs, result.truth.markers_W, params, MotorClock.from_joints(joints), result.truth.clock_offset_s, result
+
+
+#: plan's sparse cast (:func:`sparse_scans`) casts every this-many-th scan for the surface returns
+SURFACE_SCAN_STEP = 4
+#: the label of the returns plan's surface sample leaves out (lrfcal.surfaces.observe_surfaces: not a surface return)
+NOT_SAMPLED = 1 << 30
+#: and every scan whose plane passes within this much (plus the footprint's spread) of a marker's centre
+NEAR_MARKER_M = 0.005
+
+
+def sparse_scans(scenario: Scenario, beam_lambda_rad: FloatArray) -> NDArray[np.bool_]:
+    """(S,) bool: the scans plan casts (``marker_observations(..., sparse=True)``): those whose plane passes near
+    a marker (lrfsim.visibility.scans_near_markers: the marker's radius and NEAR_MARKER_M plus the footprint's
+    ring, a superset of the scans with a marker return) and every SURFACE_SCAN_STEP-th scan, for the surface
+    returns (plan uses a subsample of them, as the calibration does)."""
+    from .lidar import beam_angles, ring_half_angle
+    from .scene_geometry import marker_centres_W
+    from .visibility import scans_near_markers
+
+    if scenario.markers is None:
+        return np.ones(beam_lambda_rad.shape[0], dtype=bool)
+    params = Params(scenario.rig.mount.to_pose(), scenario.rig.dh.to_dh())
+    reach = float(scenario.markers.radius_m) + NEAR_MARKER_M
+    near = scans_near_markers(params, beam_lambda_rad, beam_angles(scenario.sensor), marker_centres_W(scenario),
+                              reach, 2.0 * ring_half_angle(scenario.sensor))
+    return near | (np.arange(beam_lambda_rad.shape[0]) % SURFACE_SCAN_STEP == 0)
+
+
+def sparse_geometry(scenario: Scenario, rest_of: Geometry | None = None) -> Geometry:
+    """Plan's noise-free cast of the scans :func:`sparse_scans` picks (the others without a return); with
+    ``rest_of`` (such a cast), the other scans cast and joined to it: the full cast."""
+    from .simulate import cast_geometry, joined
+
+    if rest_of is None:
+        return cast_geometry(scenario, noise=False, footprint=FOOTPRINT, scans=partial(sparse_scans, scenario))
+    rest = cast_geometry(scenario, noise=False, footprint=FOOTPRINT,
+                         scans=lambda lam: ~sparse_scans(scenario, lam))
+    return joined(rest_of, rest)
 
 
 def expected_map_covariance(scenario: Scenario, markers_W: FloatArray) -> FloatArray:
@@ -248,7 +292,8 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     require_markers(scenario, "lrfsim plan", "predicts from the marker returns")
     t0 = time.perf_counter()
     config = CalibConfig()
-    obs, markers_W, params, motor, tau, result = marker_observations(scenario, geometry)
+    cast = sparse_geometry(scenario) if geometry is None else geometry
+    obs, markers_W, params, motor, tau, result = marker_observations(scenario, cast)
     sigma_r = scenario_range_sigma(scenario, obs.ranges_m) if range_sigma_m is None else float(range_sigma_m)
     n_seen = int(np.unique(obs.marker).size)
     if len(obs) < 4 or n_seen < 3:
@@ -259,7 +304,12 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     radius = float(scenario.markers.radius_m)
     on_planes, planes, source = None, None, SOURCE_MARKERS
     if surfaces and config.surfaces:
-        planes, on_planes = _surface_returns(scenario, result, obs, markers_W, params, config)
+        sample = SURFACE_SCAN_STEP if geometry is None else 1
+        planes, on_planes = _surface_returns(scenario, result, obs, markers_W, params, config, sample)
+        if sample > 1 and planes and len(on_planes) < config.surface_max_returns:  # fewer than the calibration
+            cast = sparse_geometry(scenario, rest_of=cast)  # samples: all of them, every scan cast
+            obs, markers_W, params, motor, tau, result = marker_observations(scenario, cast)
+            planes, on_planes = _surface_returns(scenario, result, obs, markers_W, params, config)
         if len(on_planes):
             source = SOURCE_SURFACES
         else:
@@ -326,12 +376,14 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
 
 
 def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers_W: FloatArray, params: Params,
-                     config: CalibConfig) -> tuple[list[Surface], SurfaceReturns]:
+                     config: CalibConfig, step: int = 1) -> tuple[list[Surface], SurfaceReturns]:
     """The marker-carrying planes and their returns in the noise-free recording, found as the pipeline finds them
-    (labels: the marker returns; position sigma of the markers: the tape's, at least 0.5 mm)."""
+    (labels: the marker returns; position sigma of the markers: the tape's, at least 0.5 mm), from every
+    ``step``-th scan (an even sample of the sweep: the sparse cast casts more scans near the markers)."""
     S, N = result.ranges_m.shape
     labels = np.full((S, N), -1, dtype=np.int64)
     labels[obs.scan, obs.beam] = obs.marker
+    labels[np.arange(S) % step != 0] = NOT_SAMPLED
     beam_times = result.scan_stamps_s[:, None] + np.arange(N)[None, :] * scenario.sensor.time_increment_s
     return observe_surfaces(result.ranges_m, result.mu_rad, result.beam_lambda_rad, labels, markers_W,
                             float(scenario.marker_radius_m or 0.0), params,

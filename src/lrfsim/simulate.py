@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -73,11 +73,15 @@ class Geometry:
 
 def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool = True,
                   progress: Callable[[int, int], None] | None = None, threads: int | None = None,
-                  footprint: str = "full") -> Geometry:
+                  footprint: str = "full", scans: Callable[[FloatArray], NDArray[np.bool_]] | None = None
+                  ) -> Geometry:
     """Cast the scenario's rays once (no noise drawn): the laser phase comes from ``scenario.seed`` as in
     :func:`simulate`; ``noise=False`` casts for a noise-free sensor (range_max cut-off, see simulate); ``threads``:
     the cast's threads (lrfsim.raycast.cast_scans; the result does not depend on it); ``footprint``: "full", or
-    "edges" for the footprint's ring cast only where it can change a beam (lrfsim.raychunks.cast_chunk_edges)."""
+    "edges" for the footprint's ring cast only where it can change a beam (lrfsim.raychunks.cast_chunk_edges);
+    ``scans(beam_lambda_rad (S, N)) -> (S,) bool``: cast only those scans, the others read as no return (each
+    scan is cast on its own, so the scans cast read as in the full cast, up to "edges"' choice of where to cast
+    the ring, which compares a scan with the scans cast beside it)."""
     from .faults import scale_range_noise
 
     scenario = scale_range_noise(scenario)
@@ -94,9 +98,45 @@ def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool
     starts_s = scan_start_times(traj.end_s, sensor, phase_s)
     times_s = beam_times(starts_s, sensor)
     beam_lambda = traj.angle(times_s)
-    cast = cast_scans(scene, sensor, beam_lambda, progress=progress, threads=threads, footprint=footprint)
+    keep = None if scans is None else np.asarray(scans(beam_lambda), dtype=bool)
+    if keep is None or keep.all():
+        cast = cast_scans(scene, sensor, beam_lambda, progress=progress, threads=threads, footprint=footprint)
+    else:
+        cast = _in_scans(cast_scans(scene, sensor, beam_lambda[keep], progress=progress, threads=threads,
+                                    footprint=footprint), keep)
     return Geometry(scenario_name=scenario.name, scene=scene, phase_s=phase_s, starts_s=starts_s,
                     beam_lambda_rad=beam_lambda, duration_s=traj.end_s, cast=cast, beam_times_s=times_s)
+
+
+def _in_scans(cast: Cast, keep: NDArray[np.bool_]) -> Cast:
+    """A cast of the scans ``keep`` (S,) placed among all S scans, the others without a return."""
+    def place(a: FloatArray, fill: float) -> FloatArray:
+        out = np.full((keep.size, *a.shape[1:]), fill)
+        out[keep] = a
+        return out
+
+    echoes = cast.echo_ranges_m is not None and cast.echo_power is not None
+    return replace(cast, ranges_m=place(cast.ranges_m, np.nan), intensities=place(cast.intensities, 0.0),
+                   echo_ranges_m=place(cast.echo_ranges_m, np.nan) if echoes else None,  # type: ignore[arg-type]
+                   echo_power=place(cast.echo_power, 0.0) if echoes else None)  # type: ignore[arg-type]
+
+
+def joined(a: Geometry, b: Geometry) -> Geometry:
+    """Two casts of one scenario's geometry over disjoint sets of scans (``cast_geometry(..., scans=...)``), as
+    one: each scan's returns from the cast that cast it."""
+    ca, cb = a.cast, b.cast
+
+    def join(x: FloatArray | None, y: FloatArray | None) -> FloatArray | None:
+        return None if x is None or y is None else np.where(np.isnan(x), y, x)
+
+    cast = replace(ca, ranges_m=np.where(np.isnan(ca.ranges_m), cb.ranges_m, ca.ranges_m),
+                   intensities=ca.intensities + cb.intensities, echo_ranges_m=join(ca.echo_ranges_m, cb.echo_ranges_m),
+                   echo_power=None if ca.echo_power is None or cb.echo_power is None else ca.echo_power + cb.echo_power,
+                   n_rays=ca.n_rays + cb.n_rays, n_calls=ca.n_calls + cb.n_calls,
+                   cast_time_s=ca.cast_time_s + cb.cast_time_s, total_time_s=ca.total_time_s + cb.total_time_s,
+                   max_origin_error_m=max(ca.max_origin_error_m, cb.max_origin_error_m),
+                   max_parallax_correction_m=max(ca.max_parallax_correction_m, cb.max_parallax_correction_m))
+    return replace(a, cast=cast)
 
 
 def _noise_free(scenario: Scenario) -> Scenario:

@@ -4,7 +4,8 @@ labels of :mod:`lrfsim.randomize`'s broad random truths).
 * :func:`visible_markers`: the markers some beam within the field of view meets at some motor angle (geometry
   only); :func:`beam_through` / :func:`visible_in_M`: the same for directions in the motor frame;
 * :func:`wide_dh_sigma`, :func:`axial_spread_m`, :func:`wide_dh_determined`: the determinability label;
-* :func:`detected_markers`: the markers the calibration's detection finds in a simulated recording.
+* :func:`detected_markers`: the markers the calibration's detection finds in a simulated recording;
+* :func:`scans_near_markers`: the scans some beam of which can pass near a marker (`lrfsim plan`'s sparse cast).
 
 The geometry takes the optical centre on the motor axis, at its axial coordinate b cos(alpha) (eq. 3: the
 optical centre in M is Rz(lambda) (a, -b sin alpha, b cos alpha)); the radial offset (a, -b sin alpha), a few cm,
@@ -21,6 +22,8 @@ import numpy as np
 from .servo import covered_angles_rad
 
 if TYPE_CHECKING:
+    from lrfcal.model.kinematics import Params
+
     from .scenario import Scenario
     from .scenario_sections import ServoConfig
     from .simresult import SimResult
@@ -184,6 +187,37 @@ def wide_dh_determined(scenario: Scenario) -> bool:
     if int(visible_markers(scenario).sum()) < 6 or axial_spread_m(scenario) < WIDE_MIN_AXIAL_SPREAD_M:
         return False
     return bool(np.all(wide_dh_sigma(scenario) <= np.array(WIDE_SIGMA_LIMITS)))
+
+
+#: bearings (fractions of the field of view) at which :func:`scans_near_markers` samples each scan's plane
+NEAR_SAMPLES = (0.0, 0.25, 0.5, 0.75, 1.0)
+
+
+def scans_near_markers(params: Params, beam_lambda_rad: np.ndarray, mu_rad: np.ndarray, centres_W: np.ndarray,
+                       reach_m: float, spread_rad: float) -> np.ndarray:
+    """(S,) bool: the scans (true motor angle of every beam (S, N), bearings (N,), true Params) whose scan plane
+    passes within reach of a marker (centres (m, 3) in W): within ``reach_m`` + ``spread_rad`` times the distance
+    of the marker from the beam's origin, at one of the :data:`NEAR_SAMPLES` bearings, or on both sides of it
+    (the plane turns smoothly within a scan); and one scan on each side of such a scan. A superset of the scans
+    with a return on a marker: `lrfsim plan` casts them (exact marker returns) and skips most others."""
+    from lrfcal.model.kinematics import beam_rays_W
+
+    S, N = beam_lambda_rad.shape
+    if S == 0 or not len(centres_W):
+        return np.zeros(S, dtype=bool)
+    cols = sorted({round(f * (N - 1)) for f in NEAR_SAMPLES})
+    lam = beam_lambda_rad[:, cols].ravel()  # (S P,)
+    o, d0 = beam_rays_W(params, lam, np.zeros_like(lam))
+    _, d1 = beam_rays_W(params, lam, np.full_like(lam, 0.5 * math.pi))
+    n = np.cross(d0, d1)  # the scan plane's normal at each sampled beam's motor angle
+    side = (n @ centres_W.T - np.einsum("ij,ij->i", n, o)[:, None]).reshape(S, len(cols), -1)  # (S, P, m)
+    far = np.linalg.norm(centres_W[None] - o[:, None], axis=-1).reshape(S, len(cols), -1)
+    close = (np.abs(side) < reach_m + spread_rad * far).any(axis=1) | (np.ptp(np.sign(side), axis=1) > 0)
+    hit = close.any(axis=1)
+    near = hit.copy()
+    near[1:] |= hit[:-1]
+    near[:-1] |= hit[1:]
+    return near
 
 
 def rotvec(w: np.ndarray) -> np.ndarray:
