@@ -28,7 +28,6 @@ Jacobian (chain rule from lrfcal.model.rays' o_j, d_j):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -243,8 +242,7 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
     np.minimum.at(lo, ms.marker, side)
     np.maximum.at(hi, ms.marker, side)
     both = (lo < 0)[ms.marker] & (hi > 0)[ms.marker]
-    tilted = abs(math.sin(al)) >= math.sin(TILT_FOR_IN_PLANE_RAD)
-    turning = (_turning(h, ms.marker, ms.times, ms.radius) if turns and tilted and ms.times is not None
+    turning = (_turning(h, ms.marker, ms.times, ms.radius) if turns and ms.times is not None
                else np.zeros(h.size, bool))
     return both, np.where(turning[:, None], n, 0.0)
 
@@ -256,11 +254,6 @@ LINE_GAP_S = 0.005
 CROSSING_GAP_S = 0.5
 #: how far beyond its first and last line a crossing's lines must reach, in marker radii, to count as turning
 TURN_EXCURSION = 0.25
-#: the scan plane's tilt from perpendicular to the motor axis below which turning crossings keep their whole lateral
-#: residual: near perpendicular its part across the scan plane is the markers' only information along the motor
-#: axis, and leaving it out there cost more than its bias (broad random truth 14, 13 deg: alpha +4.9 sigma without
-#: noise, where the whole residual was refused by the second opinion; 2 more of 20 such truths refused)
-TILT_FOR_IN_PLANE_RAD = math.radians(15.0)
 
 
 def _turning(h: FloatArray, marker: NDArray[np.int64], times: FloatArray, radius: float) -> NDArray[np.bool_]:
