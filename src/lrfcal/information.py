@@ -12,7 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .model.kinematics import Params
 from .model.motor import MotorClock
-from .model.unknowns import CORE_NAMES, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
+from .model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from .normal_equations import assemble, cluster_scores, schur, solve_step
 from .problem import Problem, marker_problem, plane_problem, plane_set
 from .solve import plane_free, with_sides
@@ -158,6 +158,35 @@ def model_error_at(
     return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
 
 
+def turning_error_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
+    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
+    beam_divergence_rad: float = 0.0,
+) -> FloatArray:
+    """The DH covariance (4, 4) the calibration adds where the sweep turns on a marker (lrfcal.markers.
+    _with_turning_systematic: d d^T, d the DH difference between the marker-only solve and the model variant that
+    keeps only the in-plane part of those crossings' lateral residual), as expected from noise-free marker returns
+    at the true ``params``: the difference of the two models' noise-free optima (one Gauss-Newton step each from
+    the truth) squared, plus what noise adds to it, the variant's marker-only covariance less the whole residual's
+    (the difference of two nested estimates). Zeros where no crossing turns."""
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
+                                     clock_offset_s, None, None, beam_divergence_rad)
+    variant = with_sides(replace(pb, markers=replace(pb.markers, in_plane_at_turns=True)), th, R_ref)
+    if variant.markers.across is None or not np.any(variant.markers.across):
+        return np.zeros((4, 4))
+    dh = np.searchsorted(idx, np.arange(N_CORE)[DH_SLICE])
+    steps, covs = [], []
+    for problem in (pb, variant):
+        system = assemble(problem.blocks(th, R_ref), idx)
+        steps.append(solve_step(system, 0.0)[dh])
+        H, _ = system.dense()
+        col = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        covs.append((np.linalg.pinv(H / np.outer(col, col), rcond=1e-12) / np.outer(col, col))[np.ix_(dh, dh)])
+    d = steps[1] - steps[0]
+    w, V = np.linalg.eigh(0.5 * (covs[1] - covs[0] + (covs[1] - covs[0]).T))
+    return np.outer(d, d) + (V * np.clip(w, 0.0, None)) @ V.T
+
+
 def map_error_at(
     info: FloatArray, obs: Observations, markers_W: ArrayLike, params: Params, map_cov: FloatArray, *, model: str,
     marker_radius_m: float, range_sigma_m: float = 0.010, clock: MotorClock | None = None,
@@ -217,4 +246,4 @@ def plane_information(
 
 
 __all__ = ["information_at", "jacobian_check", "map_error_at", "model_error_at", "model_residuals",
-           "plane_information"]
+           "plane_information", "turning_error_at"]

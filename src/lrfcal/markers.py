@@ -25,7 +25,7 @@ from .checks import dh_text, far_from_nominal, marker_checks, mirror_check, near
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
 from .information import information_at
-from .model.kinematics import DH, Params, Pose
+from .model.kinematics import DH, Params, Pose, dh_twins
 from .model.marker import crossings
 from .model.motor import MotorClock
 from .model.unknowns import dh_difference, pack
@@ -90,7 +90,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
                   beam_divergence_rad=nominal.beam_divergence_rad)
     chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
-    chosen = _handedness(chosen, nominal.dh, config, fit)
+    chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, config, fit), nominal.dh, fit)
     notes.extend(chosen.notes)
     if chosen.sign < 0:
         joints = _negated(joints)
@@ -153,6 +153,26 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
     return replace(ours, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
+def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[..., Solution]) -> Alternative:
+    """The marker-only solution in the DH representative nearer the nominal DH: solved again from its turned twin
+    (-a, -alpha, b, beta + pi with the mount turned by pi about the motor axis: the same rig, lrfcal.model.kinematics.
+    dh_twins) when that twin is nearer. A solve from the mirror image (:func:`_handedness`) or from a coarse start
+    can end in the other representative, right as a rig but with a, alpha and beta far from the rig file's."""
+    sol = chosen.solution
+    if not start.turned_is_nearer(sol.params.dh, nominal):
+        return chosen
+    _, twin, Q = dh_twins(sol.params.dh)[0]
+    Q4 = np.eye(4)
+    Q4[:3, :3] = Q
+    turned = Params(Pose.from_matrix(sol.params.mount.matrix() @ Q4), twin)
+    try:
+        new = fit(chosen.matched, chosen.markers, turned, model="sphere", clock=chosen.clock,
+                  clock_offset_s=sol.clock_offset_s)
+    except CalibrationError:
+        return chosen
+    return replace(chosen, solution=new)
+
+
 def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Callable[..., Solution]) -> Alternative:
     """The marker-only solution in the marker map's other handedness, when the nominal DH prefer it.
 
@@ -207,7 +227,8 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
                                                                 config):
             break  # the declared direction fits near the nominal: servo_direction keeps it whatever the other gives
         try:
-            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, associated(sign))
+            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, associated(sign),
+                                                 every_attitude=not alternatives)
                                if search else (nominal.dh, associated(sign)))
             alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
                                                  config, estimate_clock, fit))
@@ -368,25 +389,34 @@ def _associate_nominal(returns: Observations, detections: Detections, markers: M
     return _attempt(returns, detections, markers, nominal.dh, nominal.marker_radius_m, config)
 
 
+#: the share of the blobs an association matches for it to be the rig's (:func:`_good`, :func:`_associate_search`)
+MOST_BLOBS = 0.9
+
+
 def _good(assoc: Association, returns: Observations, config: CalibConfig) -> bool:
-    """An association that leaves nothing to search for: 90 % of the blobs matched, tight alignment."""
-    return assoc.n_matched >= 0.9 * len(np.unique(returns.blob)) and assoc.rms_m <= 0.25 * config.association_gate_m
+    """An association that leaves nothing to search for: most blobs (MOST_BLOBS) matched, tight alignment."""
+    return (assoc.n_matched >= MOST_BLOBS * len(np.unique(returns.blob))
+            and assoc.rms_m <= 0.25 * config.association_gate_m)
 
 
 def _associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
-                      config: CalibConfig, from_nominal: Association | None) -> tuple[DH, Association | None]:
+                      config: CalibConfig, from_nominal: Association | None, every_attitude: bool = True
+                      ) -> tuple[DH, Association | None]:
     """The association from the candidates of the correspondence-free DH search (lrfcal.start) or from the nominal
     DH, the best by (matched blobs, alignment RMS); returns the DH it used and the association (None: none). The
     search covers the basin around the nominal first, and every attitude of the scan plane (the coarse global start)
-    when no candidate there associates well: a nominal DH far from the rig's is then found, not landed on."""
+    when no candidate there matches most blobs: a nominal DH far from the rig's is then found, not landed on. (An
+    association that matches most blobs loosely, e.g. with a marker moved after taping, is the rig's: the solve
+    refines it, and the global search, seconds with many blobs, would find nothing better.) ``every_attitude``
+    False: the basin only (the servo's other direction, once the declared one has a solution)."""
     best_dh, best = nominal.dh, from_nominal
-    for span in (start.ANGLE_SPAN_RAD, start.GLOBAL_SPAN_RAD):
+    for span in (start.ANGLE_SPAN_RAD, start.GLOBAL_SPAN_RAD) if every_attitude else (start.ANGLE_SPAN_RAD,):
         for dh in start.dh_candidates(returns, len(detections.blobs), markers, nominal.dh, nominal.marker_radius_m,
                                       span_rad=span):
             found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
             if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
                 best_dh, best = dh, found
-        if best is not None and _good(best, returns, config):
+        if best is not None and best.n_matched >= MOST_BLOBS * len(np.unique(returns.blob)):
             break
     return best_dh, best
 

@@ -142,14 +142,17 @@ def nearest_representative(dh: DH, nominal: DH) -> DH:
     """``dh`` or its turned twin (-a, -alpha, b, beta + pi: the same rig, the mount turned by pi about the motor
     axis, lrfcal.model.kinematics.dh_twins), whichever is nearer ``nominal`` (the larger of the DH differences in
     units of 10 cm and 45 deg): the result is then reported in the nominal's representative."""
-    turned = dh_twins(dh)[0][1]
+    near = dh_twins(dh)[0][1] if turned_is_nearer(dh, nominal) else dh
+    return DH(near.a, float(wrap_pi(near.alpha)), near.b, float(wrap_pi(near.beta)))
 
+
+def turned_is_nearer(dh: DH, nominal: DH) -> bool:
+    """Whether the turned twin of ``dh`` (:func:`nearest_representative`) is nearer ``nominal`` than ``dh``."""
     def far(d: DH) -> float:
         diff = np.abs(dh_difference(d.vector(), nominal.vector()))
         return float(max(diff[[0, 2]].max() / LENGTH_SPAN_M, diff[[1, 3]].max() / ANGLE_SPAN_RAD))
 
-    near = turned if far(turned) < far(dh) else dh
-    return DH(near.a, float(wrap_pi(near.alpha)), near.b, float(wrap_pi(near.beta)))
+    return far(dh_twins(dh)[0][1]) < far(dh)
 
 
 def _refine(x: FloatArray, nom: FloatArray, r: FloatArray, lam: FloatArray, mu: FloatArray, D: FloatArray
@@ -175,4 +178,5 @@ def _refine(x: FloatArray, nom: FloatArray, r: FloatArray, lam: FloatArray, mu: 
 
 
 __all__ = ["ANGLE_SPAN_RAD", "GLOBAL_SPAN_RAD", "LENGTH_SPAN_M", "dh_candidates", "nearest_representative",
+           "turned_is_nearer",
            "pair_score"]

@@ -18,7 +18,8 @@ Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a,
 clock_offset when it is estimated. To it is added what the model's own errors contribute
 (``lrfcal.information.model_error_at``: the per-scan sandwich of the noise-free returns' range residuals, which
 the calibration's reported sigma holds too, as its per-scan widening): negligible beside 10 mm range noise, it is
-most of the sigma of a precise scanner (issue 18; docs/study.md, "Model error").
+most of the sigma of a precise scanner (issue 18; docs/study.md, "Model error"). Where the sweep turns on a marker,
+the DH widening the calibration adds for those crossings joins it (``lrfcal.information.turning_error_at``).
 
 By default the surface returns of stage 6b enter too, found as the calibration finds them
 (``lrfcal.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
@@ -44,7 +45,7 @@ from numpy.typing import NDArray
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.information import information_at, map_error_at, model_error_at
+from lrfcal.information import information_at, map_error_at, model_error_at, turning_error_at
 from lrfcal.mds import map_covariance
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.model.motor import MotorClock
@@ -61,6 +62,8 @@ FloatArray = NDArray[np.float64]
 
 #: plan's noise-free cast: the footprint's ring only where it can change a beam (lrfsim.raychunks.cast_chunk_edges)
 FOOTPRINT = "edges"
+#: the DH block of the covariance (ESTIMATE_NAMES order)
+DH_ROWS = np.ix_(range(6, 10), range(6, 10))
 #: a tolerance counts as reachable when it is at least this many predicted sigmas
 REACHABLE_K = 4.0
 #: what enters the information (printed with the plan)
@@ -338,7 +341,14 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
         # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
         tape_cov = map_error_at(info, obs, markers_W, params, expected_map_covariance(scenario, markers_W), **common,
                                 **both)
+        # where the sweep turns on a marker, the model error the calibration adds for it too (DH only)
+        turn_cov = turning_error_at(obs, markers_W, params, **common)
+        model_cov[DH_ROWS] += turn_cov
         cov = np.linalg.inv(scaled) / np.outer(col, col) + model_cov + tape_cov
+        if np.any(turn_cov):
+            notes.append("crossings of the sweep turn on some markers: the DH sigmas include the model error the "
+                         "calibration adds for them (" + ", ".join(
+                             f"{n} {format_value(n, math.sqrt(turn_cov[i, i]))}" for i, n in enumerate(DH_NAMES)) + ")")
         model_sigma = {n: float(math.sqrt(max(model_cov[i, i], 0.0))) for i, n in enumerate(names)}
         map_sigma = {n: float(math.sqrt(max(tape_cov[i, i], 0.0))) for i, n in enumerate(names)}
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
