@@ -178,5 +178,4 @@ def _refine(x: FloatArray, nom: FloatArray, r: FloatArray, lam: FloatArray, mu: 
 
 
 __all__ = ["ANGLE_SPAN_RAD", "GLOBAL_SPAN_RAD", "LENGTH_SPAN_M", "dh_candidates", "nearest_representative",
-           "turned_is_nearer",
-           "pair_score"]
+           "pair_score", "turned_is_nearer"]

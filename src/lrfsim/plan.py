@@ -4,7 +4,7 @@ The scenario's rays are cast once without noise (``lrfsim.simulate.cast_geometry
 footprint stays, its ring cast only where it can change a beam: ``footprint="edges"``, lrfsim.raychunks, a fifth of
 the rays, the same sigmas to 3e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share).
 Only the scans that can see a marker are cast, and every SURFACE_SCAN_STEP-th other one for the surface returns
-(:func:`sparse_geometry`: the same marker returns; half the scans of tunnel_v; the rest too when those scans hold
+(:func:`sparse_geometry`: the same marker returns; 39 % of tunnel_v's scans; the rest too when those scans hold
 fewer surface returns than the calibration samples),
 the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return whose ray passes
 within the marker), and the calibration's own observation and noise model is evaluated at the TRUE parameters:
@@ -63,7 +63,7 @@ FloatArray = NDArray[np.float64]
 #: plan's noise-free cast: the footprint's ring only where it can change a beam (lrfsim.raychunks.cast_chunk_edges)
 FOOTPRINT = "edges"
 #: the DH block of the covariance (ESTIMATE_NAMES order)
-DH_ROWS = np.ix_(range(6, 10), range(6, 10))
+DH_ROWS = np.ix_(*[[ESTIMATE_NAMES.index(n) for n in DH_NAMES]] * 2)
 #: a tolerance counts as reachable when it is at least this many predicted sigmas
 REACHABLE_K = 4.0
 #: what enters the information (printed with the plan)
@@ -224,7 +224,7 @@ NEAR_MARKER_M = 0.005
 
 
 def sparse_scans(scenario: Scenario, beam_lambda_rad: FloatArray) -> NDArray[np.bool_]:
-    """(S,) bool: the scans plan casts (``marker_observations(..., sparse=True)``): those whose plane passes near
+    """(S,) bool: the scans plan casts (:func:`sparse_geometry`): those whose plane passes near
     a marker (lrfsim.visibility.scans_near_markers: the marker's radius and NEAR_MARKER_M plus the footprint's
     ring, a superset of the scans with a marker return) and every SURFACE_SCAN_STEP-th scan, for the surface
     returns (plan uses a subsample of them, as the calibration does)."""
