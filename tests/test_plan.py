@@ -177,3 +177,21 @@ def test_plan_holds_the_model_error_of_turning_crossings(tunnel_plan, monkeypatc
     assert math.radians(0.04) < with_term.sigma["alpha"] < math.radians(0.15)
     for n in ("x", "y", "z", "rx", "ry", "rz"):
         assert with_term.sigma[n] == pytest.approx(without.sigma[n], rel=1e-12), n
+
+
+def test_plan_counts_the_marker_returns_the_detection_sees() -> None:
+    """plan's marker returns are the calibration's detections, each owned by the marker its true ray passes. Broad
+    truth 5's marker 1 sits 0.36 m from the scanner, where it and the wall behind it both saturate: a brightness
+    bound (3x the brightest surface at that range, above saturation there) kept only its edge beams, a one-sided
+    sample 12.8 standard errors off its centre; the detection, whose contrast against the wall is 7x there, below
+    its 10x floor, sees none of it, and neither does plan now."""
+    from lrfsim.faults import detected_mask, marker_returns
+    from lrfsim.plan import marker_observations, sparse_geometry
+    from lrfsim.randomize import random_scenario_wide
+
+    sc = random_scenario_wide(5, broad=True)
+    obs, _, _, _, _, result = marker_observations(sc, sparse_geometry(sc))
+    assert len(obs) > 1000
+    assert detected_mask(result, sc)[obs.scan, obs.beam].all()
+    by_brightness = marker_returns(result, sc)
+    assert (by_brightness == 1).any() and not (obs.marker == 1).any()

@@ -151,15 +151,17 @@ def bright_mask(result: SimResult, scenario: Scenario) -> NDArray[np.bool_]:
         return np.isfinite(r) & (result.intensities > BRIGHT_FACTOR * np.minimum(surface, it.saturation_counts))
 
 
-def marker_returns(result: SimResult, scenario: Scenario) -> IntArray:
+def marker_returns(result: SimResult, scenario: Scenario, among: NDArray[np.bool_] | None = None) -> IntArray:
     """(S, N) index of the marker each bright return belongs to (-1: none): its ray (truth geometry) passes
-    within radius + footprint + 2 mm of the marker centre, ahead of the scanner."""
+    within radius + footprint + 2 mm of the marker centre, ahead of the scanner. ``among`` (S, N): the returns to
+    consider instead of the bright ones (:func:`bright_mask`), e.g. the calibration's detections
+    (:func:`detected_mask`)."""
     S, N = result.ranges_m.shape
     out = np.full((S, N), -1, dtype=np.int64)
     radius_m = result.truth.marker_radius_m
     if radius_m is None or len(result.truth.markers_W) == 0:
         return out
-    s_idx, b_idx = np.nonzero(bright_mask(result, scenario))
+    s_idx, b_idx = np.nonzero(bright_mask(result, scenario) if among is None else among)
     if s_idx.size == 0:
         return out
     lam = result.beam_lambda_rad[s_idx, b_idx]
@@ -176,6 +178,23 @@ def marker_returns(result: SimResult, scenario: Scenario) -> IntArray:
     ok = np.isfinite(perp[np.arange(len(k)), k])
     out[s_idx[ok], b_idx[ok]] = k[ok]
     return out
+
+
+def detected_mask(result: SimResult, scenario: Scenario) -> NDArray[np.bool_]:
+    """(S, N) the returns the calibration's detection (lrfcal.detection.detect) puts in a blob: what a calibration
+    of this recording sees as marker returns. Near the scanner a marker and the surface behind it both saturate,
+    and a brightness bound (:func:`bright_mask`) keeps only a marker's edge beams there, where the detection's
+    contrast keeps none."""
+    from lrfcal.detection import detect
+    from lrfcal.types import Scans
+
+    s = scenario.sensor
+    det = detect(Scans(result.scan_stamps_s, result.ranges_m, result.intensities, result.mu_rad,
+                       s.time_increment_s, s.scan_period_s, s.range_min_m, s.range_max_m))
+    mask = np.zeros(result.ranges_m.shape, dtype=bool)
+    for b in det.blobs:
+        mask[b.scan_idx, b.beam_idx] = True
+    return mask
 
 
 def occlude_markers(result: SimResult, scenario: Scenario, n: int) -> SimResult:
@@ -338,7 +357,7 @@ def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     return off_by_one_increment(result, scenario) if f.angle_increment_off_by_one else result
 
 
-__all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask",
+__all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask", "detected_mask",
            "drop_scans", "encoder_spikes", "invert_servo", "marker_returns", "occlude_markers",
            "off_by_one_increment", "receive_stamps", "scale_joints", "scale_range_noise", "tape_outliers",
            "thin_joints"]

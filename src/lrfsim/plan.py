@@ -6,8 +6,10 @@ the rays, the same sigmas to 3e-13 on the shipped scenarios; `lrfsim study` hand
 Only the scans that can see a marker are cast, and every SURFACE_SCAN_STEP-th other one for the surface returns
 (:func:`sparse_geometry`: the same marker returns; 39 % of tunnel_v's scans; the rest too when those scans hold
 fewer surface returns than the calibration samples),
-the marker returns are found with the truth (``lrfsim.faults.marker_returns``: a bright return whose ray passes
-within the marker), and the calibration's own observation and noise model is evaluated at the TRUE parameters:
+the marker returns are those the calibration's detection finds, each owned by the marker its ray passes with the
+truth (``lrfsim.faults.marker_returns`` among ``detected_mask``: a brightness bound instead kept only the edge beams
+of a marker within about 0.4 m, where marker and wall both saturate and the detection sees neither), and the
+calibration's own observation and noise model is evaluated at the TRUE parameters:
 ``lrfcal.information.information_at`` (the sphere model: range residual with sigma_r = the scenario sensor's range
 noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual with
 sigma = R_m sqrt(1 + k^2) / 2, the depth seen through the sensor's footprint of k marker radii
@@ -193,13 +195,13 @@ def marker_observations(scenario: Scenario, geometry: Geometry | None = None
     Returns (observations with the true marker of each return and the true motor angles, marker centres (n, 3) in
     W, the true Params, the servo's MotorClock (reported joint states), the true clock offset [s], the SimResult).
     """
-    from .faults import marker_returns
+    from .faults import detected_mask, marker_returns
     from .simulate import cast_geometry, simulate_from_geometry
 
     if geometry is None:
         geometry = cast_geometry(scenario, noise=False, footprint=FOOTPRINT)
     result = simulate_from_geometry(scenario, geometry, noise=False)
-    owner = marker_returns(result, scenario)
+    owner = marker_returns(result, scenario, among=detected_mask(result, scenario))
     s_idx, b_idx = np.nonzero(owner >= 0)
     sensor = scenario.sensor
     times = result.scan_stamps_s[s_idx] + b_idx * sensor.time_increment_s

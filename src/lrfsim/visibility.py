@@ -37,16 +37,10 @@ HALF_FOV_RAD = math.radians(135.0)
 def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
     """Indices of the markers on which the calibration's detection (lrfcal.detection.detect) finds a blob in a
     simulated recording; each blob's owner comes from the truth (lrfsim.faults.marker_returns)."""
-    from lrfcal.detection import detect
-    from lrfcal.types import Scans
+    from .faults import detected_mask, marker_returns
 
-    from .faults import marker_returns
-
-    s = scenario.sensor
-    det = detect(Scans(result.scan_stamps_s, result.ranges_m, result.intensities, result.mu_rad,
-                       s.time_increment_s, s.scan_period_s, s.range_min_m, s.range_max_m))
-    owner = marker_returns(result, scenario)
-    return {int(m) for b in det.blobs for m in owner[b.scan_idx, b.beam_idx] if m >= 0}
+    owner = marker_returns(result, scenario, among=detected_mask(result, scenario))
+    return {int(m) for m in np.unique(owner[owner >= 0])}
 
 
 def visible_markers(scenario: Scenario) -> np.ndarray:
