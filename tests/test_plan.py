@@ -129,7 +129,9 @@ def test_plan_predicts_the_sigma_a_precise_scanner_reports(recording_of) -> None
 @pytest.mark.parametrize("which", ["fast tunnel", "tilted broad truth"])
 def test_sparse_cast_has_every_marker_return(which: str) -> None:
     """plan casts only the scans that can see a marker and every SURFACE_SCAN_STEP-th other one: the marker
-    returns are those of the full cast, bit for bit, from fewer scans; joined with the rest it is the full cast;
+    returns are those of the full cast, bit for bit, from fewer scans (here; on 2 of 46 scenarios checked the
+    detection's background, estimated from the scans cast, moved 0.3-0.7 % of them at the blobs' edges); joined
+    with the rest it is the full cast;
     the predicted sigmas move by what another sample of the surface returns moves them (a few %)."""
     import numpy as np
 

@@ -4,8 +4,8 @@ The scenario's rays are cast once without noise (``lrfsim.simulate.cast_geometry
 footprint stays, its ring cast only where it can change a beam: ``footprint="edges"``, lrfsim.raychunks, a fifth of
 the rays, the same sigmas to 3e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share).
 Only the scans that can see a marker are cast, and every SURFACE_SCAN_STEP-th other one for the surface returns
-(:func:`sparse_geometry`: the same marker returns; 39 % of tunnel_v's scans; the rest too when those scans hold
-fewer surface returns than the calibration samples),
+(:func:`sparse_geometry`: the marker beams as in the full cast; 41 % of tunnel_v's scans; the rest too when those
+scans hold fewer surface returns than the calibration samples),
 the marker returns are those the calibration's detection finds, each owned by the marker its ray passes with the
 truth (``lrfsim.faults.marker_returns`` among ``detected_mask``: a brightness bound instead kept only the edge beams
 of a marker within about 0.4 m, where marker and wall both saturate and the detection sees neither), and the

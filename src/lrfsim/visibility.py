@@ -193,7 +193,8 @@ def scans_near_markers(params: Params, beam_lambda_rad: np.ndarray, mu_rad: np.n
     passes within reach of a marker (centres (m, 3) in W): within ``reach_m`` + ``spread_rad`` times the distance
     of the marker from the beam's origin, at one of the :data:`NEAR_SAMPLES` bearings, or on both sides of it
     (the plane turns smoothly within a scan); and one scan on each side of such a scan. A superset of the scans
-    with a return on a marker: `lrfsim plan` casts them (exact marker returns) and skips most others."""
+    with a return on a marker: `lrfsim plan` casts them (the marker beams as the full cast has them) and skips most
+    others."""
     from lrfcal.model.kinematics import beam_rays_W
 
     S, N = beam_lambda_rad.shape
