@@ -328,31 +328,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
         info, _ = information_at(obs, markers_W, params, **common, **both)
     info = 0.5 * (info + info.T)
     notes: list[str] = []
-    # column-scaled inversion (the parameters mix metres, radians and seconds)
-    col = np.sqrt(np.maximum(np.diag(info), 1e-300))
-    scaled = info / np.outer(col, col)
-    sv = np.linalg.svd(scaled, compute_uv=False)
-    if sv[-1] <= sv[0] * 1e-12:
-        cov = np.full(info.shape, np.inf)
-        notes.append(f"information singular (condition {sv[0] / max(sv[-1], 1e-300):.2e})")
-        model_sigma, map_sigma = {}, {}
-    else:
-        # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns
-        # at the truth: lrfcal.information.model_error_at), as the calibration's per-scan widening holds both
-        model_cov = model_error_at(obs, markers_W, params, **common, **both)
-        # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
-        tape_cov = map_error_at(info, obs, markers_W, params, expected_map_covariance(scenario, markers_W), **common,
-                                **both)
-        # where the sweep turns on a marker, the model error the calibration adds for it too (DH only)
-        turn_cov = turning_error_at(obs, markers_W, params, **common)
-        model_cov[DH_ROWS] += turn_cov
-        cov = np.linalg.inv(scaled) / np.outer(col, col) + model_cov + tape_cov
-        if np.any(turn_cov):
-            notes.append("crossings of the sweep turn on some markers: the DH sigmas include the model error the "
-                         "calibration adds for them (" + ", ".join(
-                             f"{n} {format_value(n, math.sqrt(turn_cov[i, i]))}" for i, n in enumerate(DH_NAMES)) + ")")
-        model_sigma = {n: float(math.sqrt(max(model_cov[i, i], 0.0))) for i, n in enumerate(names)}
-        map_sigma = {n: float(math.sqrt(max(tape_cov[i, i], 0.0))) for i, n in enumerate(names)}
+    cov, model_sigma, map_sigma = _covariance(scenario, info, names, obs, markers_W, params, common, both, notes)
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     # the verdict the calibration gives before solving: from the marker returns alone (lrfcal.pipeline)
     obsv = analyse(0.5 * (info_markers + info_markers.T), names, params.dh.alpha)
@@ -365,26 +341,68 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                      "before solving: it would refuse this recording")
     if not two_way:
         notes.append("one-way sweep (or spin): the clock offset is held (the calibration cannot separate it from rz)")
-    tol = scenario.tolerances
-    pos = [names.index(n) for n in ("x", "y", "z")]
-    rot = [names.index(n) for n in ("rx", "ry", "rz")]
-    checks = (
-        ToleranceCheck("a", tol.a_m, sigma["a"]),
-        ToleranceCheck("alpha", tol.alpha_rad, sigma["alpha"]),
-        ToleranceCheck("b", tol.b_m, sigma["b"]),
-        ToleranceCheck("beta", tol.beta_rad, sigma["beta"]),
-        ToleranceCheck("position", tol.position_m, float(math.sqrt(max(np.trace(cov[np.ix_(pos, pos)]), 0.0)))),
-        ToleranceCheck("rotation", tol.rotation_rad, float(math.sqrt(max(np.trace(cov[np.ix_(rot, rot)]), 0.0)))),
-    )
     assert tuple(names[:10]) == ESTIMATE_NAMES
     return Plan(scenario=scenario.name, names=names, covariance=cov, sigma=sigma, observability=obsv,
-                tolerances=checks, n_returns=len(obs), n_markers_seen=n_seen, n_markers=int(len(markers_W)),
+                tolerances=_tolerance_checks(scenario, names, sigma, cov), n_returns=len(obs), n_markers_seen=n_seen,
+                n_markers=int(len(markers_W)),
                 clock_estimated=two_way, range_sigma_m=sigma_r, seconds=time.perf_counter() - t0,
                 information_source=source, n_surface_returns=0 if on_planes is None else len(on_planes),
                 notes=tuple(notes),
                 observability_solved=None if on_planes is None else analyse(info, names, params.dh.alpha),
                 model_sigma=model_sigma,
                 map_sigma=map_sigma)
+
+
+def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], obs: Observations,
+                markers_W: FloatArray, params: Params, common: dict[str, Any], both: dict[str, Any], notes: list[str]
+                ) -> tuple[FloatArray, dict[str, float], dict[str, float]]:
+    """The predicted covariance from the information ``info`` over ``names`` (column-scaled inversion: the
+    parameters mix metres, radians and seconds), with the model error and the marker map's part added, and those
+    two parts' sigmas by name; infinite where the information is singular (said in ``notes``)."""
+    col = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    scaled = info / np.outer(col, col)
+    sv = np.linalg.svd(scaled, compute_uv=False)
+    if sv[-1] <= sv[0] * 1e-12:
+        notes.append(f"information singular (condition {sv[0] / max(sv[-1], 1e-300):.2e})")
+        return np.full(info.shape, np.inf), {}, {}
+    # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns at
+    # the truth: lrfcal.information.model_error_at), as the calibration's per-scan widening holds both
+    model_cov = model_error_at(obs, markers_W, params, **common, **both)
+    # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
+    tape_cov = map_error_at(info, obs, markers_W, params, expected_map_covariance(scenario, markers_W), **common,
+                            **both)
+    # where the sweep turns on a marker, the model error the calibration adds for it too (DH only)
+    turn_cov = turning_error_at(obs, markers_W, params, **common)
+    model_cov[DH_ROWS] += turn_cov
+    if np.any(turn_cov):
+        notes.append("crossings of the sweep turn on some markers: the DH sigmas include the model error the "
+                     "calibration adds for them (" + ", ".join(
+                         f"{n} {format_value(n, math.sqrt(turn_cov[i, i]))}" for i, n in enumerate(DH_NAMES)) + ")")
+
+    def sigmas(c: FloatArray) -> dict[str, float]:
+        return {n: float(math.sqrt(max(c[i, i], 0.0))) for i, n in enumerate(names)}
+
+    return np.linalg.inv(scaled) / np.outer(col, col) + model_cov + tape_cov, sigmas(model_cov), sigmas(tape_cov)
+
+
+def _tolerance_checks(scenario: Scenario, names: tuple[str, ...], sigma: dict[str, float], cov: FloatArray
+                      ) -> tuple[ToleranceCheck, ...]:
+    """Each of the scenario's tolerances against the predicted sigma (the position's and rotation's: the root of
+    the trace of their blocks)."""
+    tol = scenario.tolerances
+
+    def block(keys: tuple[str, ...]) -> float:
+        i = [names.index(n) for n in keys]
+        return float(math.sqrt(max(np.trace(cov[np.ix_(i, i)]), 0.0)))
+
+    return (
+        ToleranceCheck("a", tol.a_m, sigma["a"]),
+        ToleranceCheck("alpha", tol.alpha_rad, sigma["alpha"]),
+        ToleranceCheck("b", tol.b_m, sigma["b"]),
+        ToleranceCheck("beta", tol.beta_rad, sigma["beta"]),
+        ToleranceCheck("position", tol.position_m, block(("x", "y", "z"))),
+        ToleranceCheck("rotation", tol.rotation_rad, block(("rx", "ry", "rz"))),
+    )
 
 
 def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers_W: FloatArray, params: Params,
