@@ -151,8 +151,7 @@ def model_error_at(
     scan_m = np.repeat(np.asarray(obs.scan), pb.markers.n_res)
     scan_s = np.zeros(0, dtype=np.int64) if pb.surf is None or surfaces is None else np.asarray(surfaces.scan)
     G = cluster_scores(b, idx, scan_m, scan_s)
-    col = np.sqrt(np.maximum(np.diag(H), 1e-300))
-    H_inv = np.linalg.pinv(H / np.outer(col, col), rcond=1e-12) / np.outer(col, col)
+    H_inv = _scaled_pinv(H)
     k = idx.size
     sandwich = H_inv @ (G.T @ G) @ H_inv
     return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
@@ -179,9 +178,7 @@ def turning_error_at(
     for problem in (pb, variant):
         system = assemble(problem.blocks(th, R_ref), idx)
         steps.append(solve_step(system, 0.0)[dh])
-        H, _ = system.dense()
-        col = np.sqrt(np.maximum(np.diag(H), 1e-300))
-        covs.append((np.linalg.pinv(H / np.outer(col, col), rcond=1e-12) / np.outer(col, col))[np.ix_(dh, dh)])
+        covs.append(_scaled_pinv(system.dense()[0])[np.ix_(dh, dh)])
     d = steps[1] - steps[0]
     w, V = np.linalg.eigh(0.5 * (covs[1] - covs[0] + (covs[1] - covs[0]).T))
     return np.outer(d, d) + (V * np.clip(w, 0.0, None)) @ V.T
@@ -199,10 +196,16 @@ def map_error_at(
     calibration's covariance."""
     pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
                                      clock_offset_s, surfaces, planes, beam_divergence_rad)
-    col = np.sqrt(np.maximum(np.diag(info), 1e-300))
-    G = -(np.linalg.pinv(info / np.outer(col, col), rcond=1e-12) / np.outer(col, col)) @ pb.centre_cross(
+    G = -_scaled_pinv(info) @ pb.centre_cross(
         th, R_ref, idx, len(map_cov) // 3)
     return G @ map_cov @ G.T
+
+
+def _scaled_pinv(H: FloatArray) -> FloatArray:
+    """The pseudo-inverse (k, k) of an information matrix H (k, k), its columns scaled to a unit diagonal first (the
+    unknowns mix metres, radians and seconds)."""
+    col = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    return np.linalg.pinv(H / np.outer(col, col), rcond=1e-12) / np.outer(col, col)
 
 
 def _problem_at(

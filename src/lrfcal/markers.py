@@ -25,7 +25,7 @@ from .checks import dh_text, far_from_nominal, marker_checks, mirror_check, near
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
 from .information import information_at
-from .model.kinematics import DH, Params, Pose, dh_twins
+from .model.kinematics import DH, Params, Pose, dh_twins, homogeneous
 from .model.marker import crossings
 from .model.motor import MotorClock
 from .model.unknowns import dh_difference, pack
@@ -146,11 +146,9 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
     except CalibrationError:
         return ours
     d = dh_difference(variant.params.dh.vector(), sol.params.dh.vector())
-    cov = np.array(ours.covariance, dtype=float)
-    cov[6:10, 6:10] += np.outer(d, d)
     notes.append("crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral "
                  f"residual differ by {dh_text(DH(*d))}, added to the covariance")
-    return replace(ours, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+    return ours.with_dh_systematic(d)
 
 
 def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[..., Solution]) -> Alternative:
@@ -162,9 +160,7 @@ def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[.
     if not start.turned_is_nearer(sol.params.dh, nominal):
         return chosen
     _, twin, Q = dh_twins(sol.params.dh)[0]
-    Q4 = np.eye(4)
-    Q4[:3, :3] = Q
-    turned = Params(Pose.from_matrix(sol.params.mount.matrix() @ Q4), twin)
+    turned = Params(Pose.from_matrix(sol.params.mount.matrix() @ homogeneous(Q, np.zeros(3))), twin)
     try:
         new = fit(chosen.matched, chosen.markers, turned, model="sphere", clock=chosen.clock,
                   clock_offset_s=sol.clock_offset_s)
@@ -186,9 +182,7 @@ def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Call
         return chosen
     name, twin, Q, d_est, d_twin = found
     F = np.diag([1.0, 1.0, -1.0, 1.0])
-    Q4 = np.eye(4)
-    Q4[:3, :3] = Q
-    T = F @ chosen.solution.params.mount.matrix() @ Q4
+    T = F @ chosen.solution.params.mount.matrix() @ homogeneous(Q, np.zeros(3))
     markers = association.unmirror(chosen.markers)
     try:
         sol = fit(chosen.matched, markers, Params(Pose.from_matrix(T), twin), model="sphere", clock=chosen.clock,
@@ -393,10 +387,14 @@ def _associate_nominal(returns: Observations, detections: Detections, markers: M
 MOST_BLOBS = 0.9
 
 
+def _matches_most(assoc: Association, returns: Observations) -> bool:
+    """Whether an association matches most blobs (MOST_BLOBS of them)."""
+    return assoc.n_matched >= MOST_BLOBS * len(np.unique(returns.blob))
+
+
 def _good(assoc: Association, returns: Observations, config: CalibConfig) -> bool:
-    """An association that leaves nothing to search for: most blobs (MOST_BLOBS) matched, tight alignment."""
-    return (assoc.n_matched >= MOST_BLOBS * len(np.unique(returns.blob))
-            and assoc.rms_m <= 0.25 * config.association_gate_m)
+    """An association that leaves nothing to search for: most blobs matched, tight alignment."""
+    return _matches_most(assoc, returns) and assoc.rms_m <= 0.25 * config.association_gate_m
 
 
 def _associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
@@ -416,7 +414,7 @@ def _associate_search(returns: Observations, detections: Detections, markers: Ma
             found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
             if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
                 best_dh, best = dh, found
-        if best is not None and best.n_matched >= MOST_BLOBS * len(np.unique(returns.blob)):
+        if best is not None and _matches_most(best, returns):
             break
     return best_dh, best
 

@@ -225,10 +225,7 @@ def _with_round_difference(sol: Solution, before_last: Solution | None) -> Solut
     which returns the segmentation keeps), when the rounds did not settle (``before_last`` not None)."""
     if before_last is None:
         return sol
-    d = _round_difference(before_last, sol)
-    cov = np.array(sol.covariance, dtype=float)
-    cov[6:10, 6:10] += np.outer(d, d)
-    return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+    return sol.with_dh_systematic(_round_difference(before_last, sol))
 
 
 def _solve_round(fit: Callable[..., Solution], returns: SurfaceReturns, found: list[planes.ScenePlane], start: _Round,

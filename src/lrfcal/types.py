@@ -7,7 +7,7 @@ K marker returns (observations).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -342,6 +342,14 @@ class Solution:
     #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.solve._uncertainty); the
     #: covariance holds the map's part, G C_map G^T (None: the map was taken as exact)
     map_sensitivity: FloatArray | None = None
+
+    def with_dh_systematic(self, d: ArrayLike) -> Solution:
+        """This solution with its DH covariance widened by d d^T, d (4,) a model error in (a, alpha, b, beta) that
+        the noise's sigma does not hold (two defensible models or rounds that differ by d)."""
+        d = np.asarray(d, dtype=float)
+        cov = np.array(self.covariance, dtype=float)
+        cov[6:10, 6:10] += np.outer(d, d)
+        return replace(self, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
     @property
     def range_offset_m(self) -> float:
