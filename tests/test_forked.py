@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import multiprocessing
 import os
+import time
 
 import pytest
 
-from lrfcal.forked import call_forked, cores
+from lrfcal.forked import Ahead, call_forked, cores
 
 PARENT = os.getpid()
 
@@ -53,3 +54,43 @@ def test_a_daemonic_process_runs_every_task_itself() -> None:
     """A pool's worker may not have children: its tasks run in it."""
     with multiprocessing.get_context("fork").Pool(1) as pool:
         assert pool.map(_in_a_daemon, [0]) == [[True, True]]
+
+
+PREPARED: list[int] = []
+
+
+def _prepare() -> None:
+    PREPARED.append(os.getpid())
+
+
+def _where_prepared(x: int) -> tuple[int, int, bool]:
+    return x + 1, os.getpid(), os.getpid() in PREPARED
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_ahead_prepares_in_a_child_and_runs_the_call_there() -> None:
+    PREPARED.clear()
+    with Ahead(_prepare) as ahead:
+        value, pid, prepared = ahead.call(_where_prepared, 41)
+    assert value == 42 and pid != os.getpid() and prepared  # run in the child, after its prepare()
+    assert PREPARED == []  # nothing prepared here
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_ahead_runs_the_call_here_when_the_child_dies_or_it_does_not_pickle() -> None:
+    PREPARED.clear()
+    with Ahead(_prepare) as ahead:
+        assert ahead.call(_dies_in_a_child) == "here"
+    assert [os.getpid()] == PREPARED  # prepared here before the call ran here
+    t0 = time.perf_counter()
+    with Ahead(_prepare) as ahead:
+        assert ahead.call(lambda x: 2 * x, 21) == 42  # a lambda does not pickle
+    assert time.perf_counter() - t0 < 0.9  # the child ended with the pipe, not by the exit's 1 s timeout
+
+
+def test_ahead_left_by_an_error_ends_its_child_at_once() -> None:
+    t0 = time.perf_counter()
+    with pytest.raises(KeyError), Ahead(lambda: time.sleep(5.0)):
+        raise KeyError("refused")
+    assert time.perf_counter() - t0 < 2.0
+    assert not multiprocessing.active_children()

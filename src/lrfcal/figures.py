@@ -12,7 +12,7 @@ and the calibrated parameters ("after").
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -416,9 +416,7 @@ def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
         ax.set_title("Flatness of the scene's planes, nominal -> calibrated", pad=28)
         ax.grid(True, axis="x", alpha=0.3)
         ax.legend(loc="lower center", bbox_to_anchor=(0.5, 1.0), ncols=2, frameon=False)
-        cloud = np.asarray(result.cloud_after_M, dtype=float).reshape(-1, 3)
-        cloud = cloud[np.isfinite(cloud).all(1)]
-        cloud = cloud[:: max(1, cloud.shape[0] // 50_000)]  # a view of the shape: 50k points draw it
+        cloud = _cloud_view(result.cloud_after_M)
         ax2.scatter(cloud[:, 0], cloud[:, 1], s=0.2, c="0.3", rasterized=True)
         ax2.set_aspect("equal")
         ax2.set_xlabel("x_M [m]")
@@ -464,9 +462,30 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
 
 
 def preload() -> None:
-    """Import what drawing needs (matplotlib's figure and Agg canvas), e.g. in a thread while the data are made."""
+    """Import what drawing needs (matplotlib's figure and Agg canvas), e.g. in a child forked while the data are
+    made (lrfcal.forked.Ahead)."""
     import matplotlib.backends.backend_agg  # noqa: F401
     import matplotlib.figure  # noqa: F401
+
+
+#: points of the calibrated cloud the flatness figure draws at most (a view of the scene's shape)
+CLOUD_VIEW_POINTS = 50_000
+
+
+def _cloud_view(cloud_M: FloatArray) -> FloatArray:
+    """(K, 3): the finite points of a (..., 3) cloud, every n-th so that about CLOUD_VIEW_POINTS are left (a cloud
+    already that small is returned whole: the view of a view is the view)."""
+    cloud = np.asarray(cloud_M, dtype=float).reshape(-1, 3)
+    cloud = cloud[np.isfinite(cloud).all(1)]
+    return cloud[:: max(1, cloud.shape[0] // CLOUD_VIEW_POINTS)]
+
+
+def drawn_part(result: CalibrationResult) -> CalibrationResult:
+    """``result`` with only what the figures draw of its clouds (none for markers, the flatness figure's view of
+    the calibrated cloud for targetless): what is sent to a drawing process (lrfcal.forked.Ahead) is a third as
+    large. The figures drawn from it are those drawn from ``result``."""
+    after = _cloud_view(result.cloud_after_M) if result.plane_fit is not None else np.zeros((0, 3))
+    return replace(result, cloud_before_M=np.zeros((0, 3)), cloud_after_M=after, cloud_intensity=np.zeros(0))
 
 
 def _attempt(fn: Callable[[], Path]) -> tuple[bool, str]:
@@ -478,4 +497,4 @@ def _attempt(fn: Callable[[], Path]) -> tuple[bool, str]:
 
 
 __all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "Figures", "alignment_figure", "flatness_figure", "intensity_figure",
-           "residual_figure", "write_figures"]
+           "drawn_part", "residual_figure", "write_figures"]

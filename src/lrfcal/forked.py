@@ -5,6 +5,10 @@ Only each task's return value travels back (pickled). Used for the report's figu
 Where no child can be forked (no fork on this platform, one core, a daemonic process such as a pool's worker), or
 a child dies (e.g. out of memory), its task runs here: the outcome is the same, only slower.
 
+:class:`Ahead` forks one child early, which prepares (imports matplotlib) on another core while this process
+calibrates, and later runs one call on arguments sent to it: the report's figures, whose imports and drawing then
+cost this process nothing.
+
 :func:`on_cores` runs numpy work on large arrays (which releases the GIL) in threads instead: the clouds of stage 7
 and their geometry, one per DH set.
 """
@@ -38,8 +42,7 @@ def call_forked(tasks: dict[str, Callable[[], T]]) -> dict[str, T]:
     from concurrent.futures import Future, ProcessPoolExecutor
 
     names = list(tasks)
-    if (len(names) < 2 or cores() < 2 or "fork" not in multiprocessing.get_all_start_methods()
-            or multiprocessing.current_process().daemon):
+    if len(names) < 2 or not _can_fork():
         return {n: tasks[n]() for n in names}
     done: dict[str, T] = {}
     _PENDING.clear()
@@ -61,6 +64,91 @@ def call_forked(tasks: dict[str, Callable[[], T]]) -> dict[str, T]:
     return {n: done[n] if n in done else tasks[n]() for n in names}
 
 
+def _can_fork() -> bool:
+    import multiprocessing
+
+    return (cores() >= 2 and "fork" in multiprocessing.get_all_start_methods()
+            and not multiprocessing.current_process().daemon)
+
+
+class Ahead:
+    """A forked child that runs ``prepare()`` at once and, later, one ``call(fn, *args)``: ``fn`` (a module-level
+    function) and ``args`` are pickled to it, its return value pickled back. A context manager: leaving it ends the
+    child (its pipe closed, then terminated if still alive).
+
+    Where no child can be forked (:func:`call_forked`'s conditions) or the child dies, the call runs here, after
+    ``prepare()``: the same outcome, only slower. The child ignores SIGINT (Ctrl-C reaches this process, which
+    ends it) and is not daemonic, so that ``fn`` may fork in turn (:func:`call_forked`)."""
+
+    def __init__(self, prepare: Callable[[], object]) -> None:
+        self._prepare = prepare
+        self._conn: Any = None
+        self._proc: Any = None
+        self._sent = False
+
+    def __enter__(self) -> Ahead:
+        if _can_fork():
+            import multiprocessing
+
+            ctx = multiprocessing.get_context("fork")
+            ours, theirs = ctx.Pipe()
+            proc = ctx.Process(target=_serve, args=(theirs, ours, self._prepare), name="lrfcal-ahead", daemon=False)
+            try:
+                proc.start()
+            except OSError:  # no child could be started: the call runs here
+                return self
+            theirs.close()
+            self._conn, self._proc = ours, proc
+        return self
+
+    def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)``: in the child when there is one (once: a second call runs here), else, or where the child
+        died or the call does not pickle, here after ``prepare()``."""
+        conn, self._conn = self._conn, None
+        if conn is not None:
+            self._sent = True
+            with contextlib.suppress(Exception):  # a child that died, or a call that does not pickle: run here
+                conn.send((fn, args))
+                ok, value = conn.recv()
+                if ok:
+                    return value  # type: ignore[no-any-return]
+            conn.close()
+        self._prepare()
+        return fn(*args)
+
+    def __exit__(self, *exc: object) -> None:
+        unused = not self._sent  # no call was sent: the child is at most preparing, nothing to wait for
+        if self._conn is not None:
+            self._conn.close()  # the child's recv ends: it exits
+            self._conn = None
+        if self._proc is not None:
+            self._proc.join(timeout=0.0 if unused else 1.0)
+            if self._proc.is_alive():
+                self._proc.terminate()
+                self._proc.join()
+            self._proc = None
+
+
+def _serve(conn: Any, parents_end: Any, prepare: Callable[[], object]) -> None:
+    """:class:`Ahead`'s child: prepare, then run the one call sent (none when the pipe closes first)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    parents_end.close()  # the copy forked with this child: else the parent closing its end would not end recv
+    with contextlib.suppress(Exception):
+        prepare()
+    try:
+        fn, args = conn.recv()
+    except (EOFError, OSError):
+        return
+    try:
+        conn.send((True, fn(*args)))
+    except Exception:  # noqa: BLE001 - the caller runs it again itself and sees the error there
+        with contextlib.suppress(Exception):
+            conn.send((False, None))
+    conn.close()
+
+
 def on_cores(fn: Callable[..., T], calls: list[tuple[Any, ...]], parallel: bool = True) -> list[T]:
     """``fn(*args)`` for every ``args`` of ``calls``, in order: in threads on the machine's cores when ``parallel``
     (for numpy work on large arrays, which releases the GIL: nothing is forked or pickled), else here in turn."""
@@ -72,4 +160,4 @@ def on_cores(fn: Callable[..., T], calls: list[tuple[Any, ...]], parallel: bool 
         return list(pool.map(lambda args: fn(*args), calls))
 
 
-__all__ = ["call_forked", "cores", "on_cores"]
+__all__ = ["Ahead", "call_forked", "cores", "on_cores"]

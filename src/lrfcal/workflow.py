@@ -3,12 +3,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import shutil
 import sys
 import tempfile
-import threading
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from .errors import InputError
+from .forked import Ahead
 from .io import files
 from .io.calibration_folder import write_calibration
 from .io.recording import read_nominal, read_recording
@@ -92,17 +93,16 @@ def calibrate_folder(
                                scan=scan, servo=servo, warn=warn, require_distances=want_tape)
     if recording.tape is not None and want_tape:
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
-    if figures:  # matplotlib imported beside the calibration (mostly numpy, which releases the GIL), not after it
-        threading.Thread(target=figure_writer.preload, daemon=True).start()
-    result = calibrate(recording, config, progress=progress)
-    truth_values = None if truth is None else truth_dict(truth)
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
-    if progress is not None:
-        progress("figures and report")
-    with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
-        before, before_label = _nominal_in_W(result, truth)
-        figs = (figure_writer.write_figures(result, Path(tmp), before, before_label) if figures
-                else figure_writer.Figures({}, {}))
+    # the figures are drawn by a child forked now, which imports matplotlib on another core during the calibration
+    with (Ahead(figure_writer.preload) if figures else contextlib.nullcontext()) as drawer, \
+            tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
+        result = calibrate(recording, config, progress=progress)
+        if progress is not None:
+            progress("figures and report")
+        figs = (drawer.call(figure_writer.write_figures, figure_writer.drawn_part(result), Path(tmp),
+                            *_nominal_in_W(result, truth)) if drawer is not None else figure_writer.Figures({}, {}))
+        truth_values = None if truth is None else truth_dict(truth)
         report = render_report(result, truth=truth_values) + _figures_section(figs, figures, warn)
         written = dict(figs.written)
         if rrd_inside is not None:
