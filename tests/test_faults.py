@@ -184,6 +184,16 @@ def test_gear_ratio(clean: SimResult) -> None:
     assert np.array_equal(out.beam_lambda_rad, clean.beam_lambda_rad) and out.faults == {"gear_ratio": 1.5}
 
 
+def test_range_scale(clean: SimResult) -> None:
+    """Every range and every echo's times k; the truth (the beams' motor angles, the bearings) unchanged."""
+    out = apply_faults(clean, _scenario(range_scale=1.01))
+    assert _same(out.ranges_m, clean.ranges_m * 1.01) and out.faults == {"range_scale": 1.01}
+    if clean.echo_ranges_m is not None:
+        assert out.echo_ranges_m is not None and _same(out.echo_ranges_m, clean.echo_ranges_m * 1.01)
+    assert np.array_equal(out.beam_lambda_rad, clean.beam_lambda_rad) and np.array_equal(out.mu_rad, clean.mu_rad)
+    assert apply_faults(clean, _scenario(range_scale=1.0)).faults == {}
+
+
 @pytest.mark.parametrize(("rate_hz", "every"), [(30.0, 4), (50.0, 2), (100.0, 1), (1000.0, 1)])
 def test_joint_rate(clean: SimResult, rate_hz: float, every: int) -> None:
     """The joint states thinned to every n-th sample, n = ceil(100 Hz / f): at most f."""
@@ -247,7 +257,8 @@ def test_new_faults_in_the_written_recording(clean: SimResult, tmp_path: Path) -
     ("faults", "field"),
     [({"false_blobs": -1}, "faults.false_blobs"), ({"dropped_scans_fraction": 0.95}, "dropped_scans_fraction"),
      ({"smoke": 1}, "faults.smoke"), ({"tape_outliers": [{"pair": 1}]}, "error_m"),
-     ({"gear_ratio": 0.0}, "faults.gear_ratio"), ({"joint_rate_hz": -5}, "faults.joint_rate_hz")],
+     ({"gear_ratio": 0.0}, "faults.gear_ratio"), ({"joint_rate_hz": -5}, "faults.joint_rate_hz"),
+     ({"range_scale": 0.0}, "faults.range_scale")],
 )
 def test_faults_section_is_validated(faults: dict[str, Any], field: str) -> None:
     with pytest.raises(InputError, match=field):

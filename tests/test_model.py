@@ -10,6 +10,7 @@ from test_solve import R_M, SIGMA, TRUE, _markers, simulate
 from lrfcal.information import jacobian_check
 from lrfcal.model.kinematics import DH, Params, Pose
 from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.scanner import reported_range, true_range
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES, INTRINSICS, N_CORE, free_by_default, pack, unpack
 from lrfcal.solve import solve
 from lrfcal.types import JointStates, Observations
@@ -73,3 +74,30 @@ def test_motor_angle_scale_and_its_jacobian() -> None:
         err = jacobian_check(params, obs, X, model="sphere", marker_radius_m=0.3, clock=c)
         cols = [n for n in CORE_NAMES if n != "clock_offset" or c is not None]
         assert err[cols.index("motor_scale")] < 1e-6, err
+        assert err[cols.index("range_scale")] < 1e-6, err
+
+
+def test_range_scale_is_estimated_when_asked() -> None:
+    """The scanner reports s r_true + range_offset: the scale multiplies the predicted true range (its partial is
+    r_true), true_range inverts it; a solve asked to estimate it recovers ranges 1 % long (s = 1.01) within 4 sigma
+    and the DH within 4 sigma, where held at 1 the same returns put the DH far off."""
+    th, _ = pack(TRUE)
+    k, off = CORE_NAMES.index("range_scale"), CORE_NAMES.index("range_offset")
+    th[k], th[off] = 0.99, 0.002
+    r = np.array([0.5, 2.0, 7.5])
+    rep = reported_range(th, r, on_marker=False)
+    assert np.allclose(rep.r, 0.99 * r + 0.002) and np.array_equal(dict(rep.partials)[k], r) and rep.scale == 0.99
+    assert np.allclose(true_range(th, rep.r, on_marker=False).r, r)
+    rng = np.random.default_rng(11)
+    X = _markers(rng)
+    obs = simulate(TRUE, X, rng)
+    long = Observations(**{**{f: getattr(obs, f) for f in obs.__dataclass_fields__}, "ranges_m": obs.ranges_m * 1.01})
+    fit = {"model": "sphere", "marker_radius_m": R_M, "range_sigma_m": SIGMA}
+    sol = solve(long, X, TRUE, estimate=("range_scale",), **fit)
+    value, sigma = sol.intrinsics["range_scale"]
+    assert abs(value - 1.01) <= 4 * sigma and sigma < 0.002, (value, sigma)
+    z = (sol.params.dh.vector() - TRUE.dh.vector()) / sol.sigma[6:]
+    assert np.all(np.abs(z) <= 4), z
+    held = solve(long, X, TRUE, **fit)
+    assert held.intrinsics["range_scale"] == (1.0, pytest.approx(np.nan, nan_ok=True))
+    assert np.max(np.abs((held.params.dh.vector() - TRUE.dh.vector()) / held.sigma[6:])) > 4

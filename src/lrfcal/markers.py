@@ -61,6 +61,7 @@ class Alternative:
     clock: MotorClock | None
     solution: Solution
     notes: tuple[str, ...] = ()
+    estimate: tuple[str, ...] = ()  # the unknowns held by default that its solves estimate (SCALES found off)
 
 
 def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
@@ -90,6 +91,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
                   beam_divergence_rad=nominal.beam_divergence_rad)
     chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
+    fit = partial(fit, estimate=chosen.estimate)
     chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, config, fit), nominal.dh, fit)
     notes.extend(chosen.notes)
     if chosen.sign < 0:
@@ -97,9 +99,9 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     clock.lap("solve")
     tried: list[str] = []
     ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, tried)
-    off = _scales_off(ours, notes)
-    if off:  # an intrinsic held at 1 is not: estimate it in every solve, from the marker-only one on
-        fit = partial(fit, estimate=off)
+    while off := _most_off(ours, notes, config.max_reduced_chi2):  # estimated in every solve from the marker-only on
+        chosen = replace(chosen, estimate=(*chosen.estimate, off))
+        fit = partial(fit, estimate=chosen.estimate)
         chosen = replace(chosen, solution=fit(chosen.matched, chosen.markers, chosen.solution.params,
                                               model="sphere", clock=chosen.clock,
                                               clock_offset_s=chosen.solution.clock_offset_s))
@@ -240,19 +242,28 @@ SCALE_Z_LIMIT = 4.0
 #: what is off when a scale held at 1 by default is not 1 (lrfcal.model.unknowns, kind "intrinsic"). The bearing
 #: scale (beam_scale) is not tested: on tunnel_v_systematic the unmodelled range errors move its score test 15 sigma
 #: from 1 (0.99147 +- 0.00057, truth 1), and estimating it puts the mount 10 mm off
-SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts per turn in the joint states?)"}
+SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts per turn in the joint states?)",
+          "range_scale": "the scanner's range scale (ranges off in proportion to their length, or a range bias "
+                         "growing with range read as one?)"}
 
 
-def _scales_off(sol: Solution, notes: list[str]) -> tuple[str, ...]:
-    """The scales held at 1 that the data contradict (their score test, lrfcal.solve, beyond SCALE_Z_LIMIT sigma),
-    each named in a note with the value it steps to."""
-    off = []
-    for name, (value, sigma) in sol.held_score.items():
-        if name in SCALES and math.isfinite(sigma) and sigma > 0 and abs(value - 1.0) > SCALE_Z_LIMIT * sigma:
-            off.append(name)
-            notes.append(f"{SCALES[name]} is off: about {value:.5f} +- {sigma:.5f} ({abs(value - 1.0) / sigma:.0f} "
-                         "sigma from 1): estimated in every solve")
-    return tuple(off)
+def _most_off(sol: Solution, notes: list[str], max_chi2: float) -> str | None:
+    """The scale of :data:`SCALES` held at 1 that the data contradict most (its score test on ``sol``, lrfcal.solve,
+    beyond SCALE_Z_LIMIT sigma), named in a note with the value it steps to; None when none is. One at a time, the
+    others tested again once it is free: a gear ratio 2 % off also stepped the range scale beyond 4 sigma, which
+    it absorbs. None where ``sol``'s reduced chi-square is above ``max_chi2``: a score test means nothing where the
+    model does not fit (three times the stated range noise stepped the range scale 4.4 sigma), and the chi-square
+    check names that."""
+    if not sol.reduced_chi2 <= max_chi2:
+        return None
+    z = {n: abs(v - 1.0) / s for n, (v, s) in sol.held_score.items() if n in SCALES and math.isfinite(s) and s > 0}
+    name = max(z, key=z.__getitem__, default=None)
+    if name is None or z[name] <= SCALE_Z_LIMIT:
+        return None
+    value, sigma = sol.held_score[name]
+    notes.append(f"{SCALES[name]} is off: about {value:.5f} +- {sigma:.5f} ({z[name]:.0f} sigma from 1): estimated "
+                 "in every solve")
+    return name
 
 
 def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
@@ -273,7 +284,7 @@ def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointState
     )
     if len(on_surfaces):
         joint = partial(fit, matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
-                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s)
+                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s, held_scores=True)
         ours = joint(estimate_range_bias=config.estimate_range_bias)
         if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
                                                <= observability.RANGE_BIAS_LIMIT_M):
@@ -292,7 +303,7 @@ def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointState
             surface_list = [*surface_list, *other_planes]
             ours = fit(matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
-                       estimate_range_bias=math.isfinite(ours.range_offset_sigma_m))
+                       estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=True)
             notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
                          "free planes")
     return ours, list(surface_list), on_surfaces
@@ -348,10 +359,16 @@ def _marker_solution(
             f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
             f"{obs.hint()}"
         )
+    fit = partial(fit, held_scores=True)  # the scales' score tests read this solution (and its re-solves)
     sol = fit(matched, markers, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
+    notes: list[str] = []
+    estimate: tuple[str, ...] = ()
+    while off := _most_off(sol, notes, config.max_reduced_chi2):  # before any marker is judged moved: a range
+        estimate = (*estimate, off)                              # scale moves every far marker from its tape position
+        fit = partial(fit, estimate=estimate)
+        sol = fit(matched, markers, sol.params, model="sphere", clock=motor, clock_offset_s=sol.clock_offset_s)
     # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
     # that is not where the tape puts it: unassign them and solve again
-    notes: list[str] = []
     for _ in range(3):  # a blob matched wrongly, or a marker that is not where the tape puts it: out, and again
         bad, why = _inconsistent_blobs(matched, sol, markers, config.range_sigma_m)
         if not bad.size:
@@ -365,7 +382,7 @@ def _marker_solution(
             raise CalibrationError(f"{why}; fewer than 4 markers remain")
         sol = fit(matched, markers, sol.params, model="sphere", clock=motor,
                   clock_offset_s=sol.clock_offset_s)
-    return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes))
+    return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate)
 
 
 def _attempt(returns: Observations, detections: Detections, markers: MarkerMap, dh: DH, radius_m: float,

@@ -131,9 +131,8 @@ def _reproject(recording: Recording, joints: JointStates, sol: Solution, config:
     lambda_beams = timing.motor_angles(scans.beam_times_s, joints, clock_offset_s=sol.clock_offset_s,
                                        tolerance_s=math.inf)
     (before, after), intensity = reproject.reproject_clouds(scans, lambda_beams, (recording.nominal.dh, sol.params.dh),
-                                                            config.cloud_stride, (0.0, sol.range_offset_m),
-                                                            (1.0, sol.intrinsics.get("motor_scale", (1.0,))[0]),
-                                                            (1.0, sol.intrinsics.get("beam_scale", (1.0,))[0]))
+                                                            config.cloud_stride,
+                                                            ({}, {n: v for n, (v, _) in sol.intrinsics.items()}))
     clock.lap("reprojection")
     out: dict[str, object] = {"cloud_before_M": before, "cloud_after_M": after, "cloud_intensity": intensity}
     if config.geometry:

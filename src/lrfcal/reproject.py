@@ -6,13 +6,16 @@ Array shapes: S scans, N beams, P cloud points.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .forked import on_cores
 from .model.kinematics import DH, points_M_trig
+from .model.motor import motor_angles
+from .model.scanner import true_bearing, true_range
+from .model.unknowns import SCALE, core_vector
 from .types import Scans
 
 FloatArray = NDArray[np.float64]
@@ -38,15 +41,14 @@ def reproject_cloud(scans: Scans, lambda_rad: ArrayLike, dh: DH, stride: int = 1
 
 def reproject_clouds(
     scans: Scans, lambda_rad: ArrayLike, dhs: Sequence[DH], stride: int = 1,
-    range_offsets_m: Sequence[float] | None = None, motor_scales: Sequence[float] | None = None,
-    beam_scales: Sequence[float] | None = None,
+    intrinsics: Sequence[Mapping[str, float]] | None = None,
 ) -> tuple[list[FloatArray], FloatArray]:
     """:func:`reproject_cloud` of the same returns with several DH sets (e.g. nominal and calibrated): the
     valid returns are selected and cos / sin of their motor angles computed once. Returns one (P, 3) cloud per
-    DH set (each equal to reproject_cloud's, bit for bit, without range offsets) and the intensity (P,).
-    ``range_offsets_m``: one per DH set, subtracted from every range (a calibration's estimated range offset);
-    ``motor_scales``, ``beam_scales``: one per DH set, multiplying every motor angle and every bearing
-    (lrfcal.model.motor, lrfcal.model.scanner: an estimated gear ratio or angle increment)."""
+    DH set (each equal to reproject_cloud's, bit for bit, without intrinsics) and the intensity (P,).
+    ``intrinsics``: one mapping per DH set of the intrinsics by name (lrfcal.model.unknowns, e.g. a calibration's
+    range offset, range scale, motor-angle and bearing scales; those not named at their start), which act on the
+    ranges, bearings and motor angles as in the model (lrfcal.model.scanner, lrfcal.model.motor)."""
     if stride < 1:
         raise ValueError(f"stride must be >= 1, got {stride}")
     r = scans.ranges_m
@@ -63,16 +65,18 @@ def reproject_clouds(
     cl, sl = np.cos(lk), np.sin(lk)
     mu = np.asarray(scans.mu_rad, dtype=np.float64)
     mk = mu.ravel()[idx] if mu.ndim == 2 else mu[bb]  # (S, N) per-scan bearings (or (N,))
-    offsets = [0.0] * len(dhs) if range_offsets_m is None else list(range_offsets_m)
-    scales = [1.0] * len(dhs) if motor_scales is None else list(motor_scales)
-    bscales = [1.0] * len(dhs) if beam_scales is None else list(beam_scales)
+    cores = [core_vector(dh, {} if intrinsics is None else intrinsics[i]) for i, dh in enumerate(dhs)]
 
-    def cloud(dh: DH, off: float, s: float, k: float) -> FloatArray:
-        phi = dh.beta + (mk if k == 1.0 else k * mk)
-        c, sn = (cl, sl) if s == 1.0 else (np.cos(s * lk), np.sin(s * lk))
-        return points_M_trig(rk - off if off else rk, c, sn, np.cos(phi), np.sin(phi), dh)
+    def cloud(dh: DH, th: FloatArray) -> FloatArray:
+        phi = dh.beta + true_bearing(th, mk).mu
+        if th[SCALE] == 1.0:
+            c, sn = cl, sl
+        else:
+            lam_true = motor_angles(th, lk, None, None).lam
+            c, sn = np.cos(lam_true), np.sin(lam_true)
+        return points_M_trig(true_range(th, rk, on_marker=False).r, c, sn, np.cos(phi), np.sin(phi), dh)
 
-    clouds = on_cores(cloud, list(zip(dhs, offsets, scales, bscales, strict=True)), parallel=rk.size > PARALLEL_RETURNS)
+    clouds = on_cores(cloud, list(zip(dhs, cores, strict=True)), parallel=rk.size > PARALLEL_RETURNS)
     intensity = np.ravel(scans.intensities)[idx].astype(np.float64, copy=False)
     return clouds, intensity
 

@@ -40,6 +40,9 @@ The scenario's ``faults:`` section (lrfsim.scenario_sections.FaultsConfig), appl
     places beam i at angle_min + i angle_increment puts the last beam (N - 1) / N of the span from the first.
     The ranges stay where the beams truly were (only ``SimResult.declared_angle_increment_rad``, which the bag
     writer declares, changes). Recorded: the true and the declared increment.
+11. ``range_scale: k``: every reported range (and every echo's) times k (a scanner whose range scale is off: its
+    time-of-flight clock, or a driver's unit); after the others. The truth is unchanged. Recorded as
+    ``range_scale`` (k).
 
 Not a fault of this module: ``servo.clock_offset_s`` (laser stamp - servo stamp) already simulates an unknown
 laser-servo clock offset (the recording does not declare it; ground_truth.yaml has it as clock_offset_s).
@@ -338,6 +341,14 @@ def off_by_one_increment(result: SimResult, scenario: Scenario) -> SimResult:
     return _with_record(result, "angle_increment_off_by_one", record, declared_angle_increment_rad=declared)
 
 
+def scale_ranges(result: SimResult, scale: float) -> SimResult:
+    """Every reported range, and every echo's, times ``scale`` (a range scale error); the truth is unchanged."""
+    if scale == 1.0:
+        return result
+    echoes = None if result.echo_ranges_m is None else result.echo_ranges_m * scale
+    return _with_record(result, "range_scale", float(scale), ranges_m=result.ranges_m * scale, echo_ranges_m=echoes)
+
+
 def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     """Every fault of ``scenario.faults`` except the range noise scale (applied before simulating), in the
     module docstring's order; the result's ``faults`` record lists what was done."""
@@ -354,10 +365,12 @@ def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     result = thin_joints(result, scenario, f.joint_rate_hz)
     result = encoder_spikes(result, scenario, f.encoder_spikes, f.encoder_spike_rad)
     result = receive_stamps(result, scenario, f.stamp_latency_s, f.stamp_jitter_s)
-    return off_by_one_increment(result, scenario) if f.angle_increment_off_by_one else result
+    if f.angle_increment_off_by_one:
+        result = off_by_one_increment(result, scenario)
+    return scale_ranges(result, f.range_scale)
 
 
 __all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask", "detected_mask",
            "drop_scans", "encoder_spikes", "invert_servo", "marker_returns", "occlude_markers",
-           "off_by_one_increment", "receive_stamps", "scale_joints", "scale_range_noise", "tape_outliers",
-           "thin_joints"]
+           "off_by_one_increment", "receive_stamps", "scale_joints", "scale_range_noise", "scale_ranges",
+           "tape_outliers", "thin_joints"]

@@ -414,6 +414,8 @@ class FaultsConfig(Section):
     joint_rate_hz: Annotated[float | None, doc("joint states thinned to at most this rate, every n-th sample kept "
                                                "with n = ceil(servo.rate_hz / this) (a servo polled slowly; null: "
                                                "off) [Hz]", gt=0, le=10000)] = None
+    range_scale: Annotated[float, doc("every reported range times this (a scanner whose range scale is off; 1: off); "
+                                      "the truth is unchanged [1]", gt=0.5, le=2)] = 1.0
     angle_increment_off_by_one: Annotated[bool, doc(
         "the LaserScans declare angle_increment = (angle_max - angle_min) / N instead of / (N - 1) (a driver's "
         "off-by-one, N beams); angle_min, angle_max and the ranges are unchanged")] = False

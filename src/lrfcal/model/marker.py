@@ -1,15 +1,17 @@
 """The marker observation model: a return on a retroreflective sphere of radius R_m centred at c (in W).
 
-Two models (o, d: the beam's origin and unit direction in W, lrfcal.model.rays; r: the true range,
-lrfcal.model.scanner):
+Two models (o, d: the beam's origin and unit direction in W, lrfcal.model.rays; r: the reported range, compared
+with what the scanner reports of the predicted true range, rep(r_hat) = range_scale r_hat + range_offset +
+marker_range_bias, lrfcal.model.scanner):
 
-* ``"paper"`` (seed paper eq. (10)): residual (o + r d - c) / sigma_r, 3 per return.
+* ``"paper"`` (seed paper eq. (10)): residual (o + r_true d - c) / sigma_r, 3 per return (r_true the reported
+  range's true range).
 * ``"sphere"`` (every return on a marker, sub-beam): v = c - o, t = v.d, e = v - t d (|e| = distance of the
   centre from the ray), u = |e| / R_m,
       r_hat = t - R_m s(u),   s(u) = sqrt(eta softplus((1 - u^2) / eta))   (eta = 0.05, lrfcal.model.sphere)
   s(u) ~ sqrt(1 - u^2) (the depth of the sphere's surface below the centre plane) for u < ~0.97, and is
   smooth with bounded slope near and beyond the rim (s -> 0: a grazing or mixed-pixel return reports the
-  rim). Residuals: (r - r_hat) / sigma_r and e / sigma_lat (3 components, one of them identically zero along
+  rim). Residuals: (r - rep(r_hat)) / sigma_r and e / sigma_lat (3 components, one of them identically zero along
   d, hence 3 independent residuals per return), sigma_lat = R_m / 2 (hits spread uniformly over the visible
   disc: E|e|^2 = R_m^2 / 2).
   With a finite beam (divergence delta > 0) the footprint at the marker is a disc of radius k R_m,
@@ -21,9 +23,10 @@ lrfcal.model.scanner):
   (plane_30deg), +0.04 mm with the footprint (docs/study.md).
 
 Jacobian (chain rule from lrfcal.model.rays' o_j, d_j):
-    paper: (o + r d)_j / sigma_r, plus d dr/dtheta_j / sigma_r for the range's unknowns.
+    paper: (o + r_true d)_j / sigma_r, plus d dr_true/dtheta_j / sigma_r for the range's unknowns.
     sphere: v_j = -o_j; t_j = v_j.d + v.d_j; e_j = v_j - t_j d - t d_j; |e|_j = (e/|e|).e_j;
-      r_hat_j = t_j - s'(u) |e|_j;  range residual_j = (dr/dtheta_j - r_hat_j) / sigma_r;  lateral_j = e_j / sigma_lat.
+      r_hat_j = t_j - s'(u) |e|_j;  range residual_j = -(range_scale r_hat_j + drep/dtheta_j) / sigma_r;
+      lateral_j = e_j / sigma_lat.
 """
 
 from __future__ import annotations
@@ -36,9 +39,9 @@ from numpy.typing import ArrayLike, NDArray
 from .kinematics import Params, exp_so3, points_M, transform_points
 from .motor import MotorClock, motor_angles
 from .rays import beam_rays
-from .scanner import true_range
+from .scanner import reported_range, true_range
 from .sphere import footprint_depth
-from .unknowns import DH_SLICE
+from .unknowns import DH_SLICE, RSCALE
 
 FloatArray = NDArray[np.float64]
 
@@ -132,9 +135,9 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     ``chart``: what the scan-plane columns are derivatives by (lrfcal.model.rays.beam_rays)."""
     motor = motor_angles(th, ms.lam, ms.times, clock)
     o, d, Jo, Jd = beam_rays(th, R_ref, motor, ms.mu, jac=jac, mount_jac=mount_jac, chart=chart)
-    rng = true_range(th, ms.r, on_marker=True)
-    r = rng.r
-    if ms.model == "paper":
+    if ms.model == "paper":  # the return point: the true range of the reported one
+        rng = true_range(th, ms.r, on_marker=True)
+        r = rng.r
         res = (o + r[:, None] * d - ms.c) / sigma_r
         if Jo is None or Jd is None:
             return res, None
@@ -146,9 +149,9 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     v, t, e = ray_to_centre(o, d, ms.c)
     rho = np.linalg.norm(e, axis=1)
     s, ds = footprint_depth(rho / R, ms.footprint)
-    r_hat = t - R * s
+    rep = reported_range(th, t - R * s, on_marker=True)  # the range the scanner reports of r_hat = t - R s
     sig_lat = ms.sigma_lat[:, None]
-    res = np.concatenate([((r - r_hat) / sigma_r)[:, None], e / sig_lat], 1)
+    res = np.concatenate([((ms.r - rep.r) / sigma_r)[:, None], e / sig_lat], 1)
     if ms.lateral is not None:
         res[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
@@ -161,9 +164,9 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     n_e = e / np.maximum(rho, 1e-15)[:, None]
     Jrho = np.einsum("ki,kij->kj", n_e, Je)
     Jrhat = Jt - ds[:, None] * Jrho
-    J = np.concatenate([(-Jrhat / sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
-    for j, dr in rng.partials:
-        J[:, 0, j] = dr / sigma_r
+    J = np.concatenate([(-rep.scale * Jrhat / sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
+    for j, dr in rep.partials:
+        J[:, 0, j] = -dr / sigma_r
     if ms.lateral is not None:
         J[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
@@ -185,7 +188,8 @@ def centre_jacobian(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatA
     """(K, n_res, 3): the whitened residuals' derivatives with respect to each return's marker centre c (in W).
 
     paper: -I / sigma_r. sphere (v = c - o, so v_c = I): t_c = d^T, e_c = I - d d^T, |e|_c = (e / |e|)^T (e is
-    normal to d), r_hat_c = d^T - s'(u) (e / |e|)^T; range row -r_hat_c / sigma_r, lateral rows e_c / sigma_lat."""
+    normal to d), r_hat_c = d^T - s'(u) (e / |e|)^T; range row -range_scale r_hat_c / sigma_r, lateral rows
+    e_c / sigma_lat."""
     motor = motor_angles(th, ms.lam, ms.times, clock)
     o, d, _, _ = beam_rays(th, R_ref, motor, ms.mu, jac=False)
     K = ms.r.size
@@ -198,7 +202,7 @@ def centre_jacobian(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatA
     n_e = e / np.maximum(rho, 1e-15)[:, None]
     Ec = np.eye(3) - d[:, :, None] * d[:, None, :]
     r_hat_c = d - ds[:, None] * n_e
-    Jc = np.concatenate([(-r_hat_c / sigma_r)[:, None, :], Ec / ms.sigma_lat[:, None, None]], 1)
+    Jc = np.concatenate([(-th[RSCALE] * r_hat_c / sigma_r)[:, None, :], Ec / ms.sigma_lat[:, None, None]], 1)
     if ms.lateral is not None:
         Jc[~ms.lateral, 1:] = 0.0
     if ms.across is not None:

@@ -1,7 +1,8 @@
 """Ray-plane range residuals and their Jacobian, row by row without (K, 3, N_CORE) temporaries.
 
-A return k on plane j (lrfcal.model.unknowns.PlaneSet) has the residual (r_k - range_offset - r_p) / sigma_r against the
-ray-plane distance r_p = (d_j - n_j . o) / (n_j . dir) (lrfcal.solve's module docstring has the forward model).
+A return k on plane j (lrfcal.model.unknowns.PlaneSet) has the residual (r_k - range_scale r_p - range_offset) /
+sigma_r (lrfcal.model.scanner.reported_range) against the ray-plane distance r_p = (d_j - n_j . o) / (n_j . dir)
+(lrfcal.solve's module docstring has the forward model).
 Everything is evaluated in the frame of the beam before the motor's turn ("L0": M turned back by lambda_k), where
 the ray is fixed by the DH parameters alone, o_0 = [a, -b sin alpha, b cos alpha] and
 dir_0 = [cos phi, sin phi cos alpha, sin phi sin alpha] (phi = beta + mu_k), and the plane's normal is
@@ -29,7 +30,7 @@ from numpy.typing import NDArray
 
 from .kinematics import exp_so3, right_jacobian_so3
 from .motor import MotorClock, motor_angles
-from .scanner import true_bearing, true_range
+from .scanner import reported_range, true_bearing
 from .unknowns import BSCALE, N_CORE, SCALE, PlaneSet
 
 FloatArray = NDArray[np.float64]
@@ -61,7 +62,6 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     n_p = m / m_norm  # (P, 3) in W
     motor = motor_angles(th, s.lam, s.times, clock)
     lam = motor.lam
-    rng = true_range(th, s.r, on_marker=False)
     t = th[:3]
     a, al, b, be = th[6:10]
     R = R_ref @ exp_so3(th[3:6])
@@ -77,11 +77,12 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     dy, dz = sp * ca, sp * sa  # dir_0 = (cp, dy, dz)
     nd = nx * cp + ny * dy + nz * dz
     rp = ((nu[:, 2] - n_p @ t)[pl] - (nx * a + ny * oy + nz * oz)) / nd
-    res = (rng.r - rp) / sigma_r
+    rep = reported_range(th, rp, on_marker=False)
+    res = (s.r - rep.r) / sigma_r
     if not jac:
         return PlaneRows(res)
     K = s.r.size
-    k = -1.0 / sigma_r  # the residual's Jacobian is -dr_p / sigma_r
+    k = -rep.scale / sigma_r  # the residual's Jacobian is -scale dr_p / sigma_r
     q = k / nd  # (K,)
     Jc = np.zeros((K, N_CORE), order="F")
     xx, xy, xz = a + rp * cp, oy + rp * dy, oz + rp * dz  # x_0 = o_0 + r_p dir_0
@@ -110,8 +111,8 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
         dres_dlam = -((ny * a - nx * oy) + rp * (ny * cp - nx * dy)) * q
         for j, dlam in motor.partials:
             Jc[:, j] = dres_dlam * dlam
-    for j, dr in rng.partials:
-        Jc[:, j] = dr / sigma_r
+    for j, dr in rep.partials:
+        Jc[:, j] = -dr / sigma_r
     Jn = np.empty((K, 3), order="F")
     for i, tan in enumerate((s.t1, s.t2)):
         dn = (tan - n_p * (n_p * tan).sum(1, keepdims=True)) / m_norm  # (P, 3) in W

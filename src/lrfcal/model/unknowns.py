@@ -13,7 +13,7 @@ its covariance and the written results take it from there.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from functools import cached_property
 
@@ -32,7 +32,9 @@ class Unknown:
 
     name: as in files and APIs; unit: "m", "rad", "s" or "1"; kind: "mount", "dh", "clock" or "intrinsic";
     start: its value before any data (and while held, unless a stage gives another); held: empty when the
-    calibration estimates it by default, else why it is held by default; meaning: one line for reports."""
+    calibration estimates it by default, else why it is held by default; meaning: one line for reports;
+    tested_with: an unknown freed beside it in its score test (lrfcal.solve) when a solve holds both (a scale is
+    told from an offset only with the offset free)."""
 
     name: str
     unit: str
@@ -40,6 +42,7 @@ class Unknown:
     start: float
     held: str
     meaning: str
+    tested_with: str = ""
 
 
 #: Every unknown of the rig model, in the solver's order.
@@ -54,6 +57,9 @@ UNKNOWNS: tuple[Unknown, ...] = (
     Unknown("clock_offset", "s", "clock", 0.0, "", "laser stamp minus servo stamp"),
     Unknown("range_offset", "m", "intrinsic", 0.0, "", "added to every range the scanner reports"),
     Unknown("marker_range_bias", "m", "intrinsic", 0.0, "", "added to the ranges of marker returns only"),
+    Unknown("range_scale", "1", "intrinsic", 1.0,
+            "the scanner's range scale is trusted: held at 1 unless the tape contradicts it",
+            "the scanner reports this times the true range (plus the range offset)", "range_offset"),
     Unknown("motor_scale", "1", "intrinsic", 1.0, "the servo's angle scale (gear ratio) is trusted: held at 1",
             "the joint's reported angle times this is the motor angle (a gear ratio or counts per turn off)"),
     Unknown("beam_scale", "1", "intrinsic", 1.0, "the scan's declared angle increment is trusted: held at 1",
@@ -68,6 +74,7 @@ BY_NAME: dict[str, Unknown] = {u.name: u for u in UNKNOWNS}
 TAU = CORE_NAMES.index("clock_offset")
 ROFF = CORE_NAMES.index("range_offset")
 MBIAS = CORE_NAMES.index("marker_range_bias")
+RSCALE = CORE_NAMES.index("range_scale")
 SCALE = CORE_NAMES.index("motor_scale")
 BSCALE = CORE_NAMES.index("beam_scale")
 DH_SLICE = slice(6, 10)
@@ -97,6 +104,23 @@ def pack(params: Params, clock_offset_s: float = 0.0) -> tuple[FloatArray, Float
     core[DH_SLICE] = params.dh.vector()
     core[TAU] = clock_offset_s
     return core, T[:3, :3].copy()
+
+
+def core_vector(dh: DH, intrinsics: Mapping[str, float]) -> FloatArray:
+    """(N_CORE,) a core vector with ``dh``, the ``intrinsics`` named (by name: value), the mount at the identity and
+    every other unknown at its start: what the model functions acting on ranges, bearings and motor angles take.
+
+    Raises:
+        InputError: a name in ``intrinsics`` is not an intrinsic of the model.
+    """
+    unknown = sorted(set(intrinsics) - set(INTRINSICS))
+    if unknown:
+        raise InputError(f"not intrinsics of the rig model: {', '.join(unknown)} (known: {', '.join(INTRINSICS)})")
+    core = np.array([u.start for u in UNKNOWNS])
+    core[DH_SLICE] = dh.vector()
+    for name, value in intrinsics.items():
+        core[CORE_NAMES.index(name)] = value
+    return core
 
 
 def unpack(core: FloatArray, R_ref: FloatArray) -> Params:
