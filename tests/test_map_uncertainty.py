@@ -99,11 +99,11 @@ def test_plane_prior_jacobian_matches_refitted_planes() -> None:
 
 
 def test_errors_shared_by_a_markers_returns_widen_the_covariance() -> None:
-    """The per-marker sandwich (lrfcal.solve._inflate_for_markers): residuals that share an offset per marker (an
+    """The per-marker sandwich (lrfcal.covariance.inflate_for_markers): residuals that share an offset per marker (an
     uneven coverage of its disc) widen the covariance by about sqrt(returns per marker) for a parameter each marker
     sees alike; independent residuals leave it as it is."""
+    from lrfcal.covariance import inflate_for_markers
     from lrfcal.normal_equations import Blocks
-    from lrfcal.solve import _inflate_for_markers
 
     rng = np.random.default_rng(0)
     n_markers, per = 12, 50
@@ -115,7 +115,7 @@ def test_errors_shared_by_a_markers_returns_widen_the_covariance() -> None:
 
     def widened(r: np.ndarray) -> np.ndarray:
         b = Blocks(r, J, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 3)), empty, 0)
-        return np.sqrt(np.diag(_inflate_for_markers(cov, b, np.arange(2), marker, empty, JtJ_inv)))
+        return np.sqrt(np.diag(inflate_for_markers(cov, b, np.arange(2), marker, empty, JtJ_inv)))
 
     independent = widened(rng.normal(size=marker.size))
     np.testing.assert_allclose(independent, np.sqrt(np.diag(cov)), rtol=0.5)

@@ -284,7 +284,7 @@ def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointState
     )
     if len(on_surfaces):
         joint = partial(fit, matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
-                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s, held_scores=True)
+                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s, held_scores=tuple(SCALES))
         ours = joint(estimate_range_bias=config.estimate_range_bias)
         if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
                                                <= observability.RANGE_BIAS_LIMIT_M):
@@ -303,7 +303,7 @@ def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointState
             surface_list = [*surface_list, *other_planes]
             ours = fit(matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
-                       estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=True)
+                       estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=tuple(SCALES))
             notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
                          "free planes")
     return ours, list(surface_list), on_surfaces
@@ -359,7 +359,7 @@ def _marker_solution(
             f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
             f"{obs.hint()}"
         )
-    fit = partial(fit, held_scores=True)  # the scales' score tests read this solution (and its re-solves)
+    fit = partial(fit, held_scores=tuple(SCALES))  # the scales' score tests read this solution (and its re-solves)
     sol = fit(matched, markers, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
     notes: list[str] = []
     estimate: tuple[str, ...] = ()

@@ -11,7 +11,7 @@ Solver: a robust pass (Huber weights at 2 sigma) from the start, then plain leas
 whitened residual exceeds 4 sigma dropped (repeated until the inlier set is stable), whose Jacobian gives the
 covariance s^2 (J^T J)^-1, s^2 the reduced chi-square of the whitened residuals, widened where errors shared within
 a scan or by the returns of one marker make it optimistic (cluster-robust sandwiches), plus the marker map's own
-uncertainty carried through the solution (:func:`_uncertainty`). The markers the scan plane crosses on one side
+uncertainty carried through the solution (lrfcal.covariance). The markers the scan plane crosses on one side
 only keep their range residuals (lrfcal.model.marker.two_sided, :func:`with_sides`). The plain passes, the
 targetless solve and the information run on the normal equations with the planes' nuisances eliminated by the Schur
 complement (lrfcal.normal_equations).
@@ -19,14 +19,14 @@ complement (lrfcal.normal_equations).
 
 from __future__ import annotations
 
-import math
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from functools import partial
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .covariance import held_score, uncertainty
 from .errors import CalibrationError
 from .model.chart import regular_chart_at, regular_step
 from .model.kinematics import Params, exp_so3
@@ -34,8 +34,8 @@ from .model.marker import crossings, residuals_3d
 from .model.motor import MotorClock, motor_angles
 from .model.plane import plane_rows
 from .model.scanner import true_bearing, true_range
-from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, UNKNOWNS, free_by_default, pack, unpack
-from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, levenberg_marquardt, solve_step
+from .model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack, unpack
+from .normal_equations import levenberg_marquardt
 from .problem import Problem, marker_problem, plane_problem, plane_set
 from .surfaces import Surface, SurfaceReturns
 from .types import MarkerMap, Observations, Solution
@@ -64,107 +64,6 @@ def _fit(th0: FloatArray, R_ref: FloatArray, pb: Problem, free: NDArray[np.bool_
     return th, R_new, nfev, msg
 
 
-def _inflate_for_correlation(cov: FloatArray, G: FloatArray, JtJ_inv: FloatArray) -> FloatArray:
-    """Widen the covariance where errors shared within a scan make it optimistic.
-
-    The cluster-robust (sandwich) covariance (J^T J)^-1 (sum_c g_c g_c^T) (J^T J)^-1, g_c = sum over the rows of
-    scan c of J_i r_i (G (clusters, p), lrfcal.normal_equations.cluster_scores), allows any error correlation within
-    a scan (the motor angle of a scan comes from the same few quantised encoder readings for all its beams). Each
-    parameter's sigma is the larger of the two; the model-based correlations are kept. cov (p, p).
-    """
-    return _widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv)
-
-
-def _widen(cov: FloatArray, sandwich: FloatArray) -> FloatArray:
-    """``cov`` (p, p) with each parameter's sigma the larger of its own and the ``sandwich``'s (p, p), the
-    correlations kept."""
-    with np.errstate(over="ignore", divide="ignore", invalid="ignore"):  # a null-variance column stays unscaled
-        ratio = np.diag(sandwich) / np.diag(cov)
-    scale = np.sqrt(np.maximum(1.0, np.where(np.isfinite(ratio), ratio, 1.0)))
-    return cov * np.outer(scale, scale)
-
-
-#: markers needed for the per-marker sandwich (fewer: it says nothing)
-_MIN_MARKER_CLUSTERS = 4
-
-
-def _inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], marker_dense: NDArray[np.int64],
-                         scan_plane: NDArray[np.int64], JtJ_inv: FloatArray) -> FloatArray:
-    """Widen ``cov`` (p, p) per parameter to the cluster-robust covariance with every marker's returns one cluster
-    (each scan's surface returns one, as before), times G / (G - 1) for G markers: the errors the returns of one
-    marker share (an uneven coverage of its disc by the beams, the marker map's error of it) are then counted once
-    per marker, not as independent per return. The larger of the two per parameter, the correlations kept."""
-    n_markers = np.unique(marker_dense).size
-    if n_markers < _MIN_MARKER_CLUSTERS:
-        return cov
-    ids = marker_dense + (int(scan_plane.max()) + 1 if scan_plane.size else 0)  # apart from the scans' ids
-    G = cluster_scores(b, core, ids, scan_plane)
-    return _widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1)))
-
-
-def _uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
-                 cluster_dense: NDArray[np.int64], cluster_plane: NDArray[np.int64],
-                 map_cov: FloatArray | None = None, marker_dense: NDArray[np.int64] | None = None
-                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None]:
-    """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
-    scan (``cluster_dense``, ``cluster_plane``: the scan of each dense and plane residual row; each prior row is a
-    cluster of its own), with ``n_rows`` independent residuals, plus the marker map's own uncertainty ``map_cov``
-    (3n, 3n) carried through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c (lrfcal.problem.Problem.
-    centre_cross). Then widened again where the errors shared by all returns of one marker (``marker_dense``: the
-    marker of each dense row) say more: where the beams cover a marker unevenly (lines fanning across it, or the
-    same lines in every pass), the mean of its returns' lateral offsets is not its centre, and that error is common
-    to the marker (:func:`_inflate_for_markers`). J^T J from the normal equations, column-scaled; an eigenvalue below
-    RANK_TOL of the largest is rank loss.
-
-    Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
-    singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2,
-    the rank in words and G (N_CORE, 3n) (None without ``map_cov`` or with rank loss)."""
-    b = pb.blocks(th, R_ref)
-    core = np.flatnonzero(free[:N_CORE])
-    H, _ = assemble(b, core).dense()
-    res = b.residuals()
-    n_par = H.shape[0]
-    s2 = float(res @ res / max(n_rows - n_par, 1))
-    col = np.sqrt(np.diag(H))
-    col[col == 0] = 1.0
-    H_s = H / np.outer(col, col)  # column-scaled: the covariance is computed in these units, then scaled back
-    eig = np.linalg.eigvalsh(H_s)
-    rank = int(np.sum(eig > eig[-1] * RANK_TOL))  # only numerically null directions count as rank loss
-    core_pos = list(range(core.size))
-    core_names = tuple(CORE_NAMES[k] for k in core)
-    G: FloatArray | None = None
-    info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
-    if rank < n_par:
-        cov = s2 * np.linalg.pinv(H_s, rcond=1e-15) / np.outer(col, col)
-        info = _schur(H * info_scale, core_pos)
-        rank_txt = f"rank deficient ({rank}/{n_par})"
-    else:
-        JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
-        cov = _inflate_for_correlation(s2 * JtJ_inv, cluster_scores(b, core, cluster_dense, cluster_plane), JtJ_inv)
-        if map_cov is not None:
-            # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the
-            # marker rows (core columns) and the planes' priors (nuisance columns)
-            n_m = len(map_cov) // 3
-            cross = pb.centre_cross(th, R_ref, core, n_m, b.J_dense)
-            prior = pb.prior_cross(n_m)  # one row per nuisance, in H's order after the core
-            if prior is not None:
-                cross = np.vstack([cross, prior])
-            G_free = -JtJ_inv[core_pos, :cross.shape[0]] @ cross
-            cov[np.ix_(core_pos, core_pos)] += G_free @ map_cov @ G_free.T
-            G = np.zeros((N_CORE, len(map_cov)))
-            G[core] = G_free
-        if marker_dense is not None:
-            cov = _inflate_for_markers(cov, b, core, marker_dense, cluster_plane, JtJ_inv)
-        info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
-        rank_txt = f"full rank (condition {np.sqrt(eig[-1] / eig[0]):.2e})"
-    cov_core = np.full((N_CORE, N_CORE), np.nan)
-    cov_core[np.ix_(core, core)] = cov[np.ix_(core_pos, core_pos)]
-    if rank < n_par:
-        # a covariance from a singular information would be meaningless (and can be 0): none is reported
-        cov_core[np.ix_(core, core)] = np.inf
-    return cov_core, info, core_names, s2, rank_txt, G
-
-
 def _per_return_chi(th: FloatArray, pb: Problem, R_ref: FloatArray) -> FloatArray:
     """Whitened residual norm per marker return over the square root of its independent components (MarkerSet.dof)."""
     res, _ = pb.marker_rows(th, R_ref, jac=False)
@@ -189,7 +88,7 @@ def solve(
     beam_divergence_rad: float = 0.0,
     estimate: Sequence[str] = (),
     in_plane_at_turns: bool = False,
-    held_scores: bool = False,
+    held_scores: Sequence[str] = (),
 ) -> Solution:
     """Estimate the 10 parameters (and the clock offset, the intrinsics) from marker returns.
 
@@ -218,7 +117,7 @@ def solve(
             separable with surface returns (see lrfcal.markers).
         estimate: names of unknowns the model holds by default (lrfcal.model.unknowns.UNKNOWNS) to estimate here.
         in_plane_at_turns: the model variant (lrfcal.model.marker.MarkerSet.in_plane_at_turns).
-        held_scores: run the score test of every unknown held by default (Solution.held_score; empty otherwise).
+        held_scores: names of unknowns held by default whose score test to run where held (Solution.held_score).
     Returns:
         Solution: estimate, covariance (10, 10) in ESTIMATE_NAMES order (the rotation as a rotation vector in
         frame M; the marginal over plane nuisances and the clock offset; NaN rows for held parameters), the clock
@@ -305,7 +204,7 @@ def with_sides(pb: Problem, th: FloatArray, R_ref: FloatArray) -> Problem:
 def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, pb_all: Problem, th: FloatArray,
                      R_ref: FloatArray, free: NDArray[np.bool_], keep: NDArray[np.bool_], keep_s: NDArray[np.bool_],
                      nfev: int, msg: str, surfaces: SurfaceReturns | None, map_cov: FloatArray | None,
-                     held_scores: bool) -> Solution:
+                     held_scores: Sequence[str]) -> Solution:
     """The Solution of :func:`solve` at the solution th: covariance, residuals per return and per marker, status."""
     ms = pb_all.markers
     K, K2 = ms.r.size, 0 if pb_all.surf is None else pb_all.surf.r.size
@@ -314,12 +213,12 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
     scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
     # per marker return its independent residuals (MarkerSet.n_independent), 1 per surface return and prior row
-    uncertainty = partial(_uncertainty, pb, R_ref=R_ref, n_rows=pb.markers.n_independent + k_s + n_prior,
+    unc = partial(uncertainty, pb, R_ref=R_ref, n_rows=pb.markers.n_independent + k_s + n_prior,
                           cluster_dense=np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res), cluster_plane=scan_s,
                           map_cov=map_cov, marker_dense=np.repeat(pb.markers.marker, ms.n_res))
-    cov_core, info, core_names, s2, rank_txt, G = uncertainty(th=th, free=free)
+    cov_core, info, core_names, s2, rank_txt, G = unc(th=th, free=free)
     params = unpack(th[:N_CORE], R_ref)
-    score = _held_score(pb, th, R_ref, free, s2, uncertainty) if held_scores else {}
+    score = held_score(pb, th, R_ref, free, s2, unc, held_scores)
     lam_all = motor_angles(th, np.asarray(obs.lambda_rad, dtype=float), np.asarray(obs.times_s, dtype=float),
                            pb_all.clock).lam
     res3 = np.full((len(obs), 3), np.nan)
@@ -344,39 +243,6 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
                      converged="maximum number of function evaluations" not in msg, chi=chi_all, inlier=inl,
                      lambda_rad=lam_all, n_surface_returns=k_s, held_score=score,
                      map_sensitivity=None if G is None else G[:10])
-
-
-def _held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], s2: float,
-                uncertainty: Callable[..., tuple]) -> dict[str, tuple[float, float]]:
-    """The score test of every unknown the model holds by default and this solve held (lrfcal.model.unknowns), each
-    on its own (with its ``tested_with`` companion where that is held too): one Gauss-Newton step from the solution
-    with it freed; per name the value it steps to and the 1-sigma the estimate would have there
-    (``uncertainty(th=, free=)``: the solve's own covariance, widened for errors shared within a scan and within a
-    marker and for the marker map's uncertainty; and by the reduced chi-square when above 1). A value many sigma
-    from the held one says the data contradict holding it, without a second solve.
-
-    Each is tested alone: freed together, a poorly determined one carries the others far. The plain information as
-    the sigma put the range scale 4.6-9.9 sigma from 1 on 4 of 70 random truths (errors common to a marker's
-    returns); the widened sigma evaluated at the held solution, whose residuals carry the misfit under test, was
-    5x the estimate's on tunnel_v with ranges 1 % long, and missed it."""
-    tested = [i for i, u in enumerate(UNKNOWNS) if u.held and not free[i]]
-    blocks = pb.blocks(th, R_ref) if tested else None
-    out = {}
-    for i in tested:
-        with_ = [CORE_NAMES.index(n) for n in (UNKNOWNS[i].tested_with,) if n and not free[CORE_NAMES.index(n)]]
-        freed = free.copy()
-        freed[[i, *with_]] = True
-        cols = np.flatnonzero(freed[:N_CORE])
-        try:
-            step = solve_step(assemble(blocks, cols), 0.0)
-        except np.linalg.LinAlgError:
-            continue
-        stepped = th.copy()
-        stepped[cols] += step[:cols.size]
-        stepped[N_CORE:] += step[cols.size:]
-        var = uncertainty(th=stepped, free=freed)[0][i, i] * max(s2, 1.0) / max(s2, 1e-12)
-        out[CORE_NAMES[i]] = (float(stepped[i]), float(np.sqrt(var)) if np.isfinite(var) else math.inf)
-    return out
 
 
 def _solution(th: FloatArray, R_ref: FloatArray, cov_core: FloatArray, free: NDArray[np.bool_], **fields: object
@@ -480,7 +346,7 @@ def solve_planes(
     pb = pb_all.subset(none, keep)
     assert pb.surf is not None
     n_prior = 0 if dh_prior is None else 4
-    cov_core, info, core_names, s2, rank_txt, _ = _uncertainty(
+    cov_core, info, core_names, s2, rank_txt, _ = uncertainty(
         pb, th, R_ref, free, int(keep.sum()) + n_prior,
         -1 - np.arange(n_prior), np.asarray(surfaces.scan)[keep])
     rs = plane_rows(th, pb.surf, 1.0, R_ref, jac=False, clock=clock).res
@@ -502,16 +368,6 @@ def _gauss_newton(th0: FloatArray, R_ref: FloatArray, pb: Problem, free: NDArray
     th, n_eval, ok = levenberg_marquardt(th0, lambda x, j: pb.blocks(x, R_ref, j), np.flatnonzero(free[:N_CORE]),
                                          N_CORE, huber=huber, max_iter=max_iter)
     return th, n_eval, "converged" if ok else f"not converged in {max_iter} iterations"
-
-
-def _schur(A: FloatArray, keep: Sequence[int]) -> FloatArray:
-    """The information of the ``keep`` block with the others marginalised: A_kk - A_ko A_oo^+ A_ok."""
-    keep = list(keep)
-    other = [i for i in range(A.shape[0]) if i not in keep]
-    if not other:
-        return A[np.ix_(keep, keep)]
-    Akk, Ako, Aoo = A[np.ix_(keep, keep)], A[np.ix_(keep, other)], A[np.ix_(other, other)]
-    return Akk - Ako @ np.linalg.pinv(Aoo, rcond=1e-12) @ Ako.T
 
 
 __all__ = ["CORE_NAMES", "MotorClock", "solve", "solve_planes"]

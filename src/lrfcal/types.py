@@ -339,7 +339,7 @@ class Solution:
     #: every unknown held by default that this solve held: name -> (the value one Gauss-Newton step with it freed
     #: reaches, its 1-sigma) (lrfcal.solve's score test)
     held_score: dict[str, tuple[float, float]] = field(default_factory=dict)
-    #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.solve._uncertainty); the
+    #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.covariance.uncertainty); the
     #: covariance holds the map's part, G C_map G^T (None: the map was taken as exact)
     map_sensitivity: FloatArray | None = None
 
