@@ -35,19 +35,33 @@ def test_reproject_beams_per_scan_layout_and_uncovered_scans():
     np.testing.assert_allclose(c.points_M, points_M(2.0, lam, mu[c.scan, c.beam], dh), atol=1e-12)
     np.testing.assert_allclose(c.times_s, t)
     np.testing.assert_array_equal(c.scan_sweep[4:], [-1, -1])
-    # a calibration's range offset is subtracted from every range: each point moves 0.012 m back along its ray
-    c2 = reproject_beams(scans, joints, dh, range_offset_m=0.012)
-    np.testing.assert_allclose(c2.points_M, points_M(2.0 - 0.012, lam, mu[c.scan, c.beam], dh), atol=1e-12)
+    # a calibration's intrinsics act as in the model: the scanner reports range_scale r_true + range_offset, the
+    # motor angle is motor_scale q, the bearing beam_scale mu
+    intr = {"range_offset": 0.012, "range_scale": 1.01, "motor_scale": 0.98, "beam_scale": 1.001}
+    c2 = reproject_beams(scans, joints, dh, intrinsics=intr)
+    np.testing.assert_allclose(c2.points_M, points_M((2.0 - 0.012) / 1.01, 0.98 * lam, 1.001 * mu[c.scan, c.beam], dh),
+                               atol=1e-12)
 
 
-def test_calibration_range_offset_is_read_only_when_estimated(tmp_path):
-    from lrfcal.cloud import read_calibration_range_offset
+def test_calibration_intrinsics_are_read_only_when_estimated(tmp_path):
+    """calibration.yaml's intrinsics section: the estimated ones (sigma not null); an older file without it gives its
+    estimated range_offset_m; a name the model does not know is refused naming it."""
+    import pytest
 
-    est, held = tmp_path / "est.yaml", tmp_path / "held.yaml"
-    est.write_text("range_offset_m: {value: 0.0125, sigma: 0.0012}\n")
+    from lrfcal.cloud import read_calibration_intrinsics
+    from lrfcal.errors import InputError
+
+    new, old, held, bad = (tmp_path / f"{n}.yaml" for n in ("new", "old", "held", "bad"))
+    new.write_text("intrinsics:\n  range_offset: {value: 0.0125, sigma: 0.0012}\n"
+                   "  range_scale: {value: 1.01, sigma: 0.001}\n  motor_scale: {value: 1.0, sigma: null}\n")
+    old.write_text("range_offset_m: {value: 0.0125, sigma: 0.0012}\n")
     held.write_text("range_offset_m: {value: 0.0, sigma: null}\n")
-    assert read_calibration_range_offset(est) == 0.0125
-    assert read_calibration_range_offset(held) == 0.0
+    bad.write_text("intrinsics:\n  gear: {value: 2.0, sigma: 0.1}\n")
+    assert read_calibration_intrinsics(new) == {"range_offset": 0.0125, "range_scale": 1.01}
+    assert read_calibration_intrinsics(old) == {"range_offset": 0.0125}
+    assert read_calibration_intrinsics(held) == {}
+    with pytest.raises(InputError, match="intrinsics.gear"):
+        read_calibration_intrinsics(bad)
 
 
 def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):

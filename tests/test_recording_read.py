@@ -181,6 +181,13 @@ def test_missing_bag(tmp_path):
         read_bag(tmp_path / "nope")
 
 
+def test_recording_folder_given_as_the_bag_names_its_bag(tmp_path):
+    """A recording folder (bag/, distances.csv, nominal.yaml) where a bag is expected: one line naming its bag."""
+    write_bag(tmp_path / "rec" / "bag", "mcap")
+    with pytest.raises(InputError, match=r"a recording folder, not a bag: pass its bag, .*rec/bag"):
+        read_bag(tmp_path / "rec")
+
+
 def test_missing_joint_lists_names(tmp_path):
     joints = [(t, ("pan", "tilt"), [0.0, 0.0]) for t in np.arange(T0 - 0.02, T0 + 0.2, 0.01)]
     path = write_bag(tmp_path / "bag", "mcap", joints=joints)

@@ -12,7 +12,7 @@ Array shapes: S scans, N beams, P points.
 from __future__ import annotations
 
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -23,7 +23,10 @@ from numpy.typing import NDArray
 from .errors import InputError
 from .io.files import atomic_file, check_outputs, swapped_folder, write_bytes_atomic
 from .io.yamlfile import read_yaml
+from .model import motor as motor_model
 from .model.kinematics import DH, points_M
+from .model.scanner import true_bearing, true_range
+from .model.unknowns import BY_NAME, INTRINSICS, core_vector
 from .timing import covered_scans, motor_angles, sweep_passes
 from .types import JointStates, Scans
 
@@ -70,7 +73,7 @@ def reproject_beams(
     dh: DH,
     clock_offset_s: float = 0.0,
     *,
-    range_offset_m: float = 0.0,
+    intrinsics: Mapping[str, float] | None = None,
     chunk_scans: int = 512,
     progress: Callable[[int, int], None] | None = None,
 ) -> BeamCloud:
@@ -79,13 +82,15 @@ def reproject_beams(
     Args:
         scans: S scans (per-scan bearings and time increments); joints: the motor angle samples.
         dh: DH parameters (eq. (3)); clock_offset_s: t_servo = t_laser - clock_offset_s;
-        range_offset_m: the scanner's constant range offset (a calibration's ``range_offset_m``), subtracted from
-            every range.
+        intrinsics: the scanner's and servo's intrinsics by name (lrfcal.model.unknowns; a calibration's estimates,
+            :func:`read_calibration_intrinsics`; the others at their start), applied to the ranges, bearings and
+            motor angles as the model does (lrfcal.model.scanner, lrfcal.model.motor).
         chunk_scans: scans per vectorised chunk; progress(scans_done, S) is called after each chunk.
     Returns:
         BeamCloud in scan-major, beam-minor order.
     """
     S = scans.stamps_s.size
+    th = core_vector(dh, intrinsics or {})
     covered = covered_scans(scans, joints, clock_offset_s) if S else np.zeros(0, bool)
     mid_t = scans.stamps_s + 0.5 * np.maximum(scans.beam_counts - 1, 0) * scans.time_increment_s
     scan_sweep = np.full(S, -1, dtype=np.int64)
@@ -99,8 +104,10 @@ def reproject_beams(
         ok = np.isfinite(r) & covered[sl, None]
         ss, bb = np.nonzero(ok)
         t = scans.stamps_s[sl][ss] + bb * scans.time_increment_s[sl][ss]  # the beam's own time (written out)
-        lam = motor_angles(scans.angle_times_at(ss + s0, bb), joints, clock_offset_s)
-        p = points_M(r[ss, bb] - range_offset_m, lam, scans.mu_rad[sl][ss, bb], dh)
+        q = motor_angles(scans.angle_times_at(ss + s0, bb), joints, clock_offset_s)
+        lam = motor_model.motor_angles(th, q, None, None).lam
+        p = points_M(true_range(th, r[ss, bb], on_marker=False).r, lam, true_bearing(th, scans.mu_rad[sl][ss, bb]).mu,
+                     dh)
         parts.append((p, scans.intensities[sl][ss, bb], t, ss + s0, bb, lam))
         if progress is not None:
             progress(sl.stop, S)
@@ -223,17 +230,30 @@ def read_calibration_dh(path: str | Path) -> DH:
     return DH(**out)
 
 
-def read_calibration_range_offset(path: str | Path) -> float:
-    """The constant range offset [m] a calibration.yaml estimated (``range_offset_m: {value, sigma}``); 0 when it
-    was held (sigma null) or the file has none."""
+def read_calibration_intrinsics(path: str | Path) -> dict[str, float]:
+    """The intrinsics a calibration.yaml estimated, by name (``intrinsics: {name: {value, sigma, ...}}``; those held,
+    sigma null, are left out: they are at their start). A file without ``intrinsics`` (an older calibration) gives
+    its ``range_offset_m`` when that was estimated."""
     data = read_yaml(Path(path), "calibration file")
-    entry = data.get("range_offset_m") if isinstance(data, dict) else None
-    if not isinstance(entry, dict) or entry.get("sigma") is None:
-        return 0.0
-    v = entry.get("value")
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-        raise InputError(f"{path}: range_offset_m.value: expected a finite number of metres, got {v!r}")
-    return float(v)
+    section = data.get("intrinsics") if isinstance(data, dict) else None
+    if section is None:
+        entry = data.get("range_offset_m") if isinstance(data, dict) else None
+        section = {"range_offset": entry} if isinstance(entry, dict) else {}
+    if not isinstance(section, dict):
+        raise InputError(f"{path}: intrinsics: expected a mapping of name: {{value, sigma}}, got {section!r}")
+    out = {}
+    for name, entry in section.items():
+        if name not in INTRINSICS:
+            raise InputError(f"{path}: intrinsics.{name}: not an intrinsic of the rig model (known: "
+                             f"{', '.join(INTRINSICS)})")
+        if not isinstance(entry, dict) or entry.get("sigma") is None:
+            continue
+        v = entry.get("value")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise InputError(f"{path}: intrinsics.{name}.value: expected a finite number "
+                             f"({BY_NAME[name].unit}), got {v!r}")
+        out[name] = float(v)
+    return out
 
 
 def read_calibration_clock_offset(path: str | Path) -> float | None:
@@ -297,9 +317,8 @@ def reproject_bag(
     else:
         found = read_calibration_clock_offset(calibration) if calibration is not None else None
         offset, offset_from = (0.0, "none") if found is None else (found, f"from {calibration}")
-    range_offset = read_calibration_range_offset(calibration) if calibration is not None else 0.0
-    cloud = reproject_beams(rec.scans, rec.joints, dh, offset, range_offset_m=range_offset,
-                            progress=stage("reprojecting"))
+    intrinsics = read_calibration_intrinsics(calibration) if calibration is not None else {}
+    cloud = reproject_beams(rec.scans, rec.joints, dh, offset, intrinsics=intrinsics, progress=stage("reprojecting"))
     lines = list(rec.report.lines()) if rec.report is not None else []
     n_sweeps = int(np.unique(cloud.sweep).size)
     lines.append(f"reprojected {len(cloud)} returns of {rec.scans.stamps_s.size - cloud.n_scans_uncovered} scans "
@@ -307,7 +326,8 @@ def reproject_bag(
                  f"DH from {calibration if calibration is not None else nominal} "
                  f"(a {dh.a:.4f} m, alpha {np.degrees(dh.alpha):.3f} deg, b {dh.b:.4f} m, beta "
                  f"{np.degrees(dh.beta):.3f} deg), fine clock offset {offset:+.6f} s ({offset_from})"
-                 + (f", range offset {range_offset * 1000:+.2f} mm subtracted" if range_offset else ""))
+                 + "".join(f", {n} {v:+.6g}{'' if BY_NAME[n].unit == '1' else ' ' + BY_NAME[n].unit}"
+                           for n, v in intrinsics.items() if n != "marker_range_bias"))  # a marker-return bias
     write_cloud_ply(out, cloud)
     lines.append(f"wrote {out}")
     if bag_out is not None:
@@ -321,5 +341,5 @@ def reproject_bag(
 
 __all__ = ["BeamCloud", "CLOUD_FRAME", "CLOUD_TOPIC", "POINT_DTYPE", "point_records",
            "read_calibration_clock_offset", "read_calibration_dh",
-           "read_calibration_range_offset", "read_cloud_ply", "reproject_bag", "reproject_beams",
+           "read_calibration_intrinsics", "read_cloud_ply", "reproject_bag", "reproject_beams",
            "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]

@@ -36,6 +36,8 @@ def open_reader(path: Path) -> Any:
 
     if not path.exists():
         raise InputError(f"{path}: bag not found")
+    if path.is_dir() and not (path / "metadata.yaml").exists() and (path / "bag").exists():
+        raise InputError(f"{path}: a recording folder, not a bag: pass its bag, {path / 'bag'}")
     try:
         return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
     except Exception as err:  # rosbags raises several unrelated types for unreadable input
