@@ -26,14 +26,17 @@ are seen obliquely.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from .model import motor as motor_model
 from .model.kinematics import Params, beam_rays_W, points_W
+from .model.scanner import true_bearing, true_range
+from .model.unknowns import core_vector
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -277,6 +280,7 @@ def observe_surfaces(
     ranges_m: FloatArray, mu_rad: FloatArray, lambda_rad: FloatArray, labels: IntArray, markers_W: FloatArray,
     radius_m: float, params: Params, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
     beam_times_s: FloatArray | None = None, max_incidence_rad: float = MAX_INCIDENCE_RAD,
+    intrinsics: Mapping[str, float] | None = None,
 ) -> tuple[list[Surface], SurfaceReturns]:
     """Find the marker-carrying surfaces and their returns in a recording.
 
@@ -287,7 +291,10 @@ def observe_surfaces(
         params: lrfcal.model.kinematics.Params used to reproject (the marker-only estimate);
         beam_times_s (S, N): laser-clock beam times, carried with the returns (for the clock offset);
         position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior);
-        max_incidence_rad: the most oblique incidence of a surface return used (ray directions from ``params``).
+        max_incidence_rad: the most oblique incidence of a surface return used (ray directions from ``params``);
+        intrinsics: the estimate's intrinsics by name (lrfcal.model.unknowns; the others at their start), with which
+            the returns are reprojected (a range scale found by the markers, say); the returns keep their reported
+            values.
     """
     valid = np.isfinite(ranges_m) & (labels < 0)
     flat = np.flatnonzero(valid)  # the valid returns, row-major as np.nonzero orders them
@@ -302,9 +309,16 @@ def observe_surfaces(
         i = flat[rows]
         return lam_f[i], (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
 
+    th = core_vector(params.dh, intrinsics or {})
+
+    def true(lam: FloatArray, mu: FloatArray, r: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """the motor angles, bearings and ranges as the model has them (lrfcal.model.motor, lrfcal.model.scanner)"""
+        return (motor_model.motor_angles(th, lam, None, None).lam, true_bearing(th, mu).mu,
+                true_range(th, r, on_marker=False).r)
+
     sensor_W = params.mount.matrix()[:3, 3]
     step = max(1, flat.size // 100_000)
-    lam_s, mu_s, r_s = take(np.arange(0, flat.size, step))
+    lam_s, mu_s, r_s = true(*take(np.arange(0, flat.size, step)))
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, points_W(r_s, lam_s, mu_s, params),
                              position_sigma_m=position_sigma_m)
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
@@ -314,10 +328,11 @@ def observe_surfaces(
     for frac in (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0):
         rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
         lam_k, mu_k, r_k = take(rows)
-        returns = surface_returns(surfaces, points_W(r_k, lam_k, mu_k, params), scan[rows], beam[rows], lam_k,
+        lam_t, mu_t, r_t = true(lam_k, mu_k, r_k)
+        returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), scan[rows], beam[rows], lam_k,
                                   mu_k, r_k, markers_W, max_returns=max_returns, seed=seed,
                                   times_s=None if times_f is None else times_f[flat[rows]],
-                                  rays_W=lambda i, lam_k=lam_k, mu_k=mu_k: beam_rays_W(params, lam_k[i], mu_k[i]),
+                                  rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]),
                                   max_incidence_rad=max_incidence_rad)
         if len(returns) >= max_returns:
             break
