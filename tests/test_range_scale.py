@@ -40,6 +40,14 @@ def test_range_scale_one_percent_off_is_estimated(tmp_path: Path, scale: float) 
     assert any("range scale" in n and "estimated" in n for n in notes), notes
     assert not any("moved" in n or "motor-angle scale" in n for n in notes), notes
     assert trial.result.solution.n_surface_returns > 0
+    # the figures' and rerun's "after" residuals apply the estimated scale as the model does: the solution's RMS
+    from lrfcal.vizdata import marker_returns
+
+    def rms(calibrated: bool) -> float:
+        to_marker = marker_returns(trial.result, trial.result.solution.params, calibrated=calibrated)[1]
+        return float(np.sqrt((np.linalg.norm(to_marker, axis=1) ** 2).mean()))
+
+    assert rms(True) == pytest.approx(trial.result.solution.residual_rms_m, rel=0.05) and rms(False) > rms(True)
 
 
 def test_clean_recording_keeps_the_range_scale_held(shipped_recording) -> None:  # type: ignore[no-untyped-def]

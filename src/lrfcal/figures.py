@@ -226,7 +226,7 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
     eye = np.asarray(result.solution.params.mount.matrix(), dtype=float)[:3, 3]
     stages = {}
     for name, params in (("before", before), ("after", result.solution.params)):
-        p, to_m, mk, _ = marker_returns(result, params)
+        p, to_m, mk, _ = marker_returns(result, params, calibrated=name == "after")
         stages[name] = (p, mk, np.linalg.norm(to_m, axis=1))
     counts = np.bincount(stages["after"][1], minlength=len(ids)) if len(ids) else np.zeros(0, int)
     shown = [int(i) for i in np.argsort(-counts, kind="stable")[:MAX_MARKER_PANELS] if counts[i] > 0]
@@ -319,7 +319,7 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
     data = {}
     for name, params in (("before", before if before is not None else result.start),
                          ("after", result.solution.params)):
-        _, to_m, mk, _ = marker_returns(result, params)
+        _, to_m, mk, _ = marker_returns(result, params, calibrated=name == "after")
         norms_mm = np.linalg.norm(to_m, axis=1) * 1e3
         per = np.array([_rms_mm(norms_mm[mk == m] / 1e3) for m in range(n)])
         data[name] = (norms_mm, per)

@@ -157,7 +157,7 @@ def _log_stage(rec: Any, result: CalibrationResult, which: Literal["before", "af
     _log_cloud(rec, result, which)
     params = result.start if which == "before" else result.solution.params
     color = _COLOR_BEFORE if which == "before" else _COLOR_AFTER
-    p, to_marker, marker, _ = marker_returns(result, params)
+    p, to_marker, marker, _ = marker_returns(result, params, calibrated=which == "after")
     ids = result.markers.marker_ids
     rec.log(f"world/{which}/returns", rr.Points3D(
         p, radii=0.006, colors=color, labels=[ids[m] for m in marker], show_labels=False,

@@ -11,8 +11,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from .model import motor as motor_model
 from .model.kinematics import Params, points_W
 from .model.marker import residuals_3d
+from .model.scanner import true_bearing, true_range
+from .model.unknowns import core_vector
 from .types import CalibrationResult
 
 FloatArray = NDArray[np.float64]
@@ -40,9 +43,11 @@ def intensity_colors(intensity: ArrayLike, cmap: str = "viridis") -> NDArray[np.
 
 
 def marker_returns(
-    result: CalibrationResult, params: Params
+    result: CalibrationResult, params: Params, calibrated: bool = False
 ) -> tuple[FloatArray, FloatArray, IntArray, IntArray]:
-    """Marker returns reprojected with ``params`` and their residual vectors to the marker surface.
+    """Marker returns reprojected with ``params`` and their residual vectors to the marker surface; ``calibrated``:
+    with the calibration's intrinsics too (its range offset, marker range bias and scales, as the model applies
+    them), else with the intrinsics at their start.
 
     Only observations assigned to a marker (marker >= 0) are used (K of them).
     Returns:
@@ -52,11 +57,14 @@ def marker_returns(
     """
     obs = result.observations
     sel = obs.marker >= 0
-    p = points_W(obs.ranges_m[sel], obs.lambda_rad[sel], obs.mu_rad[sel], params)
+    th = core_vector(params.dh, {n: v for n, (v, _) in result.solution.intrinsics.items()} if calibrated else {})
+    rng = true_range(th, obs.ranges_m[sel], on_marker=True).r
+    lam = motor_model.motor_angles(th, obs.lambda_rad[sel], None, None).lam
+    mu = true_bearing(th, obs.mu_rad[sel]).mu
+    p = points_W(rng, lam, mu, params)
     centres = result.markers.positions_W[obs.marker[sel]]
     r = float(result.recording.nominal.marker_radius_m)
-    to_surface = -residuals_3d(params, obs.ranges_m[sel], obs.lambda_rad[sel], obs.mu_rad[sel], centres,
-                               model="sphere", marker_radius_m=r)
+    to_surface = -residuals_3d(params, rng, lam, mu, centres, model="sphere", marker_radius_m=r)
     to_surface[np.linalg.norm(p - centres, axis=1) <= r] = 0.0  # inside the sphere: no arrow
     return p, to_surface, obs.marker[sel].astype(np.int64), obs.scan[sel].astype(np.int64)
 
