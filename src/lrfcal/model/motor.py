@@ -12,7 +12,7 @@ acting on the motor angle (a clock offset, a gear ratio) is written here once.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -20,10 +20,16 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import InputError
 from .unknowns import SCALE, TAU
 
-if TYPE_CHECKING:  # the joint states are data; the model needs only their arrays
-    from ..types import JointStates
-
 FloatArray = NDArray[np.float64]
+
+
+class JointSamples(Protocol):
+    """What the model reads of joint states (lrfcal.types.JointStates): their stamps (J,) on the servo clock, the
+    positions (J,) and the joint's name. A protocol, so the model does not import the data layer."""
+
+    stamps_s: ArrayLike
+    positions_rad: ArrayLike
+    name: str
 
 
 @dataclass(frozen=True)
@@ -39,7 +45,7 @@ class MotorClock:
     velocity_rad_s: FloatArray
 
     @staticmethod
-    def from_joints(joints: JointStates, smooth_s: float = 0.05) -> MotorClock:
+    def from_joints(joints: JointSamples, smooth_s: float = 0.05) -> MotorClock:
         t = np.asarray(joints.stamps_s, dtype=float)
         q = np.unwrap(np.asarray(joints.positions_rad, dtype=float))
         if t.size < 2:
@@ -81,4 +87,4 @@ def motor_angles(th: FloatArray, lam: FloatArray, times: FloatArray | None, cloc
     return MotorAngles(s * q, ((TAU, -s * omega), (SCALE, q)))
 
 
-__all__ = ["MotorAngles", "MotorClock", "motor_angles"]
+__all__ = ["JointSamples", "MotorAngles", "MotorClock", "motor_angles"]
