@@ -23,9 +23,8 @@ from numpy.typing import NDArray
 from .errors import InputError
 from .io.files import atomic_file, check_outputs, swapped_folder, write_bytes_atomic
 from .io.yamlfile import read_yaml
-from .model import motor as motor_model
 from .model.kinematics import DH, points_M
-from .model.scanner import true_bearing, true_range
+from .model.scanner import true_returns
 from .model.unknowns import BY_NAME, INTRINSICS, core_vector
 from .timing import covered_scans, motor_angles, sweep_passes
 from .types import JointStates, Scans
@@ -105,9 +104,8 @@ def reproject_beams(
         ss, bb = np.nonzero(ok)
         t = scans.stamps_s[sl][ss] + bb * scans.time_increment_s[sl][ss]  # the beam's own time (written out)
         q = motor_angles(scans.angle_times_at(ss + s0, bb), joints, clock_offset_s)
-        lam = motor_model.motor_angles(th, q, None, None).lam
-        p = points_M(true_range(th, r[ss, bb], on_marker=False).r, lam, true_bearing(th, scans.mu_rad[sl][ss, bb]).mu,
-                     dh)
+        r_true, lam, mu_true = true_returns(th, r[ss, bb], q, scans.mu_rad[sl][ss, bb])
+        p = points_M(r_true, lam, mu_true, dh)
         parts.append((p, scans.intensities[sl][ss, bb], t, ss + s0, bb, lam))
         if progress is not None:
             progress(sl.stop, S)

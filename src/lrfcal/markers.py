@@ -281,7 +281,7 @@ def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointState
         scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, markers.positions_W,
         nominal.marker_radius_m, ours.params, position_sigma_m=max(markers.rms_m, 0.0005),
         max_returns=config.surface_max_returns, beam_times_s=beam_times,
-        intrinsics={n: v for n, (v, _) in ours.intrinsics.items()},
+        intrinsics=ours.intrinsic_values,
     )
     if len(on_surfaces):
         joint = partial(fit, matched, markers, ours.params, model="sphere", surfaces=on_surfaces,

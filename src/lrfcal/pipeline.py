@@ -132,7 +132,7 @@ def _reproject(recording: Recording, joints: JointStates, sol: Solution, config:
                                        tolerance_s=math.inf)
     (before, after), intensity = reproject.reproject_clouds(scans, lambda_beams, (recording.nominal.dh, sol.params.dh),
                                                             config.cloud_stride,
-                                                            ({}, {n: v for n, (v, _) in sol.intrinsics.items()}))
+                                                            ({}, sol.intrinsic_values))
     clock.lap("reprojection")
     out: dict[str, object] = {"cloud_before_M": before, "cloud_after_M": after, "cloud_intensity": intensity}
     if config.geometry:

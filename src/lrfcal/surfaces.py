@@ -33,9 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from .model import motor as motor_model
 from .model.kinematics import Params, beam_rays_W, points_W
-from .model.scanner import true_bearing, true_range
+from .model.scanner import true_returns
 from .model.unknowns import core_vector
 
 FloatArray = NDArray[np.float64]
@@ -310,15 +309,10 @@ def observe_surfaces(
         return lam_f[i], (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
 
     th = core_vector(params.dh, intrinsics or {})
-
-    def true(lam: FloatArray, mu: FloatArray, r: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-        """the motor angles, bearings and ranges as the model has them (lrfcal.model.motor, lrfcal.model.scanner)"""
-        return (motor_model.motor_angles(th, lam, None, None).lam, true_bearing(th, mu).mu,
-                true_range(th, r, on_marker=False).r)
-
     sensor_W = params.mount.matrix()[:3, 3]
     step = max(1, flat.size // 100_000)
-    lam_s, mu_s, r_s = true(*take(np.arange(0, flat.size, step)))
+    lam_s, mu_s, r_s = take(np.arange(0, flat.size, step))
+    r_s, lam_s, mu_s = true_returns(th, r_s, lam_s, mu_s)
     surfaces = find_surfaces(markers_W, radius_m, sensor_W, points_W(r_s, lam_s, mu_s, params),
                              position_sigma_m=position_sigma_m)
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
@@ -328,7 +322,7 @@ def observe_surfaces(
     for frac in (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0):
         rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
         lam_k, mu_k, r_k = take(rows)
-        lam_t, mu_t, r_t = true(lam_k, mu_k, r_k)
+        r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
         returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), scan[rows], beam[rows], lam_k,
                                   mu_k, r_k, markers_W, max_returns=max_returns, seed=seed,
                                   times_s=None if times_f is None else times_f[flat[rows]],

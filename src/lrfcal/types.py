@@ -352,6 +352,11 @@ class Solution:
         return replace(self, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
     @property
+    def intrinsic_values(self) -> dict[str, float]:
+        """The intrinsics' values by name, estimated or held (what lrfcal.model.unknowns.core_vector takes)."""
+        return {name: value for name, (value, _) in self.intrinsics.items()}
+
+    @property
     def range_offset_m(self) -> float:
         """Added to every reported range (estimated with estimate_range_bias; 0 when held)."""
         return self.intrinsics.get("range_offset", (0.0, math.nan))[0]

@@ -11,10 +11,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .model import motor as motor_model
 from .model.kinematics import Params, points_W
 from .model.marker import residuals_3d
-from .model.scanner import true_bearing, true_range
+from .model.scanner import true_returns
 from .model.unknowns import core_vector
 from .types import CalibrationResult
 
@@ -57,10 +56,8 @@ def marker_returns(
     """
     obs = result.observations
     sel = obs.marker >= 0
-    th = core_vector(params.dh, {n: v for n, (v, _) in result.solution.intrinsics.items()} if calibrated else {})
-    rng = true_range(th, obs.ranges_m[sel], on_marker=True).r
-    lam = motor_model.motor_angles(th, obs.lambda_rad[sel], None, None).lam
-    mu = true_bearing(th, obs.mu_rad[sel]).mu
+    th = core_vector(params.dh, result.solution.intrinsic_values if calibrated else {})
+    rng, lam, mu = true_returns(th, obs.ranges_m[sel], obs.lambda_rad[sel], obs.mu_rad[sel], on_marker=True)
     p = points_W(rng, lam, mu, params)
     centres = result.markers.positions_W[obs.marker[sel]]
     r = float(result.recording.nominal.marker_radius_m)

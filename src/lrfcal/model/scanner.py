@@ -20,6 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from .motor import motor_angles
 from .unknowns import BSCALE, MBIAS, ROFF, RSCALE
 
 FloatArray = NDArray[np.float64]
@@ -81,4 +82,13 @@ def true_bearing(th: FloatArray, mu: FloatArray) -> TrueBearing:
     return TrueBearing(th[BSCALE] * mu, ((BSCALE, mu),))
 
 
-__all__ = ["Reported", "TrueBearing", "TrueRange", "reported_range", "true_bearing", "true_range"]
+def true_returns(th: FloatArray, r: FloatArray, q: FloatArray, mu: FloatArray, on_marker: bool = False
+                 ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Returns as the model has them at the intrinsics of ``th``: the true ranges of the reported ``r`` (K,), the
+    motor angles of the joint angles ``q`` (K,) (interpolated at the clock offset already; lrfcal.model.motor) and
+    the true bearings of the declared ``mu`` (K,); for reprojecting them (lrfcal.model.kinematics.points_M)."""
+    return (true_range(th, r, on_marker).r, motor_angles(th, np.asarray(q, dtype=float), None, None).lam,
+            true_bearing(th, mu).mu)
+
+
+__all__ = ["Reported", "TrueBearing", "TrueRange", "reported_range", "true_bearing", "true_range", "true_returns"]
