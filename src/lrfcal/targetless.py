@@ -25,8 +25,8 @@ covariance), so that holding a wrong nominal cannot make the others confidently 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from dataclasses import dataclass, replace
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
 from functools import partial
 
 import numpy as np
@@ -41,7 +41,8 @@ from .forked import cores
 from .information import plane_information
 from .model.kinematics import DH, Params, Pose, beam_rays_W, points_M
 from .model.motor import MotorClock
-from .model.unknowns import CORE_NAMES, dh_difference
+from .model.scanner import true_returns
+from .model.unknowns import CORE_NAMES, core_vector, dh_difference
 from .surfaces import Surface, SurfaceReturns, hash_sample
 from .types import CalibrationResult, Check, JointStates, PlaneFit, Recording, Scans, Solution
 
@@ -165,22 +166,24 @@ COARSE_FRACTION = 0.5
 
 @dataclass(frozen=True)
 class _Round:
-    """Where a round segments the planes: the DH, the clock offset [s] and the planes' thickness [m]."""
+    """Where a round segments the planes: the DH, the clock offset [s], the planes' thickness [m] and the
+    intrinsics (name -> value, lrfcal.model.unknowns; absent ones at their start)."""
 
     dh: DH
     tau: float
     thickness_m: float
+    intrinsics: Mapping[str, float] = field(default_factory=dict)
 
     @staticmethod
     def after(sol: Solution, config: CalibConfig) -> _Round:
         """The next round's, from a round's solution: its estimate, the noise it found."""
         return _Round(sol.params.dh, sol.clock_offset_s,
-                      4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2)))
+                      4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2)), sol.intrinsic_values)
 
     def segment(self, beams: Beams, seg: NDArray[np.int64], motor: MotorClock, config: CalibConfig
                 ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
         """:func:`plane_returns_at` here."""
-        return plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config)
+        return plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config, self.intrinsics)
 
 
 def _coarse(beams: Beams, seg: NDArray[np.int64]) -> tuple[Beams, NDArray[np.int64]] | None:
@@ -256,13 +259,16 @@ def sample_returns(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) 
 
 
 def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh: DH, tau: float,
-                   thickness_m: float, config: CalibConfig
+                   thickness_m: float, config: CalibConfig, intrinsics: Mapping[str, float] | None = None
                    ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
-    """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau); label every sampled return with the
+    """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau) and ``intrinsics`` (name -> value, the
+    scales and offsets of lrfcal.model.unknowns; absent ones at their start); label every sampled return with the
     plane of its nearest segmented neighbour when it lies within ``thickness_m`` of that plane and meets it at
-    less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane)."""
+    less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane).
+    The returns keep what the scanner and the servo reported (the solve applies the model to them)."""
     lam = motor.angles(beams.times_s, tau)[0]
-    P = points_M(beams.ranges_m, lam, beams.mu_rad, dh)
+    r_true, lam_true, mu_true = true_returns(core_vector(dh, intrinsics or {}), beams.ranges_m, lam, beams.mu_rad)
+    P = points_M(r_true, lam_true, mu_true, dh)
     seg_labels, found = planes.segment_planes(P[seg], thickness_m=thickness_m)
     labels = np.full(P.shape[0], -1, dtype=np.int64)
     if found:
@@ -272,7 +278,7 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
         labels = seg_labels[has][nn]
         N = np.array([p.normal for p in found])
         off = np.array([p.offset_m for p in found])
-        o, d = beam_rays_W(Params(MOTOR_FRAME, dh), lam, beams.mu_rad)
+        o, d = beam_rays_W(Params(MOTOR_FRAME, dh), lam_true, mu_true)
         n = N[labels]
         near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
         facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
