@@ -98,11 +98,12 @@ def information_at(
     obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
     range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
     surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
-    sides: bool = True,
+    sides: bool = True, estimate: Sequence[str] = (),
 ) -> tuple[FloatArray, tuple[str, ...]]:
     """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
     would be estimated (the clock offset only when ``clock`` is given; the range offset and marker range bias only
-    with ``surfaces``), and their names: what the data can determine, judged before any solver runs.
+    with ``surfaces``; and those held by default named in ``estimate``, e.g. a scale), and their names: what the
+    data can determine, judged before any solver runs.
 
     With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
     and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
@@ -110,7 +111,7 @@ def information_at(
     the lateral residuals of markers the scan plane crosses on both sides at ``params`` (as the solve does; False
     where ``params`` are a start that may be far off, e.g. with the servo's direction not yet known)."""
     pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
-                                     clock_offset_s, surfaces, planes, beam_divergence_rad, sides)
+                                     clock_offset_s, surfaces, planes, beam_divergence_rad, sides, estimate)
     names = tuple(CORE_NAMES[i] for i in idx)
     if pb.surf is not None:
         S, _, _ = schur(assemble(pb.blocks(th, R_ref), idx))
@@ -208,23 +209,32 @@ def _scaled_pinv(H: FloatArray) -> FloatArray:
     return np.linalg.pinv(H / np.outer(col, col), rcond=1e-12) / np.outer(col, col)
 
 
+def estimated(clock: bool, surfaces: bool, estimate: Sequence[str] = ()) -> IntArray:
+    """The core unknowns (indices into CORE_NAMES) a calibration estimates by default: the clock offset when the
+    sweep shows it (``clock``), the range offset and the marker range bias when surface returns separate them
+    (``surfaces``; lrfcal.pipeline's defaults), and those named in ``estimate``."""
+    free = free_by_default()
+    free[TAU] &= clock
+    free[[ROFF, MBIAS]] &= surfaces
+    free |= free_by_default(estimate=estimate) & np.isin(CORE_NAMES, estimate)
+    return np.flatnonzero(free).astype(np.int64)
+
+
 def _problem_at(
     obs: Observations, markers_W: ArrayLike, params: Params, model: str, radius: float, sigma_r: float,
     clock: MotorClock | None, clock_offset_s: float, surfaces: SurfaceReturns | None,
-    planes: Sequence[Surface] | None, divergence: float, sides: bool = True,
+    planes: Sequence[Surface] | None, divergence: float, sides: bool = True, estimate: Sequence[str] = (),
 ) -> tuple[Problem, FloatArray, FloatArray, IntArray]:
     """The problem of :func:`information_at` (marker rows; plane rows and priors with non-empty ``surfaces``), the
-    unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices)."""
+    unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices; those
+    held by default named in ``estimate`` too)."""
     pb, th, R_ref = _at(params, obs, markers_W, model, radius, sigma_r, divergence, clock, clock_offset_s)
     if sides:  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
         pb = with_sides(pb, th, R_ref)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
-    free = free_by_default()
-    free[TAU] &= clock is not None
-    free[[ROFF, MBIAS]] &= with_surfaces
-    idx = np.flatnonzero(free).astype(np.int64)
+    idx = estimated(clock is not None, with_surfaces, estimate)
     if surfaces is not None and with_surfaces:
         surf, nu0 = plane_set(surfaces, planes)
         return replace(pb, surf=surf), np.concatenate([th, nu0]), R_ref, idx
@@ -248,5 +258,5 @@ def plane_information(
     return S, tuple(CORE_NAMES[k] for k in core)
 
 
-__all__ = ["information_at", "jacobian_check", "map_error_at", "model_error_at", "model_residuals",
+__all__ = ["estimated", "information_at", "jacobian_check", "map_error_at", "model_error_at", "model_residuals",
            "plane_information", "turning_error_at"]

@@ -32,6 +32,8 @@ runs: from the marker returns alone (a layout the markers leave undetermined is 
 would help). Not modelled: the per-scan widening of the reported covariance (cluster-robust sandwich) and the
 4-sigma rejection. The observability verdict (``lrfcal.observability.analyse``) is the one the
 calibration applies before solving: an undetermined combination means the calibration would refuse (exit 3).
+The information is built over the scales the calibration holds at 1 and tests (lrfcal.markers.SCALES) too: each
+one's 1-sigma if freed is the size of scale error the layout finds (:func:`_scale_sigmas`).
 """
 
 from __future__ import annotations
@@ -47,10 +49,12 @@ from numpy.typing import NDArray
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.information import information_at, map_error_at, model_error_at, turning_error_at
+from lrfcal.information import estimated, information_at, map_error_at, model_error_at, turning_error_at
+from lrfcal.markers import SCALE_Z_LIMIT, SCALES
 from lrfcal.mds import map_covariance
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.model.motor import MotorClock
+from lrfcal.model.unknowns import BY_NAME, CORE_NAMES
 from lrfcal.observability import LIMITS, Observability, analyse
 from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
 from lrfcal.types import JointStates, Observations
@@ -122,6 +126,9 @@ class Plan:
     #: name -> the 1-sigma the marker map's own uncertainty (the tape's noise) contributes
     #: (lrfcal.information.map_error_at), included in ``sigma``
     map_sigma: dict[str, float] = field(default_factory=dict)
+    #: scale name (lrfcal.markers.SCALES) -> its statistical 1-sigma if freed: the calibration holds each scale at 1
+    #: and estimates it where its score test steps SCALE_Z_LIMIT of this (or more) from 1
+    scale_sigma: dict[str, float] = field(default_factory=dict)
 
     @property
     def final_observability(self) -> Observability:
@@ -173,6 +180,8 @@ class Plan:
             "n_markers": self.n_markers,
             "n_surface_returns": self.n_surface_returns,
             "range_sigma_m": self.range_sigma_m,
+            "held_scale_sigma": {n: num(v) for n, v in self.scale_sigma.items()},
+            "held_scale_found_beyond": {n: num(SCALE_Z_LIMIT * v) for n, v in self.scale_sigma.items()},
             "information": self.information_source,
             "seconds": self.seconds,
             "notes": list(self.notes),
@@ -322,11 +331,13 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     common = dict(model="sphere", marker_radius_m=radius, range_sigma_m=sigma_r, clock=motor if two_way else None,
                   clock_offset_s=tau, beam_divergence_rad=float(scenario.sensor.divergence_rad))
     info_markers, names = information_at(obs, markers_W, params, **common)
-    info = info_markers
     both: dict[str, Any] = {} if on_planes is None else {"surfaces": on_planes, "planes": planes}
-    if on_planes is not None:
-        info, _ = information_at(obs, markers_W, params, **common, **both)
-    info = 0.5 * (info + info.T)
+    # over the held scales too (each with its companion): their sigmas below; the estimate's is the submatrix
+    freed = sorted({*SCALES, *(BY_NAME[n].tested_with for n in SCALES)} - {""})
+    wide, wide_names = information_at(obs, markers_W, params, **common, **both, estimate=freed)
+    wide = 0.5 * (wide + wide.T)
+    base = tuple(CORE_NAMES[i] for i in estimated(two_way, on_planes is not None))
+    info = wide[np.ix_(*[[wide_names.index(n) for n in base]] * 2)]
     notes: list[str] = []
     cov, model_sigma, map_sigma = _covariance(scenario, info, names, obs, markers_W, params, common, both, notes)
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
@@ -350,7 +361,23 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 notes=tuple(notes),
                 observability_solved=None if on_planes is None else analyse(info, names, params.dh.alpha),
                 model_sigma=model_sigma,
-                map_sigma=map_sigma)
+                map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base))
+
+
+def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[str, ...]) -> dict[str, float]:
+    """Scale name -> the statistical 1-sigma it would have if freed beside ``names`` (with the unknown its score
+    test frees beside it, lrfcal.model.unknowns ``tested_with``), from the information ``wide`` over ``wide_names``:
+    the size of scale error the calibration's score test finds (SCALE_Z_LIMIT of it; at least, since where the plain
+    score steps beyond 2 sigma the calibration widens that sigma for the model error, lrfcal.covariance)."""
+    out = {}
+    for n in SCALES:
+        sub = [*names, *dict.fromkeys(m for m in (n, BY_NAME[n].tested_with) if m and m not in names)]
+        k = [wide_names.index(m) for m in sub]
+        H = wide[np.ix_(k, k)]
+        col = np.sqrt(np.maximum(np.diag(H), 1e-300))
+        var = np.linalg.pinv(H / np.outer(col, col), rcond=1e-12)[sub.index(n), sub.index(n)] / col[sub.index(n)] ** 2
+        out[n] = float(math.sqrt(var)) if var > 0 else math.inf
+    return out
 
 
 def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], obs: Observations,
@@ -459,6 +486,11 @@ def format_plan(p: Plan) -> str:
         lines.append(f"  {t.name:<10} {format_value(name, t.tolerance):>12} = {ratio:6.1f} sigma  "
                      f"{'reachable' if t.reachable else 'NOT reachable'}")
     lines.append(f"tolerances reachable: {'yes' if p.tolerances_reachable else 'no'}")
+    if p.scale_sigma:
+        lines.append(f"held at 1, estimated where the data step them beyond {SCALE_Z_LIMIT:g} sigma (the smallest "
+                     "error found, at least):")
+        lines.extend(f"  {n:<12} 1-sigma {v:.2g}: found when {100 * SCALE_Z_LIMIT * v:.2g} % off or more"
+                     f"  ({BY_NAME[n].meaning})" for n, v in p.scale_sigma.items())
     lines.extend(f"note: {n}" for n in p.notes)
     lines.append(f"({p.seconds:.1f} s)")
     return "\n".join(lines)
