@@ -215,4 +215,4 @@ def test_plan_predicts_the_smallest_scale_error_the_calibration_finds(shipped_re
     for n in SCALES:
         value, sigma = t.result.solution.held_score[n]
         assert 0.75 <= sigma / p.scale_sigma[n] <= 1.25, (n, sigma, p.scale_sigma[n])
-    assert set(p.to_json()["held_scale_sigma"]) == set(SCALES) and "found when" in format_plan(p)
+    assert set(p.to_json()["held_scale_sigma"]) == set(SCALES) and "scales held at 1 and tested" in format_plan(p)
