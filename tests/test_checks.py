@@ -138,3 +138,45 @@ def testnominal_distance_compares_poses_not_dh_near_perpendicular() -> None:
     assert math.isclose(nominal_distance(turned, nominal, config)[0], d, abs_tol=1e-9)
     # far in pose: the servo direction and the mirror check still see it
     assert far_from_nominal(DH(0.01, math.radians(90.0), -0.018, 0.0), DH(0.01, math.radians(90.0), 0.02, 0.0), config)
+
+
+def test_the_second_opinions_difference_covariance_is_the_scatter_of_part_minus_joint() -> None:
+    """lrfcal.checks.difference_covariance: for a part of the data (half the clusters) and the whole, the
+    covariance of part - joint, widened to the cluster-robust one from each cluster's influence, holds the scatter
+    of that difference when the errors are shared within clusters (as a crossing's lines share where they fall on a
+    marker): its chi-square averages about its 4 degrees of freedom (measured 5.0), where C_part - C_joint from
+    independent residuals gives 47."""
+    from types import SimpleNamespace
+
+    from lrfcal.checks import difference_covariance
+    from lrfcal.model.unknowns import N_CORE
+
+    rng = np.random.default_rng(3)
+    n_clusters, per, k = 40, 12, 4
+    cluster = np.repeat(np.arange(n_clusters), per)
+    half = cluster < n_clusters // 2
+    idx = list(range(k))
+
+    def fit(J: np.ndarray, e: np.ndarray, ids: np.ndarray) -> SimpleNamespace:
+        JtJ_inv = np.linalg.inv(J.T @ J)
+        theta = JtJ_inv @ J.T @ e
+        r = e - J @ theta
+        scores = np.array([J[ids == c].T @ r[ids == c] for c in np.unique(ids)])
+        influence = np.zeros((scores.shape[0], N_CORE))
+        influence[:, :k] = scores @ JtJ_inv
+        cov = np.zeros((N_CORE, N_CORE))
+        cov[:k, :k] = (r @ r / (r.size - k)) * JtJ_inv
+        return SimpleNamespace(theta=theta, covariance=cov, map_sensitivity=None,
+                               spread=SimpleNamespace(ids=np.unique(ids), influence=influence, statistical=cov))
+
+    robust, plain = [], []
+    for _ in range(300):
+        J = np.repeat(rng.normal(size=(n_clusters, k)), per, axis=0) + 0.5 * rng.normal(size=(cluster.size, k))
+        e = np.repeat(rng.normal(size=n_clusters), per) * 0.7 + rng.normal(size=cluster.size) * 0.5
+        joint, part = fit(J, e, cluster), fit(J[half], e[half], cluster[half])
+        d = part.theta - joint.theta
+        robust.append(d @ np.linalg.solve(difference_covariance(part, joint, idx, None), d))  # type: ignore[arg-type]
+        C = part.covariance[:k, :k] - joint.covariance[:k, :k]
+        plain.append(d @ np.linalg.solve(C, d))
+    assert 3.0 <= np.mean(robust) <= 6.0, np.mean(robust)
+    assert np.mean(plain) >= 2.0 * np.mean(robust), (np.mean(plain), np.mean(robust))

@@ -246,3 +246,17 @@ def test_tilted_spin_turning_crossings_widen_the_sigma() -> None:
     z = (result.solution.params.dh.vector() - truth.dh.vector()) / np.asarray(result.solution.sigma)[6:10]
     assert np.all(np.abs(z) < 2.0), z
     assert any("turn on some markers" in n for n in result.notes), result.notes
+
+
+def test_crossing_ids_split_a_markers_lines_at_the_sweep_gaps() -> None:
+    """lrfcal.model.marker.crossing_ids: a marker's returns in successive scan lines (25 ms apart) are one crossing;
+    more than CROSSING_GAP_S later, or another marker, another crossing; the order of the returns does not matter."""
+    from lrfcal.model.marker import CROSSING_GAP_S, crossing_ids
+
+    times = np.array([0.0, 0.025, 0.05, 0.05 + 2 * CROSSING_GAP_S, 0.0, 0.025])
+    marker = np.array([0, 0, 0, 0, 1, 1])
+    ids = crossing_ids(marker, times)
+    assert ids[0] == ids[1] == ids[2] and ids[3] != ids[0] and ids[4] == ids[5] and len(set(ids.tolist())) == 3
+    perm = np.array([5, 3, 0, 4, 2, 1])
+    shuffled = crossing_ids(marker[perm], times[perm])
+    assert all((shuffled[i] == shuffled[j]) == (ids[perm[i]] == ids[perm[j]]) for i in range(6) for j in range(6))

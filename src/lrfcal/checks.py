@@ -14,6 +14,7 @@ from numpy.typing import NDArray
 
 from . import observability, solve
 from .config import CalibConfig
+from .covariance import widen
 from .errors import CalibrationError
 from .model.chart import gauge_distance
 from .model.kinematics import DH, PARAM_NAMES, dh_twins
@@ -199,6 +200,36 @@ def marker_checks(
     return checks
 
 
+def difference_covariance(part: Solution, joint: Solution, idx: list[int], map_cov: FloatArray | None
+                          ) -> FloatArray:
+    """The covariance (k, k) of part - joint over the unknowns ``idx`` (core order) of two solutions whose data
+    overlap (the part's a subset of the joint's). Each parameter's sigma is the larger of:
+    - the nested estimators' C_part - C_joint from their statistical covariances (before any widening: widened for
+      errors the two share, the difference of the covariances would shrink, not grow);
+    - the cluster-robust sum over clusters (a marker's crossing, a scan) of (i_part - i_joint)(...)^T, i each
+      cluster's influence on each solution (lrfcal.covariance.Spread): errors shared within a crossing (where its
+      lines fall on the marker) that the two solutions do not share.
+    The marker map's error is shared: it moves the part and the joint solution by G dc each, the difference by
+    (G_part - G_joint) dc, added. Without the spreads (rank loss): the reported covariances' difference."""
+    shared = np.zeros((len(idx), len(idx)))
+    Gp = part.map_sensitivity[idx] if map_cov is not None and part.map_sensitivity is not None else None
+    Gj = joint.map_sensitivity[idx] if map_cov is not None and joint.map_sensitivity is not None else None
+    if Gp is not None and Gj is not None and map_cov is not None:
+        shared = (Gp - Gj) @ map_cov @ (Gp - Gj).T
+    sp, sj = part.spread, joint.spread
+    if sp is None or sj is None or not (sp.ids.size and sj.ids.size):
+        C = part.covariance[np.ix_(idx, idx)] - joint.covariance[np.ix_(idx, idx)]
+        if Gp is not None and Gj is not None and map_cov is not None:
+            C += Gj @ map_cov @ Gj.T - Gp @ map_cov @ Gp.T
+        return C + shared
+    ids = np.union1d(sp.ids, sj.ids)
+    D = np.zeros((ids.size, len(idx)))
+    D[np.searchsorted(ids, sp.ids)] += sp.influence[:, idx]
+    D[np.searchsorted(ids, sj.ids)] -= sj.influence[:, idx]
+    nested = sp.statistical[np.ix_(idx, idx)] - sj.statistical[np.ix_(idx, idx)]
+    return widen(nested, D.T @ D) + shared
+
+
 def _marker_second_opinion(
     sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
     fit: Callable[..., Solution], motor: MotorClock | None,
@@ -223,12 +254,7 @@ def _marker_second_opinion(
         if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
         d = dh_difference(ps.params.vector()[dh], sol.params.vector()[dh])
-        C = ps.covariance[np.ix_(dh, dh)] - sol.covariance[np.ix_(dh, dh)]
-        if markers.covariance is not None and ps.map_sensitivity is not None and sol.map_sensitivity is not None:
-            # the map's error is shared: it moves the part and the joint solution by G dc each, the difference
-            # by (G_part - G_joint) dc, not by the difference of their covariances
-            Gp, Gj, Cm = ps.map_sensitivity[dh], sol.map_sensitivity[dh], markers.covariance
-            C += Gj @ Cm @ Gj.T - Gp @ Cm @ Gp.T + (Gp - Gj) @ Cm @ (Gp - Gj).T
+        C = difference_covariance(ps, sol, dh, markers.covariance)
         if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
         w, V = np.linalg.eigh(0.5 * (C + C.T))

@@ -13,8 +13,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
-from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, schur, solve_step
+from .normal_equations import RANK_TOL, Blocks, assemble, cluster_ids, cluster_scores, schur, solve_step
 from .problem import Problem
+from .types import Spread
 
 FloatArray = NDArray[np.float64]
 
@@ -88,6 +89,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     core_pos = list(range(core.size))
     core_names = tuple(CORE_NAMES[k] for k in core)
     G: FloatArray | None = None
+    spread = Spread(np.zeros(0, dtype=np.int64), np.zeros((0, N_CORE)), np.full((N_CORE, N_CORE), np.nan))
     info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
     if rank < n_par:
         cov = s2 * np.linalg.pinv(H_s, rcond=1e-15) / np.outer(col, col)
@@ -95,7 +97,12 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
         rank_txt = f"rank deficient ({rank}/{n_par})"
     else:
         JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
-        cov = inflate_for_correlation(s2 * JtJ_inv, cluster_scores(b, core, cluster_dense, cluster_plane), JtJ_inv)
+        scores = cluster_scores(b, core, cluster_dense, cluster_plane)
+        cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
+        spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * JtJ_inv[np.ix_(core_pos, core_pos)]
+        spread.ids = cluster_ids(b, cluster_dense, cluster_plane)
+        spread.influence = np.zeros((scores.shape[0], N_CORE))
+        spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:
             # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the
             # marker rows (core columns) and the planes' priors (nuisance columns)
@@ -117,7 +124,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     if rank < n_par:
         # a covariance from a singular information would be meaningless (and can be 0): none is reported
         cov_core[np.ix_(core, core)] = np.inf
-    return cov_core, info, core_names, s2, rank_txt, G
+    return cov_core, info, core_names, s2, rank_txt, G, spread
 
 
 def marginal_information(A: FloatArray, keep: Sequence[int]) -> FloatArray:

@@ -242,14 +242,24 @@ def levenberg_marquardt(
     return th, n_eval, False
 
 
+def _cluster_of_rows(b: Blocks, cluster_dense: IntArray, cluster_plane: IntArray) -> IntArray:
+    """The cluster of every residual row: dense rows, plane rows, then each prior row a cluster of its own."""
+    n_prior = 0 if b.r_prior is None else b.r_prior.size
+    return np.concatenate([cluster_dense, cluster_plane, np.iinfo(np.int64).min + np.arange(n_prior)])
+
+
+def cluster_ids(b: Blocks, cluster_dense: IntArray, cluster_plane: IntArray) -> IntArray:
+    """(clusters,) the cluster id of each row of :func:`cluster_scores`' result, in its order."""
+    return np.unique(_cluster_of_rows(b, cluster_dense, cluster_plane))
+
+
 def cluster_scores(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray) -> FloatArray:
     """G (clusters, c + 3P): per cluster, the sum of J_i^T r_i over its rows (each prior row a cluster of its own),
     for the cluster-robust (sandwich) covariance."""
     assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
     P, c = b.n_planes, core.size
     n_prior = 0 if b.r_prior is None else b.r_prior.size
-    ids = np.concatenate([cluster_dense, cluster_plane, np.iinfo(np.int64).min + np.arange(n_prior)])
-    _, inv = np.unique(ids, return_inverse=True)
+    _, inv = np.unique(_cluster_of_rows(b, cluster_dense, cluster_plane), return_inverse=True)
     n_cl = int(inv.max()) + 1 if inv.size else 0
     m, K = b.r_dense.size, b.r_plane.size
     n = c + 3 * P
@@ -265,5 +275,5 @@ def cluster_scores(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_p
     return G.reshape(n_cl, n)
 
 
-__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "cluster_scores", "levenberg_marquardt", "marginal_sigma",
-           "schur", "solve_step"]
+__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "cluster_ids", "cluster_scores", "levenberg_marquardt",
+           "marginal_sigma", "schur", "solve_step"]

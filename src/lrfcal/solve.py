@@ -30,7 +30,7 @@ from .covariance import held_score, uncertainty
 from .errors import CalibrationError
 from .model.chart import regular_chart_at, regular_step
 from .model.kinematics import Params, exp_so3
-from .model.marker import crossings, residuals_3d
+from .model.marker import crossing_ids, crossings, residuals_3d
 from .model.motor import MotorClock, motor_angles
 from .model.plane import plane_rows
 from .model.scanner import true_bearing, true_range
@@ -192,6 +192,19 @@ def _marker_passes(th: FloatArray, R_ref: FloatArray, pb_all: Problem, free: NDA
     return th, R_ref, keep, keep_s, nfev, msg, pb_all
 
 
+def marker_clusters(scan: NDArray[np.int64], marker: NDArray[np.int64], times: FloatArray | None,
+                    scan_s: NDArray[np.int64]) -> NDArray[np.int64]:
+    """(K,) the cluster of each marker return (its ``scan``, ``marker`` and laser-clock ``times``, (K,) each) for the
+    covariance's sandwich: its crossing (the marker's successive scan lines, lrfcal.model.marker.crossing_ids),
+    numbered after the scans' ids (``scan`` and the surface returns' ``scan_s``: each scan's surface returns one
+    cluster). A crossing's lines share where they fall on the marker, so they count as one sample, not one each;
+    without the returns' times, each scan's returns are one cluster."""
+    if times is None:
+        return scan
+    first = int(max(scan.max(initial=0), scan_s.max(initial=0))) + 1
+    return first + crossing_ids(marker, times)
+
+
 def with_sides(pb: Problem, th: FloatArray, R_ref: FloatArray) -> Problem:
     """``pb`` with the lateral residuals of the markers the scan plane crosses on one side only left out, and in
     the model variant ``in_plane_at_turns`` only their in-plane part in crossings that turn on their marker
@@ -214,9 +227,11 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
     scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
     # per marker return its independent residuals (MarkerSet.n_independent), 1 per surface return and prior row
     unc = partial(uncertainty, pb, R_ref=R_ref, n_rows=pb.markers.n_independent + k_s + n_prior,
-                          cluster_dense=np.repeat(np.asarray(obs.scan)[use][keep], ms.n_res), cluster_plane=scan_s,
+                          cluster_dense=np.repeat(marker_clusters(np.asarray(obs.scan)[use][keep], pb.markers.marker,
+                                                                  pb.markers.times, scan_s), ms.n_res),
+                          cluster_plane=scan_s,
                           map_cov=map_cov, marker_dense=np.repeat(pb.markers.marker, ms.n_res))
-    cov_core, info, core_names, s2, rank_txt, G = unc(th=th, free=free)
+    cov_core, info, core_names, s2, rank_txt, G, spread = unc(th=th, free=free)
     params = unpack(th[:N_CORE], R_ref)
     score = held_score(pb, th, R_ref, free, s2, unc, held_scores)
     lam_all = motor_angles(th, np.asarray(obs.lambda_rad, dtype=float), np.asarray(obs.times_s, dtype=float),
@@ -242,7 +257,7 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
                      information=info, information_names=core_names, reduced_chi2=s2,
                      converged="maximum number of function evaluations" not in msg, chi=chi_all, inlier=inl,
                      lambda_rad=lam_all, n_surface_returns=k_s, held_score=score,
-                     map_sensitivity=None if G is None else G[:10])
+                     map_sensitivity=None if G is None else G[:10], spread=spread)
 
 
 def _solution(th: FloatArray, R_ref: FloatArray, cov_core: FloatArray, free: NDArray[np.bool_], **fields: object
@@ -346,7 +361,7 @@ def solve_planes(
     pb = pb_all.subset(none, keep)
     assert pb.surf is not None
     n_prior = 0 if dh_prior is None else 4
-    cov_core, info, core_names, s2, rank_txt, _ = uncertainty(
+    cov_core, info, core_names, s2, rank_txt, *_ = uncertainty(
         pb, th, R_ref, free, int(keep.sum()) + n_prior,
         -1 - np.arange(n_prior), np.asarray(surfaces.scan)[keep])
     rs = plane_rows(th, pb.surf, 1.0, R_ref, jac=False, clock=clock).res

@@ -303,6 +303,17 @@ class Association:
     n_matched: int
 
 
+@dataclass
+class Spread:
+    """What the covariance of the difference of two solutions of overlapping data is made of (lrfcal.checks): each
+    cluster's id (C,) and influence (J^T J)^-1 J_c^T r_c over the core unknowns (C, N_CORE), and the statistical
+    covariance max(s^2, 1) (J^T J)^-1 (N_CORE, N_CORE), before any widening (NaN where held or with rank loss)."""
+
+    ids: NDArray[np.int64]
+    influence: FloatArray
+    statistical: FloatArray
+
+
 @dataclass(frozen=True)
 class Solution:
     """Stage 6: the estimate and its uncertainty.
@@ -342,6 +353,9 @@ class Solution:
     #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.covariance.uncertainty); the
     #: covariance holds the map's part, G C_map G^T (None: the map was taken as exact)
     map_sensitivity: FloatArray | None = None
+    #: each cluster's influence and the statistical covariance (Spread, lrfcal.covariance), for the second opinion's
+    #: covariance of the difference of two solutions (lrfcal.checks.difference_covariance); None with rank loss
+    spread: Spread | None = None
 
     def with_dh_systematic(self, d: ArrayLike) -> Solution:
         """This solution with its DH covariance widened by d d^T, d (4,) a model error in (a, alpha, b, beta) that

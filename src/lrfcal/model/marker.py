@@ -260,6 +260,17 @@ CROSSING_GAP_S = 0.5
 TURN_EXCURSION = 0.25
 
 
+def crossing_ids(marker: NDArray[np.int64], times: FloatArray) -> NDArray[np.int64]:
+    """(K,) the crossing of each return: its marker's successive scan lines, a new crossing where the lines of one
+    marker are more than CROSSING_GAP_S apart."""
+    order = np.lexsort((times, marker))
+    m, t = marker[order], times[order]
+    new = np.r_[True, (m[1:] != m[:-1]) | (np.diff(t) > CROSSING_GAP_S)]
+    out = np.empty(marker.size, dtype=np.int64)
+    out[order] = np.cumsum(new) - 1
+    return out
+
+
 def _turning(h: FloatArray, marker: NDArray[np.int64], times: FloatArray, radius: float) -> NDArray[np.bool_]:
     """(K,) whether each return belongs to a crossing in which the scan plane turns back on its marker.
 
