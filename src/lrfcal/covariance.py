@@ -61,11 +61,12 @@ def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], mark
 def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
                  cluster_dense: NDArray[np.int64], cluster_plane: NDArray[np.int64],
                  map_cov: FloatArray | None = None, marker_dense: NDArray[np.int64] | None = None
-                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None]:
+                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread]:
     """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
-    scan (``cluster_dense``, ``cluster_plane``: the scan of each dense and plane residual row; each prior row is a
-    cluster of its own), with ``n_rows`` independent residuals, plus the marker map's own uncertainty ``map_cov``
-    (3n, 3n) carried through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c (lrfcal.problem.Problem.
+    cluster (``cluster_dense``, ``cluster_plane``: the cluster of each dense and plane residual row, a marker's
+    crossing (lrfcal.solve.marker_clusters) and a scan's surface returns; each prior row is a cluster of its own),
+    with ``n_rows`` independent residuals, plus the marker map's own uncertainty ``map_cov`` (3n, 3n) carried
+    through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c (lrfcal.problem.Problem.
     centre_cross). Then widened again where the errors shared by all returns of one marker (``marker_dense``: the
     marker of each dense row) say more: where the beams cover a marker unevenly (lines fanning across it, or the
     same lines in every pass), the mean of its returns' lateral offsets is not its centre, and that error is common
@@ -74,7 +75,8 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
 
     Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
     singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2,
-    the rank in words and G (N_CORE, 3n) (None without ``map_cov`` or with rank loss)."""
+    the rank in words, G (N_CORE, 3n) (None without ``map_cov`` or with rank loss) and the Spread (each cluster's
+    influence and the statistical covariance; empty with rank loss) for lrfcal.checks.difference_covariance."""
     b = pb.blocks(th, R_ref)
     core = np.flatnonzero(free[:N_CORE])
     H, _ = assemble(b, core).dense()
