@@ -15,7 +15,7 @@ from .model.motor import MotorClock
 from .model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from .normal_equations import assemble, cluster_scores, schur, solve_step
 from .problem import Problem, marker_problem, plane_problem, plane_set
-from .solve import plane_free, with_sides
+from .solve import marker_clusters, plane_free, with_sides
 from .surfaces import Surface, SurfaceReturns
 from .types import Observations
 
@@ -131,7 +131,8 @@ def model_error_at(
     of :func:`information_at`, from returns without noise (``obs`` and ``surfaces`` of a noise-free simulation at
     the true ``params``): their range residuals are then what the model does not explain (the footprint on the
     markers and on an oblique wall, the joint states' interpolation). It is the cluster-robust (sandwich)
-    covariance H^-1 (sum_c g_c g_c^T) H^-1 of those residuals, g_c the score of scan c, one Gauss-Newton step from
+    covariance H^-1 (sum_c g_c g_c^T) H^-1 of those residuals, g_c the score of cluster c (a marker's crossing, a
+    scan's surface returns: lrfcal.solve.marker_clusters), one Gauss-Newton step from
     the truth (at the noise-free optimum): the part of the calibration's per-scan widening (lrfcal.solve) that
     noise does not explain. ``lrfsim plan`` adds it to the statistical covariance, as a noisy recording's sandwich
     holds both."""
@@ -149,9 +150,9 @@ def model_error_at(
     r_m = b.r_dense.reshape(-1, pb.markers.n_res).copy()
     r_m[:, 0 if pb.markers.model == "paper" else 1:] = 0.0
     b = replace(b, r_dense=r_m.ravel())
-    scan_m = np.repeat(np.asarray(obs.scan), pb.markers.n_res)
     scan_s = np.zeros(0, dtype=np.int64) if pb.surf is None or surfaces is None else np.asarray(surfaces.scan)
-    G = cluster_scores(b, idx, scan_m, scan_s)
+    clusters = marker_clusters(np.asarray(obs.scan), np.asarray(obs.marker), np.asarray(obs.times_s), scan_s)
+    G = cluster_scores(b, idx, np.repeat(clusters, pb.markers.n_res), scan_s)
     H_inv = _scaled_pinv(H)
     k = idx.size
     sandwich = H_inv @ (G.T @ G) @ H_inv
