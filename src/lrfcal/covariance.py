@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
-from .normal_equations import RANK_TOL, Blocks, assemble, cluster_ids, cluster_scores, schur, solve_step
+from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, schur, scores_by_cluster, solve_step
 from .problem import Problem
 from .types import Spread
 
@@ -99,10 +99,9 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
         rank_txt = f"rank deficient ({rank}/{n_par})"
     else:
         JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
-        scores = cluster_scores(b, core, cluster_dense, cluster_plane)
+        spread.ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane)
         cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
         spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * JtJ_inv[np.ix_(core_pos, core_pos)]
-        spread.ids = cluster_ids(b, cluster_dense, cluster_plane)
         spread.influence = np.zeros((scores.shape[0], N_CORE))
         spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:

@@ -153,7 +153,7 @@ def model_error_at(
     scan_s = np.zeros(0, dtype=np.int64) if pb.surf is None or surfaces is None else np.asarray(surfaces.scan)
     clusters = marker_clusters(np.asarray(obs.scan), np.asarray(obs.marker), np.asarray(obs.times_s), scan_s)
     G = cluster_scores(b, idx, np.repeat(clusters, pb.markers.n_res), scan_s)
-    H_inv = _scaled_pinv(H)
+    H_inv = scaled_pinv(H)
     k = idx.size
     sandwich = H_inv @ (G.T @ G) @ H_inv
     return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
@@ -180,7 +180,7 @@ def turning_error_at(
     for problem in (pb, variant):
         system = assemble(problem.blocks(th, R_ref), idx)
         steps.append(solve_step(system, 0.0)[dh])
-        covs.append(_scaled_pinv(system.dense()[0])[np.ix_(dh, dh)])
+        covs.append(scaled_pinv(system.dense()[0])[np.ix_(dh, dh)])
     d = steps[1] - steps[0]
     w, V = np.linalg.eigh(0.5 * (covs[1] - covs[0] + (covs[1] - covs[0]).T))
     return np.outer(d, d) + (V * np.clip(w, 0.0, None)) @ V.T
@@ -198,12 +198,12 @@ def map_error_at(
     calibration's covariance."""
     pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
                                      clock_offset_s, surfaces, planes, beam_divergence_rad)
-    G = -_scaled_pinv(info) @ pb.centre_cross(
+    G = -scaled_pinv(info) @ pb.centre_cross(
         th, R_ref, idx, len(map_cov) // 3)
     return G @ map_cov @ G.T
 
 
-def _scaled_pinv(H: FloatArray) -> FloatArray:
+def scaled_pinv(H: FloatArray) -> FloatArray:
     """The pseudo-inverse (k, k) of an information matrix H (k, k), its columns scaled to a unit diagonal first (the
     unknowns mix metres, radians and seconds)."""
     col = np.sqrt(np.maximum(np.diag(H), 1e-300))
@@ -214,10 +214,10 @@ def estimated(clock: bool, surfaces: bool, estimate: Sequence[str] = ()) -> IntA
     """The core unknowns (indices into CORE_NAMES) a calibration estimates by default: the clock offset when the
     sweep shows it (``clock``), the range offset and the marker range bias when surface returns separate them
     (``surfaces``; lrfcal.pipeline's defaults), and those named in ``estimate``."""
-    free = free_by_default()
+    free = free_by_default(estimate=estimate)  # (which also checks the names)
     free[TAU] &= clock
     free[[ROFF, MBIAS]] &= surfaces
-    free |= free_by_default(estimate=estimate) & np.isin(CORE_NAMES, estimate)
+    free[np.isin(CORE_NAMES, estimate)] = True  # asked for, whatever the recording
     return np.flatnonzero(free).astype(np.int64)
 
 
@@ -260,4 +260,4 @@ def plane_information(
 
 
 __all__ = ["estimated", "information_at", "jacobian_check", "map_error_at", "model_error_at", "model_residuals",
-           "plane_information", "turning_error_at"]
+           "plane_information", "scaled_pinv", "turning_error_at"]

@@ -242,25 +242,22 @@ def levenberg_marquardt(
     return th, n_eval, False
 
 
-def _cluster_of_rows(b: Blocks, cluster_dense: IntArray, cluster_plane: IntArray) -> IntArray:
-    """The cluster of every residual row: dense rows, plane rows, then each prior row a cluster of its own."""
-    n_prior = 0 if b.r_prior is None else b.r_prior.size
-    return np.concatenate([cluster_dense, cluster_plane, np.iinfo(np.int64).min + np.arange(n_prior)])
-
-
-def cluster_ids(b: Blocks, cluster_dense: IntArray, cluster_plane: IntArray) -> IntArray:
-    """(clusters,) the cluster id of each row of :func:`cluster_scores`' result, in its order."""
-    return np.unique(_cluster_of_rows(b, cluster_dense, cluster_plane))
-
-
 def cluster_scores(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray) -> FloatArray:
     """G (clusters, c + 3P): per cluster, the sum of J_i^T r_i over its rows (each prior row a cluster of its own),
-    for the cluster-robust (sandwich) covariance."""
+    for the cluster-robust (sandwich) covariance; rows in the order of the clusters' ids (:func:`scores_by_cluster`)."""
+    return scores_by_cluster(b, core, cluster_dense, cluster_plane)[1]
+
+
+def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray
+                      ) -> tuple[IntArray, FloatArray]:
+    """The clusters' ids (clusters,), sorted (each prior row a cluster of its own, ids below every other), and
+    :func:`cluster_scores`' G (clusters, c + 3P) in that order."""
     assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
     P, c = b.n_planes, core.size
     n_prior = 0 if b.r_prior is None else b.r_prior.size
-    _, inv = np.unique(_cluster_of_rows(b, cluster_dense, cluster_plane), return_inverse=True)
-    n_cl = int(inv.max()) + 1 if inv.size else 0
+    rows = np.concatenate([cluster_dense, cluster_plane, np.iinfo(np.int64).min + np.arange(n_prior)])
+    ids, inv = np.unique(rows, return_inverse=True)
+    n_cl = ids.size
     m, K = b.r_dense.size, b.r_plane.size
     n = c + 3 * P
     G = np.zeros(n_cl * n)
@@ -272,8 +269,8 @@ def cluster_scores(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_p
         G += np.bincount(inv_p * n + c + 3 * b.plane + i, weights=b.Jn_plane[:, i] * b.r_plane, minlength=n_cl * n)
     if n_prior and b.w_prior is not None and b.r_prior is not None:
         G[inv_q * n + c + np.arange(n_prior)] += b.w_prior * b.r_prior
-    return G.reshape(n_cl, n)
+    return ids, G.reshape(n_cl, n)
 
 
-__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "cluster_ids", "cluster_scores", "levenberg_marquardt",
-           "marginal_sigma", "schur", "solve_step"]
+__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "cluster_scores", "levenberg_marquardt", "marginal_sigma",
+           "schur", "scores_by_cluster", "solve_step"]

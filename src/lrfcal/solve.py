@@ -226,11 +226,10 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
     n_prior = 0 if pb.surf is None or pb.surf.prior_sigma is None else pb.surf.prior_sigma.size
     scan_s = np.zeros(0, dtype=np.int64) if surfaces is None or pb.surf is None else np.asarray(surfaces.scan)[keep_s]
     # per marker return its independent residuals (MarkerSet.n_independent), 1 per surface return and prior row
+    clusters = marker_clusters(np.asarray(obs.scan)[use][keep], pb.markers.marker, pb.markers.times, scan_s)
     unc = partial(uncertainty, pb, R_ref=R_ref, n_rows=pb.markers.n_independent + k_s + n_prior,
-                          cluster_dense=np.repeat(marker_clusters(np.asarray(obs.scan)[use][keep], pb.markers.marker,
-                                                                  pb.markers.times, scan_s), ms.n_res),
-                          cluster_plane=scan_s,
-                          map_cov=map_cov, marker_dense=np.repeat(pb.markers.marker, ms.n_res))
+                  cluster_dense=np.repeat(clusters, ms.n_res), cluster_plane=scan_s, map_cov=map_cov,
+                  marker_dense=np.repeat(pb.markers.marker, ms.n_res))
     cov_core, info, core_names, s2, rank_txt, G, spread = unc(th=th, free=free)
     params = unpack(th[:N_CORE], R_ref)
     score = held_score(pb, th, R_ref, free, s2, unc, held_scores)

@@ -49,7 +49,7 @@ from numpy.typing import NDArray
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.information import estimated, information_at, map_error_at, model_error_at, turning_error_at
+from lrfcal.information import estimated, information_at, map_error_at, model_error_at, scaled_pinv, turning_error_at
 from lrfcal.markers import SCALE_Z_LIMIT, SCALES
 from lrfcal.mds import map_covariance
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
@@ -373,9 +373,7 @@ def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[st
     for n in SCALES:
         sub = [*names, *dict.fromkeys(m for m in (n, BY_NAME[n].tested_with) if m and m not in names)]
         k = [wide_names.index(m) for m in sub]
-        H = wide[np.ix_(k, k)]
-        col = np.sqrt(np.maximum(np.diag(H), 1e-300))
-        var = np.linalg.pinv(H / np.outer(col, col), rcond=1e-12)[sub.index(n), sub.index(n)] / col[sub.index(n)] ** 2
+        var = scaled_pinv(wide[np.ix_(k, k)])[sub.index(n), sub.index(n)]
         out[n] = float(math.sqrt(var)) if var > 0 else math.inf
     return out
 
