@@ -94,3 +94,23 @@ def test_ahead_left_by_an_error_ends_its_child_at_once() -> None:
         raise KeyError("refused")
     assert time.perf_counter() - t0 < 2.0
     assert not multiprocessing.active_children()
+
+
+def _sum_and_none(values: object, nothing: object) -> tuple[int, object, int]:
+    return sum(values), nothing, os.getpid()  # type: ignore[call-overload]
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_ahead_sends_what_the_child_inherited_by_reference_while_this_process_goes_on() -> None:
+    from lrfcal.forked import _dumps
+
+    big = list(range(200_000))
+    with Ahead(_prepare, inherit=(big,)) as ahead:
+        ahead.start(_sum_and_none, big, None)
+        assert ahead.started
+        here = sum(range(10))  # this process goes on while the child runs the call
+        total, nothing, pid = ahead.result()
+    assert (total, nothing, here) == (sum(big), None, 45) and pid != os.getpid()
+    sent = _dumps((_sum_and_none, (big, None)), {id(big): big})
+    assert len(sent) < 200  # a reference, not the 200 000 numbers; None is not taken for the inherited object
+    assert len(_dumps((_sum_and_none, (list(big), None)), {id(big): big})) > 100_000  # an equal copy travels whole

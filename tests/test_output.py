@@ -12,7 +12,7 @@ import yaml
 from synthetic import START, TRUE, make_result
 
 from lrfcal.errors import InputError
-from lrfcal.io.calibration_folder import write_calibration
+from lrfcal.io.calibration_folder import calibration_folder, write_calibration
 from lrfcal.io.files import MANIFEST_NAME
 from lrfcal.io.ply import write_ply
 from lrfcal.io.report import render_report
@@ -175,6 +175,19 @@ def test_failure_leaves_nothing(tmp_path, result):
         write_calibration(out, result, figures={"x": tmp_path / "nope.png"}, overwrite=True)
     assert (out / "residuals.png").exists()
     assert sorted(p.name for p in (tmp_path / "out").iterdir()) == ["cal"]
+
+
+def test_calibration_folder_in_two_steps(tmp_path, result):
+    """The data files on entry (written while the figures are drawn), report and figures by finish(); a folder left
+    without them is not renamed into place."""
+    with calibration_folder(tmp_path / "cal", result) as folder:
+        assert (folder.tmp / "cloud_after.ply").exists() and not (tmp_path / "cal").exists()
+        folder.finish("# report", {})
+    assert (tmp_path / "cal" / "report.md").read_text() == "# report"
+    with pytest.raises(RuntimeError, match="without finish"), calibration_folder(tmp_path / "half", result):
+        pass
+    assert not (tmp_path / "half").exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["cal"]
 
 
 def test_reproject_cloud_and_stride(result):

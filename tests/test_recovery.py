@@ -72,6 +72,7 @@ class Case:
     errors: np.ndarray
     sigma: np.ndarray
     seconds: float
+    fitted: tuple[CalibrationResult, ...] = ()  # what calibrate(fitted=) was given, before the clouds
 
     @property
     def z(self) -> np.ndarray:
@@ -100,12 +101,14 @@ def run_case(scenario: Scenario, folder: Path, tolerances: Tolerances | None = N
     own)."""
     recording = read_recording(folder, require_distances=(folder / "distances.csv").exists())
     t0 = time.perf_counter()
-    result = calibrate(recording, CalibConfig(range_sigma_m=0.010))
+    fitted: list[CalibrationResult] = []
+    result = calibrate(recording, CalibConfig(range_sigma_m=0.010), fitted=fitted.append)
     seconds = time.perf_counter() - t0
     comparison = compare(result, load_truth(folder / "ground_truth.yaml"), tolerances or scenario.tolerances)
     errors = np.array([row.error for row in comparison.dh_rows])
     assert [row.name for row in comparison.dh_rows] == list(DH_NAMES)
-    return Case(scenario.name, result, comparison, errors, result.solution.sigma[list(DH_INDEX)], seconds)
+    return Case(scenario.name, result, comparison, errors, result.solution.sigma[list(DH_INDEX)], seconds,
+                tuple(fitted))
 
 
 class _Cases:
@@ -187,6 +190,15 @@ def test_reported_sigma_is_honest(random_cases: _Cases) -> None:
 def test_shipped_dh_within_4_sigma(name: str, shipped_cases: _Cases) -> None:
     case = shipped_cases[name]
     assert not within_sigma(case), f"error beyond {N_SIGMA} sigma: {within_sigma(case)}\n{case.describe()}"
+
+
+def test_the_fitted_result_comes_before_the_clouds_and_is_the_results(shipped_cases: _Cases) -> None:
+    """What the figures are drawn from during the reprojection (lrfcal.workflow): the result without its clouds."""
+    case = shipped_cases[SHIPPED[0]]
+    assert len(case.fitted) == 1
+    early = case.fitted[0]
+    assert early.cloud_after_M.size == 0 and case.result.cloud_after_M.size > 0
+    assert early.solution is case.result.solution and early.detections is case.result.detections
 
 
 @pytest.mark.parametrize("name", SHIPPED)

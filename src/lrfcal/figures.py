@@ -4,9 +4,8 @@ matplotlib is imported inside the functions and only its object API is used (``m
 rendered by the Agg canvas), so no pyplot state or GUI backend is involved. Every figure is written at
 WIDTH_PX x HEIGHT_PX pixels (DPI dots per inch) to a temporary file in the target folder, then renamed.
 
-Residuals in these figures are computed as in :mod:`lrfcal.vizdata`: from each reprojected marker return to the
-nearest point of its marker sphere (MarkerMap centre, nominal radius), with the start parameters ("before")
-and the calibrated parameters ("after").
+Residuals are those of :mod:`lrfcal.vizdata`: each reprojected marker return to the nearest point of its marker
+sphere, with the start parameters ("before") and the calibrated ones ("after").
 """
 
 from __future__ import annotations
@@ -438,16 +437,15 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
     """Write intensity.png, alignment.png and residuals.png (targetless: flatness.png) into out_dir.
 
     ``before``: the parameters of the "before" views, described by ``before_label`` (default: the calibration's
-    start, the nominal DH with the mount fitted to the markers: W is the tape's frame, so a nominal mount given
-    in another frame has no place in W unless the true marker positions are known, see
-    :func:`lrfcal.workflow.calibrate_folder`).
+    start, the nominal DH with the mount fitted to the markers: a nominal mount has no place in W, the tape's frame,
+    unless the true marker positions are known, see :func:`lrfcal.workflow.calibrate_folder`).
 
     A figure is an aid, the result exists without it: a figure that cannot be drawn (an exception while drawing
     it, whatever the recording) is skipped and its reason returned, never raised after the calibration is done.
     """
     out = Path(out_dir)
     draw: dict[str, Callable[[], Path]]
-    if result.plane_fit is not None:
+    if needs_clouds(result):
         draw = {"flatness": lambda: flatness_figure(result, out / "flatness.png")}
     else:
         draw = {"intensity": lambda: intensity_figure(result, out / "intensity.png"),
@@ -462,8 +460,7 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
 
 
 def preload() -> None:
-    """Import what drawing needs (matplotlib's figure and Agg canvas), e.g. in a child forked while the data are
-    made (lrfcal.forked.Ahead)."""
+    """Import matplotlib's figure and Agg canvas, e.g. in a child forked while the data are made (forked.Ahead)."""
     import matplotlib.backends.backend_agg  # noqa: F401
     import matplotlib.figure  # noqa: F401
 
@@ -473,18 +470,21 @@ CLOUD_VIEW_POINTS = 50_000
 
 
 def _cloud_view(cloud_M: FloatArray) -> FloatArray:
-    """(K, 3): the finite points of a (..., 3) cloud, every n-th so that about CLOUD_VIEW_POINTS are left (a cloud
-    already that small is returned whole: the view of a view is the view)."""
+    """(K, 3): the finite points of a (..., 3) cloud, every n-th so that about CLOUD_VIEW_POINTS are left."""
     cloud = np.asarray(cloud_M, dtype=float).reshape(-1, 3)
     cloud = cloud[np.isfinite(cloud).all(1)]
     return cloud[:: max(1, cloud.shape[0] // CLOUD_VIEW_POINTS)]
 
 
+def needs_clouds(result: CalibrationResult) -> bool:
+    """Whether the figures draw ``result``'s clouds (targetless: flatness.png), else they can be drawn before."""
+    return result.plane_fit is not None
+
+
 def drawn_part(result: CalibrationResult) -> CalibrationResult:
-    """``result`` with only what the figures draw of its clouds (none for markers, the flatness figure's view of
-    the calibrated cloud for targetless): what is sent to a drawing process (lrfcal.forked.Ahead) is a third as
-    large. The figures drawn from it are those drawn from ``result``."""
-    after = _cloud_view(result.cloud_after_M) if result.plane_fit is not None else np.zeros((0, 3))
+    """``result`` with only what the figures draw of its clouds (none for markers, a view of the calibrated cloud
+    for targetless), to send to a drawing process (lrfcal.forked.Ahead); its figures are those of ``result``."""
+    after = _cloud_view(result.cloud_after_M) if needs_clouds(result) else np.zeros((0, 3))
     return replace(result, cloud_before_M=np.zeros((0, 3)), cloud_after_M=after, cloud_intensity=np.zeros(0))
 
 
@@ -497,4 +497,4 @@ def _attempt(fn: Callable[[], Path]) -> tuple[bool, str]:
 
 
 __all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "Figures", "alignment_figure", "flatness_figure", "intensity_figure",
-           "drawn_part", "residual_figure", "write_figures"]
+           "drawn_part", "needs_clouds", "residual_figure", "write_figures"]

@@ -72,19 +72,23 @@ def _can_fork() -> bool:
 
 
 class Ahead:
-    """A forked child that runs ``prepare()`` at once and, later, one ``call(fn, *args)``: ``fn`` (a module-level
-    function) and ``args`` are pickled to it, its return value pickled back. A context manager: leaving it ends the
-    child (its pipe closed, then terminated if still alive).
+    """A forked child that runs ``prepare()`` at once and, later, one call ``fn(*args)`` (:meth:`start`, then
+    :meth:`result`; :meth:`call` does both): ``fn`` (a module-level function) and ``args`` are pickled to it, its
+    return value pickled back. Objects of ``inherit`` (made before the child was forked, and not changed since)
+    travel by reference: the child has its own copy already. A context manager: leaving it ends the child (its pipe
+    closed, then terminated if still alive).
 
     Where no child can be forked (:func:`call_forked`'s conditions) or the child dies, the call runs here, after
     ``prepare()``: the same outcome, only slower. The child ignores SIGINT (Ctrl-C reaches this process, which
     ends it) and is not daemonic, so that ``fn`` may fork in turn (:func:`call_forked`)."""
 
-    def __init__(self, prepare: Callable[[], object]) -> None:
+    def __init__(self, prepare: Callable[[], object], inherit: tuple[object, ...] = ()) -> None:
         self._prepare = prepare
+        self._inherited = {id(o): o for o in inherit}
         self._conn: Any = None
         self._proc: Any = None
         self._sent = False
+        self._pending: tuple[Callable[..., Any], tuple[Any, ...]] | None = None
 
     def __enter__(self) -> Ahead:
         if _can_fork():
@@ -92,7 +96,8 @@ class Ahead:
 
             ctx = multiprocessing.get_context("fork")
             ours, theirs = ctx.Pipe()
-            proc = ctx.Process(target=_serve, args=(theirs, ours, self._prepare), name="lrfcal-ahead", daemon=False)
+            proc = ctx.Process(target=_serve, args=(theirs, ours, self._prepare, self._inherited),
+                               name="lrfcal-ahead", daemon=False)
             try:
                 proc.start()
             except OSError:  # no child could be started: the call runs here
@@ -101,20 +106,43 @@ class Ahead:
             self._conn, self._proc = ours, proc
         return self
 
-    def call(self, fn: Callable[..., T], *args: Any) -> T:
-        """``fn(*args)``: in the child when there is one (once: a second call runs here), else, or where the child
-        died or the call does not pickle, here after ``prepare()``."""
+    def start(self, fn: Callable[..., Any], *args: Any) -> None:
+        """Send ``fn(*args)`` to the child, which runs it while this process goes on (once: a second call runs
+        here); :meth:`result` returns its value."""
+        self._pending = (fn, args)
+        if self._conn is not None:
+            self._sent = True
+            try:
+                self._conn.send_bytes(_dumps((fn, args), self._inherited))
+            except Exception:  # noqa: BLE001 - a child that died, or a call that does not pickle: run here
+                self._conn.close()
+                self._conn = None
+
+    @property
+    def started(self) -> bool:
+        """Whether :meth:`start` sent a call whose :meth:`result` is not yet taken."""
+        return self._pending is not None
+
+    def result(self) -> Any:
+        """The value of the call :meth:`start` sent: from the child, or, where there is none or it died, run here
+        after ``prepare()``."""
+        if self._pending is None:
+            raise RuntimeError("Ahead.result() without a call: start(fn, *args) first")
+        (fn, args), self._pending = self._pending, None
         conn, self._conn = self._conn, None
         if conn is not None:
-            self._sent = True
-            with contextlib.suppress(Exception):  # a child that died, or a call that does not pickle: run here
-                conn.send((fn, args))
+            with contextlib.suppress(Exception):  # a child that died: run here
                 ok, value = conn.recv()
                 if ok:
-                    return value  # type: ignore[no-any-return]
+                    return value
             conn.close()
         self._prepare()
         return fn(*args)
+
+    def call(self, fn: Callable[..., T], *args: Any) -> T:
+        """``fn(*args)``, in the child when there is one: :meth:`start`, then :meth:`result`."""
+        self.start(fn, *args)
+        return self.result()  # type: ignore[no-any-return]
 
     def __exit__(self, *exc: object) -> None:
         unused = not self._sent  # no call was sent: the child is at most preparing, nothing to wait for
@@ -129,7 +157,36 @@ class Ahead:
             self._proc = None
 
 
-def _serve(conn: Any, parents_end: Any, prepare: Callable[[], object]) -> None:
+_NOT_INHERITED = object()  # (None is an object too: a missing id must not match it)
+
+
+def _dumps(obj: object, inherited: dict[int, object]) -> bytes:
+    """``obj`` pickled, with the objects of ``inherited`` (id -> object) as references to the child's copies."""
+    import io
+    import pickle
+
+    class ByReference(pickle.Pickler):
+        def persistent_id(self, o: object) -> int | None:
+            return id(o) if inherited.get(id(o), _NOT_INHERITED) is o else None
+
+    buf = io.BytesIO()
+    ByReference(buf, protocol=pickle.HIGHEST_PROTOCOL).dump(obj)
+    return buf.getvalue()
+
+
+def _loads(data: bytes, inherited: dict[int, object]) -> Any:
+    """:func:`_dumps` undone in the child, whose ``inherited`` holds its copies under the parent's ids."""
+    import io
+    import pickle
+
+    class ByReference(pickle.Unpickler):
+        def persistent_load(self, pid: Any) -> object:
+            return inherited[pid]
+
+    return ByReference(io.BytesIO(data)).load()
+
+
+def _serve(conn: Any, parents_end: Any, prepare: Callable[[], object], inherited: dict[int, object]) -> None:
     """:class:`Ahead`'s child: prepare, then run the one call sent (none when the pipe closes first)."""
     import signal
 
@@ -138,7 +195,7 @@ def _serve(conn: Any, parents_end: Any, prepare: Callable[[], object]) -> None:
     with contextlib.suppress(Exception):
         prepare()
     try:
-        fn, args = conn.recv()
+        fn, args = _loads(conn.recv_bytes(), inherited)
     except (EOFError, OSError):
         return
     try:

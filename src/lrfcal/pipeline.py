@@ -33,11 +33,14 @@ from .types import CalibrationResult, JointStates, Recording, Solution
 
 
 def calibrate(
-    recording: Recording, config: CalibConfig | None = None, progress: Callable[[str], None] | None = None
+    recording: Recording, config: CalibConfig | None = None, progress: Callable[[str], None] | None = None,
+    fitted: Callable[[CalibrationResult], None] | None = None,
 ) -> CalibrationResult:
     """Run stages 1-8 on a recording; see the module docstring.
 
-    ``progress(stage)`` is called with the name of each stage as it starts (for a CLI's status line).
+    ``progress(stage)`` is called with the name of each stage as it starts (for a CLI's status line);
+    ``fitted(result)`` with the result once its checks passed, before its clouds are made (step 4), e.g. to draw
+    figures that need no clouds meanwhile.
     Raises CalibrationError (exit code 3) with the reason when the data do not support a trustworthy result,
     unless ``config.force``, which records the failed checks in the result instead.
     """
@@ -46,7 +49,7 @@ def calibrate(
         declared = recording.nominal.range_sigma_m
         config = config.replace(range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
     try:
-        return _calibrate(recording, config, progress)
+        return _calibrate(recording, config, progress, fitted)
     except CalibrationError as err:
         hint = _trimmed_hint(recording, config.clock_offset_s)
         if not hint or "time span" in str(err):
@@ -74,7 +77,8 @@ def _trimmed_hint(recording: Recording, tau0: float) -> str:
             "explain this refusal")
 
 
-def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None) -> CalibrationResult:
+def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None,
+               fitted: Callable[[CalibrationResult], None] | None) -> CalibrationResult:
     """:func:`calibrate` with ``config.range_sigma_m`` resolved."""
     targetless = _targetless(recording, config)
     clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES)
@@ -88,6 +92,8 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     side_by_side = dict(fit.side_by_side)
     if config.compare_targetless and not targetless:  # the same recording without its markers, for the report
         side_by_side.update(_targetless_opinion(recording, config, notes))
+    if fitted is not None:
+        fitted(fit)
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
     return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side,
                    config=config)

@@ -18,7 +18,7 @@ import numpy as np
 from .errors import InputError
 from .forked import Ahead
 from .io import files
-from .io.calibration_folder import write_calibration
+from .io.calibration_folder import calibration_folder
 from .io.recording import read_nominal, read_recording
 from .io.report import render_report
 from .io.scanlog import resolve_recording
@@ -95,20 +95,30 @@ def calibrate_folder(
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
     # the figures are drawn by a child forked now, which imports matplotlib on another core during the calibration
-    with (Ahead(figure_writer.preload) if figures else contextlib.nullcontext()) as drawer, \
-            tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
-        result = calibrate(recording, config, progress=progress)
+    # and draws while this process writes the data files; it has the scans already (sent by reference)
+    with (Ahead(figure_writer.preload, inherit=(recording.scans,)) if figures else contextlib.nullcontext()) \
+            as drawer, tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
+        def draw(part: CalibrationResult) -> None:  # once, as soon as what the figures show is there
+            if drawer is not None and not drawer.started:
+                drawer.start(figure_writer.write_figures, figure_writer.drawn_part(part), Path(tmp),
+                             *_nominal_in_W(part, truth))
+
+        def fitted(fit: CalibrationResult) -> None:  # figures without clouds are drawn during the reprojection
+            if not figure_writer.needs_clouds(fit):
+                draw(fit)
+
+        result = calibrate(recording, config, progress=progress, fitted=fitted)
         if progress is not None:
             progress("figures and report")
-        figs = (drawer.call(figure_writer.write_figures, figure_writer.drawn_part(result), Path(tmp),
-                            *_nominal_in_W(result, truth)) if drawer is not None else figure_writer.Figures({}, {}))
-        truth_values = None if truth is None else truth_dict(truth)
-        report = render_report(result, truth=truth_values) + _figures_section(figs, figures, warn)
-        written = dict(figs.written)
-        if rrd_inside is not None:
-            written["rerun"] = Path(tmp) / rrd_inside
-            _log_rerun(result, written["rerun"], False, truth, scene, warn)
-        write_calibration(out_dir, result, report_md=report, figures=written, overwrite=overwrite)
+        draw(result)
+        report = render_report(result, truth=None if truth is None else truth_dict(truth))
+        with calibration_folder(out_dir, result, overwrite) as folder:
+            figs = drawer.result() if drawer is not None else figure_writer.Figures({}, {})
+            written = dict(figs.written)
+            if rrd_inside is not None:
+                written["rerun"] = Path(tmp) / rrd_inside
+                _log_rerun(result, written["rerun"], False, truth, scene, warn)
+            folder.finish(report + _figures_section(figs, figures, warn), written)
     if rrd_path is not None or spawn:
         if progress is not None:
             progress("rerun recording")
