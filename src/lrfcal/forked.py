@@ -6,8 +6,8 @@ Where no child can be forked (no fork on this platform, one core, a daemonic pro
 a child dies (e.g. out of memory), its task runs here: the outcome is the same, only slower.
 
 :class:`Ahead` forks one child early, which prepares (imports matplotlib) on another core while this process
-calibrates, and later runs one call on arguments sent to it: the report's figures, whose imports and drawing then
-cost this process nothing.
+calibrates, and later runs one call on arguments sent to it (what it inherited by the fork, such as the scans, sent
+by reference): the report's figures, drawn while this process makes and writes the clouds.
 
 :func:`on_cores` runs numpy work on large arrays (which releases the GIL) in threads instead: the clouds of stage 7
 and their geometry, one per DH set.
