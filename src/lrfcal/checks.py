@@ -211,17 +211,15 @@ def difference_covariance(part: Solution, joint: Solution, idx: list[int], map_c
       lines fall on the marker) that the two solutions do not share.
     The marker map's error is shared: it moves the part and the joint solution by G dc each, the difference by
     (G_part - G_joint) dc, added. Without the spreads (rank loss): the reported covariances' difference."""
-    shared = np.zeros((len(idx), len(idx)))
-    Gp = part.map_sensitivity[idx] if map_cov is not None and part.map_sensitivity is not None else None
-    Gj = joint.map_sensitivity[idx] if map_cov is not None and joint.map_sensitivity is not None else None
-    if Gp is not None and Gj is not None and map_cov is not None:
-        shared = (Gp - Gj) @ map_cov @ (Gp - Gj).T
+    Gp = Gj = np.zeros((len(idx), 0))  # without the map's sensitivities its terms are empty
+    Cm = np.zeros((0, 0))
+    if map_cov is not None and part.map_sensitivity is not None and joint.map_sensitivity is not None:
+        Gp, Gj, Cm = part.map_sensitivity[idx], joint.map_sensitivity[idx], map_cov
+    shared = (Gp - Gj) @ Cm @ (Gp - Gj).T
     sp, sj = part.spread, joint.spread
     if sp is None or sj is None or not (sp.ids.size and sj.ids.size):
         C = part.covariance[np.ix_(idx, idx)] - joint.covariance[np.ix_(idx, idx)]
-        if Gp is not None and Gj is not None and map_cov is not None:
-            C += Gj @ map_cov @ Gj.T - Gp @ map_cov @ Gp.T
-        return C + shared
+        return C + Gj @ Cm @ Gj.T - Gp @ Cm @ Gp.T + shared
     ids = np.union1d(sp.ids, sj.ids)
     D = np.zeros((ids.size, len(idx)))
     D[np.searchsorted(ids, sp.ids)] += sp.influence[:, idx]

@@ -91,18 +91,18 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     core_pos = list(range(core.size))
     core_names = tuple(CORE_NAMES[k] for k in core)
     G: FloatArray | None = None
-    spread = Spread(np.zeros(0, dtype=np.int64), np.zeros((0, N_CORE)), np.full((N_CORE, N_CORE), np.nan))
     info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
     if rank < n_par:
         cov = s2 * np.linalg.pinv(H_s, rcond=1e-15) / np.outer(col, col)
+        spread = Spread(np.zeros(0, dtype=np.int64), np.zeros((0, N_CORE)), np.full((N_CORE, N_CORE), np.nan))
         info = marginal_information(H * info_scale, core_pos)
         rank_txt = f"rank deficient ({rank}/{n_par})"
     else:
         JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
-        spread.ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane)
+        ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane)
         cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
+        spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan))
         spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * JtJ_inv[np.ix_(core_pos, core_pos)]
-        spread.influence = np.zeros((scores.shape[0], N_CORE))
         spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:
             # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the

@@ -303,7 +303,7 @@ class Association:
     n_matched: int
 
 
-@dataclass
+@dataclass(frozen=True)
 class Spread:
     """What the covariance of the difference of two solutions of overlapping data is made of (lrfcal.checks): each
     cluster's id (C,) and influence (J^T J)^-1 J_c^T r_c over the core unknowns (C, N_CORE), and the statistical
