@@ -25,7 +25,7 @@ covariance), so that holding a wrong nominal cannot make the others confidently 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -96,10 +96,10 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     returns, labels, found = start.segment(beams, seg, motor, config)
     clock.lap("planes")
     _check_scene(found, returns)
+    scene = _StartInformation.at(returns, Params(MOTOR_FRAME, start.dh), motor, tau0, config)
     if estimate_clock:
-        estimate_clock = _clock_determined(returns, Params(MOTOR_FRAME, start.dh), motor, tau0, config, notes)
-    held, held_reason = _undetermined(returns, Params(MOTOR_FRAME, start.dh), motor if estimate_clock else None,
-                                      tau0, config, prior)
+        estimate_clock = _clock_determined(scene, tau0, notes)
+    held, held_reason = _undetermined(scene, estimate_clock, prior)
     if held_reason:
         notes.append(held_reason)
     if len(held) == len(DH_NAMES):
@@ -113,7 +113,9 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     rounds = 0
     coarse = _coarse(beams, seg)
     for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
-        if rounds > 1 or coarse is not None:
+        if rounds == 1 and coarse is not None:  # the start's segmentation, on its own sample
+            returns, labels, found = _on_sample(beams, seg, labels, found, motor, tau0)
+        elif rounds > 1:
             returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
         new = _solve_round(solve_at, returns, found, start, rounds)
         settled = sol is not None and _settled(sol, new)
@@ -240,6 +242,9 @@ def _solve_round(fit: Callable[..., Solution], returns: SurfaceReturns, found: l
     return fit(returns, Params(MOTOR_FRAME, start.dh), clock_offset_s=start.tau, huber_first=rounds == 1)
 
 
+#: returns a plane keeps at least (fewer: dropped, mostly grazing returns)
+MIN_PLANE_RETURNS = 100
+
 #: returns above which the labelling's nearest-neighbour query runs in a thread per core (scipy's workers)
 PARALLEL_QUERY = 50_000
 
@@ -290,17 +295,33 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
         dist_all = np.abs(hit @ N.T - off)  # (K, planes)
         dist_all[np.arange(len(P)), labels] = np.inf
         clear = dist_all.min(1) > thickness_m
-        labels = np.where(near & facing & clear, labels, -1)
-        # planes left with too few returns (mostly grazing) are dropped and the labels renumbered
-        counts = np.bincount(labels[labels >= 0], minlength=len(found))
-        keep = np.flatnonzero(counts >= 100)
-        remap = np.full(len(found), -1, dtype=np.int64)
-        remap[keep] = np.arange(keep.size)
-        labels = np.where(labels >= 0, remap[np.maximum(labels, 0)], -1)
-        found = [found[k] for k in keep]
+        labels, found = _with_enough_returns(np.where(near & facing & clear, labels, -1), found)
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
     return returns, labels, found
+
+
+def _with_enough_returns(labels: NDArray[np.int64], found: list[planes.ScenePlane]
+                         ) -> tuple[NDArray[np.int64], list[planes.ScenePlane]]:
+    """The planes left with at least MIN_PLANE_RETURNS (the others, mostly grazing, dropped) and the labels (K,)
+    renumbered."""
+    counts = np.bincount(labels[labels >= 0], minlength=len(found))
+    keep = np.flatnonzero(counts >= MIN_PLANE_RETURNS)
+    remap = np.full(len(found), -1, dtype=np.int64)
+    remap[keep] = np.arange(keep.size)
+    return np.where(labels >= 0, remap[np.maximum(labels, 0)], -1), [found[k] for k in keep]
+
+
+def _on_sample(beams: Beams, seg: NDArray[np.int64], labels: NDArray[np.int64], found: list[planes.ScenePlane],
+               motor: MotorClock, tau: float) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
+    """:func:`plane_returns_at` on the segmentation's sample ``seg`` at the estimate whose ``labels`` (K,) on every
+    sampled return are given: the same segmentation, the same nearest neighbours and tests per return, so the
+    labels are those returns' own, with the planes that keep too few of them dropped."""
+    sub = beams.subset(seg)
+    labels, found = _with_enough_returns(labels[seg], found)
+    lam = motor.angles(sub.times_s, tau)[0]
+    return planes.plane_returns(labels, found, sub.scan, sub.beam, lam, sub.mu_rad, sub.ranges_m, sub.times_s), \
+        labels, found
 
 
 def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
@@ -320,14 +341,41 @@ def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> Non
             "calibrate in a room or with markers")
 
 
-def _clock_determined(returns: SurfaceReturns, start: Params, motor: MotorClock, tau: float,
-                      config: CalibConfig, notes: list[str]) -> bool:
-    """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start); when not,
-    a note says it is held."""
-    info, names = plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
-                                          clock_offset_s=tau)
-    k = names.index("clock_offset")
-    sigma = float(np.sqrt(np.linalg.pinv(info)[k, k]))
+@dataclass(frozen=True)
+class _StartInformation:
+    """What the scene's planes determine at the start (no fit): the information (k, k) over every unknown the solve
+    may estimate, the clock offset's included, the planes marginalised, without the design drawing's prior, and
+    the names of its rows. Holding an unknown deletes its row and column (the planes' elimination does not
+    involve it), and the prior adds to the DH diagonal (its rows are the DH alone): every judgement below takes its
+    part of this one matrix instead of assembling the returns' Jacobian again."""
+
+    info: FloatArray
+    names: tuple[str, ...]
+
+    @staticmethod
+    def at(returns: SurfaceReturns, start: Params, motor: MotorClock, tau: float, config: CalibConfig
+           ) -> _StartInformation:
+        return _StartInformation(*plane_information(returns, start, range_sigma_m=config.range_sigma_m,
+                                                    clock=motor, clock_offset_s=tau))
+
+    def part(self, clock: bool, held: Sequence[str], prior: tuple[FloatArray, FloatArray]
+             ) -> tuple[FloatArray, tuple[str, ...]]:
+        """The information with the clock offset (``clock``) or without, ``held`` held, and the DH ``prior``
+        (mean (4,), sigma (4,))."""
+        keep = [i for i, n in enumerate(self.names) if n not in held and (clock or n != "clock_offset")]
+        names = tuple(self.names[i] for i in keep)
+        info = self.info[np.ix_(keep, keep)].copy()
+        for i, n in enumerate(names):
+            if n in DH_NAMES:
+                info[i, i] += 1.0 / prior[1][DH_NAMES.index(n)] ** 2
+        return info, names
+
+
+def _clock_determined(scene: _StartInformation, tau: float, notes: list[str]) -> bool:
+    """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start, without the
+    design drawing's prior); when not, a note says it is held."""
+    k = scene.names.index("clock_offset")
+    sigma = float(np.sqrt(np.linalg.pinv(scene.info)[k, k]))
     limit = observability.LIMITS["clock_offset"]
     if sigma <= limit:
         return True
@@ -336,13 +384,13 @@ def _clock_determined(returns: SurfaceReturns, start: Params, motor: MotorClock,
     return False
 
 
-def _undetermined(returns: SurfaceReturns, start: Params, motor: MotorClock | None, tau: float,
-                  config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> tuple[tuple[str, ...], str]:
-    """The DH parameters the scene does not determine (judged at the start), held from then on, and why."""
+def _undetermined(scene: _StartInformation, clock: bool, prior: tuple[FloatArray, FloatArray]
+                  ) -> tuple[tuple[str, ...], str]:
+    """The DH parameters the scene does not determine (judged at the start, with the clock offset when ``clock``
+    and the design drawing's ``prior``), held from then on, and why."""
     held: list[str] = []
     while True:
-        info, names = plane_information(returns, start, range_sigma_m=config.range_sigma_m, clock=motor,
-                                              clock_offset_s=tau, hold=held, dh_prior=prior)
+        info, names = scene.part(clock, held, prior)
         free = [n for n in DH_NAMES if n not in held]
         sigma, weakest = _normalised(info, names, free)
         bad = [n for n, s in zip(free, sigma, strict=True) if not s <= 1.0]
