@@ -17,7 +17,11 @@ reused cast (the ratio, target <= 0.3), a whole trial (simulate + write + read +
 on the workers used.
 
     python benchmarks/bench_study.py [--trials 100] [--workers 1] [--scenarios tunnel_v plane_30deg FILE.yaml]
-                                     [--recast | --new-layout] [--perturb-start S] [-o DIR]
+                                     [--recast | --new-layout [--jitter M]] [--perturb-start S] [-o DIR]
+
+``--new-layout --jitter M`` moves every marker of a V or a board by up to M per trial (the layout's jitter_m):
+the markers a user places by hand are never where a drawing puts them, and the reported sigma covers where the
+beams fall on them, which only a new layout per trial draws anew.
 """
 
 from __future__ import annotations
@@ -33,14 +37,17 @@ from lrfsim.plan import format_value
 from lrfsim.scenario import Scenario, load_scenario
 from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry
 from lrfsim.study import study, write_study
+from lrfsim.variants import with_field
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def _load(name: str) -> Scenario:
-    """A shipped scenario by name (scenarios/NAME.yaml), else a scenario file (e.g. benchmarks/layouts/*.yaml)."""
+def _load(name: str, jitter_m: float | None = None) -> Scenario:
+    """A shipped scenario by name (scenarios/NAME.yaml), else a scenario file (e.g. benchmarks/layouts/*.yaml);
+    with ``jitter_m``, its V or board layout's jitter set to it."""
     shipped = ROOT / "scenarios" / f"{name}.yaml"
-    return load_scenario(shipped if shipped.is_file() else Path(name))
+    sc = load_scenario(shipped if shipped.is_file() else Path(name))
+    return sc if jitter_m is None else with_field(sc, "markers.layout.jitter_m", jitter_m)
 
 
 def _cost(name: str) -> tuple[float, float]:
@@ -65,13 +72,15 @@ def main() -> None:
                     help="cast every trial anew (lrfsim study --recast): the bias over laser phases, not one cast's")
     ap.add_argument("--new-layout", action="store_true",
                     help="also a new marker layout per trial (lrfsim study --new-layout): the bias over layouts")
+    ap.add_argument("--jitter", type=float, default=None, metavar="M",
+                    help="the V's or board's jitter_m [m] (with --new-layout: each trial's markers moved by up to M)")
     ap.add_argument("--perturb-start", type=float, default=0.0, metavar="S",
                     help="move each trial's nominal values (lrfsim.study.perturbed_start; 0: off)")
     ap.add_argument("-o", "--out", type=Path, default=None, help="keep each study's folder here (DIR/<scenario>)")
     args = ap.parse_args()
     missed: list[str] = []
     for name in args.scenarios:
-        sc = _load(name)
+        sc = _load(name, args.jitter)
         full, noise = _cost(name)
         t0 = time.perf_counter()
         s = study(sc, args.trials, seed0=args.seed0, workers=args.workers, perturb_start=args.perturb_start,

@@ -275,3 +275,22 @@ def test_mesh_geometry_is_ray_cast(tmp_path: Path) -> None:
     p = laser_pose_W(scene, 0.0)[:3, 3]
     _, g = _ray(scene, p, np.array([1.5, -0.1, 0.1]) - p)
     assert g == g_mesh
+
+
+def test_v_layout_jitter_moves_each_marker_along_its_wall_by_the_seed() -> None:
+    """A V's jitter_m moves every marker along the tunnel and in height by up to jitter_m, never off its wall; the
+    same seed gives the same layout, another seed another (a new layout per Monte-Carlo trial, bench_study.py
+    --new-layout --jitter); 0 leaves the drawn V."""
+    from lrfsim.scene_geometry import marker_centres_W
+    from lrfsim.variants import with_field
+
+    sc = load_scenario(REPO / "scenarios" / "tunnel_v.yaml")
+    assert sc.markers is not None and sc.markers.layout.kind == "v" and sc.markers.layout.jitter_m == 0.0
+    drawn = marker_centres_W(sc)
+    jittered = with_field(sc, "markers.layout.jitter_m", 0.03)
+    moved = marker_centres_W(jittered) - drawn
+    assert np.all(np.abs(moved[:, [0, 2]]) <= 0.03) and np.abs(moved[:, [0, 2]]).max() > 0.02
+    assert np.all(moved[:, 1] == 0.0)  # on its wall
+    np.testing.assert_array_equal(marker_centres_W(jittered), drawn + moved)
+    other = marker_centres_W(jittered.model_copy(update={"seed": jittered.seed + 1})) - drawn
+    assert np.abs(other - moved).max() > 0.01

@@ -335,6 +335,8 @@ class VLayout(Section):
     z_apex_m: Annotated[float, doc("height of the apex [m]")] = 0.5
     z_top_m: Annotated[float, doc("height of the arms' ends [m]")] = 1.9
     per_arm: Annotated[int, doc("markers per arm, apex included [1]", ge=1, le=50)] = 4
+    jitter_m: Annotated[float, doc("random offsets along the wall and in height (seeded), so the arms are not "
+                                   "perfectly straight, as hand-placed markers are not [m]", ge=0, le=1)] = 0.0
 
 
 class BoardLayout(Section):

@@ -52,7 +52,7 @@ def marker_centres_W(scenario: Scenario) -> FloatArray:
     r = scenario.markers.radius_m
     if isinstance(layout, VLayout):
         assert scenario.scene.tunnel is not None  # guaranteed by Scenario's validator
-        return _v_markers(layout, scenario.scene.tunnel, r)
+        return _v_markers(layout, scenario.scene.tunnel, r, scenario.seed)
     if isinstance(layout, BoardLayout):
         assert scenario.scene.board is not None
         return board_markers(layout, scenario.scene.board, r, scenario.seed)
@@ -60,10 +60,11 @@ def marker_centres_W(scenario: Scenario) -> FloatArray:
     return np.array(layout.positions, dtype=float).reshape(-1, 3)
 
 
-def _v_markers(layout: VLayout, tunnel: TunnelConfig, radius_m: float) -> FloatArray:
+def _v_markers(layout: VLayout, tunnel: TunnelConfig, radius_m: float, seed: int) -> FloatArray:
     """Per wall: arm 1 from (x_start, z_top) down to the apex, arm 2 from the apex up to (x_end, z_top).
 
-    ``per_arm`` markers per arm, the apex shared: 2 per_arm - 1 per wall (1 if per_arm == 1: the apex).
+    ``per_arm`` markers per arm, the apex shared: 2 per_arm - 1 per wall (1 if per_arm == 1: the apex); each
+    moved along the wall and in height by up to ``jitter_m`` (seeded by ``seed``, a stream of its own).
     """
     x_apex = 0.5 * (layout.x_start_m + layout.x_end_m)
     n = layout.per_arm
@@ -78,7 +79,11 @@ def _v_markers(layout: VLayout, tunnel: TunnelConfig, radius_m: float) -> FloatA
     for wall in layout.walls:
         y = tunnel.width_m / 2 - radius_m if wall == "left" else -(tunnel.width_m / 2 - radius_m)
         out.append(np.column_stack([xz[:, 0], np.full(len(xz), y), xz[:, 1]]))
-    return np.vstack(out)
+    centres = np.vstack(out)
+    if layout.jitter_m > 0:
+        rng = np.random.default_rng([seed, 0x6D61726B])  # own stream ("mark"), independent of the sensor noise
+        centres[:, [0, 2]] += rng.uniform(-layout.jitter_m, layout.jitter_m, size=(len(centres), 2))
+    return centres
 
 
 def board_markers(layout: BoardLayout, board: BoardConfig, radius_m: float, seed: int) -> FloatArray:
