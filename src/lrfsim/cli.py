@@ -204,8 +204,8 @@ def study(
     recast: Annotated[bool, typer.Option("--recast", help="Cast the rays anew for every trial (a new laser phase "
                                          "per trial) instead of reusing one noise-free cast.")] = False,
     new_layout: Annotated[bool, typer.Option("--new-layout", help="Build every trial's marker layout from its own "
-                                             "seed too (a board's jitter, a random layout) and cast anew: the "
-                                             "accuracy over layouts, not of one.")] = False,
+                                             "seed too (the jitter_m of a board or a V, a random layout) and "
+                                             "cast anew: the accuracy over layouts, not of one.")] = False,
     perturb_start: Annotated[float, typer.Option(
         "--perturb-start", metavar="S", min=0.0, max=100.0, show_default=False,
         help="Start each trial from the nominal values moved by uniform draws in +-S x (a, b: 5 mm; alpha, beta: "

@@ -2,7 +2,7 @@
 
 Trial k of a study uses the scenario with ``seed = seed0 + k``: new laser phase, range and intensity noise, tape
 noise and fault draws (lrfsim.simulate's and lrfsim.faults' seeded streams). The scene, and with it the marker
-layout (a jittered board grid is seeded by the scenario's seed too), is built once from the scenario as given,
+layout (a jittered board grid or V is seeded by the scenario's seed too), is built once from the scenario as given,
 so every trial sees the same markers and only the noise changes. No wasted casting: the rays are cast once per
 batch (lrfsim.simulate.cast_geometry, with the laser phase of the scenario's own seed) and each trial only draws
 its noise on that cast (simulate_from_geometry); ``recast=True`` casts every trial anew instead, its laser phase
