@@ -33,6 +33,29 @@ def test_hint_names_a_scan_plane_near_perpendicular_to_the_motor_axis() -> None:
     assert "perpendicular" not in analyse(info, names).hint()
 
 
+
+def test_one_information_judges_what_is_held() -> None:
+    """observability.Information (the targetless start's judgements): holding an unknown is deleting its row and
+    column, the DH prior adds to the diagonal, and the DH parameters are held one at a time, the weakest
+    combination's largest share first, until the rest is determined within LIMITS; a b correlated with the held
+    range offset is determined once that is held, and undetermined when the offset is free (marginalised)."""
+    from lrfcal.observability import LIMITS, Information
+
+    names = ("a", "alpha", "b", "beta", "range_offset")
+    J = np.diag([1 / 1e-4, 1 / 1e-4, 1 / 1e-4, 1 / 1e-4, 0.0])
+    J[4, 2] = J[4, 4] = 1 / 1e-6  # b and the range offset seen only as their sum, very precisely
+    J[2, 2] = 0.0
+    scene = Information(J.T @ J, names)
+    part, kept = scene.part(("range_offset",), np.full(4, 0.01))
+    assert kept == ("a", "alpha", "b", "beta")
+    np.testing.assert_allclose(np.diag(part), np.diag(J.T @ J)[:4] + 1e4)
+    assert scene.undetermined_dh(("range_offset",)) == ()  # b then determined by the sum
+    assert scene.undetermined_dh() == ("b",)  # with the offset free, b is not
+    assert scene.sigma("a") == pytest.approx(1e-4) and 1e-4 < LIMITS["a"]
+    weak = Information(np.diag([1 / 0.01**2, 1e12, 1e12, 1e12]), ("a", "alpha", "b", "beta"))
+    assert weak.undetermined_dh() == ("a",)
+    assert weak.undetermined_dh(dh_prior_sigma=np.full(4, 0.001)) == ()  # a prior of 1 mm determines it
+
 def test_plan_of_a_scan_plane_near_perpendicular() -> None:
     """`lrfsim plan` of a random spinning truth 0.4 deg from perpendicular: b undetermined, and the hint says why;
     the shipped spinning rig tilted 20 deg instead of 35 is determined (no attitude is refused as such)."""

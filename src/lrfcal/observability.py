@@ -11,6 +11,7 @@ combination in words ("b against alpha"), with what would determine it.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -117,17 +118,8 @@ def analyse(information: FloatArray, names: tuple[str, ...], alpha: float | None
     """Observability of the DH parameters from the information (k, k) over ``names`` (must contain a, alpha, b,
     beta; the others are marginalised); ``alpha`` [rad], the DH twist, lets the hint name a scan plane nearly
     perpendicular to the motor axis."""
-    info = np.asarray(information, dtype=float)
-    idx = [names.index(n) for n in DH]
-    other = [i for i in range(len(names)) if i not in idx]
-    A = info[np.ix_(idx, idx)]
-    if other:
-        B = info[np.ix_(idx, other)]
-        C = info[np.ix_(other, other)]
-        A = A - B @ np.linalg.pinv(C, rcond=1e-12) @ B.T
-    A = 0.5 * (A + A.T)
+    N = _normalised(np.asarray(information, dtype=float), names, DH)
     D = np.array([LIMITS[n] for n in DH])
-    N = D[:, None] * A * D[None, :]
     vals, vecs = np.linalg.eigh(N)
     scale = max(float(np.abs(vals).max()), 1e-300)
     vals = np.where(vals > 1e-12 * scale, vals, 0.0)
@@ -144,4 +136,67 @@ def analyse(information: FloatArray, names: tuple[str, ...], alpha: float | None
     return Observability(sigma=sigma, spectrum=vals, weakest=weakest, tilt_rad=tilt)
 
 
-__all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Observability", "analyse"]
+def marginal(info: FloatArray, names: Sequence[str], keep: Sequence[str]) -> FloatArray:
+    """The information (len(keep), len(keep)) of the unknowns ``keep`` with the others of ``info`` (k, k) over
+    ``names`` marginalised (Schur complement), symmetrised."""
+    idx = [names.index(n) for n in keep]
+    other = [i for i in range(len(names)) if i not in idx]
+    A = info[np.ix_(idx, idx)]
+    if other:
+        B, C = info[np.ix_(idx, other)], info[np.ix_(other, other)]
+        A = A - B @ np.linalg.pinv(C, rcond=1e-12) @ B.T
+    return 0.5 * (A + A.T)
+
+
+def _normalised(info: FloatArray, names: Sequence[str], keep: Sequence[str]) -> FloatArray:
+    """N = D I D (module docstring) of the unknowns ``keep`` (D their LIMITS), the others marginalised."""
+    D = np.array([LIMITS[n] for n in keep])
+    return D[:, None] * marginal(info, names, keep) * D[None, :]
+
+
+@dataclass(frozen=True)
+class Information:
+    """An information (k, k) over ``names``, without any prior: holding an unknown deletes its row and column (the
+    nuisances' elimination does not involve it), and a prior on the DH parameters adds to their diagonal, so every
+    judgement below takes its part of this one matrix instead of assembling the data's Jacobian again."""
+
+    info: FloatArray
+    names: tuple[str, ...]
+
+    def part(self, held: Sequence[str] = (), dh_prior_sigma: FloatArray | None = None
+             ) -> tuple[FloatArray, tuple[str, ...]]:
+        """The information without the unknowns ``held``, with the DH prior of 1-sigma ``dh_prior_sigma`` (4,)."""
+        keep = [i for i, n in enumerate(self.names) if n not in held]
+        names = tuple(self.names[i] for i in keep)
+        info = self.info[np.ix_(keep, keep)].copy()
+        if dh_prior_sigma is not None:
+            for i, n in enumerate(names):
+                if n in DH:
+                    info[i, i] += 1.0 / float(dh_prior_sigma[DH.index(n)]) ** 2
+        return info, names
+
+    def sigma(self, name: str) -> float:
+        """The marginal 1-sigma of one unknown (pseudo-inverse: inf-like when undetermined)."""
+        k = self.names.index(name)
+        return float(np.sqrt(np.linalg.pinv(self.info)[k, k]))
+
+    def undetermined_dh(self, held: Sequence[str] = (), dh_prior_sigma: FloatArray | None = None
+                        ) -> tuple[str, ...]:
+        """The DH parameters to hold, one at a time, until every one left and every combination of them is
+        determined within LIMITS: each time the one with the largest share in the weakest combination (``held``:
+        other unknowns held; with the DH prior)."""
+        hold: list[str] = []
+        while len(hold) < len(DH):
+            info, names = self.part([*held, *hold], dh_prior_sigma)
+            free = [n for n in DH if n not in hold]
+            N = _normalised(info, names, free)
+            w = np.linalg.eigvalsh(N)
+            if w[0] > 1e-12 * max(float(w[-1]), 1e-300) and 1.0 / math.sqrt(float(w[0])) <= 1.0 \
+                    and np.all(np.sqrt(np.diag(np.linalg.inv(N))) <= 1.0):
+                break
+            hold.append(free[int(np.argmax(np.abs(np.linalg.eigh(N)[1][:, 0])))])  # its weakest combination's
+        return tuple(hold)
+
+
+__all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",
+           "analyse", "marginal"]

@@ -25,7 +25,7 @@ covariance), so that holding a wrong nominal cannot make the others confidently 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -96,10 +96,14 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     returns, labels, found = start.segment(beams, seg, motor, config)
     clock.lap("planes")
     _check_scene(found, returns)
-    scene = _StartInformation.at(returns, Params(MOTOR_FRAME, start.dh), motor, tau0, config)
+    # what the scene determines, judged at the start: one information, each judgement takes its part of it
+    scene = observability.Information(*plane_information(returns, Params(MOTOR_FRAME, start.dh),
+                                                         range_sigma_m=config.range_sigma_m, clock=motor,
+                                                         clock_offset_s=tau0))
     if estimate_clock:
         estimate_clock = _clock_determined(scene, tau0, notes)
-    held, held_reason = _undetermined(scene, estimate_clock, prior)
+    held = scene.undetermined_dh(() if estimate_clock else ("clock_offset",), prior[1])
+    held_reason = _held_reason(held)
     if held_reason:
         notes.append(held_reason)
     if len(held) == len(DH_NAMES):
@@ -341,41 +345,10 @@ def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> Non
             "calibrate in a room or with markers")
 
 
-@dataclass(frozen=True)
-class _StartInformation:
-    """What the scene's planes determine at the start (no fit): the information (k, k) over every unknown the solve
-    may estimate, the clock offset's included, the planes marginalised, without the design drawing's prior, and
-    the names of its rows. Holding an unknown deletes its row and column (the planes' elimination does not
-    involve it), and the prior adds to the DH diagonal (its rows are the DH alone): every judgement below takes its
-    part of this one matrix instead of assembling the returns' Jacobian again."""
-
-    info: FloatArray
-    names: tuple[str, ...]
-
-    @staticmethod
-    def at(returns: SurfaceReturns, start: Params, motor: MotorClock, tau: float, config: CalibConfig
-           ) -> _StartInformation:
-        return _StartInformation(*plane_information(returns, start, range_sigma_m=config.range_sigma_m,
-                                                    clock=motor, clock_offset_s=tau))
-
-    def part(self, clock: bool, held: Sequence[str], prior: tuple[FloatArray, FloatArray]
-             ) -> tuple[FloatArray, tuple[str, ...]]:
-        """The information with the clock offset (``clock``) or without, ``held`` held, and the DH ``prior``
-        (mean (4,), sigma (4,))."""
-        keep = [i for i, n in enumerate(self.names) if n not in held and (clock or n != "clock_offset")]
-        names = tuple(self.names[i] for i in keep)
-        info = self.info[np.ix_(keep, keep)].copy()
-        for i, n in enumerate(names):
-            if n in DH_NAMES:
-                info[i, i] += 1.0 / prior[1][DH_NAMES.index(n)] ** 2
-        return info, names
-
-
-def _clock_determined(scene: _StartInformation, tau: float, notes: list[str]) -> bool:
+def _clock_determined(scene: observability.Information, tau: float, notes: list[str]) -> bool:
     """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start, without the
     design drawing's prior); when not, a note says it is held."""
-    k = scene.names.index("clock_offset")
-    sigma = float(np.sqrt(np.linalg.pinv(scene.info)[k, k]))
+    sigma = scene.sigma("clock_offset")
     limit = observability.LIMITS["clock_offset"]
     if sigma <= limit:
         return True
@@ -384,56 +357,13 @@ def _clock_determined(scene: _StartInformation, tau: float, notes: list[str]) ->
     return False
 
 
-def _undetermined(scene: _StartInformation, clock: bool, prior: tuple[FloatArray, FloatArray]
-                  ) -> tuple[tuple[str, ...], str]:
-    """The DH parameters the scene does not determine (judged at the start, with the clock offset when ``clock``
-    and the design drawing's ``prior``), held from then on, and why."""
-    held: list[str] = []
-    while True:
-        info, names = scene.part(clock, held, prior)
-        free = [n for n in DH_NAMES if n not in held]
-        sigma, weakest = _normalised(info, names, free)
-        bad = [n for n, s in zip(free, sigma, strict=True) if not s <= 1.0]
-        if not bad and weakest <= 1.0:
-            break
-        # hold the parameter with the largest share in the weakest combination, then judge the rest again
-        worst = free[int(np.argmax(_weakest_direction(info, names, free)))]
-        held.append(worst)
-        if len(held) == len(DH_NAMES):
-            break
+def _held_reason(held: tuple[str, ...]) -> str:
+    """Why the DH parameters ``held`` are held ("" when none)."""
     if not held:
-        return (), ""
-    what = ", ".join(held)
-    return tuple(held), (f"the scene's planes do not determine {what} (1-sigma beyond "
-                         f"{observability.LIMITS['a'] * 1000:g} mm / {math.degrees(observability.LIMITS['alpha']):g}"
-                         f" deg, judged at the start): held at the nominal value, not estimated")
-
-
-def _marginal(info: FloatArray, names: tuple[str, ...], keep: list[str]) -> FloatArray:
-    idx = [names.index(n) for n in keep]
-    other = [i for i in range(len(names)) if i not in idx]
-    A = info[np.ix_(idx, idx)]
-    if other:
-        B, C = info[np.ix_(idx, other)], info[np.ix_(other, other)]
-        A = A - B @ np.linalg.pinv(C, rcond=1e-12) @ B.T
-    return 0.5 * (A + A.T)
-
-
-def _normalised(info: FloatArray, names: tuple[str, ...], free: list[str]) -> tuple[FloatArray, float]:
-    """Each free DH parameter's marginal 1-sigma in units of its limit (inf: undetermined) and the weakest
-    combination's."""
-    D = np.array([observability.LIMITS[n] for n in free])
-    N = D[:, None] * _marginal(info, names, free) * D[None, :]
-    w = np.linalg.eigvalsh(N)
-    if w[0] <= 1e-12 * max(float(w[-1]), 1e-300):
-        return np.full(len(free), np.inf), math.inf
-    return np.sqrt(np.diag(np.linalg.inv(N))), 1.0 / math.sqrt(float(w[0]))
-
-
-def _weakest_direction(info: FloatArray, names: tuple[str, ...], free: list[str]) -> FloatArray:
-    D = np.array([observability.LIMITS[n] for n in free])
-    N = D[:, None] * _marginal(info, names, free) * D[None, :]
-    return np.abs(np.linalg.eigh(N)[1][:, 0])
+        return ""
+    return (f"the scene's planes do not determine {', '.join(held)} (1-sigma beyond "
+            f"{observability.LIMITS['a'] * 1000:g} mm / {math.degrees(observability.LIMITS['alpha']):g}"
+            f" deg, judged at the start): held at the nominal value, not estimated")
 
 
 def _settled(old: Solution, new: Solution) -> bool:
