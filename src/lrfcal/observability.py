@@ -176,7 +176,7 @@ class Information:
         return info, names
 
     def sigma(self, name: str) -> float:
-        """The marginal 1-sigma of one unknown (pseudo-inverse: inf-like when undetermined)."""
+        """The marginal 1-sigma of one unknown (from the pseudo-inverse: large, not inf, when undetermined)."""
         k = self.names.index(name)
         return float(np.sqrt(np.linalg.pinv(self.info)[k, k]))
 

@@ -64,7 +64,7 @@ def _v_markers(layout: VLayout, tunnel: TunnelConfig, radius_m: float, seed: int
     """Per wall: arm 1 from (x_start, z_top) down to the apex, arm 2 from the apex up to (x_end, z_top).
 
     ``per_arm`` markers per arm, the apex shared: 2 per_arm - 1 per wall (1 if per_arm == 1: the apex); each
-    moved along the wall and in height by up to ``jitter_m`` (seeded by ``seed``, a stream of its own).
+    moved along the wall and in height by up to ``jitter_m`` (:func:`_jitter`).
     """
     x_apex = 0.5 * (layout.x_start_m + layout.x_end_m)
     n = layout.per_arm
@@ -80,21 +80,25 @@ def _v_markers(layout: VLayout, tunnel: TunnelConfig, radius_m: float, seed: int
         y = tunnel.width_m / 2 - radius_m if wall == "left" else -(tunnel.width_m / 2 - radius_m)
         out.append(np.column_stack([xz[:, 0], np.full(len(xz), y), xz[:, 1]]))
     centres = np.vstack(out)
-    if layout.jitter_m > 0:
-        rng = np.random.default_rng([seed, 0x6D61726B])  # own stream ("mark"), independent of the sensor noise
-        centres[:, [0, 2]] += rng.uniform(-layout.jitter_m, layout.jitter_m, size=(len(centres), 2))
+    centres[:, [0, 2]] += _jitter(len(centres), layout.jitter_m, seed)
     return centres
+
+
+def _jitter(n: int, jitter_m: float, seed: int) -> FloatArray:
+    """(n, 2) offsets uniform in +-jitter_m, from the scenario's seed in a stream of their own ("mark"),
+    independent of the sensor noise (zeros without jitter)."""
+    if jitter_m <= 0:
+        return np.zeros((n, 2))
+    return np.random.default_rng([seed, 0x6D61726B]).uniform(-jitter_m, jitter_m, size=(n, 2))
 
 
 def board_markers(layout: BoardLayout, board: BoardConfig, radius_m: float, seed: int) -> FloatArray:
     """A rows x cols grid centred on the board's front face (local z = +thickness/2), one radius in front."""
-    rng = np.random.default_rng([seed, 0x6D61726B])  # own stream ("mark"), independent of the sensor noise
     u = (np.arange(layout.cols) - (layout.cols - 1) / 2) * layout.spacing_m
     v = ((layout.rows - 1) / 2 - np.arange(layout.rows)) * layout.spacing_m  # row 0 at the top (+y local)
     uu, vv = np.meshgrid(u, v)
     local = np.column_stack([uu.ravel(), vv.ravel(), np.full(uu.size, board.thickness_m / 2 + radius_m)])
-    if layout.jitter_m > 0:
-        local[:, :2] += rng.uniform(-layout.jitter_m, layout.jitter_m, size=(len(local), 2))
+    local[:, :2] += _jitter(len(local), layout.jitter_m, seed)
     return transform_points(board.pose.to_pose().matrix(), local)
 
 
