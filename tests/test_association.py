@@ -122,3 +122,43 @@ def test_too_few_blobs() -> None:
     X = np.random.default_rng(0).uniform(-1, 1, (6, 3))
     with pytest.raises(CalibrationError):
         associate(X[:2], _map(X))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_branch_and_bound_keeps_exactly_the_best_hypotheses(seed: int) -> None:
+    """The search's top k (lrfcal.association._best_hypotheses: probe blobs, then the rest block by block, each
+    hypothesis dropped once its bound falls below the k-th best full score) is exactly the top k of scoring every
+    hypothesis on every blob, also with near-copies of the true pose whose scores tie or nearly tie."""
+    from scipy.spatial.transform import Rotation
+
+    from lrfcal.association import _best_hypotheses, _score
+
+    rng = np.random.default_rng(seed)
+    X = rng.uniform(-2.0, 2.0, size=(30, 3))  # markers
+    R_true = Rotation.random(random_state=seed).as_matrix()
+    t_true = rng.normal(size=3)
+    P = (np.vstack([X, X[:20]]) - t_true) @ R_true  # blobs: X = R P + t (20 markers seen twice)
+    P += rng.normal(0.0, 0.003, P.shape)
+    P[40:] = rng.uniform(-2.0, 2.0, size=(10, 3))  # 10 blobs that are no marker
+    w = rng.uniform(0.5, 1.5, len(P))
+    H = 3000
+    R = Rotation.random(H, random_state=seed + 10).as_matrix()
+    t = rng.normal(size=(H, 3))
+    near = rng.choice(H, 40, replace=False)  # near-copies of the truth: the top k must be chosen among them
+    R[near] = Rotation.from_rotvec(rng.normal(0.0, 0.002, (40, 3))).as_matrix() @ R_true
+    t[near] = t_true + rng.normal(0.0, 0.004, (40, 3))
+    t[near[:5]] = t_true  # exact ties in score among some
+    R[near[:5]] = R_true
+    score, rms = _score(R, t, P, X, w, 0.02)
+    for k in (1, 5, 12):
+        np.testing.assert_array_equal(_best_hypotheses(R, t, P, X, w, 0.02, k=k), np.lexsort((rms, -score))[:k])
+        # the block-by-block pruning alone: every hypothesis whose full score reaches a threshold survives it, and
+        # most of those that cannot are dropped
+        from lrfcal.association import _reaching
+
+        probe = np.arange(0, len(P), 7)
+        part, _ = _score(R, t, P[probe], X, w[probe], 0.02)
+        for kth in np.sort(score)[::-1][[3, 20, 39]]:  # among the near-copies' scores
+            kept = _reaching(R, t, P, X, w, 0.02, np.arange(H), probe, part, float(kth))
+            assert set(np.flatnonzero(score >= kth)) <= set(kept.tolist())
+            assert kept.size < 100, kept.size  # the random poses cannot reach it and are dropped
