@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import time
 
 import numpy as np
@@ -162,3 +163,28 @@ def test_branch_and_bound_keeps_exactly_the_best_hypotheses(seed: int) -> None:
             kept = _reaching(R, t, P, X, w, 0.02, np.arange(H), probe, part, float(kth))
             assert set(np.flatnonzero(score >= kth)) <= set(kept.tolist())
             assert kept.size < 100, kept.size  # the random poses cannot reach it and are dropped
+
+
+def test_pair_score_does_not_depend_on_its_chunk() -> None:
+    """lrfcal.start.pair_score scores candidate DH sets a chunk at a time (for the cache); each candidate's score is
+    its own: the same numbers for any chunk, and the true DH scores best among candidates around it."""
+    from lrfcal.start import pair_score
+
+    rng = np.random.default_rng(3)
+    dh = np.array([0.012, math.radians(80.0), 0.02, math.radians(-88.0)])
+    # 40 noise-free returns (range, motor and beam angle), each a marker: eq. (3) puts them at P, and the tape's
+    # distances are those between them
+    lam = rng.uniform(-math.pi, math.pi, 40)
+    mu = rng.uniform(-2.0, 2.0, 40)
+    r = rng.uniform(0.5, 2.0, 40)
+    a, al, b, be = dh
+    x, y0 = a + r * np.cos(be + mu), r * np.sin(be + mu)
+    y, z = y0 * math.cos(al) - b * math.sin(al), y0 * math.sin(al) + b * math.cos(al)
+    P = np.stack([np.cos(lam) * x - np.sin(lam) * y, np.sin(lam) * x + np.cos(lam) * y, z], 1)
+    d = np.linalg.norm(P[:, None] - P[None], axis=-1)[np.triu_indices(40, 1)]
+    grid = dh + rng.normal(0.0, 1.0, (300, 4)) * np.array([0.01, 0.05, 0.01, 0.05])
+    grid[17] = dh
+    ref = pair_score(grid, r, lam, mu, d)
+    for chunk in (2, 7, 64, 1000):  # (a one-row chunk differs in the last bits: numpy's vector loops' tail)
+        np.testing.assert_array_equal(pair_score(grid, r, lam, mu, d, chunk=chunk), ref)
+    assert int(np.argmax(ref)) == 17

@@ -69,13 +69,15 @@ _MAX_PAIRS = 1500
 
 def pair_score(
     dh_grid: FloatArray, r: FloatArray, lam: FloatArray, mu: FloatArray, marker_distances: FloatArray,
-    tol_m: float = 0.01, chunk: int = 512,
+    tol_m: float = 0.01, chunk: int = 64,
 ) -> FloatArray:
     """The module docstring's score for C candidate DH sets (C, 4) [a, alpha, b, beta] -> (C,).
 
     r, lam, mu (B,) per point; marker_distances (P,). Point pairs closer than 5 cm are left out; beyond
     _MAX_PAIRS pairs a seeded even sample is used. The distance to the nearest marker-pair distance comes from a
-    1 mm lookup table.
+    1 mm lookup table. ``chunk`` candidates at a time (their (chunk, pairs, 3) temporaries stay in the cache: 64 is
+    a third faster than 512 with 1500 pairs; the numbers do not depend on it beyond their last bits: numpy's
+    vector loops treat an array's tail apart).
     """
     B = r.size
     iu = np.triu_indices(B, 1)
