@@ -203,6 +203,7 @@ def _reaching(R: FloatArray, t: FloatArray, P: FloatArray, X: FloatArray, w: Flo
         cand, got = cand[keep], got[keep]
     return cand
 
+
 def _refine(
     T: FloatArray, P: FloatArray, X: FloatArray, w: FloatArray, gate_m: float, max_iter: int = 30
 ) -> tuple[FloatArray, IntArray, FloatArray]:
