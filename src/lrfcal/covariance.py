@@ -13,7 +13,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
-from .normal_equations import RANK_TOL, Blocks, assemble, cluster_scores, schur, scores_by_cluster, solve_step
+from .normal_equations import RANK_TOL, Blocks, assemble, schur, scores_by_cluster, solve_step
+from .observability import marginal_information
 from .problem import Problem
 from .types import Spread
 
@@ -24,7 +25,7 @@ def inflate_for_correlation(cov: FloatArray, G: FloatArray, JtJ_inv: FloatArray)
     """Widen the covariance where errors shared within a scan make it optimistic.
 
     The cluster-robust (sandwich) covariance (J^T J)^-1 (sum_c g_c g_c^T) (J^T J)^-1, g_c = sum over the rows of
-    scan c of J_i r_i (G (clusters, p), lrfcal.normal_equations.cluster_scores), allows any error correlation within
+    scan c of J_i r_i (G (clusters, p), lrfcal.normal_equations.scores_by_cluster), allows any error correlation within
     a scan (the motor angle of a scan comes from the same few quantised encoder readings for all its beams). Each
     parameter's sigma is the larger of the two; the model-based correlations are kept. cov (p, p).
     """
@@ -54,7 +55,7 @@ def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], mark
     if n_markers < _MIN_MARKER_CLUSTERS:
         return cov
     ids = marker_dense + (int(scan_plane.max()) + 1 if scan_plane.size else 0)  # apart from the scans' ids
-    G = cluster_scores(b, core, ids, scan_plane)
+    G = scores_by_cluster(b, core, ids, scan_plane)[1]
     return widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1)))
 
 
@@ -128,16 +129,6 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     return cov_core, info, core_names, s2, rank_txt, G, spread
 
 
-def marginal_information(A: FloatArray, keep: Sequence[int]) -> FloatArray:
-    """The information of the ``keep`` block with the others marginalised: A_kk - A_ko A_oo^+ A_ok."""
-    keep = list(keep)
-    other = [i for i in range(A.shape[0]) if i not in keep]
-    if not other:
-        return A[np.ix_(keep, keep)]
-    Akk, Ako, Aoo = A[np.ix_(keep, keep)], A[np.ix_(keep, other)], A[np.ix_(other, other)]
-    return Akk - Ako @ np.linalg.pinv(Aoo, rcond=1e-12) @ Ako.T
-
-
 #: a score test's widened sigma (the estimate's own, at the stepped solution) is computed only where the plain one
 #: (the information at the held solution) puts the step beyond this many sigma: widening makes a sigma larger, so
 #: below it no test reaches a decision limit (lrfcal.markers: 4 sigma), and it saves 60 ms a calibration
@@ -191,5 +182,5 @@ def held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.
     return out
 
 
-__all__ = ["SCREEN_Z", "held_score", "inflate_for_correlation", "inflate_for_markers", "marginal_information",
+__all__ = ["SCREEN_Z", "held_score", "inflate_for_correlation", "inflate_for_markers",
            "uncertainty", "widen"]

@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike, NDArray
 from .model.kinematics import Params
 from .model.motor import MotorClock
 from .model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
-from .normal_equations import assemble, cluster_scores, schur, solve_step
+from .normal_equations import assemble, schur, scores_by_cluster, solve_step
 from .problem import Problem, marker_problem, plane_problem, plane_set
 from .solve import marker_clusters, plane_free, with_sides
 from .surfaces import Surface, SurfaceReturns
@@ -152,7 +152,7 @@ def model_error_at(
     b = replace(b, r_dense=r_m.ravel())
     scan_s = np.zeros(0, dtype=np.int64) if pb.surf is None or surfaces is None else np.asarray(surfaces.scan)
     clusters = marker_clusters(np.asarray(obs.scan), np.asarray(obs.marker), np.asarray(obs.times_s), scan_s)
-    G = cluster_scores(b, idx, np.repeat(clusters, pb.markers.n_res), scan_s)
+    G = scores_by_cluster(b, idx, np.repeat(clusters, pb.markers.n_res), scan_s)[1]
     H_inv = scaled_pinv(H)
     k = idx.size
     sandwich = H_inv @ (G.T @ G) @ H_inv

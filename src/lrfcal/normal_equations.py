@@ -242,16 +242,11 @@ def levenberg_marquardt(
     return th, n_eval, False
 
 
-def cluster_scores(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray) -> FloatArray:
-    """G (clusters, c + 3P): per cluster, the sum of J_i^T r_i over its rows (each prior row a cluster of its own),
-    for the cluster-robust (sandwich) covariance; rows in the order of the clusters' ids (:func:`scores_by_cluster`)."""
-    return scores_by_cluster(b, core, cluster_dense, cluster_plane)[1]
-
-
 def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray
                       ) -> tuple[IntArray, FloatArray]:
-    """The clusters' ids (clusters,), sorted (each prior row a cluster of its own, ids below every other), and
-    :func:`cluster_scores`' G (clusters, c + 3P) in that order."""
+    """For the cluster-robust (sandwich) covariance: the clusters' ids (clusters,), sorted (each prior row a
+    cluster of its own, ids below every other), and G (clusters, c + 3P), per cluster the sum of J_i^T r_i over
+    its rows, in that order."""
     assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
     P, c = b.n_planes, core.size
     n_prior = 0 if b.r_prior is None else b.r_prior.size
@@ -272,5 +267,5 @@ def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluste
     return ids, G.reshape(n_cl, n)
 
 
-__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "cluster_scores", "levenberg_marquardt", "marginal_sigma",
+__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
            "schur", "scores_by_cluster", "solve_step"]

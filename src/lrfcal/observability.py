@@ -136,15 +136,19 @@ def analyse(information: FloatArray, names: tuple[str, ...], alpha: float | None
     return Observability(sigma=sigma, spectrum=vals, weakest=weakest, tilt_rad=tilt)
 
 
+def marginal_information(A: FloatArray, keep: Sequence[int]) -> FloatArray:
+    """The information of the ``keep`` block of A (k, k) with the others marginalised: A_kk - A_ko A_oo^+ A_ok."""
+    keep = list(keep)
+    other = [i for i in range(A.shape[0]) if i not in keep]
+    if not other:
+        return A[np.ix_(keep, keep)]
+    Akk, Ako, Aoo = A[np.ix_(keep, keep)], A[np.ix_(keep, other)], A[np.ix_(other, other)]
+    return Akk - Ako @ np.linalg.pinv(Aoo, rcond=1e-12) @ Ako.T
+
+
 def marginal(info: FloatArray, names: Sequence[str], keep: Sequence[str]) -> FloatArray:
-    """The information (len(keep), len(keep)) of the unknowns ``keep`` with the others of ``info`` (k, k) over
-    ``names`` marginalised (Schur complement), symmetrised."""
-    idx = [names.index(n) for n in keep]
-    other = [i for i in range(len(names)) if i not in idx]
-    A = info[np.ix_(idx, idx)]
-    if other:
-        B, C = info[np.ix_(idx, other)], info[np.ix_(other, other)]
-        A = A - B @ np.linalg.pinv(C, rcond=1e-12) @ B.T
+    """:func:`marginal_information` of the unknowns ``keep`` of ``info`` (k, k) over ``names``, symmetrised."""
+    A = marginal_information(info, [names.index(n) for n in keep])
     return 0.5 * (A + A.T)
 
 
@@ -199,4 +203,4 @@ class Information:
 
 
 __all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",
-           "analyse", "marginal"]
+           "analyse", "marginal", "marginal_information"]
