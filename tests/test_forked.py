@@ -114,3 +114,40 @@ def test_ahead_sends_what_the_child_inherited_by_reference_while_this_process_go
     sent = _dumps((_sum_and_none, (big, None)), {id(big): big})
     assert len(sent) < 200  # a reference, not the 200 000 numbers; None is not taken for the inherited object
     assert len(_dumps((_sum_and_none, (list(big), None)), {id(big): big})) > 100_000  # an equal copy travels whole
+
+
+def _slow_pid(seconds: float) -> int:
+    time.sleep(seconds)
+    return os.getpid()
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_ahead_runs_several_calls_in_the_order_sent_and_the_rest_here_after_a_death() -> None:
+    """The report's figures: intensity.png sent on the association, the others on the fit, taken in that order."""
+    PREPARED.clear()
+    with Ahead(_prepare) as ahead:
+        ahead.start(_slow_pid, 0.2)
+        ahead.start(_where_prepared, 1)
+        first, (value, pid, prepared) = ahead.result(), ahead.result()
+        assert not ahead.started
+    assert first == pid != os.getpid() and (value, prepared) == (2, True)  # both in the one child, in order
+    with Ahead(_prepare) as ahead:
+        ahead.start(_dies_in_a_child)
+        ahead.start(_where_prepared, 2)
+        assert ahead.result() == "here"
+        value, pid, prepared = ahead.result()  # the child is gone: the later call runs here, prepared once
+    assert (value, pid, prepared) == (3, os.getpid(), True) and [os.getpid()] == PREPARED
+    with Ahead(_prepare) as ahead:
+        ahead.start(_slow_pid, 0.1)
+        with pytest.raises(RuntimeError):
+            ahead.call(_pid)  # a call whose result would be taken out of order
+
+
+def test_ahead_left_with_a_call_running_ends_its_child_at_once() -> None:
+    """A calibration refused after intensity.png was sent: the drawing child is not waited for."""
+    t0 = time.perf_counter()
+    with pytest.raises(KeyError), Ahead(_prepare) as ahead:
+        ahead.start(_slow_pid, 5.0)
+        raise KeyError("refused")
+    assert time.perf_counter() - t0 < 2.0
+    assert not multiprocessing.active_children()

@@ -73,6 +73,7 @@ class Case:
     sigma: np.ndarray
     seconds: float
     fitted: tuple[CalibrationResult, ...] = ()  # what calibrate(fitted=) was given, before the clouds
+    outputs: tuple[tuple[str, dict[str, object]], ...] = ()  # what calibrate(outputs=) was given, stage by stage
 
     @property
     def z(self) -> np.ndarray:
@@ -102,13 +103,15 @@ def run_case(scenario: Scenario, folder: Path, tolerances: Tolerances | None = N
     recording = read_recording(folder, require_distances=(folder / "distances.csv").exists())
     t0 = time.perf_counter()
     fitted: list[CalibrationResult] = []
-    result = calibrate(recording, CalibConfig(range_sigma_m=0.010, baseline=baseline), fitted=fitted.append)
+    outputs: list[tuple[str, dict[str, object]]] = []
+    result = calibrate(recording, CalibConfig(range_sigma_m=0.010, baseline=baseline), fitted=fitted.append,
+                       outputs=lambda stage, out: outputs.append((stage, dict(out))))
     seconds = time.perf_counter() - t0
     comparison = compare(result, load_truth(folder / "ground_truth.yaml"), tolerances or scenario.tolerances)
     errors = np.array([row.error for row in comparison.dh_rows])
     assert [row.name for row in comparison.dh_rows] == list(DH_NAMES)
     return Case(scenario.name, result, comparison, errors, result.solution.sigma[list(DH_INDEX)], seconds,
-                tuple(fitted))
+                tuple(fitted), tuple(outputs))
 
 
 class _Cases:
@@ -199,6 +202,11 @@ def test_shipped_fitted_result_comes_before_the_clouds_and_is_the_results(shippe
     early = case.fitted[0]
     assert early.cloud_after_M.size == 0 and case.result.cloud_after_M.size > 0
     assert early.solution is case.result.solution and early.detections is case.result.detections
+    # the intensity figure's inputs, given as soon as the solve stage ends (drawn while the surfaces are fitted)
+    assert [stage for stage, _ in case.outputs] == ["solve"]
+    out = case.outputs[0][1]
+    assert out["detections"] is case.result.detections and out["association"] is case.result.association
+    assert out["markers"] is case.result.markers and out["scans"] is case.result.recording.scans
 
 
 @pytest.mark.parametrize("name", SHIPPED)

@@ -10,194 +10,40 @@ sphere, with the start parameters ("before") and the calibrated ones ("after").
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .figlayout import place_labels, three_ticks, view_frame
+from .figintensity import C_MARKER, intensity_figure
+from .figlayout import (
+    DPI,
+    FONT_SIZE_PT,
+    HEIGHT_PX,
+    LABEL_EM,
+    WIDTH_PX,
+    new_figure,
+    rc,
+    save,
+    three_ticks,
+    view_frame,
+)
 from .forked import call_forked
-from .io.files import atomic_file
 from .model.kinematics import Params
-from .types import CalibrationResult
+from .types import Association, CalibrationResult, Detections, Scans
 from .vizdata import marker_returns
 
 FloatArray = NDArray[np.float64]
 
-WIDTH_PX = 1600
-HEIGHT_PX = 900
-DPI = 150
-FONT_SIZE_PT = 11
-#: a tick label's width per character and font point, as a fraction of the figure's width (DejaVu Sans' average
-#: character is about 0.6 em)
-_LABEL_EM = 0.6 * DPI / 72 / WIDTH_PX
-#: Rows of the intensity image drawn at most (scans are max-pooled above this).
-MAX_FIGURE_ROWS = 1200
-
 _C_BEFORE = "#e6781e"
 _C_AFTER = "#28aa50"
-_C_MARKER = "#b0209a"
-
-
-def _new_figure(constrained: bool = True) -> Any:
-    """A WIDTH_PX x HEIGHT_PX figure; ``constrained``: matplotlib's constrained layout (costly with many axes: a
-    figure of many small panels places them itself)."""
-    from matplotlib.figure import Figure
-
-    return Figure(figsize=(WIDTH_PX / DPI, HEIGHT_PX / DPI), dpi=DPI, layout="constrained" if constrained else None)
-
-
-def _save(fig: Any, path: Path | str) -> Path:
-    """Write ``fig`` as PNG at WIDTH_PX x HEIGHT_PX, atomically (temp file in the folder, then rename)."""
-    path = Path(path)
-    with atomic_file(path) as tmp:
-        # zlib level 1: a third of the default level's encoding time for files about 10 % larger
-        fig.savefig(tmp, format="png", dpi=DPI, pil_kwargs={"compress_level": 1})
-    return path
-
-
-def _rc() -> Any:
-    import matplotlib
-
-    return matplotlib.rc_context({"font.size": FONT_SIZE_PT, "axes.titlesize": FONT_SIZE_PT + 1,
-                                  "axes.labelsize": FONT_SIZE_PT, "legend.fontsize": FONT_SIZE_PT - 1,
-                                  "xtick.labelsize": FONT_SIZE_PT - 1, "ytick.labelsize": FONT_SIZE_PT - 1})
 
 
 def _rms_mm(norms_m: FloatArray) -> float:
     return float(np.sqrt(np.mean(norms_m**2)) * 1e3) if norms_m.size else float("nan")
-
-
-def _candidate_panel(ax: Any, shown: Any, cand: NDArray[np.bool_], kw: dict[str, Any], pool: int) -> None:
-    """The intensity figure's right panel: every return (``shown``, a masked (rows, N) image drawn with ``kw``)
-    faint grey for context, the marker candidates (``cand``) as dots: a blob is a few cells of a large image, so
-    drawn as image cells it would be invisible at this size."""
-    import matplotlib
-
-    grey = matplotlib.colormaps["Greys"].with_extremes(bad="white")
-    ax.imshow(shown[::2, ::2], **{**kw, "cmap": grey, "alpha": 0.35})  # context only: half resolution
-    rows, cols = np.nonzero(cand & ~np.ma.getmaskarray(shown))
-    if rows.size:
-        x0, x1 = kw["extent"][:2]
-        xs = x0 + (cols + 0.5) * (x1 - x0) / shown.shape[1]
-        ys = rows * pool + 0.5 * (pool - 1)
-        ax.scatter(xs, ys, color=_C_MARKER, s=12, marker="s", linewidths=0, rasterized=True,
-                   label="marker candidate return")
-    ax.set_facecolor("white")
-
-
-def _zoom(ax: Any, xs: FloatArray, ys: FloatArray, bounds: tuple[float, float, float, float],
-          margins: tuple[float, float]) -> None:
-    """Limits of ``ax`` around the points (xs, ys), 1.2 x their spread plus ``margins`` and at least a quarter of
-    ``bounds`` (x0, x1, y0, y1) each way, within ``bounds``."""
-    x0, x1, y0, y1 = bounds
-    cx, cy = 0.5 * (xs.min() + xs.max()), 0.5 * (ys.min() + ys.max())
-    hx = max(0.6 * (xs.max() - xs.min()) + margins[0], 0.125 * (x1 - x0))
-    hy = max(0.6 * (ys.max() - ys.min()) + margins[1], 0.125 * (y1 - y0))
-    ax.set_xlim(max(x0, cx - hx), min(x1, cx + hx))
-    ax.set_ylim(max(y0, cy - hy), min(y1, cy + hy))
-
-
-def intensity_figure(result: CalibrationResult, path: Path | str) -> Path:
-    """The (S, N) intensity image (paper Figs. 8/9) in log scale, and the detected marker returns.
-
-    Left: all intensities, x = beam angle mu [deg], y = scan index, log colour scale with colorbar
-    "intensity [counts]", detected blobs outlined. Right: only the marker candidates (returns whose intensity is
-    above the range-dependent background by the detection's contrast threshold, see lrfcal.detection), blob
-    peaks marked and labelled with their marker id, or "unmatched" (in red) for a blob the association did not
-    give a marker; labels that would overprint are skipped. Returns the written path.
-    """
-    from matplotlib.colors import LogNorm
-    from matplotlib.patches import Rectangle
-
-    sc = result.recording.scans
-    inten = np.asarray(sc.intensities, dtype=float)
-    S, N = inten.shape
-    mu_deg = np.rad2deg(np.asarray(sc.mu_rad, dtype=float)[int(np.argmax(sc.beam_counts))])  # widest scan
-    step = float(np.median(np.abs(np.diff(mu_deg)))) if N > 1 else 1.0
-    x0, x1 = float(mu_deg.min()) - step / 2, float(mu_deg.max()) + step / 2
-    flip = N > 1 and mu_deg[-1] < mu_deg[0]  # negative angle increment: show increasing angle left to right
-    det = result.detections
-    cand = np.asarray(det.labels) >= 0
-    img = inten[:, ::-1] if flip else inten
-    cand = cand[:, ::-1] if flip else cand
-    pool = max(1, int(np.ceil(S / MAX_FIGURE_ROWS)))  # max-pool scans so that thin blobs stay visible
-    if pool > 1:
-        img = np.vstack([img, np.zeros(((-S) % pool, N))]).reshape(-1, pool, N).max(axis=1)
-        cand = np.vstack([cand, np.zeros(((-S) % pool, N), bool)]).reshape(-1, pool, N).any(axis=1)
-    positive = img[np.isfinite(img) & (img > 0)]
-    vmin = max(float(np.percentile(positive, 1.0)) if positive.size else 1.0, 1.0)
-    vmax = max(float(positive.max()) if positive.size else 10.0, vmin * 10)
-    ids = result.markers.marker_ids
-    b2m = result.association.blob_to_marker
-
-    def beam_x(b: int) -> float:
-        return float(mu_deg[b])
-
-    with _rc():
-        import matplotlib
-
-        cmap = matplotlib.colormaps["inferno"].with_extremes(bad="black")
-        # a fixed layout (no constrained layout): the labels are placed without a first full draw of the figure
-        fig = _new_figure(constrained=False)
-        fig.subplots_adjust(left=0.065, right=0.875, bottom=0.115, top=0.885, wspace=0.2)
-        axes = fig.subplots(1, 2)
-        shown = np.ma.masked_invalid(np.where(img > 0, img, np.nan))
-        kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x1, -0.5, img.shape[0] * pool - 0.5),
-              "cmap": cmap,
-              "norm": LogNorm(vmin=vmin, vmax=vmax), "interpolation": "nearest"}
-        im = axes[0].imshow(shown, **kw)
-        _candidate_panel(axes[1], shown, cand, kw, pool)
-        labels: list[tuple[float, float, str, str]] = []
-        n_unmatched = 0
-        for j, b in enumerate(det.blobs):
-            xs = [beam_x(int(b.beam_idx.min())), beam_x(int(b.beam_idx.max()))]
-            lo, hi = min(xs) - step / 2, max(xs) + step / 2
-            s0, s1 = float(b.scan_idx.min()) - 0.5, float(b.scan_idx.max()) + 0.5
-            # outline with a margin, at least ~1 % of the axes in each direction so that it stays visible
-            mx = max(step, 0.005 * (x1 - x0), 0.5 * (0.01 * (x1 - x0) - (hi - lo)))
-            my = max(1.0, 0.005 * S, 0.5 * (0.015 * S - (s1 - s0)))
-            m = int(b2m[j]) if j < b2m.size else -1
-            edge = "#00d8ff" if m >= 0 else "#ff4040"
-            axes[0].add_patch(Rectangle((lo - mx, s0 - my), hi - lo + 2 * mx, s1 - s0 + 2 * my, fill=False,
-                                        edgecolor=edge, linewidth=1.0))
-            labels.append((beam_x(b.peak_beam), float(b.peak_scan), ids[m] if m >= 0 else "unmatched",
-                           "black" if m >= 0 else "#d01010"))
-            n_unmatched += m < 0
-        if det.blobs:
-            px = [beam_x(b.peak_beam) for b in det.blobs]
-            py = [b.peak_scan for b in det.blobs]
-            axes[1].plot(px, py, "+", color="#0a8a30", markersize=9, markeredgewidth=1.5)
-        axes[0].set_xlim(x0, x1)
-        axes[0].set_ylim(-0.5, S - 0.5)
-        axes[1].set_xlim(x0, x1)
-        axes[1].set_ylim(-0.5, S - 0.5)
-        if det.blobs:  # the right panel zooms onto the blobs (at least a quarter of the image each way)
-            bx = np.array([beam_x(int(b.beam_idx.min())) for b in det.blobs]
-                          + [beam_x(int(b.beam_idx.max())) for b in det.blobs])
-            by = np.array([float(b.scan_idx.min()) for b in det.blobs] + [float(b.scan_idx.max()) for b in det.blobs])
-            _zoom(axes[1], bx, by, (x0, x1, -0.5, S - 0.5), (5 * step, 5.0))
-        pooled = f", {pool}-scan max" if pool > 1 else ""
-        axes[0].set_title(f"all returns ({S} x {N}{pooled}), blobs outlined")
-        unmatched = f", {n_unmatched} unmatched" if n_unmatched else ""
-        axes[1].set_title(f"zoom: marker candidates, {len(det.blobs)} blobs{unmatched}")
-        for ax in axes:
-            ax.set_xlabel("beam angle mu [deg]")
-            ax.set_ylabel("scan index")
-        fig.colorbar(im, cax=fig.add_axes((0.895, 0.115, 0.012, 0.77)), label="intensity [counts]")
-        fig.suptitle("Marker detection in the (scan, beam) intensity image", fontsize=FONT_SIZE_PT + 2)
-        fig.supxlabel("candidates: brighter than the range-dependent background by the contrast threshold (bright "
-                      "walls seen head-on are not); + blob peak, label = its marker", fontsize=FONT_SIZE_PT - 2,
-                      color="#444444")
-        skipped = place_labels(axes[1], labels, FONT_SIZE_PT - 2)
-        if skipped:
-            axes[1].text(0.99, 0.01, f"{skipped} labels skipped (no room)", transform=axes[1].transAxes,
-                         ha="right", va="bottom", color="#555555", fontsize=FONT_SIZE_PT - 2)
-        return _save(fig, path)
 
 
 #: At most this many per-marker panels in alignment.png (the markers with the most returns).
@@ -245,10 +91,10 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
     cols = int(np.ceil(np.sqrt(n * WIDTH_PX / HEIGHT_PX)))
     rows = int(np.ceil(n / cols))
     ticks = three_ticks(extent)
-    with _rc():
+    with rc():
         # many small panels: fixed margins and the same limits set on each, no shared axes and no constrained
         # layout (both cost seconds with 35 panels)
-        fig = _new_figure(constrained=False)
+        fig = new_figure(constrained=False)
         grid = fig.subplots(rows, cols, squeeze=False, gridspec_kw={
             "left": 0.04, "right": 0.99, "bottom": 0.15, "top": 0.9, "wspace": 0.3, "hspace": 0.45})
         axes = np.atleast_1d(grid).ravel()
@@ -262,8 +108,8 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
             ax.tick_params(labelbottom=last_row, labelleft=k % cols == 0)
         arrows = 0
         for ax, m in zip(axes, shown, strict=False):
-            ax.add_patch(Circle((0, 0), r_mm, fill=False, edgecolor=_C_MARKER, linewidth=1.5))
-            ax.plot([0], [0], "+", color=_C_MARKER, markersize=6)
+            ax.add_patch(Circle((0, 0), r_mm, fill=False, edgecolor=C_MARKER, linewidth=1.5))
+            ax.plot([0], [0], "+", color=C_MARKER, markersize=6)
             rms = {}
             for name, color in (("before", _C_BEFORE), ("after", _C_AFTER)):
                 q = local[(name, m)]
@@ -289,13 +135,13 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
         handles = [Line2D([], [], ls="", marker="o", color=_C_BEFORE, label=f"before ({before_label}): RMS {rb:.1f} mm"
                           + (" (arrow: towards returns off the panel)" if arrows else "")),
                    Line2D([], [], ls="", marker="o", color=_C_AFTER, label=f"after (calibrated): RMS {ra:.1f} mm"),
-                   Line2D([], [], ls="", marker="o", mfc="none", mec=_C_MARKER, markersize=9,
+                   Line2D([], [], ls="", marker="o", mfc="none", mec=C_MARKER, markersize=9,
                           label=f"marker (r = {r_mm:g} mm)")]
         fig.legend(handles=handles, loc="lower center", bbox_to_anchor=(0.5, 0.0), ncols=3, fontsize=FONT_SIZE_PT - 2,
                    frameon=False)
         fig.suptitle("Returns per marker seen from the motor [mm] (u across the ray, v up; RMS before -> after)",
                      fontsize=FONT_SIZE_PT + 1)
-        return _save(fig, path)
+        return save(fig, path)
 
 
 def _plain(v: float, _pos: object = None) -> str:
@@ -328,8 +174,8 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
     hi = max(float(allv.max()) if allv.size else 1.0, lo * 10)
     bins = np.geomspace(lo / 1.2, hi * 1.2, 40)
 
-    with _rc():
-        fig = _new_figure(constrained=False)  # a fixed layout: constrained layout was half of this figure's time
+    with rc():
+        fig = new_figure(constrained=False)  # a fixed layout: constrained layout was half of this figure's time
         rotate = n > 12
         fig.subplots_adjust(left=0.055, right=0.99, bottom=0.15 if rotate else 0.11, top=0.885, wspace=0.15)
         ax_h, ax_b = fig.subplots(1, 2, width_ratios=[1, 1.2])
@@ -373,7 +219,7 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
         ax_b.legend(loc="upper right")
         ax_b.grid(True, axis="y", alpha=0.3, which="both")
         fig.suptitle("Marker residuals before / after calibration", fontsize=FONT_SIZE_PT + 2)
-        return _save(fig, path)
+        return save(fig, path)
 
 
 def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
@@ -386,11 +232,11 @@ def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
     before_mm = np.asarray(fit.rms_before_m, dtype=float) * 1e3
     after_mm = np.asarray(fit.rms_after_m, dtype=float) * 1e3
     n = len(fit.planes)
-    with _rc():
+    with rc():
         labels = [f"plane {i} ({int(c)} returns)" for i, c in zip(range(n), fit.n_returns, strict=True)]
         # a fixed layout (constrained layout was most of this figure's time): room on the left for the labels
-        fig = _new_figure(constrained=False)
-        left = min(0.35, 0.025 + _LABEL_EM * (FONT_SIZE_PT - 1) * max(map(len, labels), default=0))
+        fig = new_figure(constrained=False)
+        left = min(0.35, 0.025 + LABEL_EM * (FONT_SIZE_PT - 1) * max(map(len, labels), default=0))
         fig.subplots_adjust(left=left, right=0.985, bottom=0.1, top=0.86, wspace=0.22)
         ax, ax2 = fig.subplots(1, 2, width_ratios=(1.2, 1.0))
         k = np.arange(n)
@@ -421,7 +267,7 @@ def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
         ax2.set_xlabel("x_M [m]")
         ax2.set_ylabel("y_M [m]")
         ax2.set_title("Calibrated cloud, seen along\nthe motor axis (frame M)")
-        return _save(fig, path)
+        return save(fig, path)
 
 
 @dataclass(frozen=True)
@@ -431,10 +277,14 @@ class Figures:
     written: dict[str, Path]
     skipped: dict[str, str]
 
+    def __or__(self, other: Figures) -> Figures:
+        return Figures({**self.written, **other.written}, {**self.skipped, **other.skipped})
+
 
 def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params | None = None,
-                  before_label: str = "nominal DH, fitted mount") -> Figures:
-    """Write intensity.png, alignment.png and residuals.png (targetless: flatness.png) into out_dir.
+                  before_label: str = "nominal DH, fitted mount", drawn: tuple[str, ...] = ()) -> Figures:
+    """Write intensity.png, alignment.png and residuals.png (targetless: flatness.png) into out_dir, but for the
+    figures named in ``drawn`` (drawn before, e.g. intensity by :func:`write_intensity`).
 
     ``before``: the parameters of the "before" views, described by ``before_label`` (default: the calibration's
     start, the nominal DH with the mount fitted to the markers: a nominal mount has no place in W, the tape's frame,
@@ -448,15 +298,27 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
     if needs_clouds(result):
         draw = {"flatness": lambda: flatness_figure(result, out / "flatness.png")}
     else:
-        draw = {"intensity": lambda: intensity_figure(result, out / "intensity.png"),
+        draw = {"intensity": lambda: intensity_figure(result.recording.scans, result.detections, result.association,
+                                                      result.markers.marker_ids, out / "intensity.png"),
                 "alignment": lambda: alignment_figure(result, out / "alignment.png", before, before_label),
                 "residuals": lambda: residual_figure(result, out / "residuals.png", before, before_label)}
+    draw = {n: fn for n, fn in draw.items() if n not in drawn}
     if len(draw) > 1:
         preload()  # drawn on every core (lrfcal.forked): matplotlib imported once, before the fork, for every child
     outcomes = call_forked({n: partial(_attempt, fn) for n, fn in draw.items()})
     written = {n: Path(v) for n, (ok, v) in outcomes.items() if ok}
     skipped = {n: v for n, (ok, v) in outcomes.items() if not ok}
     return Figures(written, skipped)
+
+
+def write_intensity(scans: Scans, detections: Detections, association: Association, marker_ids: Sequence[str],
+                    out_dir: Path | str) -> Figures:
+    """Write intensity.png (:func:`lrfcal.figintensity.intensity_figure`) into out_dir: it needs only the detection
+    and the association, so it is drawn while the solve goes on. Skipped with its reason as in :func:`write_figures`.
+    """
+    ok, value = _attempt(partial(intensity_figure, scans, detections, association, marker_ids,
+                                 Path(out_dir) / "intensity.png"))
+    return Figures({"intensity": Path(value)}, {}) if ok else Figures({}, {"intensity": value})
 
 
 def preload() -> None:
@@ -497,4 +359,4 @@ def _attempt(fn: Callable[[], Path]) -> tuple[bool, str]:
 
 
 __all__ = ["DPI", "HEIGHT_PX", "WIDTH_PX", "Figures", "alignment_figure", "flatness_figure", "intensity_figure",
-           "drawn_part", "needs_clouds", "residual_figure", "write_figures"]
+           "drawn_part", "needs_clouds", "residual_figure", "write_figures", "write_intensity"]

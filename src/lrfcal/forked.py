@@ -6,8 +6,9 @@ Where no child can be forked (no fork on this platform, one core, a daemonic pro
 a child dies (e.g. out of memory), its task runs here: the outcome is the same, only slower.
 
 :class:`Ahead` forks one child early, which prepares (imports matplotlib) on another core while this process
-calibrates, and later runs one call on arguments sent to it (what it inherited by the fork, such as the scans, sent
-by reference): the report's figures, drawn while this process makes and writes the clouds.
+calibrates, and later runs the calls sent to it, in order, on their arguments (what it inherited by the fork, such
+as the scans, sent by reference): the report's figures, each drawn as soon as what it shows is known, while this
+process goes on.
 
 :func:`on_cores` runs numpy work on large arrays (which releases the GIL) in threads instead: the clouds of stage 7
 and their geometry, one per DH set.
@@ -72,23 +73,25 @@ def _can_fork() -> bool:
 
 
 class Ahead:
-    """A forked child that runs ``prepare()`` at once and, later, one call ``fn(*args)`` (:meth:`start`, then
-    :meth:`result`; :meth:`call` does both): ``fn`` (a module-level function) and ``args`` are pickled to it, its
-    return value pickled back. Objects of ``inherit`` (made before the child was forked, and not changed since)
-    travel by reference: the child has its own copy already. A context manager: leaving it ends the child (its pipe
-    closed, then terminated if still alive).
+    """A forked child that runs ``prepare()`` at once and, later, the calls ``fn(*args)`` sent to it, one after the
+    other in the order sent (:meth:`start`, then :meth:`result` once per call, in the same order; :meth:`call` does
+    both): ``fn`` (a module-level function) and ``args`` are pickled to it, its return values pickled back. Objects
+    of ``inherit`` (made before the child was forked, and not changed since) travel by reference: the child has its
+    own copy already. A context manager: leaving it ends the child (its pipe closed, then terminated if still
+    alive).
 
-    Where no child can be forked (:func:`call_forked`'s conditions) or the child dies, the call runs here, after
+    Where no child can be forked (:func:`call_forked`'s conditions) or the child dies, a call runs here, after
     ``prepare()``: the same outcome, only slower. The child ignores SIGINT (Ctrl-C reaches this process, which
     ends it) and is not daemonic, so that ``fn`` may fork in turn (:func:`call_forked`)."""
 
     def __init__(self, prepare: Callable[[], object], inherit: tuple[object, ...] = ()) -> None:
         self._prepare = prepare
+        self._prepared_here = False
         self._inherited = {id(o): o for o in inherit}
         self._conn: Any = None
         self._proc: Any = None
         self._sent = False
-        self._pending: tuple[Callable[..., Any], tuple[Any, ...]] | None = None
+        self._pending: list[tuple[Callable[..., Any], tuple[Any, ...], bool]] = []  # (fn, args, sent to the child)
 
     def __enter__(self) -> Ahead:
         if _can_fork():
@@ -100,57 +103,67 @@ class Ahead:
                                name="lrfcal-ahead", daemon=False)
             try:
                 proc.start()
-            except OSError:  # no child could be started: the call runs here
+            except OSError:  # no child could be started: the calls run here
                 return self
             theirs.close()
             self._conn, self._proc = ours, proc
         return self
 
     def start(self, fn: Callable[..., Any], *args: Any) -> None:
-        """Send ``fn(*args)`` to the child, which runs it while this process goes on (once: a second call runs
-        here); :meth:`result` returns its value."""
-        self._pending = (fn, args)
+        """Send ``fn(*args)`` to the child, which runs it (after the calls sent before) while this process goes on;
+        :meth:`result` returns its value."""
+        sent = False
         if self._conn is not None:
-            self._sent = True
             try:
                 self._conn.send_bytes(_dumps((fn, args), self._inherited))
+                sent = self._sent = True
             except Exception:  # noqa: BLE001 - a child that died, or a call that does not pickle: run here
-                self._conn.close()
-                self._conn = None
+                self._close()
+        self._pending.append((fn, args, sent))
 
     @property
     def started(self) -> bool:
         """Whether :meth:`start` sent a call whose :meth:`result` is not yet taken."""
-        return self._pending is not None
+        return bool(self._pending)
 
     def result(self) -> Any:
-        """The value of the call :meth:`start` sent: from the child, or, where there is none or it died, run here
-        after ``prepare()``."""
-        if self._pending is None:
+        """The value of the oldest call :meth:`start` sent whose result is not yet taken: from the child, or, where
+        there is none or it died, run here after ``prepare()``."""
+        if not self._pending:
             raise RuntimeError("Ahead.result() without a call: start(fn, *args) first")
-        (fn, args), self._pending = self._pending, None
-        conn, self._conn = self._conn, None
-        if conn is not None:
-            with contextlib.suppress(Exception):  # a child that died: run here
-                ok, value = conn.recv()
+        fn, args, sent = self._pending.pop(0)
+        if sent and self._conn is not None:
+            try:
+                ok, value = self._conn.recv()
                 if ok:
                     return value
-            conn.close()
-        self._prepare()
+            except Exception:  # noqa: BLE001 - a child that died: this call and the later ones run here
+                self._close()
+        if not self._prepared_here:
+            self._prepare()
+            self._prepared_here = True
         return fn(*args)
 
     def call(self, fn: Callable[..., T], *args: Any) -> T:
-        """``fn(*args)``, in the child when there is one: :meth:`start`, then :meth:`result`."""
+        """``fn(*args)``, in the child when there is one: :meth:`start`, then :meth:`result` (no other call may be
+        waiting for its result)."""
+        if self._pending:
+            raise RuntimeError("Ahead.call() while a call started before waits for its result()")
         self.start(fn, *args)
         return self.result()  # type: ignore[no-any-return]
 
-    def __exit__(self, *exc: object) -> None:
-        unused = not self._sent  # no call was sent: the child is at most preparing, nothing to wait for
+    def _close(self) -> None:
         if self._conn is not None:
             self._conn.close()  # the child's recv ends: it exits
             self._conn = None
+
+    def __exit__(self, *exc: object) -> None:
+        # a child that was sent no call is at most preparing, and one whose results are not all taken (an error
+        # here) works for nothing: both end at once; one that ran all its calls ends with its pipe
+        idle = self._sent and not self._pending
+        self._close()
         if self._proc is not None:
-            self._proc.join(timeout=0.0 if unused else 1.0)
+            self._proc.join(timeout=1.0 if idle else 0.0)
             if self._proc.is_alive():
                 self._proc.terminate()
                 self._proc.join()
@@ -187,22 +200,25 @@ def _loads(data: bytes, inherited: dict[int, object]) -> Any:
 
 
 def _serve(conn: Any, parents_end: Any, prepare: Callable[[], object], inherited: dict[int, object]) -> None:
-    """:class:`Ahead`'s child: prepare, then run the one call sent (none when the pipe closes first)."""
+    """:class:`Ahead`'s child: prepare, then run the calls sent, in order, until the pipe closes."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     parents_end.close()  # the copy forked with this child: else the parent closing its end would not end recv
     with contextlib.suppress(Exception):
         prepare()
-    try:
-        fn, args = _loads(conn.recv_bytes(), inherited)
-    except (EOFError, OSError):
-        return
-    try:
-        conn.send((True, fn(*args)))
-    except Exception:  # noqa: BLE001 - the caller runs it again itself and sees the error there
-        with contextlib.suppress(Exception):
-            conn.send((False, None))
+    while True:
+        try:
+            fn, args = _loads(conn.recv_bytes(), inherited)
+        except (EOFError, OSError):
+            break
+        try:
+            conn.send((True, fn(*args)))
+        except Exception:  # noqa: BLE001 - the caller runs it again itself and sees the error there
+            try:
+                conn.send((False, None))
+            except Exception:  # noqa: BLE001 - the parent is gone
+                break
     conn.close()
 
 

@@ -96,7 +96,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     notes.extend(chosen.notes)
     if chosen.sign < 0:
         joints = _negated(joints)
-    clock.lap("solve")
+    clock.lap("solve", scans=scans, detections=detections, association=chosen.assoc, markers=chosen.markers)
     tried: list[str] = []
     ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, tried)
     while off := _most_off(ours, notes, config.max_reduced_chi2):  # estimated in every solve from the marker-only on

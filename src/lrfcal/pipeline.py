@@ -14,8 +14,9 @@ reprojection.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
@@ -35,12 +36,15 @@ from .types import CalibrationResult, JointStates, Recording, Solution
 def calibrate(
     recording: Recording, config: CalibConfig | None = None, progress: Callable[[str], None] | None = None,
     fitted: Callable[[CalibrationResult], None] | None = None,
+    outputs: Callable[[str, Mapping[str, Any]], None] | None = None,
 ) -> CalibrationResult:
     """Run stages 1-8 on a recording; see the module docstring.
 
     ``progress(stage)`` is called with the name of each stage as it starts (for a CLI's status line);
     ``fitted(result)`` with the result once its checks passed, before its clouds are made (step 4), e.g. to draw
-    figures that need no clouds meanwhile.
+    figures that need no clouds meanwhile; ``outputs(stage, values)`` with what a stage produced, as soon as it is
+    there (with markers, after "solve": the ``scans`` the joint states cover, their ``detections``, the
+    ``association`` and the ``markers``, all final; for the intensity figure).
     Raises CalibrationError (exit code 3) with the reason when the data do not support a trustworthy result,
     unless ``config.force``, which records the failed checks in the result instead.
     """
@@ -49,7 +53,7 @@ def calibrate(
         declared = recording.nominal.range_sigma_m
         config = config.replace(range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
     try:
-        return _calibrate(recording, config, progress, fitted)
+        return _calibrate(recording, config, progress, fitted, outputs)
     except CalibrationError as err:
         hint = _trimmed_hint(recording, config.clock_offset_s)
         if not hint or "time span" in str(err):
@@ -78,10 +82,11 @@ def _trimmed_hint(recording: Recording, tau0: float) -> str:
 
 
 def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None,
-               fitted: Callable[[CalibrationResult], None] | None) -> CalibrationResult:
+               fitted: Callable[[CalibrationResult], None] | None,
+               outputs: Callable[[str, Mapping[str, Any]], None] | None = None) -> CalibrationResult:
     """:func:`calibrate` with ``config.range_sigma_m`` resolved."""
     targetless = _targetless(recording, config)
-    clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES)
+    clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES, outputs)
     notes: list[str] = []
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
     covered = replace(recording, scans=scans)

@@ -9,7 +9,7 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -95,25 +95,38 @@ def calibrate_folder(
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
     # the figures are drawn by a child forked now, which imports matplotlib on another core during the calibration
-    # and draws while this process writes the data files; it has the scans already (sent by reference)
-    with (Ahead(figure_writer.preload, inherit=(recording.scans,)) if figures else contextlib.nullcontext()) \
-            as drawer, tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp:
-        def draw(part: CalibrationResult) -> None:  # once, as soon as what the figures show is there
-            if drawer is not None and not drawer.started:
+    # and draws each figure as soon as what it shows is there (the intensity image on the association, during the
+    # solve; the others during the reprojection); it has the scans already (sent by reference)
+    with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp, \
+            (Ahead(figure_writer.preload, inherit=(recording.scans,)) if figures else contextlib.nullcontext()) \
+            as drawer:
+        drawn: list[str] = []  # the figures sent to the drawer so far ("rest": all the others)
+
+        def associated(stage: str, out: Mapping[str, Any]) -> None:
+            if drawer is not None and stage == "solve":
+                drawer.start(figure_writer.write_intensity, out["scans"], out["detections"], out["association"],
+                             out["markers"].marker_ids, Path(tmp))
+                drawn.append("intensity")
+
+        def draw(part: CalibrationResult) -> None:  # the other figures, once, as soon as what they show is there
+            if drawer is not None and "rest" not in drawn:
                 drawer.start(figure_writer.write_figures, figure_writer.drawn_part(part), Path(tmp),
-                             *_nominal_in_W(part, truth))
+                             *_nominal_in_W(part, truth), tuple(drawn))
+                drawn.append("rest")
 
         def fitted(fit: CalibrationResult) -> None:  # figures without clouds are drawn during the reprojection
             if not figure_writer.needs_clouds(fit):
                 draw(fit)
 
-        result = calibrate(recording, config, progress=progress, fitted=fitted)
+        result = calibrate(recording, config, progress=progress, fitted=fitted, outputs=associated)
         if progress is not None:
             progress("figures and report")
         draw(result)
         report = render_report(result, truth=None if truth is None else truth_dict(truth))
         with calibration_folder(out_dir, result, overwrite) as folder:
-            figs = drawer.result() if drawer is not None else figure_writer.Figures({}, {})
+            figs = figure_writer.Figures({}, {})
+            while drawer is not None and drawer.started:
+                figs = figs | drawer.result()
             written = dict(figs.written)
             if rrd_inside is not None:
                 written["rerun"] = Path(tmp) / rrd_inside
