@@ -91,7 +91,7 @@ class _RayMaker:
         delta = lam - ref[:, None]  # (Sc, N)
         Rot = np.sin(delta)[..., None, None] * self.K + (1.0 - np.cos(delta))[..., None, None] * self.K2
         Rot += np.eye(3)
-        origins = a + np.matmul(Rot, (p - a)[:, None, :, None])[..., 0]  # (Sc, N, 3)
+        origins = a + np.einsum("sbij,sj->sbi", Rot, p - a, optimize=True)  # (Sc, N, 3)
         X, Y, Z = R[:, None, :, 0], R[:, None, :, 1], R[:, None, :, 2]  # (Sc, 1, 3)
         b0 = B0[:Sc]
         b0[..., 0] = self.cmu * X + self.smu * Y
