@@ -240,6 +240,31 @@ def test_cast_on_threads_is_byte_identical() -> None:
     assert np.isfinite(one.ranges_m).mean() > 0.5  # the scans see the tunnel
 
 
+def test_cast_threads_run_their_matrix_products_on_one_blas_thread(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The cast's chunks are its parallelism: inside them BLAS runs one thread (a BLAS thread per core in every
+    chunk's products made 2 threads slower than 1 where the caller had not limited BLAS); the caller's limits are
+    back after the cast."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    sc = small_scenario()
+    scene = build_scene(sc)
+    traj = sweep_trajectory(sc.servo)
+    lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor, 0.004), sc.sensor))
+    seen: list[int] = []
+    cast_chunk = raycast.cast_chunk
+
+    def watched(*args: object) -> None:
+        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+        cast_chunk(*args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(raycast, "cast_chunk", watched)
+    with threadpool_limits(limits=2, user_api="blas"):
+        raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=2)
+        after = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    assert seen and set(seen) == {1}
+    assert after and set(after) == {2}
+
+
 @pytest.mark.parametrize("divergence", [0.0003, 0.004, 0.02])
 def test_edges_footprint_is_the_full_cast_where_it_matters(divergence: float) -> None:
     """plan's cast (footprint="edges": the ring only at edges and near markers, elsewhere the centre ray's tangent
