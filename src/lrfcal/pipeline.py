@@ -83,7 +83,7 @@ def _trimmed_hint(recording: Recording, tau0: float) -> str:
 
 def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None,
                fitted: Callable[[CalibrationResult], None] | None,
-               outputs: Callable[[str, Mapping[str, Any]], None] | None = None) -> CalibrationResult:
+               outputs: Callable[[str, Mapping[str, Any]], None] | None) -> CalibrationResult:
     """:func:`calibrate` with ``config.range_sigma_m`` resolved."""
     targetless = _targetless(recording, config)
     clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES, outputs)

@@ -95,8 +95,8 @@ def calibrate_folder(
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
     # the figures are drawn by a child forked now, which imports matplotlib on another core during the calibration
-    # and draws each figure as soon as what it shows is there (the intensity image on the association, during the
-    # solve; the others during the reprojection); it has the scans already (sent by reference)
+    # and draws each figure as soon as what it shows is there (the intensity image on the association, while the
+    # surface returns are fitted; the others while the clouds are made); it has the scans already (by reference)
     with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp, \
             (Ahead(figure_writer.preload, inherit=(recording.scans,)) if figures else contextlib.nullcontext()) \
             as drawer:
