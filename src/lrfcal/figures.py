@@ -280,6 +280,12 @@ class Figures:
     def __or__(self, other: Figures) -> Figures:
         return Figures({**self.written, **other.written}, {**self.skipped, **other.skipped})
 
+    @staticmethod
+    def of(outcomes: dict[str, tuple[bool, str]]) -> Figures:
+        """From each figure's :func:`_attempt` outcome (name -> (drawn, path or reason))."""
+        return Figures({n: Path(v) for n, (ok, v) in outcomes.items() if ok},
+                       {n: v for n, (ok, v) in outcomes.items() if not ok})
+
 
 def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params | None = None,
                   before_label: str = "nominal DH, fitted mount", drawn: tuple[str, ...] = ()) -> Figures:
@@ -305,10 +311,7 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
     draw = {n: fn for n, fn in draw.items() if n not in drawn}
     if len(draw) > 1:
         preload()  # drawn on every core (lrfcal.forked): matplotlib imported once, before the fork, for every child
-    outcomes = call_forked({n: partial(_attempt, fn) for n, fn in draw.items()})
-    written = {n: Path(v) for n, (ok, v) in outcomes.items() if ok}
-    skipped = {n: v for n, (ok, v) in outcomes.items() if not ok}
-    return Figures(written, skipped)
+    return Figures.of(call_forked({n: partial(_attempt, fn) for n, fn in draw.items()}))
 
 
 def write_intensity(scans: Scans, detections: Detections, association: Association, marker_ids: Sequence[str],
@@ -316,9 +319,8 @@ def write_intensity(scans: Scans, detections: Detections, association: Associati
     """Write intensity.png (:func:`lrfcal.figintensity.intensity_figure`) into out_dir: it needs only the detection
     and the association, so it is drawn while the solve goes on. Skipped with its reason as in :func:`write_figures`.
     """
-    ok, value = _attempt(partial(intensity_figure, scans, detections, association, marker_ids,
-                                 Path(out_dir) / "intensity.png"))
-    return Figures({"intensity": Path(value)}, {}) if ok else Figures({}, {"intensity": value})
+    return Figures.of({"intensity": _attempt(partial(intensity_figure, scans, detections, association, marker_ids,
+                                                     Path(out_dir) / "intensity.png"))})
 
 
 def preload() -> None:

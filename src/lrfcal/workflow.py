@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from . import figures as figure_writer
 from .errors import InputError
 from .forked import Ahead
 from .io import files
@@ -63,8 +64,6 @@ def calibrate_folder(
         InputError: an output overlaps an input (is, contains or lies inside the bag, distances or nominal file,
             or is or contains the recording folder), the output folder may not be replaced, bad input.
     """
-    from . import figures as figure_writer
-
     config = config or CalibConfig()
     recording_dir, bag = resolve_recording(recording_dir, bag)  # type: ignore[assignment]  # a scan log, or a folder with one
     rec = Path(recording_dir) if recording_dir is not None else None
@@ -94,39 +93,17 @@ def calibrate_folder(
     if recording.tape is not None and want_tape:
         check_tape_units(recording, Path(inputs["distances"] or "distances.csv"))
     tmp_parent = Path(out_dir).parent if Path(out_dir).parent.exists() else None
-    # the figures are drawn by a child forked now, which imports matplotlib on another core during the calibration
-    # and draws each figure as soon as what it shows is there (the intensity image on the association, while the
-    # surface returns are fitted; the others while the clouds are made); it has the scans already (by reference)
     with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp, \
             (Ahead(figure_writer.preload, inherit=(recording.scans,)) if figures else contextlib.nullcontext()) \
-            as drawer:
-        drawn: list[str] = []  # the figures sent to the drawer so far ("rest": all the others)
-
-        def associated(stage: str, out: Mapping[str, Any]) -> None:
-            if drawer is not None and stage == "solve":
-                drawer.start(figure_writer.write_intensity, out["scans"], out["detections"], out["association"],
-                             out["markers"].marker_ids, Path(tmp))
-                drawn.append("intensity")
-
-        def draw(part: CalibrationResult) -> None:  # the other figures, once, as soon as what they show is there
-            if drawer is not None and "rest" not in drawn:
-                drawer.start(figure_writer.write_figures, figure_writer.drawn_part(part), Path(tmp),
-                             *_nominal_in_W(part, truth), tuple(drawn))
-                drawn.append("rest")
-
-        def fitted(fit: CalibrationResult) -> None:  # figures without clouds are drawn during the reprojection
-            if not figure_writer.needs_clouds(fit):
-                draw(fit)
-
-        result = calibrate(recording, config, progress=progress, fitted=fitted, outputs=associated)
+            as ahead:
+        drawer = _Drawer(ahead, Path(tmp), truth)
+        result = calibrate(recording, config, progress=progress, fitted=drawer.fitted, outputs=drawer.outputs)
         if progress is not None:
             progress("figures and report")
-        draw(result)
+        drawer.the_rest(result)
         report = render_report(result, truth=None if truth is None else truth_dict(truth))
         with calibration_folder(out_dir, result, overwrite) as folder:
-            figs = figure_writer.Figures({}, {})
-            while drawer is not None and drawer.started:
-                figs = figs | drawer.result()
+            figs = drawer.drawn()
             written = dict(figs.written)
             if rrd_inside is not None:
                 written["rerun"] = Path(tmp) / rrd_inside
@@ -137,6 +114,44 @@ def calibrate_folder(
             progress("rerun recording")
         _log_rerun(result, rrd_path, spawn, truth, scene, warn)
     return result
+
+
+class _Drawer:
+    """The report's figures, drawn by ``ahead`` (None: no figures), a child forked when the calibration starts that
+    imports matplotlib on another core meanwhile and draws each figure into ``folder`` as soon as what it shows is
+    there: the intensity image on the association (:meth:`outputs`, while the surface returns are fitted), the
+    others once the checks have passed (:meth:`fitted`, while the clouds are made), or on the result with its
+    clouds (:meth:`the_rest`: targetless's flatness). The child has the scans already (sent by reference)."""
+
+    def __init__(self, ahead: Ahead | None, folder: Path, truth: Any) -> None:
+        self._ahead, self._folder, self._truth = ahead, folder, truth
+        self._sent: list[str] = []  # the figures sent so far ("rest": all the others)
+
+    def outputs(self, stage: str, out: Mapping[str, Any]) -> None:
+        """lrfcal.pipeline.calibrate's ``outputs``: intensity.png once the association is final."""
+        if self._ahead is not None and stage == "solve":
+            self._ahead.start(figure_writer.write_intensity, out["scans"], out["detections"], out["association"],
+                              out["markers"].marker_ids, self._folder)
+            self._sent.append("intensity")
+
+    def fitted(self, fit: CalibrationResult) -> None:
+        """lrfcal.pipeline.calibrate's ``fitted``: the figures that need no clouds, drawn during the reprojection."""
+        if not figure_writer.needs_clouds(fit):
+            self.the_rest(fit)
+
+    def the_rest(self, part: CalibrationResult) -> None:
+        """The figures not sent yet, once, drawn from ``part`` (a result, with its clouds where they are drawn)."""
+        if self._ahead is not None and "rest" not in self._sent:
+            self._ahead.start(figure_writer.write_figures, figure_writer.drawn_part(part), self._folder,
+                              *_nominal_in_W(part, self._truth), tuple(self._sent))
+            self._sent.append("rest")
+
+    def drawn(self) -> figure_writer.Figures:
+        """The figures written and those skipped (lrfcal.figures.Figures), in the order they were sent."""
+        figs = figure_writer.Figures({}, {})
+        while self._ahead is not None and self._ahead.started:
+            figs = figs | self._ahead.result()
+        return figs
 
 
 def spawn_unavailable_reason() -> str | None:

@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 from lrfcal.forked import cores
+from lrfcal.threads import one_blas_thread
 
 from .lidar import (
     _MIN_NORMAL_DOT,
@@ -169,13 +170,8 @@ def _run_chunks(run: Callable[[int], _ChunkStats], S: int, chunk_scans: int, n_t
     if n_threads == 1:
         collect(map(run, starts))
     else:
-        from threadpoolctl import threadpool_limits
-
-        # the chunks are the cast's parallelism: a BLAS that also starts a thread per core inside each chunk's
-        # matrix products (lrfsim.raychunks) makes the threads wait for each other (2.8 s against 1.8 s on tunnel_v
-        # in a process that has not limited its BLAS, lrfcal.threads)
-        with threadpool_limits(limits=1, user_api="blas"), \
-                ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="lrfsim-cast") as pool:
+        # the chunks are the cast's parallelism: no BLAS threads inside their matrix products (lrfsim.raychunks)
+        with one_blas_thread(), ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix="lrfsim-cast") as pool:
             collect(pool.map(run, starts))
     return stats
 
