@@ -1,6 +1,6 @@
 """Speed of every command against the simulation, measured in one run (issue 19, "Fast and visible").
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_speed.py [SCENARIO] [--trials N] [--no-study] [--no-run]
+    python benchmarks/bench_speed.py [SCENARIO] [--trials N] [--repeat R] [--no-study] [--no-run]
 
 The console scripts are timed as a user runs them (a subprocess of the installed ``lrfsim`` / ``lrfcal``, so the
 imports count), all in this one run, so that a busy machine slows numerator and denominator alike:
@@ -12,6 +12,9 @@ imports count), all in this one run, so that a busy machine slows numerator and 
 4. ``lrfcal calibrate REC`` again with 4 busy processes beside it (started here, always killed in a finally);
 5. the simulator's cast (lrfsim.raycast.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
 6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included).
+
+Each command of 1., 2. and 4. runs R times (default 3) and its median wall counts (its CPU: that run's), so that
+one run slowed by other work on a shared machine does not decide a ratio.
 
 Targets: calibrate <= 0.5x the simulation, targetless <= 0.7x, plan <= 0.5x, calibrate beside 4 busy processes
 <= 3x the quiet one, cast <= 0.75x bare mj_multiRay, study >= 100 trials/min. Every figure carries the 1-minute
@@ -64,18 +67,26 @@ def _children_cpu() -> float:
     return ru.ru_utime + ru.ru_stime
 
 
-def timed(args: list[str], ok: tuple[int, ...] = (0,)) -> tuple[float, float]:
-    """(wall seconds, load average before) of one console-script run; a failing run stops the benchmark. Its CPU
-    seconds (user + system, all its threads and processes) go to LAST_CPU: on a machine shared with other work
-    they move less than the wall."""
+#: runs of each timed command (--repeat): the median wall counts
+REPEAT = [3]
+
+
+def timed(args: list[str], ok: tuple[int, ...] = (0,), repeat: int | None = None) -> tuple[float, float]:
+    """(median wall seconds, load average before) of ``repeat`` (default REPEAT) runs of a console script, "{i}" in
+    ``args`` replaced by the run's index (its own output folder); a failing run stops the benchmark. The CPU seconds
+    (user + system, all its threads and processes) of the median run go to LAST_CPU: on a machine shared with other
+    work they move less than the wall."""
     load = _load()
-    cpu0 = _children_cpu()
-    t0 = time.perf_counter()
-    p = subprocess.run(args, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    wall = time.perf_counter() - t0
-    LAST_CPU[0] = _children_cpu() - cpu0
-    if p.returncode not in ok:
-        sys.exit(f"bench_speed: {' '.join(args)} exited {p.returncode}: {p.stderr.strip()[-400:]}")
+    runs = []
+    for i in range(repeat or REPEAT[0]):
+        argv = [a.replace("{i}", str(i)) for a in args]
+        cpu0 = _children_cpu()
+        t0 = time.perf_counter()
+        p = subprocess.run(argv, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+        runs.append((time.perf_counter() - t0, _children_cpu() - cpu0))
+        if p.returncode not in ok:
+            sys.exit(f"bench_speed: {' '.join(argv)} exited {p.returncode}: {p.stderr.strip()[-400:]}")
+    wall, LAST_CPU[0] = sorted(runs)[len(runs) // 2]
     return wall, load
 
 
@@ -137,10 +148,12 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenario", nargs="?", type=Path, default=ROOT / "scenarios" / "tunnel_v.yaml")
     ap.add_argument("--trials", type=int, default=40, help="trials of the study (default 40)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs of each timed command, the median counts (default 3)")
     ap.add_argument("--no-study", action="store_true")
     ap.add_argument("--no-run", action="store_true")
     args = ap.parse_args()
     sc = str(args.scenario)
+    REPEAT[0] = max(1, args.repeat)
     lrfsim, lrfcal = _tool("lrfsim"), _tool("lrfcal")
     rows: list[tuple[str, str, str]] = []
 
@@ -153,21 +166,21 @@ def main() -> None:
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-speed-"))
     try:
-        rec = tmp / "rec"
-        sim, load = timed([lrfsim, "simulate", sc, "-o", str(rec)])
+        rec = tmp / "rec0"
+        sim, load = timed([lrfsim, "simulate", sc, "-o", str(tmp / "rec{i}")])
         sim_cpu = LAST_CPU[0]
         row("lrfsim simulate (reference)", f"{sim:.2f} s, cpu {sim_cpu:.2f} s (load {load:.1f})")
 
-        cal, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal")])
+        cal, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal{i}")])
         cal_cpu = LAST_CPU[0]
         row("lrfcal calibrate", f"{cal:.2f} s = {cal / sim:.2f}x sim (target <= {TARGETS['calibrate']}x; "
             f"cpu {LAST_CPU[0]:.2f} s = {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})",
             judge(cal / sim <= TARGETS["calibrate"]))
         if has_option("lrfcal", "calibrate", "--no-figures"):
-            nf, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal_nf"), "--no-figures"])
+            nf, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal_nf{i}"), "--no-figures"])
             row("lrfcal calibrate --no-figures", f"{nf:.2f} s = {nf / sim:.2f}x sim (cpu {LAST_CPU[0] / sim_cpu:.2f}x; "
                 f"load {load:.1f})")
-        tl, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "tl"), "--targetless"])
+        tl, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "tl{i}"), "--targetless"])
         row("lrfcal calibrate --targetless", f"{tl:.2f} s = {tl / sim:.2f}x sim (target <= "
             f"{TARGETS['targetless']}x; cpu {LAST_CPU[0]:.2f} s = {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})",
             judge(tl / sim <= TARGETS["targetless"]))
@@ -175,7 +188,7 @@ def main() -> None:
         row("lrfsim plan", f"{pl:.2f} s = {pl / sim:.2f}x sim (target <= {TARGETS['plan']}x; cpu {LAST_CPU[0]:.2f} s "
             f"= {LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})", judge(pl / sim <= TARGETS["plan"]))
         if not args.no_run:
-            rn, load = timed([lrfsim, "run", sc, "-o", str(tmp / "run")], ok=(0, 1))
+            rn, load = timed([lrfsim, "run", sc, "-o", str(tmp / "run{i}")], ok=(0, 1))
             row("lrfsim run", f"{rn:.2f} s = {rn / sim:.2f}x sim (cpu {LAST_CPU[0]:.2f} s = "
                 f"{LAST_CPU[0] / sim_cpu:.2f}x; load {load:.1f})")
 
@@ -187,7 +200,7 @@ def main() -> None:
         busy = busy_processes(4)
         try:
             time.sleep(1.0)
-            loaded, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal_loaded")])
+            loaded, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal_loaded{i}")])
         finally:
             for p in busy:
                 p.kill()
@@ -203,7 +216,8 @@ def main() -> None:
             judge(cast_s / bare_s <= TARGETS["cast"]))
 
         if not args.no_study:
-            st, load = timed([lrfsim, "study", sc, "-n", str(args.trials), "-j", "2", "-o", str(tmp / "study")])
+            st, load = timed([lrfsim, "study", sc, "-n", str(args.trials), "-j", "2", "-o", str(tmp / "study")],
+                             repeat=1)
             rate = args.trials / st * 60.0
             row(f"lrfsim study -n {args.trials} -j 2", f"{st:.1f} s = {rate:.0f} trials/min (target >= "
                 f"{TARGETS['study']:.0f}; cpu {LAST_CPU[0]:.1f} s = {LAST_CPU[0] / args.trials:.2f} s per trial; "

@@ -304,3 +304,46 @@ def test_spawn_failure_warns_and_still_saves(result, tmp_path, monkeypatch):
     said.clear()
     viz.log_calibration(result, spawn=True, warn=said.append)  # nothing to save: just the warning
     assert len(said) == 1
+
+
+def test_intensity_image_max_pooling_keeps_a_one_cell_blob_and_pads_the_edges():
+    from lrfcal.figintensity import _max_pool
+
+    img = np.zeros((7, 5))
+    img[6, 4] = 9.0  # in the last, padded block both ways
+    img[1, 1] = 3.0
+    pooled = _max_pool(img, 3, 2)
+    assert pooled.shape == (3, 3)
+    assert pooled[2, 2] == 9.0 and pooled[0, 0] == 3.0 and pooled.sum() == 12.0
+    cand = _max_pool(img > 5.0, 3, 2)
+    assert cand.dtype == bool and np.argwhere(cand).tolist() == [[2, 2]]
+    assert _max_pool(img, 1, 1) is img
+
+
+def test_alignment_figure_has_a_titled_panel_per_marker_and_only_returns_inside_their_panel(result, tmp_path,
+                                                                                            monkeypatch):
+    import re
+
+    import lrfcal.figures as figures
+
+    drawn: list[Any] = []
+    monkeypatch.setattr(figures, "save", lambda fig, path: drawn.append(fig) or Path(path))
+    figures.alignment_figure(result, tmp_path / "a.png")
+    (ax,) = drawn[0].axes
+    titles = [t.get_text() for t in ax.texts if re.fullmatch(r"\S+: [\d.]+ -> [\d.]+ mm", t.get_text())]
+    _, _, mk, _ = vizdata.marker_returns(result, result.solution.params, calibrated=True)
+    with_returns = [result.markers.marker_ids[m] for m in np.unique(mk)][: figures.MAX_MARKER_PANELS]
+    assert sorted(t.split(":")[0] for t in titles) == sorted(with_returns)
+    # every return drawn lies inside one panel's square (the frames: a LineCollection of closed squares)
+    from matplotlib.collections import LineCollection, PathCollection
+
+    lines = [c for c in ax.collections if isinstance(c, LineCollection)]
+    frames = [np.asarray(seg) for seg in lines[-1].get_segments()]
+    assert len(frames) == len(with_returns) and all(f.shape == (5, 2) for f in frames)
+    points = np.vstack([c.get_offsets() for c in ax.collections if isinstance(c, PathCollection)])
+    assert points.shape[0] > 0
+    inside = np.zeros(points.shape[0], bool)
+    for sq in frames:
+        lo, hi = sq.min(axis=0), sq.max(axis=0)
+        inside |= ((points >= lo) & (points <= hi)).all(axis=1)
+    assert inside.all()

@@ -16,8 +16,10 @@ from .types import Association, Detections, Scans
 
 FloatArray = NDArray[np.float64]
 
-#: Rows of the intensity image drawn at most (scans are max-pooled above this).
-MAX_FIGURE_ROWS = 1200
+#: Rows and columns of the intensity image drawn at most (scans, beams are max-pooled above this): about the
+#: panel's size in pixels, so that matplotlib does not resample a larger image down (a third of the figure's time).
+MAX_FIGURE_ROWS = 700
+MAX_FIGURE_COLS = 700
 
 #: the colour of the marker candidates (alignment.png draws its markers in the same colour)
 C_MARKER = "#b0209a"
@@ -39,6 +41,15 @@ def _candidate_panel(ax: Any, shown: Any, cand: NDArray[np.bool_], kw: dict[str,
         ax.scatter(xs, ys, color=C_MARKER, s=12, marker="s", linewidths=0, rasterized=True,
                    label="marker candidate return")
     ax.set_facecolor("white")
+
+
+def _max_pool(img: NDArray[Any], rows: int, cols: int) -> NDArray[Any]:
+    """The maximum of each ``rows`` x ``cols`` block of a 2-D image (the image padded with zeros, False)."""
+    if rows == cols == 1:
+        return img
+    S, N = img.shape
+    img = np.pad(img, ((0, (-S) % rows), (0, (-N) % cols)))
+    return img.reshape(img.shape[0] // rows, rows, img.shape[1] // cols, cols).max(axis=(1, 3))
 
 
 def _zoom(ax: Any, xs: FloatArray, ys: FloatArray, bounds: tuple[float, float, float, float],
@@ -78,10 +89,9 @@ def intensity_figure(scans: Scans, detections: Detections, association: Associat
     cand = np.asarray(det.labels) >= 0
     img = inten[:, ::-1] if flip else inten
     cand = cand[:, ::-1] if flip else cand
-    pool = max(1, int(np.ceil(S / MAX_FIGURE_ROWS)))  # max-pool scans so that thin blobs stay visible
-    if pool > 1:
-        img = np.vstack([img, np.zeros(((-S) % pool, N))]).reshape(-1, pool, N).max(axis=1)
-        cand = np.vstack([cand, np.zeros(((-S) % pool, N), bool)]).reshape(-1, pool, N).any(axis=1)
+    pool = max(1, int(np.ceil(S / MAX_FIGURE_ROWS)))  # max-pooled so that thin blobs stay visible
+    pool_beams = max(1, int(np.ceil(N / MAX_FIGURE_COLS)))
+    img, cand = _max_pool(img, pool, pool_beams), _max_pool(cand, pool, pool_beams)
     positive = img[np.isfinite(img) & (img > 0)]
     vmin = max(float(np.percentile(positive, 1.0)) if positive.size else 1.0, 1.0)
     vmax = max(float(positive.max()) if positive.size else 10.0, vmin * 10)
@@ -100,7 +110,8 @@ def intensity_figure(scans: Scans, detections: Detections, association: Associat
         fig.subplots_adjust(left=0.065, right=0.875, bottom=0.115, top=0.885, wspace=0.2)
         axes = fig.subplots(1, 2)
         shown = np.ma.masked_invalid(np.where(img > 0, img, np.nan))
-        kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x1, -0.5, img.shape[0] * pool - 0.5),
+        x_end = x0 + (x1 - x0) * img.shape[1] * pool_beams / N  # past x1 by the beams padded to a whole block
+        kw = {"origin": "lower", "aspect": "auto", "extent": (x0, x_end, -0.5, img.shape[0] * pool - 0.5),
               "cmap": cmap,
               "norm": LogNorm(vmin=vmin, vmax=vmax), "interpolation": "nearest"}
         im = axes[0].imshow(shown, **kw)
@@ -134,8 +145,8 @@ def intensity_figure(scans: Scans, detections: Detections, association: Associat
                           + [beam_x(int(b.beam_idx.max())) for b in det.blobs])
             by = np.array([float(b.scan_idx.min()) for b in det.blobs] + [float(b.scan_idx.max()) for b in det.blobs])
             _zoom(axes[1], bx, by, (x0, x1, -0.5, S - 0.5), (5 * step, 5.0))
-        pooled = f", {pool}-scan max" if pool > 1 else ""
-        axes[0].set_title(f"all returns ({S} x {N}{pooled}), blobs outlined")
+        pooled = f" ({pool} x {pool_beams} max)" if pool * pool_beams > 1 else ""
+        axes[0].set_title(f"all {S} x {N} returns{pooled}, blobs outlined")
         unmatched = f", {n_unmatched} unmatched" if n_unmatched else ""
         axes[1].set_title(f"zoom: marker candidates, {len(det.blobs)} blobs{unmatched}")
         for ax in axes:
@@ -153,4 +164,4 @@ def intensity_figure(scans: Scans, detections: Detections, association: Associat
         return save(fig, path)
 
 
-__all__ = ["C_MARKER", "MAX_FIGURE_ROWS", "intensity_figure"]
+__all__ = ["C_MARKER", "MAX_FIGURE_COLS", "MAX_FIGURE_ROWS", "intensity_figure"]

@@ -14,6 +14,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,7 +32,6 @@ from .figlayout import (
     three_ticks,
     view_frame,
 )
-from .forked import call_forked
 from .model.kinematics import Params
 from .types import Association, CalibrationResult, Detections, Scans
 from .vizdata import marker_returns
@@ -62,7 +62,6 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
     Lateral offsets there are what the calibration corrects. Returns the written path.
     """
     from matplotlib.lines import Line2D
-    from matplotlib.patches import Circle
 
     markers = np.asarray(result.markers.positions_W, dtype=float)
     ids = result.markers.marker_ids
@@ -90,47 +89,47 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
     n = max(len(shown), 1)
     cols = int(np.ceil(np.sqrt(n * WIDTH_PX / HEIGHT_PX)))
     rows = int(np.ceil(n / cols))
-    ticks = three_ticks(extent)
+    # every panel in one axes, at its own offset (one matplotlib axes per marker cost most of this figure's time:
+    # their ticks and frames), in mm; the panels' pitch leaves room for the titles and tick labels
+    box = (0.03, 0.12, 0.96, 0.8)  # the axes in the figure (left, bottom, width, height)
+    aspect = box[2] * WIDTH_PX / (box[3] * HEIGHT_PX)
+    pitch = np.array([max(2.5, aspect * 3.0 * (rows + 0.05) / (cols + 0.2)), 3.0]) * extent  # fills the axes
+    centres = {m: np.array([k % cols, -(k // cols)]) * pitch for k, m in enumerate(shown)}
+    rms = {(name, m): _rms_mm(stages[name][2][stages[name][1] == m]) for name in stages for m in shown}
     with rc():
-        # many small panels: fixed margins and the same limits set on each, no shared axes and no constrained
-        # layout (both cost seconds with 35 panels)
         fig = new_figure(constrained=False)
-        grid = fig.subplots(rows, cols, squeeze=False, gridspec_kw={
-            "left": 0.04, "right": 0.99, "bottom": 0.15, "top": 0.9, "wspace": 0.3, "hspace": 0.45})
-        axes = np.atleast_1d(grid).ravel()
-        for k, ax in enumerate(axes):
-            ax.set_visible(k < len(shown))
-            ax.set_xlim(-extent, extent)
-            ax.set_ylim(-extent, extent)
-            ax.set_xticks(ticks)
-            ax.set_yticks(ticks)
-            last_row = k + cols >= len(shown)
-            ax.tick_params(labelbottom=last_row, labelleft=k % cols == 0)
+        ax = fig.add_axes(box)
+        ax.set_axis_off()
+        ax.set_xlim(-0.7 * pitch[0], (cols - 0.5) * pitch[0])
+        ax.set_ylim(-(rows - 0.55) * pitch[1], 0.6 * pitch[1])
+        ax.set_aspect("equal", adjustable="box")
+        _panel_frames(ax, [centres[m] for m in shown], extent, three_ticks(extent), cols, len(shown))
+        ring = np.linspace(0.0, 2.0 * np.pi, 65)
+        circle = np.vstack([r_mm * np.c_[np.cos(ring), np.sin(ring)], [np.nan, np.nan]])  # NaN: the pen lifted
+        circles = [c + circle for c in centres.values()]
+        if circles:
+            xy = np.vstack(circles)
+            ax.plot(xy[:, 0], xy[:, 1], color=C_MARKER, linewidth=1.5)
+            c = np.array(list(centres.values()))
+            ax.plot(c[:, 0], c[:, 1], "+", color=C_MARKER, markersize=6)
         arrows = 0
-        for ax, m in zip(axes, shown, strict=False):
-            ax.add_patch(Circle((0, 0), r_mm, fill=False, edgecolor=C_MARKER, linewidth=1.5))
-            ax.plot([0], [0], "+", color=C_MARKER, markersize=6)
-            rms = {}
-            for name, color in (("before", _C_BEFORE), ("after", _C_AFTER)):
-                q = local[(name, m)]
-                ax.scatter(q[:, 0], q[:, 1], s=6, color=color, alpha=0.7, linewidths=0, clip_on=True)
-                norms = stages[name][2][stages[name][1] == m]
-                rms[name] = _rms_mm(norms)
-                out = q[(np.abs(q) > extent).any(axis=1)] if q.size else q
-                if name == "before" and len(out) > 0.5 * len(q) and len(q):  # most "before" returns off the panel
-                    arrows += 1
-                    c = np.median(q, axis=0)
-                    dist = float(np.linalg.norm(c))
-                    tip = c / max(float(np.abs(c).max()), 1e-9) * 0.92 * extent
-                    ax.annotate("", xy=tip, xytext=tip * 0.35, arrowprops={"arrowstyle": "-|>", "color": color,
-                                                                          "lw": 1.8})
-                    ax.text(*(tip * 0.3), f"{dist:.0f} mm", color=color, fontsize=FONT_SIZE_PT - 3,
-                            ha="center", va="center", bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
-            ax.set_title(f"{ids[m]}: {rms['before']:.1f} -> {rms['after']:.1f} mm", fontsize=FONT_SIZE_PT - 2,
-                         pad=2)
-            ax.set_aspect("equal", adjustable="box")
-            ax.grid(True, alpha=0.3)
-            ax.tick_params(labelsize=FONT_SIZE_PT - 3)
+        for name, color in (("before", _C_BEFORE), ("after", _C_AFTER)):
+            pts = [local[(name, m)][(np.abs(local[(name, m)]) <= extent).all(axis=1)] + centres[m] for m in shown]
+            xy = np.vstack(pts) if pts else np.zeros((0, 2))
+            ax.scatter(xy[:, 0], xy[:, 1], s=6, color=color, alpha=0.7, linewidths=0)
+        for m in shown:
+            q, c = local[("before", m)], centres[m]
+            if len(q) and (np.abs(q) > extent).any(axis=1).sum() > 0.5 * len(q):  # most "before" returns off the panel
+                arrows += 1
+                mid = np.median(q, axis=0)
+                tip = mid / max(float(np.abs(mid).max()), 1e-9) * 0.92 * extent
+                ax.annotate("", xy=c + tip, xytext=c + tip * 0.35,
+                            arrowprops={"arrowstyle": "-|>", "color": _C_BEFORE, "lw": 1.8})
+                ax.text(*(c + tip * 0.3), f"{float(np.linalg.norm(mid)):.0f} mm", color=_C_BEFORE,
+                        fontsize=FONT_SIZE_PT - 3, ha="center", va="center",
+                        bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
+            ax.text(c[0], c[1] + 1.08 * extent, f"{ids[m]}: {rms[('before', m)]:.1f} -> {rms[('after', m)]:.1f} mm",
+                    fontsize=FONT_SIZE_PT - 2, ha="center", va="bottom")
         rb, ra = (_rms_mm(stages[k][2]) for k in ("before", "after"))
         handles = [Line2D([], [], ls="", marker="o", color=_C_BEFORE, label=f"before ({before_label}): RMS {rb:.1f} mm"
                           + (" (arrow: towards returns off the panel)" if arrows else "")),
@@ -142,6 +141,29 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
         fig.suptitle("Returns per marker seen from the motor [mm] (u across the ray, v up; RMS before -> after)",
                      fontsize=FONT_SIZE_PT + 1)
         return save(fig, path)
+
+
+def _panel_frames(ax: Any, centres: list[FloatArray], extent: float, ticks: list[float], cols: int, n: int) -> None:
+    """alignment.png's panels drawn into one axes ``ax``: each a square of half-width ``extent`` [mm] about its
+    centre (2,) with grid lines at ``ticks``, the tick labels on the left column and below the last panel of each
+    column (``cols`` columns, ``n`` panels)."""
+    from matplotlib.collections import LineCollection
+
+    frames, grid = [], []
+    for k, c in enumerate(centres):
+        lo, hi = c - extent, c + extent
+        frames.append([(lo[0], lo[1]), (hi[0], lo[1]), (hi[0], hi[1]), (lo[0], hi[1]), (lo[0], lo[1])])
+        for t in ticks:
+            grid += [[(c[0] + t, lo[1]), (c[0] + t, hi[1])], [(lo[0], c[1] + t), (hi[0], c[1] + t)]]
+        size = FONT_SIZE_PT - 3
+        if k % cols == 0:
+            for t in ticks:
+                ax.text(lo[0] - 0.08 * extent, c[1] + t, f"{t:g}", fontsize=size, ha="right", va="center")
+        if k + cols >= n:
+            for t in ticks:
+                ax.text(c[0] + t, lo[1] - 0.08 * extent, f"{t:g}", fontsize=size, ha="center", va="top")
+    ax.add_collection(LineCollection(grid, colors="0.85", linewidths=0.6))
+    ax.add_collection(LineCollection(frames, colors="black", linewidths=0.8))
 
 
 def _plain(v: float, _pos: object = None) -> str:
@@ -157,7 +179,14 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
     on a log axis, so they are counted in the legend instead of drawn. ``before`` as in
     :func:`alignment_figure`.
     """
-    from matplotlib.ticker import FuncFormatter, MaxNLocator
+    from matplotlib.ticker import FuncFormatter, LogLocator, MaxNLocator, NullLocator
+
+    def ticks_125(axis: Any, lo: float, hi: float) -> None:
+        """A log axis's ticks at 1, 2, 5 x 10^k (over more than 2.5 decades: 10^k), no minor ticks (they were half
+        the figure's time)."""
+        axis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0) if hi < 10**2.5 * lo else (1.0,)))
+        axis.set_minor_locator(NullLocator())
+        axis.set_major_formatter(FuncFormatter(_plain))
 
     ids = result.markers.marker_ids
     n = len(ids)
@@ -185,16 +214,16 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
             v = finite[finite > 0]
             inside = int(finite.size - v.size)
             med = float(np.median(norms_mm)) if norms_mm.size else float("nan")
-            ax_h.hist(v, bins=bins, color=color, alpha=0.6,
+            ax_h.hist(v, bins=bins, color=color, alpha=0.6, histtype="stepfilled",
                       label=f"{name}: RMS {_rms_mm(norms_mm / 1e3):.1f}, median {med:.1f} mm; {inside} at 0")
         ax_h.set_xscale("log")
-        ax_h.xaxis.set_major_formatter(FuncFormatter(_plain))
+        ticks_125(ax_h.xaxis, bins[0], bins[-1])
         ax_h.yaxis.set_major_locator(MaxNLocator(integer=True))
         ax_h.set_xlabel("distance of a return to its marker sphere [mm] (0: inside, not drawn)")
         ax_h.set_ylabel("number of marker returns")
         ax_h.set_title(f"residual norms (K = {data['after'][0].size} returns)")
         ax_h.legend(loc="upper left", fontsize=FONT_SIZE_PT - 2)
-        ax_h.grid(True, alpha=0.3, which="both")
+        ax_h.grid(True, alpha=0.3)
 
         x = np.arange(n)
         w = 0.4
@@ -213,11 +242,10 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
         if pos.size:
             ax_b.set_yscale("log")
             ax_b.set_ylim(pos.min() / 3.0, pos.max() * 2.0)
-            ax_b.yaxis.set_major_formatter(FuncFormatter(_plain))
-            ax_b.yaxis.set_minor_formatter(FuncFormatter(lambda v, _p: _plain(v) if f"{v:g}"[0] in "235" else ""))
+            ticks_125(ax_b.yaxis, pos.min() / 3.0, pos.max() * 2.0)
         ax_b.set_title("per-marker RMS (markers without returns: no bar)")
         ax_b.legend(loc="upper right")
-        ax_b.grid(True, axis="y", alpha=0.3, which="both")
+        ax_b.grid(True, axis="y", alpha=0.3)
         fig.suptitle("Marker residuals before / after calibration", fontsize=FONT_SIZE_PT + 2)
         return save(fig, path)
 
@@ -309,9 +337,7 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
                 "alignment": lambda: alignment_figure(result, out / "alignment.png", before, before_label),
                 "residuals": lambda: residual_figure(result, out / "residuals.png", before, before_label)}
     draw = {n: fn for n, fn in draw.items() if n not in drawn}
-    if len(draw) > 1:
-        preload()  # drawn on every core (lrfcal.forked): matplotlib imported once, before the fork, for every child
-    return Figures.of(call_forked({n: partial(_attempt, fn) for n, fn in draw.items()}))
+    return Figures.of({n: _attempt(fn) for n, fn in draw.items()})
 
 
 def write_intensity(scans: Scans, detections: Detections, association: Association, marker_ids: Sequence[str],
