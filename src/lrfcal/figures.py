@@ -96,6 +96,10 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
     pitch = np.array([max(2.5, aspect * 3.0 * (rows + 0.05) / (cols + 0.2)), 3.0]) * extent  # fills the axes
     centres = {m: np.array([k % cols, -(k // cols)]) * pitch for k, m in enumerate(shown)}
     rms = {(name, m): _rms_mm(stages[name][2][stages[name][1] == m]) for name in stages for m in shown}
+    titles = {m: f"{ids[m]}: {rms[('before', m)]:.1f} -> {rms[('after', m)]:.1f} mm" for m in shown}
+    # the panels fill the axes' width (the pitch above): a title is as wide as its panel's pitch at most
+    title_pt = min(FONT_SIZE_PT - 2.0, 0.95 * box[2] / (cols + 0.2) / (LABEL_EM * max(map(len, titles.values()),
+                                                                                         default=1)))
     with rc():
         fig = new_figure(constrained=False)
         ax = fig.add_axes(box)
@@ -128,8 +132,7 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
                 ax.text(*(c + tip * 0.3), f"{float(np.linalg.norm(mid)):.0f} mm", color=_C_BEFORE,
                         fontsize=FONT_SIZE_PT - 3, ha="center", va="center",
                         bbox={"fc": "white", "ec": "none", "alpha": 0.7, "pad": 0.5})
-            ax.text(c[0], c[1] + 1.08 * extent, f"{ids[m]}: {rms[('before', m)]:.1f} -> {rms[('after', m)]:.1f} mm",
-                    fontsize=FONT_SIZE_PT - 2, ha="center", va="bottom")
+            ax.text(c[0], c[1] + 1.08 * extent, titles[m], fontsize=title_pt, ha="center", va="bottom")
         rb, ra = (_rms_mm(stages[k][2]) for k in ("before", "after"))
         handles = [Line2D([], [], ls="", marker="o", color=_C_BEFORE, label=f"before ({before_label}): RMS {rb:.1f} mm"
                           + (" (arrow: towards returns off the panel)" if arrows else "")),
