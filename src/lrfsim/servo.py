@@ -80,29 +80,42 @@ class Trajectory:
         k = np.clip(k, 0, self.start_s.size - 1)
         return k, t - self.start_s[k]
 
-    def _progress(self, k: NDArray[np.intp], tau: FloatArray) -> tuple[FloatArray, FloatArray]:
-        """Distance travelled (>= 0) and speed (>= 0) into segment k at local time tau."""
-        a, ta, vp, T, D = (self.accel_rad_s2[k], self.ramp_s[k], self.peak_rad_s[k], self.duration_s[k],
-                           self.distance_rad[k])
-        tau = np.minimum(tau, T)
-        rem = T - tau
+    def _phases(self, k: NDArray[np.intp], tau: FloatArray) -> tuple[FloatArray, FloatArray, NDArray[np.bool_],
+                                                                         NDArray[np.bool_]]:
+        """Into segment k: the local time tau clamped to its duration, the time left, and whether it is accelerating
+        or (and not) decelerating."""
+        tau = np.minimum(tau, self.duration_s[k])
+        rem = self.duration_s[k] - tau
+        ta = self.ramp_s[k]
         accel = tau < ta
         decel = rem < ta
-        s = np.where(accel, 0.5 * a * tau**2, 0.5 * a * ta**2 + vp * (tau - ta))
-        s = np.where(decel & ~accel, D - 0.5 * a * rem**2, s)
-        v = np.where(accel, a * tau, np.where(decel, a * rem, vp))
-        return s, v
+        decel &= ~accel
+        return tau, rem, accel, decel
+
+    def _distance(self, k: NDArray[np.intp], tau: FloatArray) -> FloatArray:
+        """Distance travelled (>= 0) into segment k at local time tau: a / 2 tau^2 accelerating, a / 2 ta^2 +
+        vp (tau - ta) cruising, D - a / 2 rem^2 decelerating (the per-segment constants computed once, the
+        per-time work in place: this runs on every beam of a simulation)."""
+        tau, rem, accel, decel = self._phases(k, tau)
+        half_a = (0.5 * self.accel_rad_s2)[k]
+        s = tau - self.ramp_s[k]
+        s *= self.peak_rad_s[k]
+        s += (0.5 * self.accel_rad_s2 * self.ramp_s**2)[k]
+        np.copyto(s, half_a * tau**2, where=accel)
+        np.copyto(s, self.distance_rad[k] - half_a * rem**2, where=decel)
+        return s
 
     def angle(self, t_s: ArrayLike) -> FloatArray:
         """True motor angle lambda(t) [rad], same shape as ``t_s`` (servo clock; clamped to [0, end])."""
         k, tau = self._locate(t_s)
-        s, _ = self._progress(k, tau)
-        return self.from_rad[k] + self.direction[k] * s
+        return self.from_rad[k] + self.direction[k] * self._distance(k, tau)
 
     def velocity(self, t_s: ArrayLike) -> FloatArray:
-        """True motor velocity d lambda / dt [rad/s], same shape as ``t_s``."""
+        """True motor velocity d lambda / dt [rad/s], same shape as ``t_s``: a tau, vp, a rem by phase."""
         k, tau = self._locate(t_s)
-        _, v = self._progress(k, tau)
+        tau, rem, accel, decel = self._phases(k, tau)
+        a = self.accel_rad_s2[k]
+        v = np.where(accel, a * tau, np.where(decel, a * rem, self.peak_rad_s[k]))
         return self.direction[k] * v
 
     def reported_angle(self, t_s: ArrayLike) -> FloatArray:
