@@ -207,6 +207,23 @@ def test_reproject_cloud_and_stride(result):
     np.testing.assert_allclose(i3, inten[::3])
 
 
+def test_reprojection_in_blocks_gives_the_same_bits(result, monkeypatch):
+    """The clouds are made CHUNK_RETURNS returns at a time: any block size (one not dividing the cloud, with
+    intrinsics that scale the motor angle, the bearing and the range) gives the same numbers to the bit."""
+    import lrfcal.reproject as rp
+
+    sc = result.recording.scans
+    S, N = sc.ranges_m.shape
+    lam = np.repeat(np.linspace(-np.pi / 2, np.pi / 2, S)[:, None], N, axis=1)
+    scaled = {"motor_scale": 1.002, "beam_scale": 0.999, "range_scale": 1.001, "range_offset": 0.003}
+    whole, _ = rp.reproject_clouds(sc, lam, (START.dh, START.dh), 1, ({}, scaled))
+    monkeypatch.setattr(rp, "CHUNK_RETURNS", 997)
+    assert whole[0].shape[0] > 3 * 997
+    blocks, _ = rp.reproject_clouds(sc, lam, (START.dh, START.dh), 1, ({}, scaled))
+    assert all(np.array_equal(w, b) for w, b in zip(whole, blocks, strict=True))
+    assert not np.array_equal(blocks[0], blocks[1])  # the intrinsics were applied
+
+
 def test_write_ply_atomic(tmp_path):
     p = write_ply(tmp_path / "c.ply", np.random.default_rng(0).normal(size=(10, 3)), np.arange(10.0))
     assert trimesh.load(p, process=False).vertices.shape == (10, 3)
