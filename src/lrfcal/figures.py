@@ -94,7 +94,8 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
     box = (0.03, 0.12, 0.96, 0.8)  # the axes in the figure (left, bottom, width, height)
     aspect = box[2] * WIDTH_PX / (box[3] * HEIGHT_PX)
     pitch = np.array([max(2.5, aspect * 3.0 * (rows + 0.05) / (cols + 0.2)), 3.0]) * extent  # fills the axes
-    centres = {m: np.array([k % cols, -(k // cols)]) * pitch for k, m in enumerate(shown)}
+    C = np.array([(k % cols, -(k // cols)) for k in range(len(shown))], dtype=float).reshape(-1, 2) * pitch
+    centres = dict(zip(shown, C, strict=True))  # marker -> its panel's centre (2,) [mm]
     rms = {(name, m): _rms_mm(stages[name][2][stages[name][1] == m]) for name in stages for m in shown}
     titles = {m: f"{ids[m]}: {rms[('before', m)]:.1f} -> {rms[('after', m)]:.1f} mm" for m in shown}
     # the panels fill the axes' width (the pitch above): a title is as wide as its panel's pitch at most
@@ -107,15 +108,13 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
         ax.set_xlim(-0.7 * pitch[0], (cols - 0.5) * pitch[0])
         ax.set_ylim(-(rows - 0.55) * pitch[1], 0.6 * pitch[1])
         ax.set_aspect("equal", adjustable="box")
-        _panel_frames(ax, [centres[m] for m in shown], extent, three_ticks(extent), cols, len(shown))
-        ring = np.linspace(0.0, 2.0 * np.pi, 65)
-        circle = np.vstack([r_mm * np.c_[np.cos(ring), np.sin(ring)], [np.nan, np.nan]])  # NaN: the pen lifted
-        circles = [c + circle for c in centres.values()]
-        if circles:
-            xy = np.vstack(circles)
+        _panel_frames(ax, list(C), extent, three_ticks(extent), cols, len(shown))
+        if shown:
+            ring = np.linspace(0.0, 2.0 * np.pi, 65)
+            circle = np.vstack([r_mm * np.c_[np.cos(ring), np.sin(ring)], [np.nan, np.nan]])  # NaN: the pen lifted
+            xy = np.vstack([c + circle for c in C])
             ax.plot(xy[:, 0], xy[:, 1], color=C_MARKER, linewidth=1.5)
-            c = np.array(list(centres.values()))
-            ax.plot(c[:, 0], c[:, 1], "+", color=C_MARKER, markersize=6)
+            ax.plot(C[:, 0], C[:, 1], "+", color=C_MARKER, markersize=6)
         arrows = 0
         for name, color in (("before", _C_BEFORE), ("after", _C_AFTER)):
             pts = [local[(name, m)][(np.abs(local[(name, m)]) <= extent).all(axis=1)] + centres[m] for m in shown]
