@@ -317,9 +317,11 @@ def observe_surfaces(
                              position_sigma_m=position_sigma_m)
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
     # them all once they hold max_returns accepted ones, so only those rows are reprojected (the same returns as
-    # from every row, at a fraction of the work); the threshold doubles until they do
+    # from every row, at a fraction of the work); the threshold grows until they do, at once to the fraction that
+    # the accepted returns so far say is needed (any fraction gives the same returns: the sequence only saves work)
     key = hash_key(scan, beam, seed)
-    for frac in (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0):
+    frac = _FRACTIONS[0]
+    while True:
         rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
         lam_k, mu_k, r_k = take(rows)
         r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
@@ -328,9 +330,23 @@ def observe_surfaces(
                                   times_s=None if times_f is None else times_f[flat[rows]],
                                   rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]),
                                   max_incidence_rad=max_incidence_rad)
-        if len(returns) >= max_returns:
-            break
-    return surfaces, returns
+        if len(returns) >= max_returns or frac >= 1.0:
+            return surfaces, returns
+        frac = _next_fraction(frac, len(returns), max_returns)
+
+
+#: the fractions of the rows (by hash key) observe_surfaces tries, smallest first
+_FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0)
+#: the margin on the fraction the accepted returns so far say is needed (they scatter about their expectation)
+_FRACTION_MARGIN = 1.25
+
+
+def _next_fraction(frac: float, n_accepted: int, wanted: int) -> float:
+    """The next fraction of rows to try after ``frac`` gave ``n_accepted`` (< ``wanted``) accepted returns: the
+    smallest of _FRACTIONS beyond ``frac`` that holds ``wanted`` at the rate seen so far, with a margin (1.0 when
+    none was accepted)."""
+    need = _FRACTION_MARGIN * frac * wanted / n_accepted if n_accepted > 0 else 1.0
+    return next((f for f in _FRACTIONS if f > frac and f >= need), 1.0)
 
 
 __all__ += ["observe_surfaces"]
