@@ -151,3 +151,42 @@ def test_surface_returns_are_chosen_by_their_ray_not_their_noisy_point() -> None
     incidence = np.arccos(np.abs(d[kept, 1]))
     assert kept.size > 0.5 * e_ray.size and incidence.max() <= MAX_INCIDENCE_RAD
     assert np.arccos(np.abs(d[:, 1])).max() > MAX_INCIDENCE_RAD + 0.02  # there were such returns to leave out
+
+
+def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_starts_from(monkeypatch) -> None:
+    """observe_surfaces reprojects only the rows of lowest hash key, a fraction that grows at once to what the
+    accepted returns so far say is needed: the returns are those from every row at once, whether max_returns is
+    reached at a fraction below 1 or never."""
+    from synthetic import TRUE, make_result
+
+    import lrfcal.surfaces as sf
+
+    res = make_result(n_scans=120, n_beams=361)
+    sc = res.recording.scans
+    lam = np.repeat(np.linspace(-np.pi / 2, np.pi / 2, sc.ranges_m.shape[0])[:, None], sc.ranges_m.shape[1], axis=1)
+    on_front_wall = np.array([[2.5, y, z] for y, z in ((-0.8, 0.3), (-0.4, 1.4), (0.0, 0.5), (0.4, 1.2), (0.8, 0.4))])
+    args = (sc.ranges_m, sc.mu_rad, lam, res.detections.labels, on_front_wall, 0.001, TRUE)
+    everything = sf.observe_surfaces(*args, max_returns=10**9)[1]
+    assert len(everything) > 2000
+    seen: list[float] = []
+    steps = sf._next_fraction
+
+    def spy(frac: float, n: int, wanted: int) -> float:
+        seen.append(frac)
+        return steps(frac, n, wanted)
+
+    for wanted, margin in ((len(everything) // 3, sf._FRACTION_MARGIN), (len(everything) // 3, 0.5),
+                           (len(everything) + 1, sf._FRACTION_MARGIN)):
+        seen.clear()
+        monkeypatch.setattr(sf, "_next_fraction", spy)
+        monkeypatch.setattr(sf, "_FRACTION_MARGIN", margin)  # 0.5: too short a step, and another one after it
+        stepped = sf.observe_surfaces(*args, max_returns=wanted)[1]
+        monkeypatch.setattr(sf, "_FRACTIONS", (1.0,))
+        at_once = sf.observe_surfaces(*args, max_returns=wanted)[1]
+        monkeypatch.undo()
+        assert seen and len(seen) < len(sf._FRACTIONS) - 1  # it started below 1 and skipped a step
+        assert margin == sf._FRACTION_MARGIN or len(seen) >= 2
+        for name in ("scan", "beam", "ranges_m", "surface", "normals"):
+            assert np.array_equal(getattr(stepped, name), getattr(at_once, name)), name
+    assert len(stepped) == len(everything)
+    assert sf._next_fraction(1 / 16, 0, 100) == 1.0 and sf._next_fraction(1 / 16, 50, 100) == 1 / 4
