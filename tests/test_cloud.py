@@ -66,13 +66,14 @@ def test_calibration_intrinsics_are_read_only_when_estimated(tmp_path):
 
 def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
     """A small lrfsim recording read as a rig file says and reprojected beam by beam equals the calibration
-    pipeline's own reprojection (lrfcal.reproject with timing.beam_motor_angles) of the same recording."""
+    pipeline's own reprojection (lrfcal.reproject with timing.beam_motor_angles, of the joint states with their
+    quantisation taken out as lrfcal.timing.usable_scans does) of the same recording."""
     import yaml
     from test_cli_sim import _write_small
 
     from lrfcal.io.recording import read_recording
     from lrfcal.reproject import reproject_cloud
-    from lrfcal.timing import beam_motor_angles, covered_scans
+    from lrfcal.timing import beam_motor_angles, covered_scans, without_quantisation
     from lrfsim.scenario import load_scenario
     from lrfsim.simulate import simulate_to_folder
 
@@ -89,7 +90,7 @@ def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
     sub = replace(rec.scans, stamps_s=rec.scans.stamps_s[cov], ranges_m=rec.scans.ranges_m[cov],
                   intensities=rec.scans.intensities[cov], mu_rad=rec.scans.mu_rad[cov],
                   time_increment_s=rec.scans.time_increment_s[cov], beam_counts=rec.scans.beam_counts[cov])
-    ref, inten = reproject_cloud(sub, beam_motor_angles(sub, rec.joints, offset), dh)
+    ref, inten = reproject_cloud(sub, beam_motor_angles(sub, without_quantisation(rec.joints, sub), offset), dh)
     assert len(c) == len(ref) > 10_000
     np.testing.assert_allclose(c.points_M, ref, atol=1e-9)
     np.testing.assert_array_equal(c.intensity, inten)

@@ -109,16 +109,17 @@ def test_plan_help_units_and_defaults() -> None:
 
 def test_plan_predicts_the_sigma_a_precise_scanner_reports(recording_of) -> None:  # type: ignore[no-untyped-def]
     """A scanner with 2 mm range noise (the fast tunnel): the model's own errors (the footprint on the markers and
-    walls, the joint states' interpolation) are then most of the sigma of b, and the calibration reports them (its
-    per-scan widening). plan adds the same model-error part (lrfcal.information.model_error_at) and predicts the
-    reported sigma within 25 % for every DH parameter. (Measured on seeds 1 and 2: reported / plan 0.97-1.20;
-    reported / the statistical part alone 1.3-2.6, b 2.1-2.6, which plan predicted before the model-error part.)"""
+    walls, the joint states' interpolation) are then a large part of the sigma of b (0.021 mm beside 0.030 mm of
+    noise; before the joint states' quantisation was taken out, lrfcal.model.motor.dequantised, they were most of
+    it), and the calibration reports them (its per-scan widening). plan adds the same model-error part
+    (lrfcal.information.model_error_at) and predicts the reported sigma within 25 % for every DH parameter.
+    (Measured: reported / plan 1.08-1.19; on seeds 1 and 2 before the dequantisation 0.97-1.20.)"""
     from lrfsim.trial import calibrate_recording
 
     sc = parse_scenario(_fast_tunnel(**{"sensor.noise_bands": [{"up_to_m": 60.0, "sigma_m": 0.002}]}), "precise")
     p = plan(sc)
     statistical_b = math.sqrt(p.sigma["b"] ** 2 - p.model_sigma["b"] ** 2)
-    assert p.model_sigma["b"] > statistical_b, (p.model_sigma["b"], statistical_b)
+    assert p.model_sigma["b"] > 0.5 * statistical_b, (p.model_sigma["b"], statistical_b)
     t = calibrate_recording(recording_of(sc))
     assert t.status == "calibrated", t.describe()
     for i, n in enumerate(("a", "alpha", "b", "beta")):

@@ -70,6 +70,52 @@ def test_joint_samples_rate_and_encoder() -> None:
     assert np.array_equal(quantise_encoder([0.1], 0), [0.1])
 
 
+@pytest.mark.parametrize("backlash_deg", [0.0, 0.33])
+def test_quantisation_is_taken_out_of_the_joint_states_where_the_motion_is_smooth(backlash_deg: float) -> None:
+    """A Dynamixel's 4096 counts at 10 deg/s, there and back: the calibration's joint states
+    (lrfcal.timing.usable_scans -> lrfcal.model.motor.dequantised) put the motor angle interpolated at the scans'
+    times at least 3 times closer to the motion than the readings do, never beyond a step from it (the readings are
+    within half a step; the fit is clipped to the reading's own step); readings that are not on a grid stay."""
+    from lrfcal.model.motor import dequantised, encoder_quantum
+
+    sv = _servo(encoder_counts=4096, speed_rad_s=math.radians(10.0), backlash_rad=math.radians(backlash_deg))
+    traj = sweep_trajectory(sv)
+    js = joint_samples(traj, sv)
+    step = 2 * math.pi / 4096
+    assert encoder_quantum(js.positions_rad) == pytest.approx(step, rel=1e-9)
+    clean = dequantised(js.stamps_s, js.positions_rad)
+    assert np.abs(clean - js.positions_rad).max() <= step / 2 + 1e-12
+    t = np.arange(0.013, js.stamps_s[-1] - 0.01, 0.025)  # a scan every 25 ms
+    truth = traj.reported_angle(t)
+    raw_err = np.interp(t, js.stamps_s, js.positions_rad) - truth
+    err = np.interp(t, js.stamps_s, clean) - truth
+    assert np.sqrt(np.mean(err**2)) < np.sqrt(np.mean(raw_err**2)) / 3
+    assert np.abs(err).max() <= step
+    exact = joint_samples(traj, _servo(encoder_counts=0, speed_rad_s=math.radians(10.0)))
+    assert encoder_quantum(exact.positions_rad) == 0.0
+    assert np.array_equal(dequantised(exact.stamps_s, exact.positions_rad), exact.positions_rad)
+
+
+def test_a_step_and_scan_rig_keeps_its_joint_states() -> None:
+    """A step-and-scan rig reads its angle at a standstill (one angle per scan): its joint states are not smoothed."""
+    from dataclasses import replace
+
+    from synthetic import make_result
+
+    from lrfcal.timing import without_quantisation
+    from lrfcal.types import JointStates
+
+    scans = make_result(n_scans=20, n_beams=31).recording.scans
+    step = 2 * math.pi / 4096
+    t = np.arange(0.0, 2.0, 0.01)
+    joints = JointStates(stamps_s=t, positions_rad=np.round(0.3 * t / step) * step, name="servo")
+    stepped = without_quantisation(joints, replace(scans, angle_per_scan=True))
+    assert stepped is joints
+    smooth = without_quantisation(joints, replace(scans, angle_per_scan=False))
+    assert not np.array_equal(smooth.positions_rad, joints.positions_rad)
+    assert np.abs(smooth.positions_rad - 0.3 * t).max() < np.abs(joints.positions_rad - 0.3 * t).max()
+
+
 def test_backlash_lags_by_half_and_holds_at_reversal() -> None:
     b = math.radians(0.33)  # MX-28
     sv = _servo(backlash_rad=b)

@@ -26,7 +26,7 @@ from .io.yamlfile import read_yaml
 from .model.kinematics import DH, points_M
 from .model.scanner import true_returns
 from .model.unknowns import BY_NAME, INTRINSICS, core_vector
-from .timing import covered_scans, motor_angles, sweep_passes
+from .timing import covered_scans, motor_angles, sweep_passes, without_quantisation
 from .types import JointStates, Scans
 
 FloatArray = NDArray[np.float64]
@@ -90,6 +90,7 @@ def reproject_beams(
     """
     S = scans.stamps_s.size
     th = core_vector(dh, intrinsics or {})
+    joints = without_quantisation(joints, scans)  # the motor angles as the calibration interpolates them
     covered = covered_scans(scans, joints, clock_offset_s) if S else np.zeros(0, bool)
     mid_t = scans.stamps_s + 0.5 * np.maximum(scans.beam_counts - 1, 0) * scans.time_increment_s
     scan_sweep = np.full(S, -1, dtype=np.int64)

@@ -12,6 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError, InputError
+from .model.motor import dequantised
 from .types import JointStates, Recording, Scans
 
 FloatArray = NDArray[np.float64]
@@ -179,8 +180,9 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigm
                  ) -> tuple[Scans, JointStates]:
     """The joint states without encoder spikes and the scans they cover at clock offset ``tau0``; with the range
     noise ``range_sigma_m``, also without the scans whose motor angle the joint states do not interpolate well
-    enough (a speed change between sparse samples, :func:`interpolation_error_rad`). What was dropped is appended
-    to ``notes``.
+    enough (a speed change between sparse samples, :func:`interpolation_error_rad`). The joint states returned have
+    most of the encoder's quantisation taken out (:func:`without_quantisation`). What was dropped is appended to
+    ``notes``.
 
     Raises:
         CalibrationError: no scan lies within the joint states' time span, or most scans fall between joint states
@@ -200,7 +202,7 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigm
     if not covered.all():
         notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
     if range_sigma_m is None:
-        return scans, joints
+        return scans, without_quantisation(joints, scans)
     poor, worst = _poorly_interpolated(scans, joints, tau0, range_sigma_m)
     if poor.any():
         why = (f"the joint states (every {joint_period_s(joints) * 1000:.0f} ms) interpolate their motor angle only to "
@@ -210,12 +212,22 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigm
                                    "(at least the scan rate)")
         notes.append(f"{int(poor.sum())} of {poor.size} scans left out: {why}")
         scans = subset_scans(scans, ~poor)
-    return scans, joints
+    return scans, without_quantisation(joints, scans)
+
+
+def without_quantisation(joints: JointStates, scans: Scans) -> JointStates:
+    """The joint states with most of the encoder's quantisation taken out where the motion is smooth
+    (lrfcal.model.motor.dequantised); as they are for a step-and-scan rig (Scans.angle_per_scan: its angle is read
+    at a standstill, not interpolated along a motion)."""
+    if scans.angle_per_scan:
+        return joints
+    positions = dequantised(joints.stamps_s, unwrapped_positions(joints))
+    return JointStates(stamps_s=joints.stamps_s, positions_rad=positions, name=joints.name)
 
 
 __all__ = ["beam_motor_angles", "beam_times", "covered_scans", "interpolation_error_rad", "joint_period_s",
            "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "subset_scans", "sweep_passes",
-           "unwrapped_positions", "usable_scans"]
+           "unwrapped_positions", "usable_scans", "without_quantisation"]
 
 
 def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scans: int = 5) -> NDArray[np.int64]:

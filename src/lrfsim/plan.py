@@ -53,7 +53,7 @@ from lrfcal.information import estimated, information_at, map_error_at, model_er
 from lrfcal.markers import SCALE_Z_LIMIT, SCALES
 from lrfcal.mds import map_covariance
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
-from lrfcal.model.motor import MotorClock
+from lrfcal.model.motor import MotorClock, dequantised
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES
 from lrfcal.observability import LIMITS, Observability, analyse
 from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
@@ -221,7 +221,9 @@ def marker_observations(scenario: Scenario, geometry: Geometry | None = None
         lambda_rad=result.beam_lambda_rad[s_idx, b_idx], times_s=times, intensity=result.intensities[s_idx, b_idx],
         is_peak=np.zeros(K, dtype=bool),
     )
-    joints = JointStates(stamps_s=result.joints.stamps_s, positions_rad=result.joints.positions_rad)
+    # the joint states as the calibration interpolates them (lrfcal.timing.usable_scans: quantisation taken out)
+    joints = JointStates(stamps_s=result.joints.stamps_s,
+                         positions_rad=dequantised(result.joints.stamps_s, np.unwrap(result.joints.positions_rad)))
     params = Params(result.truth.mount, result.truth.dh)
     return obs, result.truth.markers_W, params, MotorClock.from_joints(joints), result.truth.clock_offset_s, result
 

@@ -87,4 +87,60 @@ def motor_angles(th: FloatArray, lam: FloatArray, times: FloatArray | None, cloc
     return MotorAngles(s * q, ((TAU, -s * omega), (SCALE, q)))
 
 
-__all__ = ["JointSamples", "MotorAngles", "MotorClock", "motor_angles"]
+#: samples on each side of a joint sample that its dequantising fit takes (lrfcal.model.motor.dequantised)
+DEQUANTISE_HALF_WINDOW = 8
+#: a fit that leaves a sample of its window more than this many steps from its reading is not used (the readings
+#: are within half a step of the truth; the rest is room for the fit)
+MISFIT_STEPS = 0.6
+#: positions within this share of a quantum of the grid count as on it (float32 readings, a rounded offset)
+GRID_TOLERANCE = 0.02
+
+
+def encoder_quantum(positions_rad: ArrayLike) -> float:
+    """The encoder's step [rad] when the positions (J,) lie on a grid, the smallest step between samples, all of
+    them within GRID_TOLERANCE of a step from the first; 0 when they do not (readings that are not counts)."""
+    q = np.asarray(positions_rad, dtype=float)
+    steps = np.abs(np.diff(q))
+    steps = steps[steps > 1e-12]
+    if steps.size == 0:
+        return 0.0
+    quantum = float(steps.min())
+    k = (q - q[0]) / quantum
+    return quantum if bool(np.all(np.abs(k - np.round(k)) <= GRID_TOLERANCE)) else 0.0
+
+
+def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
+    """The joint positions (J,) freed of most of the encoder's quantisation, where the motion is smooth.
+
+    An encoder reports the angle rounded to its step (2 pi / 4096 for a Dynamixel MX or XM: 0.088 deg); at the speed
+    of a sweep that rounding error drifts through the step every few samples, the same for all beams of a scan, and
+    the interpolated motor angle carries it (on a 2 mm scanner it was the largest error of b, and the per-scan
+    covariance counted it for a and beta too: docs/study.md). Each sample is replaced by a quadratic in time fitted
+    to the 2 DEQUANTISE_HALF_WINDOW + 1 samples about it (a trapezoidal sweep is piecewise quadratic), clipped to the
+    sample's own step (the truth is within half a step of the reading). The readings are kept where the fitted motion
+    turns within its window (a reversal, a start from or a stop to a standstill: a fit across the kink would add a
+    turn the servo did not make), where the fit leaves a sample of its window more than MISFIT_STEPS steps away (a
+    reversal under backlash, a sparse or jerky stream), and where the positions are not on a grid
+    (:func:`encoder_quantum`). ``positions_rad`` unwrapped; stamps_s (J,) increasing."""
+    t = np.asarray(stamps_s, dtype=float)
+    q = np.asarray(positions_rad, dtype=float)
+    K = DEQUANTISE_HALF_WINDOW
+    quantum = encoder_quantum(q)
+    if quantum == 0.0 or q.size < 2 * K + 1:
+        return q.copy()
+    start = np.clip(np.arange(q.size) - K, 0, q.size - 2 * K - 1)  # each sample's window, shifted inside at the ends
+    idx = start[:, None] + np.arange(2 * K + 1)
+    span = np.maximum(t[idx[:, -1]] - t[idx[:, 0]], 1e-12)[:, None]
+    x = (t[idx] - t[:, None]) / span  # the window's times about the sample's, scaled to ~1
+    X = np.stack([np.ones_like(x), x, x * x], axis=2)  # (J, 2K + 1, 3)
+    coef = np.linalg.solve(np.einsum("jki,jkl->jil", X, X), np.einsum("jki,jk->ji", X, q[idx])[..., None])[..., 0]
+    misfit = np.abs(np.einsum("jki,ji->jk", X, coef) - q[idx]).max(axis=1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        vertex = -coef[:, 1] / (2.0 * coef[:, 2])  # where the fitted motion turns (a standstill, a reversal)
+    turns = (vertex > x[:, 0]) & (vertex < x[:, -1])
+    fit = np.clip(coef[:, 0], q - quantum / 2, q + quantum / 2)
+    return np.where((misfit <= MISFIT_STEPS * quantum) & ~turns, fit, q)
+
+
+__all__ = ["DEQUANTISE_HALF_WINDOW", "JointSamples", "MotorAngles", "MotorClock", "dequantised", "encoder_quantum",
+           "motor_angles"]
