@@ -94,6 +94,10 @@ def test_quantisation_is_taken_out_of_the_joint_states_where_the_motion_is_smoot
     exact = joint_samples(traj, _servo(encoder_counts=0, speed_rad_s=math.radians(10.0)))
     assert encoder_quantum(exact.positions_rad) == 0.0
     assert np.array_equal(dequantised(exact.stamps_s, exact.positions_rad), exact.positions_rad)
+    burst = js.stamps_s.copy()
+    burst[100:130] = burst[100]  # samples stamped at one instant: no quadratic there, the readings stay
+    kept = dequantised(burst, js.positions_rad)
+    assert np.array_equal(kept[105:125], js.positions_rad[105:125]) and np.all(np.isfinite(kept))
 
 
 def test_a_step_and_scan_rig_keeps_its_joint_states() -> None:

@@ -133,8 +133,11 @@ def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
     span = np.maximum(t[idx[:, -1]] - t[idx[:, 0]], 1e-12)[:, None]
     x = (t[idx] - t[:, None]) / span  # the window's times about the sample's, scaled to ~1
     X = np.stack([np.ones_like(x), x, x * x], axis=2)  # (J, 2K + 1, 3)
-    coef = np.linalg.solve(np.einsum("jki,jkl->jil", X, X), np.einsum("jki,jk->ji", X, q[idx])[..., None])[..., 0]
-    misfit = np.abs(np.einsum("jki,ji->jk", X, coef) - q[idx]).max(axis=1)
+    A = np.einsum("jki,jkl->jil", X, X)
+    solvable = np.abs(np.linalg.det(A)) > 1e-9  # a window of fewer than 3 distinct times (a burst) has no quadratic
+    A[~solvable] = np.eye(3)
+    coef = np.linalg.solve(A, np.einsum("jki,jk->ji", X, q[idx])[..., None])[..., 0]
+    misfit = np.where(solvable, np.abs(np.einsum("jki,ji->jk", X, coef) - q[idx]).max(axis=1), np.inf)
     with np.errstate(divide="ignore", invalid="ignore"):
         vertex = -coef[:, 1] / (2.0 * coef[:, 2])  # where the fitted motion turns (a standstill, a reversal)
     turns = (vertex > x[:, 0]) & (vertex < x[:, -1])
