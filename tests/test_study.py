@@ -181,11 +181,14 @@ def test_new_layout_per_trial(tiny) -> None:
     sc = with_field(tiny, "markers.layout.jitter_m", 0.02)
     same = run_trials(sc, 2, seed0=10, recast=True)  # the seeds of this module's other trials of tiny
     new = run_trials(sc, 2, seed0=10, new_layout=True)
-    assert all(r.status == "calibrated" for r in same + new), [r.reason for r in same + new]
-    for a, b in zip(same, new, strict=True):
-        assert a.seed == b.seed and a.errors != b.errors
+    # tiny's one fast pass crosses each marker with one scan line: a trial is calibrated, or refused with exit 3 where
+    # the markers alone cannot tell a wrong match from a moved marker (lrfcal.markers)
+    assert all(r.status == "calibrated" or (r.exit_code == 3 and r.reason) for r in same + new)
+    assert any(r.status == "calibrated" for r in same + new), [r.reason for r in same + new]
+    for a, b in zip(same, new, strict=True):  # the same seed, another layout: another trial (errors or reason)
+        assert a.seed == b.seed and a.csv_row()[2:] != b.csv_row()[2:]
     pooled = run_trials(sc, 2, seed0=10, new_layout=True, workers=2)
-    assert [r.errors for r in pooled] == [r.errors for r in new]
+    assert [r.csv_row() for r in pooled] == [r.csv_row() for r in new]
 
 
 def _nominal(sc) -> dict[str, float]:

@@ -29,7 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.spatial import cKDTree
 
 from .errors import CalibrationError, InputError
-from .types import Association, MarkerMap
+from .types import Association, MarkerMap, Observations, Solution
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -384,4 +384,38 @@ def _best_fit(P: FloatArray, X: FloatArray, w: FloatArray, Pb: FloatArray, mt: I
     return max(cand, key=lambda c: (c[0], -c[1])) if cand else None
 
 
-__all__ = ["associate", "kabsch", "unmirror"]
+def inconsistent_blobs(matched: Observations, sol: Solution, markers: MarkerMap, range_sigma_m: float,
+                        max_outlier_share: float = 0.5, floor_m: float = 0.005) -> tuple[np.ndarray, str]:
+    """Blobs (indices) that disagree with the marker map, and why in words.
+
+    First the blobs most of whose returns the solver dropped as beyond 4 sigma (matched to the wrong marker);
+    else the one marker whose returns sit, on average, furthest from its tape position beyond both ``floor_m`` and
+    4 sigma of that mean (sigma_r / sqrt(the number of scans seeing it)): a marker moved after taping leaves the
+    tape consistent, so only its returns can tell, and their mean offset grows with every return, unlike the
+    per-return test."""
+    empty = np.zeros(0, dtype=np.int64)
+    if sol.inlier is None:
+        return empty, ""
+    wrong = [int(b) for b in np.unique(matched.blob)
+             if (m := matched.blob == b).sum() >= 2 and (~sol.inlier[m]).mean() > max_outlier_share]
+    if wrong:
+        return np.array(wrong, dtype=np.int64), f"{len(wrong)} blobs whose returns the fit rejects unassigned"
+    res = np.asarray(sol.residuals_m, dtype=float)
+    worst, worst_k, worst_off = 0.0, -1, 0.0
+    for k in np.unique(matched.marker):
+        m = (matched.marker == k) & np.all(np.isfinite(res), axis=1)
+        n_scans = len(np.unique(matched.scan[m]))
+        if n_scans == 0:
+            continue
+        offset = float(np.linalg.norm(res[m].mean(0)))
+        limit = max(floor_m, 4.0 * range_sigma_m / np.sqrt(n_scans))
+        if offset > limit and offset / limit > worst:
+            worst, worst_k, worst_off = offset / limit, int(k), offset
+    if worst_k < 0:
+        return empty, ""
+    blobs = np.unique(matched.blob[matched.marker == worst_k]).astype(np.int64)
+    return blobs, (f"marker {markers.marker_ids[worst_k]}: its returns sit {worst_off * 1000:.0f} mm from its tape "
+                   "position on average (moved after taping?): left out")
+
+
+__all__ = ["associate", "inconsistent_blobs", "kabsch", "unmirror"]

@@ -202,5 +202,23 @@ class Information:
         return tuple(hold)
 
 
+def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
+    """Whether every DH parameter's 1-sigma (a, alpha, b, beta: (4,) in m and rad) is within :data:`LIMITS`."""
+    s = np.asarray(dh_sigma, dtype=float)
+    return bool(np.all(np.isfinite(s) & (s <= [LIMITS[n] for n in DH])))
+
+
+def sigma_words(sigma: NDArray[np.float64]) -> str:
+    """The DH 1-sigma of a solution's sigma (the 10 estimated parameters: mount, then a, alpha, b, beta) in words."""
+    def mm(v: float) -> str:
+        return f"{v * 1000:.3g} mm" if v < 1e3 else "unbounded"
+
+    def deg(v: float) -> str:
+        return f"{math.degrees(v):.3g} deg" if v < math.pi else "unbounded"
+
+    a, alpha, b, beta = (float(v) for v in sigma[6:10])
+    return f"a {mm(a)}, alpha {deg(alpha)}, b {mm(b)}, beta {deg(beta)}"
+
+
 __all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",
-           "analyse", "marginal", "marginal_information"]
+           "analyse", "marginal", "marginal_information", "sigma_words", "within_limits"]
