@@ -61,8 +61,8 @@ def test_study_table(serial, tmp_path: Path) -> None:
         assert col in rows[0]
     assert [int(r["trial"]) for r in rows] == [0, 1, 2] and [int(r["seed"]) for r in rows] == [10, 11, 12]
     # tiny's one quick pass is at the edge of what determines the DH: a trial is right within its sigma or refused
-    # with the check that failed (seed 12, since the joint states' quantisation is taken out: its solve left the
-    # association's basin, and the observability check refused it), and the table and summary say which
+    # with the reason (seed 12: its marker-only fit disagrees with the marker map but does not determine the DH,
+    # lrfcal.markers), and the table and summary say which
     calibrated = [r for r in rows if r["status"] == "calibrated"]
     refused = [r for r in rows if r["status"] != "calibrated"]
     assert len(calibrated) >= 2, [r["reason"] for r in rows]
