@@ -374,11 +374,12 @@ def _marker_solution(
         bad, why = association.inconsistent_blobs(matched, sol, markers, config.range_sigma_m)
         if not bad.size:
             break
-        if not observability.within_limits(sol.sigma[6:10]):  # its residuals cannot tell (fast sweeps went wrong)
+        dh_sigma = sol.sigma[6:10]
+        if not observability.within_limits(dh_sigma):  # its residuals cannot tell (fast sweeps went wrong)
             raise CalibrationError(
                 f"the marker-only fit disagrees with the marker map ({why.removesuffix(': left out')}), but the "
                 "markers alone do not determine the DH parameters here (1-sigma "
-                f"{observability.sigma_words(sol.sigma)}), so a wrong match cannot be told from a moved marker: sweep "
+                f"{observability.sigma_words(dh_sigma)}), so a wrong match cannot be told from a moved marker: sweep "
                 "slower or more passes, so that several scan lines cross every marker")
         notes.append(why)
         b2m = assoc.blob_to_marker.copy()

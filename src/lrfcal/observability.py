@@ -101,17 +101,22 @@ class Observability:
 
     def summary(self) -> str:
         """One line: the weakest combination, its sigma in limits, and each DH sigma."""
-        parts = []
-        for n, s in zip(DH, self.sigma, strict=True):
-            parts.append(f"{n} {_fmt(n, s)}")
         return (f"weakest direction {self.describe()} at {self.weakest_sigma_in_limits:.2g} of the limit; 1-sigma: "
-                + ", ".join(parts))
+                + sigma_words(self.sigma))
 
 
 def _fmt(name: str, v: float) -> str:
-    if not math.isfinite(v):
+    """A DH parameter's 1-sigma in mm or deg; "unbounded" where it is not finite or beyond a kilometre or half a
+    turn (a null direction's numerical remainder)."""
+    angle = name in ("alpha", "beta")
+    if not (math.isfinite(v) and v < (math.pi if angle else 1e3)):
         return "unbounded"
-    return f"{math.degrees(v):.3g} deg" if name in ("alpha", "beta") else f"{v * 1000:.3g} mm"
+    return f"{math.degrees(v):.3g} deg" if angle else f"{v * 1000:.3g} mm"
+
+
+def sigma_words(dh_sigma: FloatArray) -> str:
+    """The 1-sigma of a, alpha, b, beta ((4,), m and rad) in words."""
+    return ", ".join(f"{n} {_fmt(n, float(s))}" for n, s in zip(DH, dh_sigma, strict=True))
 
 
 def analyse(information: FloatArray, names: tuple[str, ...], alpha: float | None = None) -> Observability:
@@ -206,18 +211,6 @@ def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
     """Whether every DH parameter's 1-sigma (a, alpha, b, beta: (4,) in m and rad) is within :data:`LIMITS`."""
     s = np.asarray(dh_sigma, dtype=float)
     return bool(np.all(np.isfinite(s) & (s <= [LIMITS[n] for n in DH])))
-
-
-def sigma_words(sigma: NDArray[np.float64]) -> str:
-    """The DH 1-sigma of a solution's sigma (the 10 estimated parameters: mount, then a, alpha, b, beta) in words."""
-    def mm(v: float) -> str:
-        return f"{v * 1000:.3g} mm" if v < 1e3 else "unbounded"
-
-    def deg(v: float) -> str:
-        return f"{math.degrees(v):.3g} deg" if v < math.pi else "unbounded"
-
-    a, alpha, b, beta = (float(v) for v in sigma[6:10])
-    return f"a {mm(a)}, alpha {deg(alpha)}, b {mm(b)}, beta {deg(beta)}"
 
 
 __all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",

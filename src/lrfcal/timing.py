@@ -221,8 +221,8 @@ def without_quantisation(joints: JointStates, scans: Scans) -> JointStates:
     at a standstill, not interpolated along a motion)."""
     if scans.angle_per_scan:
         return joints
-    positions = dequantised(joints.stamps_s, unwrapped_positions(joints))
-    return JointStates(stamps_s=joints.stamps_s, positions_rad=positions, name=joints.name)
+    return JointStates(stamps_s=joints.stamps_s, positions_rad=dequantised(joints.stamps_s, joints.positions_rad),
+                       name=joints.name)
 
 
 __all__ = ["beam_motor_angles", "beam_times", "covered_scans", "interpolation_error_rad", "joint_period_s",

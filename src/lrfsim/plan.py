@@ -223,7 +223,7 @@ def marker_observations(scenario: Scenario, geometry: Geometry | None = None
     )
     # the joint states as the calibration interpolates them (lrfcal.timing.usable_scans: quantisation taken out)
     joints = JointStates(stamps_s=result.joints.stamps_s,
-                         positions_rad=dequantised(result.joints.stamps_s, np.unwrap(result.joints.positions_rad)))
+                         positions_rad=dequantised(result.joints.stamps_s, result.joints.positions_rad))
     params = Params(result.truth.mount, result.truth.dh)
     return obs, result.truth.markers_W, params, MotorClock.from_joints(joints), result.truth.clock_offset_s, result
 

@@ -121,9 +121,10 @@ def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
     turns within its window (a reversal, a start from or a stop to a standstill: a fit across the kink would add a
     turn the servo did not make), where the fit leaves a sample of its window more than MISFIT_STEPS steps away (a
     reversal under backlash, a sparse or jerky stream), and where the positions are not on a grid
-    (:func:`encoder_quantum`). ``positions_rad`` unwrapped; stamps_s (J,) increasing."""
+    (:func:`encoder_quantum`). stamps_s (J,) increasing; the positions are returned unwrapped (a wrapping encoder's
+    +-2 pi jumps removed)."""
     t = np.asarray(stamps_s, dtype=float)
-    q = np.asarray(positions_rad, dtype=float)
+    q = np.unwrap(np.asarray(positions_rad, dtype=float))
     K = DEQUANTISE_HALF_WINDOW
     quantum = encoder_quantum(q)
     if quantum == 0.0 or q.size < 2 * K + 1:
