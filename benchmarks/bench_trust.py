@@ -63,6 +63,8 @@ FAULTS: dict[str, dict[str, object]] = {
     "gear ratio 2 %": {"faults.gear_ratio": 1.02},
     "joint states at 2 Hz": {"faults.joint_rate_hz": 2.0},
     "range scale 1 %": {"faults.range_scale": 1.01},
+    # one scan line per marker: the markers alone do not determine the DH (lrfcal.markers._judged_jointly)
+    "fast single sweep (90 deg/s, one pass)": {"servo.speed_rad_s": math.radians(90.0), "servo.passes": 1},
 }
 
 

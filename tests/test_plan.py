@@ -204,7 +204,7 @@ def test_plan_predicts_the_smallest_scale_error_the_calibration_finds(shipped_re
     """plan's 1-sigma of each scale the calibration holds at 1 and tests (the gear ratio, the range scale) is the
     sigma of the calibration's own score test on the recording, within 25 % (measured: 0.88 and 0.89 on tunnel_v;
     plane_30deg 0.99 and 0.91): a researcher learns which scale error the layout would find before building it."""
-    from lrfcal.markers import SCALES
+    from lrfcal.joint import SCALES
     from lrfcal.pipeline import CalibConfig
     from lrfsim.scenario import load_scenario
     from lrfsim.trial import calibrate_recording

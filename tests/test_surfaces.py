@@ -190,3 +190,26 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
             assert np.array_equal(getattr(stepped, name), getattr(at_once, name)), name
     assert len(stepped) == len(everything)
     assert sf._next_fraction(1 / 16, 0, 100) == 1.0 and sf._next_fraction(1 / 16, 50, 100) == 1 / 4
+
+
+def test_moved_m_is_how_far_the_returns_move_along_their_planes_normal() -> None:
+    """The joint solve chooses its surface returns again while its estimate moves them (lrfcal.joint): by the
+    distance along the plane's normal that the gate judges. The mount shifted 5 mm along the normal moves every
+    return 5 mm; turned by 2 mrad, the farthest return moves most (about 2 mrad times its distance from the axis)."""
+    from lrfcal.surfaces import SurfaceReturns, moved_m
+
+    rng = np.random.default_rng(0)
+    K = 300
+    ranges = rng.uniform(0.5, 3.0, K)
+    ret = SurfaceReturns(scan=np.arange(K), beam=np.arange(K), lambda_rad=rng.uniform(-1.0, 1.0, K),
+                         mu_rad=rng.uniform(-2.0, 2.0, K), ranges_m=ranges, surface=np.zeros(K, dtype=np.int64),
+                         normals=np.tile([0.0, 1.0, 0.0], (K, 1)), offsets_m=np.zeros(K))
+    dh = DH(0.01, np.pi / 2, 0.02, -np.pi / 2)
+    at = Params(Pose(0.0, 0.0, 1.0), dh)
+    assert moved_m(ret, (at, {}), (at, {})) == 0.0
+    shifted = Params(Pose(0.0, 0.005, 1.0), dh)
+    assert abs(moved_m(ret, (at, {}), (shifted, {})) - 0.005) < 1e-12
+    turned = moved_m(ret, (at, {}), (Params(Pose(0.0, 0.0, 1.0, yaw=0.002), dh), {}))
+    assert 0.002 * 1.0 < turned <= 0.002 * (ranges.max() + 0.05)
+    assert moved_m(SurfaceReturns(*(np.zeros(0) for _ in range(5)), np.zeros(0, dtype=np.int64), np.zeros((0, 3)),
+                                  np.zeros(0)), (at, {}), (shifted, {})) == 0.0

@@ -250,16 +250,24 @@ def test_range_offset_is_estimated_or_the_result_refused(recordings: Callable[..
                                                                                         est.describe())
 
 
-@pytest.mark.parametrize("seed", [10, 5])
+@pytest.mark.parametrize("seed", [1, 10, 22])
 def test_fast_single_sweep_is_right_or_refused_naming_the_sweep(recordings: Callable[..., Path], seed: int) -> None:
-    """One pass at 90 deg/s crosses each marker with one scan line: the markers alone do not determine the DH, and
-    judging a marker moved after taping on their fit dropped good markers (seed 10: alpha -6.7, b -8.3 sigma, exit 0;
-    5 of 40 seeds confidently wrong). Now right within 4 sigma (seed 5) or refused naming the sweep (seed 10)."""
+    """One pass at 90 deg/s crosses each marker with one scan line: the markers alone do not determine the DH.
+    - Seed 1 came back a +5.1, alpha +4.7, b +5.0 sigma with exit 0: the surface returns were chosen once, at the
+      marker-only estimate, and the gate about the planes kept the returns that agreed with it (lrfcal.surfaces.
+      RESELECT_M). Over 40 seeds, RMS of error / sigma went from 1.37, 1.63, 1.47, 0.96 to 0.86, 0.97, 0.95, 0.87.
+    - Seed 10: its marker-only fit puts a marker's returns far from the tape, which that fit cannot judge; it was
+      refused, and before that, judged on that fit, confidently wrong (alpha -6.7, b -8.3 sigma). The joint solution
+      with the surfaces judges it (lrfcal.markers._judged_jointly): the marker is where the tape says.
+    - Seed 22: blobs that disagree with the map even at the joint solution: right, or refused naming the sweep."""
     sc = _scenario("tunnel_v", f"fast_single_{seed}", **{
         "servo.speed_rad_s": math.radians(90.0), "servo.passes": 1, "servo.start_rad": 1.2, "servo.end_rad": -1.2,
         "seed": seed})
-    trial = calibrate_recording(recordings(sc), FAST)
+    trial = calibrate_recording(recordings(sc), FAST, keep_result=True)
+    if seed == 22 and trial.status == "refused":
+        _refused(trial, "judged at the joint solution with the surfaces", "sweep slower or more passes")
+        return
+    _ok(trial)
+    assert trial.result is not None
     if seed == 10:
-        _refused(trial, "the markers alone do not determine the DH", "sweep slower or more passes")
-    else:
-        _ok(trial)
+        assert any("the joint solution with the surfaces does not" in n for n in trial.result.notes), trial.result.notes

@@ -13,14 +13,13 @@ the shared stages (checks, reprojection, geometry).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import partial
 
 import numpy as np
 
-from . import association, detection, mds, minima, observability, solve, start, surfaces, timing
+from . import association, detection, joint, mds, minima, observability, solve, start, surfaces, timing
 from .checks import dh_text, far_from_nominal, marker_checks, mirror_check, nearer_mirror, servo_direction
 from .config import CalibConfig, Stopwatch
 from .errors import CalibrationError
@@ -30,7 +29,6 @@ from .model.marker import crossings
 from .model.motor import MotorClock
 from .model.unknowns import dh_difference, pack
 from .problem import marker_problem
-from .targetless import merge_returns, scene_plane_returns
 from .types import (
     Association,
     CalibrationResult,
@@ -62,6 +60,9 @@ class Alternative:
     solution: Solution
     notes: tuple[str, ...] = ()
     estimate: tuple[str, ...] = ()  # the unknowns held by default that its solves estimate (SCALES found off)
+    #: a disagreement with the marker map (in words) that the marker-only fit found but could not judge, as it does
+    #: not determine the DH parameters (one scan line per marker): judged at the joint solution (_judged_jointly)
+    unjudged: str = ""
 
 
 def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
@@ -97,17 +98,8 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     if chosen.sign < 0:
         joints = _negated(joints)
     clock.lap("solve", scans=scans, detections=detections, association=chosen.assoc, markers=chosen.markers)
-    tried: list[str] = []
-    ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, tried)
-    while off := _most_off(ours, notes, config.max_reduced_chi2):  # estimated in every solve from the marker-only on
-        chosen = replace(chosen, estimate=(*chosen.estimate, off))
-        fit = partial(fit, estimate=chosen.estimate)
-        chosen = replace(chosen, solution=fit(chosen.matched, chosen.markers, chosen.solution.params,
-                                              model="sphere", clock=chosen.clock,
-                                              clock_offset_s=chosen.solution.clock_offset_s))
-        tried = []
-        ours, surface_list, on_surfaces = _with_surfaces(chosen, recording, joints, detections, config, fit, tried)
-    notes.extend(tried)
+    chosen, fit, (ours, surface_list, on_surfaces) = _jointly(chosen, recording, joints, detections, config, fit,
+                                                              notes)
     if config.surfaces:
         clock.lap("surfaces")
     checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock,
@@ -237,77 +229,109 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
     return servo_direction(alternatives, nominal.dh, config)
 
 
-#: an intrinsic scale whose score test steps this many sigma from 1 is estimated (a gear ratio, an angle increment)
-SCALE_Z_LIMIT = 4.0
-#: what is off when a scale held at 1 by default is not 1 (lrfcal.model.unknowns, kind "intrinsic"). The bearing
-#: scale (beam_scale) is not tested: on tunnel_v_systematic the unmodelled range errors move its score test 15 sigma
-#: from 1 (0.99147 +- 0.00057, truth 1), and estimating it puts the mount 10 mm off
-SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts per turn in the joint states?)",
-          "range_scale": "the scanner's range scale (ranges off in proportion to their length, or a range bias "
-                         "growing with range read as one?)"}
+def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
+             config: CalibConfig, fit: Callable[..., Solution], notes: list[str]
+             ) -> tuple[Alternative, Callable[..., Solution], tuple[Solution, list[surfaces.Surface],
+                                                                  surfaces.SurfaceReturns | None]]:
+    """6b (lrfcal.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale the
+    data contradict estimated (lrfcal.joint.most_off); then the disagreement with the marker map that the
+    marker-only fit found but could not judge (``chosen.unjudged``) judged at the joint solution. ``chosen`` and
+    ``fit`` as they end up, and the joint result (lrfcal.joint.with_surfaces)."""
+    while True:
+        tried: list[str] = []
+        joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recording,
+                                        joints, detections, config, fit, tried)
+        if not (off := joint.most_off(joint_fit[0], notes, config.max_reduced_chi2)):
+            break
+        chosen = replace(chosen, estimate=(*chosen.estimate, off))  # estimated in every solve from the start on
+        fit = partial(fit, estimate=chosen.estimate)
+        chosen = replace(chosen, solution=_refit(chosen, chosen.matched, fit))
+    if chosen.unjudged:
+        chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recording, joints, detections, config, fit, notes)
+    notes.extend(tried)
+    return chosen, fit, joint_fit
 
 
-def _most_off(sol: Solution, notes: list[str], max_chi2: float) -> str | None:
-    """The scale of :data:`SCALES` held at 1 that the data contradict most (its score test on ``sol``, lrfcal.solve,
-    beyond SCALE_Z_LIMIT sigma), named in a note with the value it steps to; None when none is. One at a time, the
-    others tested again once it is free: a gear ratio 2 % off also stepped the range scale beyond 4 sigma, which
-    it absorbs. None where ``sol``'s reduced chi-square is above ``max_chi2``: a score test means nothing where the
-    model does not fit (three times the stated range noise stepped the range scale 4.4 sigma), and the chi-square
-    check names that."""
-    if not sol.reduced_chi2 <= max_chi2:
-        return None
-    z = {n: abs(v - 1.0) / s for n, (v, s) in sol.held_score.items() if n in SCALES and math.isfinite(s) and s > 0}
-    name = max(z, key=z.__getitem__, default=None)
-    if name is None or z[name] <= SCALE_Z_LIMIT:
-        return None
-    value, sigma = sol.held_score[name]
-    notes.append(f"{SCALES[name]} is off: about {value:.5f} +- {sigma:.5f} ({z[name]:.0f} sigma from 1): estimated "
-                 "in every solve")
-    return name
+def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surfaces.Surface],
+                                                          surfaces.SurfaceReturns | None],
+                    recording: Recording, joints: JointStates, detections: Detections, config: CalibConfig,
+                    fit: Callable[..., Solution], notes: list[str]
+                    ) -> tuple[Alternative, tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None],
+                               list[str]]:
+    """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
+    not determine the DH parameters (one scan line per marker: there a wrong match cannot be told from a moved
+    marker, and a good marker can look moved), judged at the joint solution ``joint_fit``, whose surfaces determine
+    them: the blobs that disagree there (lrfcal.association.inconsistent_blobs) left out and solved again, at most
+    three times. Where no surface returns lie where the marker-only fit puts them (a wrong match can pull it far),
+    the joint solution starts from the marker-only fit without the blobs it finds disagreeing, and every blob is
+    judged from there. ``chosen`` with the blobs so kept, the joint result and its notes.
+
+    Raises:
+        CalibrationError: no surface returns to judge by, or blobs that still disagree after three are left out.
+    """
+    assoc, matched, start = chosen.assoc, chosen.matched, joint_fit[0]
+    if start is chosen.solution:  # no surface returns where the marker-only fit puts them: try it without the blobs
+        sol, kept = chosen.solution, (assoc, matched)  # it finds disagreeing, for a start only
+        for _ in range(3):
+            bad, why = association.inconsistent_blobs(kept[1], sol, chosen.markers, config.range_sigma_m)
+            if not bad.size:
+                break
+            kept = _without_blobs(*kept, bad, why)
+            sol = fit(kept[1], chosen.markers, sol.params, model="sphere", clock=chosen.clock,
+                      clock_offset_s=sol.clock_offset_s)
+            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recording, joints,
+                                             detections, config, fit, [])[0]) is not sol:
+                break
+    no_surfaces = CalibrationError(
+        f"the marker-only fit disagrees with the marker map ({chosen.unjudged}), but the markers alone do not "
+        f"determine the DH parameters here (1-sigma {observability.sigma_words(chosen.solution.sigma[6:10])}) and "
+        "no surface returns were found to judge by, so a wrong match cannot be told from a moved marker: sweep "
+        "slower or more passes, so that several scan lines cross every marker")
+    if start is chosen.solution or start.n_surface_returns == 0:
+        raise no_surfaces
+    for left_out in range(4):  # every round from that start: one with a wrong blob in can be far off
+        tried: list[str] = []
+        joint_fit = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recording, joints,
+                                        detections, config, fit, tried)
+        if joint_fit[0] is start:  # no surface returns for these blobs
+            raise no_surfaces
+        bad, why = association.inconsistent_blobs(matched, joint_fit[0], chosen.markers, config.range_sigma_m)
+        if not bad.size:
+            if not left_out:
+                notes.append(f"the marker-only fit disagreed with the marker map ({chosen.unjudged}); the joint "
+                             "solution with the surfaces does not (the markers alone do not determine the DH "
+                             "parameters here)")
+            break
+        if left_out == 3:
+            raise CalibrationError(f"{why.removesuffix(': left out')}, judged at the joint solution with the "
+                                   "surfaces, after three blobs were left out: check the tape distances and the "
+                                   "markers' positions, and sweep slower or more passes, so that several scan lines "
+                                   "cross every marker")
+        notes.append(f"{why} (judged at the joint solution with the surfaces)")
+        assoc, matched = _without_blobs(assoc, matched, bad, why)
+    chosen = replace(chosen, assoc=assoc, matched=matched, unjudged="", solution=_refit(chosen, matched, fit))
+    return chosen, joint_fit, tried
 
 
-def _with_surfaces(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
-                   config: CalibConfig, fit: Callable[..., Solution], notes: list[str]
-                   ) -> tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]:
-    """6b: every beam on the markers' planes solved jointly with the markers (and every other plane of the scene with
-    ``config.all_planes``); the marker-only solution when ``config.surfaces`` is off."""
-    ours, markers, matched, motor = chosen.solution, chosen.markers, chosen.matched, chosen.clock
-    if not config.surfaces:
-        return ours, [], None
-    scans, nominal = recording.scans, recording.nominal
-    beam_times = scans.beam_times_s
-    lambda_beams = timing.motor_angles(beam_times, joints, clock_offset_s=ours.clock_offset_s, tolerance_s=math.inf)
-    surface_list, on_surfaces = surfaces.observe_surfaces(
-        scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, markers.positions_W,
-        nominal.marker_radius_m, ours.params, position_sigma_m=max(markers.rms_m, 0.0005),
-        max_returns=config.surface_max_returns, beam_times_s=beam_times,
-        intrinsics=ours.intrinsic_values,
-    )
-    if len(on_surfaces):
-        joint = partial(fit, matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
-                        planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s, held_scores=tuple(SCALES))
-        ours = joint(estimate_range_bias=config.estimate_range_bias)
-        if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
-                                               <= observability.RANGE_BIAS_LIMIT_M):
-            notes.append(f"range offset and marker range bias not separable by this recording (1-sigma "
-                         f"{ours.range_offset_sigma_m * 1000:.3g} / {ours.marker_range_bias_sigma_m * 1000:.3g} "
-                         "mm): held at 0")
-            ours = joint(estimate_range_bias=False)
-    elif config.estimate_range_bias:
-        notes.append("range offset and marker range bias held at 0: without surface returns the markers alone "
-                     "do not separate them from the marker radius and the mount")
-    if config.all_planes:  # 6b generalised: every other plane of the scene too, as free planes
-        others, other_planes = scene_plane_returns(scans, joints, ours, detections.labels >= 0,
-                                                   list(surface_list), config)
-        if len(others):
-            on_surfaces = merge_returns(on_surfaces, others)
-            surface_list = [*surface_list, *other_planes]
-            ours = fit(matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
-                       planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
-                       estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=tuple(SCALES))
-            notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
-                         "free planes")
-    return ours, list(surface_list), on_surfaces
+def _without_blobs(assoc: Association, matched: Observations, bad: np.ndarray, why: str
+                   ) -> tuple[Association, Observations]:
+    """``assoc`` and its ``matched`` returns with the blobs ``bad`` unassigned (``why``: what is wrong with them).
+
+    Raises:
+        CalibrationError: fewer than 4 markers remain.
+    """
+    b2m = assoc.blob_to_marker.copy()
+    b2m[bad] = -1
+    matched = matched.subset(b2m[matched.blob] >= 0)
+    if len(np.unique(matched.marker)) < 4:
+        raise CalibrationError(f"{why}; fewer than 4 markers remain")
+    return replace(assoc, blob_to_marker=b2m, n_matched=int((b2m >= 0).sum())), matched
+
+
+def _refit(chosen: Alternative, matched: Observations, fit: Callable[..., Solution]) -> Solution:
+    """``chosen``'s marker-only solution solved again for ``matched``, from itself."""
+    return fit(matched, chosen.markers, chosen.solution.params, model="sphere", clock=chosen.clock,
+               clock_offset_s=chosen.solution.clock_offset_s)
 
 
 def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig,
@@ -360,11 +384,11 @@ def _marker_solution(
             f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
             f"{obs.hint()}"
         )
-    fit = partial(fit, held_scores=tuple(SCALES))  # the scales' score tests read this solution (and its re-solves)
+    fit = partial(fit, held_scores=tuple(joint.SCALES))  # the scales' score tests read this solution (and re-solves)
     sol = fit(matched, markers, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
     notes: list[str] = []
     estimate: tuple[str, ...] = ()
-    while off := _most_off(sol, notes, config.max_reduced_chi2):  # before any marker is judged moved: a range
+    while off := joint.most_off(sol, notes, config.max_reduced_chi2):  # before any marker is judged moved: a range
         estimate = (*estimate, off)                              # scale moves every far marker from its tape position
         fit = partial(fit, estimate=estimate)
         sol = fit(matched, markers, sol.params, model="sphere", clock=motor, clock_offset_s=sol.clock_offset_s)
@@ -374,20 +398,11 @@ def _marker_solution(
         bad, why = association.inconsistent_blobs(matched, sol, markers, config.range_sigma_m)
         if not bad.size:
             break
-        dh_sigma = sol.sigma[6:10]
-        if not observability.within_limits(dh_sigma):  # its residuals cannot tell (fast sweeps went wrong)
-            raise CalibrationError(
-                f"the marker-only fit disagrees with the marker map ({why.removesuffix(': left out')}), but the "
-                "markers alone do not determine the DH parameters here (1-sigma "
-                f"{observability.sigma_words(dh_sigma)}), so a wrong match cannot be told from a moved marker: sweep "
-                "slower or more passes, so that several scan lines cross every marker")
+        if not observability.within_limits(sol.sigma[6:10]):  # its residuals cannot tell: the joint solution will
+            return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate,
+                               unjudged=why.removesuffix(": left out"))
         notes.append(why)
-        b2m = assoc.blob_to_marker.copy()
-        b2m[bad] = -1
-        assoc = Association(b2m, assoc.mirrored, assoc.T_W_M, assoc.rms_m, int((b2m >= 0).sum()))
-        matched = _with_markers(returns, b2m)
-        if len(np.unique(matched.marker)) < 4:
-            raise CalibrationError(f"{why}; fewer than 4 markers remain")
+        assoc, matched = _without_blobs(assoc, matched, bad, why)
         sol = fit(matched, markers, sol.params, model="sphere", clock=motor,
                   clock_offset_s=sol.clock_offset_s)
     return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate)

@@ -32,7 +32,7 @@ runs: from the marker returns alone (a layout the markers leave undetermined is 
 would help). Not modelled: the per-scan widening of the reported covariance (cluster-robust sandwich) and the
 4-sigma rejection. The observability verdict (``lrfcal.observability.analyse``) is the one the
 calibration applies before solving: an undetermined combination means the calibration would refuse (exit 3).
-The information is built over the scales the calibration holds at 1 and tests (lrfcal.markers.SCALES) too: each
+The information is built over the scales the calibration holds at 1 and tests (lrfcal.joint.SCALES) too: each
 one's 1-sigma if freed is the size of scale error the layout finds (:func:`_scale_sigmas`).
 """
 
@@ -50,7 +50,7 @@ from numpy.typing import NDArray
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.information import estimated, information_at, map_error_at, model_error_at, scaled_pinv, turning_error_at
-from lrfcal.markers import SCALE_Z_LIMIT, SCALES
+from lrfcal.joint import SCALE_Z_LIMIT, SCALES
 from lrfcal.mds import map_covariance
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.model.motor import MotorClock, dequantised
@@ -126,7 +126,7 @@ class Plan:
     #: name -> the 1-sigma the marker map's own uncertainty (the tape's noise) contributes
     #: (lrfcal.information.map_error_at), included in ``sigma``
     map_sigma: dict[str, float] = field(default_factory=dict)
-    #: scale name (lrfcal.markers.SCALES) -> its statistical 1-sigma if freed: the calibration holds each scale at 1
+    #: scale name (lrfcal.joint.SCALES) -> its statistical 1-sigma if freed: the calibration holds each scale at 1
     #: and estimates it where its score test steps SCALE_Z_LIMIT of this (or more) from 1
     scale_sigma: dict[str, float] = field(default_factory=dict)
 
