@@ -91,7 +91,7 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
         if surfaces.moved_m(on_surfaces, (selected_at.params, selected_at.intrinsic_values),
                             (ours.params, ours.intrinsic_values)) <= surfaces.RESELECT_M:
             break
-        selected_at = ours
+        selected_at = ours  # after ROUNDS choices the last stands (fast sweeps settle in 3: 35, 2.4, 0.1 mm)
     if note:
         notes.append(note)
     if on_surfaces is not None and not len(on_surfaces) and config.estimate_range_bias:
