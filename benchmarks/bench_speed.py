@@ -8,7 +8,8 @@ imports count), all in this one run, so that a busy machine slows numerator and 
 1. ``lrfsim simulate SCENARIO``: the simulation, the reference of every ratio;
 2. ``lrfcal calibrate REC`` (and ``--no-figures`` when the CLI has it), ``lrfcal calibrate REC --targetless``,
    ``lrfsim plan SCENARIO``, ``lrfsim run SCENARIO``: walls and ratios to the simulation;
-3. the calibration in-process (``lrfcal.pipeline.calibrate``, no CLI, no figures) with its stage times;
+3. the calibration in-process (``lrfcal.pipeline.calibrate``, no CLI, no figures) with its stage times, under the
+   programs' memory and thread policies (lrfcal.memory, lrfcal.threads);
 4. ``lrfcal calibrate REC`` again with 4 busy processes beside it (started here, always killed in a finally);
 5. the simulator's cast (lrfsim.raycast.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
 6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included).
@@ -152,6 +153,11 @@ def main() -> None:
     ap.add_argument("--no-study", action="store_true")
     ap.add_argument("--no-run", action="store_true")
     args = ap.parse_args()
+    from lrfcal.memory import apply_memory_policy
+    from lrfcal.threads import apply_thread_policy
+
+    apply_memory_policy()  # the in-process measurements (3., 5.) under the programs' policies, as the commands run
+    apply_thread_policy()
     sc = str(args.scenario)
     REPEAT[0] = max(1, args.repeat)
     lrfsim, lrfcal = _tool("lrfsim"), _tool("lrfcal")

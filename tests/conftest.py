@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 
+from lrfcal.memory import apply_memory_policy
 from lrfcal.threads import apply_thread_policy
 from lrfsim.scenario import Scenario, load_scenario
 
@@ -28,6 +29,7 @@ SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    apply_memory_policy()  # the programs' policies, in every worker (lrfcal.memory, lrfcal.threads)
     apply_thread_policy()
 
 

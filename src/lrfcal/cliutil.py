@@ -100,11 +100,14 @@ def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoR
     * an OSError or MemoryError that escaped the checks: one line, exit 2 (the cause is named).
 
     Before the command runs, the process's BLAS / OpenMP thread pools are limited by the programs' thread policy
-    (:func:`lrfcal.threads.apply_thread_policy`).
+    (:func:`lrfcal.threads.apply_thread_policy`), and numpy's large arrays kept off transparent huge pages
+    (:func:`lrfcal.memory.apply_memory_policy`).
     """
+    from .memory import apply_memory_policy
     from .threads import apply_thread_policy
 
     try:
+        apply_memory_policy()
         apply_thread_policy()
         rv = app(args=list(argv) if argv is not None else None, prog_name=prog_name, standalone_mode=False)
     except typer.TyperException as e:  # click's usage errors as vendored by typer (NoArgsIsHelpError, ...)

@@ -48,6 +48,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.io.files import atomic_folder, check_replaceable
+from lrfcal.memory import apply_memory_policy
 from lrfcal.model.kinematics import DH_NAMES
 from lrfcal.threads import apply_thread_policy, call_with_thread_policy
 
@@ -222,6 +223,12 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
     return rows
 
 
+def _worker_policy() -> None:
+    """A process-pool worker's policies: the programs' memory and thread policy (lrfcal.memory, lrfcal.threads)."""
+    apply_memory_policy()
+    apply_thread_policy()
+
+
 def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[int, int]]]:
     n_batches = max(1, min(n_batches, len(items)))
     return [b for b in (items[i::n_batches] for i in range(n_batches)) if b]
@@ -274,7 +281,7 @@ def run_trials(
             if own:
                 client.close()
     elif workers > 1:
-        with ProcessPoolExecutor(max_workers=workers, initializer=apply_thread_policy) as pool:
+        with ProcessPoolExecutor(max_workers=workers, initializer=_worker_policy) as pool:
             collect(pool.map(task, batches))
     else:
         hook = None if progress is None else (lambda k: progress(len(rows) + k, trials))
