@@ -11,8 +11,11 @@ def test_the_memory_policy_keeps_numpys_large_arrays_off_huge_pages() -> None:
     """The programs turn numpy's transparent-huge-page madvise off (lrfcal.memory: 1.42-2.01 s against 0.86-0.98 s
     for the in-process calibration of tunnel_v where the kernel compacts memory for them); a user's
     NUMPY_MADVISE_HUGEPAGE stands. Run in a fresh interpreter each: the switch is the process's."""
-    code = ("from lrfcal.memory import apply_memory_policy; import numpy._core.multiarray as m; "
-            "applied = apply_memory_policy(); print(applied, m._set_madvise_hugepage(True))")
+    code = ("import importlib\n"
+            "try:\n    m = importlib.import_module('numpy._core.multiarray')\n"
+            "except ImportError:  # numpy < 2\n    m = importlib.import_module('numpy.core.multiarray')\n"
+            "from lrfcal.memory import apply_memory_policy\n"
+            "applied = apply_memory_policy()\nprint(applied, m._set_madvise_hugepage(True))")
     env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
     ours = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
     assert ours.stdout.split() == ["True", "False"], ours.stderr  # applied; the switch was off
