@@ -165,15 +165,12 @@ def test_real_urg_stand_proposes_alpha_90(urg_proposals, name) -> None:  # type:
     assert "alpha" not in p.undetermined
 
 
-@pytest.mark.parametrize("name", [
-    pytest.param("cardboard_box", marks=pytest.mark.xfail(
-        strict=True, reason="measured: the box proposes b 9 +- 80 mm, not determined (3 of 12 starts agree; beta not "
-        "determined either), 71 mm from the authors' 0.08 m: the small box hardly constrains b (targetless holds "
-        "it)")),
-    "room_240"])
+@pytest.mark.parametrize("name", ["room_240"])
 def test_real_urg_stand_proposes_b_near_the_authors(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
     """b within 4 cm of the authors' 0.08 m (the issue's target; on room_240 the proposal meets it but calls b not
-    determined: 1-sigma 82 mm)."""
+    determined: 1-sigma 82 mm). Not asked of cardboard_box: the small box hardly constrains b (1-sigma about 80 mm,
+    3 of 12 starts agree), so where its proposal lands is chance (9 mm, and 118 mm after a change of the Schur
+    complement's rounding); the next test asks of both that b is near the authors' value or named not determined."""
     p = urg_proposals[name]
     assert p.dh is not None, p.reason
     assert abs(p.dh.b - URG_B) <= 0.04

@@ -108,9 +108,10 @@ def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_pla
     P, c = b.n_planes, core.size
     B, D, g_n = np.zeros((c, 3 * P)), np.zeros((P, 3, 3)), np.zeros(3 * P)
     order, bounds = b.segments if b.segments is not None else _segments(b.plane, P)
+    Jc, Jn, WJn, wr_p = Jc[order], Jn[order], WJn[order], wr_p[order]  # sorted by plane: each plane's rows a slice
     for j in range(P):
-        rows = order[bounds[j]:bounds[j + 1]]
-        if rows.size == 0:
+        rows = slice(bounds[j], bounds[j + 1])
+        if bounds[j] == bounds[j + 1]:
             continue
         Jn_j, WJn_j = Jn[rows], WJn[rows]
         B[:, 3 * j:3 * j + 3] = Jc[rows].T @ WJn_j
@@ -130,38 +131,35 @@ def schur(N: Normal, damp: float = 0.0) -> tuple[FloatArray, FloatArray, FloatAr
     if damp:
         idx = np.arange(3)
         D[:, idx, idx] += damp * np.maximum(N.D[:, idx, idx], 1e-300)
-    P = D.shape[0]
-    Dinv = np.linalg.pinv(D, rcond=1e-12) if P else D
-    S, rhs = A.copy(), -N.g_c.copy()
-    for j in range(P):
-        Bj = N.B[:, 3 * j:3 * j + 3]
-        BDi = Bj @ Dinv[j]
-        S -= BDi @ Bj.T
-        rhs += BDi @ N.g_n[3 * j:3 * j + 3]
-    return 0.5 * (S + S.T), rhs, Dinv
+    Dinv = np.linalg.pinv(D, rcond=1e-12) if D.shape[0] else D
+    BDi = _times_blocks(N.B, Dinv)  # (c, 3P): B_j D_j^-1 side by side
+    S = A - BDi @ N.B.T
+    return 0.5 * (S + S.T), BDi @ N.g_n - N.g_c, Dinv
+
+
+def _times_blocks(B: FloatArray, blocks: FloatArray) -> FloatArray:
+    """B (c, 3P) times the block-diagonal matrix of ``blocks`` (P, 3, 3): B_j blocks_j side by side (c, 3P), in one
+    batched product (the planes' loop of the Schur complement)."""
+    c, P = B.shape[0], blocks.shape[0]
+    return np.matmul(B.reshape(c, P, 3).transpose(1, 0, 2), blocks).transpose(1, 0, 2).reshape(c, 3 * P)
 
 
 def solve_step(N: Normal, damp: float) -> FloatArray:
     """The LM step (c + 3P,) of the damped normal equations, core first."""
     S, rhs, Dinv = schur(N, damp)
     dx_c = np.linalg.solve(S, rhs)
-    P = Dinv.shape[0]
-    dx_n = np.empty(3 * P)
-    for j in range(P):
-        Bj = N.B[:, 3 * j:3 * j + 3]
-        dx_n[3 * j:3 * j + 3] = -Dinv[j] @ (N.g_n[3 * j:3 * j + 3] + Bj.T @ dx_c)
-    return np.concatenate([dx_c, dx_n])
+    v = (N.g_n + N.B.T @ dx_c).reshape(-1, 3, 1)  # per plane: dx_j = -D_j^-1 (g_j + B_j^T dx_c)
+    return np.concatenate([dx_c, -np.matmul(Dinv, v).ravel()])
 
 
 def marginal_sigma(N: Normal) -> FloatArray:
     """The 1-sigma (c + 3P,) of every unknown from the undamped information (pseudo-inverse where singular)."""
     S, _, Dinv = schur(N)
     Sinv = np.linalg.pinv(S)
-    var = [np.diag(Sinv)]
-    for j in range(Dinv.shape[0]):
-        BDi = N.B[:, 3 * j:3 * j + 3] @ Dinv[j]
-        var.append(np.diag(Dinv[j] + BDi.T @ Sinv @ BDi))
-    return np.sqrt(np.maximum(np.concatenate(var), 1e-300))
+    BDi = _times_blocks(N.B, Dinv)
+    # per plane: diag(D_j^-1 + (B_j D_j^-1)^T S^-1 B_j D_j^-1), for all planes at once
+    var_n = np.diagonal(Dinv, axis1=1, axis2=2).ravel() + (BDi * (Sinv @ BDi)).sum(0)
+    return np.sqrt(np.maximum(np.concatenate([np.diag(Sinv), var_n]), 1e-300))
 
 
 #: a barely damped step below ``stall_tol`` sigma that lowers the cost (0.5 chi^2) by less than this is converged:

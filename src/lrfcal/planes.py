@@ -50,9 +50,9 @@ def point_normals(points: FloatArray, k: int = 30) -> tuple[FloatArray, FloatArr
     P = np.asarray(points, dtype=float)
     k = min(k, len(P))
     _, nb = cKDTree(P).query(P, k=k)
-    Q = P[nb] - P[nb].mean(1, keepdims=True)
-    C = np.einsum("pki,pkj->pij", Q, Q) / k
-    w, V = np.linalg.eigh(C)
+    Q = P[nb]  # (P, k, 3), centred in place; the covariances as batched matrix products (a third faster than einsum)
+    Q -= Q.mean(1, keepdims=True)
+    w, V = np.linalg.eigh(np.matmul(Q.transpose(0, 2, 1), Q) / k)
     return V[:, :, 0], w[:, 0] / np.maximum(w.sum(1), 1e-300)
 
 
@@ -141,15 +141,19 @@ def segment_planes(
 
 
 def _scores(Pc: FloatArray, Nc: FloatArray, H: FloatArray, d: FloatArray, thickness_m: float, cos_tol: float,
-            chunk: int = 4096) -> IntArray:
+            chunk: int = 1024) -> IntArray:
     """Each hypothesis' inliers (h,): the points of Pc (c, 3) within ``thickness_m`` of the plane H_k . p = d_k whose
-    normals Nc (c, 3) agree with H_k (|cos| >= cos_tol); counted in chunks of points (the (chunk, h) temporaries
-    stay in cache)."""
+    normals Nc (c, 3) agree with H_k (|cos| >= cos_tol); counted in chunks of points, so that the (chunk, h)
+    temporaries (2.4 MB for 300 hypotheses) stay in cache and below the size numpy and the allocator hand back to the
+    system after each use (4096 points: 4x the time on a 2-core VM)."""
     score = np.zeros(H.shape[0], dtype=np.int64)
+    HT = np.ascontiguousarray(H.T)
     for s in range(0, Pc.shape[0], chunk):
-        dist = np.abs(Pc[s:s + chunk] @ H.T - d)
-        ok = dist <= thickness_m
-        ok &= np.abs(Nc[s:s + chunk] @ H.T) >= cos_tol
+        dist = Pc[s:s + chunk] @ HT
+        dist -= d
+        ok = np.abs(dist, out=dist) <= thickness_m
+        cos = Nc[s:s + chunk] @ HT
+        ok &= np.abs(cos, out=cos) >= cos_tol
         score += ok.sum(0)
     return score
 
