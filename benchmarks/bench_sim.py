@@ -13,7 +13,7 @@ Targets: sim / bare <= 1.5, recording < 5 s. Prints PASS/MISS per target (exit c
 
 from __future__ import annotations
 
-import sys
+import argparse
 import tempfile
 import time
 from pathlib import Path
@@ -102,4 +102,7 @@ def main(path: Path) -> None:
 
 
 if __name__ == "__main__":
-    main(Path(sys.argv[1]) if len(sys.argv) > 1 else ROOT / "scenarios" / "tunnel_v.yaml")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    parser.add_argument("scenario", nargs="?", type=Path, default=ROOT / "scenarios" / "tunnel_v.yaml",
+                        help="scenario YAML (default: scenarios/tunnel_v.yaml)")
+    main(parser.parse_args().scenario)

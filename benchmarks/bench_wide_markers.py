@@ -11,7 +11,7 @@ detected (target: small; measured 0 of 60 at commit time) and the fraction label
 
 from __future__ import annotations
 
-import sys
+import argparse
 import time
 
 import numpy as np
@@ -45,4 +45,8 @@ def main(n_seeds: int, first: int) -> None:
 
 
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 60, int(sys.argv[2]) if len(sys.argv) > 2 else 0)
+    parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
+    parser.add_argument("n_seeds", nargs="?", type=int, default=60, help="scenarios to draw (default 60)")
+    parser.add_argument("first_seed", nargs="?", type=int, default=0, help="the first seed (default 0)")
+    args = parser.parse_args()
+    main(args.n_seeds, args.first_seed)
