@@ -108,15 +108,16 @@ def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_pla
     P, c = b.n_planes, core.size
     B, D, g_n = np.zeros((c, 3 * P)), np.zeros((P, 3, 3)), np.zeros(3 * P)
     order, bounds = b.segments if b.segments is not None else _segments(b.plane, P)
-    Jc, Jn, WJn, wr_p = Jc[order], Jn[order], WJn[order], wr_p[order]  # sorted by plane: each plane's rows a slice
+    # the plane rows sorted by plane once (each plane's rows then a slice, not a gather per plane)
+    Jc_s, Jn_s, WJn_s, wr_s = Jc[order], Jn[order], WJn[order], wr_p[order]
     for j in range(P):
-        rows = slice(bounds[j], bounds[j + 1])
         if bounds[j] == bounds[j + 1]:
             continue
-        Jn_j, WJn_j = Jn[rows], WJn[rows]
-        B[:, 3 * j:3 * j + 3] = Jc[rows].T @ WJn_j
+        rows = slice(bounds[j], bounds[j + 1])
+        Jn_j, WJn_j = Jn_s[rows], WJn_s[rows]
+        B[:, 3 * j:3 * j + 3] = Jc_s[rows].T @ WJn_j
         D[j] = Jn_j.T @ WJn_j
-        g_n[3 * j:3 * j + 3] = Jn_j.T @ wr_p[rows]
+        g_n[3 * j:3 * j + 3] = Jn_j.T @ wr_s[rows]
     if b.w_prior is not None and b.r_prior is not None:
         D[:, [0, 1, 2], [0, 1, 2]] += (b.w_prior ** 2).reshape(P, 3)
         g_n += b.w_prior * b.r_prior
