@@ -35,9 +35,12 @@ LRFSIM = [sys.executable, "-m", "lrfsim.cli"]
 
 
 def _tiny_data() -> dict:
-    """tunnel_v, one pass over +-69 deg at 90 deg/s: about 0.7 s per trial, and it calibrates."""
+    """tunnel_v, one pass over +-69 deg at 45 deg/s: a trial in about a second, and it calibrates. (At 90 deg/s each
+    marker is crossed by one scan line, which the marker-only fit cannot always tell from a moved marker: the
+    calibration then judges it at the joint solution, 2-4 s a trial; that regime is tests/test_trust.py's
+    fast single sweep, not this module's subject.)"""
     data = yaml.safe_load((ROOT / "scenarios" / "tunnel_v.yaml").read_text())
-    data["servo"].update({"speed_rad_s": math.radians(90.0), "passes": 1, "start_rad": 1.2, "end_rad": -1.2})
+    data["servo"].update({"speed_rad_s": math.radians(45.0), "passes": 1, "start_rad": 1.2, "end_rad": -1.2})
     data["name"] = "tiny"
     return data
 
@@ -181,7 +184,7 @@ def test_new_layout_per_trial(tiny) -> None:
     sc = with_field(tiny, "markers.layout.jitter_m", 0.02)
     same = run_trials(sc, 2, seed0=10, recast=True)  # the seeds of this module's other trials of tiny
     new = run_trials(sc, 2, seed0=10, new_layout=True)
-    # tiny's one fast pass crosses each marker with one scan line: a trial is calibrated, or refused with exit 3 where
+    # tiny's one pass crosses each marker with few scan lines: a trial is calibrated, or refused with exit 3 where
     # the markers alone cannot tell a wrong match from a moved marker (lrfcal.markers)
     assert all(r.status == "calibrated" or (r.exit_code == 3 and r.reason) for r in same + new)
     assert any(r.status == "calibrated" for r in same + new), [r.reason for r in same + new]
