@@ -17,6 +17,7 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 from test_cli_sim import _main, _write_small
+from test_memory import fresh_python
 
 import lrfcal.progress as progress
 from lrfcal.pipeline import STAGES
@@ -145,8 +146,7 @@ def test_library_leaves_the_callers_threads() -> None:
             "info = threadpoolctl.threadpool_info\n"
             "n = lambda: sorted({i['num_threads'] for i in info() if i['user_api'] == 'blas'})\n"
             "a = n()\nwith thread_policy(): b = n()\nprint(a, b, n())")
-    env = {k: v for k, v in os.environ.items() if k != "LRF_CALIB_BLAS_THREADS"}
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    proc = fresh_python(code, unset="LRF_CALIB_BLAS_THREADS")
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split() == ["[2]", "[1]", "[2]"], proc.stdout
 
