@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -218,18 +219,19 @@ def test_footprint_geometry() -> None:
     assert math.isclose(lidar.beam_angles(sensor)[540], 0.0, abs_tol=1e-12)
 
 
-def test_cast_on_threads_is_byte_identical() -> None:
+@pytest.mark.parametrize("footprint", ["edges", "full"])
+def test_cast_on_threads_is_byte_identical(footprint: str) -> None:
     """The cast in 1, 2 and 3 threads (chunks of 4 scans, so the threads interleave): the same bytes, echoes too,
-    and the progress callback sees every chunk in scan order."""
+    and the progress callback sees every chunk in scan order; with either footprint cast."""
     sc = small_scenario(sensor={"echoes": {"enabled": True}})
     scene = build_scene(sc)
     traj = sweep_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor, 0.004), sc.sensor))
     seen: list[int] = []
-    one = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=1)
+    one = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=1, footprint=footprint)
     for n in (2, 3):
         seen.clear()
-        many = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=n,
+        many = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=n, footprint=footprint,
                                   progress=lambda done, total: seen.append(done))
         for a, b in ((one.ranges_m, many.ranges_m), (one.intensities, many.intensities),
                      (one.echo_ranges_m, many.echo_ranges_m), (one.echo_power, many.echo_power)):
@@ -251,13 +253,15 @@ def test_cast_threads_run_their_matrix_products_on_one_blas_thread(monkeypatch: 
     traj = sweep_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor, 0.004), sc.sensor))
     seen: list[int] = []
-    cast_chunk = raycast.cast_chunk
 
-    def watched(*args: object) -> None:
-        seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
-        cast_chunk(*args)  # type: ignore[arg-type]
+    def watched(cast: Callable[..., object]) -> Callable[..., object]:
+        def call(*args: object) -> object:
+            seen.extend(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+            return cast(*args)
+        return call
 
-    monkeypatch.setattr(raycast, "cast_chunk", watched)
+    for name in ("cast_chunk", "cast_chunk_edges"):  # footprint_cast full and edges (the default)
+        monkeypatch.setattr(raycast, name, watched(getattr(raycast, name)))
     with threadpool_limits(limits=2, user_api="blas"):
         raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=2)
         after = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
@@ -267,17 +271,17 @@ def test_cast_threads_run_their_matrix_products_on_one_blas_thread(monkeypatch: 
 
 @pytest.mark.parametrize("divergence", [0.0003, 0.004, 0.02])
 def test_edges_footprint_is_the_full_cast_where_it_matters(divergence: float) -> None:
-    """plan's cast (footprint="edges": the ring only at edges and near markers, elsewhere the centre ray's tangent
-    plane) gives the full cast's ranges and intensities: bit-close on planes, the same on the marker and its mixed
-    edge pixels, with chunks of 4 scans (so edges cross chunk borders) and a fraction of the rays; a ring wider than
-    the angle between beams (0.02 rad) casts every sub-ray."""
+    """The default cast (footprint "edges": the ring only at edges and near markers, elsewhere the centre ray's
+    tangent plane) gives the full cast's ranges and intensities: bit-close on planes, the same on the marker and
+    its mixed edge pixels, with chunks of 4 scans (so edges cross chunk borders) and a fraction of the rays; a ring
+    wider than the angle between beams (0.02 rad) casts every sub-ray."""
     sc, _ = _marker_on_beam(560, 1.0, 7)
     sc = parse_scenario(_deep_update(sc.model_dump(mode="json"), {"sensor": {"divergence_rad": divergence}}), "t")
     scene = build_scene(sc)
     traj = sweep_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor, 0.004), sc.sensor))
-    full = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4)
-    edges = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, footprint="edges")
+    full = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, footprint="full")
+    edges = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4)  # the default: sensor.footprint_cast
     assert np.array_equal(np.isfinite(full.ranges_m), np.isfinite(edges.ranges_m))
     hit = np.isfinite(full.ranges_m)
     dr = np.abs(full.ranges_m - edges.ranges_m)[hit]

@@ -28,6 +28,8 @@ Footprint (``divergence_rad`` full angle, unverified for the UTM-30LX, HELIOS++ 
 ``footprint_rays`` F sub-rays: the centre ray plus a ring of F-1 rays at the half-angle that makes them
 equal-area samples of a uniform disc of radius divergence/2 (ring at the centroid radius of the annulus outside
 the centre's share: rho = 2/3 (1 - q^3) / (1 - q^2) * divergence / 2 with q = 1 / sqrt(F)). F = 1: centre only.
+``footprint_cast: edges`` (the default) casts the ring only where it can change a beam; elsewhere the sub-rays
+meet the centre ray's tangent plane (lrfsim.raychunks.cast_chunk_edges); ``full`` casts every sub-ray.
 
 Received power per sub-ray (radar equation as in HELIOS++, with the sensor's constants folded into a gain):
 

@@ -7,8 +7,8 @@ each thread with its own ``MjData`` (the kinematics of a chunk's scans and the r
 geoms that the lidar sees are static, so every copy casts against the same world). Every chunk is computed by the
 same arithmetic whichever thread runs it, and writes only its own scans: the recording is byte-identical with any
 number of threads (tests/test_lidar.py). ``progress(done_scans, total_scans)`` is called from the calling thread,
-chunk by chunk in scan order. The rays of a chunk and their casts: lrfsim.raychunks (``footprint="edges"``, plan's
-cast, casts the footprint's ring only where it can change a beam).
+chunk by chunk in scan order. The rays of a chunk and their casts: lrfsim.raychunks; by default
+(``sensor.footprint_cast: edges``) the footprint's ring is cast only where it can change a beam.
 """
 
 from __future__ import annotations
@@ -178,14 +178,14 @@ def _run_chunks(run: Callable[[int], _ChunkStats], S: int, chunk_scans: int, n_t
 
 def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
                chunk_scans: int = CHUNK_SCANS, progress: Callable[[int, int], None] | None = None,
-               threads: int | None = None, footprint: str = "full") -> Cast:
+               threads: int | None = None, footprint: str | None = None) -> Cast:
     """The ray cast and the mixed-pixel model (lrfsim.lidar's module docstring), without the sensor model;
     beam_lambda_rad (S, N).
 
-    ``footprint``: "full" casts every sub-ray of every beam (the simulator); "edges" casts the footprint's ring only
-    where it can change a beam (:func:`cast_chunk_edges`: at edges and near markers), elsewhere each sub-ray takes the
-    centre ray's tangent plane: `lrfsim plan`'s noise-free cast, about a fifth of the rays, with the ranges of
-    "full" to rounding on planes (a ring wider than the angle between beams: "full").
+    ``footprint`` (default: ``sensor.footprint_cast``): "full" casts every sub-ray of every beam; "edges" casts the
+    footprint's ring only where it can change a beam (:func:`cast_chunk_edges`: at edges and near markers), elsewhere
+    each sub-ray takes the centre ray's tangent plane: about a fifth of the rays, with the ranges of "full" to
+    rounding on planes (a ring wider than the angle between beams: "full").
 
     The cast reaches range_max + 5 sigma of the largest noise band when ``sensor.noise`` is set (a return just
     beyond range_max can be pulled back by the noise), else range_max. ``threads``: chunks of ``chunk_scans`` scans
@@ -199,6 +199,7 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
         raise InputError(f"lidar: beam_lambda_rad must have shape (S, {sensor.n_beams}), got {lam.shape}")
     S, N = lam.shape
     F = sensor.footprint_rays
+    footprint = sensor.footprint_cast if footprint is None else footprint
     geomgroup = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
     cutoff = cast_cutoff_m(sensor)
     E = sensor.echoes.max_echoes

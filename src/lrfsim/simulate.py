@@ -73,12 +73,13 @@ class Geometry:
 
 def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool = True,
                   progress: Callable[[int, int], None] | None = None, threads: int | None = None,
-                  footprint: str = "full", scans: Callable[[FloatArray], NDArray[np.bool_]] | None = None
+                  footprint: str | None = None, scans: Callable[[FloatArray], NDArray[np.bool_]] | None = None
                   ) -> Geometry:
     """Cast the scenario's rays once (no noise drawn): the laser phase comes from ``scenario.seed`` as in
     :func:`simulate`; ``noise=False`` casts for a noise-free sensor (range_max cut-off, see simulate); ``threads``:
     the cast's threads (lrfsim.raycast.cast_scans; the result does not depend on it); ``footprint``: "full", or
     "edges" for the footprint's ring cast only where it can change a beam (lrfsim.raychunks.cast_chunk_edges);
+    default: the scenario's ``sensor.footprint_cast``;
     ``scans(beam_lambda_rad (S, N)) -> (S,) bool``: cast only those scans, the others read as no return (each
     scan is cast on its own, so the scans cast read as in the full cast, up to "edges"' choice of where to cast
     the ring, which compares a scan with the scans cast beside it)."""
@@ -180,7 +181,7 @@ def simulate_from_geometry(scenario: Scenario, geometry: Geometry, *, noise: boo
 
 def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = None, *,
              scene: Scene | None = None, noise: bool = True, threads: int | None = None,
-             footprint: str = "full") -> SimResult:
+             footprint: str | None = None) -> SimResult:
     """Simulate a scenario's recording. ``progress(done_scans, total_scans)`` is called while scanning.
 
     ``scene`` defaults to ``lrfsim.scene.build_scene(scenario)`` (pass one to reuse or replace it).
@@ -189,7 +190,7 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     quantisation, whatever ``sensor.noise`` says (the mixed-pixel footprint stays): the noise-free geometry that
     ``lrfsim plan`` predicts from. The same as ``simulate_from_geometry(scenario, cast_geometry(scenario))``.
     ``threads``: the cast's threads (default: the cores available, lrfsim.raycast.default_threads); ``footprint``:
-    see :func:`cast_geometry` ("edges": plan's cast, not a recording's).
+    see :func:`cast_geometry`.
     """
     geometry = cast_geometry(scenario, scene=scene, noise=noise, progress=progress, threads=threads,
                              footprint=footprint)
