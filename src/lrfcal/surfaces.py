@@ -123,14 +123,14 @@ def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: i
     rng = np.random.default_rng(seed)
     out: list[tuple[FloatArray, float, IntArray]] = []
     seen: set[tuple[int, ...]] = set()
-    for _ in range(n_trials):
-        i = rng.choice(len(X), 3, replace=False)
-        n = np.cross(X[i[1]] - X[i[0]], X[i[2]] - X[i[0]])
-        norm = float(np.linalg.norm(n))
-        if norm < 1e-4:
-            continue
-        n /= norm
-        members = np.nonzero(np.abs((X - X[i[0]]) @ n) < tol_m)[0]
+    idx = np.array([rng.choice(len(X), 3, replace=False) for _ in range(n_trials)]).reshape(-1, 3)
+    # every trial's plane at once: the normals (T, 3) and which markers lie within tol_m of each (T, n)
+    normals = np.cross(X[idx[:, 1]] - X[idx[:, 0]], X[idx[:, 2]] - X[idx[:, 0]])
+    norms = np.linalg.norm(normals, axis=1)
+    unit = normals / np.where(norms < 1e-4, 1.0, norms)[:, None]
+    near = np.abs(np.einsum("tnk,tk->tn", X[None, :, :] - X[idx[:, 0]][:, None, :], unit)) < tol_m
+    for t in np.flatnonzero(norms >= 1e-4):
+        members = np.flatnonzero(near[t])
         key = tuple(members.tolist())
         if members.size < min_markers or key in seen:
             continue
