@@ -46,8 +46,7 @@ _MIN_PER_BIN = 500
 _MAX_BINS = 48
 
 
-def background_model(ranges_m: FloatArray, intensities: FloatArray, seed: int = 0
-                     ) -> tuple[FloatArray, FloatArray]:
+def background_model(ranges_m: FloatArray, intensities: FloatArray) -> tuple[FloatArray, FloatArray]:
     """Robust background of log intensity versus log range.
 
     Args:
@@ -55,10 +54,10 @@ def background_model(ranges_m: FloatArray, intensities: FloatArray, seed: int = 
     Returns:
         knots_log_r (Q,), median_log_i (Q,): bin medians; evaluate with ``np.interp(log r, knots, medians)``.
     """
-    return _background_model_log(np.log(ranges_m), np.log(intensities), seed)
+    return _background_model_log(np.log(ranges_m), np.log(intensities))
 
 
-def _background_model_log(x: FloatArray, y: FloatArray, seed: int) -> tuple[FloatArray, FloatArray]:
+def _background_model_log(x: FloatArray, y: FloatArray) -> tuple[FloatArray, FloatArray]:
     """:func:`background_model` from x = log(range), y = log(intensity) (not modified). Above _MODEL_SAMPLES
     returns, an even subsample: every k-th in the image's order. The bins are quantiles of x, each return placed by
     a partition at the bins' edges (a sort would order the returns inside a bin too, for nothing)."""
@@ -80,7 +79,7 @@ def _background_model_log(x: FloatArray, y: FloatArray, seed: int) -> tuple[Floa
     return kx[keep], ky[keep]
 
 
-def contrast(scans: Scans, seed: int = 0) -> tuple[FloatArray, float, float]:
+def contrast(scans: Scans) -> tuple[FloatArray, float, float]:
     """Log contrast of every return over the range-dependent background.
 
     Returns:
@@ -103,7 +102,7 @@ def contrast(scans: Scans, seed: int = 0) -> tuple[FloatArray, float, float]:
         raise InputError(f"{src}: no return has both a valid range and an intensity > 0")
     r_v = r[valid]
     log_r, log_i = np.log(r_v), np.log(inten[valid])  # computed once, for the model and the contrast
-    kx, ky = _background_model_log(log_r, log_i, seed)
+    kx, ky = _background_model_log(log_r, log_i)
     z = np.full(r.shape, np.nan)
     zv = log_i - np.interp(log_r, kx, ky)
     z[valid] = zv
@@ -115,7 +114,7 @@ def contrast(scans: Scans, seed: int = 0) -> tuple[FloatArray, float, float]:
     return z, t, thr_counts
 
 
-def detect(scans: Scans, min_blob_size: int = 1, seed: int = 0) -> Detections:
+def detect(scans: Scans, min_blob_size: int = 1) -> Detections:
     """Threshold the intensity image and label 8-connected blobs of marker returns.
 
     Args:
@@ -126,7 +125,7 @@ def detect(scans: Scans, min_blob_size: int = 1, seed: int = 0) -> Detections:
         contrast, see the module docstring), blobs sorted by (peak scan, peak beam), labels (S, N) = blob
         index or -1.
     """
-    z, t, thr_counts = contrast(scans, seed)
+    z, t, thr_counts = contrast(scans)
     with np.errstate(invalid="ignore"):
         mask = z > t
     lab, n = ndimage.label(mask, structure=np.ones((3, 3), dtype=bool))
