@@ -136,13 +136,13 @@ def test_sparse_cast_has_every_marker_return(which: str) -> None:
     the predicted sigmas move by what another sample of the surface returns moves them (a few %)."""
     import numpy as np
 
-    from lrfsim.plan import FOOTPRINT, marker_observations, sparse_geometry
+    from lrfsim.plan import marker_observations, sparse_geometry
     from lrfsim.randomize import random_scenario_wide
     from lrfsim.simulate import cast_geometry
 
     sc = (parse_scenario(_fast_tunnel(), "fast tunnel") if which == "fast tunnel"
           else random_scenario_wide(12, alpha_kind="tilted"))
-    full = cast_geometry(sc, noise=False, footprint=FOOTPRINT)
+    full = cast_geometry(sc, noise=False)
     sparse = sparse_geometry(sc)
     cast = np.isfinite(sparse.cast.ranges_m).any(axis=1)
     assert cast.mean() < (0.5 if which == "fast tunnel" else 1.0), cast.mean()  # a tilted plane sees markers longer

@@ -1,8 +1,9 @@
 """Know before you build: the predicted 1-sigma of every calibrated parameter of a scenario, without calibrating.
 
 The scenario's rays are cast once without noise (``lrfsim.simulate.cast_geometry(..., noise=False)``; the mixed-pixel
-footprint stays, its ring cast only where it can change a beam: ``footprint="edges"``, lrfsim.raychunks, a fifth of
-the rays, the same sigmas to 3e-13 on the shipped scenarios; `lrfsim study` hands plan the cast its trials share).
+footprint stays, cast as the simulator casts it, ``sensor.footprint_cast``: by default its ring only where it can
+change a beam, lrfsim.raychunks, a fifth of the rays, the same sigmas as casting every sub-ray to 3e-13 on the
+shipped scenarios; `lrfsim study` hands plan the cast its trials share).
 Only the scans that can see a marker are cast, and every SURFACE_SCAN_STEP-th other one for the surface returns
 (:func:`sparse_geometry`: the marker beams as in the full cast; 41 % of tunnel_v's scans; the rest too when those
 scans hold fewer surface returns than the calibration samples),
@@ -66,8 +67,6 @@ if TYPE_CHECKING:
 
 FloatArray = NDArray[np.float64]
 
-#: plan's noise-free cast: the footprint's ring only where it can change a beam (lrfsim.raychunks.cast_chunk_edges)
-FOOTPRINT = "edges"
 #: the DH block of the covariance (ESTIMATE_NAMES order)
 DH_ROWS = np.ix_(*[[ESTIMATE_NAMES.index(n) for n in DH_NAMES]] * 2)
 #: a tolerance counts as reachable when it is at least this many predicted sigmas
@@ -208,7 +207,7 @@ def marker_observations(scenario: Scenario, geometry: Geometry | None = None
     from .simulate import cast_geometry, simulate_from_geometry
 
     if geometry is None:
-        geometry = cast_geometry(scenario, noise=False, footprint=FOOTPRINT)
+        geometry = cast_geometry(scenario, noise=False)
     result = simulate_from_geometry(scenario, geometry, noise=False)
     owner = marker_returns(result, scenario, among=detected_mask(result, scenario))
     s_idx, b_idx = np.nonzero(owner >= 0)
@@ -260,8 +259,8 @@ def sparse_geometry(scenario: Scenario, rest_of: Geometry | None = None) -> Geom
     from .simulate import cast_geometry, joined
 
     if rest_of is None:
-        return cast_geometry(scenario, noise=False, footprint=FOOTPRINT, scans=partial(sparse_scans, scenario))
-    rest = cast_geometry(scenario, noise=False, footprint=FOOTPRINT,
+        return cast_geometry(scenario, noise=False, scans=partial(sparse_scans, scenario))
+    rest = cast_geometry(scenario, noise=False,
                          scans=lambda lam: ~sparse_scans(scenario, lam))
     return joined(rest_of, rest)
 
