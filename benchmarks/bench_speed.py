@@ -40,7 +40,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
@@ -52,15 +51,6 @@ def _env() -> dict[str, str]:
     env.setdefault("OPENBLAS_NUM_THREADS", "1")
     env.setdefault("OMP_NUM_THREADS", "1")
     return env
-
-
-def _deep_set(data: dict, keys: tuple[str, ...], value: object) -> dict:
-    """``data`` (a scenario's YAML mapping) with ``data[k0][k1]... = value`` (sections created)."""
-    node = data
-    for k in keys[:-1]:
-        node = node.setdefault(k, {})
-    node[keys[-1]] = value
-    return data
 
 
 def _load() -> float:
@@ -168,6 +158,8 @@ def main() -> None:
     args = ap.parse_args()
     from lrfcal.memory import apply_memory_policy
     from lrfcal.threads import apply_thread_policy
+    from lrfsim.scenario import dump_scenario, load_scenario
+    from lrfsim.variants import with_field
 
     apply_memory_policy()  # the in-process measurements (3., 5.) under the programs' policies, as the commands run
     apply_thread_policy()
@@ -187,8 +179,7 @@ def main() -> None:
     try:
         rec = tmp / "rec0"
         full_sc = tmp / "full_footprint.yaml"
-        full_sc.write_text(yaml.safe_dump(_deep_set(yaml.safe_load(args.scenario.read_text()),
-                                                    ("sensor", "footprint_cast"), "full")))
+        full_sc.write_text(dump_scenario(with_field(load_scenario(args.scenario), "sensor.footprint_cast", "full")))
         sim, load = timed([lrfsim, "simulate", str(full_sc), "-o", str(tmp / "rec_full{i}")])
         sim_cpu = LAST_CPU[0]
         row("lrfsim simulate, every sub-ray cast (reference)", f"{sim:.2f} s, cpu {sim_cpu:.2f} s (load {load:.1f})")

@@ -127,6 +127,11 @@ def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_pla
 def schur(N: Normal, damp: float = 0.0) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The planes eliminated from (H + damp diag H): the reduced matrix S (c, c), the reduced right-hand side of
     S dx_c = rhs, and the per-plane inverses D_j^-1 (P, 3, 3) (pseudo-inverses for planes without information)."""
+    return _eliminated(N, damp)[:3]
+
+
+def _eliminated(N: Normal, damp: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`schur`'s (S, rhs, D^-1) and the products B_j D_j^-1 side by side (c, 3P) they are made of."""
     A = N.A + damp * np.diag(np.maximum(np.diag(N.A), 1e-300)) if damp else N.A
     D = N.D.copy()
     if damp:
@@ -135,7 +140,7 @@ def schur(N: Normal, damp: float = 0.0) -> tuple[FloatArray, FloatArray, FloatAr
     Dinv = np.linalg.pinv(D, rcond=1e-12) if D.shape[0] else D
     BDi = _times_blocks(N.B, Dinv)  # (c, 3P): B_j D_j^-1 side by side
     S = A - BDi @ N.B.T
-    return 0.5 * (S + S.T), BDi @ N.g_n - N.g_c, Dinv
+    return 0.5 * (S + S.T), BDi @ N.g_n - N.g_c, Dinv, BDi
 
 
 def _times_blocks(B: FloatArray, blocks: FloatArray) -> FloatArray:
@@ -155,9 +160,8 @@ def solve_step(N: Normal, damp: float) -> FloatArray:
 
 def marginal_sigma(N: Normal) -> FloatArray:
     """The 1-sigma (c + 3P,) of every unknown from the undamped information (pseudo-inverse where singular)."""
-    S, _, Dinv = schur(N)
+    S, _, Dinv, BDi = _eliminated(N, 0.0)
     Sinv = np.linalg.pinv(S)
-    BDi = _times_blocks(N.B, Dinv)
     # per plane: diag(D_j^-1 + (B_j D_j^-1)^T S^-1 B_j D_j^-1), for all planes at once
     var_n = np.diagonal(Dinv, axis1=1, axis2=2).ravel() + (BDi * (Sinv @ BDi)).sum(0)
     return np.sqrt(np.maximum(np.concatenate([np.diag(Sinv), var_n]), 1e-300))
