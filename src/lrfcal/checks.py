@@ -181,7 +181,7 @@ def marker_checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
     config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None, nominal: DH,
 ) -> list[Check]:
-    """The consistency checks a result must pass before it is written (README, stage 6c). The second opinion
+    """The consistency checks a result must pass before it is written (docs/method.md, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
     type, so that it tests the recording's parts, not the markers against the surfaces)."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),

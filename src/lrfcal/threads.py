@@ -5,7 +5,7 @@ equations): a BLAS that starts a thread per core inside each of them gains nothi
 badly on a busy one, where every product waits for threads that other processes keep off the cores (issue 19: a
 targetless calibration took 312 s with OpenBLAS's default threads at load 4-5 on 2 cores, 47 s with one thread).
 So the programs run BLAS and OpenMP with :data:`DEFAULT_THREADS` thread(s) per process; measured quiet and loaded
-by benchmarks/bench_threads.py (README, "Threads").
+by benchmarks/bench_threads.py (docs/speed.md, "Threads").
 
 Where the policy applies (one function each, used by every entry point):
 

@@ -159,8 +159,8 @@ class SensorConfig(Section):
         "at k beams apart (0: independent; measured 0.70 on a real URG-04LX, docs/real-data.md; no public figure "
         "for the UTM-30LX-EW, so 0 by default) [1]", ge=0, lt=1)] = 0.0
     quantisation_m: Annotated[float, doc("range resolution (0: none) [m]", ge=0, le=1)] = 0.001
-    divergence_rad: Annotated[float, doc("full beam divergence angle; unverified for the UTM-30LX, see README "
-                                         "[rad]", ge=0, lt=0.1)] = 0.0044
+    divergence_rad: Annotated[float, doc("full beam divergence angle; unverified for the UTM-30LX, see "
+                                         "docs/simulator.md [rad]", ge=0, lt=0.1)] = 0.0044
     footprint_rays: Annotated[int, doc("rays per beam footprint (1: centre ray only) [1]", ge=1, le=64)] = 7
     footprint_cast: Annotated[Literal["edges", "full"], doc(
         "where the footprint's ring of sub-rays is cast: edges = only where it can change a beam (where neighbouring "
