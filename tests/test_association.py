@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -62,9 +61,7 @@ def test_kabsch_exact_and_weighted() -> None:
 def test_missing_false_and_doubled_blobs(seed: int) -> None:
     rng = np.random.default_rng(seed)
     X, P, T, lab = _scene(rng)
-    t0 = time.perf_counter()
     a = associate(P, _map(X), gate_m=0.05)
-    assert time.perf_counter() - t0 < 1.0  # < 0.2 s typically; loose for slow CI machines
     assert not a.mirrored
     true = lab >= 0
     assert np.array_equal(a.blob_to_marker[true], lab[true])
@@ -98,14 +95,13 @@ def test_coplanar_markers_not_mirrored() -> None:
     assert np.array_equal(a.blob_to_marker, np.arange(2, 15))
 
 
-def test_speed_40_blobs_30_markers() -> None:
+def test_40_blobs_30_markers_one_pass() -> None:
+    """40 blobs of one pass (30 % false) on 30 markers: the true blobs matched (its speed: benchmarks/)."""
     rng = np.random.default_rng(9)
-    X, P, _, _ = _scene(rng, n=30, missed=2, passes=1, false_frac=0.3)
-    P = P[:40]
-    associate(P, _map(X))  # warm-up
-    t0 = time.perf_counter()
-    associate(P, _map(X))
-    assert time.perf_counter() - t0 < 0.5
+    X, P, _, lab = _scene(rng, n=30, missed=2, passes=1, false_frac=0.3)
+    a = associate(P[:40], _map(X))
+    true = lab[:40] >= 0
+    assert true.sum() >= 10 and np.mean(a.blob_to_marker[true] == lab[:40][true]) >= 0.9
 
 
 def test_nan_blobs_stay_unmatched() -> None:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -90,12 +88,11 @@ def test_tunnel_without_hint_and_other_orientation():
     assert g.plate_distance_m == pytest.approx(PLATE, abs=1e-3)
 
 
-def test_fast_on_200k_points():
+def test_200k_points():
+    """A cloud of 200,000 points gives the tunnel's dimensions (its speed: benchmarks/)."""
     pts, axis = tunnel_cloud(n=200_000, seed=5)
-    tunnel_geometry(pts, axis_hint_M=axis)  # warm-up
-    t = time.perf_counter()
-    tunnel_geometry(pts, axis_hint_M=axis)
-    assert time.perf_counter() - t < 0.5
+    g = tunnel_geometry(pts, axis_hint_M=axis)
+    assert g.width_m == pytest.approx(WIDTH, abs=1e-3) and g.height_m == pytest.approx(HEIGHT, abs=1e-3)
 
 
 def test_board_only_scene_gives_none():
