@@ -95,6 +95,9 @@ EDGE_WINDOW_S = 0.1
 #: the motion across a gap counts as steady when the velocities just before it, across it (its chord) and just after
 #: it agree within this share of the recorded top speed (plus what the encoder's step leaves of a slope)
 STEADY_SHARE = 0.1
+#: the recorded motion's top speed: this percentile of the window slopes' magnitudes (a jittery stream's outliers
+#: left out)
+TOP_PERCENTILE = 98.0
 
 
 @dataclass(frozen=True)
@@ -151,7 +154,7 @@ def joint_gaps(stamps_s: ArrayLike, positions_rad: ArrayLike) -> tuple[JointGap,
     k = int(max(1, round(EDGE_WINDOW_S / max(period, 1e-12))))
     k = min(k, t.size - 1)
     slopes = _window_slopes(t, q, k, period)
-    top = float(np.nanmax(np.abs(slopes), initial=0.0)) if np.isfinite(slopes).any() else 0.0
+    top = float(np.nanpercentile(np.abs(slopes), TOP_PERCENTILE)) if np.isfinite(slopes).any() else 0.0
     steps = np.abs(np.diff(q))
     quantum = float(steps[steps > 1e-12].min()) if np.any(steps > 1e-12) else 0.0
     tol = STEADY_SHARE * top + 2.0 * quantum / (k * period)
@@ -241,5 +244,6 @@ def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
     return np.where((misfit <= MISFIT_STEPS * quantum) & ~turns, fit, q)
 
 
-__all__ = ["DEQUANTISE_HALF_WINDOW", "EDGE_WINDOW_S", "GAP_PERIODS", "STEADY_SHARE", "JointGap", "JointSamples",
+__all__ = ["DEQUANTISE_HALF_WINDOW", "EDGE_WINDOW_S", "GAP_PERIODS", "STEADY_SHARE", "TOP_PERCENTILE", "JointGap",
+           "JointSamples",
            "MotorAngles", "MotorClock", "dequantised", "encoder_quantum", "joint_gaps", "motor_angles"]
