@@ -183,15 +183,17 @@ def _poorly_interpolated(scans: Scans, joints: JointStates, tau0: float, range_s
 
 def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigma_m: float | None = None
                  ) -> tuple[Scans, JointStates]:
-    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0``; with the range
+    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0``, outside the gaps of
+    the joint states that may hide a reversal or a stop (:func:`_outside_gaps`); with the range
     noise ``range_sigma_m``, also without the scans whose motor angle the joint states do not interpolate well
     enough (a speed change between sparse samples, :func:`interpolation_error_rad`). The joint states returned have
     most of the encoder's quantisation taken out (:func:`without_quantisation`). What was dropped is appended to
     ``notes``.
 
     Raises:
-        CalibrationError: no scan lies within the joint states' time span, or most scans fall between joint states
-            too sparse to interpolate their motor angle.
+        CalibrationError: no scan lies within the joint states' time span, most scans fall in gaps of the joint
+            states that may hide the servo's motion, or most fall between joint states too sparse to interpolate
+            their motor angle.
     """
     joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
     if n_spikes:
