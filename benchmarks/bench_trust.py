@@ -6,7 +6,7 @@ Runs the calibration on
      up the tunnel; 6-30 markers; 1-4 passes), and
   2. a fault set on tunnel_v and plane_30deg (false blobs, occluded markers, dropped scans, encoder spikes,
      undeclared clock offsets, tape outliers, an inverted servo, 3x range noise, a gear ratio 2 % off, joint states
-     at 2 Hz, ranges 1 % long),
+     at 2 Hz, ranges 1 % long, joint states missing for 3 s across the servo's first turnaround),
 and prints per case the outcome (calibrated with error / sigma, or refused with the reason), then
   - the number of confident wrong results (exit 0 and some DH error beyond 4 sigma): must be 0;
   - the refusal rate, over all random truths and over those whose layout the generator labels as determining
@@ -63,6 +63,7 @@ FAULTS: dict[str, dict[str, object]] = {
     "gear ratio 2 %": {"faults.gear_ratio": 1.02},
     "joint states at 2 Hz": {"faults.joint_rate_hz": 2.0},
     "range scale 1 %": {"faults.range_scale": 1.01},
+    "joint states missing 3 s across a turnaround": {"faults.joint_gap_s": 3.0},
     # one scan line per marker: the markers alone do not determine the DH (lrfcal.markers._judged_jointly)
     "fast single sweep (90 deg/s, one pass)": {"servo.speed_rad_s": math.radians(90.0), "servo.passes": 1},
 }

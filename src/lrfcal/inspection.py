@@ -42,6 +42,7 @@ from .io.bag_messages import (
 from .io.bag_scans import is_laserscan, is_multiecho
 from .io.bag_servo import default_field
 from .io.multiecho import Echoes
+from .io.recording import check_units
 from .propose import DHProposal, proposed_dh
 from .rig import ScanSource, ServoSource, TfSource
 from .timing import covered_scans
@@ -313,6 +314,10 @@ def _read_and_check(path: Path, scan: ScanSource, servo: ServoSource, geometry: 
     cov = covered_scans(data.scans, j)
     n_cov = int(cov.sum())
     problems.extend(_report_problems(report))
+    try:  # ranges in millimetres, joint positions in degrees: what reproject and calibrate refuse
+        check_units(data.scans, j, f"{path}: {scan.topic}", f"{path}: {servo.describe()}", servo=servo)
+    except InputError as err:
+        problems.append(str(err))
     if n_cov < cov.size:
         problems.append(f"{cov.size - n_cov} of {cov.size} scans not covered by the servo samples "
                         f"(within one sample period); reproject and calibrate skip them")

@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError, InputError
-from .model.motor import dequantised
+from .model.motor import JointGap, dequantised, joint_gaps
 from .types import JointStates, Recording, Scans
 
 FloatArray = NDArray[np.float64]
@@ -132,22 +132,27 @@ MAX_TRIMMED_SHARE = 0.5
 
 def interpolation_error_rad(joints: JointStates) -> FloatArray:
     """(J - 1,) a bound on how far the linear interpolation of the joint states can be from the motor's angle within
-    each interval between samples: half the largest second difference at its two ends, beyond two encoder steps.
+    each interval between samples: half the change of the slope at its two ends times its length, beyond what two
+    encoder steps make of the slopes.
 
-    A change of the motor's speed by dv between samples h apart leaves the interpolation up to dv h / 4 off, and
-    makes a second difference of at least dv h / 2 at one end of the interval; a steady motion (a sweep's cruise, a
-    standstill) leaves none. Encoder quantisation (the smallest step the joint states report) is not counted: the
+    A change of the motor's speed by dv within an interval of length h leaves the interpolation up to dv h / 4 off, and
+    changes the slope at one of its ends by at least dv / 2; a steady motion (a sweep's cruise, a standstill) leaves
+    none. The slopes are divided differences, so an interval much longer than the others (a gap in the stream) is
+    bounded by its own length. Encoder quantisation (the smallest step the joint states report) is not counted: the
     per-scan widening of the covariance carries it."""
     q = unwrapped_positions(joints)
     J = q.size
     out = np.zeros(max(J - 1, 0))
     if J < 3:
         return out
+    h = np.maximum(np.diff(joints.stamps_s), 1e-12)
     steps = np.abs(np.diff(q))
     quantum = float(steps[steps > 0].min()) if np.any(steps > 0) else 0.0
-    kink = np.maximum(np.abs(np.diff(q, 2)) - 2.0 * quantum, 0.0) / 2.0  # at samples 1 .. J - 2
-    out[:-1] = kink  # interval j ends at sample j + 1
-    out[1:] = np.maximum(out[1:], kink)  # ... and starts at sample j
+    slope = np.diff(q) / h
+    # at samples 1 .. J - 2: the change of slope, less what the encoder's step makes of the two slopes
+    turn = np.maximum(np.abs(np.diff(slope)) - quantum / h[:-1] - quantum / h[1:], 0.0)
+    out[:-1] = turn * h[:-1] / 2.0  # interval j ends at sample j + 1
+    out[1:] = np.maximum(out[1:], turn * h[1:] / 2.0)  # ... and starts at sample j
     return out
 
 
@@ -178,15 +183,17 @@ def _poorly_interpolated(scans: Scans, joints: JointStates, tau0: float, range_s
 
 def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigma_m: float | None = None
                  ) -> tuple[Scans, JointStates]:
-    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0``; with the range
+    """The joint states without encoder spikes and the scans they cover at clock offset ``tau0``, outside the gaps of
+    the joint states that may hide a reversal or a stop (:func:`_outside_gaps`); with the range
     noise ``range_sigma_m``, also without the scans whose motor angle the joint states do not interpolate well
     enough (a speed change between sparse samples, :func:`interpolation_error_rad`). The joint states returned have
     most of the encoder's quantisation taken out (:func:`without_quantisation`). What was dropped is appended to
     ``notes``.
 
     Raises:
-        CalibrationError: no scan lies within the joint states' time span, or most scans fall between joint states
-            too sparse to interpolate their motor angle.
+        CalibrationError: no scan lies within the joint states' time span, most scans fall in gaps of the joint
+            states that may hide the servo's motion, or most fall between joint states too sparse to interpolate
+            their motor angle.
     """
     joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
     if n_spikes:
@@ -201,6 +208,7 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigm
     scans = subset_scans(recording.scans, covered)
     if not covered.all():
         notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
+    scans = _outside_gaps(scans, joints, tau0, notes)
     if range_sigma_m is None:
         return scans, without_quantisation(joints, scans)
     poor, worst = _poorly_interpolated(scans, joints, tau0, range_sigma_m)
@@ -215,6 +223,47 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigm
     return scans, without_quantisation(joints, scans)
 
 
+def scans_in_gaps(scans: Scans, gaps: tuple[JointGap, ...], clock_offset_s: float = 0.0) -> BoolArray:
+    """(S,) True for scans with a beam inside one of the joint states' ``gaps`` (servo clock) at the clock offset."""
+    lo, hi = scan_spans(scans)
+    lo, hi = lo - clock_offset_s, hi - clock_offset_s
+    inside = np.zeros(lo.size, dtype=bool)
+    for g in gaps:
+        inside |= (hi > g.start_s) & (lo < g.end_s)
+    return inside
+
+
+def _outside_gaps(scans: Scans, joints: JointStates, tau0: float, notes: list[str]) -> Scans:
+    """The scans outside the gaps of the joint states that may hide the servo's motion (lrfcal.model.motor.joint_gaps;
+    a step-and-scan rig's angle is its scan's own: kept), with a note naming the longest; the gaps bridged where the
+    motion was steady are named in a note too.
+
+    Raises:
+        CalibrationError: more than MAX_TRIMMED_SHARE of the scans fall in such gaps.
+    """
+    if scans.angle_per_scan:
+        return scans
+    gaps = joint_gaps(joints.stamps_s, joints.positions_rad)
+    hiding = tuple(g for g in gaps if g.hides)
+    steady = [g for g in gaps if not g.hides]
+    if steady:
+        longest = max(steady, key=lambda g: g.length_s)
+        notes.append(f"the motor angle interpolated across {len(steady)} gap(s) of the joint states where the servo's "
+                     f"motion was steady; the longest: {longest.describe(float(joints.stamps_s[0]))}")
+    if not hiding:
+        return scans
+    inside = scans_in_gaps(scans, hiding, tau0)
+    longest = max(hiding, key=lambda g: g.length_s)
+    why = (f"{len(hiding)} gap(s) of the joint states may hide the servo's motion, across which the motor angle cannot "
+           f"be interpolated; the longest: {longest.describe(float(joints.stamps_s[0]))}")
+    if inside.mean() > MAX_TRIMMED_SHARE:
+        raise CalibrationError(f"{int(inside.sum())} of {inside.size} scans fall where {why}; record the joint states "
+                               "without gaps (at least the scan rate throughout)")
+    if inside.any():
+        notes.append(f"{int(inside.sum())} of {inside.size} scans left out: {why}")
+    return subset_scans(scans, ~inside)
+
+
 def without_quantisation(joints: JointStates, scans: Scans) -> JointStates:
     """The joint states with most of the encoder's quantisation taken out where the motion is smooth
     (lrfcal.model.motor.dequantised); as they are for a step-and-scan rig (Scans.angle_per_scan: its angle is read
@@ -226,8 +275,8 @@ def without_quantisation(joints: JointStates, scans: Scans) -> JointStates:
 
 
 __all__ = ["beam_motor_angles", "beam_times", "covered_scans", "interpolation_error_rad", "joint_period_s",
-           "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "subset_scans", "sweep_passes",
-           "unwrapped_positions", "usable_scans", "without_quantisation"]
+           "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "scans_in_gaps", "subset_scans",
+           "sweep_passes", "unwrapped_positions", "usable_scans", "without_quantisation"]
 
 
 def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scans: int = 5) -> NDArray[np.int64]:

@@ -43,6 +43,10 @@ The scenario's ``faults:`` section (lrfsim.scenario_sections.FaultsConfig), appl
 11. ``range_scale: k``: every reported range (and every echo's) times k (a scanner whose range scale is off: its
     time-of-flight clock, or a driver's unit); after the others. The truth is unchanged. Recorded as
     ``range_scale`` (k).
+12. ``joint_gap_s: L`` (``joint_gap_at_s: t``): the joint states of L seconds centred on the servo-clock time t
+    removed (a joint-state stream that stalled; by default t is the middle of the servo's first turnaround, the
+    middle of the joint states for a spin); after the thinning, before the encoder spikes (:func:`joint_gap`).
+    Recorded: the gap's start, end and length on the servo clock and the number of samples removed.
 
 Not a fault of this module: ``servo.clock_offset_s`` (laser stamp - servo stamp) already simulates an unknown
 laser-servo clock offset (the recording does not declare it; ground_truth.yaml has it as clock_offset_s).
@@ -331,6 +335,41 @@ def thin_joints(result: SimResult, scenario: Scenario, rate_hz: float | None) ->
     return _with_record(result, "joint_rate_hz", record, joints=joints)
 
 
+def first_turnaround_s(result: SimResult) -> float:
+    """Servo-clock time of the middle of the motor's first reversal (the standstill between the first two passes,
+    from the true joint positions); the middle of the joint states when the motor never reverses (a spin)."""
+    j = result.joints
+    t, q = j.stamps_s, j.true_positions_rad
+    step = np.diff(q)
+    moving = np.flatnonzero(np.abs(step) > 1e-9)
+    if moving.size:
+        first = np.sign(step[moving[0]])
+        back = moving[np.sign(step[moving]) != first]
+        if back.size:
+            last_fwd = moving[moving < back[0]][-1]
+            return float(0.5 * (t[last_fwd + 1] + t[back[0]]))
+    return float(0.5 * (t[0] + t[-1]))
+
+
+def joint_gap(result: SimResult, length_s: float | None, at_s: float | None) -> SimResult:
+    """The joint states of ``length_s`` centred on the servo-clock time ``at_s`` (default: the first turnaround,
+    :func:`first_turnaround_s`) removed; at least two samples must remain."""
+    if length_s is None:
+        return result
+    j = result.joints
+    centre = first_turnaround_s(result) if at_s is None else float(at_s)
+    t0, t1 = centre - 0.5 * length_s, centre + 0.5 * length_s
+    keep = (j.stamps_s < t0) | (j.stamps_s > t1)
+    if keep.sum() < 2:
+        raise InputError(f"faults.joint_gap_s: a gap of {length_s:g} s at {centre:g} s leaves {int(keep.sum())} of the "
+                         f"{keep.size} joint states ({j.stamps_s[0]:g}-{j.stamps_s[-1]:g} s); make it shorter")
+    joints = replace(j, stamps_s=j.stamps_s[keep], positions_rad=j.positions_rad[keep],
+                     velocities_rad_s=j.velocities_rad_s[keep], true_positions_rad=j.true_positions_rad[keep])
+    record = {"start_s": float(t0), "end_s": float(t1), "length_s": float(length_s),
+              "n_removed": int((~keep).sum())}
+    return _with_record(result, "joint_gap", record, joints=joints)
+
+
 def off_by_one_increment(result: SimResult, scenario: Scenario) -> SimResult:
     """The LaserScans declare (angle_max - angle_min) / N as angle_increment instead of / (N - 1)."""
     sensor = scenario.sensor
@@ -363,6 +402,7 @@ def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     result = add_false_blobs(result, scenario, f.false_blobs)
     result = drop_scans(result, scenario, f.dropped_scans_fraction)
     result = thin_joints(result, scenario, f.joint_rate_hz)
+    result = joint_gap(result, f.joint_gap_s, f.joint_gap_at_s)
     result = encoder_spikes(result, scenario, f.encoder_spikes, f.encoder_spike_rad)
     result = receive_stamps(result, scenario, f.stamp_latency_s, f.stamp_jitter_s)
     if f.angle_increment_off_by_one:
@@ -371,6 +411,6 @@ def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
 
 
 __all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask", "detected_mask",
-           "drop_scans", "encoder_spikes", "invert_servo", "marker_returns", "occlude_markers",
-           "off_by_one_increment", "receive_stamps", "scale_joints", "scale_range_noise", "scale_ranges",
-           "tape_outliers", "thin_joints"]
+           "drop_scans", "encoder_spikes", "first_turnaround_s", "invert_servo", "joint_gap", "marker_returns",
+           "occlude_markers", "off_by_one_increment", "receive_stamps", "scale_joints", "scale_range_noise",
+           "scale_ranges", "tape_outliers", "thin_joints"]

@@ -423,6 +423,11 @@ class FaultsConfig(Section):
     joint_rate_hz: Annotated[float | None, doc("joint states thinned to at most this rate, every n-th sample kept "
                                                "with n = ceil(servo.rate_hz / this) (a servo polled slowly; null: "
                                                "off) [Hz]", gt=0, le=10000)] = None
+    joint_gap_s: Annotated[float | None, doc("the joint states of this long a time removed (a stalled joint-state "
+                                             "stream; null: off) [s]", gt=0, le=3600)] = None
+    joint_gap_at_s: Annotated[float | None, doc("the middle of that gap on the servo clock (t = 0: the start of the "
+                                                "motion; null: the middle of the servo's first turnaround) [s]",
+                                                ge=0)] = None
     range_scale: Annotated[float, doc("every reported range times this (a scanner whose range scale is off; 1: off); "
                                       "the truth is unchanged [1]", gt=0.5, le=2)] = 1.0
     angle_increment_off_by_one: Annotated[bool, doc(

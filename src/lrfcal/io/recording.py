@@ -49,6 +49,55 @@ def check_joint_coverage(scans: Scans, joints: JointStates, where: str = "joint 
                          f"at {last:.6f} s (tolerance one sample period {period:.6f} s)")
 
 
+# --- units of the recorded numbers ----------------------------------------------------------------------------
+
+#: A LaserScan's ranges are metres (REP 103); a median valid range beyond this, or a declared range_max beyond
+#: MAX_RANGE_MAX_M with a median beyond MIN_MEDIAN_MM_M, is a recording in millimetres: a 2D scanner on a turning
+#: mount sees a room or a tunnel (the UTM-30LX-EW reaches 60 m, a URG-04LX 5.6 m: Hokuyo specifications).
+MAX_MEDIAN_RANGE_M = 100.0
+MAX_RANGE_MAX_M = 1000.0
+MIN_MEDIAN_MM_M = 10.0
+#: A sweeping servo turns less than a turn each way; joint states that go more than this far both ways were
+#: recorded in degrees (a spinning motor turns on one way and is not judged).
+MAX_SWEEP_RAD = 2.0 * math.pi * 1.05
+
+
+def check_units(scans: Scans, joints: JointStates, where_scan: str, where_servo: str,
+                servo: ServoSource | None = None) -> None:
+    """Refuse ranges or joint positions whose size is implausible for their unit (metres, radians), naming the field,
+    the value and the likely unit: the scans' median valid range and range_max (:data:`MAX_MEDIAN_RANGE_M`,
+    :data:`MAX_RANGE_MAX_M`) and the joint positions of a servo that sweeps back and forth by more than
+    :data:`MAX_SWEEP_RAD` each way. ``where_scan`` / ``where_servo`` name the file and topic; ``servo``: the rig's
+    servo source (its ``unit`` for the advice).
+
+    Raises:
+        InputError: ranges in millimetres or joint positions in degrees, in one line.
+    """
+    r = scans.ranges_m[np.isfinite(scans.ranges_m) & (scans.ranges_m > 0)]
+    median = float(np.median(r)) if r.size else 0.0
+    rmax = float(scans.range_max_m)
+    if median > MAX_MEDIAN_RANGE_M or (math.isfinite(rmax) and rmax > MAX_RANGE_MAX_M and median > MIN_MEDIAN_MM_M):
+        raise InputError(
+            f"{where_scan}: ranges look like millimetres, not metres: range_max {rmax:g} m, median range {median:g} m "
+            f"(as millimetres: {rmax / 1000:g} m and {median / 1000:g} m); LaserScan ranges are in metres (REP 103): "
+            "have the driver publish metres, or convert the recording (ranges, range_min, range_max x 0.001)")
+    q = np.asarray(joints.positions_rad, dtype=float)
+    if q.size < 2:
+        return
+    rise = float(np.max(q - np.minimum.accumulate(q)))  # the farthest it went up from a low, and down from a high
+    fall = float(np.max(np.maximum.accumulate(q) - q))
+    if min(rise, fall) <= MAX_SWEEP_RAD:
+        return
+    lo, hi = float(q.min()), float(q.max())
+    unit = servo.unit if servo is not None else "rad"
+    fix = ("they look like degrees: set servo.unit: deg in the rig file" if unit == "rad" else
+           f"check servo.unit ({unit}) and counts_per_rev in the rig file")
+    raise InputError(
+        f"{where_servo}: joint positions {lo:.4g} to {hi:.4g} rad, a servo sweeping back and forth by "
+        f"{min(rise, fall) / (2 * math.pi):.1f} turns each way (a sweep turns less than one); {fix} "
+        f"({lo:.4g} to {hi:.4g} deg is {math.radians(lo):.3f} to {math.radians(hi):.3f} rad)")
+
+
 # --- distances.csv ------------------------------------------------------------------------------------------
 
 def read_distances(path: str | Path, tolerance_m: float = 1e-6) -> TapeMeasurements:
@@ -213,10 +262,14 @@ def read_recording(
         servo_src = ServoSource.model_validate({**servo_src.model_dump(), **upd})
     if bag_reader is not None:
         data = bag_reader(scan_src, servo_src, warn)
+        where = f"{base or 'the recording'}: {scan_src.topic}", f"{base or 'the recording'}: {servo_src.describe()}"
     elif is_scan_log(bag_path := pick(bag, "bag", "bag")):  # a text log (lrfcal.io.scanlog; the rig's log: section)
         data = read_scan_log(bag_path, nom.log, servo_src, warn=warn)
+        where = f"{bag_path}: the range columns", f"{bag_path}: the angle column ({servo_src.unit})"
     else:
         data = read_bag(bag_path, scan_src, servo_src, progress=progress, warn=warn)
+        where = f"{bag_path}: {scan_src.topic}", f"{bag_path}: {servo_src.describe()}"
+    check_units(data.scans, data.joints, *where, servo=servo_src)
     nom = replace(nom, scan=scan_src, servo=servo_src, scan_topic=scan_src.topic,
                   joint_topic=servo_src.topic or "", joint_name=servo_src.joint or "")
     return Recording(scans=data.scans, joints=data.joints, tape=tape, nominal=nom, source=base,
@@ -224,5 +277,6 @@ def read_recording(
 
 
 __all__ = [
-    "check_joint_coverage", "read_distances", "read_nominal", "read_recording",
+    "MAX_MEDIAN_RANGE_M", "MAX_RANGE_MAX_M", "MAX_SWEEP_RAD", "MIN_MEDIAN_MM_M", "check_joint_coverage", "check_units",
+    "read_distances", "read_nominal", "read_recording",
 ]

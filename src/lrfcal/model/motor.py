@@ -11,6 +11,7 @@ acting on the motor angle (a clock offset, a gear ratio) is written here once.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Protocol
 
@@ -63,8 +64,6 @@ class MotorClock:
         return np.interp(t, self.stamps_s, self.positions_rad), np.interp(t, self.stamps_s, self.velocity_rad_s)
 
 
-
-
 @dataclass(frozen=True)
 class MotorAngles:
     """The motor angle of K beams (K,) and its partial derivatives: (core index, dlambda/dtheta (K,)) per unknown
@@ -85,6 +84,105 @@ def motor_angles(th: FloatArray, lam: FloatArray, times: FloatArray | None, cloc
         return MotorAngles(s * q, ((SCALE, q),))
     q, omega = clock.angles(times, th[TAU])
     return MotorAngles(s * q, ((TAU, -s * omega), (SCALE, q)))
+
+
+#: a pause between joint states longer than this many of their median periods is a gap that linear interpolation
+#: bridges blindly (lrfcal.model.motor.joint_gaps)
+GAP_PERIODS = 4.0
+#: the velocity on each side of a gap, and the recorded motion's top speed, are slopes over this long a window of
+#: samples (the encoder's step blurs the slope of a single period)
+EDGE_WINDOW_S = 0.1
+#: the motion across a gap counts as steady when the velocities just before it, across it (its chord) and just after
+#: it agree within this share of the recorded top speed (plus what the encoder's step leaves of a slope)
+STEADY_SHARE = 0.1
+#: the recorded motion's top speed: this percentile of the window slopes' magnitudes (a jittery stream's outliers
+#: left out)
+TOP_PERCENTILE = 98.0
+
+
+@dataclass(frozen=True)
+class JointGap:
+    """A gap in the joint states that the motor angle's linear interpolation bridges: ``start_s``, ``end_s`` the
+    samples on its two sides (servo clock); the velocity just before it, across it (its chord) and just after it
+    [rad/s] (NaN where a side has fewer than 2 samples); ``hides``: the motion it may hide, "" when the motion
+    across it is steady (the interpolation is right there)."""
+
+    start_s: float
+    end_s: float
+    before_rad_s: float
+    across_rad_s: float
+    after_rad_s: float
+    hides: str
+
+    @property
+    def length_s(self) -> float:
+        return self.end_s - self.start_s
+
+    def describe(self, origin_s: float = 0.0) -> str:
+        """One phrase naming the gap: its times (servo clock, after ``origin_s``, e.g. the first joint state's stamp),
+        length and velocities, and what it may hide."""
+        text = (f"no joint states for {self.length_s:.3g} s ({self.start_s - origin_s:.3f}-{self.end_s - origin_s:.3f} "
+                f"s after the first joint state; {self.before_rad_s:+.3f} rad/s before, {self.across_rad_s:+.3f} "
+                f"across, {self.after_rad_s:+.3f} after)")
+        return f"{text}, which may hide {self.hides}" if self.hides else text
+
+
+def _window_slopes(t: FloatArray, q: FloatArray, k: int, period: float) -> FloatArray:
+    """(J - k,) slopes (q[i + k] - q[i]) / (t[i + k] - t[i]) of windows without a gap (NaN for those with one)."""
+    dt = t[k:] - t[:-k]
+    return np.where(dt <= (k - 1 + GAP_PERIODS) * period, (q[k:] - q[:-k]) / np.maximum(dt, 1e-12), np.nan)
+
+
+def joint_gaps(stamps_s: ArrayLike, positions_rad: ArrayLike) -> tuple[JointGap, ...]:
+    """Every pause between joint states (J,) longer than GAP_PERIODS median periods, and the motion it may hide.
+
+    Linear interpolation is right across a gap only where the motor kept its speed through it. A gap may hide:
+    a reversal (the velocities before and after it point opposite ways), a stop or a change of speed (the
+    velocities before, across (its chord: the position change over its length) and after it disagree by more than
+    STEADY_SHARE of the recorded top speed), or, at a standstill on both sides, a whole pass of the sweep (a gap
+    longer than the time the servo takes from one end of the recorded motion to the other at its top speed).
+    stamps_s (J,) increasing, positions_rad (J,) (unwrapped here)."""
+    t = np.asarray(stamps_s, dtype=float)
+    q = np.unwrap(np.asarray(positions_rad, dtype=float))
+    if t.size < 3:
+        return ()
+    dt = np.diff(t)
+    period = float(np.median(dt))
+    starts = np.flatnonzero(dt > GAP_PERIODS * period)
+    if not starts.size:
+        return ()
+    k = int(max(1, round(EDGE_WINDOW_S / max(period, 1e-12))))
+    k = min(k, t.size - 1)
+    slopes = _window_slopes(t, q, k, period)
+    top = float(np.nanpercentile(np.abs(slopes), TOP_PERCENTILE)) if np.isfinite(slopes).any() else 0.0
+    steps = np.abs(np.diff(q))
+    quantum = float(steps[steps > 1e-12].min()) if np.any(steps > 1e-12) else 0.0
+    tol = STEADY_SHARE * top + 2.0 * quantum / (k * period)
+    sweep_s = float(np.ptp(q)) / top if top > 0 else math.inf
+    return tuple(_gap(t, q, int(i), k, tol, sweep_s) for i in starts)
+
+
+def _side_slope(t: FloatArray, q: FloatArray, i0: int, i1: int) -> float:
+    """The slope over samples i0..i1 (clipped to the array; NaN for fewer than 2 samples)."""
+    i0, i1 = max(i0, 0), min(i1, t.size - 1)
+    return float((q[i1] - q[i0]) / (t[i1] - t[i0])) if i1 > i0 else math.nan
+
+
+def _gap(t: FloatArray, q: FloatArray, i: int, k: int, tol: float, sweep_s: float) -> JointGap:
+    """The gap between samples i and i + 1 (:func:`joint_gaps`)."""
+    before, after = _side_slope(t, q, i - k, i), _side_slope(t, q, i + 1, i + 1 + k)
+    across = float((q[i + 1] - q[i]) / (t[i + 1] - t[i]))
+    known = [v for v in (before, after) if math.isfinite(v)]
+    moving = [np.sign(v) for v in (*known, across) if abs(v) > tol]
+    if len(set(moving)) > 1:
+        hides = "a reversal of the servo"
+    elif any(abs(v - across) > tol for v in known) or (len(known) == 2 and abs(known[0] - known[1]) > tol):
+        hides = "a stop or a change of the servo's speed"
+    elif not moving and t[i + 1] - t[i] > sweep_s:
+        hides = "a whole pass of the sweep"
+    else:
+        hides = ""
+    return JointGap(float(t[i]), float(t[i + 1]), before, across, after, hides)
 
 
 #: samples on each side of a joint sample that its dequantising fit takes (lrfcal.model.motor.dequantised)
@@ -146,5 +244,6 @@ def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
     return np.where((misfit <= MISFIT_STEPS * quantum) & ~turns, fit, q)
 
 
-__all__ = ["DEQUANTISE_HALF_WINDOW", "JointSamples", "MotorAngles", "MotorClock", "dequantised", "encoder_quantum",
-           "motor_angles"]
+__all__ = ["DEQUANTISE_HALF_WINDOW", "EDGE_WINDOW_S", "GAP_PERIODS", "STEADY_SHARE", "TOP_PERCENTILE", "JointGap",
+           "JointSamples",
+           "MotorAngles", "MotorClock", "dequantised", "encoder_quantum", "joint_gaps", "motor_angles"]
