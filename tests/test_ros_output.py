@@ -141,3 +141,14 @@ def test_joint_snippet_matches_rig_urdf(tmp_path: Path, sign: int) -> None:
             joints["laser_mount"])
         np.testing.assert_allclose(T_W_M @ _joint_chain((out / JOINTS_NAME).read_text(), sign * lam)[0], whole,
                                    atol=1e-8)
+
+
+def test_targetless_launch_publishes_no_mount() -> None:
+    """A targetless calibration estimates no mount: its launch file compiles, starts robot_state_publisher only and
+    says why there is no static transform."""
+    from lrfcal.io.ros_launch import mount_launch
+
+    text = mount_launch(None)
+    compile(text, LAUNCH_NAME, "exec")
+    assert "static_transform_publisher" not in text and "robot_state_publisher" in text
+    assert "targetless calibration does not estimate it" in text

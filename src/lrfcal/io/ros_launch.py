@@ -38,18 +38,38 @@ def quaternion_xyzw(mount: Pose) -> tuple[float, float, float, float]:
     return float(q[0]), float(q[1]), float(q[2]), float(q[3])
 
 
-def mount_launch(mount: Pose, sigma: dict[str, float] | None = None, joint_topic: str = "/joint_states") -> str:
-    """rig_tf.launch.py (module docstring) for the mount T_W_M; ``sigma``: name -> 1-sigma (ESTIMATE_NAMES, SI
-    units) for the header comment; ``joint_topic``: where robot_state_publisher reads the joint states."""
+def _static_tf(mount: Pose, sigma: dict[str, float] | None) -> tuple[str, str]:
+    """The header comment (the mount in words: roll, pitch, yaw and the 1-sigmas) and the static_transform_publisher
+    node of rig_tf.launch.py."""
     qx, qy, qz, qw = quaternion_xyzw(mount)
     deg = ", ".join(f"{n} {v:.9g} rad ({math.degrees(v):.6g} deg)" for n, v in
-                   (("roll", mount.roll), ("pitch", mount.pitch), ("yaw", mount.yaw)))
+                    (("roll", mount.roll), ("pitch", mount.pitch), ("yaw", mount.yaw)))
     sig = "" if not sigma else "\n# 1-sigma: " + ", ".join(
         f"{n} {sigma[n] * 1000:.3g} mm" if n in ("x", "y", "z") else f"{n} {math.degrees(sigma[n]):.3g} deg"
         for n in ESTIMATE_NAMES[:6] if n in sigma and math.isfinite(sigma[n])) + " (rx, ry, rz: a rotation vector in M)"
+    comment = (f"# mount T_W_M: x {mount.x:.9g} m, y {mount.y:.9g} m, z {mount.z:.9g} m;\n# {deg}\n"
+               f"# R = Rz(yaw) Ry(pitch) Rx(roll) (URDF, REP 103){sig}")
     args = [("--x", mount.x), ("--y", mount.y), ("--z", mount.z),
             ("--qx", qx), ("--qy", qy), ("--qz", qz), ("--qw", qw)]
     arg_lines = "\n".join(f'                "{k}", "{float(v)!r}",' for k, v in args)
+    node = f'''        Node(package="tf2_ros", executable="static_transform_publisher", name="lrf_mount_tf",
+             arguments=[
+{arg_lines}
+                "--frame-id", "{WORLD_FRAME}", "--child-frame-id", "{MOTOR_FRAME}",
+             ]),
+'''
+    return comment, node
+
+
+def mount_launch(mount: Pose | None, sigma: dict[str, float] | None = None, joint_topic: str = "/joint_states") -> str:
+    """rig_tf.launch.py (module docstring) for the mount T_W_M (None: not estimated, a targetless calibration: no
+    static transform, said in a comment); ``sigma``: name -> 1-sigma (ESTIMATE_NAMES, SI units) for the header
+    comment; ``joint_topic``: where robot_state_publisher reads the joint states."""
+    if mount is None:
+        comment, node = ("# NO mount: a targetless calibration does not estimate it (no world frame); publish "
+                         f"{MOTOR_FRAME}'s pose\n# yourself (measured, or from a calibration with markers)."), ""
+    else:
+        comment, node = _static_tf(mount, sigma)
     return f'''"""ROS 2 launch file written by lrfcal calibrate: the calibrated mount as a static transform and the
 servo's joints (rig_joints.urdf, beside this file) by robot_state_publisher.
 
@@ -63,9 +83,7 @@ import os
 from launch import LaunchDescription
 from launch_ros.actions import Node
 
-# mount T_W_M: x {mount.x:.9g} m, y {mount.y:.9g} m, z {mount.z:.9g} m;
-# {deg}
-# R = Rz(yaw) Ry(pitch) Rx(roll) (URDF, REP 103){sig}
+{comment}
 
 
 def generate_launch_description() -> LaunchDescription:
@@ -73,12 +91,7 @@ def generate_launch_description() -> LaunchDescription:
     with open(os.path.join(here, "{JOINTS_NAME}"), encoding="utf-8") as f:
         joints_urdf = f.read()
     return LaunchDescription([
-        Node(package="tf2_ros", executable="static_transform_publisher", name="lrf_mount_tf",
-             arguments=[
-{arg_lines}
-                "--frame-id", "{WORLD_FRAME}", "--child-frame-id", "{MOTOR_FRAME}",
-             ]),
-        Node(package="robot_state_publisher", executable="robot_state_publisher", name="lrf_joints",
+{node}        Node(package="robot_state_publisher", executable="robot_state_publisher", name="lrf_joints",
              parameters=[{{"robot_description": joints_urdf}}],
              remappings=[("joint_states", {joint_topic!r})]),
     ])
@@ -113,7 +126,8 @@ def ros_files(result: CalibrationResult) -> dict[str, str]:
     sol = result.solution
     sigma = {n: float(s) for n, s in zip(ESTIMATE_NAMES, np.asarray(sol.sigma, dtype=float), strict=True)}
     return {
-        LAUNCH_NAME: mount_launch(sol.params.mount, sigma, src.topic or "/joint_states"),
+        LAUNCH_NAME: mount_launch(sol.params.mount if result.method == "markers" else None, sigma,
+                                  src.topic or "/joint_states"),
         JOINTS_NAME: joints_urdf(sol.params.dh, joint=src.joint or "servo",
                                  laser_frame=result.recording.scans.frame_id.lstrip("/") or "laser",
                                  axis_sign=sign, zero_rad=zero, notes=notes),
