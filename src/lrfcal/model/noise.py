@@ -15,6 +15,8 @@ u_i (p,) the Jacobian row of return i's range residual: :func:`correlated_range_
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -23,6 +25,27 @@ IntArray = NDArray[np.int64]
 
 #: pairs whose correlation rho^|k| is below this are left out (rho = 0.7: beams up to 38 apart)
 MIN_PAIR_CORRELATION = 1e-6
+
+
+def _pairs_by_lag(scan: IntArray, beam: IntArray, rho: float, min_correlation: float
+                  ) -> Iterator[tuple[IntArray, IntArray, FloatArray]]:
+    """:func:`correlated_pairs` in parts, one per lag in the returns' (scan, beam) order (each part's arrays
+    (L_lag,))."""
+    if not 0.0 <= rho < 1.0:
+        raise ValueError(f"range noise correlation must be in [0, 1), got {rho}")
+    scan, beam = np.asarray(scan, dtype=np.int64), np.asarray(beam, dtype=np.int64)
+    if rho == 0.0 or scan.size < 2:
+        return
+    order = np.lexsort((beam, scan))
+    s, b = scan[order], beam[order]
+    max_gap = np.log(min_correlation) / np.log(rho)  # beams further apart correlate less than min_correlation
+    for lag in range(1, scan.size):  # sorted by beam within a scan: the gap grows with the lag
+        gap = b[lag:] - b[:-lag]
+        near = (s[lag:] == s[:-lag]) & (gap <= max_gap)
+        if not np.any(near):
+            return
+        k = np.flatnonzero(near)
+        yield order[k], order[k + lag], rho ** gap[k].astype(float)
 
 
 def correlated_pairs(scan: IntArray, beam: IntArray, rho: float, min_correlation: float = MIN_PAIR_CORRELATION
@@ -34,38 +57,25 @@ def correlated_pairs(scan: IntArray, beam: IntArray, rho: float, min_correlation
     Raises:
         ValueError: rho outside [0, 1).
     """
-    if not 0.0 <= rho < 1.0:
-        raise ValueError(f"range noise correlation must be in [0, 1), got {rho}")
-    scan, beam = np.asarray(scan, dtype=np.int64), np.asarray(beam, dtype=np.int64)
-    empty = np.zeros(0, dtype=np.int64)
-    if rho == 0.0 or scan.size < 2:
-        return empty, empty, np.zeros(0)
-    order = np.lexsort((beam, scan))
-    s, b = scan[order], beam[order]
-    max_gap = np.log(min_correlation) / np.log(rho)  # beams further apart correlate less than min_correlation
-    ii, jj, ww = [], [], []
-    for lag in range(1, scan.size):  # sorted by beam within a scan: the gap grows with the lag
-        same = s[lag:] == s[:-lag]
-        gap = b[lag:] - b[:-lag]
-        near = same & (gap <= max_gap)
-        if not np.any(near):
-            break
-        k = np.flatnonzero(near)
-        ii.append(order[k])
-        jj.append(order[k + lag])
-        ww.append(rho ** gap[k].astype(float))
-    if not ii:
-        return empty, empty, np.zeros(0)
-    return np.concatenate(ii), np.concatenate(jj), np.concatenate(ww)
+    parts = list(_pairs_by_lag(scan, beam, rho, min_correlation))
+    if not parts:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+    i, j, w = zip(*parts, strict=True)
+    return np.concatenate(i), np.concatenate(j), np.concatenate(w)
 
 
 def correlated_range_excess(u: FloatArray, scan: IntArray, beam: IntArray, rho: float) -> FloatArray:
     """Delta (p, p) (module docstring): what the range noise's correlation along the scan adds to J^T J in the
     sandwich's middle, from the Jacobian rows u (K, p) of the returns' whitened range residuals, their scans and
-    beams (K,) each, and rho, the correlation of neighbouring beams."""
-    i, j, w = correlated_pairs(scan, beam, rho)
+    beams (K,) each, and rho, the correlation of neighbouring beams (accumulated lag by lag: no (pairs, p) arrays).
+
+    Raises:
+        ValueError: rho outside [0, 1).
+    """
     U = np.asarray(u, dtype=float)
-    cross = (U[i] * w[:, None]).T @ U[j]
+    cross = np.zeros((U.shape[1], U.shape[1]))
+    for i, j, w in _pairs_by_lag(scan, beam, rho, MIN_PAIR_CORRELATION):
+        cross += (U[i] * w[:, None]).T @ U[j]
     return cross + cross.T
 
 
