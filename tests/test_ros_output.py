@@ -152,3 +152,19 @@ def test_targetless_launch_publishes_no_mount() -> None:
     compile(text, LAUNCH_NAME, "exec")
     assert "static_transform_publisher" not in text and "robot_state_publisher" in text
     assert "targetless calibration does not estimate it" in text
+
+
+def test_joint_snippet_cautions_where_a_urdf_joint_cannot_say_it() -> None:
+    """A servo angle recorded in degrees, or taken from a tf rather than a JointState, cannot be a URDF joint's
+    position as it is: rig_joints.urdf's header says CAUTION and why; a plain JointState in rad needs none."""
+    from lrfcal.io.ros_launch import ros_files
+
+    result = make_result(n_scans=40, n_beams=121)
+    assert "CAUTION" not in ros_files(result)[JOINTS_NAME]
+    for servo, words in ((ServoSource(joint="servo", unit="deg"), "unit deg"),
+                         (ServoSource(topic="/imu", field="angle"), "not a sensor_msgs/JointState")):
+        nominal = dataclasses.replace(result.recording.nominal, servo=servo)
+        other = dataclasses.replace(result, recording=dataclasses.replace(result.recording, nominal=nominal))
+        text = ros_files(other)[JOINTS_NAME]
+        ET.fromstring(text)  # still XML: no "--" in its comment
+        assert "CAUTION" in text and words in text, text
