@@ -11,12 +11,11 @@ with sigma_r = the scenario sensor's range noise at the marker returns, lateral 
 R_m sqrt(1 + k^2) / 2, k the sensor's footprint in marker radii (lrfcal.model.sphere.footprint_depth); the clock
 offset is an unknown when the sweep goes both ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
-Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
-clock_offset when it is estimated. To it is added what the model's own errors contribute
-(``lrfcal.information.model_error_at``: the per-scan sandwich of the noise-free returns' range residuals, as the
-calibration's per-scan widening holds it): negligible beside 10 mm range noise, it is
-most of the sigma of a precise scanner (issue 18; docs/study.md, "Model error"). Where the sweep turns on a marker,
-the DH widening the calibration adds for those crossings joins it (``lrfcal.information.turning_error_at``).
+Cramer-Rao bound of the model), in ESTIMATE_NAMES order plus clock_offset when it is estimated. Added to it: what
+the model's own errors contribute (``lrfcal.information.model_error_at``: the per-scan sandwich of the noise-free
+returns' range residuals; negligible beside 10 mm range noise, most of the sigma of a precise scanner: issue 18,
+docs/study.md "Model error"), and where the sweep turns on a marker the DH widening the calibration adds for those
+crossings (``lrfcal.information.turning_error_at``).
 
 By default the surface returns of stage 6b enter too, found as the calibration finds them
 (``lrfcal.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
