@@ -36,7 +36,7 @@ def test_calibration_yaml_round_trip(tmp_path, result):
     out = write_calibration(tmp_path / "cal", result)
     names = sorted(p.name for p in out.iterdir())
     assert names == sorted([MANIFEST_NAME, "calibration.yaml", "cloud_after.ply", "cloud_before.ply", "report.md",
-                            "rig.urdf"])
+                            "rig.urdf", "rig_joints.urdf", "rig_tf.launch.py"])
     data = yaml.safe_load((out / "calibration.yaml").read_text())
     assert set(data["dh"]) == {"a", "alpha", "b", "beta"}
     assert set(data["mount"]) == {"x", "y", "z", "roll", "pitch", "yaw"}

@@ -217,3 +217,15 @@ def test_plan_predicts_the_smallest_scale_error_the_calibration_finds(shipped_re
         value, sigma = t.result.solution.held_score[n]
         assert 0.75 <= sigma / p.scale_sigma[n] <= 1.25, (n, sigma, p.scale_sigma[n])
     assert set(p.to_json()["held_scale_sigma"]) == set(SCALES) and "scales held at 1 and tested" in format_plan(p)
+
+
+def test_plan_models_range_noise_correlated_along_the_scan(tunnel_plan) -> None:
+    """sensor.noise_correlation 0.7 (a real URG's, docs/real-data.md): plan adds the sandwich term of the AR(1)
+    noise (lrfcal.information.correlation_error_at): the DH sigmas about double, as the Monte Carlo's scatter does
+    (docs/study.md, "Range noise correlated along the scan"), and the plan says which noise it assumed."""
+    p = plan(parse_scenario(_fast_tunnel(**{"sensor.noise_correlation": 0.7}), "fast tunnel, rho 0.7"))
+    assert p.range_correlation == 0.7 and tunnel_plan.range_correlation == 0.0
+    for n in ("a", "alpha", "b", "beta"):
+        assert 1.6 < p.sigma[n] / tunnel_plan.sigma[n] < 2.6, (n, p.sigma[n], tunnel_plan.sigma[n])
+    assert "correlated 0.7 between neighbouring beams" in format_plan(p)
+    assert p.to_json()["range_noise_correlation"] == 0.7

@@ -12,6 +12,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .model.kinematics import Params
 from .model.motor import MotorClock
+from .model.noise import correlated_range_excess
 from .model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from .normal_equations import assemble, schur, scores_by_cluster, solve_step
 from .problem import Problem, marker_problem, plane_problem, plane_set
@@ -159,6 +160,43 @@ def model_error_at(
     return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
 
 
+def correlation_error_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, rho: float, *, model: str, marker_radius_m: float,
+    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
+    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
+) -> FloatArray:
+    """The covariance (k, k) that range noise correlated along the scan (neighbouring beams ``rho``, an AR(1)
+    process: lrfcal.model.noise) adds to the independent-noise one (the inverse of :func:`information_at`), over the
+    same unknowns in the same order: [H^-1 Delta H^-1] over the core unknowns, H the information of every unknown
+    (the planes' nuisances too) and Delta the correlated range rows' excess (lrfcal.model.noise.
+    correlated_range_excess) of the marker returns' range rows and the surface returns' ray-plane rows. The whole
+    covariance of an estimate that weights the returns as independent is then H^-1 (H + Delta) H^-1: what its
+    scatter is, and what the calibration's per-scan sandwich (lrfcal.covariance) expects. Sphere model only (its
+    range row is the one the range noise enters)."""
+    if model != "sphere":
+        raise ValueError(f"correlation_error_at: the sphere model only, got {model!r}")
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
+                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+    k = idx.size
+    if rho == 0.0:
+        return np.zeros((k, k))
+    b = pb.blocks(th, R_ref)
+    H, _ = assemble(b, idx).dense()
+    assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
+    use = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)[1]
+    # [H^-1 Delta H^-1] over the core = the excess of the rows u_i H^-1[:, :k] (K, k): cheap where 3P is large
+    A = scaled_pinv(H)[:, :k]
+    n_res, K = pb.markers.n_res, int(np.count_nonzero(use))
+    v_markers = b.J_dense[:K * n_res:n_res][:, idx] @ A[:k]  # the range row of each return (the first)
+    v_planes = b.Jc_plane[:, idx] @ A[:k]
+    for i in range(3):  # the plane nuisances' columns: 3 per plane
+        v_planes += b.Jn_plane[:, i:i + 1] * A[k + 3 * b.plane + i]
+    scan = np.concatenate([np.asarray(obs.scan)[use], np.zeros(0, np.int64) if surfaces is None else surfaces.scan])
+    beam = np.concatenate([np.asarray(obs.beam)[use], np.zeros(0, np.int64) if surfaces is None else surfaces.beam])
+    extra = correlated_range_excess(np.vstack([v_markers, v_planes]), scan, beam, rho)
+    return 0.5 * (extra + extra.T)
+
+
 def turning_error_at(
     obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
     range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
@@ -259,5 +297,5 @@ def plane_information(
     return S, tuple(CORE_NAMES[k] for k in core)
 
 
-__all__ = ["estimated", "information_at", "jacobian_check", "map_error_at", "model_error_at", "model_residuals",
-           "plane_information", "scaled_pinv", "turning_error_at"]
+__all__ = ["correlation_error_at", "estimated", "information_at", "jacobian_check", "map_error_at", "model_error_at",
+           "model_residuals", "plane_information", "scaled_pinv", "turning_error_at"]

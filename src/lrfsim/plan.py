@@ -1,28 +1,21 @@
 """Know before you build: the predicted 1-sigma of every calibrated parameter of a scenario, without calibrating.
 
 The scenario's rays are cast once without noise (``lrfsim.simulate.cast_geometry(..., noise=False)``; the mixed-pixel
-footprint stays, cast as the simulator casts it, ``sensor.footprint_cast``: by default its ring only where it can
-change a beam, lrfsim.raychunks, a fifth of the rays, the same sigmas as casting every sub-ray to 3e-13 on the
-shipped scenarios; `lrfsim study` hands plan the cast its trials share).
-Only the scans that can see a marker are cast, and every SURFACE_SCAN_STEP-th other one for the surface returns
-(:func:`sparse_geometry`: the marker beams as in the full cast; 41 % of tunnel_v's scans; the rest too when those
-scans hold fewer surface returns than the calibration samples),
-the marker returns are those the calibration's detection finds, each owned by the marker its ray passes with the
-truth (``lrfsim.faults.marker_returns`` among ``detected_mask``: a brightness bound instead kept only the edge beams
-of a marker within about 0.4 m, where marker and wall both saturate and the detection sees neither), and the
-calibration's own observation and noise model is evaluated at the TRUE parameters:
-``lrfcal.information.information_at`` (the sphere model: range residual with sigma_r = the scenario sensor's range
-noise at the marker returns, 10 mm for the UTM-30LX-EW as in the calibration, lateral residual with
-sigma = R_m sqrt(1 + k^2) / 2, the depth seen through the sensor's footprint of k marker radii
-(``sensor.divergence_rad``, lrfcal.model.sphere.footprint_depth); the clock offset is an unknown when the sweep goes
-both ways).
+footprint cast as the simulator casts it, ``sensor.footprint_cast``; `lrfsim study` hands plan the cast its trials
+share). Only the scans that can see a marker are cast, and every SURFACE_SCAN_STEP-th other one for the surface
+returns (:func:`sparse_geometry`; all of them when those hold fewer surface returns than the calibration samples).
+The marker returns are those the calibration's detection finds, each owned by the marker its ray passes with the
+truth (``lrfsim.faults.marker_returns`` among ``detected_mask``), and the calibration's own observation and noise
+model is evaluated at the TRUE parameters: ``lrfcal.information.information_at`` (the sphere model: range residual
+with sigma_r = the scenario sensor's range noise at the marker returns, lateral residual with sigma =
+R_m sqrt(1 + k^2) / 2, k the sensor's footprint in marker radii (lrfcal.model.sphere.footprint_depth); the clock
+offset is an unknown when the sweep goes both ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
-Cramer-Rao bound of the model), in ESTIMATE_NAMES order (x, y, z, rx, ry, rz, a, alpha, b, beta) plus
-clock_offset when it is estimated. To it is added what the model's own errors contribute
-(``lrfcal.information.model_error_at``: the per-scan sandwich of the noise-free returns' range residuals, which
-the calibration's reported sigma holds too, as its per-scan widening): negligible beside 10 mm range noise, it is
-most of the sigma of a precise scanner (issue 18; docs/study.md, "Model error"). Where the sweep turns on a marker,
-the DH widening the calibration adds for those crossings joins it (``lrfcal.information.turning_error_at``).
+Cramer-Rao bound of the model), in ESTIMATE_NAMES order plus clock_offset when it is estimated. Added to it: what
+the model's own errors contribute (``lrfcal.information.model_error_at``: the per-scan sandwich of the noise-free
+returns' range residuals; negligible beside 10 mm range noise, most of the sigma of a precise scanner: issue 18,
+docs/study.md "Model error"), and where the sweep turns on a marker the DH widening the calibration adds for those
+crossings (``lrfcal.information.turning_error_at``).
 
 By default the surface returns of stage 6b enter too, found as the calibration finds them
 (``lrfcal.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
@@ -30,11 +23,12 @@ their ray-plane range residuals and the planes' priors (from the tape noise, at 
 with each plane's normal and offset marginalised out. ``surfaces=False`` predicts from the marker returns alone
 (stage 6). Whether the DH parameters are determined is judged as the calibration judges it before any solver
 runs: from the marker returns alone (a layout the markers leave undetermined is refused even where the surfaces
-would help). Not modelled: the per-scan widening of the reported covariance (cluster-robust sandwich) and the
-4-sigma rejection. The observability verdict (``lrfcal.observability.analyse``) is the one the
-calibration applies before solving: an undetermined combination means the calibration would refuse (exit 3).
-The information is built over the scales the calibration holds at 1 and tests (lrfcal.joint.SCALES) too: each
-one's 1-sigma if freed is the size of scale error the layout finds (:func:`_scale_sigmas`).
+would help). Range noise correlated along the scan (``sensor.noise_correlation``, an AR(1) process,
+lrfcal.model.noise) adds its sandwich term (``lrfcal.information.correlation_error_at``). Not modelled: the 4-sigma
+rejection. The observability verdict (``lrfcal.observability.analyse``) is the one the calibration applies before
+solving: an undetermined combination means the calibration would refuse (exit 3).
+The information spans the scales the calibration holds at 1 and tests (lrfcal.joint.SCALES) too: each one's
+1-sigma if freed is the size of scale error the layout finds (:func:`_scale_sigmas`).
 """
 
 from __future__ import annotations
@@ -48,6 +42,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal import information as inf
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.information import estimated, information_at, map_error_at, model_error_at, scaled_pinv, turning_error_at
@@ -128,6 +123,7 @@ class Plan:
     #: scale name (lrfcal.joint.SCALES) -> its statistical 1-sigma if freed: the calibration holds each scale at 1
     #: and estimates it where its score test steps SCALE_Z_LIMIT of this (or more) from 1
     scale_sigma: dict[str, float] = field(default_factory=dict)
+    range_correlation: float = 0.0  #: the range noise's correlation between neighbouring beams (sandwich term)
 
     @property
     def final_observability(self) -> Observability:
@@ -178,7 +174,7 @@ class Plan:
             "n_markers_seen": self.n_markers_seen,
             "n_markers": self.n_markers,
             "n_surface_returns": self.n_surface_returns,
-            "range_sigma_m": self.range_sigma_m,
+            "range_sigma_m": self.range_sigma_m, "range_noise_correlation": self.range_correlation,
             "held_scale_sigma": {n: num(v) for n, v in self.scale_sigma.items()},
             "held_scale_found_beyond": {n: num(SCALE_Z_LIMIT * v) for n, v in self.scale_sigma.items()},
             "information": self.information_source,
@@ -356,13 +352,13 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     assert tuple(names[:10]) == ESTIMATE_NAMES
     return Plan(scenario=scenario.name, names=names, covariance=cov, sigma=sigma, observability=obsv,
                 tolerances=_tolerance_checks(scenario, names, sigma, cov), n_returns=len(obs), n_markers_seen=n_seen,
-                n_markers=int(len(markers_W)),
-                clock_estimated=two_way, range_sigma_m=sigma_r, seconds=time.perf_counter() - t0,
-                information_source=source, n_surface_returns=0 if on_planes is None else len(on_planes),
-                notes=tuple(notes),
+                n_markers=int(len(markers_W)), clock_estimated=two_way, range_sigma_m=sigma_r,
+                seconds=time.perf_counter() - t0, information_source=source,
+                n_surface_returns=0 if on_planes is None else len(on_planes), notes=tuple(notes),
                 observability_solved=None if on_planes is None else analyse(info, names, params.dh.alpha),
                 model_sigma=model_sigma,
-                map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base))
+                map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base),
+                range_correlation=float(scenario.sensor.noise_correlation))
 
 
 def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[str, ...]) -> dict[str, float]:
@@ -394,6 +390,8 @@ def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ob
     # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns at
     # the truth: lrfcal.information.model_error_at), as the calibration's per-scan widening holds both
     model_cov = model_error_at(obs, markers_W, params, **common, **both)
+    rho = float(scenario.sensor.noise_correlation)  # range noise correlated along the scan: its sandwich term
+    corr_cov = inf.correlation_error_at(obs, markers_W, params, rho, **common, **both)
     # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
     tape_cov = map_error_at(info, obs, markers_W, params, expected_map_covariance(scenario, markers_W), **common,
                             **both)
@@ -408,7 +406,8 @@ def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ob
     def sigmas(c: FloatArray) -> dict[str, float]:
         return {n: float(math.sqrt(max(c[i, i], 0.0))) for i, n in enumerate(names)}
 
-    return np.linalg.inv(scaled) / np.outer(col, col) + model_cov + tape_cov, sigmas(model_cov), sigmas(tape_cov)
+    stat = np.linalg.inv(scaled) / np.outer(col, col) + corr_cov
+    return stat + model_cov + tape_cov, sigmas(model_cov), sigmas(tape_cov)
 
 
 def _tolerance_checks(scenario: Scenario, names: tuple[str, ...], sigma: dict[str, float], cov: FloatArray
@@ -462,7 +461,8 @@ def format_value(name: str, value: float) -> str:
 def format_plan(p: Plan) -> str:
     """The plan as text: the sigma table, the weakest direction, what would strengthen it, the tolerances."""
     lines = [f"plan {p.scenario}: {p.n_returns} marker returns on {p.n_markers_seen}/{p.n_markers} markers, "
-             f"{p.n_surface_returns} surface returns, range noise {p.range_sigma_m * 1000:g} mm",
+             f"{p.n_surface_returns} surface returns, range noise {p.range_sigma_m * 1000:g} mm"
+             + (f", correlated {p.range_correlation:g} between neighbouring beams" if p.range_correlation else ""),
              f"information: {p.information_source}", "",
              f"{'parameter':<14}{'predicted 1-sigma':>20}{'model-error part':>20}{'tape part':>14}{'limit':>14}"]
     for n in p.names:

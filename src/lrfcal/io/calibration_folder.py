@@ -1,4 +1,5 @@
-"""The output folder of a calibration: calibration.yaml, rig.urdf, the clouds (PLY), report.md and the figures.
+"""The output folder of a calibration: calibration.yaml, rig.urdf, the ROS 2 files (rig_tf.launch.py,
+rig_joints.urdf: lrfcal.io.ros_launch), the clouds (PLY), report.md and the figures.
 
 ``write_calibration`` (or :func:`calibration_folder`) builds the whole folder in a temporary folder beside it and
 renames it into place when complete (:func:`lrfcal.io.files.atomic_folder`), so a reader never sees a partial
@@ -20,6 +21,7 @@ from .calibration_yaml import calibration_dict
 from .files import atomic_folder, check_replaceable
 from .ply import write_ply
 from .report import render_report
+from .ros_launch import ros_files
 from .urdf import urdf_snippet
 
 
@@ -30,7 +32,8 @@ def write_calibration(
     figures: dict[str, Path] | None = None,
     overwrite: bool = False,
 ) -> Path:
-    """Write calibration.yaml, rig.urdf, cloud_before.ply, cloud_after.ply, report.md and the figures.
+    """Write calibration.yaml, rig.urdf, rig_tf.launch.py, rig_joints.urdf, cloud_before.ply, cloud_after.ply,
+    report.md and the figures.
 
     Everything is written into a temporary folder beside ``out_dir`` that is renamed into place when complete.
     Args:
@@ -74,6 +77,8 @@ def calibration_folder(out_dir: str | Path, result: CalibrationResult,
         text = yaml.safe_dump(calibration_dict(result), sort_keys=False, default_flow_style=None, width=110)
         (tmp / "calibration.yaml").write_text(text, encoding="utf-8")
         (tmp / "rig.urdf").write_text(urdf_snippet(result.solution.params), encoding="utf-8")
+        for name, text in ros_files(result).items():
+            (tmp / name).write_text(text, encoding="utf-8")
         write_ply(tmp / "cloud_before.ply", result.cloud_before_M, result.cloud_intensity)
         after_i = result.cloud_intensity if len(result.cloud_intensity) == len(result.cloud_after_M) else None
         write_ply(tmp / "cloud_after.ply", result.cloud_after_M, after_i)

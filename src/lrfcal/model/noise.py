@@ -1,0 +1,82 @@
+"""The range noise's correlation along the beams of a scan, as an AR(1) process: the noise of two returns of the
+same scan k beams apart correlates as rho^|k|, returns of different scans are independent (measured rho = 0.70 and
+0.56 between neighbouring beams on two real URG-04LX recordings, docs/real-data.md; lrfsim draws it so,
+``sensor.noise_correlation``).
+
+A least-squares estimate that weights its residuals as independent (every stage of the calibration) is then still
+unbiased, but its covariance is the sandwich H^-1 (J^T C J) H^-1, C the residuals' correlation, instead of H^-1
+(H = J^T J, whitened rows). With the range noise entering one row per return (the "sphere" marker model's range
+row, a surface return's ray-plane row) with unit whitened variance, J^T C J = H + Delta,
+
+    Delta = sum over pairs i != j of returns in the same scan  rho^|beam_i - beam_j| u_i u_j^T,
+
+u_i (p,) the Jacobian row of return i's range residual: :func:`correlated_range_excess` computes Delta.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: pairs whose correlation rho^|k| is below this are left out (rho = 0.7: beams up to 38 apart)
+MIN_PAIR_CORRELATION = 1e-6
+
+
+def _pairs_by_lag(scan: IntArray, beam: IntArray, rho: float, min_correlation: float
+                  ) -> Iterator[tuple[IntArray, IntArray, FloatArray]]:
+    """:func:`correlated_pairs` in parts, one per lag in the returns' (scan, beam) order (each part's arrays
+    (L_lag,))."""
+    if not 0.0 <= rho < 1.0:
+        raise ValueError(f"range noise correlation must be in [0, 1), got {rho}")
+    scan, beam = np.asarray(scan, dtype=np.int64), np.asarray(beam, dtype=np.int64)
+    if rho == 0.0 or scan.size < 2:
+        return
+    order = np.lexsort((beam, scan))
+    s, b = scan[order], beam[order]
+    max_gap = np.log(min_correlation) / np.log(rho)  # beams further apart correlate less than min_correlation
+    for lag in range(1, scan.size):  # sorted by beam within a scan: the gap grows with the lag
+        gap = b[lag:] - b[:-lag]
+        near = (s[lag:] == s[:-lag]) & (gap <= max_gap)
+        if not np.any(near):
+            return
+        k = np.flatnonzero(near)
+        yield order[k], order[k + lag], rho ** gap[k].astype(float)
+
+
+def correlated_pairs(scan: IntArray, beam: IntArray, rho: float, min_correlation: float = MIN_PAIR_CORRELATION
+                     ) -> tuple[IntArray, IntArray, FloatArray]:
+    """The pairs of returns (scan, beam: (K,) each) whose range noise correlates: indices i, j (L,) with i != j in
+    the same scan, each unordered pair once, and their correlation rho^|beam_i - beam_j| (L,), those at least
+    ``min_correlation``. Returns on the same beam of a scan (echoes) correlate fully (rho^0). Empty for rho = 0.
+
+    Raises:
+        ValueError: rho outside [0, 1).
+    """
+    parts = list(_pairs_by_lag(scan, beam, rho, min_correlation))
+    if not parts:
+        return np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0)
+    i, j, w = zip(*parts, strict=True)
+    return np.concatenate(i), np.concatenate(j), np.concatenate(w)
+
+
+def correlated_range_excess(u: FloatArray, scan: IntArray, beam: IntArray, rho: float) -> FloatArray:
+    """Delta (p, p) (module docstring): what the range noise's correlation along the scan adds to J^T J in the
+    sandwich's middle, from the Jacobian rows u (K, p) of the returns' whitened range residuals, their scans and
+    beams (K,) each, and rho, the correlation of neighbouring beams (accumulated lag by lag: no (pairs, p) arrays).
+
+    Raises:
+        ValueError: rho outside [0, 1).
+    """
+    U = np.asarray(u, dtype=float)
+    cross = np.zeros((U.shape[1], U.shape[1]))
+    for i, j, w in _pairs_by_lag(scan, beam, rho, MIN_PAIR_CORRELATION):
+        cross += (U[i] * w[:, None]).T @ U[j]
+    return cross + cross.T
+
+
+__all__ = ["MIN_PAIR_CORRELATION", "correlated_pairs", "correlated_range_excess"]
