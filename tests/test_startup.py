@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -57,10 +58,11 @@ print(json.dumps(report))
 
 
 @pytest.mark.parametrize("package", sorted(CASES))
-def test_help_and_usage_errors_import_nothing_heavy(package: str) -> None:
+def test_help_and_usage_errors_import_nothing_heavy(package: str, tmp_path: Path) -> None:
     cases = CASES[package]
     code = PROBE.format(package=package, heavy=HEAVY, cases=cases)
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                          cwd=tmp_path)  # the relative paths of the cases: nothing is written there either
     assert proc.returncode == 0, proc.stderr
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert len(report) == len(cases)
@@ -70,6 +72,7 @@ def test_help_and_usage_errors_import_nothing_heavy(package: str) -> None:
         if want == 2:  # one line naming what is wrong (the no-argument case prints the help on stdout first)
             lines = err.strip().splitlines()
             assert len(lines) == 1 and lines[0].startswith("error: "), err
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_every_command_applies_the_programs_policies() -> None:
