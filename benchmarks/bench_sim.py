@@ -10,6 +10,13 @@
 4. batching: the largest distance between a call's shared origin and a beam's exact origin, and the largest
    angle between a cast direction and the exact beam direction, both against lrfcal.model.kinematics (eq. (3)).
 Targets: sim / bare <= 1.5, recording < 5 s. Prints PASS/MISS per target (exit code 0 either way).
+
+    /work/venv/bin/python benchmarks/bench_sim.py --peer [--repeats 5] [SCENARIO]
+
+--peer: this project's cast against MuJoCo-LiDAR's CPU backend (``mujoco-lidar``, github.com/TATP-233/MuJoCo-LiDAR,
+``MjLidarCPU.trace_rays``: one ``mj_multiRay`` call per pose, one thread) on the same rays of the same compiled MJCF
+scene; installs nothing (``pip install 'lrf-calib[bench]'``). What is cast and timed: :func:`peer_main`; the
+results: docs/speed.md.
 """
 
 from __future__ import annotations
@@ -17,14 +24,16 @@ from __future__ import annotations
 import argparse
 import tempfile
 import time
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 from lrfcal.model.kinematics import beam_rays_M, transform_points
 from lrfsim import lidar, raycast
-from lrfsim.scenario import load_scenario
-from lrfsim.scene import build_scene
+from lrfsim.scenario import Scenario, load_scenario
+from lrfsim.scenario_sections import SensorConfig
+from lrfsim.scene import Scene, build_scene
 from lrfsim.servo import servo_trajectory
 from lrfsim.simulate import simulate_to_folder
 
@@ -107,8 +116,202 @@ def main(path: Path) -> None:
         print(f"{k:<{w0}}  {v:<{w1}}  {s}")
 
 
+# --- --peer: this project's cast against MuJoCo-LiDAR's CPU backend -------------------------------------------
+
+def _first_sweep(sc: Scenario) -> tuple[SensorConfig, np.ndarray]:
+    """The centre rays' sensor (one sub-ray per beam, every ray cast) and the true motor angle at every beam (S, N)
+    of the scans that lie wholly in the servo's first sweep (the trajectory's first move)."""
+    sensor = sc.sensor.model_copy(update={"footprint_rays": 1, "footprint_cast": "full"})
+    traj = servo_trajectory(sc.servo)
+    k = 1 if traj.start_s.size > 1 else 0
+    t0, t1 = float(traj.start_s[k]), float(traj.start_s[k] + traj.duration_s[k])
+    starts = lidar.scan_start_times(traj.end_s, sensor, 0.0)
+    last = (sensor.n_beams - 1) * sensor.time_increment_s
+    sel = starts[(starts >= t0) & (starts + last <= t1)]
+    return sensor, traj.angle(lidar.beam_times(sel, sensor))
+
+
+def _our_calls(scene: Scene, sensor: SensorConfig, lam: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Every mj_multiRay call of this project's cast of ``lam`` (S, N): (origin (3,), directions (n, 3)), copied."""
+    calls = []
+    for ch in raycast.iter_ray_chunks(scene, sensor, lam):
+        for o, a, n in zip(ch.call_origins, ch.call_first, ch.call_count, strict=True):
+            calls.append((o.copy(), ch.directions[a:a + n].copy()))
+    return calls
+
+
+def _bare(scene: Scene, calls: list[tuple[np.ndarray, np.ndarray]], cutoff: float, record: bool = False
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """mj_multiRay over ``calls`` in one thread: distances (M,) (NaN: no hit) and geom ids (M,)."""
+    import mujoco
+
+    M = sum(d.shape[0] for _, d in calls)
+    gid, dist = np.empty(M, np.int32), np.empty(M)
+    gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
+    i = 0
+    for o, dirs in calls:
+        n = dirs.shape[0]
+        mujoco.mj_multiRay(scene.model, scene.data, o, dirs.reshape(-1), gg, 1, -1, gid[i:i + n], dist[i:i + n],
+                           None, n, cutoff)
+        i += n
+    dist[gid < 0] = np.nan
+    return dist, gid
+
+
+class _GeomRecorder:
+    """Stands in for the ``mujoco`` module inside MuJoCo-LiDAR's CPU backend during the untimed check: the same
+    ``mj_multiRay``, and a copy of each call's geom ids (the backend keeps them to itself)."""
+
+    def __init__(self) -> None:
+        import mujoco
+
+        self._mujoco = mujoco
+        self.geomids: list[np.ndarray] = []
+
+    def mj_multiRay(self, **kw: object) -> None:  # noqa: N802 (mujoco's name)
+        self._mujoco.mj_multiRay(**kw)
+        self.geomids.append(np.array(kw["geomid"], copy=True))
+
+
+def _peer_jobs(scene: Scene, sensor: SensorConfig, lam: np.ndarray, per_scan: bool) -> list[tuple]:
+    """The peer's calls ``trace_rays(pose_4x4, theta, phi)`` for the same rays as :func:`_our_calls`.
+
+    ``per_scan``: the scan's motor angle (every beam at the middle beam's) is set in MuJoCo and the pose read from the
+    laser site inside the timed loop, and the rays are the beam bearings in the laser frame (theta = mu, phi = 0), as
+    the peer's users cast a 2D lidar; else one call per run of beams sharing an origin (this project's batching):
+    pose [I | origin] and each ray's world direction as (theta, phi), prepared outside the timer."""
+    if per_scan:
+        mu = lidar.beam_angles(sensor)
+        return [(float(q), mu, np.zeros_like(mu)) for q in lam[:, lam.shape[1] // 2].tolist()]
+    jobs = []
+    for o, dirs in _our_calls(scene, sensor, lam):
+        T = np.eye(4)
+        T[:3, 3] = o
+        jobs.append((T, np.arctan2(dirs[:, 1], dirs[:, 0]), np.arcsin(np.clip(dirs[:, 2], -1.0, 1.0))))
+    return jobs
+
+
+def _peer_run(scene: Scene, lidar_cpu: object, jobs: list[tuple], M: int) -> np.ndarray:
+    """The peer's cast of ``jobs`` (:func:`_peer_jobs`) in order: distances (M,), -1 for no hit."""
+    import mujoco
+
+    m, d = scene.model, scene.data
+    out = np.empty(M)
+    T = np.eye(4)
+    i = 0
+    for pose, theta, phi in jobs:
+        if isinstance(pose, float):  # the scan's pose from MuJoCo's kinematics, as the peer's users read it
+            d.qpos[scene.joint_qpos_adr] = pose
+            mujoco.mj_kinematics(m, d)
+            T[:3, 3] = d.site_xpos[scene.site_id]
+            T[:3, :3] = d.site_xmat[scene.site_id].reshape(3, 3)
+            pose = T
+        lidar_cpu.trace_rays(pose, theta, phi)  # type: ignore[attr-defined]
+        n = theta.shape[0]
+        out[i:i + n] = lidar_cpu.get_distances()  # type: ignore[attr-defined]
+        i += n
+    return out
+
+
+def _agreement(ours: np.ndarray, our_gid: np.ndarray, peer: np.ndarray, peer_gid: np.ndarray) -> str:
+    """Where both casts hit the same geom: the largest range difference; and how many rays hit different geoms."""
+    same = (our_gid == peer_gid) & (our_gid >= 0)
+    diff = float(np.max(np.abs(ours[same] - peer[same]))) if same.any() else float("nan")
+    other = int(np.sum(our_gid != peer_gid))
+    return f"{int(same.sum()):,} rays on the same geom: max |dr| {diff:.1e} m; {other} rays on another geom or a miss"
+
+
+def _peer_workload(name: str, scene: Scene, sensor: SensorConfig, lam: np.ndarray, per_scan: bool, repeats: int
+                   ) -> None:
+    """One workload of :func:`peer_main`: the untimed check that both casts hit the same geoms at the same ranges,
+    then the four casts interleaved ``repeats`` times (a different order every repeat); prints their rows."""
+    import mujoco
+    from mujoco_lidar.core_cpu import MjLidarCPU, mjlidar_cpu
+
+    S, N = lam.shape
+    cutoff = raycast.cast_cutoff_m(sensor)
+    gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
+    calls = _our_calls(scene, sensor, lam)
+    jobs = _peer_jobs(scene, sensor, lam, per_scan)
+    peer = MjLidarCPU(scene.model, cutoff_dist=cutoff, geomgroup=gg, bodyexclude=-1)
+    peer.update(scene.data)
+    bare_r, bare_gid = _bare(scene, calls, cutoff)  # this cast's rays and hits (its geom ids: Cast has none)
+    cast = raycast.cast_scans(scene, sensor, lam, footprint="full")
+    ours = cast.ranges_m.reshape(-1)
+    rec = _GeomRecorder()
+    mjlidar_cpu.mujoco = rec  # type: ignore[assignment]
+    try:
+        peer_r = _peer_run(scene, peer, jobs, S * N)
+    finally:
+        mjlidar_cpu.mujoco = mujoco
+    peer_gid = np.concatenate(rec.geomids)
+    threads = raycast.default_threads()
+    runs = {
+        "MuJoCo-LiDAR MjLidarCPU": partial(_peer_run, scene, peer, jobs, S * N),
+        "this cast, 1 thread": partial(raycast.cast_scans, scene, sensor, lam, footprint="full", threads=1),
+        f"this cast, {threads} threads": partial(raycast.cast_scans, scene, sensor, lam, footprint="full"),
+        "bare mj_multiRay, 1 thread": partial(_bare, scene, calls, cutoff),
+    }
+    times: dict[str, list[float]] = {k: [] for k in runs}
+    keys = list(runs)
+    for r in range(repeats):
+        for k in keys[r % len(keys):] + keys[:r % len(keys)]:
+            t0 = time.perf_counter()
+            runs[k]()
+            times[k].append(time.perf_counter() - t0)
+    print(f"\n{name}: {len(calls):,} mj_multiRay calls ({S * N / len(calls):.0f} rays/call)")
+    print(f"  this cast vs the peer: {_agreement(ours, bare_gid, peer_r, peer_gid)}")
+    print(f"  the peer vs bare:      {_agreement(peer_r, peer_gid, bare_r, bare_gid)}")
+    print(f"  this cast's largest parallax correction (a beam's range from its own origin, not the call's): "
+          f"{cast.max_parallax_correction_m:.1e} m")
+    ref = np.array(times["MuJoCo-LiDAR MjLidarCPU"])
+    w = max(len(k) for k in runs)
+    for k, t in times.items():
+        mr = S * N / np.array(t) / 1e6
+        ratio = ref / np.array(t)  # per repeat: the peer's time over this one's (> 1: faster than the peer)
+        print(f"  {k:<{w}}  {np.median(mr):6.2f} Mrays/s ({mr.min():.2f}-{mr.max():.2f})  "
+              f"speed vs the peer {np.median(ratio):.2f}x ({ratio.min():.2f}-{ratio.max():.2f})")
+
+
+def peer_main(path: Path, repeats: int) -> int:
+    """--peer (module docstring): the first sweep's centre rays cast by this project (lrfsim.raycast.cast_scans,
+    1 thread and the default threads), by MuJoCo-LiDAR's ``MjLidarCPU`` and by bare single-thread mj_multiRay, all
+    interleaved ``repeats`` times; Mrays/s (median and range) and the ratio to the peer per repeat."""
+    try:
+        import mujoco_lidar
+    except ImportError:
+        print("mujoco-lidar is not installed: pip install 'lrf-calib[bench]' (or pip install mujoco-lidar)")
+        return 2
+    import mujoco
+
+    from lrfcal.memory import apply_memory_policy
+    from lrfcal.threads import apply_thread_policy
+
+    apply_memory_policy()  # as the programs run (one BLAS thread: the cast's threads are its own)
+    apply_thread_policy()
+    sc = load_scenario(path)
+    scene = build_scene(sc)
+    sensor, lam_beam = _first_sweep(sc)
+    S, N = lam_beam.shape
+    print(f"{sc.name}: first sweep, {S} scans x {N} centre rays = {S * N:,} rays; mujoco {mujoco.__version__}, "
+          f"mujoco-lidar {mujoco_lidar.__version__}, {raycast.default_threads()} cast threads, {repeats} repeats")
+    workloads = {  # name: (motor angles (S, N), the peer's calls one per scan?)
+        "one pose per scan": (np.repeat(lam_beam[:, N // 2:N // 2 + 1], N, axis=1), True),
+        "each beam at its own time (the simulator's rays)": (lam_beam, False),
+    }
+    for name, (lam, per_scan) in workloads.items():
+        _peer_workload(name, scene, sensor, lam, per_scan, repeats)
+    return 0
+
+
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
     parser.add_argument("scenario", nargs="?", type=Path, default=ROOT / "scenarios" / "tunnel_v.yaml",
                         help="scenario YAML (default: scenarios/tunnel_v.yaml)")
-    main(parser.parse_args().scenario)
+    parser.add_argument("--peer", action="store_true",
+                        help="cast against MuJoCo-LiDAR's CPU backend instead (needs mujoco-lidar installed)")
+    parser.add_argument("--repeats", type=int, default=5, help="--peer: interleaved repeats (default 5)")
+    args = parser.parse_args()
+    if args.peer:
+        raise SystemExit(peer_main(args.scenario, args.repeats))
+    main(args.scenario)

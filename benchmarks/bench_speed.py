@@ -1,6 +1,7 @@
 """Speed of every command against the simulation, measured in one run (issue 19, "Fast and visible").
 
     python benchmarks/bench_speed.py [SCENARIO] [--trials N] [--repeat R] [--no-study] [--no-run]
+    python benchmarks/bench_speed.py [SCENARIO] --only help,read [--recording REC]
 
 The console scripts are timed as a user runs them (a subprocess of the installed ``lrfsim`` / ``lrfcal``, so the
 imports count), all in this one run, so that a busy machine slows numerator and denominator alike:
@@ -15,13 +16,21 @@ imports count), all in this one run, so that a busy machine slows numerator and 
    programs' memory and thread policies (lrfcal.memory, lrfcal.threads);
 4. ``lrfcal calibrate REC`` again with 4 busy processes beside it (started here, always killed in a finally);
 5. the simulator's cast (lrfsim.raycast.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
-6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included).
+6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included);
+7. start-up: ``lrfcal --help`` and ``lrfsim --help`` as console scripts (beside ``python -c pass``, the
+   interpreter's own start), R runs each and at least 5;
+8. reading the recording: :func:`read_recording_s`, whatever reader ``lrfcal.io`` has (read once first, untimed,
+   so that its imports count in 7. and not here), R runs and at least 3.
+
+``--only help,read`` runs the rows 7. and 8. alone (8. reads ``--recording REC`` or a recording of SCENARIO it
+simulates first), e.g. to check a change to start-up or reading without the whole benchmark.
 
 Each command of 1., 2. and 4. runs R times (default 3) and its median wall counts (its CPU: that run's), so that
 one run slowed by other work on a shared machine does not decide a ratio.
 
 Targets: calibrate <= 0.5x the simulation, targetless <= 0.7x, plan <= 0.5x, calibrate beside 4 busy processes
-<= 3x the quiet one, cast <= 0.75x bare mj_multiRay, study >= 100 trials/min. Every figure carries the 1-minute
+<= 3x the quiet one, cast <= 0.75x bare mj_multiRay, study >= 100 trials/min, ``lrfcal --help`` <= 0.3 s, reading
+the recording <= 0.1 s (issue 47; these two are walls, not ratios). Every figure carries the 1-minute
 load average when it was taken (2 cores shared with other work: compare ratios, not walls). Prints PASS/MISS per
 target and exits 0 either way (it reports; the tests assert). Beside each wall, the CPU seconds (user + system) of
 the run and their ratio to the simulation's: less sensitive to other work on the machine than the walls.
@@ -37,13 +46,17 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-TARGETS = {"calibrate": 0.5, "targetless": 0.7, "plan": 0.5, "loaded": 3.0, "cast": 0.75, "study": 100.0}
+TARGETS = {"calibrate": 0.5, "targetless": 0.7, "plan": 0.5, "loaded": 3.0, "cast": 0.75, "study": 100.0,
+           "help": 0.3, "read": 0.1}
+#: the rows ``--only`` can run alone
+ONLY = ("help", "read")
 
 
 def _env() -> dict[str, str]:
@@ -148,6 +161,59 @@ def pipeline_inprocess(rec: Path) -> tuple[float, dict[str, float], float]:
     return time.perf_counter() - t0, dict(result.timings_s), load
 
 
+def read_recording_s(rec: Path, repeat: int) -> tuple[float, float, int]:
+    """(median seconds, load, scans) of reading the recording folder ``rec`` in-process through lrfcal.io
+    (lrfcal.io.recording.read_recording: bag, tape distances and rig file), ``repeat`` runs after an untimed one."""
+    from lrfcal.io.recording import read_recording
+
+    n_scans = read_recording(rec).scans.ranges_m.shape[0]  # imports and the file cache: not the reading's
+    load = _load()
+    runs = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        read_recording(rec)
+        runs.append(time.perf_counter() - t0)
+    return float(np.median(runs)), load, n_scans
+
+
+Row = Callable[..., None]
+
+
+def startup_rows(row: Row, judge: Callable[[bool], str]) -> None:
+    """Rows 7. (module docstring): ``lrfcal --help`` and ``lrfsim --help`` beside ``python -c pass``."""
+    repeat = max(5, REPEAT[0])
+    bare, _ = timed([sys.executable, "-c", "pass"], repeat=repeat)
+    for tool in ("lrfcal", "lrfsim"):
+        wall, load = timed([_tool(tool), "--help"], repeat=repeat)
+        target = f"; target <= {TARGETS['help']} s" if tool == "lrfcal" else ""
+        row(f"{tool} --help", f"{wall:.3f} s (python -c pass {bare:.3f} s{target}; median of {repeat}; load "
+            f"{load:.1f})", judge(wall <= TARGETS["help"]) if tool == "lrfcal" else "")
+
+
+def read_row(row: Row, judge: Callable[[bool], str], rec: Path, name: str) -> None:
+    """Row 8. (module docstring): reading the recording ``rec`` (of ``name``) through lrfcal.io."""
+    repeat = max(3, REPEAT[0])
+    rd, load, n_scans = read_recording_s(rec, repeat)
+    row(f"reading {name}'s recording (lrfcal.io, in-process)", f"{rd:.3f} s for {n_scans} scans (target <= "
+        f"{TARGETS['read']} s; median of {repeat}; load {load:.1f})", judge(rd <= TARGETS["read"]))
+
+
+def only_rows(args: argparse.Namespace, row: Row, judge: Callable[[bool], str], tmp: Path) -> None:
+    """``--only``: the rows named in ``args.only`` (:data:`ONLY`) alone."""
+    names = [n.strip() for n in args.only.split(",") if n.strip()]
+    bad = [n for n in names if n not in ONLY]
+    if bad:
+        sys.exit(f"bench_speed: --only takes {', '.join(ONLY)}, got {', '.join(bad)}")
+    if "help" in names:
+        startup_rows(row, judge)
+    if "read" in names:
+        rec = args.recording
+        if rec is None:
+            rec = tmp / "rec"
+            timed([_tool("lrfsim"), "simulate", str(args.scenario), "-o", str(rec)], repeat=1)
+        read_row(row, judge, rec, args.scenario.stem)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenario", nargs="?", type=Path, default=ROOT / "scenarios" / "tunnel_v.yaml")
@@ -155,6 +221,9 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="runs of each timed command, the median counts (default 3)")
     ap.add_argument("--no-study", action="store_true")
     ap.add_argument("--no-run", action="store_true")
+    ap.add_argument("--only", metavar="ROWS", help=f"run only these rows, comma-separated: {', '.join(ONLY)}")
+    ap.add_argument("--recording", type=Path, metavar="REC", help="--only read: this recording folder (default: "
+                    "a simulation of SCENARIO)")
     args = ap.parse_args()
     from lrfcal.memory import apply_memory_policy
     from lrfcal.threads import apply_thread_policy
@@ -177,6 +246,9 @@ def main() -> None:
 
     tmp = Path(tempfile.mkdtemp(prefix="bench-speed-"))
     try:
+        if args.only:
+            only_rows(args, row, judge, tmp)
+            return print_table(args, rows)
         rec = tmp / "rec0"
         full_sc = tmp / "full_footprint.yaml"
         full_sc.write_text(dump_scenario(with_field(load_scenario(args.scenario), "sensor.footprint_cast", "full")))
@@ -186,6 +258,8 @@ def main() -> None:
         dflt, load = timed([lrfsim, "simulate", sc, "-o", str(tmp / "rec{i}")])
         row("lrfsim simulate (default: footprint_cast edges)", f"{dflt:.2f} s = {dflt / sim:.2f}x reference (cpu "
             f"{LAST_CPU[0]:.2f} s; load {load:.1f})")
+        startup_rows(row, judge)
+        read_row(row, judge, rec, args.scenario.stem)
 
         cal, load = timed([lrfcal, "calibrate", str(rec), "-o", str(tmp / "cal{i}")])
         cal_cpu = LAST_CPU[0]
@@ -240,7 +314,11 @@ def main() -> None:
                 f"load {load:.1f})", judge(rate >= TARGETS["study"]))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+    print_table(args, rows)
 
+
+def print_table(args: argparse.Namespace, rows: list[tuple[str, str, str]]) -> None:
+    """The rows as a markdown table on stdout."""
     print(f"bench_speed {args.scenario.stem} ({os.cpu_count()} cores; OPENBLAS_NUM_THREADS="
           f"{_env()['OPENBLAS_NUM_THREADS']}; load now {_load():.1f})")
     print("| measurement | value | target |")

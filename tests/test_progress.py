@@ -110,8 +110,9 @@ PROBE = """
 import json, sys
 import threadpoolctl
 from {package}.cli import app, main
+from lrfcal.cliutil import Command
 
-@app.command("probe")
+@app.command("probe", cls=Command)
 def probe() -> None:
     print(json.dumps([i["num_threads"] for i in threadpoolctl.threadpool_info() if i["user_api"] == "blas"]))
 

@@ -20,7 +20,6 @@ import typer
 from typer.core import TyperArgument, TyperCommand, TyperOption
 
 from .errors import LrfError
-from .io.files import shown_path
 
 #: Exit code of a usage error or bad input (the same as :class:`lrfcal.errors.InputError`).
 EXIT_USAGE = 2
@@ -28,7 +27,21 @@ EXIT_USAGE = 2
 
 class Command(TyperCommand):
     """A typer command whose usage line names its arguments in capitals (``SCENARIO``, optional ``[X]``) and
-    shows its required options (``-o DIR``)."""
+    shows its required options (``-o DIR``), and that applies the programs' thread and memory policies when it runs
+    (:meth:`invoke`). Every command of ``lrfcal`` and ``lrfsim`` is one (``@app.command(cls=Command)``)."""
+
+    def invoke(self, ctx: Any) -> Any:
+        """Run the command once its arguments are parsed: first the process's BLAS / OpenMP thread pools limited
+        by the programs' thread policy (:func:`lrfcal.threads.apply_thread_policy`, which loads numpy's and scipy's
+        BLAS) and numpy's large arrays kept off transparent huge pages (:func:`lrfcal.memory.apply_memory_policy`).
+        Here and not before parsing, so that ``--help`` and a usage error answer without importing numpy or scipy.
+        """
+        from .memory import apply_memory_policy
+        from .threads import apply_thread_policy
+
+        apply_memory_policy()
+        apply_thread_policy()
+        return super().invoke(ctx)
 
     def collect_usage_pieces(self, ctx: Any) -> list[str]:
         pieces = [self.options_metavar] if self.options_metavar else []
@@ -99,16 +112,10 @@ def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoR
     * an :class:`LrfError`: one line ``error: <message>`` on stderr, exit ``e.exit_code``;
     * an OSError or MemoryError that escaped the checks: one line, exit 2 (the cause is named).
 
-    Before the command runs, the process's BLAS / OpenMP thread pools are limited by the programs' thread policy
-    (:func:`lrfcal.threads.apply_thread_policy`), and numpy's large arrays kept off transparent huge pages
-    (:func:`lrfcal.memory.apply_memory_policy`).
+    When a command runs (its arguments parsed), :meth:`Command.invoke` applies the thread and memory policies
+    first; ``--help`` and usage errors import nothing heavy (tests/test_startup.py).
     """
-    from .memory import apply_memory_policy
-    from .threads import apply_thread_policy
-
     try:
-        apply_memory_policy()
-        apply_thread_policy()
         rv = app(args=list(argv) if argv is not None else None, prog_name=prog_name, standalone_mode=False)
     except typer.TyperException as e:  # click's usage errors as vendored by typer (NoArgsIsHelpError, ...)
         code = int(getattr(e, "exit_code", EXIT_USAGE) or EXIT_USAGE)
@@ -130,6 +137,8 @@ def run_app(app: typer.Typer, argv: Sequence[str] | None, prog_name: str) -> NoR
         print("error: out of memory (the input is too large for this machine)", file=sys.stderr)
         sys.exit(EXIT_USAGE)
     except OSError as e:
+        from .io.files import shown_path
+
         where = f"{shown_path(e.filename)}: " if getattr(e, "filename", None) else ""
         print(f"error: {where}{e.strerror or one_line(str(e))}", file=sys.stderr)
         sys.exit(EXIT_USAGE)

@@ -13,7 +13,6 @@ calibrated DH parameters.
 from __future__ import annotations
 
 import math
-from xml.sax.saxutils import quoteattr
 
 import numpy as np
 from numpy.typing import NDArray
@@ -64,6 +63,8 @@ def urdf_snippet(params: Params, robot_name: str = "rotating_lrf") -> str:
     """A URDF with links world/motor_base/motor/laser: a fixed joint world -> motor_base (identity; re-parent it
     onto your robot), the revolute joint ``servo`` (axis z) whose origin is the mount pose T_W_M, and the fixed
     joint ``laser_mount`` motor -> laser whose origin is Tx(a) Rx(alpha) Tz(b) Rz(beta)."""
+    from xml.sax.saxutils import quoteattr  # here: xml.sax loads urllib, http and ssl (20 ms) for this one call
+
     mxyz, mrpy = _xyz_rpy(params.mount.matrix())
     d = params.dh
     return f"""<?xml version="1.0"?>
