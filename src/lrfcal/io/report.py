@@ -28,6 +28,11 @@ def _disp(name: str, v: float | None) -> str:
     return f"{math.degrees(v):.3f}" if name in ANGLE_NAMES else f"{v * 1000:.2f}"
 
 
+def _sigma_disp(name: str, sigma: float | None) -> str:
+    """A parameter's 1-sigma in display units; "held" for one not estimated (NaN), "-" for none (None)."""
+    return "held" if sigma is not None and not math.isfinite(sigma) else _disp(name, sigma)
+
+
 def _unit(name: str) -> str:
     return "deg" if name in ANGLE_NAMES else "mm"
 
@@ -121,7 +126,7 @@ def _side_by_side_lines(result: CalibrationResult, truth: dict[str, float | None
              "| method | " + " | ".join(f"{n} [{_unit(n)}]" for n in DH_NAMES) + " |", "|---|---|---|---|---|"]
     for name, sol in result.side_by_side.items():
         est = sol.params.as_dict()
-        lines.append(f"| {name} | " + " | ".join(f"{_disp(n, est[n])} +- {_disp(n, param_sigma(sol, n))}"
+        lines.append(f"| {name} | " + " | ".join(f"{_disp(n, est[n])} +- {_sigma_disp(n, param_sigma(sol, n))}"
                                                  for n in DH_NAMES) + " |")
     if truth is not None:
         lines.append("| truth | " + " | ".join(_disp(n, truth.get(n)) for n in DH_NAMES) + " |")
@@ -180,7 +185,7 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     for n in DH_NAMES if targetless else PARAM_NAMES:
         held = targetless and n in result.plane_fit.held
         row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]) + (" (held)" if held else ""),
-               _disp(n, param_sigma(sol, n))]
+               _sigma_disp(n, param_sigma(sol, n))]
         if base is not None:
             row.append(_disp(n, base[n]))
         if tp is not None:
