@@ -37,13 +37,21 @@ FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
 
 
+#: failed checks that lead a refusal before the others, in this order: where the data do not determine the DH
+#: parameters, the solver may stop anywhere along the undetermined direction and the recording's parts disagree along
+#: it, so those failures follow from it and their remedies would not help (lrfcal.observability.unjudged_refusal)
+LEADING_CHECKS = ("observability",)
+
+
 def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
-    """Raise CalibrationError naming the first failed check (and how many more failed), unless ``config.force``.
+    """Raise CalibrationError naming the failed check the data support as the cause (:data:`LEADING_CHECKS` first,
+    then the checks' order) and how many more failed, unless ``config.force``.
 
     Raises:
         CalibrationError: a check failed and the result may not be written.
     """
-    failed = [c for c in checks if not c.passed]
+    failed = sorted((c for c in checks if not c.passed),
+                    key=lambda c: LEADING_CHECKS.index(c.name) if c.name in LEADING_CHECKS else len(LEADING_CHECKS))
     if failed and not config.force:
         c = failed[0]
         raise CalibrationError(f"{c.name}: {c.detail}"
