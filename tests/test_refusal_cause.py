@@ -4,7 +4,7 @@ Near-perpendicular random rigs (lrfsim.randomize.random_scenario_wide(seed, broa
 alone do not determine b and beta were refused with "marker mXX: its returns sit 6-31 mm from its tape position
 (moved after taping?)" and told to sweep slower, in clean simulations where no marker moved. Where the DH parameters
 are not determined, good markers look moved; the refusal now leads with what the data do not determine and its
-remedy (lrfcal.observability.unjudged_refusal), and the failed checks are ranked (lrfcal.checks.LEADING_CHECKS).
+remedy (lrfcal.observability.unjudged_refusal), and the failed checks are ranked (lrfcal.checks.FOLLOWS_FROM).
 """
 
 from __future__ import annotations
@@ -96,3 +96,6 @@ def test_failed_checks_lead_with_observability() -> None:
     assert "(and 2 more failed checks)" in str(err.value)
     with pytest.raises(CalibrationError, match=r"^convergence: stopped"):  # without it, the checks' own order
         refuse_failed([checks[0], checks[3]], CalibConfig())
+    settle = Check("rounds settled", False, "the last two rounds differ by beta +1.1 deg, added to the covariance")
+    with pytest.raises(CalibrationError, match=r"^rounds settled: "):  # a cause observability follows from leads
+        refuse_failed([settle, *checks], CalibConfig())
