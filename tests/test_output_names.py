@@ -55,7 +55,7 @@ def test_no_command_leaves_a_temporary_name(tmp_path: Path) -> None:
         ("lrfcal", "reproject", str(rec / "bag"), "--nominal", str(rec / "nominal.yaml"), "-o",
          str(out / "cloud.ply"), "--bag-out", str(out / "cloudbag"), "--rrd", str(out / "cloud.rrd"), "-q"),
         ("lrfsim", "run", str(scen), "-o", str(out / "run"), "-q"),
-        ("lrfsim", "study", str(tiny), "-n", "2", "-o", str(out / "study"), "-q"),
+        ("lrfsim", "study", str(tiny), "-n", "1", "-o", str(out / "study"), "-q"),
     ]
     log = _write_header_log(tmp_path / "scan.txt")
     rig = tmp_path / "logrig.yaml"
