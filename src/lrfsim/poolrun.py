@@ -20,6 +20,8 @@ T = TypeVar("T")
 _FINISHED: Any = None
 #: how long the calling process waits for a finished trial before it looks at the batches again [s]
 POLL_S = 0.2
+#: how long it waits for a finished trial's item once every batch has returned [s]
+DRAIN_S = 2.0
 
 
 def _worker_start(finished: Any, initializer: Callable[[], None]) -> None:
@@ -42,17 +44,17 @@ def run_counted(task: Callable[..., list[T]], batches: Sequence[Any], workers: i
     here, as ``ProcessPoolExecutor.map`` would."""
     ctx = multiprocessing.get_context()
     finished = ctx.Queue()
-    done = 0
+    done, expected = 0, sum(len(b) for b in batches)
     with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_start,
                              initargs=(finished, initializer)) as pool:
         futures = [pool.submit(task, b, progress=tick) for b in batches]
-        while True:
+        while done < expected:
             running = not all(f.done() for f in futures)
-            try:  # after the last batch, what is left on the queue is drained without waiting
-                finished.get(timeout=POLL_S) if running else finished.get_nowait()
+            try:  # after the last batch, what a worker put last may still be on its way: waited for, briefly
+                finished.get(timeout=POLL_S if running else DRAIN_S)
             except queue_module.Empty:
                 if not running:
-                    break
+                    break  # a batch that failed: its exception is raised below
                 continue
             done += 1
             if progress is not None:
@@ -62,4 +64,4 @@ def run_counted(task: Callable[..., list[T]], batches: Sequence[Any], workers: i
     return results
 
 
-__all__ = ["POLL_S", "run_counted", "tick"]
+__all__ = ["DRAIN_S", "POLL_S", "run_counted", "tick"]
