@@ -37,13 +37,24 @@ FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
 
 
+#: failed checks that follow from another failed check, by the check they follow from: where the data do not
+#: determine the DH parameters, the solver may stop anywhere along the loose direction (convergence) and the
+#: recording's parts disagree along it (second opinion), so those failures and their remedies come after the cause
+#: (lrfcal.observability.unjudged_refusal ranks a disagreement with the marker map the same way)
+FOLLOWS_FROM = {"convergence": "observability", "second opinion": "observability"}
+
+
 def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
-    """Raise CalibrationError naming the first failed check (and how many more failed), unless ``config.force``.
+    """Raise CalibrationError naming the failed check the data support as the cause: the first (in the checks'
+    order) that does not follow from another failed one (:data:`FOLLOWS_FROM`), and how many more failed; unless
+    ``config.force``.
 
     Raises:
         CalibrationError: a check failed and the result may not be written.
     """
     failed = [c for c in checks if not c.passed]
+    names = {c.name for c in failed}
+    failed.sort(key=lambda c: FOLLOWS_FROM.get(c.name) in names)  # stable: a consequence after its cause
     if failed and not config.force:
         c = failed[0]
         raise CalibrationError(f"{c.name}: {c.detail}"

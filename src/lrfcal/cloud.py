@@ -170,7 +170,7 @@ def write_cloud_bag(path: str | Path, cloud: BeamCloud, frame_id: str = CLOUD_FR
     fields = [PF(name=n, offset=POINT_DTYPE.fields[n][1], datatype=d, count=1) for n, d in (
         ("x", _PF_FLOAT32), ("y", _PF_FLOAT32), ("z", _PF_FLOAT32), ("intensity", _PF_FLOAT32),
         ("time", _PF_FLOAT64), ("scan", _PF_UINT32), ("beam", _PF_UINT32))]
-    # rosbags' Writer makes the bag folder itself: swapped_folder only names it
+    # rosbags' Writer makes the bag folder and names its data file after it: swapped_folder names it out's name
     with swapped_folder(path, make=False) as tmp, Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP) as w:
         conn = w.add_connection(topic, POINTCLOUD2_TYPE, typestore=ts)
         for sw in np.unique(cloud.sweep):

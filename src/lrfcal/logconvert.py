@@ -113,7 +113,7 @@ def convert_log(log: str | Path, out: str | Path, *, nominal: str | Path | None 
     def header(ns: int, frame: str) -> Any:
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)
 
-    # rosbags' Writer makes the bag folder itself: swapped_folder only names it
+    # rosbags' Writer makes the bag folder and names its data file after it: swapped_folder names it out's name
     with swapped_folder(out, make=False) as tmp, Writer(tmp, version=9, storage_plugin=StoragePlugin.MCAP) as w:
         c_scan = w.add_connection(SCAN_TOPIC, LASERSCAN_TYPE, typestore=ts)
         c_joint = w.add_connection(JOINT_TOPIC, JOINTSTATE_TYPE, typestore=ts)

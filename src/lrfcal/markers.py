@@ -282,11 +282,9 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
             if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recording, joints,
                                              detections, config, fit, [])[0]) is not sol:
                 break
-    no_surfaces = CalibrationError(
-        f"the marker-only fit disagrees with the marker map ({chosen.unjudged}), but the markers alone do not "
-        f"determine the DH parameters here (1-sigma {observability.sigma_words(chosen.solution.sigma[6:10])}) and "
-        "no surface returns were found to judge by, so a wrong match cannot be told from a moved marker: sweep "
-        "slower or more passes, so that several scan lines cross every marker")
+    no_surfaces = CalibrationError(observability.unjudged_refusal(
+        _observability(chosen.solution), "the markers alone", "and no surface returns were found to add",
+        chosen.unjudged))
     if start is chosen.solution or start.n_surface_returns == 0:
         raise no_surfaces
     for left_out in range(4):  # every round from that start: one with a wrong blob in can be far off
@@ -303,14 +301,18 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
                              "parameters here)")
             break
         if left_out == 3:
-            raise CalibrationError(f"{why.removesuffix(': left out')}, judged at the joint solution with the "
-                                   "surfaces, after three blobs were left out: check the tape distances and the "
-                                   "markers' positions, and sweep slower or more passes, so that several scan lines "
-                                   "cross every marker")
+            raise CalibrationError(observability.unjudged_refusal(  # what leads: the cause the data support
+                _observability(joint_fit[0]), "the markers and the surfaces they sit on", "",
+                f"{why.removesuffix(': left out')}, judged at the joint solution with the surfaces, after three "
+                "blobs were left out"))
         notes.append(f"{why} (judged at the joint solution with the surfaces)")
         assoc, matched = _without_blobs(assoc, matched, bad, why)
     chosen = replace(chosen, assoc=assoc, matched=matched, unjudged="", solution=_refit(chosen, matched, fit))
     return chosen, joint_fit, tried
+
+
+def _observability(sol: Solution) -> observability.Observability:
+    return observability.of_solution(sol.information, sol.information_names, sol.sigma[6:10], sol.params.dh.alpha)
 
 
 def _without_blobs(assoc: Association, matched: Observations, bad: np.ndarray, why: str

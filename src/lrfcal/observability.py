@@ -207,6 +207,46 @@ class Information:
         return tuple(hold)
 
 
+def of_solution(information: FloatArray | None, names: Sequence[str], dh_sigma: FloatArray, alpha: float
+                ) -> Observability:
+    """The observability of a solution's DH parameters: its ``information`` over ``names``, ``dh_sigma`` (4,) its
+    reported 1-sigma, ``alpha`` its DH twist [rad]. Not determined (``.determined`` False) where the information's
+    weakest combination or some parameter is beyond :data:`LIMITS`, where a reported sigma is (a widened covariance:
+    those parameters are then named), or without an information (rank loss)."""
+    sigma = np.asarray(dh_sigma, dtype=float)
+    tilt = math.asin(min(1.0, abs(math.sin(alpha))))
+    if information is None:
+        return Observability(sigma=np.full(4, math.inf), spectrum=np.zeros(4), weakest=np.full(4, 0.5),
+                             tilt_rad=tilt)
+    obs = analyse(information, tuple(names), alpha)
+    if not obs.determined or within_limits(sigma):
+        return obs
+    limits = np.array([LIMITS[n] for n in DH])
+    over = np.where(np.isfinite(sigma) & (sigma <= limits), 0.0, 1.0)
+    return Observability(sigma=np.maximum(obs.sigma, np.where(np.isfinite(sigma), sigma, math.inf)),
+                         spectrum=obs.spectrum, weakest=over / float(np.linalg.norm(over)),
+                         tilt_rad=tilt)
+
+
+def unjudged_refusal(obs: Observability, what: str, and_: str, disagreement: str) -> str:
+    """The refusal where blobs disagree with the marker map (``disagreement``, lrfcal.association's words) at a
+    solution of ``what`` (e.g. "the markers alone") whose observability is ``obs``; ``and_``: what else is missing.
+
+    The causes are ranked: where the DH parameters are not determined, good markers look moved (the fit puts them
+    where its loose DH can) and a wrong match cannot be told from a moved marker, so the refusal leads with that
+    cause and its remedy (the hint), and names the disagreement after it as a symptom, without the "moved after
+    taping?" that would blame the wrong thing. Only where ``what`` determine them is the disagreement the finding."""
+    if obs.determined:
+        return (f"{disagreement}: check the tape distances and the markers' positions, and sweep slower or more "
+                "passes, so that several scan lines cross every marker")
+    limits = np.array([LIMITS[n] for n in DH])
+    names = obs.undetermined or tuple(n for n, s, lim in zip(DH, obs.sigma, limits, strict=True) if not s <= lim)
+    return (f"{what} do not determine {', '.join(names) or 'the DH parameters'} here ({obs.describe()}; 1-sigma "
+            f"{sigma_words(obs.sigma)}; limits {LIMITS['b'] * 1000:g} mm, {math.degrees(LIMITS['beta']):g} deg)"
+            f"{' ' + and_ if and_ else ''}: {obs.hint()}; at such a solution good markers look moved and a wrong "
+            f"match cannot be told from a moved marker ({disagreement.replace(' (moved after taping?)', '')})")
+
+
 def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
     """Whether every DH parameter's 1-sigma (a, alpha, b, beta: (4,) in m and rad) is within :data:`LIMITS`."""
     s = np.asarray(dh_sigma, dtype=float)
@@ -214,4 +254,5 @@ def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
 
 
 __all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",
-           "analyse", "marginal", "marginal_information", "sigma_words", "within_limits"]
+           "analyse", "marginal", "marginal_information", "of_solution", "sigma_words", "unjudged_refusal",
+           "within_limits"]

@@ -60,6 +60,14 @@ def _metres(limit_m: float, what: str) -> AfterValidator:
     return AfterValidator(check)
 
 
+def _positive_radius(v: float) -> float:
+    """A marker sphere's radius: positive (0 or less is no sphere; the markers are fitted as spheres)."""
+    if v <= 0.0:
+        raise ValueError(f"{v:g} m is no sphere: the markers' radius in metres must be > 0 (e.g. 0.005 for balls 10 "
+                         "mm across; leave the key out for that default)")
+    return v
+
+
 DHOffset = Annotated[float, _metres(MAX_DH_OFFSET_M, "a DH offset")]
 MountMetres = Annotated[float, _metres(MAX_MOUNT_M, "the mount (the laser sees its markers)")]
 
@@ -226,7 +234,8 @@ class RigFile(_Strict):
 
     dh: DHModel
     mount: MountModel | None = None
-    marker_radius_m: Annotated[float, Field(ge=0.0), _metres(MAX_MARKER_RADIUS_M, "a marker radius")] = 0.005
+    marker_radius_m: Annotated[float, AfterValidator(_positive_radius),
+                               _metres(MAX_MARKER_RADIUS_M, "a marker radius")] = 0.005
     #: the scanner's full beam divergence [rad]: its footprint on a marker (lrfcal.model.sphere.footprint_depth); 0 (the
     #: default) models the beam as its axis, right for a footprint much smaller than the markers
     beam_divergence_rad: float = Field(default=0.0, ge=0.0, lt=0.1)

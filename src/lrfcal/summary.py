@@ -38,7 +38,9 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
 
     def sigma_of(name: str) -> str:
         i = ESTIMATE_NAMES.index(name) if name in ESTIMATE_NAMES else -1
-        return shown(name, sigma[i]) if 0 <= i < len(sigma) else "-"
+        if not 0 <= i < len(sigma):
+            return "-"  # roll, pitch, yaw: the rotation's sigma is rx, ry, rz's
+        return shown(name, sigma[i]) if math.isfinite(sigma[i]) else "held"  # not estimated: no sigma
 
     targetless = result.markers is None
     held_dh = result.plane_fit.held if targetless else ()

@@ -37,7 +37,6 @@ import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Sequence
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
@@ -53,6 +52,7 @@ from lrfcal.model.kinematics import DH_NAMES
 from lrfcal.threads import apply_thread_policy, call_with_thread_policy
 
 from .plan import Plan, format_value, plan
+from .poolrun import run_counted
 from .scenario import Scenario, require_markers
 from .variants import PERTURB_HALF_WIDTH, parse_vary, perturbed_start, with_field
 
@@ -244,10 +244,10 @@ def run_trials(
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
     worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each); the local workers
     share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with ``recast`` or
-    ``new_layout``). ``recast``,
-    ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done, trials)`` after every trial in this
-    process, after every batch on workers. Worker processes (pool and dask) run BLAS with the programs' thread
-    limit (lrfcal.threads); this process is left as the caller set it."""
+    ``new_layout``). ``recast``, ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done,
+    trials)`` after every trial in this process or on local workers (lrfsim.poolrun), after every batch on dask.
+    Worker processes (pool and dask) run BLAS with the programs' thread limit (lrfcal.threads); this process is
+    left as the caller set it."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
     perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
@@ -280,9 +280,12 @@ def run_trials(
         finally:
             if own:
                 client.close()
-    elif workers > 1:
-        with ProcessPoolExecutor(max_workers=workers, initializer=_worker_policy) as pool:
-            collect(pool.map(task, batches))
+    elif workers > 1:  # counted as each trial finishes in any worker (lrfsim.poolrun)
+        for part in run_counted(task, batches, workers, _worker_policy,
+                                None if progress is None else (lambda k: progress(k, trials))):
+            rows.extend(part)
+        if progress:
+            progress(len(rows), trials)
     else:
         hook = None if progress is None else (lambda k: progress(len(rows) + k, trials))
         collect(task(b, progress=hook) for b in batches)

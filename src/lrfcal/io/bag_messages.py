@@ -36,12 +36,33 @@ def open_reader(path: Path) -> Any:
 
     if not path.exists():
         raise InputError(f"{path}: bag not found")
-    if path.is_dir() and not (path / "metadata.yaml").exists() and (path / "bag").exists():
-        raise InputError(f"{path}: a recording folder, not a bag: pass its bag, {path / 'bag'}")
+    if path.is_dir() and not (path / "metadata.yaml").exists():
+        if (path / "bag").exists():
+            raise InputError(f"{path}: a recording folder, not a bag: pass its bag, {path / 'bag'}")
+        raise InputError(_not_a_bag_folder(path))
     try:
         return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
     except Exception as err:  # rosbags raises several unrelated types for unreadable input
         raise InputError(f"{path}: cannot open bag: {one_line(err)}") from None
+
+
+def _not_a_bag_folder(path: Path) -> str:
+    """The one line for a folder without metadata.yaml: empty, or holding what (a lone .mcap/.db3 is readable
+    by itself)."""
+    try:
+        names = sorted(p.name for p in path.iterdir())
+    except OSError as e:
+        return f"{path}: cannot read the bag folder ({e.strerror})"
+    if not names:
+        return (f"{path}: empty folder, not a ROS 2 bag (a bag folder holds metadata.yaml and its .mcap or .db3 "
+                f"file): copy the recording's bag completely, or give the bag's path")
+    data = [n for n in names if n.endswith((".mcap", ".db3"))]
+    if data:
+        return (f"{path}: metadata.yaml missing from the bag folder (it holds {', '.join(data[:3])}): give that file "
+                f"itself, {path / data[0]}, or copy the bag folder completely")
+    shown = ", ".join(names[:3]) + (f" and {len(names) - 3} more" if len(names) > 3 else "")
+    return (f"{path}: not a ROS 2 bag folder (no metadata.yaml; it holds {shown}): give a ROS 2 bag folder, a "
+            f".mcap/.db3 file or a ROS 1 .bag file")
 
 
 def complete_types(reader: Any) -> None:

@@ -80,17 +80,23 @@ def write_bytes_atomic(path: str | Path, chunks: Iterable[bytes | memoryview]) -
 
 @contextmanager
 def swapped_folder(out: str | Path, *, make: bool = True) -> Iterator[Path]:
-    """Write one folder atomically: yields a temporary folder beside ``out`` (:func:`make_temp_beside`; with
-    ``make=False`` only its free name, for a writer that makes the folder itself, as rosbags' Writer does); when
-    the block completes it is renamed into place (:func:`swap_into_place`); when it fails it is removed and
-    ``out`` is left as it was."""
+    """Write one folder atomically: yields a temporary folder beside ``out`` (:func:`make_temp_beside`); when the
+    block completes it is renamed into place (:func:`swap_into_place`); when it fails it is removed and ``out`` is
+    left as it was.
+
+    With ``make=False``, for a writer that makes the folder itself and names files after it (rosbags' Writer names
+    a bag's data file ``<folder name>.mcap``): yields the free path ``<temporary folder>/<out's name>``, so that
+    what the writer names after the folder carries the final name, never a temporary one."""
     out = Path(out)
     tmp = make_temp_beside(out)
-    if not make:
-        tmp.rmdir()
     try:
-        yield tmp
-        swap_into_place(tmp, out)
+        if make:
+            yield tmp
+            swap_into_place(tmp, out)
+        else:
+            yield tmp / out.name
+            swap_into_place(tmp / out.name, out)
+            tmp.rmdir()
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

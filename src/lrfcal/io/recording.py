@@ -117,7 +117,11 @@ def read_distances(path: str | Path, tolerance_m: float = 1e-6) -> TapeMeasureme
         raise InputError(f"{path}: distances file not found")
     try:
         text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as err:
+    except UnicodeDecodeError as e:
+        raise InputError(f"{path}: not a text (UTF-8) file: byte {e.object[e.start]:#04x} at offset {e.start}; the "
+                         f"distances file is a CSV with the header {','.join(DISTANCES_HEADER)} (docs/formats.md)"
+                         ) from None
+    except OSError as err:
         raise InputError(f"{path}: cannot read: {one_line(err)}") from None
     rows = [(n, row) for n, row in enumerate(csv.reader(text.splitlines()), start=1)
             if row and any(c.strip() for c in row) and not row[0].lstrip().startswith("#")]

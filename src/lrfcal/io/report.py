@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from ..model.kinematics import ANGLE_NAMES, DH_NAMES, MOUNT_NAMES, PARAM_NAMES, Pose
-from ..types import CalibrationResult
+from ..model.kinematics import ANGLE_NAMES, DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES, PARAM_NAMES, Pose
+from ..types import CalibrationResult, Solution
 from .calibration_yaml import map_sigma, marker_counts, param_sigma
 from .calibration_yaml import plain_float as _f
 from .truth import truth_frame
@@ -26,6 +26,13 @@ def _disp(name: str, v: float | None) -> str:
     if v is None or not math.isfinite(v):
         return "-"
     return f"{math.degrees(v):.3f}" if name in ANGLE_NAMES else f"{v * 1000:.2f}"
+
+
+def _sigma_disp(sol: Solution, name: str) -> str:
+    """A parameter's 1-sigma in display units; "held" for an estimated kind of parameter that was not estimated
+    (no finite sigma), "-" for roll, pitch and yaw (the rotation's sigma is rx, ry, rz's)."""
+    sigma = param_sigma(sol, name)
+    return "held" if name in ESTIMATE_NAMES and sigma is None else _disp(name, sigma)
 
 
 def _unit(name: str) -> str:
@@ -121,7 +128,7 @@ def _side_by_side_lines(result: CalibrationResult, truth: dict[str, float | None
              "| method | " + " | ".join(f"{n} [{_unit(n)}]" for n in DH_NAMES) + " |", "|---|---|---|---|---|"]
     for name, sol in result.side_by_side.items():
         est = sol.params.as_dict()
-        lines.append(f"| {name} | " + " | ".join(f"{_disp(n, est[n])} +- {_disp(n, param_sigma(sol, n))}"
+        lines.append(f"| {name} | " + " | ".join(f"{_disp(n, est[n])} +- {_sigma_disp(sol, n)}"
                                                  for n in DH_NAMES) + " |")
     if truth is not None:
         lines.append("| truth | " + " | ".join(_disp(n, truth.get(n)) for n in DH_NAMES) + " |")
@@ -180,7 +187,7 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     for n in DH_NAMES if targetless else PARAM_NAMES:
         held = targetless and n in result.plane_fit.held
         row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]) + (" (held)" if held else ""),
-               _disp(n, param_sigma(sol, n))]
+               _sigma_disp(sol, n)]
         if base is not None:
             row.append(_disp(n, base[n]))
         if tp is not None:
