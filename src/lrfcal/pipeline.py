@@ -21,16 +21,17 @@ from typing import Any
 import numpy as np
 
 from . import geometry, reproject, timing
-from .checks import refuse_failed
+from .checks import clock_offset_check, refuse_failed
 from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from .errors import CalibrationError, InputError
 from .forked import on_cores
 from .markers import STAGES, fit_markers
+from .model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
 from .rig import refuse_placeholder_dh
 from .targetless import STAGES as TARGETLESS_STAGES
 from .targetless import fit_scene
 from .timing import usable_scans
-from .types import CalibrationResult, JointStates, Recording, Solution
+from .types import CalibrationResult, JointStates, Recording, Scans, Solution
 
 
 def calibrate(
@@ -56,7 +57,7 @@ def calibrate(
         return _calibrate(recording, config, progress, fitted, outputs)
     except CalibrationError as err:
         hint = _trimmed_hint(recording, config.clock_offset_s)
-        if not hint or "time span" in str(err):
+        if not hint or "time span" in str(err) or str(err).startswith(CLOCK_START):
             raise
         raise CalibrationError(f"{err}; {hint}") from None
 
@@ -89,8 +90,10 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES, outputs)
     notes: list[str] = []
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
+    bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
+    fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
     refuse_failed(list(fit.checks), config)  # 3.
     if fit.servo_sign < 0:
         joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
@@ -102,6 +105,27 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
     return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side,
                    config=config)
+
+
+CLOCK_START = "clock offset: --clock-offset"
+
+
+def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float, float]:
+    """The bound on the clock offset of this recording and its shortest pass [s] (lrfcal.timing.clock_offset_bound).
+
+    Raises:
+        CalibrationError: the start ``tau0`` (``--clock-offset``) lies beyond it: the search would settle near it.
+    """
+    bound, shortest = timing.clock_offset_bound(scans, joints, tau0)
+    if abs(tau0) > bound:
+        raise CalibrationError(
+            f"{CLOCK_START} {tau0:+g} s is beyond the +-{bound * 1000:.0f} ms a calibration of this recording starts "
+            f"from (the smaller of {MAX_CLOCK_OFFSET_S:g} s, beyond which the laser's and the servo's clocks differ "
+            "rather than lag and the bag reader applies the offset from the receive times, and "
+            f"{CLOCK_OFFSET_PASS_SHARE:g} of the sweep's shortest pass, {shortest:.3g} s, beyond which the passes "
+            "alias): the solve would settle on a wrong offset near the start; give the latency between the laser's "
+            "and the servo's stamps, or leave --clock-offset at 0 for the calibration to estimate it")
+    return bound, shortest
 
 
 def _targetless(recording: Recording, config: CalibConfig) -> bool:

@@ -8,11 +8,13 @@ Array shapes: S scans, N beams per scan, J joint-state samples.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError, InputError
-from .model.motor import dequantised
+from .model.motor import clock_offset_bound_s, dequantised
 from .types import JointStates, Recording, Scans
 
 FloatArray = NDArray[np.float64]
@@ -225,8 +227,9 @@ def without_quantisation(joints: JointStates, scans: Scans) -> JointStates:
                        name=joints.name)
 
 
-__all__ = ["beam_motor_angles", "beam_times", "covered_scans", "interpolation_error_rad", "joint_period_s",
-           "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "subset_scans", "sweep_passes",
+__all__ = ["beam_motor_angles", "beam_times", "clock_offset_bound", "covered_scans", "interpolation_error_rad",
+           "joint_period_s", "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "subset_scans",
+           "sweep_passes",
            "unwrapped_positions", "usable_scans", "without_quantisation"]
 
 
@@ -267,6 +270,18 @@ def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scan
     for k, (s0, _) in enumerate(runs):
         out[s0 + 1:] = k
     return out
+
+
+def clock_offset_bound(scans: Scans, joints: JointStates, clock_offset_s: float) -> tuple[float, float]:
+    """The largest clock offset [s] a calibration of these scans (the covered ones) may start from or report
+    (lrfcal.model.motor.clock_offset_bound_s, from the durations of the sweep's passes at ``clock_offset_s``), and
+    the shortest pass's duration [s]."""
+    t = scans.stamps_s
+    if t.size < 2:
+        return clock_offset_bound_s([]), math.inf
+    passes = sweep_passes(scan_angles(scans, joints, clock_offset_s=clock_offset_s))
+    durations = [float(np.ptp(t[passes == k])) for k in range(int(passes.max()) + 1)]
+    return clock_offset_bound_s(durations), min(durations)
 
 
 def remove_spikes(joints: JointStates, threshold_rad: float = 0.05, window: int = 5) -> tuple[JointStates, int]:

@@ -87,6 +87,27 @@ def motor_angles(th: FloatArray, lam: FloatArray, times: FloatArray | None, cloc
     return MotorAngles(s * q, ((TAU, -s * omega), (SCALE, q)))
 
 
+#: the clock offset (laser stamp - servo stamp) a calibration starts from or reports lies within this [s]: beyond
+#: it the two clocks differ rather than lag (the bag reader measures such an offset from the receive times and
+#: applies it, lrfcal.io.bag.COARSE_OFFSET_MIN_S); what is left is the stamping and transport latency
+MAX_CLOCK_OFFSET_S = 1.0
+#: ... and within this share of the sweep's shortest pass (the time between two turnarounds): an offset of a whole
+#: pass maps each pass's motor angle onto the other pass's mirrored (the sweep aliases), so only offsets well within
+#: half a pass are told apart; a quarter leaves the search's basin room
+CLOCK_OFFSET_PASS_SHARE = 0.25
+
+
+def clock_offset_bound_s(pass_durations_s: ArrayLike) -> float:
+    """The largest clock offset [s] a calibration may start from or report: the smaller of MAX_CLOCK_OFFSET_S and
+    CLOCK_OFFSET_PASS_SHARE of the shortest pass (``pass_durations_s`` (P,), the sweep's passes' durations; a
+    one-way sweep has one pass, the recording)."""
+    d = np.asarray(pass_durations_s, dtype=float)
+    d = d[np.isfinite(d) & (d > 0)]
+    if d.size == 0:
+        return MAX_CLOCK_OFFSET_S
+    return float(min(MAX_CLOCK_OFFSET_S, CLOCK_OFFSET_PASS_SHARE * d.min()))
+
+
 #: samples on each side of a joint sample that its dequantising fit takes (lrfcal.model.motor.dequantised)
 DEQUANTISE_HALF_WINDOW = 8
 #: a fit that leaves a sample of its window more than this many steps from its reading is not used (the readings
@@ -146,5 +167,6 @@ def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
     return np.where((misfit <= MISFIT_STEPS * quantum) & ~turns, fit, q)
 
 
-__all__ = ["DEQUANTISE_HALF_WINDOW", "JointSamples", "MotorAngles", "MotorClock", "dequantised", "encoder_quantum",
+__all__ = ["CLOCK_OFFSET_PASS_SHARE", "DEQUANTISE_HALF_WINDOW", "MAX_CLOCK_OFFSET_S", "JointSamples", "MotorAngles",
+           "MotorClock", "clock_offset_bound_s", "dequantised", "encoder_quantum",
            "motor_angles"]
