@@ -28,10 +28,11 @@ from .forked import on_cores
 from .markers import STAGES, fit_markers
 from .model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
 from .rig import refuse_placeholder_dh
+from .starts import starts_check
 from .targetless import STAGES as TARGETLESS_STAGES
 from .targetless import fit_scene
 from .timing import usable_scans
-from .types import CalibrationResult, JointStates, Recording, Scans, Solution
+from .types import CalibrationResult, Check, JointStates, Recording, Scans, Solution
 
 
 def calibrate(
@@ -94,6 +95,9 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
     fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
+    if targetless:  # the same solution from the other starts the recording allows
+        fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, joints, config)))
+        clock.lap("starts")
     refuse_failed(list(fit.checks), config)  # 3.
     if fit.servo_sign < 0:
         joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
@@ -126,6 +130,12 @@ def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float,
             "alias): the solve would settle on a wrong offset near the start; give the latency between the laser's "
             "and the servo's stamps, or leave --clock-offset at 0 for the calibration to estimate it")
     return bound, shortest
+
+
+def _after_settled(checks: tuple[Check, ...], check: Check) -> tuple[Check, ...]:
+    """``checks`` with ``check`` after "rounds settled" (or first)."""
+    k = next((i + 1 for i, c in enumerate(checks) if c.name == "rounds settled"), 0)
+    return (*checks[:k], check, *checks[k:])
 
 
 def _targetless(recording: Recording, config: CalibConfig) -> bool:
