@@ -57,10 +57,22 @@ def calibrate(
     try:
         return _calibrate(recording, config, progress, fitted, outputs)
     except CalibrationError as err:
-        hint = _trimmed_hint(recording, config.clock_offset_s)
-        if not hint or "time span" in str(err) or str(err).startswith(CLOCK_START):
+        if "time span" in str(err) or str(err).startswith(CLOCK_START):
+            raise
+        hint = _trimmed_hint(recording, config.clock_offset_s) or _start_hint(config.clock_offset_s)
+        if not hint:
             raise
         raise CalibrationError(f"{err}; {hint}") from None
+
+
+def _start_hint(tau0: float) -> str:
+    """A hint for a refusal of a calibration started from a clock offset ``tau0`` other than 0 (empty at 0)."""
+    if tau0 == 0.0:
+        return ""
+    return (f"note: the calibration started from --clock-offset {tau0:+g} s; a start whose motor angle is off by more "
+            "than a few degrees (the sweep's speed times the start's error) does not find the true offset, and the fit "
+            "from there can blame the markers; if the offset is not known, leave --clock-offset at 0 for the "
+            "calibration to estimate it")
 
 
 #: more scans than this fraction outside the joint states' time span suggest a wrong clock offset
@@ -95,7 +107,7 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
     fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
-    if targetless:  # the same solution from the other starts the recording allows
+    if targetless and (config.force or all(c.passed for c in fit.checks)):  # the other starts (else refused anyway)
         fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, joints, config)))
         clock.lap("starts")
     refuse_failed(list(fit.checks), config)  # 3.
