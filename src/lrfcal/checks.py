@@ -57,7 +57,7 @@ def clock_offset_check(sol: Solution, bound_s: float, shortest_pass_s: float) ->
     tau = sol.clock_offset_s
     ok = bool(abs(tau) <= bound_s)
     detail = (f"{tau * 1000:+.1f} ms, within +-{bound_s * 1000:.0f} ms (the smaller of {MAX_CLOCK_OFFSET_S:g} s and "
-              f"{CLOCK_OFFSET_PASS_SHARE:g} of the sweep's shortest pass, {shortest_pass_s:.3g} s)")
+              f"1/{1 / CLOCK_OFFSET_PASS_SHARE:.0f} of the sweep's shortest pass, {shortest_pass_s:.3g} s)")
     if not ok:
         detail = (f"the estimate {tau * 1000:+.1f} ms is beyond " + detail.split(", within ", 1)[1]
                   + ": a larger offset is not a latency between the laser's and the servo's stamps, and one near a "

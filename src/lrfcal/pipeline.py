@@ -138,9 +138,10 @@ def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float,
             f"{CLOCK_START} {tau0:+g} s is beyond the +-{bound * 1000:.0f} ms a calibration of this recording starts "
             f"from (the smaller of {MAX_CLOCK_OFFSET_S:g} s, beyond which the laser's and the servo's clocks differ "
             "rather than lag and the bag reader applies the offset from the receive times, and "
-            f"{CLOCK_OFFSET_PASS_SHARE:g} of the sweep's shortest pass, {shortest:.3g} s, beyond which the passes "
-            "alias): the solve would settle on a wrong offset near the start; give the latency between the laser's "
-            "and the servo's stamps, or leave --clock-offset at 0 for the calibration to estimate it")
+            f"1/{1 / CLOCK_OFFSET_PASS_SHARE:.0f} of the sweep's shortest pass, {shortest:.3g} s: the motor angles "
+            "of its two directions then lie too far apart for the solve to find the offset): the solve would settle "
+            "on a wrong offset near the start; give the latency between the laser's and the servo's stamps, or leave "
+            "--clock-offset at 0 for the calibration to estimate it")
     return bound, shortest
 
 

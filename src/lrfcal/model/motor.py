@@ -91,10 +91,13 @@ def motor_angles(th: FloatArray, lam: FloatArray, times: FloatArray | None, cloc
 #: it the two clocks differ rather than lag (the bag reader measures such an offset from the receive times and
 #: applies it, lrfcal.io.bag.COARSE_OFFSET_MIN_S); what is left is the stamping and transport latency
 MAX_CLOCK_OFFSET_S = 1.0
-#: ... and within this share of the sweep's shortest pass (the time between two turnarounds): an offset of a whole
-#: pass maps each pass's motor angle onto the other pass's mirrored (the sweep aliases), so only offsets well within
-#: half a pass are told apart; a quarter leaves the search's basin room
-CLOCK_OFFSET_PASS_SHARE = 0.25
+#: ... and within this share of the sweep's shortest pass (the time between two turnarounds; a one-way sweep or a
+#: spin: the recording): an offset tau moves the motor angles of the two directions apart by twice the sweep's speed
+#: times tau, and the solve only finds the offset from a start within a few degrees of it (simulated tunnel_v at
+#: 10 deg/s: from 1 s, 10 deg, it converged to the true 0; from 2 s, 20 deg, it reported +1.94 s, all checks
+#: passed), which a sixteenth of a pass keeps (11 deg of a 180 deg sweep); an offset of a whole pass would even
+#: map each pass onto the other one mirrored (the sweep aliases)
+CLOCK_OFFSET_PASS_SHARE = 1.0 / 16.0
 
 
 def clock_offset_bound_s(pass_durations_s: ArrayLike) -> float:
