@@ -32,7 +32,7 @@ from .starts import starts_check
 from .targetless import STAGES as TARGETLESS_STAGES
 from .targetless import fit_scene
 from .timing import usable_scans
-from .types import CalibrationResult, Check, JointStates, Recording, Scans, Solution
+from .types import CalibrationResult, Check, JointStates, Recording, Solution
 
 
 def calibrate(
@@ -103,7 +103,7 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES, outputs)
     notes: list[str] = []
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
-    bound = _clock_start(scans, joints, config.clock_offset_s)
+    bound = _clock_start(joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
     fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
@@ -126,13 +126,13 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
 CLOCK_START = "clock offset: --clock-offset"
 
 
-def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float, float]:
+def _clock_start(joints: JointStates, tau0: float) -> tuple[float, float]:
     """The bound on the clock offset of this recording and its shortest pass [s] (lrfcal.timing.clock_offset_bound).
 
     Raises:
         CalibrationError: the start ``tau0`` (``--clock-offset``) lies beyond it: the search would settle near it.
     """
-    bound, shortest = timing.clock_offset_bound(scans, joints, tau0)
+    bound, shortest = timing.clock_offset_bound(joints)
     if abs(tau0) > bound:
         raise CalibrationError(
             f"{CLOCK_START} {tau0:+g} s is beyond the +-{bound * 1000:.0f} ms a calibration of this recording starts "

@@ -272,16 +272,22 @@ def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scan
     return out
 
 
-def clock_offset_bound(scans: Scans, joints: JointStates, clock_offset_s: float) -> tuple[float, float]:
-    """The largest clock offset [s] a calibration of these scans (the covered ones) may start from or report
-    (lrfcal.model.motor.clock_offset_bound_s, from the durations of the sweep's passes at ``clock_offset_s``), and
-    the shortest pass's duration [s]."""
-    t = scans.stamps_s
+def clock_offset_bound(joints: JointStates) -> tuple[float, float]:
+    """The largest clock offset [s] a calibration with these joint states may start from or report
+    (lrfcal.model.motor.clock_offset_bound_s, from the durations of the sweep's passes, whatever the offset), and the
+    shortest pass's duration [s]. The passes are found on at most PASS_SAMPLES of the samples, evenly spread."""
+    t = joints.stamps_s
     if t.size < 2:
         return clock_offset_bound_s([]), math.inf
-    passes = sweep_passes(scan_angles(scans, joints, clock_offset_s=clock_offset_s))
+    pick = np.unique(np.linspace(0, t.size - 1, min(t.size, PASS_SAMPLES)).astype(np.int64))
+    t = t[pick]
+    passes = sweep_passes(unwrapped_positions(joints)[pick])
     durations = [float(np.ptp(t[passes == k])) for k in range(int(passes.max()) + 1)]
     return clock_offset_bound_s(durations), min(durations)
+
+
+#: joint-state samples at most that the sweep's passes are found on (lrfcal.timing.clock_offset_bound)
+PASS_SAMPLES = 5000
 
 
 def remove_spikes(joints: JointStates, threshold_rad: float = 0.05, window: int = 5) -> tuple[JointStates, int]:
