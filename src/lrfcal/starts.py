@@ -101,8 +101,8 @@ def _solved(sg: targetless.Segmenting, starts: list[DH]) -> list[FloatArray | No
 
 def _other_starts(candidates: list[DH], nominal: DH, sol: Solution, est: list[int]) -> list[DH]:
     """The starts to run: each candidate as the twin nearest the nominal, its held parameters at the nominal's
-    values, without those within AGREE_SIGMA of the result on every estimated parameter (the first, the proposal,
-    kept first; then the farthest from the result), at most MAX_OTHER_STARTS."""
+    values, without those within AGREE_SIGMA of the result or of a start kept before on every estimated parameter
+    (the first, the proposal, kept first; then the farthest from the result), at most MAX_OTHER_STARTS."""
     sigma = sol.sigma[6:10]
     ref = nominal.vector()
     out: list[tuple[float, DH]] = []
@@ -114,7 +114,12 @@ def _other_starts(candidates: list[DH], nominal: DH, sol: Solution, est: list[in
         if z.size and z.max() > AGREE_SIGMA:
             out.append((math.inf if i == 0 else float(z.max()), DH(*(float(x) for x in v))))
     out.sort(key=lambda p: -p[0])
-    return [dh for _, dh in out[:MAX_OTHER_STARTS]]
+    kept: list[DH] = []
+    for _, dh in out:  # a start within AGREE_SIGMA of one kept tests nothing more
+        if all(np.max(np.abs(dh_difference(dh.vector(), k.vector()))[est] / np.maximum(sigma[est], 1e-12))
+               > AGREE_SIGMA for k in kept):
+            kept.append(dh)
+    return kept[:MAX_OTHER_STARTS]
 
 
 def _segmenting(fit: CalibrationResult, joints: JointStates, config: CalibConfig, held: tuple[str, ...]
