@@ -56,7 +56,10 @@ def starts_check(fit: CalibrationResult, joints: JointStates, config: CalibConfi
     held = fit.plane_fit.held
     est = [k for k, n in enumerate(DH_NAMES) if n not in held]
     sigma = sol.sigma[6:10]
-    found = propose.propose_dh(fit.recording.scans, joints)
+    try:
+        found = propose.propose_dh(fit.recording.scans, joints)
+    except (CalibrationError, np.linalg.LinAlgError) as err:
+        found = propose.DHProposal(None, reason=str(err))
     if found.dh is None:
         return Check(NAME, True, f"no other start: the DH search found none ({found.reason})")
     starts = _other_starts([found.dh, *found.agreeing], nominal, sol, est)
