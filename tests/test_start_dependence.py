@@ -2,8 +2,10 @@
 
 - The clock offset: ``--clock-offset 5`` on simulated tunnel_v (true offset 0) reported +6.119 +- 0.011 s with every
   check passed (and from 2 s: +1.94 s). A start beyond the bound the model sets (lrfcal.model.motor:
-  the smaller of 1 s and 1/16 of the sweep's shortest pass) is now refused naming ``--clock-offset``; a start within
-  it is found again (the true offset within 4 sigma); a reported offset beyond it fails the check "clock offset".
+  the smaller of 1 s and 1/16 of the sweep's shortest pass) is now refused naming ``--clock-offset``; so is a start
+  within it but far from where the sweep's two directions see the same scene (lrfcal.clocksearch); a start near it
+  is found again (the true offset within 4 sigma); a reported offset beyond the bound fails the check "clock
+  offset".
 - Targetless: a result is written only where the other starts the recording allows (the DH search's proposal and
   agreeing starts, lrfcal.starts) converge to it within its sigma. The shipped simulated scenes still calibrate
   (exit 0, within 4 sigma of the truth, "starts agree" passed); a result whose sigma is smaller than the starts'
@@ -51,6 +53,26 @@ def test_a_clock_offset_start_beyond_the_bound_is_refused_naming_it(
     assert line.startswith(f"error: clock offset: --clock-offset {float(start):+g} s is beyond the +-1000 ms"), line
     assert "1/16 of the sweep's shortest pass" in line
     assert not out.exists() and not list(tmp_path.glob(".cal*")), "a refusal writes nothing"
+
+
+def test_a_start_far_from_where_the_two_directions_line_up_is_refused_naming_it(
+        recording_of: Callable[[object], Path], tmp_path: Path) -> None:
+    """plane_30deg at 45 deg/s (true offset 0; bound 284 ms): from 0.2 s (9 deg of motor angle) the fit refused
+    blaming a marker ("m02 ... moved after taping?"); the search over the bound finds where the sweep's two directions
+    see the same scene (lrfcal.clocksearch) and the start is refused naming --clock-offset and that offset."""
+    from test_cli_faults import _scenario_data
+
+    from lrfsim.scenario import parse_scenario
+
+    folder = recording_of(parse_scenario(_scenario_data("fast_clean", {}), "fast_clean.yaml"))
+    out = tmp_path / "cal"
+    line = _one_error_line(_run("lrfcal", "calibrate", folder, "-o", out, "--clock-offset", "0.2", "--no-figures",
+                                "--no-baseline", timeout=600), code=3)
+    assert line.startswith("error: clock offset: --clock-offset +0.2 s: the sweep's two directions see the same "
+                           "scene at "), line
+    found_ms = float(line.split("see the same scene at ")[1].split(" ms")[0])
+    assert abs(found_ms) <= 10.0, line  # the truth is 0; the grid steps 7 ms
+    assert "start from --clock-offset" in line and not out.exists()
 
 
 def _dh_z(out: Path, folder: Path) -> dict[str, float]:

@@ -22,6 +22,7 @@ import numpy as np
 
 from . import geometry, reproject, timing
 from .checks import clock_offset_check, refuse_failed
+from .clocksearch import MAX_START_ERROR_RAD, line_up
 from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from .errors import CalibrationError, InputError
 from .forked import on_cores
@@ -32,7 +33,7 @@ from .starts import starts_check
 from .targetless import STAGES as TARGETLESS_STAGES
 from .targetless import fit_scene
 from .timing import usable_scans
-from .types import CalibrationResult, Check, JointStates, Recording, Solution
+from .types import CalibrationResult, Check, JointStates, Recording, Scans, Solution
 
 
 def calibrate(
@@ -103,7 +104,7 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES, outputs)
     notes: list[str] = []
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
-    bound = _clock_start(joints, config.clock_offset_s)
+    bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
     fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
@@ -126,11 +127,12 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
 CLOCK_START = "clock offset: --clock-offset"
 
 
-def _clock_start(joints: JointStates, tau0: float) -> tuple[float, float]:
+def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float, float]:
     """The bound on the clock offset of this recording and its shortest pass [s] (lrfcal.timing.clock_offset_bound).
 
     Raises:
-        CalibrationError: the start ``tau0`` (``--clock-offset``) lies beyond it: the search would settle near it.
+        CalibrationError: the start ``tau0`` (``--clock-offset``) lies beyond it, or (a start other than 0) too far
+            from where the sweep's two directions line up (lrfcal.clocksearch): the solve would settle near it.
     """
     bound, shortest = timing.clock_offset_bound(joints)
     if abs(tau0) > bound:
@@ -142,6 +144,15 @@ def _clock_start(joints: JointStates, tau0: float) -> tuple[float, float]:
             "of its two directions then lie too far apart for the solve to find the offset): the solve would settle "
             "on a wrong offset near the start; give the latency between the laser's and the servo's stamps, or leave "
             "--clock-offset at 0 for the calibration to estimate it")
+    found = line_up(scans, joints, bound, tau0) if tau0 != 0.0 else None
+    if found is not None and found.refutes(tau0):
+        ms, deg = 1000.0, math.degrees(found.start_error_rad(tau0))
+        raise CalibrationError(
+            f"{CLOCK_START} {tau0:+g} s: the sweep's two directions see the same scene at {found.offset_s * ms:+.0f} "
+            f"ms (searched over +-{bound * ms:.0f} ms; their ranges differ by {found.mismatch_m * ms:.1f} mm there, "
+            f"{found.start_mismatch_m * ms:.1f} mm at the start), {deg:.1f} deg of motor angle from the start, "
+            f"farther than the solve finds the offset from ({math.degrees(MAX_START_ERROR_RAD):g} deg); start from "
+            f"--clock-offset {found.offset_s:+.3g}" + (" (or leave it at 0)" if found.offset_s != 0.0 else ""))
     return bound, shortest
 
 
