@@ -18,7 +18,7 @@ from .covariance import widen
 from .errors import CalibrationError
 from .model.chart import gauge_distance
 from .model.kinematics import DH, PARAM_NAMES, dh_twins
-from .model.motor import MotorClock
+from .model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, MotorClock
 from .model.unknowns import CORE_NAMES, dh_difference, wrap_pi
 from .surfaces import SurfaceReturns
 from .types import Check, MarkerMap, Observations, Solution
@@ -60,6 +60,21 @@ def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
         raise CalibrationError(f"{c.name}: {c.detail}"
                                + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
                                + "; --force writes the result anyway with the failed checks recorded")
+
+
+def clock_offset_check(sol: Solution, bound_s: float, shortest_pass_s: float) -> Check:
+    """The clock offset reported (estimated or held) lies within ``bound_s`` (lrfcal.model.motor.clock_offset_bound_s:
+    the smaller of MAX_CLOCK_OFFSET_S and a share of the sweep's ``shortest_pass_s``)."""
+    tau = sol.clock_offset_s
+    ok = bool(abs(tau) <= bound_s)
+    detail = (f"{tau * 1000:+.1f} ms, within +-{bound_s * 1000:.0f} ms (the smaller of {MAX_CLOCK_OFFSET_S:g} s and "
+              f"1/{1 / CLOCK_OFFSET_PASS_SHARE:.0f} of the sweep's shortest pass, {shortest_pass_s:.3g} s)")
+    if not ok:
+        detail = (f"the estimate {tau * 1000:+.1f} ms is beyond " + detail.split(", within ", 1)[1]
+                  + ": a larger offset is not a latency between the laser's and the servo's stamps, and one near a "
+                  "pass makes the sweep alias (the fit settles on a wrong offset that explains the data as well); "
+                  "calibrate from --clock-offset 0, or with the offset the drivers' stamps are known to differ by")
+    return Check("clock offset", ok, detail)
 
 
 def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
@@ -339,5 +354,5 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
                                   "clock offset, a scene that moved)"))
 
 
-__all__ = ["Check", "chi2_check", "dh_text", "marker_checks", "mirror_check", "nearer_mirror", "nominal_distance",
-           "plane_checks", "refuse_failed", "servo_direction", "split_in_two"]
+__all__ = ["Check", "chi2_check", "clock_offset_check", "dh_text", "marker_checks", "mirror_check", "nearer_mirror",
+           "nominal_distance", "plane_checks", "refuse_failed", "servo_direction", "split_in_two"]

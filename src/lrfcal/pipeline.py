@@ -21,16 +21,19 @@ from typing import Any
 import numpy as np
 
 from . import geometry, reproject, timing
-from .checks import refuse_failed
+from .checks import clock_offset_check, refuse_failed
+from .clocksearch import MAX_START_ERROR_RAD, line_up
 from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from .errors import CalibrationError, InputError
 from .forked import on_cores
 from .markers import STAGES, fit_markers
+from .model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
 from .rig import refuse_placeholder_dh
+from .starts import starts_check
 from .targetless import STAGES as TARGETLESS_STAGES
 from .targetless import fit_scene
 from .timing import usable_scans
-from .types import CalibrationResult, JointStates, Recording, Solution
+from .types import CalibrationResult, Check, JointStates, Recording, Scans, Solution
 
 
 def calibrate(
@@ -55,10 +58,22 @@ def calibrate(
     try:
         return _calibrate(recording, config, progress, fitted, outputs)
     except CalibrationError as err:
-        hint = _trimmed_hint(recording, config.clock_offset_s)
-        if not hint or "time span" in str(err):
+        if "time span" in str(err) or str(err).startswith(CLOCK_START):
+            raise
+        hint = _trimmed_hint(recording, config.clock_offset_s) or _start_hint(config.clock_offset_s)
+        if not hint:
             raise
         raise CalibrationError(f"{err}; {hint}") from None
+
+
+def _start_hint(tau0: float) -> str:
+    """A hint for a refusal of a calibration started from a clock offset ``tau0`` other than 0 (empty at 0)."""
+    if tau0 == 0.0:
+        return ""
+    return (f"note: the calibration started from --clock-offset {tau0:+g} s; a start whose motor angle is off by more "
+            "than a few degrees (the sweep's speed times the start's error) does not find the true offset, and the fit "
+            "from there can blame the markers; if the offset is not known, leave --clock-offset at 0 for the "
+            "calibration to estimate it")
 
 
 #: more scans than this fraction outside the joint states' time span suggest a wrong clock offset
@@ -89,8 +104,13 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES, outputs)
     notes: list[str] = []
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
+    bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
+    fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
+    if targetless and (config.force or all(c.passed for c in fit.checks)):  # the other starts (else refused anyway)
+        fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, joints, config)))
+        clock.lap("starts")
     refuse_failed(list(fit.checks), config)  # 3.
     if fit.servo_sign < 0:
         joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
@@ -102,6 +122,44 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
     return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side,
                    config=config)
+
+
+CLOCK_START = "clock offset: --clock-offset"
+
+
+def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float, float]:
+    """The bound on the clock offset of this recording and its shortest pass [s] (lrfcal.timing.clock_offset_bound).
+
+    Raises:
+        CalibrationError: the start ``tau0`` (``--clock-offset``) lies beyond it, or (a start other than 0) too far
+            from where the sweep's two directions line up (lrfcal.clocksearch): the solve would settle near it.
+    """
+    bound, shortest = timing.clock_offset_bound(joints)
+    if abs(tau0) > bound:
+        raise CalibrationError(
+            f"{CLOCK_START} {tau0:+g} s is beyond the +-{bound * 1000:.0f} ms a calibration of this recording starts "
+            f"from (the smaller of {MAX_CLOCK_OFFSET_S:g} s, beyond which the laser's and the servo's clocks differ "
+            "rather than lag and the bag reader applies the offset from the receive times, and "
+            f"1/{1 / CLOCK_OFFSET_PASS_SHARE:.0f} of the sweep's shortest pass, {shortest:.3g} s: the motor angles "
+            "of its two directions then lie too far apart for the solve to find the offset): the solve would settle "
+            "on a wrong offset near the start; give the latency between the laser's and the servo's stamps, or leave "
+            "--clock-offset at 0 for the calibration to estimate it")
+    found = line_up(scans, joints, bound, tau0) if tau0 != 0.0 else None
+    if found is not None and found.refutes(tau0):
+        ms, deg = 1000.0, math.degrees(found.start_error_rad(tau0))
+        raise CalibrationError(
+            f"{CLOCK_START} {tau0:+g} s: the sweep's two directions see the same scene at {found.offset_s * ms:+.0f} "
+            f"ms (searched over +-{bound * ms:.0f} ms; their ranges differ by {found.mismatch_m * ms:.1f} mm there, "
+            f"{found.start_mismatch_m * ms:.1f} mm at the start), {deg:.1f} deg of motor angle from the start, "
+            f"farther than the solve finds the offset from ({math.degrees(MAX_START_ERROR_RAD):g} deg); start from "
+            f"--clock-offset {found.offset_s:+.3g}" + (" (or leave it at 0)" if found.offset_s != 0.0 else ""))
+    return bound, shortest
+
+
+def _after_settled(checks: tuple[Check, ...], check: Check) -> tuple[Check, ...]:
+    """``checks`` with ``check`` after "rounds settled" (or first)."""
+    k = next((i + 1 for i, c in enumerate(checks) if c.name == "rounds settled"), 0)
+    return (*checks[:k], check, *checks[k:])
 
 
 def _targetless(recording: Recording, config: CalibConfig) -> bool:

@@ -103,6 +103,8 @@ class DHProposal:
     n_starts: int = 0
     reason: str = ""
     seconds: float = 0.0
+    #: the agreeing candidates themselves (canonical), in start order: starts for lrfcal.starts
+    agreeing: tuple[DH, ...] = ()
 
     @property
     def undetermined(self) -> tuple[str, ...]:
@@ -182,7 +184,7 @@ def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int],
     found = [cand for _, cand in solved if cand is not None]
     out = _consensus(found, len(starts))
     return DHProposal(out.dh, out.sigma, out.n_converged, out.n_agreeing, len(starts), out.reason,
-                      time.perf_counter() - t0)
+                      time.perf_counter() - t0, out.group)
 
 
 def propose_for_recording(scans: Scans, joints: JointStates,
@@ -243,6 +245,7 @@ class _Consensus:
     n_converged: int
     n_agreeing: int
     reason: str
+    group: tuple[DH, ...] = ()
 
 
 def _aligned(ref: DH, dh: DH) -> FloatArray:
@@ -280,7 +283,8 @@ def _consensus(found: list[tuple[DH, FloatArray]], n_starts: int) -> _Consensus:
     own = np.median(np.array([found[i][1] for i in group]), axis=0)
     sigma = np.maximum(spread, own)
     dh = canonical(DH(a=float(med[0]), alpha=float(med[1]), b=float(med[2]), beta=float(med[3])))
-    return _Consensus(dh, dict(zip(NAMES, (float(s) for s in sigma), strict=True)), n, int(group.size), "")
+    return _Consensus(dh, dict(zip(NAMES, (float(s) for s in sigma), strict=True)), n, int(group.size), "",
+                      tuple(found[i][0] for i in group))
 
 
 __all__ = ["DETERMINED", "DHProposal", "canonical", "motor_turn_rad", "propose_dh", "propose_for_recording",

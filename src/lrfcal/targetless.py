@@ -49,7 +49,7 @@ from .types import CalibrationResult, Check, JointStates, PlaneFit, Recording, S
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
 #: The stages of a targetless calibration, as reported to ``progress`` and in CalibrationResult.timings_s.
-STAGES: tuple[str, ...] = ("timing", "planes", "solve", "checks", "reprojection", "geometry")
+STAGES: tuple[str, ...] = ("timing", "planes", "solve", "checks", "starts", "reprojection", "geometry")
 #: returns used to segment the planes (the solve uses up to CalibConfig.plane_returns, labelled from these)
 SEGMENT_SAMPLES = 40000
 
@@ -91,8 +91,8 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     clock.lap("timing")
 
     prior = (nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))
-    first_thickness = 4.0 * config.range_sigma_m + 0.02  # the noise plus what a nominal DH bends a plane by
-    start = _Round(nominal.dh, tau0, first_thickness)
+    start = first_round(nominal.dh, tau0, config)
+    first_thickness = start.thickness_m
     returns, labels, found = start.segment(beams, seg, motor, config)
     clock.lap("planes")
     _check_scene(found, returns)
@@ -111,28 +111,8 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
                                "orientations (across the motor axis), or calibrate with markers")
     solve_at = partial(solve.solve_planes, range_sigma_m=config.range_sigma_m,
                        clock=motor if estimate_clock else None, hold=held, dh_prior=prior)
-    sol: Solution | None = None
-    before_last: Solution | None = None
-    settled = False
-    rounds = 0
-    coarse = _coarse(beams, seg)
-    for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
-        if rounds == 1 and coarse is not None:  # the start's segmentation, on its own sample
-            returns, labels, found = _on_sample(beams, seg, labels, found, motor, tau0)
-        elif rounds > 1:
-            returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
-        new = _solve_round(solve_at, returns, found, start, rounds)
-        settled = sol is not None and _settled(sol, new)
-        before_last, sol, start = sol, new, _Round.after(new, config)
-        if settled:
-            break
-    # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
-    for _ in range(0 if coarse is None else 1 if settled else 2):
-        returns, labels, found = start.segment(beams, seg, motor, config)
-        before_last, sol = sol, _solve_round(solve_at, returns, found, start, rounds + 1)
-        start, rounds = _Round.after(sol, config), rounds + 1
-    assert sol is not None
-    unsettled = None if settled else before_last  # the round before the last, to compare with it
+    rs = settle_rounds(Segmenting(beams, seg, motor, config, solve_at), start, (returns, labels, found))
+    sol, unsettled, rounds, (returns, labels, found) = rs.solution, rs.unsettled, rs.rounds, rs.segmented
     settle = _settle_check(unsettled, sol, rounds)
     sol = _with_round_difference(sol, unsettled)
     if not estimate_clock and passes.max() < 1 or config.estimate_clock is False:
@@ -157,6 +137,63 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
         cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
         surface_returns=returns, checks=tuple(checks), plane_fit=fit,
     )
+
+
+@dataclass(frozen=True)
+class Segmenting:
+    """What every segment-and-solve round of one calibration shares: the sampled returns, the segmentation's sample
+    ``seg`` (indices into them), the motor clock, the configuration and the solve (lrfcal.solve.solve_planes with
+    the calibration's held parameters, prior and clock)."""
+
+    beams: Beams
+    seg: NDArray[np.int64]
+    motor: MotorClock
+    config: CalibConfig
+    solve_at: Callable[..., Solution]
+
+
+@dataclass(frozen=True)
+class Rounds:
+    """The rounds' outcome: the last solution, the one before it when the rounds did not settle (else None), the
+    rounds run, and the last segmentation (returns, labels (K,), planes)."""
+
+    solution: Solution
+    unsettled: Solution | None
+    rounds: int
+    segmented: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
+
+
+def settle_rounds(sg: Segmenting, start: _Round,
+                  first: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]] | None = None) -> Rounds:
+    """Segment, solve and re-segment with the new estimate from ``start`` until the DH settle (module docstring);
+    ``first``: the start's segmentation of every sampled return when already made (else it is made here).
+
+    Raises:
+        CalibrationError: a round's cloud shows no plane."""
+    beams, seg, motor, config = sg.beams, sg.seg, sg.motor, sg.config
+    returns, labels, found = first if first is not None else start.segment(beams, seg, motor, config)
+    sol: Solution | None = None
+    before_last: Solution | None = None
+    settled = False
+    rounds = 0
+    coarse = _coarse(beams, seg)
+    for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
+        if rounds == 1 and coarse is not None:  # the start's segmentation, on its own sample
+            returns, labels, found = _on_sample(beams, seg, labels, found, motor, start.tau)
+        elif rounds > 1:
+            returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
+        new = _solve_round(sg.solve_at, returns, found, start, rounds)
+        settled = sol is not None and _settled(sol, new)
+        before_last, sol, start = sol, new, _Round.after(new, config)
+        if settled:
+            break
+    # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
+    for _ in range(0 if coarse is None else 1 if settled else 2):
+        returns, labels, found = start.segment(beams, seg, motor, config)
+        before_last, sol = sol, _solve_round(sg.solve_at, returns, found, start, rounds + 1)
+        start, rounds = _Round.after(sol, config), rounds + 1
+    assert sol is not None
+    return Rounds(sol, None if settled else before_last, rounds, (returns, labels, found))
 
 
 #: segment-and-solve rounds at most before the DH settle (then the last two on every return are compared)
@@ -190,6 +227,12 @@ class _Round:
                 ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
         """:func:`plane_returns_at` here."""
         return plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config, self.intrinsics)
+
+
+def first_round(dh: DH, tau: float, config: CalibConfig) -> _Round:
+    """The first round of a calibration from (dh, tau): its planes' thickness the noise plus what a nominal DH bends
+    a plane by."""
+    return _Round(dh, tau, 4.0 * config.range_sigma_m + 0.02)
 
 
 def _coarse(beams: Beams, seg: NDArray[np.int64]) -> tuple[Beams, NDArray[np.int64]] | None:
@@ -444,5 +487,5 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     return SurfaceReturns(**fields)
 
 
-__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "fit_scene", "merge_returns", "plane_returns_at",
-           "sample_returns", "scene_plane_returns"]
+__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "Segmenting", "first_round", "fit_scene",
+           "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns", "settle_rounds"]

@@ -8,11 +8,13 @@ Array shapes: S scans, N beams per scan, J joint-state samples.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import CalibrationError, InputError
-from .model.motor import JointGap, dequantised, joint_gaps
+from .model.motor import JointGap, clock_offset_bound_s, dequantised, joint_gaps
 from .types import JointStates, Recording, Scans
 
 FloatArray = NDArray[np.float64]
@@ -274,9 +276,9 @@ def without_quantisation(joints: JointStates, scans: Scans) -> JointStates:
                        name=joints.name)
 
 
-__all__ = ["beam_motor_angles", "beam_times", "covered_scans", "interpolation_error_rad", "joint_period_s",
-           "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "scans_in_gaps", "subset_scans",
-           "sweep_passes", "unwrapped_positions", "usable_scans", "without_quantisation"]
+__all__ = ["beam_motor_angles", "beam_times", "clock_offset_bound", "covered_scans", "interpolation_error_rad",
+           "joint_period_s", "motor_angles", "remove_spikes", "scan_angles", "scan_spans", "scans_in_gaps",
+           "subset_scans", "sweep_passes", "unwrapped_positions", "usable_scans", "without_quantisation"]
 
 
 def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scans: int = 5) -> NDArray[np.int64]:
@@ -316,6 +318,24 @@ def sweep_passes(scan_lambda_rad: ArrayLike, min_fraction: float = 0.1, min_scan
     for k, (s0, _) in enumerate(runs):
         out[s0 + 1:] = k
     return out
+
+
+def clock_offset_bound(joints: JointStates) -> tuple[float, float]:
+    """The largest clock offset [s] a calibration with these joint states may start from or report
+    (lrfcal.model.motor.clock_offset_bound_s, from the durations of the sweep's passes, whatever the offset), and the
+    shortest pass's duration [s]. The passes are found on at most PASS_SAMPLES of the samples, evenly spread."""
+    t = joints.stamps_s
+    if t.size < 2:
+        return clock_offset_bound_s([]), math.inf
+    pick = np.unique(np.linspace(0, t.size - 1, min(t.size, PASS_SAMPLES)).astype(np.int64))
+    t = t[pick]
+    passes = sweep_passes(unwrapped_positions(joints)[pick])
+    durations = [float(np.ptp(t[passes == k])) for k in range(int(passes.max()) + 1)]
+    return clock_offset_bound_s(durations), min(durations)
+
+
+#: joint-state samples at most that the sweep's passes are found on (lrfcal.timing.clock_offset_bound)
+PASS_SAMPLES = 5000
 
 
 def remove_spikes(joints: JointStates, threshold_rad: float = 0.05, window: int = 5) -> tuple[JointStates, int]:

@@ -185,6 +185,30 @@ def _gap(t: FloatArray, q: FloatArray, i: int, k: int, tol: float, sweep_s: floa
     return JointGap(float(t[i]), float(t[i + 1]), before, across, after, hides)
 
 
+#: the clock offset (laser stamp - servo stamp) a calibration starts from or reports lies within this [s]: beyond
+#: it the two clocks differ rather than lag (the bag reader measures such an offset from the receive times and
+#: applies it, lrfcal.io.bag.COARSE_OFFSET_MIN_S); what is left is the stamping and transport latency
+MAX_CLOCK_OFFSET_S = 1.0
+#: ... and within this share of the sweep's shortest pass (the time between two turnarounds; a one-way sweep or a
+#: spin: the recording): an offset tau moves the motor angles of the two directions apart by twice the sweep's speed
+#: times tau, and the solve only finds the offset from a start within a few degrees of it (simulated tunnel_v at
+#: 10 deg/s: from 1 s, 10 deg, it converged to the true 0; from 2 s, 20 deg, it reported +1.94 s, all checks
+#: passed), which a sixteenth of a pass keeps (11 deg of a 180 deg sweep); an offset of a whole pass would even
+#: map each pass onto the other one mirrored (the sweep aliases)
+CLOCK_OFFSET_PASS_SHARE = 1.0 / 16.0
+
+
+def clock_offset_bound_s(pass_durations_s: ArrayLike) -> float:
+    """The largest clock offset [s] a calibration may start from or report: the smaller of MAX_CLOCK_OFFSET_S and
+    CLOCK_OFFSET_PASS_SHARE of the shortest pass (``pass_durations_s`` (P,), the sweep's passes' durations; a
+    one-way sweep has one pass, the recording)."""
+    d = np.asarray(pass_durations_s, dtype=float)
+    d = d[np.isfinite(d) & (d > 0)]
+    if d.size == 0:
+        return MAX_CLOCK_OFFSET_S
+    return float(min(MAX_CLOCK_OFFSET_S, CLOCK_OFFSET_PASS_SHARE * d.min()))
+
+
 #: samples on each side of a joint sample that its dequantising fit takes (lrfcal.model.motor.dequantised)
 DEQUANTISE_HALF_WINDOW = 8
 #: a fit that leaves a sample of its window more than this many steps from its reading is not used (the readings
@@ -244,6 +268,6 @@ def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
     return np.where((misfit <= MISFIT_STEPS * quantum) & ~turns, fit, q)
 
 
-__all__ = ["DEQUANTISE_HALF_WINDOW", "EDGE_WINDOW_S", "GAP_PERIODS", "STEADY_SHARE", "TOP_PERCENTILE", "JointGap",
-           "JointSamples",
-           "MotorAngles", "MotorClock", "dequantised", "encoder_quantum", "joint_gaps", "motor_angles"]
+__all__ = ["CLOCK_OFFSET_PASS_SHARE", "DEQUANTISE_HALF_WINDOW", "EDGE_WINDOW_S", "GAP_PERIODS", "MAX_CLOCK_OFFSET_S",
+           "STEADY_SHARE", "TOP_PERCENTILE", "JointGap", "JointSamples", "MotorAngles", "MotorClock",
+           "clock_offset_bound_s", "dequantised", "encoder_quantum", "joint_gaps", "motor_angles"]
