@@ -169,20 +169,24 @@ def in_memory_bag(result: SimResult, scenario: Scenario) -> BagReader:
     and report of the bag :func:`write_bag` writes, in a fraction of the time (tests/test_recording.py). For
     studies, whose trials need the estimate, not the file."""
     from lrfcal.errors import InputError
-    from lrfcal.io.bag import bag_data
+    from lrfcal.io.bag import Topic, bag_data
     from lrfcal.io.bag_messages import ns_to_s
 
     topics, events = bag_messages(result, scenario)
     types = dict(topics)
 
+    def topic(name: str) -> Topic:
+        chosen = [(ns_to_s(t), m) for t, topic, _, m in events if topic == name]
+        return Topic(np.array([t for t, _ in chosen], dtype=np.float64), [m for _, m in chosen],
+                     topics=[name] * len(chosen))
+
     def read(scan: ScanSource, servo: ServoSource, warn: Callable[[str], None] | None) -> BagData:
         if scan.topic not in types or servo.topic not in types or servo.tf is not None or servo.stamp == "scan":
             raise InputError(f"simulated bag: topics {scan.topic} and {servo.topic} expected (it has "
                              f"{', '.join(types)})")
-        scans = [(ns_to_s(t), m) for t, topic, _, m in events if topic == scan.topic]
-        servo_items = [(ns_to_s(t), m, topic) for t, topic, _, m in events if topic == servo.topic]
-        return bag_data("simulated bag", scans, servo_items, types[scan.topic], types[servo.topic], scan, servo,
-                        warn)
+        assert servo.topic is not None
+        return bag_data("simulated bag", topic(scan.topic), topic(servo.topic), types[scan.topic],
+                        types[servo.topic], scan, servo, warn)
 
     return read
 
