@@ -94,6 +94,7 @@ def read_bag(
     *,
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
+    bulk: bool = True,
 ) -> BagData:
     """Read the scans and the servo angle of a bag (module docstring).
 
@@ -106,6 +107,7 @@ def read_bag(
         scan, servo: where the data are (lrfcal.rig; defaults: /scan LaserScan, /joint_states joint ``servo``).
         progress: called as progress(messages_done, messages_total) while reading.
         warn: called once with each assumption the reader makes (default: printed to stderr).
+        bulk: False: rosbags reads and decodes every message (the reference the bulk path is tested against).
     Returns:
         BagData: Scans sorted by stamp (S, N); JointStates (J,) lambda [rad] sorted by stamp, duplicate stamps
         averaged; the ReadReport.
@@ -133,12 +135,11 @@ def read_bag(
             total = sum(c.msgcount for c in scan_conns + servo_conns)
             if progress is not None:
                 progress(0, total)
-            raw = raw_messages(reader, [scan_conns, servo_conns])
+            raw = raw_messages(reader, [scan_conns, servo_conns], fast=bulk)
             scan_type = scan_conns[0].msgtype
             servo_type = servo_conns[0].msgtype if servo_conns else scan_type
-            bulk = scan.field is None and servo.stamp != "scan"
-            scans = _topic(reader, scan_conns, raw[0], bulk)
-            servo_topic = _topic(reader, servo_conns, raw[1], servo.tf is None) if servo_conns else \
+            scans = _topic(reader, scan_conns, raw[0], bulk and scan.field is None and servo.stamp != "scan")
+            servo_topic = _topic(reader, servo_conns, raw[1], bulk and servo.tf is None) if servo_conns else \
                 Topic(np.zeros(0))
     except InputError:
         raise
@@ -147,6 +148,26 @@ def read_bag(
     if progress is not None:
         progress(total, total)
     return bag_data(str(path), scans, servo_topic, scan_type, servo_type, scan, servo, warn)
+
+
+def read_topic(path: str | Path, topic: str, *, bulk: bool = True) -> Topic:
+    """All messages of one topic of a bag, as :func:`read_bag` decodes them (``bulk``: LaserScans and JointStates
+    as arrays) or as rosbags decodes every message (``bulk`` False): what tests and benchmarks compare.
+
+    Raises:
+        InputError: unreadable bag, missing topic.
+    """
+    path = Path(path)
+    reader = open_reader(path)
+    try:
+        with reader:
+            complete_types(reader)
+            conns = _connections(reader, path, topic)
+            return _topic(reader, conns, raw_messages(reader, [conns], fast=bulk)[0], bulk)
+    except InputError:
+        raise
+    except Exception as err:
+        raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
 
 
 def _topic(reader: Any, conns: list[Any], raw: tuple[NDArray[np.int64], list[Any]], bulk: bool) -> Topic:
@@ -253,5 +274,5 @@ def _describe_scan(scan: ScanSource) -> str:
     return f"{scan.topic}{'.' + scan.field if scan.field else ''} (stamp {scan.stamp})"
 
 
-__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "BagReader", "Progress", "Topic", "bag_data", "read_bag",
+__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "BagReader", "Progress", "Topic", "bag_data", "read_bag", "read_topic",
            "timing_notes"]

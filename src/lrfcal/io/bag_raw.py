@@ -32,10 +32,12 @@ class _NotIndexed(Exception):
     """The MCAP file is not one this reader takes: rosbags reads it."""
 
 
-def raw_messages(reader: Any, groups: Sequence[Sequence[Any]]) -> list[tuple[NDArray[np.int64], list[Raw]]]:
+def raw_messages(reader: Any, groups: Sequence[Sequence[Any]], fast: bool = True
+                 ) -> list[tuple[NDArray[np.int64], list[Raw]]]:
     """Per group of connections of the open AnyReader ``reader``: (log times [ns] (M,), serialised messages (M)),
-    in the order its ``messages(connections=group)`` gives (the file is read once for all groups)."""
-    storage = _single_mcap(reader)
+    in the order its ``messages(connections=group)`` gives (an indexed MCAP file is read once for all groups).
+    ``fast`` False: by rosbags' reader whatever the file."""
+    storage = _single_mcap(reader) if fast else None
     if storage is not None:
         try:
             return _mcap_messages(storage, [{c.topic for c in g} for g in groups])

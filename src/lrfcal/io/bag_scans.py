@@ -141,15 +141,19 @@ def scans_from_arrays(arrays: ScanArrays, recv_s: NDArray[np.float64], scan: Sca
     t_inc, scan_time, rmin, rmax = (floats[:, k].copy() for k in (3, 4, 5, 6))
     span, span_note = _angle_span(a0, amax, inc, counts, scan, where)
     N = int(counts.max())
-    ranges = kept(arrays.ranges)[:, :N]
+    ranges = np.ascontiguousarray(kept(arrays.ranges)[:, :N])
     step = (amax - a0) / np.maximum(counts - 1, 1) if span else inc
-    mu = a0[:, None] + np.arange(N)[None, :] * step[:, None]
+    mu = np.multiply(np.arange(N)[None, :], step[:, None])
+    mu += a0[:, None]  # angle_min + i step, as one scan's bearings are
     icounts = kept(arrays.intensity_counts)
-    intens = np.zeros((S, N))
-    width = min(N, arrays.intensities.shape[1])
     good = icounts == counts
-    intens[:, :width] = np.where(good[:, None], kept(arrays.intensities)[:, :width], 0.0)
     n_intens_bad = int(np.sum(~good & (icounts > 0)))
+    if good.all() and arrays.intensities.shape[1] >= N:
+        intens = np.ascontiguousarray(kept(arrays.intensities)[:, :N])
+    else:
+        intens = np.zeros((S, N))
+        width = min(N, arrays.intensities.shape[1])
+        intens[:, :width] = np.where(good[:, None], kept(arrays.intensities)[:, :width], 0.0)
     # time_increment = 0 (or non-finite): the mirror turns 2 pi per scan_time at a constant rate
     bad_ti = ~np.isfinite(t_inc) | (t_inc == 0.0)
     assumed: float | None = None
@@ -248,23 +252,40 @@ def _angle_span(a0: NDArray[np.float64], amax: NDArray[np.float64], inc: NDArray
 
 def _mask(ranges: np.ndarray, intens: np.ndarray, counts: np.ndarray, rmin: np.ndarray, rmax: np.ndarray
           ) -> Counter[str]:
-    """Mask (NaN) the ranges that are no return (0, +-inf, outside [range_min, range_max] of their scan) and zero
-    the intensities of padding and non-finite ones, in place; the count of masked values by reason."""
-    masked: Counter[str] = Counter()
-    pad = np.arange(ranges.shape[1])[None, :] >= counts[:, None]
+    """Mask (NaN) the C-contiguous ranges that are no return (0, +-inf, outside [range_min, range_max] of their scan) and zero
+    the intensities of padding and non-finite ones, in place; the count of masked values by reason.
+
+    Only the values outside [range_min, range_max] (NaN, infinite, zero or not, a few in a scan) are looked at
+    one by one: a pass over the (S, N) values finds them."""
+    big = np.finfo(np.float64).max
     with np.errstate(invalid="ignore"):
-        zero = (ranges == 0.0) & ~pad
-        nan = np.isnan(ranges) & ~pad
-        inf = np.isinf(ranges)
-        low = np.isfinite(ranges) & ~zero & (ranges < rmin[:, None])
-        high = np.isfinite(ranges) & (ranges > rmax[:, None])
+        inside = ranges >= np.maximum(rmin, -big)[:, None]
+        inside &= ranges <= np.minimum(rmax, big)[:, None]
+        if not np.all(rmin > 0.0):  # a zero is no return even where range_min allows it
+            inside &= ranges != 0.0
+    flat = ranges.reshape(-1)  # a view: ranges is C-contiguous
+    at = np.flatnonzero(~inside)
+    rows, cols = np.divmod(at, ranges.shape[1])
+    v = flat[at]
+    valid = cols < counts[rows]  # not padding
+    with np.errstate(invalid="ignore"):
+        zero = (v == 0.0) & valid
+        nan = np.isnan(v) & valid
+        inf = np.isinf(v)
+        low = np.isfinite(v) & ~zero & (v < rmin[rows])
+        high = np.isfinite(v) & (v > rmax[rows])
+    masked: Counter[str] = Counter()
     for name, m in (("zero", zero), ("nan", nan), ("inf", inf), ("below_range_min", low),
                     ("above_range_max", high)):
         c = int(m.sum())
         if c:
             masked[name] = c
-    ranges[zero | inf | low | high] = np.nan
-    intens[~np.isfinite(intens) | pad] = 0.0
+    flat[at[zero | inf | low | high]] = np.nan
+    bad = ~np.isfinite(intens)
+    if bad.any():
+        intens[bad] = 0.0
+    if counts.min() < ranges.shape[1]:
+        intens[np.arange(ranges.shape[1])[None, :] >= counts[:, None]] = 0.0
     return masked
 
 
