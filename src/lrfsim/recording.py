@@ -29,7 +29,7 @@ import numpy as np
 import yaml
 
 from lrfcal.io.files import atomic_folder, check_replaceable, check_writable
-from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, MultiEchoScan, encode_cdr
+from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, Header, MultiEchoScan, Stamp, encode_cdr
 
 from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
@@ -78,16 +78,94 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
 
 
 def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
-    """The ROS 2 bag (MCAP, version 9) of :func:`bag_messages`, one connection per topic in the order listed."""
+    """The ROS 2 bag (MCAP, version 9) of :func:`bag_records`, one connection per topic in the order listed."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    topics, events = bag_messages(result, scenario)
+    topics, records = bag_records(result, scenario)
     ts = _typestore()
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in topics}
-        for log_ns, topic, msgtype, msg in events:
-            raw = encode_cdr(msg) if isinstance(msg, MultiEchoScan) else ts.serialize_cdr(msg, msgtype)
+        for log_ns, topic, raw in records:
             writer.write(conns[topic], log_ns, raw)
+
+
+def _stamps(t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ROS times of simulation times ``t_s`` (M,) [s]: (ns, sec, nanosec) (M,) each, as :func:`_ns` rounds one."""
+    ns = EPOCH_NS + np.round(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64)
+    return ns, ns // 10**9, ns % 10**9
+
+
+def _log_order(result: SimResult, scenario: Scenario) -> list[tuple[int, int, int]]:
+    """(log time ns, kind (0 scan, 1 joint state), index) of every message, in log-time order: scans are logged at
+    the end of the scan, on the recorder (servo) clock."""
+    sensor = scenario.sensor
+    scan_log, _, _ = _stamps((result.scan_stamps_s - scenario.servo.clock_offset_s) + sensor.scan_period_s)
+    joint_log, _, _ = _stamps(result.joints.stamps_s)
+    log = np.concatenate([scan_log, joint_log])
+    kind = np.repeat([0, 1], [scan_log.size, joint_log.size])
+    index = np.concatenate([np.arange(scan_log.size), np.arange(joint_log.size)])
+    order = np.lexsort((index, kind, log))
+    return list(zip(log[order].tolist(), kind[order].tolist(), index[order].tolist(), strict=True))
+
+
+def bag_records(result: SimResult, scenario: Scenario) -> tuple[list[tuple[str, str]], list[tuple[int, str, Any]]]:
+    """The bag's topics [(topic, type)] and its serialised messages [(log time ns, topic, CDR bytes)] in log-time
+    order: the messages of :func:`bag_messages`, serialised in bulk (lrfcal.io.wire: the LaserScans and the
+    JointStates each as one array; a MultiEchoLaserScan by lrfcal.io.multiecho), the bytes rosbags' serialiser gives
+    for each (tests/test_bulk_bags.py)."""
+    from lrfcal.io.wire import encode_joint_states, encode_laserscans
+
+    sensor, servo = scenario.sensor, scenario.servo
+    floats = np.array(_scan_floats(result, scenario), dtype=np.float32)
+    _, sec, nanosec = _stamps(result.scan_stamps_s)
+    scans = encode_laserscans(sec, nanosec, LASER_FRAME, floats, result.ranges_m.astype(np.float32),
+                              result.intensities.astype(np.float32))
+    j = result.joints
+    _, sec, nanosec = _stamps(j.stamps_s)
+    joints = encode_joint_states(sec, nanosec, "", (servo.joint,), j.positions_rad[:, None],
+                                 j.velocities_rad_s[:, None], np.zeros((j.stamps_s.size, 0)))
+    echoes = _echo_messages(result, scenario)
+    topics = [(SCAN_TOPIC, LASERSCAN_TYPE), (JOINT_TOPIC, JOINTSTATE_TYPE)]
+    if echoes is not None:
+        topics.append((sensor.echoes.topic, MULTIECHO_TYPE))
+    records: list[tuple[int, str, Any]] = []
+    for log_ns, kind, k in _log_order(result, scenario):
+        if kind == 0:
+            records.append((log_ns, SCAN_TOPIC, memoryview(scans[k])))
+            if echoes is not None:
+                records.append((log_ns, sensor.echoes.topic, encode_cdr(echoes(k))))
+        else:
+            records.append((log_ns, JOINT_TOPIC, memoryview(joints[k])))
+    return topics, records
+
+
+def _scan_floats(result: SimResult, scenario: Scenario) -> list[float]:
+    """A LaserScan's float fields (lrfcal.io.wire.SCAN_FLOATS order) as float32 values: the LaserScans declare
+    ``result.declared_angle_increment_rad`` when a fault set it, else the sensor's; angle_max is the true span."""
+    sensor = scenario.sensor
+    n = sensor.n_beams
+    angle_max = sensor.angle_min_rad + (n - 1) * sensor.angle_increment_rad  # the true span, faults aside
+    increment = (sensor.angle_increment_rad if result.declared_angle_increment_rad is None
+                 else result.declared_angle_increment_rad)
+    return [float(np.float32(v)) for v in (sensor.angle_min_rad, angle_max, increment, sensor.time_increment_s,
+                                           sensor.scan_period_s, sensor.range_min_m, sensor.range_max_m)]
+
+
+def _echo_messages(result: SimResult, scenario: Scenario) -> Callable[[int], MultiEchoScan] | None:
+    """Scan k's MultiEchoLaserScan (None without echoes): per beam a LaserEcho with the beam's valid echoes, nearest
+    first (none: empty), as urg_node fills it; its header and float fields those of scan k's LaserScan."""
+    if result.echo_ranges_m is None or result.echo_intensities is None:
+        return None
+    er_all, ei_all = result.echo_ranges_m, result.echo_intensities
+    floats = _scan_floats(result, scenario)
+    _, sec, nanosec = _stamps(result.scan_stamps_s)
+
+    def message(k: int) -> MultiEchoScan:
+        ok = np.isfinite(er_all[k])
+        header = Header(Stamp(int(sec[k]), int(nanosec[k])), LASER_FRAME)
+        return MultiEchoScan(header, *floats, Echoes.of_rows(er_all[k], ok), Echoes.of_rows(ei_all[k], ok))
+
+    return message
 
 
 def _typestore() -> Any:
@@ -243,5 +321,5 @@ def ground_truth_yaml(result: SimResult) -> str:
     })
 
 
-__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_messages", "check_output",
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_messages", "bag_records", "check_output",
            "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag", "write_recording"]

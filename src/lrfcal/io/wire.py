@@ -1,10 +1,13 @@
-"""sensor_msgs/LaserScan and sensor_msgs/JointState read from their wire formats with numpy, many messages at once.
+"""sensor_msgs/LaserScan and sensor_msgs/JointState read from and written to their wire formats with numpy, many
+messages at once.
 
 A bag holds thousands of these messages of one layout: the same frame id, beam count, joint names. A generic decoder
 (rosbags) builds Python objects field by field for each; here the first message of a run is parsed once (its
 :class:`Layout`: where each field sits), every message of the same length whose layout bytes (string lengths, the
 strings, the array counts) equal the first's is taken to share that layout, and each field is read as a column of
 the (messages, bytes) matrix. Messages that do not parse are left to the caller (lrfcal.io.bag_arrays: rosbags).
+Writing is the same in reverse: one message's bytes laid out once, copied M times, the fields written as columns
+(:func:`encode_laserscans`, :func:`encode_joint_states`: the simulator's bag, lrfsim.recording).
 
 Wire formats (the message definitions: std_msgs/Header header, then LaserScan's 7 float32 fields, float32[] ranges,
 float32[] intensities; JointState's string[] name, float64[] position, velocity, effort):
@@ -156,4 +159,83 @@ def column(mat: NDArray[np.uint8], at: int, count: int, dtype: str) -> NDArray[n
     return mat[:, at:at + count * size].view(dtype)
 
 
-__all__ = ["SCAN_FLOATS", "Layout", "column", "jointstate_layout", "laserscan_layout", "same_layout", "stamps"]
+class _Builder:
+    """Writes one message's fixed parts (CDR from byte 4 aligned, or ROS 1) and leaves its values zero."""
+
+    def __init__(self, cdr: bool) -> None:
+        self.cdr = cdr
+        self.buf = bytearray(b"\x00\x01\x00\x00" if cdr else b"\x00" * 4)  # encapsulation / the header's seq
+
+    def align(self, n: int) -> None:
+        if self.cdr:
+            self.buf += b"\x00" * (-(len(self.buf) - 4) % n)
+
+    def u32(self, v: int) -> None:
+        self.align(4)
+        self.buf += struct.pack("<I", v)
+
+    def string(self, text: str) -> None:
+        data = text.encode() + (b"\x00" if self.cdr else b"")
+        self.u32(len(data))
+        self.buf += data
+
+    def array(self, size: int, count: int) -> None:
+        self.u32(count)
+        if count:
+            self.align(size)
+        self.buf += b"\x00" * (size * count)
+
+
+def _filled(template: bytes, layout: Layout | None, m: int, sec: NDArray[np.int64], nanosec: NDArray[np.int64],
+            cdr: bool) -> tuple[NDArray[np.uint8], Layout]:
+    """``m`` copies (m, L) of a message's bytes with each one's header stamp written in."""
+    assert layout is not None
+    mat = np.tile(np.frombuffer(template, dtype=np.uint8), (m, 1))
+    words = mat[:, layout.stamp_at:layout.stamp_at + 8].view("<u4")
+    words[:, 0] = sec.astype("<i4" if cdr else "<u4").view("<u4")
+    words[:, 1] = nanosec
+    return mat, layout
+
+
+def encode_laserscans(sec: NDArray[np.int64], nanosec: NDArray[np.int64], frame_id: str, floats: NDArray[np.float32],
+                      ranges: NDArray[np.float32], intensities: NDArray[np.float32], cdr: bool = True
+                      ) -> NDArray[np.uint8]:
+    """M LaserScans of one layout serialised (M, L), row k the bytes rosbags' serialiser gives for message k:
+    header stamps ``sec``, ``nanosec`` (M,), ``frame_id``, the float fields (7,) (:data:`SCAN_FLOATS` order, the
+    same in every message) or (M, 7), ``ranges`` (M, N) and ``intensities`` (M, K) as float32."""
+    b = _Builder(cdr)
+    b.buf += b"\x00" * 8
+    b.string(frame_id)
+    b.align(4)
+    b.buf += b"\x00" * 28
+    b.array(4, ranges.shape[1])
+    b.array(4, intensities.shape[1])
+    mat, layout = _filled(bytes(b.buf), laserscan_layout(bytes(b.buf), cdr), ranges.shape[0], sec, nanosec, cdr)
+    column(mat, layout.floats_at, 7, "<f4")[:] = floats
+    for (at, n), values in zip(layout.arrays, (ranges, intensities), strict=True):
+        column(mat, at, n, "<f4")[:] = values
+    return mat
+
+
+def encode_joint_states(sec: NDArray[np.int64], nanosec: NDArray[np.int64], frame_id: str, names: tuple[str, ...],
+                        position: NDArray[np.float64], velocity: NDArray[np.float64], effort: NDArray[np.float64],
+                        cdr: bool = True) -> NDArray[np.uint8]:
+    """M JointStates of one layout serialised (M, L), row k the bytes rosbags' serialiser gives for message k:
+    header stamps ``sec``, ``nanosec`` (M,), ``frame_id``, the joint ``names``, position, velocity and effort
+    (M, P), (M, V), (M, E) [rad, rad/s, N m]."""
+    b = _Builder(cdr)
+    b.buf += b"\x00" * 8
+    b.string(frame_id)
+    b.u32(len(names))
+    for name in names:
+        b.string(name)
+    for values in (position, velocity, effort):
+        b.array(8, values.shape[1])
+    mat, layout = _filled(bytes(b.buf), jointstate_layout(bytes(b.buf), cdr), position.shape[0], sec, nanosec, cdr)
+    for (at, n), values in zip(layout.arrays, (position, velocity, effort), strict=True):
+        column(mat, at, n, "<f8")[:] = values
+    return mat
+
+
+__all__ = ["SCAN_FLOATS", "Layout", "column", "encode_joint_states", "encode_laserscans", "jointstate_layout",
+           "laserscan_layout", "same_layout", "stamps"]
