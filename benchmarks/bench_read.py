@@ -1,4 +1,4 @@
-"""Reading a recording's bag: the bulk path against rosbags' generic one, measured A/B in one run (issue 47).
+"""Reading and writing a recording's bag: the bulk paths against rosbags' generic ones, A/B in one run (issue 47).
 
     python benchmarks/bench_read.py [BAG] [--repeat R] [--old-src SRC]
 
@@ -15,6 +15,10 @@ and with ``--old-src SRC`` (a source tree of the project from before, e.g. the m
 warm-up read, imports not counted). Prints each median wall and CPU time (user + system of the process: less
 sensitive to other work on a shared machine) and the ratios to ``generic`` / ``old``. Target: reading
 tunnel_v's recording <= 0.1 s where it took ~0.5 s (a ratio <= 0.2).
+
+Without BAG also the writing of tunnel_v's bag, interleaved the same way: ``write generic``
+(lrfsim.recording.write_bag with ``bulk=False``: one rosbags serialiser call per message) and ``write bulk``
+(write_bag as it runs: the messages serialised as arrays, lrfcal.io.wire), the same file byte for byte.
 """
 
 from __future__ import annotations
@@ -46,12 +50,22 @@ print(time.perf_counter() - t0, time.process_time() - c0)
 """
 
 
-def _simulated(tmp: Path) -> Path:
+def _simulated(tmp: Path, repeat: int, times: dict[str, list[float]], cpus: dict[str, list[float]]) -> Path:
+    """tunnel_v simulated and written into ``tmp``; its bag's writing timed both ways (module docstring)."""
+    from lrfsim.recording import write_bag
     from lrfsim.scenario import load_scenario
     from lrfsim.simulate import simulate, write_recording
 
     scenario = load_scenario(ROOT / "scenarios" / "tunnel_v.yaml")
-    return write_recording(simulate(scenario), scenario, tmp / "tunnel_v") / "bag"
+    result = simulate(scenario)
+    for k in range(repeat + 1):  # the first round warms up
+        for name, bulk in (("write generic", False), ("write bulk", True)):
+            t0, c0 = time.perf_counter(), time.process_time()
+            write_bag(result, scenario, tmp / f"{name.split()[1]}{k}" / "bag", bulk=bulk)
+            if k:
+                times.setdefault(name, []).append(time.perf_counter() - t0)
+                cpus.setdefault(name, []).append(time.process_time() - c0)
+    return write_recording(result, scenario, tmp / "tunnel_v") / "bag"
 
 
 def _child(src: Path, bag: Path, nominal: Path) -> tuple[float, float]:
@@ -76,16 +90,18 @@ def main() -> None:
 
     apply_memory_policy()  # as the programs run (lrfcal.memory)
 
+    times: dict[str, list[float]] = {}
+    cpus: dict[str, list[float]] = {}
     with tempfile.TemporaryDirectory(prefix="bench-read-") as tmp:
-        bag = args.bag or _simulated(Path(tmp))
+        bag = args.bag or _simulated(Path(tmp), args.repeat, times, cpus)
         nominal = bag.parent / "nominal.yaml"
         if nominal.is_file():
             nom = read_nominal(nominal)
             scan, servo = nom.scan, nom.servo
         else:
             scan, servo = ScanSource(), ServoSource(topic="/joint_states", joint="servo")
-        times: dict[str, list[float]] = {"generic": [], "bulk": []}
-        cpus: dict[str, list[float]] = {"generic": [], "bulk": []}
+        for name in ("generic", "bulk"):
+            times[name], cpus[name] = [], []
         for bulk in (False, True):  # warm-up: imports, the page cache
             read_bag(bag, scan, servo, bulk=bulk, warn=lambda text: None)
         for _ in range(args.repeat):
@@ -109,13 +125,15 @@ def main() -> None:
     print(f"bag: {bag if args.bag else 'tunnel_v simulated'}; {args.repeat} interleaved runs, medians; "
           f"load average {os.getloadavg()[0]:.2f}")
     for name, value in med.items():
-        print(f"  {name:8s} wall {value * 1000:8.1f} ms (min {min(times[name]) * 1000:.1f})   "
+        print(f"  {name:13s} wall {value * 1000:8.1f} ms (min {min(times[name]) * 1000:.1f})   "
               f"CPU {cpu[name] * 1000:8.1f} ms (min {min(cpus[name]) * 1000:.1f})")
-    for a, b, what in (("bulk", "generic", "in this process"), ("new", "old", "subprocesses")):
+    for a, b, what in (("write bulk", "write generic", "in this process"), ("bulk", "generic", "in this process"),
+                       ("new", "old", "subprocesses")):
         if a in med:
             ratio, cratio = med[a] / med[b], cpu[a] / cpu[b]
-            print(f"{a} / {b} ({what}): wall {ratio:.3f}, CPU {cratio:.3f}  "
-                  f"({'PASS' if ratio <= TARGET_RATIO else 'MISS'} <= {TARGET_RATIO}, wall)")
+            verdict = "" if a.startswith("write") else \
+                f"  ({'PASS' if ratio <= TARGET_RATIO else 'MISS'} <= {TARGET_RATIO}, wall)"
+            print(f"{a} / {b} ({what}): wall {ratio:.3f}, CPU {cratio:.3f}{verdict}")
 
 
 if __name__ == "__main__":

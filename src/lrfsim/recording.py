@@ -77,12 +77,19 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
     return out
 
 
-def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
-    """The ROS 2 bag (MCAP, version 9) of :func:`bag_records`, one connection per topic in the order listed."""
+def write_bag(result: SimResult, scenario: Scenario, path: Path, *, bulk: bool = True) -> None:
+    """The ROS 2 bag (MCAP, version 9) of :func:`bag_records`, one connection per topic in the order listed.
+    ``bulk`` False: :func:`bag_messages` serialised by one rosbags call each (the same file, in several times the
+    time: the reference tests/test_bulk_bags.py and benchmarks/bench_read.py compare with)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    topics, records = bag_records(result, scenario)
     ts = _typestore()
+    if bulk:
+        topics, records = bag_records(result, scenario)
+    else:
+        topics, events = bag_messages(result, scenario)
+        records = [(log_ns, topic, encode_cdr(msg) if typ == MULTIECHO_TYPE else ts.serialize_cdr(msg, typ))
+                   for log_ns, topic, typ, msg in events]
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in topics}
         for log_ns, topic, raw in records:

@@ -252,8 +252,8 @@ def _angle_span(a0: NDArray[np.float64], amax: NDArray[np.float64], inc: NDArray
 
 def _mask(ranges: np.ndarray, intens: np.ndarray, counts: np.ndarray, rmin: np.ndarray, rmax: np.ndarray
           ) -> Counter[str]:
-    """Mask (NaN) the C-contiguous ranges that are no return (0, +-inf, outside [range_min, range_max] of their scan) and zero
-    the intensities of padding and non-finite ones, in place; the count of masked values by reason.
+    """Mask (NaN) the C-contiguous ranges that are no return (0, +-inf, outside [range_min, range_max] of their
+    scan) and zero the intensities of padding and non-finite ones, in place; the count of masked values by reason.
 
     Only the values outside [range_min, range_max] (NaN, infinite, zero or not, a few in a scan) are looked at
     one by one: a pass over the (S, N) values finds them."""
