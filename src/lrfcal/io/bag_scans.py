@@ -143,8 +143,7 @@ def scans_from_arrays(arrays: ScanArrays, recv_s: NDArray[np.float64], scan: Sca
     N = int(counts.max())
     ranges = np.ascontiguousarray(kept(arrays.ranges)[:, :N])
     step = (amax - a0) / np.maximum(counts - 1, 1) if span else inc
-    mu = np.multiply(np.arange(N)[None, :], step[:, None])
-    mu += a0[:, None]  # angle_min + i step, as one scan's bearings are
+    mu = _bearings(a0, step, N)
     icounts = kept(arrays.intensity_counts)
     good = icounts == counts
     n_intens_bad = int(np.sum(~good & (icounts > 0)))
@@ -183,6 +182,19 @@ def scans_from_arrays(arrays: ScanArrays, recv_s: NDArray[np.float64], scan: Sca
     rep = {"skipped": skipped, "masked": masked, "n_assumed": int(bad_ti.sum()), "assumed": assumed,
            "recv_s": recv, "_kept_rows": rows}
     return scans, rep, notes
+
+
+def _bearings(a0: NDArray[np.float64], step: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """Beam i's bearing angle_min + i step (S, n) [rad] of each scan; computed once when every scan has the same
+    angle_min and step (a scanner's driver: the same bits)."""
+    if a0.size and np.all(a0 == a0[0]) and np.all(step == step[0]):
+        row = a0[0] + np.arange(n) * step[0]
+        mu = np.empty((a0.size, n))
+        mu[:] = row
+        return mu
+    mu = np.multiply(np.arange(n)[None, :], step[:, None])
+    mu += a0[:, None]
+    return mu
 
 
 def _usable_rows(arrays: ScanArrays, recv_s: NDArray[np.float64], scan: ScanSource, where: str
@@ -264,7 +276,7 @@ def _mask(ranges: np.ndarray, intens: np.ndarray, counts: np.ndarray, rmin: np.n
         if not np.all(rmin > 0.0):  # a zero is no return even where range_min allows it
             inside &= ranges != 0.0
     flat = ranges.reshape(-1)  # a view: ranges is C-contiguous
-    at = np.flatnonzero(~inside)
+    at = np.flatnonzero(np.logical_not(inside, out=inside))
     rows, cols = np.divmod(at, ranges.shape[1])
     v = flat[at]
     valid = cols < counts[rows]  # not padding
