@@ -39,7 +39,7 @@ from .bag_messages import (
     one_line,
     open_reader,
 )
-from .bag_raw import raw_messages
+from .bag_raw import RawTopic, raw_messages
 from .bag_scans import laser_arrays, scans_from_arrays
 from .bag_servo import joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
 
@@ -170,19 +170,20 @@ def read_topic(path: str | Path, topic: str, *, bulk: bool = True) -> Topic:
         raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
 
 
-def _topic(reader: Any, conns: list[Any], raw: tuple[NDArray[np.int64], list[Any]], bulk: bool) -> Topic:
-    """The messages of connections ``conns`` (``raw``: their log times [ns] and serialised messages): LaserScans and
-    JointStates of the standard definitions as arrays when ``bulk``, everything else as objects."""
-    times_ns, raws = raw
-    recv = ns_to_s_array(times_ns)
+def _topic(reader: Any, conns: list[Any], raw: RawTopic, bulk: bool) -> Topic:
+    """The messages ``raw`` of connections ``conns``: LaserScans and JointStates of the standard definitions as
+    arrays when ``bulk``, everything else as objects."""
+    recv = ns_to_s_array(raw.times_ns)
     types = {c.msgtype for c in conns}
     msgtype = next(iter(types))
-    kind = bulk_kind(reader, msgtype) if bulk and len(types) == 1 and raws else None
+    kind = bulk_kind(reader, msgtype) if bulk and len(types) == 1 and len(raw) else None
     if kind is not None:
         decode = decode_scans if kind == "scan" else decode_joints
-        return Topic(recv, arrays=decode(raws, reader.is2, lambda i: decode_message(reader, raws[i], msgtype)))
+        return Topic(recv, arrays=decode(raw, reader.is2, lambda i: decode_message(reader, bytes(raw.message(i)),
+                                                                                    msgtype)))
     if len(types) == 1:
-        return Topic(recv, [decode_message(reader, r, msgtype) for r in raws], topics=[conns[0].topic] * len(raws))
+        return Topic(recv, [decode_message(reader, bytes(raw.message(i)), msgtype) for i in range(len(raw))],
+                     topics=[conns[0].topic] * len(raw))
     items = [(c.topic, decode_message(reader, r, c.msgtype)) for c, _, r in reader.messages(connections=conns)]
     return Topic(recv, [m for _, m in items], topics=[t for t, _ in items])
 

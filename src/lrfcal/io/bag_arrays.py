@@ -23,9 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .bag_raw import RawTopic
 from .wire import SCAN_FLOATS, Layout, column, jointstate_layout, laserscan_layout, same_layout, stamps
-
-Raw = bytes | memoryview
 
 
 @dataclass(frozen=True)
@@ -100,17 +99,19 @@ def _stack(parts: Sequence[Any], order: NDArray[np.int64]) -> Any:
     return JointArrays(cat("sec"), cat("nanosec"), cat("names"), cat("positions", np.nan), cat("position_counts"))
 
 
-def _blocks(raws: Sequence[Raw], parse: Callable[[bytes, bool], Layout | None], cdr: bool
+def _blocks(raw: RawTopic, parse: Callable[[bytes, bool], Layout | None], cdr: bool
             ) -> tuple[list[tuple[NDArray[np.int64], NDArray[np.uint8], Layout]], list[int]]:
     """The messages cut into blocks of one layout: (their rows, their bytes (m, L), the layout), and the rows that
-    do not parse."""
-    lengths = np.fromiter(map(len, raws), dtype=np.int64, count=len(raws))
-    sizes, group = np.unique(lengths, return_inverse=True)
+    do not parse. Messages of one length laid end to end are read where they lie, without a copy."""
+    sizes, group = np.unique(raw.lengths, return_inverse=True)
     blocks, odd = [], []
     for g, size in enumerate(sizes.tolist()):
-        idx = np.arange(len(raws)) if sizes.size == 1 else np.flatnonzero(group == g)
-        joined = b"".join(raws) if sizes.size == 1 else b"".join([raws[i] for i in idx.tolist()])
-        mat = np.frombuffer(joined, dtype=np.uint8).reshape(idx.size, size)
+        idx = np.arange(len(raw)) if sizes.size == 1 else np.flatnonzero(group == g)
+        if sizes.size == 1 and raw.packed():
+            mat = np.frombuffer(raw.blob, dtype=np.uint8).reshape(idx.size, size)
+        else:
+            mat = np.frombuffer(b"".join([raw.message(i) for i in idx.tolist()]), dtype=np.uint8)
+            mat = mat.reshape(idx.size, size)
         while mat.shape[0]:
             layout = parse(mat[0].tobytes(), cdr)
             if layout is None:
@@ -144,30 +145,30 @@ def _joint_block(mat: NDArray[np.uint8], layout: Layout, cdr: bool) -> JointArra
                        np.full(m, n, dtype=np.int64))
 
 
-def _decode(raws: Sequence[Raw], cdr: bool, parse: Callable[[bytes, bool], Layout | None],
+def _decode(raw: RawTopic, cdr: bool, parse: Callable[[bytes, bool], Layout | None],
             block: Callable[[NDArray[np.uint8], Layout, bool], Any], of: Callable[[list[Any]], Any],
             fallback: Callable[[int], Any]) -> Any:
-    blocks, odd = _blocks(raws, parse, cdr)
+    blocks, odd = _blocks(raw, parse, cdr)
     parts = [block(mat, layout, cdr) for _, mat, layout in blocks]
     rows = [idx for idx, _, _ in blocks]
     if odd:
         parts.append(of([fallback(i) for i in odd]))
         rows.append(np.array(odd, dtype=np.int64))
-    if len(parts) == 1 and np.array_equal(rows[0], np.arange(len(raws))):
+    if len(parts) == 1 and np.array_equal(rows[0], np.arange(len(raw))):
         return parts[0]
     return _stack(parts, np.concatenate(rows))
 
 
-def decode_scans(raws: Sequence[Raw], cdr: bool, fallback: Callable[[int], Any]) -> ScanArrays:
-    """The serialised sensor_msgs/LaserScans ``raws`` (M; CDR or ROS 1) as arrays; ``fallback(i)`` decodes message
+def decode_scans(raw: RawTopic, cdr: bool, fallback: Callable[[int], Any]) -> ScanArrays:
+    """The serialised sensor_msgs/LaserScans ``raw`` (M; CDR or ROS 1) as arrays; ``fallback(i)`` decodes message
     i where lrfcal.io.wire does not recognise it (rosbags). M >= 1."""
-    return _decode(raws, cdr, laserscan_layout, _scan_block, scans_of, fallback)
+    return _decode(raw, cdr, laserscan_layout, _scan_block, scans_of, fallback)
 
 
-def decode_joints(raws: Sequence[Raw], cdr: bool, fallback: Callable[[int], Any]) -> JointArrays:
-    """The serialised sensor_msgs/JointStates ``raws`` (M; CDR or ROS 1) as arrays; ``fallback`` as in
+def decode_joints(raw: RawTopic, cdr: bool, fallback: Callable[[int], Any]) -> JointArrays:
+    """The serialised sensor_msgs/JointStates ``raw`` (M; CDR or ROS 1) as arrays; ``fallback`` as in
     :func:`decode_scans`. M >= 1."""
-    return _decode(raws, cdr, jointstate_layout, _joint_block, joints_of, fallback)
+    return _decode(raw, cdr, jointstate_layout, _joint_block, joints_of, fallback)
 
 
 Pick = Callable[[Any], "tuple[NDArray[np.float64], NDArray[np.float64]] | None"]

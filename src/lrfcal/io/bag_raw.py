@@ -14,12 +14,11 @@ the file) is read by rosbags' reader, as before.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-
-Raw = bytes | memoryview
 
 _MESSAGE_OP, _INDEX_OP = 0x05, 0x07
 #: a message record's head: opcode, record length (uint64), channel id (uint16), sequence (uint32), log time and
@@ -32,11 +31,41 @@ class _NotIndexed(Exception):
     """The MCAP file is not one this reader takes: rosbags reads it."""
 
 
-def raw_messages(reader: Any, groups: Sequence[Sequence[Any]], fast: bool = True
-                 ) -> list[tuple[NDArray[np.int64], list[Raw]]]:
-    """Per group of connections of the open AnyReader ``reader``: (log times [ns] (M,), serialised messages (M)),
-    in the order its ``messages(connections=group)`` gives (an indexed MCAP file is read once for all groups).
-    ``fast`` False: by rosbags' reader whatever the file."""
+@dataclass(frozen=True)
+class RawTopic:
+    """The serialised messages (M) of some connections in bag order: log times ``times_ns`` (M,) [ns], the
+    messages' bytes in ``blob`` (in file order) at ``starts`` with ``lengths`` (M,)."""
+
+    times_ns: NDArray[np.int64]
+    blob: bytes | bytearray
+    starts: NDArray[np.int64]
+    lengths: NDArray[np.int64]
+
+    def __len__(self) -> int:
+        return int(self.times_ns.size)
+
+    def message(self, i: int) -> memoryview:
+        """Message i's bytes."""
+        s = int(self.starts[i])
+        return memoryview(self.blob)[s:s + int(self.lengths[i])]
+
+    def packed(self) -> bool:
+        """The messages lie in ``blob`` end to end in bag order, nothing else in it."""
+        ends = np.cumsum(self.lengths)
+        return bool(np.array_equal(self.starts, ends - self.lengths)) and (ends[-1] if ends.size else 0) == len(
+            self.blob)
+
+    @staticmethod
+    def of(times_ns: Sequence[int], raws: Sequence[bytes | memoryview]) -> RawTopic:
+        """The messages ``raws`` logged at ``times_ns``, in this order."""
+        lengths = np.fromiter(map(len, raws), dtype=np.int64, count=len(raws))
+        return RawTopic(np.array(times_ns, dtype=np.int64), b"".join(raws), np.cumsum(lengths) - lengths, lengths)
+
+
+def raw_messages(reader: Any, groups: Sequence[Sequence[Any]], fast: bool = True) -> list[RawTopic]:
+    """Per group of connections of the open AnyReader ``reader``: its messages, in the order its
+    ``messages(connections=group)`` gives (an indexed MCAP file is read once for all groups). ``fast`` False: by
+    rosbags' reader whatever the file."""
     storage = _single_mcap(reader) if fast else None
     if storage is not None:
         try:
@@ -49,7 +78,7 @@ def raw_messages(reader: Any, groups: Sequence[Sequence[Any]], fast: bool = True
         for _, t_ns, raw in reader.messages(connections=list(group)) if group else ():
             times.append(t_ns)
             raws.append(raw)
-        out.append((np.array(times, dtype=np.int64), raws))
+        out.append(RawTopic.of(times, raws))
     return out
 
 
@@ -70,7 +99,7 @@ def _single_mcap(reader: Any) -> Any:
     return storages[0]
 
 
-def _mcap_messages(storage: Any, topics: list[set[str]]) -> list[tuple[NDArray[np.int64], list[Raw]]]:
+def _mcap_messages(storage: Any, topics: list[set[str]]) -> list[RawTopic]:
     from rosbags.rosbag2.storage_mcap import decompress
 
     channels = [{cid for cid, ch in storage.channels.items() if ch.topic in group} for group in topics]
@@ -78,7 +107,7 @@ def _mcap_messages(storage: Any, topics: list[set[str]]) -> list[tuple[NDArray[n
     if not chunks:
         raise _NotIndexed
     keys: list[list[NDArray[np.int64]]] = [[] for _ in topics]
-    raws: list[list[Raw]] = [[] for _ in topics]
+    views: list[list[memoryview]] = [[] for _ in topics]
     with open(storage.path, "rb") as f:
         for chunk in chunks:
             wanted = [[cid for cid in group if cid in chunk.message_index_offsets] for group in channels]
@@ -87,23 +116,23 @@ def _mcap_messages(storage: Any, topics: list[set[str]]) -> list[tuple[NDArray[n
             f.seek(chunk.chunk_start_offset + 9 + 24)
             crc = int.from_bytes(f.read(4), "little")
             f.seek(chunk.chunk_start_offset + 9 + 40 + len(chunk.compression))
-            data = decompress(f.read(chunk.compressed_size), chunk.compression, chunk.uncompressed_size, crc)
-            view = memoryview(data)
+            data = memoryview(decompress(f.read(chunk.compressed_size), chunk.compression, chunk.uncompressed_size,
+                                         crc))
             for k, cids in enumerate(wanted):
                 if not cids:
                     continue
                 times, offsets = _indexed(f, chunk, cids)
                 start, length = _located(data, offsets, times, cids)
-                raws[k].extend(view[a:a + n] for a, n in zip(start.tolist(), length.tolist(), strict=True))
+                views[k].extend(data[a:a + n] for a, n in zip(start.tolist(), length.tolist(), strict=True))
                 keys[k].append(np.stack([times, np.full(times.size, chunk.chunk_start_offset), offsets]))
     out = []
-    for k_list, r_list in zip(keys, raws, strict=True):
+    for k_list, v in zip(keys, views, strict=True):
         if not k_list:
-            out.append((np.zeros(0, dtype=np.int64), []))
+            out.append(RawTopic.of([], []))
             continue
         key = np.concatenate(k_list, axis=1)
-        order = np.lexsort(key[::-1])
-        out.append((key[0][order], [r_list[i] for i in order.tolist()]))
+        order = np.lexsort(key[::-1])  # by log time, then chunk, then place in the chunk
+        out.append(RawTopic.of(key[0][order], [v[i] for i in order.tolist()]))
     return out
 
 
@@ -124,7 +153,7 @@ def _indexed(f: Any, chunk: Any, wanted: list[int]) -> tuple[NDArray[np.int64], 
     return t[order], o[order]
 
 
-def _located(data: bytes, offsets: NDArray[np.int64], times: NDArray[np.int64], wanted: list[int]
+def _located(data: bytes | memoryview, offsets: NDArray[np.int64], times: NDArray[np.int64], wanted: list[int]
              ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(start, length) of each message's serialised bytes in the chunk's records ``data``, its record checked
     against the index (a message record of a wanted channel at the log time the index gives)."""
@@ -142,4 +171,4 @@ def _located(data: bytes, offsets: NDArray[np.int64], times: NDArray[np.int64], 
     return offsets + size, length
 
 
-__all__ = ["raw_messages"]
+__all__ = ["RawTopic", "raw_messages"]
