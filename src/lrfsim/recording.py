@@ -30,6 +30,7 @@ import yaml
 
 from lrfcal.io.files import atomic_folder, check_replaceable, check_writable
 from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, Header, MultiEchoScan, Stamp, encode_cdr
+from lrfcal.io.wire import SCAN_FLOATS
 
 from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
@@ -164,13 +165,14 @@ def _echo_messages(result: SimResult, scenario: Scenario) -> Callable[[int], Mul
     if result.echo_ranges_m is None or result.echo_intensities is None:
         return None
     er_all, ei_all = result.echo_ranges_m, result.echo_intensities
-    floats = _scan_floats(result, scenario)
+    floats = dict(zip(SCAN_FLOATS, _scan_floats(result, scenario), strict=True))
     _, sec, nanosec = _stamps(result.scan_stamps_s)
 
     def message(k: int) -> MultiEchoScan:
         ok = np.isfinite(er_all[k])
         header = Header(Stamp(int(sec[k]), int(nanosec[k])), LASER_FRAME)
-        return MultiEchoScan(header, *floats, Echoes.of_rows(er_all[k], ok), Echoes.of_rows(ei_all[k], ok))
+        return MultiEchoScan(header=header, ranges=Echoes.of_rows(er_all[k], ok),
+                             intensities=Echoes.of_rows(ei_all[k], ok), **floats)
 
     return message
 

@@ -135,7 +135,8 @@ def read_bag(
             total = sum(c.msgcount for c in scan_conns + servo_conns)
             if progress is not None:
                 progress(0, total)
-            raw = raw_messages(reader, [scan_conns, servo_conns], fast=bulk)
+            raw = raw_messages(reader, [scan_conns, servo_conns], fast=bulk,
+                               progress=None if progress is None else lambda k: progress(k, total))
             scan_type = scan_conns[0].msgtype
             servo_type = servo_conns[0].msgtype if servo_conns else scan_type
             scans = _topic(reader, scan_conns, raw[0], bulk and scan.field is None and servo.stamp != "scan")

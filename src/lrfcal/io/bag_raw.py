@@ -13,7 +13,7 @@ the file) is read by rosbags' reader, as before.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -62,10 +62,11 @@ class RawTopic:
         return RawTopic(np.array(times_ns, dtype=np.int64), b"".join(raws), np.cumsum(lengths) - lengths, lengths)
 
 
-def raw_messages(reader: Any, groups: Sequence[Sequence[Any]], fast: bool = True) -> list[RawTopic]:
+def raw_messages(reader: Any, groups: Sequence[Sequence[Any]], fast: bool = True,
+                 progress: Callable[[int], None] | None = None) -> list[RawTopic]:
     """Per group of connections of the open AnyReader ``reader``: its messages, in the order its
     ``messages(connections=group)`` gives (an indexed MCAP file is read once for all groups). ``fast`` False: by
-    rosbags' reader whatever the file."""
+    rosbags' reader whatever the file. ``progress(k)``: called with the messages read so far while rosbags reads."""
     storage = _single_mcap(reader) if fast else None
     if storage is not None:
         try:
@@ -73,11 +74,15 @@ def raw_messages(reader: Any, groups: Sequence[Sequence[Any]], fast: bool = True
         except (_NotIndexed, ValueError, OSError, KeyError, IndexError):
             pass
     out = []
+    done = 0
     for group in groups:
         times, raws = [], []
         for _, t_ns, raw in reader.messages(connections=list(group)) if group else ():
             times.append(t_ns)
             raws.append(raw)
+            done += 1
+            if progress is not None and done % 256 == 0:
+                progress(done)
         out.append(RawTopic.of(times, raws))
     return out
 
