@@ -154,6 +154,8 @@ def _messages(ts: Any, ros1: bool) -> tuple[list[Any], list[Any]]:
 
 
 def _write(path: Path, kind: str) -> Path:
+    """A small bag of :func:`_messages`: ``kind`` ros1, sqlite3, mcap or mcap+MODE (zstd compression of the MCAP
+    chunks: storage; of the whole file: file; of every message: message)."""
     ros1 = kind == "ros1"
     ts = get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.ROS2_HUMBLE)
     if ros1:
@@ -161,11 +163,13 @@ def _write(path: Path, kind: str) -> Path:
 
         writer: Any = Writer1(path)
     else:
-        from rosbags.rosbag2 import StoragePlugin
+        from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin
         from rosbags.rosbag2 import Writer as Writer2
 
-        plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+        plugin = StoragePlugin.MCAP if kind.startswith("mcap") else StoragePlugin.SQLITE3
         writer = Writer2(path, version=9, storage_plugin=plugin)
+        if "+" in kind:
+            writer.set_compression(CompressionMode[kind.partition("+")[2].upper()], CompressionFormat.ZSTD)
     scans, joints = _messages(ts, ros1)
     with writer:
         cs = writer.add_connection("/scan", LASERSCAN, typestore=ts)
@@ -181,7 +185,8 @@ def _write(path: Path, kind: str) -> Path:
     return path
 
 
-@pytest.mark.parametrize("kind,name", [("mcap", "bag"), ("sqlite3", "bag"), ("ros1", "rec.bag")])
+@pytest.mark.parametrize("kind,name", [("mcap", "bag"), ("sqlite3", "bag"), ("ros1", "rec.bag"),
+                                       ("mcap+storage", "bag"), ("mcap+file", "bag"), ("mcap+message", "bag")])
 def test_every_storage_and_odd_layouts_read_alike(tmp_path: Path, kind: str, name: str) -> None:
     path = _write(tmp_path / name, kind)
     both_ways(path, "/scan", True, scans_of)
