@@ -76,8 +76,8 @@ def _padded(rows: Sequence[NDArray[np.float64]], width: int, fill: float) -> NDA
 
 
 def _stack(parts: Sequence[Any], order: NDArray[np.int64]) -> Any:
-    """The parts (ScanArrays or JointArrays, of rows ``order``'s positions in their concatenation) as one, rows
-    in the order ``order`` gives: row ``order[k]`` of the result is row k of the concatenated parts."""
+    """The parts (all ScanArrays or all JointArrays) as one: row k of the parts laid end to end becomes row
+    ``order[k]`` of the result (``order``: a permutation; narrower parts padded as they are)."""
     first = parts[0]
     inverse = np.empty_like(order)
     inverse[order] = np.arange(order.size)
