@@ -224,3 +224,31 @@ def test_simulated_bag_is_the_file_rosbags_writes(tmp_path: Path, sections: dict
     write_bag(result, scenario, tmp_path / "rosbags" / "bag", bulk=False)  # one rosbags serialiser call a message
     for name in ("bag.mcap", "metadata.yaml"):
         assert (tmp_path / "bulk" / "bag" / name).read_bytes() == (tmp_path / "rosbags" / "bag" / name).read_bytes()
+
+
+def test_a_bag_defining_laserscan_otherwise_is_left_to_rosbags(tmp_path: Path) -> None:
+    """A LaserScan whose definition in the bag is not ROS's (a field more) is decoded by rosbags, never by the
+    layout reader, which would take the extra field for the beam count."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import get_types_from_msg
+
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+    ts = get_typestore(Stores.EMPTY)
+    ts.register({k: humble.fielddefs[k] for k in ("std_msgs/msg/Header", "builtin_interfaces/msg/Time")})
+    text = "std_msgs/Header header\nfloat32 angle_min\nfloat32 angle_max\nfloat32 angle_increment\n" \
+           "float32 time_increment\nfloat32 scan_time\nfloat32 range_min\nfloat32 range_max\nuint32 quality\n" \
+           "float32[] ranges\nfloat32[] intensities\n"
+    ts.register(get_types_from_msg(text, LASERSCAN))
+    Time, Header = ts.types["builtin_interfaces/msg/Time"], ts.types["std_msgs/msg/Header"]
+    with Writer(tmp_path / "bag", version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conn = writer.add_connection("/scan", LASERSCAN, typestore=ts)
+        for k in range(5):
+            msg = ts.types[LASERSCAN](
+                header=Header(stamp=Time(sec=1_700_000_000, nanosec=k * 25_000_000), frame_id="laser"),
+                angle_min=-1.0, angle_max=1.0, angle_increment=0.5, time_increment=1e-4, scan_time=0.025,
+                range_min=0.1, range_max=10.0, quality=2, ranges=np.full(5, 2.0, dtype=np.float32),
+                intensities=np.zeros(0, dtype=np.float32))
+            writer.write(conn, T0_NS + k, ts.serialize_cdr(msg, LASERSCAN))
+    both_ways(tmp_path / "bag", "/scan", False, scans_of)
+    arrays = laser_arrays(read_topic(tmp_path / "bag", "/scan").messages or [], ScanSource(), LASERSCAN, "bag")
+    assert arrays.counts.tolist() == [5] * 5 and np.all(arrays.ranges == 2.0)
