@@ -252,3 +252,29 @@ def test_a_bag_defining_laserscan_otherwise_is_left_to_rosbags(tmp_path: Path) -
     both_ways(tmp_path / "bag", "/scan", False, scans_of)
     arrays = laser_arrays(read_topic(tmp_path / "bag", "/scan").messages or [], ScanSource(), LASERSCAN, "bag")
     assert arrays.counts.tolist() == [5] * 5 and np.all(arrays.ranges == 2.0)
+
+
+def test_a_frame_id_new_in_every_message_is_left_to_rosbags_past_the_layout_cap() -> None:
+    """Messages of one length whose layout bytes all differ (a frame id with a counter): MAX_LAYOUTS of them read in
+    bulk, the rest by the fallback, the same arrays as rosbags' (and no work quadratic in the messages)."""
+    from lrfcal.io.bag_arrays import MAX_LAYOUTS, decode_scans
+    from lrfcal.io.bag_raw import RawTopic
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    Time, Header = ts.types["builtin_interfaces/msg/Time"], ts.types["std_msgs/msg/Header"]
+    n = MAX_LAYOUTS + 16
+    msgs = [ts.types[LASERSCAN](
+        header=Header(stamp=Time(sec=1_700_000_000, nanosec=k), frame_id=f"laser{k:04d}"), angle_min=-1.0,
+        angle_max=1.0, angle_increment=0.5, time_increment=1e-4, scan_time=0.025, range_min=0.1, range_max=10.0,
+        ranges=np.full(5, 0.5 * k, dtype=np.float32), intensities=np.zeros(5, dtype=np.float32)) for k in range(n)]
+    raw = RawTopic.of(list(range(n)), [bytes(ts.serialize_cdr(m, LASERSCAN)) for m in msgs])
+    fell_back: list[int] = []
+
+    def fallback(i: int) -> Any:
+        fell_back.append(i)
+        return ts.deserialize_cdr(bytes(raw.message(i)), LASERSCAN)
+
+    arrays = decode_scans(raw, True, fallback)
+    assert sorted(fell_back) == list(range(MAX_LAYOUTS, n))
+    same(arrays, scans_of([ts.deserialize_cdr(bytes(raw.message(i)), LASERSCAN) for i in range(n)]))
+    assert arrays.frame_ids == [f"laser{k:04d}" for k in range(n)]

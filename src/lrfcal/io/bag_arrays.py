@@ -99,10 +99,16 @@ def _stack(parts: Sequence[Any], order: NDArray[np.int64]) -> Any:
     return JointArrays(cat("sec"), cat("nanosec"), cat("names"), cat("positions", np.nan), cat("position_counts"))
 
 
+#: layouts read in bulk among the messages of one length; past them (a frame id or joint names that change with
+#: every message) the rest is left to the fallback, so that the work stays linear in the messages
+MAX_LAYOUTS = 64
+
+
 def _blocks(raw: RawTopic, parse: Callable[[bytes, bool], Layout | None], cdr: bool
             ) -> tuple[list[tuple[NDArray[np.int64], NDArray[np.uint8], Layout]], list[int]]:
     """The messages cut into blocks of one layout: (their rows, their bytes (m, L), the layout), and the rows that
-    do not parse. Messages of one length laid end to end are read where they lie, without a copy."""
+    do not parse (or lie past :data:`MAX_LAYOUTS`). Messages of one length laid end to end are read where they lie,
+    without a copy."""
     sizes, group = np.unique(raw.lengths, return_inverse=True)
     blocks, odd = [], []
     for g, size in enumerate(sizes.tolist()):
@@ -112,18 +118,22 @@ def _blocks(raw: RawTopic, parse: Callable[[bytes, bool], Layout | None], cdr: b
         else:
             mat = np.frombuffer(b"".join([raw.message(i) for i in idx.tolist()]), dtype=np.uint8)
             mat = mat.reshape(idx.size, size)
-        while mat.shape[0]:
-            layout = parse(mat[0].tobytes(), cdr)
-            if layout is None:
-                odd.append(int(idx[0]))
-                idx, mat = idx[1:], mat[1:]
-                continue
-            same = same_layout(mat, layout, 0)
-            if same.all():
-                blocks.append((idx, mat, layout))
+        rest = np.arange(idx.size)
+        n_layouts = 0
+        while rest.size:
+            if n_layouts == MAX_LAYOUTS:
+                odd.extend(idx[rest].tolist())
                 break
-            blocks.append((idx[same], mat[same], layout))
-            idx, mat = idx[~same], mat[~same]
+            layout = parse(mat[rest[0]].tobytes(), cdr)
+            if layout is None:
+                odd.append(int(idx[rest[0]]))
+                rest = rest[1:]
+                continue
+            n_layouts += 1
+            same = same_layout(mat, layout, int(rest[0]), rest)
+            rows = rest[same]
+            blocks.append((idx[rows], mat if rows.size == idx.size else mat[rows], layout))
+            rest = rest[~same]
     return blocks, odd
 
 
@@ -212,4 +222,4 @@ def joints_of(messages: Sequence[Any]) -> JointArrays:
                        _padded(pos, int(counts.max(initial=0)), np.nan), counts)
 
 
-__all__ = ["JointArrays", "ScanArrays", "decode_joints", "decode_scans", "joints_of", "scans_of"]
+__all__ = ["MAX_LAYOUTS", "JointArrays", "ScanArrays", "decode_joints", "decode_scans", "joints_of", "scans_of"]

@@ -137,12 +137,15 @@ def jointstate_layout(buf: bytes, cdr: bool) -> Layout | None:
     return Layout(stamp_at, frame, checks, -1, tuple((a[1], a[2]) for a in arrays), names)
 
 
-def same_layout(mat: NDArray[np.uint8], layout: Layout, first: int) -> NDArray[np.bool_]:
-    """Which rows of ``mat`` (m, L) (messages of L bytes) share the layout of row ``first`` (m,)."""
-    same = np.ones(mat.shape[0], dtype=bool)
+def same_layout(mat: NDArray[np.uint8], layout: Layout, first: int, rows: NDArray[np.int64]) -> NDArray[np.bool_]:
+    """Which of the rows ``rows`` (k,) of ``mat`` (m, L) (messages of L bytes) share the layout of row ``first``
+    (k,)."""
+    same = np.ones(rows.size, dtype=bool)
+    whole = rows.size == mat.shape[0]  # every row, in order: compared where they lie
     for a, b in layout.checks:
         if b > a:
-            same &= (mat[:, a:b] == mat[first, a:b]).all(axis=1)
+            part = mat[:, a:b] if whole else mat[rows, a:b]
+            same &= (part == mat[first, a:b]).all(axis=1)
     return same
 
 
