@@ -29,7 +29,8 @@ import numpy as np
 import yaml
 
 from lrfcal.io.files import atomic_folder, check_replaceable, check_writable
-from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, MultiEchoScan, encode_cdr
+from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, Header, MultiEchoScan, Stamp, encode_cdr
+from lrfcal.io.wire import SCAN_FLOATS
 
 from .lidar import typical_range_sigma
 from .scenario import Scenario, dump_scenario
@@ -77,17 +78,103 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
     return out
 
 
-def write_bag(result: SimResult, scenario: Scenario, path: Path) -> None:
-    """The ROS 2 bag (MCAP, version 9) of :func:`bag_messages`, one connection per topic in the order listed."""
+def write_bag(result: SimResult, scenario: Scenario, path: Path, *, bulk: bool = True) -> None:
+    """The ROS 2 bag (MCAP, version 9) of :func:`bag_records`, one connection per topic in the order listed.
+    ``bulk`` False: :func:`bag_messages` serialised by one rosbags call each (the same file, in several times the
+    time: the reference tests/test_bulk_bags.py and benchmarks/bench_read.py compare with)."""
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    topics, events = bag_messages(result, scenario)
     ts = _typestore()
+    if bulk:
+        topics, records = bag_records(result, scenario)
+    else:
+        topics, events = bag_messages(result, scenario)
+        records = [(log_ns, topic, encode_cdr(msg) if typ == MULTIECHO_TYPE else ts.serialize_cdr(msg, typ))
+                   for log_ns, topic, typ, msg in events]
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in topics}
-        for log_ns, topic, msgtype, msg in events:
-            raw = encode_cdr(msg) if isinstance(msg, MultiEchoScan) else ts.serialize_cdr(msg, msgtype)
+        for log_ns, topic, raw in records:
             writer.write(conns[topic], log_ns, raw)
+
+
+def _stamps(t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """ROS times of simulation times ``t_s`` (M,) [s]: (ns, sec, nanosec) (M,) each, as :func:`_ns` rounds one."""
+    ns = EPOCH_NS + np.round(np.asarray(t_s, dtype=np.float64) * 1e9).astype(np.int64)
+    return ns, ns // 10**9, ns % 10**9
+
+
+def _log_order(result: SimResult, scenario: Scenario) -> list[tuple[int, int, int]]:
+    """(log time ns, kind (0 scan, 1 joint state), index) of every message, in log-time order: scans are logged at
+    the end of the scan, on the recorder (servo) clock."""
+    sensor = scenario.sensor
+    scan_log, _, _ = _stamps((result.scan_stamps_s - scenario.servo.clock_offset_s) + sensor.scan_period_s)
+    joint_log, _, _ = _stamps(result.joints.stamps_s)
+    log = np.concatenate([scan_log, joint_log])
+    kind = np.repeat([0, 1], [scan_log.size, joint_log.size])
+    index = np.concatenate([np.arange(scan_log.size), np.arange(joint_log.size)])
+    order = np.lexsort((index, kind, log))
+    return list(zip(log[order].tolist(), kind[order].tolist(), index[order].tolist(), strict=True))
+
+
+def bag_records(result: SimResult, scenario: Scenario) -> tuple[list[tuple[str, str]], list[tuple[int, str, Any]]]:
+    """The bag's topics [(topic, type)] and its serialised messages [(log time ns, topic, CDR bytes)] in log-time
+    order: the messages of :func:`bag_messages`, serialised in bulk (lrfcal.io.wire: the LaserScans and the
+    JointStates each as one array; a MultiEchoLaserScan by lrfcal.io.multiecho), the bytes rosbags' serialiser gives
+    for each (tests/test_bulk_bags.py)."""
+    from lrfcal.io.wire import encode_joint_states, encode_laserscans
+
+    sensor, servo = scenario.sensor, scenario.servo
+    floats = np.array(_scan_floats(result, scenario), dtype=np.float32)
+    _, sec, nanosec = _stamps(result.scan_stamps_s)
+    scans = encode_laserscans(sec, nanosec, LASER_FRAME, floats, result.ranges_m.astype(np.float32),
+                              result.intensities.astype(np.float32))
+    j = result.joints
+    _, sec, nanosec = _stamps(j.stamps_s)
+    joints = encode_joint_states(sec, nanosec, "", (servo.joint,), j.positions_rad[:, None],
+                                 j.velocities_rad_s[:, None], np.zeros((j.stamps_s.size, 0)))
+    echoes = _echo_messages(result, scenario)
+    topics = [(SCAN_TOPIC, LASERSCAN_TYPE), (JOINT_TOPIC, JOINTSTATE_TYPE)]
+    if echoes is not None:
+        topics.append((sensor.echoes.topic, MULTIECHO_TYPE))
+    records: list[tuple[int, str, Any]] = []
+    for log_ns, kind, k in _log_order(result, scenario):
+        if kind == 0:
+            records.append((log_ns, SCAN_TOPIC, memoryview(scans[k])))
+            if echoes is not None:
+                records.append((log_ns, sensor.echoes.topic, encode_cdr(echoes(k))))
+        else:
+            records.append((log_ns, JOINT_TOPIC, memoryview(joints[k])))
+    return topics, records
+
+
+def _scan_floats(result: SimResult, scenario: Scenario) -> list[float]:
+    """A LaserScan's float fields (lrfcal.io.wire.SCAN_FLOATS order) as float32 values: the LaserScans declare
+    ``result.declared_angle_increment_rad`` when a fault set it, else the sensor's; angle_max is the true span."""
+    sensor = scenario.sensor
+    n = sensor.n_beams
+    angle_max = sensor.angle_min_rad + (n - 1) * sensor.angle_increment_rad  # the true span, faults aside
+    increment = (sensor.angle_increment_rad if result.declared_angle_increment_rad is None
+                 else result.declared_angle_increment_rad)
+    return [float(np.float32(v)) for v in (sensor.angle_min_rad, angle_max, increment, sensor.time_increment_s,
+                                           sensor.scan_period_s, sensor.range_min_m, sensor.range_max_m)]
+
+
+def _echo_messages(result: SimResult, scenario: Scenario) -> Callable[[int], MultiEchoScan] | None:
+    """Scan k's MultiEchoLaserScan (None without echoes): per beam a LaserEcho with the beam's valid echoes, nearest
+    first (none: empty), as urg_node fills it; its header and float fields those of scan k's LaserScan."""
+    if result.echo_ranges_m is None or result.echo_intensities is None:
+        return None
+    er_all, ei_all = result.echo_ranges_m, result.echo_intensities
+    floats = dict(zip(SCAN_FLOATS, _scan_floats(result, scenario), strict=True))
+    _, sec, nanosec = _stamps(result.scan_stamps_s)
+
+    def message(k: int) -> MultiEchoScan:
+        ok = np.isfinite(er_all[k])
+        header = Header(Stamp(int(sec[k]), int(nanosec[k])), LASER_FRAME)
+        return MultiEchoScan(header=header, ranges=Echoes.of_rows(er_all[k], ok),
+                             intensities=Echoes.of_rows(ei_all[k], ok), **floats)
+
+    return message
 
 
 def _typestore() -> Any:
@@ -169,20 +256,24 @@ def in_memory_bag(result: SimResult, scenario: Scenario) -> BagReader:
     and report of the bag :func:`write_bag` writes, in a fraction of the time (tests/test_recording.py). For
     studies, whose trials need the estimate, not the file."""
     from lrfcal.errors import InputError
-    from lrfcal.io.bag import bag_data
+    from lrfcal.io.bag import Topic, bag_data
     from lrfcal.io.bag_messages import ns_to_s
 
     topics, events = bag_messages(result, scenario)
     types = dict(topics)
 
+    def topic(name: str) -> Topic:
+        chosen = [(ns_to_s(t), m) for t, topic, _, m in events if topic == name]
+        return Topic(np.array([t for t, _ in chosen], dtype=np.float64), [m for _, m in chosen],
+                     topics=[name] * len(chosen))
+
     def read(scan: ScanSource, servo: ServoSource, warn: Callable[[str], None] | None) -> BagData:
         if scan.topic not in types or servo.topic not in types or servo.tf is not None or servo.stamp == "scan":
             raise InputError(f"simulated bag: topics {scan.topic} and {servo.topic} expected (it has "
                              f"{', '.join(types)})")
-        scans = [(ns_to_s(t), m) for t, topic, _, m in events if topic == scan.topic]
-        servo_items = [(ns_to_s(t), m, topic) for t, topic, _, m in events if topic == servo.topic]
-        return bag_data("simulated bag", scans, servo_items, types[scan.topic], types[servo.topic], scan, servo,
-                        warn)
+        assert servo.topic is not None
+        return bag_data("simulated bag", topic(scan.topic), topic(servo.topic), types[scan.topic],
+                        types[servo.topic], scan, servo, warn)
 
     return read
 
@@ -239,5 +330,5 @@ def ground_truth_yaml(result: SimResult) -> str:
     })
 
 
-__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_messages", "check_output",
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_messages", "bag_records", "check_output",
            "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag", "write_recording"]

@@ -193,7 +193,6 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
     of a lrfsim.simulate.Geometry of ``scenario`` but its scene, cast once by the caller for every batch (the scene
     is rebuilt here: MjSpec does not pickle); None: cast here. ``progress(k)`` is called after the k-th trial of
     the batch."""
-    from .recording import in_memory_bag
     from .scene import build_scene
     from .simulate import Geometry, cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
@@ -211,8 +210,8 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
             folder = Path(tmp) / f"trial_{trial}"
             sim = (simulate(sc, scene=scene, threads=threads) if geometry is None
                    else simulate_from_geometry(sc, geometry))
-            write_recording(sim, sc, folder, bag=False)  # the bag's messages are read from memory
-            t = calibrate_recording(folder, name=f"{scenario.name}#{trial}", bag_reader=in_memory_bag(sim, sc))
+            write_recording(sim, sc, folder)  # the bag written and read as a real recording's (in bulk: lrfcal.io.wire)
+            t = calibrate_recording(folder, name=f"{scenario.name}#{trial}")
             shutil.rmtree(folder, ignore_errors=True)
             rows.append(TrialRow(value=value, trial=int(trial), seed=int(seed), status=t.status,
                                  reason=" ".join(t.reason.split()), exit_code=int(t.exit_code),

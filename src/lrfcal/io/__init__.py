@@ -1,8 +1,9 @@
 """Reading recordings and writing calibrations; the one atomic writer every file and folder of the programs uses.
 
 * reading a recording: :mod:`.recording` (the folder: bag or scan log, tape distances, rig file), :mod:`.bag`
-  (ROS bags; :mod:`.bag_messages`, :mod:`.bag_scans` and :mod:`.bag_servo` its parts), :mod:`.scanlog` (text
-  logs), :mod:`.yamlfile` (any YAML file a user gives);
+  (ROS bags; :mod:`.bag_messages`, :mod:`.bag_scans` and :mod:`.bag_servo` its parts; :mod:`.bag_raw`,
+  :mod:`.bag_arrays` and :mod:`.wire` read LaserScan and JointState in bulk, :mod:`.multiecho` MultiEchoLaserScan),
+  :mod:`.scanlog` (text logs), :mod:`.yamlfile` (any YAML file a user gives);
 * writing a calibration: :mod:`.calibration_folder` (the output folder) with :mod:`.calibration_yaml`,
   :mod:`.urdf`, :mod:`.ply` and :mod:`.report`; :mod:`.truth` aligns a simulator's ground truth to the
   calibration for the report, lrfcal.workflow and lrfsim;

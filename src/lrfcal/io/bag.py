@@ -18,18 +18,29 @@ Array shapes: S scans, N beams (the largest beam count), J servo samples.
 from __future__ import annotations
 
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import InputError
 from ..rig import ScanSource, ServoSource
 from ..types import JointStates, ReadReport, Scans
-from .bag_messages import JOINTSTATE_TYPE, complete_types, decode_message, ns_to_s, one_line, open_reader
-from .bag_scans import scans_from
+from .bag_arrays import JointArrays, ScanArrays, decode_joints, decode_scans, joints_of
+from .bag_messages import (
+    JOINTSTATE_TYPE,
+    bulk_kind,
+    complete_types,
+    decode_message,
+    ns_to_s_array,
+    one_line,
+    open_reader,
+)
+from .bag_raw import RawTopic, raw_messages
+from .bag_scans import laser_arrays, scans_from_arrays
 from .bag_servo import joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
 
 #: a coarse clock offset above this is applied (clocks differ); below it is reported only [s]
@@ -53,23 +64,27 @@ class BagData:
 BagReader = Callable[[ScanSource, ServoSource, "Callable[[str], None] | None"], BagData]
 
 
+@dataclass(frozen=True)
+class Topic:
+    """One topic's messages in bag order: receive times ``recv_s`` (M,) [s] and the messages, as objects
+    (``messages``, M; with ``topics``, each one's topic, for /tf and /tf_static) or as arrays (``arrays``: LaserScans
+    or JointStates, lrfcal.io.bag_arrays), or both."""
+
+    recv_s: NDArray[np.float64]
+    messages: list[Any] | None = None
+    arrays: ScanArrays | JointArrays | None = None
+    topics: list[str] | None = None
+
+    def __len__(self) -> int:
+        return int(self.recv_s.size)
+
+
 def _connections(reader: Any, path: Path, topic: str) -> list[Any]:
     conns = [c for c in reader.connections if c.topic == topic]
     if not conns:
         have = sorted({c.topic for c in reader.connections})
         raise InputError(f"{path}: topic {topic}: not in bag (topics: {', '.join(have) or 'none'})")
     return conns
-
-
-def _messages(reader: Any, conns: list[Any], progress: Progress | None, done: int, total: int
-              ) -> list[tuple[float, Any]]:
-    """(receive time [s], decoded message) of the connections, in bag order."""
-    out = []
-    for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
-        out.append((ns_to_s(t_ns), decode_message(reader, raw, c.msgtype)))
-        if progress is not None and k % 256 == 0:
-            progress(done + k, total)
-    return out
 
 
 def read_bag(
@@ -79,14 +94,20 @@ def read_bag(
     *,
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
+    bulk: bool = True,
 ) -> BagData:
     """Read the scans and the servo angle of a bag (module docstring).
+
+    LaserScans and JointStates of the standard definitions are decoded in bulk (lrfcal.io.bag_arrays), every other
+    message by rosbags (lrfcal.io.bag_messages.decode_message); the serialised messages are read by
+    lrfcal.io.bag_raw. Both give the same arrays, to the bit (tests/test_bulk_bags.py).
 
     Args:
         path: a ROS 1 ``.bag`` file, a ROS 2 bag folder (sqlite3 or MCAP) or a single ``.mcap``/``.db3`` file.
         scan, servo: where the data are (lrfcal.rig; defaults: /scan LaserScan, /joint_states joint ``servo``).
         progress: called as progress(messages_done, messages_total) while reading.
         warn: called once with each assumption the reader makes (default: printed to stderr).
+        bulk: False: rosbags reads and decodes every message (the reference the bulk path is tested against).
     Returns:
         BagData: Scans sorted by stamp (S, N); JointStates (J,) lambda [rad] sorted by stamp, duplicate stamps
         averaged; the ReadReport.
@@ -112,42 +133,94 @@ def read_bag(
                     raise InputError(f"{path}: servo.topic: missing (or use servo.tf / stamp: scan)")
                 servo_conns = _connections(reader, path, servo.topic)
             total = sum(c.msgcount for c in scan_conns + servo_conns)
-            scan_items = _messages(reader, scan_conns, progress, 0, total)
-            servo_items = [] if not servo_conns else [
-                (t, m, c.topic) for c, (t, m) in _tagged(reader, servo_conns, progress, len(scan_items), total)]
+            if progress is not None:
+                progress(0, total)
+            raw = raw_messages(reader, [scan_conns, servo_conns], fast=bulk,
+                               progress=None if progress is None else lambda k: progress(k, total))
             scan_type = scan_conns[0].msgtype
             servo_type = servo_conns[0].msgtype if servo_conns else scan_type
+            scans = _topic(reader, scan_conns, raw[0], bulk and scan.field is None and servo.stamp != "scan")
+            servo_topic = _topic(reader, servo_conns, raw[1], bulk and servo.tf is None) if servo_conns else \
+                Topic(np.zeros(0))
     except InputError:
         raise
     except Exception as err:
         raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
     if progress is not None:
         progress(total, total)
-    return bag_data(str(path), scan_items, servo_items, scan_type, servo_type, scan, servo, warn)
+    return bag_data(str(path), scans, servo_topic, scan_type, servo_type, scan, servo, warn)
 
 
-def bag_data(label: str, scan_items: list[tuple[float, Any]], servo_items: list[tuple[float, Any, str]],
-             scan_type: str, servo_type: str, scan: ScanSource, servo: ServoSource,
-             warn: Callable[[str], None] | None = None) -> BagData:
-    """What :func:`read_bag` makes of a bag's decoded messages: ``scan_items`` (receive time [s], message) of the
-    scan topic and ``servo_items`` (receive time [s], message, topic) of the servo's, in bag order; ``label``
-    names the bag in messages. A simulation's messages, never serialised, give what its bag file would
-    (lrfsim.recording.in_memory_bag). ``warn``: as in :func:`read_bag`."""
+def read_topic(path: str | Path, topic: str, *, bulk: bool = True) -> Topic:
+    """All messages of one topic of a bag, as :func:`read_bag` decodes them (``bulk``: LaserScans and JointStates
+    as arrays) or as rosbags decodes every message (``bulk`` False): what tests and benchmarks compare.
+
+    Raises:
+        InputError: unreadable bag, missing topic.
+    """
+    path = Path(path)
+    reader = open_reader(path)
+    try:
+        with reader:
+            complete_types(reader)
+            conns = _connections(reader, path, topic)
+            return _topic(reader, conns, raw_messages(reader, [conns], fast=bulk)[0], bulk)
+    except InputError:
+        raise
+    except Exception as err:
+        raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
+
+
+def _topic(reader: Any, conns: list[Any], raw: RawTopic, bulk: bool) -> Topic:
+    """The messages ``raw`` of connections ``conns``: LaserScans and JointStates of the standard definitions as
+    arrays when ``bulk``, everything else as objects."""
+    recv = ns_to_s_array(raw.times_ns)
+    types = {c.msgtype for c in conns}
+    msgtype = next(iter(types))
+    kind = bulk_kind(reader, msgtype) if bulk and len(types) == 1 and len(raw) else None
+    if kind is not None:
+        decode = decode_scans if kind == "scan" else decode_joints
+        return Topic(recv, arrays=decode(raw, reader.is2, lambda i: decode_message(reader, bytes(raw.message(i)),
+                                                                                    msgtype)))
+    if len(types) == 1:
+        return Topic(recv, [decode_message(reader, bytes(raw.message(i)), msgtype) for i in range(len(raw))],
+                     topics=[conns[0].topic] * len(raw))
+    items = [(c.topic, decode_message(reader, r, c.msgtype)) for c, _, r in reader.messages(connections=conns)]
+    return Topic(recv, [m for _, m in items], topics=[t for t, _ in items])
+
+
+def bag_data(label: str, scan_topic: Topic, servo_topic: Topic, scan_type: str, servo_type: str, scan: ScanSource,
+             servo: ServoSource, warn: Callable[[str], None] | None = None) -> BagData:
+    """What :func:`read_bag` makes of a bag's messages: those of the scan topic and of the servo's (empty when the
+    angle travels in the scan's message); ``label`` names the bag in messages. A simulation's messages, never
+    serialised, give what its bag file would (lrfsim.recording.in_memory_bag). ``warn``: as in :func:`read_bag`."""
     warn = warn or (lambda text: print(f"warning: {text}", file=sys.stderr))
     where_scan = f"{label}: {scan.topic}"
-    if not scan_items:
+    if not len(scan_topic):
         raise InputError(f"{where_scan}: no messages")
-    scans, srep, notes = scans_from(scan_items, scan, scan_type, where_scan, warn)
+    arrays = scan_topic.arrays
+    if not isinstance(arrays, ScanArrays):
+        assert scan_topic.messages is not None
+        arrays = laser_arrays(scan_topic.messages, scan, scan_type, where_scan)
+    scans, srep, notes = scans_from_arrays(arrays, scan_topic.recv_s, scan, where_scan, warn)
     where_servo = f"{label}: {servo.describe()}"
+    servo_items = [] if servo_topic.messages is None else list(zip(servo_topic.recv_s.tolist(), servo_topic.messages,
+                                                                   strict=True))
     if servo.tf is not None:
-        samples = servo_tf(servo_items, servo, where_servo, scans.stamps_s)
+        samples = servo_tf([(t, m, c) for (t, m), c in zip(servo_items, servo_topic.topics or [], strict=True)],
+                           servo, where_servo, scans.stamps_s)
     elif servo.stamp == "scan":
-        samples = servo_in_scan(srep.pop("_kept_items"), servo, where_servo)
+        assert scan_topic.messages is not None
+        kept = zip(scans.stamps_s.tolist(), srep["_kept_rows"].tolist(), strict=True)
+        samples = servo_in_scan([(t, scan_topic.messages[k]) for t, k in kept], servo, where_servo)
     elif servo_type == JOINTSTATE_TYPE:
-        samples = servo_joint_state([(t, m) for t, m, _ in servo_items], servo, where_servo)
+        joints_arrays = servo_topic.arrays
+        if not isinstance(joints_arrays, JointArrays):
+            joints_arrays = joints_of(servo_topic.messages or [])
+        samples = servo_joint_state(joints_arrays, servo_topic.recv_s, servo, where_servo)
     else:
-        samples = servo_field([(t, m) for t, m, _ in servo_items], servo, servo_type, where_servo)
-    srep.pop("_kept_items", None)
+        samples = servo_field(servo_items, servo, servo_type, where_servo)
+    srep.pop("_kept_rows", None)
     joints, servo_stamps, servo_recv, n_used = joints_from(samples, servo, scans, srep["recv_s"], where_servo)
     scan_med = float(np.median(srep["recv_s"] - scans.stamps_s))
     servo_med = float(np.median(servo_recv - servo_stamps))
@@ -161,12 +234,12 @@ def bag_data(label: str, scan_items: list[tuple[float, Any]], servo_items: list[
     notes.extend(timing_notes(scans, joints, where_scan, where_servo))
     report = ReadReport(
         bag=label, scan_source=_describe_scan(scan), servo_source=servo.describe(),
-        n_scan_messages=len(scan_items), n_scans=int(scans.stamps_s.size),
+        n_scan_messages=len(scan_topic), n_scans=int(scans.stamps_s.size),
         n_beams=int(np.sum(scans.beam_counts)), n_valid_returns=int(np.isfinite(scans.ranges_m).sum()),
         beam_count_min=int(scans.beam_counts.min()), beam_count_max=int(scans.beam_counts.max()),
         skipped=dict(srep["skipped"]), masked=dict(srep["masked"]),
         n_time_increment_assumed=int(srep["n_assumed"]), assumed_time_increment_s=srep["assumed"],
-        n_servo_messages=len(servo_items) if servo_items else len(scan_items), n_servo_samples=n_used,
+        n_servo_messages=len(servo_topic) if len(servo_topic) else len(scan_topic), n_servo_samples=n_used,
         servo_skipped=dict(samples.skipped), scan_receive_minus_stamp_s=scan_med,
         servo_receive_minus_stamp_s=servo_med, clock_offset_s=offset, clock_offset_applied=applied,
         notes=tuple(notes),
@@ -199,16 +272,9 @@ def timing_notes(scans: Scans, joints: JointStates, where_scan: str, where_servo
     return out
 
 
-def _tagged(reader: Any, conns: list[Any], progress: Progress | None, done: int, total: int
-            ) -> Iterable[tuple[Any, tuple[float, Any]]]:
-    for k, (c, t_ns, raw) in enumerate(reader.messages(connections=conns)):
-        if progress is not None and k % 256 == 0:
-            progress(done + k, total)
-        yield c, (ns_to_s(t_ns), decode_message(reader, raw, c.msgtype))
-
-
 def _describe_scan(scan: ScanSource) -> str:
     return f"{scan.topic}{'.' + scan.field if scan.field else ''} (stamp {scan.stamp})"
 
 
-__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "BagReader", "Progress", "bag_data", "read_bag", "timing_notes"]
+__all__ = ["COARSE_OFFSET_MIN_S", "BagData", "BagReader", "Progress", "Topic", "bag_data", "read_bag", "read_topic",
+           "timing_notes"]

@@ -13,6 +13,9 @@ import struct
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
+
 from ..errors import InputError
 from . import multiecho
 from .multiecho import MULTIECHO_TYPE
@@ -91,6 +94,34 @@ def decode_message(reader: Any, raw: bytes, msgtype: str) -> Any:
     return reader.deserialize(raw, msgtype)
 
 
+#: the types read in bulk (lrfcal.io.bag_arrays), with the types their definitions use
+BULK_TYPES = {"sensor_msgs/msg/LaserScan": "scan", JOINTSTATE_TYPE: "joint"}
+_BULK_USES = ("std_msgs/msg/Header", "builtin_interfaces/msg/Time")
+
+
+def bulk_kind(reader: Any, msgtype: str) -> str | None:
+    """"scan" or "joint" when ``msgtype`` is LaserScan or JointState as ROS defines it (the layout lrfcal.io.wire
+    reads: the same fields in ROS 1 Noetic and ROS 2 Humble but the header's seq, ROS 1 only), None for every other
+    type and for a bag that defines one of them otherwise."""
+    from rosbags.interfaces import Nodetype
+    from rosbags.typesys import Stores, get_typestore
+
+    kind = BULK_TYPES.get(msgtype)
+    if kind is None:
+        return None
+    have = reader.typestore.fielddefs
+    ref = dict(get_typestore(Stores.ROS2_HUMBLE).fielddefs)
+    if not reader.is2:
+        consts, fields = ref["std_msgs/msg/Header"]
+        ref["std_msgs/msg/Header"] = (consts, [("seq", (Nodetype.BASE, ("uint32", 0))), *fields])
+    return kind if all(have.get(t) == ref[t] for t in (msgtype, *_BULK_USES)) else None
+
+
+def ns_to_s_array(t_ns: NDArray[np.int64]) -> NDArray[np.float64]:
+    """:func:`ns_to_s` of each element of ``t_ns`` (M,), to the bit."""
+    return (t_ns // 1_000_000_000).astype(np.float64) + 1e-9 * (t_ns % 1_000_000_000).astype(np.float64)
+
+
 def ns_to_s(t_ns: int) -> float:
     """Integer nanoseconds to seconds, rounded exactly as :func:`stamp_s` rounds sec + nanosec (float64 has
     only ~0.2 us resolution at today's epoch times: both clocks must be converted the same way)."""
@@ -118,5 +149,5 @@ def get_field(msg: Any, dotted: str, where: str) -> Any:
     return cur
 
 
-__all__ = ["DYNAMIXEL_JOINTSTATE_TYPE", "JOINTSTATE_TYPE", "LASERSCAN_TYPES", "MULTIECHO_TYPE", "TF_TYPE",
-           "complete_types", "get_field", "ns_to_s", "one_line", "open_reader", "stamp_s"]
+__all__ = ["BULK_TYPES", "DYNAMIXEL_JOINTSTATE_TYPE", "JOINTSTATE_TYPE", "LASERSCAN_TYPES", "MULTIECHO_TYPE", "TF_TYPE",
+           "bulk_kind", "complete_types", "get_field", "ns_to_s", "ns_to_s_array", "one_line", "open_reader", "stamp_s"]

@@ -25,15 +25,14 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import InputError
 from ..rig import ScanSource
 from ..types import Scans
+from .bag_arrays import ScanArrays, scans_of
 from .bag_messages import get_field, stamp_s
 from .multiecho import Echoes
-
-#: one usable scan: (stamp [s], receive time [s], the LaserScan, the message that holds it)
-Row = tuple[float, float, Any, Any]
 
 
 def is_laserscan(obj: Any) -> bool:
@@ -89,22 +88,71 @@ def _slots(lens: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def scans_from(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, where: str,
                warn: Callable[[str], None]) -> tuple[Scans, dict[str, Any], list[str]]:
-    """Stack LaserScans (each with its own layout) into Scans; count what is skipped, masked, assumed.
+    """:func:`scans_from_arrays` of decoded messages ``items`` (receive time [s], message) in bag order."""
+    recv = np.array([t for t, _ in items], dtype=np.float64)
+    return scans_from_arrays(laser_arrays([m for _, m in items], scan, msgtype, where), recv, scan, where, warn)
 
-    ``items``: (receive time [s], message) in bag order. Returns the Scans sorted by stamp, the counts (keys
-    skipped, masked, n_assumed, assumed, recv_s and _kept_items: (stamp, message) of the scans kept) and the notes.
+
+def laser_arrays(messages: list[Any], scan: ScanSource, msgtype: str, where: str) -> ScanArrays:
+    """The LaserScans of decoded messages (the message itself, or its field ``scan.field``) as arrays.
+
+    Raises:
+        InputError: not a LaserScan (or no ``scan.field``), or no header.stamp when the scans' stamps are wanted.
     """
-    rows, skipped = _usable_rows(items, scan, msgtype, where)
-    S = len(rows)
-    scans_ls = [r[2] for r in rows]
-    counts = np.array([len(ls.ranges) for ls in scans_ls], dtype=np.int64)
-    stamps = np.array([r[0] for r in rows])
-    recv = np.array([r[1] for r in rows])
-    scan_time = np.array([float(ls.scan_time) for ls in scans_ls])
-    rmin = np.array([float(ls.range_min) for ls in scans_ls])
-    rmax = np.array([float(ls.range_max) for ls in scans_ls])
-    span, span_note = _angle_span(scans_ls, counts, scan, where)
-    ranges, intens, mu, t_inc, n_intens_bad = _stack(scans_ls, counts, scan.echo, span)
+    lasers = []
+    for msg in messages:
+        ls = get_field(msg, scan.field, where) if scan.field else msg
+        if not is_laserscan(ls):
+            what = f"field {scan.field}" if scan.field else f"type {msgtype}"
+            raise InputError(f"{where}: {what}: not a sensor_msgs/LaserScan (set scan.field to the LaserScan "
+                             f"inside the message)")
+        if scan.stamp != "receive" and stamp_s(ls) is None:
+            raise InputError(f"{where}: header: the scan has no header.stamp; use scan.stamp: receive")
+        lasers.append(ls)
+
+    def pick(ls: Any) -> tuple[NDArray[np.float64], NDArray[np.float64]] | None:
+        if not is_multiecho(ls):
+            return None
+        return select_echo(ls.ranges, ls.intensities, float(ls.range_min), float(ls.range_max), scan.echo)
+
+    return scans_of(lasers, pick)
+
+
+def scans_from_arrays(arrays: ScanArrays, recv_s: NDArray[np.float64], scan: ScanSource, where: str,
+                      warn: Callable[[str], None]) -> tuple[Scans, dict[str, Any], list[str]]:
+    """Stack a topic's LaserScans (each with its own layout; ``arrays``, received at ``recv_s`` (M,) [s], in bag
+    order) into Scans; count what is skipped, masked, assumed. ``arrays``' ranges may be reused.
+
+    Returns the Scans sorted by stamp, the counts (keys skipped, masked, n_assumed, assumed, recv_s and _kept_rows:
+    the rows of ``arrays`` kept, in the Scans' order) and the notes.
+    """
+    rows, skipped = _usable_rows(arrays, recv_s, scan, where)
+    S = rows.size
+    every = arrays.counts.size == S and bool(np.all(rows == np.arange(S)))
+
+    def kept(a: NDArray[Any]) -> NDArray[Any]:
+        return a if every else a[rows]
+
+    counts = kept(arrays.counts)
+    stamps = kept(recv_s if scan.stamp == "receive" else arrays.stamps_s())
+    recv = kept(recv_s)
+    floats = kept(arrays.floats)
+    a0, amax, inc = floats[:, 0], floats[:, 1], floats[:, 2]
+    t_inc, scan_time, rmin, rmax = (floats[:, k].copy() for k in (3, 4, 5, 6))
+    span, span_note = _angle_span(a0, amax, inc, counts, scan, where)
+    N = int(counts.max())
+    ranges = np.ascontiguousarray(kept(arrays.ranges)[:, :N])
+    step = (amax - a0) / np.maximum(counts - 1, 1) if span else inc
+    mu = _bearings(a0, step, N)
+    icounts = kept(arrays.intensity_counts)
+    good = icounts == counts
+    n_intens_bad = int(np.sum(~good & (icounts > 0)))
+    if good.all() and arrays.intensities.shape[1] >= N:
+        intens = np.ascontiguousarray(kept(arrays.intensities)[:, :N])
+    else:
+        intens = np.zeros((S, N))
+        width = min(N, arrays.intensities.shape[1])
+        intens[:, :width] = np.where(good[:, None], kept(arrays.intensities)[:, :width], 0.0)
     # time_increment = 0 (or non-finite): the mirror turns 2 pi per scan_time at a constant rate
     bad_ti = ~np.isfinite(t_inc) | (t_inc == 0.0)
     assumed: float | None = None
@@ -113,8 +161,7 @@ def scans_from(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, w
         period = np.where(np.isfinite(scan_time) & (scan_time > 0), scan_time, np.nan)
         fallback = float(np.median(np.diff(stamps))) if S > 1 else 0.0
         period = np.where(np.isfinite(period), period, fallback)
-        incs = np.array([abs(float(ls.angle_increment)) for ls in scans_ls])
-        per_rev = 2.0 * math.pi / incs
+        per_rev = 2.0 * math.pi / np.abs(inc)
         t_inc[bad_ti] = (period / per_rev)[bad_ti]
         assumed = float(np.median(t_inc[bad_ti]))
         text = (f"{where}: time_increment is 0 in {int(bad_ti.sum())} of {S} scans; assumed scan_time / "
@@ -125,51 +172,50 @@ def scans_from(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, w
     if n_intens_bad:
         notes.append(f"{where}: intensities: length differs from ranges in {n_intens_bad} scans; set to 0 there")
     masked = _mask(ranges, intens, counts, rmin, rmax)
-    first = scans_ls[0]
     scans = Scans(
         stamps_s=stamps, ranges_m=ranges, intensities=intens, mu_rad=mu, time_increment_s=t_inc,
         scan_time_s=float(np.median(scan_time)),
         range_min_m=float(np.nanmax(rmin)) if np.isfinite(rmin).any() else 0.0,
         range_max_m=float(np.nanmin(rmax)) if np.isfinite(rmax).any() else math.inf,
-        frame_id=str(first.header.frame_id) if hasattr(first, "header") else "", source=where,
-        beam_counts=counts,
+        frame_id=arrays.frame_ids[int(rows[0])], source=where, beam_counts=counts,
     )
     rep = {"skipped": skipped, "masked": masked, "n_assumed": int(bad_ti.sum()), "assumed": assumed,
-           "recv_s": recv, "_kept_items": [(r[0], r[3]) for r in rows]}
+           "recv_s": recv, "_kept_rows": rows}
     return scans, rep, notes
 
 
-def _usable_rows(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str, where: str
-                 ) -> tuple[list[Row], Counter[str]]:
-    """The scans that can be used, sorted by stamp, and the count of those skipped (by reason)."""
-    skipped: Counter[str] = Counter()
-    rows: list[Row] = []
-    for recv, msg in items:
-        ls = get_field(msg, scan.field, where) if scan.field else msg
-        if not is_laserscan(ls):
-            what = f"field {scan.field}" if scan.field else f"type {msgtype}"
-            raise InputError(f"{where}: {what}: not a sensor_msgs/LaserScan (set scan.field to the LaserScan "
-                             f"inside the message)")
-        t = recv if scan.stamp == "receive" else stamp_s(ls)
-        if t is None:
-            raise InputError(f"{where}: header: the scan has no header.stamp; use scan.stamp: receive")
-        n = len(ls.ranges)
-        a0, inc = float(ls.angle_min), float(ls.angle_increment)
-        if n == 0:
-            skipped["empty"] += 1
-        elif not (math.isfinite(inc) and inc != 0.0):
-            skipped["bad_angle_increment"] += 1
-        elif not math.isfinite(a0):
-            skipped["bad_angle_min"] += 1
-        elif not math.isfinite(t):
-            skipped["bad_stamp"] += 1
-        else:
-            rows.append((t, recv, ls, msg))
-    if not rows:
-        raise InputError(f"{where}: no usable scan in {len(items)} messages (skipped: "
+def _bearings(a0: NDArray[np.float64], step: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """Beam i's bearing angle_min + i step (S, n) [rad] of each scan; computed once when every scan has the same
+    angle_min and step (a scanner's driver: the same bits)."""
+    if a0.size and np.all(a0 == a0[0]) and np.all(step == step[0]):
+        row = a0[0] + np.arange(n) * step[0]
+        mu = np.empty((a0.size, n))
+        mu[:] = row
+        return mu
+    mu = np.multiply(np.arange(n)[None, :], step[:, None])
+    mu += a0[:, None]
+    return mu
+
+
+def _usable_rows(arrays: ScanArrays, recv_s: NDArray[np.float64], scan: ScanSource, where: str
+                 ) -> tuple[NDArray[np.int64], Counter[str]]:
+    """The rows of the scans that can be used, sorted by stamp (stable), and the count of those skipped (by
+    reason)."""
+    n = arrays.counts
+    t = recv_s if scan.stamp == "receive" else arrays.stamps_s()
+    a0, inc = arrays.field("angle_min"), arrays.field("angle_increment")
+    empty = n == 0
+    bad_inc = ~empty & ~(np.isfinite(inc) & (inc != 0.0))
+    bad_a0 = ~empty & ~bad_inc & ~np.isfinite(a0)
+    bad_t = ~empty & ~bad_inc & ~bad_a0 & ~np.isfinite(t)
+    skipped: Counter[str] = Counter({k: int(v.sum()) for k, v in (("empty", empty), ("bad_angle_increment", bad_inc),
+                                                                   ("bad_angle_min", bad_a0), ("bad_stamp", bad_t))
+                                     if v.any()})
+    rows = np.flatnonzero(~(empty | bad_inc | bad_a0 | bad_t))
+    if not rows.size:
+        raise InputError(f"{where}: no usable scan in {n.size} messages (skipped: "
                          f"{', '.join(f'{k} {v}' for k, v in sorted(skipped.items()))})")
-    order = sorted(range(len(rows)), key=lambda k: rows[k][0])
-    return [rows[k] for k in order], skipped
+    return rows[np.argsort(t[rows], kind="stable")], skipped
 
 
 #: a scan whose angle_max lies this many increments or more from angle_min + (N - 1) angle_increment (and that is
@@ -177,38 +223,38 @@ def _usable_rows(items: list[tuple[float, Any]], scan: ScanSource, msgtype: str,
 SPAN_TOLERANCE = 0.5
 
 
-def _span_off(ls: Any, n: int) -> float:
-    """(angle_max - angle_min) / angle_increment - (N - 1) of one scan of N beams: 0 when its fields agree, 0 too for
-    a full revolution whose last beam lies one increment before angle_max (a 360 deg scanner); NaN without
+def _span_offs(a0: NDArray[np.float64], amax: NDArray[np.float64], inc: NDArray[np.float64],
+               counts: NDArray[np.int64]) -> NDArray[np.float64]:
+    """(angle_max - angle_min) / angle_increment - (N - 1) of each scan of N beams: 0 when its fields agree, 0 too
+    for a full revolution whose last beam lies one increment before angle_max (a 360 deg scanner); NaN without
     angle_max or with fewer than 2 beams."""
-    amax = getattr(ls, "angle_max", None)
-    a0, inc = float(ls.angle_min), float(ls.angle_increment)
-    if amax is None or n < 2 or not math.isfinite(float(amax)):
-        return math.nan
-    span = float(amax) - a0
-    off = span / inc - (n - 1)
-    if abs(off - 1.0) < SPAN_TOLERANCE and abs(abs(span) - 2.0 * math.pi) < 1.5 * abs(inc):
-        return 0.0
-    return off
+    with np.errstate(invalid="ignore", divide="ignore"):
+        span = amax - a0
+        off = span / inc - (counts - 1).astype(np.float64)
+        full = (np.abs(off - 1.0) < SPAN_TOLERANCE) & (np.abs(np.abs(span) - 2.0 * math.pi) < 1.5 * np.abs(inc))
+    off = np.where(full, 0.0, off)
+    return np.where((counts < 2) | ~np.isfinite(amax), np.nan, off)
 
 
-def _angle_span(scans: list[Any], counts: np.ndarray, scan: ScanSource, where: str) -> tuple[bool, str]:
+def _angle_span(a0: NDArray[np.float64], amax: NDArray[np.float64], inc: NDArray[np.float64],
+                counts: NDArray[np.int64], scan: ScanSource, where: str) -> tuple[bool, str]:
     """Whether the beams' bearings come from the span (angle_max - angle_min) / (N - 1) rather than the increment,
     and the note saying so ("" when the scans' fields agree).
 
     Raises:
         InputError: the fields disagree (median over the scans) and the rig file does not say which to use.
     """
-    offs = np.array([_span_off(ls, int(n)) for ls, n in zip(scans, counts, strict=True)])
+    offs = _span_offs(a0, amax, inc, counts)
     finite = np.flatnonzero(np.isfinite(offs))
     off = float(np.median(offs[finite])) if finite.size else 0.0
     if abs(off) < SPAN_TOLERANCE:
         return False, ""
-    first = scans[int(finite[0])]
-    n = len(first.ranges)
-    last = float(first.angle_min) + (n - 1) * float(first.angle_increment)
-    what = (f"angle_increment {float(first.angle_increment):.7g} rad puts the last of {n} beams at {last:.6g} rad, "
-            f"but angle_max is {float(first.angle_max):.6g} rad ({off:+.2f} increments, median over the scans)")
+    k = int(finite[0])
+    n = int(counts[k])
+    first_min, first_inc, first_max = float(a0[k]), float(inc[k]), float(amax[k])
+    last = first_min + (n - 1) * first_inc
+    what = (f"angle_increment {first_inc:.7g} rad puts the last of {n} beams at {last:.6g} rad, "
+            f"but angle_max is {first_max:.6g} rad ({off:+.2f} increments, median over the scans)")
     if scan.angles is None:
         raise InputError(f"{where}: {what}: the scan's fields disagree (a driver's off-by-one?); set scan.angles in "
                          "the rig file: increment (beam i at angle_min + i angle_increment) or span (at angle_min "
@@ -216,57 +262,43 @@ def _angle_span(scans: list[Any], counts: np.ndarray, scan: ScanSource, where: s
     return scan.angles == "span", f"{where}: {what}; the bearings from the {scan.angles} (scan.angles)"
 
 
-def _stack(scans: list[Any], counts: np.ndarray, echo: str, span: bool = False
-           ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
-    """Ranges, intensities and bearings (S, N; padded with NaN, 0) and time increments (S,) of the LaserScans
-    (one echo per beam of a MultiEchoLaserScan, :func:`select_echo`), and the number of scans whose intensities
-    do not match their ranges (left 0). ``span``: beam i at angle_min + i (angle_max - angle_min) / (N - 1)
-    instead of angle_min + i angle_increment."""
-    S, N = len(scans), int(counts.max())
-    ranges = np.full((S, N), np.nan)
-    intens = np.zeros((S, N))
-    mu = np.empty((S, N))
-    t_inc = np.empty(S)
-    idx = np.arange(N)
-    n_intens_bad = 0
-    for k, ls in enumerate(scans):
-        n = counts[k]
-        step = (float(ls.angle_max) - float(ls.angle_min)) / max(n - 1, 1) if span else float(ls.angle_increment)
-        mu[k] = float(ls.angle_min) + idx * step
-        t_inc[k] = float(ls.time_increment)
-        if is_multiecho(ls):
-            ranges[k, :n], intens[k, :n] = select_echo(ls.ranges, ls.intensities,
-                                                       float(ls.range_min), float(ls.range_max), echo)
-            continue
-        ranges[k, :n] = np.asarray(ls.ranges, dtype=np.float64)
-        i = np.asarray(ls.intensities, dtype=np.float64)
-        if i.size == n:
-            intens[k, :n] = i
-        elif i.size:
-            n_intens_bad += 1
-    return ranges, intens, mu, t_inc, n_intens_bad
-
-
 def _mask(ranges: np.ndarray, intens: np.ndarray, counts: np.ndarray, rmin: np.ndarray, rmax: np.ndarray
           ) -> Counter[str]:
-    """Mask (NaN) the ranges that are no return (0, +-inf, outside [range_min, range_max] of their scan) and zero
-    the intensities of padding and non-finite ones, in place; the count of masked values by reason."""
-    masked: Counter[str] = Counter()
-    pad = np.arange(ranges.shape[1])[None, :] >= counts[:, None]
+    """Mask (NaN) the C-contiguous ranges that are no return (0, +-inf, outside [range_min, range_max] of their
+    scan) and zero the intensities of padding and non-finite ones, in place; the count of masked values by reason.
+
+    Only the values outside [range_min, range_max] (NaN, infinite, zero or not, a few in a scan) are looked at
+    one by one: a pass over the (S, N) values finds them."""
+    big = np.finfo(np.float64).max
     with np.errstate(invalid="ignore"):
-        zero = (ranges == 0.0) & ~pad
-        nan = np.isnan(ranges) & ~pad
-        inf = np.isinf(ranges)
-        low = np.isfinite(ranges) & ~zero & (ranges < rmin[:, None])
-        high = np.isfinite(ranges) & (ranges > rmax[:, None])
+        inside = ranges >= np.maximum(rmin, -big)[:, None]
+        inside &= ranges <= np.minimum(rmax, big)[:, None]
+        if not np.all(rmin > 0.0):  # a zero is no return even where range_min allows it
+            inside &= ranges != 0.0
+    flat = ranges.reshape(-1)  # a view: ranges is C-contiguous
+    at = np.flatnonzero(np.logical_not(inside, out=inside))
+    rows, cols = np.divmod(at, ranges.shape[1])
+    v = flat[at]
+    valid = cols < counts[rows]  # not padding
+    with np.errstate(invalid="ignore"):
+        zero = (v == 0.0) & valid
+        nan = np.isnan(v) & valid
+        inf = np.isinf(v)
+        low = np.isfinite(v) & ~zero & (v < rmin[rows])
+        high = np.isfinite(v) & (v > rmax[rows])
+    masked: Counter[str] = Counter()
     for name, m in (("zero", zero), ("nan", nan), ("inf", inf), ("below_range_min", low),
                     ("above_range_max", high)):
         c = int(m.sum())
         if c:
             masked[name] = c
-    ranges[zero | inf | low | high] = np.nan
-    intens[~np.isfinite(intens) | pad] = 0.0
+    flat[at[zero | inf | low | high]] = np.nan
+    bad = ~np.isfinite(intens)
+    if bad.any():
+        intens[bad] = 0.0
+    if counts.min() < ranges.shape[1]:
+        intens[np.arange(ranges.shape[1])[None, :] >= counts[:, None]] = 0.0
     return masked
 
 
-__all__ = ["is_laserscan", "is_multiecho", "scans_from", "select_echo"]
+__all__ = ["is_laserscan", "is_multiecho", "laser_arrays", "scans_from", "scans_from_arrays", "select_echo"]

@@ -18,10 +18,12 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from ..errors import InputError
 from ..rig import ServoSource
 from ..types import JointStates, Scans
+from .bag_arrays import JointArrays
 from .bag_messages import DYNAMIXEL_JOINTSTATE_TYPE, get_field, stamp_s
 
 #: default numeric field per message type
@@ -48,34 +50,27 @@ def _as_float(v: Any) -> float:
         return math.nan
 
 
-def servo_joint_state(items: list[tuple[float, Any]], servo: ServoSource, where: str) -> Samples:
-    """sensor_msgs/JointState: position of the joint named servo.joint (the only joint when not given)."""
-    names_seen: set[str] = set()
-    stamps, recv, vals = [], [], []
-    skipped: Counter[str] = Counter()
-    for t, m in items:
-        names = list(m.name)
-        names_seen.update(names)
-        joint = servo.joint
-        if joint is None:
-            if len(names) != 1:
-                raise InputError(f"{where}: joint: not given and the JointState has {len(names)} names "
-                                 f"({', '.join(names)}); set servo.joint")
-            joint = names[0]
-        if joint not in names:
-            skipped["joint_absent"] += 1
-            continue
-        j = names.index(joint)
-        if j >= len(m.position):
-            skipped["no_position"] += 1
-            continue
-        stamps.append(stamp_s(m))
-        recv.append(t)
-        vals.append(float(m.position[j]))
-    if not vals:
-        raise InputError(f"{where}: name: joint {servo.joint!r} not found (available: "
-                         f"{', '.join(sorted(names_seen)) or 'none'})")
-    return Samples(np.array(stamps, dtype=float), np.array(recv), np.array(vals), skipped)
+def servo_joint_state(joints: JointArrays, recv_s: NDArray[np.float64], servo: ServoSource, where: str) -> Samples:
+    """sensor_msgs/JointState (``joints``, received at ``recv_s`` (M,) [s]): position of the joint named servo.joint
+    (the only joint when not given)."""
+    kinds = list(dict.fromkeys(joints.names))  # the distinct name lists, in order of appearance
+    if servo.joint is None:
+        several = next((names for names in kinds if len(names) != 1), None)
+        if several is not None:
+            raise InputError(f"{where}: joint: not given and the JointState has {len(several)} names "
+                             f"({', '.join(several)}); set servo.joint")
+    column = {names: (names.index(servo.joint) if servo.joint in names else -1) if servo.joint else 0
+              for names in kinds}
+    j = np.array([column[names] for names in joints.names], dtype=np.int64)
+    absent = j < 0
+    no_position = ~absent & (j >= joints.position_counts)
+    skipped: Counter[str] = Counter({k: int(v.sum()) for k, v in (("joint_absent", absent),
+                                                                   ("no_position", no_position)) if v.any()})
+    rows = np.flatnonzero(~absent & ~no_position)
+    if not rows.size:
+        seen = sorted({n for names in kinds for n in names})
+        raise InputError(f"{where}: name: joint {servo.joint!r} not found (available: {', '.join(seen) or 'none'})")
+    return Samples(joints.stamps_s()[rows], recv_s[rows], joints.positions[rows, j[rows]], skipped)
 
 
 def default_field(msgtype: str) -> str | None:
