@@ -54,7 +54,7 @@ def per_marker(scenario: Scenario) -> list[str]:
     """Lines of the per-marker mean whitened residuals at the truth (module docstring)."""
     import numpy as np
 
-    from lrfcal.information import model_residuals
+    from lrfcal.estimate.information import model_residuals
     from lrfcal.model.kinematics import beam_rays_W
     from lrfsim.plan import marker_observations
 

@@ -7,7 +7,7 @@ the calibration's models predict with the TRUE DH, mount, motor angles and marke
 
 * surface returns (lrfcal.model.plane): the range against the ray's distance to the markers' plane moved back by
   the marker radius, for the rays that meet it inside the markers' extent (+5 cm) and 3 cm clear of every marker
-  (the selection of lrfcal.surfaces); mean per 10 deg of incidence;
+  (the selection of lrfcal.stages.surfaces); mean per 10 deg of incidence;
 * marker returns (lrfcal.model.marker, ``"sphere"`` with the footprint): the range against t - R S(u, k) for the
   rays whose measured point lies within 3 marker radii of a centre; mean per band of u, the ray's distance from the
   centre in marker radii (beyond u = 1 + k no part of the footprint meets the sphere: those are the surface behind).

@@ -40,7 +40,7 @@ _CHILD = """
 import sys, time
 from lrfcal.io.bag import read_bag
 from lrfcal.io.recording import read_nominal
-from lrfcal.memory import apply_memory_policy
+from lrfcal.runtime.memory import apply_memory_policy
 apply_memory_policy()
 nom = read_nominal(sys.argv[2])
 read_bag(sys.argv[1], nom.scan, nom.servo, warn=lambda text: None)
@@ -85,10 +85,10 @@ def main() -> None:
 
     from lrfcal.io.bag import read_bag
     from lrfcal.io.recording import read_nominal
-    from lrfcal.memory import apply_memory_policy
-    from lrfcal.rig import ScanSource, ServoSource
+    from lrfcal.io.rig import ScanSource, ServoSource
+    from lrfcal.runtime.memory import apply_memory_policy
 
-    apply_memory_policy()  # as the programs run (lrfcal.memory)
+    apply_memory_policy()  # as the programs run (lrfcal.runtime.memory)
 
     times: dict[str, list[float]] = {}
     cpus: dict[str, list[float]] = {}

@@ -284,8 +284,8 @@ def peer_main(path: Path, repeats: int) -> int:
         return 2
     import mujoco
 
-    from lrfcal.memory import apply_memory_policy
-    from lrfcal.threads import apply_thread_policy
+    from lrfcal.runtime.memory import apply_memory_policy
+    from lrfcal.runtime.threads import apply_thread_policy
 
     apply_memory_policy()  # as the programs run (one BLAS thread: the cast's threads are its own)
     apply_thread_policy()

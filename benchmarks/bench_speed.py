@@ -13,7 +13,7 @@ imports count), all in this one run, so that a busy machine slows numerator and 
 2. ``lrfcal calibrate REC`` (and ``--no-figures`` when the CLI has it), ``lrfcal calibrate REC --targetless``,
    ``lrfsim plan SCENARIO``, ``lrfsim run SCENARIO``: walls and ratios to the simulation;
 3. the calibration in-process (``lrfcal.pipeline.calibrate``, no CLI, no figures) with its stage times, under the
-   programs' memory and thread policies (lrfcal.memory, lrfcal.threads);
+   programs' memory and thread policies (lrfcal.runtime.memory, lrfcal.runtime.threads);
 4. ``lrfcal calibrate REC`` again with 4 busy processes beside it (started here, always killed in a finally);
 5. the simulator's cast (lrfsim.raycast.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
 6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included);
@@ -225,8 +225,8 @@ def main() -> None:
     ap.add_argument("--recording", type=Path, metavar="REC", help="--only read: this recording folder (default: "
                     "a simulation of SCENARIO)")
     args = ap.parse_args()
-    from lrfcal.memory import apply_memory_policy
-    from lrfcal.threads import apply_thread_policy
+    from lrfcal.runtime.memory import apply_memory_policy
+    from lrfcal.runtime.threads import apply_thread_policy
     from lrfsim.scenario import dump_scenario, load_scenario
     from lrfsim.variants import with_field
 

@@ -1,4 +1,4 @@
-"""The BLAS thread policy (lrfcal.threads) measured: wall time of ``lrfcal calibrate`` and ``lrfcal calibrate
+"""The BLAS thread policy (lrfcal.runtime.threads) measured: wall time of ``lrfcal calibrate`` and ``lrfcal calibrate
 --targetless`` on one simulated tunnel_v recording, with the libraries' default threads and with the policy's
 limit, on the machine as it is ("quiet") and with BUSY extra processes spinning on the cores ("loaded").
 

@@ -2,7 +2,7 @@
 
     python benchmarks/bench_wide_markers.py [N_SEEDS=60] [FIRST_SEED=0]
 
-Per seed: simulate (one at a time), detect intensity blobs (lrfcal.detection.detect) and count the markers
+Per seed: simulate (one at a time), detect intensity blobs (lrfcal.stages.detection.detect) and count the markers
 with a detected blob on their returns (lrfsim.faults.marker_returns attributes returns to markers with the
 truth), against the markers the sweep can see by geometry (visible_markers) and the layout's
 wide_dh_determined label. Prints one line per seed, then the fraction of scenarios with fewer than 6 markers

@@ -6,7 +6,7 @@ recording). Under pytest-xdist every worker is its own session: the folders live
 folders, and the first worker that needs one simulates it while the others wait on a file lock. Tests read these
 folders; one that changes a recording copies it first.
 
-The tests run BLAS with the programs' thread policy (lrfcal.threads), as the console scripts do: one thread per
+The tests run BLAS with the programs' thread policy (lrfcal.runtime.threads), as the console scripts do: one thread per
 process, so two test workers on two cores do not oversubscribe them.
 """
 
@@ -21,15 +21,15 @@ from pathlib import Path
 
 import pytest
 
-from lrfcal.memory import apply_memory_policy
-from lrfcal.threads import apply_thread_policy
+from lrfcal.runtime.memory import apply_memory_policy
+from lrfcal.runtime.threads import apply_thread_policy
 from lrfsim.scenario import Scenario, load_scenario
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    apply_memory_policy()  # the programs' policies, in every worker (lrfcal.memory, lrfcal.threads)
+    apply_memory_policy()  # the programs' policies, in every worker (lrfcal.runtime.memory, lrfcal.runtime.threads)
     apply_thread_policy()
 
 

@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from lrfcal.association import associate, kabsch, unmirror
 from lrfcal.errors import CalibrationError
 from lrfcal.model.kinematics import pose_matrix, transform_points
+from lrfcal.stages.association import associate, kabsch, unmirror
 from lrfcal.types import MarkerMap
 
 
@@ -123,12 +123,12 @@ def test_too_few_blobs() -> None:
 
 @pytest.mark.parametrize("seed", [0, 1])
 def test_branch_and_bound_keeps_exactly_the_best_hypotheses(seed: int) -> None:
-    """The search's top k (lrfcal.association._best_hypotheses: probe blobs, then the rest block by block, each
+    """The search's top k (lrfcal.stages.association._best_hypotheses: probe blobs, then the rest block by block, each
     hypothesis dropped once its bound falls below the k-th best full score) is exactly the top k of scoring every
     hypothesis on every blob, also with near-copies of the true pose whose scores tie or nearly tie."""
     from scipy.spatial.transform import Rotation
 
-    from lrfcal.association import _best_hypotheses, _score
+    from lrfcal.stages.association import _best_hypotheses, _score
 
     rng = np.random.default_rng(seed)
     X = rng.uniform(-2.0, 2.0, size=(30, 3))  # markers
@@ -151,7 +151,7 @@ def test_branch_and_bound_keeps_exactly_the_best_hypotheses(seed: int) -> None:
         np.testing.assert_array_equal(_best_hypotheses(R, t, P, X, w, 0.02, k=k), np.lexsort((rms, -score))[:k])
         # the block-by-block pruning alone: every hypothesis whose full score reaches a threshold survives it, and
         # most of those that cannot are dropped
-        from lrfcal.association import _reaching
+        from lrfcal.stages.association import _reaching
 
         probe = np.arange(0, len(P), 7)
         part, _ = _score(R, t, P[probe], X, w[probe], 0.02)
@@ -162,9 +162,10 @@ def test_branch_and_bound_keeps_exactly_the_best_hypotheses(seed: int) -> None:
 
 
 def test_pair_score_does_not_depend_on_its_chunk() -> None:
-    """lrfcal.start.pair_score scores candidate DH sets a chunk at a time (for the cache); each candidate's score is
+    """lrfcal.stages.start.pair_score scores candidate DH sets a chunk at a time (for the cache); each candidate's
+    score is
     its own: the same numbers for any chunk, and the true DH scores best among candidates around it."""
-    from lrfcal.start import pair_score
+    from lrfcal.stages.start import pair_score
 
     rng = np.random.default_rng(3)
     dh = np.array([0.012, math.radians(80.0), 0.02, math.radians(-88.0)])

@@ -25,7 +25,7 @@ from lrfcal.io.bag_messages import complete_types, open_reader
 from lrfcal.io.bag_raw import raw_messages
 from lrfcal.io.bag_scans import laser_arrays
 from lrfcal.io.recording import read_nominal
-from lrfcal.rig import ScanSource, ServoSource
+from lrfcal.io.rig import ScanSource, ServoSource
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = sorted(p.stem for p in (ROOT / "scenarios").glob("*.yaml"))

@@ -13,13 +13,13 @@ import numpy as np
 import pytest
 
 from lrfcal.config import CalibConfig
-from lrfcal.minima import other_minimum
+from lrfcal.estimate.minima import other_minimum
+from lrfcal.estimate.problem import Problem
+from lrfcal.estimate.solve import solve
 from lrfcal.model.chart import canonical_dh, dh_chart, regular_chart, regular_chart_at, regular_step, scan_plane_pose
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, rot_x, rot_z, transform_points
 from lrfcal.model.marker import MarkerSet, ray_to_centre
 from lrfcal.model.unknowns import N_CORE, PlaneSet, pack, plane_nuisance_start, wrap_pi
-from lrfcal.problem import Problem
-from lrfcal.solve import solve
 from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
 
 
@@ -176,7 +176,8 @@ def test_solver_reaches_a_scanner_tilted_towards_the_motor_axis_from_alpha_0(see
 
 
 def _other_minimum(truth: Params, C: np.ndarray, obs: Observations, nominal_dh: DH) -> tuple[Solution, Check]:
-    """The marker-only solve from the nominal (the mount 2-5 cm and 1-3 deg off) and lrfcal.minima's check of it."""
+    """The marker-only solve from the nominal (the mount 2-5 cm and 1-3 deg off) and lrfcal.estimate.minima's check
+    of it."""
     fit = partial(solve, marker_radius_m=0.05, range_sigma_m=0.005)
     m = truth.mount
     start = Params(Pose(m.x + 0.02, m.y - 0.02, m.z + 0.01, m.roll + 0.02, m.pitch, m.yaw + 0.05), nominal_dh)

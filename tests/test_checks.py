@@ -1,4 +1,4 @@
-"""lrfcal.checks and the observability verdict's hints: a scan plane near perpendicular to the motor axis, the
+"""lrfcal.estimate.checks and the observability verdict's hints: a scan plane near perpendicular to the motor axis, the
 mirror images of the chain, the placeholder DH."""
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ def _solution(alpha: float) -> Solution:
 def test_hint_names_a_scan_plane_near_perpendicular_to_the_motor_axis() -> None:
     """With b the undetermined direction, the hint says why when the scan plane is within 20 deg of perpendicular
     (b is then the mount's own offset along the motor axis), and gives the layout hint otherwise."""
-    from lrfcal.observability import NEAR_PERPENDICULAR_RAD, analyse
+    from lrfcal.estimate.observability import NEAR_PERPENDICULAR_RAD, analyse
 
     info = np.diag([1e8, 1e10, 1e2, 1e10])  # b (the third) barely determined
     names = ("a", "alpha", "b", "beta")
@@ -39,7 +39,7 @@ def test_one_information_judges_what_is_held() -> None:
     column, the DH prior adds to the diagonal, and the DH parameters are held one at a time, the weakest
     combination's largest share first, until the rest is determined within LIMITS; a b correlated with the held
     range offset is determined once that is held, and undetermined when the offset is free (marginalised)."""
-    from lrfcal.observability import Information
+    from lrfcal.estimate.observability import Information
 
     names = ("a", "alpha", "b", "beta", "range_offset")
     J = np.diag([1 / 1e-4, 1 / 1e-4, 1 / 1e-4, 1 / 1e-4, 0.0])
@@ -118,8 +118,8 @@ def test_dh_twins_are_the_same_cloud_moved_by_their_isometry() -> None:
 
 
 def test_mirror_check_passes_when_the_nominal_tells_the_rig_from_its_mirror_image() -> None:
-    from lrfcal.checks import mirror_check
     from lrfcal.config import CalibConfig
+    from lrfcal.estimate.checks import mirror_check
 
     config = CalibConfig()
     est = DH(a=0.012, alpha=math.radians(35.0), b=0.04, beta=0.1)
@@ -132,8 +132,8 @@ def test_mirror_check_passes_when_the_nominal_tells_the_rig_from_its_mirror_imag
 def test_mirror_check_refuses_a_nominal_nearer_the_mirror_image_naming_both() -> None:
     """A nominal alpha of -10 deg for an estimate of +35 deg: the mirror image (alpha -35 deg, b negated) is nearer
     the drawings than the estimate, and the data cannot tell them apart: refused, naming the mirror image."""
-    from lrfcal.checks import mirror_check
     from lrfcal.config import CalibConfig
+    from lrfcal.estimate.checks import mirror_check
 
     est = DH(a=0.012, alpha=math.radians(35.0), b=0.04, beta=0.1)
     c = mirror_check(est, DH(a=0.012, alpha=math.radians(-10.0), b=0.0, beta=0.1), CalibConfig())
@@ -147,8 +147,8 @@ def testnominal_distance_compares_poses_not_dh_near_perpendicular() -> None:
     As the scanner's poses modulo the gauge it is 2.6 mm and 1.25 deg from the nominal: within tolerance, and the
     mirror check passes (what b the data determine is observability's to say). The two DH representatives of one
     rig ("turned") are at one distance."""
-    from lrfcal.checks import far_from_nominal, mirror_check, nominal_distance
     from lrfcal.config import CalibConfig
+    from lrfcal.estimate.checks import far_from_nominal, mirror_check, nominal_distance
     from lrfcal.model.kinematics import dh_twins
 
     config = CalibConfig()
@@ -164,14 +164,14 @@ def testnominal_distance_compares_poses_not_dh_near_perpendicular() -> None:
 
 
 def test_the_second_opinions_difference_covariance_is_the_scatter_of_part_minus_joint() -> None:
-    """lrfcal.checks.difference_covariance: for a part of the data (half the clusters) and the whole, the
+    """lrfcal.estimate.checks.difference_covariance: for a part of the data (half the clusters) and the whole, the
     covariance of part - joint, widened to the cluster-robust one from each cluster's influence, holds the scatter
     of that difference when the errors are shared within clusters (as a crossing's lines share where they fall on a
     marker): its chi-square averages about its 4 degrees of freedom (measured 5.0), where C_part - C_joint from
     independent residuals gives 47."""
     from types import SimpleNamespace
 
-    from lrfcal.checks import difference_covariance
+    from lrfcal.estimate.checks import difference_covariance
     from lrfcal.model.unknowns import N_CORE
 
     rng = np.random.default_rng(3)

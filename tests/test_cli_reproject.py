@@ -12,10 +12,10 @@ import yaml
 from test_bag_shapes import DH_TEST, S, write
 
 from lrfcal.cli import main
-from lrfcal.cloud import POINT_DTYPE, read_cloud_ply, reproject_beams
 from lrfcal.io.bag import read_bag
+from lrfcal.io.cloud import POINT_DTYPE, read_cloud_ply, reproject_beams
+from lrfcal.io.rig import ScanSource, ServoSource
 from lrfcal.model.kinematics import DH
-from lrfcal.rig import ScanSource, ServoSource
 
 
 def _main(monkeypatch: pytest.MonkeyPatch, argv: list[str]) -> int:

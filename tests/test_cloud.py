@@ -1,12 +1,12 @@
-"""Sweeps, uncovered scans and per-scan layouts in lrfcal.cloud.reproject_beams."""
+"""Sweeps, uncovered scans and per-scan layouts in lrfcal.io.cloud.reproject_beams."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from lrfcal.cloud import reproject_beams
+from lrfcal.io.cloud import reproject_beams
 from lrfcal.model.kinematics import DH, points_M
-from lrfcal.timing import sweep_passes
+from lrfcal.stages.timing import sweep_passes
 from lrfcal.types import JointStates, Scans
 
 
@@ -48,8 +48,8 @@ def test_calibration_intrinsics_are_read_only_when_estimated(tmp_path):
     estimated range_offset_m; a name the model does not know is refused naming it."""
     import pytest
 
-    from lrfcal.cloud import read_calibration_intrinsics
     from lrfcal.errors import InputError
+    from lrfcal.io.cloud import read_calibration_intrinsics
 
     new, old, held, bad = (tmp_path / f"{n}.yaml" for n in ("new", "old", "held", "bad"))
     new.write_text("intrinsics:\n  range_offset: {value: 0.0125, sigma: 0.0012}\n"
@@ -66,14 +66,14 @@ def test_calibration_intrinsics_are_read_only_when_estimated(tmp_path):
 
 def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
     """A small lrfsim recording read as a rig file says and reprojected beam by beam equals the calibration
-    pipeline's own reprojection (lrfcal.reproject with timing.beam_motor_angles, of the joint states with their
-    quantisation taken out as lrfcal.timing.usable_scans does) of the same recording."""
+    pipeline's own reprojection (lrfcal.stages.reproject with timing.beam_motor_angles, of the joint states with their
+    quantisation taken out as lrfcal.stages.timing.usable_scans does) of the same recording."""
     import yaml
     from test_cli_sim import _write_small
 
     from lrfcal.io.recording import read_recording
-    from lrfcal.reproject import reproject_cloud
-    from lrfcal.timing import beam_motor_angles, covered_scans, without_quantisation
+    from lrfcal.stages.reproject import reproject_cloud
+    from lrfcal.stages.timing import beam_motor_angles, covered_scans, without_quantisation
     from lrfsim.scenario import load_scenario
     from lrfsim.simulate import simulate_to_folder
 

@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lrfcal.detection import MAX_CONTRAST, MIN_CONTRAST, blob_centres_M, contrast, detect, observations, split_by_pass
 from lrfcal.model.kinematics import DH, points_M
+from lrfcal.stages.detection import (
+    MAX_CONTRAST,
+    MIN_CONTRAST,
+    blob_centres_M,
+    contrast,
+    detect,
+    observations,
+    split_by_pass,
+)
 from lrfcal.types import Blob, Detections, JointStates, Scans
 
 S, N = 240, 400

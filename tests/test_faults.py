@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.detection import detect
 from lrfcal.errors import InputError
+from lrfcal.stages.detection import detect
 from lrfcal.types import Scans
 from lrfsim.faults import apply_faults, bright_mask, marker_returns, scale_range_noise
 from lrfsim.scenario import Scenario, parse_scenario
@@ -226,7 +226,7 @@ def test_new_faults_in_the_written_recording(clean: SimResult, tmp_path: Path) -
 
     from lrfcal.errors import InputError
     from lrfcal.io.recording import read_recording
-    from lrfcal.rig import ScanSource
+    from lrfcal.io.rig import ScanSource
 
     scenario = _scenario(gear_ratio=0.9, joint_rate_hz=30.0, angle_increment_off_by_one=True)
     out = apply_faults(clean, scenario)

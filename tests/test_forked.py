@@ -1,4 +1,4 @@
-"""lrfcal.forked: tasks on every core without pickling their inputs, and the fallbacks that run a task here."""
+"""lrfcal.runtime.forked: tasks on every core without pickling their inputs, and the fallbacks that run a task here."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import time
 
 import pytest
 
-from lrfcal.forked import Ahead, call_forked, cores
+from lrfcal.runtime.forked import Ahead, call_forked, cores
 
 PARENT = os.getpid()
 
@@ -102,7 +102,7 @@ def _sum_and_none(values: object, nothing: object) -> tuple[int, object, int]:
 
 @pytest.mark.skipif(not FORKS, reason=NO_FORKS)
 def test_ahead_sends_what_the_child_inherited_by_reference_while_this_process_goes_on() -> None:
-    from lrfcal.forked import _dumps
+    from lrfcal.runtime.forked import _dumps
 
     big = list(range(200_000))
     with Ahead(_prepare, inherit=(big,)) as ahead:

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lrfcal.geometry import extract_planes, fit_plane_lsq, tunnel_geometry
 from lrfcal.model.kinematics import rpy_matrix
+from lrfcal.stages.geometry import extract_planes, fit_plane_lsq, tunnel_geometry
 
 WIDTH, HEIGHT, PLATE = 0.78, 2.30, 2.24
 MANHOLE_R = 0.30

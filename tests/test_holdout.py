@@ -1,10 +1,10 @@
-"""lrfcal.holdout: the targetless calibration's check on returns it did not use."""
+"""lrfcal.stages.holdout: the targetless calibration's check on returns it did not use."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from lrfcal.holdout import HOLDOUT_EVERY, held_out_flatness, held_out_scans
+from lrfcal.stages.holdout import HOLDOUT_EVERY, held_out_flatness, held_out_scans
 
 
 def _box_cloud(rng: np.random.Generator, noise_m: float = 0.004) -> np.ndarray:

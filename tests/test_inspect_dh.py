@@ -1,4 +1,4 @@
-"""``lrfcal inspect`` proposes the DH from the scene's planes (lrfcal.propose), and ``reproject`` refuses the
+"""``lrfcal inspect`` proposes the DH from the scene's planes (lrfcal.stages.propose), and ``reproject`` refuses the
 placeholder DH (issue 20, item 2).
 
 The real recordings are read from ../shared/realbags beside the repository (not part of a clone): those tests skip
@@ -18,9 +18,9 @@ import yaml
 from test_bag_shapes import write
 
 from lrfcal.cli import main
-from lrfcal.loginspect import inspect_path
+from lrfcal.io.loginspect import inspect_path
 from lrfcal.model.kinematics import DH, points_M
-from lrfcal.propose import DETERMINED, DHProposal, canonical
+from lrfcal.stages.propose import DETERMINED, DHProposal, canonical
 from lrfsim.compare import load_truth
 
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
@@ -109,7 +109,7 @@ def _sigmas(comment: str) -> list[float]:
 def test_written_rig_file_reads_back_one_line_each(room_box_inspected) -> None:  # type: ignore[no-untyped-def]
     """inspect -o writes the rig file printed last: no trailing spaces, no wrapped line (the comment is one line),
     and it reads as a rig file whose dh are not the placeholder."""
-    from lrfcal.rig import is_placeholder_dh, load_rig
+    from lrfcal.io.rig import is_placeholder_dh, load_rig
 
     _, out, stdout = room_box_inspected
     text = out.read_text()
@@ -202,7 +202,7 @@ def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch
     """The DH search's starts are solved in groups on the cores (one in this process, the others in forked children)
     and collected in start order: the candidates reach the consensus in the same order whatever the number of cores,
     and the progress ends at the number of starts."""
-    import lrfcal.propose as propose
+    import lrfcal.stages.propose as propose
     from lrfcal.types import JointStates, Scans
 
     def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]

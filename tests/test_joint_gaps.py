@@ -2,7 +2,8 @@
 
 The motor angle is interpolated linearly between joint states; across a gap that hides a reversal or a stop it is
 wrong by up to half the gap times the sweep's speed. lrfcal.model.motor.joint_gaps names such gaps, the calibration
-leaves their scans out with a note naming the gap (lrfcal.timing.usable_scans), or refuses naming it when most scans
+leaves their scans out with a note naming the gap (lrfcal.stages.timing.usable_scans), or refuses naming it when most
+scans
 fall in one. The fault ``faults.joint_gap_s`` (lrfsim.faults.joint_gap) makes such a recording; the end-to-end tests
 run the installed console scripts (``lrfsim simulate``, ``lrfcal calibrate``) as a user would.
 """
@@ -19,7 +20,7 @@ import yaml
 from test_cli_usage import ROOT, _one_error_line, _run
 
 from lrfcal.model.motor import joint_gaps
-from lrfcal.timing import interpolation_error_rad, motor_angles
+from lrfcal.stages.timing import interpolation_error_rad, motor_angles
 from lrfcal.types import JointStates
 
 QUANTUM = 2 * math.pi / 4096  # a Dynamixel's encoder step

@@ -1,5 +1,6 @@
-"""The marker map's own uncertainty: the MDS map's covariance from the tape noise (lrfcal.mds.map_covariance), how
-the estimate moves with the map (lrfcal.solve.map_sensitivity) and that both join the stated covariance."""
+"""The marker map's own uncertainty: the MDS map's covariance from the tape noise (lrfcal.stages.mds.map_covariance),
+how
+the estimate moves with the map (lrfcal.estimate.solve.map_sensitivity) and that both join the stated covariance."""
 
 from __future__ import annotations
 
@@ -7,11 +8,11 @@ import numpy as np
 import pytest
 from test_solve import R_M, SIGMA, TRUE, _markers, simulate
 
-from lrfcal import mds
+from lrfcal.estimate.solve import solve
 from lrfcal.model.kinematics import ESTIMATE_NAMES
 from lrfcal.model.unknowns import wrap_pi
-from lrfcal.solve import solve
-from lrfcal.surfaces import plane_prior_jacobian
+from lrfcal.stages import mds
+from lrfcal.stages.surfaces import plane_prior_jacobian
 from lrfcal.types import MarkerMap, TapeMeasurements
 
 
@@ -99,11 +100,12 @@ def test_plane_prior_jacobian_matches_refitted_planes() -> None:
 
 
 def test_errors_shared_by_a_markers_returns_widen_the_covariance() -> None:
-    """The per-marker sandwich (lrfcal.covariance.inflate_for_markers): residuals that share an offset per marker (an
+    """The per-marker sandwich (lrfcal.estimate.covariance.inflate_for_markers): residuals that share an offset per
+    marker (an
     uneven coverage of its disc) widen the covariance by about sqrt(returns per marker) for a parameter each marker
     sees alike; independent residuals leave it as it is."""
-    from lrfcal.covariance import inflate_for_markers
-    from lrfcal.normal_equations import Blocks
+    from lrfcal.estimate.covariance import inflate_for_markers
+    from lrfcal.estimate.normal_equations import Blocks
 
     rng = np.random.default_rng(0)
     n_markers, per = 12, 50

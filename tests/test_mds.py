@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.mds import marker_map
+from lrfcal.stages.mds import marker_map
 from lrfcal.types import TapeMeasurements
 from lrfsim.scenario import load_scenario
 from lrfsim.scene_geometry import marker_centres_W

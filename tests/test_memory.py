@@ -1,4 +1,4 @@
-"""The programs' memory policy (lrfcal.memory)."""
+"""The programs' memory policy (lrfcal.runtime.memory)."""
 
 from __future__ import annotations
 
@@ -16,13 +16,14 @@ def fresh_python(code: str, unset: str, timeout: float = 120, **env: str) -> sub
 
 
 def test_the_memory_policy_keeps_numpys_large_arrays_off_huge_pages() -> None:
-    """The programs turn numpy's transparent-huge-page madvise off (lrfcal.memory: 1.42-2.01 s against 0.86-0.98 s
+    """The programs turn numpy's transparent-huge-page madvise off (lrfcal.runtime.memory: 1.42-2.01 s against
+    0.86-0.98 s
     for the in-process calibration of tunnel_v where the kernel compacts memory for them); a user's
     NUMPY_MADVISE_HUGEPAGE stands. Run in a fresh interpreter each: the switch is the process's."""
     code = ("import importlib\n"
             "try:\n    m = importlib.import_module('numpy._core.multiarray')\n"
             "except ImportError:  # numpy < 2\n    m = importlib.import_module('numpy.core.multiarray')\n"
-            "from lrfcal.memory import apply_memory_policy\n"
+            "from lrfcal.runtime.memory import apply_memory_policy\n"
             "applied = apply_memory_policy()\nprint(applied, m._set_madvise_hugepage(True))")
     ours = fresh_python(code, unset="NUMPY_MADVISE_HUGEPAGE")
     assert ours.stdout.split() == ["True", "False"], ours.stderr  # applied; the switch was off

@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 from test_solve import R_M, SIGMA, TRUE, _markers, simulate
 
-from lrfcal.information import jacobian_check
+from lrfcal.estimate.information import jacobian_check
+from lrfcal.estimate.solve import solve
 from lrfcal.model.kinematics import DH, Params, Pose
 from lrfcal.model.motor import MotorClock, motor_angles
 from lrfcal.model.scanner import reported_range, true_range
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES, INTRINSICS, N_CORE, free_by_default, pack, unpack
-from lrfcal.solve import solve
 from lrfcal.types import JointStates, Observations
 
 

@@ -18,7 +18,7 @@ from lrfcal.io.ply import write_ply
 from lrfcal.io.report import render_report
 from lrfcal.io.urdf import dh_matrix, urdf_snippet
 from lrfcal.model.kinematics import ESTIMATE_NAMES, PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
-from lrfcal.reproject import reproject_cloud
+from lrfcal.stages.reproject import reproject_cloud
 from lrfcal.types import TunnelGeometry
 
 
@@ -210,7 +210,7 @@ def test_reproject_cloud_and_stride(result):
 def test_reprojection_in_blocks_gives_the_same_bits(result, monkeypatch):
     """The clouds are made CHUNK_RETURNS returns at a time: any block size (one not dividing the cloud, with
     intrinsics that scale the motor angle, the bearing and the range) gives the same numbers to the bit."""
-    import lrfcal.reproject as rp
+    import lrfcal.stages.reproject as rp
 
     sc = result.recording.scans
     S, N = sc.ranges_m.shape

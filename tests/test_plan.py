@@ -112,7 +112,7 @@ def test_plan_predicts_the_sigma_a_precise_scanner_reports(recording_of) -> None
     walls, the joint states' interpolation) are then a large part of the sigma of b (0.021 mm beside 0.030 mm of
     noise; before the joint states' quantisation was taken out, lrfcal.model.motor.dequantised, they were most of
     it), and the calibration reports them (its per-scan widening). plan adds the same model-error part
-    (lrfcal.information.model_error_at) and predicts the reported sigma within 25 % for every DH parameter.
+    (lrfcal.estimate.information.model_error_at) and predicts the reported sigma within 25 % for every DH parameter.
     (Measured: reported / plan 1.08-1.19; on seeds 1 and 2 before the dequantisation 0.97-1.20.)"""
     from lrfsim.trial import calibrate_recording
 
@@ -162,8 +162,8 @@ def test_sparse_cast_has_every_marker_return(which: str) -> None:
 
 def test_plan_holds_the_model_error_of_turning_crossings(tunnel_plan, monkeypatch: pytest.MonkeyPatch) -> None:
     """Where the sweep turns on a marker the calibration widens the DH covariance by the difference the in-plane
-    variant makes (lrfcal.markers._with_turning_systematic); plan predicts that term from the noise-free returns
-    (lrfcal.information.turning_error_at): broad truth 28, a tilted spin whose turning crossings bias alpha by
+    variant makes (lrfcal.stages.markers._with_turning_systematic); plan predicts that term from the noise-free returns
+    (lrfcal.estimate.information.turning_error_at): broad truth 28, a tilted spin whose turning crossings bias alpha by
     about 0.07 deg, gets a wider alpha than the statistics alone give, and says why. tunnel_v has no such crossing."""
     import numpy as np
 
@@ -204,8 +204,8 @@ def test_plan_predicts_the_smallest_scale_error_the_calibration_finds(shipped_re
     """plan's 1-sigma of each scale the calibration holds at 1 and tests (the gear ratio, the range scale) is the
     sigma of the calibration's own score test on the recording, within 25 % (measured: 0.88 and 0.89 on tunnel_v;
     plane_30deg 0.99 and 0.91): a researcher learns which scale error the layout would find before building it."""
-    from lrfcal.joint import SCALES
     from lrfcal.pipeline import CalibConfig
+    from lrfcal.stages.joint import SCALES
     from lrfsim.scenario import load_scenario
     from lrfsim.trial import calibrate_recording
 
@@ -221,7 +221,8 @@ def test_plan_predicts_the_smallest_scale_error_the_calibration_finds(shipped_re
 
 def test_plan_models_range_noise_correlated_along_the_scan(tunnel_plan) -> None:
     """sensor.noise_correlation 0.7 (a real URG's, docs/real-data.md): plan adds the sandwich term of the AR(1)
-    noise (lrfcal.information.correlation_error_at): the DH sigmas about double, as the Monte Carlo's scatter does
+    noise (lrfcal.estimate.information.correlation_error_at): the DH sigmas about double, as the Monte Carlo's scatter
+    does
     (docs/study.md, "Range noise correlated along the scan"), and the plan says which noise it assumed."""
     p = plan(parse_scenario(_fast_tunnel(**{"sensor.noise_correlation": 0.7}), "fast tunnel, rho 0.7"))
     assert p.range_correlation == 0.7 and tunnel_plan.range_correlation == 0.0

@@ -1,4 +1,4 @@
-"""The programs' progress display (lrfcal.progress.progress_display) and BLAS thread policy (lrfcal.threads).
+"""The programs' progress display (lrfcal.io.progress.progress_display) and BLAS thread policy (lrfcal.runtime.threads).
 
 The display is drawn on a terminal only, never with --quiet: stage names, scans and trials appear on a (forced)
 terminal, nothing of them on a pipe or a file. The thread limit is set by the console scripts' entry (run_app),
@@ -19,10 +19,10 @@ from rich.console import Console
 from test_cli_sim import _main, _write_small
 from test_memory import fresh_python
 
-import lrfcal.progress as progress
+import lrfcal.io.progress as progress
+from lrfcal.io.progress import progress_display
 from lrfcal.pipeline import STAGES
-from lrfcal.progress import progress_display
-from lrfcal.targetless import STAGES as TARGETLESS_STAGES
+from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
 
 
 def _terminal() -> tuple[Console, io.StringIO]:
@@ -110,7 +110,7 @@ PROBE = """
 import json, sys
 import threadpoolctl
 from {package}.cli import app, main
-from lrfcal.cliutil import Command
+from lrfcal.io.cliutil import Command
 
 @app.command("probe", cls=Command)
 def probe() -> None:
@@ -143,7 +143,7 @@ def test_library_leaves_the_callers_threads() -> None:
     """Importing the library and the policy's context manager leave the process's limits as they were."""
     code = ("import threadpoolctl, numpy, scipy.linalg; before = threadpoolctl.threadpool_limits(limits=2)\n"
             "import lrfcal.pipeline, lrfcal.cli, lrfsim.study\n"
-            "from lrfcal.threads import thread_policy\n"
+            "from lrfcal.runtime.threads import thread_policy\n"
             "info = threadpoolctl.threadpool_info\n"
             "n = lambda: sorted({i['num_threads'] for i in info() if i['user_api'] == 'blas'})\n"
             "a = n()\nwith thread_policy(): b = n()\nprint(a, b, n())")

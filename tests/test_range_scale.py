@@ -41,7 +41,7 @@ def test_range_scale_one_percent_off_is_estimated(tmp_path: Path, scale: float) 
     assert not any("moved" in n or "motor-angle scale" in n for n in notes), notes
     assert trial.result.solution.n_surface_returns > 0
     # the figures' and rerun's "after" residuals apply the estimated scale as the model does: the solution's RMS
-    from lrfcal.vizdata import marker_returns
+    from lrfcal.report.vizdata import marker_returns
 
     def rms(calibrated: bool) -> float:
         to_marker = marker_returns(trial.result, trial.result.solution.params, calibrated=calibrated)[1]

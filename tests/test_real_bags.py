@@ -13,11 +13,11 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.cloud import reproject_beams
-from lrfcal.inspection import inspect_bag
 from lrfcal.io.bag import read_bag
+from lrfcal.io.cloud import reproject_beams
+from lrfcal.io.inspection import inspect_bag
+from lrfcal.io.rig import ScanSource, ServoSource, parse_rig
 from lrfcal.model.kinematics import DH
-from lrfcal.rig import ScanSource, ServoSource, parse_rig
 
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
 BOX = REALBAGS / "cardboard_box.bag"

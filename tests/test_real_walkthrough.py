@@ -4,7 +4,7 @@
     lrfcal calibrate BAG --nominal rig.yaml --targetless -o OUT
 
 The outcome must be trustworthy (issue 46, case 3): exit 0 with every estimated DH parameter within its sigma of
-the other starts' result (the check "starts agree", lrfcal.starts) and within 4 sigma of the calibration started
+the other starts' result (the check "starts agree", lrfcal.stages.starts) and within 4 sigma of the calibration started
 from the authors' nominal (forced: its checks may fail, its estimate is the other start's answer), or a refusal
 (exit 3) on one error line naming the check that failed. The recordings are shared beside the project, not part of
 it: skipped with the reason when absent. Each bag's commands run once per module (they take several seconds).

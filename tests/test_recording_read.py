@@ -11,7 +11,7 @@ from rosbags.typesys import Stores, get_typestore
 from lrfcal.errors import InputError
 from lrfcal.io.bag import read_bag as _read_bag
 from lrfcal.io.recording import check_joint_coverage, read_distances, read_nominal, read_recording
-from lrfcal.rig import ScanSource, ServoSource
+from lrfcal.io.rig import ScanSource, ServoSource
 
 
 def read_bag(path, scan_topic="/scan"):
@@ -135,7 +135,7 @@ def test_negative_angle_increment(tmp_path):
 
 
 def test_missing_intensities_allowed_until_detection(tmp_path):
-    from lrfcal.detection import detect
+    from lrfcal.stages.detection import detect
 
     scans = [(T0 + 0.025 * k, np.full(N_BEAMS, 2.0), np.zeros(0)) for k in range(3)]
     s, _ = read_bag(write_bag(tmp_path / "bag", "mcap", scans=scans))
@@ -145,7 +145,7 @@ def test_missing_intensities_allowed_until_detection(tmp_path):
 
 
 def test_all_nan_ranges_are_not_called_missing_intensities(tmp_path):
-    from lrfcal.detection import detect
+    from lrfcal.stages.detection import detect
 
     scans = [(T0 + 0.025 * k, np.full(N_BEAMS, np.nan), np.full(N_BEAMS, 500.0)) for k in range(3)]
     s, _ = read_bag(write_bag(tmp_path / "bag", "mcap", scans=scans))

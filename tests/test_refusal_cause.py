@@ -4,7 +4,8 @@ Near-perpendicular random rigs (lrfsim.randomize.random_scenario_wide(seed, broa
 alone do not determine b and beta were refused with "marker mXX: its returns sit 6-31 mm from its tape position
 (moved after taping?)" and told to sweep slower, in clean simulations where no marker moved. Where the DH parameters
 are not determined, good markers look moved; the refusal now leads with what the data do not determine and its
-remedy (lrfcal.observability.unjudged_refusal), and the failed checks are ranked (lrfcal.checks.FOLLOWS_FROM).
+remedy (lrfcal.estimate.observability.unjudged_refusal), and the failed checks are ranked
+(lrfcal.estimate.checks.FOLLOWS_FROM).
 """
 
 from __future__ import annotations
@@ -18,10 +19,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lrfcal.checks import refuse_failed
 from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.observability import LIMITS, Observability, of_solution, unjudged_refusal
+from lrfcal.estimate.checks import refuse_failed
+from lrfcal.estimate.observability import LIMITS, Observability, of_solution, unjudged_refusal
 from lrfcal.types import Check
 from lrfsim.randomize import alpha_kind_of, random_scenario_wide
 from lrfsim.simulate import simulate, write_recording

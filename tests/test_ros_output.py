@@ -17,9 +17,9 @@ import yaml
 from synthetic import make_result
 
 from lrfcal.io.calibration_folder import write_calibration
+from lrfcal.io.rig import ServoSource
 from lrfcal.io.ros_launch import JOINTS_NAME, LAUNCH_NAME, MOTOR_FRAME, WORLD_FRAME, quaternion_xyzw
 from lrfcal.model.kinematics import DH, Pose, chain_T_M_L, pose_matrix, rot_z
-from lrfcal.rig import ServoSource
 
 LAUNCH_ARGS = ("--x", "--y", "--z", "--qx", "--qy", "--qz", "--qw", "--frame-id", "--child-frame-id")
 

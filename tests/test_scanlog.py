@@ -20,15 +20,15 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.cloud import read_cloud_ply, reproject_beams
 from lrfcal.errors import InputError
 from lrfcal.io.bag import read_bag
+from lrfcal.io.cloud import read_cloud_ply, reproject_beams
+from lrfcal.io.logconvert import convert_log
+from lrfcal.io.loginspect import guess_layout, inspect_path
 from lrfcal.io.recording import read_recording
+from lrfcal.io.rig import LogLayout, ScanSource, ServoSource, parse_rig
 from lrfcal.io.scanlog import read_scan_log, resolve_recording
-from lrfcal.logconvert import convert_log
-from lrfcal.loginspect import guess_layout, inspect_path
 from lrfcal.model.kinematics import DH
-from lrfcal.rig import LogLayout, ScanSource, ServoSource, parse_rig
 
 LONGARM = Path(__file__).resolve().parents[2] / "shared" / "realbags" / "longarm"
 LONGARM_LOG = LONGARM / "batchScanned20191114103039.txt"

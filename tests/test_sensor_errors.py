@@ -17,12 +17,12 @@ import yaml
 from test_lidar import EXACT, _deep_update, _exact_rays_W, _marker_on_beam, _run, _tunnel_hits, small_scenario
 
 from lrfcal.errors import InputError
-from lrfcal.inspection import inspect_bag
 from lrfcal.io.bag import read_bag
 from lrfcal.io.bag_scans import select_echo
+from lrfcal.io.inspection import inspect_bag
 from lrfcal.io.recording import read_recording
+from lrfcal.io.rig import ScanSource, ServoSource, parse_rig
 from lrfcal.pipeline import CalibConfig
-from lrfcal.rig import ScanSource, ServoSource, parse_rig
 from lrfsim import lidar, raycast
 from lrfsim.loop import sensor_errors_line
 from lrfsim.recording import write_recording

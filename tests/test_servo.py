@@ -73,7 +73,7 @@ def test_joint_samples_rate_and_encoder() -> None:
 @pytest.mark.parametrize("backlash_deg", [0.0, 0.33])
 def test_quantisation_is_taken_out_of_the_joint_states_where_the_motion_is_smooth(backlash_deg: float) -> None:
     """A Dynamixel's 4096 counts at 10 deg/s, there and back: the calibration's joint states
-    (lrfcal.timing.usable_scans -> lrfcal.model.motor.dequantised) put the motor angle interpolated at the scans'
+    (lrfcal.stages.timing.usable_scans -> lrfcal.model.motor.dequantised) put the motor angle interpolated at the scans'
     times at least 3 times closer to the motion than the readings do, never beyond a step from it (the readings are
     within half a step; the fit is clipped to the reading's own step); readings that are not on a grid stay."""
     from lrfcal.model.motor import dequantised, encoder_quantum
@@ -106,7 +106,7 @@ def test_a_step_and_scan_rig_keeps_its_joint_states() -> None:
 
     from synthetic import make_result
 
-    from lrfcal.timing import without_quantisation
+    from lrfcal.stages.timing import without_quantisation
     from lrfcal.types import JointStates
 
     scans = make_result(n_scans=20, n_beams=31).recording.scans
@@ -221,9 +221,9 @@ def test_spinning_rig_tilted_28_deg_is_calibrated_within_4_sigma(shipped_recordi
     """The shipped spinning rig, its scan plane 28 deg from perpendicular to the motor axis: the plane grazes the
     markers at the edge of the band it sweeps, and their returns keep only their range residual
     (lrfcal.model.marker.two_sided); with every lateral residual, alpha came back 0.11 deg off at 4.0 sigma."""
+    from lrfcal.estimate.problem import marker_problem
     from lrfcal.model.marker import two_sided
     from lrfcal.model.unknowns import pack
-    from lrfcal.problem import marker_problem
     from lrfsim.trial import calibrate_recording
 
     trial = calibrate_recording(shipped_recording("spinning_tilted"), keep_result=True)
@@ -242,7 +242,8 @@ def test_spinning_rig_whose_least_squares_zig_zags_converges(recording_of: Calla
     """The shipped spinning rig with the laser phase of seed 34: the plain least-squares pass crept across a valley
     the Gauss-Newton model does not describe to a hundredth of a sigma (steps of 0.03 sigma lowering the cost by
     1e-5, b going back and forth by 0.05 mm for 100 iterations), and the calibration was refused for not
-    converging with an estimate within 1 sigma. Such steps now end the pass (lrfcal.normal_equations.FLAT_COST)."""
+    converging with an estimate within 1 sigma. Such steps now end the pass
+    (lrfcal.estimate.normal_equations.FLAT_COST)."""
     from lrfsim.scenario import load_scenario
     from lrfsim.trial import calibrate_recording
 
@@ -275,7 +276,7 @@ def test_tilted_spin_turning_crossings_widen_the_sigma() -> None:
     exact tape: 12 of its 18 markers are crossed by a sweep that turns on them, whose lines crowd about the turning
     point and pull alpha 0.074 deg off (-3.4 sigma before: a model error, the same from the true start). The DH
     with only the in-plane part of those crossings' lateral residual differ by about that much, and that difference
-    now joins the covariance (lrfcal.markers._with_turning_systematic): within 2 sigma, and named in a note."""
+    now joins the covariance (lrfcal.stages.markers._with_turning_systematic): within 2 sigma, and named in a note."""
     import tempfile
 
     from lrfcal.io.recording import read_recording

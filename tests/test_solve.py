@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.information import jacobian_check, model_residuals
+from lrfcal.estimate.information import jacobian_check, model_residuals
+from lrfcal.estimate.solve import solve
 from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.sphere import footprint_depth, sphere_depth
 from lrfcal.model.unknowns import wrap_pi
-from lrfcal.solve import solve
 from lrfcal.types import JointStates, Observations
 
 R_M = 0.005  # marker radius (seed paper's Gazebo study)

@@ -3,11 +3,12 @@
 - The clock offset: ``--clock-offset 5`` on simulated tunnel_v (true offset 0) reported +6.119 +- 0.011 s with every
   check passed (and from 2 s: +1.94 s). A start beyond the bound the model sets (lrfcal.model.motor:
   the smaller of 1 s and 1/16 of the sweep's shortest pass) is now refused naming ``--clock-offset``; so is a start
-  within it but far from where the sweep's two directions see the same scene (lrfcal.clocksearch); a start near it
+  within it but far from where the sweep's two directions see the same scene (lrfcal.stages.clocksearch); a start near
+  it
   is found again (the true offset within 4 sigma); a reported offset beyond the bound fails the check "clock
   offset".
 - Targetless: a result is written only where the other starts the recording allows (the DH search's proposal and
-  agreeing starts, lrfcal.starts) converge to it within its sigma. The shipped simulated scenes still calibrate
+  agreeing starts, lrfcal.stages.starts) converge to it within its sigma. The shipped simulated scenes still calibrate
   (exit 0, within 4 sigma of the truth, "starts agree" passed); a result whose sigma is smaller than the starts'
   spread is refused naming the parameters they disagree on.
 """
@@ -24,7 +25,7 @@ import pytest
 import yaml
 from test_cli_usage import _one_error_line, _run
 
-from lrfcal.checks import clock_offset_check
+from lrfcal.estimate.checks import clock_offset_check
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, clock_offset_bound_s
 
 N_SIGMA = 4.0
@@ -59,7 +60,7 @@ def test_a_start_far_from_where_the_two_directions_line_up_is_refused_naming_it(
         recording_of: Callable[[object], Path], tmp_path: Path) -> None:
     """plane_30deg at 45 deg/s (true offset 0; bound 284 ms): from 0.2 s (9 deg of motor angle) the fit refused
     blaming a marker ("m02 ... moved after taping?"); the search over the bound finds where the sweep's two directions
-    see the same scene (lrfcal.clocksearch) and the start is refused naming --clock-offset and that offset."""
+    see the same scene (lrfcal.stages.clocksearch) and the start is refused naming --clock-offset and that offset."""
     from test_cli_faults import _scenario_data
 
     from lrfsim.scenario import parse_scenario
@@ -131,17 +132,18 @@ def test_shipped_targetless_scenes_calibrate_with_the_starts_agreeing(shipped_re
 @pytest.mark.parametrize(("alpha_off_sigma", "passed"), [(0.3, True), (5.0, False)])
 def test_starts_that_converge_elsewhere_are_refused_naming_the_parameters(
         monkeypatch: pytest.MonkeyPatch, alpha_off_sigma: float, passed: bool) -> None:
-    """lrfcal.starts' verdict, on a result of tunnel_v's size: the other starts (the search's proposal, 100 sigma off
+    """lrfcal.stages.starts' verdict, on a result of tunnel_v's size: the other starts (the search's proposal, 100
+    sigma off
     in alpha, and an agreeing start) are run and land ``alpha_off_sigma`` of the result's sigma from it in alpha (the
     other parameters where the result is): within 1 sigma the check passes, beyond it fails naming alpha only, and
     the refusal leads with it. (On the shipped scenes the other starts land within 0.05 sigma: the test above.)"""
-    from lrfcal import propose, starts
-    from lrfcal.checks import refuse_failed
     from lrfcal.config import CalibConfig
     from lrfcal.errors import CalibrationError
+    from lrfcal.estimate.checks import refuse_failed
     from lrfcal.model.kinematics import DH as DHSet
     from lrfcal.model.kinematics import Params
-    from lrfcal.targetless import MOTOR_FRAME
+    from lrfcal.stages import propose, starts
+    from lrfcal.stages.targetless import MOTOR_FRAME
 
     nominal = DHSet(a=0.010, alpha=math.pi / 2, b=0.020, beta=-math.pi / 2)
     result = DHSet(a=0.0101, alpha=1.574, b=0.0182, beta=-1.575)

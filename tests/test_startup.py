@@ -2,7 +2,7 @@
 
 ``lrfcal`` and ``lrfsim`` import numpy, scipy, mujoco, matplotlib, rerun and rosbags inside the commands that use
 them (issue 47), and the thread policy that loads numpy's and scipy's BLAS runs only once a command's arguments are
-parsed (lrfcal.cliutil.Command.invoke). Each program is run in a fresh interpreter, as its console script runs it
+parsed (lrfcal.io.cliutil.Command.invoke). Each program is run in a fresh interpreter, as its console script runs it
 (``main()`` with ``sys.argv``), for every case in turn; after each, the heavy modules in ``sys.modules`` are listed.
 Not timed: the time is benchmarks/bench_speed.py's (docs/speed.md).
 """
@@ -78,7 +78,7 @@ def test_help_and_usage_errors_import_nothing_heavy(package: str, tmp_path: Path
 def test_every_command_applies_the_programs_policies() -> None:
     """The thread and memory policies run in Command.invoke: every command of both programs must be a Command."""
     from lrfcal.cli import app as lrfcal_app
-    from lrfcal.cliutil import Command
+    from lrfcal.io.cliutil import Command
     from lrfsim.cli import app as lrfsim_app
 
     for app in (lrfcal_app, lrfsim_app):

@@ -65,7 +65,7 @@ def test_study_table(serial, tmp_path: Path) -> None:
     assert [int(r["trial"]) for r in rows] == [0, 1, 2] and [int(r["seed"]) for r in rows] == [10, 11, 12]
     # tiny's one quick pass is at the edge of what determines the DH: a trial is right within its sigma or refused
     # with the reason (seed 12: its marker-only fit disagrees with the marker map but does not determine the DH,
-    # lrfcal.markers), and the table and summary say which
+    # lrfcal.stages.markers), and the table and summary say which
     calibrated = [r for r in rows if r["status"] == "calibrated"]
     refused = [r for r in rows if r["status"] != "calibrated"]
     assert len(calibrated) >= 2, [r["reason"] for r in rows]
@@ -185,7 +185,7 @@ def test_new_layout_per_trial(tiny) -> None:
     same = run_trials(sc, 2, seed0=10, recast=True)  # the seeds of this module's other trials of tiny
     new = run_trials(sc, 2, seed0=10, new_layout=True)
     # tiny's one pass crosses each marker with few scan lines: a trial is calibrated, or refused with exit 3 where
-    # the markers alone cannot tell a wrong match from a moved marker (lrfcal.markers)
+    # the markers alone cannot tell a wrong match from a moved marker (lrfcal.stages.markers)
     assert all(r.status == "calibrated" or (r.exit_code == 3 and r.reason) for r in same + new)
     assert any(r.status == "calibrated" for r in same + new), [r.reason for r in same + new]
     for a, b in zip(same, new, strict=True):  # the same seed, another layout: another trial (errors or reason)
@@ -290,7 +290,8 @@ def test_reported_sigma_honest_with_range_noise_correlated_along_the_scan() -> N
     """With the range noise correlated along the scan as a real URG-04LX's (rho = 0.7 between neighbouring beams,
     docs/real-data.md), the reported sigma (the cluster-robust covariance per scan) stays honest: RMS of error /
     reported sigma in 0.8-1.25 for every DH parameter over 30 trials cast anew (measured 0.84-1.09 with one cast,
-    docs/study.md). The plan's prediction with the correlation modelled (lrfcal.information.correlation_error_at)
+    docs/study.md). The plan's prediction with the correlation modelled
+    (lrfcal.estimate.information.correlation_error_at)
     against the Monte Carlo's scatter is measured in docs/study.md's table, not asserted here."""
     from lrfsim.scenario import load_scenario
 

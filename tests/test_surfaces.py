@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
+from lrfcal.estimate.problem import Problem, no_markers
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, transform_points
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import N_CORE, PlaneSet, pack, plane_nuisance_start
-from lrfcal.problem import Problem, no_markers
-from lrfcal.surfaces import candidate_planes, find_surfaces, surface_returns
+from lrfcal.stages.surfaces import candidate_planes, find_surfaces, surface_returns
 from lrfcal.types import JointStates
 
 R = 0.005
@@ -92,7 +92,7 @@ def test_surface_jacobian_matches_finite_differences() -> None:
 
 def test_observability_names_the_weakest_combination() -> None:
     """From the information alone: b against alpha (markers at one axial distance) is undetermined and named."""
-    from lrfcal.observability import LIMITS, analyse
+    from lrfcal.estimate.observability import LIMITS, analyse
 
     names = ("a", "alpha", "b", "beta")
     sig = np.array([1e-4, 1e-4, 1e-4, 1e-4])
@@ -119,7 +119,7 @@ def test_surface_returns_are_chosen_by_their_ray_not_their_noisy_point() -> None
     where the rays meet the wall obliquely, the returns that read short move inside and those that read long move
     out (the cause of a Monte-Carlo bias of a and beta, issue 10). Chosen by where the ray meets the plane, the kept
     returns' range errors are the noise's, mean 0; and no return beyond the incidence limit is kept."""
-    from lrfcal.surfaces import MAX_INCIDENCE_RAD, Surface
+    from lrfcal.stages.surfaces import MAX_INCIDENCE_RAD, Surface
 
     rng = np.random.default_rng(3)
     K = 400_000
@@ -159,7 +159,7 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
     reached at a fraction below 1 or never."""
     from synthetic import TRUE, make_result
 
-    import lrfcal.surfaces as sf
+    import lrfcal.stages.surfaces as sf
 
     res = make_result(n_scans=120, n_beams=361)
     sc = res.recording.scans
@@ -193,10 +193,10 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
 
 
 def test_moved_m_is_how_far_the_returns_move_along_their_planes_normal() -> None:
-    """The joint solve chooses its surface returns again while its estimate moves them (lrfcal.joint): by the
+    """The joint solve chooses its surface returns again while its estimate moves them (lrfcal.stages.joint): by the
     distance along the plane's normal that the gate judges. The mount shifted 5 mm along the normal moves every
     return 5 mm; turned by 2 mrad, the farthest return moves most (about 2 mrad times its distance from the axis)."""
-    from lrfcal.surfaces import SurfaceReturns, moved_m
+    from lrfcal.stages.surfaces import SurfaceReturns, moved_m
 
     rng = np.random.default_rng(0)
     K = 300

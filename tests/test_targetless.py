@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfcal.checks import refuse_failed
 from lrfcal.errors import CalibrationError
+from lrfcal.estimate.checks import refuse_failed
 from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.planes import segment_planes, squareness_deg
-from lrfcal.targetless import MAX_ROUNDS, SEGMENT_SAMPLES
+from lrfcal.stages.planes import segment_planes, squareness_deg
+from lrfcal.stages.targetless import MAX_ROUNDS, SEGMENT_SAMPLES
 from lrfcal.types import CalibrationResult
 from lrfsim.compare import compare, load_truth
 from lrfsim.scenario import parse_scenario, with_changes
@@ -112,7 +112,7 @@ def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, Calibratio
     assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
     assert math.isfinite(result.solution.clock_offset_sigma_s)
     # every 5th scan was held out of the fit, and the held-out check measured it
-    from lrfcal.holdout import HOLDOUT_EVERY
+    from lrfcal.stages.holdout import HOLDOUT_EVERY
 
     assert not np.any(result.surface_returns.scan % HOLDOUT_EVERY == HOLDOUT_EVERY - 1)
     held = next(c for c in result.checks if c.name == "held-out planes")
@@ -288,8 +288,8 @@ def test_planes_are_segmented_with_the_intrinsics(shipped_recording: Callable[[s
     positions x 1.05 (a gear ratio) segmented with motor_scale = 1 / 1.05 label exactly the returns of the clean
     recording; without it the bent cloud loses most of them (it kept 1854 of 4736 before the fix)."""
     from lrfcal.model.motor import MotorClock
-    from lrfcal.surfaces import hash_sample
-    from lrfcal.targetless import plane_returns_at, sample_returns
+    from lrfcal.stages.surfaces import hash_sample
+    from lrfcal.stages.targetless import plane_returns_at, sample_returns
     from lrfcal.types import JointStates
 
     folder = shipped_recording("tunnel_v")

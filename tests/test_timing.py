@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from lrfcal.errors import InputError
-from lrfcal.timing import beam_motor_angles, beam_times, covered_scans, motor_angles, scan_angles
+from lrfcal.stages.timing import beam_motor_angles, beam_times, covered_scans, motor_angles, scan_angles
 from lrfcal.types import JointStates, Scans
 
 T0 = 1_700_000_000.0

@@ -121,7 +121,7 @@ def test_far_start_gives_the_same_result(recordings: Callable[..., Path], start:
 def test_nominal_far_outside_the_basin_is_found_and_named(recordings: Callable[..., Path],
                                                           delta: dict[str, float]) -> None:
     """A nominal DH 90 deg off (beta, or alpha: a scan plane declared perpendicular to the motor axis that contains
-    it) is outside the search's basin around the nominal. The coarse global search (lrfcal.start, every attitude)
+    it) is outside the search's basin around the nominal. The coarse global search (lrfcal.stages.start, every attitude)
     finds the rig: refused, because a nominal this far cannot tell the rig from its mirror image, with the rig file's
     dh named as the likely culprit and the estimate given, within 4 sigma of the truth or of its mirror image. (It
     was refused as "does not determine" with advice to add markers, or matched 4 of 18 markers from the local
@@ -254,11 +254,11 @@ def test_range_offset_is_estimated_or_the_result_refused(recordings: Callable[..
 def test_fast_single_sweep_is_right_or_refused_naming_the_sweep(recordings: Callable[..., Path], seed: int) -> None:
     """One pass at 90 deg/s crosses each marker with one scan line: the markers alone do not determine the DH.
     - Seed 1 came back a +5.1, alpha +4.7, b +5.0 sigma with exit 0: the surface returns were chosen once, at the
-      marker-only estimate, and the gate about the planes kept the returns that agreed with it (lrfcal.surfaces.
+      marker-only estimate, and the gate about the planes kept the returns that agreed with it (lrfcal.stages.surfaces.
       RESELECT_M). Over 40 seeds, RMS of error / sigma went from 1.37, 1.63, 1.47, 0.96 to 0.86, 0.97, 0.95, 0.87.
     - Seed 10: its marker-only fit puts a marker's returns far from the tape, which that fit cannot judge; it was
       refused, and before that, judged on that fit, confidently wrong (alpha -6.7, b -8.3 sigma). The joint solution
-      with the surfaces judges it (lrfcal.markers._judged_jointly): the marker is where the tape says.
+      with the surfaces judges it (lrfcal.stages.markers._judged_jointly): the marker is where the tape says.
     - Seed 22: blobs that disagree with the map even at the joint solution: right, or refused naming the sweep."""
     sc = _scenario("tunnel_v", f"fast_single_{seed}", **{
         "servo.speed_rad_s": math.radians(90.0), "servo.passes": 1, "servo.start_rad": 1.2, "servo.end_rad": -1.2,

@@ -1,4 +1,5 @@
-"""lrfcal.viz (rerun .rrd, with lrfcal.vizdata and lrfcal.vizscene) and lrfcal.figures (PNG) on a small synthetic
+"""lrfcal.report.viz (rerun .rrd, with lrfcal.report.vizdata and lrfcal.report.vizscene) and lrfcal.report.figures
+(PNG) on a small synthetic
 CalibrationResult.
 
 The .rrd is read back with rerun's own reader (``rerun.chunk.RrdReader`` in rerun-sdk 0.41): every chunk's
@@ -18,9 +19,9 @@ import pyarrow as pa
 import pytest
 from synthetic import make_result, marker_positions_W
 
-from lrfcal import viz, vizdata, vizscene
-from lrfcal.figures import DPI, HEIGHT_PX, WIDTH_PX, write_figures
 from lrfcal.model.kinematics import points_W, pose_matrix
+from lrfcal.report import viz, vizdata, vizscene
+from lrfcal.report.figures import DPI, HEIGHT_PX, WIDTH_PX, write_figures
 
 rr = pytest.importorskip("rerun")
 
@@ -271,7 +272,7 @@ def test_figures_written_at_size(result, tmp_path):
 
 
 def test_a_figure_that_cannot_be_drawn_is_skipped_with_its_reason(result, tmp_path, monkeypatch):
-    import lrfcal.figures as figures
+    import lrfcal.report.figures as figures
 
     def broken(*_a: object, **_k: object) -> Path:
         raise IndexError("Inconsistent shape between the condition and the input")
@@ -284,7 +285,7 @@ def test_a_figure_that_cannot_be_drawn_is_skipped_with_its_reason(result, tmp_pa
 
 
 def test_import_does_not_pull_rerun_or_matplotlib():
-    code = ("import sys, lrfcal.viz, lrfcal.vizdata, lrfcal.vizscene, lrfcal.figures; "
+    code = ("import sys, lrfcal.report.viz, lrfcal.report.vizdata, lrfcal.report.vizscene, lrfcal.report.figures; "
             "bad = [m for m in ('rerun', 'matplotlib') if m in sys.modules]; assert not bad, bad")
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -307,7 +308,7 @@ def test_spawn_failure_warns_and_still_saves(result, tmp_path, monkeypatch):
 
 
 def test_intensity_image_max_pooling_keeps_a_one_cell_blob_and_pads_the_edges():
-    from lrfcal.figintensity import _max_pool
+    from lrfcal.report.figintensity import _max_pool
 
     img = np.zeros((7, 5))
     img[6, 4] = 9.0  # in the last, padded block both ways
@@ -324,7 +325,7 @@ def test_alignment_figure_has_a_titled_panel_per_marker_and_only_returns_inside_
                                                                                             monkeypatch):
     import re
 
-    import lrfcal.figures as figures
+    import lrfcal.report.figures as figures
 
     drawn: list[Any] = []
     monkeypatch.setattr(figures, "save", lambda fig, path: drawn.append(fig) or Path(path))

@@ -1,29 +1,135 @@
-"""lrfcal: calibration of a rotating 2D laser range finder from reflective markers (seed paper's method).
+"""lrfcal: calibration of a rotating 2D laser range finder (a servo-turned scanner), with markers (the seed paper's
+method) or from the scene's planes.
 
-The model's names (:class:`DH`, :class:`Params`, :class:`Pose`, :data:`PARAM_NAMES`, from
-:mod:`lrfcal.model.kinematics`) are imported when first used (PEP 562), so that importing any part of the package,
-such as the command line's help, does not load numpy.
+The public API: what other code (lrfsim, benchmarks, a user's script) may use. Everything else in lrfcal is internal
+and may move. Besides this module, other code may import :mod:`lrfcal.model` (the rig model), :mod:`lrfcal.io`
+(reading recordings, writing calibrations, the parts both command lines share) and :mod:`lrfcal.errors`.
+
+- calibrate: :func:`calibrate` a :class:`Recording` (read with :func:`read_recording`) with a :class:`CalibConfig`;
+  :func:`calibrate_folder` does it for a recording folder and writes the results, as ``lrfcal calibrate`` does;
+- the results: :class:`CalibrationResult`, :class:`Solution`, :class:`TunnelGeometry`, and the data they hold;
+- what ``plan`` needs to predict accuracy without calibrating: the information of marker and surface returns at
+  given parameters (:func:`information_at` and its error terms), the observability verdict (:func:`analyse`), the
+  marker map's covariance (:func:`map_covariance`), the surfaces the markers sit on (:func:`observe_surfaces`);
+- the runtime policies the programs and their worker processes apply (BLAS threads, memory, cores).
+
+Names are imported when first used (PEP 562), so ``import lrfcal`` costs nothing: ``lrfcal --help`` imports
+neither scipy nor mujoco.
 """
 
 from __future__ import annotations
 
+import importlib
 from typing import TYPE_CHECKING, Any
 
-from .errors import CalibrationError, InputError, LrfError
+from lrfcal.errors import CalibrationError, InputError, LrfError
 
-if TYPE_CHECKING:
-    from .model.kinematics import DH, PARAM_NAMES, Params, Pose
-
-__all__ = ["DH", "PARAM_NAMES", "CalibrationError", "InputError", "LrfError", "Params", "Pose"]
 __version__ = "0.1.0"
 
-_KINEMATICS = ("DH", "PARAM_NAMES", "Params", "Pose")
+#: public name -> the module that defines it
+_EXPORTS: dict[str, str] = {
+    # calibrating
+    "calibrate": "lrfcal.pipeline",
+    "STAGES": "lrfcal.pipeline",
+    "CalibConfig": "lrfcal.config",
+    "DEFAULT_RANGE_SIGMA_M": "lrfcal.config",
+    "calibrate_folder": "lrfcal.workflow",
+    "viewer_can_spawn": "lrfcal.workflow",
+    "read_recording": "lrfcal.io.recording",
+    # the rig model's parameters
+    "DH": "lrfcal.model.kinematics",
+    "PARAM_NAMES": "lrfcal.model.kinematics",
+    "Params": "lrfcal.model.kinematics",
+    "Pose": "lrfcal.model.kinematics",
+    # the data and the results
+    "Recording": "lrfcal.types",
+    "Scans": "lrfcal.types",
+    "JointStates": "lrfcal.types",
+    "Observations": "lrfcal.types",
+    "CalibrationResult": "lrfcal.types",
+    "Solution": "lrfcal.types",
+    "TunnelGeometry": "lrfcal.types",
+    "print_summary": "lrfcal.report.summary",
+    # predicting accuracy (lrfsim plan)
+    "information_at": "lrfcal.estimate.information",
+    "estimated": "lrfcal.estimate.information",
+    "correlation_error_at": "lrfcal.estimate.information",
+    "map_error_at": "lrfcal.estimate.information",
+    "model_error_at": "lrfcal.estimate.information",
+    "turning_error_at": "lrfcal.estimate.information",
+    "scaled_pinv": "lrfcal.estimate.information",
+    "LIMITS": "lrfcal.estimate.observability",
+    "Observability": "lrfcal.estimate.observability",
+    "analyse": "lrfcal.estimate.observability",
+    "map_covariance": "lrfcal.stages.mds",
+    "SCALES": "lrfcal.stages.joint",
+    "SCALE_Z_LIMIT": "lrfcal.stages.joint",
+    "Surface": "lrfcal.stages.surfaces",
+    "SurfaceReturns": "lrfcal.stages.surfaces",
+    "observe_surfaces": "lrfcal.stages.surfaces",
+    "detect": "lrfcal.stages.detection",
+    # the runtime policies
+    "apply_thread_policy": "lrfcal.runtime.threads",
+    "call_with_thread_policy": "lrfcal.runtime.threads",
+    "one_blas_thread": "lrfcal.runtime.threads",
+    "apply_memory_policy": "lrfcal.runtime.memory",
+    "cores": "lrfcal.runtime.forked",
+}
+
+__all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M",
+           "DH", "JointStates", "LIMITS", "Observability", "Observations", "PARAM_NAMES", "Params", "Pose",
+           "Recording", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns",
+           "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
+           "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
+           "information_at", "map_covariance", "map_error_at", "model_error_at", "observe_surfaces",
+           "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
+           "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:
-    """The model's names from :mod:`lrfcal.model.kinematics`, imported on first use."""
-    if name in _KINEMATICS:
-        from .model import kinematics
+    """The public name ``name``, imported from its module when first asked for."""
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'lrfcal' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
 
-        return getattr(kinematics, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *__all__})
+
+
+if TYPE_CHECKING:  # the same names for type checkers and editors
+    from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
+    from lrfcal.estimate.information import (
+        correlation_error_at,
+        estimated,
+        information_at,
+        map_error_at,
+        model_error_at,
+        scaled_pinv,
+        turning_error_at,
+    )
+    from lrfcal.estimate.observability import LIMITS, Observability, analyse
+    from lrfcal.io.recording import read_recording
+    from lrfcal.model.kinematics import DH, PARAM_NAMES, Params, Pose
+    from lrfcal.pipeline import STAGES, calibrate
+    from lrfcal.report.summary import print_summary
+    from lrfcal.runtime.forked import cores
+    from lrfcal.runtime.memory import apply_memory_policy
+    from lrfcal.runtime.threads import apply_thread_policy, call_with_thread_policy, one_blas_thread
+    from lrfcal.stages.detection import detect
+    from lrfcal.stages.joint import SCALE_Z_LIMIT, SCALES
+    from lrfcal.stages.mds import map_covariance
+    from lrfcal.stages.surfaces import Surface, SurfaceReturns, observe_surfaces
+    from lrfcal.types import (
+        CalibrationResult,
+        JointStates,
+        Observations,
+        Recording,
+        Scans,
+        Solution,
+        TunnelGeometry,
+    )
+    from lrfcal.workflow import calibrate_folder, viewer_can_spawn

@@ -1,5 +1,6 @@
-"""What both ways of calibrating share (lrfcal.markers, lrfcal.targetless, run by lrfcal.pipeline): the options and
-the stopwatch that reports the stages (the checks are lrfcal.checks)."""
+"""What both ways of calibrating share (lrfcal.stages.markers, lrfcal.stages.targetless, run by lrfcal.pipeline): the
+options and
+the stopwatch that reports the stages (the checks are lrfcal.estimate.checks)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
-from .errors import InputError
+from lrfcal.errors import InputError
 
 #: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
 DEFAULT_RANGE_SIGMA_M = 0.010
@@ -50,11 +51,13 @@ class CalibConfig(BaseModel):
     max_reduced_chi2: float = Field(4.0, gt=0.0)
     second_opinion_p: float = Field(1e-3, gt=0.0, lt=1.0)  # false-alarm rate of the second-opinion test
     #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
-    #: direction apart (a, b [m], alpha, beta [rad]); the checks compare the scanner's poses (lrfcal.checks), the
+    #: direction apart (a, b [m], alpha, beta [rad]); the checks compare the scanner's poses (lrfcal.estimate.checks),
+    #: the
     #: larger of a's and b's against the offset, of alpha's and beta's against the angle
     nominal_tolerance: tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat] = (
         0.010, math.radians(5.0), 0.010, math.radians(5.0))
-    #: calibrate from the scene's planes without markers (lrfcal.targetless); None: when there are no tape distances
+    #: calibrate from the scene's planes without markers (lrfcal.stages.targetless); None: when there are no tape
+    #: distances
     targetless: bool | None = None
     plane_returns: int = Field(250000, ge=1000)  # targetless: an even subsample of the returns, for speed
     #: with markers: also calibrate the same recording targetless and show it beside the marker results (report)

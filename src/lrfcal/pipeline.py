@@ -2,13 +2,13 @@
 reprojection.
 
     calibrate(recording)
-      1. the scans the joint states cover, each beam's time              lrfcal.timing
+      1. the scans the joint states cover, each beam's time              lrfcal.stages.timing
       2. the observation sets, a start and the solve, one of two ways:
-         with markers (the seed paper, Sec. III and IV-C)               lrfcal.markers.fit_markers
-         from the scene's planes alone (targetless)                      lrfcal.targetless.fit_scene
-         both use one model (lrfcal.model) and one engine (lrfcal.solve)
-      3. the checks, refused when one fails                              lrfcal.checks
-      4. every beam reprojected before and after; tunnel planes          lrfcal.reproject, lrfcal.geometry
+         with markers (the seed paper, Sec. III and IV-C)               lrfcal.stages.markers.fit_markers
+         from the scene's planes alone (targetless)                      lrfcal.stages.targetless.fit_scene
+         both use one model (lrfcal.model) and one engine (lrfcal.estimate.solve)
+      3. the checks, refused when one fails                              lrfcal.estimate.checks
+      4. every beam reprojected before and after; tunnel planes          lrfcal.stages.reproject, lrfcal.stages.geometry
 """
 
 from __future__ import annotations
@@ -20,20 +20,20 @@ from typing import Any
 
 import numpy as np
 
-from . import geometry, reproject, timing
-from .checks import clock_offset_check, refuse_failed
-from .clocksearch import MAX_START_ERROR_RAD, line_up
-from .config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
-from .errors import CalibrationError, InputError
-from .forked import on_cores
-from .markers import STAGES, fit_markers
-from .model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
-from .rig import refuse_placeholder_dh
-from .starts import starts_check
-from .targetless import STAGES as TARGETLESS_STAGES
-from .targetless import fit_scene
-from .timing import usable_scans
-from .types import CalibrationResult, Check, JointStates, Recording, Scans, Solution
+from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
+from lrfcal.errors import CalibrationError, InputError
+from lrfcal.estimate.checks import clock_offset_check, refuse_failed
+from lrfcal.io.rig import refuse_placeholder_dh
+from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
+from lrfcal.runtime.forked import on_cores
+from lrfcal.stages import geometry, reproject, timing
+from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
+from lrfcal.stages.markers import STAGES, fit_markers
+from lrfcal.stages.starts import starts_check
+from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
+from lrfcal.stages.targetless import fit_scene
+from lrfcal.stages.timing import usable_scans
+from lrfcal.types import CalibrationResult, Check, JointStates, Recording, Scans, Solution
 
 
 def calibrate(
@@ -128,11 +128,12 @@ CLOCK_START = "clock offset: --clock-offset"
 
 
 def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float, float]:
-    """The bound on the clock offset of this recording and its shortest pass [s] (lrfcal.timing.clock_offset_bound).
+    """The bound on the clock offset of this recording and its shortest pass [s]
+    (lrfcal.stages.timing.clock_offset_bound).
 
     Raises:
         CalibrationError: the start ``tau0`` (``--clock-offset``) lies beyond it, or (a start other than 0) too far
-            from where the sweep's two directions line up (lrfcal.clocksearch): the solve would settle near it.
+            from where the sweep's two directions line up (lrfcal.stages.clocksearch): the solve would settle near it.
     """
     bound, shortest = timing.clock_offset_bound(joints)
     if abs(tau0) > bound:

@@ -14,13 +14,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .config import CalibConfig
-from .model.kinematics import DH, Params, Pose
+from lrfcal.config import CalibConfig
+from lrfcal.model.kinematics import DH, Params, Pose
 
 if TYPE_CHECKING:  # the stages' own types, named here for the reader and the type checker only
-    from .planes import ScenePlane
-    from .rig import LogLayout, ScanSource, ServoSource
-    from .surfaces import Surface, SurfaceReturns
+    from lrfcal.io.rig import LogLayout, ScanSource, ServoSource
+    from lrfcal.stages.planes import ScenePlane
+    from lrfcal.stages.surfaces import Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -37,7 +37,7 @@ class Scans:
     angle_min + i * angle_increment (continued past its beam count); time_increment_s (S,): each scan's time
     between beams; beam_counts (S,): beams each scan carried. The constructor also accepts mu_rad (N,) and a
     scalar time_increment_s (the same layout for every scan) and broadcasts them. ``angle_per_scan``: the servo
-    stands still while the laser scans (step and scan, lrfcal.rig.ServoSource.motion), so every beam's motor
+    stands still while the laser scans (step and scan, lrfcal.io.rig.ServoSource.motion), so every beam's motor
     angle is the one at its scan's stamp (see :attr:`beam_times_s`).
     """
 
@@ -174,11 +174,11 @@ class Nominal:
     scan_topic: str = "/scan"
     joint_topic: str = "/joint_states"
     joint_name: str = "servo"
-    #: lrfcal.rig.ScanSource / ServoSource: where the bag keeps scans and servo angle (None: from the fields
+    #: lrfcal.io.rig.ScanSource / ServoSource: where the bag keeps scans and servo angle (None: from the fields
     #: above, a LaserScan topic and a sensor_msgs/JointState joint).
     scan: ScanSource | None = None
     servo: ServoSource | None = None
-    #: lrfcal.rig.LogLayout: how a scan log is laid out (the rig file's ``log:``; None: not given)
+    #: lrfcal.io.rig.LogLayout: how a scan log is laid out (the rig file's ``log:``; None: not given)
     log: LogLayout | None = None
 
 
@@ -203,8 +203,9 @@ class MarkerMap:
     positions_W (n, 3); stress: sqrt(sum w (d_ij - |x_i - x_j|)^2 / sum w d_ij^2) (normalised, unitless);
     rms_m: RMS of (d_ij - |x_i - x_j|) over the measured pairs kept; planarity: smallest / largest singular
     value of the centred coordinates (0 for a coplanar layout); dropped_pairs: the tape pairs found
-    inconsistent with the others and left out of the map (gross errors, see lrfcal.mds); covariance (3n, 3n):
-    of positions_W.ravel() from the tape noise ``tape_sigma_m`` (lrfcal.mds.map_covariance; None: taken as exact).
+    inconsistent with the others and left out of the map (gross errors, see lrfcal.stages.mds); covariance (3n, 3n):
+    of positions_W.ravel() from the tape noise ``tape_sigma_m`` (lrfcal.stages.mds.map_covariance; None: taken as
+    exact).
     """
 
     marker_ids: tuple[str, ...]
@@ -305,7 +306,8 @@ class Association:
 
 @dataclass(frozen=True)
 class Spread:
-    """What the covariance of the difference of two solutions of overlapping data is made of (lrfcal.checks): each
+    """What the covariance of the difference of two solutions of overlapping data is made of (lrfcal.estimate.checks):
+    each
     cluster's id (C,) and influence (J^T J)^-1 J_c^T r_c over the core unknowns (C, N_CORE), and the statistical
     covariance max(s^2, 1) (J^T J)^-1 (N_CORE, N_CORE), before any widening (NaN where held or with rank loss)."""
 
@@ -348,13 +350,14 @@ class Solution:
     #: every intrinsic of the rig model (lrfcal.model.unknowns.INTRINSICS): name -> (value, sigma; NaN when held)
     intrinsics: dict[str, tuple[float, float]] = field(default_factory=dict)
     #: every unknown held by default that this solve held: name -> (the value one Gauss-Newton step with it freed
-    #: reaches, its 1-sigma) (lrfcal.solve's score test)
+    #: reaches, its 1-sigma) (lrfcal.estimate.solve's score test)
     held_score: dict[str, tuple[float, float]] = field(default_factory=dict)
-    #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.covariance.uncertainty); the
+    #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.estimate.covariance.uncertainty); the
     #: covariance holds the map's part, G C_map G^T (None: the map was taken as exact)
     map_sensitivity: FloatArray | None = None
-    #: each cluster's influence and the statistical covariance (Spread, lrfcal.covariance), for the second opinion's
-    #: covariance of the difference of two solutions (lrfcal.checks.difference_covariance); None with rank loss
+    #: each cluster's influence and the statistical covariance (Spread, lrfcal.estimate.covariance), for the second
+    #: opinion's
+    #: covariance of the difference of two solutions (lrfcal.estimate.checks.difference_covariance); None with rank loss
     spread: Spread | None = None
 
     def with_dh_systematic(self, d: ArrayLike) -> Solution:
@@ -471,6 +474,6 @@ class CalibrationResult:
 
     @property
     def method(self) -> str:
-        """How the result was found, as written in calibration.yaml: "markers" (lrfcal.markers) or "targetless"
-        (lrfcal.targetless, the result with the scene's plane fit)."""
+        """How the result was found, as written in calibration.yaml: "markers" (lrfcal.stages.markers) or "targetless"
+        (lrfcal.stages.targetless, the result with the scene's plane fit)."""
         return "markers" if self.plane_fit is None else "targetless"

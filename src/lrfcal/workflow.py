@@ -15,18 +15,18 @@ from typing import Any
 
 import numpy as np
 
-from . import figures as figure_writer
-from .errors import InputError
-from .forked import Ahead
-from .io import files
-from .io.calibration_folder import calibration_folder
-from .io.recording import read_nominal, read_recording
-from .io.report import render_report
-from .io.scanlog import resolve_recording
-from .io.truth import truth_dict, truth_frame
-from .model.kinematics import Params, Pose
-from .pipeline import CalibConfig, calibrate
-from .types import CalibrationResult, Recording
+from lrfcal.errors import InputError
+from lrfcal.io import files
+from lrfcal.io.calibration_folder import calibration_folder
+from lrfcal.io.recording import read_nominal, read_recording
+from lrfcal.io.report import render_report
+from lrfcal.io.scanlog import resolve_recording
+from lrfcal.io.truth import truth_dict, truth_frame
+from lrfcal.model.kinematics import Params, Pose
+from lrfcal.pipeline import CalibConfig, calibrate
+from lrfcal.report import figures as figure_writer
+from lrfcal.runtime.forked import Ahead
+from lrfcal.types import CalibrationResult, Recording
 
 
 def calibrate_folder(
@@ -51,7 +51,7 @@ def calibrate_folder(
 
     ``truth`` (an lrfsim.compare.Truth) adds a truth column to the report and aligns the scene for rerun;
     ``scene`` (an lrfsim.scene.Scene) adds the simulated scene geometry to the rerun recording;
-    ``options``: one-off rig-file settings (the keywords of lrfcal.rig.with_overrides, e.g. sign=-1);
+    ``options``: one-off rig-file settings (the keywords of lrfcal.io.rig.with_overrides, e.g. sign=-1);
     ``progress(stage)`` is called as each calibration stage starts (:data:`lrfcal.pipeline.STAGES`), then with
     "figures and report" and "rerun recording" while those are written.
     ``recording_dir`` may be a scan log itself, or a folder holding one instead of ``bag/``
@@ -80,12 +80,12 @@ def calibrate_folder(
     spawn = viewer_can_spawn(spawn, rrd_path if rrd_path is not None else Path(out_dir) / "rerun.rrd", warn)
     rrd_inside = "rerun.rrd" if asked and not spawn and rrd_path is None else None
     scan = servo = None
-    if options:  # one-off rig-file settings (lrfcal.rig.with_overrides keywords) from the command line
-        from .rig import with_overrides
+    if options:  # one-off rig-file settings (lrfcal.io.rig.with_overrides keywords) from the command line
+        from lrfcal.io.rig import with_overrides
 
         nom = read_nominal(nominal if nominal is not None else Path(recording_dir) / "nominal.yaml")
         scan, servo = with_overrides(nom.scan, nom.servo, **options)
-    # without tape distances (no distances.csv and none given) the calibration is targetless (lrfcal.targetless)
+    # without tape distances (no distances.csv and none given) the calibration is targetless (lrfcal.stages.targetless)
     tape_path = inputs["distances"]
     want_tape = not config.targetless and (distances is not None or (tape_path is not None and tape_path.exists()))
     recording = read_recording(recording_dir, bag=bag, distances=distances if want_tape else None, nominal=nominal,
@@ -147,7 +147,7 @@ class _Drawer:
             self._sent.append("rest")
 
     def drawn(self) -> figure_writer.Figures:
-        """The figures written and those skipped (lrfcal.figures.Figures), in the order they were sent."""
+        """The figures written and those skipped (lrfcal.report.figures.Figures), in the order they were sent."""
         figs = figure_writer.Figures({}, {})
         while self._ahead is not None and self._ahead.started:
             figs = figs | self._ahead.result()
@@ -181,7 +181,7 @@ def viewer_can_spawn(spawn: bool, shown: Path, warn: Callable[[str], None] | Non
 
 
 def _figures_section(figs: Any, drawn: bool, warn: Callable[[str], None] | None) -> str:
-    """The report's "Figures" section for ``figs`` (lrfcal.figures.Figures): the figures written, or that none
+    """The report's "Figures" section for ``figs`` (lrfcal.report.figures.Figures): the figures written, or that none
     were asked for; each figure that could not be drawn is named with its reason (and ``warn`` told)."""
     text = "\n## Figures\n\n" + ("\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())
                                   if drawn else "not drawn (--no-figures)")
@@ -243,8 +243,8 @@ def _nominal_in_W(result: CalibrationResult, truth: Any) -> tuple[Params | None,
 
 def _log_rerun(result: CalibrationResult, rrd_path: Path | None, spawn: bool, truth: Any, scene: Any,
                warn: Callable[[str], None] | None = None) -> None:
-    from . import viz, vizscene
-    from .model.kinematics import transform_points
+    from lrfcal.model.kinematics import transform_points
+    from lrfcal.report import viz, vizscene
 
     geoms = None
     true_markers_W = None

@@ -19,8 +19,8 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.cliutil import Command, QuietOpt, finite_between, make_app, run_app
-from lrfcal.progress import progress_display
+from lrfcal.io.cliutil import Command, QuietOpt, finite_between, make_app, run_app
+from lrfcal.io.progress import progress_display
 
 if TYPE_CHECKING:
     from .simresult import SimResult
@@ -109,8 +109,8 @@ def run(
     """
     from rich.console import Console
 
+    from lrfcal import print_summary
     from lrfcal.io.files import check_no_overlap
-    from lrfcal.summary import print_summary
 
     from .loop import print_comparison, run_loop, sensor_errors_line
     from .scenario import load_scenario, scenario_inputs

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import numpy as np
 
+from lrfcal import CalibrationResult, Solution, TunnelGeometry
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.io.truth import truth_dict, truth_frame
 from lrfcal.io.yamlfile import read_yaml
 from lrfcal.model.kinematics import DH, DH_NAMES, Params, Pose, dh_from_mapping, pose_from_mapping, wrap_angle
-from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
 
 from .scenario_sections import Tolerances
 

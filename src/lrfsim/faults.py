@@ -188,12 +188,12 @@ def marker_returns(result: SimResult, scenario: Scenario, among: NDArray[np.bool
 
 
 def detected_mask(result: SimResult, scenario: Scenario) -> NDArray[np.bool_]:
-    """(S, N) the returns the calibration's detection (lrfcal.detection.detect) puts in a blob: what a calibration
+    """(S, N) the returns the calibration's detection (lrfcal.stages.detection.detect) puts in a blob: what a
+    calibration
     of this recording sees as marker returns. Near the scanner a marker and the surface behind it both saturate,
     and a brightness bound (:func:`bright_mask`) keeps only a marker's edge beams there, where the detection's
     contrast keeps none."""
-    from lrfcal.detection import detect
-    from lrfcal.types import Scans
+    from lrfcal import Scans, detect
 
     s = scenario.sensor
     det = detect(Scans(result.scan_stamps_s, result.ranges_m, result.intensities, result.mu_rad,

@@ -16,8 +16,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.table import Table
 
-from lrfcal.config import CalibConfig
-from lrfcal.types import CalibrationResult
+from lrfcal import CalibConfig, CalibrationResult
 
 from .compare import Comparison, compare, load_truth
 from .scenario import Scenario
@@ -50,8 +49,8 @@ def run_loop(
     ``stage_progress(stage)`` while calibrating; ``warn(line)`` when ``spawn`` is asked for but no viewer can
     start (the .rrd is saved all the same).
     """
+    from lrfcal import calibrate_folder, viewer_can_spawn
     from lrfcal.io.files import atomic_folder
-    from lrfcal.workflow import calibrate_folder, viewer_can_spawn
 
     from .recording import check_output
     from .scene import build_scene

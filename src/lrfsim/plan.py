@@ -6,28 +6,32 @@ share). Only the scans that can see a marker are cast, and every SURFACE_SCAN_ST
 returns (:func:`sparse_geometry`; all of them when those hold fewer surface returns than the calibration samples).
 The marker returns are those the calibration's detection finds, each owned by the marker its ray passes with the
 truth (``lrfsim.faults.marker_returns`` among ``detected_mask``), and the calibration's own observation and noise
-model is evaluated at the TRUE parameters: ``lrfcal.information.information_at`` (the sphere model: range residual
+model is evaluated at the TRUE parameters: ``lrfcal.estimate.information.information_at`` (the sphere model: range
+residual
 with sigma_r = the scenario sensor's range noise at the marker returns, lateral residual with sigma =
 R_m sqrt(1 + k^2) / 2, k the sensor's footprint in marker radii (lrfcal.model.sphere.footprint_depth); the clock
 offset is an unknown when the sweep goes both ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
 Cramer-Rao bound of the model), in ESTIMATE_NAMES order plus clock_offset when it is estimated. Added to it: what
-the model's own errors contribute (``lrfcal.information.model_error_at``: the per-scan sandwich of the noise-free
+the model's own errors contribute (``lrfcal.estimate.information.model_error_at``: the per-scan sandwich of the
+noise-free
 returns' range residuals; negligible beside 10 mm range noise, most of the sigma of a precise scanner: issue 18,
 docs/study.md "Model error"), and where the sweep turns on a marker the DH widening the calibration adds for those
-crossings (``lrfcal.information.turning_error_at``).
+crossings (``lrfcal.estimate.information.turning_error_at``).
 
 By default the surface returns of stage 6b enter too, found as the calibration finds them
-(``lrfcal.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
+(``lrfcal.stages.surfaces.observe_surfaces`` on the noise-free cloud at the true parameters, the same subsample size):
 their ray-plane range residuals and the planes' priors (from the tape noise, at least 0.5 mm as in the pipeline),
 with each plane's normal and offset marginalised out. ``surfaces=False`` predicts from the marker returns alone
 (stage 6). Whether the DH parameters are determined is judged as the calibration judges it before any solver
 runs: from the marker returns alone (a layout the markers leave undetermined is refused even where the surfaces
 would help). Range noise correlated along the scan (``sensor.noise_correlation``, an AR(1) process,
-lrfcal.model.noise) adds its sandwich term (``lrfcal.information.correlation_error_at``). Not modelled: the 4-sigma
-rejection. The observability verdict (``lrfcal.observability.analyse``) is the one the calibration applies before
+lrfcal.model.noise) adds its sandwich term (``lrfcal.estimate.information.correlation_error_at``). Not modelled: the
+4-sigma
+rejection. The observability verdict (``lrfcal.estimate.observability.analyse``) is the one the calibration applies
+before
 solving: an undetermined combination means the calibration would refuse (exit 3).
-The information spans the scales the calibration holds at 1 and tests (lrfcal.joint.SCALES) too: each one's
+The information spans the scales the calibration holds at 1 and tests (lrfcal.stages.joint.SCALES) too: each one's
 1-sigma if freed is the size of scale error the layout finds (:func:`_scale_sigmas`).
 """
 
@@ -36,25 +40,39 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
-from functools import partial
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal import information as inf
-from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
+from lrfcal import (
+    DEFAULT_RANGE_SIGMA_M,
+    LIMITS,
+    SCALE_Z_LIMIT,
+    SCALES,
+    CalibConfig,
+    JointStates,
+    Observability,
+    Observations,
+    Surface,
+    SurfaceReturns,
+    analyse,
+    correlation_error_at,
+    estimated,
+    information_at,
+    map_covariance,
+    map_error_at,
+    model_error_at,
+    observe_surfaces,
+    scaled_pinv,
+    turning_error_at,
+)
 from lrfcal.errors import CalibrationError
-from lrfcal.information import estimated, information_at, map_error_at, model_error_at, scaled_pinv, turning_error_at
-from lrfcal.joint import SCALE_Z_LIMIT, SCALES
-from lrfcal.mds import map_covariance
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.model.motor import MotorClock, dequantised
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES
-from lrfcal.observability import LIMITS, Observability, analyse
-from lrfcal.surfaces import Surface, SurfaceReturns, observe_surfaces
-from lrfcal.types import JointStates, Observations
 
+from .plan_cast import NOT_SAMPLED, SURFACE_SCAN_STEP, sparse_geometry
 from .scenario import Scenario, require_markers
 
 if TYPE_CHECKING:
@@ -91,7 +109,7 @@ class Plan:
 
     names: the estimated parameters in order (ESTIMATE_NAMES [+ clock_offset]); covariance (k, k) over them in SI
     units (the rotation as a rotation vector in frame M); sigma: name -> predicted 1-sigma; observability: the DH
-    verdict of the calibration from the marker returns (lrfcal.observability); tolerances: the scenario's
+    verdict of the calibration from the marker returns (lrfcal.estimate.observability); tolerances: the scenario's
     tolerances against 4 sigma;
     n_returns / n_markers_seen: the marker returns the information is built from; range_sigma_m: the noise model.
     """
@@ -114,13 +132,14 @@ class Plan:
     #: the DH verdict from all the returns the calibration solves with (the surfaces' too): what the calibration's
     #: "observability" check reports after solving (None: the same as ``observability``, markers only)
     observability_solved: Observability | None = None
-    #: name -> the 1-sigma the model's own errors contribute (lrfcal.information.model_error_at), included in
+    #: name -> the 1-sigma the model's own errors contribute (lrfcal.estimate.information.model_error_at), included in
     #: ``sigma`` (added in variance)
     model_sigma: dict[str, float] = field(default_factory=dict)
     #: name -> the 1-sigma the marker map's own uncertainty (the tape's noise) contributes
-    #: (lrfcal.information.map_error_at), included in ``sigma``
+    #: (lrfcal.estimate.information.map_error_at), included in ``sigma``
     map_sigma: dict[str, float] = field(default_factory=dict)
-    #: scale name (lrfcal.joint.SCALES) -> its statistical 1-sigma if freed: the calibration holds each scale at 1
+    #: scale name (lrfcal.stages.joint.SCALES) -> its statistical 1-sigma if freed: the calibration holds each scale at
+    #: 1
     #: and estimates it where its score test steps SCALE_Z_LIMIT of this (or more) from 1
     scale_sigma: dict[str, float] = field(default_factory=dict)
     range_correlation: float = 0.0  #: the range noise's correlation between neighbouring beams (sandwich term)
@@ -216,54 +235,16 @@ def marker_observations(scenario: Scenario, geometry: Geometry | None = None
         lambda_rad=result.beam_lambda_rad[s_idx, b_idx], times_s=times, intensity=result.intensities[s_idx, b_idx],
         is_peak=np.zeros(K, dtype=bool),
     )
-    # the joint states as the calibration interpolates them (lrfcal.timing.usable_scans: quantisation taken out)
+    # the joint states as the calibration interpolates them (lrfcal.stages.timing.usable_scans: quantisation taken out)
     joints = JointStates(stamps_s=result.joints.stamps_s,
                          positions_rad=dequantised(result.joints.stamps_s, result.joints.positions_rad))
     params = Params(result.truth.mount, result.truth.dh)
     return obs, result.truth.markers_W, params, MotorClock.from_joints(joints), result.truth.clock_offset_s, result
 
 
-#: plan's sparse cast (:func:`sparse_scans`) casts every this-many-th scan for the surface returns
-SURFACE_SCAN_STEP = 4
-#: the label of the returns plan's surface sample leaves out (lrfcal.surfaces.observe_surfaces: not a surface return)
-NOT_SAMPLED = 1 << 30
-#: and every scan whose plane passes within this much (plus the footprint's spread) of a marker's centre
-NEAR_MARKER_M = 0.005
-
-
-def sparse_scans(scenario: Scenario, beam_lambda_rad: FloatArray) -> NDArray[np.bool_]:
-    """(S,) bool: the scans plan casts (:func:`sparse_geometry`): those whose plane passes near
-    a marker (lrfsim.visibility.scans_near_markers: the marker's radius and NEAR_MARKER_M plus the footprint's
-    ring, a superset of the scans with a marker return) and every SURFACE_SCAN_STEP-th scan, for the surface
-    returns (plan uses a subsample of them, as the calibration does)."""
-    from .lidar import beam_angles, ring_half_angle
-    from .scene_geometry import marker_centres_W
-    from .visibility import scans_near_markers
-
-    if scenario.markers is None:
-        return np.ones(beam_lambda_rad.shape[0], dtype=bool)
-    params = Params(scenario.rig.mount.to_pose(), scenario.rig.dh.to_dh())
-    reach = float(scenario.markers.radius_m) + NEAR_MARKER_M
-    near = scans_near_markers(params, beam_lambda_rad, beam_angles(scenario.sensor), marker_centres_W(scenario),
-                              reach, 2.0 * ring_half_angle(scenario.sensor))
-    return near | (np.arange(beam_lambda_rad.shape[0]) % SURFACE_SCAN_STEP == 0)
-
-
-def sparse_geometry(scenario: Scenario, rest_of: Geometry | None = None) -> Geometry:
-    """Plan's noise-free cast of the scans :func:`sparse_scans` picks (the others without a return); with
-    ``rest_of`` (such a cast), the other scans cast and joined to it: the full cast."""
-    from .simulate import cast_geometry, joined
-
-    if rest_of is None:
-        return cast_geometry(scenario, noise=False, scans=partial(sparse_scans, scenario))
-    rest = cast_geometry(scenario, noise=False,
-                         scans=lambda lam: ~sparse_scans(scenario, lam))
-    return joined(rest_of, rest)
-
-
 def expected_map_covariance(scenario: Scenario, markers_W: FloatArray) -> FloatArray:
     """The covariance (3n, 3n) of the marker map the calibration will build from this scenario's tape: every pair
-    measured with the tape's sigma, a fraction f of them as f times the information (lrfcal.mds.map_covariance;
+    measured with the tape's sigma, a fraction f of them as f times the information (lrfcal.stages.mds.map_covariance;
     in the plane of a coplanar layout)."""
     from .tape import affine_dimension
 
@@ -365,7 +346,7 @@ def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[st
     """Scale name -> the statistical 1-sigma it would have if freed beside ``names`` (with the unknown its score
     test frees beside it, lrfcal.model.unknowns ``tested_with``), from the information ``wide`` over ``wide_names``:
     the size of scale error the calibration's score test finds (SCALE_Z_LIMIT of it; at least, since where the plain
-    score steps beyond 2 sigma the calibration widens that sigma for the model error, lrfcal.covariance)."""
+    score steps beyond 2 sigma the calibration widens that sigma for the model error, lrfcal.estimate.covariance)."""
     out = {}
     for n in SCALES:
         sub = [*names, *dict.fromkeys(m for m in (n, BY_NAME[n].tested_with) if m and m not in names)]
@@ -388,10 +369,10 @@ def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ob
         notes.append(f"information singular (condition {sv[0] / max(sv[-1], 1e-300):.2e})")
         return np.full(info.shape, np.inf), {}, {}
     # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns at
-    # the truth: lrfcal.information.model_error_at), as the calibration's per-scan widening holds both
+    # the truth: lrfcal.estimate.information.model_error_at), as the calibration's per-scan widening holds both
     model_cov = model_error_at(obs, markers_W, params, **common, **both)
     rho = float(scenario.sensor.noise_correlation)  # range noise correlated along the scan: its sandwich term
-    corr_cov = inf.correlation_error_at(obs, markers_W, params, rho, **common, **both)
+    corr_cov = correlation_error_at(obs, markers_W, params, rho, **common, **both)
     # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
     tape_cov = map_error_at(info, obs, markers_W, params, expected_map_covariance(scenario, markers_W), **common,
                             **both)

@@ -25,9 +25,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal import cores, one_blas_thread
 from lrfcal.errors import InputError
-from lrfcal.forked import cores
-from lrfcal.threads import one_blas_thread
 
 from .lidar import (
     _MIN_NORMAL_DOT,

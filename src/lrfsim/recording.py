@@ -37,7 +37,7 @@ from .scenario import Scenario, dump_scenario
 
 if TYPE_CHECKING:
     from lrfcal.io.bag import BagData, BagReader
-    from lrfcal.rig import ScanSource, ServoSource
+    from lrfcal.io.rig import ScanSource, ServoSource
 
     from .simresult import SimResult
 

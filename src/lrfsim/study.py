@@ -45,11 +45,10 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal import apply_memory_policy, apply_thread_policy, call_with_thread_policy
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.io.files import atomic_folder, check_replaceable
-from lrfcal.memory import apply_memory_policy
 from lrfcal.model.kinematics import DH_NAMES
-from lrfcal.threads import apply_thread_policy, call_with_thread_policy
 
 from .plan import Plan, format_value, plan
 from .poolrun import run_counted
@@ -223,7 +222,8 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
 
 
 def _worker_policy() -> None:
-    """A process-pool worker's policies: the programs' memory and thread policy (lrfcal.memory, lrfcal.threads)."""
+    """A process-pool worker's policies: the programs' memory and thread policy (lrfcal.runtime.memory,
+    lrfcal.runtime.threads)."""
     apply_memory_policy()
     apply_thread_policy()
 
@@ -245,7 +245,7 @@ def run_trials(
     share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with ``recast`` or
     ``new_layout``). ``recast``, ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done,
     trials)`` after every trial in this process or on local workers (lrfsim.poolrun), after every batch on dask.
-    Worker processes (pool and dask) run BLAS with the programs' thread limit (lrfcal.threads); this process is
+    Worker processes (pool and dask) run BLAS with the programs' thread limit (lrfcal.runtime.threads); this process is
     left as the caller set it."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")

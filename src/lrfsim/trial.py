@@ -17,12 +17,11 @@ from pathlib import Path
 
 import numpy as np
 
+from lrfcal import CalibConfig, CalibrationResult, Recording, calibrate
 from lrfcal.errors import LrfError
 from lrfcal.io.bag import BagReader
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES
-from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.types import CalibrationResult, Recording
 
 from .compare import load_truth
 from .scenario import Scenario

@@ -35,7 +35,7 @@ HALF_FOV_RAD = math.radians(135.0)
 
 
 def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
-    """Indices of the markers on which the calibration's detection (lrfcal.detection.detect) finds a blob in a
+    """Indices of the markers on which the calibration's detection (lrfcal.stages.detection.detect) finds a blob in a
     simulated recording; each blob's owner comes from the truth (lrfsim.faults.marker_returns)."""
     from .faults import detected_mask, marker_returns
 

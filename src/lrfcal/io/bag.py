@@ -26,11 +26,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from ..rig import ScanSource, ServoSource
-from ..types import JointStates, ReadReport, Scans
-from .bag_arrays import JointArrays, ScanArrays, decode_joints, decode_scans, joints_of
-from .bag_messages import (
+from lrfcal.errors import InputError
+from lrfcal.io.bag_arrays import JointArrays, ScanArrays, decode_joints, decode_scans, joints_of
+from lrfcal.io.bag_messages import (
     JOINTSTATE_TYPE,
     bulk_kind,
     complete_types,
@@ -39,9 +37,11 @@ from .bag_messages import (
     one_line,
     open_reader,
 )
-from .bag_raw import RawTopic, raw_messages
-from .bag_scans import laser_arrays, scans_from_arrays
-from .bag_servo import joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
+from lrfcal.io.bag_raw import RawTopic, raw_messages
+from lrfcal.io.bag_scans import laser_arrays, scans_from_arrays
+from lrfcal.io.bag_servo import joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
+from lrfcal.io.rig import ScanSource, ServoSource
+from lrfcal.types import JointStates, ReadReport, Scans
 
 #: a coarse clock offset above this is applied (clocks differ); below it is reported only [s]
 COARSE_OFFSET_MIN_S = 1.0
@@ -104,7 +104,7 @@ def read_bag(
 
     Args:
         path: a ROS 1 ``.bag`` file, a ROS 2 bag folder (sqlite3 or MCAP) or a single ``.mcap``/``.db3`` file.
-        scan, servo: where the data are (lrfcal.rig; defaults: /scan LaserScan, /joint_states joint ``servo``).
+        scan, servo: where the data are (lrfcal.io.rig; defaults: /scan LaserScan, /joint_states joint ``servo``).
         progress: called as progress(messages_done, messages_total) while reading.
         warn: called once with each assumption the reader makes (default: printed to stderr).
         bulk: False: rosbags reads and decodes every message (the reference the bulk path is tested against).

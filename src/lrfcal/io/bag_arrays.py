@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .bag_raw import RawTopic
-from .wire import SCAN_FLOATS, Layout, column, jointstate_layout, laserscan_layout, same_layout, stamps
+from lrfcal.io.bag_raw import RawTopic
+from lrfcal.io.wire import SCAN_FLOATS, Layout, column, jointstate_layout, laserscan_layout, same_layout, stamps
 
 
 @dataclass(frozen=True)

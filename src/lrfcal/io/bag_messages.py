@@ -1,5 +1,5 @@
 """Opening a bag and reading its decoded messages' fields: what the bag reader (lrfcal.io.bag) and ``lrfcal
-inspect`` (lrfcal.inspection) share.
+inspect`` (lrfcal.io.inspection) share.
 
 Messages are decoded with the definitions the bag carries (rosbags' AnyReader registers them from every
 connection's message definition, ROS 1 and ROS 2 alike), so custom types need no ROS installation; types a bag
@@ -16,9 +16,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from . import multiecho
-from .multiecho import MULTIECHO_TYPE
+from lrfcal.errors import InputError
+from lrfcal.io import multiecho
+from lrfcal.io.multiecho import MULTIECHO_TYPE
 
 LASERSCAN_TYPES = ("sensor_msgs/msg/LaserScan",)
 JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"

@@ -27,12 +27,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from ..rig import ScanSource
-from ..types import Scans
-from .bag_arrays import ScanArrays, scans_of
-from .bag_messages import get_field, stamp_s
-from .multiecho import Echoes
+from lrfcal.errors import InputError
+from lrfcal.io.bag_arrays import ScanArrays, scans_of
+from lrfcal.io.bag_messages import get_field, stamp_s
+from lrfcal.io.multiecho import Echoes
+from lrfcal.io.rig import ScanSource
+from lrfcal.types import Scans
 
 
 def is_laserscan(obj: Any) -> bool:

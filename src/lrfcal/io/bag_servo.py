@@ -20,11 +20,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from ..rig import ServoSource
-from ..types import JointStates, Scans
-from .bag_arrays import JointArrays
-from .bag_messages import DYNAMIXEL_JOINTSTATE_TYPE, get_field, stamp_s
+from lrfcal.errors import InputError
+from lrfcal.io.bag_arrays import JointArrays
+from lrfcal.io.bag_messages import DYNAMIXEL_JOINTSTATE_TYPE, get_field, stamp_s
+from lrfcal.io.rig import ServoSource
+from lrfcal.types import JointStates, Scans
 
 #: default numeric field per message type
 DEFAULT_FIELDS = {DYNAMIXEL_JOINTSTATE_TYPE: "current_pos"}

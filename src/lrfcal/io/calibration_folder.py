@@ -15,14 +15,14 @@ from pathlib import Path
 
 import yaml
 
-from ..errors import InputError
-from ..types import CalibrationResult
-from .calibration_yaml import calibration_dict
-from .files import atomic_folder, check_replaceable
-from .ply import write_ply
-from .report import render_report
-from .ros_launch import ros_files
-from .urdf import urdf_snippet
+from lrfcal.errors import InputError
+from lrfcal.io.calibration_yaml import calibration_dict
+from lrfcal.io.files import atomic_folder, check_replaceable
+from lrfcal.io.ply import write_ply
+from lrfcal.io.report import render_report
+from lrfcal.io.ros_launch import ros_files
+from lrfcal.io.urdf import urdf_snippet
+from lrfcal.types import CalibrationResult
 
 
 def write_calibration(

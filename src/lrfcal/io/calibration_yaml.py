@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model.kinematics import DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES
-from ..model.unknowns import BY_NAME
-from ..types import CalibrationResult, Solution, TunnelGeometry
+from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES
+from lrfcal.model.unknowns import BY_NAME
+from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
 
 FloatArray = NDArray[np.float64]
 

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import yaml
 
-from ..errors import InputError
+from lrfcal.errors import InputError
 
 #: The file every output folder of this project holds: which tool wrote it and the entries it wrote. Only a
 #: folder with this file and no other entries may be replaced (``--overwrite``).

@@ -1,5 +1,5 @@
 """The clouds of a calibration as PLY files (cloud_before.ply, cloud_after.ply: x, y, z and intensity per point,
-frame M), written atomically. ``lrfcal reproject``'s richer per-beam PLY is lrfcal.cloud.write_cloud_ply."""
+frame M), written atomically. ``lrfcal reproject``'s richer per-beam PLY is lrfcal.io.cloud.write_cloud_ply."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import ArrayLike
 
-from .files import write_bytes_atomic
+from lrfcal.io.files import write_bytes_atomic
 
 #: the header trimesh writes for a vertex-only cloud with an intensity (the format of the files so far, kept byte for
 #: byte without importing trimesh, which takes about a second)

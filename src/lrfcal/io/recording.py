@@ -1,4 +1,4 @@
-"""Reading a recording: the bag (lrfcal.io.bag), the tape distances and the rig file (lrfcal.rig).
+"""Reading a recording: the bag (lrfcal.io.bag), the tape distances and the rig file (lrfcal.io.rig).
 
 Formats: docs/formats.md. Every problem raises :class:`~lrfcal.errors.InputError` with a one-line message
 naming the file, the topic or field, and the offending value.
@@ -16,13 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
-from ..model.kinematics import DH, Pose
-from ..rig import ScanSource, ServoSource, load_rig
-from ..types import JointStates, Nominal, Recording, Scans, TapeMeasurements
-from .bag import BagReader, Progress, read_bag
-from .bag_messages import one_line
-from .scanlog import is_scan_log, read_scan_log, resolve_recording
+from lrfcal.errors import InputError
+from lrfcal.io.bag import BagReader, Progress, read_bag
+from lrfcal.io.bag_messages import one_line
+from lrfcal.io.rig import ScanSource, ServoSource, load_rig
+from lrfcal.io.scanlog import is_scan_log, read_scan_log, resolve_recording
+from lrfcal.model.kinematics import DH, Pose
+from lrfcal.types import JointStates, Nominal, Recording, Scans, TapeMeasurements
 
 DISTANCES_HEADER = ("marker_i", "marker_j", "distance_m")
 MIN_MARKERS = 4
@@ -35,7 +35,7 @@ def check_joint_coverage(scans: Scans, joints: JointStates, where: str = "joint 
     Beam times (laser clock) are converted to the servo clock as t - clock_offset_s. For reporting: the
     reader does not call it (the calibration trims uncovered scans, timing.covered_scans).
     """
-    from ..timing import joint_period_s, scan_spans
+    from lrfcal.stages.timing import joint_period_s, scan_spans
 
     period = joint_period_s(joints)
     lo, hi = scan_spans(scans)
@@ -193,7 +193,7 @@ def _components(n: int, pairs: Iterable[Iterable[int]]) -> list[list[int]]:
 # --- nominal.yaml -------------------------------------------------------------------------------------------
 
 def read_nominal(path: str | Path) -> Nominal:
-    """Read the rig file nominal.yaml (lrfcal.rig.RigFile; keys in docs/formats.md).
+    """Read the rig file nominal.yaml (lrfcal.io.rig.RigFile; keys in docs/formats.md).
 
     Raises:
         InputError: missing file, YAML syntax error, unknown or missing key, bad value (the key is named).

@@ -12,11 +12,11 @@ from typing import Any
 
 import numpy as np
 
-from ..model.kinematics import ANGLE_NAMES, DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES, PARAM_NAMES, Pose
-from ..types import CalibrationResult, Solution
-from .calibration_yaml import map_sigma, marker_counts, param_sigma
-from .calibration_yaml import plain_float as _f
-from .truth import truth_frame
+from lrfcal.io.calibration_yaml import map_sigma, marker_counts, param_sigma
+from lrfcal.io.calibration_yaml import plain_float as _f
+from lrfcal.io.truth import truth_frame
+from lrfcal.model.kinematics import ANGLE_NAMES, DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES, PARAM_NAMES, Pose
+from lrfcal.types import CalibrationResult, Solution
 
 TUNNEL_KEYS = ("width_m", "height_m", "plate_distance_m")
 
@@ -146,7 +146,7 @@ def _plane_lines(result: CalibrationResult) -> list[str]:
                                          strict=True)):
         lines.append(f"| {k} | ({p.normal[0]:+.3f}, {p.normal[1]:+.3f}, {p.normal[2]:+.3f}) | {p.offset_m:.3f} | "
                      f"{int(n)} | {b * 1000:.2f} | {a * 1000:.2f} |")
-    from ..planes import squareness_deg
+    from lrfcal.stages.planes import squareness_deg
 
     sq_b, sq_a = squareness_deg(fit.normals_before), squareness_deg(fit.normals_after)
     if sq_b.size:

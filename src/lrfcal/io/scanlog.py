@@ -33,12 +33,12 @@ from types import SimpleNamespace
 import numpy as np
 from numpy.typing import NDArray
 
-from ..errors import InputError
-from ..rig import LogLayout, ScanSource, ServoSource
-from ..types import ReadReport
-from .bag import BagData, timing_notes
-from .bag_scans import scans_from
-from .bag_servo import Samples, joints_from
+from lrfcal.errors import InputError
+from lrfcal.io.bag import BagData, timing_notes
+from lrfcal.io.bag_scans import scans_from
+from lrfcal.io.bag_servo import Samples, joints_from
+from lrfcal.io.rig import LogLayout, ScanSource, ServoSource
+from lrfcal.types import ReadReport
 
 FloatArray = NDArray[np.float64]
 #: file name endings of a scan log (a ROS 1 bag is ``.bag``; a ROS 2 bag a folder, ``.mcap`` or ``.db3``)

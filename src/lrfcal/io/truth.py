@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model.kinematics import DH, DH_NAMES, MOUNT_NAMES, Pose, homogeneous, points_M, transform_points
-from ..types import CalibrationResult
+from lrfcal.model.kinematics import DH, DH_NAMES, MOUNT_NAMES, Pose, homogeneous, points_M, transform_points
+from lrfcal.types import CalibrationResult
 
 FloatArray = NDArray[np.float64]
 

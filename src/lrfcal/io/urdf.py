@@ -17,7 +17,7 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from ..model.kinematics import DH, Params, Pose, homogeneous, rot_x, rot_z
+from lrfcal.model.kinematics import DH, Params, Pose, homogeneous, rot_x, rot_z
 
 FloatArray = NDArray[np.float64]
 

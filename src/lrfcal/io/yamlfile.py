@@ -7,7 +7,7 @@ from typing import Any
 
 import yaml
 
-from ..errors import InputError
+from lrfcal.errors import InputError
 
 
 def read_yaml(path: str | Path, what: str) -> Any:

@@ -32,8 +32,8 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .kinematics import exp_so3, log_so3, rot_x, rot_z
-from .unknowns import DH_SLICE
+from lrfcal.model.kinematics import exp_so3, log_so3, rot_x, rot_z
+from lrfcal.model.unknowns import DH_SLICE
 
 FloatArray = NDArray[np.float64]
 

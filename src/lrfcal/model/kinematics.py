@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import InputError
+from lrfcal.errors import InputError
 
 FloatArray = NDArray[np.float64]
 
@@ -256,7 +256,7 @@ def dh_twins(dh: DH) -> tuple[tuple[str, DH, FloatArray], ...]:
 
     A mirror image explains the same data with the marker map mirrored too (tape distances fix the map only up to
     a reflection; flatness cannot tell a cloud from its mirror image): only the rig's drawings can tell it from the
-    rig (lrfcal.checks.mirror_check)."""
+    rig (lrfcal.estimate.checks.mirror_check)."""
     turned = wrap_angle(dh.beta + np.pi).item()
     return (
         ("turned", DH(a=-dh.a, alpha=-dh.alpha, b=dh.b, beta=turned), np.diag([-1.0, -1.0, 1.0])),

@@ -36,12 +36,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .kinematics import Params, exp_so3, points_M, transform_points
-from .motor import MotorClock, motor_angles
-from .rays import beam_rays
-from .scanner import reported_range, true_range
-from .sphere import footprint_depth
-from .unknowns import DH_SLICE, RSCALE
+from lrfcal.model.kinematics import Params, exp_so3, points_M, transform_points
+from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.rays import beam_rays
+from lrfcal.model.scanner import reported_range, true_range
+from lrfcal.model.sphere import footprint_depth
+from lrfcal.model.unknowns import DH_SLICE, RSCALE
 
 FloatArray = NDArray[np.float64]
 
@@ -83,7 +83,7 @@ class MarkerSet:
     #: 0 where it keeps all of it (None: all of it everywhere); see :func:`crossings`
     across: FloatArray | None = None
     #: the model variant whose lateral residual keeps only its in-plane part in crossings that turn on their marker
-    #: (:func:`crossings`; lrfcal.markers widens the covariance by the DH difference it makes)
+    #: (:func:`crossings`; lrfcal.stages.markers widens the covariance by the DH difference it makes)
     in_plane_at_turns: bool = False
 
     @property

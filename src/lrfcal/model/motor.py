@@ -18,8 +18,8 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import InputError
-from .unknowns import SCALE, TAU
+from lrfcal.errors import InputError
+from lrfcal.model.unknowns import SCALE, TAU
 
 FloatArray = NDArray[np.float64]
 

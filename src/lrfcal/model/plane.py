@@ -2,7 +2,7 @@
 
 A return k on plane j (lrfcal.model.unknowns.PlaneSet) has the residual (r_k - range_scale r_p - range_offset) /
 sigma_r (lrfcal.model.scanner.reported_range) against the ray-plane distance r_p = (d_j - n_j . o) / (n_j . dir)
-(lrfcal.solve's module docstring has the forward model).
+(lrfcal.estimate.solve's module docstring has the forward model).
 Everything is evaluated in the frame of the beam before the motor's turn ("L0": M turned back by lambda_k), where
 the ray is fixed by the DH parameters alone, o_0 = [a, -b sin alpha, b cos alpha] and
 dir_0 = [cos phi, sin phi cos alpha, sin phi sin alpha] (phi = beta + mu_k), and the plane's normal is
@@ -28,10 +28,10 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .kinematics import exp_so3, right_jacobian_so3
-from .motor import MotorClock, motor_angles
-from .scanner import reported_range, true_bearing
-from .unknowns import BSCALE, N_CORE, SCALE, PlaneSet
+from lrfcal.model.kinematics import exp_so3, right_jacobian_so3
+from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.scanner import reported_range, true_bearing
+from lrfcal.model.unknowns import BSCALE, N_CORE, SCALE, PlaneSet
 
 FloatArray = NDArray[np.float64]
 

@@ -25,10 +25,10 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from .kinematics import exp_so3, right_jacobian_so3
-from .motor import MotorAngles
-from .scanner import true_bearing
-from .unknowns import N_CORE
+from lrfcal.model.kinematics import exp_so3, right_jacobian_so3
+from lrfcal.model.motor import MotorAngles
+from lrfcal.model.scanner import true_bearing
+from lrfcal.model.unknowns import N_CORE
 
 FloatArray = NDArray[np.float64]
 

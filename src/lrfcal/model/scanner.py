@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .motor import motor_angles
-from .unknowns import BSCALE, MBIAS, ROFF, RSCALE
+from lrfcal.model.motor import motor_angles
+from lrfcal.model.unknowns import BSCALE, MBIAS, ROFF, RSCALE
 
 FloatArray = NDArray[np.float64]
 

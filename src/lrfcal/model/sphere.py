@@ -1,7 +1,9 @@
-"""The marker model's depth: how far below a sphere's centre plane a beam meets its surface (lrfcal.solve's sphere
+"""The marker model's depth: how far below a sphere's centre plane a beam meets its surface (lrfcal.estimate.solve's
+sphere
 model), for a beam's axis (:func:`sphere_depth`) and for a beam with a finite footprint (:func:`footprint_depth`).
 
-Split out of lrfcal.solve (which re-exports both names); the formulas are documented in that module's docstring.
+Split out of lrfcal.estimate.solve (which re-exports both names); the formulas are documented in that module's
+docstring.
 """
 
 from __future__ import annotations

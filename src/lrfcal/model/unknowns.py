@@ -20,8 +20,8 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from ..errors import InputError
-from .kinematics import DH, ESTIMATE_NAMES, Params, Pose, exp_so3
+from lrfcal.errors import InputError
+from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, Params, Pose, exp_so3
 
 FloatArray = NDArray[np.float64]
 
@@ -33,7 +33,8 @@ class Unknown:
     name: as in files and APIs; unit: "m", "rad", "s" or "1"; kind: "mount", "dh", "clock" or "intrinsic";
     start: its value before any data (and while held, unless a stage gives another); held: empty when the
     calibration estimates it by default, else why it is held by default; meaning: one line for reports;
-    tested_with: an unknown freed beside it in its score test (lrfcal.solve) when a solve holds both (a scale is
+    tested_with: an unknown freed beside it in its score test (lrfcal.estimate.solve) when a solve holds both (a scale
+    is
     told from an offset only with the offset free)."""
 
     name: str

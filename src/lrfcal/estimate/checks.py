@@ -1,0 +1,363 @@
+"""The checks a result must pass before it is written, for both ways of calibrating (lrfcal.stages.markers,
+lrfcal.stages.targetless):
+convergence, observability, the reduced chi-square, a second opinion from two independent parts of the recording, and
+the servo's direction; and the refusal when one fails.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Protocol, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.config import CalibConfig
+from lrfcal.errors import CalibrationError
+from lrfcal.estimate import observability, solve
+from lrfcal.estimate.covariance import widen
+from lrfcal.model.chart import gauge_distance
+from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
+from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, MotorClock
+from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
+from lrfcal.stages.surfaces import SurfaceReturns
+from lrfcal.types import Check, MarkerMap, Observations, Solution
+
+
+class _Alternative(Protocol):
+    """A direction of the servo and the marker-only solution with it (lrfcal.stages.markers.Alternative)."""
+
+    sign: int
+    solution: Solution
+
+
+A = TypeVar("A", bound=_Alternative)
+
+FloatArray = NDArray[np.float64]
+DH_NAMES = observability.DH
+
+
+#: failed checks that follow from another failed check, by the check they follow from: where the data do not
+#: determine the DH parameters, the solver may stop anywhere along the loose direction (convergence) and the
+#: recording's parts disagree along it (second opinion), so those failures and their remedies come after the cause
+#: (lrfcal.estimate.observability.unjudged_refusal ranks a disagreement with the marker map the same way)
+FOLLOWS_FROM = {"convergence": "observability", "second opinion": "observability"}
+
+
+def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
+    """Raise CalibrationError naming the failed check the data support as the cause: the first (in the checks'
+    order) that does not follow from another failed one (:data:`FOLLOWS_FROM`), and how many more failed; unless
+    ``config.force``.
+
+    Raises:
+        CalibrationError: a check failed and the result may not be written.
+    """
+    failed = [c for c in checks if not c.passed]
+    names = {c.name for c in failed}
+    failed.sort(key=lambda c: FOLLOWS_FROM.get(c.name) in names)  # stable: a consequence after its cause
+    if failed and not config.force:
+        c = failed[0]
+        raise CalibrationError(f"{c.name}: {c.detail}"
+                               + ("" if len(failed) == 1 else f" (and {len(failed) - 1} more failed checks)")
+                               + "; --force writes the result anyway with the failed checks recorded")
+
+
+def clock_offset_check(sol: Solution, bound_s: float, shortest_pass_s: float) -> Check:
+    """The clock offset reported (estimated or held) lies within ``bound_s`` (lrfcal.model.motor.clock_offset_bound_s:
+    the smaller of MAX_CLOCK_OFFSET_S and a share of the sweep's ``shortest_pass_s``)."""
+    tau = sol.clock_offset_s
+    ok = bool(abs(tau) <= bound_s)
+    detail = (f"{tau * 1000:+.1f} ms, within +-{bound_s * 1000:.0f} ms (the smaller of {MAX_CLOCK_OFFSET_S:g} s and "
+              f"1/{1 / CLOCK_OFFSET_PASS_SHARE:.0f} of the sweep's shortest pass, {shortest_pass_s:.3g} s)")
+    if not ok:
+        detail = (f"the estimate {tau * 1000:+.1f} ms is beyond " + detail.split(", within ", 1)[1]
+                  + ": a larger offset is not a latency between the laser's and the servo's stamps, and one near a "
+                  "pass makes the sweep alias (the fit settles on a wrong offset that explains the data as well); "
+                  "calibrate from --clock-offset 0, or with the offset the drivers' stamps are known to differ by")
+    return Check("clock offset", ok, detail)
+
+
+def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray], str]:
+    """Two independent parts of a recording's returns (their scan indices (K,); passes (S,) of the sweep): the
+    even and odd passes when the sweep goes both ways, else the two halves in time; and their name."""
+    if passes.max() >= 1:
+        scan_pass = passes[scan]
+        return [scan_pass % 2 == 0, scan_pass % 2 == 1], "even and odd passes"
+    mid = np.median(scan)
+    return [scan <= mid, scan > mid], "the two halves of the sweep"
+
+
+def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> Check:
+    """The reduced chi-square check: ``what`` (the residuals' name) at most sqrt(config.max_reduced_chi2) times the
+    stated range noise; the failure says what else (``otherwise``) could be wrong."""
+    ok = bool(chi2 <= config.max_reduced_chi2)
+    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
+    return Check("reduced chi-square", ok,
+                 f"{chi2:.3g} (limit {config.max_reduced_chi2:g}): {what} {math.sqrt(max(chi2, 0.0)):.2g} times the "
+                 f"stated range noise {config.range_sigma_m * 1000:g} mm"
+                 + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
+
+
+def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
+    """The servo's direction: the declared one (+1) unless the nominal DH contradicts it and fits the other.
+
+    A negated motor angle together with a mirrored marker map and (alpha, b) -> (pi - alpha, -b) predicts exactly
+    the same ranges (distances fix the marker map only up to a reflection), so only the nominal values can tell
+    the two apart. When they contradict the declared direction, the calibration is refused with the rig-file
+    setting that resolves it.
+    """
+    by_sign = {a.sign: a for a in alts}
+    declared = by_sign.get(1)
+    other = by_sign.get(-1)
+    if declared is None:
+        assert other is not None
+        raise CalibrationError(
+            "the markers match only with the servo angle negated: the servo turns the other way than declared; set "
+            "servo.sign: -1 in the rig file (or --servo-sign -1) if it is mounted the other way round"
+        )
+    if other is None:
+        return declared
+    dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
+    if far_from_nominal(dh1, nominal_dh, config) and not far_from_nominal(dh2, nominal_dh, config):
+        _, far_decl = nominal_distance(dh1, nominal_dh, config)
+        raise CalibrationError(
+            f"servo direction: with the declared sign (+1) the fit gives {dh_text(dh1)}, far from the nominal "
+            f"{dh_text(nominal_dh)} ({far_decl}); with the servo angle negated it gives {dh_text(dh2)}, which "
+            "explains the data equally well. If the servo turns the other way, set servo.sign: -1 in the rig file "
+            "(or --servo-sign -1)"
+        )
+    return declared
+
+
+#: a mirror image of the rig must be this many times farther from the nominal DH than the estimate, unless the
+#: estimate is within the nominal tolerance (:func:`mirror_check`). The distances are the scanner's poses'
+#: (:func:`nominal_distance`), and a mirror image has the estimate's origin: the attitudes tell them apart. A scan
+#: plane along the motor axis and its mirror image are 180 deg apart, so 1.5 accepts a nominal up to 72 deg off
+#: in attitude (45 deg off in both alpha and beta is 61 deg, tests/test_trust.py's far starts)
+MIRROR_MARGIN = 1.5
+
+
+def _nearest_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float]:
+    """The mirror twin of ``dh`` (lrfcal.model.kinematics.dh_twins, improper Q) nearest the nominal DH: (name, twin
+    DH, its isometry Q (3, 3) in M, the estimate's and the twin's distance from the nominal in nominal tolerances)."""
+    d_est, _ = nominal_distance(dh, nominal, config)
+    twins = [(name, twin, Q, nominal_distance(twin, nominal, config)[0]) for name, twin, Q in dh_twins(dh)
+             if np.linalg.det(Q) < 0]
+    name, twin, Q, d_twin = min(twins, key=lambda t: t[3])
+    return name, twin, Q, d_est, d_twin
+
+
+def nearer_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float] | None:
+    """The nearest mirror twin of ``dh`` (as :func:`_nearest_mirror`) when the nominal DH prefer it: the estimate is
+    beyond the nominal tolerance and the twin at least MIRROR_MARGIN times closer; else None."""
+    found = _nearest_mirror(dh, nominal, config)
+    d_est, d_twin = found[3], found[4]
+    return found if d_est > 1.0 and MIRROR_MARGIN * d_twin <= d_est else None
+
+
+#: nominal tolerances beyond which a nominal DH far from both the estimate and its mirror image (50 deg at the 5 deg
+#: default) is named as the likely culprit of a mirror-image refusal (rather than the signs of alpha and b)
+FAR_FROM_BOTH = 10.0
+
+
+def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
+    """The rig or its mirror image: each mirror twin of the estimate (lrfcal.model.kinematics.dh_twins) explains the
+    data exactly as well (with the marker map mirrored; flatness alike), so only the nominal DH tell them apart.
+    Passed when the estimate is within the nominal tolerance (config.nominal_tolerance) of the nominal, or
+    MIRROR_MARGIN times closer to it than the nearest mirror twin; else refused naming both."""
+    name, twin, _, d_est, d_twin = _nearest_mirror(dh, nominal, config)
+    ok = d_est <= 1.0 or d_twin >= MIRROR_MARGIN * d_est
+    why = ": the data fit the rig and its mirror image equally well (tape distances fix the marker map only up to a "
+    if min(d_est, d_twin) <= FAR_FROM_BOTH:
+        why += "reflection) and the nominal DH do not tell which; check the signs of alpha and b in the rig file's dh "
+        why += "against the drawings"
+    else:  # e.g. a nominal beta 90 deg off: the DH search (lrfcal.stages.start) found the rig; the nominal can't judge
+        why += (f"reflection), and the nominal DH, far from both, cannot tell which: the rig file's dh is likely wrong "
+                f"(the estimate: {dh_text(dh)}); set it to whichever of the two the drawings confirm and calibrate "
+                "again")
+    return Check("mirror image", ok,
+                 f"the estimate is {d_est:.1f} nominal tolerances from the nominal DH, its nearest mirror image "
+                 f"({name}: {dh_text(twin)}) {d_twin:.1f}" + ("" if ok else why))
+
+
+def far_from_nominal(dh: DH, nominal: DH, config: CalibConfig) -> bool:
+    """Whether a DH estimate is beyond the nominal tolerance (config.nominal_tolerance, :func:`nominal_distance`): a
+    declared servo direction whose estimate is not far is kept whatever the other direction gives
+    (:func:`servo_direction`)."""
+    return nominal_distance(dh, nominal, config)[0] > 1.0
+
+
+def nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:
+    """How far a DH estimate is from the nominal DH in nominal tolerances, and that in words. Compared as the
+    scanner's poses in M' modulo the gauge (lrfcal.model.chart.gauge_distance): the larger of the origins' offset
+    over the length tolerance (a's and b's, the larger) and the attitudes' angle over the angle tolerance (alpha's
+    and beta's). DH differences themselves are singular near a scan plane perpendicular to the motor axis: a
+    scanner tilted 0.04 deg towards the motor axis is b of 3.3 m in DH, and 2.6 mm from an untilted one here."""
+    tol = config.nominal_tolerance
+    dist, offset_m, angle_rad = gauge_distance(dh.vector(), nominal.vector(), max(tol[0], tol[2]),
+                                               max(tol[1], tol[3]))
+    return dist, f"the scanner {offset_m * 1000:.1f} mm and {math.degrees(angle_rad):.1f} deg from the nominal's pose"
+
+
+def dh_text(dh: DH) -> str:
+    return (f"a {dh.a * 1000:.1f} mm, alpha {math.degrees(dh.alpha):.2f} deg, b {dh.b * 1000:.1f} mm, "
+            f"beta {math.degrees(dh.beta):.2f} deg")
+
+
+def marker_checks(
+    sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
+    config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None, nominal: DH,
+) -> list[Check]:
+    """The consistency checks a result must pass before it is written (docs/method.md, stage 6c). The second opinion
+    compares parts of the marker returns with the marker-only solution of them all (the same model and data
+    type, so that it tests the recording's parts, not the markers against the surfaces)."""
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
+              mirror_check(sol.params.dh, nominal, config)]
+    finite = bool(np.all(np.isfinite(sol.sigma)))
+    if sol.information is not None and finite:
+        obs = observability.analyse(sol.information, sol.information_names, sol.params.dh.alpha)
+        checks.append(Check("observability", obs.determined,
+                            f"{obs.summary()}" + ("" if obs.determined else f": {obs.hint()}")))
+    else:  # a singular information (the solver's rank test): no covariance exists, so nothing is determined
+        checks.append(Check("observability", False, f"the final solve is {sol.status.split(', ')[-1]}: the data do "
+                            "not determine the parameters jointly (no finite covariance)"))
+    checks.append(chi2_check(sol.reduced_chi2, config, "residuals", "the model does not explain the data (an "
+                             "unmodelled clock offset or motion, a wrong marker radius)"))
+    checks.append(_marker_second_opinion(marker_only, matched, markers, passes, config, fit, motor))
+    return checks
+
+
+def difference_covariance(part: Solution, joint: Solution, idx: list[int], map_cov: FloatArray | None
+                          ) -> FloatArray:
+    """The covariance (k, k) of part - joint over the unknowns ``idx`` (core order) of two solutions whose data
+    overlap (the part's a subset of the joint's). Each parameter's sigma is the larger of:
+    - the nested estimators' C_part - C_joint from their statistical covariances (before any widening: widened for
+      errors the two share, the difference of the covariances would shrink, not grow);
+    - the cluster-robust sum over clusters (a marker's crossing, a scan) of (i_part - i_joint)(...)^T, i each
+      cluster's influence on each solution (lrfcal.estimate.covariance.Spread): errors shared within a crossing (where
+      its
+      lines fall on the marker) that the two solutions do not share.
+    The marker map's error is shared: it moves the part and the joint solution by G dc each, the difference by
+    (G_part - G_joint) dc, added. Without the spreads (rank loss): the reported covariances' difference."""
+    Gp = Gj = np.zeros((len(idx), 0))  # without the map's sensitivities its terms are empty
+    Cm = np.zeros((0, 0))
+    if map_cov is not None and part.map_sensitivity is not None and joint.map_sensitivity is not None:
+        Gp, Gj, Cm = part.map_sensitivity[idx], joint.map_sensitivity[idx], map_cov
+    shared = (Gp - Gj) @ Cm @ (Gp - Gj).T
+    sp, sj = part.spread, joint.spread
+    if sp is None or sj is None or not (sp.ids.size and sj.ids.size):
+        C = part.covariance[np.ix_(idx, idx)] - joint.covariance[np.ix_(idx, idx)]
+        return C + Gj @ Cm @ Gj.T - Gp @ Cm @ Gp.T + shared
+    ids = np.union1d(sp.ids, sj.ids)
+    D = np.zeros((ids.size, len(idx)))
+    D[np.searchsorted(ids, sp.ids)] += sp.influence[:, idx]
+    D[np.searchsorted(ids, sj.ids)] -= sj.influence[:, idx]
+    nested = sp.statistical[np.ix_(idx, idx)] - sj.statistical[np.ix_(idx, idx)]
+    return widen(nested, D.T @ D) + shared
+
+
+def _marker_second_opinion(
+    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
+    fit: Callable[..., Solution], motor: MotorClock | None,
+) -> Check:
+    """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
+    and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
+    (the part's data are a subset of the joint's; the marker map's shared error enters as (G_part - G_joint) C_map
+    (G_part - G_joint)^T), against the chi-square quantile with 4 degrees of freedom."""
+    from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
+
+    groups, how = split_in_two(matched.scan, passes)
+    dh = [PARAM_NAMES.index(n) for n in ("a", "alpha", "b", "beta")]
+    limit = float(chdtri(4, 1.0 - (1.0 - config.second_opinion_p / 2.0)))
+    results = []
+    for g in groups:
+        part = matched.subset(g)
+        try:
+            ps = fit(part, markers, sol.params, model="sphere", clock=None,
+                     clock_offset_s=sol.clock_offset_s)
+        except CalibrationError:
+            return Check("second opinion", True, f"not available: {how} alone have too few returns")
+        if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
+            return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+        d = dh_difference(ps.params.vector()[dh], sol.params.vector()[dh])
+        C = difference_covariance(ps, sol, dh, markers.covariance)
+        if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
+            return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+        w, V = np.linalg.eigh(0.5 * (C + C.T))
+        floor = 0.05 * np.diag(ps.covariance[np.ix_(dh, dh)]).min()
+        w = np.maximum(w, floor)  # the difference must not look more certain than 5 % of the part's own variance
+        stat = float(d @ V @ np.diag(1.0 / w) @ V.T @ d)
+        results.append((stat, d))
+    worst = max(results, key=lambda r: r[0])
+    ok = worst[0] <= limit
+    d = worst[1]
+    return Check(
+        "second opinion", ok,
+        f"{how} calibrated separately differ from the marker-only joint solution by chi2 {worst[0]:.3g} "
+        f"(limit {limit:.3g}, 4 dof;"
+        f" a {d[0] * 1000:+.2f} mm, alpha {math.degrees(d[1]):+.3f} deg, b {d[2] * 1000:+.2f} mm, "
+        f"beta {math.degrees(d[3]):+.3f} deg)"
+        + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled clock "
+                         "offset, markers that moved)"),
+    )
+
+
+def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
+            config: CalibConfig, prior: tuple[FloatArray, FloatArray], nominal: DH) -> list[Check]:
+    """Convergence, mirror image, observability of the estimated parameters, reduced chi-square and a
+    second opinion."""
+    checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
+              mirror_check(sol.params.dh, nominal, config)]
+    est = [n for n in DH_NAMES if n not in held]
+    s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
+    ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())
+    checks.append(Check("observability", ok, "1-sigma " + ", ".join(
+        f"{n} {math.degrees(v):.3g} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:.3g} mm"
+        for n, v in s.items()) + (f"; held at nominal: {', '.join(held)}" if held else "")))
+    checks.append(chi2_check(sol.reduced_chi2, config, "plane residuals", "the scene's surfaces are not flat "
+                             "enough or the model does not explain the data (servo backlash, an unmodelled clock "
+                             "offset)"))
+    checks.append(_plane_second_opinion(sol, returns, passes, held, config, prior))
+    return checks
+
+
+def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
+                    config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Check:
+    """Even and odd passes (or the sweep's two halves) calibrated separately and compared with each other:
+    chi2 = d^T (C_1 + C_2)^-1 d over the estimated DH parameters (independent data), clock offset held at the
+    joint estimate."""
+    from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
+
+    groups, how = split_in_two(returns.scan, passes)
+    est = [6 + DH_NAMES.index(n) for n in DH_NAMES if n not in held]
+    limit = float(chdtri(len(est), 1.0 - (1.0 - config.second_opinion_p)))
+    parts = []
+    sigma_r = config.range_sigma_m
+    assert sigma_r is not None  # resolved by lrfcal.pipeline.calibrate
+    for g in groups:
+        try:
+            kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
+            parts.append(solve.solve_planes(returns.subset(kept), sol.params, range_sigma_m=sigma_r,
+                                            clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
+                                            robust=False))
+        except CalibrationError:
+            return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
+    d = parts[0].params.vector()[est] - parts[1].params.vector()[est]
+    d = np.where(np.isin(est, (7, 9)), wrap_pi(d), d)
+    C = parts[0].covariance[np.ix_(est, est)] + parts[1].covariance[np.ix_(est, est)]
+    if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
+        return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
+    stat = float(d @ np.linalg.solve(C, d))
+    ok = stat <= limit
+    names = [CORE_NAMES[i] for i in est]
+    diffs = ", ".join(f"{n} {math.degrees(v):+.3f} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:+.2f} mm"
+                      for n, v in zip(names, d, strict=True))
+    return Check("second opinion", ok,
+                 f"{how} calibrated separately differ by chi2 {stat:.3g} (limit {limit:.3g}, {len(est)} dof; {diffs})"
+                 + ("" if ok else ": the parts of the recording disagree (servo backlash or slip, an unmodelled "
+                                  "clock offset, a scene that moved)"))
+
+
+__all__ = ["Check", "chi2_check", "clock_offset_check", "dh_text", "marker_checks", "mirror_check", "nearer_mirror",
+           "nominal_distance", "plane_checks", "refuse_failed", "servo_direction", "split_in_two"]

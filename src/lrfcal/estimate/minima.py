@@ -1,0 +1,114 @@
+"""Discrete ambiguities found, not landed on: another minimum of the marker calibration, and a likelihood-ratio test.
+
+The chain's exact twins (lrfcal.model.kinematics.dh_twins) are handled where they arise: the "turned" one is the
+same rig (the canonical DH branch, lrfcal.model.chart), the mirror images explain the data exactly with the marker
+map mirrored (lrfcal.estimate.checks.mirror_check, lrfcal.stages.markers._handedness). With the marker map as it is, a
+mirror image
+is another rig, and near a scan plane perpendicular to the motor axis (where it differs from the estimate by twice
+alpha in attitude) it can explain the same returns about as well: a second minimum the solver may or may not have
+landed in.
+
+:func:`other_minimum` solves the marker-only problem again from the estimate's mirror image (the mount kept) when
+the nominal DH cannot rule that image out (it is within the nominal tolerance, lrfcal.estimate.checks), and compares the
+two solutions:
+
+- the same rig when every DH parameter of the one (or of its "turned" representative) is within
+  :data:`SAME_SIGMA` of the other's sigma;
+- otherwise by the likelihood ratio of their whitened residuals over the returns both keep,
+  Lambda = (cost_other - cost_estimate) / s^2 (s^2 the estimate's reduced chi-square, at least 1): two distinct
+  rigs explain the data equally well when |Lambda| is below :data:`LR_LIMIT`, and the estimate is not the best
+  minimum when Lambda is below -LR_LIMIT. Both are refused naming the two rigs.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.config import CalibConfig
+from lrfcal.errors import CalibrationError
+from lrfcal.estimate.checks import dh_text, nominal_distance
+from lrfcal.estimate.information import model_residuals
+from lrfcal.model.kinematics import DH, Params, dh_twins
+from lrfcal.model.unknowns import dh_difference
+from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
+
+FloatArray = NDArray[np.float64]
+
+#: chi-square quantile with 1 degree of freedom at p = 1e-3: a difference of cost below it does not tell two
+#: minima apart
+LR_LIMIT = 10.83
+#: DH differences within this many sigma (the estimate's) are one minimum
+SAME_SIGMA = 4.0
+
+NAME = "other minimum"
+
+
+def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CalibConfig,
+                  fit: Callable[..., Solution]) -> Check:
+    """The marker-only solution ``sol`` of the returns ``matched`` against the minimum its mirror image leads to
+    (module docstring), the clock offset held at the estimate's: passed unless a distinct rig explains the data as
+    well or better."""
+    twin = dh_twins(sol.params.dh)[1][1]  # "mirrored", the marker map as it is
+    if nominal_distance(twin, nominal.dh, config)[0] > 1.0:
+        return Check(NAME, True, f"not searched: the estimate's mirror image ({dh_text(twin)}) is beyond the "
+                                 "nominal tolerance")
+    none = Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
+    try:
+        alt = fit(matched, markers, Params(sol.params.mount, twin), model="sphere", clock=None,
+                  clock_offset_s=sol.clock_offset_s)
+    except CalibrationError:
+        return none
+    z = _dh_z(alt.params.dh, sol)
+    if not alt.converged or not np.all(np.isfinite(z)):
+        return none
+    if np.abs(z).max() <= SAME_SIGMA:
+        return Check(NAME, True, f"the solve from the estimate's mirror image returned to it (DH within "
+                                 f"{np.abs(z).max():.1f} sigma)")
+    lr = (_cost(alt, matched, markers, nominal, config, sol) - _cost(sol, matched, markers, nominal, config, alt))
+    lr /= max(1.0, sol.reduced_chi2)
+    ok = lr >= LR_LIMIT
+    both = f"{dh_text(sol.params.dh)} and {dh_text(alt.params.dh)}"
+    if ok:
+        return Check(NAME, True, f"another minimum ({dh_text(alt.params.dh)}) explains the data worse by "
+                                 f"{lr:.1f} (limit {LR_LIMIT})")
+    what = ("explain the data equally well" if lr > -LR_LIMIT
+            else "the second explains the data better: the solver landed in a local minimum")
+    return Check(NAME, False, f"two distinct rigs, {both}, {what} (likelihood ratio {lr:+.1f}, limit "
+                              f"{LR_LIMIT}); markers spread further along the motor axis tell them apart, or a "
+                              "scan plane further from perpendicular to it")
+
+
+def _dh_z(dh: DH, sol: Solution) -> FloatArray:
+    """(4,) DH differences of ``dh`` (or of its "turned" representative, whichever is nearer) from ``sol``'s, in
+    ``sol``'s sigma."""
+    def z(cand: DH) -> FloatArray:
+        return dh_difference(cand.vector(), sol.params.dh.vector()) / np.asarray(sol.sigma[6:10], dtype=float)
+
+    return min((z(dh), z(dh_twins(dh)[0][1])), key=lambda v: float(np.nanmax(np.abs(v))))
+
+
+def _cost(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CalibConfig,
+          other: Solution) -> float:
+    """The sum of squared whitened residuals (range and lateral, lrfcal.estimate.information.model_residuals) of ``sol``
+    over the returns it and ``other`` both keep, the motor angles at its own clock offset."""
+    keep = np.ones(len(matched), dtype=bool)
+    for s in (sol, other):
+        if s.inlier is not None:
+            keep &= s.inlier
+    obs = matched if sol.lambda_rad is None else replace(matched, lambda_rad=sol.lambda_rad)
+    res, _ = model_residuals(sol.params, obs.subset(keep), markers.positions_W, model="sphere",
+                             marker_radius_m=nominal.marker_radius_m, range_sigma_m=_sigma(config),
+                             beam_divergence_rad=nominal.beam_divergence_rad)
+    return float(res @ res)
+
+
+def _sigma(config: CalibConfig) -> float:
+    assert config.range_sigma_m is not None, "resolved from the rig file before the markers are fitted"
+    return config.range_sigma_m
+
+
+__all__ = ["LR_LIMIT", "SAME_SIGMA", "other_minimum"]

@@ -1,0 +1,275 @@
+"""The least-squares engine of lrfcal.estimate.solve: normal equations assembled once per iteration from the residual
+blocks,
+the planes' nuisances eliminated by the Schur complement.
+
+The whitened residual vector of a solve has three kinds of rows (:class:`Blocks`): dense rows that involve only the
+core unknowns (marker returns, the design drawing's prior on the DH parameters), plane rows that involve the core
+unknowns and the 3 nuisances of their own plane (lrfcal.model.plane), and one prior row per plane nuisance. So the
+information H = J^T W J is arrow-shaped,
+
+    H = [[A, B], [B^T, D]],   D = blockdiag(D_1 .. D_P) (3 x 3 per plane),
+
+assembled in O(rows) without the dense (rows, N_CORE + 3P) Jacobian, and a (damped) step solves
+(A - sum_j B_j D_j^-1 B_j^T) dx_c = -(g_c - sum_j B_j D_j^-1 g_j), dx_j = -D_j^-1 (g_j + B_j^T dx_c); the same Schur
+complement is the core unknowns' marginal information with the planes unknown.
+
+:func:`levenberg_marquardt`: LM on those normal equations (J^T W J + m diag(J^T W J)) dx = -J^T W r, W the Huber
+weights of the whitened residuals (or 1), stopped when every step is below ``step_tol`` of its unknown's sigma (or
+when a step of a fraction of a sigma no longer lowers the cost: the minimum to within the Jacobian's accuracy).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: eigenvalues of the column-scaled information below this fraction of the largest count as rank loss (the normal
+#: equations resolve singular values of J to about sqrt(machine epsilon) of the largest, not below)
+RANK_TOL = 1e-15
+
+
+@dataclass(frozen=True)
+class Blocks:
+    """The whitened residuals of one solve and, with the Jacobian, its blocks (module docstring).
+
+    r_dense (m,), J_dense (m, n_core); r_plane (K,), Jc_plane (K, n_core), Jn_plane (K, 3), plane (K,) the plane of
+    each plane row; r_prior (3P,) and w_prior (3P,) the nuisance priors' residuals and 1 / sigma (None: free
+    planes); n_planes P. Jacobians None when only residuals were asked for."""
+
+    r_dense: FloatArray
+    J_dense: FloatArray | None
+    r_plane: FloatArray
+    Jc_plane: FloatArray | None
+    Jn_plane: FloatArray | None
+    plane: IntArray
+    n_planes: int
+    r_prior: FloatArray | None = None
+    w_prior: FloatArray | None = None
+    segments: tuple[IntArray, IntArray] | None = None  # the plane rows ordered by plane, and each plane's bounds
+
+    def residuals(self) -> FloatArray:
+        """All whitened residuals, dense rows then plane rows then priors."""
+        parts = [self.r_dense, self.r_plane]
+        if self.r_prior is not None:
+            parts.append(self.r_prior)
+        return np.concatenate(parts)
+
+
+@dataclass(frozen=True)
+class Normal:
+    """H and g = J^T W r over the free core unknowns (A (c, c), g_c (c,)) and every plane's nuisances
+    (B (c, 3P), D (P, 3, 3), g_n (3P,))."""
+
+    A: FloatArray
+    B: FloatArray
+    D: FloatArray
+    g_c: FloatArray
+    g_n: FloatArray
+
+    def dense(self) -> tuple[FloatArray, FloatArray]:
+        """The full H (c + 3P, c + 3P) and g (c + 3P,)."""
+        c, P = self.A.shape[0], self.D.shape[0]
+        H = np.zeros((c + 3 * P, c + 3 * P))
+        H[:c, :c] = self.A
+        H[:c, c:] = self.B
+        H[c:, :c] = self.B.T
+        for j in range(P):
+            H[c + 3 * j:c + 3 * j + 3, c + 3 * j:c + 3 * j + 3] = self.D[j]
+        return H, np.concatenate([self.g_c, self.g_n])
+
+
+def _segments(plane: IntArray, n_planes: int) -> tuple[IntArray, IntArray]:
+    """A stable ordering of the rows by plane and each plane's [start, stop) in it."""
+    order = np.argsort(plane, kind="stable")
+    bounds = np.searchsorted(plane[order], np.arange(n_planes + 1))
+    return order, bounds
+
+
+def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_plane: FloatArray | None = None
+             ) -> Normal:
+    """The normal equations of :class:`Blocks` over the core columns ``core`` (and all nuisances), each row weighted
+    by w (None: 1)."""
+    assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
+    Jd = b.J_dense[:, core]
+    WJd = Jd if w_dense is None else Jd * w_dense[:, None]
+    wr_d = b.r_dense if w_dense is None else b.r_dense * w_dense
+    Jc = b.Jc_plane[:, core]
+    Jn = b.Jn_plane
+    WJc = Jc if w_plane is None else Jc * w_plane[:, None]
+    WJn = Jn if w_plane is None else Jn * w_plane[:, None]
+    wr_p = b.r_plane if w_plane is None else b.r_plane * w_plane
+    A = Jd.T @ WJd + Jc.T @ WJc
+    g_c = Jd.T @ wr_d + Jc.T @ wr_p
+    P, c = b.n_planes, core.size
+    B, D, g_n = np.zeros((c, 3 * P)), np.zeros((P, 3, 3)), np.zeros(3 * P)
+    order, bounds = b.segments if b.segments is not None else _segments(b.plane, P)
+    # the plane rows sorted by plane once (each plane's rows then a slice, not a gather per plane)
+    Jc_s, Jn_s, WJn_s, wr_s = Jc[order], Jn[order], WJn[order], wr_p[order]
+    for j in range(P):
+        if bounds[j] == bounds[j + 1]:
+            continue
+        rows = slice(bounds[j], bounds[j + 1])
+        Jn_j, WJn_j = Jn_s[rows], WJn_s[rows]
+        B[:, 3 * j:3 * j + 3] = Jc_s[rows].T @ WJn_j
+        D[j] = Jn_j.T @ WJn_j
+        g_n[3 * j:3 * j + 3] = Jn_j.T @ wr_s[rows]
+    if b.w_prior is not None and b.r_prior is not None:
+        D[:, [0, 1, 2], [0, 1, 2]] += (b.w_prior ** 2).reshape(P, 3)
+        g_n += b.w_prior * b.r_prior
+    return Normal(A, B, D, g_c, g_n)
+
+
+def schur(N: Normal, damp: float = 0.0) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The planes eliminated from (H + damp diag H): the reduced matrix S (c, c), the reduced right-hand side of
+    S dx_c = rhs, and the per-plane inverses D_j^-1 (P, 3, 3) (pseudo-inverses for planes without information)."""
+    return _eliminated(N, damp)[:3]
+
+
+def _eliminated(N: Normal, damp: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
+    """:func:`schur`'s (S, rhs, D^-1) and the products B_j D_j^-1 side by side (c, 3P) they are made of."""
+    A = N.A + damp * np.diag(np.maximum(np.diag(N.A), 1e-300)) if damp else N.A
+    D = N.D.copy()
+    if damp:
+        idx = np.arange(3)
+        D[:, idx, idx] += damp * np.maximum(N.D[:, idx, idx], 1e-300)
+    Dinv = np.linalg.pinv(D, rcond=1e-12) if D.shape[0] else D
+    BDi = _times_blocks(N.B, Dinv)  # (c, 3P): B_j D_j^-1 side by side
+    S = A - BDi @ N.B.T
+    return 0.5 * (S + S.T), BDi @ N.g_n - N.g_c, Dinv, BDi
+
+
+def _times_blocks(B: FloatArray, blocks: FloatArray) -> FloatArray:
+    """B (c, 3P) times the block-diagonal matrix of ``blocks`` (P, 3, 3): B_j blocks_j side by side (c, 3P), in one
+    batched product (the planes' loop of the Schur complement)."""
+    c, P = B.shape[0], blocks.shape[0]
+    return np.matmul(B.reshape(c, P, 3).transpose(1, 0, 2), blocks).transpose(1, 0, 2).reshape(c, 3 * P)
+
+
+def solve_step(N: Normal, damp: float) -> FloatArray:
+    """The LM step (c + 3P,) of the damped normal equations, core first."""
+    S, rhs, Dinv = schur(N, damp)
+    dx_c = np.linalg.solve(S, rhs)
+    v = (N.g_n + N.B.T @ dx_c).reshape(-1, 3, 1)  # per plane: dx_j = -D_j^-1 (g_j + B_j^T dx_c)
+    return np.concatenate([dx_c, -np.matmul(Dinv, v).ravel()])
+
+
+def marginal_sigma(N: Normal) -> FloatArray:
+    """The 1-sigma (c + 3P,) of every unknown from the undamped information (pseudo-inverse where singular)."""
+    S, _, Dinv, BDi = _eliminated(N, 0.0)
+    Sinv = np.linalg.pinv(S)
+    # per plane: diag(D_j^-1 + (B_j D_j^-1)^T S^-1 B_j D_j^-1), for all planes at once
+    var_n = np.diagonal(Dinv, axis1=1, axis2=2).ravel() + (BDi * (Sinv @ BDi)).sum(0)
+    return np.sqrt(np.maximum(np.concatenate([np.diag(Sinv), var_n]), 1e-300))
+
+
+#: a barely damped step below ``stall_tol`` sigma that lowers the cost (0.5 chi^2) by less than this is converged:
+#: a Gauss-Newton step to the minimum of a quadratic cost lowers it by 0.5 d^2 for a step of d sigma (Mahalanobis,
+#: at least the largest marginal ratio), so such a step zig-zags across a valley the Jacobian does not describe to
+#: that accuracy (the sphere model's rim) within a tenth of a sigma of its floor
+FLAT_COST = 1e-5
+
+
+def _add_step(th: FloatArray, free: IntArray, step: FloatArray) -> FloatArray:
+    """th with ``step`` (free.size,) added to its entries ``free`` (the default step of :func:`levenberg_marquardt`)."""
+    trial = th.copy()
+    trial[free] += step
+    return trial
+
+
+def levenberg_marquardt(
+    th0: FloatArray, evaluate: Callable[[FloatArray, bool], Blocks], core: IntArray, n_core: int,
+    huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3, stall_tol: float = 0.1,
+    retract: Callable[[FloatArray, IntArray, FloatArray], FloatArray] | None = None,
+) -> tuple[FloatArray, int, bool]:
+    """Minimise the (Huber) cost of ``evaluate(th, jac)`` over the core unknowns ``core`` and every nuisance (the
+    entries of th from ``n_core`` on). Returns (th, evaluations, converged): converged when a step is below
+    ``step_tol`` of every unknown's sigma, or when a barely damped step below ``stall_tol`` sigma does not lower the
+    cost or lowers it by less than :data:`FLAT_COST`, or when no step lowers it any more (at the minimum).
+    ``retract(th, free, step)``: th moved by a step (free.size,) over the entries ``free`` of th, for unknowns whose
+    Jacobian columns are those of a chart at th rather than derivatives by th's own entries (th[free] + step when
+    None)."""
+    free = np.concatenate([core, np.arange(n_core, th0.size)])
+    th = th0.copy()
+    move = retract or _add_step
+
+    def cost(r: FloatArray) -> float:
+        if huber is None:
+            return float(0.5 * r @ r)
+        a = np.abs(r)
+        return float(np.where(a <= huber, 0.5 * r * r, huber * a - 0.5 * huber * huber).sum())
+
+    def weights(r: FloatArray) -> FloatArray | None:
+        return None if huber is None else np.minimum(1.0, huber / np.maximum(np.abs(r), 1e-300))
+
+    b = evaluate(th, True)
+    c, damp, n_eval = cost(b.residuals()), 1e-4, 1
+    for _ in range(max_iter):
+        N = assemble(b, core, weights(b.r_dense), weights(b.r_plane))
+        sigma = marginal_sigma(N)
+        first = True
+        while True:
+            try:
+                step = solve_step(N, damp)
+            except np.linalg.LinAlgError:
+                step = np.full(free.size, np.nan)
+            ok = bool(np.all(np.isfinite(step)))
+            trial = move(th, free, step) if ok else th.copy()
+            ratio = float(np.max(np.abs(step) / sigma)) if ok else np.inf
+            small = ratio < step_tol
+            if small and first and damp <= 1e-3:  # a negligible, barely damped step: converged, nothing to check
+                return trial, n_eval, True
+            b_new = evaluate(trial, True) if ok else None  # with its Jacobian: the next iteration's, if accepted
+            c_new = cost(b_new.residuals()) if b_new is not None else np.inf
+            n_eval += ok
+            if c_new <= c:
+                break
+            if first and ratio < stall_tol and damp <= 1e-3:
+                # a barely damped step of a fraction of a sigma that does not lower the cost: at the minimum to within
+                # the Jacobian's own accuracy (the clock column uses the smoothed joint velocity)
+                return th, n_eval, True
+            first = False
+            damp *= 10.0
+            if damp > 1e10:
+                return th, n_eval, True  # no step decreases the cost: at the minimum
+        flat = first and damp <= 1e-3 and ratio < stall_tol and c - c_new < FLAT_COST
+        th, c, damp = trial, c_new, max(damp / 10.0, 1e-9)
+        if small or flat:
+            return th, n_eval, True
+        assert b_new is not None
+        b = b_new
+    return th, n_eval, False
+
+
+def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray
+                      ) -> tuple[IntArray, FloatArray]:
+    """For the cluster-robust (sandwich) covariance: the clusters' ids (clusters,), sorted (each prior row a
+    cluster of its own, ids below every other), and G (clusters, c + 3P), per cluster the sum of J_i^T r_i over
+    its rows, in that order."""
+    assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
+    P, c = b.n_planes, core.size
+    n_prior = 0 if b.r_prior is None else b.r_prior.size
+    rows = np.concatenate([cluster_dense, cluster_plane, np.iinfo(np.int64).min + np.arange(n_prior)])
+    ids, inv = np.unique(rows, return_inverse=True)
+    n_cl = ids.size
+    m, K = b.r_dense.size, b.r_plane.size
+    n = c + 3 * P
+    G = np.zeros(n_cl * n)
+    inv_d, inv_p, inv_q = inv[:m], inv[m:m + K], inv[m + K:]
+    for k, col in enumerate(core):
+        G += np.bincount(inv_d * n + k, weights=b.J_dense[:, col] * b.r_dense, minlength=n_cl * n)
+        G += np.bincount(inv_p * n + k, weights=b.Jc_plane[:, col] * b.r_plane, minlength=n_cl * n)
+    for i in range(3):
+        G += np.bincount(inv_p * n + c + 3 * b.plane + i, weights=b.Jn_plane[:, i] * b.r_plane, minlength=n_cl * n)
+    if n_prior and b.w_prior is not None and b.r_prior is not None:
+        G[inv_q * n + c + np.arange(n_prior)] += b.w_prior * b.r_prior
+    return ids, G.reshape(n_cl, n)
+
+
+__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
+           "schur", "scores_by_cluster", "solve_step"]

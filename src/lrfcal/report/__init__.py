@@ -1,0 +1,1 @@
+"""What a person looks at: the terminal summary, the PNG figures and the rerun viewer."""

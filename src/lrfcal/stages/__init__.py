@@ -1,0 +1,1 @@
+"""The stages of the calibration, one module each (see lrfcal.pipeline)."""

@@ -1,0 +1,498 @@
+"""Calibration with markers: the seed paper's Sec. III and IV-C as observation sets and a start.
+
+1. markers from tape distances (mds)          5. start: mount pose from that alignment, DH from nominal
+2. marker returns in the intensity image      6. the marker returns solved for each direction of the servo
+   (detection)                                   (solve), the direction chosen (lrfcal.estimate.checks.servo_direction);
+3. per-beam time and motor angle (timing)        then jointly with the surfaces the markers sit on (surfaces),
+4. blobs matched to markers (association)        and with every other plane of the scene when asked
+
+The paper's own variant (one max-intensity beam per blob, one motor angle per scan) runs beside ours as the
+baseline, on the same detections and association, so that the gain is measured. lrfcal.pipeline runs this and
+the shared stages (checks, reprojection, geometry).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from functools import partial
+
+import numpy as np
+
+from lrfcal.config import CalibConfig, Stopwatch
+from lrfcal.errors import CalibrationError
+from lrfcal.estimate import minima, observability, solve
+from lrfcal.estimate.checks import (
+    dh_text,
+    far_from_nominal,
+    marker_checks,
+    mirror_check,
+    nearer_mirror,
+    servo_direction,
+)
+from lrfcal.estimate.information import information_at
+from lrfcal.estimate.problem import marker_problem
+from lrfcal.model.kinematics import DH, Params, Pose, dh_twins, homogeneous
+from lrfcal.model.marker import crossings
+from lrfcal.model.motor import MotorClock
+from lrfcal.model.unknowns import dh_difference, pack
+from lrfcal.stages import association, detection, joint, mds, start, surfaces, timing
+from lrfcal.types import (
+    Association,
+    CalibrationResult,
+    Detections,
+    JointStates,
+    MarkerMap,
+    Nominal,
+    Observations,
+    Recording,
+    Scans,
+    Solution,
+)
+
+
+class _NoMatch(CalibrationError):
+    """The blobs could not be matched to the markers (for one direction of the servo)."""
+
+
+@dataclass(frozen=True)
+class Alternative:
+    """One discrete alternative of the start: the servo's sign with its association and marker-only solution."""
+
+    sign: int
+    markers: MarkerMap
+    assoc: Association
+    matched: Observations
+    start: Params
+    clock: MotorClock | None
+    solution: Solution
+    notes: tuple[str, ...] = ()
+    estimate: tuple[str, ...] = ()  # the unknowns held by default that its solves estimate (SCALES found off)
+    #: a disagreement with the marker map (in words) that the marker-only fit found but could not judge, as it does
+    #: not determine the DH parameters (one scan line per marker): judged at the joint solution (_judged_jointly)
+    unjudged: str = ""
+
+
+def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
+                notes: list[str]) -> CalibrationResult:
+    """Stages 1-6 (module docstring) on ``recording`` (its scans those the joint states cover) and their checks: a
+    result without clouds (lrfcal.pipeline adds them).
+
+    Raises:
+        CalibrationError: no marker returns, no match, or the layout does not determine the DH parameters.
+    """
+    scans, nominal, tau0 = recording.scans, recording.nominal, config.clock_offset_s
+    assert recording.tape is not None
+    markers = mds.marker_map(recording.tape)  # 1.
+    clock.lap("mds")
+    detections = detection.detect(scans)  # 2.
+    if not detections.blobs:
+        raise CalibrationError(f"no marker returns found (intensity threshold {detections.threshold:.0f} counts)")
+    clock.lap("detection")
+    returns = detection.observations(scans, joints, detections, clock_offset_s=tau0)  # 3.
+    passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
+    estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
+    if not estimate_clock:
+        notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                     + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
+                        if config.estimate_clock is None else "as asked)"))
+    clock.lap("timing")
+    fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+                  beam_divergence_rad=nominal.beam_divergence_rad)
+    chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
+    fit = partial(fit, estimate=chosen.estimate)
+    chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, config, fit), nominal.dh, fit)
+    notes.extend(chosen.notes)
+    if chosen.sign < 0:
+        joints = _negated(joints)
+    clock.lap("solve", scans=scans, detections=detections, association=chosen.assoc, markers=chosen.markers)
+    chosen, fit, (ours, surface_list, on_surfaces) = _jointly(chosen, recording, joints, detections, config, fit,
+                                                              notes)
+    if config.surfaces:
+        clock.lap("surfaces")
+    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock,
+                           nominal.dh)
+    checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
+    ours = _with_turning_systematic(ours, chosen, nominal, config, fit, notes)  # after the checks: they judge the fit
+    baseline = None
+    if config.baseline:
+        baseline = _baseline(chosen, scans, joints, config, fit, notes)
+        clock.lap("baseline")
+    return CalibrationResult(
+        recording=recording, markers=chosen.markers, detections=detections, observations=chosen.matched,
+        association=chosen.assoc, start=chosen.start, solution=ours, baseline=baseline, cloud_before_M=np.zeros((0, 3)),
+        cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
+        surfaces=tuple(surface_list), surface_returns=on_surfaces, checks=tuple(checks), servo_sign=chosen.sign,
+        side_by_side={"markers only": chosen.solution,
+                      "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
+    )
+
+
+def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nominal, config: CalibConfig,
+                             fit: Callable[..., Solution], notes: list[str]) -> Solution:
+    """``ours`` with the DH covariance widened by d d^T, d the difference the model variant makes where the sweep
+    turns on a marker (lrfcal.model.marker.crossings: only the in-plane part of those crossings' lateral residual,
+    solve(in_plane_at_turns=True)), between the two marker-only solutions. The lines of a turning crossing crowd
+    about the turning point and bias the part across the scan plane; the variant leaves that part out and loses its
+    information, so neither is right alone, and their difference is a model error the noise's sigma does not hold
+    (docs/study.md, "A crossing that turns on its marker"). Unchanged where no crossing turns."""
+    sol = chosen.solution
+    pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, "sphere", nominal.marker_radius_m,
+                           config.range_sigma_m, nominal.beam_divergence_rad)
+    th, R_ref = pack(sol.params, sol.clock_offset_s)
+    if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
+        return ours
+    try:
+        variant = fit(chosen.matched, chosen.markers, sol.params, model="sphere", clock=chosen.clock,
+                      clock_offset_s=sol.clock_offset_s, in_plane_at_turns=True)
+    except CalibrationError:
+        return ours
+    d = dh_difference(variant.params.dh.vector(), sol.params.dh.vector())
+    notes.append("crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral "
+                 f"residual differ by {dh_text(DH(*d))}, added to the covariance")
+    return ours.with_dh_systematic(d)
+
+
+def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[..., Solution]) -> Alternative:
+    """The marker-only solution in the DH representative nearer the nominal DH: solved again from its turned twin
+    (-a, -alpha, b, beta + pi with the mount turned by pi about the motor axis: the same rig, lrfcal.model.kinematics.
+    dh_twins) when that twin is nearer. A solve from the mirror image (:func:`_handedness`) or from a coarse start
+    can end in the other representative, right as a rig but with a, alpha and beta far from the rig file's."""
+    sol = chosen.solution
+    if not start.turned_is_nearer(sol.params.dh, nominal):
+        return chosen
+    _, twin, Q = dh_twins(sol.params.dh)[0]
+    turned = Params(Pose.from_matrix(sol.params.mount.matrix() @ homogeneous(Q, np.zeros(3))), twin)
+    try:
+        new = fit(chosen.matched, chosen.markers, turned, model="sphere", clock=chosen.clock,
+                  clock_offset_s=sol.clock_offset_s)
+    except CalibrationError:
+        return chosen
+    return replace(chosen, solution=new)
+
+
+def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Callable[..., Solution]) -> Alternative:
+    """The marker-only solution in the marker map's other handedness, when the nominal DH prefer it.
+
+    Tape distances fix the map only up to a reflection. With the map mirrored, the estimate's mirror twin
+    (lrfcal.estimate.checks.nearer_mirror) explains the data exactly as well, its mount F T_W_M Q (F the map's
+    reflection,
+    Q the twin's isometry in M). Near a scan plane perpendicular to the motor axis the association cannot tell the
+    handedness, so it is chosen here by the nominal DH: solved again from that twin. The result must then pass the
+    mirror check; otherwise the first solution stays (and the check refuses it)."""
+    found = nearer_mirror(chosen.solution.params.dh, nominal, config)
+    if found is None:
+        return chosen
+    name, twin, Q, d_est, d_twin = found
+    F = np.diag([1.0, 1.0, -1.0, 1.0])
+    T = F @ chosen.solution.params.mount.matrix() @ homogeneous(Q, np.zeros(3))
+    markers = association.unmirror(chosen.markers)
+    try:
+        sol = fit(chosen.matched, markers, Params(Pose.from_matrix(T), twin), model="sphere", clock=chosen.clock,
+                  clock_offset_s=chosen.solution.clock_offset_s)
+    except CalibrationError:
+        return chosen
+    if not mirror_check(sol.params.dh, nominal, config).passed:
+        return chosen
+    note = (f"the marker map matched in the other handedness: its mirror image ({name}) is {d_twin:.1f} nominal "
+            f"tolerances from the nominal DH, the first estimate {d_est:.1f}; solved again in the map's mirror image")
+    assoc = replace(chosen.assoc, mirrored=not chosen.assoc.mirrored, T_W_M=T)
+    return replace(chosen, markers=markers, assoc=assoc, solution=sol, notes=(*chosen.notes, note))
+
+
+def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap, joints: JointStates,
+                        nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+                        clock: Stopwatch) -> Alternative:
+    """4.-6.: association and marker-only solve for each direction of the servo (the data cannot tell them apart),
+    and the direction chosen. The DH search (lrfcal.stages.start) runs only when neither direction associates well from
+    the nominal values."""
+    signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
+    first: dict[int, Association | None] = {}
+
+    def associated(sign: int) -> Association | None:  # from the nominal DH, once, when first needed
+        if sign not in first:
+            first[sign] = _associate_nominal(signed[sign], detections, markers, nominal, config)
+        return first[sign]
+
+    # the DH search runs when neither direction associates well (the other is associated only if the declared fails)
+    search = not any((a := associated(s)) is not None and _good(a, signed[s], config) for s in (1, -1))
+    clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
+    alternatives = []
+    failures = []
+    for sign in (1, -1):
+        if sign == -1 and alternatives and not far_from_nominal(alternatives[0].solution.params.dh, nominal.dh,
+                                                                config):
+            break  # the declared direction fits near the nominal: servo_direction keeps it whatever the other gives
+        try:
+            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, associated(sign),
+                                                 every_attitude=not alternatives)
+                               if search else (nominal.dh, associated(sign)))
+            alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
+                                                 config, estimate_clock, fit))
+        except CalibrationError as err:
+            if sign == 1 and not isinstance(err, _NoMatch):
+                raise  # e.g. the layout does not determine the DH: the other direction does not help
+            failures.append((sign, err))
+    if not alternatives:
+        raise failures[0][1]
+    return servo_direction(alternatives, nominal.dh, config)
+
+
+def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
+             config: CalibConfig, fit: Callable[..., Solution], notes: list[str]
+             ) -> tuple[Alternative, Callable[..., Solution], tuple[Solution, list[surfaces.Surface],
+                                                                  surfaces.SurfaceReturns | None]]:
+    """6b (lrfcal.stages.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale
+    the
+    data contradict estimated (lrfcal.stages.joint.most_off); then the disagreement with the marker map that the
+    marker-only fit found but could not judge (``chosen.unjudged``) judged at the joint solution. ``chosen`` and
+    ``fit`` as they end up, and the joint result (lrfcal.stages.joint.with_surfaces)."""
+    while True:
+        tried: list[str] = []
+        joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recording,
+                                        joints, detections, config, fit, tried)
+        if not (off := joint.most_off(joint_fit[0], notes, config.max_reduced_chi2)):
+            break
+        chosen = replace(chosen, estimate=(*chosen.estimate, off))  # estimated in every solve from the start on
+        fit = partial(fit, estimate=chosen.estimate)
+        chosen = replace(chosen, solution=_refit(chosen, chosen.matched, fit))
+    if chosen.unjudged:
+        chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recording, joints, detections, config, fit, notes)
+    notes.extend(tried)
+    return chosen, fit, joint_fit
+
+
+def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surfaces.Surface],
+                                                          surfaces.SurfaceReturns | None],
+                    recording: Recording, joints: JointStates, detections: Detections, config: CalibConfig,
+                    fit: Callable[..., Solution], notes: list[str]
+                    ) -> tuple[Alternative, tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None],
+                               list[str]]:
+    """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
+    not determine the DH parameters (one scan line per marker: there a wrong match cannot be told from a moved
+    marker, and a good marker can look moved), judged at the joint solution ``joint_fit``, whose surfaces determine
+    them: the blobs that disagree there (lrfcal.stages.association.inconsistent_blobs) left out and solved again, at
+    most
+    three times. Where no surface returns lie where the marker-only fit puts them (a wrong match can pull it far),
+    the joint solution starts from the marker-only fit without the blobs it finds disagreeing, and every blob is
+    judged from there. ``chosen`` with the blobs so kept, the joint result and its notes.
+
+    Raises:
+        CalibrationError: no surface returns to judge by, or blobs that still disagree after three are left out.
+    """
+    assoc, matched, start = chosen.assoc, chosen.matched, joint_fit[0]
+    if start is chosen.solution:  # no surface returns where the marker-only fit puts them: try it without the blobs
+        sol, kept = chosen.solution, (assoc, matched)  # it finds disagreeing, for a start only
+        for _ in range(3):
+            bad, why = association.inconsistent_blobs(kept[1], sol, chosen.markers, config.range_sigma_m)
+            if not bad.size:
+                break
+            kept = _without_blobs(*kept, bad, why)
+            sol = fit(kept[1], chosen.markers, sol.params, model="sphere", clock=chosen.clock,
+                      clock_offset_s=sol.clock_offset_s)
+            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recording, joints,
+                                             detections, config, fit, [])[0]) is not sol:
+                break
+    no_surfaces = CalibrationError(observability.unjudged_refusal(
+        _observability(chosen.solution), "the markers alone", "and no surface returns were found to add",
+        chosen.unjudged))
+    if start is chosen.solution or start.n_surface_returns == 0:
+        raise no_surfaces
+    for left_out in range(4):  # every round from that start: one with a wrong blob in can be far off
+        tried: list[str] = []
+        joint_fit = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recording, joints,
+                                        detections, config, fit, tried)
+        if joint_fit[0] is start:  # no surface returns for these blobs
+            raise no_surfaces
+        bad, why = association.inconsistent_blobs(matched, joint_fit[0], chosen.markers, config.range_sigma_m)
+        if not bad.size:
+            if not left_out:
+                notes.append(f"the marker-only fit disagreed with the marker map ({chosen.unjudged}); the joint "
+                             "solution with the surfaces does not (the markers alone do not determine the DH "
+                             "parameters here)")
+            break
+        if left_out == 3:
+            raise CalibrationError(observability.unjudged_refusal(  # what leads: the cause the data support
+                _observability(joint_fit[0]), "the markers and the surfaces they sit on", "",
+                f"{why.removesuffix(': left out')}, judged at the joint solution with the surfaces, after three "
+                "blobs were left out"))
+        notes.append(f"{why} (judged at the joint solution with the surfaces)")
+        assoc, matched = _without_blobs(assoc, matched, bad, why)
+    chosen = replace(chosen, assoc=assoc, matched=matched, unjudged="", solution=_refit(chosen, matched, fit))
+    return chosen, joint_fit, tried
+
+
+def _observability(sol: Solution) -> observability.Observability:
+    return observability.of_solution(sol.information, sol.information_names, sol.sigma[6:10], sol.params.dh.alpha)
+
+
+def _without_blobs(assoc: Association, matched: Observations, bad: np.ndarray, why: str
+                   ) -> tuple[Association, Observations]:
+    """``assoc`` and its ``matched`` returns with the blobs ``bad`` unassigned (``why``: what is wrong with them).
+
+    Raises:
+        CalibrationError: fewer than 4 markers remain.
+    """
+    b2m = assoc.blob_to_marker.copy()
+    b2m[bad] = -1
+    matched = matched.subset(b2m[matched.blob] >= 0)
+    if len(np.unique(matched.marker)) < 4:
+        raise CalibrationError(f"{why}; fewer than 4 markers remain")
+    return replace(assoc, blob_to_marker=b2m, n_matched=int((b2m >= 0).sum())), matched
+
+
+def _refit(chosen: Alternative, matched: Observations, fit: Callable[..., Solution]) -> Solution:
+    """``chosen``'s marker-only solution solved again for ``matched``, from itself."""
+    return fit(matched, chosen.markers, chosen.solution.params, model="sphere", clock=chosen.clock,
+               clock_offset_s=chosen.solution.clock_offset_s)
+
+
+def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig,
+              fit: Callable[..., Solution], notes: list[str]) -> Solution | None:
+    """The paper's method: the blob's brightest beam, the motor angle at the scan's stamp, point-to-centre residuals,
+    on the same detections and association (None, with a note, when it cannot run)."""
+    peaks = chosen.matched.subset(chosen.matched.is_peak)
+    lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
+    peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
+    try:
+        return fit(peaks, chosen.markers, chosen.start, model="paper")
+    except CalibrationError as err:
+        notes.append(f"the paper's method could not be run: {err}")
+        return None
+
+
+def _marker_solution(
+    sign: int, start_dh: DH, assoc: Association | None, markers: MarkerMap, returns: Observations,
+    joints: JointStates, nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+) -> Alternative:
+    """Start, observability check and marker-only solve for one direction of the servo (``returns`` with their
+    motor angles already signed), from the association made with ``start_dh``.
+
+    Raises CalibrationError when the blobs could not be matched, when the data do not determine the DH parameters
+    (judged at the start, before any solver runs), or when blobs disagree with the marker map beyond repair.
+    """
+    if assoc is None:
+        raise _NoMatch("association: no alignment of the blobs with the marker map (check the tape "
+                               "distances' file and unit, and the marker radius)")
+    if sign < 0:
+        joints = _negated(joints)
+    if assoc.mirrored:
+        markers = association.unmirror(markers)
+    matched = _with_markers(returns, assoc.blob_to_marker)
+    n_matched = len(np.unique(matched.marker))
+    if n_matched < 4:
+        raise _NoMatch(
+            f"only {n_matched} markers matched to detections (need >= 4); alignment RMS {assoc.rms_m * 1000:.1f} mm"
+        )
+    start = Params(Pose.from_matrix(assoc.T_W_M), start_dh)  # 5.
+    motor = MotorClock.from_joints(joints) if estimate_clock else None
+    info, names = information_at(matched, markers.positions_W, start, model="sphere",
+                                       marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
+                                       clock=motor, clock_offset_s=config.clock_offset_s,
+                                       beam_divergence_rad=nominal.beam_divergence_rad, sides=False)
+    obs = observability.analyse(info, names, start.dh.alpha)
+    if not obs.determined:
+        raise CalibrationError(
+            f"the recording does not determine {', '.join(obs.undetermined) or 'the DH parameters'} "
+            f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
+            f"{obs.hint()}"
+        )
+    fit = partial(fit, held_scores=tuple(joint.SCALES))  # the scales' score tests read this solution (and re-solves)
+    sol = fit(matched, markers, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
+    notes: list[str] = []
+    estimate: tuple[str, ...] = ()
+    while off := joint.most_off(sol, notes, config.max_reduced_chi2):  # before any marker is judged moved: a range
+        estimate = (*estimate, off)                              # scale moves every far marker from its tape position
+        fit = partial(fit, estimate=estimate)
+        sol = fit(matched, markers, sol.params, model="sphere", clock=motor, clock_offset_s=sol.clock_offset_s)
+    # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
+    # that is not where the tape puts it: unassign them and solve again
+    for _ in range(3):  # a blob matched wrongly, or a marker that is not where the tape puts it: out, and again
+        bad, why = association.inconsistent_blobs(matched, sol, markers, config.range_sigma_m)
+        if not bad.size:
+            break
+        if not observability.within_limits(sol.sigma[6:10]):  # its residuals cannot tell: the joint solution will
+            return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate,
+                               unjudged=why.removesuffix(": left out"))
+        notes.append(why)
+        assoc, matched = _without_blobs(assoc, matched, bad, why)
+        sol = fit(matched, markers, sol.params, model="sphere", clock=motor,
+                  clock_offset_s=sol.clock_offset_s)
+    return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate)
+
+
+def _attempt(returns: Observations, detections: Detections, markers: MarkerMap, dh: DH, radius_m: float,
+             config: CalibConfig) -> Association | None:
+    """Stage 4 with the blob centres reprojected with ``dh``; None when nothing matches."""
+    centres = detection.blob_centres_M(returns, dh, radius_m, n_blobs=len(detections.blobs))
+    try:
+        return association.associate(centres, markers, gate_m=config.association_gate_m)
+    except CalibrationError:
+        return None
+
+
+def _associate_nominal(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
+                       config: CalibConfig) -> Association | None:
+    return _attempt(returns, detections, markers, nominal.dh, nominal.marker_radius_m, config)
+
+
+#: the share of the blobs an association matches for it to be the rig's (:func:`_good`, :func:`_associate_search`)
+MOST_BLOBS = 0.9
+
+
+def _matches_most(assoc: Association, returns: Observations) -> bool:
+    """Whether an association matches most blobs (MOST_BLOBS of them)."""
+    return assoc.n_matched >= MOST_BLOBS * len(np.unique(returns.blob))
+
+
+def _good(assoc: Association, returns: Observations, config: CalibConfig) -> bool:
+    """An association that leaves nothing to search for: most blobs matched, tight alignment."""
+    return _matches_most(assoc, returns) and assoc.rms_m <= 0.25 * config.association_gate_m
+
+
+def _associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
+                      config: CalibConfig, from_nominal: Association | None, every_attitude: bool = True
+                      ) -> tuple[DH, Association | None]:
+    """The association from the candidates of the correspondence-free DH search (lrfcal.stages.start) or from the
+    nominal
+    DH, the best by (matched blobs, alignment RMS); returns the DH it used and the association (None: none). The
+    search covers the basin around the nominal first, and every attitude of the scan plane (the coarse global start)
+    when no candidate there matches most blobs: a nominal DH far from the rig's is then found, not landed on. (An
+    association that matches most blobs loosely, e.g. with a marker moved after taping, is the rig's: the solve
+    refines it, and the global search, seconds with many blobs, would find nothing better.) ``every_attitude``
+    False: the basin only (the servo's other direction, once the declared one has a solution)."""
+    best_dh, best = nominal.dh, from_nominal
+    for span in (start.ANGLE_SPAN_RAD, start.GLOBAL_SPAN_RAD) if every_attitude else (start.ANGLE_SPAN_RAD,):
+        for dh in start.dh_candidates(returns, len(detections.blobs), markers, nominal.dh, nominal.marker_radius_m,
+                                      span_rad=span):
+            found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
+            if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
+                best_dh, best = dh, found
+        if best is not None and _matches_most(best, returns):
+            break
+    return best_dh, best
+
+
+def _negated(joints: JointStates) -> JointStates:
+    return JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
+
+
+def _with_markers(returns: Observations, blob_to_marker: np.ndarray) -> Observations:
+    """Label every return with its blob's marker and keep the labelled ones."""
+    labelled = _replace(returns, marker=np.asarray(blob_to_marker)[returns.blob])
+    return labelled.subset(labelled.marker >= 0)
+
+
+def _replace(obs: Observations, **arrays: np.ndarray) -> Observations:
+    fields = {k: getattr(obs, k) for k in obs.__dataclass_fields__}
+    fields.update(arrays)
+    return Observations(**fields)
+
+
+#: The stages of a calibration with markers in the order they run, as reported to ``progress`` and in
+#: CalibrationResult.timings_s.
+STAGES: tuple[str, ...] = ("mds", "detection", "timing", "association", "solve", "surfaces", "baseline",
+                           "reprojection", "geometry")
+
+
+__all__ = ["STAGES", "Alternative", "fit_markers"]

@@ -1,0 +1,295 @@
+"""A coarse DH proposal from a recording alone (``lrfcal inspect``): the scan plane's attitude to the motor axis
+(alpha, beta) and its offsets (a, b) that make the scene's planes planar, with the proposal's own uncertainty.
+
+The search reuses the targetless calibration's machinery (lrfcal.stages.targetless: the returns' subsample, the planes
+segmented in the cloud at the current DH with grazing and edge returns left out; lrfcal.estimate.solve.solve_planes:
+every
+plane return a ray-plane range residual, planes free). It is started from every combination of
+:data:`START_ALPHA_DEG`, :data:`START_BETA_DEG` and :data:`START_B_M` (a = 0), each with its own subsample of
+returns to segment the planes on, and each start is solved for all four DH parameters with a weak prior around
+the start (:data:`PRIOR_SIGMA`: it keeps a and b from running off where the scene hardly constrains them), a few
+rounds of segment-and-solve (the planes re-segmented with the new estimate). A start that loses its planes, or
+whose offsets leave the plausible range (:data:`MAX_OFFSET_M`), is dropped.
+
+Flatness cannot tell a cloud from its mirror image or from itself turned, so each candidate is first brought to
+one representative of the DH that give the same cloud up to a rigid motion and a mirror (:func:`canonical`):
+
+- (a, -alpha, -b, beta) is the cloud mirrored in the motor frame's xy plane, so alpha is proposed in [0, 180] deg;
+- (-a, alpha, -b, beta + 180 deg) is the same cloud mirrored and turned, so b is proposed >= 0;
+- a negated motor angle (``servo.sign: -1``) with alpha - 180 deg gives the same cloud turned about x_M: the sign of
+  the motor angle is therefore not a separate unknown for the planes; the proposal keeps the servo's declared sign.
+
+The candidates are then grouped by attitude (alpha within :data:`AGREE_ALPHA_DEG`, beta within
+:data:`AGREE_BETA_DEG`, modulo the 180 deg of the second equivalence); the largest group must hold at least
+:data:`MIN_AGREEING` candidates and half of those that converged, else the scene does not determine a proposal
+(too few planes, or ambiguous). The proposal is the group's median; each value's 1-sigma is the larger of the
+group's spread (1.4826 x the median absolute deviation, a bootstrap over starts and subsamples) and the median of
+the solves' own 1-sigma (scaled by the square root of their reduced chi-square). A value whose 1-sigma exceeds
+:data:`DETERMINED` is named as not determined by the scene (its value is the search's best guess, not a
+measurement).
+
+The starts are independent: they are solved in groups on the machine's cores, the first group in this process and
+the others in forked children (lrfcal.runtime.forked), and collected in start order, so the proposal does not depend on
+how
+many cores there are.
+
+Array shapes: K returns.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from functools import partial
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.config import CalibConfig
+from lrfcal.errors import CalibrationError
+from lrfcal.estimate import solve
+from lrfcal.io.bag import BagData
+from lrfcal.io.rig import is_placeholder_dh
+from lrfcal.model.kinematics import DH, Params, dh_twins
+from lrfcal.model.motor import MotorClock
+from lrfcal.model.unknowns import wrap_pi
+from lrfcal.runtime.forked import call_forked, cores
+from lrfcal.stages import targetless
+from lrfcal.stages.surfaces import hash_sample
+from lrfcal.stages.timing import usable_scans
+from lrfcal.types import JointStates, Nominal, Recording, Scans
+
+FloatArray = NDArray[np.float64]
+NAMES = ("a", "alpha", "b", "beta")
+#: the starts of the search: every combination (a = 0)
+START_ALPHA_DEG = (45.0, 90.0, 135.0)
+START_BETA_DEG = (-90.0, 0.0)  # beta + 180 deg with (a, b) negated is the same cloud mirrored (module docstring)
+START_B_M = (0.0, 0.1)
+#: the weak prior around each start (a, alpha, b, beta) [m, rad]
+PRIOR_SIGMA = (0.05, math.radians(30.0), 0.10, math.radians(30.0))
+#: segment-and-solve rounds per start; the first round's inlier half-width [m]
+ROUNDS = 3
+#: the starts are solved in at most this many groups at once, one per core (the first in this process)
+MAX_GROUPS = 4
+START_THICKNESS_M = 0.04
+#: returns sampled for the solves, and the subsample each start segments its planes on
+FIT_RETURNS = 12000
+SEGMENT_RETURNS = 8000
+#: range noise assumed by the solves [m] (the solves' chi-square scales their sigma)
+RANGE_SIGMA_M = 0.01
+#: a candidate whose |a| or |b| goes beyond this ran off [m]
+MAX_OFFSET_M = 0.3
+#: the least motor turn a proposal needs [rad]
+MIN_TURN_RAD = math.radians(10.0)
+#: candidates agree on the attitude within these [deg]; the fewest agreeing candidates for a proposal
+AGREE_ALPHA_DEG = 15.0
+AGREE_BETA_DEG = 20.0
+MIN_AGREEING = 3
+#: a group smaller than this gives each value's spread as the larger of the MAD's and the standard deviation
+SMALL_GROUP = 5
+#: a proposed value whose 1-sigma exceeds this is not determined by the scene [m, rad]
+DETERMINED = {"a": 0.05, "alpha": math.radians(10.0), "b": 0.05, "beta": math.radians(15.0)}
+
+
+@dataclass(frozen=True)
+class DHProposal:
+    """The search's outcome: ``dh`` the proposal (None: the scene does not determine one, ``reason`` says why),
+    ``sigma`` each value's 1-sigma [m, rad], the candidates that converged and those agreeing with the proposal,
+    and the search's run time [s]."""
+
+    dh: DH | None
+    sigma: dict[str, float] = field(default_factory=dict)
+    n_converged: int = 0
+    n_agreeing: int = 0
+    n_starts: int = 0
+    reason: str = ""
+    seconds: float = 0.0
+    #: the agreeing candidates themselves (canonical), in start order: starts for lrfcal.stages.starts
+    agreeing: tuple[DH, ...] = ()
+
+    @property
+    def undetermined(self) -> tuple[str, ...]:
+        """The proposed values whose 1-sigma exceeds :data:`DETERMINED`."""
+        return tuple(n for n in NAMES if not self.sigma.get(n, math.inf) <= DETERMINED[n])
+
+    def comment(self) -> str:
+        """One comment line for the rig file: what the values are and each one's uncertainty (or why there is no
+        proposal)."""
+        if self.dh is None:
+            return f"# dh: not proposed: {self.reason}; fill in from the drawings (m, rad; docs/formats.md)"
+        s = self.sigma
+        parts = [f"a +-{s['a'] * 1000:.1f} mm", f"alpha +-{math.degrees(s['alpha']):.2f} deg",
+                 f"b +-{s['b'] * 1000:.1f} mm", f"beta +-{math.degrees(s['beta']):.2f} deg"]
+        undet = self.undetermined
+        tail = f"; not determined by the scene: {', '.join(undet)}" if undet else ""
+        return (f"# dh: proposed from the scene's planes, not measured ({self.n_agreeing} of {self.n_starts} search "
+                f"starts agree; 1-sigma {', '.join(parts)}{tail}; the same planes: -alpha with -b, or -a, -b with "
+                "beta + 180 deg); check against the drawings")
+
+    def values(self) -> dict[str, float] | None:
+        """The proposal as the rig file's dh (m, rad; rounded to 0.1 mm and 0.001 rad), None without one."""
+        if self.dh is None:
+            return None
+        d = self.dh
+        return {"a": round(d.a, 4), "alpha": round(d.alpha, 4), "b": round(d.b, 4), "beta": round(d.beta, 4)}
+
+
+def canonical(dh: DH) -> DH:
+    """The representative of the DH parameters that give the same cloud up to a rigid motion and a mirror (the
+    chain's twins, lrfcal.model.kinematics.dh_twins): alpha in [0, pi], b >= 0, beta in (-pi, pi]."""
+    wrapped = DH(a=dh.a, alpha=float(wrap_pi(dh.alpha)), b=dh.b, beta=float(wrap_pi(dh.beta)))
+    for d in (wrapped, *(twin for _, twin, _ in dh_twins(wrapped))):
+        if 0.0 <= d.alpha <= math.pi and d.b >= 0.0:
+            return DH(a=d.a, alpha=d.alpha, b=d.b, beta=float(wrap_pi(d.beta)))
+    raise AssertionError("one of the four twins has alpha in [0, pi] and b >= 0")
+
+
+def motor_turn_rad(joints: JointStates) -> float:
+    """How far the motor turns over the recording [rad] (the range of its angle)."""
+    p = np.asarray(joints.positions_rad, dtype=float)
+    p = p[np.isfinite(p)]
+    return float(p.max() - p.min()) if p.size else 0.0
+
+
+def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int], None] | None = None) -> DHProposal:
+    """Search the DH parameters that make the scene's planes planar (module docstring). ``scans``: the scans the
+    joint states cover; ``progress(done, total)`` after every start."""
+    t0 = time.perf_counter()
+    turn = motor_turn_rad(joints)
+    starts = [DH(a=0.0, alpha=math.radians(al), b=b, beta=math.radians(be))
+              for al in START_ALPHA_DEG for be in START_BETA_DEG for b in START_B_M]
+    if turn < MIN_TURN_RAD:
+        return DHProposal(None, reason=f"the motor turns only {math.degrees(turn):.1f} deg (a proposal needs "
+                          f"{math.degrees(MIN_TURN_RAD):g}): the cloud is nearly one scan plane, whose flatness says "
+                          "nothing about the DH", n_starts=len(starts), seconds=time.perf_counter() - t0)
+    config = CalibConfig()
+    beams = targetless.sample_returns(scans, FIT_RETURNS)
+    motor = MotorClock.from_joints(joints)
+    n_groups = max(1, min(cores(), MAX_GROUPS, len(starts)))
+
+    def group(g: int) -> list[tuple[int, tuple[DH, FloatArray] | None]]:
+        """the starts g, g + n_groups, ... solved (progress from the first group, which runs in this process)"""
+        out = []
+        for k in range(g, len(starts), n_groups):
+            seg = hash_sample(beams.scan, beams.beam, SEGMENT_RETURNS, seed=100 + k)
+            out.append((k, _candidate(beams, seg, motor, starts[k], config)))
+            if progress is not None and g == 0:
+                progress(min(len(starts) - 1, len(out) * n_groups), len(starts))
+        return out
+
+    # the starts are independent: solved in groups on the cores (lrfcal.runtime.forked), collected in start order
+    solved = sorted(kc for part in call_forked({str(g): partial(group, g) for g in range(n_groups)}).values()
+                    for kc in part)
+    if progress is not None:
+        progress(len(starts), len(starts))
+    found = [cand for _, cand in solved if cand is not None]
+    out = _consensus(found, len(starts))
+    return DHProposal(out.dh, out.sigma, out.n_converged, out.n_agreeing, len(starts), out.reason,
+                      time.perf_counter() - t0, out.group)
+
+
+def propose_for_recording(scans: Scans, joints: JointStates,
+                          progress: Callable[[int, int], None] | None = None) -> DHProposal:
+    """:func:`propose_dh` on a recording as read (every scan, every joint state): the scans the joint states cover
+    and interpolate well enough (lrfcal.stages.timing.usable_scans, as a calibration takes them); a recording whose
+    motor
+    angle cannot be interpolated gets no proposal, and the reason."""
+    placeholder = Nominal(dh=DH(a=0.0, alpha=0.0, b=0.0, beta=0.0))
+    try:
+        covered, joints = usable_scans(Recording(scans=scans, joints=joints, tape=None, nominal=placeholder), 0.0, [],
+                                       RANGE_SIGMA_M)
+    except CalibrationError as err:
+        return DHProposal(None, reason=str(err))
+    return propose_dh(covered, joints, progress)
+
+
+def proposed_dh(data: BagData | None, dh: dict[str, float] | None, propose: bool,
+                progress: Callable[[int, int], None] | None = None) -> DHProposal | None:
+    """``lrfcal inspect``'s proposal: the DH from the recording's planes when none were given (``dh`` None or the
+    placeholder) and ``propose``; None when not searched. Without ``data`` (the recording could not be read) the
+    proposal says so."""
+    if not propose or (dh and not is_placeholder_dh(dh)):
+        return None
+    if data is None:
+        return DHProposal(None, reason="the recording could not be read (see the problems)")
+    return propose_for_recording(data.scans, data.joints, progress)
+
+
+def _candidate(beams: targetless.Beams, seg: NDArray[np.int64], motor: MotorClock, start: DH, config: CalibConfig
+               ) -> tuple[DH, FloatArray] | None:
+    """One start solved: the canonical DH and its 1-sigma (4,) scaled by sqrt(reduced chi-square), or None when the
+    planes are lost, the solve fails or the offsets run off."""
+    prior = (start.vector(), np.array(PRIOR_SIGMA))
+    dh, thickness = start, START_THICKNESS_M
+    sol = None
+    for _ in range(ROUNDS):
+        returns, _, planes = targetless.plane_returns_at(beams, seg, motor, dh, 0.0, thickness, config)
+        if len(planes) < 2 or len(returns) < 300:
+            return None
+        try:
+            sol = solve.solve_planes(returns, Params(targetless.MOTOR_FRAME, dh), range_sigma_m=RANGE_SIGMA_M,
+                                     dh_prior=prior)
+        except (CalibrationError, np.linalg.LinAlgError):
+            return None
+        dh = sol.params.dh
+        thickness = max(0.015, 4.0 * RANGE_SIGMA_M * math.sqrt(max(1.0, sol.reduced_chi2)))
+    assert sol is not None
+    sigma = np.asarray(sol.sigma[6:10], dtype=float) * math.sqrt(max(1.0, sol.reduced_chi2))
+    if not sol.converged or max(abs(dh.a), abs(dh.b)) > MAX_OFFSET_M or not np.all(np.isfinite(sigma)):
+        return None
+    return canonical(dh), sigma
+
+
+@dataclass(frozen=True)
+class _Consensus:
+    dh: DH | None
+    sigma: dict[str, float]
+    n_converged: int
+    n_agreeing: int
+    reason: str
+    group: tuple[DH, ...] = ()
+
+
+def _aligned(ref: DH, dh: DH) -> FloatArray:
+    """``dh`` as (a, alpha, b, beta), turned to the representative nearest ``ref`` in beta ((-a, -b, beta + pi) is
+    the same cloud), beta unwrapped about ref's."""
+    a, b, beta = dh.a, dh.b, dh.beta
+    if abs(float(wrap_pi(beta - ref.beta))) > math.pi / 2:
+        a, b, beta = -a, -b, beta + math.pi
+    return np.array([a, dh.alpha, b, ref.beta + float(wrap_pi(beta - ref.beta))])
+
+
+def _consensus(found: list[tuple[DH, FloatArray]], n_starts: int) -> _Consensus:
+    """The largest group of candidates agreeing on the attitude, its median and spread (module docstring)."""
+    n = len(found)
+    if n < MIN_AGREEING:
+        return _Consensus(None, {}, n, 0, f"only {n} of {n_starts} search starts kept their planes (need "
+                          f"{MIN_AGREEING}): the scene shows too few planes")
+    al = np.array([d.alpha for d, _ in found])
+    be = np.array([d.beta for d, _ in found])
+    d_al = np.abs(al[:, None] - al[None, :])
+    d_be = np.abs(wrap_pi(2.0 * (be[:, None] - be[None, :]))) / 2.0  # beta modulo 180 deg
+    agree = (d_al <= math.radians(AGREE_ALPHA_DEG)) & (d_be <= math.radians(AGREE_BETA_DEG))
+    size = agree.sum(1)
+    best = int(np.argmax(size + 1e-3 * -np.median(np.abs(d_al), axis=1)))  # ties: the most central
+    group = np.flatnonzero(agree[best])
+    if group.size < MIN_AGREEING or 2 * group.size < n:
+        alphas = ", ".join(f"{math.degrees(a):.0f}" for a in sorted(al))
+        return _Consensus(None, {}, n, int(group.size), f"ambiguous: the {n} converged search starts do not agree on "
+                          f"the scan plane's attitude (alpha {alphas} deg; the largest group {group.size})")
+    X = np.array([_aligned(found[best][0], found[i][0]) for i in group])
+    med = np.median(X, axis=0)
+    spread = 1.4826 * np.median(np.abs(X - med), axis=0)
+    if group.size < SMALL_GROUP:  # the MAD of a few values can hide one far off: their standard deviation too
+        spread = np.maximum(spread, np.std(X, axis=0, ddof=1))
+    own = np.median(np.array([found[i][1] for i in group]), axis=0)
+    sigma = np.maximum(spread, own)
+    dh = canonical(DH(a=float(med[0]), alpha=float(med[1]), b=float(med[2]), beta=float(med[3])))
+    return _Consensus(dh, dict(zip(NAMES, (float(s) for s in sigma), strict=True)), n, int(group.size), "",
+                      tuple(found[i][0] for i in group))
+
+
+__all__ = ["DETERMINED", "DHProposal", "canonical", "motor_turn_rad", "propose_dh", "propose_for_recording",
+           "proposed_dh"]

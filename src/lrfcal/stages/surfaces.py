@@ -1,0 +1,376 @@
+"""Stage 6b: the surfaces the markers are mounted on, and the ordinary (non-marker) returns from them.
+
+The paper's markers sit on planar surfaces: the board of its Gazebo study, the walls of the tunnel. A sphere of
+radius R stuck on a plane has its centre R in front of it, so the plane is known in W from the MDS coordinates:
+the plane through a coplanar group of marker centres, moved back by R (away from the sensor). Every beam that
+hits that surface near the markers is then an observation too, a range residual against the ray-plane distance,
+and there are hundreds of such beams per marker return.
+
+Candidate planes are fitted through the marker centres (greedy RANSAC, >= 5 markers, not collinear) and kept only
+if the reprojected cloud confirms them: most of the returns in a slab around the candidate, inside the markers'
+extent, must lie on it. This rejects virtual planes through parallel lines of markers on different walls (the
+two V arms of the tunnel_v layout are such a pair).
+
+Which returns are used is decided by where each beam's RAY meets the plane at the current estimate (inside the
+markers' extent, clear of the markers), never by its measured point: the measured point carries the range noise
+along the ray, so at the far edge of the extent, where the rays meet the plane obliquely, a selection by it keeps
+the returns that read short and drops those that read long. That selection was the cause of a Monte-Carlo bias
+of 1.2-1.7 sigma in a and beta on tunnel_v and of 0.5-0.7 sigma in alpha and b on plane_30deg (issue 10;
+``lrfsim study``). Returns beyond 80 deg of incidence are left out: a real beam's footprint is stretched along the
+surface as 1 / cos(incidence) and its mixed range reads short there (the simulator's 7 sub-rays against its centre
+ray alone, tunnel_v walls, no noise: < 0.03 mm below 70 deg, 0.04-0.11 mm at 70-80 deg, 0.6 mm on average at
+80-85 deg). A gate at 65 deg, tried, removed no bias but half the information on alpha of tunnel_v, whose walls
+are seen obliquely.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from lrfcal.model.kinematics import Params, beam_rays_W, points_W
+from lrfcal.model.scanner import true_returns
+from lrfcal.model.unknowns import core_vector
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+#: surface returns whose ray meets the plane more obliquely than this (angle between the ray and the plane's
+#: normal) are not used (module docstring)
+MAX_INCIDENCE_RAD = math.radians(80.0)
+#: a return whose point lies farther than this from a surface is not one of its returns
+_GATE_M = 0.03
+#: the returns are chosen again at the joint estimate when it moves a return's point along its surface's normal by
+#: more than this from where the choice saw it (:func:`moved_m`), at most ROUNDS choices in all: the gate cuts the
+#: range noise's tails about the plane where the estimate that chose them puts it, so a choice made at a start some
+#: centimetres off (a marker-only fit the markers do not determine: one scan line per marker) keeps the returns that
+#: agree with that start (a fast one-pass sweep of tunnel_v, 36 random noises: RMS of error / sigma 1.43, 1.66,
+#: 1.18, 1.42 for a, alpha, b, beta with one choice)
+RESELECT_M = 0.002
+ROUNDS = 3
+
+
+@dataclass(frozen=True)
+class Surface:
+    """A marker-carrying plane in W: n . p = offset_m (n unit, pointing away from the sensor), its markers, and
+    the markers' extent in the plane (2 axes (2, 3), centre (3,), lower/upper bounds (2,) in m).
+
+    prior_sigma (3,): how well the markers fix the plane: tilts (rad) towards axes[0] and axes[1], and the
+    offset (m). The solver treats the plane as a nuisance with this prior, not as exactly known.
+    prior_jacobian (3, 3n): how the prior's mean (those tilts and the offset) moves with the n markers' coordinates
+    (:func:`plane_prior_jacobian`; None when the plane is not the markers'), for the marker map's own uncertainty.
+    """
+
+    normal: FloatArray
+    offset_m: float
+    marker_idx: IntArray
+    axes: FloatArray
+    centre: FloatArray
+    lower: FloatArray
+    upper: FloatArray
+    prior_sigma: FloatArray
+    prior_jacobian: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class SurfaceReturns:
+    """Non-marker returns on the surfaces (K2 rows): scan, beam indices; lambda_rad, mu_rad, ranges_m; the
+    surface index of each; normals (K2, 3) and offsets (K2,) of their planes in W; times_s (K2,) their beam times
+    on the laser clock (None when unknown)."""
+
+    scan: IntArray
+    beam: IntArray
+    lambda_rad: FloatArray
+    mu_rad: FloatArray
+    ranges_m: FloatArray
+    surface: IntArray
+    normals: FloatArray
+    offsets_m: FloatArray
+    times_s: FloatArray | None = None
+
+    def __len__(self) -> int:
+        return int(self.ranges_m.size)
+
+    def subset(self, mask: NDArray[np.bool_]) -> SurfaceReturns:
+        return SurfaceReturns(**{k: None if getattr(self, k) is None else getattr(self, k)[mask]
+                                 for k in self.__dataclass_fields__})
+
+
+def hash_key(scan: IntArray, beam: IntArray, seed: int = 0) -> NDArray[np.uint64]:
+    """The hash of every (scan, beam) pair (K,) (salted by seed) that :func:`hash_sample` ranks them by."""
+    return (np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761) + np.asarray(beam, dtype=np.uint64)
+            * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) % np.uint64(1 << 31)
+
+
+def hash_sample(scan: IntArray, beam: IntArray, n: int, seed: int = 0) -> IntArray:
+    """Indices of an even subsample of at most n of the (scan, beam) pairs (K,), chosen by a hash of the pair
+    (salted by seed), in their original order."""
+    K = len(scan)
+    if n >= K:
+        return np.arange(K)
+    return np.sort(np.argsort(hash_key(scan, beam, seed), kind="stable")[:n])
+
+
+def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
+                     n_trials: int = 400) -> list[tuple[FloatArray, float, IntArray]]:
+    """Planes through >= ``min_markers`` marker centres (within ``tol_m``), largest first: (n, offset, idx)."""
+    X = np.asarray(markers_W, dtype=float)
+    rng = np.random.default_rng(seed)
+    out: list[tuple[FloatArray, float, IntArray]] = []
+    seen: set[tuple[int, ...]] = set()
+    idx = np.array([rng.choice(len(X), 3, replace=False) for _ in range(n_trials)]).reshape(-1, 3)
+    # every trial's plane at once: the normals (T, 3) and which markers lie within tol_m of each (T, n)
+    normals = np.cross(X[idx[:, 1]] - X[idx[:, 0]], X[idx[:, 2]] - X[idx[:, 0]])
+    norms = np.linalg.norm(normals, axis=1)
+    unit = normals / np.where(norms < 1e-4, 1.0, norms)[:, None]
+    near = np.abs(np.einsum("tnk,tk->tn", X[None, :, :] - X[idx[:, 0]][:, None, :], unit)) < tol_m
+    for t in np.flatnonzero(norms >= 1e-4):
+        members = np.flatnonzero(near[t])
+        key = tuple(members.tolist())
+        if members.size < min_markers or key in seen:
+            continue
+        seen.add(key)
+        P = X[members]
+        c = P.mean(0)
+        _, s, Vt = np.linalg.svd(P - c)
+        if s[1] < 0.1 * s[0]:  # collinear markers do not fix a plane
+            continue
+        out.append((Vt[2], float(Vt[2] @ c), members))
+    out.sort(key=lambda p: -p[2].size)
+    return out
+
+
+def find_surfaces(
+    markers_W: FloatArray, radius_m: float, sensor_W: FloatArray, cloud_W: FloatArray, *,
+    position_sigma_m: float = 0.001, mounting_sigma_m: float = 0.0005,
+    margin_m: float = 0.05, slab_m: float = 0.3, on_plane_m: float = 0.03, min_support: float = 0.6,
+) -> list[Surface]:
+    """Marker planes confirmed by the cloud, moved R away from the sensor; disjoint in their markers.
+
+    Args:
+        markers_W: (n, 3) marker centres; radius_m: their radius; sensor_W: (3,) a point on the sensor side
+        (the motor frame's origin); cloud_W: (P, 3) reprojected returns (a subsample is enough).
+        position_sigma_m: uncertainty of a marker's MDS coordinates; mounting_sigma_m: of a sphere's contact
+        with the surface. With n markers spread by s_i along the plane's axes, the prior is
+        tilt_i ~ position_sigma / (s_i sqrt(n)), offset ~ sqrt(position_sigma^2 / n + mounting_sigma^2).
+    """
+    X = np.asarray(markers_W, dtype=float)
+    used: set[int] = set()
+    surfaces: list[Surface] = []
+    for n, off, members in candidate_planes(X):
+        if used & set(members.tolist()):
+            continue
+        if n @ sensor_W > off:  # orient the normal away from the sensor
+            n, off = -n, -off
+        P = X[members]
+        c = P.mean(0)
+        axes = np.linalg.svd(P - c)[2][:2]
+        q = (P - c) @ axes.T
+        lower, upper = q.min(0) - margin_m, q.max(0) + margin_m
+        k = members.size
+        prior = np.array([*(position_sigma_m / (q.std(0) * np.sqrt(k))),
+                          np.sqrt(position_sigma_m**2 / k + mounting_sigma_m**2)])
+        surface = Surface(n, off + radius_m, members, axes, c, lower, upper, prior,
+                          plane_prior_jacobian(n, axes, c, q, members, len(X)))
+        near = cloud_W[np.abs(cloud_W @ surface.normal - surface.offset_m) < slab_m]  # the slab, any extent
+        dist, inside = _in_extent(surface, near)
+        slab = dist[inside]
+        if slab.size < 50 or np.count_nonzero(np.abs(slab) < on_plane_m) < min_support * slab.size:
+            continue
+        surfaces.append(surface)
+        used |= set(members.tolist())
+    return surfaces
+
+
+def plane_prior_jacobian(normal: FloatArray, axes: FloatArray, centre: FloatArray, q: FloatArray,
+                         members: IntArray, n_markers: int) -> FloatArray:
+    """(3, 3 n_markers): the derivative of a marker plane's (u1, u2, offset) (the nuisances of
+    lrfcal.model.unknowns.PlaneSet about this plane: m = n + u1 axes[0] + u2 axes[1]) with respect to the markers'
+    coordinates. The plane is the least-squares fit through its members (in-plane coordinates q (k, 2) about their
+    centroid ``centre``): moving member i along the normal by h_i tilts it by g = P h, P = (Q^T Q)^-1 Q^T, and
+    lifts it by mean(h), so u_l = -g_l and offset = n . centre + mean(h) - g . (axes centre); moves within the
+    plane change nothing to first order."""
+    P = np.linalg.pinv(q)  # (2, k)
+    d_offset = 1.0 / len(members) - P.T @ (axes @ centre)  # (k,)
+    J = np.zeros((3, n_markers, 3))
+    J[0, members] = -P[0][:, None] * normal
+    J[1, members] = -P[1][:, None] * normal
+    J[2, members] = d_offset[:, None] * normal
+    return J.reshape(3, 3 * n_markers)
+
+
+def _in_extent(surface: Surface, points_W: FloatArray) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """Signed distances (P,) of points to the surface and whether they project inside the markers' extent."""
+    dist = points_W @ surface.normal - surface.offset_m
+    q = (points_W - surface.centre) @ surface.axes.T
+    return dist, np.all((q >= surface.lower) & (q <= surface.upper), axis=1)
+
+
+def surface_returns(
+    surfaces: list[Surface], points_W: FloatArray, scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
+    mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = _GATE_M,
+    marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0, times_s: FloatArray | None = None,
+    rays_W: tuple[FloatArray, FloatArray] | Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = None,
+    max_incidence_rad: float = MAX_INCIDENCE_RAD,
+) -> SurfaceReturns:
+    """The returns (rows of the P inputs) on the surfaces, away from markers, at most ``max_returns`` (an even
+    random subsample). points_W (P, 3) are the returns reprojected with the current parameters.
+
+    rays_W: the returns' beam origins (P, 3) and unit directions (P, 3) with the same parameters, or a function of
+    row indices (k,) giving theirs. Given, a return is judged by where its ray meets the plane, not by its measured
+    (noisy) point: inside the markers' extent and ``marker_clearance_m`` from every marker (a selection by the
+    measured point keeps, at the far edge of the extent, the returns that read short and drops those that read
+    long: a bias); and returns whose incidence (the angle between the ray and the plane's normal) exceeds
+    ``max_incidence_rad`` are left out. Without it, the measured points decide and every incidence is kept.
+
+    The subsample is the ``max_returns`` accepted returns of lowest :func:`hash_key` (ties: surface by surface, in
+    row order), as :func:`hash_sample` of all the accepted ones would choose; the candidates within ``gate_m`` of a
+    surface are judged in that order, in batches, until enough are accepted, so the rays of most are never needed."""
+    tree = cKDTree(np.asarray(markers_W))
+    cos_max = math.cos(max_incidence_rad)
+    rays = (lambda i: (rays_W[0][i], rays_W[1][i])) if isinstance(rays_W, tuple) else rays_W
+    # every (row, surface) candidate, surface by surface in row order: the order of the ties
+    cand = [np.flatnonzero(np.abs(points_W @ s.normal - s.offset_m) < gate_m) for s in surfaces]
+    rows = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
+    which = np.concatenate([np.full(c.size, k) for k, c in enumerate(cand)]) if cand else np.zeros(0, dtype=np.int64)
+    order = np.argsort(hash_key(np.asarray(scan)[rows], np.asarray(beam)[rows], seed), kind="stable")
+    accepted: list[IntArray] = []
+    n_acc, batch = 0, max(4 * max_returns, 1024)
+    for b0 in range(0, order.size, batch):
+        pos = order[b0:b0 + batch]  # positions in (rows, which), in hash order
+        ok = np.zeros(pos.size, dtype=bool)
+        o = d = None
+        if rays is not None:
+            o, d = rays(rows[pos])
+        for k, s in enumerate(surfaces):
+            m = np.flatnonzero(which[pos] == k)
+            if rays is None or o is None or d is None:
+                at = points_W[rows[pos[m]]]
+            else:  # the ray's intersection with the plane: o + t d, t = (offset - n.o) / n.d
+                dn = d[m] @ s.normal
+                m = m[np.abs(dn) >= cos_max]
+                om, dm = o[m], d[m]
+                at = om + ((s.offset_m - om @ s.normal) / (dm @ s.normal))[:, None] * dm
+            q = (at - s.centre) @ s.axes.T
+            inside = np.all((q >= s.lower) & (q <= s.upper), axis=1)
+            m, at = m[inside], at[inside]
+            ok[m[tree.query(at)[0] >= marker_clearance_m]] = True
+        accepted.append(pos[ok][:max_returns - n_acc])
+        n_acc += accepted[-1].size
+        if n_acc >= max_returns:
+            break
+    # chosen by the beam itself, not by its position among the candidates: a slightly different estimate, which
+    # moves a few returns across the gate, keeps the same subsample of the others, so every start reaches the same
+    # solution
+    pick = np.sort(np.concatenate(accepted)) if accepted else np.zeros(0, dtype=np.int64)
+    idx, surf = rows[pick], which[pick]
+    normals = np.array([s.normal for s in surfaces]).reshape(-1, 3)
+    offsets = np.array([s.offset_m for s in surfaces])
+    return SurfaceReturns(
+        scan=np.asarray(scan)[idx], beam=np.asarray(beam)[idx], lambda_rad=np.asarray(lambda_rad)[idx],
+        mu_rad=np.asarray(mu_rad)[idx], ranges_m=np.asarray(ranges_m)[idx], surface=surf,
+        normals=normals[surf] if surf.size else np.zeros((0, 3)), offsets_m=offsets[surf] if surf.size else np.zeros(0),
+        times_s=None if times_s is None else np.asarray(times_s)[idx],
+    )
+
+
+__all__ = ["Surface", "SurfaceReturns", "candidate_planes", "find_surfaces", "hash_key", "hash_sample",
+           "surface_returns"]
+
+
+def observe_surfaces(
+    ranges_m: FloatArray, mu_rad: FloatArray, lambda_rad: FloatArray, labels: IntArray, markers_W: FloatArray,
+    radius_m: float, params: Params, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
+    beam_times_s: FloatArray | None = None, max_incidence_rad: float = MAX_INCIDENCE_RAD,
+    intrinsics: Mapping[str, float] | None = None,
+) -> tuple[list[Surface], SurfaceReturns]:
+    """Find the marker-carrying surfaces and their returns in a recording.
+
+    Args:
+        ranges_m (S, N) with NaN for no return; mu_rad (S, N) per-scan bearings (or (N,));
+        lambda_rad (S, N) per-beam motor angles;
+        labels (S, N) blob labels (>= 0 on marker returns, excluded); markers_W (n, 3); radius_m;
+        params: lrfcal.model.kinematics.Params used to reproject (the marker-only estimate);
+        beam_times_s (S, N): laser-clock beam times, carried with the returns (for the clock offset);
+        position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior);
+        max_incidence_rad: the most oblique incidence of a surface return used (ray directions from ``params``);
+        intrinsics: the estimate's intrinsics by name (lrfcal.model.unknowns; the others at their start), with which
+            the returns are reprojected (a range scale found by the markers, say); the returns keep their reported
+            values.
+    """
+    valid = np.isfinite(ranges_m) & (labels < 0)
+    flat = np.flatnonzero(valid)  # the valid returns, row-major as np.nonzero orders them
+    scan, beam = np.divmod(flat, valid.shape[1])
+    mu_all = np.asarray(mu_rad)
+    lam_f, r_f = np.asarray(lambda_rad).ravel(), np.asarray(ranges_m).ravel()
+    mu_f = mu_all.ravel() if mu_all.ndim == 2 else None
+    times_f = None if beam_times_s is None else np.asarray(beam_times_s).ravel()
+
+    def take(rows: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """motor angles, bearings and ranges of the valid returns ``rows`` (gathered only for those rows)"""
+        i = flat[rows]
+        return lam_f[i], (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
+
+    th = core_vector(params.dh, intrinsics or {})
+    sensor_W = params.mount.matrix()[:3, 3]
+    step = max(1, flat.size // 100_000)
+    lam_s, mu_s, r_s = take(np.arange(0, flat.size, step))
+    r_s, lam_s, mu_s = true_returns(th, r_s, lam_s, mu_s)
+    surfaces = find_surfaces(markers_W, radius_m, sensor_W, points_W(r_s, lam_s, mu_s, params),
+                             position_sigma_m=position_sigma_m)
+    # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
+    # them all once they hold max_returns accepted ones, so only those rows are reprojected (the same returns as
+    # from every row, at a fraction of the work); the threshold grows until they do, at once to the fraction that
+    # the accepted returns so far say is needed (any fraction gives the same returns: the sequence only saves work)
+    key = hash_key(scan, beam, seed)
+    frac = _FRACTIONS[0]
+    while True:
+        rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
+        lam_k, mu_k, r_k = take(rows)
+        r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
+        returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), scan[rows], beam[rows], lam_k,
+                                  mu_k, r_k, markers_W, max_returns=max_returns, seed=seed,
+                                  times_s=None if times_f is None else times_f[flat[rows]],
+                                  rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]),
+                                  max_incidence_rad=max_incidence_rad)
+        if len(returns) >= max_returns or frac >= 1.0:
+            return surfaces, returns
+        frac = _next_fraction(frac, len(returns), max_returns)
+
+
+#: the fractions of the rows (by hash key) observe_surfaces tries, smallest first
+_FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0)
+#: the margin on the fraction the accepted returns so far say is needed (they scatter about their expectation)
+_FRACTION_MARGIN = 1.25
+
+
+def _next_fraction(frac: float, n_accepted: int, wanted: int) -> float:
+    """The next fraction of rows to try after ``frac`` gave ``n_accepted`` (< ``wanted``) accepted returns: the
+    smallest of _FRACTIONS beyond ``frac`` that holds ``wanted`` at the rate seen so far, with a margin (1.0 when
+    none was accepted)."""
+    need = _FRACTION_MARGIN * frac * wanted / n_accepted if n_accepted > 0 else 1.0
+    return next((f for f in _FRACTIONS if f > frac and f >= need), 1.0)
+
+
+def moved_m(returns: SurfaceReturns, before: tuple[Params, Mapping[str, float]],
+            after: tuple[Params, Mapping[str, float]]) -> float:
+    """The farthest any of the ``returns`` moved along its surface's normal between two estimates, each its
+    parameters and its intrinsics by name (lrfcal.model.unknowns) [m]: the gate of :func:`surface_returns` is on
+    that distance."""
+    if not len(returns):
+        return 0.0
+
+    def along(params: Params, intrinsics: Mapping[str, float]) -> FloatArray:
+        r, lam, mu = true_returns(core_vector(params.dh, intrinsics), returns.ranges_m, returns.lambda_rad,
+                                  returns.mu_rad)
+        return np.einsum("ij,ij->i", points_W(r, lam, mu, params), returns.normals)
+
+    return float(np.max(np.abs(along(*after) - along(*before))))
+
+
+__all__ += ["moved_m", "observe_surfaces"]

@@ -1,0 +1,495 @@
+"""Targetless calibration: the DH parameters from the flatness of the scene's own planes (no markers, no tape).
+
+1. timing: the joint states and the scans they cover          4. solve: every plane return's ray-plane range
+2. planes: segmented from the cloud reprojected with the          residual, planes free
+(lrfcal.estimate.solve.solve_planes);
+   current DH (lrfcal.stages.planes), grazing returns left out          2.-4. repeated, re-segmenting with the new
+   estimate
+3. observability: which of a, alpha, b, beta (and the clock    5. checks: the rounds settled, convergence,
+   offset) the scene determines, from the information at        observability, reduced chi-square, a second
+   the start; the others are held at the nominal value            opinion (even / odd passes), held-out planes
+                                                               6. reprojection, flatness before / after
+
+The rounds of 2.-4. before the DH settle segment and solve the segmentation's own sample (SEGMENT_SAMPLES returns)
+when it is at most COARSE_FRACTION of the sampled returns; the settled estimate then segments and solves every
+sampled return once (the same DH to 0.1 sigma in a third to two fifths less time: benchmarks/bench_targetless.py).
+Rounds that do not settle in MAX_ROUNDS end with two rounds on every return: their difference is added to the
+covariance (which returns the segmentation keeps is a model error), and beyond SETTLE_LIMIT_SIGMA the result is
+refused, since it would depend on the round the loop stopped at (the real URG-04LX box: docs/real-data.md).
+
+Without markers there is no world frame: the planes and the cloud are in the motor frame M, and the mount pose is
+not estimated. A parameter the scene does not determine (1-sigma beyond lrfcal.estimate.observability.LIMITS, e.g. b and
+alpha when every plane contains the motor axis) is held at its nominal value and named, never estimated; the
+nominal's uncertainty (CalibConfig.nominal_tolerance) is then carried into the others' covariance (a "consider"
+covariance), so that holding a wrong nominal cannot make the others confidently wrong.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from functools import partial
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.spatial import cKDTree
+
+from lrfcal.config import CalibConfig, Stopwatch
+from lrfcal.errors import CalibrationError
+from lrfcal.estimate import observability, solve
+from lrfcal.estimate.checks import plane_checks
+from lrfcal.estimate.information import plane_information
+from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, points_M
+from lrfcal.model.motor import MotorClock
+from lrfcal.model.scanner import true_returns
+from lrfcal.model.unknowns import CORE_NAMES, core_vector, dh_difference
+from lrfcal.runtime.forked import cores
+from lrfcal.stages import holdout, planes, timing
+from lrfcal.stages.surfaces import Surface, SurfaceReturns, hash_sample
+from lrfcal.types import CalibrationResult, Check, JointStates, PlaneFit, Recording, Scans, Solution
+
+FloatArray = NDArray[np.float64]
+DH_NAMES = observability.DH
+#: The stages of a targetless calibration, as reported to ``progress`` and in CalibrationResult.timings_s.
+STAGES: tuple[str, ...] = ("timing", "planes", "solve", "checks", "starts", "reprojection", "geometry")
+#: returns used to segment the planes (the solve uses up to CalibConfig.plane_returns, labelled from these)
+SEGMENT_SAMPLES = 40000
+
+
+@dataclass(frozen=True)
+class Beams:
+    """The sampled returns: scan, beam (K,), ranges_m, mu_rad, times_s (K,) (also the DH proposal's,
+    lrfcal.stages.propose)."""
+
+    scan: NDArray[np.int64]
+    beam: NDArray[np.int64]
+    ranges_m: FloatArray
+    mu_rad: FloatArray
+    times_s: FloatArray
+
+    def subset(self, idx: NDArray[np.int64]) -> Beams:
+        return Beams(self.scan[idx], self.beam[idx], self.ranges_m[idx], self.mu_rad[idx], self.times_s[idx])
+
+
+def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch, notes: list[str]
+              ) -> CalibrationResult:
+    """Stages 1-5 of the module docstring on ``recording`` (its scans those the joint states cover; its markers, if
+    any, ignored) and their checks: a result without clouds (lrfcal.pipeline adds them).
+
+    Raises:
+        CalibrationError: the scene shows no plane, or determines no DH parameter.
+    """
+    notes.insert(0, "targetless: the DH parameters from the flatness of the scene's planes; without markers there "
+                 "is no world frame, so the mount pose is not estimated (frame M)")
+    scans, nominal, tau0 = recording.scans, recording.nominal, config.clock_offset_s
+    motor = MotorClock.from_joints(joints)
+    passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
+    estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
+    # every 5th scan is held out of the fit: the calibration must not make those scans' planes thicker (holdout)
+    hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
+    beams = sample_returns(scans, config.plane_returns, skip=hold)
+    held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
+    seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
+    clock.lap("timing")
+
+    prior = (nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))
+    start = first_round(nominal.dh, tau0, config)
+    first_thickness = start.thickness_m
+    returns, labels, found = start.segment(beams, seg, motor, config)
+    clock.lap("planes")
+    _check_scene(found, returns)
+    # what the scene determines, judged at the start: one information, each judgement takes its part of it
+    scene = observability.Information(*plane_information(returns, Params(MOTOR_FRAME, start.dh),
+                                                         range_sigma_m=config.range_sigma_m, clock=motor,
+                                                         clock_offset_s=tau0))
+    if estimate_clock:
+        estimate_clock = _clock_determined(scene, tau0, notes)
+    held = scene.undetermined_dh(() if estimate_clock else ("clock_offset",), prior[1])
+    held_reason = _held_reason(held)
+    if held_reason:
+        notes.append(held_reason)
+    if len(held) == len(DH_NAMES):
+        raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
+                               "orientations (across the motor axis), or calibrate with markers")
+    solve_at = partial(solve.solve_planes, range_sigma_m=config.range_sigma_m,
+                       clock=motor if estimate_clock else None, hold=held, dh_prior=prior)
+    rs = settle_rounds(Segmenting(beams, seg, motor, config, solve_at), start, (returns, labels, found))
+    sol, unsettled, rounds, (returns, labels, found) = rs.solution, rs.unsettled, rs.rounds, rs.segmented
+    settle = _settle_check(unsettled, sol, rounds)
+    sol = _with_round_difference(sol, unsettled)
+    if not estimate_clock and passes.max() < 1 or config.estimate_clock is False:
+        notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                     + ("a one-way sweep does not separate it)" if config.estimate_clock is None else "as asked)"))
+    sol = _consider(sol, returns, motor if estimate_clock else None, held, config, prior)
+    clock.lap("solve")
+
+    checks = [settle, *plane_checks(sol, returns, passes, held, config, prior, nominal.dh)]
+    checks.append(_held_out_check(held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol, first_thickness))
+    clock.lap("checks")
+    lam_b = motor.angles(beams.times_s, tau0)[0]
+    lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
+    before, n_before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels, len(found))
+    after, n_after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels,
+                                     len(found))
+    fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)), held,
+                   held_reason, rounds, n_before, n_after)
+    return CalibrationResult(
+        recording=recording, markers=None, detections=None, observations=None, association=None,
+        start=Params(MOTOR_FRAME, nominal.dh), solution=sol, baseline=None, cloud_before_M=np.zeros((0, 3)),
+        cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
+        surface_returns=returns, checks=tuple(checks), plane_fit=fit,
+    )
+
+
+@dataclass(frozen=True)
+class Segmenting:
+    """What every segment-and-solve round of one calibration shares: the sampled returns, the segmentation's sample
+    ``seg`` (indices into them), the motor clock, the configuration and the solve (lrfcal.estimate.solve.solve_planes
+    with
+    the calibration's held parameters, prior and clock)."""
+
+    beams: Beams
+    seg: NDArray[np.int64]
+    motor: MotorClock
+    config: CalibConfig
+    solve_at: Callable[..., Solution]
+
+
+@dataclass(frozen=True)
+class Rounds:
+    """The rounds' outcome: the last solution, the one before it when the rounds did not settle (else None), the
+    rounds run, and the last segmentation (returns, labels (K,), planes)."""
+
+    solution: Solution
+    unsettled: Solution | None
+    rounds: int
+    segmented: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
+
+
+def settle_rounds(sg: Segmenting, start: _Round,
+                  first: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]] | None = None) -> Rounds:
+    """Segment, solve and re-segment with the new estimate from ``start`` until the DH settle (module docstring);
+    ``first``: the start's segmentation of every sampled return when already made (else it is made here).
+
+    Raises:
+        CalibrationError: a round's cloud shows no plane."""
+    beams, seg, motor, config = sg.beams, sg.seg, sg.motor, sg.config
+    returns, labels, found = first if first is not None else start.segment(beams, seg, motor, config)
+    sol: Solution | None = None
+    before_last: Solution | None = None
+    settled = False
+    rounds = 0
+    coarse = _coarse(beams, seg)
+    for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
+        if rounds == 1 and coarse is not None:  # the start's segmentation, on its own sample
+            returns, labels, found = _on_sample(beams, seg, labels, found, motor, start.tau)
+        elif rounds > 1:
+            returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
+        new = _solve_round(sg.solve_at, returns, found, start, rounds)
+        settled = sol is not None and _settled(sol, new)
+        before_last, sol, start = sol, new, _Round.after(new, config)
+        if settled:
+            break
+    # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
+    for _ in range(0 if coarse is None else 1 if settled else 2):
+        returns, labels, found = start.segment(beams, seg, motor, config)
+        before_last, sol = sol, _solve_round(sg.solve_at, returns, found, start, rounds + 1)
+        start, rounds = _Round.after(sol, config), rounds + 1
+    assert sol is not None
+    return Rounds(sol, None if settled else before_last, rounds, (returns, labels, found))
+
+
+#: segment-and-solve rounds at most before the DH settle (then the last two on every return are compared)
+MAX_ROUNDS = 5
+#: the last two rounds on every return may differ by this many sigma at most when the rounds do not settle: more,
+#: and the estimate depends on the round it stops at (the planes are not segmented consistently): refused
+SETTLE_LIMIT_SIGMA = 1.0
+
+#: the rounds before the DH settle solve the segmentation's own sample (SEGMENT_SAMPLES returns) when it is at most
+#: this fraction of the sampled returns; one round on every sampled return follows (module docstring)
+COARSE_FRACTION = 0.5
+
+
+@dataclass(frozen=True)
+class _Round:
+    """Where a round segments the planes: the DH, the clock offset [s], the planes' thickness [m] and the
+    intrinsics (name -> value, lrfcal.model.unknowns; absent ones at their start)."""
+
+    dh: DH
+    tau: float
+    thickness_m: float
+    intrinsics: Mapping[str, float] = field(default_factory=dict)
+
+    @staticmethod
+    def after(sol: Solution, config: CalibConfig) -> _Round:
+        """The next round's, from a round's solution: its estimate, the noise it found."""
+        return _Round(sol.params.dh, sol.clock_offset_s,
+                      4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2)), sol.intrinsic_values)
+
+    def segment(self, beams: Beams, seg: NDArray[np.int64], motor: MotorClock, config: CalibConfig
+                ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
+        """:func:`plane_returns_at` here."""
+        return plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config, self.intrinsics)
+
+
+def first_round(dh: DH, tau: float, config: CalibConfig) -> _Round:
+    """The first round of a calibration from (dh, tau): its planes' thickness the noise plus what a nominal DH bends
+    a plane by."""
+    return _Round(dh, tau, 4.0 * config.range_sigma_m + 0.02)
+
+
+def _coarse(beams: Beams, seg: NDArray[np.int64]) -> tuple[Beams, NDArray[np.int64]] | None:
+    """The coarse rounds' returns, the segmentation's sample (all of it segmented), or None when it is not much
+    smaller than the sampled returns."""
+    if seg.size > COARSE_FRACTION * beams.scan.size:
+        return None
+    return beams.subset(seg), np.arange(seg.size)
+
+
+def _round_difference(a: Solution, b: Solution) -> FloatArray:
+    """b's DH minus a's (4,), angles wrapped; 0 where a parameter is held (no sigma)."""
+    d = dh_difference(b.params.vector()[6:], a.params.vector()[6:])
+    return np.where(np.isfinite(b.sigma[6:10]), d, 0.0)
+
+
+def _settle_check(before_last: Solution | None, last: Solution, rounds: int) -> Check:
+    """Whether the segment-and-solve rounds settled (``before_last`` None), or else the last two rounds on every
+    return differ by at most SETTLE_LIMIT_SIGMA of the last one's sigma (statistical, before the difference is added
+    to it by :func:`_with_round_difference`)."""
+    if before_last is None:
+        return Check("rounds settled", True, f"the DH moved by less than a tenth of a sigma between two rounds "
+                     f"({rounds} rounds)")
+    d = _round_difference(before_last, last)
+    s = last.sigma[6:10]
+    z = np.where(d != 0.0, np.abs(d) / np.where(s > 0, s, np.inf), 0.0)
+    k = int(np.argmax(z))
+    name = DH_NAMES[k]
+    text = f"{math.degrees(d[k]):+.3g} deg" if name in ("alpha", "beta") else f"{d[k] * 1000:+.3g} mm"
+    ok = bool(z[k] <= SETTLE_LIMIT_SIGMA)
+    detail = (f"the planes' segmentation and the DH did not settle in {rounds} rounds: the last two on every return "
+              f"differ by {name} {text} ({z[k]:.1f} sigma), added to the covariance")
+    if not ok:
+        detail += (f" (limit {SETTLE_LIMIT_SIGMA:g} sigma): the estimate depends on the round it stops at, the scene's "
+                   "planes are not segmented the same way twice (small planes, edges, clutter); calibrate in a larger "
+                   "scene or with markers")
+    return Check("rounds settled", ok, detail)
+
+
+def _with_round_difference(sol: Solution, before_last: Solution | None) -> Solution:
+    """``sol`` with the difference d (4,) from the round before it added to its DH covariance (d d^T, a model error:
+    which returns the segmentation keeps), when the rounds did not settle (``before_last`` not None)."""
+    if before_last is None:
+        return sol
+    return sol.with_dh_systematic(_round_difference(before_last, sol))
+
+
+def _solve_round(fit: Callable[..., Solution], returns: SurfaceReturns, found: list[planes.ScenePlane], start: _Round,
+                 rounds: int) -> Solution:
+    """One round's solve from ``start`` (a Huber pass first in the first round only)."""
+    if not found:
+        raise CalibrationError(f"targetless: after round {rounds - 1} the cloud shows no plane: the estimate does "
+                               "not hold the scene's planes together")
+    return fit(returns, Params(MOTOR_FRAME, start.dh), clock_offset_s=start.tau, huber_first=rounds == 1)
+
+
+#: returns a plane keeps at least (fewer: dropped, mostly grazing returns)
+MIN_PLANE_RETURNS = 100
+
+#: returns above which the labelling's nearest-neighbour query runs in a thread per core (scipy's workers)
+PARALLEL_QUERY = 50_000
+
+#: the motor frame M as the world frame (without markers there is no other)
+MOTOR_FRAME = Pose(0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
+def sample_returns(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) -> Beams:
+    """An even subsample (hash of scan and beam) of at most n finite returns (not those where ``skip`` (S, N))."""
+    ok = np.isfinite(scans.ranges_m) & (scans.ranges_m > 0)
+    scan, beam = np.nonzero(ok if skip is None else ok & ~skip)
+    pick = hash_sample(scan, beam, n)
+    scan, beam = scan[pick], beam[pick]
+    mu = np.asarray(scans.mu_rad)
+    return Beams(scan, beam, scans.ranges_m[scan, beam], mu[scan, beam] if mu.ndim == 2 else mu[beam],
+                  scans.angle_times_at(scan, beam))
+
+
+def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh: DH, tau: float,
+                   thickness_m: float, config: CalibConfig, intrinsics: Mapping[str, float] | None = None
+                   ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
+    """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau) and ``intrinsics`` (name -> value, the
+    scales and offsets of lrfcal.model.unknowns; absent ones at their start); label every sampled return with the
+    plane of its nearest segmented neighbour when it lies within ``thickness_m`` of that plane and meets it at
+    less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane).
+    The returns keep what the scanner and the servo reported (the solve applies the model to them)."""
+    lam = motor.angles(beams.times_s, tau)[0]
+    r_true, lam_true, mu_true = true_returns(core_vector(dh, intrinsics or {}), beams.ranges_m, lam, beams.mu_rad)
+    P = points_M(r_true, lam_true, mu_true, dh)
+    seg_labels, found = planes.segment_planes(P[seg], thickness_m=thickness_m)
+    labels = np.full(P.shape[0], -1, dtype=np.int64)
+    if found:
+        has = seg_labels >= 0
+        # the nearest segmented neighbour of every return: exact whatever the threads, on the cores for a big cloud
+        _, nn = cKDTree(P[seg][has]).query(P, k=1, workers=cores() if len(P) > PARALLEL_QUERY else 1)
+        labels = seg_labels[has][nn]
+        N = np.array([p.normal for p in found])
+        off = np.array([p.offset_m for p in found])
+        o, d = beam_rays_W(Params(MOTOR_FRAME, dh), lam_true, mu_true)
+        n = N[labels]
+        near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
+        facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
+        # returns near an edge or a corner, where a beam's footprint straddles two surfaces (mixed pixels), are left
+        # out: judged by where the RAY meets its plane, not by the measured point, whose range noise would keep
+        # the returns that read short on one side of a corner and those that read long on the other (a bias)
+        nd = (d * n).sum(1)
+        hit = o + ((off[labels] - (o * n).sum(1)) / np.where(np.abs(nd) > 1e-9, nd, 1e-9))[:, None] * d
+        dist_all = np.abs(hit @ N.T - off)  # (K, planes)
+        dist_all[np.arange(len(P)), labels] = np.inf
+        clear = dist_all.min(1) > thickness_m
+        labels, found = _with_enough_returns(np.where(near & facing & clear, labels, -1), found)
+    returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
+                                   beams.times_s)
+    return returns, labels, found
+
+
+def _with_enough_returns(labels: NDArray[np.int64], found: list[planes.ScenePlane]
+                         ) -> tuple[NDArray[np.int64], list[planes.ScenePlane]]:
+    """The planes left with at least MIN_PLANE_RETURNS (the others, mostly grazing, dropped) and the labels (K,)
+    renumbered."""
+    counts = np.bincount(labels[labels >= 0], minlength=len(found))
+    keep = np.flatnonzero(counts >= MIN_PLANE_RETURNS)
+    remap = np.full(len(found), -1, dtype=np.int64)
+    remap[keep] = np.arange(keep.size)
+    return np.where(labels >= 0, remap[np.maximum(labels, 0)], -1), [found[k] for k in keep]
+
+
+def _on_sample(beams: Beams, seg: NDArray[np.int64], labels: NDArray[np.int64], found: list[planes.ScenePlane],
+               motor: MotorClock, tau: float) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
+    """:func:`plane_returns_at` on the segmentation's sample ``seg`` at the estimate whose ``labels`` (K,) on every
+    sampled return are given: the same segmentation, the same nearest neighbours and tests per return, so the
+    labels are those returns' own, with the planes that keep too few of them dropped."""
+    sub = beams.subset(seg)
+    labels, found = _with_enough_returns(labels[seg], found)
+    lam = motor.angles(sub.times_s, tau)[0]
+    return planes.plane_returns(labels, found, sub.scan, sub.beam, lam, sub.mu_rad, sub.ranges_m, sub.times_s), \
+        labels, found
+
+
+def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
+                    thickness_m: float) -> Check:
+    """The held-out scans' planes with the start and with the calibrated parameters (lrfcal.stages.holdout), segmented
+    with the first round's ``thickness_m``."""
+    clouds = [points_M(held.ranges_m, motor.angles(held.times_s, tau)[0], held.mu_rad, dh)
+              for dh, tau in ((start.dh, tau0), (sol.params.dh, sol.clock_offset_s))]
+    result = holdout.held_out_flatness(*clouds, thickness_m)
+    return Check("held-out planes", result.passed, result.detail())
+
+
+def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> None:
+    if not found:
+        raise CalibrationError(
+            "targetless: the scene shows no plane with enough returns (at least 100 within the incidence limit): "
+            "calibrate in a room or with markers")
+
+
+def _clock_determined(scene: observability.Information, tau: float, notes: list[str]) -> bool:
+    """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start, without the
+    design drawing's prior); when not, a note says it is held."""
+    sigma = scene.sigma("clock_offset")
+    limit = observability.LIMITS["clock_offset"]
+    if sigma <= limit:
+        return True
+    notes.append(f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
+                 f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)")
+    return False
+
+
+def _held_reason(held: tuple[str, ...]) -> str:
+    """Why the DH parameters ``held`` are held ("" when none)."""
+    if not held:
+        return ""
+    return (f"the scene's planes do not determine {', '.join(held)} (1-sigma beyond "
+            f"{observability.LIMITS['a'] * 1000:g} mm / {math.degrees(observability.LIMITS['alpha']):g}"
+            f" deg, judged at the start): held at the nominal value, not estimated")
+
+
+def _settled(old: Solution, new: Solution) -> bool:
+    """The DH estimate moved by less than a tenth of its sigma between two rounds."""
+    d, s = _round_difference(old, new), new.sigma[6:10]
+    ok = np.isfinite(s) & (s > 0)
+    return bool(np.all(np.abs(d[ok]) <= 0.1 * s[ok]))
+
+
+def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, held: tuple[str, ...],
+              config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
+    """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
+    estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
+    if not held:
+        return sol
+    from dataclasses import replace
+
+    info, names = plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
+                                          clock_offset_s=sol.clock_offset_s, dh_prior=prior)
+    info = info / max(sol.reduced_chi2, 1.0)
+    est = [i for i, n in enumerate(names) if n not in held]
+    hid = [names.index(n) for n in held]
+    S = -np.linalg.solve(info[np.ix_(est, est)], info[np.ix_(est, hid)])
+    tol = dict(zip(DH_NAMES, config.nominal_tolerance, strict=True))
+    extra = S @ np.diag([tol[n] ** 2 for n in held]) @ S.T
+    cov = sol.covariance.copy()
+    pos = {n: CORE_NAMES.index(n) for n in names}
+    for i, a in enumerate(est):
+        for j, b in enumerate(est):
+            ia, ib = pos[names[a]], pos[names[b]]
+            if ia < 10 and ib < 10:
+                cov[ia, ib] += extra[i, j]
+    return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+
+
+def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: NDArray[np.bool_],
+                        marker_planes: list[Surface], config: CalibConfig) -> tuple[SurfaceReturns, list[Surface]]:
+    """Every plane of the scene other than the markers' own (stage 6b generalised): segmented in the cloud at a
+    marker calibration ``sol``, in W, as surfaces without a prior (free planes) and their returns, numbered after
+    ``marker_planes``. ``skip`` (S, N): the marker returns, left out."""
+    motor = MotorClock.from_joints(joints)
+    beams = sample_returns(scans, config.plane_returns, skip)
+    seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
+    returns, labels, found = _Round.after(sol, config).segment(beams, seg, motor, config)
+    T = sol.params.mount.matrix()
+    R, t = T[:3, :3], T[:3, 3]
+    keep, out = [], []
+    for k, p in enumerate(found):
+        n = R @ p.normal
+        d = p.offset_m + float(n @ t)
+        if any(abs(float(n @ m.normal)) > math.cos(math.radians(5.0)) and abs(abs(d) - abs(m.offset_m)) < 0.05
+               for m in marker_planes):
+            continue  # a marker plane, already there with the markers' prior
+        t1 = np.cross(n, [1.0, 0.0, 0.0] if abs(n[0]) < 0.9 else [0.0, 1.0, 0.0])
+        t1 /= np.linalg.norm(t1)
+        out.append(Surface(n, d, np.zeros(0, dtype=np.int64), np.array([t1, np.cross(n, t1)]), R @ p.centroid + t,
+                           np.full(2, -np.inf), np.full(2, np.inf), np.full(3, np.inf)))
+        keep.append(k)
+    m = np.isin(returns.surface, keep)
+    sub = returns.subset(m)
+    remap = np.full(len(found), -1, dtype=np.int64)
+    remap[keep] = len(marker_planes) + np.arange(len(keep))
+    surf = remap[sub.surface]
+    normals = np.array([s_.normal for s_ in out]).reshape(-1, 3)
+    offsets = np.array([s_.offset_m for s_ in out])
+    local = surf - len(marker_planes)
+    return replace(sub, surface=surf, normals=normals[local], offsets_m=offsets[local]), out
+
+
+def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns:
+    """The surface returns of ``a`` followed by those of ``b`` (their surface indices kept)."""
+    if a is None or not len(a):
+        return b
+    fields = {}
+    for k in a.__dataclass_fields__:
+        va, vb = getattr(a, k), getattr(b, k)
+        fields[k] = None if va is None or vb is None else np.concatenate([va, vb])
+    return SurfaceReturns(**fields)
+
+
+__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "Segmenting", "first_round", "fit_scene",
+           "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns", "settle_rounds"]

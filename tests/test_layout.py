@@ -1,0 +1,86 @@
+"""The code's layout as docs/architecture.md states it: lrfsim uses lrfcal only through its public API (lrfcal,
+lrfcal.model, lrfcal.io, lrfcal.errors), the rooms of lrfcal, the public API importable without heavy modules,
+and the rig model and the estimate package type-checked by mypy."""
+
+from __future__ import annotations
+
+import ast
+import importlib.util
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SRC = ROOT / "src"
+#: what lrfsim (and any code outside lrfcal) may import of lrfcal
+PUBLIC = ("lrfcal", "lrfcal.model", "lrfcal.io", "lrfcal.errors")
+
+
+def _imports(path: Path) -> list[tuple[int, str]]:
+    """(line, module) of every import in ``path``, relative ones resolved against its package."""
+    tree = ast.parse(path.read_text(), str(path))
+    package = ".".join(path.relative_to(SRC).with_suffix("").parts[:-1])
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            found += [(node.lineno, alias.name) for alias in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            base = node.module or ""
+            if node.level:
+                parts = package.split(".")[: len(package.split(".")) - node.level + 1]
+                base = ".".join([*parts, base] if base else parts)
+            found += [(node.lineno, f"{base}.{alias.name}" if _is_module(f"{base}.{alias.name}") else base)
+                      for alias in node.names]
+    return found
+
+
+def _is_module(name: str) -> bool:
+    rel = Path(*name.split("."))
+    return (SRC / rel.with_suffix(".py")).is_file() or (SRC / rel / "__init__.py").is_file()
+
+
+def test_lrfsim_uses_only_lrfcal_public_api() -> None:
+    bad = []
+    for path in sorted((SRC / "lrfsim").rglob("*.py")):
+        for line, name in _imports(path):
+            if (name == "lrfcal" or name.startswith("lrfcal.")) and not any(
+                    name == p or name.startswith(p + ".") for p in PUBLIC):
+                bad.append(f"{path.relative_to(ROOT)}:{line}: {name}")
+    assert not bad, "lrfsim imports lrfcal internals (use lrfcal's public API):\n" + "\n".join(bad)
+
+
+def test_public_api_names_resolve() -> None:
+    import lrfcal
+
+    missing = [name for name in lrfcal.__all__ if not hasattr(lrfcal, name)]
+    assert not missing
+    with pytest.raises(AttributeError):
+        _ = lrfcal.no_such_name  # type: ignore[attr-defined]
+
+
+def test_lrfcal_rooms() -> None:
+    """At most 12 modules directly in src/lrfcal; the rest in subpackages named for what they are."""
+    top = sorted(p.name for p in (SRC / "lrfcal").glob("*.py"))
+    assert len(top) <= 12, top
+    rooms = sorted(p.parent.name for p in (SRC / "lrfcal").glob("*/__init__.py"))
+    assert rooms == ["estimate", "io", "model", "report", "runtime", "stages"]
+
+
+def test_import_lrfcal_is_light() -> None:
+    """``import lrfcal`` (and its error types) imports neither numpy's heavy neighbours nor the message types."""
+    code = ("import sys, lrfcal; lrfcal.InputError; "
+            "print(','.join(m for m in ('scipy', 'mujoco', 'matplotlib', 'rerun', 'rosbags') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""
+
+
+@pytest.mark.skipif(importlib.util.find_spec("mypy") is None and shutil.which("mypy") is None,
+                    reason="mypy is not installed (pip install -e '.[test]' installs it)")
+def test_mypy_model_and_estimate() -> None:
+    """The rig model and the estimate package type-check (mypy, the settings in pyproject.toml)."""
+    proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal/model", "src/lrfcal/estimate"], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stdout[-3000:]
