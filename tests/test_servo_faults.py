@@ -63,17 +63,15 @@ def test_span_off_by_one_is_seen_and_a_full_revolution_is_not() -> None:
     """A scan's own fields: angle_max one increment beyond angle_min + (N - 1) angle_increment is a disagreement
     (+1); a 360 deg scan whose last beam lies one increment before angle_max (an RPLIDAR's) is not; nor is a
     consistent one."""
-    from types import SimpleNamespace
+    from lrfcal.io.bag_scans import _span_offs
 
-    from lrfcal.io.bag_scans import _span_off
-
-    def ls(a0: float, a1: float, inc: float) -> SimpleNamespace:
-        return SimpleNamespace(angle_min=a0, angle_max=a1, angle_increment=inc)
+    def off(a0: float, a1: float, inc: float, n: int) -> float:
+        return float(_span_offs(np.array([a0]), np.array([a1]), np.array([inc]), np.array([n]))[0])
 
     n, inc = 1081, math.radians(0.25)
-    assert _span_off(ls(-math.radians(135), math.radians(135), inc), n) == pytest.approx(0.0, abs=1e-6)
-    assert _span_off(ls(-math.radians(135), math.radians(135), inc * 1080 / 1081), n) == pytest.approx(1.0, abs=1e-6)
-    assert _span_off(ls(0.0, 2 * math.pi, 2 * math.pi / 508), 508) == 0.0
+    assert off(-math.radians(135), math.radians(135), inc, n) == pytest.approx(0.0, abs=1e-6)
+    assert off(-math.radians(135), math.radians(135), inc * 1080 / 1081, n) == pytest.approx(1.0, abs=1e-6)
+    assert off(0.0, 2 * math.pi, 2 * math.pi / 508, 508) == 0.0
 
 
 def test_angle_increment_off_by_one_is_refused_naming_the_key_then_read_from_the_span(
