@@ -12,8 +12,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.estimate.normal_equations import assemble, schur, scores_by_cluster, solve_step
 from lrfcal.estimate.problem import Problem, marker_problem, plane_problem, plane_set
-from lrfcal.estimate.solve import marker_clusters, plane_free, with_sides
+from lrfcal.estimate.solve import plane_free
 from lrfcal.model.kinematics import Params
+from lrfcal.model.marker import MarkerModel
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.noise import correlated_range_excess
 from lrfcal.model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
@@ -133,7 +134,7 @@ def model_error_at(
     the true ``params``): their range residuals are then what the model does not explain (the footprint on the
     markers and on an oblique wall, the joint states' interpolation). It is the cluster-robust (sandwich)
     covariance H^-1 (sum_c g_c g_c^T) H^-1 of those residuals, g_c the score of cluster c (a marker's crossing, a
-    scan's surface returns: lrfcal.estimate.solve.marker_clusters), one Gauss-Newton step from
+    scan's surface returns: lrfcal.estimate.problem.Problem.clusters), one Gauss-Newton step from
     the truth (at the noise-free optimum): the part of the calibration's per-scan widening (lrfcal.estimate.solve) that
     noise does not explain. ``lrfsim plan`` adds it to the statistical covariance, as a noisy recording's sandwich
     holds both."""
@@ -148,12 +149,13 @@ def model_error_at(
     H, _ = assemble(b, idx).dense()
     # a marker return's lateral residual is where its beam passes the marker's centre: noise to the model (the
     # sigma of a filled disc, in the statistical covariance already), so only its range residual is model error
-    r_m = b.r_dense.reshape(-1, pb.markers.n_res).copy()
-    r_m[:, 0 if pb.markers.model == "paper" else 1:] = 0.0
+    ms = pb.markers
+    assert ms is not None
+    r_m = b.r_dense.reshape(-1, ms.n_res).copy()
+    r_m[:, 0 if ms.model == MarkerModel.PAPER else 1:] = 0.0
     b = replace(b, r_dense=r_m.ravel())
-    scan_s = np.zeros(0, dtype=np.int64) if pb.surf is None or surfaces is None else np.asarray(surfaces.scan)
-    clusters = marker_clusters(np.asarray(obs.scan), np.asarray(obs.marker), np.asarray(obs.times_s), scan_s)
-    G = scores_by_cluster(b, idx, np.repeat(clusters, pb.markers.n_res), scan_s)[1]
+    cluster_dense, cluster_plane, _ = pb.clusters()
+    G = scores_by_cluster(b, idx, cluster_dense, cluster_plane)[1]
     H_inv = scaled_pinv(H)
     k = idx.size
     sandwich = H_inv @ (G.T @ G) @ H_inv
@@ -187,6 +189,7 @@ def correlation_error_at(
     use = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)[1]
     # [H^-1 Delta H^-1] over the core = the excess of the rows u_i H^-1[:, :k] (K, k): cheap where 3P is large
     A = scaled_pinv(H)[:, :k]
+    assert pb.markers is not None
     n_res, K = pb.markers.n_res, int(np.count_nonzero(use))
     v_markers = b.J_dense[:K * n_res:n_res][:, idx] @ A[:k]  # the range row of each return (the first)
     v_planes = b.Jc_plane[:, idx] @ A[:k]
@@ -211,8 +214,10 @@ def turning_error_at(
     (the difference of two nested estimates). Zeros where no crossing turns."""
     pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
                                      clock_offset_s, None, None, beam_divergence_rad)
-    variant = with_sides(replace(pb, markers=replace(pb.markers, in_plane_at_turns=True)), th, R_ref)
-    if variant.markers.across is None or not np.any(variant.markers.across):
+    assert pb.markers is not None
+    variant = pb.with_sets([replace(pb.markers, in_plane_at_turns=True)]).chosen_at(th, R_ref)
+    turned = variant.markers
+    if turned is None or turned.across is None or not np.any(turned.across):
         return np.zeros((4, 4))
     dh = np.searchsorted(idx, np.arange(N_CORE)[DH_SLICE])
     steps, covs = [], []
@@ -272,14 +277,14 @@ def _problem_at(
     held by default named in ``estimate`` too)."""
     pb, th, R_ref = _at(params, obs, markers_W, model, radius, sigma_r, divergence, clock, clock_offset_s)
     if sides:  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
-        pb = with_sides(pb, th, R_ref)
+        pb = pb.chosen_at(th, R_ref)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
     idx = estimated(clock is not None, with_surfaces, estimate)
     if surfaces is not None and with_surfaces:
         surf, nu0 = plane_set(surfaces, planes)
-        return replace(pb, surf=surf), np.concatenate([th, nu0]), R_ref, idx
+        return pb.with_sets([*pb.sets, surf]), np.concatenate([th, nu0]), R_ref, idx
     return pb, th, R_ref, idx
 
 
