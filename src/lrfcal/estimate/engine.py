@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.estimate.covariance import held_score, uncertainty
-from lrfcal.estimate.normal_equations import Iteration, levenberg_marquardt
+from lrfcal.estimate.normal_equations import Iteration, assemble, levenberg_marquardt, schur
 from lrfcal.estimate.problem import Problem
 from lrfcal.model.chart import regular_chart_at, regular_step
 from lrfcal.model.kinematics import exp_so3
@@ -211,5 +211,13 @@ def estimate(pb: Problem, start: State, unknowns: Unknowns, passes: Passes = MAR
     return Estimate(state, pb, keep, status, nfev, tuple(log), unc)
 
 
+def information(pb: Problem, state: State, core: IntArray) -> tuple[FloatArray, tuple[str, ...]]:
+    """What the observation sets of ``pb`` determine at ``state`` without iterating: the information (k, k) over the
+    core unknowns ``core`` (indices into CORE_NAMES), every set's nuisances marginalised (the Schur complement of the
+    normal equations the passes solve), and their names."""
+    S, _, _ = schur(assemble(pb.blocks(state.th, state.R_ref), core))
+    return S, tuple(CORE_NAMES[k] for k in core)
+
+
 __all__ = ["MARKER_PASSES", "PLANE_PASSES", "Estimate", "Passes", "State", "Status", "Stop", "Uncertainty",
-           "Unknowns", "estimate"]
+           "Unknowns", "estimate", "information"]

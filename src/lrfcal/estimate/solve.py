@@ -155,7 +155,7 @@ def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, 
         per[i] = float(np.sqrt(sq[mk == i].mean()))
     surf_txt = f", {k_s}/{K2} surface returns ({K2 - k_s} dropped)" if K2 else ""
     msg = "converged" if est.status is Status.CONVERGED else "maximum number of function evaluations exceeded"
-    status = (f"{ms.model}: {msg}; {k_in}/{K} returns used ({K - k_in} dropped > 4 sigma){surf_txt}, "
+    status = (f"{ms.model.value}: {msg}; {k_in}/{K} returns used ({K - k_in} dropped > 4 sigma){surf_txt}, "
               f"reduced chi2 {unc.reduced_chi2:.2f}, {unc.rank}")
     G = unc.map_sensitivity
     return _solution(th, R_ref, unc.covariance, free, params=params, residual_rms_m=float(np.sqrt(sq.mean())),

@@ -46,7 +46,7 @@ from lrfcal.model.unknowns import DH_SLICE, N_CORE, RSCALE
 
 FloatArray = NDArray[np.float64]
 
-MODELS = tuple(m.value for m in MarkerModel)
+MODELS = tuple(m.value for m in list(MarkerModel))
 
 #: the median of chi2_3 / 3, the squared whitened residual per independent component of a return at unit noise
 #: (the robust pass's scale of the marker returns)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import enum
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Protocol, Self
+from typing import Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -34,11 +34,15 @@ BoolArray = NDArray[np.bool_]
 CUT_SIGMA = 4.0
 
 
-class MarkerModel(enum.StrEnum):
-    """The marker observation model (lrfcal.model.marker): the seed paper's eq. (10) or ray-sphere."""
+class MarkerModel(str, enum.Enum):
+    """The marker observation model (lrfcal.model.marker): the seed paper's eq. (10) or ray-sphere (equal to its
+    name as a string, as configuration files and older calls give it)."""
 
     PAPER = "paper"
     SPHERE = "sphere"
+
+    def __str__(self) -> str:
+        return self.value
 
 
 @dataclass(frozen=True)
@@ -61,7 +65,7 @@ class MarkerSensor:
         try:
             variant = MarkerModel(model)
         except ValueError:
-            raise InputError(f"solve: model must be one of {', '.join(m.value for m in MarkerModel)}, "
+            raise InputError(f"solve: model must be one of {', '.join(m.value for m in list(MarkerModel))}, "
                              f"got {model!r}") from None
         if not radius_m > 0 or not range_sigma_m > 0:
             raise InputError(f"solve: marker_radius_m and range_sigma_m must be > 0, got {radius_m}, "
@@ -116,7 +120,8 @@ def stack_blocks(parts: Sequence[Blocks]) -> Blocks:
         r_d, J_d = dense[0].r_dense, dense[0].J_dense
     else:
         r_d = np.concatenate([p.r_dense for p in dense])
-        J_d = None if any(p.J_dense is None for p in dense) else np.vstack([p.J_dense for p in dense])
+        Js = [p.J_dense for p in dense if p.J_dense is not None]
+        J_d = np.vstack(Js) if len(Js) == len(dense) else None
     if len(planes) <= 1:
         q = planes[0] if planes else parts[0]
         return Blocks(r_d, J_d, q.r_plane, q.Jc_plane, q.Jn_plane, q.plane, q.n_planes, q.r_prior, q.w_prior,
@@ -151,6 +156,10 @@ class RowContext:
     chart: FloatArray | None = None
 
 
+_Set = TypeVar("_Set", bound="ObservationSet")
+
+
+@runtime_checkable
 class ObservationSet(Protocol):
     """A set of observations with one observation model (module docstring). ``th`` is the core unknowns followed by
     this set's own nuisances (N_CORE + n_nuisance,); R_ref the mount's reference rotation."""
@@ -179,7 +188,7 @@ class ObservationSet(Protocol):
         """The whitened residual rows and their Jacobian blocks at th."""
         ...
 
-    def subset(self, keep: BoolArray) -> Self:
+    def subset(self: _Set, keep: BoolArray) -> _Set:
         """The returns ``keep`` (size,)."""
         ...
 
@@ -188,7 +197,7 @@ class ObservationSet(Protocol):
         scores of the returns ``keep`` kept so far."""
         ...
 
-    def chosen_at(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> Self:
+    def chosen_at(self: _Set, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> _Set:
         """The set as it is used at a new estimate th (which residuals of each return count)."""
         ...
 
