@@ -126,5 +126,6 @@ def test_sets_of_one_kind_estimate_as_their_union() -> None:
     np.testing.assert_allclose(np.sqrt(np.diag(two.uncertainty.covariance))[dh_idx], sig1, rtol=1e-6)
     assert one.uncertainty.names == two.uncertainty.names
     assert one.uncertainty.held_score == {}
-    assert unknowns.held["x"] == "the mount is the world frame" and unknowns.held["rx"] == "held by default"
+    assert unknowns.held["x"] == "the mount is the world frame" and unknowns.held["rx"] == "held by the call"
+    assert "trusted" in unknowns.held["range_scale"]  # the model's table says why it is held by default
     assert not unknowns.free[CORE_NAMES.index("x")] and unknowns.free[N_CORE:].all()

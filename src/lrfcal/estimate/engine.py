@@ -32,7 +32,7 @@ from lrfcal.estimate.normal_equations import Iteration, assemble, levenberg_marq
 from lrfcal.estimate.problem import Problem
 from lrfcal.model.chart import regular_chart_at, regular_step
 from lrfcal.model.kinematics import exp_so3
-from lrfcal.model.unknowns import CORE_NAMES, N_CORE
+from lrfcal.model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
 from lrfcal.types import Spread
 
 FloatArray = NDArray[np.float64]
@@ -99,10 +99,11 @@ class Unknowns:
 
     @classmethod
     def of(cls, free_core: BoolArray, n_nuisance: int, why: Mapping[str, str]) -> Unknowns:
-        """Free core unknowns (N_CORE,) and every nuisance; each held one with its reason from ``why`` (else "held
-        by default", the model's table: lrfcal.model.unknowns.UNKNOWNS)."""
+        """Free core unknowns (N_CORE,) and every nuisance; each held one with its reason from ``why``, else the
+        model's table's (lrfcal.model.unknowns.UNKNOWNS: why it is held by default)."""
         free = np.concatenate([np.asarray(free_core, dtype=bool), np.ones(n_nuisance, dtype=bool)])
-        held = {n: why.get(n, "held by default") for n, f in zip(CORE_NAMES, free_core, strict=True) if not f}
+        held = {u.name: why.get(u.name) or u.held or "held by the call"
+                for u, f in zip(UNKNOWNS, free_core, strict=True) if not f}
         return cls(free, held)
 
 
