@@ -127,7 +127,8 @@ class Problem:
         assert ms is not None, "the marker map's uncertainty needs marker returns"
         if J_dense is None:
             _, J = self.marker_rows(th, R_ref)
-        else:
+        else:  # the marker set's dense rows come first (the first set)
+            assert self.sets[0] is ms, "the marker returns must be the first set"
             J = J_dense[:ms.r.size * ms.n_res].reshape(ms.r.size, ms.n_res, N_CORE)
         assert J is not None and ms.marker is not None
         Jc = centre_jacobian(th, ms, self.sigma_r, R_ref, self.clock)
