@@ -16,7 +16,7 @@ from lrfcal.estimate.problem import Problem, marker_set
 from lrfcal.estimate.solve import solve
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M
 from lrfcal.model.marker import MarkerModel, MarkerSensor
-from lrfcal.model.observations import ObservationSet
+from lrfcal.model.observations import DHPrior, ObservationSet
 from lrfcal.model.plane import PlaneSet
 from lrfcal.model.unknowns import CORE_NAMES, N_CORE, free_by_default, pack, plane_nuisance_start
 from lrfcal.types import Observations
@@ -129,3 +129,45 @@ def test_sets_of_one_kind_estimate_as_their_union() -> None:
     assert unknowns.held["x"] == "the mount is the world frame" and unknowns.held["rx"] == "held by the call"
     assert "trusted" in unknowns.held["range_scale"]  # the model's table says why it is held by default
     assert not unknowns.free[CORE_NAMES.index("x")] and unknowns.free[N_CORE:].all()
+
+
+def test_stacked_sets_jacobian_matches_finite_differences() -> None:
+    """Four sets in one problem (marker returns, the DH prior, two plane sets, the second with a prior on its
+    planes): each set's nuisances follow the core in the sets' order, and the stacked Jacobian is the derivative of
+    the stacked residuals, column by column."""
+    rng = np.random.default_rng(5)
+    K = 80
+    lam, mu = rng.uniform(-1.5, 1.5, K), rng.uniform(-2.0, 2.0, K)
+    dh = DH(0.03, 1.4, 0.02, 0.3)
+    o, d = beam_rays_M(lam, mu, dh)
+    c = o + rng.uniform(1, 3, K)[:, None] * d + rng.normal(0, 0.05, (K, 3))
+    ms, _ = marker_set(Observations(
+        blob=np.arange(K) % 7, marker=np.arange(K) % 7, scan=np.arange(K), beam=np.zeros(K, np.int64),
+        ranges_m=rng.uniform(1, 3, K), mu_rad=mu, lambda_rad=lam, times_s=np.zeros(K), intensity=np.ones(K),
+        is_peak=np.zeros(K, bool)), c[:7], MarkerSensor.of("sphere", 0.1, 0.0, 0.01))
+    sets: list[ObservationSet] = [ms, DHPrior(np.array([0.0, 1.5, 0.0, 0.2]), np.array([0.01, 0.1, 0.01, 0.1]))]
+    nus = []
+    for n_planes, prior in ((2, False), (3, True)):
+        plane = rng.integers(0, n_planes, K).astype(np.int64)
+        n0, t1, t2, nu0 = plane_nuisance_start(rng.normal(0, 1, (n_planes, 3)), rng.uniform(1, 3, n_planes))
+        n0 = n0 / np.linalg.norm(n0, axis=1, keepdims=True)
+        sigma = np.full(3 * n_planes, 0.05) if prior else None
+        sets.append(PlaneSet(lam, mu, rng.uniform(1, 3, K), plane, n0, t1, t2, nu0 + 0.01 if prior else None,
+                             sigma, scan=np.arange(K)))
+        nus.append(nu0 + rng.normal(0, 0.01, nu0.size))
+    pb = Problem(tuple(sets), 0.01)
+    core, R_ref = pack(Params(Pose(0.1, -0.2, 0.3, 0.2, -0.1, 0.4), dh))
+    th = np.concatenate([core, *nus])
+    res, J = pb.stacked(th, R_ref)
+    # prior rows: one per nuisance, 0 (residual and weight) for the planes without a prior
+    assert J is not None and J.shape == (K * 4 + 4 + 2 * K + 15, N_CORE + 15)
+    assert np.all(res[-15:-9] == 0.0) and np.all(J[-15:-9] == 0.0)
+    assert pb.clusters()[0].size == K * 4 + 4 and pb.clusters()[1].size == 2 * K
+    h = 1e-6
+    for j in range(th.size):
+        if j == CORE_NAMES.index("clock_offset"):
+            continue  # no clock: the clock offset's column is 0 by design
+        dp = np.zeros(th.size)
+        dp[j] = h
+        num = (pb.stacked(th + dp, R_ref, jac=False)[0] - pb.stacked(th - dp, R_ref, jac=False)[0]) / (2 * h)
+        assert np.abs(num - J[:, j]).max() <= 1e-5 * max(1.0, np.abs(J[:, j]).max()), j
