@@ -18,8 +18,9 @@ from lrfcal.estimate.problem import Problem
 from lrfcal.estimate.solve import solve
 from lrfcal.model.chart import canonical_dh, dh_chart, regular_chart, regular_chart_at, regular_step, scan_plane_pose
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, rot_x, rot_z, transform_points
-from lrfcal.model.marker import MarkerSet, ray_to_centre
-from lrfcal.model.unknowns import N_CORE, PlaneSet, pack, plane_nuisance_start, wrap_pi
+from lrfcal.model.marker import MarkerModel, MarkerSensor, MarkerSet, ray_to_centre
+from lrfcal.model.plane import PlaneSet
+from lrfcal.model.unknowns import N_CORE, pack, plane_nuisance_start, wrap_pi
 from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
 
 
@@ -67,14 +68,14 @@ def _problem(rng: np.random.Generator, params: Params) -> tuple[Problem, np.ndar
     lam, mu = rng.uniform(-3, 3, K), rng.uniform(-2, 2, K)
     o, d = beam_rays_W(params, lam, mu)
     c = o + rng.uniform(1, 3, K)[:, None] * d + rng.normal(0, 0.1, (K, 3))  # markers near the beams
-    ms = MarkerSet(lam, mu, rng.uniform(1, 3, K), c, "sphere", 0.3, 0.01)
+    ms = MarkerSet(lam, mu, rng.uniform(1, 3, K), c, MarkerSensor(MarkerModel.SPHERE, 0.3, 0.01))
     normals = np.array([[0.0, 1.0, 0.0], [0.6, 0.0, 0.8]])
     plane = rng.integers(0, 2, K)
     n0, t1, t2, nu0 = plane_nuisance_start(normals, np.array([1.0, 2.0]))
     s = PlaneSet(lam, mu, rng.uniform(1, 3, K), plane.astype(np.int64), n0, t1, t2)
     core, R_ref = pack(params)
     core[3:6] = (0.2, -0.3, 0.1)  # a rotation increment away from 0
-    return Problem(ms, 0.01, surf=s), np.concatenate([core, nu0 + rng.normal(0, 0.01, nu0.size)]), R_ref
+    return Problem((ms, s), 0.01), np.concatenate([core, nu0 + rng.normal(0, 0.01, nu0.size)]), R_ref
 
 
 @pytest.mark.parametrize("alpha", [0.0, 0.05, 1.2, np.pi / 2])

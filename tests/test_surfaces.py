@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from lrfcal.estimate.problem import Problem, no_markers
+from lrfcal.estimate.problem import Problem
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, transform_points
 from lrfcal.model.motor import MotorClock
-from lrfcal.model.unknowns import N_CORE, PlaneSet, pack, plane_nuisance_start
+from lrfcal.model.plane import PlaneSet
+from lrfcal.model.unknowns import N_CORE, pack, plane_nuisance_start
 from lrfcal.stages.surfaces import candidate_planes, find_surfaces, surface_returns
 from lrfcal.types import JointStates
 
@@ -77,7 +78,7 @@ def test_surface_jacobian_matches_finite_differences() -> None:
     core, R_ref = pack(params, 0.01)
     core[3:6] = (0.2, -0.3, 0.5)  # a rotation increment away from 0: the SO(3) right Jacobian
     th = np.concatenate([core, nu0 + rng.normal(0, 0.01, nu0.size)])
-    pb = Problem(no_markers(), 0.01, surf=s, clock=clock)
+    pb = Problem((s,), 0.01, clock=clock)
     _, J = pb.stacked(th, R_ref)
     assert J is not None and J.shape == (K, N_CORE + 6)
     h = 1e-6

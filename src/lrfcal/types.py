@@ -18,6 +18,7 @@ from lrfcal.config import CalibConfig
 from lrfcal.model.kinematics import DH, Params, Pose
 
 if TYPE_CHECKING:  # the stages' own types, named here for the reader and the type checker only
+    from lrfcal.estimate.normal_equations import Iteration
     from lrfcal.io.rig import LogLayout, ScanSource, ServoSource
     from lrfcal.stages.planes import ScenePlane
     from lrfcal.stages.surfaces import Surface, SurfaceReturns
@@ -359,6 +360,8 @@ class Solution:
     #: opinion's
     #: covariance of the difference of two solutions (lrfcal.estimate.checks.difference_covariance); None with rank loss
     spread: Spread | None = None
+    #: each accepted Levenberg-Marquardt iteration of every pass (lrfcal.estimate.engine.Estimate.log)
+    iterations: tuple[Iteration, ...] = ()
 
     def with_dh_systematic(self, d: ArrayLike) -> Solution:
         """This solution with its DH covariance widened by d d^T, d (4,) a model error in (a, alpha, b, beta) that

@@ -67,7 +67,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
                  ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread]:
     """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
     cluster (``cluster_dense``, ``cluster_plane``: the cluster of each dense and plane residual row, a marker's
-    crossing (lrfcal.estimate.solve.marker_clusters) and a scan's surface returns; each prior row is a cluster of its
+    crossing (lrfcal.model.marker.MarkerSet.clusters) and a scan's surface returns; each prior row is a cluster of its
     own),
     with ``n_rows`` independent residuals, plus the marker map's own uncertainty ``map_cov`` (3n, 3n) carried
     through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c (lrfcal.estimate.problem.Problem.

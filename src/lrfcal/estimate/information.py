@@ -10,10 +10,13 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrfcal.estimate.normal_equations import assemble, schur, scores_by_cluster, solve_step
-from lrfcal.estimate.problem import Problem, marker_problem, plane_problem, plane_set
-from lrfcal.estimate.solve import marker_clusters, plane_free, with_sides
+from lrfcal.estimate import engine
+from lrfcal.estimate.engine import State
+from lrfcal.estimate.normal_equations import assemble, scores_by_cluster, solve_step
+from lrfcal.estimate.problem import Problem, marker_set, plane_problem, plane_set
+from lrfcal.estimate.solve import plane_free
 from lrfcal.model.kinematics import Params
+from lrfcal.model.marker import MarkerModel, MarkerSensor
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.noise import correlated_range_excess
 from lrfcal.model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
@@ -24,14 +27,14 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-def _at(params: Params, obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float,
-        divergence: float, clock: MotorClock | None = None, clock_offset_s: float = 0.0
+def _at(params: Params, obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor,
+        clock: MotorClock | None = None, clock_offset_s: float = 0.0
         ) -> tuple[Problem, FloatArray, FloatArray]:
     """The marker problem of ``obs`` (with ``clock``: the clock offset an unknown) and the unknowns at ``params``
     (the core vector and R_ref)."""
-    pb, _ = marker_problem(obs, markers_W, model, radius, sigma_r, divergence)
+    ms, _ = marker_set(obs, markers_W, sensor)
     th, R_ref = pack(params, clock_offset_s)
-    return replace(pb, clock=clock), th, R_ref
+    return Problem((ms,), sensor.range_sigma_m, clock=clock), th, R_ref
 
 
 def model_residuals(
@@ -49,7 +52,8 @@ def model_residuals(
 
     M = 3 K (paper) or 4 K (sphere: range residual then the 3 lateral components, per return).
     """
-    pb, core, R_ref = _at(params, obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)
+    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
+    pb, core, R_ref = _at(params, obs, markers_W, sensor)
     res, J = pb.marker_rows(core, R_ref)
     assert J is not None
     return res.ravel(), J.reshape(-1, N_CORE)[:, :10]
@@ -77,7 +81,8 @@ def jacobian_check(
     uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
     agrees with finite differences only to the interpolation's curvature error (~1e-3 relative).
     """
-    pb, th, R_ref = _at(params, obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad, clock)
+    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
+    pb, th, R_ref = _at(params, obs, markers_W, sensor, clock)
     th[3:6] = np.asarray(rotation_vector, dtype=float)
     _, J = pb.marker_rows(th, R_ref)
     assert J is not None
@@ -111,16 +116,10 @@ def information_at(
     (Schur complement), evaluated at the planes the returns carry (their normals and offsets). ``sides``: only
     the lateral residuals of markers the scan plane crosses on both sides at ``params`` (as the solve does; False
     where ``params`` are a start that may be far off, e.g. with the servo's direction not yet known)."""
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
-                                     clock_offset_s, surfaces, planes, beam_divergence_rad, sides, estimate)
-    names = tuple(CORE_NAMES[i] for i in idx)
-    if pb.surf is not None:
-        S, _, _ = schur(assemble(pb.blocks(th, R_ref), idx))
-        return S, names
-    _, J = pb.marker_rows(th, R_ref)
-    assert J is not None
-    J = J.reshape(-1, N_CORE)[:, idx]
-    return J.T @ J, names
+    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes, sides,
+                                     estimate)
+    return engine.information(pb, State(th, R_ref), idx)
 
 
 def model_error_at(
@@ -133,12 +132,12 @@ def model_error_at(
     the true ``params``): their range residuals are then what the model does not explain (the footprint on the
     markers and on an oblique wall, the joint states' interpolation). It is the cluster-robust (sandwich)
     covariance H^-1 (sum_c g_c g_c^T) H^-1 of those residuals, g_c the score of cluster c (a marker's crossing, a
-    scan's surface returns: lrfcal.estimate.solve.marker_clusters), one Gauss-Newton step from
+    scan's surface returns: lrfcal.estimate.problem.Problem.clusters), one Gauss-Newton step from
     the truth (at the noise-free optimum): the part of the calibration's per-scan widening (lrfcal.estimate.solve) that
     noise does not explain. ``lrfsim plan`` adds it to the statistical covariance, as a noisy recording's sandwich
     holds both."""
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
-                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes)
     # one Gauss-Newton step to the noise-free optimum: what the unknowns absorb (the marker range bias of a
     # footprint, the planes' offsets) is a shift of the estimate, not a scatter
     step = solve_step(assemble(pb.blocks(th, R_ref), idx), 0.0)
@@ -148,12 +147,13 @@ def model_error_at(
     H, _ = assemble(b, idx).dense()
     # a marker return's lateral residual is where its beam passes the marker's centre: noise to the model (the
     # sigma of a filled disc, in the statistical covariance already), so only its range residual is model error
-    r_m = b.r_dense.reshape(-1, pb.markers.n_res).copy()
-    r_m[:, 0 if pb.markers.model == "paper" else 1:] = 0.0
+    ms = pb.markers
+    assert ms is not None
+    r_m = b.r_dense.reshape(-1, ms.n_res).copy()
+    r_m[:, 0 if ms.model == MarkerModel.PAPER else 1:] = 0.0
     b = replace(b, r_dense=r_m.ravel())
-    scan_s = np.zeros(0, dtype=np.int64) if pb.surf is None or surfaces is None else np.asarray(surfaces.scan)
-    clusters = marker_clusters(np.asarray(obs.scan), np.asarray(obs.marker), np.asarray(obs.times_s), scan_s)
-    G = scores_by_cluster(b, idx, np.repeat(clusters, pb.markers.n_res), scan_s)[1]
+    cluster_dense, cluster_plane, _ = pb.clusters()
+    G = scores_by_cluster(b, idx, cluster_dense, cluster_plane)[1]
     H_inv = scaled_pinv(H)
     k = idx.size
     sandwich = H_inv @ (G.T @ G) @ H_inv
@@ -176,17 +176,18 @@ def correlation_error_at(
     range row is the one the range noise enters)."""
     if model != "sphere":
         raise ValueError(f"correlation_error_at: the sphere model only, got {model!r}")
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
-                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes)
     k = idx.size
     if rho == 0.0:
         return np.zeros((k, k))
     b = pb.blocks(th, R_ref)
     H, _ = assemble(b, idx).dense()
     assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
-    use = marker_problem(obs, markers_W, model, marker_radius_m, range_sigma_m, beam_divergence_rad)[1]
+    use = marker_set(obs, markers_W, _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m))[1]
     # [H^-1 Delta H^-1] over the core = the excess of the rows u_i H^-1[:, :k] (K, k): cheap where 3P is large
     A = scaled_pinv(H)[:, :k]
+    assert pb.markers is not None
     n_res, K = pb.markers.n_res, int(np.count_nonzero(use))
     v_markers = b.J_dense[:K * n_res:n_res][:, idx] @ A[:k]  # the range row of each return (the first)
     v_planes = b.Jc_plane[:, idx] @ A[:k]
@@ -209,10 +210,12 @@ def turning_error_at(
     at the true ``params``: the difference of the two models' noise-free optima (one Gauss-Newton step each from
     the truth) squared, plus what noise adds to it, the variant's marker-only covariance less the whole residual's
     (the difference of two nested estimates). Zeros where no crossing turns."""
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
-                                     clock_offset_s, None, None, beam_divergence_rad)
-    variant = with_sides(replace(pb, markers=replace(pb.markers, in_plane_at_turns=True)), th, R_ref)
-    if variant.markers.across is None or not np.any(variant.markers.across):
+    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, None, None)
+    assert pb.markers is not None
+    variant = pb.with_sets([replace(pb.markers, in_plane_at_turns=True)]).chosen_at(th, R_ref)
+    turned = variant.markers
+    if turned is None or turned.across is None or not np.any(turned.across):
         return np.zeros((4, 4))
     dh = np.searchsorted(idx, np.arange(N_CORE)[DH_SLICE])
     steps, covs = [], []
@@ -237,8 +240,8 @@ def map_error_at(
     G map_cov G^T with G = -info^-1 J_m^T J_c (lrfcal.estimate.problem.Problem.centre_cross), as lrfcal.estimate.solve
     adds it to a
     calibration's covariance."""
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, model, marker_radius_m, range_sigma_m, clock,
-                                     clock_offset_s, surfaces, planes, beam_divergence_rad)
+    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes)
     G = -scaled_pinv(info) @ pb.centre_cross(
         th, R_ref, idx, len(map_cov) // 3)
     return G @ map_cov @ G.T
@@ -262,24 +265,29 @@ def estimated(clock: bool, surfaces: bool, estimate: Sequence[str] = ()) -> IntA
     return np.flatnonzero(free).astype(np.int64)
 
 
+def _sensor(model: str, radius_m: float, divergence_rad: float, range_sigma_m: float) -> MarkerSensor:
+    """The marker observation model's constants as one object (lrfcal.model.observations.MarkerSensor), checked."""
+    return MarkerSensor.of(model, radius_m, divergence_rad, range_sigma_m)
+
+
 def _problem_at(
-    obs: Observations, markers_W: ArrayLike, params: Params, model: str, radius: float, sigma_r: float,
+    obs: Observations, markers_W: ArrayLike, params: Params, sensor: MarkerSensor,
     clock: MotorClock | None, clock_offset_s: float, surfaces: SurfaceReturns | None,
-    planes: Sequence[Surface] | None, divergence: float, sides: bool = True, estimate: Sequence[str] = (),
+    planes: Sequence[Surface] | None, sides: bool = True, estimate: Sequence[str] = (),
 ) -> tuple[Problem, FloatArray, FloatArray, IntArray]:
     """The problem of :func:`information_at` (marker rows; plane rows and priors with non-empty ``surfaces``), the
     unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices; those
     held by default named in ``estimate`` too)."""
-    pb, th, R_ref = _at(params, obs, markers_W, model, radius, sigma_r, divergence, clock, clock_offset_s)
+    pb, th, R_ref = _at(params, obs, markers_W, sensor, clock, clock_offset_s)
     if sides:  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
-        pb = with_sides(pb, th, R_ref)
+        pb = pb.chosen_at(th, R_ref)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
     idx = estimated(clock is not None, with_surfaces, estimate)
     if surfaces is not None and with_surfaces:
         surf, nu0 = plane_set(surfaces, planes)
-        return replace(pb, surf=surf), np.concatenate([th, nu0]), R_ref, idx
+        return pb.with_sets([*pb.sets, surf]), np.concatenate([th, nu0]), R_ref, idx
     return pb, th, R_ref, idx
 
 
@@ -295,9 +303,7 @@ def plane_information(
     th, R_ref = pack(params, clock_offset_s)
     th = np.concatenate([th, nu0])
     free = plane_free(th.size, hold, clock, estimate_range_offset)
-    core = np.flatnonzero(free[:N_CORE])
-    S, _, _ = schur(assemble(pb.blocks(th, R_ref), core))
-    return S, tuple(CORE_NAMES[k] for k in core)
+    return engine.information(pb, State(th, R_ref), np.flatnonzero(free[:N_CORE]).astype(np.int64))
 
 
 __all__ = ["correlation_error_at", "estimated", "information_at", "jacobian_check", "map_error_at", "model_error_at",

@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal.model.observations import Blocks
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
@@ -35,30 +37,15 @@ RANK_TOL = 1e-15
 
 
 @dataclass(frozen=True)
-class Blocks:
-    """The whitened residuals of one solve and, with the Jacobian, its blocks (module docstring).
+class Iteration:
+    """One accepted Levenberg-Marquardt iteration (as mujoco's ``minimize.IterLog``): the (Huber) cost 0.5 sum r^2
+    after the step, the step's largest ratio to its unknown's sigma, the damping it was taken with, and the
+    evaluations of the residuals so far."""
 
-    r_dense (m,), J_dense (m, n_core); r_plane (K,), Jc_plane (K, n_core), Jn_plane (K, 3), plane (K,) the plane of
-    each plane row; r_prior (3P,) and w_prior (3P,) the nuisance priors' residuals and 1 / sigma (None: free
-    planes); n_planes P. Jacobians None when only residuals were asked for."""
-
-    r_dense: FloatArray
-    J_dense: FloatArray | None
-    r_plane: FloatArray
-    Jc_plane: FloatArray | None
-    Jn_plane: FloatArray | None
-    plane: IntArray
-    n_planes: int
-    r_prior: FloatArray | None = None
-    w_prior: FloatArray | None = None
-    segments: tuple[IntArray, IntArray] | None = None  # the plane rows ordered by plane, and each plane's bounds
-
-    def residuals(self) -> FloatArray:
-        """All whitened residuals, dense rows then plane rows then priors."""
-        parts = [self.r_dense, self.r_plane]
-        if self.r_prior is not None:
-            parts.append(self.r_prior)
-        return np.concatenate(parts)
+    cost: float
+    step_sigma: float
+    damping: float
+    evaluations: int
 
 
 @dataclass(frozen=True)
@@ -186,6 +173,7 @@ def levenberg_marquardt(
     th0: FloatArray, evaluate: Callable[[FloatArray, bool], Blocks], core: IntArray, n_core: int,
     huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3, stall_tol: float = 0.1,
     retract: Callable[[FloatArray, IntArray, FloatArray], FloatArray] | None = None,
+    log: list[Iteration] | None = None,
 ) -> tuple[FloatArray, int, bool]:
     """Minimise the (Huber) cost of ``evaluate(th, jac)`` over the core unknowns ``core`` and every nuisance (the
     entries of th from ``n_core`` on). Returns (th, evaluations, converged): converged when a step is below
@@ -193,7 +181,7 @@ def levenberg_marquardt(
     cost or lowers it by less than :data:`FLAT_COST`, or when no step lowers it any more (at the minimum).
     ``retract(th, free, step)``: th moved by a step (free.size,) over the entries ``free`` of th, for unknowns whose
     Jacobian columns are those of a chart at th rather than derivatives by th's own entries (th[free] + step when
-    None)."""
+    None). ``log``: each accepted iteration appended (:class:`Iteration`)."""
     free = np.concatenate([core, np.arange(n_core, th0.size)])
     th = th0.copy()
     move = retract or _add_step
@@ -223,6 +211,8 @@ def levenberg_marquardt(
             ratio = float(np.max(np.abs(step) / sigma)) if ok else np.inf
             small = ratio < step_tol
             if small and first and damp <= 1e-3:  # a negligible, barely damped step: converged, nothing to check
+                if log is not None:
+                    log.append(Iteration(c, ratio, damp, n_eval))
                 return trial, n_eval, True
             b_new = evaluate(trial, True) if ok else None  # with its Jacobian: the next iteration's, if accepted
             c_new = cost(b_new.residuals()) if b_new is not None else np.inf
@@ -238,6 +228,8 @@ def levenberg_marquardt(
             if damp > 1e10:
                 return th, n_eval, True  # no step decreases the cost: at the minimum
         flat = first and damp <= 1e-3 and ratio < stall_tol and c - c_new < FLAT_COST
+        if log is not None:
+            log.append(Iteration(c_new, ratio, damp, n_eval))
         th, c, damp = trial, c_new, max(damp / 10.0, 1e-9)
         if small or flat:
             return th, n_eval, True
@@ -271,5 +263,5 @@ def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluste
     return ids, G.reshape(n_cl, n)
 
 
-__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
+__all__ = ["RANK_TOL", "Blocks", "Iteration", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
            "schur", "scores_by_cluster", "solve_step"]

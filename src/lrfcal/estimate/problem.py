@@ -1,8 +1,9 @@
-"""The data of one least-squares problem and its whitened residuals: marker returns (lrfcal.model.marker), surface
-returns on planes whose normals and offsets are nuisances (lrfcal.model.plane), the planes' priors and the design
-drawing's prior on the DH parameters, all as the blocks the solver's normal equations take
-(lrfcal.estimate.normal_equations). Markers, surfaces, targetless, plan and study build one of these; one engine
-(lrfcal.estimate.solve) solves it.
+"""The data of one least-squares problem and its whitened residuals: a tuple of observation sets
+(lrfcal.model.observations.ObservationSet: marker returns, lrfcal.model.marker.MarkerSet; surface returns on planes
+whose normals and offsets are nuisances, lrfcal.model.plane.PlaneSet, with the planes' priors; the design drawing's
+prior on the DH parameters, lrfcal.model.observations.DHPrior), with the range noise and the motor clock, as the
+blocks the solver's normal equations take (lrfcal.estimate.normal_equations). Markers, surfaces, targetless, plan
+and study build one of these; one estimate (lrfcal.estimate.engine) solves it.
 """
 
 from __future__ import annotations
@@ -14,38 +15,104 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.errors import InputError
-from lrfcal.estimate.normal_equations import Blocks
-from lrfcal.model.marker import MODELS, MarkerSet, centre_jacobian, marker_rows
+from lrfcal.model.marker import MarkerSensor, MarkerSet, centre_jacobian, marker_rows
 from lrfcal.model.motor import MotorClock
-from lrfcal.model.plane import plane_rows
-from lrfcal.model.unknowns import DH_SLICE, N_CORE, PlaneSet, dh_difference, plane_nuisance_start
+from lrfcal.model.observations import Blocks, DHPrior, ObservationSet, RowContext, stack_blocks
+from lrfcal.model.plane import PlaneSet
+from lrfcal.model.unknowns import N_CORE, plane_nuisance_start
 from lrfcal.stages.surfaces import Surface, SurfaceReturns
 from lrfcal.types import Observations
 
 FloatArray = NDArray[np.float64]
+BoolArray = NDArray[np.bool_]
+IntArray = NDArray[np.int64]
 
 
 @dataclass(frozen=True)
 class Problem:
-    """Marker returns, optional surface returns, the range noise, optional clock (the clock offset estimated), an
-    optional prior on the DH parameters, and whether the mount's Jacobian is needed."""
+    """Observation sets (their nuisances follow the core unknowns in the sets' order), the range noise, optional
+    clock (the clock offset estimated), and whether the mount's Jacobian is needed."""
 
-    markers: MarkerSet
+    sets: tuple[ObservationSet, ...]
     sigma_r: float
-    surf: PlaneSet | None = None
     clock: MotorClock | None = None  # set when the clock offset is estimated
-    dh_prior: tuple[FloatArray, FloatArray] | None = None  # (mean (4,), sigma (4,)) of a, alpha, b, beta
     mount_jac: bool = True  # False: the mount is held, its Jacobian columns are not computed (left 0)
 
-    def subset(self, m: NDArray[np.bool_], ms: NDArray[np.bool_] | None = None) -> Problem:
-        """The marker returns ``m`` and the surface returns ``ms`` (all when None)."""
-        surf = self.surf if self.surf is None or ms is None else self.surf.subset(ms)
-        return replace(self, markers=self.markers.subset(m), surf=surf)
+    def _first(self, kind: type) -> ObservationSet | None:
+        return next((s for s in self.sets if isinstance(s, kind)), None)
+
+    @property
+    def markers(self) -> MarkerSet | None:
+        """The marker returns (the first MarkerSet), if any."""
+        m = self._first(MarkerSet)
+        return m if isinstance(m, MarkerSet) else None
+
+    @property
+    def surf(self) -> PlaneSet | None:
+        """The plane returns (the first PlaneSet), if any."""
+        s = self._first(PlaneSet)
+        return s if isinstance(s, PlaneSet) else None
+
+    @property
+    def dh_prior(self) -> DHPrior | None:
+        """The design drawing's prior on the DH parameters, if any."""
+        d = self._first(DHPrior)
+        return d if isinstance(d, DHPrior) else None
+
+    def context(self, chart: FloatArray | None = None) -> RowContext:
+        """How the sets' rows are evaluated (``chart``: lrfcal.model.chart, None for the DH parameters)."""
+        return RowContext(self.sigma_r, self.clock, self.mount_jac, chart)
+
+    def with_sets(self, sets: Sequence[ObservationSet]) -> Problem:
+        """The same problem of other sets (as many, with as many nuisances each)."""
+        return replace(self, sets=tuple(sets))
+
+    def subset(self, keeps: Sequence[BoolArray]) -> Problem:
+        """Each set's returns ``keeps[i]``."""
+        return self.with_sets([s.subset(k) for s, k in zip(self.sets, keeps, strict=True)])
+
+    def chosen_at(self, th: FloatArray, R_ref: FloatArray) -> Problem:
+        """Every set chosen again at th (ObservationSet.chosen_at: the markers crossed on both sides)."""
+        ctx = self.context()
+        return self.with_sets([s.chosen_at(self.own(th, i), R_ref, ctx) for i, s in enumerate(self.sets)])
+
+    def kept(self, th: FloatArray, R_ref: FloatArray, keeps: Sequence[BoolArray]) -> tuple[BoolArray, ...]:
+        """Each set's returns its robust rule keeps at th (ObservationSet.kept), the scale from ``keeps``."""
+        ctx = self.context()
+        return tuple(s.kept(self.own(th, i), R_ref, ctx, k) for i, (s, k) in enumerate(zip(self.sets, keeps,
+                                                                                             strict=True)))
+
+    def clusters(self) -> tuple[IntArray, IntArray, IntArray | None]:
+        """The cluster of each dense row and of each plane row (each set's, ObservationSet.clusters; the ids a set
+        makes up start above every set's scans), and each dense row's group (ObservationSet.groups; rows of a set
+        without groups one group each; None when no set has groups): the covariance's sandwiches."""
+        scans = [s.scan for s in self.sets if s.scan is not None]
+        first = max((int(sc.max(initial=0)) for sc in scans), default=0) + 1
+        dense, plane, groups = [], [], []
+        for s in self.sets:
+            d, p = s.clusters(first)
+            dense.append(d)
+            plane.append(p)
+            groups.append(s.groups())
+        marker_dense = None
+        if any(g is not None for g in groups):
+            marker_dense = np.concatenate([g if g is not None else -1 - np.arange(d.size)
+                                           for g, d in zip(groups, dense, strict=True)]).astype(np.int64)
+        return (np.concatenate(dense).astype(np.int64), np.concatenate(plane).astype(np.int64), marker_dense)
+
+    def own(self, th: FloatArray, i: int) -> FloatArray:
+        """The core unknowns and set i's own nuisances of th (N_CORE + its n_nuisance,)."""
+        start = N_CORE + sum(s.n_nuisance for s in self.sets[:i])
+        n = self.sets[i].n_nuisance
+        if start == N_CORE and start + n == th.size:
+            return th
+        return np.concatenate([th[:N_CORE], th[start:start + n]])
 
     def marker_rows(self, th: FloatArray, R_ref: FloatArray, jac: bool = True, chart: FloatArray | None = None
                     ) -> tuple[FloatArray, FloatArray | None]:
         """Whitened marker residuals (K, n_res) and Jacobian (K, n_res, N_CORE) (lrfcal.model.marker; ``chart``:
         lrfcal.model.chart, None for the DH parameters)."""
+        assert self.markers is not None, "a problem without marker returns"
         return marker_rows(th, self.markers, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac,
                            chart=chart)
 
@@ -57,9 +124,11 @@ class Problem:
         planes' priors do: :meth:`prior_cross`). ``J_dense``: :meth:`blocks`' dense Jacobian at th, when already
         computed (its first rows are the marker rows)."""
         ms = self.markers
+        assert ms is not None, "the marker map's uncertainty needs marker returns"
         if J_dense is None:
             _, J = self.marker_rows(th, R_ref)
-        else:
+        else:  # the marker set's dense rows come first (the first set)
+            assert self.sets[0] is ms, "the marker returns must be the first set"
             J = J_dense[:ms.r.size * ms.n_res].reshape(ms.r.size, ms.n_res, N_CORE)
         assert J is not None and ms.marker is not None
         Jc = centre_jacobian(th, ms, self.sigma_r, R_ref, self.clock)
@@ -79,35 +148,12 @@ class Problem:
 
     def blocks(self, th: FloatArray, R_ref: FloatArray, jac: bool = True, chart: FloatArray | None = None
                ) -> Blocks:
-        """All whitened residuals as lrfcal.estimate.normal_equations.Blocks: the marker returns and the design
-        drawing's
-        prior on the DH parameters (dense rows), the surface returns (plane rows) and the planes' priors. ``chart``
-        (6, 4): what the scan-plane columns are derivatives by (lrfcal.model.chart; None: the DH parameters, as
-        the prior's rows are)."""
-        assert chart is None or self.dh_prior is None, "a prior on the DH parameters needs the DH chart"
-        z = np.zeros(0)
-        r_d = z
-        J_d: FloatArray | None = np.zeros((0, N_CORE))
-        if self.markers.r.size:
-            res, J = self.marker_rows(th, R_ref, jac=jac, chart=chart)
-            r_d, J_d = res.ravel(), (None if J is None else J.reshape(-1, N_CORE))
-        if self.dh_prior is not None:  # the design drawing's word on the DH parameters
-            mean, sig = self.dh_prior
-            d = dh_difference(th[DH_SLICE], mean)
-            r_d = np.concatenate([r_d, d / sig])
-            if J_d is not None:
-                Jp = np.zeros((4, N_CORE))
-                Jp[:, DH_SLICE] = np.diag(1.0 / sig)
-                J_d = np.vstack([J_d, Jp])
-        s = self.surf
-        if s is None:
-            return Blocks(r_d, J_d, z, np.zeros((0, N_CORE)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), 0)
-        rows = plane_rows(th, s, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac,
-                          chart=chart)
-        r_q = w_q = None
-        if s.prior_sigma is not None and s.prior_mean is not None:  # the markers' word on the planes
-            r_q, w_q = (th[N_CORE:] - s.prior_mean) / s.prior_sigma, 1.0 / s.prior_sigma
-        return Blocks(r_d, J_d, rows.res, rows.Jc, rows.Jn, s.plane, s.n_planes, r_q, w_q, s.segments)
+        """All whitened residuals as lrfcal.estimate.normal_equations.Blocks, each set's in the sets' order (dense
+        rows: the marker returns, the design drawing's prior on the DH parameters; plane rows: the surface returns,
+        with the planes' priors). ``chart`` (6, 4): what the scan-plane columns are derivatives by
+        (lrfcal.model.chart; None: the DH parameters, as the prior's rows are)."""
+        ctx = self.context(chart)
+        return stack_blocks([s.blocks(self.own(th, i), R_ref, ctx, jac) for i, s in enumerate(self.sets)])
 
     def stacked(self, th: FloatArray, R_ref: FloatArray, jac: bool = True) -> tuple[FloatArray, FloatArray | None]:
         """All whitened residuals as one vector (dense rows, plane rows, plane priors) and the dense Jacobian
@@ -126,44 +172,42 @@ class Problem:
         return res, J
 
 
-def marker_problem(
-    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float, divergence: float = 0.0
-) -> tuple[Problem, NDArray[np.bool_]]:
-    """The problem of the returns of ``obs`` with a marker (and finite values), and which rows those are (K,).
+def marker_set(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor) -> tuple[MarkerSet, BoolArray]:
+    """The returns of ``obs`` with a marker (and finite values) as a MarkerSet, and which rows those are (K,).
 
     Raises:
-        InputError: a model, marker array, radius, noise or divergence out of its domain.
-    """
-    if model not in MODELS:
-        raise InputError(f"solve: model must be one of {', '.join(MODELS)}, got {model!r}")
+        InputError: a marker array out of its domain."""
     X = np.asarray(markers_W, dtype=float)
     if X.ndim != 2 or X.shape[1] != 3:
         raise InputError(f"solve: markers_W must be (n, 3), got {X.shape}")
-    if not radius > 0 or not sigma_r > 0:
-        raise InputError(f"solve: marker_radius_m and range_sigma_m must be > 0, got {radius}, {sigma_r}")
-    if not 0.0 <= divergence < 0.1:
-        raise InputError(f"solve: beam_divergence_rad must be in [0, 0.1) rad, got {divergence}")
     marker = np.asarray(obs.marker)
     if np.any(marker >= len(X)):
         raise InputError(f"solve: observation marker index {int(marker.max())} >= number of markers {len(X)}")
     use = (marker >= 0) & np.isfinite(obs.ranges_m) & np.isfinite(obs.lambda_rad) & np.isfinite(obs.mu_rad)
     ms = MarkerSet(np.asarray(obs.lambda_rad, dtype=float)[use], np.asarray(obs.mu_rad, dtype=float)[use],
-                   np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], model, float(radius),
-                   float(divergence), np.asarray(obs.times_s, dtype=float)[use], marker[use].astype(np.int64))
-    return Problem(ms, float(sigma_r)), use
+                   np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], sensor,
+                   np.asarray(obs.times_s, dtype=float)[use], marker[use].astype(np.int64),
+                   scan=np.asarray(obs.scan)[use].astype(np.int64))
+    return ms, use
 
 
-def no_markers() -> MarkerSet:
-    """An empty marker set (a problem of surface returns only)."""
-    z = np.zeros(0)
-    return MarkerSet(z, z, z, np.zeros((0, 3)), "sphere", 1.0, 0.0, z)
+def marker_problem(
+    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float, divergence: float = 0.0
+) -> tuple[Problem, BoolArray]:
+    """The problem of the returns of ``obs`` with a marker (and finite values), and which rows those are (K,).
+
+    Raises:
+        InputError: a model, marker array, radius, noise or divergence out of its domain.
+    """
+    sensor = MarkerSensor.of(model, radius, divergence, sigma_r)
+    ms, use = marker_set(obs, markers_W, sensor)
+    return Problem((ms,), sensor.range_sigma_m), use
 
 
 def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[PlaneSet, FloatArray]:
     """The surface returns as a PlaneSet with the planes' nuisance start (3P,): started from the returns' normals
     and offsets; with ``planes`` (each surface index's lrfcal.stages.surfaces.Surface), their tangent axes and the
-    markers'
-    prior on them."""
+    markers' prior on them."""
     ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
     first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])
     n0, t1, t2, nu0 = plane_nuisance_start(surfaces.normals[first], surfaces.offsets_m[first])
@@ -176,13 +220,15 @@ def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tup
         if all(j is not None for j in jacobians):
             prior_jacobian = np.vstack(jacobians)
     surf = PlaneSet(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
-                    nu0.copy(), prior_sigma, times=surfaces.times_s, prior_jacobian=prior_jacobian)
+                    nu0.copy(), prior_sigma, times=surfaces.times_s, prior_jacobian=prior_jacobian,
+                    scan=np.asarray(surfaces.scan).astype(np.int64))
     return surf, nu0
 
 
 def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorClock | None,
                   dh_prior: tuple[FloatArray, FloatArray] | None = None) -> tuple[Problem, FloatArray]:
-    """A problem of surface returns only (no marker returns) on free planes, and the planes' nuisance start.
+    """A problem of surface returns only (no marker returns) on free planes (with the design drawing's prior on
+    the DH parameters when given: its mean (4,) and sigma (4,)), and the planes' nuisance start.
 
     Raises:
         InputError: a range noise not above 0, or a clock without the returns' beam times.
@@ -192,8 +238,8 @@ def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorCl
     if clock is not None and surfaces.times_s is None:
         raise InputError("solve: the clock offset needs the surface returns' beam times (times_s)")
     surf, nu0 = plane_set(surfaces, None)
-    return Problem(no_markers(), float(range_sigma_m), surf=surf, clock=clock, dh_prior=dh_prior,
-                   mount_jac=False), nu0
+    sets: tuple[ObservationSet, ...] = (surf,) if dh_prior is None else (DHPrior(*dh_prior), surf)
+    return Problem(sets, float(range_sigma_m), clock=clock, mount_jac=False), nu0
 
 
-__all__ = ["Problem", "marker_problem", "no_markers", "plane_problem", "plane_set"]
+__all__ = ["Problem", "marker_problem", "marker_set", "plane_problem", "plane_set"]

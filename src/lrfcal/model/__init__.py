@@ -6,8 +6,10 @@
 - :mod:`.unknowns`: the parameters the solver can estimate (the 10, the clock offset and the scanner's
   intrinsics), their order in the solver's vector, and the motor angle of a beam at a clock offset;
 - :mod:`.rays`: each beam's origin and direction in W with their analytic Jacobian;
-- :mod:`.sphere`: the marker observation model (ray-sphere with the beam's footprint);
-- :mod:`.plane`: the surface observation model (ray-plane with the planes as nuisances).
+- :mod:`.observations`: the observation set, one interface for every kind of observation the estimate takes, and
+  the marker model's constants as one object;
+- :mod:`.marker`, :mod:`.sphere`: the marker observation model (ray-sphere with the beam's footprint) and its set;
+- :mod:`.plane`: the surface observation model (ray-plane with the planes as nuisances) and its set.
 
 See docs/architecture.md for where a new parameter or observation model goes.
 """

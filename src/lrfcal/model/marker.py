@@ -38,14 +38,19 @@ from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.model.kinematics import Params, exp_so3, points_M, transform_points
 from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.observations import Blocks, MarkerModel, MarkerSensor, RowContext, robust_kept
 from lrfcal.model.rays import beam_rays
 from lrfcal.model.scanner import reported_range, true_range
 from lrfcal.model.sphere import footprint_depth
-from lrfcal.model.unknowns import DH_SLICE, RSCALE
+from lrfcal.model.unknowns import DH_SLICE, N_CORE, RSCALE
 
 FloatArray = NDArray[np.float64]
 
-MODELS = ("paper", "sphere")
+MODELS = tuple(m.value for m in list(MarkerModel))
+
+#: the median of chi2_3 / 3, the squared whitened residual per independent component of a return at unit noise
+#: (the robust pass's scale of the marker returns)
+CHI2_3_MEDIAN = 0.789
 
 
 def ray_to_centre(o: FloatArray, d: FloatArray, c: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -64,17 +69,16 @@ def footprint_radius_m(range_m: ArrayLike, divergence_rad: float) -> FloatArray:
 
 @dataclass(frozen=True)
 class MarkerSet:
-    """K returns on markers: their motor angles (at the start clock offset), bearings, ranges, marker centres in W,
-    the model ("paper" or "sphere"), the marker radius R_m, the beam's full divergence [rad], laser-clock beam times,
-    and each return's marker (its index in the marker map, for the map's own uncertainty)."""
+    """K returns on markers (an observation set, lrfcal.model.observations.ObservationSet): their motor angles (at
+    the start clock offset), bearings, ranges, marker centres in W, the sensor (the model variant, the marker radius
+    R_m, the beam's full divergence), laser-clock beam times, each return's marker (its index in the marker map, for
+    the map's own uncertainty) and scan."""
 
     lam: FloatArray  # (K,)
     mu: FloatArray  # (K,)
     r: FloatArray  # (K,)
     c: FloatArray  # (K, 3)
-    model: str
-    radius: float
-    divergence: float = 0.0
+    sensor: MarkerSensor
     times: FloatArray | None = None  # (K,)
     marker: NDArray[np.int64] | None = None  # (K,)
     #: (K,) whether the return's lateral residual is used (None: all); see :func:`two_sided`
@@ -85,6 +89,22 @@ class MarkerSet:
     #: the model variant whose lateral residual keeps only its in-plane part in crossings that turn on their marker
     #: (:func:`crossings`; lrfcal.stages.markers widens the covariance by the DH difference it makes)
     in_plane_at_turns: bool = False
+    scan: NDArray[np.int64] | None = None  # (K,) each return's scan (the covariance's clusters without times)
+
+    @property
+    def model(self) -> MarkerModel:
+        """The model variant (the sensor's)."""
+        return self.sensor.model
+
+    @property
+    def radius(self) -> float:
+        """The marker radius R_m [m] (the sensor's)."""
+        return self.sensor.radius_m
+
+    @property
+    def divergence(self) -> float:
+        """The beam's full divergence [rad] (the sensor's)."""
+        return self.sensor.divergence_rad
 
     @property
     def footprint(self) -> FloatArray:
@@ -104,9 +124,11 @@ class MarkerSet:
         return 3 if self.model == "paper" else 4
 
     def subset(self, m: NDArray[np.bool_]) -> MarkerSet:
+        """The returns ``m`` (K,)."""
         return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], c=self.c[m],
                        times=None if self.times is None else self.times[m],
                        marker=None if self.marker is None else self.marker[m],
+                       scan=None if self.scan is None else self.scan[m],
                        lateral=None if self.lateral is None else self.lateral[m],
                        across=None if self.across is None else self.across[m])
 
@@ -126,6 +148,67 @@ class MarkerSet:
         lateral = np.ones(self.r.size, bool) if self.lateral is None else self.lateral
         in_plane = np.zeros(self.r.size, bool) if self.across is None else np.any(self.across != 0.0, axis=1)
         return np.where(lateral, np.where(in_plane, 2.0, 3.0), 1.0)
+
+    # -- the observation set (lrfcal.model.observations.ObservationSet) --
+
+    @property
+    def size(self) -> int:
+        """The number of returns K."""
+        return int(self.r.size)
+
+    @property
+    def n_nuisance(self) -> int:
+        """No nuisances: the marker centres are the map's (their uncertainty is carried, not estimated)."""
+        return 0
+
+    @property
+    def min_kept(self) -> int:
+        """The robust passes stop before keeping fewer than 4 marker returns."""
+        return 4
+
+    def blocks(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, jac: bool = True) -> Blocks:
+        """The whitened residuals (K n_res,) as dense rows, and their Jacobian (K n_res, N_CORE)
+        (:func:`marker_rows`)."""
+        if not self.r.size:
+            return Blocks.dense(np.zeros(0), np.zeros((0, N_CORE)))
+        res, J = marker_rows(th, self, ctx.sigma_r, R_ref, jac=jac, clock=ctx.clock, mount_jac=ctx.mount_jac,
+                             chart=ctx.chart)
+        return Blocks.dense(res.ravel(), None if J is None else J.reshape(-1, N_CORE))
+
+    def chi(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> FloatArray:
+        """(K,) each return's whitened residual norm over the square root of its independent components
+        (:meth:`dof`)."""
+        res, _ = marker_rows(th, self, ctx.sigma_r, R_ref, jac=False, clock=ctx.clock, mount_jac=ctx.mount_jac)
+        return np.sqrt((res**2).sum(1) / self.dof())
+
+    def kept(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, keep: NDArray[np.bool_]
+             ) -> NDArray[np.bool_]:
+        """(K,) the returns whose :meth:`chi` is within 4 robust sigma, the scale from the median of chi^2 of the
+        returns ``keep`` over chi2_3's (:data:`CHI2_3_MEDIAN`), never below 1."""
+        return robust_kept(self.chi(th, R_ref, ctx), keep, CHI2_3_MEDIAN, squared=True)
+
+    def chosen_at(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> MarkerSet:
+        """The set with the lateral residuals of the markers the scan plane crosses on one side only left out,
+        and in the model variant ``in_plane_at_turns`` only their in-plane part in crossings that turn on their
+        marker (:func:`crossings`, at th)."""
+        turns = self.in_plane_at_turns
+        lateral, across = crossings(th, self, R_ref, ctx.clock, turns=turns)
+        return replace(self, lateral=lateral, across=across if turns else None)
+
+    def clusters(self, first: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Each dense row's cluster: its return's crossing (the marker's successive scan lines,
+        :func:`crossing_ids`, numbered from ``first``): a crossing's lines share where they fall on the marker, so
+        they count as one sample, not one each; without the returns' times, each scan's returns are one cluster."""
+        if self.times is None or self.marker is None:
+            assert self.scan is not None, "the covariance's clusters need the returns' times or scans"
+            base = self.scan
+        else:
+            base = first + crossing_ids(self.marker, self.times)
+        return np.repeat(base, self.n_res), np.zeros(0, dtype=np.int64)
+
+    def groups(self) -> NDArray[np.int64] | None:
+        """Each dense row's marker: the errors the returns of one marker share (lrfcal.estimate.covariance)."""
+        return None if self.marker is None else np.repeat(self.marker, self.n_res)
 
 
 def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray, *, jac: bool = True,
@@ -230,7 +313,7 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
     lateral offsets is not its centre: a spinning scan plane tilted 28 deg came back 4 sigma off in alpha that way.
     Its returns keep their range residual; their lateral one is dropped (MarkerSet.lateral). The side of a return
     is the sign of the centre's distance from the scan plane, (c - o) . z_L, z_L the scanner's axis in W."""
-    if ms.model != "sphere" or ms.marker is None or ms.r.size == 0:
+    if ms.model != MarkerModel.SPHERE or ms.marker is None or ms.r.size == 0:
         return np.ones(ms.r.size, dtype=bool), np.zeros((ms.r.size, 3))
     motor = motor_angles(th, ms.lam, ms.times, clock)
     o, _, _, _ = beam_rays(th, R_ref, motor, ms.mu, jac=False)
@@ -318,5 +401,6 @@ def residuals_3d(params: Params, ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_
     return diff
 
 
-__all__ = ["MODELS", "MarkerSet", "centre_jacobian", "crossings", "footprint_radius_m", "marker_rows",
+__all__ = ["CHI2_3_MEDIAN", "MODELS", "MarkerModel", "MarkerSensor", "MarkerSet", "centre_jacobian", "crossings",
+           "footprint_radius_m", "marker_rows",
            "ray_to_centre", "residuals_3d", "two_sided"]

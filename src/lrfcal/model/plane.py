@@ -1,6 +1,6 @@
 """Ray-plane range residuals and their Jacobian, row by row without (K, 3, N_CORE) temporaries.
 
-A return k on plane j (lrfcal.model.unknowns.PlaneSet) has the residual (r_k - range_scale r_p - range_offset) /
+A return k on plane j (:class:`PlaneSet`) has the residual (r_k - range_scale r_p - range_offset) /
 sigma_r (lrfcal.model.scanner.reported_range) against the ray-plane distance r_p = (d_j - n_j . o) / (n_j . dir)
 (lrfcal.estimate.solve's module docstring has the forward model).
 Everything is evaluated in the frame of the beam before the motor's turn ("L0": M turned back by lambda_k), where
@@ -23,17 +23,123 @@ plane returns of a targetless calibration are 10^5 and more rows.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import exp_so3, right_jacobian_so3
 from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.observations import Blocks, RowContext, robust_kept
 from lrfcal.model.scanner import reported_range, true_bearing
-from lrfcal.model.unknowns import BSCALE, N_CORE, SCALE, PlaneSet
+from lrfcal.model.unknowns import BSCALE, N_CORE, SCALE
 
 FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class PlaneSet:
+    """Non-marker returns (K2 rows) on P planes whose normals and offsets are nuisance parameters: an observation
+    set (lrfcal.model.observations.ObservationSet).
+
+    Plane j: n_j = m_j / |m_j|, m_j = n0_j + u1_j t1_j + u2_j t2_j (t1, t2 tangent to the initial normal n0),
+    n_j . p = d_j. The nuisance vector follows the core unknowns: (u1, u2, d) per plane.
+    """
+
+    lam: FloatArray
+    mu: FloatArray
+    r: FloatArray
+    plane: NDArray[np.int64]  # (K2,) plane index
+    n0: FloatArray  # (P, 3)
+    t1: FloatArray  # (P, 3)
+    t2: FloatArray  # (P, 3)
+    prior_mean: FloatArray | None = None  # (3P,) nuisance values the markers give
+    prior_sigma: FloatArray | None = None  # (3P,) their uncertainty (None: free planes)
+    times: FloatArray | None = None  # (K2,) laser-clock beam times (for the clock offset)
+    prior_jacobian: FloatArray | None = None  # (3P, 3n) d prior_mean / d marker coordinates (the map's uncertainty)
+    scan: NDArray[np.int64] | None = None  # (K2,) each return's scan (each scan's returns one cluster)
+
+    def subset(self, m: NDArray[np.bool_]) -> PlaneSet:
+        """The returns ``m`` (K2,) (on the same planes)."""
+        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
+                       times=None if self.times is None else self.times[m],
+                       scan=None if self.scan is None else self.scan[m])
+
+    @property
+    def n_planes(self) -> int:
+        return int(self.n0.shape[0])
+
+    @cached_property
+    def trig_lam(self) -> tuple[FloatArray, FloatArray]:
+        """cos and sin (K2,) of the declared motor angles ``lam`` (computed once: lrfcal.model.plane)."""
+        return np.cos(self.lam), np.sin(self.lam)
+
+    @cached_property
+    def trig_mu(self) -> tuple[FloatArray, FloatArray]:
+        """cos and sin (K2,) of the declared bearings ``mu`` (computed once: lrfcal.model.plane)."""
+        return np.cos(self.mu), np.sin(self.mu)
+
+    @cached_property
+    def segments(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """The rows in a stable order by plane (K2,) and each plane's [start, stop) in it (P + 1,)."""
+        order = np.argsort(self.plane, kind="stable")
+        return order, np.searchsorted(self.plane[order], np.arange(self.n_planes + 1))
+
+
+    # -- the observation set (lrfcal.model.observations.ObservationSet) --
+
+    @property
+    def size(self) -> int:
+        """The number of returns K2."""
+        return int(self.r.size)
+
+    @property
+    def n_nuisance(self) -> int:
+        """3 per plane: (u1, u2, d)."""
+        return 3 * self.n_planes
+
+    @property
+    def n_independent(self) -> int:
+        """One per return, and one per prior row (3 per plane with the markers' prior)."""
+        return self.size + (0 if self.prior_sigma is None else int(self.prior_sigma.size))
+
+    @property
+    def min_kept(self) -> int:
+        """No minimum of its own (a solve checks its returns per unknown before it starts)."""
+        return 0
+
+    def blocks(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, jac: bool = True) -> Blocks:
+        """The ray-plane rows (:func:`plane_rows`) and the planes' priors (th_nu - prior_mean) / prior_sigma."""
+        rows = plane_rows(th, self, ctx.sigma_r, R_ref, jac=jac, clock=ctx.clock, mount_jac=ctx.mount_jac,
+                          chart=ctx.chart)
+        r_q = w_q = None
+        if self.prior_sigma is not None and self.prior_mean is not None:  # the markers' word on the planes
+            r_q, w_q = (th[N_CORE:] - self.prior_mean) / self.prior_sigma, 1.0 / self.prior_sigma
+        J_d = np.zeros((0, N_CORE))
+        return Blocks(np.zeros(0), J_d, rows.res, rows.Jc, rows.Jn, self.plane, self.n_planes, r_q, w_q,
+                      self.segments)
+
+    def kept(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, keep: NDArray[np.bool_]
+             ) -> NDArray[np.bool_]:
+        """(K2,) the returns whose |whitened residual| is within 4 robust sigma, the scale the median absolute
+        residual of the returns ``keep`` over the normal distribution's (0.674, the MAD), never below 1."""
+        rs = np.abs(plane_rows(th, self, ctx.sigma_r, R_ref, jac=False, clock=ctx.clock).res)
+        return robust_kept(rs, keep, 0.674, squared=False)
+
+    def chosen_at(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> PlaneSet:
+        """The same set: every plane return's one residual counts at every estimate (the surface returns chosen
+        again are a new set, built by the stage: lrfcal.stages.surfaces)."""
+        return self
+
+    def clusters(self, first: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        """Each plane row's cluster: its scan (the errors shared by a scan's returns: its motor angle)."""
+        assert self.scan is not None, "the covariance's clusters need the plane returns' scans"
+        return np.zeros(0, dtype=np.int64), self.scan
+
+    def groups(self) -> NDArray[np.int64] | None:
+        """No dense rows."""
+        return None
 
 
 @dataclass(frozen=True)
@@ -142,4 +248,4 @@ def _cos_sin_sum(c: float, x: FloatArray, trig: tuple[FloatArray, FloatArray], d
     return cc * cx - sc * sx, sc * cx + cc * sx
 
 
-__all__ = ["PlaneRows", "plane_rows"]
+__all__ = ["PlaneRows", "PlaneSet", "plane_rows"]

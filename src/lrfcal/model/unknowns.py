@@ -4,7 +4,7 @@
 The core vector: the mount translation x, y, z, a rotation vector rx, ry, rz in frame M (the mount's rotation is
 R_ref Exp(w), so the solver never meets an Euler-angle singularity; roll, pitch and yaw are an output format), the DH
 parameters a, alpha, b, beta, the laser-servo clock offset, and the servo's and scanner's intrinsics (:data:`UNKNOWNS`
-with kind "intrinsic"); then 3 nuisances per plane (:class:`PlaneSet`).
+with kind "intrinsic"); then 3 nuisances per plane (lrfcal.model.plane.PlaneSet).
 
 Adding an unknown is adding a row to :data:`UNKNOWNS` and its effect to the model function it belongs to (the motor
 angle in :mod:`.motor`, the range in :mod:`.scanner`, the chain in :mod:`.rays` and :mod:`.plane`); the solver,
@@ -14,8 +14,7 @@ its covariance and the written results take it from there.
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
-from functools import cached_property
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -147,51 +146,6 @@ def free_by_default(hold: Sequence[str] = (), estimate: Sequence[str] = ()) -> N
             raise InputError(f"solve: {what}: unknown parameter {unknown[0]!r} (expected one of "
                              f"{', '.join(CORE_NAMES)})")
     return np.array([(not u.held or u.name in estimate) and u.name not in hold for u in UNKNOWNS])
-
-
-@dataclass(frozen=True)
-class PlaneSet:
-    """Non-marker returns (K2 rows) on P planes whose normals and offsets are nuisance parameters.
-
-    Plane j: n_j = m_j / |m_j|, m_j = n0_j + u1_j t1_j + u2_j t2_j (t1, t2 tangent to the initial normal n0),
-    n_j . p = d_j. The nuisance vector follows the core unknowns: (u1, u2, d) per plane.
-    """
-
-    lam: FloatArray
-    mu: FloatArray
-    r: FloatArray
-    plane: NDArray[np.int64]  # (K2,) plane index
-    n0: FloatArray  # (P, 3)
-    t1: FloatArray  # (P, 3)
-    t2: FloatArray  # (P, 3)
-    prior_mean: FloatArray | None = None  # (3P,) nuisance values the markers give
-    prior_sigma: FloatArray | None = None  # (3P,) their uncertainty (None: free planes)
-    times: FloatArray | None = None  # (K2,) laser-clock beam times (for the clock offset)
-    prior_jacobian: FloatArray | None = None  # (3P, 3n) d prior_mean / d marker coordinates (the map's uncertainty)
-
-    def subset(self, m: NDArray[np.bool_]) -> PlaneSet:
-        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
-                       times=None if self.times is None else self.times[m])
-
-    @property
-    def n_planes(self) -> int:
-        return int(self.n0.shape[0])
-
-    @cached_property
-    def trig_lam(self) -> tuple[FloatArray, FloatArray]:
-        """cos and sin (K2,) of the declared motor angles ``lam`` (computed once: lrfcal.model.plane)."""
-        return np.cos(self.lam), np.sin(self.lam)
-
-    @cached_property
-    def trig_mu(self) -> tuple[FloatArray, FloatArray]:
-        """cos and sin (K2,) of the declared bearings ``mu`` (computed once: lrfcal.model.plane)."""
-        return np.cos(self.mu), np.sin(self.mu)
-
-    @cached_property
-    def segments(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
-        """The rows in a stable order by plane (K2,) and each plane's [start, stop) in it (P + 1,)."""
-        order = np.argsort(self.plane, kind="stable")
-        return order, np.searchsorted(self.plane[order], np.arange(self.n_planes + 1))
 
 
 def plane_nuisance_start(normals: FloatArray, offsets: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray,
