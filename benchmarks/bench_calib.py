@@ -9,7 +9,7 @@ For every shipped scenario (and N seeded random ones with --random N):
 2. the calibration alone (`lrfcal.pipeline.calibrate` on the recording read back from disk), timed;
 3. |error| of a, b (mm), alpha, beta (deg) and of the mount pose for OURS (every beam on a marker with the sphere
    model, per-beam motor angles) and the PAPER's method (one max-intensity beam per blob, one motor angle per
-   scan: result.baseline, on the same detections and association), our reported 1-sigma, and the tunnel
+   scan: the marker evidence's baseline, on the same detections and association), our reported 1-sigma, and the tunnel
    dimensions from the calibrated and the nominal cloud.
 
 Targets (the issue): plane_0deg and plane_30deg |error| of a, b <= 0.5 mm and alpha, beta <= 0.02 deg; tunnel_v

@@ -9,7 +9,7 @@ order of the spec's +-30 mm accuracy, not measurements), then all four together,
             with the surfaces' returns (CalibConfig.estimate_range_bias, the default);
 - ``held``: the same with both held at 0 (``lrfcal calibrate --no-range-bias``);
 - ``paper``: the seed paper's method (the blob's brightest beam, one motor angle per scan, 3D point-to-centre
-            residual: ``result.baseline``) on the same detections and association.
+            residual: ``result.evidence.baseline``) on the same detections and association.
 
 Prints per case and method the DH errors, the reported sigma and the largest |error| / sigma (beyond 4: a
 confident wrong result), and for ``est`` the estimated range offset and marker range bias with their sigma.

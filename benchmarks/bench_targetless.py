@@ -19,6 +19,7 @@ import numpy as np
 
 from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
+from lrfcal.result import PlaneEvidence
 from lrfsim.compare import load_truth
 from lrfsim.scenario import load_scenario
 from lrfsim.simulate import simulate, write_recording
@@ -31,7 +32,7 @@ CASES = {"tunnel_v": 0.010, "room_box": 0.010, "cardboard_box": 0.0035}
 
 def _row(label: str, result, truth, seconds: float) -> tuple[str, float]:  # type: ignore[no-untyped-def]
     cells, zmax = [], 0.0
-    held = result.plane_fit.held if result.plane_fit is not None else ()
+    held = result.evidence.plane_fit.held if isinstance(result.evidence, PlaneEvidence) else ()
     for i, n in enumerate(DH):
         err = getattr(result.solution.params.dh, n) - getattr(truth, n)
         if n in ("alpha", "beta"):

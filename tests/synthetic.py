@@ -13,10 +13,10 @@ import numpy as np
 from scipy import ndimage
 
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, points_M, points_W, transform_points
+from lrfcal.result import CalibrationResult, MarkerEvidence
 from lrfcal.types import (
     Association,
     Blob,
-    CalibrationResult,
     Detections,
     JointStates,
     MarkerMap,
@@ -156,13 +156,14 @@ def make_result(n_scans: int = 90, n_beams: int = 271, seed: int = 0) -> Calibra
     geo = TunnelGeometry(2.0, 2.3, 2.4)
     return CalibrationResult(
         recording=recording,
-        markers=marker_map,
-        detections=detections,
-        observations=observations,
-        association=Association(blob_to_marker, False, START.mount.matrix(), 0.02, len(blobs)),
+        evidence=MarkerEvidence(
+            markers=marker_map,
+            detections=detections,
+            observations=observations,
+            association=Association(blob_to_marker, False, START.mount.matrix(), 0.02, len(blobs)),
+        ),
         start=START,
         solution=solution(ESTIMATE),
-        baseline=None,
         cloud_before_M=points_M(r_v, lam_v, mu_v, START.dh),
         cloud_after_M=points_M(r_v, lam_v, mu_v, ESTIMATE.dh),
         cloud_intensity=intensity[valid],

@@ -279,9 +279,9 @@ def test_tape_outlier_end_to_end(tmp_path: Path) -> None:
     scenario = parse_scenario(data, "test")
     write_recording(simulate(scenario), scenario, tmp_path / "rec")
     result = calibrate(read_recording(tmp_path / "rec"), CalibConfig())
-    (dropped,) = result.markers.dropped_pairs
+    (dropped,) = result.evidence.markers.dropped_pairs
     assert {dropped.id_i, dropped.id_j} == {"m02", "m13"} and abs(dropped.error_m - 0.5) < 0.005
-    assert result.markers.rms_m < 0.002
+    assert result.evidence.markers.rms_m < 0.002
     (written,) = calibration_dict(result)["marker_map"]["dropped_pairs"]
     assert set(written["pair"]) == {"m02", "m13"} and written["measured_m"] > written["predicted_m"] + 0.49
     assert "tape pair m02-m13 dropped" in render_report(result)

@@ -55,15 +55,15 @@ def test_calibration_yaml_round_trip(tmp_path, result):
     assert data["residual_rms_m"] == pytest.approx(sol.residual_rms_m)
     assert data["n_observations"] == sol.n_observations
     used = data["markers"]["used"]
-    assert used and set(used) <= set(result.markers.marker_ids)
-    assert set(data["markers"]["residual_rms_m"]) == set(result.markers.marker_ids)
+    assert used and set(used) <= set(result.evidence.markers.marker_ids)
+    assert set(data["markers"]["residual_rms_m"]) == set(result.evidence.markers.marker_ids)
     assert data["baseline"] is None
     assert data["tunnel"]["after"]["width_m"] == pytest.approx(2.0)
 
 
 def test_baseline_and_missing_geometry(tmp_path, result):
-    r2 = dataclasses.replace(result, baseline=result.solution, geometry_before=None,
-                             geometry_after=TunnelGeometry(None, None, None))
+    r2 = dataclasses.replace(result, evidence=dataclasses.replace(result.evidence, baseline=result.solution),
+                             geometry_before=None, geometry_after=TunnelGeometry(None, None, None))
     out = write_calibration(tmp_path / "cal", r2)
     data = yaml.safe_load((out / "calibration.yaml").read_text())
     assert data["baseline"]["dh"]["a"]["value"] == pytest.approx(result.solution.params.dh.a)
@@ -122,13 +122,13 @@ def test_report_tables(result):
 def test_report_mount_truth_aligned(result):
     # truth markers in a different (rotated, shifted) frame: the mount is re-expressed in W
     T_sim_W = pose_matrix(1.0, -2.0, 0.5, 0.1, -0.2, 0.9)
-    mk_W = np.asarray(result.markers.positions_W)
+    mk_W = np.asarray(result.evidence.markers.positions_W)
     mk_sim = mk_W @ T_sim_W[:3, :3].T + T_sim_W[:3, 3]
     from lrfcal.model.kinematics import Pose
 
     mount_sim = Pose.from_matrix(T_sim_W @ result.solution.params.mount.matrix())
     truth = {"dh": result.solution.params.dh.as_dict(), "mount": mount_sim.as_dict(),
-             "markers": {i: list(p) for i, p in zip(result.markers.marker_ids, mk_sim, strict=True)}}
+             "markers": {i: list(p) for i, p in zip(result.evidence.markers.marker_ids, mk_sim, strict=True)}}
     md = render_report(result, truth=truth)
     x_row = next(line for line in md.splitlines() if line.startswith("| x |"))
     assert x_row.split("|")[-2].strip() in ("0.00", "-0.00")  # error column

@@ -44,7 +44,8 @@ def test_range_scale_one_percent_off_is_estimated(tmp_path: Path, scale: float) 
     from lrfcal.report.vizdata import marker_returns
 
     def rms(calibrated: bool) -> float:
-        to_marker = marker_returns(trial.result, trial.result.solution.params, calibrated=calibrated)[1]
+        to_marker = marker_returns(trial.result, trial.result.evidence, trial.result.solution.params,
+                                   calibrated=calibrated)[1]
         return float(np.sqrt((np.linalg.norm(to_marker, axis=1) ** 2).mean()))
 
     assert rms(True) == pytest.approx(trial.result.solution.residual_rms_m, rel=0.05) and rms(False) > rms(True)

@@ -24,7 +24,7 @@ import pytest
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.types import CalibrationResult
+from lrfcal.result import CalibrationResult, MarkerEvidence
 from lrfsim.compare import Comparison, compare, load_truth
 from lrfsim.randomize import random_scenario
 from lrfsim.scenario import Scenario, load_scenario
@@ -201,18 +201,20 @@ def test_shipped_fitted_result_comes_before_the_clouds_and_is_the_results(shippe
     assert len(case.fitted) == 1
     early = case.fitted[0]
     assert early.cloud_after_M.size == 0 and case.result.cloud_after_M.size > 0
-    assert early.solution is case.result.solution and early.detections is case.result.detections
+    assert early.solution is case.result.solution and early.evidence is case.result.evidence
     # the intensity figure's inputs, given as soon as the solve stage ends (drawn while the surfaces are fitted)
     assert [stage for stage, _ in case.outputs] == ["solve"]
-    out = case.outputs[0][1]
-    assert out["detections"] is case.result.detections and out["association"] is case.result.association
-    assert out["markers"] is case.result.markers and out["scans"] is case.result.recording.scans
+    out, ev = case.outputs[0][1], case.result.evidence
+    assert isinstance(ev, MarkerEvidence)
+    assert out["detections"] is ev.detections and out["association"] is ev.association
+    assert out["markers"] is ev.markers and out["scans"] is case.result.recording.scans
 
 
 @pytest.mark.parametrize("name", SHIPPED)
 def test_shipped_paper_baseline_present(name: str, shipped_cases: _Cases) -> None:
     case = shipped_cases[name]
-    baseline = case.result.baseline
+    assert isinstance(case.result.evidence, MarkerEvidence)
+    baseline = case.result.evidence.baseline
     assert baseline is not None, "the paper's baseline did not run"
     assert np.all(np.isfinite(baseline.params.vector())), baseline.status
     assert all(row.paper is not None for row in case.comparison.dh_rows)

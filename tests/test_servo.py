@@ -224,14 +224,15 @@ def test_spinning_rig_tilted_28_deg_is_calibrated_within_4_sigma(shipped_recordi
     from lrfcal.estimate.problem import marker_problem
     from lrfcal.model.marker import two_sided
     from lrfcal.model.unknowns import pack
+    from lrfcal.result import MarkerEvidence
     from lrfsim.trial import calibrate_recording
 
     trial = calibrate_recording(shipped_recording("spinning_tilted"), keep_result=True)
     assert trial.status == "calibrated", trial.describe()
     assert np.all(np.abs(trial.z) < 4.0), trial.describe()
     result = trial.result
-    assert result is not None and result.markers is not None
-    pb, _ = marker_problem(result.observations, result.markers.positions_W, "sphere",
+    assert result is not None and isinstance(result.evidence, MarkerEvidence)
+    pb, _ = marker_problem(result.evidence.observations, result.evidence.markers.positions_W, "sphere",
                            result.recording.nominal.marker_radius_m, 0.01)
     th, R_ref = pack(result.solution.params)
     both = two_sided(th, pb.markers, R_ref)

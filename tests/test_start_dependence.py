@@ -149,8 +149,8 @@ def test_starts_that_converge_elsewhere_are_refused_naming_the_parameters(
     result = DHSet(a=0.0101, alpha=1.574, b=0.0182, beta=-1.575)
     sigma = np.r_[np.full(6, np.nan), 6e-5, 1e-4, 1.5e-4, 4e-5]
     sol = SimpleNamespace(params=Params(MOTOR_FRAME, result), sigma=sigma, clock_offset_sigma_s=float("nan"))
-    fit = SimpleNamespace(solution=sol, recording=SimpleNamespace(nominal=SimpleNamespace(dh=nominal), scans=None),
-                          plane_fit=SimpleNamespace(held=()))
+    fit = SimpleNamespace(solution=sol, recording=SimpleNamespace(nominal=SimpleNamespace(dh=nominal), scans=None))
+    evidence = SimpleNamespace(plane_fit=SimpleNamespace(held=()))
     far = DHSet(a=result.a, alpha=result.alpha + 100 * sigma[7], b=result.b, beta=result.beta)
     near = DHSet(a=result.a, alpha=result.alpha - 3 * sigma[7], b=result.b, beta=result.beta)
     monkeypatch.setattr(propose, "propose_dh", lambda scans, joints: propose.DHProposal(
@@ -164,7 +164,7 @@ def test_starts_that_converge_elsewhere_are_refused_naming_the_parameters(
 
     monkeypatch.setattr(starts, "_solved", land)
     monkeypatch.setattr(starts, "call_forked", lambda tasks: {k: f() for k, f in tasks.items()})
-    check = starts.starts_check(fit, None, CalibConfig())  # type: ignore[arg-type]
+    check = starts.starts_check(fit, evidence, None, CalibConfig())  # type: ignore[arg-type]
     print(check)
     # the proposal first, then the agreeing start farthest from the result; the result itself is not run again
     assert [round((d.alpha - result.alpha) / sigma[7]) for d in ran] == [100, -3]

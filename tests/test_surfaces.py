@@ -166,7 +166,7 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
     sc = res.recording.scans
     lam = np.repeat(np.linspace(-np.pi / 2, np.pi / 2, sc.ranges_m.shape[0])[:, None], sc.ranges_m.shape[1], axis=1)
     on_front_wall = np.array([[2.5, y, z] for y, z in ((-0.8, 0.3), (-0.4, 1.4), (0.0, 0.5), (0.4, 1.2), (0.8, 0.4))])
-    args = (sc.ranges_m, sc.mu_rad, lam, res.detections.labels, on_front_wall, 0.001, TRUE)
+    args = (sc.ranges_m, sc.mu_rad, lam, res.evidence.detections.labels, on_front_wall, 0.001, TRUE)
     everything = sf.observe_surfaces(*args, max_returns=10**9)[1]
     assert len(everything) > 2000
     seen: list[float] = []

@@ -24,9 +24,9 @@ from lrfcal.errors import CalibrationError
 from lrfcal.estimate.checks import refuse_failed
 from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
+from lrfcal.result import CalibrationResult, PlaneEvidence
 from lrfcal.stages.planes import segment_planes, squareness_deg
 from lrfcal.stages.targetless import MAX_ROUNDS, SEGMENT_SAMPLES
-from lrfcal.types import CalibrationResult
 from lrfsim.compare import compare, load_truth
 from lrfsim.scenario import parse_scenario, with_changes
 from lrfsim.simulate import simulate, write_recording
@@ -57,7 +57,7 @@ def _z(result: CalibrationResult, folder: Path) -> dict[str, float]:
     est = result.solution.params.dh
     out = {}
     for i, n in enumerate(DH):
-        if n in result.plane_fit.held:
+        if n in result.evidence.plane_fit.held:
             continue
         err = getattr(est, n) - getattr(truth, n)
         if n in ("alpha", "beta"):
@@ -102,25 +102,25 @@ def _scenario_tolerances_met(result: CalibrationResult, folder: Path, name: str)
 def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, CalibrationResult]) -> None:
     folder, result = room
     z = _z(result, folder)
-    assert set(z) == set(DH), f"held: {result.plane_fit.held}"
+    assert isinstance(result.evidence, PlaneEvidence) and result.method == "targetless"
+    assert set(z) == set(DH), f"held: {result.evidence.plane_fit.held}"
     assert all(abs(v) <= N_SIGMA for v in z.values()), z
     _scenario_tolerances_met(result, folder, "room_box")
     assert all(c.passed for c in result.checks), result.checks
-    assert result.method == "targetless" and result.markers is None
     # the planes are no thicker after than before, and the clock offset was estimated (a two-way sweep)
-    fit = result.plane_fit
+    fit = result.evidence.plane_fit
     assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
     assert math.isfinite(result.solution.clock_offset_sigma_s)
     # every 5th scan was held out of the fit, and the held-out check measured it
     from lrfcal.stages.holdout import HOLDOUT_EVERY
 
-    assert not np.any(result.surface_returns.scan % HOLDOUT_EVERY == HOLDOUT_EVERY - 1)
+    assert not np.any(result.evidence.returns.scan % HOLDOUT_EVERY == HOLDOUT_EVERY - 1)
     held = next(c for c in result.checks if c.name == "held-out planes")
     assert held.passed and "left out of the fit" in held.detail
     # the coarse rounds settled, then one round on every sampled return (more returns than the coarse rounds')
     settle = next(c for c in result.checks if c.name == "rounds settled")
     assert "moved by less than a tenth of a sigma" in settle.detail
-    assert len(result.surface_returns) > SEGMENT_SAMPLES and 3 <= fit.rounds < MAX_ROUNDS + 1
+    assert len(result.evidence.returns) > SEGMENT_SAMPLES and 3 <= fit.rounds < MAX_ROUNDS + 1
 
 
 def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(shipped_recording: Callable[[str], Path]
@@ -181,7 +181,7 @@ def test_planes_along_the_motor_axis_determine_a_scan_plane_that_contains_it(tmp
                                             "markers": None})
     folder = _record(data, tmp_path / "axis")
     result = _calibrate(folder)
-    normals = np.array([p.normal for p in result.plane_fit.planes])
+    normals = np.array([p.normal for p in result.evidence.plane_fit.planes])
     assert np.all(np.abs(normals[:, 2]) < 0.05), "every plane must contain the motor axis z_M"
     z = _z(result, folder)
     assert set(z) == set(DH) and all(abs(v) <= N_SIGMA for v in z.values()), z
@@ -197,8 +197,9 @@ def test_a_single_plane_across_the_motor_axis_holds_b_and_names_it(tmp_path: Pat
                         "height_m": 3.0}})
     folder = _record(data, tmp_path / "plate")
     result = _calibrate(folder)
-    assert len(result.plane_fit.planes) == 1
-    assert result.plane_fit.held == ("b",)
+    assert isinstance(result.evidence, PlaneEvidence)
+    assert len(result.evidence.plane_fit.planes) == 1
+    assert result.evidence.plane_fit.held == ("b",)
     assert result.solution.params.dh.b == pytest.approx(result.recording.nominal.dh.b, abs=1e-12)
     assert not math.isfinite(result.solution.sigma[6 + DH.index("b")])
     assert any("do not determine b" in note for note in result.notes)
@@ -264,7 +265,7 @@ def test_real_urg04lx_box_is_refused_because_its_rounds_do_not_settle(real_box: 
     named without a sigma; the planes are no thicker after than before. The box's corners (mean |90 deg - angle|,
     printed) are a symptom, not a test: 1.30 deg nominal against 1.87 deg calibrated at one state, 1.65 against 1.46
     at the other. Estimate and sigma are printed."""
-    fit, sol = real_box.plane_fit, real_box.solution
+    fit, sol = real_box.evidence.plane_fit, real_box.solution
     nominal = real_box.recording.nominal.dh
     print("real box:", sol.params.dh, "sigma", sol.sigma[6:], "held", fit.held, "checks", real_box.checks)
     settle = next(c for c in real_box.checks if c.name == "rounds settled")

@@ -157,7 +157,7 @@ def test_tape_outlier_is_dropped_and_named(recordings: Callable[..., Path]) -> N
     trial = calibrate_recording(recordings(sc), FAST, keep_result=True)
     _ok(trial)
     assert trial.result is not None
-    dropped = trial.result.markers.dropped_pairs
+    dropped = trial.result.evidence.markers.dropped_pairs
     assert [{p.id_i, p.id_j} for p in dropped] == [{"m03", "m12"}]
 
 
@@ -221,7 +221,8 @@ def test_marker_moved_after_taping_is_found(recordings: Callable[..., Path], tmp
     trial = calibrate_recording(folder, FAST, keep_result=True)
     _ok(trial)
     assert trial.result is not None
-    used = {trial.result.markers.marker_ids[k] for k in np.unique(trial.result.observations.marker)}
+    ev = trial.result.evidence
+    used = {ev.markers.marker_ids[k] for k in np.unique(ev.observations.marker)}
     assert "m04" not in used, sorted(used)
 
 

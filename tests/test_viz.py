@@ -92,12 +92,12 @@ def test_rrd_read_back_has_the_entities_and_counts(result, tmp_path):
     assert sorted(p.name for p in path.parent.iterdir()) == ["calib.rrd"]  # no temporary file left
     e = read_rrd(path)
 
-    obs = result.observations
+    obs = result.evidence.observations
     K = int(np.sum(obs.marker >= 0))
     Q = result.cloud_after_M.shape[0]
     S = result.recording.scans.stamps_s.size
-    B = len(result.detections.blobs)
-    n = len(result.markers.marker_ids)
+    B = len(result.evidence.detections.blobs)
+    n = len(result.evidence.markers.marker_ids)
     assert K > 10 and B > 3 and Q > 1000
 
     for which in ("before", "after"):
@@ -329,11 +329,11 @@ def test_alignment_figure_has_a_titled_panel_per_marker_and_only_returns_inside_
 
     drawn: list[Any] = []
     monkeypatch.setattr(figures, "save", lambda fig, path: drawn.append(fig) or Path(path))
-    figures.alignment_figure(result, tmp_path / "a.png")
+    figures.alignment_figure(result, result.evidence, tmp_path / "a.png")
     (ax,) = drawn[0].axes
     titles = [t.get_text() for t in ax.texts if re.fullmatch(r"\S+: [\d.]+ -> [\d.]+ mm", t.get_text())]
-    _, _, mk, _ = vizdata.marker_returns(result, result.solution.params, calibrated=True)
-    with_returns = [result.markers.marker_ids[m] for m in np.unique(mk)][: figures.MAX_MARKER_PANELS]
+    _, _, mk, _ = vizdata.marker_returns(result, result.evidence, result.solution.params, calibrated=True)
+    with_returns = [result.evidence.markers.marker_ids[m] for m in np.unique(mk)][: figures.MAX_MARKER_PANELS]
     assert sorted(t.split(":")[0] for t in titles) == sorted(with_returns)
     # every return drawn lies inside one panel's square (the frames: a LineCollection of closed squares)
     from matplotlib.collections import LineCollection, PathCollection

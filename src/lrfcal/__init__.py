@@ -7,7 +7,8 @@ and may move. Besides this module, other code may import :mod:`lrfcal.model` (th
 
 - calibrate: :func:`calibrate` a :class:`Recording` (read with :func:`read_recording`) with a :class:`CalibConfig`;
   :func:`calibrate_folder` does it for a recording folder and writes the results, as ``lrfcal calibrate`` does;
-- the results: :class:`CalibrationResult`, :class:`Solution`, :class:`TunnelGeometry`, and the data they hold;
+- the results: :class:`CalibrationResult`, typed by its evidence (:class:`MarkerEvidence` or :class:`PlaneEvidence`,
+  with its :class:`PlaneFit`), :class:`Solution`, :class:`TunnelGeometry`, and the data they hold;
 - what ``plan`` needs to predict accuracy without calibrating: the information of marker and surface returns at
   given parameters (:func:`information_at` and its error terms), the observability verdict (:func:`analyse`), the
   marker map's covariance (:func:`map_covariance`), the surfaces the markers sit on (:func:`observe_surfaces`);
@@ -46,7 +47,10 @@ _EXPORTS: dict[str, str] = {
     "Scans": "lrfcal.types",
     "JointStates": "lrfcal.types",
     "Observations": "lrfcal.types",
-    "CalibrationResult": "lrfcal.types",
+    "CalibrationResult": "lrfcal.result",
+    "MarkerEvidence": "lrfcal.result",
+    "PlaneEvidence": "lrfcal.result",
+    "PlaneFit": "lrfcal.result",
     "Solution": "lrfcal.types",
     "TunnelGeometry": "lrfcal.types",
     "print_summary": "lrfcal.report.summary",
@@ -77,13 +81,12 @@ _EXPORTS: dict[str, str] = {
 }
 
 __all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M",
-           "DH", "JointStates", "LIMITS", "Observability", "Observations", "PARAM_NAMES", "Params", "Pose",
-           "Recording", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns",
-           "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
-           "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
-           "information_at", "map_covariance", "map_error_at", "model_error_at", "observe_surfaces",
-           "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
-           "viewer_can_spawn"]
+           "DH", "JointStates", "LIMITS", "MarkerEvidence", "Observability", "Observations", "PARAM_NAMES", "Params",
+           "PlaneEvidence", "PlaneFit", "Pose", "Recording", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution",
+           "Surface", "SurfaceReturns", "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy",
+           "calibrate", "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect",
+           "estimated", "information_at", "map_covariance", "map_error_at", "model_error_at", "observe_surfaces",
+           "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at", "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:
@@ -116,6 +119,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.model.kinematics import DH, PARAM_NAMES, Params, Pose
     from lrfcal.pipeline import STAGES, calibrate
     from lrfcal.report.summary import print_summary
+    from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence, PlaneFit
     from lrfcal.runtime.forked import cores
     from lrfcal.runtime.memory import apply_memory_policy
     from lrfcal.runtime.threads import apply_thread_policy, call_with_thread_policy, one_blas_thread
@@ -124,7 +128,6 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.stages.mds import map_covariance
     from lrfcal.stages.surfaces import Surface, SurfaceReturns, observe_surfaces
     from lrfcal.types import (
-        CalibrationResult,
         JointStates,
         Observations,
         Recording,

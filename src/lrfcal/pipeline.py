@@ -25,6 +25,7 @@ from lrfcal.errors import CalibrationError, InputError
 from lrfcal.estimate.checks import clock_offset_check, refuse_failed
 from lrfcal.io.rig import refuse_placeholder_dh
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
+from lrfcal.result import CalibrationResult, PlaneEvidence
 from lrfcal.runtime.forked import on_cores
 from lrfcal.stages import geometry, reproject, timing
 from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
@@ -33,7 +34,7 @@ from lrfcal.stages.starts import starts_check
 from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
 from lrfcal.stages.targetless import fit_scene
 from lrfcal.stages.timing import usable_scans
-from lrfcal.types import CalibrationResult, Check, JointStates, Recording, Scans, Solution
+from lrfcal.types import Check, JointStates, Recording, Scans, Solution
 
 
 def calibrate(
@@ -108,8 +109,9 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     covered = replace(recording, scans=scans)
     fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
     fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
-    if targetless and (config.force or all(c.passed for c in fit.checks)):  # the other starts (else refused anyway)
-        fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, joints, config)))
+    if isinstance(fit.evidence, PlaneEvidence) and (config.force or all(c.passed for c in fit.checks)):
+        # the other starts (else refused anyway)
+        fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, fit.evidence, joints, config)))
         clock.lap("starts")
     refuse_failed(list(fit.checks), config)  # 3.
     if fit.servo_sign < 0:

@@ -14,14 +14,11 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrfcal.config import CalibConfig
 from lrfcal.model.kinematics import DH, Params, Pose
 
 if TYPE_CHECKING:  # the stages' own types, named here for the reader and the type checker only
     from lrfcal.estimate.normal_equations import Iteration
     from lrfcal.io.rig import LogLayout, ScanSource, ServoSource
-    from lrfcal.stages.planes import ScenePlane
-    from lrfcal.stages.surfaces import Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -424,59 +421,3 @@ class Check:
     name: str
     passed: bool
     detail: str
-
-
-@dataclass(frozen=True)
-class PlaneFit:
-    """What the targetless calibration found and used: the scene's planes (frame M, at the estimate), each
-    plane's thickness (RMS distance of its returns from their best-fit plane, m) and best-fit normal (P, 3) with the
-    nominal and with the calibrated DH, the parameters held at nominal (with why), and the rounds of
-    re-segmentation run."""
-
-    planes: tuple[ScenePlane, ...]
-    rms_before_m: FloatArray
-    rms_after_m: FloatArray
-    n_returns: NDArray[np.int64]
-    held: tuple[str, ...]
-    held_reason: str
-    rounds: int
-    normals_before: FloatArray
-    normals_after: FloatArray
-
-
-@dataclass(frozen=True)
-class CalibrationResult:
-    """Everything the pipeline produced, for the writers, the loop and the visualisation."""
-
-    #: the recording as calibrated: its scans are those the joint states cover (the scans trimmed at the ends are
-    #: not here), so that scan indices of detections and observations index ``recording.scans``
-    recording: Recording
-    markers: MarkerMap | None  # None for a targetless calibration, as the next three
-    detections: Detections | None
-    observations: Observations | None
-    association: Association | None
-    start: Params
-    solution: Solution
-    baseline: Solution | None
-    cloud_before_M: FloatArray
-    cloud_after_M: FloatArray
-    cloud_intensity: FloatArray
-    geometry_before: TunnelGeometry | None
-    geometry_after: TunnelGeometry | None
-    timings_s: dict[str, float] = field(default_factory=dict)
-    surfaces: tuple[Surface, ...] = ()  # the planes the markers are mounted on
-    surface_returns: SurfaceReturns | None = None  # used in the joint solve, or None
-    checks: tuple[Check, ...] = ()  # the consistency checks and their outcome
-    notes: tuple[str, ...] = ()  # what the calibration assumed, trimmed or dropped, in words
-    plane_fit: PlaneFit | None = None  # the scene's planes and their flatness (targetless only)
-    #: the DH estimates of the methods run on this recording, by name (markers only, markers and their surfaces,
-    #: targetless), shown side by side in the report
-    side_by_side: dict[str, Solution] = field(default_factory=dict)
-    config: CalibConfig | None = None  # the effective configuration (lrfcal.pipeline resolves its defaults)
-    servo_sign: int = 1  # the servo direction used: +1 as declared, -1 negated (only with --force on an ambiguity)
-
-    @property
-    def method(self) -> str:
-        """How the result was found, as written in calibration.yaml: "markers" (lrfcal.stages.markers) or "targetless"
-        (lrfcal.stages.targetless, the result with the scene's plane fit)."""
-        return "markers" if self.plane_fit is None else "targetless"

@@ -25,8 +25,9 @@ from lrfcal.io.truth import truth_dict, truth_frame
 from lrfcal.model.kinematics import Params, Pose
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.report import figures as figure_writer
+from lrfcal.result import CalibrationResult
 from lrfcal.runtime.forked import Ahead
-from lrfcal.types import CalibrationResult, Recording
+from lrfcal.types import Recording
 
 
 def calibrate_folder(

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lrfcal import CalibrationResult, Solution, TunnelGeometry
+from lrfcal import CalibrationResult, MarkerEvidence, PlaneEvidence, Solution, TunnelGeometry
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.io.truth import truth_dict, truth_frame
 from lrfcal.io.yamlfile import read_yaml
@@ -155,7 +155,12 @@ def compare(result: CalibrationResult, truth: Truth, tolerances: Tolerances) -> 
         "alpha": tolerances.alpha_rad,
         "beta": tolerances.beta_rad,
     }
-    paper = result.baseline
+    match result.evidence:
+        case MarkerEvidence() as marks:  # the paper's method beside ours, on the same returns (when it ran)
+            paper = marks.baseline
+            pos, rot = _mount_errors(result, result.solution, truth)
+        case PlaneEvidence():  # no world frame and no mount estimated: its mount errors are NaN
+            paper, (pos, rot) = None, (math.nan, math.nan)
     rows = tuple(
         ParamRow(
             name=n,
@@ -167,9 +172,6 @@ def compare(result: CalibrationResult, truth: Truth, tolerances: Tolerances) -> 
         )
         for n in DH_NAMES
     )
-    # a targetless calibration has no world frame and estimates no mount: its mount errors are NaN
-    pos, rot = (_mount_errors(result, result.solution, truth) if result.method == "markers"
-                else (math.nan, math.nan))
     ppos, prot = (None, None) if paper is None else _mount_errors(result, paper, truth)
     tunnel_rows: tuple[TunnelRow, ...] = ()
     if truth.tunnel:

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lrfcal import CalibConfig, CalibrationResult, Recording, calibrate
+from lrfcal import CalibConfig, CalibrationResult, MarkerEvidence, Recording, Solution, calibrate
 from lrfcal.errors import LrfError
 from lrfcal.io.bag import BagReader
 from lrfcal.io.recording import read_recording
@@ -78,8 +78,8 @@ def calibrate_recording(
     """Read a recording folder written by lrfsim, calibrate it (``mutate`` may change the Recording first, e.g. the
     nominal values), and compare the DH parameters with its ground_truth.yaml.
 
-    ``paper``: judge the paper's method instead of ours (``result.baseline``: the blob's brightest beam, one motor
-    angle per scan, on our detections and association). ``config`` then runs with ``baseline=True`` and
+    ``paper``: judge the paper's method instead of ours (the marker evidence's ``baseline``: the blob's brightest beam,
+    one motor angle per scan, on our detections and association). ``config`` then runs with ``baseline=True`` and
     ``force=True``: the consistency checks are ours, the paper's method has none, so a check that our solution
     fails does not withhold the paper's estimate. ``bag_reader``: the bag's data from memory
     (lrfsim.recording.in_memory_bag; the folder then needs no bag)."""
@@ -99,7 +99,9 @@ def calibrate_recording(
         return Trial(label, "refused", nan4, nan4, reason=str(err), exit_code=err.exit_code,
                      seconds=time.perf_counter() - t0)
     seconds = time.perf_counter() - t0
-    sol = result.baseline if paper else result.solution
+    sol: Solution | None = result.solution
+    if paper:  # the paper's method runs with markers only
+        sol = result.evidence.baseline if isinstance(result.evidence, MarkerEvidence) else None
     if sol is None:  # the paper's method could not run (the reason is in the notes)
         reason = next((n for n in result.notes if "paper's method" in n), "the paper's method did not run")
         return Trial(label, "refused", nan4, nan4, reason=reason, exit_code=3, seconds=seconds)

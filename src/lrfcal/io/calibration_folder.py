@@ -22,7 +22,7 @@ from lrfcal.io.ply import write_ply
 from lrfcal.io.report import render_report
 from lrfcal.io.ros_launch import ros_files
 from lrfcal.io.urdf import urdf_snippet
-from lrfcal.types import CalibrationResult
+from lrfcal.result import CalibrationResult
 
 
 def write_calibration(

@@ -14,7 +14,8 @@ from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES
 from lrfcal.model.unknowns import BY_NAME
-from lrfcal.types import CalibrationResult, Solution, TunnelGeometry
+from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence
+from lrfcal.types import MarkerMap, Solution, TunnelGeometry
 
 FloatArray = NDArray[np.float64]
 
@@ -89,14 +90,6 @@ def _geometry_dict(g: TunnelGeometry | None) -> dict[str, Any] | None:
     }
 
 
-def marker_counts(result: CalibrationResult) -> FloatArray:
-    """(n,) the number of returns the solution used on each marker of the map."""
-    assert result.markers is not None and result.observations is not None
-    n = len(result.markers.marker_ids)
-    m = np.asarray(result.observations.marker, dtype=np.int64)
-    return np.bincount(m[m >= 0], minlength=n)[:n]
-
-
 def _plain(v: Any) -> Any:
     """Plain YAML values of a configuration: tuples as lists, NaN and inf as null."""
     if isinstance(v, dict):
@@ -111,7 +104,8 @@ def _plain(v: Any) -> Any:
 # --- calibration.yaml -----------------------------------------------------------------------------------------
 
 def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
-    """The content of calibration.yaml (plain Python types; NaN -> None)."""
+    """The content of calibration.yaml (plain Python types; NaN -> None): the solution, then the keys of the
+    result's evidence (markers or the scene's planes), then what every result has."""
     sol = result.solution
     out: dict[str, Any] = {
         "format_version": FORMAT_VERSION,
@@ -120,29 +114,33 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
         **_solution_dict(sol),
         "n_iterations": int(sol.n_iterations),
     }
-    out.update(_marker_dict(result) if result.method == "markers" else _targetless_dict(result))
+    baseline = None
+    match result.evidence:
+        case MarkerEvidence() as ev:
+            out.update(_marker_dict(sol, ev))
+            baseline = ev.baseline
+        case PlaneEvidence() as ev:
+            out.update(_targetless_dict(ev))
     out.update({
         "checks": [{"name": c.name, "passed": bool(c.passed), "detail": c.detail} for c in result.checks],
         "notes": list(result.notes),
         "servo_sign": int(result.servo_sign),
         "start": {k: float(v) for k, v in result.start.as_dict().items()},
-        "baseline": None,
+        "baseline": None if baseline is None else {
+            "method": "seed paper: blob peaks only, one motor angle per scan",
+            **_solution_dict(baseline),
+        },
         "tunnel": {"before": _geometry_dict(result.geometry_before), "after": _geometry_dict(result.geometry_after)},
         "timings_s": {str(k): _f(v) for k, v in result.timings_s.items()},
         "config": None if result.config is None else _plain(result.config.model_dump()),
     })
-    if result.baseline is not None:
-        out["baseline"] = {
-            "method": "seed paper: blob peaks only, one motor angle per scan",
-            **_solution_dict(result.baseline),
-        }
     return out
 
 
-def _targetless_dict(result: CalibrationResult) -> dict[str, Any]:
+def _targetless_dict(evidence: PlaneEvidence) -> dict[str, Any]:
     """A targetless calibration's own keys: no world frame (mount null), the parameters held at nominal, and the
     scene's planes with their thickness before and after."""
-    fit = result.plane_fit
+    fit = evidence.plane_fit
     return {
         "units": "m, rad; frame M (motor frame): without markers there is no world frame",
         "mount": None,
@@ -156,22 +154,23 @@ def _targetless_dict(result: CalibrationResult) -> dict[str, Any]:
     }
 
 
-def map_sigma(result: CalibrationResult) -> dict[str, float | None]:
-    """Per DH parameter, the 1-sigma the marker map's own uncertainty contributes (None when not computed)."""
-    G, C = result.solution.map_sensitivity, None if result.markers is None else result.markers.covariance
+def map_sigma(solution: Solution, markers: MarkerMap) -> dict[str, float | None]:
+    """Per DH parameter, the 1-sigma the marker map's own uncertainty contributes to ``solution`` (None when not
+    computed)."""
+    G, C = solution.map_sensitivity, markers.covariance
     if G is None or C is None:
         return {n: None for n in DH_NAMES}
     var = np.einsum("ij,jk,ik->i", G, C, G)
     return {n: _f(float(np.sqrt(max(var[ESTIMATE_NAMES.index(n)], 0.0)))) for n in DH_NAMES}
 
 
-def _marker_dict(result: CalibrationResult) -> dict[str, Any]:
+def _marker_dict(sol: Solution, evidence: MarkerEvidence) -> dict[str, Any]:
     """A marker calibration's own keys: markers used, the marker map, the association, the marker surfaces."""
-    assert result.markers is not None and result.detections is not None and result.association is not None
-    sol = result.solution
-    ids = result.markers.marker_ids
-    counts = marker_counts(result)
+    markers, detections, association = evidence.markers, evidence.detections, evidence.association
+    ids = markers.marker_ids
+    counts = evidence.marker_counts()
     per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
+    on_surfaces = evidence.surface_returns
     return {
         "markers": {
             "used": [ids[i] for i in range(len(ids)) if counts[i] > 0],
@@ -180,37 +179,37 @@ def _marker_dict(result: CalibrationResult) -> dict[str, Any]:
             "residual_rms_m": {ids[i]: _f(per[i]) if i < per.size else None for i in range(len(ids))},
         },
         "marker_map": {
-            "stress": _f(result.markers.stress),
-            "rms_m": _f(result.markers.rms_m),
-            "planarity": _f(result.markers.planarity),
-            "coplanar": bool(result.markers.coplanar),
+            "stress": _f(markers.stress),
+            "rms_m": _f(markers.rms_m),
+            "planarity": _f(markers.planarity),
+            "coplanar": bool(markers.coplanar),
             # the tape's noise as the map's redundant pairs show it, and the part of each DH sigma it makes
             # (the map's covariance carried through the solution; included in the covariance above)
-            "tape_sigma_m": _f(result.markers.tape_sigma_m),
-            "dh_sigma_from_map": map_sigma(result),
+            "tape_sigma_m": _f(markers.tape_sigma_m),
+            "dh_sigma_from_map": map_sigma(sol, markers),
             "dropped_pairs": [  # tape pairs inconsistent with the others (gross errors), left out
                 {"pair": [p.id_i, p.id_j], "measured_m": _f(p.measured_m), "predicted_m": _f(p.predicted_m),
                  "z": _f(p.z)}
-                for p in result.markers.dropped_pairs
+                for p in markers.dropped_pairs
             ],
         },
         "association": {
-            "n_blobs": len(result.detections.blobs),
-            "n_matched": int(result.association.n_matched),
-            "mirrored": bool(result.association.mirrored),
-            "rms_m": _f(result.association.rms_m),
+            "n_blobs": len(detections.blobs),
+            "n_matched": int(association.n_matched),
+            "mirrored": bool(association.mirrored),
+            "rms_m": _f(association.rms_m),
         },
         "surfaces": [  # the planes the markers sit on, solved jointly (stage 6b)
             {
                 "markers": [ids[int(i)] for i in srf.marker_idx],
                 "normal": [float(v) for v in srf.normal],
                 "offset_m": float(srf.offset_m),
-                "n_returns": int(np.sum(result.surface_returns.surface == k)) if result.surface_returns else 0,
+                "n_returns": int(np.sum(on_surfaces.surface == k)) if on_surfaces else 0,
             }
-            for k, srf in enumerate(result.surfaces)
+            for k, srf in enumerate(evidence.surfaces)
         ],
-        "detection_threshold": _f(result.detections.threshold),
+        "detection_threshold": _f(detections.threshold),
     }
 
 
-__all__ = ["FORMAT_VERSION", "calibration_dict", "marker_counts", "param_sigma", "plain_float"]
+__all__ = ["FORMAT_VERSION", "calibration_dict", "map_sigma", "param_sigma", "plain_float"]

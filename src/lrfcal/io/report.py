@@ -8,15 +8,16 @@ Frames: W is the marker frame (from the tape distances), M the motor frame.
 from __future__ import annotations
 
 import math
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
-from lrfcal.io.calibration_yaml import map_sigma, marker_counts, param_sigma
+from lrfcal.io.calibration_yaml import map_sigma, param_sigma
 from lrfcal.io.calibration_yaml import plain_float as _f
 from lrfcal.io.truth import truth_frame
 from lrfcal.model.kinematics import ANGLE_NAMES, DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES, PARAM_NAMES, Pose
-from lrfcal.types import CalibrationResult, Solution
+from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence
+from lrfcal.types import Solution
 
 TUNNEL_KEYS = ("width_m", "height_m", "plate_distance_m")
 
@@ -50,7 +51,7 @@ def _truth_params(result: CalibrationResult, truth: dict[str, Any]) -> tuple[dic
     mount = truth.get("mount")
     if mount is None:
         return out, ""
-    if result.method != "markers":
+    if isinstance(result.evidence, PlaneEvidence):
         return out, "Mount truth not shown: a targetless calibration has no world frame (the mount is not estimated)."
     fit = truth_frame(result, truth)
     if fit is None:
@@ -79,42 +80,45 @@ def _angle_err(n: str, est: float, ref: float) -> float:
 def residual_summary(result: CalibrationResult) -> str:
     """One line, the same in the terminal and the report: residual RMS over the marker returns and markers used."""
     sol = result.solution
-    if result.markers is None:
-        return (f"plane residual RMS {sol.residual_rms_m * 1000:.2f} mm over {sol.n_surface_returns} returns on "
-                f"{len(result.plane_fit.planes)} planes of the scene (targetless)")
-    n_markers = int((marker_counts(result) > 0).sum())
-    return (f"residual RMS {sol.residual_rms_m * 1000:.2f} mm over {sol.n_observations} marker returns on "
-            f"{n_markers} of {len(result.markers.marker_ids)} markers")
+    match result.evidence:
+        case MarkerEvidence() as ev:
+            n_markers = int((ev.marker_counts() > 0).sum())
+            return (f"residual RMS {sol.residual_rms_m * 1000:.2f} mm over {sol.n_observations} marker returns on "
+                    f"{n_markers} of {len(ev.markers.marker_ids)} markers")
+        case PlaneEvidence() as ev:
+            return (f"plane residual RMS {sol.residual_rms_m * 1000:.2f} mm over {sol.n_surface_returns} returns on "
+                    f"{len(ev.plane_fit.planes)} planes of the scene (targetless)")
 
 
-def _marker_lines(result: CalibrationResult) -> list[str]:
+def _marker_lines(sol: Solution, ev: MarkerEvidence) -> list[str]:
     """The report's summary lines on the markers, blobs and tape."""
-    assert result.markers is not None and result.detections is not None and result.association is not None
-    counts = marker_counts(result)
-    ids = result.markers.marker_ids
+    counts = ev.marker_counts()
+    markers, ids = ev.markers, ev.markers.marker_ids
     lines = [
         f"- markers used: {int((counts > 0).sum())} of {len(ids)} "
         f"({', '.join(i for i, c in zip(ids, counts, strict=True) if c > 0) or 'none'})",
-        f"- blobs detected: {len(result.detections.blobs)}, matched to markers: {result.association.n_matched}"
-        f"{' (marker map mirrored)' if result.association.mirrored else ''}",
-        f"- marker map from the tape: RMS {result.markers.rms_m * 1000:.2f} mm, stress {result.markers.stress:.2g}"
-        f"{', coplanar layout' if result.markers.coplanar else ''}; tape noise "
-        f"{result.markers.tape_sigma_m * 1000:.2f} mm, which through the map makes "
-        + ", ".join(f"{n} {_disp(n, v)} {_unit(n)}" for n, v in map_sigma(result).items())
+        f"- blobs detected: {len(ev.detections.blobs)}, matched to markers: {ev.association.n_matched}"
+        f"{' (marker map mirrored)' if ev.association.mirrored else ''}",
+        f"- marker map from the tape: RMS {markers.rms_m * 1000:.2f} mm, stress {markers.stress:.2g}"
+        f"{', coplanar layout' if markers.coplanar else ''}; tape noise "
+        f"{markers.tape_sigma_m * 1000:.2f} mm, which through the map makes "
+        + ", ".join(f"{n} {_disp(n, v)} {_unit(n)}" for n, v in map_sigma(sol, markers).items())
         + " of the 1-sigma (in variance)",
     ]
-    for p in result.markers.dropped_pairs:
+    for p in markers.dropped_pairs:
         lines.append(f"- tape pair {p.id_i}-{p.id_j} dropped: measured {p.measured_m:.3f} m, the other pairs put it "
                      f"at {p.predicted_m:.3f} m ({p.error_m * 1000:+.0f} mm); re-measure it")
+    if ev.baseline is not None:
+        lines.append(f"- baseline (paper method) residual RMS: {ev.baseline.residual_rms_m * 1000:.2f} mm "
+                     f"over {ev.baseline.n_observations} returns")
     return lines
 
 
-def _per_marker_lines(result: CalibrationResult) -> list[str]:
-    assert result.markers is not None
-    counts = marker_counts(result)
+def _per_marker_lines(sol: Solution, ev: MarkerEvidence) -> list[str]:
+    counts = ev.marker_counts()
     lines = ["", "## Per-marker residuals", "", "| marker | returns | RMS [mm] |", "|---|---|---|"]
-    per = np.asarray(result.solution.per_marker_rms_m, dtype=float).reshape(-1)
-    for i, mid in enumerate(result.markers.marker_ids):
+    per = np.asarray(sol.per_marker_rms_m, dtype=float).reshape(-1)
+    for i, mid in enumerate(ev.markers.marker_ids):
         v = per[i] if i < per.size else float("nan")
         lines.append(f"| {mid} | {int(counts[i])} | {f'{v * 1000:.2f}' if math.isfinite(v) else '-'} |")
     return lines
@@ -135,10 +139,10 @@ def _side_by_side_lines(result: CalibrationResult, truth: dict[str, float | None
     return lines
 
 
-def _plane_lines(result: CalibrationResult) -> list[str]:
+def _plane_lines(ev: PlaneEvidence) -> list[str]:
     """The scene's planes and their thickness (RMS distance of their returns from their best-fit plane) with
     the nominal and with the calibrated DH parameters."""
-    fit = result.plane_fit
+    fit = ev.plane_fit
     lines = ["", "## The scene's planes (frame M)", "",
              "| plane | normal | offset [m] | returns | thickness before [mm] | after [mm] |",
              "|---|---|---|---|---|---|"]
@@ -156,27 +160,52 @@ def _plane_lines(result: CalibrationResult) -> list[str]:
     return lines
 
 
+class _Way(NamedTuple):
+    """The parts of the report that depend on the evidence: the title's suffix, the summary lines, the parameters
+    shown, those held at nominal, the paper's baseline, the lines on the frames, and the closing section."""
+
+    title: str
+    summary: list[str]
+    names: tuple[str, ...]
+    held: tuple[str, ...]
+    baseline: Solution | None
+    frames: list[str]
+    closing: list[str]
+
+
+def _way(result: CalibrationResult) -> _Way:
+    """The report's parts that depend on the result's evidence (markers or the scene's planes)."""
+    sol = result.solution
+    match result.evidence:
+        case MarkerEvidence() as ev:
+            rot = [param_sigma(sol, n) for n in ("rx", "ry", "rz")]
+            frames = ["", "The mount's rotation is estimated on SO(3): its 1-sigma is that of a small rotation vector "
+                      "in frame M, (rx, ry, rz) = (" + ", ".join(_disp("rx", v) for v in rot) + ") deg; roll, pitch "
+                      "and yaw are the same rotation written as URDF angles (no sigma: theirs would come from the "
+                      "Euler angles' singularity)."]
+            return _Way("", _marker_lines(sol, ev), PARAM_NAMES, (), ev.baseline, frames, _per_marker_lines(sol, ev))
+        case PlaneEvidence() as ev:
+            held = ev.plane_fit.held
+            summary = ([f"- held at the nominal value (the scene does not determine them): {', '.join(held)}"]
+                       if held else [])
+            frames = ["", "Without markers there is no world frame: the mount pose is not estimated."]
+            return _Way(" (targetless: the scene's planes, no markers)", summary, DH_NAMES, held, None, frames,
+                        _plane_lines(ev))
+
+
 def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None) -> str:
     """The calibration report as Markdown: parameters with sigma (and the paper's baseline, the start values
-    and, given ``truth`` as loaded from ground_truth.yaml, the truth and the errors), per-marker residuals,
-    tunnel geometry before/after."""
+    and, given ``truth`` as loaded from ground_truth.yaml, the truth and the errors), per-marker residuals or the
+    scene's planes, tunnel geometry before/after."""
     sol = result.solution
     est = sol.params.as_dict()
     start = result.start.as_dict()
-    base = result.baseline.params.as_dict() if result.baseline is not None else None
+    way = _way(result)
+    base = way.baseline.params.as_dict() if way.baseline is not None else None
     tp, truth_note = _truth_params(result, truth) if truth is not None else (None, "")
-    targetless = result.markers is None
-    lines = ["# Rotating LRF calibration" + (" (targetless: the scene's planes, no markers)" if targetless else ""),
-             "", f"- status: {sol.status} ({sol.n_iterations} iterations)", f"- {residual_summary(result)}"]
-    if targetless:
-        fit = result.plane_fit
-        if fit.held:
-            lines.append(f"- held at the nominal value (the scene does not determine them): {', '.join(fit.held)}")
-    else:
-        lines += _marker_lines(result)
-    if result.baseline is not None:
-        lines.append(f"- baseline (paper method) residual RMS: {result.baseline.residual_rms_m * 1000:.2f} mm "
-                     f"over {result.baseline.n_observations} returns")
+    lines = ["# Rotating LRF calibration" + way.title,
+             "", f"- status: {sol.status} ({sol.n_iterations} iterations)", f"- {residual_summary(result)}",
+             *way.summary]
     lines += ["", "## Parameters", ""]
     head = ["parameter", "unit", "start", "estimate", "sigma"]
     if base is not None:
@@ -184,9 +213,8 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     if tp is not None:
         head += ["truth", "error"] + (["baseline error"] if base is not None else [])
     lines += ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-    for n in DH_NAMES if targetless else PARAM_NAMES:
-        held = targetless and n in result.plane_fit.held
-        row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]) + (" (held)" if held else ""),
+    for n in way.names:
+        row = [n, _unit(n), _disp(n, start[n]), _disp(n, est[n]) + (" (held)" if n in way.held else ""),
                _sigma_disp(sol, n)]
         if base is not None:
             row.append(_disp(n, base[n]))
@@ -196,16 +224,7 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
             if base is not None:
                 row.append(_disp(n, None if t is None else _angle_err(n, base[n], t)))
         lines.append("| " + " | ".join(row) + " |")
-    rot = [param_sigma(sol, n) for n in ("rx", "ry", "rz")]
-    if not targetless:
-        lines += ["", "The mount's rotation is estimated on SO(3): its 1-sigma is that of a small rotation vector in "
-                  "frame M, (rx, ry, rz) = (" + ", ".join(_disp("rx", v) for v in rot) + ") deg; roll, pitch and "
-                  "yaw are the same rotation written as URDF angles (no sigma: theirs would come from the Euler "
-                  "angles' singularity)."]
-    else:
-        lines.append("")
-    if targetless:
-        lines.append("Without markers there is no world frame: the mount pose is not estimated.")
+    lines += way.frames
     if math.isfinite(sol.clock_offset_sigma_s):
         lines.append(f"Clock offset (laser stamp - servo stamp): {sol.clock_offset_s * 1000:+.2f} ms, 1-sigma "
                      f"{sol.clock_offset_sigma_s * 1000:.2f} ms (estimated).")
@@ -225,7 +244,7 @@ def render_report(result: CalibrationResult, truth: dict[str, Any] | None = None
     if result.notes:
         lines += ["", "## Notes", ""] + [f"- {n}" for n in result.notes]
 
-    lines += _plane_lines(result) if targetless else _per_marker_lines(result)
+    lines += way.closing
     lines += _side_by_side_lines(result, tp)
 
     g0, g1 = result.geometry_before, result.geometry_after

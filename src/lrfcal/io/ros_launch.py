@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 from lrfcal.io.rig import ServoSource
 from lrfcal.io.urdf import joints_urdf
 from lrfcal.model.kinematics import ESTIMATE_NAMES, Pose
-from lrfcal.types import CalibrationResult
+from lrfcal.result import CalibrationResult, MarkerEvidence
 
 #: the file names in a calibration's output folder
 LAUNCH_NAME = "rig_tf.launch.py"
@@ -126,7 +126,7 @@ def ros_files(result: CalibrationResult) -> dict[str, str]:
     sol = result.solution
     sigma = {n: float(s) for n, s in zip(ESTIMATE_NAMES, np.asarray(sol.sigma, dtype=float), strict=True)}
     return {
-        LAUNCH_NAME: mount_launch(sol.params.mount if result.method == "markers" else None, sigma,
+        LAUNCH_NAME: mount_launch(sol.params.mount if isinstance(result.evidence, MarkerEvidence) else None, sigma,
                                   src.topic or "/joint_states"),
         JOINTS_NAME: joints_urdf(sol.params.dh, joint=src.joint or "servo",
                                  laser_frame=result.recording.scans.frame_id.lstrip("/") or "laser",

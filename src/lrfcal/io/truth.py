@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import DH, DH_NAMES, MOUNT_NAMES, Pose, homogeneous, points_M, transform_points
-from lrfcal.types import CalibrationResult
+from lrfcal.result import CalibrationResult, MarkerEvidence
 
 FloatArray = NDArray[np.float64]
 
@@ -92,15 +92,16 @@ def truth_frame(result: CalibrationResult, truth: dict[str, Any], gate_m: float 
     those pairs gives T_W_sim. Falls back to :func:`align_truth_frame` (by marker id) when the returns do not
     land on true markers (e.g. a calibration that took the wrong servo direction under --force).
     """
-    if result.markers is None or result.observations is None:  # targetless: no marker frame W
+    if not isinstance(result.evidence, MarkerEvidence):  # targetless: no marker frame W
         return None
+    ev = result.evidence
     markers = truth.get("markers") or {}
     ids = list(markers)
-    if truth.get("dh") and truth.get("mount") and len(ids) >= 3 and len(result.observations):
+    if truth.get("dh") and truth.get("mount") and len(ids) >= 3 and len(ev.observations):
         true_W = np.array([markers[i] for i in ids], dtype=float).reshape(-1, 3)
         dh = DH(**{k: float(truth["dh"][k]) for k in DH_NAMES})
         T_sim_M = Pose(**{k: float(truth["mount"][k]) for k in MOUNT_NAMES}).matrix()
-        obs = result.observations
+        obs = ev.observations
         lam = obs.lambda_rad if result.solution.lambda_rad is None else result.solution.lambda_rad
         radius = result.recording.nominal.marker_radius_m
         p = transform_points(T_sim_M, points_M(obs.ranges_m + radius, lam, obs.mu_rad, dh))
@@ -114,11 +115,11 @@ def truth_frame(result: CalibrationResult, truth: dict[str, Any], gate_m: float 
                 pairs.append((int(k), int(np.argmax(votes))))
         if len(pairs) >= 3:
             A = true_W[[j for _, j in pairs]]
-            B = np.asarray(result.markers.positions_W, dtype=float)[[k for k, _ in pairs]]
+            B = np.asarray(ev.markers.positions_W, dtype=float)[[k for k, _ in pairs]]
             T, rms = _kabsch(A, B)
             if rms < 0.01:
                 return T, f"by the markers the calibration's returns came from ({len(pairs)} markers)"
-    return align_truth_frame(np.asarray(result.markers.positions_W), result.markers.marker_ids, markers)
+    return align_truth_frame(np.asarray(ev.markers.positions_W), ev.markers.marker_ids, markers)
 
 
 __all__ = ["align_truth_frame", "truth_dict", "truth_frame"]

@@ -34,7 +34,8 @@ from lrfcal.report.figlayout import (
     view_frame,
 )
 from lrfcal.report.vizdata import marker_returns
-from lrfcal.types import Association, CalibrationResult, Detections, Scans
+from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence
+from lrfcal.types import Association, Detections, Scans
 
 FloatArray = NDArray[np.float64]
 
@@ -50,9 +51,10 @@ def _rms_mm(norms_m: FloatArray) -> float:
 MAX_MARKER_PANELS = 35
 
 
-def alignment_figure(result: CalibrationResult, path: Path | str, before: Params | None = None,
-                     before_label: str = "nominal DH, fitted mount") -> Path:
-    """Per-marker close-ups of the reprojected marker returns, before and after calibration (paper Figs. 11/12).
+def alignment_figure(result: CalibrationResult, evidence: MarkerEvidence, path: Path | str,
+                     before: Params | None = None, before_label: str = "nominal DH, fitted mount") -> Path:
+    """Per-marker close-ups of the reprojected marker returns (``result``'s ``evidence``), before and after
+    calibration (paper Figs. 11/12).
 
     One small panel per marker (the same scale in all, in mm, so the whole layout never projects markers onto
     each other): the returns of that marker reprojected into W with ``before`` (default: the calibration's
@@ -63,14 +65,14 @@ def alignment_figure(result: CalibrationResult, path: Path | str, before: Params
     """
     from matplotlib.lines import Line2D
 
-    markers = np.asarray(result.markers.positions_W, dtype=float)
-    ids = result.markers.marker_ids
+    markers = np.asarray(evidence.markers.positions_W, dtype=float)
+    ids = evidence.markers.marker_ids
     r_mm = float(result.recording.nominal.marker_radius_m) * 1e3
     before = before if before is not None else result.start
     eye = np.asarray(result.solution.params.mount.matrix(), dtype=float)[:3, 3]
     stages = {}
     for name, params in (("before", before), ("after", result.solution.params)):
-        p, to_m, mk, _ = marker_returns(result, params, calibrated=name == "after")
+        p, to_m, mk, _ = marker_returns(result, evidence, params, calibrated=name == "after")
         stages[name] = (p, mk, np.linalg.norm(to_m, axis=1))
     counts = np.bincount(stages["after"][1], minlength=len(ids)) if len(ids) else np.zeros(0, int)
     shown = [int(i) for i in np.argsort(-counts, kind="stable")[:MAX_MARKER_PANELS] if counts[i] > 0]
@@ -173,8 +175,8 @@ def _plain(v: float, _pos: object = None) -> str:
     return f"{v:g}"
 
 
-def residual_figure(result: CalibrationResult, path: Path | str, before: Params | None = None,
-                    before_label: str = "nominal DH, fitted mount") -> Path:
+def residual_figure(result: CalibrationResult, evidence: MarkerEvidence, path: Path | str,
+                    before: Params | None = None, before_label: str = "nominal DH, fitted mount") -> Path:
     """Histogram of residual norms [mm] before/after (log bins) and per-marker RMS [mm] as grouped bars.
 
     A return inside its marker sphere has residual 0 (see :func:`lrfcal.report.vizdata.marker_returns`); those cannot
@@ -191,12 +193,12 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
         axis.set_minor_locator(NullLocator())
         axis.set_major_formatter(FuncFormatter(_plain))
 
-    ids = result.markers.marker_ids
+    ids = evidence.markers.marker_ids
     n = len(ids)
     data = {}
     for name, params in (("before", before if before is not None else result.start),
                          ("after", result.solution.params)):
-        _, to_m, mk, _ = marker_returns(result, params, calibrated=name == "after")
+        _, to_m, mk, _ = marker_returns(result, evidence, params, calibrated=name == "after")
         norms_mm = np.linalg.norm(to_m, axis=1) * 1e3
         per = np.array([_rms_mm(norms_mm[mk == m] / 1e3) for m in range(n)])
         data[name] = (norms_mm, per)
@@ -253,13 +255,13 @@ def residual_figure(result: CalibrationResult, path: Path | str, before: Params 
         return save(fig, path)
 
 
-def flatness_figure(result: CalibrationResult, path: Path | str) -> Path:
+def flatness_figure(result: CalibrationResult, evidence: PlaneEvidence, path: Path | str) -> Path:
     """A targetless calibration's figure: each plane's thickness (RMS distance of its returns from their best-fit
     plane) with the nominal and with the calibrated DH parameters (left: one row per plane, the two values joined,
     the axis spanning the values rather than starting at 0, so that a sub-millimetre change shows; the change
     written beside each row), and the calibrated cloud seen along the motor axis (right, frame M). Returns the
     written path."""
-    fit = result.plane_fit
+    fit = evidence.plane_fit
     before_mm = np.asarray(fit.rms_before_m, dtype=float) * 1e3
     after_mm = np.asarray(fit.rms_after_m, dtype=float) * 1e3
     n = len(fit.planes)
@@ -332,13 +334,14 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
     """
     out = Path(out_dir)
     draw: dict[str, Callable[[], Path]]
-    if needs_clouds(result):
-        draw = {"flatness": lambda: flatness_figure(result, out / "flatness.png")}
-    else:
-        draw = {"intensity": lambda: intensity_figure(result.recording.scans, result.detections, result.association,
-                                                      result.markers.marker_ids, out / "intensity.png"),
-                "alignment": lambda: alignment_figure(result, out / "alignment.png", before, before_label),
-                "residuals": lambda: residual_figure(result, out / "residuals.png", before, before_label)}
+    match result.evidence:
+        case PlaneEvidence() as planes:
+            draw = {"flatness": lambda: flatness_figure(result, planes, out / "flatness.png")}
+        case MarkerEvidence() as marks:
+            draw = {"intensity": lambda: intensity_figure(result.recording.scans, marks.detections, marks.association,
+                                                          marks.markers.marker_ids, out / "intensity.png"),
+                    "alignment": lambda: alignment_figure(result, marks, out / "alignment.png", before, before_label),
+                    "residuals": lambda: residual_figure(result, marks, out / "residuals.png", before, before_label)}
     draw = {n: fn for n, fn in draw.items() if n not in drawn}
     return Figures.of({n: _attempt(fn) for n, fn in draw.items()})
 
@@ -372,7 +375,7 @@ def _cloud_view(cloud_M: FloatArray) -> FloatArray:
 
 def needs_clouds(result: CalibrationResult) -> bool:
     """Whether the figures draw ``result``'s clouds (targetless: flatness.png), else they can be drawn before."""
-    return result.plane_fit is not None
+    return isinstance(result.evidence, PlaneEvidence)
 
 
 def drawn_part(result: CalibrationResult) -> CalibrationResult:

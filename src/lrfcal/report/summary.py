@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:
     from rich.console import Console
 
-    from lrfcal.types import CalibrationResult
+    from lrfcal.result import CalibrationResult
 
 
 def print_summary(result: CalibrationResult, console: Console) -> None:
@@ -24,6 +24,7 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
 
     from lrfcal.io.report import residual_summary
     from lrfcal.model.kinematics import ANGLE_NAMES, ESTIMATE_NAMES, PARAM_NAMES
+    from lrfcal.result import MarkerEvidence, PlaneEvidence
 
     sol = result.solution
     table = Table(title="Calibration")
@@ -31,7 +32,13 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
         table.add_column(h, justify="right")
     start, est = result.start.vector(), sol.params.vector()
     sigma = [float(v) for v in sol.sigma]
-    paper = None if result.baseline is None else result.baseline.params.vector()
+    held_dh: tuple[str, ...]
+    match result.evidence:  # with markers: the paper's method beside; targetless: DH only, some held at nominal
+        case MarkerEvidence() as ev:
+            targetless, held_dh, baseline = False, (), ev.baseline
+        case PlaneEvidence() as ev:
+            targetless, held_dh, baseline = True, ev.plane_fit.held, None
+    paper = None if baseline is None else baseline.params.vector()
 
     def shown(name: str, v: float) -> str:
         return f"{math.degrees(v):.3f}" if name in ANGLE_NAMES else f"{v * 1000:.3f}"
@@ -42,8 +49,6 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
             return "-"  # roll, pitch, yaw: the rotation's sigma is rx, ry, rz's
         return shown(name, sigma[i]) if math.isfinite(sigma[i]) else "held"  # not estimated: no sigma
 
-    targetless = result.markers is None
-    held_dh = result.plane_fit.held if targetless else ()
     for i, n in enumerate(PARAM_NAMES):
         if targetless and i < 6:
             continue  # no world frame: the mount is not estimated

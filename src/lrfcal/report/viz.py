@@ -45,7 +45,7 @@ from lrfcal.report.vizdata import (
     subsample_indices,
 )
 from lrfcal.report.vizscene import SceneGeom
-from lrfcal.types import CalibrationResult
+from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence
 
 FloatArray = NDArray[np.float64]
 
@@ -155,16 +155,16 @@ def _log_cloud(rec: Any, result: CalibrationResult, which: Literal["before", "af
             static=True)
 
 
-def _log_stage(rec: Any, result: CalibrationResult, which: Literal["before", "after"]) -> FloatArray:
+def _log_stage(rec: Any, result: CalibrationResult, ev: MarkerEvidence, which: Literal["before", "after"]
+               ) -> FloatArray:
     """Log world/<which>/{cloud,returns,residuals}; return the (K,) residual norms [m]."""
     import rerun as rr
 
-    assert result.markers is not None
     _log_cloud(rec, result, which)
     params = result.start if which == "before" else result.solution.params
     color = _COLOR_BEFORE if which == "before" else _COLOR_AFTER
-    p, to_marker, marker, _ = marker_returns(result, params, calibrated=which == "after")
-    ids = result.markers.marker_ids
+    p, to_marker, marker, _ = marker_returns(result, ev, params, calibrated=which == "after")
+    ids = ev.markers.marker_ids
     rec.log(f"world/{which}/returns", rr.Points3D(
         p, radii=0.006, colors=color, labels=[ids[m] for m in marker], show_labels=False,
     ), static=True)
@@ -205,7 +205,7 @@ def _log_rig(rec: Any, result: CalibrationResult, lam_scan: FloatArray) -> None:
             colors=(240, 60, 60)))
 
 
-def _log_image(rec: Any, result: CalibrationResult) -> None:
+def _log_image(rec: Any, result: CalibrationResult, ev: MarkerEvidence) -> None:
     import rerun as rr
 
     img = np.asarray(result.recording.scans.intensities, dtype=float)
@@ -216,13 +216,13 @@ def _log_image(rec: Any, result: CalibrationResult) -> None:
         img = np.vstack([img, np.zeros((pad, N))]).reshape(-1, k, N).max(axis=1)
     rgb = intensity_colors(img.ravel(), cmap="inferno").reshape(img.shape[0], N, 3)
     rec.log("intensity_image", rr.Image(rgb), static=True)
-    blobs = result.detections.blobs
+    blobs = ev.detections.blobs
     if blobs:
         bb = np.array([_bbox(b) for b in blobs])
         mins = np.c_[bb[:, 0] - 0.5, bb[:, 1] / k - 0.5]
         sizes = np.c_[bb[:, 2] - bb[:, 0] + 1.0, (bb[:, 3] - bb[:, 1]) / k + 1.0]
-        b2m = result.association.blob_to_marker
-        ids = result.markers.marker_ids
+        b2m = ev.association.blob_to_marker
+        ids = ev.markers.marker_ids
         labels = [f"blob {j}" + (f" -> {ids[b2m[j]]}" if j < b2m.size and b2m[j] >= 0 else "")
                   for j in range(len(blobs))]
         rec.log("intensity_image/blobs", rr.Boxes2D(mins=mins, sizes=sizes, labels=labels, show_labels=False,
@@ -285,33 +285,33 @@ def log_calibration(
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         truth = None if truth_markers_W is None else np.asarray(truth_markers_W, dtype=float).reshape(-1, 3)
         _log_scene(rec, scene_geoms or [], truth)
-        if result.markers is None:  # targetless: the clouds in frame M and the rig, nothing of markers
-            for which in ("before", "after"):
-                _log_cloud(rec, result, which)  # type: ignore[arg-type]
-            _log_rig(rec, result, motor_angle_per_scan_rad(result))
-        else:
-            _log_markers(rec, result)
+        match result.evidence:
+            case MarkerEvidence() as ev:
+                _log_markers(rec, result, ev)
+            case PlaneEvidence():  # the clouds in frame M and the rig, nothing of markers
+                for which in ("before", "after"):
+                    _log_cloud(rec, result, which)  # type: ignore[arg-type]
+                _log_rig(rec, result, motor_angle_per_scan_rad(result))
         rec.flush()
         rec.disconnect()
 
 
-def _log_markers(rec: Any, result: CalibrationResult) -> None:
+def _log_markers(rec: Any, result: CalibrationResult, ev: MarkerEvidence) -> None:
     """A marker calibration's entities: the MDS markers, before/after returns and residuals, the intensity
     image, per-scan plots and the rig."""
     import rerun as rr
 
-    assert result.markers is not None
     rec.log("world/markers/mds", rr.Points3D(
-        result.markers.positions_W, radii=0.012, colors=_COLOR_MDS,
-        labels=list(result.markers.marker_ids), show_labels=True,
+        ev.markers.positions_W, radii=0.012, colors=_COLOR_MDS,
+        labels=list(ev.markers.marker_ids), show_labels=True,
     ), static=True)
-    norms = {w: _log_stage(rec, result, w) for w in ("before", "after")}  # type: ignore[arg-type]
+    norms = {w: _log_stage(rec, result, ev, w) for w in ("before", "after")}  # type: ignore[arg-type]
 
     S = int(result.recording.scans.stamps_s.size)
-    _, _, _, scan = marker_returns(result, result.start)
+    _, _, _, scan = marker_returns(result, ev, result.start)
     rms = np.stack([per_scan_rms_m(scan, norms[w], S) for w in ("before", "after")], -1)
     lam = motor_angle_per_scan_rad(result)
-    _log_image(rec, result)
+    _log_image(rec, result, ev)
     rec.log("plots/residual_rms_mm", rr.SeriesLines(names=["before", "after"],
                                                      colors=[_COLOR_BEFORE, _COLOR_AFTER]), static=True)
     rec.log("plots/motor_angle_deg", rr.SeriesLines(names=["motor angle lambda"]), static=True)

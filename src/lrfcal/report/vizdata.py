@@ -16,7 +16,7 @@ from lrfcal.model.kinematics import Params, points_W
 from lrfcal.model.marker import residuals_3d
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
-from lrfcal.types import CalibrationResult
+from lrfcal.result import CalibrationResult, MarkerEvidence
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -43,11 +43,11 @@ def intensity_colors(intensity: ArrayLike, cmap: str = "viridis") -> NDArray[np.
 
 
 def marker_returns(
-    result: CalibrationResult, params: Params, calibrated: bool = False
+    result: CalibrationResult, evidence: MarkerEvidence, params: Params, calibrated: bool = False
 ) -> tuple[FloatArray, FloatArray, IntArray, IntArray]:
-    """Marker returns reprojected with ``params`` and their residual vectors to the marker surface; ``calibrated``:
-    with the calibration's intrinsics too (its range offset, marker range bias and scales, as the model applies
-    them), else with the intrinsics at their start.
+    """The marker returns of ``result`` (its ``evidence``) reprojected with ``params`` and their residual vectors to
+    the marker surface; ``calibrated``: with the calibration's intrinsics too (its range offset, marker range bias and
+    scales, as the model applies them), else with the intrinsics at their start.
 
     Only observations assigned to a marker (marker >= 0) are used (K of them).
     Returns:
@@ -55,12 +55,12 @@ def marker_returns(
         of its marker sphere (centre = MarkerMap position, radius = nominal marker radius); marker (K,);
         scan (K,).
     """
-    obs = result.observations
+    obs = evidence.observations
     sel = obs.marker >= 0
     th = core_vector(params.dh, result.solution.intrinsic_values if calibrated else {})
     rng, lam, mu = true_returns(th, obs.ranges_m[sel], obs.lambda_rad[sel], obs.mu_rad[sel], on_marker=True)
     p = points_W(rng, lam, mu, params)
-    centres = result.markers.positions_W[obs.marker[sel]]
+    centres = evidence.markers.positions_W[obs.marker[sel]]
     r = float(result.recording.nominal.marker_radius_m)
     to_surface = -residuals_3d(params, rng, lam, mu, centres, model="sphere", marker_radius_m=r)
     to_surface[np.linalg.norm(p - centres, axis=1) <= r] = 0.0  # inside the sphere: no arrow
@@ -78,8 +78,8 @@ def per_scan_rms_m(scan: IntArray, residual_norm_m: FloatArray, n_scans: int) ->
 def motor_angle_per_scan_rad(result: CalibrationResult) -> FloatArray:
     """(S,) motor angle at the middle of each scan: joint positions interpolated at stamp + scan_time / 2.
 
-    Ignores any laser/servo clock offset (good enough to animate the rig); falls back to the observations'
-    lambda (nearest observed scan) when there are no joint samples.
+    Ignores any laser/servo clock offset (good enough to animate the rig); falls back to the marker returns'
+    lambda (nearest observed scan) when there are no joint samples, else 0.
     """
     sc = result.recording.scans
     js = result.recording.joints
@@ -87,10 +87,11 @@ def motor_angle_per_scan_rad(result: CalibrationResult) -> FloatArray:
     if js.stamps_s.size >= 2:
         order = np.argsort(js.stamps_s)
         return np.interp(t, js.stamps_s[order], js.positions_rad[order])
-    obs = result.observations
-    if len(obs) == 0:
-        return np.zeros(sc.stamps_s.size)
-    return np.interp(np.arange(sc.stamps_s.size), obs.scan.astype(float), obs.lambda_rad)
+    match result.evidence:
+        case MarkerEvidence(observations=obs) if len(obs) > 0:
+            return np.interp(np.arange(sc.stamps_s.size), obs.scan.astype(float), obs.lambda_rad)
+        case _:
+            return np.zeros(sc.stamps_s.size)
 
 
 __all__ = ["intensity_colors", "marker_returns", "motor_angle_per_scan_rad", "per_scan_rms_m", "subsample_indices"]

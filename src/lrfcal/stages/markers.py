@@ -36,10 +36,10 @@ from lrfcal.model.kinematics import DH, Params, Pose, dh_twins, homogeneous
 from lrfcal.model.marker import crossings
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import dh_difference, pack
+from lrfcal.result import CalibrationResult, MarkerEvidence
 from lrfcal.stages import association, detection, joint, mds, start, surfaces, timing
 from lrfcal.types import (
     Association,
-    CalibrationResult,
     Detections,
     JointStates,
     MarkerMap,
@@ -118,11 +118,12 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     if config.baseline:
         baseline = _baseline(chosen, scans, joints, config, fit, notes)
         clock.lap("baseline")
+    evidence = MarkerEvidence(markers=chosen.markers, detections=detections, observations=chosen.matched,
+                              association=chosen.assoc, baseline=baseline, surfaces=tuple(surface_list),
+                              surface_returns=on_surfaces)
     return CalibrationResult(
-        recording=recording, markers=chosen.markers, detections=detections, observations=chosen.matched,
-        association=chosen.assoc, start=chosen.start, solution=ours, baseline=baseline, cloud_before_M=np.zeros((0, 3)),
-        cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
-        surfaces=tuple(surface_list), surface_returns=on_surfaces, checks=tuple(checks), servo_sign=chosen.sign,
+        recording=recording, evidence=evidence, start=chosen.start, solution=ours, checks=tuple(checks),
+        servo_sign=chosen.sign,
         side_by_side={"markers only": chosen.solution,
                       "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
     )

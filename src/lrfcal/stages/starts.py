@@ -33,10 +33,11 @@ from lrfcal.estimate import observability, solve
 from lrfcal.model.kinematics import DH, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import dh_difference
+from lrfcal.result import CalibrationResult, PlaneEvidence
 from lrfcal.runtime.forked import call_forked, cores
 from lrfcal.stages import holdout, propose, targetless
 from lrfcal.stages.surfaces import hash_sample
-from lrfcal.types import CalibrationResult, Check, JointStates, Solution
+from lrfcal.types import Check, JointStates, Solution
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -50,12 +51,11 @@ NAME = "starts agree"
 TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 
 
-def starts_check(fit: CalibrationResult, joints: JointStates, config: CalibConfig) -> Check:
+def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: CalibConfig) -> Check:
     """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.targetless.fit_scene) of ``fit.recording``
-    (the scans the ``joints`` cover): the module docstring."""
+    (the scans the ``joints`` cover), its ``evidence``: the module docstring."""
     sol, nominal = fit.solution, fit.recording.nominal.dh
-    assert fit.plane_fit is not None
-    held = fit.plane_fit.held
+    held = evidence.plane_fit.held
     est = [k for k, n in enumerate(DH_NAMES) if n not in held]
     sigma = sol.sigma[6:10]
     try:

@@ -44,10 +44,11 @@ from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, points_M
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import CORE_NAMES, core_vector, dh_difference
+from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
 from lrfcal.runtime.forked import cores
 from lrfcal.stages import holdout, planes, timing
 from lrfcal.stages.surfaces import Surface, SurfaceReturns, hash_sample
-from lrfcal.types import CalibrationResult, Check, JointStates, PlaneFit, Recording, Scans, Solution
+from lrfcal.types import Check, JointStates, Recording, Scans, Solution
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -135,10 +136,8 @@ def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, cl
     fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)), held,
                    held_reason, rounds, n_before, n_after)
     return CalibrationResult(
-        recording=recording, markers=None, detections=None, observations=None, association=None,
-        start=Params(MOTOR_FRAME, nominal.dh), solution=sol, baseline=None, cloud_before_M=np.zeros((0, 3)),
-        cloud_after_M=np.zeros((0, 3)), cloud_intensity=np.zeros(0), geometry_before=None, geometry_after=None,
-        surface_returns=returns, checks=tuple(checks), plane_fit=fit,
+        recording=recording, evidence=PlaneEvidence(plane_fit=fit, returns=returns),
+        start=Params(MOTOR_FRAME, nominal.dh), solution=sol, checks=tuple(checks),
     )
 
 
