@@ -7,6 +7,7 @@ from __future__ import annotations
 import dataclasses
 import io
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -112,3 +113,20 @@ def test_truth_frame_and_comparison_follow_the_evidence(marked: CalibrationResul
     c = compare(targetless, true, Tolerances())
     assert math.isnan(c.mount_position_error_m) and c.paper_mount_position_error_m is None
     assert all(abs(r.ours - r.truth) < 1e-12 for r in c.dh_rows)
+
+
+def test_viewer_logs_what_the_evidence_holds(marked: CalibrationResult, targetless: CalibrationResult,
+                                             tmp_path: Path) -> None:
+    """The rerun recording of a targetless result: its clouds and the rig, nothing of markers (a marker result's
+    entities are tests/test_viz.py's)."""
+    pytest.importorskip("rerun")
+    from test_viz import read_rrd
+
+    from lrfcal.report import viz
+
+    viz.log_calibration(targetless, rrd_path=tmp_path / "t.rrd")
+    viz.log_calibration(marked, rrd_path=tmp_path / "m.rrd")
+    t, m = read_rrd(tmp_path / "t.rrd"), read_rrd(tmp_path / "m.rrd")
+    assert {"world/before/cloud", "world/after/cloud", "world/M"} <= set(t)
+    assert not any(k.startswith(("world/markers", "intensity_image")) or k.endswith("returns") for k in t)
+    assert {"world/markers/mds", "intensity_image", "world/after/returns"} <= set(m)
