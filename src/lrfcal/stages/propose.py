@@ -162,31 +162,53 @@ def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int],
     if isinstance(search, DHProposal):
         return search
     # the starts are independent: solved in groups on the cores (lrfcal.runtime.forked), collected in start order
-    parts = call_forked({str(g): partial(_group, search, g, progress) for g in range(search.n_groups)})
+    n = search.n_groups
+    parts = call_forked({str(g): partial(_solve_starts, search, list(range(g, len(search.starts), n)),
+                                         progress if g == 0 else None) for g in range(n)})
     return _proposal(search, list(parts.values()), t0, progress)
+
+
+#: the niceness added to the children of :func:`proposal_ahead`: they take idle cores only, never the fit's
+AHEAD_NICE = 19
 
 
 @contextlib.contextmanager
 def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], DHProposal]]:
-    """:func:`propose_dh` ``(scans, joints)`` begun now in forked children (lrfcal.runtime.forked.Ahead, one per
-    group of starts, each inheriting the sampled returns) while this process goes on (the targetless fit: the search
-    does not depend on it); the callable yielded returns the proposal (waiting for the children), the same as
-    :func:`propose_dh`'s. Leaving the context ends the children, at once when the proposal was not asked for (a
-    refused fit). Where no child can be forked the groups run here when the proposal is asked for."""
+    """:func:`propose_dh` ``(scans, joints)`` begun now, while this process goes on (the targetless fit: the search
+    does not depend on it), in forked children at the lowest priority (lrfcal.runtime.forked.Ahead, one per group of
+    starts, each inheriting the sampled returns, :data:`AHEAD_NICE`): they use cores that would idle, and take no time
+    from this process where the cores are busy. The callable yielded returns the proposal: the starts the children
+    finished, the others solved then as :func:`propose_dh` solves them (on the cores, at the usual priority), the
+    same proposal as :func:`propose_dh`'s. The children end when it is asked for, or when the context is left (a
+    refused fit)."""
     t0 = time.perf_counter()
     search = _search(scans, joints, t0)
     if isinstance(search, DHProposal):
         yield lambda: search
         return
+    n = search.n_groups
+    groups = [list(range(g, len(search.starts), n)) for g in range(n)]
     with contextlib.ExitStack() as stack:
-        aheads = [stack.enter_context(Ahead(_ready, inherit=(search,))) for _ in range(search.n_groups)]
-        for g, ahead in enumerate(aheads):
-            ahead.start(_group, search, g)
+        aheads = [stack.enter_context(Ahead(_ready, inherit=(search,), nice=AHEAD_NICE)) for _ in groups]
+        for ahead, ks in zip(aheads, groups, strict=True):
+            for k in ks:  # one call per start: what is done when the proposal is asked for is kept
+                ahead.start(_solve_starts, search, [k])
         taken: list[DHProposal] = []
 
         def proposal() -> DHProposal:
             if not taken:
-                taken.append(_proposal(search, [ahead.result() for ahead in aheads], t0, None))
+                done: list[tuple[int, tuple[DH, FloatArray] | None]] = []
+                for ahead, ks in zip(aheads, groups, strict=True):
+                    for _ in ks:
+                        if not ahead.ready():
+                            break
+                        done.extend(ahead.result())
+                stack.close()  # the children end (one still solving a start at once)
+                have = {k for k, _ in done}
+                missing = [k for k in range(len(search.starts)) if k not in have]
+                m = max(1, min(n, len(missing)))
+                rest = call_forked({str(g): partial(_solve_starts, search, missing[g::m]) for g in range(m)})
+                taken.append(_proposal(search, [done, *rest.values()], t0, None))
             return taken[0]
 
         yield proposal
@@ -221,16 +243,16 @@ def _search(scans: Scans, joints: JointStates, t0: float) -> _Search | DHProposa
                    CalibConfig(), max(1, min(cores(), MAX_GROUPS, len(starts))))
 
 
-def _group(search: _Search, g: int, progress: Callable[[int, int], None] | None = None
-           ) -> list[tuple[int, tuple[DH, FloatArray] | None]]:
-    """The starts g, g + n_groups, ... solved, each on its own segmentation subsample (progress from the first group,
-    which runs in this process)."""
+def _solve_starts(search: _Search, ks: list[int], progress: Callable[[int, int], None] | None = None
+                  ) -> list[tuple[int, tuple[DH, FloatArray] | None]]:
+    """The starts ``ks`` solved, each on its own segmentation subsample (``progress`` from the first group of
+    :func:`propose_dh`, which runs in this process)."""
     starts, n = search.starts, search.n_groups
     out = []
-    for k in range(g, len(starts), n):
+    for k in ks:
         seg = hash_sample(search.beams.scan, search.beams.beam, SEGMENT_RETURNS, seed=100 + k)
         out.append((k, _candidate(search.beams, seg, search.motor, starts[k], search.config)))
-        if progress is not None and g == 0:
+        if progress is not None:
             progress(min(len(starts) - 1, len(out) * n), len(starts))
     return out
 
