@@ -151,3 +151,26 @@ def test_ahead_left_with_a_call_running_ends_its_child_at_once() -> None:
         raise KeyError("refused")
     assert time.perf_counter() - t0 < 2.0
     assert not multiprocessing.active_children()
+
+
+def _niceness() -> int:
+    return os.nice(0)
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_ahead_nice_child_and_ready_calls() -> None:
+    """Ahead(nice=) raises its child's niceness, not this process's; ready() is False while the oldest call runs in
+    the child and True once it has finished (lrfcal.stages.propose.proposal_ahead keeps the finished starts)."""
+    here = os.nice(0)
+    with Ahead(_prepare, nice=5) as ahead:
+        ahead.start(_slow_pid, 1.0)
+        ahead.start(_niceness)
+        assert not ahead.ready()
+        deadline = time.monotonic() + 30.0
+        while not ahead.ready() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert ahead.ready()
+        assert ahead.result() != os.getpid()
+        assert ahead.result() == min(19, here + 5)
+        assert not ahead.ready()  # no call left
+    assert os.nice(0) == here

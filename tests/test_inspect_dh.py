@@ -21,6 +21,7 @@ from lrfcal.cli import main
 from lrfcal.io.loginspect import inspect_path
 from lrfcal.model.kinematics import DH, points_M
 from lrfcal.stages.propose import DETERMINED, DHProposal, canonical
+from lrfcal.types import JointStates, Scans
 from lrfsim.compare import load_truth
 
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
@@ -203,7 +204,6 @@ def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch
     and collected in start order: the candidates reach the consensus in the same order whatever the number of cores,
     and the progress ends at the number of starts."""
     import lrfcal.stages.propose as propose
-    from lrfcal.types import JointStates, Scans
 
     def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]
         # a cheap stand-in for a solve: fails on some starts, else depends on the start and its own subsample
@@ -219,12 +219,7 @@ def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch
 
     monkeypatch.setattr(propose, "_candidate", candidate)
     monkeypatch.setattr(propose, "_consensus", consensus)
-    rng = np.random.default_rng(3)
-    S, N = 40, 200
-    scans = Scans(stamps_s=np.arange(S) * 0.025, ranges_m=rng.uniform(1.0, 5.0, (S, N)), intensities=np.ones((S, N)),
-                  mu_rad=np.linspace(-2.0, 2.0, N), time_increment_s=np.full(S, 1e-5), scan_time_s=0.025,
-                  range_min_m=0.1, range_max_m=30.0)
-    joints = JointStates(stamps_s=np.linspace(-0.1, 1.1, 50), positions_rad=np.linspace(-1.0, 1.0, 50))
+    scans, joints = _random_scans()
     for n_cores in (1, 2, 3):
         monkeypatch.setattr(propose, "cores", lambda n=n_cores: n)
         ticks: list[tuple[int, int]] = []
@@ -233,3 +228,50 @@ def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch
         assert ticks[-1] == (n_starts, n_starts) and all(d <= n_starts for d, _ in ticks)
     assert seen[1] == seen[2] == seen[3]
     assert 0 < len(seen[1]) < n_starts  # some starts failed, in the middle of the groups
+
+
+def test_the_search_begun_ahead_gives_the_same_proposal_and_ends_with_a_refusal(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """lrfcal.stages.propose.proposal_ahead (the targetless calibration's DH search, begun in forked children while
+    the fit runs) gives propose_dh's proposal; leaving it without asking (a refused fit) ends its children at once,
+    before their starts are solved."""
+    import multiprocessing
+    import time
+
+    import lrfcal.stages.propose as propose
+    from lrfcal.model.kinematics import DH
+
+    slow = [0.0]
+
+    def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]
+        time.sleep(slow[0])
+        if start.b > 0 and start.beta < 0:
+            return None
+        return DH(a=0.0, alpha=1.5 + 1e-3 * float(seg[:50].sum() % 7), b=0.01, beta=0.1), np.full(4, 1e-3)
+
+    monkeypatch.setattr(propose, "_candidate", candidate)
+    monkeypatch.setattr(propose, "cores", lambda: 2)
+    scans, joints = _random_scans()
+    here = propose.propose_dh(scans, joints)
+    with propose.proposal_ahead(scans, joints) as proposal:
+        ahead = proposal()
+        assert proposal() is ahead  # asked twice: the same
+    assert here.dh is not None and ahead.dh == here.dh and ahead.agreeing == here.agreeing
+    assert (ahead.sigma, ahead.n_converged, ahead.n_agreeing, ahead.reason) == (here.sigma, here.n_converged,
+                                                                               here.n_agreeing, here.reason)
+    slow[0] = 5.0  # each group would take 30 s
+    t0 = time.perf_counter()
+    with pytest.raises(RuntimeError, match="refused"), propose.proposal_ahead(scans, joints):
+        assert len(multiprocessing.active_children()) >= 1 or propose.cores() < 2
+        raise RuntimeError("refused")
+    assert time.perf_counter() - t0 < 15.0
+    assert not multiprocessing.active_children()
+
+
+def _random_scans() -> tuple[Scans, JointStates]:
+    """40 scans of 200 random ranges and a motor turning 2 rad over them: input for stand-in searches."""
+    rng = np.random.default_rng(3)
+    S, N = 40, 200
+    scans = Scans(stamps_s=np.arange(S) * 0.025, ranges_m=rng.uniform(1.0, 5.0, (S, N)), intensities=np.ones((S, N)),
+                  mu_rad=np.linspace(-2.0, 2.0, N), time_increment_s=np.full(S, 1e-5), scan_time_s=0.025,
+                  range_min_m=0.1, range_max_m=30.0)
+    return scans, JointStates(stamps_s=np.linspace(-0.1, 1.1, 50), positions_rad=np.linspace(-1.0, 1.0, 50))

@@ -271,6 +271,28 @@ def test_figures_written_at_size(result, tmp_path):
     assert DPI == 150
 
 
+def test_drawn_part_draws_the_same_pngs_from_a_fraction_of_the_bytes(result, tmp_path):
+    """What the drawing child is sent (lrfcal.report.figures.drawn_part: the label image as an int8 candidate
+    mask, no surface returns) draws the very same PNG bytes as the whole result, from far fewer pickled bytes."""
+    import pickle
+
+    from lrfcal.report.figures import drawn_detections, drawn_part
+
+    part = drawn_part(result)
+    assert part.detections is not None and part.detections.labels.dtype == np.int8
+    assert np.array_equal(part.detections.labels >= 0, np.asarray(result.detections.labels) >= 0)
+    assert part.surface_returns is None
+    assert drawn_detections(result.detections).blobs == result.detections.blobs
+    whole = write_figures(result, tmp_path / "whole").written
+    sent = write_figures(part, tmp_path / "sent").written
+    assert set(whole) == set(sent) == {"intensity", "alignment", "residuals"}
+    for name in whole:
+        assert whole[name].read_bytes() == sent[name].read_bytes(), name
+    labels_bytes = np.asarray(result.detections.labels).nbytes
+    saved = len(pickle.dumps(result.detections)) - len(pickle.dumps(part.detections))
+    assert saved >= 0.8 * labels_bytes, (saved, labels_bytes)
+
+
 def test_a_figure_that_cannot_be_drawn_is_skipped_with_its_reason(result, tmp_path, monkeypatch):
     import lrfcal.report.figures as figures
 

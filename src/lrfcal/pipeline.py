@@ -13,6 +13,7 @@ reprojection.
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
@@ -30,6 +31,7 @@ from lrfcal.runtime.forked import on_cores
 from lrfcal.stages import geometry, reproject, timing
 from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
 from lrfcal.stages.markers import STAGES, fit_markers
+from lrfcal.stages.propose import proposal_ahead
 from lrfcal.stages.starts import starts_check
 from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
 from lrfcal.stages.targetless import fit_scene
@@ -107,12 +109,16 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
     bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
-    fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
-    fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
-    if isinstance(fit.evidence, PlaneEvidence) and (config.force or all(c.passed for c in fit.checks)):
-        # the other starts (else refused anyway)
-        fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, fit.evidence, joints, config)))
-        clock.lap("starts")
+    # targetless: the DH search for the check "starts agree" runs in forked children meanwhile (its starts do not
+    # depend on the fit; ended at once if the fit is refused)
+    with proposal_ahead(scans, joints) if targetless else contextlib.nullcontext() as proposal:
+        fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
+        fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
+        if isinstance(fit.evidence, PlaneEvidence) and (config.force or all(c.passed for c in fit.checks)):
+            # the other starts (else refused anyway)
+            fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, fit.evidence, joints, config,
+                                                                              proposal)))
+            clock.lap("starts")
     refuse_failed(list(fit.checks), config)  # 3.
     if fit.servo_sign < 0:
         joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)

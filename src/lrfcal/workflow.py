@@ -131,7 +131,8 @@ class _Drawer:
     def outputs(self, stage: str, out: Mapping[str, Any]) -> None:
         """lrfcal.pipeline.calibrate's ``outputs``: intensity.png once the association is final."""
         if self._ahead is not None and stage == "solve":
-            self._ahead.start(figure_writer.write_intensity, out["scans"], out["detections"], out["association"],
+            self._ahead.start(figure_writer.write_intensity, out["scans"],
+                              figure_writer.drawn_detections(out["detections"]), out["association"],
                               out["markers"].marker_ids, self._folder)
             self._sent.append("intensity")
 

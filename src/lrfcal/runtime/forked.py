@@ -83,10 +83,13 @@ class Ahead:
 
     Where no child can be forked (:func:`call_forked`'s conditions) or the child dies, a call runs here, after
     ``prepare()``: the same outcome, only slower. The child ignores SIGINT (Ctrl-C reaches this process, which
-    ends it) and is not daemonic, so that ``fn`` may fork in turn (:func:`call_forked`)."""
+    ends it) and is not daemonic, so that ``fn`` may fork in turn (:func:`call_forked`). ``nice``: the child's
+    niceness is raised by this much (work on idle cores that must not slow this process where the cores are busy:
+    :meth:`ready` says which calls it finished)."""
 
-    def __init__(self, prepare: Callable[[], object], inherit: tuple[object, ...] = ()) -> None:
+    def __init__(self, prepare: Callable[[], object], inherit: tuple[object, ...] = (), nice: int = 0) -> None:
         self._prepare = prepare
+        self._nice = nice
         self._prepared_here = False
         self._inherited = {id(o): o for o in inherit}
         self._conn: Any = None
@@ -100,7 +103,7 @@ class Ahead:
 
             ctx = multiprocessing.get_context("fork")
             ours, theirs = ctx.Pipe()
-            proc = ctx.Process(target=_serve, args=(theirs, ours, self._prepare, self._inherited),
+            proc = ctx.Process(target=_serve, args=(theirs, ours, self._prepare, self._inherited, self._nice),
                                name="lrfcal-ahead", daemon=False)
             try:
                 proc.start()
@@ -126,6 +129,16 @@ class Ahead:
     def started(self) -> bool:
         """Whether :meth:`start` sent a call whose :meth:`result` is not yet taken."""
         return bool(self._pending)
+
+    def ready(self) -> bool:
+        """Whether the oldest call whose result is not yet taken has finished in the child (its :meth:`result`
+        would not wait)."""
+        if not self._pending or not self._pending[0][2] or self._conn is None:
+            return False
+        try:
+            return bool(self._conn.poll())
+        except Exception:  # noqa: BLE001 - a child that died: result() runs the call here
+            return False
 
     def result(self) -> Any:
         """The value of the oldest call :meth:`start` sent whose result is not yet taken: from the child, or, where
@@ -200,11 +213,15 @@ def _loads(data: bytes, inherited: dict[int, object]) -> Any:
     return ByReference(io.BytesIO(data)).load()
 
 
-def _serve(conn: Any, parents_end: Any, prepare: Callable[[], object], inherited: dict[int, object]) -> None:
+def _serve(conn: Any, parents_end: Any, prepare: Callable[[], object], inherited: dict[int, object],
+           nice: int = 0) -> None:
     """:class:`Ahead`'s child: prepare, then run the calls sent, in order, until the pipe closes."""
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    if nice:
+        with contextlib.suppress(OSError):
+            os.nice(nice)
     parents_end.close()  # the copy forked with this child: else the parent closing its end would not end recv
     with contextlib.suppress(Exception):
         prepare()

@@ -38,9 +38,10 @@ Array shapes: K returns.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from functools import partial
 
@@ -55,7 +56,7 @@ from lrfcal.io.rig import is_placeholder_dh
 from lrfcal.model.kinematics import DH, Params, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import wrap_pi
-from lrfcal.runtime.forked import call_forked, cores
+from lrfcal.runtime.forked import Ahead, call_forked, cores
 from lrfcal.stages import targetless
 from lrfcal.stages.surfaces import hash_sample
 from lrfcal.stages.timing import usable_scans
@@ -157,6 +158,80 @@ def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int],
     """Search the DH parameters that make the scene's planes planar (module docstring). ``scans``: the scans the
     joint states cover; ``progress(done, total)`` after every start."""
     t0 = time.perf_counter()
+    search = _search(scans, joints, t0)
+    if isinstance(search, DHProposal):
+        return search
+    # the starts are independent: solved in groups on the cores (lrfcal.runtime.forked), collected in start order
+    n = search.n_groups
+    parts = call_forked({str(g): partial(_solve_starts, search, list(range(g, len(search.starts), n)),
+                                         progress if g == 0 else None) for g in range(n)})
+    return _proposal(search, list(parts.values()), t0, progress)
+
+
+#: the niceness added to the children of :func:`proposal_ahead`: they take idle cores only, never the fit's
+AHEAD_NICE = 19
+
+
+@contextlib.contextmanager
+def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], DHProposal]]:
+    """:func:`propose_dh` ``(scans, joints)`` begun now, while this process goes on (the targetless fit: the search
+    does not depend on it), in forked children at the lowest priority (lrfcal.runtime.forked.Ahead, one per group of
+    starts, each inheriting the sampled returns, :data:`AHEAD_NICE`): they use cores that would idle, and take no time
+    from this process where the cores are busy. The callable yielded returns the proposal: the starts the children
+    finished, the others solved then as :func:`propose_dh` solves them (on the cores, at the usual priority), the
+    same proposal as :func:`propose_dh`'s. The children end when it is asked for, or when the context is left (a
+    refused fit)."""
+    t0 = time.perf_counter()
+    search = _search(scans, joints, t0)
+    if isinstance(search, DHProposal):
+        yield lambda: search
+        return
+    n = search.n_groups
+    groups = [list(range(g, len(search.starts), n)) for g in range(n)]
+    with contextlib.ExitStack() as stack:
+        aheads = [stack.enter_context(Ahead(_ready, inherit=(search,), nice=AHEAD_NICE)) for _ in groups]
+        for ahead, ks in zip(aheads, groups, strict=True):
+            for k in ks:  # one call per start: what is done when the proposal is asked for is kept
+                ahead.start(_solve_starts, search, [k])
+        taken: list[DHProposal] = []
+
+        def proposal() -> DHProposal:
+            if not taken:
+                done: list[tuple[int, tuple[DH, FloatArray] | None]] = []
+                for ahead, ks in zip(aheads, groups, strict=True):
+                    for _ in ks:
+                        if not ahead.ready():
+                            break
+                        done.extend(ahead.result())
+                stack.close()  # the children end (one still solving a start at once)
+                have = {k for k, _ in done}
+                missing = [k for k in range(len(search.starts)) if k not in have]
+                m = max(1, min(n, len(missing)))
+                rest = call_forked({str(g): partial(_solve_starts, search, missing[g::m]) for g in range(m)})
+                taken.append(_proposal(search, [done, *rest.values()], t0, None))
+            return taken[0]
+
+        yield proposal
+
+
+def _ready() -> None:
+    """An :class:`~lrfcal.runtime.forked.Ahead` child's preparation: none (it inherited what the search reads)."""
+
+
+@dataclass(frozen=True)
+class _Search:
+    """What every start of the search reads: the starts, the returns sampled, the motor clock, the configuration,
+    and the groups the starts are solved in (one per core, at most MAX_GROUPS)."""
+
+    starts: list[DH]
+    beams: targetless.Beams
+    motor: MotorClock
+    config: CalibConfig
+    n_groups: int
+
+
+def _search(scans: Scans, joints: JointStates, t0: float) -> _Search | DHProposal:
+    """The search's inputs, or the proposal refused at once (the motor turns too little)."""
     turn = motor_turn_rad(joints)
     starts = [DH(a=0.0, alpha=math.radians(al), b=b, beta=math.radians(be))
               for al in START_ALPHA_DEG for be in START_BETA_DEG for b in START_B_M]
@@ -164,29 +239,34 @@ def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int],
         return DHProposal(None, reason=f"the motor turns only {math.degrees(turn):.1f} deg (a proposal needs "
                           f"{math.degrees(MIN_TURN_RAD):g}): the cloud is nearly one scan plane, whose flatness says "
                           "nothing about the DH", n_starts=len(starts), seconds=time.perf_counter() - t0)
-    config = CalibConfig()
-    beams = targetless.sample_returns(scans, FIT_RETURNS)
-    motor = MotorClock.from_joints(joints)
-    n_groups = max(1, min(cores(), MAX_GROUPS, len(starts)))
+    return _Search(starts, targetless.sample_returns(scans, FIT_RETURNS), MotorClock.from_joints(joints),
+                   CalibConfig(), max(1, min(cores(), MAX_GROUPS, len(starts))))
 
-    def group(g: int) -> list[tuple[int, tuple[DH, FloatArray] | None]]:
-        """the starts g, g + n_groups, ... solved (progress from the first group, which runs in this process)"""
-        out = []
-        for k in range(g, len(starts), n_groups):
-            seg = hash_sample(beams.scan, beams.beam, SEGMENT_RETURNS, seed=100 + k)
-            out.append((k, _candidate(beams, seg, motor, starts[k], config)))
-            if progress is not None and g == 0:
-                progress(min(len(starts) - 1, len(out) * n_groups), len(starts))
-        return out
 
-    # the starts are independent: solved in groups on the cores (lrfcal.runtime.forked), collected in start order
-    solved = sorted(kc for part in call_forked({str(g): partial(group, g) for g in range(n_groups)}).values()
-                    for kc in part)
+def _solve_starts(search: _Search, ks: list[int], progress: Callable[[int, int], None] | None = None
+                  ) -> list[tuple[int, tuple[DH, FloatArray] | None]]:
+    """The starts ``ks`` solved, each on its own segmentation subsample (``progress`` from the first group of
+    :func:`propose_dh`, which runs in this process)."""
+    starts, n = search.starts, search.n_groups
+    out = []
+    for k in ks:
+        seg = hash_sample(search.beams.scan, search.beams.beam, SEGMENT_RETURNS, seed=100 + k)
+        out.append((k, _candidate(search.beams, seg, search.motor, starts[k], search.config)))
+        if progress is not None:
+            progress(min(len(starts) - 1, len(out) * n), len(starts))
+    return out
+
+
+def _proposal(search: _Search, parts: list[list[tuple[int, tuple[DH, FloatArray] | None]]], t0: float,
+              progress: Callable[[int, int], None] | None) -> DHProposal:
+    """The proposal from the groups' candidates, collected in start order."""
+    n_starts = len(search.starts)
+    solved = sorted(kc for part in parts for kc in part)
     if progress is not None:
-        progress(len(starts), len(starts))
+        progress(n_starts, n_starts)
     found = [cand for _, cand in solved if cand is not None]
-    out = _consensus(found, len(starts))
-    return DHProposal(out.dh, out.sigma, out.n_converged, out.n_agreeing, len(starts), out.reason,
+    out = _consensus(found, n_starts)
+    return DHProposal(out.dh, out.sigma, out.n_converged, out.n_agreeing, n_starts, out.reason,
                       time.perf_counter() - t0, out.group)
 
 

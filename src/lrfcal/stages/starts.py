@@ -22,6 +22,7 @@ they disagree, and the run is refused (exit 3).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from functools import partial
 
 import numpy as np
@@ -51,15 +52,18 @@ NAME = "starts agree"
 TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 
 
-def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: CalibConfig) -> Check:
+def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: CalibConfig,
+                 proposal: Callable[[], propose.DHProposal] | None = None) -> Check:
     """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.targetless.fit_scene) of ``fit.recording``
-    (the scans the ``joints`` cover), its ``evidence``: the module docstring."""
+    (the scans the ``joints`` cover), its ``evidence``: the module docstring. ``proposal``: the DH search's proposal on
+    those scans and joints when it was begun before (lrfcal.stages.propose.proposal_ahead, during the fit), else
+    searched here."""
     sol, nominal = fit.solution, fit.recording.nominal.dh
     held = evidence.plane_fit.held
     est = [k for k, n in enumerate(DH_NAMES) if n not in held]
     sigma = sol.sigma[6:10]
     try:
-        found = propose.propose_dh(fit.recording.scans, joints)
+        found = proposal() if proposal is not None else propose.propose_dh(fit.recording.scans, joints)
     except (CalibrationError, np.linalg.LinAlgError) as err:
         found = propose.DHProposal(None, reason=str(err))
     if found.dh is None:
