@@ -279,17 +279,18 @@ def test_drawn_part_draws_the_same_pngs_from_a_fraction_of_the_bytes(result, tmp
     from lrfcal.report.figures import drawn_detections, drawn_part
 
     part = drawn_part(result)
-    assert part.detections is not None and part.detections.labels.dtype == np.int8
-    assert np.array_equal(part.detections.labels >= 0, np.asarray(result.detections.labels) >= 0)
-    assert part.surface_returns is None
-    assert drawn_detections(result.detections).blobs == result.detections.blobs
+    ev, part_ev = result.evidence, part.evidence
+    assert part_ev.detections.labels.dtype == np.int8
+    assert np.array_equal(part_ev.detections.labels >= 0, np.asarray(ev.detections.labels) >= 0)
+    assert part_ev.surface_returns is None
+    assert drawn_detections(ev.detections).blobs == ev.detections.blobs
     whole = write_figures(result, tmp_path / "whole").written
     sent = write_figures(part, tmp_path / "sent").written
     assert set(whole) == set(sent) == {"intensity", "alignment", "residuals"}
     for name in whole:
         assert whole[name].read_bytes() == sent[name].read_bytes(), name
-    labels_bytes = np.asarray(result.detections.labels).nbytes
-    saved = len(pickle.dumps(result.detections)) - len(pickle.dumps(part.detections))
+    labels_bytes = np.asarray(ev.detections.labels).nbytes
+    saved = len(pickle.dumps(ev.detections)) - len(pickle.dumps(part_ev.detections))
     assert saved >= 0.8 * labels_bytes, (saved, labels_bytes)
 
 

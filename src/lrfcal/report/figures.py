@@ -380,12 +380,15 @@ def needs_clouds(result: CalibrationResult) -> bool:
 
 def drawn_part(result: CalibrationResult) -> CalibrationResult:
     """``result`` with only what the figures draw of its clouds (none for markers, a view of the calibrated cloud
-    for targetless) and of its detections (:func:`drawn_detections`), without the surface returns (no figure draws
-    them), to send to a drawing process (lrfcal.runtime.forked.Ahead); its figures are those of ``result``."""
+    for targetless) and of its marker evidence's detections (:func:`drawn_detections`), without the surface returns
+    (no figure draws them), to send to a drawing process (lrfcal.runtime.forked.Ahead); its figures are those of
+    ``result``."""
     after = _cloud_view(result.cloud_after_M) if needs_clouds(result) else np.zeros((0, 3))
-    det = None if result.detections is None else drawn_detections(result.detections)
+    evidence = result.evidence
+    if isinstance(evidence, MarkerEvidence):
+        evidence = replace(evidence, detections=drawn_detections(evidence.detections), surface_returns=None)
     return replace(result, cloud_before_M=np.zeros((0, 3)), cloud_after_M=after, cloud_intensity=np.zeros(0),
-                   detections=det, surface_returns=None)
+                   evidence=evidence)
 
 
 def drawn_detections(det: Detections) -> Detections:
