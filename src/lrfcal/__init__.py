@@ -64,6 +64,7 @@ _EXPORTS: dict[str, str] = {
     "map_covariance": "lrfcal.stages.mds",
     "SCALES": "lrfcal.stages.joint",
     "SCALE_Z_LIMIT": "lrfcal.stages.joint",
+    "OnPlanes": "lrfcal.estimate.problem",
     "Surface": "lrfcal.stages.surfaces",
     "SurfaceReturns": "lrfcal.stages.surfaces",
     "observe_surfaces": "lrfcal.stages.surfaces",
@@ -77,7 +78,7 @@ _EXPORTS: dict[str, str] = {
 }
 
 __all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M",
-           "DH", "JointStates", "LIMITS", "Observability", "Observations", "PARAM_NAMES", "Params", "Pose",
+           "DH", "JointStates", "LIMITS", "Observability", "Observations", "OnPlanes", "PARAM_NAMES", "Params", "Pose",
            "Recording", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns",
            "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
            "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
@@ -112,6 +113,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
         turning_error_at,
     )
     from lrfcal.estimate.observability import LIMITS, Observability, analyse
+    from lrfcal.estimate.problem import OnPlanes
     from lrfcal.io.recording import read_recording
     from lrfcal.model.kinematics import DH, PARAM_NAMES, Params, Pose
     from lrfcal.pipeline import STAGES, calibrate

@@ -7,7 +7,6 @@ the servo's direction; and the refusal when one fails.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Protocol, TypeVar
 
 import numpy as np
@@ -19,7 +18,7 @@ from lrfcal.estimate import observability, solve
 from lrfcal.estimate.covariance import widen
 from lrfcal.model.chart import gauge_distance
 from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
-from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, MotorClock
+from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock, MotorClock
 from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
 from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.types import Check, MarkerMap, Observations, Solution
@@ -207,7 +206,7 @@ def dh_text(dh: DH) -> str:
 
 def marker_checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
-    config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None, nominal: DH,
+    config: CalibConfig, fit: solve.Solver, motor: MotorClock | None, nominal: DH,
 ) -> list[Check]:
     """The consistency checks a result must pass before it is written (docs/method.md, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
@@ -259,7 +258,7 @@ def difference_covariance(part: Solution, joint: Solution, idx: list[int], map_c
 
 def _marker_second_opinion(
     sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
-    fit: Callable[..., Solution], motor: MotorClock | None,
+    fit: solve.Solver, motor: MotorClock | None,
 ) -> Check:
     """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
     and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
@@ -274,8 +273,7 @@ def _marker_second_opinion(
     for g in groups:
         part = matched.subset(g)
         try:
-            ps = fit(part, markers, sol.params, model="sphere", clock=None,
-                     clock_offset_s=sol.clock_offset_s)
+            ps = fit(part, markers, sol.params, clock=Clock(None, sol.clock_offset_s))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few returns")
         if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:

@@ -204,6 +204,19 @@ def marker_problem(
     return Problem((ms,), sensor.range_sigma_m), use
 
 
+@dataclass(frozen=True)
+class OnPlanes:
+    """Surface returns with the planes they lie on, as an estimate takes them: ``returns`` (K returns with their
+    plane index) and ``planes`` (the lrfcal.stages.surfaces.Surface of each plane index, whose normal and offset
+    carry the markers' prior; None: free planes, started from the returns' normals and offsets)."""
+
+    returns: SurfaceReturns
+    planes: Sequence[Surface] | None = None
+
+    def __len__(self) -> int:
+        return len(self.returns)
+
+
 def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[PlaneSet, FloatArray]:
     """The surface returns as a PlaneSet with the planes' nuisance start (3P,): started from the returns' normals
     and offsets; with ``planes`` (each surface index's lrfcal.stages.surfaces.Surface), their tangent axes and the
@@ -242,4 +255,4 @@ def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorCl
     return Problem(sets, float(range_sigma_m), clock=clock, mount_jac=False), nu0
 
 
-__all__ = ["Problem", "marker_problem", "marker_set", "plane_problem", "plane_set"]
+__all__ = ["OnPlanes", "Problem", "marker_problem", "marker_set", "plane_problem", "plane_set"]

@@ -11,12 +11,13 @@ the DH parameters (a fast one-pass sweep: one scan line per marker).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from functools import partial
 
 from lrfcal.config import CalibConfig
 from lrfcal.estimate import observability
-from lrfcal.model.motor import MotorClock
+from lrfcal.estimate.problem import OnPlanes
+from lrfcal.estimate.solve import Solver
+from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.stages import surfaces, timing
 from lrfcal.stages.targetless import merge_returns, scene_plane_returns
 from lrfcal.types import Detections, JointStates, MarkerMap, Observations, Recording, Solution
@@ -53,7 +54,7 @@ def most_off(sol: Solution, notes: list[str], max_chi2: float) -> str | None:
 
 def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMap, motor: MotorClock | None,
                   recording: Recording, joints: JointStates, detections: Detections, config: CalibConfig,
-                  fit: Callable[..., Solution], notes: list[str]
+                  fit: Solver, notes: list[str]
                   ) -> tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]:
     """6b from the marker-only solution ``marker_fit`` of the ``matched`` returns (``motor``: the clock model when
     the clock offset is estimated; ``fit``: lrfcal.estimate.solve.solve bound to the rig): every beam on the markers'
@@ -81,9 +82,8 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
             surface_list, on_surfaces = found
         if not len(found[1]):
             break
-        joint = partial(fit, matched, markers, selected_at.params, model="sphere", surfaces=on_surfaces,
-                        planes=surface_list, clock=motor, clock_offset_s=selected_at.clock_offset_s,
-                        held_scores=tuple(SCALES))
+        joint = partial(fit, matched, markers, selected_at.params, surfaces=OnPlanes(on_surfaces, surface_list),
+                        clock=Clock(motor, selected_at.clock_offset_s), held_scores=tuple(SCALES))
         ours = joint(estimate_range_bias=config.estimate_range_bias)
         if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
                                                <= observability.RANGE_BIAS_LIMIT_M):
@@ -106,8 +106,8 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
         if len(others):
             on_surfaces = merge_returns(on_surfaces, others)
             surface_list = [*surface_list, *other_planes]
-            ours = fit(matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
-                       planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
+            ours = fit(matched, markers, ours.params, surfaces=OnPlanes(on_surfaces, surface_list),
+                       clock=Clock(motor, ours.clock_offset_s),
                        estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=tuple(SCALES))
             notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
                          "free planes")

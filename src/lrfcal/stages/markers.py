@@ -13,9 +13,7 @@ the shared stages (checks, reprojection, geometry).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
-from functools import partial
 
 import numpy as np
 
@@ -33,8 +31,8 @@ from lrfcal.estimate.checks import (
 from lrfcal.estimate.information import information_at
 from lrfcal.estimate.problem import marker_problem
 from lrfcal.model.kinematics import DH, Params, Pose, dh_twins, homogeneous
-from lrfcal.model.marker import crossings
-from lrfcal.model.motor import MotorClock
+from lrfcal.model.marker import MarkerSensor, crossings
+from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.model.unknowns import dh_difference, pack
 from lrfcal.stages import association, detection, joint, mds, start, surfaces, timing
 from lrfcal.types import (
@@ -97,10 +95,10 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
                      + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
                         if config.estimate_clock is None else "as asked)"))
     clock.lap("timing")
-    fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
-                  beam_divergence_rad=nominal.beam_divergence_rad)
+    fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
+                                       config.range_sigma_m))
     chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
-    fit = partial(fit, estimate=chosen.estimate)
+    fit = fit.but(estimate=chosen.estimate)
     chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, config, fit), nominal.dh, fit)
     notes.extend(chosen.notes)
     if chosen.sign < 0:
@@ -129,7 +127,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
 
 
 def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nominal, config: CalibConfig,
-                             fit: Callable[..., Solution], notes: list[str]) -> Solution:
+                             fit: solve.Solver, notes: list[str]) -> Solution:
     """``ours`` with the DH covariance widened by d d^T, d the difference the model variant makes where the sweep
     turns on a marker (lrfcal.model.marker.crossings: only the in-plane part of those crossings' lateral residual,
     solve(in_plane_at_turns=True)), between the two marker-only solutions. The lines of a turning crossing crowd
@@ -143,8 +141,8 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
     if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
         return ours
     try:
-        variant = fit(chosen.matched, chosen.markers, sol.params, model="sphere", clock=chosen.clock,
-                      clock_offset_s=sol.clock_offset_s, in_plane_at_turns=True)
+        variant = fit(chosen.matched, chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s),
+                      in_plane_at_turns=True)
     except CalibrationError:
         return ours
     d = dh_difference(variant.params.dh.vector(), sol.params.dh.vector())
@@ -153,7 +151,7 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
     return ours.with_dh_systematic(d)
 
 
-def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[..., Solution]) -> Alternative:
+def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: solve.Solver) -> Alternative:
     """The marker-only solution in the DH representative nearer the nominal DH: solved again from its turned twin
     (-a, -alpha, b, beta + pi with the mount turned by pi about the motor axis: the same rig, lrfcal.model.kinematics.
     dh_twins) when that twin is nearer. A solve from the mirror image (:func:`_handedness`) or from a coarse start
@@ -164,14 +162,13 @@ def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[.
     _, twin, Q = dh_twins(sol.params.dh)[0]
     turned = Params(Pose.from_matrix(sol.params.mount.matrix() @ homogeneous(Q, np.zeros(3))), twin)
     try:
-        new = fit(chosen.matched, chosen.markers, turned, model="sphere", clock=chosen.clock,
-                  clock_offset_s=sol.clock_offset_s)
+        new = fit(chosen.matched, chosen.markers, turned, clock=Clock(chosen.clock, sol.clock_offset_s))
     except CalibrationError:
         return chosen
     return replace(chosen, solution=new)
 
 
-def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Callable[..., Solution]) -> Alternative:
+def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: solve.Solver) -> Alternative:
     """The marker-only solution in the marker map's other handedness, when the nominal DH prefer it.
 
     Tape distances fix the map only up to a reflection. With the map mirrored, the estimate's mirror twin
@@ -188,8 +185,8 @@ def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Call
     T = F @ chosen.solution.params.mount.matrix() @ homogeneous(Q, np.zeros(3))
     markers = association.unmirror(chosen.markers)
     try:
-        sol = fit(chosen.matched, markers, Params(Pose.from_matrix(T), twin), model="sphere", clock=chosen.clock,
-                  clock_offset_s=chosen.solution.clock_offset_s)
+        sol = fit(chosen.matched, markers, Params(Pose.from_matrix(T), twin),
+                  clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
     except CalibrationError:
         return chosen
     if not mirror_check(sol.params.dh, nominal, config).passed:
@@ -201,7 +198,7 @@ def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Call
 
 
 def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap, joints: JointStates,
-                        nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+                        nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: solve.Solver,
                         clock: Stopwatch) -> Alternative:
     """4.-6.: association and marker-only solve for each direction of the servo (the data cannot tell them apart),
     and the direction chosen. The DH search (lrfcal.stages.start) runs only when neither direction associates well from
@@ -239,8 +236,8 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
 
 
 def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
-             config: CalibConfig, fit: Callable[..., Solution], notes: list[str]
-             ) -> tuple[Alternative, Callable[..., Solution], tuple[Solution, list[surfaces.Surface],
+             config: CalibConfig, fit: solve.Solver, notes: list[str]
+             ) -> tuple[Alternative, solve.Solver, tuple[Solution, list[surfaces.Surface],
                                                                   surfaces.SurfaceReturns | None]]:
     """6b (lrfcal.stages.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale
     the
@@ -254,7 +251,7 @@ def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, det
         if not (off := joint.most_off(joint_fit[0], notes, config.max_reduced_chi2)):
             break
         chosen = replace(chosen, estimate=(*chosen.estimate, off))  # estimated in every solve from the start on
-        fit = partial(fit, estimate=chosen.estimate)
+        fit = fit.but(estimate=chosen.estimate)
         chosen = replace(chosen, solution=_refit(chosen, chosen.matched, fit))
     if chosen.unjudged:
         chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recording, joints, detections, config, fit, notes)
@@ -265,7 +262,7 @@ def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, det
 def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surfaces.Surface],
                                                           surfaces.SurfaceReturns | None],
                     recording: Recording, joints: JointStates, detections: Detections, config: CalibConfig,
-                    fit: Callable[..., Solution], notes: list[str]
+                    fit: solve.Solver, notes: list[str]
                     ) -> tuple[Alternative, tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None],
                                list[str]]:
     """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
@@ -288,8 +285,7 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
             if not bad.size:
                 break
             kept = _without_blobs(*kept, bad, why)
-            sol = fit(kept[1], chosen.markers, sol.params, model="sphere", clock=chosen.clock,
-                      clock_offset_s=sol.clock_offset_s)
+            sol = fit(kept[1], chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s))
             if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recording, joints,
                                              detections, config, fit, [])[0]) is not sol:
                 break
@@ -341,21 +337,21 @@ def _without_blobs(assoc: Association, matched: Observations, bad: np.ndarray, w
     return replace(assoc, blob_to_marker=b2m, n_matched=int((b2m >= 0).sum())), matched
 
 
-def _refit(chosen: Alternative, matched: Observations, fit: Callable[..., Solution]) -> Solution:
+def _refit(chosen: Alternative, matched: Observations, fit: solve.Solver) -> Solution:
     """``chosen``'s marker-only solution solved again for ``matched``, from itself."""
-    return fit(matched, chosen.markers, chosen.solution.params, model="sphere", clock=chosen.clock,
-               clock_offset_s=chosen.solution.clock_offset_s)
+    return fit(matched, chosen.markers, chosen.solution.params,
+               clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
 
 
 def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig,
-              fit: Callable[..., Solution], notes: list[str]) -> Solution | None:
+              fit: solve.Solver, notes: list[str]) -> Solution | None:
     """The paper's method: the blob's brightest beam, the motor angle at the scan's stamp, point-to-centre residuals,
     on the same detections and association (None, with a note, when it cannot run)."""
     peaks = chosen.matched.subset(chosen.matched.is_peak)
     lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
     peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
     try:
-        return fit(peaks, chosen.markers, chosen.start, model="paper")
+        return fit.paper()(peaks, chosen.markers, chosen.start)
     except CalibrationError as err:
         notes.append(f"the paper's method could not be run: {err}")
         return None
@@ -363,7 +359,7 @@ def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: Ca
 
 def _marker_solution(
     sign: int, start_dh: DH, assoc: Association | None, markers: MarkerMap, returns: Observations,
-    joints: JointStates, nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+    joints: JointStates, nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: solve.Solver,
 ) -> Alternative:
     """Start, observability check and marker-only solve for one direction of the servo (``returns`` with their
     motor angles already signed), from the association made with ``start_dh``.
@@ -386,10 +382,8 @@ def _marker_solution(
         )
     start = Params(Pose.from_matrix(assoc.T_W_M), start_dh)  # 5.
     motor = MotorClock.from_joints(joints) if estimate_clock else None
-    info, names = information_at(matched, markers.positions_W, start, model="sphere",
-                                       marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
-                                       clock=motor, clock_offset_s=config.clock_offset_s,
-                                       beam_divergence_rad=nominal.beam_divergence_rad, sides=False)
+    info, names = information_at(matched, markers.positions_W, start, sensor=fit.sensor,
+                                 clock=Clock(motor, config.clock_offset_s), sides=False)
     obs = observability.analyse(info, names, start.dh.alpha)
     if not obs.determined:
         raise CalibrationError(
@@ -397,14 +391,14 @@ def _marker_solution(
             f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
             f"{obs.hint()}"
         )
-    fit = partial(fit, held_scores=tuple(joint.SCALES))  # the scales' score tests read this solution (and re-solves)
-    sol = fit(matched, markers, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
+    fit = fit.but(held_scores=tuple(joint.SCALES))  # the scales' score tests read this solution (and re-solves)
+    sol = fit(matched, markers, start, clock=Clock(motor, config.clock_offset_s))
     notes: list[str] = []
     estimate: tuple[str, ...] = ()
     while off := joint.most_off(sol, notes, config.max_reduced_chi2):  # before any marker is judged moved: a range
         estimate = (*estimate, off)                              # scale moves every far marker from its tape position
-        fit = partial(fit, estimate=estimate)
-        sol = fit(matched, markers, sol.params, model="sphere", clock=motor, clock_offset_s=sol.clock_offset_s)
+        fit = fit.but(estimate=estimate)
+        sol = fit(matched, markers, sol.params, clock=Clock(motor, sol.clock_offset_s))
     # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
     # that is not where the tape puts it: unassign them and solve again
     for _ in range(3):  # a blob matched wrongly, or a marker that is not where the tape puts it: out, and again
@@ -416,8 +410,7 @@ def _marker_solution(
                                unjudged=why.removesuffix(": left out"))
         notes.append(why)
         assoc, matched = _without_blobs(assoc, matched, bad, why)
-        sol = fit(matched, markers, sol.params, model="sphere", clock=motor,
-                  clock_offset_s=sol.clock_offset_s)
+        sol = fit(matched, markers, sol.params, clock=Clock(motor, sol.clock_offset_s))
     return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate)
 
 
