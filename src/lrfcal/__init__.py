@@ -66,6 +66,9 @@ _EXPORTS: dict[str, str] = {
     "SCALE_Z_LIMIT": "lrfcal.stages.joint",
     "OnPlanes": "lrfcal.estimate.problem",
     "Surface": "lrfcal.stages.surfaces",
+    "PlaneMarkers": "lrfcal.stages.surfaces",
+    "ReturnGrid": "lrfcal.stages.surfaces",
+    "SurfaceSelection": "lrfcal.stages.surfaces",
     "SurfaceReturns": "lrfcal.stages.surfaces",
     "observe_surfaces": "lrfcal.stages.surfaces",
     "detect": "lrfcal.stages.detection",
@@ -78,13 +81,13 @@ _EXPORTS: dict[str, str] = {
 }
 
 __all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M",
-           "DH", "JointStates", "LIMITS", "Observability", "Observations", "OnPlanes", "PARAM_NAMES", "Params", "Pose",
-           "Recording", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns",
-           "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
-           "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
-           "information_at", "map_covariance", "map_error_at", "model_error_at", "observe_surfaces",
-           "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
-           "viewer_can_spawn"]
+           "DH", "JointStates", "LIMITS", "Observability", "Observations", "OnPlanes", "PARAM_NAMES", "PlaneMarkers",
+           "ReturnGrid", "Params", "Pose", "Recording", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution",
+           "Surface", "SurfaceReturns", "SurfaceSelection", "TunnelGeometry", "analyse", "apply_memory_policy",
+           "apply_thread_policy", "calibrate", "calibrate_folder", "call_with_thread_policy", "cores",
+           "correlation_error_at", "detect", "estimated", "information_at", "map_covariance", "map_error_at",
+           "model_error_at", "observe_surfaces", "one_blas_thread", "print_summary", "read_recording", "scaled_pinv",
+           "turning_error_at", "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:
@@ -124,7 +127,14 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.stages.detection import detect
     from lrfcal.stages.joint import SCALE_Z_LIMIT, SCALES
     from lrfcal.stages.mds import map_covariance
-    from lrfcal.stages.surfaces import Surface, SurfaceReturns, observe_surfaces
+    from lrfcal.stages.surfaces import (
+        PlaneMarkers,
+        ReturnGrid,
+        Surface,
+        SurfaceReturns,
+        SurfaceSelection,
+        observe_surfaces,
+    )
     from lrfcal.types import (
         CalibrationResult,
         JointStates,

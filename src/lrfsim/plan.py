@@ -55,8 +55,11 @@ from lrfcal import (
     Observability,
     Observations,
     OnPlanes,
+    PlaneMarkers,
+    ReturnGrid,
     Surface,
     SurfaceReturns,
+    SurfaceSelection,
     analyse,
     correlation_error_at,
     estimated,
@@ -437,10 +440,9 @@ def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers
     labels[obs.scan, obs.beam] = obs.marker
     labels[np.arange(S) % step != 0] = NOT_SAMPLED
     beam_times = result.scan_stamps_s[:, None] + np.arange(N)[None, :] * scenario.sensor.time_increment_s
-    return observe_surfaces(result.ranges_m, result.mu_rad, result.beam_lambda_rad, labels, markers_W,
-                            float(scenario.marker_radius_m or 0.0), params,
-                            position_sigma_m=max(scenario.tape.sigma_m, 0.0005),
-                            max_returns=config.surface_max_returns, beam_times_s=beam_times)
+    grid = ReturnGrid(result.ranges_m, result.mu_rad, result.beam_lambda_rad, labels, beam_times)
+    on_markers = PlaneMarkers(markers_W, float(scenario.marker_radius_m or 0.0), max(scenario.tape.sigma_m, 0.0005))
+    return observe_surfaces(grid, on_markers, params, selection=SurfaceSelection(config.surface_max_returns))
 
 
 def format_value(name: str, value: float) -> str:

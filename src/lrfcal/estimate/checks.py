@@ -18,7 +18,7 @@ from lrfcal.estimate import observability, solve
 from lrfcal.estimate.covariance import widen
 from lrfcal.model.chart import gauge_distance
 from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
-from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock, MotorClock
+from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock
 from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
 from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.types import Check, MarkerMap, Observations, Solution
@@ -206,7 +206,7 @@ def dh_text(dh: DH) -> str:
 
 def marker_checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
-    config: CalibConfig, fit: solve.Solver, motor: MotorClock | None, nominal: DH,
+    config: CalibConfig, fit: solve.Solver, nominal: DH,
 ) -> list[Check]:
     """The consistency checks a result must pass before it is written (docs/method.md, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
@@ -223,7 +223,7 @@ def marker_checks(
                             "not determine the parameters jointly (no finite covariance)"))
     checks.append(chi2_check(sol.reduced_chi2, config, "residuals", "the model does not explain the data (an "
                              "unmodelled clock offset or motion, a wrong marker radius)"))
-    checks.append(_marker_second_opinion(marker_only, matched, markers, passes, config, fit, motor))
+    checks.append(_marker_second_opinion(marker_only, matched, markers, passes, config, fit))
     return checks
 
 
@@ -258,7 +258,7 @@ def difference_covariance(part: Solution, joint: Solution, idx: list[int], map_c
 
 def _marker_second_opinion(
     sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
-    fit: solve.Solver, motor: MotorClock | None,
+    fit: solve.Solver,
 ) -> Check:
     """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
     and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters

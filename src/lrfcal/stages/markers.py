@@ -97,19 +97,19 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     clock.lap("timing")
     fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
                                        config.range_sigma_m))
-    chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
+    chosen = _servo_alternatives(returns, detections, markers, joints if estimate_clock else None, nominal, config,
+                                 fit, clock)
     fit = fit.but(estimate=chosen.estimate)
     chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, config, fit), nominal.dh, fit)
     notes.extend(chosen.notes)
     if chosen.sign < 0:
         joints = _negated(joints)
     clock.lap("solve", scans=scans, detections=detections, association=chosen.assoc, markers=chosen.markers)
-    chosen, fit, (ours, surface_list, on_surfaces) = _jointly(chosen, recording, joints, detections, config, fit,
-                                                              notes)
+    recorded = joint.Recorded(recording, joints, detections)
+    chosen, fit, (ours, surface_list, on_surfaces) = _jointly(chosen, recorded, config, fit, notes)
     if config.surfaces:
         clock.lap("surfaces")
-    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock,
-                           nominal.dh)
+    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, nominal.dh)
     checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
     ours = _with_turning_systematic(ours, chosen, nominal, config, fit, notes)  # after the checks: they judge the fit
     baseline = None
@@ -197,12 +197,12 @@ def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: solv
     return replace(chosen, markers=markers, assoc=assoc, solution=sol, notes=(*chosen.notes, note))
 
 
-def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap, joints: JointStates,
-                        nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: solve.Solver,
+def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap,
+                        joints: JointStates | None, nominal: Nominal, config: CalibConfig, fit: solve.Solver,
                         clock: Stopwatch) -> Alternative:
     """4.-6.: association and marker-only solve for each direction of the servo (the data cannot tell them apart),
-    and the direction chosen. The DH search (lrfcal.stages.start) runs only when neither direction associates well from
-    the nominal values."""
+    and the direction chosen; ``joints``: the joint states the clock offset is estimated by (None: held). The DH
+    search (lrfcal.stages.start) runs only when neither direction associates well from the nominal values."""
     signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
     first: dict[int, Association | None] = {}
 
@@ -224,8 +224,7 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
             start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, associated(sign),
                                                  every_attitude=not alternatives)
                                if search else (nominal.dh, associated(sign)))
-            alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
-                                                 config, estimate_clock, fit))
+            alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, config, fit))
         except CalibrationError as err:
             if sign == 1 and not isinstance(err, _NoMatch):
                 raise  # e.g. the layout does not determine the DH: the other direction does not help
@@ -235,8 +234,7 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
     return servo_direction(alternatives, nominal.dh, config)
 
 
-def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
-             config: CalibConfig, fit: solve.Solver, notes: list[str]
+def _jointly(chosen: Alternative, recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver, notes: list[str]
              ) -> tuple[Alternative, solve.Solver, tuple[Solution, list[surfaces.Surface],
                                                                   surfaces.SurfaceReturns | None]]:
     """6b (lrfcal.stages.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale
@@ -246,23 +244,22 @@ def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, det
     ``fit`` as they end up, and the joint result (lrfcal.stages.joint.with_surfaces)."""
     while True:
         tried: list[str] = []
-        joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recording,
-                                        joints, detections, config, fit, tried)
+        joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recorded,
+                                        config, fit, tried)
         if not (off := joint.most_off(joint_fit[0], notes, config.max_reduced_chi2)):
             break
         chosen = replace(chosen, estimate=(*chosen.estimate, off))  # estimated in every solve from the start on
         fit = fit.but(estimate=chosen.estimate)
         chosen = replace(chosen, solution=_refit(chosen, chosen.matched, fit))
     if chosen.unjudged:
-        chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recording, joints, detections, config, fit, notes)
+        chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recorded, config, fit, notes)
     notes.extend(tried)
     return chosen, fit, joint_fit
 
 
 def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surfaces.Surface],
                                                           surfaces.SurfaceReturns | None],
-                    recording: Recording, joints: JointStates, detections: Detections, config: CalibConfig,
-                    fit: solve.Solver, notes: list[str]
+                    recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver, notes: list[str]
                     ) -> tuple[Alternative, tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None],
                                list[str]]:
     """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
@@ -286,8 +283,8 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
                 break
             kept = _without_blobs(*kept, bad, why)
             sol = fit(kept[1], chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s))
-            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recording, joints,
-                                             detections, config, fit, [])[0]) is not sol:
+            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recorded, config, fit,
+                                             [])[0]) is not sol:
                 break
     no_surfaces = CalibrationError(observability.unjudged_refusal(
         _observability(chosen.solution), "the markers alone", "and no surface returns were found to add",
@@ -296,8 +293,7 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
         raise no_surfaces
     for left_out in range(4):  # every round from that start: one with a wrong blob in can be far off
         tried: list[str] = []
-        joint_fit = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recording, joints,
-                                        detections, config, fit, tried)
+        joint_fit = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recorded, config, fit, tried)
         if joint_fit[0] is start:  # no surface returns for these blobs
             raise no_surfaces
         bad, why = association.inconsistent_blobs(matched, joint_fit[0], chosen.markers, config.range_sigma_m)
@@ -359,10 +355,11 @@ def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: Ca
 
 def _marker_solution(
     sign: int, start_dh: DH, assoc: Association | None, markers: MarkerMap, returns: Observations,
-    joints: JointStates, nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: solve.Solver,
+    joints: JointStates | None, config: CalibConfig, fit: solve.Solver,
 ) -> Alternative:
     """Start, observability check and marker-only solve for one direction of the servo (``returns`` with their
-    motor angles already signed), from the association made with ``start_dh``.
+    motor angles already signed), from the association made with ``start_dh``; ``joints``: the joint states the
+    clock offset is estimated by (None: held).
 
     Raises CalibrationError when the blobs could not be matched, when the data do not determine the DH parameters
     (judged at the start, before any solver runs), or when blobs disagree with the marker map beyond repair.
@@ -370,8 +367,6 @@ def _marker_solution(
     if assoc is None:
         raise _NoMatch("association: no alignment of the blobs with the marker map (check the tape "
                                "distances' file and unit, and the marker radius)")
-    if sign < 0:
-        joints = _negated(joints)
     if assoc.mirrored:
         markers = association.unmirror(markers)
     matched = _with_markers(returns, assoc.blob_to_marker)
@@ -381,7 +376,7 @@ def _marker_solution(
             f"only {n_matched} markers matched to detections (need >= 4); alignment RMS {assoc.rms_m * 1000:.1f} mm"
         )
     start = Params(Pose.from_matrix(assoc.T_W_M), start_dh)  # 5.
-    motor = MotorClock.from_joints(joints) if estimate_clock else None
+    motor = None if joints is None else MotorClock.from_joints(joints if sign > 0 else _negated(joints))
     info, names = information_at(matched, markers.positions_W, start, sensor=fit.sensor,
                                  clock=Clock(motor, config.clock_offset_s), sides=False)
     obs = observability.analyse(info, names, start.dh.alpha)
