@@ -338,7 +338,7 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
             kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
             parts.append(solve.solve_planes(returns.subset(kept), sol.params, range_sigma_m=sigma_r,
                                             clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
-                                            robust=False))
+                                            options=solve.PlaneOptions(robust=False)))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
     d = parts[0].params.vector()[est] - parts[1].params.vector()[est]

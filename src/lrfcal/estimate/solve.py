@@ -232,6 +232,26 @@ def plane_free(n_par: int, hold: Sequence[str], clock: MotorClock | None, estima
     return free
 
 
+@dataclass(frozen=True)
+class PlaneOptions:
+    """What a targetless solve estimates beyond its defaults, and how it solves.
+
+    estimate_range_offset: also estimate a constant range offset.
+    robust: a Huber pass, then plain least squares with returns beyond 4 robust sigma dropped.
+    huber_first: with ``robust``, the Huber pass (False: a start that a robust solve of nearly the same returns gave,
+        which the 4-sigma rejection alone keeps from stray returns; the same solution to 1e-4 sigma on room_box,
+        15 % of its targetless time saved).
+    """
+
+    estimate_range_offset: bool = False
+    robust: bool = True
+    huber_first: bool = True
+
+
+#: the targetless defaults: robust, a Huber pass first
+DEFAULT_PLANE_OPTIONS = PlaneOptions()
+
+
 def solve_planes(
     surfaces: SurfaceReturns,
     start: Params,
@@ -240,10 +260,8 @@ def solve_planes(
     clock: MotorClock | None = None,
     clock_offset_s: float = 0.0,
     hold: Sequence[str] = (),
-    estimate_range_offset: bool = False,
-    robust: bool = True,
     dh_prior: tuple[FloatArray, FloatArray] | None = None,
-    huber_first: bool = True,
+    options: PlaneOptions = DEFAULT_PLANE_OPTIONS,
 ) -> Solution:
     """Targetless: the DH parameters (and the clock offset, the range offset) from the flatness of planes alone.
 
@@ -259,13 +277,9 @@ def solve_planes(
         clock: the joint states as a MotorClock to estimate the clock offset (started at ``clock_offset_s``); None
             holds it.
         hold: names from CORE_NAMES held at their start value (in addition to the mount).
-        estimate_range_offset: also estimate a constant range offset.
-        robust: a Huber pass, then plain least squares with returns beyond 4 robust sigma dropped.
-        huber_first: with ``robust``, the Huber pass (False: a start that a robust solve of nearly the same returns
-            gave, which the 4-sigma rejection alone keeps from stray returns; the same solution to 1e-4 sigma on
-            room_box, 15 % of its targetless time saved).
         dh_prior: (mean (4,), sigma (4,)) of a, alpha, b, beta: the design drawing's values and tolerance, as
             prior residuals (None: none).
+        options: the range offset estimated or not, the robust passes (:class:`PlaneOptions`).
     Returns:
         Solution as :func:`solve` (NaN sigma for held parameters; residuals_m, per_marker_rms_m and chi are empty;
         n_surface_returns the returns kept; inlier (K,) which of the K returns were kept; residual_rms_m the RMS of
@@ -276,13 +290,14 @@ def solve_planes(
     pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior)
     th, R_ref = pack(start, clock_offset_s)
     th = np.concatenate([th, nu0])
-    free = plane_free(th.size, hold, clock, estimate_range_offset)
+    free = plane_free(th.size, hold, clock, options.estimate_range_offset)
     K = surfaces.ranges_m.size
     if 10 * int(free.sum()) > K:
         raise CalibrationError(f"targetless solve: {K} plane returns for {int(free.sum())} unknowns (need 10 each)")
     why = {**_WHY, **{n: _TARGETLESS_WHY for n in _TARGETLESS_HELD}, **{n: "held by the call" for n in hold}}
     unknowns = Unknowns.of(free[:N_CORE], th.size - N_CORE, why)
-    est = engine.estimate(pb, State(th, R_ref), unknowns, replace(PLANE_PASSES, robust=robust, huber_first=huber_first))
+    passes = replace(PLANE_PASSES, robust=options.robust, huber_first=options.huber_first)
+    est = engine.estimate(pb, State(th, R_ref), unknowns, passes)
     keep = est.keep[-1]
     surf = est.kept.surf
     assert surf is not None
@@ -299,5 +314,5 @@ def solve_planes(
                      n_surface_returns=int(keep.sum()), iterations=est.log)
 
 
-__all__ = ["CORE_NAMES", "DEFAULT_OPTIONS", "Clock", "MotorClock", "OnPlanes", "SolveOptions", "Solver", "plane_free",
-           "solve", "solve_planes"]
+__all__ = ["CORE_NAMES", "DEFAULT_OPTIONS", "DEFAULT_PLANE_OPTIONS", "Clock", "MotorClock", "OnPlanes", "PlaneOptions",
+           "SolveOptions", "Solver", "plane_free", "solve", "solve_planes"]
