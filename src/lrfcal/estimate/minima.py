@@ -27,9 +27,8 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate.checks import dh_text, nominal_distance
+from lrfcal.estimate.checks import CheckConfig, dh_text, nominal_distance
 from lrfcal.estimate.information import model_residuals
 from lrfcal.estimate.solve import Solver
 from lrfcal.model.kinematics import DH, Params, dh_twins
@@ -49,7 +48,7 @@ SAME_SIGMA = 4.0
 NAME = "other minimum"
 
 
-def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CalibConfig,
+def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CheckConfig,
                   fit: Solver) -> Check:
     """The marker-only solution ``sol`` of the returns ``matched`` against the minimum its mirror image leads to
     (module docstring), the clock offset held at the estimate's: passed unless a distinct rig explains the data as
