@@ -7,9 +7,9 @@ import pytest
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.estimate.information import jacobian_check, model_residuals
-from lrfcal.estimate.solve import SolveOptions, solve
+from lrfcal.estimate.solve import SolveOptions, Solver, solve
 from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
-from lrfcal.model.marker import MarkerSensor
+from lrfcal.model.marker import MarkerModel, MarkerSensor
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.sphere import footprint_depth, sphere_depth
 from lrfcal.model.unknowns import wrap_pi
@@ -185,6 +185,23 @@ def test_sphere_model_recovers_within_4_sigma_and_beats_paper(data: tuple[Observ
     assert np.linalg.norm(e_s[ab]) < 1e-3
     assert ours.per_marker_rms_m.shape == (len(X),)
     assert ours.residuals_m.shape == (len(obs), 3)
+
+
+def test_solver_is_solve_bound_to_its_sensor_and_options(data: tuple[Observations, np.ndarray]) -> None:
+    """lrfcal.estimate.solve.Solver (the marker stages' re-solves): the same solution as solve with the same sensor
+    and options, whether the options are changed for good (but), for one call (keywords) or the model (paper)."""
+    obs, X = data
+    start = _perturbed(np.random.default_rng(12))
+    sensor = MarkerSensor.of("sphere", R_M)
+    fit = Solver(sensor)
+    plain = solve(obs, X, start, sensor=sensor, options=SolveOptions(robust=False))
+    for sol in (fit.but(robust=False)(obs, X, start), fit(obs, X, start, robust=False)):
+        np.testing.assert_array_equal(sol.params.vector(), plain.params.vector())
+        np.testing.assert_array_equal(sol.covariance, plain.covariance)
+    assert not np.array_equal(fit(obs, X, start).params.vector(), plain.params.vector())  # the robust passes differ
+    paper = solve(obs, X, start, sensor=MarkerSensor.of("paper", R_M))
+    np.testing.assert_array_equal(fit.paper()(obs, X, start).params.vector(), paper.params.vector())
+    assert fit.paper().sensor.model is MarkerModel.PAPER and fit.sensor.model is MarkerModel.SPHERE
 
 
 def test_outliers_are_dropped(data: tuple[Observations, np.ndarray]) -> None:
