@@ -191,15 +191,12 @@ def marker_set(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor) ->
     return ms, use
 
 
-def marker_problem(
-    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float, divergence: float = 0.0
-) -> tuple[Problem, BoolArray]:
+def marker_problem(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor) -> tuple[Problem, BoolArray]:
     """The problem of the returns of ``obs`` with a marker (and finite values), and which rows those are (K,).
 
     Raises:
-        InputError: a model, marker array, radius, noise or divergence out of its domain.
+        InputError: a marker array out of its domain.
     """
-    sensor = MarkerSensor.of(model, radius, divergence, sigma_r)
     ms, use = marker_set(obs, markers_W, sensor)
     return Problem((ms,), sensor.range_sigma_m), use
 

@@ -111,7 +111,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
         clock.lap("surfaces")
     checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, nominal.dh)
     checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
-    ours = _with_turning_systematic(ours, chosen, nominal, config, fit, notes)  # after the checks: they judge the fit
+    ours = _with_turning_systematic(ours, chosen, fit, notes)  # after the checks: they judge the fit
     baseline = None
     if config.baseline:
         baseline = _baseline(chosen, scans, joints, config, fit, notes)
@@ -126,8 +126,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     )
 
 
-def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nominal, config: CalibConfig,
-                             fit: solve.Solver, notes: list[str]) -> Solution:
+def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Solver, notes: list[str]) -> Solution:
     """``ours`` with the DH covariance widened by d d^T, d the difference the model variant makes where the sweep
     turns on a marker (lrfcal.model.marker.crossings: only the in-plane part of those crossings' lateral residual,
     solve(in_plane_at_turns=True)), between the two marker-only solutions. The lines of a turning crossing crowd
@@ -135,8 +134,7 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
     information, so neither is right alone, and their difference is a model error the noise's sigma does not hold
     (docs/study.md, "A crossing that turns on its marker"). Unchanged where no crossing turns."""
     sol = chosen.solution
-    pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, "sphere", nominal.marker_radius_m,
-                           config.range_sigma_m, nominal.beam_divergence_rad)
+    pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, fit.sensor)
     th, R_ref = pack(sol.params, sol.clock_offset_s)
     if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
         return ours
