@@ -56,12 +56,13 @@ def per_marker(scenario: Scenario) -> list[str]:
 
     from lrfcal.estimate.information import model_residuals
     from lrfcal.model.kinematics import beam_rays_W
+    from lrfcal.model.marker import MarkerSensor
     from lrfsim.plan import marker_observations
 
     obs, markers_W, params, _, _, _ = marker_observations(scenario)
     assert scenario.markers is not None
-    res, _ = model_residuals(params, obs, markers_W, model="sphere", marker_radius_m=float(scenario.markers.radius_m),
-                             beam_divergence_rad=float(scenario.sensor.divergence_rad))
+    sensor = MarkerSensor.of("sphere", float(scenario.markers.radius_m), float(scenario.sensor.divergence_rad))
+    res, _ = model_residuals(params, obs, markers_W, sensor=sensor)
     res = res.reshape(-1, 4)  # range, then the lateral residual in W
     _, d = beam_rays_W(params, obs.lambda_rad, obs.mu_rad + 0.5 * math.pi)  # in the scan plane, across the beam
     _, d0 = beam_rays_W(params, obs.lambda_rad, obs.mu_rad)

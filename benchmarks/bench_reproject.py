@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from lrfcal.io.cloud import BeamCloud, reproject_bag, reproject_beams, write_cloud_ply
+from lrfcal.io.cloud import BeamCloud, CloudOutputs, reproject_bag, reproject_beams, write_cloud_ply
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH
 from lrfsim.scenario import load_scenario
@@ -91,7 +91,8 @@ def main() -> None:
             err = float(np.max(np.abs(pts - cloud.points_M)))
             print(f"clouds agree: max |difference| {err:.2e} m")
             assert err < 1e-9
-        t_cli, _ = best_of(args.repeat, lambda: reproject_bag(rec_dir / "bag", nominal, tmp_path / "cli.ply"))
+        t_cli, _ = best_of(args.repeat,
+                           lambda: reproject_bag(rec_dir / "bag", nominal, CloudOutputs(tmp_path / "cli.ply")))
         t_ply, _ = best_of(args.repeat, lambda: write_cloud_ply(tmp_path / "w.ply", cloud))
         size_mb = (tmp_path / "w.ply").stat().st_size / 1e6
     print(f"beams (valid returns): {n} of {rec.scans.stamps_s.size} scans")

@@ -156,7 +156,8 @@ def test_branch_and_bound_keeps_exactly_the_best_hypotheses(seed: int) -> None:
         probe = np.arange(0, len(P), 7)
         part, _ = _score(R, t, P[probe], X, w[probe], 0.02)
         for kth in np.sort(score)[::-1][[3, 20, 39]]:  # among the near-copies' scores
-            kept = _reaching(R, t, P, X, w, 0.02, np.arange(H), probe, part, float(kth))
+            kept = _reaching(lambda c, b: _score(R[c], t[c], P[b], X, w[b], 0.02)[0], w, np.arange(H), probe, part,
+                             float(kth))
             assert set(np.flatnonzero(score >= kth)) <= set(kept.tolist())
             assert kept.size < 100, kept.size  # the random poses cannot reach it and are dropped
 

@@ -7,15 +7,13 @@ into the mount, and reports DH in a canonical branch."""
 
 from __future__ import annotations
 
-from functools import partial
-
 import numpy as np
 import pytest
 
 from lrfcal.config import CalibConfig
 from lrfcal.estimate.minima import other_minimum
 from lrfcal.estimate.problem import Problem
-from lrfcal.estimate.solve import solve
+from lrfcal.estimate.solve import Solver, solve
 from lrfcal.model.chart import canonical_dh, dh_chart, regular_chart, regular_chart_at, regular_step, scan_plane_pose
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, rot_x, rot_z, transform_points
 from lrfcal.model.marker import MarkerModel, MarkerSensor, MarkerSet, ray_to_centre
@@ -163,7 +161,7 @@ def test_solver_reaches_a_scanner_tilted_towards_the_motor_axis_from_alpha_0(see
     m = truth.mount
     start = Params(Pose(m.x + 0.02, m.y - 0.02, m.z + truth.dh.b * np.cos(truth.dh.alpha) + 0.01, m.roll + 0.02,
                         m.pitch, m.yaw + 0.05), DH(0.04, 0.0, 0.0, 0.3))
-    sol = solve(obs, C, start, model="sphere", marker_radius_m=0.05, range_sigma_m=0.005)
+    sol = solve(obs, C, start, sensor=MarkerSensor.of("sphere", 0.05, 0.0, 0.005))
     assert sol.converged
     e, t = sol.params.dh, truth.dh
     errors = [np.array([e.a - s * t.a, wrap_pi(e.alpha - s * t.alpha), e.b - t.b,
@@ -179,10 +177,10 @@ def test_solver_reaches_a_scanner_tilted_towards_the_motor_axis_from_alpha_0(see
 def _other_minimum(truth: Params, C: np.ndarray, obs: Observations, nominal_dh: DH) -> tuple[Solution, Check]:
     """The marker-only solve from the nominal (the mount 2-5 cm and 1-3 deg off) and lrfcal.estimate.minima's check
     of it."""
-    fit = partial(solve, marker_radius_m=0.05, range_sigma_m=0.005)
+    fit = Solver(MarkerSensor.of("sphere", 0.05, 0.0, 0.005))
     m = truth.mount
     start = Params(Pose(m.x + 0.02, m.y - 0.02, m.z + 0.01, m.roll + 0.02, m.pitch, m.yaw + 0.05), nominal_dh)
-    sol = fit(obs, C, start, model="sphere")
+    sol = fit(obs, C, start)
     markers = MarkerMap(tuple(map(str, range(len(C)))), C, 0.0, 0.0, 1.0, False)
     nominal = Nominal(nominal_dh, marker_radius_m=0.05)
     return sol, other_minimum(sol, obs, markers, nominal, CalibConfig(range_sigma_m=0.005), fit)

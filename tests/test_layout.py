@@ -1,6 +1,7 @@
 """The code's layout as docs/architecture.md states it: lrfsim uses lrfcal only through its public API (lrfcal,
 lrfcal.model, lrfcal.io, lrfcal.errors), the rooms of lrfcal, the public API importable without heavy modules,
-and the rig model and the estimate package type-checked by mypy."""
+the rig model and the estimate package type-checked by mypy, and at most five functions outside the CLIs with more
+than 8 parameters."""
 
 from __future__ import annotations
 
@@ -84,3 +85,27 @@ def test_mypy_model_and_estimate() -> None:
     proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal/model", "src/lrfcal/estimate"], cwd=ROOT,
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-3000:]
+
+
+#: the functions outside the command lines that may take more than 8 parameters: facades over a command's options
+#: (docs/architecture.md, "What travels together"); every other function takes what travels together as one object
+MANY_PARAMETERS = {"src/lrfcal/io/rig.py:with_overrides", "src/lrfcal/workflow.py:calibrate_folder",
+                   "src/lrfcal/io/recording.py:read_recording", "src/lrfsim/study.py:run_trials",
+                   "src/lrfsim/study.py:study"}
+
+
+def test_at_most_five_functions_take_more_than_eight_parameters() -> None:
+    """Outside the CLIs (cli.py), no function takes more than 8 parameters (self and cls not counted) but the five
+    command facades of MANY_PARAMETERS."""
+    many = set()
+    for path in sorted(SRC.rglob("*.py")):
+        if path.name == "cli.py":
+            continue
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                names = [x.arg for x in (*a.posonlyargs, *a.args, *a.kwonlyargs)]
+                k = len(names) + (a.vararg is not None) + (a.kwarg is not None) - (names[:1] in (["self"], ["cls"]))
+                if k > 8:
+                    many.add(f"{path.relative_to(ROOT)}:{node.name}")
+    assert many <= MANY_PARAMETERS and len(MANY_PARAMETERS) <= 5, sorted(many - MANY_PARAMETERS)

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 from test_solve import R_M, SIGMA, TRUE, _markers, simulate
 
-from lrfcal.estimate.solve import solve
+from lrfcal.estimate.solve import SolveOptions, solve
 from lrfcal.model.kinematics import ESTIMATE_NAMES
+from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.unknowns import wrap_pi
 from lrfcal.stages import mds
 from lrfcal.stages.surfaces import plane_prior_jacobian
@@ -58,7 +59,7 @@ def test_map_sensitivity_is_the_solutions_response(data: tuple) -> None:
     obs, centres = data
     n = len(centres)
     cov_map = np.eye(3 * n) * 0.001**2
-    kw = {"model": "sphere", "marker_radius_m": R_M, "range_sigma_m": SIGMA, "robust": False}
+    kw = {"sensor": MarkerSensor.of("sphere", R_M, 0.0, SIGMA), "options": SolveOptions(robust=False)}
     sol = solve(obs, _map(centres, cov_map), TRUE, **kw)
     exact = solve(obs, centres, TRUE, **kw)
     assert sol.map_sensitivity is not None and sol.map_sensitivity.shape == (10, 3 * n)

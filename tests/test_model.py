@@ -8,8 +8,9 @@ import pytest
 from test_solve import R_M, SIGMA, TRUE, _markers, simulate
 
 from lrfcal.estimate.information import jacobian_check
-from lrfcal.estimate.solve import solve
+from lrfcal.estimate.solve import SolveOptions, solve
 from lrfcal.model.kinematics import DH, Params, Pose
+from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.motor import MotorClock, motor_angles
 from lrfcal.model.scanner import reported_range, true_range
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES, INTRINSICS, N_CORE, free_by_default, pack, unpack
@@ -43,7 +44,7 @@ def test_motor_scale_is_an_intrinsic_held_at_one() -> None:
     rng = np.random.default_rng(5)
     X = _markers(rng)
     obs = simulate(TRUE, X, rng)
-    sol = solve(obs, X, TRUE, model="sphere", marker_radius_m=R_M, range_sigma_m=SIGMA)
+    sol = solve(obs, X, TRUE, sensor=MarkerSensor.of("sphere", R_M, 0.0, SIGMA))
     value, sigma = sol.intrinsics["motor_scale"]
     assert value == 1.0 and np.isnan(sigma)
 
@@ -71,7 +72,7 @@ def test_motor_angle_scale_and_its_jacobian() -> None:
     )
     params = Params(Pose(0.2, -0.1, 0.5, 0.3, 0.2, 0.1), DH(0.02, 1.4, 0.05, -0.3))
     for c in (None, clock):
-        err = jacobian_check(params, obs, X, model="sphere", marker_radius_m=0.3, clock=c)
+        err = jacobian_check(params, obs, X, sensor=MarkerSensor.of("sphere", 0.3), clock=c)
         cols = [n for n in CORE_NAMES if n != "clock_offset" or c is not None]
         assert err[cols.index("motor_scale")] < 1e-6, err
         assert err[cols.index("range_scale")] < 1e-6, err
@@ -92,12 +93,12 @@ def test_range_scale_is_estimated_when_asked() -> None:
     X = _markers(rng)
     obs = simulate(TRUE, X, rng)
     long = Observations(**{**{f: getattr(obs, f) for f in obs.__dataclass_fields__}, "ranges_m": obs.ranges_m * 1.01})
-    fit = {"model": "sphere", "marker_radius_m": R_M, "range_sigma_m": SIGMA}
-    sol = solve(long, X, TRUE, estimate=("range_scale",), **fit)
+    sensor = MarkerSensor.of("sphere", R_M, 0.0, SIGMA)
+    sol = solve(long, X, TRUE, sensor=sensor, options=SolveOptions(estimate=("range_scale",)))
     value, sigma = sol.intrinsics["range_scale"]
     assert abs(value - 1.01) <= 4 * sigma and sigma < 0.002, (value, sigma)
     z = (sol.params.dh.vector() - TRUE.dh.vector()) / sol.sigma[6:]
     assert np.all(np.abs(z) <= 4), z
-    held = solve(long, X, TRUE, **fit)
+    held = solve(long, X, TRUE, sensor=sensor)
     assert held.intrinsics["range_scale"] == (1.0, pytest.approx(np.nan, nan_ok=True))
     assert np.max(np.abs((held.params.dh.vector() - TRUE.dh.vector()) / held.sigma[6:])) > 4

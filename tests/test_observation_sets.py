@@ -59,7 +59,7 @@ def test_solve_logs_its_iterations(marker_data: tuple[Observations, np.ndarray])
     """solve passes through the one estimate: its Solution carries every accepted iteration (finite costs and steps,
     positive damping) and converges."""
     obs, X = marker_data
-    sol = solve(obs, X, TRUE, model="sphere", marker_radius_m=R_M, range_sigma_m=SIGMA)
+    sol = solve(obs, X, TRUE, sensor=MarkerSensor.of("sphere", R_M, 0.0, SIGMA))
     assert sol.converged and len(sol.iterations) >= 1
     assert all(np.isfinite(it.cost) and np.isfinite(it.step_sigma) and it.damping > 0 for it in sol.iterations)
     assert sol.n_iterations >= max(it.evaluations for it in sol.iterations)

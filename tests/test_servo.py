@@ -222,7 +222,7 @@ def test_spinning_rig_tilted_28_deg_is_calibrated_within_4_sigma(shipped_recordi
     markers at the edge of the band it sweeps, and their returns keep only their range residual
     (lrfcal.model.marker.two_sided); with every lateral residual, alpha came back 0.11 deg off at 4.0 sigma."""
     from lrfcal.estimate.problem import marker_problem
-    from lrfcal.model.marker import two_sided
+    from lrfcal.model.marker import MarkerSensor, two_sided
     from lrfcal.model.unknowns import pack
     from lrfcal.result import MarkerEvidence
     from lrfsim.trial import calibrate_recording
@@ -232,8 +232,8 @@ def test_spinning_rig_tilted_28_deg_is_calibrated_within_4_sigma(shipped_recordi
     assert np.all(np.abs(trial.z) < 4.0), trial.describe()
     result = trial.result
     assert result is not None and isinstance(result.evidence, MarkerEvidence)
-    pb, _ = marker_problem(result.evidence.observations, result.evidence.markers.positions_W, "sphere",
-                           result.recording.nominal.marker_radius_m, 0.01)
+    pb, _ = marker_problem(result.evidence.observations, result.evidence.markers.positions_W,
+                           MarkerSensor.of("sphere", result.recording.nominal.marker_radius_m, 0.0, 0.01))
     th, R_ref = pack(result.solution.params)
     both = two_sided(th, pb.markers, R_ref)
     assert 0 < np.count_nonzero(~both) < both.size  # some markers grazed, most crossed

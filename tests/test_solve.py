@@ -7,8 +7,9 @@ import pytest
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.estimate.information import jacobian_check, model_residuals
-from lrfcal.estimate.solve import solve
+from lrfcal.estimate.solve import SolveOptions, Solver, solve
 from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
+from lrfcal.model.marker import MarkerModel, MarkerSensor
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.sphere import footprint_depth, sphere_depth
 from lrfcal.model.unknowns import wrap_pi
@@ -126,8 +127,8 @@ def test_jacobian_matches_central_differences(model: str, divergence: float) -> 
         # the sphere residuals are evaluated at scale: put the markers near the beams (|e| ~ R)
         radius = 0.3 if model == "sphere" else R_M
         for w in ((0.0, 0.0, 0.0), (0.4, -0.7, 1.1)):  # the right Jacobian of SO(3) away from w = 0 too
-            err = jacobian_check(Params.from_vector(theta), obs, X, model=model, marker_radius_m=radius,
-                                 clock=clock, rotation_vector=w, beam_divergence_rad=divergence)
+            err = jacobian_check(Params.from_vector(theta), obs, X, sensor=MarkerSensor.of(model, radius, divergence),
+                                 clock=clock, rotation_vector=w)
             assert err[:10].max() < 1e-6 and err[11:].max() < 1e-6, err  # 10 parameters, range offset and bias
             assert err[10] < 5e-3, err  # the clock column: smoothed joint velocity (see jacobian_check)
 
@@ -170,8 +171,8 @@ def test_sphere_model_recovers_within_4_sigma_and_beats_paper(data: tuple[Observ
     obs, X = data
     assert len(obs) > 300
     start = _perturbed(np.random.default_rng(11))
-    ours = solve(obs, X, start, model="sphere", marker_radius_m=R_M)
-    paper = solve(obs, X, start, model="paper", marker_radius_m=R_M)
+    ours = solve(obs, X, start, sensor=MarkerSensor.of("sphere", R_M))
+    paper = solve(obs, X, start, sensor=MarkerSensor.of("paper", R_M))
     e_s, e_p = _err(ours.params), _err(paper.params)
     z = e_s / ours.sigma
     assert np.all(np.abs(z) < 4.0), dict(zip(ESTIMATE_NAMES, np.round(z, 2), strict=True))
@@ -186,6 +187,23 @@ def test_sphere_model_recovers_within_4_sigma_and_beats_paper(data: tuple[Observ
     assert ours.residuals_m.shape == (len(obs), 3)
 
 
+def test_solver_is_solve_bound_to_its_sensor_and_options(data: tuple[Observations, np.ndarray]) -> None:
+    """lrfcal.estimate.solve.Solver (the marker stages' re-solves): the same solution as solve with the same sensor
+    and options, whether the options are changed for good (but), for one call (keywords) or the model (paper)."""
+    obs, X = data
+    start = _perturbed(np.random.default_rng(12))
+    sensor = MarkerSensor.of("sphere", R_M)
+    fit = Solver(sensor)
+    plain = solve(obs, X, start, sensor=sensor, options=SolveOptions(robust=False))
+    for sol in (fit.but(robust=False)(obs, X, start), fit(obs, X, start, robust=False)):
+        np.testing.assert_array_equal(sol.params.vector(), plain.params.vector())
+        np.testing.assert_array_equal(sol.covariance, plain.covariance)
+    assert not np.array_equal(fit(obs, X, start).params.vector(), plain.params.vector())  # the robust passes differ
+    paper = solve(obs, X, start, sensor=MarkerSensor.of("paper", R_M))
+    np.testing.assert_array_equal(fit.paper()(obs, X, start).params.vector(), paper.params.vector())
+    assert fit.paper().sensor.model is MarkerModel.PAPER and fit.sensor.model is MarkerModel.SPHERE
+
+
 def test_outliers_are_dropped(data: tuple[Observations, np.ndarray]) -> None:
     obs, X = data
     rng = np.random.default_rng(5)
@@ -195,7 +213,7 @@ def test_outliers_are_dropped(data: tuple[Observations, np.ndarray]) -> None:
     fields = {k: getattr(obs, k) for k in obs.__dataclass_fields__}
     fields["ranges_m"] = ranges
     noisy = Observations(**fields)
-    sol = solve(noisy, X, _perturbed(rng), model="sphere", marker_radius_m=R_M)
+    sol = solve(noisy, X, _perturbed(rng), sensor=MarkerSensor.of("sphere", R_M))
     assert sol.n_observations <= len(obs) - bad.size
     assert np.all(np.abs(_err(sol.params) / sol.sigma) < 4.0)
 
@@ -206,10 +224,10 @@ def test_angles_wrapped_and_errors() -> None:
     X = _markers(rng, 6)
     obs = simulate(TRUE, X, rng, lam_step_deg=0.2)
     with pytest.raises(InputError):
-        solve(obs, X, TRUE, model="bogus", marker_radius_m=R_M)
+        solve(obs, X, TRUE, sensor=MarkerSensor.of("bogus", R_M))
     with pytest.raises(CalibrationError):
-        solve(obs.subset(obs.marker == 0), X, TRUE, model="sphere", marker_radius_m=R_M)
-    res, J = model_residuals(TRUE, obs, X, model="sphere", marker_radius_m=R_M)
+        solve(obs.subset(obs.marker == 0), X, TRUE, sensor=MarkerSensor.of("sphere", R_M))
+    res, J = model_residuals(TRUE, obs, X, sensor=MarkerSensor.of("sphere", R_M))
     assert res.shape == (4 * len(obs),) and J.shape == (4 * len(obs), 10)
 
 
@@ -223,5 +241,5 @@ def test_rank_deficiency_is_reported() -> None:
     fields = {k: getattr(one, k) for k in one.__dataclass_fields__}
     fields["lambda_rad"] = lam0
     flat = Observations(**fields)
-    sol = solve(flat, X, TRUE, model="paper", marker_radius_m=R_M, robust=False)
+    sol = solve(flat, X, TRUE, sensor=MarkerSensor.of("paper", R_M), options=SolveOptions(robust=False))
     assert "rank deficient" in sol.status, sol.status

@@ -9,7 +9,14 @@ from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, transform_poi
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.plane import PlaneSet
 from lrfcal.model.unknowns import N_CORE, pack, plane_nuisance_start
-from lrfcal.stages.surfaces import candidate_planes, find_surfaces, surface_returns
+from lrfcal.stages.surfaces import (
+    PlaneMarkers,
+    ReturnRows,
+    SurfaceSelection,
+    candidate_planes,
+    find_surfaces,
+    surface_returns,
+)
 from lrfcal.types import JointStates
 
 R = 0.005
@@ -35,7 +42,7 @@ def test_marker_planes_are_the_walls_not_the_parallel_arms() -> None:
     # the virtual plane through two parallel arms on opposite walls holds 10 markers, more than a wall's 9 ...
     assert max(c[2].size for c in candidate_planes(markers)) == 10
     # ... but the cloud does not confirm it: the surfaces found are the two walls, moved R behind the markers
-    surfaces = find_surfaces(markers, R, np.array([0.0, 0.0, 1.0]), cloud)
+    surfaces = find_surfaces(PlaneMarkers(markers, R), np.array([0.0, 0.0, 1.0]), cloud)
     assert len(surfaces) == 2
     for s in surfaces:
         assert s.marker_idx.size == 9
@@ -43,8 +50,8 @@ def test_marker_planes_are_the_walls_not_the_parallel_arms() -> None:
     # returns: only near the surfaces, inside the markers' extent, away from the markers
     P = cloud
     idx = np.arange(len(P))
-    ret = surface_returns(surfaces, P, idx, idx, np.zeros(len(P)), np.zeros(len(P)), np.ones(len(P)), markers,
-                          max_returns=10**6)
+    rows = ReturnRows(idx, idx, np.zeros(len(P)), np.zeros(len(P)), np.ones(len(P)))
+    ret = surface_returns(surfaces, P, rows, markers, selection=SurfaceSelection(max_returns=10**6))
     pts = P[ret.scan]
     assert len(ret) > 1000 and np.all(np.abs(np.abs(pts[:, 1]) - 0.39) < 1e-9)
     assert np.all(pts[:, 0] > 0.3 - 0.06) and np.all(pts[:, 0] < 1.9 + 0.06)
@@ -54,7 +61,7 @@ def test_marker_planes_are_the_walls_not_the_parallel_arms() -> None:
 def test_no_surface_from_scattered_markers() -> None:
     rng = np.random.default_rng(1)
     markers = rng.uniform(-1, 1, (12, 3))
-    assert find_surfaces(markers, R, np.zeros(3), rng.uniform(-2, 2, (5000, 3))) == []
+    assert find_surfaces(PlaneMarkers(markers, R), np.zeros(3), rng.uniform(-2, 2, (5000, 3))) == []
 
 
 def test_surface_jacobian_matches_finite_differences() -> None:
@@ -139,8 +146,10 @@ def test_surface_returns_are_chosen_by_their_ray_not_their_noisy_point() -> None
     idx = np.arange(K)
     zeros = np.zeros(K)
 
-    def range_errors(**kw: object) -> tuple[np.ndarray, np.ndarray]:
-        ret = surface_returns([wall], points, idx, idx, zeros, zeros, r, far, max_returns=K, gate_m=0.1, **kw)
+    def range_errors(max_incidence_rad: float = MAX_INCIDENCE_RAD, rays_W: tuple | None = None
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        sel = SurfaceSelection(max_returns=K, gate_m=0.1, max_incidence_rad=max_incidence_rad)
+        ret = surface_returns([wall], points, ReturnRows(idx, idx, zeros, zeros, r), far, selection=sel, rays_W=rays_W)
         return ret.ranges_m - true_range[ret.scan], ret.scan
 
     e_point, _ = range_errors(max_incidence_rad=np.pi / 2)
@@ -166,8 +175,9 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
     sc = res.recording.scans
     lam = np.repeat(np.linspace(-np.pi / 2, np.pi / 2, sc.ranges_m.shape[0])[:, None], sc.ranges_m.shape[1], axis=1)
     on_front_wall = np.array([[2.5, y, z] for y, z in ((-0.8, 0.3), (-0.4, 1.4), (0.0, 0.5), (0.4, 1.2), (0.8, 0.4))])
-    args = (sc.ranges_m, sc.mu_rad, lam, res.evidence.detections.labels, on_front_wall, 0.001, TRUE)
-    everything = sf.observe_surfaces(*args, max_returns=10**9)[1]
+    args = (sf.ReturnGrid(sc.ranges_m, sc.mu_rad, lam, res.evidence.detections.labels),
+            sf.PlaneMarkers(on_front_wall, 0.001), TRUE)
+    everything = sf.observe_surfaces(*args, selection=sf.SurfaceSelection(10**9))[1]
     assert len(everything) > 2000
     seen: list[float] = []
     steps = sf._next_fraction
@@ -181,9 +191,9 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
         seen.clear()
         monkeypatch.setattr(sf, "_next_fraction", spy)
         monkeypatch.setattr(sf, "_FRACTION_MARGIN", margin)  # 0.5: too short a step, and another one after it
-        stepped = sf.observe_surfaces(*args, max_returns=wanted)[1]
+        stepped = sf.observe_surfaces(*args, selection=sf.SurfaceSelection(wanted))[1]
         monkeypatch.setattr(sf, "_FRACTIONS", (1.0,))
-        at_once = sf.observe_surfaces(*args, max_returns=wanted)[1]
+        at_once = sf.observe_surfaces(*args, selection=sf.SurfaceSelection(wanted))[1]
         monkeypatch.undo()
         assert seen and len(seen) < len(sf._FRACTIONS) - 1  # it started below 1 and skipped a step
         assert margin == sf._FRACTION_MARGIN or len(seen) >= 2

@@ -68,7 +68,11 @@ _EXPORTS: dict[str, str] = {
     "map_covariance": "lrfcal.stages.mds",
     "SCALES": "lrfcal.stages.joint",
     "SCALE_Z_LIMIT": "lrfcal.stages.joint",
+    "OnPlanes": "lrfcal.estimate.problem",
     "Surface": "lrfcal.stages.surfaces",
+    "PlaneMarkers": "lrfcal.stages.surfaces",
+    "ReturnGrid": "lrfcal.stages.surfaces",
+    "SurfaceSelection": "lrfcal.stages.surfaces",
     "SurfaceReturns": "lrfcal.stages.surfaces",
     "observe_surfaces": "lrfcal.stages.surfaces",
     "detect": "lrfcal.stages.detection",
@@ -81,12 +85,14 @@ _EXPORTS: dict[str, str] = {
 }
 
 __all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M",
-           "DH", "JointStates", "LIMITS", "MarkerEvidence", "Observability", "Observations", "PARAM_NAMES", "Params",
-           "PlaneEvidence", "PlaneFit", "Pose", "Recording", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution",
-           "Surface", "SurfaceReturns", "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy",
-           "calibrate", "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect",
-           "estimated", "information_at", "map_covariance", "map_error_at", "model_error_at", "observe_surfaces",
-           "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at", "viewer_can_spawn"]
+           "DH", "JointStates", "LIMITS", "MarkerEvidence", "Observability", "Observations", "OnPlanes",
+           "PARAM_NAMES", "Params", "PlaneEvidence", "PlaneFit", "PlaneMarkers", "Pose", "Recording", "ReturnGrid",
+           "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns", "SurfaceSelection",
+           "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
+           "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
+           "information_at", "map_covariance", "map_error_at", "model_error_at", "observe_surfaces",
+           "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
+           "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:
@@ -115,6 +121,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
         turning_error_at,
     )
     from lrfcal.estimate.observability import LIMITS, Observability, analyse
+    from lrfcal.estimate.problem import OnPlanes
     from lrfcal.io.recording import read_recording
     from lrfcal.model.kinematics import DH, PARAM_NAMES, Params, Pose
     from lrfcal.pipeline import STAGES, calibrate
@@ -126,7 +133,14 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.stages.detection import detect
     from lrfcal.stages.joint import SCALE_Z_LIMIT, SCALES
     from lrfcal.stages.mds import map_covariance
-    from lrfcal.stages.surfaces import Surface, SurfaceReturns, observe_surfaces
+    from lrfcal.stages.surfaces import (
+        PlaneMarkers,
+        ReturnGrid,
+        Surface,
+        SurfaceReturns,
+        SurfaceSelection,
+        observe_surfaces,
+    )
     from lrfcal.types import (
         JointStates,
         Observations,

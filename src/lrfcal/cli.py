@@ -296,7 +296,7 @@ def reproject_cmd(
     calibrated DH (--calibration) or the rig file's nominal DH. Needs no tape distances."""
     from rich.console import Console
 
-    from lrfcal.io.cloud import reproject_bag
+    from lrfcal.io.cloud import CloudOutputs, reproject_bag
 
     console = Console(stderr=True)
     options = {k: v for k, v in dict(
@@ -305,7 +305,7 @@ def reproject_cmd(
         servo_offset=servo_offset, servo_stamp=servo_stamp, tf_parent=tf_parent, tf_child=tf_child,
         tf_axis=tf_axis).items() if v is not None}
     with progress_display(f"reprojecting {bag.name}", quiet=quiet) as hooks:
-        summary = reproject_bag(bag, nominal, out, calibration=calibration, rrd=rrd, bag_out=bag_out,
+        summary = reproject_bag(bag, nominal, CloudOutputs(out, rrd, bag_out), calibration=calibration,
                                 clock_offset_s=clock_offset, options=options, progress=hooks.steps,
                                 warn=lambda text: console.print(f"warning: {text}", markup=False))
     for line in summary:

@@ -54,8 +54,12 @@ from lrfcal import (
     JointStates,
     Observability,
     Observations,
+    OnPlanes,
+    PlaneMarkers,
+    ReturnGrid,
     Surface,
     SurfaceReturns,
+    SurfaceSelection,
     analyse,
     correlation_error_at,
     estimated,
@@ -69,7 +73,8 @@ from lrfcal import (
 )
 from lrfcal.errors import CalibrationError
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
-from lrfcal.model.motor import MotorClock, dequantised
+from lrfcal.model.marker import MarkerSensor
+from lrfcal.model.motor import Clock, MotorClock, dequantised
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES
 
 from .plan_cast import NOT_SAMPLED, SURFACE_SCAN_STEP, sparse_geometry
@@ -306,18 +311,19 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
             source = SOURCE_SURFACES
         else:
             on_planes = planes = None
-    common = dict(model="sphere", marker_radius_m=radius, range_sigma_m=sigma_r, clock=motor if two_way else None,
-                  clock_offset_s=tau, beam_divergence_rad=float(scenario.sensor.divergence_rad))
-    info_markers, names = information_at(obs, markers_W, params, **common)
-    both: dict[str, Any] = {} if on_planes is None else {"surfaces": on_planes, "planes": planes}
+    sensor = MarkerSensor.of("sphere", radius, float(scenario.sensor.divergence_rad), sigma_r)
+    ev = _Evidence(obs, markers_W, params, sensor, Clock(motor if two_way else None, tau),
+                   None if on_planes is None else OnPlanes(on_planes, planes))
+    info_markers, names = information_at(obs, markers_W, params, sensor=sensor, clock=ev.clock)
     # over the held scales too (each with its companion): their sigmas below; the estimate's is the submatrix
     freed = sorted({*SCALES, *(BY_NAME[n].tested_with for n in SCALES)} - {""})
-    wide, wide_names = information_at(obs, markers_W, params, **common, **both, estimate=freed)
+    wide, wide_names = information_at(obs, markers_W, params, sensor=sensor, clock=ev.clock, surfaces=ev.surfaces,
+                                      estimate=freed)
     wide = 0.5 * (wide + wide.T)
     base = tuple(CORE_NAMES[i] for i in estimated(two_way, on_planes is not None))
     info = wide[np.ix_(*[[wide_names.index(n) for n in base]] * 2)]
     notes: list[str] = []
-    cov, model_sigma, map_sigma = _covariance(scenario, info, names, obs, markers_W, params, common, both, notes)
+    cov, model_sigma, map_sigma = _covariance(scenario, info, names, ev, notes)
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     # the verdict the calibration gives before solving: from the marker returns alone (lrfcal.pipeline)
     obsv = analyse(0.5 * (info_markers + info_markers.T), names, params.dh.alpha)
@@ -356,8 +362,20 @@ def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[st
     return out
 
 
-def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], obs: Observations,
-                markers_W: FloatArray, params: Params, common: dict[str, Any], both: dict[str, Any], notes: list[str]
+@dataclass(frozen=True)
+class _Evidence:
+    """What a plan predicts from: the noise-free marker returns ``obs`` on the markers ``markers_W`` (n, 3) at the
+    true ``params``, the marker sensor, the clock, and the surface returns on their planes (None: markers only)."""
+
+    obs: Observations
+    markers_W: FloatArray
+    params: Params
+    sensor: MarkerSensor
+    clock: Clock
+    surfaces: OnPlanes | None
+
+
+def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ev: _Evidence, notes: list[str]
                 ) -> tuple[FloatArray, dict[str, float], dict[str, float]]:
     """The predicted covariance from the information ``info`` over ``names`` (column-scaled inversion: the
     parameters mix metres, radians and seconds), with the model error and the marker map's part added, and those
@@ -370,14 +388,15 @@ def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ob
         return np.full(info.shape, np.inf), {}, {}
     # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns at
     # the truth: lrfcal.estimate.information.model_error_at), as the calibration's per-scan widening holds both
-    model_cov = model_error_at(obs, markers_W, params, **common, **both)
+    at = (ev.obs, ev.markers_W, ev.params)
+    model_cov = model_error_at(*at, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces)
     rho = float(scenario.sensor.noise_correlation)  # range noise correlated along the scan: its sandwich term
-    corr_cov = correlation_error_at(obs, markers_W, params, rho, **common, **both)
+    corr_cov = correlation_error_at(*at, rho, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces)
     # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
-    tape_cov = map_error_at(info, obs, markers_W, params, expected_map_covariance(scenario, markers_W), **common,
-                            **both)
+    tape_cov = map_error_at(info, *at, expected_map_covariance(scenario, ev.markers_W), sensor=ev.sensor,
+                            clock=ev.clock, surfaces=ev.surfaces)
     # where the sweep turns on a marker, the model error the calibration adds for it too (DH only)
-    turn_cov = turning_error_at(obs, markers_W, params, **common)
+    turn_cov = turning_error_at(*at, sensor=ev.sensor, clock=ev.clock)
     model_cov[DH_ROWS] += turn_cov
     if np.any(turn_cov):
         notes.append("crossings of the sweep turn on some markers: the DH sigmas include the model error the "
@@ -421,10 +440,9 @@ def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers
     labels[obs.scan, obs.beam] = obs.marker
     labels[np.arange(S) % step != 0] = NOT_SAMPLED
     beam_times = result.scan_stamps_s[:, None] + np.arange(N)[None, :] * scenario.sensor.time_increment_s
-    return observe_surfaces(result.ranges_m, result.mu_rad, result.beam_lambda_rad, labels, markers_W,
-                            float(scenario.marker_radius_m or 0.0), params,
-                            position_sigma_m=max(scenario.tape.sigma_m, 0.0005),
-                            max_returns=config.surface_max_returns, beam_times_s=beam_times)
+    grid = ReturnGrid(result.ranges_m, result.mu_rad, result.beam_lambda_rad, labels, beam_times)
+    on_markers = PlaneMarkers(markers_W, float(scenario.marker_radius_m or 0.0), max(scenario.tape.sigma_m, 0.0005))
+    return observe_surfaces(grid, on_markers, params, selection=SurfaceSelection(config.surface_max_returns))
 
 
 def format_value(name: str, value: float) -> str:

@@ -53,7 +53,7 @@ from lrfcal.model.kinematics import DH_NAMES
 from .plan import Plan, format_value, plan
 from .poolrun import run_counted
 from .scenario import Scenario, require_markers
-from .variants import PERTURB_HALF_WIDTH, parse_vary, perturbed_start, with_field
+from .variants import PERTURB_HALF_WIDTH, TrialDesign, parse_vary, perturbed_start, with_field
 
 if TYPE_CHECKING:
     from .simulate import Geometry
@@ -177,17 +177,13 @@ DRAWS = {
 
 # --- running trials -------------------------------------------------------------------------------------------
 
-def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], recast: bool = False,
-              perturb_start: float = 0.0, new_layout: bool = False, threads: int | None = None,
-              shared_cast: dict[str, Any] | None = None,
+def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], design: TrialDesign | None = None,
+              threads: int | None = None, shared_cast: dict[str, Any] | None = None,
               progress: Callable[[int], None] | None = None) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
     built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
-    scenario's own seed); each trial draws only its noise from its own seed (module docstring). ``recast``: cast
-    every trial anew (the laser phase drawn from the trial's seed too). ``perturb_start``: the scale of each
-    trial's perturbed start (:func:`perturbed_start`; 0: the scenario's nominal values). ``new_layout``: build
-    every trial's scene from its own seed too (a board's jittered grid, a random layout: a new marker layout per
-    trial; implies ``recast``), to average over layouts rather than over the noise of one. ``threads``: the cast's
+    scenario's own seed); each trial draws only its noise from its own seed (module docstring), and differs as
+    ``design`` says (:class:`TrialDesign`; None: in its noise only). ``threads``: the cast's
     threads (default: the cores available; 1 when batches run in parallel processes). ``shared_cast``: the fields
     of a lrfsim.simulate.Geometry of ``scenario`` but its scene, cast once by the caller for every batch (the scene
     is rebuilt here: MjSpec does not pickle); None: cast here. ``progress(k)`` is called after the k-th trial of
@@ -196,6 +192,8 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
     from .simulate import Geometry, cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
 
+    recast, perturb_start, new_layout = (design.recast, design.perturb_start, design.new_layout) if design else (
+        False, 0.0, False)
     scene = None if new_layout else build_scene(scenario)
     geometry = None
     if shared_cast is not None and scene is not None:
@@ -243,7 +241,7 @@ def run_trials(
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
     worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each); the local workers
     share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with ``recast`` or
-    ``new_layout``). ``recast``, ``perturb_start``, ``new_layout``: see :func:`run_batch`. ``progress(done,
+    ``new_layout``). ``recast``, ``perturb_start``, ``new_layout``: see :class:`TrialDesign`. ``progress(done,
     trials)`` after every trial in this process or on local workers (lrfsim.poolrun), after every batch on dask.
     Worker processes (pool and dask) run BLAS with the programs' thread limit (lrfcal.runtime.threads); this process is
     left as the caller set it."""
@@ -262,7 +260,7 @@ def run_trials(
         from dataclasses import fields
 
         shared = {f.name: getattr(geometry, f.name) for f in fields(geometry) if f.name != "scene"}
-    task = partial(run_batch, scenario, value, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
+    task = partial(run_batch, scenario, value, design=TrialDesign(recast, perturb_start, new_layout),
                    threads=1 if workers > 1 or dask is not None else None, shared_cast=shared)
     rows: list[TrialRow] = []
 
@@ -331,7 +329,7 @@ def study(
 ) -> Study:
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
     value of one field (the same seeds for every value); ``perturb_start``: the scale of each trial's perturbed
-    start (:func:`perturbed_start`); ``recast``, ``new_layout``: see :func:`run_batch` (the predicted sigma is then
+    start (:func:`perturbed_start`); ``recast``, ``new_layout``: see :class:`TrialDesign` (the predicted sigma is then
     the scenario's own layout's)."""
     # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
     require_markers(scenario, "lrfsim study", "calibrates with markers and tape distances; a targetless "
@@ -490,6 +488,6 @@ def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Pa
     return out
 
 
-__all__ = ["CSV_COLUMNS", "DRAWS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialRow", "parse_vary",
+__all__ = ["CSV_COLUMNS", "DRAWS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialDesign", "TrialRow", "parse_vary",
            "perturbed_start", "run_batch", "run_trials", "study", "summary_markdown", "trials_csv", "with_field",
            "write_figures", "write_study"]

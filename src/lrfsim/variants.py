@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -87,4 +88,17 @@ def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
     return scenario.model_copy(update={"rig": new_rig})
 
 
-__all__ = ["PERTURB_HALF_WIDTH", "parse_vary", "perturbed_start", "with_field"]
+@dataclass(frozen=True)
+class TrialDesign:
+    """How each trial differs from the scenario besides its noise. ``recast``: cast every trial anew (the laser
+    phase drawn from the trial's seed too). ``perturb_start``: the scale of each trial's perturbed start
+    (:func:`perturbed_start`; 0: the scenario's nominal values). ``new_layout``: build every trial's scene from its
+    own seed too (a board's jittered grid, a random layout: a new marker layout per trial; implies ``recast``), to
+    average over layouts rather than over the noise of one."""
+
+    recast: bool = False
+    perturb_start: float = 0.0
+    new_layout: bool = False
+
+
+__all__ = ["PERTURB_HALF_WIDTH", "TrialDesign", "parse_vary", "perturbed_start", "with_field"]

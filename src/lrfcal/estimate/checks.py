@@ -7,19 +7,17 @@ the servo's direction; and the refusal when one fails.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from typing import Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
 from lrfcal.estimate.covariance import widen
 from lrfcal.model.chart import gauge_distance
 from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
-from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, MotorClock
+from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock
 from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
 from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.types import Check, MarkerMap, Observations, Solution
@@ -38,6 +36,22 @@ FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
 
 
+class CheckConfig(Protocol):
+    """The configuration the checks read: their slice of lrfcal.config.CalibConfig (which satisfies it; validated
+    and written whole into calibration.yaml there)."""
+
+    @property
+    def force(self) -> bool: ...
+    @property
+    def max_reduced_chi2(self) -> float: ...
+    @property
+    def nominal_tolerance(self) -> tuple[float, float, float, float]: ...
+    @property
+    def range_sigma_m(self) -> float | None: ...
+    @property
+    def second_opinion_p(self) -> float: ...
+
+
 #: failed checks that follow from another failed check, by the check they follow from: where the data do not
 #: determine the DH parameters, the solver may stop anywhere along the loose direction (convergence) and the
 #: recording's parts disagree along it (second opinion), so those failures and their remedies come after the cause
@@ -45,7 +59,7 @@ DH_NAMES = observability.DH
 FOLLOWS_FROM = {"convergence": "observability", "second opinion": "observability"}
 
 
-def refuse_failed(checks: list[Check], config: CalibConfig) -> None:
+def refuse_failed(checks: list[Check], config: CheckConfig) -> None:
     """Raise CalibrationError naming the failed check the data support as the cause: the first (in the checks'
     order) that does not follow from another failed one (:data:`FOLLOWS_FROM`), and how many more failed; unless
     ``config.force``.
@@ -88,7 +102,7 @@ def split_in_two(scan: np.ndarray, passes: np.ndarray) -> tuple[list[np.ndarray]
     return [scan <= mid, scan > mid], "the two halves of the sweep"
 
 
-def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> Check:
+def chi2_check(chi2: float, config: CheckConfig, what: str, otherwise: str) -> Check:
     """The reduced chi-square check: ``what`` (the residuals' name) at most sqrt(config.max_reduced_chi2) times the
     stated range noise; the failure says what else (``otherwise``) could be wrong."""
     ok = bool(chi2 <= config.max_reduced_chi2)
@@ -99,7 +113,7 @@ def chi2_check(chi2: float, config: CalibConfig, what: str, otherwise: str) -> C
                  + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
 
 
-def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
+def servo_direction(alts: list[A], nominal_dh: DH, config: CheckConfig) -> A:
     """The servo's direction: the declared one (+1) unless the nominal DH contradicts it and fits the other.
 
     A negated motor angle together with a mirrored marker map and (alpha, b) -> (pi - alpha, -b) predicts exactly
@@ -138,7 +152,7 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CalibConfig) -> A:
 MIRROR_MARGIN = 1.5
 
 
-def _nearest_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float]:
+def _nearest_mirror(dh: DH, nominal: DH, config: CheckConfig) -> tuple[str, DH, FloatArray, float, float]:
     """The mirror twin of ``dh`` (lrfcal.model.kinematics.dh_twins, improper Q) nearest the nominal DH: (name, twin
     DH, its isometry Q (3, 3) in M, the estimate's and the twin's distance from the nominal in nominal tolerances)."""
     d_est, _ = nominal_distance(dh, nominal, config)
@@ -148,7 +162,7 @@ def _nearest_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, 
     return name, twin, Q, d_est, d_twin
 
 
-def nearer_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, FloatArray, float, float] | None:
+def nearer_mirror(dh: DH, nominal: DH, config: CheckConfig) -> tuple[str, DH, FloatArray, float, float] | None:
     """The nearest mirror twin of ``dh`` (as :func:`_nearest_mirror`) when the nominal DH prefer it: the estimate is
     beyond the nominal tolerance and the twin at least MIRROR_MARGIN times closer; else None."""
     found = _nearest_mirror(dh, nominal, config)
@@ -161,7 +175,7 @@ def nearer_mirror(dh: DH, nominal: DH, config: CalibConfig) -> tuple[str, DH, Fl
 FAR_FROM_BOTH = 10.0
 
 
-def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
+def mirror_check(dh: DH, nominal: DH, config: CheckConfig) -> Check:
     """The rig or its mirror image: each mirror twin of the estimate (lrfcal.model.kinematics.dh_twins) explains the
     data exactly as well (with the marker map mirrored; flatness alike), so only the nominal DH tell them apart.
     Passed when the estimate is within the nominal tolerance (config.nominal_tolerance) of the nominal, or
@@ -181,14 +195,14 @@ def mirror_check(dh: DH, nominal: DH, config: CalibConfig) -> Check:
                  f"({name}: {dh_text(twin)}) {d_twin:.1f}" + ("" if ok else why))
 
 
-def far_from_nominal(dh: DH, nominal: DH, config: CalibConfig) -> bool:
+def far_from_nominal(dh: DH, nominal: DH, config: CheckConfig) -> bool:
     """Whether a DH estimate is beyond the nominal tolerance (config.nominal_tolerance, :func:`nominal_distance`): a
     declared servo direction whose estimate is not far is kept whatever the other direction gives
     (:func:`servo_direction`)."""
     return nominal_distance(dh, nominal, config)[0] > 1.0
 
 
-def nominal_distance(dh: DH, nominal: DH, config: CalibConfig) -> tuple[float, str]:
+def nominal_distance(dh: DH, nominal: DH, config: CheckConfig) -> tuple[float, str]:
     """How far a DH estimate is from the nominal DH in nominal tolerances, and that in words. Compared as the
     scanner's poses in M' modulo the gauge (lrfcal.model.chart.gauge_distance): the larger of the origins' offset
     over the length tolerance (a's and b's, the larger) and the attitudes' angle over the angle tolerance (alpha's
@@ -207,7 +221,7 @@ def dh_text(dh: DH) -> str:
 
 def marker_checks(
     sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
-    config: CalibConfig, fit: Callable[..., Solution], motor: MotorClock | None, nominal: DH,
+    config: CheckConfig, fit: solve.Solver, nominal: DH,
 ) -> list[Check]:
     """The consistency checks a result must pass before it is written (docs/method.md, stage 6c). The second opinion
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
@@ -224,7 +238,7 @@ def marker_checks(
                             "not determine the parameters jointly (no finite covariance)"))
     checks.append(chi2_check(sol.reduced_chi2, config, "residuals", "the model does not explain the data (an "
                              "unmodelled clock offset or motion, a wrong marker radius)"))
-    checks.append(_marker_second_opinion(marker_only, matched, markers, passes, config, fit, motor))
+    checks.append(_marker_second_opinion(marker_only, matched, markers, passes, config, fit))
     return checks
 
 
@@ -258,8 +272,8 @@ def difference_covariance(part: Solution, joint: Solution, idx: list[int], map_c
 
 
 def _marker_second_opinion(
-    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CalibConfig,
-    fit: Callable[..., Solution], motor: MotorClock | None,
+    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CheckConfig,
+    fit: solve.Solver,
 ) -> Check:
     """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
     and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
@@ -274,8 +288,7 @@ def _marker_second_opinion(
     for g in groups:
         part = matched.subset(g)
         try:
-            ps = fit(part, markers, sol.params, model="sphere", clock=None,
-                     clock_offset_s=sol.clock_offset_s)
+            ps = fit(part, markers, sol.params, clock=Clock(None, sol.clock_offset_s))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few returns")
         if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
@@ -304,7 +317,7 @@ def _marker_second_opinion(
 
 
 def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
-            config: CalibConfig, prior: tuple[FloatArray, FloatArray], nominal: DH) -> list[Check]:
+            config: CheckConfig, prior: tuple[FloatArray, FloatArray], nominal: DH) -> list[Check]:
     """Convergence, mirror image, observability of the estimated parameters, reduced chi-square and a
     second opinion."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
@@ -323,7 +336,7 @@ def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int6
 
 
 def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
-                    config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Check:
+                    config: CheckConfig, prior: tuple[FloatArray, FloatArray]) -> Check:
     """Even and odd passes (or the sweep's two halves) calibrated separately and compared with each other:
     chi2 = d^T (C_1 + C_2)^-1 d over the estimated DH parameters (independent data), clock offset held at the
     joint estimate."""
@@ -340,7 +353,7 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
             kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
             parts.append(solve.solve_planes(returns.subset(kept), sol.params, range_sigma_m=sigma_r,
                                             clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
-                                            robust=False))
+                                            options=solve.PlaneOptions(robust=False)))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
     d = parts[0].params.vector()[est] - parts[1].params.vector()[est]
@@ -359,5 +372,5 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
                                   "clock offset, a scene that moved)"))
 
 
-__all__ = ["Check", "chi2_check", "clock_offset_check", "dh_text", "marker_checks", "mirror_check", "nearer_mirror",
-           "nominal_distance", "plane_checks", "refuse_failed", "servo_direction", "split_in_two"]
+__all__ = ["Check", "CheckConfig", "chi2_check", "clock_offset_check", "dh_text", "marker_checks", "mirror_check",
+           "nearer_mirror", "nominal_distance", "plane_checks", "refuse_failed", "servo_direction", "split_in_two"]

@@ -61,21 +61,19 @@ def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], mark
     return widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1)))
 
 
-def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], n_rows: int,
-                 cluster_dense: NDArray[np.int64], cluster_plane: NDArray[np.int64],
-                 map_cov: FloatArray | None = None, marker_dense: NDArray[np.int64] | None = None
+def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_],
+                 map_cov: FloatArray | None = None
                  ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread]:
     """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
-    cluster (``cluster_dense``, ``cluster_plane``: the cluster of each dense and plane residual row, a marker's
-    crossing (lrfcal.model.marker.MarkerSet.clusters) and a scan's surface returns; each prior row is a cluster of its
-    own),
-    with ``n_rows`` independent residuals, plus the marker map's own uncertainty ``map_cov`` (3n, 3n) carried
-    through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c (lrfcal.estimate.problem.Problem.
-    centre_cross). Then widened again where the errors shared by all returns of one marker (``marker_dense``: the
-    marker of each dense row) say more: where the beams cover a marker unevenly (lines fanning across it, or the
-    same lines in every pass), the mean of its returns' lateral offsets is not its centre, and that error is common
-    to the marker (:func:`inflate_for_markers`). J^T J from the normal equations, column-scaled; an eigenvalue below
-    RANK_TOL of the largest is rank loss.
+    cluster (its sets' clusters, Problem.clusters: the cluster of each dense and plane residual row, a marker's
+    crossing (lrfcal.model.marker.MarkerSet.clusters) and a scan's surface returns; each prior row is a cluster of
+    its own), with its sets' independent residuals (ObservationSet.n_independent), plus the marker map's own
+    uncertainty ``map_cov`` (3n, 3n) carried through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c
+    (lrfcal.estimate.problem.Problem.centre_cross). Then widened again where the errors shared by all returns of one
+    marker (the sets' groups: the marker of each dense row) say more: where the beams cover a marker unevenly (lines
+    fanning across it, or the same lines in every pass), the mean of its returns' lateral offsets is not its centre,
+    and that error is common to the marker (:func:`inflate_for_markers`). J^T J from the normal equations,
+    column-scaled; an eigenvalue below RANK_TOL of the largest is rank loss.
 
     Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
     singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2,
@@ -86,6 +84,8 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     H, _ = assemble(b, core).dense()
     res = b.residuals()
     n_par = H.shape[0]
+    n_rows = sum(s.n_independent for s in pb.sets)
+    cluster_dense, cluster_plane, marker_dense = pb.clusters()
     s2 = float(res @ res / max(n_rows - n_par, 1))
     col = np.sqrt(np.diag(H))
     col[col == 0] = 1.0

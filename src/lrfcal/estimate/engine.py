@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.estimate.covariance import held_score, uncertainty
-from lrfcal.estimate.normal_equations import Iteration, assemble, levenberg_marquardt, schur
+from lrfcal.estimate.normal_equations import Iteration, Limits, assemble, levenberg_marquardt, schur
 from lrfcal.estimate.problem import Problem
 from lrfcal.model.chart import regular_chart_at, regular_step
 from lrfcal.model.kinematics import exp_so3
@@ -152,8 +152,8 @@ def _pass(state: State, pb: Problem, free: BoolArray, passes: Passes, huber: boo
     R_ref = state.R_ref
     th, nfev, ok = levenberg_marquardt(
         state.th, lambda x, j: pb.blocks(x, R_ref, j, chart=regular_chart_at(x) if regular else None),
-        np.flatnonzero(free[:N_CORE]), N_CORE, huber=2.0 if huber else None, max_iter=passes.max_iter,
-        step_tol=passes.step_tol, retract=regular_step(R_ref) if regular else None, log=log)
+        np.flatnonzero(free[:N_CORE]), N_CORE, huber=2.0 if huber else None,
+        limits=Limits(passes.max_iter, passes.step_tol), retract=regular_step(R_ref) if regular else None, log=log)
     R_new = R_ref @ exp_so3(th[3:6])
     th[3:6] = 0.0
     return State(th, R_new), nfev, Status.CONVERGED if ok else Status.MAX_ITER
@@ -192,9 +192,7 @@ def _uncertainty(pb: Problem, state: State, free: BoolArray, map_cov: FloatArray
                  held_scores: Sequence[str]) -> Uncertainty:
     """The covariance of the kept problem ``pb`` at ``state`` with its sets' clusters and groups
     (Problem.clusters), and the score tests of ``held_scores``."""
-    dense, plane, groups = pb.clusters()
-    unc = partial(uncertainty, pb, R_ref=state.R_ref, n_rows=sum(s.n_independent for s in pb.sets),
-                  cluster_dense=dense, cluster_plane=plane, map_cov=map_cov, marker_dense=groups)
+    unc = partial(uncertainty, pb, R_ref=state.R_ref, map_cov=map_cov)
     cov, info, names, s2, rank, G, spread = unc(th=state.th, free=free)
     score = held_score(pb, state.th, state.R_ref, free, s2, unc, held_scores)
     return Uncertainty(cov, info, names, s2, rank, G, spread, score)

@@ -13,28 +13,27 @@ from numpy.typing import ArrayLike, NDArray
 from lrfcal.estimate import engine
 from lrfcal.estimate.engine import State
 from lrfcal.estimate.normal_equations import assemble, scores_by_cluster, solve_step
-from lrfcal.estimate.problem import Problem, marker_set, plane_problem, plane_set
+from lrfcal.estimate.problem import OnPlanes, Problem, marker_set, plane_problem, plane_set
 from lrfcal.estimate.solve import plane_free
 from lrfcal.model.kinematics import Params
 from lrfcal.model.marker import MarkerModel, MarkerSensor
-from lrfcal.model.motor import MotorClock
+from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock
 from lrfcal.model.noise import correlated_range_excess
 from lrfcal.model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
-from lrfcal.stages.surfaces import Surface, SurfaceReturns
+from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.types import Observations
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-def _at(params: Params, obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor,
-        clock: MotorClock | None = None, clock_offset_s: float = 0.0
+def _at(params: Params, obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor, clock: Clock = NO_CLOCK
         ) -> tuple[Problem, FloatArray, FloatArray]:
-    """The marker problem of ``obs`` (with ``clock``: the clock offset an unknown) and the unknowns at ``params``
-    (the core vector and R_ref)."""
+    """The marker problem of ``obs`` (with ``clock.motor``: the clock offset an unknown) and the unknowns at
+    ``params`` and ``clock.offset_s`` (the core vector and R_ref)."""
     ms, _ = marker_set(obs, markers_W, sensor)
-    th, R_ref = pack(params, clock_offset_s)
-    return Problem((ms,), sensor.range_sigma_m, clock=clock), th, R_ref
+    th, R_ref = pack(params, clock.offset_s)
+    return Problem((ms,), sensor.range_sigma_m, clock=clock.motor), th, R_ref
 
 
 def model_residuals(
@@ -42,17 +41,13 @@ def model_residuals(
     obs: Observations,
     markers_W: ArrayLike,
     *,
-    model: str,
-    marker_radius_m: float,
-    range_sigma_m: float = 0.010,
-    beam_divergence_rad: float = 0.0,
+    sensor: MarkerSensor,
 ) -> tuple[FloatArray, FloatArray]:
     """Whitened residuals (M,) and analytic Jacobian (M, 10) of the returns with a marker (obs.marker >= 0), the
     columns in ESTIMATE_NAMES order (the rotation as a rotation vector in frame M at w = 0).
 
     M = 3 K (paper) or 4 K (sphere: range residual then the 3 lateral components, per return).
     """
-    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
     pb, core, R_ref = _at(params, obs, markers_W, sensor)
     res, J = pb.marker_rows(core, R_ref)
     assert J is not None
@@ -64,10 +59,7 @@ def jacobian_check(
     obs: Observations,
     markers_W: ArrayLike,
     *,
-    model: str,
-    marker_radius_m: float,
-    range_sigma_m: float = 0.010,
-    beam_divergence_rad: float = 0.0,
+    sensor: MarkerSensor,
     step: float = 1e-6,
     clock: MotorClock | None = None,
     rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
@@ -81,8 +73,7 @@ def jacobian_check(
     uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
     agrees with finite differences only to the interpolation's curvature error (~1e-3 relative).
     """
-    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
-    pb, th, R_ref = _at(params, obs, markers_W, sensor, clock)
+    pb, th, R_ref = _at(params, obs, markers_W, sensor, Clock(clock))
     th[3:6] = np.asarray(rotation_vector, dtype=float)
     _, J = pb.marker_rows(th, R_ref)
     assert J is not None
@@ -101,31 +92,26 @@ def jacobian_check(
 
 
 def information_at(
-    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
-    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
-    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
-    sides: bool = True, estimate: Sequence[str] = (),
+    obs: Observations, markers_W: ArrayLike, params: Params, *, sensor: MarkerSensor, clock: Clock = NO_CLOCK,
+    surfaces: OnPlanes | None = None, sides: bool = True, estimate: Sequence[str] = (),
 ) -> tuple[FloatArray, tuple[str, ...]]:
     """The information J^T J (k, k) of the marker returns at ``params`` (no fit), over the core unknowns that
-    would be estimated (the clock offset only when ``clock`` is given; the range offset and marker range bias only
+    would be estimated (the clock offset only with ``clock.motor``; the range offset and marker range bias only
     with ``surfaces``; and those held by default named in ``estimate``, e.g. a scale), and their names: what the
     data can determine, judged before any solver runs.
 
-    With ``surfaces`` (and their ``planes``, as for :func:`solve`), the surface returns' ray-plane range residuals
-    and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
+    With ``surfaces`` (with their planes, as for lrfcal.estimate.solve.solve), the surface returns' ray-plane range
+    residuals and the planes' priors are added, and the planes' nuisance parameters (3 per plane) are marginalised out
     (Schur complement), evaluated at the planes the returns carry (their normals and offsets). ``sides``: only
     the lateral residuals of markers the scan plane crosses on both sides at ``params`` (as the solve does; False
     where ``params`` are a start that may be far off, e.g. with the servo's direction not yet known)."""
-    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes, sides,
-                                     estimate)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, sides, estimate)
     return engine.information(pb, State(th, R_ref), idx)
 
 
 def model_error_at(
-    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
-    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
-    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
+    obs: Observations, markers_W: ArrayLike, params: Params, *, sensor: MarkerSensor, clock: Clock = NO_CLOCK,
+    surfaces: OnPlanes | None = None,
 ) -> FloatArray:
     """The covariance (k, k) that the model's own errors add to an estimate, over the unknowns (and in the order)
     of :func:`information_at`, from returns without noise (``obs`` and ``surfaces`` of a noise-free simulation at
@@ -136,8 +122,7 @@ def model_error_at(
     the truth (at the noise-free optimum): the part of the calibration's per-scan widening (lrfcal.estimate.solve) that
     noise does not explain. ``lrfsim plan`` adds it to the statistical covariance, as a noisy recording's sandwich
     holds both."""
-    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces)
     # one Gauss-Newton step to the noise-free optimum: what the unknowns absorb (the marker range bias of a
     # footprint, the planes' offsets) is a shift of the estimate, not a scatter
     step = solve_step(assemble(pb.blocks(th, R_ref), idx), 0.0)
@@ -161,9 +146,8 @@ def model_error_at(
 
 
 def correlation_error_at(
-    obs: Observations, markers_W: ArrayLike, params: Params, rho: float, *, model: str, marker_radius_m: float,
-    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
-    surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None, beam_divergence_rad: float = 0.0,
+    obs: Observations, markers_W: ArrayLike, params: Params, rho: float, *, sensor: MarkerSensor,
+    clock: Clock = NO_CLOCK, surfaces: OnPlanes | None = None,
 ) -> FloatArray:
     """The covariance (k, k) that range noise correlated along the scan (neighbouring beams ``rho``, an AR(1)
     process: lrfcal.model.noise) adds to the independent-noise one (the inverse of :func:`information_at`), over the
@@ -174,17 +158,16 @@ def correlation_error_at(
     scatter is, and what the calibration's per-scan sandwich (lrfcal.estimate.covariance) expects. Sphere model only
     (its
     range row is the one the range noise enters)."""
-    if model != "sphere":
-        raise ValueError(f"correlation_error_at: the sphere model only, got {model!r}")
-    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes)
+    if sensor.model is not MarkerModel.SPHERE:
+        raise ValueError(f"correlation_error_at: the sphere model only, got {sensor.model.value!r}")
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces)
     k = idx.size
     if rho == 0.0:
         return np.zeros((k, k))
     b = pb.blocks(th, R_ref)
     H, _ = assemble(b, idx).dense()
     assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
-    use = marker_set(obs, markers_W, _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m))[1]
+    use = marker_set(obs, markers_W, sensor)[1]
     # [H^-1 Delta H^-1] over the core = the excess of the rows u_i H^-1[:, :k] (K, k): cheap where 3P is large
     A = scaled_pinv(H)[:, :k]
     assert pb.markers is not None
@@ -193,16 +176,15 @@ def correlation_error_at(
     v_planes = b.Jc_plane[:, idx] @ A[:k]
     for i in range(3):  # the plane nuisances' columns: 3 per plane
         v_planes += b.Jn_plane[:, i:i + 1] * A[k + 3 * b.plane + i]
-    scan = np.concatenate([np.asarray(obs.scan)[use], np.zeros(0, np.int64) if surfaces is None else surfaces.scan])
-    beam = np.concatenate([np.asarray(obs.beam)[use], np.zeros(0, np.int64) if surfaces is None else surfaces.beam])
+    none = np.zeros(0, np.int64)
+    scan = np.concatenate([np.asarray(obs.scan)[use], none if surfaces is None else surfaces.returns.scan])
+    beam = np.concatenate([np.asarray(obs.beam)[use], none if surfaces is None else surfaces.returns.beam])
     extra = correlated_range_excess(np.vstack([v_markers, v_planes]), scan, beam, rho)
     return 0.5 * (extra + extra.T)
 
 
 def turning_error_at(
-    obs: Observations, markers_W: ArrayLike, params: Params, *, model: str, marker_radius_m: float,
-    range_sigma_m: float = 0.010, clock: MotorClock | None = None, clock_offset_s: float = 0.0,
-    beam_divergence_rad: float = 0.0,
+    obs: Observations, markers_W: ArrayLike, params: Params, *, sensor: MarkerSensor, clock: Clock = NO_CLOCK,
 ) -> FloatArray:
     """The DH covariance (4, 4) the calibration adds where the sweep turns on a marker (lrfcal.stages.markers.
     _with_turning_systematic: d d^T, d the DH difference between the marker-only solve and the model variant that
@@ -210,8 +192,7 @@ def turning_error_at(
     at the true ``params``: the difference of the two models' noise-free optima (one Gauss-Newton step each from
     the truth) squared, plus what noise adds to it, the variant's marker-only covariance less the whole residual's
     (the difference of two nested estimates). Zeros where no crossing turns."""
-    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, None, None)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, None)
     assert pb.markers is not None
     variant = pb.with_sets([replace(pb.markers, in_plane_at_turns=True)]).chosen_at(th, R_ref)
     turned = variant.markers
@@ -229,10 +210,8 @@ def turning_error_at(
 
 
 def map_error_at(
-    info: FloatArray, obs: Observations, markers_W: ArrayLike, params: Params, map_cov: FloatArray, *, model: str,
-    marker_radius_m: float, range_sigma_m: float = 0.010, clock: MotorClock | None = None,
-    clock_offset_s: float = 0.0, surfaces: SurfaceReturns | None = None, planes: Sequence[Surface] | None = None,
-    beam_divergence_rad: float = 0.0,
+    info: FloatArray, obs: Observations, markers_W: ArrayLike, params: Params, map_cov: FloatArray, *,
+    sensor: MarkerSensor, clock: Clock = NO_CLOCK, surfaces: OnPlanes | None = None,
 ) -> FloatArray:
     """The covariance (k, k) the marker map's own uncertainty ``map_cov`` (3n, 3n) (lrfcal.stages.mds.map_covariance)
     adds
@@ -240,8 +219,7 @@ def map_error_at(
     G map_cov G^T with G = -info^-1 J_m^T J_c (lrfcal.estimate.problem.Problem.centre_cross), as lrfcal.estimate.solve
     adds it to a
     calibration's covariance."""
-    sensor = _sensor(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, clock_offset_s, surfaces, planes)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces)
     G = -scaled_pinv(info) @ pb.centre_cross(
         th, R_ref, idx, len(map_cov) // 3)
     return G @ map_cov @ G.T
@@ -265,28 +243,22 @@ def estimated(clock: bool, surfaces: bool, estimate: Sequence[str] = ()) -> IntA
     return np.flatnonzero(free).astype(np.int64)
 
 
-def _sensor(model: str, radius_m: float, divergence_rad: float, range_sigma_m: float) -> MarkerSensor:
-    """The marker observation model's constants as one object (lrfcal.model.observations.MarkerSensor), checked."""
-    return MarkerSensor.of(model, radius_m, divergence_rad, range_sigma_m)
-
-
 def _problem_at(
-    obs: Observations, markers_W: ArrayLike, params: Params, sensor: MarkerSensor,
-    clock: MotorClock | None, clock_offset_s: float, surfaces: SurfaceReturns | None,
-    planes: Sequence[Surface] | None, sides: bool = True, estimate: Sequence[str] = (),
+    obs: Observations, markers_W: ArrayLike, params: Params, sensor: MarkerSensor, clock: Clock,
+    surfaces: OnPlanes | None, sides: bool = True, estimate: Sequence[str] = (),
 ) -> tuple[Problem, FloatArray, FloatArray, IntArray]:
     """The problem of :func:`information_at` (marker rows; plane rows and priors with non-empty ``surfaces``), the
     unknowns at ``params`` (core then the planes' nuisances), R_ref, and the core unknowns estimated (indices; those
     held by default named in ``estimate`` too)."""
-    pb, th, R_ref = _at(params, obs, markers_W, sensor, clock, clock_offset_s)
+    pb, th, R_ref = _at(params, obs, markers_W, sensor, clock)
     if sides:  # the lateral residuals the calibration uses (lrfcal.model.marker.two_sided)
         pb = pb.chosen_at(th, R_ref)
     # the unknowns the calibration estimates: the clock offset when the sweep shows it, the range offset and
     # the marker range bias when surface returns separate them (lrfcal.pipeline's defaults)
     with_surfaces = surfaces is not None and len(surfaces) > 0
-    idx = estimated(clock is not None, with_surfaces, estimate)
+    idx = estimated(clock.motor is not None, with_surfaces, estimate)
     if surfaces is not None and with_surfaces:
-        surf, nu0 = plane_set(surfaces, planes)
+        surf, nu0 = plane_set(surfaces.returns, surfaces.planes)
         return pb.with_sets([*pb.sets, surf]), np.concatenate([th, nu0]), R_ref, idx
     return pb, th, R_ref, idx
 

@@ -22,17 +22,18 @@ two solutions:
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate.checks import dh_text, nominal_distance
+from lrfcal.estimate.checks import CheckConfig, dh_text, nominal_distance
 from lrfcal.estimate.information import model_residuals
+from lrfcal.estimate.solve import Solver
 from lrfcal.model.kinematics import DH, Params, dh_twins
+from lrfcal.model.marker import MarkerSensor
+from lrfcal.model.motor import Clock
 from lrfcal.model.unknowns import dh_difference
 from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
 
@@ -47,8 +48,8 @@ SAME_SIGMA = 4.0
 NAME = "other minimum"
 
 
-def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CalibConfig,
-                  fit: Callable[..., Solution]) -> Check:
+def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CheckConfig,
+                  fit: Solver) -> Check:
     """The marker-only solution ``sol`` of the returns ``matched`` against the minimum its mirror image leads to
     (module docstring), the clock offset held at the estimate's: passed unless a distinct rig explains the data as
     well or better."""
@@ -58,8 +59,7 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
                                  "nominal tolerance")
     none = Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
     try:
-        alt = fit(matched, markers, Params(sol.params.mount, twin), model="sphere", clock=None,
-                  clock_offset_s=sol.clock_offset_s)
+        alt = fit(matched, markers, Params(sol.params.mount, twin), clock=Clock(None, sol.clock_offset_s))
     except CalibrationError:
         return none
     z = _dh_z(alt.params.dh, sol)
@@ -68,7 +68,7 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
     if np.abs(z).max() <= SAME_SIGMA:
         return Check(NAME, True, f"the solve from the estimate's mirror image returned to it (DH within "
                                  f"{np.abs(z).max():.1f} sigma)")
-    lr = (_cost(alt, matched, markers, nominal, config, sol) - _cost(sol, matched, markers, nominal, config, alt))
+    lr = _cost(alt, matched, markers, fit.sensor, sol) - _cost(sol, matched, markers, fit.sensor, alt)
     lr /= max(1.0, sol.reduced_chi2)
     ok = lr >= LR_LIMIT
     both = f"{dh_text(sol.params.dh)} and {dh_text(alt.params.dh)}"
@@ -91,8 +91,8 @@ def _dh_z(dh: DH, sol: Solution) -> FloatArray:
     return min((z(dh), z(dh_twins(dh)[0][1])), key=lambda v: float(np.nanmax(np.abs(v))))
 
 
-def _cost(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CalibConfig,
-          other: Solution) -> float:
+def _cost(sol: Solution, matched: Observations, markers: MarkerMap, sensor: MarkerSensor, other: Solution
+          ) -> float:
     """The sum of squared whitened residuals (range and lateral, lrfcal.estimate.information.model_residuals) of ``sol``
     over the returns it and ``other`` both keep, the motor angles at its own clock offset."""
     keep = np.ones(len(matched), dtype=bool)
@@ -100,15 +100,8 @@ def _cost(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nom
         if s.inlier is not None:
             keep &= s.inlier
     obs = matched if sol.lambda_rad is None else replace(matched, lambda_rad=sol.lambda_rad)
-    res, _ = model_residuals(sol.params, obs.subset(keep), markers.positions_W, model="sphere",
-                             marker_radius_m=nominal.marker_radius_m, range_sigma_m=_sigma(config),
-                             beam_divergence_rad=nominal.beam_divergence_rad)
+    res, _ = model_residuals(sol.params, obs.subset(keep), markers.positions_W, sensor=sensor)
     return float(res @ res)
-
-
-def _sigma(config: CalibConfig) -> float:
-    assert config.range_sigma_m is not None, "resolved from the rig file before the markers are fitted"
-    return config.range_sigma_m
 
 
 __all__ = ["LR_LIMIT", "SAME_SIGMA", "other_minimum"]

@@ -169,20 +169,35 @@ def _add_step(th: FloatArray, free: IntArray, step: FloatArray) -> FloatArray:
     return trial
 
 
+@dataclass(frozen=True)
+class Limits:
+    """When a pass of :func:`levenberg_marquardt` stops: after ``max_iter`` iterations, or converged when a step is
+    below ``step_tol`` of every unknown's sigma, or when a barely damped step below ``stall_tol`` sigma does not
+    lower the cost or lowers it by less than :data:`FLAT_COST`."""
+
+    max_iter: int = 60
+    step_tol: float = 1e-3
+    stall_tol: float = 0.1
+
+
+#: the limits of a pass unless told
+DEFAULT_LIMITS = Limits()
+
+
 def levenberg_marquardt(
     th0: FloatArray, evaluate: Callable[[FloatArray, bool], Blocks], core: IntArray, n_core: int,
-    huber: float | None = None, max_iter: int = 60, step_tol: float = 1e-3, stall_tol: float = 0.1,
+    huber: float | None = None, limits: Limits = DEFAULT_LIMITS,
     retract: Callable[[FloatArray, IntArray, FloatArray], FloatArray] | None = None,
     log: list[Iteration] | None = None,
 ) -> tuple[FloatArray, int, bool]:
     """Minimise the (Huber) cost of ``evaluate(th, jac)`` over the core unknowns ``core`` and every nuisance (the
-    entries of th from ``n_core`` on). Returns (th, evaluations, converged): converged when a step is below
-    ``step_tol`` of every unknown's sigma, or when a barely damped step below ``stall_tol`` sigma does not lower the
-    cost or lowers it by less than :data:`FLAT_COST`, or when no step lowers it any more (at the minimum).
+    entries of th from ``n_core`` on). Returns (th, evaluations, converged): converged as ``limits`` say
+    (:class:`Limits`), or when no step lowers the cost any more (at the minimum).
     ``retract(th, free, step)``: th moved by a step (free.size,) over the entries ``free`` of th, for unknowns whose
     Jacobian columns are those of a chart at th rather than derivatives by th's own entries (th[free] + step when
     None). ``log``: each accepted iteration appended (:class:`Iteration`)."""
     free = np.concatenate([core, np.arange(n_core, th0.size)])
+    max_iter, step_tol, stall_tol = limits.max_iter, limits.step_tol, limits.stall_tol
     th = th0.copy()
     move = retract or _add_step
 

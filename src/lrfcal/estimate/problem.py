@@ -191,17 +191,27 @@ def marker_set(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor) ->
     return ms, use
 
 
-def marker_problem(
-    obs: Observations, markers_W: ArrayLike, model: str, radius: float, sigma_r: float, divergence: float = 0.0
-) -> tuple[Problem, BoolArray]:
+def marker_problem(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor) -> tuple[Problem, BoolArray]:
     """The problem of the returns of ``obs`` with a marker (and finite values), and which rows those are (K,).
 
     Raises:
-        InputError: a model, marker array, radius, noise or divergence out of its domain.
+        InputError: a marker array out of its domain.
     """
-    sensor = MarkerSensor.of(model, radius, divergence, sigma_r)
     ms, use = marker_set(obs, markers_W, sensor)
     return Problem((ms,), sensor.range_sigma_m), use
+
+
+@dataclass(frozen=True)
+class OnPlanes:
+    """Surface returns with the planes they lie on, as an estimate takes them: ``returns`` (K returns with their
+    plane index) and ``planes`` (the lrfcal.stages.surfaces.Surface of each plane index, whose normal and offset
+    carry the markers' prior; None: free planes, started from the returns' normals and offsets)."""
+
+    returns: SurfaceReturns
+    planes: Sequence[Surface] | None = None
+
+    def __len__(self) -> int:
+        return len(self.returns)
 
 
 def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[PlaneSet, FloatArray]:
@@ -242,4 +252,4 @@ def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorCl
     return Problem(sets, float(range_sigma_m), clock=clock, mount_jac=False), nu0
 
 
-__all__ = ["Problem", "marker_problem", "marker_set", "plane_problem", "plane_set"]
+__all__ = ["OnPlanes", "Problem", "marker_problem", "marker_set", "plane_problem", "plane_set"]

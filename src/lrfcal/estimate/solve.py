@@ -17,7 +17,8 @@ cluster-robust widening and the marker map's own uncertainty) and reports the es
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -25,14 +26,14 @@ from numpy.typing import ArrayLike, NDArray
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import engine
 from lrfcal.estimate.engine import MARKER_PASSES, PLANE_PASSES, Estimate, State, Status, Unknowns
-from lrfcal.estimate.problem import Problem, marker_set, plane_problem, plane_set
+from lrfcal.estimate.problem import OnPlanes, Problem, marker_set, plane_problem, plane_set
 from lrfcal.model.kinematics import Params
-from lrfcal.model.marker import MarkerSensor, residuals_3d
-from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.marker import MarkerModel, MarkerSensor, residuals_3d
+from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock, motor_angles
 from lrfcal.model.plane import plane_rows
 from lrfcal.model.scanner import true_bearing, true_range
 from lrfcal.model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack, unpack
-from lrfcal.stages.surfaces import Surface, SurfaceReturns
+from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.types import MarkerMap, Observations, Solution
 
 FloatArray = NDArray[np.float64]
@@ -43,54 +44,62 @@ _WHY = {"clock_offset": "no joint states to judge it by (no clock)",
         "marker_range_bias": "not asked for (only separable with surface returns)"}
 
 
+@dataclass(frozen=True)
+class SolveOptions:
+    """What a marker solve holds and estimates beyond the model's defaults (lrfcal.model.unknowns.UNKNOWNS), and
+    how it solves.
+
+    hold: names from CORE_NAMES held at their start value (not estimated; their sigma is NaN).
+    estimate: names of unknowns the model holds by default to estimate here.
+    estimate_range_bias: also estimate a constant range offset (every return) and a marker-return range bias (the
+        returns of retroreflective markers only; "range walk" of strong returns), started at 0; only separable with
+        surface returns (see lrfcal.stages.markers).
+    held_scores: names of unknowns held by default whose score test to run where held (Solution.held_score).
+    robust: Huber first pass and 4-sigma rejection before the final plain least-squares pass.
+    in_plane_at_turns: the marker model's variant (lrfcal.model.marker.MarkerSet.in_plane_at_turns).
+    """
+
+    hold: Sequence[str] = ()
+    estimate: Sequence[str] = ()
+    estimate_range_bias: bool = False
+    held_scores: Sequence[str] = ()
+    robust: bool = True
+    in_plane_at_turns: bool = False
+
+
+#: the model's defaults, robust passes
+DEFAULT_OPTIONS = SolveOptions()
+
+
 def solve(
     obs: Observations,
     markers_W: ArrayLike | MarkerMap,
     start: Params,
     *,
-    model: str,
-    marker_radius_m: float,
-    range_sigma_m: float = 0.010,
-    robust: bool = True,
-    surfaces: SurfaceReturns | None = None,
-    planes: Sequence[Surface] | None = None,
-    clock: MotorClock | None = None,
-    clock_offset_s: float = 0.0,
-    hold: Sequence[str] = (),
-    estimate_range_bias: bool = False,
-    beam_divergence_rad: float = 0.0,
-    estimate: Sequence[str] = (),
-    in_plane_at_turns: bool = False,
-    held_scores: Sequence[str] = (),
+    sensor: MarkerSensor,
+    surfaces: OnPlanes | None = None,
+    clock: Clock = NO_CLOCK,
+    options: SolveOptions = DEFAULT_OPTIONS,
 ) -> Solution:
     """Estimate the 10 parameters (and the clock offset, the intrinsics) from marker returns.
 
     Args:
         obs: K returns; rows with marker < 0 or non-finite values are ignored. obs.lambda_rad must be the motor
-            angles at ``clock_offset_s``; obs.times_s the beam times (laser clock).
+            angles at ``clock.offset_s``; obs.times_s the beam times (laser clock).
         markers_W: the marker map (lrfcal.stages.mds; its covariance, the tape's noise, joins the estimate's), or the
             marker centres (n, 3) in W taken as exact (the MDS frame, un-mirrored).
         start: initial parameters (mount pose from the association, DH from the nominal values).
-        model: "paper" (eq. (10), return point vs marker centre) or "sphere" (ray vs sphere, sub-beam).
-        marker_radius_m: marker sphere radius R_m.
-        beam_divergence_rad: the scanner's full beam divergence: the sphere model averages over the footprint
-            (lrfcal.model.sphere.footprint_depth); 0: the beam's axis alone.
-        range_sigma_m: range noise sigma_r (UTM-30LX-EW repeatability, Hokuyo's specification).
-        robust: Huber first pass and 4-sigma rejection before the final plain least-squares pass.
+        sensor: the marker observation model's constants (its variant: "paper", eq. (10), return point vs marker
+            centre, or "sphere", ray vs sphere, sub-beam, averaged over the beam's footprint: lrfcal.model.sphere.
+            footprint_depth; the marker radius; the range noise sigma_r, UTM-30LX-EW repeatability, Hokuyo's
+            specification, which whitens the surface returns too).
         surfaces: optional non-marker returns on the marker-carrying planes (lrfcal.stages.surfaces), solved jointly
-            as ray-plane range residuals (whitened by range_sigma_m), rejected at 4 sigma like the markers.
-        planes: the lrfcal.stages.surfaces.Surface of each surface index: each plane's normal and offset are nuisance
-            parameters with the markers' prior (Surface.prior_sigma); without them the planes are free
-            (only flatness counts), started from the returns' normals and offsets.
-        clock: the joint states as a MotorClock: the clock offset is then estimated, started at
-            ``clock_offset_s``; None holds it at ``clock_offset_s``.
-        hold: names from CORE_NAMES held at their start value (not estimated; their sigma is NaN).
-        estimate_range_bias: also estimate a constant range offset (every return) and a marker-return range bias
-            (the returns of retroreflective markers only; "range walk" of strong returns), started at 0; only
-            separable with surface returns (see lrfcal.stages.markers).
-        estimate: names of unknowns the model holds by default (lrfcal.model.unknowns.UNKNOWNS) to estimate here.
-        in_plane_at_turns: the model variant (lrfcal.model.marker.MarkerSet.in_plane_at_turns).
-        held_scores: names of unknowns held by default whose score test to run where held (Solution.held_score).
+            as ray-plane range residuals, rejected at 4 sigma like the markers; with their planes, each plane's
+            normal and offset are nuisance parameters with the markers' prior (Surface.prior_sigma); without them
+            the planes are free (only flatness counts), started from the returns' normals and offsets.
+        clock: the clock offset's start (or held value) and the joint states as a MotorClock (``clock.motor``): the
+            clock offset is then estimated; None holds it.
+        options: what is held and estimated, the robust passes, the model variant (:class:`SolveOptions`).
     Returns:
         Solution: estimate, covariance (10, 10) in ESTIMATE_NAMES order (the rotation as a rotation vector in
         frame M; the marginal over plane nuisances and the clock offset; NaN rows for held parameters), the clock
@@ -104,26 +113,51 @@ def solve(
         X, map_cov = markers_W.positions_W, markers_W.covariance
     else:
         X, map_cov = np.asarray(markers_W, dtype=float), None
-    sensor = MarkerSensor.of(model, marker_radius_m, beam_divergence_rad, range_sigma_m)
     ms, use = marker_set(obs, X, sensor)
     n_markers = len(np.unique(np.asarray(obs.marker)[use]))
     if ms.size < 4 or n_markers < 3:
-        raise CalibrationError(f"solve ({model}): need >= 4 returns on >= 3 markers, got {ms.size} on {n_markers}")
-    free_core = free_by_default(hold, estimate)
-    free_core[TAU] &= clock is not None
-    free_core[[ROFF, MBIAS]] &= estimate_range_bias
-    th, R_ref = pack(start, clock_offset_s)
-    pb = Problem((replace(ms, in_plane_at_turns=in_plane_at_turns),), sensor.range_sigma_m, clock=clock)
+        raise CalibrationError(f"solve ({sensor.model.value}): need >= 4 returns on >= 3 markers, got {ms.size} on "
+                               f"{n_markers}")
+    opt = options
+    free_core = free_by_default(opt.hold, opt.estimate)
+    free_core[TAU] &= clock.motor is not None
+    free_core[[ROFF, MBIAS]] &= opt.estimate_range_bias
+    th, R_ref = pack(start, clock.offset_s)
+    pb = Problem((replace(ms, in_plane_at_turns=opt.in_plane_at_turns),), sensor.range_sigma_m, clock=clock.motor)
     with_surfaces = surfaces is not None and len(surfaces) > 0
     if surfaces is not None and with_surfaces:
-        surf, nu0 = plane_set(surfaces, planes)
+        surf, nu0 = plane_set(surfaces.returns, surfaces.planes)
         pb = pb.with_sets([*pb.sets, surf])
         th = np.concatenate([th, nu0])
-    unknowns = Unknowns.of(free_core, th.size - N_CORE, {**_WHY, **{n: "held by the call" for n in hold}})
+    unknowns = Unknowns.of(free_core, th.size - N_CORE, {**_WHY, **{n: "held by the call" for n in opt.hold}})
     # the joint solve (with surface returns) starts from the converged marker-only estimate: no Huber pass
-    passes = replace(MARKER_PASSES, robust=robust, huber_first=not with_surfaces)
-    est = engine.estimate(pb, State(th, R_ref), unknowns, passes, map_cov=map_cov, held_scores=held_scores)
+    passes = replace(MARKER_PASSES, robust=opt.robust, huber_first=not with_surfaces)
+    est = engine.estimate(pb, State(th, R_ref), unknowns, passes, map_cov=map_cov, held_scores=opt.held_scores)
     return _marker_solution(obs, use, len(X), est, unknowns.free)
+
+
+@dataclass(frozen=True)
+class Solver:
+    """:func:`solve` bound to a rig's marker sensor and options, as the marker stages re-solve: ``solver(obs,
+    markers_W, start, clock=...)``, with ``options`` changed for one call by keyword (``estimate_range_bias=False``)
+    or for good by :meth:`but`."""
+
+    sensor: MarkerSensor
+    options: SolveOptions = DEFAULT_OPTIONS
+
+    def but(self, **changes: Any) -> Solver:
+        """The same solver with ``changes`` (fields of :class:`SolveOptions`) in its options."""
+        return replace(self, options=replace(self.options, **changes))
+
+    def paper(self) -> Solver:
+        """The same solver with the seed paper's marker model (eq. (10))."""
+        return replace(self, sensor=replace(self.sensor, model=MarkerModel.PAPER))
+
+    def __call__(self, obs: Observations, markers_W: ArrayLike | MarkerMap, start: Params, *,
+                 surfaces: OnPlanes | None = None, clock: Clock = NO_CLOCK, **changes: Any) -> Solution:
+        """:func:`solve` of ``obs`` with this sensor and options (``changes`` for this call)."""
+        return solve(obs, markers_W, start, sensor=self.sensor, surfaces=surfaces, clock=clock,
+                     options=replace(self.options, **changes) if changes else self.options)
 
 
 def _marker_solution(obs: Observations, use: NDArray[np.bool_], n_markers: int, est: Estimate,
@@ -198,6 +232,26 @@ def plane_free(n_par: int, hold: Sequence[str], clock: MotorClock | None, estima
     return free
 
 
+@dataclass(frozen=True)
+class PlaneOptions:
+    """What a targetless solve estimates beyond its defaults, and how it solves.
+
+    estimate_range_offset: also estimate a constant range offset.
+    robust: a Huber pass, then plain least squares with returns beyond 4 robust sigma dropped.
+    huber_first: with ``robust``, the Huber pass (False: a start that a robust solve of nearly the same returns gave,
+        which the 4-sigma rejection alone keeps from stray returns; the same solution to 1e-4 sigma on room_box,
+        15 % of its targetless time saved).
+    """
+
+    estimate_range_offset: bool = False
+    robust: bool = True
+    huber_first: bool = True
+
+
+#: the targetless defaults: robust, a Huber pass first
+DEFAULT_PLANE_OPTIONS = PlaneOptions()
+
+
 def solve_planes(
     surfaces: SurfaceReturns,
     start: Params,
@@ -206,10 +260,8 @@ def solve_planes(
     clock: MotorClock | None = None,
     clock_offset_s: float = 0.0,
     hold: Sequence[str] = (),
-    estimate_range_offset: bool = False,
-    robust: bool = True,
     dh_prior: tuple[FloatArray, FloatArray] | None = None,
-    huber_first: bool = True,
+    options: PlaneOptions = DEFAULT_PLANE_OPTIONS,
 ) -> Solution:
     """Targetless: the DH parameters (and the clock offset, the range offset) from the flatness of planes alone.
 
@@ -225,13 +277,9 @@ def solve_planes(
         clock: the joint states as a MotorClock to estimate the clock offset (started at ``clock_offset_s``); None
             holds it.
         hold: names from CORE_NAMES held at their start value (in addition to the mount).
-        estimate_range_offset: also estimate a constant range offset.
-        robust: a Huber pass, then plain least squares with returns beyond 4 robust sigma dropped.
-        huber_first: with ``robust``, the Huber pass (False: a start that a robust solve of nearly the same returns
-            gave, which the 4-sigma rejection alone keeps from stray returns; the same solution to 1e-4 sigma on
-            room_box, 15 % of its targetless time saved).
         dh_prior: (mean (4,), sigma (4,)) of a, alpha, b, beta: the design drawing's values and tolerance, as
             prior residuals (None: none).
+        options: the range offset estimated or not, the robust passes (:class:`PlaneOptions`).
     Returns:
         Solution as :func:`solve` (NaN sigma for held parameters; residuals_m, per_marker_rms_m and chi are empty;
         n_surface_returns the returns kept; inlier (K,) which of the K returns were kept; residual_rms_m the RMS of
@@ -242,13 +290,14 @@ def solve_planes(
     pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior)
     th, R_ref = pack(start, clock_offset_s)
     th = np.concatenate([th, nu0])
-    free = plane_free(th.size, hold, clock, estimate_range_offset)
+    free = plane_free(th.size, hold, clock, options.estimate_range_offset)
     K = surfaces.ranges_m.size
     if 10 * int(free.sum()) > K:
         raise CalibrationError(f"targetless solve: {K} plane returns for {int(free.sum())} unknowns (need 10 each)")
     why = {**_WHY, **{n: _TARGETLESS_WHY for n in _TARGETLESS_HELD}, **{n: "held by the call" for n in hold}}
     unknowns = Unknowns.of(free[:N_CORE], th.size - N_CORE, why)
-    est = engine.estimate(pb, State(th, R_ref), unknowns, replace(PLANE_PASSES, robust=robust, huber_first=huber_first))
+    passes = replace(PLANE_PASSES, robust=options.robust, huber_first=options.huber_first)
+    est = engine.estimate(pb, State(th, R_ref), unknowns, passes)
     keep = est.keep[-1]
     surf = est.kept.surf
     assert surf is not None
@@ -265,4 +314,5 @@ def solve_planes(
                      n_surface_returns=int(keep.sum()), iterations=est.log)
 
 
-__all__ = ["CORE_NAMES", "MotorClock", "plane_free", "solve", "solve_planes"]
+__all__ = ["CORE_NAMES", "DEFAULT_OPTIONS", "DEFAULT_PLANE_OPTIONS", "Clock", "MotorClock", "OnPlanes", "PlaneOptions",
+           "SolveOptions", "Solver", "plane_free", "solve", "solve_planes"]

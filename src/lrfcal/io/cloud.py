@@ -270,14 +270,21 @@ def read_calibration_clock_offset(path: str | Path) -> float | None:
 
 # --- the command ----------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class CloudOutputs:
+    """The files :func:`reproject_bag` writes: the PLY, and optionally the rerun file and the PointCloud2 bag."""
+
+    ply: str | Path
+    rrd: str | Path | None = None
+    bag: str | Path | None = None
+
+
 def reproject_bag(
     bag: str | Path,
     nominal: str | Path,
-    out: str | Path,
+    outputs: CloudOutputs,
     *,
     calibration: str | Path | None = None,
-    rrd: str | Path | None = None,
-    bag_out: str | Path | None = None,
     clock_offset_s: float | None = None,
     options: dict[str, Any] | None = None,
     progress: Callable[[str, int, int], None] | None = None,
@@ -295,7 +302,7 @@ def reproject_bag(
     from lrfcal.io.recording import read_recording
     from lrfcal.io.rig import refuse_placeholder_dh, with_overrides
 
-    bag, nominal, out = Path(bag), Path(nominal), Path(out)
+    bag, nominal, out, rrd, bag_out = Path(bag), Path(nominal), Path(outputs.ply), outputs.rrd, outputs.bag
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
     check_outputs([p for p in (bag, nominal, Path(calibration) if calibration else None) if p is not None], outs)
     from lrfcal.io.recording import read_nominal
@@ -338,7 +345,7 @@ def reproject_bag(
     return lines
 
 
-__all__ = ["BeamCloud", "CLOUD_FRAME", "CLOUD_TOPIC", "POINT_DTYPE", "point_records",
+__all__ = ["BeamCloud", "CLOUD_FRAME", "CloudOutputs", "CLOUD_TOPIC", "POINT_DTYPE", "point_records",
            "read_calibration_clock_offset", "read_calibration_dh",
            "read_calibration_intrinsics", "read_cloud_ply", "reproject_bag", "reproject_beams",
            "write_cloud_bag", "write_cloud_ply", "write_cloud_rrd"]

@@ -65,6 +65,19 @@ class MotorClock:
 
 
 @dataclass(frozen=True)
+class Clock:
+    """The laser clock against the servo's, as an estimate takes it: the clock offset tau (``offset_s``, where the
+    estimate starts, or its value where held) and the joint states it is estimated by (``motor``; None: held)."""
+
+    motor: MotorClock | None = None
+    offset_s: float = 0.0
+
+
+#: no joint states: the clock offset held at 0
+NO_CLOCK = Clock()
+
+
+@dataclass(frozen=True)
 class MotorAngles:
     """The motor angle of K beams (K,) and its partial derivatives: (core index, dlambda/dtheta (K,)) per unknown
     that acts on it (none when the angles are data, e.g. interpolated once at a held clock offset)."""
@@ -269,5 +282,6 @@ def dequantised(stamps_s: ArrayLike, positions_rad: ArrayLike) -> FloatArray:
 
 
 __all__ = ["CLOCK_OFFSET_PASS_SHARE", "DEQUANTISE_HALF_WINDOW", "EDGE_WINDOW_S", "GAP_PERIODS", "MAX_CLOCK_OFFSET_S",
-           "STEADY_SHARE", "TOP_PERCENTILE", "JointGap", "JointSamples", "MotorAngles", "MotorClock",
+           "NO_CLOCK", "STEADY_SHARE", "TOP_PERCENTILE", "Clock", "JointGap", "JointSamples", "MotorAngles",
+           "MotorClock",
            "clock_offset_bound_s", "dequantised", "encoder_quantum", "joint_gaps", "motor_angles"]

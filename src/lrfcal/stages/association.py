@@ -20,6 +20,7 @@ layout itself, and ``mirrored`` stays False unless the mirrored fit is clearly b
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import replace
 from itertools import combinations
 from math import comb
@@ -175,7 +176,8 @@ def _best_hypotheses(
     score[first], rms[first] = _score(R[first], t[first], P, X, w, gate_m)
     done[first] = True
     kth = np.sort(score[done])[::-1][min(k, int(done.sum())) - 1]
-    more = _reaching(R, t, P, X, w, gate_m, np.flatnonzero(~done & (bound >= kth)), probe, part, kth)
+    more = _reaching(lambda c, b: _score(R[c], t[c], P[b], X, w[b], gate_m)[0], w,
+                     np.flatnonzero(~done & (bound >= kth)), probe, part, kth)
     if more.size:
         score[more], rms[more] = _score(R[more], t[more], P, X, w, gate_m)
         done[more] = True
@@ -183,12 +185,13 @@ def _best_hypotheses(
     return idx[np.lexsort((rms[idx], -score[idx]))[:k]]
 
 
-def _reaching(R: FloatArray, t: FloatArray, P: FloatArray, X: FloatArray, w: FloatArray, gate_m: float,
-              cand: IntArray, seen: IntArray, part: FloatArray, kth: float, block: int = 16) -> IntArray:
+def _reaching(score: Callable[[IntArray, IntArray], FloatArray], w: FloatArray, cand: IntArray, seen: IntArray,
+              part: FloatArray, kth: float, block: int = 16) -> IntArray:
     """The hypotheses ``cand`` whose full score can still reach ``kth``: their partial scores ``part`` (H,) on the
     blobs ``seen`` are extended block by block over the other blobs, and a hypothesis is dropped once that partial
-    score plus the weight of the blobs not yet scored (with a margin for rounding) falls below ``kth``."""
-    rest = np.setdiff1d(np.arange(len(P)), seen)
+    score plus the weight of the blobs not yet scored (with a margin for rounding) falls below ``kth``.
+    ``score(hypotheses, blobs)``: the hypotheses' scores (k,) on those blobs; ``w`` (B,) the blobs' weights."""
+    rest = np.setdiff1d(np.arange(len(w)), seen)
     got = part[cand].copy()
     left = float(w[rest].sum())
     margin = 1e-9 * (float(w.sum()) + 1.0)
@@ -196,8 +199,7 @@ def _reaching(R: FloatArray, t: FloatArray, P: FloatArray, X: FloatArray, w: Flo
         if not cand.size:
             break
         b = rest[s:s + block]
-        partial, _ = _score(R[cand], t[cand], P[b], X, w[b], gate_m)
-        got += partial
+        got += score(cand, b)
         left -= float(w[b].sum())
         keep = got + left + margin >= kth
         cand, got = cand[keep], got[keep]

@@ -11,12 +11,14 @@ the DH parameters (a fast one-pass sweep: one scan line per marker).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 
 from lrfcal.config import CalibConfig
 from lrfcal.estimate import observability
-from lrfcal.model.motor import MotorClock
+from lrfcal.estimate.problem import OnPlanes
+from lrfcal.estimate.solve import Solver
+from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.stages import surfaces, timing
 from lrfcal.stages.targetless import merge_returns, scene_plane_returns
 from lrfcal.types import Detections, JointStates, MarkerMap, Observations, Recording, Solution
@@ -51,9 +53,18 @@ def most_off(sol: Solution, notes: list[str], max_chi2: float) -> str | None:
     return name
 
 
+@dataclass(frozen=True)
+class Recorded:
+    """A recording as the joint solve reads it: the recording (its scans and nominal values), its joint states
+    (with the servo's direction applied) and the marker returns detected in it."""
+
+    recording: Recording
+    joints: JointStates
+    detections: Detections
+
+
 def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMap, motor: MotorClock | None,
-                  recording: Recording, joints: JointStates, detections: Detections, config: CalibConfig,
-                  fit: Callable[..., Solution], notes: list[str]
+                  recorded: Recorded, config: CalibConfig, fit: Solver, notes: list[str]
                   ) -> tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]:
     """6b from the marker-only solution ``marker_fit`` of the ``matched`` returns (``motor``: the clock model when
     the clock offset is estimated; ``fit``: lrfcal.estimate.solve.solve bound to the rig): every beam on the markers'
@@ -63,27 +74,26 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
     ours = marker_fit
     if not config.surfaces:
         return ours, [], None
-    scans, nominal = recording.scans, recording.nominal
+    scans, nominal = recorded.recording.scans, recorded.recording.nominal
+    joints, detections = recorded.joints, recorded.detections
     beam_times = scans.beam_times_s
     selected_at, note = ours, None
     surface_list: list[surfaces.Surface] = []
     on_surfaces: surfaces.SurfaceReturns | None = None
+    on_markers = surfaces.PlaneMarkers(markers.positions_W, nominal.marker_radius_m, max(markers.rms_m, 0.0005))
+    selection = surfaces.SurfaceSelection(max_returns=config.surface_max_returns)
     for _ in range(surfaces.ROUNDS):  # the returns chosen again at the joint estimate while it moves them
         lambda_beams = timing.motor_angles(beam_times, joints, clock_offset_s=selected_at.clock_offset_s,
                                            tolerance_s=math.inf)
-        found = surfaces.observe_surfaces(
-            scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, markers.positions_W,
-            nominal.marker_radius_m, selected_at.params, position_sigma_m=max(markers.rms_m, 0.0005),
-            max_returns=config.surface_max_returns, beam_times_s=beam_times,
-            intrinsics=selected_at.intrinsic_values,
-        )
+        grid = surfaces.ReturnGrid(scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, beam_times)
+        found = surfaces.observe_surfaces(grid, on_markers, selected_at.params, selection=selection,
+                                          intrinsics=selected_at.intrinsic_values)
         if on_surfaces is None or len(found[1]):
             surface_list, on_surfaces = found
         if not len(found[1]):
             break
-        joint = partial(fit, matched, markers, selected_at.params, model="sphere", surfaces=on_surfaces,
-                        planes=surface_list, clock=motor, clock_offset_s=selected_at.clock_offset_s,
-                        held_scores=tuple(SCALES))
+        joint = partial(fit, matched, markers, selected_at.params, surfaces=OnPlanes(on_surfaces, surface_list),
+                        clock=Clock(motor, selected_at.clock_offset_s), held_scores=tuple(SCALES))
         ours = joint(estimate_range_bias=config.estimate_range_bias)
         if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
                                                <= observability.RANGE_BIAS_LIMIT_M):
@@ -106,12 +116,12 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
         if len(others):
             on_surfaces = merge_returns(on_surfaces, others)
             surface_list = [*surface_list, *other_planes]
-            ours = fit(matched, markers, ours.params, model="sphere", surfaces=on_surfaces,
-                       planes=surface_list, clock=motor, clock_offset_s=ours.clock_offset_s,
+            ours = fit(matched, markers, ours.params, surfaces=OnPlanes(on_surfaces, surface_list),
+                       clock=Clock(motor, ours.clock_offset_s),
                        estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=tuple(SCALES))
             notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
                          "free planes")
     return ours, list(surface_list), on_surfaces
 
 
-__all__ = ["SCALES", "SCALE_Z_LIMIT", "most_off", "with_surfaces"]
+__all__ = ["SCALES", "SCALE_Z_LIMIT", "Recorded", "most_off", "with_surfaces"]

@@ -13,9 +13,7 @@ the shared stages (checks, reprojection, geometry).
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass, replace
-from functools import partial
 
 import numpy as np
 
@@ -33,8 +31,8 @@ from lrfcal.estimate.checks import (
 from lrfcal.estimate.information import information_at
 from lrfcal.estimate.problem import marker_problem
 from lrfcal.model.kinematics import DH, Params, Pose, dh_twins, homogeneous
-from lrfcal.model.marker import crossings
-from lrfcal.model.motor import MotorClock
+from lrfcal.model.marker import MarkerSensor, crossings
+from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.model.unknowns import dh_difference, pack
 from lrfcal.result import CalibrationResult, MarkerEvidence
 from lrfcal.stages import association, detection, joint, mds, start, surfaces, timing
@@ -97,23 +95,23 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
                      + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
                         if config.estimate_clock is None else "as asked)"))
     clock.lap("timing")
-    fit = partial(solve.solve, marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
-                  beam_divergence_rad=nominal.beam_divergence_rad)
-    chosen = _servo_alternatives(returns, detections, markers, joints, nominal, config, estimate_clock, fit, clock)
-    fit = partial(fit, estimate=chosen.estimate)
+    fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
+                                       config.range_sigma_m))
+    chosen = _servo_alternatives(returns, detections, markers, joints if estimate_clock else None, nominal, config,
+                                 fit, clock)
+    fit = fit.but(estimate=chosen.estimate)
     chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, config, fit), nominal.dh, fit)
     notes.extend(chosen.notes)
     if chosen.sign < 0:
         joints = _negated(joints)
     clock.lap("solve", scans=scans, detections=detections, association=chosen.assoc, markers=chosen.markers)
-    chosen, fit, (ours, surface_list, on_surfaces) = _jointly(chosen, recording, joints, detections, config, fit,
-                                                              notes)
+    recorded = joint.Recorded(recording, joints, detections)
+    chosen, fit, (ours, surface_list, on_surfaces) = _jointly(chosen, recorded, config, fit, notes)
     if config.surfaces:
         clock.lap("surfaces")
-    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, chosen.clock,
-                           nominal.dh)
+    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, nominal.dh)
     checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
-    ours = _with_turning_systematic(ours, chosen, nominal, config, fit, notes)  # after the checks: they judge the fit
+    ours = _with_turning_systematic(ours, chosen, fit, notes)  # after the checks: they judge the fit
     baseline = None
     if config.baseline:
         baseline = _baseline(chosen, scans, joints, config, fit, notes)
@@ -129,8 +127,7 @@ def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, 
     )
 
 
-def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nominal, config: CalibConfig,
-                             fit: Callable[..., Solution], notes: list[str]) -> Solution:
+def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Solver, notes: list[str]) -> Solution:
     """``ours`` with the DH covariance widened by d d^T, d the difference the model variant makes where the sweep
     turns on a marker (lrfcal.model.marker.crossings: only the in-plane part of those crossings' lateral residual,
     solve(in_plane_at_turns=True)), between the two marker-only solutions. The lines of a turning crossing crowd
@@ -138,14 +135,13 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
     information, so neither is right alone, and their difference is a model error the noise's sigma does not hold
     (docs/study.md, "A crossing that turns on its marker"). Unchanged where no crossing turns."""
     sol = chosen.solution
-    pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, "sphere", nominal.marker_radius_m,
-                           config.range_sigma_m, nominal.beam_divergence_rad)
+    pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, fit.sensor)
     th, R_ref = pack(sol.params, sol.clock_offset_s)
     if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
         return ours
     try:
-        variant = fit(chosen.matched, chosen.markers, sol.params, model="sphere", clock=chosen.clock,
-                      clock_offset_s=sol.clock_offset_s, in_plane_at_turns=True)
+        variant = fit(chosen.matched, chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s),
+                      in_plane_at_turns=True)
     except CalibrationError:
         return ours
     d = dh_difference(variant.params.dh.vector(), sol.params.dh.vector())
@@ -154,7 +150,7 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, nominal: Nomin
     return ours.with_dh_systematic(d)
 
 
-def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[..., Solution]) -> Alternative:
+def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: solve.Solver) -> Alternative:
     """The marker-only solution in the DH representative nearer the nominal DH: solved again from its turned twin
     (-a, -alpha, b, beta + pi with the mount turned by pi about the motor axis: the same rig, lrfcal.model.kinematics.
     dh_twins) when that twin is nearer. A solve from the mirror image (:func:`_handedness`) or from a coarse start
@@ -165,14 +161,13 @@ def _in_nominal_representative(chosen: Alternative, nominal: DH, fit: Callable[.
     _, twin, Q = dh_twins(sol.params.dh)[0]
     turned = Params(Pose.from_matrix(sol.params.mount.matrix() @ homogeneous(Q, np.zeros(3))), twin)
     try:
-        new = fit(chosen.matched, chosen.markers, turned, model="sphere", clock=chosen.clock,
-                  clock_offset_s=sol.clock_offset_s)
+        new = fit(chosen.matched, chosen.markers, turned, clock=Clock(chosen.clock, sol.clock_offset_s))
     except CalibrationError:
         return chosen
     return replace(chosen, solution=new)
 
 
-def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Callable[..., Solution]) -> Alternative:
+def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: solve.Solver) -> Alternative:
     """The marker-only solution in the marker map's other handedness, when the nominal DH prefer it.
 
     Tape distances fix the map only up to a reflection. With the map mirrored, the estimate's mirror twin
@@ -189,8 +184,8 @@ def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Call
     T = F @ chosen.solution.params.mount.matrix() @ homogeneous(Q, np.zeros(3))
     markers = association.unmirror(chosen.markers)
     try:
-        sol = fit(chosen.matched, markers, Params(Pose.from_matrix(T), twin), model="sphere", clock=chosen.clock,
-                  clock_offset_s=chosen.solution.clock_offset_s)
+        sol = fit(chosen.matched, markers, Params(Pose.from_matrix(T), twin),
+                  clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
     except CalibrationError:
         return chosen
     if not mirror_check(sol.params.dh, nominal, config).passed:
@@ -201,12 +196,12 @@ def _handedness(chosen: Alternative, nominal: DH, config: CalibConfig, fit: Call
     return replace(chosen, markers=markers, assoc=assoc, solution=sol, notes=(*chosen.notes, note))
 
 
-def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap, joints: JointStates,
-                        nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+def _servo_alternatives(returns: Observations, detections: Detections, markers: MarkerMap,
+                        joints: JointStates | None, nominal: Nominal, config: CalibConfig, fit: solve.Solver,
                         clock: Stopwatch) -> Alternative:
     """4.-6.: association and marker-only solve for each direction of the servo (the data cannot tell them apart),
-    and the direction chosen. The DH search (lrfcal.stages.start) runs only when neither direction associates well from
-    the nominal values."""
+    and the direction chosen; ``joints``: the joint states the clock offset is estimated by (None: held). The DH
+    search (lrfcal.stages.start) runs only when neither direction associates well from the nominal values."""
     signed = {sign: returns if sign > 0 else _replace(returns, lambda_rad=-returns.lambda_rad) for sign in (1, -1)}
     first: dict[int, Association | None] = {}
 
@@ -228,8 +223,7 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
             start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, associated(sign),
                                                  every_attitude=not alternatives)
                                if search else (nominal.dh, associated(sign)))
-            alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, nominal,
-                                                 config, estimate_clock, fit))
+            alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, config, fit))
         except CalibrationError as err:
             if sign == 1 and not isinstance(err, _NoMatch):
                 raise  # e.g. the layout does not determine the DH: the other direction does not help
@@ -239,9 +233,8 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
     return servo_direction(alternatives, nominal.dh, config)
 
 
-def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, detections: Detections,
-             config: CalibConfig, fit: Callable[..., Solution], notes: list[str]
-             ) -> tuple[Alternative, Callable[..., Solution], tuple[Solution, list[surfaces.Surface],
+def _jointly(chosen: Alternative, recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver, notes: list[str]
+             ) -> tuple[Alternative, solve.Solver, tuple[Solution, list[surfaces.Surface],
                                                                   surfaces.SurfaceReturns | None]]:
     """6b (lrfcal.stages.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale
     the
@@ -250,23 +243,22 @@ def _jointly(chosen: Alternative, recording: Recording, joints: JointStates, det
     ``fit`` as they end up, and the joint result (lrfcal.stages.joint.with_surfaces)."""
     while True:
         tried: list[str] = []
-        joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recording,
-                                        joints, detections, config, fit, tried)
+        joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recorded,
+                                        config, fit, tried)
         if not (off := joint.most_off(joint_fit[0], notes, config.max_reduced_chi2)):
             break
         chosen = replace(chosen, estimate=(*chosen.estimate, off))  # estimated in every solve from the start on
-        fit = partial(fit, estimate=chosen.estimate)
+        fit = fit.but(estimate=chosen.estimate)
         chosen = replace(chosen, solution=_refit(chosen, chosen.matched, fit))
     if chosen.unjudged:
-        chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recording, joints, detections, config, fit, notes)
+        chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recorded, config, fit, notes)
     notes.extend(tried)
     return chosen, fit, joint_fit
 
 
 def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surfaces.Surface],
                                                           surfaces.SurfaceReturns | None],
-                    recording: Recording, joints: JointStates, detections: Detections, config: CalibConfig,
-                    fit: Callable[..., Solution], notes: list[str]
+                    recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver, notes: list[str]
                     ) -> tuple[Alternative, tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None],
                                list[str]]:
     """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
@@ -289,10 +281,9 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
             if not bad.size:
                 break
             kept = _without_blobs(*kept, bad, why)
-            sol = fit(kept[1], chosen.markers, sol.params, model="sphere", clock=chosen.clock,
-                      clock_offset_s=sol.clock_offset_s)
-            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recording, joints,
-                                             detections, config, fit, [])[0]) is not sol:
+            sol = fit(kept[1], chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s))
+            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recorded, config, fit,
+                                             [])[0]) is not sol:
                 break
     no_surfaces = CalibrationError(observability.unjudged_refusal(
         _observability(chosen.solution), "the markers alone", "and no surface returns were found to add",
@@ -301,8 +292,7 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
         raise no_surfaces
     for left_out in range(4):  # every round from that start: one with a wrong blob in can be far off
         tried: list[str] = []
-        joint_fit = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recording, joints,
-                                        detections, config, fit, tried)
+        joint_fit = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recorded, config, fit, tried)
         if joint_fit[0] is start:  # no surface returns for these blobs
             raise no_surfaces
         bad, why = association.inconsistent_blobs(matched, joint_fit[0], chosen.markers, config.range_sigma_m)
@@ -342,21 +332,21 @@ def _without_blobs(assoc: Association, matched: Observations, bad: np.ndarray, w
     return replace(assoc, blob_to_marker=b2m, n_matched=int((b2m >= 0).sum())), matched
 
 
-def _refit(chosen: Alternative, matched: Observations, fit: Callable[..., Solution]) -> Solution:
+def _refit(chosen: Alternative, matched: Observations, fit: solve.Solver) -> Solution:
     """``chosen``'s marker-only solution solved again for ``matched``, from itself."""
-    return fit(matched, chosen.markers, chosen.solution.params, model="sphere", clock=chosen.clock,
-               clock_offset_s=chosen.solution.clock_offset_s)
+    return fit(matched, chosen.markers, chosen.solution.params,
+               clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
 
 
 def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig,
-              fit: Callable[..., Solution], notes: list[str]) -> Solution | None:
+              fit: solve.Solver, notes: list[str]) -> Solution | None:
     """The paper's method: the blob's brightest beam, the motor angle at the scan's stamp, point-to-centre residuals,
     on the same detections and association (None, with a note, when it cannot run)."""
     peaks = chosen.matched.subset(chosen.matched.is_peak)
     lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
     peaks = _replace(peaks, lambda_rad=lambda_scan[peaks.scan])
     try:
-        return fit(peaks, chosen.markers, chosen.start, model="paper")
+        return fit.paper()(peaks, chosen.markers, chosen.start)
     except CalibrationError as err:
         notes.append(f"the paper's method could not be run: {err}")
         return None
@@ -364,10 +354,11 @@ def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: Ca
 
 def _marker_solution(
     sign: int, start_dh: DH, assoc: Association | None, markers: MarkerMap, returns: Observations,
-    joints: JointStates, nominal: Nominal, config: CalibConfig, estimate_clock: bool, fit: Callable[..., Solution],
+    joints: JointStates | None, config: CalibConfig, fit: solve.Solver,
 ) -> Alternative:
     """Start, observability check and marker-only solve for one direction of the servo (``returns`` with their
-    motor angles already signed), from the association made with ``start_dh``.
+    motor angles already signed), from the association made with ``start_dh``; ``joints``: the joint states the
+    clock offset is estimated by (None: held).
 
     Raises CalibrationError when the blobs could not be matched, when the data do not determine the DH parameters
     (judged at the start, before any solver runs), or when blobs disagree with the marker map beyond repair.
@@ -375,8 +366,6 @@ def _marker_solution(
     if assoc is None:
         raise _NoMatch("association: no alignment of the blobs with the marker map (check the tape "
                                "distances' file and unit, and the marker radius)")
-    if sign < 0:
-        joints = _negated(joints)
     if assoc.mirrored:
         markers = association.unmirror(markers)
     matched = _with_markers(returns, assoc.blob_to_marker)
@@ -386,11 +375,9 @@ def _marker_solution(
             f"only {n_matched} markers matched to detections (need >= 4); alignment RMS {assoc.rms_m * 1000:.1f} mm"
         )
     start = Params(Pose.from_matrix(assoc.T_W_M), start_dh)  # 5.
-    motor = MotorClock.from_joints(joints) if estimate_clock else None
-    info, names = information_at(matched, markers.positions_W, start, model="sphere",
-                                       marker_radius_m=nominal.marker_radius_m, range_sigma_m=config.range_sigma_m,
-                                       clock=motor, clock_offset_s=config.clock_offset_s,
-                                       beam_divergence_rad=nominal.beam_divergence_rad, sides=False)
+    motor = None if joints is None else MotorClock.from_joints(joints if sign > 0 else _negated(joints))
+    info, names = information_at(matched, markers.positions_W, start, sensor=fit.sensor,
+                                 clock=Clock(motor, config.clock_offset_s), sides=False)
     obs = observability.analyse(info, names, start.dh.alpha)
     if not obs.determined:
         raise CalibrationError(
@@ -398,14 +385,14 @@ def _marker_solution(
             f"({obs.describe()}: 1-sigma {obs.weakest_sigma_in_limits:.3g} times the limit, judged at the start): "
             f"{obs.hint()}"
         )
-    fit = partial(fit, held_scores=tuple(joint.SCALES))  # the scales' score tests read this solution (and re-solves)
-    sol = fit(matched, markers, start, model="sphere", clock=motor, clock_offset_s=config.clock_offset_s)
+    fit = fit.but(held_scores=tuple(joint.SCALES))  # the scales' score tests read this solution (and re-solves)
+    sol = fit(matched, markers, start, clock=Clock(motor, config.clock_offset_s))
     notes: list[str] = []
     estimate: tuple[str, ...] = ()
     while off := joint.most_off(sol, notes, config.max_reduced_chi2):  # before any marker is judged moved: a range
         estimate = (*estimate, off)                              # scale moves every far marker from its tape position
-        fit = partial(fit, estimate=estimate)
-        sol = fit(matched, markers, sol.params, model="sphere", clock=motor, clock_offset_s=sol.clock_offset_s)
+        fit = fit.but(estimate=estimate)
+        sol = fit(matched, markers, sol.params, clock=Clock(motor, sol.clock_offset_s))
     # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker
     # that is not where the tape puts it: unassign them and solve again
     for _ in range(3):  # a blob matched wrongly, or a marker that is not where the tape puts it: out, and again
@@ -417,8 +404,7 @@ def _marker_solution(
                                unjudged=why.removesuffix(": left out"))
         notes.append(why)
         assoc, matched = _without_blobs(assoc, matched, bad, why)
-        sol = fit(matched, markers, sol.params, model="sphere", clock=motor,
-                  clock_offset_s=sol.clock_offset_s)
+        sol = fit(matched, markers, sol.params, clock=Clock(motor, sol.clock_offset_s))
     return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate)
 
 

@@ -28,7 +28,7 @@ arbitrary: the association stage finds whether the frame must be mirrored.
 from __future__ import annotations
 
 import math
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -214,33 +214,36 @@ def marker_map(
         G = np.where(W > 0, D, 0.0)
         if not np.all(np.isfinite(shortest_path(G, method="D", directed=False))):
             raise InputError("tape: the measured pairs do not connect all markers")
+    how = _Fit(refine, n_starts, seed, tape_sigma_m, k_sigma, max_rms_m)
     try:
-        return _marker_map(D, W, ids, complete, refine, n_starts, seed, tape_sigma_m, k_sigma, max_rms_m)
+        return _marker_map(D, W, ids, complete, how)
     except _PoorFit:
         if complete or refine is False:
             raise
     # SMACOF with pairs missing can end in a local minimum (a marker folded over): more starts, then refuse
-    return _marker_map(D, W, ids, complete, refine, 8 * max(n_starts, 4), seed + 1, tape_sigma_m, k_sigma,
-                       max_rms_m)
+    return _marker_map(D, W, ids, complete, replace(how, n_starts=8 * max(n_starts, 4), seed=seed + 1))
 
 
 class _PoorFit(CalibrationError):
     """The marker map's RMS stays above max_rms_m."""
 
 
-def _marker_map(
-    D: FloatArray,
-    W: FloatArray,
-    ids: tuple[str, ...],
-    complete: bool,
-    refine: bool | None,
-    n_starts: int,
-    seed: int,
-    tape_sigma_m: float,
-    k_sigma: float,
-    max_rms_m: float,
-) -> MarkerMap:
+@dataclass(frozen=True)
+class _Fit:
+    """How :func:`marker_map` fits the map and judges it (its arguments of those names)."""
+
+    refine: bool | None
+    n_starts: int
+    seed: int
+    tape_sigma_m: float
+    k_sigma: float
+    max_rms_m: float
+
+
+def _marker_map(D: FloatArray, W: FloatArray, ids: tuple[str, ...], complete: bool, how: _Fit) -> MarkerMap:
     """The body of :func:`marker_map` after validation."""
+    refine, n_starts, seed = how.refine, how.n_starts, how.seed
+    tape_sigma_m, k_sigma, max_rms_m = how.tape_sigma_m, how.k_sigma, how.max_rms_m
     n = len(ids)
     X3, ssr3 = _embed(D, W, 3, complete, n_starts, seed, refine)
     X2, ssr2 = _embed(D, W, 2, complete, n_starts, seed, refine)

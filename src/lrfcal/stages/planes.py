@@ -69,25 +69,48 @@ def _in_plane_std(points: FloatArray) -> FloatArray:
     return np.linalg.svd(points - points.mean(0), compute_uv=False) / math.sqrt(len(points))
 
 
+@dataclass(frozen=True)
+class Segmentation:
+    """How :func:`segment_planes` finds planes.
+
+    min_points: the fewest inliers a plane must have; max_planes: at most this many.
+    normal_tol_rad: a point's normal must be this close to the plane's; max_flatness: only points this flat (or
+        among the flattest 30 %) seed hypotheses.
+    min_extent_m: the smaller in-plane standard deviation of a plane's points must reach this: a strip (the returns
+        of a few scan lines, an edge) does not fix a plane's tilt about its own axis.
+    n_hypotheses: hypotheses per plane; n_coarse: normals and flatness are computed on this many points, evenly
+        spread (see the code); seed: of the hypotheses' draws.
+    """
+
+    min_points: int = 300
+    max_planes: int = 30
+    normal_tol_rad: float = math.radians(30.0)
+    max_flatness: float = 0.02
+    min_extent_m: float = 0.03
+    n_hypotheses: int = 300
+    n_coarse: int = 5000
+    seed: int = 0
+
+
+#: the segmentation unless told
+DEFAULT_SEGMENTATION = Segmentation()
+
+
 def segment_planes(
-    points: FloatArray, *, thickness_m: float, min_points: int = 300, max_planes: int = 30,
-    normal_tol_rad: float = math.radians(30.0), max_flatness: float = 0.02, min_extent_m: float = 0.03,
-    n_hypotheses: int = 300, n_coarse: int = 5000, seed: int = 0,
+    points: FloatArray, *, thickness_m: float, how: Segmentation = DEFAULT_SEGMENTATION,
 ) -> tuple[IntArray, list[ScenePlane]]:
     """Planes of a cloud (module docstring), largest first.
 
     Args:
         points: (P, 3) returns in frame M.
         thickness_m: half-width of a plane's inlier slab (m): the range noise plus what a wrong DH bends a plane by.
-        min_points: the fewest inliers a plane must have; max_planes: at most this many.
-        normal_tol_rad: a point's normal must be this close to the plane's; max_flatness: only points this flat
-            (or among the flattest 30 %) seed hypotheses.
-        n_coarse: normals and flatness are computed on this many points, evenly spread (see the code).
-        min_extent_m: the smaller in-plane standard deviation of a plane's points must reach this: a strip (the
-            returns of a few scan lines, an edge) does not fix a plane's tilt about its own axis.
+        how: the segmentation's limits (:class:`Segmentation`).
     Returns:
         labels (P,) the plane index of each point (-1: none) and the planes (in label order).
     """
+    min_points, max_planes, normal_tol_rad = how.min_points, how.max_planes, how.normal_tol_rad
+    max_flatness, min_extent_m, n_hypotheses = how.max_flatness, how.min_extent_m, how.n_hypotheses
+    n_coarse, seed = how.n_coarse, how.seed
     P = np.asarray(points, dtype=float)
     labels = np.full(len(P), -1, dtype=np.int64)
     planes: list[ScenePlane] = []
@@ -202,5 +225,5 @@ def squareness_deg(normals: FloatArray, tol_deg: float = 20.0) -> FloatArray:
     return np.array(out)
 
 
-__all__ = ["ScenePlane", "fit_plane", "flatness", "squareness_deg", "plane_returns", "point_normals",
-           "segment_planes"]
+__all__ = ["DEFAULT_SEGMENTATION", "ScenePlane", "Segmentation", "fit_plane", "flatness", "squareness_deg",
+           "plane_returns", "point_normals", "segment_planes"]

@@ -56,6 +56,61 @@ ROUNDS = 3
 
 
 @dataclass(frozen=True)
+class SurfaceSelection:
+    """How the surface returns are chosen (:func:`surface_returns`): at most ``max_returns``, those of lowest
+    :func:`hash_key` with ``seed``; candidates within ``gate_m`` of a surface; kept inside the markers' extent and
+    ``marker_clearance_m`` from every marker; with rays, an incidence up to ``max_incidence_rad``."""
+
+    max_returns: int = 40000
+    seed: int = 0
+    gate_m: float = _GATE_M
+    marker_clearance_m: float = 0.03
+    max_incidence_rad: float = MAX_INCIDENCE_RAD
+
+
+#: the selection unless told
+DEFAULT_SELECTION = SurfaceSelection()
+
+
+@dataclass(frozen=True)
+class PlaneMarkers:
+    """The markers the surfaces are found by (:func:`find_surfaces`): their centres ``positions_W`` (n, 3), their
+    radius, the uncertainty of their MDS coordinates (``position_sigma_m``) and of a sphere's contact with its
+    surface (``mounting_sigma_m``), which set the planes' prior."""
+
+    positions_W: FloatArray
+    radius_m: float
+    position_sigma_m: float = 0.001
+    mounting_sigma_m: float = 0.0005
+
+
+@dataclass(frozen=True)
+class ReturnRows:
+    """Returns as rows (P,): their scan and beam, motor angle, bearing, reported range, and laser-clock beam time
+    (None: not carried)."""
+
+    scan: IntArray
+    beam: IntArray
+    lambda_rad: FloatArray
+    mu_rad: FloatArray
+    ranges_m: FloatArray
+    times_s: FloatArray | None = None
+
+
+@dataclass(frozen=True)
+class ReturnGrid:
+    """A recording's returns as a grid of scans (S) by beams (N): ranges_m (S, N), NaN for no return; mu_rad (S, N)
+    per-scan bearings (or (N,)); lambda_rad (S, N) per-beam motor angles; labels (S, N) blob labels (>= 0 on marker
+    returns, which are not surface returns); beam_times_s (S, N) laser-clock beam times (None: not carried)."""
+
+    ranges_m: FloatArray
+    mu_rad: FloatArray
+    lambda_rad: FloatArray
+    labels: IntArray
+    beam_times_s: FloatArray | None = None
+
+
+@dataclass(frozen=True)
 class Surface:
     """A marker-carrying plane in W: n . p = offset_m (n unit, pointing away from the sensor), its markers, and
     the markers' extent in the plane (2 axes (2, 3), centre (3,), lower/upper bounds (2,) in m).
@@ -146,20 +201,20 @@ def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: i
 
 
 def find_surfaces(
-    markers_W: FloatArray, radius_m: float, sensor_W: FloatArray, cloud_W: FloatArray, *,
-    position_sigma_m: float = 0.001, mounting_sigma_m: float = 0.0005,
+    markers: PlaneMarkers, sensor_W: FloatArray, cloud_W: FloatArray, *,
     margin_m: float = 0.05, slab_m: float = 0.3, on_plane_m: float = 0.03, min_support: float = 0.6,
 ) -> list[Surface]:
     """Marker planes confirmed by the cloud, moved R away from the sensor; disjoint in their markers.
 
     Args:
-        markers_W: (n, 3) marker centres; radius_m: their radius; sensor_W: (3,) a point on the sensor side
-        (the motor frame's origin); cloud_W: (P, 3) reprojected returns (a subsample is enough).
-        position_sigma_m: uncertainty of a marker's MDS coordinates; mounting_sigma_m: of a sphere's contact
-        with the surface. With n markers spread by s_i along the plane's axes, the prior is
+        markers: the marker centres (n, 3), their radius R and their uncertainties (:class:`PlaneMarkers`);
+        sensor_W: (3,) a point on the sensor side (the motor frame's origin); cloud_W: (P, 3) reprojected returns
+        (a subsample is enough). With n markers spread by s_i along the plane's axes, the prior is
         tilt_i ~ position_sigma / (s_i sqrt(n)), offset ~ sqrt(position_sigma^2 / n + mounting_sigma^2).
     """
-    X = np.asarray(markers_W, dtype=float)
+    X = np.asarray(markers.positions_W, dtype=float)
+    radius_m, position_sigma_m = markers.radius_m, markers.position_sigma_m
+    mounting_sigma_m = markers.mounting_sigma_m
     used: set[int] = set()
     surfaces: list[Surface] = []
     for n, off, members in candidate_planes(X):
@@ -212,14 +267,13 @@ def _in_extent(surface: Surface, points_W: FloatArray) -> tuple[FloatArray, NDAr
 
 
 def surface_returns(
-    surfaces: list[Surface], points_W: FloatArray, scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
-    mu_rad: FloatArray, ranges_m: FloatArray, markers_W: FloatArray, *, gate_m: float = _GATE_M,
-    marker_clearance_m: float = 0.03, max_returns: int = 40000, seed: int = 0, times_s: FloatArray | None = None,
+    surfaces: list[Surface], points_W: FloatArray, rows_in: ReturnRows, markers_W: FloatArray, *,
+    selection: SurfaceSelection = DEFAULT_SELECTION,
     rays_W: tuple[FloatArray, FloatArray] | Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = None,
-    max_incidence_rad: float = MAX_INCIDENCE_RAD,
 ) -> SurfaceReturns:
-    """The returns (rows of the P inputs) on the surfaces, away from markers, at most ``max_returns`` (an even
-    random subsample). points_W (P, 3) are the returns reprojected with the current parameters.
+    """The returns (of the P rows ``rows_in``) on the surfaces, away from markers, at most ``max_returns`` (an even
+    random subsample; the other limits too are the ``selection``'s, :class:`SurfaceSelection`). points_W (P, 3)
+    are the returns reprojected with the current parameters.
 
     rays_W: the returns' beam origins (P, 3) and unit directions (P, 3) with the same parameters, or a function of
     row indices (k,) giving theirs. Given, a return is judged by where its ray meets the plane, not by its measured
@@ -231,6 +285,11 @@ def surface_returns(
     The subsample is the ``max_returns`` accepted returns of lowest :func:`hash_key` (ties: surface by surface, in
     row order), as :func:`hash_sample` of all the accepted ones would choose; the candidates within ``gate_m`` of a
     surface are judged in that order, in batches, until enough are accepted, so the rays of most are never needed."""
+    sel = selection
+    max_returns, seed, gate_m = sel.max_returns, sel.seed, sel.gate_m
+    marker_clearance_m, max_incidence_rad = sel.marker_clearance_m, sel.max_incidence_rad
+    scan, beam, lambda_rad, mu_rad = rows_in.scan, rows_in.beam, rows_in.lambda_rad, rows_in.mu_rad
+    ranges_m, times_s = rows_in.ranges_m, rows_in.times_s
     tree = cKDTree(np.asarray(markers_W))
     cos_max = math.cos(max_incidence_rad)
     rays = (lambda i: (rays_W[0][i], rays_W[1][i])) if isinstance(rays_W, tuple) else rays_W
@@ -279,31 +338,31 @@ def surface_returns(
     )
 
 
-__all__ = ["Surface", "SurfaceReturns", "candidate_planes", "find_surfaces", "hash_key", "hash_sample",
-           "surface_returns"]
+__all__ = ["DEFAULT_SELECTION", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
+           "SurfaceSelection", "candidate_planes", "find_surfaces", "hash_key", "hash_sample", "surface_returns"]
 
 
 def observe_surfaces(
-    ranges_m: FloatArray, mu_rad: FloatArray, lambda_rad: FloatArray, labels: IntArray, markers_W: FloatArray,
-    radius_m: float, params: Params, *, position_sigma_m: float = 0.001, max_returns: int = 40000, seed: int = 0,
-    beam_times_s: FloatArray | None = None, max_incidence_rad: float = MAX_INCIDENCE_RAD,
+    grid: ReturnGrid, markers: PlaneMarkers, params: Params, *, selection: SurfaceSelection = DEFAULT_SELECTION,
     intrinsics: Mapping[str, float] | None = None,
 ) -> tuple[list[Surface], SurfaceReturns]:
     """Find the marker-carrying surfaces and their returns in a recording.
 
     Args:
-        ranges_m (S, N) with NaN for no return; mu_rad (S, N) per-scan bearings (or (N,));
-        lambda_rad (S, N) per-beam motor angles;
-        labels (S, N) blob labels (>= 0 on marker returns, excluded); markers_W (n, 3); radius_m;
+        grid: the recording's returns, scans by beams, with their blob labels (marker returns excluded) and beam
+            times (carried with the returns, for the clock offset) (:class:`ReturnGrid`);
+        markers: the markers the surfaces are found by (:class:`PlaneMarkers`; their uncertainty sets the planes'
+            prior);
         params: lrfcal.model.kinematics.Params used to reproject (the marker-only estimate);
-        beam_times_s (S, N): laser-clock beam times, carried with the returns (for the clock offset);
-        position_sigma_m: uncertainty of the markers' MDS coordinates (sets the planes' prior);
-        max_incidence_rad: the most oblique incidence of a surface return used (ray directions from ``params``);
+        selection: which returns are kept (:class:`SurfaceSelection`; the incidence judged by ray directions from
+            ``params``);
         intrinsics: the estimate's intrinsics by name (lrfcal.model.unknowns; the others at their start), with which
             the returns are reprojected (a range scale found by the markers, say); the returns keep their reported
             values.
     """
-    valid = np.isfinite(ranges_m) & (labels < 0)
+    ranges_m, mu_rad, lambda_rad, beam_times_s = grid.ranges_m, grid.mu_rad, grid.lambda_rad, grid.beam_times_s
+    max_returns, seed = selection.max_returns, selection.seed
+    valid = np.isfinite(ranges_m) & (grid.labels < 0)
     flat = np.flatnonzero(valid)  # the valid returns, row-major as np.nonzero orders them
     scan, beam = np.divmod(flat, valid.shape[1])
     mu_all = np.asarray(mu_rad)
@@ -321,8 +380,7 @@ def observe_surfaces(
     step = max(1, flat.size // 100_000)
     lam_s, mu_s, r_s = take(np.arange(0, flat.size, step))
     r_s, lam_s, mu_s = true_returns(th, r_s, lam_s, mu_s)
-    surfaces = find_surfaces(markers_W, radius_m, sensor_W, points_W(r_s, lam_s, mu_s, params),
-                             position_sigma_m=position_sigma_m)
+    surfaces = find_surfaces(markers, sensor_W, points_W(r_s, lam_s, mu_s, params))
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
     # them all once they hold max_returns accepted ones, so only those rows are reprojected (the same returns as
     # from every row, at a fraction of the work); the threshold grows until they do, at once to the fraction that
@@ -333,11 +391,11 @@ def observe_surfaces(
         rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
         lam_k, mu_k, r_k = take(rows)
         r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
-        returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), scan[rows], beam[rows], lam_k,
-                                  mu_k, r_k, markers_W, max_returns=max_returns, seed=seed,
-                                  times_s=None if times_f is None else times_f[flat[rows]],
-                                  rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]),
-                                  max_incidence_rad=max_incidence_rad)
+        candidates = ReturnRows(scan[rows], beam[rows], lam_k, mu_k, r_k,
+                          None if times_f is None else times_f[flat[rows]])
+        returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
+                                  selection=selection,
+                                  rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]))
         if len(returns) >= max_returns or frac >= 1.0:
             return surfaces, returns
         frac = _next_fraction(frac, len(returns), max_returns)

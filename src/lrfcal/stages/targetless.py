@@ -289,7 +289,8 @@ def _solve_round(fit: Callable[..., Solution], returns: SurfaceReturns, found: l
     if not found:
         raise CalibrationError(f"targetless: after round {rounds - 1} the cloud shows no plane: the estimate does "
                                "not hold the scene's planes together")
-    return fit(returns, Params(MOTOR_FRAME, start.dh), clock_offset_s=start.tau, huber_first=rounds == 1)
+    return fit(returns, Params(MOTOR_FRAME, start.dh), clock_offset_s=start.tau,
+               options=solve.PlaneOptions(huber_first=rounds == 1))
 
 
 #: returns a plane keeps at least (fewer: dropped, mostly grazing returns)
