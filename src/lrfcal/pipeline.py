@@ -3,11 +3,12 @@ reprojection.
 
     calibrate(recording)
       1. the scans the joint states cover, each beam's time              lrfcal.stages.timing
-      2. the observation sets, a start and the solve, one of two ways:
-         with markers (the seed paper, Sec. III and IV-C)               lrfcal.stages.markers.fit_markers
-         from the scene's planes alone (targetless)                      lrfcal.stages.targetless.fit_scene
-         both use one model (lrfcal.model) and one engine (lrfcal.estimate.solve)
-      3. the checks, refused when one fails                              lrfcal.estimate.checks
+      2. one of two ways, through the same steps (:func:`_calibrate`): observe, estimate from each candidate
+         start, refine the observation sets until stable, check
+         with markers (the seed paper, Sec. III and IV-C)               lrfcal.stages.markers.MarkerWay
+         from the scene's planes alone (targetless)                      lrfcal.stages.scene.PlaneWay
+         both use one model (lrfcal.model) and one engine (lrfcal.estimate.engine)
+      3. refused when a check fails                                      lrfcal.estimate.checks
       4. every beam reprojected before and after; tunnel planes          lrfcal.stages.reproject, lrfcal.stages.geometry
 """
 
@@ -17,7 +18,7 @@ import contextlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -26,15 +27,12 @@ from lrfcal.errors import CalibrationError, InputError
 from lrfcal.estimate.checks import clock_offset_check, refuse_failed
 from lrfcal.io.rig import refuse_placeholder_dh
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
-from lrfcal.result import CalibrationResult, PlaneEvidence
+from lrfcal.result import CalibrationResult
 from lrfcal.runtime.forked import on_cores
 from lrfcal.stages import geometry, reproject, timing
 from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
-from lrfcal.stages.markers import STAGES, fit_markers
-from lrfcal.stages.propose import proposal_ahead
-from lrfcal.stages.starts import starts_check
-from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
-from lrfcal.stages.targetless import fit_scene
+from lrfcal.stages.markers import STAGES, MarkerWay
+from lrfcal.stages.scene import PlaneWay
 from lrfcal.stages.timing import usable_scans
 from lrfcal.types import Check, JointStates, Recording, Scans, Solution
 
@@ -102,34 +100,41 @@ def _trimmed_hint(recording: Recording, tau0: float) -> str:
 def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None,
                fitted: Callable[[CalibrationResult], None] | None,
                outputs: Callable[[str, Mapping[str, Any]], None] | None) -> CalibrationResult:
-    """:func:`calibrate` with ``config.range_sigma_m`` resolved."""
-    targetless = _targetless(recording, config)
-    clock = Stopwatch(progress, TARGETLESS_STAGES if targetless else STAGES, outputs)
+    """:func:`calibrate` with ``config.range_sigma_m`` resolved: the method, the same steps for both ways."""
+    way_of = PlaneWay if _targetless(recording, config) else MarkerWay  # the one place the way is chosen
+    clock = Stopwatch(progress, way_of.STAGES, outputs)
     notes: list[str] = []
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
     bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
-    # targetless: the DH search for the check "starts agree" runs in forked children meanwhile (its starts do not
-    # depend on the fit; ended at once if the fit is refused)
-    with proposal_ahead(scans, joints) if targetless else contextlib.nullcontext() as proposal:
-        fit = (fit_scene if targetless else fit_markers)(covered, joints, config, clock, notes)  # 2.
-        fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))
-        if isinstance(fit.evidence, PlaneEvidence) and (config.force or all(c.passed for c in fit.checks)):
-            # the other starts (else refused anyway)
-            fit = replace(fit, checks=_after_settled(fit.checks, starts_check(fit, fit.evidence, joints, config,
-                                                                              proposal)))
-            clock.lap("starts")
-    refuse_failed(list(fit.checks), config)  # 3.
+    way: Way = way_of(covered, joints, config, clock, notes)
+    with way.ahead():  # what runs meanwhile (targetless: the DH search for the check "starts agree")
+        observed = way.observe()  # 2. marker returns, or plane returns
+        started = way.starts(observed)  # the estimate from each candidate start, the one chosen
+        refined = way.refine(started)  # the sets chosen again until stable
+        fit = way.checks(refined, lambda sol: clock_offset_check(sol, *bound))  # 3.
+    refuse_failed(list(fit.checks), config)
     if fit.servo_sign < 0:
         joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
     side_by_side = dict(fit.side_by_side)
-    if config.compare_targetless and not targetless:  # the same recording without its markers, for the report
+    if config.compare_targetless and way_of is MarkerWay:  # the same recording without its markers, for the report
         side_by_side.update(_targetless_opinion(recording, config, notes))
     if fitted is not None:
         fitted(fit)
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
     return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side,
                    config=config)
+
+
+class Way(Protocol):
+    """A way of calibrating (lrfcal.stages.markers.MarkerWay, lrfcal.stages.scene.PlaneWay): its steps, in the order
+    :func:`_calibrate` runs them, each taking what the one before returned."""
+
+    def ahead(self) -> contextlib.AbstractContextManager[None]: ...
+    def observe(self) -> Any: ...
+    def starts(self, observed: Any) -> Any: ...
+    def refine(self, started: Any) -> Any: ...
+    def checks(self, refined: Any, shared: Callable[[Solution], Check]) -> CalibrationResult: ...
 
 
 CLOCK_START = "clock offset: --clock-offset"
@@ -163,12 +168,6 @@ def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float,
             f"farther than the solve finds the offset from ({math.degrees(MAX_START_ERROR_RAD):g} deg); start from "
             f"--clock-offset {found.offset_s:+.3g}" + (" (or leave it at 0)" if found.offset_s != 0.0 else ""))
     return bound, shortest
-
-
-def _after_settled(checks: tuple[Check, ...], check: Check) -> tuple[Check, ...]:
-    """``checks`` with ``check`` after "rounds settled" (or first)."""
-    k = next((i + 1 for i, c in enumerate(checks) if c.name == "rounds settled"), 0)
-    return (*checks[:k], check, *checks[k:])
 
 
 def _targetless(recording: Recording, config: CalibConfig) -> bool:

@@ -61,7 +61,7 @@ class PlaneFit:
 
 @dataclass(frozen=True)
 class MarkerEvidence:
-    """What a calibration with markers rests on (lrfcal.stages.markers.fit_markers): the marker map from the tape,
+    """What a calibration with markers rests on (lrfcal.stages.markers.MarkerWay): the marker map from the tape,
     the intensity blobs, the marker returns solved on (K rows; scan indices into the result's ``recording.scans``)
     and the blobs' association with the map; the paper's method on the same returns (``baseline``: blob peaks, one
     motor angle per scan; None when not run); the planes the markers are mounted on and the surface returns solved
@@ -86,7 +86,7 @@ class MarkerEvidence:
 
 @dataclass(frozen=True)
 class PlaneEvidence:
-    """What a targetless calibration rests on (lrfcal.stages.targetless.fit_scene): the scene's planes and their
+    """What a targetless calibration rests on (lrfcal.stages.scene.PlaneWay): the scene's planes and their
     flatness (:class:`PlaneFit`), and the plane returns of the last segmentation, solved on."""
 
     METHOD: ClassVar[str] = "targetless"

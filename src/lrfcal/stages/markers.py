@@ -13,6 +13,8 @@ the shared stages (checks, reprojection, geometry).
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -35,9 +37,10 @@ from lrfcal.model.marker import MarkerSensor, crossings
 from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.model.unknowns import dh_difference, pack
 from lrfcal.result import CalibrationResult, MarkerEvidence
-from lrfcal.stages import association, detection, joint, mds, start, surfaces, timing
+from lrfcal.stages import association, detection, joint, matching, mds, start, surfaces, timing
 from lrfcal.types import (
     Association,
+    Check,
     Detections,
     JointStates,
     MarkerMap,
@@ -71,60 +74,114 @@ class Alternative:
     unjudged: str = ""
 
 
-def fit_markers(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
-                notes: list[str]) -> CalibrationResult:
-    """Stages 1-6 (module docstring) on ``recording`` (its scans those the joint states cover) and their checks: a
-    result without clouds (lrfcal.pipeline adds them).
+#: the joint result (lrfcal.stages.joint.with_surfaces): the solution, the surfaces, their returns
+JointFit = tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]
 
-    Raises:
-        CalibrationError: no marker returns, no match, or the layout does not determine the DH parameters.
-    """
-    scans, nominal, tau0 = recording.scans, recording.nominal, config.clock_offset_s
-    assert recording.tape is not None
-    markers = mds.marker_map(recording.tape)  # 1.
-    clock.lap("mds")
-    detections = detection.detect(scans)  # 2.
-    if not detections.blobs:
-        raise CalibrationError(f"no marker returns found (intensity threshold {detections.threshold:.0f} counts)")
-    clock.lap("detection")
-    returns = detection.observations(scans, joints, detections, clock_offset_s=tau0)  # 3.
-    passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
-    estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
-    if not estimate_clock:
-        notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
-                     + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
-                        if config.estimate_clock is None else "as asked)"))
-    clock.lap("timing")
-    fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
-                                       config.range_sigma_m))
-    chosen = _servo_alternatives(returns, detections, markers, joints if estimate_clock else None, nominal, config,
-                                 fit, clock)
-    fit = fit.but(estimate=chosen.estimate)
-    chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, config, fit), nominal.dh, fit)
-    notes.extend(chosen.notes)
-    if chosen.sign < 0:
-        joints = _negated(joints)
-    clock.lap("solve", scans=scans, detections=detections, association=chosen.assoc, markers=chosen.markers)
-    recorded = joint.Recorded(recording, joints, detections)
-    chosen, fit, (ours, surface_list, on_surfaces) = _jointly(chosen, recorded, config, fit, notes)
-    if config.surfaces:
-        clock.lap("surfaces")
-    checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, passes, config, fit, nominal.dh)
-    checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
-    ours = _with_turning_systematic(ours, chosen, fit, notes)  # after the checks: they judge the fit
-    baseline = None
-    if config.baseline:
-        baseline = _baseline(chosen, scans, joints, config, fit, notes)
-        clock.lap("baseline")
-    evidence = MarkerEvidence(markers=chosen.markers, detections=detections, observations=chosen.matched,
-                              association=chosen.assoc, baseline=baseline, surfaces=tuple(surface_list),
-                              surface_returns=on_surfaces)
-    return CalibrationResult(
-        recording=recording, evidence=evidence, start=chosen.start, solution=ours, checks=tuple(checks),
-        servo_sign=chosen.sign,
-        side_by_side={"markers only": chosen.solution,
-                      "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
-    )
+
+@dataclass(frozen=True)
+class Observed:
+    """The marker way's observations: the marker map, the blobs, every blob's returns with their motor angles, the
+    sweep's passes (per scan) and whether the clock offset is estimated."""
+
+    markers: MarkerMap
+    detections: Detections
+    returns: Observations
+    passes: np.ndarray
+    estimate_clock: bool
+
+
+class MarkerWay:
+    """Calibration with markers as the steps of lrfcal.pipeline's orchestrator: observe (stages 1-3: the marker map,
+    the marker returns, their times), starts (4.-6.: the marker-only solve from each candidate start, servo direction,
+    handedness, DH representative), refine (6b: jointly with the surfaces, scales the data contradict, the blobs the
+    marker-only fit could not judge), checks (and the turning systematic, the paper's baseline): a result without
+    clouds (lrfcal.pipeline adds them). Raises CalibrationError: no marker returns, no match, or the layout does not
+    determine the DH parameters."""
+
+    STAGES: tuple[str, ...] = ()  # set below the module's STAGES
+
+    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
+                 notes: list[str]) -> None:
+        self.recording, self.joints, self.config, self.clock, self.notes = recording, joints, config, clock, notes
+        nominal = recording.nominal
+        self.fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
+                                                config.range_sigma_m))
+
+    def ahead(self) -> contextlib.AbstractContextManager[None]:
+        """Nothing runs ahead of the marker way."""
+        return contextlib.nullcontext()
+
+    def observe(self) -> Observed:
+        """Stages 1-3: the marker map, the blobs, the marker returns with their motor angles."""
+        recording, joints, config, clock = self.recording, self.joints, self.config, self.clock
+        scans, tau0 = recording.scans, config.clock_offset_s
+        assert recording.tape is not None
+        markers = mds.marker_map(recording.tape)  # 1.
+        clock.lap("mds")
+        detections = detection.detect(scans)  # 2.
+        if not detections.blobs:
+            raise CalibrationError(f"no marker returns found (intensity threshold {detections.threshold:.0f} counts)")
+        clock.lap("detection")
+        returns = detection.observations(scans, joints, detections, clock_offset_s=tau0)  # 3.
+        passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
+        estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
+        if not estimate_clock:
+            self.notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                              + ("a one-way sweep does not separate it from the mount's rotation about the motor "
+                                 "axis)" if config.estimate_clock is None else "as asked)"))
+        clock.lap("timing")
+        self.observed = Observed(markers, detections, returns, passes, estimate_clock)
+        return self.observed
+
+    def starts(self, observed: Observed) -> Alternative:
+        """4.-6.: the marker-only solution from each candidate start (servo direction, handedness, DH
+        representative), the one chosen."""
+        nominal = self.recording.nominal
+        chosen = _servo_alternatives(observed.returns, observed.detections, observed.markers,
+                                     self.joints if observed.estimate_clock else None, nominal, self.config,
+                                     self.fit, self.clock)
+        self.fit = self.fit.but(estimate=chosen.estimate)
+        chosen = _in_nominal_representative(_handedness(chosen, nominal.dh, self.config, self.fit), nominal.dh,
+                                            self.fit)
+        self.notes.extend(chosen.notes)
+        if chosen.sign < 0:
+            self.joints = _negated(self.joints)
+        self.clock.lap("solve", scans=self.recording.scans, detections=observed.detections,
+                       association=chosen.assoc, markers=chosen.markers)
+        return chosen
+
+    def refine(self, chosen: Alternative) -> tuple[Alternative, JointFit]:
+        """6b: the sets chosen again until stable (lrfcal.stages.joint, :func:`_jointly`)."""
+        recorded = joint.Recorded(self.recording, self.joints, self.observed.detections)
+        chosen, self.fit, joint_fit = _jointly(chosen, recorded, self.config, self.fit, self.notes)
+        if self.config.surfaces:
+            self.clock.lap("surfaces")
+        return chosen, joint_fit
+
+    def checks(self, refined: tuple[Alternative, JointFit], shared: Callable[[Solution], Check]
+               ) -> CalibrationResult:
+        """The checks (``shared``: those of both ways, first), the turning systematic, the paper's baseline: the
+        result without clouds."""
+        chosen, (ours, surface_list, on_surfaces) = refined
+        config, fit, nominal = self.config, self.fit, self.recording.nominal
+        checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, self.observed.passes, config, fit,
+                               nominal.dh)
+        checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
+        ours = _with_turning_systematic(ours, chosen, fit, self.notes)  # after the checks: they judge the fit
+        baseline = None
+        if config.baseline:
+            baseline = _baseline(chosen, self.recording.scans, self.joints, config, fit, self.notes)
+            self.clock.lap("baseline")
+        evidence = MarkerEvidence(markers=chosen.markers, detections=self.observed.detections,
+                                  observations=chosen.matched, association=chosen.assoc, baseline=baseline,
+                                  surfaces=tuple(surface_list), surface_returns=on_surfaces)
+        return CalibrationResult(
+            recording=self.recording, evidence=evidence, start=chosen.start, solution=ours,
+            checks=(shared(ours), *checks),
+            servo_sign=chosen.sign,
+            side_by_side={"markers only": chosen.solution,
+                          "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
+        )
 
 
 def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Solver, notes: list[str]) -> Solution:
@@ -207,11 +264,11 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
 
     def associated(sign: int) -> Association | None:  # from the nominal DH, once, when first needed
         if sign not in first:
-            first[sign] = _associate_nominal(signed[sign], detections, markers, nominal, config)
+            first[sign] = matching.associate_nominal(signed[sign], detections, markers, nominal, config)
         return first[sign]
 
     # the DH search runs when neither direction associates well (the other is associated only if the declared fails)
-    search = not any((a := associated(s)) is not None and _good(a, signed[s], config) for s in (1, -1))
+    search = not any((a := associated(s)) is not None and matching.good(a, signed[s], config) for s in (1, -1))
     clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
     alternatives = []
     failures = []
@@ -220,8 +277,8 @@ def _servo_alternatives(returns: Observations, detections: Detections, markers: 
                                                                 config):
             break  # the declared direction fits near the nominal: servo_direction keeps it whatever the other gives
         try:
-            start_dh, assoc = (_associate_search(signed[sign], detections, markers, nominal, config, associated(sign),
-                                                 every_attitude=not alternatives)
+            start_dh, assoc = (matching.associate_search(signed[sign], detections, markers, nominal, config,
+                                                         associated(sign), every_attitude=not alternatives)
                                if search else (nominal.dh, associated(sign)))
             alternatives.append(_marker_solution(sign, start_dh, assoc, markers, signed[sign], joints, config, fit))
         except CalibrationError as err:
@@ -408,58 +465,6 @@ def _marker_solution(
     return Alternative(sign, markers, assoc, matched, start, motor, sol, tuple(notes), estimate)
 
 
-def _attempt(returns: Observations, detections: Detections, markers: MarkerMap, dh: DH, radius_m: float,
-             config: CalibConfig) -> Association | None:
-    """Stage 4 with the blob centres reprojected with ``dh``; None when nothing matches."""
-    centres = detection.blob_centres_M(returns, dh, radius_m, n_blobs=len(detections.blobs))
-    try:
-        return association.associate(centres, markers, gate_m=config.association_gate_m)
-    except CalibrationError:
-        return None
-
-
-def _associate_nominal(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
-                       config: CalibConfig) -> Association | None:
-    return _attempt(returns, detections, markers, nominal.dh, nominal.marker_radius_m, config)
-
-
-#: the share of the blobs an association matches for it to be the rig's (:func:`_good`, :func:`_associate_search`)
-MOST_BLOBS = 0.9
-
-
-def _matches_most(assoc: Association, returns: Observations) -> bool:
-    """Whether an association matches most blobs (MOST_BLOBS of them)."""
-    return assoc.n_matched >= MOST_BLOBS * len(np.unique(returns.blob))
-
-
-def _good(assoc: Association, returns: Observations, config: CalibConfig) -> bool:
-    """An association that leaves nothing to search for: most blobs matched, tight alignment."""
-    return _matches_most(assoc, returns) and assoc.rms_m <= 0.25 * config.association_gate_m
-
-
-def _associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
-                      config: CalibConfig, from_nominal: Association | None, every_attitude: bool = True
-                      ) -> tuple[DH, Association | None]:
-    """The association from the candidates of the correspondence-free DH search (lrfcal.stages.start) or from the
-    nominal
-    DH, the best by (matched blobs, alignment RMS); returns the DH it used and the association (None: none). The
-    search covers the basin around the nominal first, and every attitude of the scan plane (the coarse global start)
-    when no candidate there matches most blobs: a nominal DH far from the rig's is then found, not landed on. (An
-    association that matches most blobs loosely, e.g. with a marker moved after taping, is the rig's: the solve
-    refines it, and the global search, seconds with many blobs, would find nothing better.) ``every_attitude``
-    False: the basin only (the servo's other direction, once the declared one has a solution)."""
-    best_dh, best = nominal.dh, from_nominal
-    for span in (start.ANGLE_SPAN_RAD, start.GLOBAL_SPAN_RAD) if every_attitude else (start.ANGLE_SPAN_RAD,):
-        for dh in start.dh_candidates(returns, len(detections.blobs), markers, nominal.dh, nominal.marker_radius_m,
-                                      span_rad=span):
-            found = _attempt(returns, detections, markers, dh, nominal.marker_radius_m, config)
-            if found is not None and (best is None or (found.n_matched, -found.rms_m) > (best.n_matched, -best.rms_m)):
-                best_dh, best = dh, found
-        if best is not None and _matches_most(best, returns):
-            break
-    return best_dh, best
-
-
 def _negated(joints: JointStates) -> JointStates:
     return JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
 
@@ -482,4 +487,6 @@ STAGES: tuple[str, ...] = ("mds", "detection", "timing", "association", "solve",
                            "reprojection", "geometry")
 
 
-__all__ = ["STAGES", "Alternative", "fit_markers"]
+MarkerWay.STAGES = STAGES
+
+__all__ = ["STAGES", "Alternative", "MarkerWay", "Observed"]

@@ -54,7 +54,7 @@ TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 
 def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: CalibConfig,
                  proposal: Callable[[], propose.DHProposal] | None = None) -> Check:
-    """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.targetless.fit_scene) of ``fit.recording``
+    """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.scene.PlaneWay) of ``fit.recording``
     (the scans the ``joints`` cover), its ``evidence``: the module docstring. ``proposal``: the DH search's proposal on
     those scans and joints when it was begun before (lrfcal.stages.propose.proposal_ahead, during the fit), else
     searched here."""
@@ -134,7 +134,7 @@ def _other_starts(candidates: list[DH], nominal: DH, sol: Solution, est: list[in
 
 def _segmenting(fit: CalibrationResult, joints: JointStates, config: CalibConfig, held: tuple[str, ...]
                 ) -> targetless.Segmenting:
-    """The rounds' shared inputs as lrfcal.stages.targetless.fit_scene made them for ``fit``: the same returns sampled
+    """The rounds' shared inputs as lrfcal.stages.scene.PlaneWay made them for ``fit``: the same returns sampled
     (the held-out scans skipped), the same segmentation sample, the same held parameters, prior and clock."""
     scans = fit.recording.scans
     hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)

@@ -10,6 +10,9 @@
    the start; the others are held at the nominal value            opinion (even / odd passes), held-out planes
                                                                6. reprojection, flatness before / after
 
+The steps run as lrfcal.stages.scene.PlaneWay (lrfcal.pipeline's orchestrator); this module holds the rounds and the
+segmentation they use.
+
 The rounds of 2.-4. before the DH settle segment and solve the segmentation's own sample (SEGMENT_SAMPLES returns)
 when it is at most COARSE_FRACTION of the sampled returns; the settled estimate then segments and solves every
 sampled return once (the same DH to 0.1 sigma in a third to two fifths less time: benchmarks/bench_targetless.py).
@@ -29,26 +32,23 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
-from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from lrfcal.config import CalibConfig, Stopwatch
+from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
-from lrfcal.estimate.checks import plane_checks
-from lrfcal.estimate.information import plane_information
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, points_M
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.scanner import true_returns
-from lrfcal.model.unknowns import CORE_NAMES, core_vector, dh_difference
-from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
+from lrfcal.model.unknowns import core_vector, dh_difference
+from lrfcal.result import PlaneFit
 from lrfcal.runtime.forked import cores
-from lrfcal.stages import holdout, planes, timing
+from lrfcal.stages import planes
 from lrfcal.stages.surfaces import Surface, SurfaceReturns, hash_sample
-from lrfcal.types import Check, JointStates, Recording, Scans, Solution
+from lrfcal.types import Check, JointStates, Scans, Solution
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -71,74 +71,6 @@ class Beams:
 
     def subset(self, idx: NDArray[np.int64]) -> Beams:
         return Beams(self.scan[idx], self.beam[idx], self.ranges_m[idx], self.mu_rad[idx], self.times_s[idx])
-
-
-def fit_scene(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch, notes: list[str]
-              ) -> CalibrationResult:
-    """Stages 1-5 of the module docstring on ``recording`` (its scans those the joint states cover; its markers, if
-    any, ignored) and their checks: a result without clouds (lrfcal.pipeline adds them).
-
-    Raises:
-        CalibrationError: the scene shows no plane, or determines no DH parameter.
-    """
-    notes.insert(0, "targetless: the DH parameters from the flatness of the scene's planes; without markers there "
-                 "is no world frame, so the mount pose is not estimated (frame M)")
-    scans, nominal, tau0 = recording.scans, recording.nominal, config.clock_offset_s
-    motor = MotorClock.from_joints(joints)
-    passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
-    estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
-    # every 5th scan is held out of the fit: the calibration must not make those scans' planes thicker (holdout)
-    hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
-    beams = sample_returns(scans, config.plane_returns, skip=hold)
-    held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
-    seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
-    clock.lap("timing")
-
-    prior = (nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))
-    start = first_round(nominal.dh, tau0, config)
-    first_thickness = start.thickness_m
-    returns, labels, found = start.segment(beams, seg, motor, config)
-    clock.lap("planes")
-    _check_scene(found, returns)
-    # what the scene determines, judged at the start: one information, each judgement takes its part of it
-    scene = observability.Information(*plane_information(returns, Params(MOTOR_FRAME, start.dh),
-                                                         range_sigma_m=config.range_sigma_m, clock=motor,
-                                                         clock_offset_s=tau0))
-    if estimate_clock:
-        estimate_clock = _clock_determined(scene, tau0, notes)
-    held = scene.undetermined_dh(() if estimate_clock else ("clock_offset",), prior[1])
-    held_reason = _held_reason(held)
-    if held_reason:
-        notes.append(held_reason)
-    if len(held) == len(DH_NAMES):
-        raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
-                               "orientations (across the motor axis), or calibrate with markers")
-    solve_at = partial(solve.solve_planes, range_sigma_m=config.range_sigma_m,
-                       clock=motor if estimate_clock else None, hold=held, dh_prior=prior)
-    rs = settle_rounds(Segmenting(beams, seg, motor, config, solve_at), start, (returns, labels, found))
-    sol, unsettled, rounds, (returns, labels, found) = rs.solution, rs.unsettled, rs.rounds, rs.segmented
-    settle = _settle_check(unsettled, sol, rounds)
-    sol = _with_round_difference(sol, unsettled)
-    if not estimate_clock and passes.max() < 1 or config.estimate_clock is False:
-        notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
-                     + ("a one-way sweep does not separate it)" if config.estimate_clock is None else "as asked)"))
-    sol = _consider(sol, returns, motor if estimate_clock else None, held, config, prior)
-    clock.lap("solve")
-
-    checks = [settle, *plane_checks(sol, returns, passes, held, config, prior, nominal.dh)]
-    checks.append(_held_out_check(held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol, first_thickness))
-    clock.lap("checks")
-    lam_b = motor.angles(beams.times_s, tau0)[0]
-    lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
-    before, n_before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels, len(found))
-    after, n_after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels,
-                                     len(found))
-    fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)), held,
-                   held_reason, rounds, n_before, n_after)
-    return CalibrationResult(
-        recording=recording, evidence=PlaneEvidence(plane_fit=fit, returns=returns),
-        start=Params(MOTOR_FRAME, nominal.dh), solution=sol, checks=tuple(checks),
-    )
 
 
 @dataclass(frozen=True)
@@ -252,10 +184,10 @@ def _round_difference(a: Solution, b: Solution) -> FloatArray:
     return np.where(np.isfinite(b.sigma[6:10]), d, 0.0)
 
 
-def _settle_check(before_last: Solution | None, last: Solution, rounds: int) -> Check:
+def settle_check(before_last: Solution | None, last: Solution, rounds: int) -> Check:
     """Whether the segment-and-solve rounds settled (``before_last`` None), or else the last two rounds on every
     return differ by at most SETTLE_LIMIT_SIGMA of the last one's sigma (statistical, before the difference is added
-    to it by :func:`_with_round_difference`)."""
+    to it by :func:`with_round_difference`)."""
     if before_last is None:
         return Check("rounds settled", True, f"the DH moved by less than a tenth of a sigma between two rounds "
                      f"({rounds} rounds)")
@@ -275,7 +207,7 @@ def _settle_check(before_last: Solution | None, last: Solution, rounds: int) -> 
     return Check("rounds settled", ok, detail)
 
 
-def _with_round_difference(sol: Solution, before_last: Solution | None) -> Solution:
+def with_round_difference(sol: Solution, before_last: Solution | None) -> Solution:
     """``sol`` with the difference d (4,) from the round before it added to its DH covariance (d d^T, a model error:
     which returns the segmentation keeps), when the rounds did not settle (``before_last`` not None)."""
     if before_last is None:
@@ -375,75 +307,11 @@ def _on_sample(beams: Beams, seg: NDArray[np.int64], labels: NDArray[np.int64], 
         labels, found
 
 
-def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
-                    thickness_m: float) -> Check:
-    """The held-out scans' planes with the start and with the calibrated parameters (lrfcal.stages.holdout), segmented
-    with the first round's ``thickness_m``."""
-    clouds = [points_M(held.ranges_m, motor.angles(held.times_s, tau)[0], held.mu_rad, dh)
-              for dh, tau in ((start.dh, tau0), (sol.params.dh, sol.clock_offset_s))]
-    result = holdout.held_out_flatness(*clouds, thickness_m)
-    return Check("held-out planes", result.passed, result.detail())
-
-
-def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> None:
-    if not found:
-        raise CalibrationError(
-            "targetless: the scene shows no plane with enough returns (at least 100 within the incidence limit): "
-            "calibrate in a room or with markers")
-
-
-def _clock_determined(scene: observability.Information, tau: float, notes: list[str]) -> bool:
-    """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start, without the
-    design drawing's prior); when not, a note says it is held."""
-    sigma = scene.sigma("clock_offset")
-    limit = observability.LIMITS["clock_offset"]
-    if sigma <= limit:
-        return True
-    notes.append(f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
-                 f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)")
-    return False
-
-
-def _held_reason(held: tuple[str, ...]) -> str:
-    """Why the DH parameters ``held`` are held ("" when none)."""
-    if not held:
-        return ""
-    return (f"the scene's planes do not determine {', '.join(held)} (1-sigma beyond "
-            f"{observability.LIMITS['a'] * 1000:g} mm / {math.degrees(observability.LIMITS['alpha']):g}"
-            f" deg, judged at the start): held at the nominal value, not estimated")
-
-
 def _settled(old: Solution, new: Solution) -> bool:
     """The DH estimate moved by less than a tenth of its sigma between two rounds."""
     d, s = _round_difference(old, new), new.sigma[6:10]
     ok = np.isfinite(s) & (s > 0)
     return bool(np.all(np.abs(d[ok]) <= 0.1 * s[ok]))
-
-
-def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, held: tuple[str, ...],
-              config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
-    """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
-    estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
-    if not held:
-        return sol
-    from dataclasses import replace
-
-    info, names = plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
-                                          clock_offset_s=sol.clock_offset_s, dh_prior=prior)
-    info = info / max(sol.reduced_chi2, 1.0)
-    est = [i for i, n in enumerate(names) if n not in held]
-    hid = [names.index(n) for n in held]
-    S = -np.linalg.solve(info[np.ix_(est, est)], info[np.ix_(est, hid)])
-    tol = dict(zip(DH_NAMES, config.nominal_tolerance, strict=True))
-    extra = S @ np.diag([tol[n] ** 2 for n in held]) @ S.T
-    cov = sol.covariance.copy()
-    pos = {n: CORE_NAMES.index(n) for n in names}
-    for i, a in enumerate(est):
-        for j, b in enumerate(est):
-            ia, ib = pos[names[a]], pos[names[b]]
-            if ia < 10 and ib < 10:
-                cov[ia, ib] += extra[i, j]
-    return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
 def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: NDArray[np.bool_],
@@ -491,5 +359,6 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     return SurfaceReturns(**fields)
 
 
-__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "Segmenting", "first_round", "fit_scene",
+__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "Segmenting", "first_round", "settle_check",
+           "with_round_difference",
            "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns", "settle_rounds"]

@@ -1,0 +1,247 @@
+"""Targetless calibration as the steps of lrfcal.pipeline's orchestrator (the plane way; lrfcal.stages.targetless
+holds its rounds and segmentation): observe (the sampled returns, the start's segmentation and what the scene
+determines), starts (the one start the fit runs from, the rig file's DH; the other starts the data allow are the
+check "starts agree", lrfcal.stages.starts), refine (the segment-and-solve rounds until the DH settle), checks.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, replace
+from functools import partial
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.config import CalibConfig, Stopwatch
+from lrfcal.errors import CalibrationError
+from lrfcal.estimate import observability, solve
+from lrfcal.estimate.checks import plane_checks
+from lrfcal.estimate.information import plane_information
+from lrfcal.model.kinematics import Params, points_M
+from lrfcal.model.motor import MotorClock
+from lrfcal.model.unknowns import CORE_NAMES
+from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
+from lrfcal.stages import holdout, planes, propose, starts, timing
+from lrfcal.stages.surfaces import SurfaceReturns, hash_sample
+from lrfcal.stages.targetless import (
+    DH_NAMES,
+    MOTOR_FRAME,
+    SEGMENT_SAMPLES,
+    STAGES,
+    Beams,
+    Rounds,
+    Segmenting,
+    first_round,
+    sample_returns,
+    settle_check,
+    settle_rounds,
+    with_round_difference,
+)
+from lrfcal.types import Check, JointStates, Recording, Solution
+
+FloatArray = NDArray[np.float64]
+Segmented = tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """The plane way's observations: the sampled returns ``beams`` and the held-out scans' ``held_beams``, the
+    segmentation's sample ``seg``, the start's segmentation, what is held (and why) and whether the clock offset is
+    estimated, the motor clock, the sweep's passes and the design drawing's prior on the DH."""
+
+    beams: Beams
+    held_beams: Beams
+    seg: NDArray[np.int64]
+    segmented: Segmented
+    held: tuple[str, ...]
+    held_reason: str
+    estimate_clock: bool
+    motor: MotorClock
+    passes: NDArray[np.int64]
+    prior: tuple[FloatArray, FloatArray]
+    first_thickness_m: float
+
+
+class PlaneWay:
+    """The targetless way (module docstring) on ``recording`` (its scans those the joint states cover; its markers,
+    if any, ignored): a result without clouds (lrfcal.pipeline adds them).
+    Raises CalibrationError: the scene shows no plane, or determines no DH parameter."""
+
+    STAGES = STAGES
+
+    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
+                 notes: list[str]) -> None:
+        self.recording, self.joints, self.config, self.clock, self.notes = recording, joints, config, clock, notes
+        self.proposal: Callable[[], propose.DHProposal] | None = None
+
+    @contextlib.contextmanager
+    def ahead(self) -> Iterator[None]:
+        """The DH search for the check "starts agree" in forked children meanwhile (its starts do not depend on the
+        fit; ended at once if the fit is refused)."""
+        with propose.proposal_ahead(self.recording.scans, self.joints) as self.proposal:
+            yield
+
+    def observe(self) -> Scene:
+        """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held."""
+        config, clock, notes, joints = self.config, self.clock, self.notes, self.joints
+        notes.insert(0, "targetless: the DH parameters from the flatness of the scene's planes; without markers there "
+                     "is no world frame, so the mount pose is not estimated (frame M)")
+        scans, nominal, tau0 = self.recording.scans, self.recording.nominal, config.clock_offset_s
+        motor = MotorClock.from_joints(joints)
+        passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
+        estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
+        # every 5th scan is held out of the fit: the calibration must not make those scans' planes thicker (holdout)
+        hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
+        beams = sample_returns(scans, config.plane_returns, skip=hold)
+        held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
+        seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
+        clock.lap("timing")
+
+        prior = (nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))
+        start = first_round(nominal.dh, tau0, config)
+        returns, labels, found = start.segment(beams, seg, motor, config)
+        clock.lap("planes")
+        _check_scene(found, returns)
+        # what the scene determines, judged at the start: one information, each judgement takes its part of it
+        scene = observability.Information(*plane_information(returns, Params(MOTOR_FRAME, start.dh),
+                                                             range_sigma_m=config.range_sigma_m, clock=motor,
+                                                             clock_offset_s=tau0))
+        if estimate_clock:
+            estimate_clock = _clock_determined(scene, tau0, notes)
+        held = scene.undetermined_dh(() if estimate_clock else ("clock_offset",), prior[1])
+        held_reason = _held_reason(held)
+        if held_reason:
+            notes.append(held_reason)
+        if len(held) == len(DH_NAMES):
+            raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
+                                   "orientations (across the motor axis), or calibrate with markers")
+        return Scene(beams, held_beams, seg, (returns, labels, found), held, held_reason, estimate_clock, motor,
+                     passes, prior, start.thickness_m)
+
+    def starts(self, scene: Scene) -> Segmenting:
+        """The one start the rounds run from, the rig file's DH (the other starts the data allow: the check "starts
+        agree"), with the solve they share: the held parameters, the prior, the clock."""
+        solve_at = partial(solve.solve_planes, range_sigma_m=self.config.range_sigma_m,
+                           clock=scene.motor if scene.estimate_clock else None, hold=scene.held,
+                           dh_prior=scene.prior)
+        self.scene = scene
+        return Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
+
+    def refine(self, sg: Segmenting) -> tuple[Rounds, Check]:
+        """Stage 4: segment, solve and re-segment until the DH settle (lrfcal.stages.targetless.settle_rounds); the
+        rounds' difference and the held parameters' uncertainty added to the covariance."""
+        config, scene, tau0 = self.config, self.scene, self.config.clock_offset_s
+        start = first_round(self.recording.nominal.dh, tau0, config)
+        rs = settle_rounds(sg, start, scene.segmented)
+        sol, unsettled, rounds, (returns, _, _) = rs.solution, rs.unsettled, rs.rounds, rs.segmented
+        settle = settle_check(unsettled, sol, rounds)
+        sol = with_round_difference(sol, unsettled)
+        if not scene.estimate_clock and scene.passes.max() < 1 or config.estimate_clock is False:
+            self.notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                              + ("a one-way sweep does not separate it)" if config.estimate_clock is None
+                                 else "as asked)"))
+        sol = _consider(sol, returns, scene.motor if scene.estimate_clock else None, scene.held, config, scene.prior)
+        self.clock.lap("solve")
+        return replace(rs, solution=sol), settle
+
+    def checks(self, refined: tuple[Rounds, Check], shared: Callable[[Solution], Check]) -> CalibrationResult:
+        """Stage 5: the checks (``shared``: those of both ways, first), the held-out planes, the flatness before and
+        after; then, when they pass (or forced), the check "starts agree" (lrfcal.stages.starts)."""
+        (rs, settle), scene, config, clock = refined, self.scene, self.config, self.clock
+        sol, rounds, (returns, labels, found) = rs.solution, rs.rounds, rs.segmented
+        nominal, tau0, beams, motor = self.recording.nominal, config.clock_offset_s, scene.beams, scene.motor
+        checks = [settle, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.prior, nominal.dh)]
+        checks.append(_held_out_check(scene.held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol,
+                                      scene.first_thickness_m))
+        clock.lap("checks")
+        lam_b = motor.angles(beams.times_s, tau0)[0]
+        lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
+        before, n_before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels,
+                                           len(found))
+        after, n_after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels,
+                                         len(found))
+        plane_fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)),
+                             scene.held, scene.held_reason, rounds, n_before, n_after)
+        evidence = PlaneEvidence(plane_fit=plane_fit, returns=returns)
+        fit = CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
+                                solution=sol, checks=(shared(sol), *checks))
+        if not (config.force or all(c.passed for c in fit.checks)):
+            return fit  # refused anyway: the other starts are not run
+        fit = replace(fit, checks=_after_settled(fit.checks, starts.starts_check(fit, evidence, self.joints, config,
+                                                                                   self.proposal)))
+        clock.lap("starts")
+        return fit
+
+
+def _after_settled(checks: tuple[Check, ...], check: Check) -> tuple[Check, ...]:
+    """``checks`` with ``check`` after "rounds settled" (or first)."""
+    k = next((i + 1 for i, c in enumerate(checks) if c.name == "rounds settled"), 0)
+    return (*checks[:k], check, *checks[k:])
+
+
+def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
+                    thickness_m: float) -> Check:
+    """The held-out scans' planes with the start and with the calibrated parameters (lrfcal.stages.holdout), segmented
+    with the first round's ``thickness_m``."""
+    clouds = [points_M(held.ranges_m, motor.angles(held.times_s, tau)[0], held.mu_rad, dh)
+              for dh, tau in ((start.dh, tau0), (sol.params.dh, sol.clock_offset_s))]
+    result = holdout.held_out_flatness(*clouds, thickness_m)
+    return Check("held-out planes", result.passed, result.detail())
+
+
+def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> None:
+    if not found:
+        raise CalibrationError(
+            "targetless: the scene shows no plane with enough returns (at least 100 within the incidence limit): "
+            "calibrate in a room or with markers")
+
+
+def _clock_determined(scene: observability.Information, tau: float, notes: list[str]) -> bool:
+    """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start, without the
+    design drawing's prior); when not, a note says it is held."""
+    sigma = scene.sigma("clock_offset")
+    limit = observability.LIMITS["clock_offset"]
+    if sigma <= limit:
+        return True
+    notes.append(f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
+                 f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)")
+    return False
+
+
+def _held_reason(held: tuple[str, ...]) -> str:
+    """Why the DH parameters ``held`` are held ("" when none)."""
+    if not held:
+        return ""
+    return (f"the scene's planes do not determine {', '.join(held)} (1-sigma beyond "
+            f"{observability.LIMITS['a'] * 1000:g} mm / {math.degrees(observability.LIMITS['alpha']):g}"
+            f" deg, judged at the start): held at the nominal value, not estimated")
+
+
+def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, held: tuple[str, ...],
+              config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
+    """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
+    estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
+    if not held:
+        return sol
+    info, names = plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
+                                          clock_offset_s=sol.clock_offset_s, dh_prior=prior)
+    info = info / max(sol.reduced_chi2, 1.0)
+    est = [i for i, n in enumerate(names) if n not in held]
+    hid = [names.index(n) for n in held]
+    S = -np.linalg.solve(info[np.ix_(est, est)], info[np.ix_(est, hid)])
+    tol = dict(zip(DH_NAMES, config.nominal_tolerance, strict=True))
+    extra = S @ np.diag([tol[n] ** 2 for n in held]) @ S.T
+    cov = sol.covariance.copy()
+    pos = {n: CORE_NAMES.index(n) for n in names}
+    for i, a in enumerate(est):
+        for j, b in enumerate(est):
+            ia, ib = pos[names[a]], pos[names[b]]
+            if ia < 10 and ib < 10:
+                cov[ia, ib] += extra[i, j]
+    return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+
+
+__all__ = ["PlaneWay", "Scene"]
