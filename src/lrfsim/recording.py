@@ -63,7 +63,8 @@ def check_output(out_dir: str | Path, overwrite: bool) -> Path:
 def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,
                     bag: bool = True) -> Path:
     """Write the recording folder of ``result`` to ``out_dir`` atomically (module docstring); return it. ``bag``
-    False: everything but the bag (a study's trial reads its messages from memory: :func:`in_memory_bag`)."""
+    False: everything but the bag, whose messages are then read from memory (:func:`in_memory_bag`; a study's trials
+    no longer do: they write and read their bag as a real recording's)."""
     out = check_output(out_dir, overwrite).absolute()
     with atomic_folder(out, "lrfsim simulate") as tmp:
         if bag:
