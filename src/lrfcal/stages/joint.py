@@ -13,14 +13,14 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import partial
+from typing import Protocol
 
-from lrfcal.config import CalibConfig
 from lrfcal.estimate import observability
 from lrfcal.estimate.problem import OnPlanes
 from lrfcal.estimate.solve import Solver
 from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.stages import surfaces, timing
-from lrfcal.stages.targetless import merge_returns, scene_plane_returns
+from lrfcal.stages.targetless import SceneConfig, merge_returns, scene_plane_returns
 from lrfcal.types import Detections, JointStates, MarkerMap, Observations, Recording, Solution
 
 #: an intrinsic scale whose score test steps this many sigma from 1 is estimated (a gear ratio, an angle increment)
@@ -53,6 +53,20 @@ def most_off(sol: Solution, notes: list[str], max_chi2: float) -> str | None:
     return name
 
 
+class JointConfig(SceneConfig, Protocol):
+    """The configuration the joint solve reads: its slice of lrfcal.config.CalibConfig (which satisfies it): the
+    surfaces' options and, for every other plane of the scene, the scene's (lrfcal.stages.targetless.SceneConfig)."""
+
+    @property
+    def surfaces(self) -> bool: ...
+    @property
+    def surface_max_returns(self) -> int: ...
+    @property
+    def estimate_range_bias(self) -> bool: ...
+    @property
+    def all_planes(self) -> bool: ...
+
+
 @dataclass(frozen=True)
 class Recorded:
     """A recording as the joint solve reads it: the recording (its scans and nominal values), its joint states
@@ -64,7 +78,7 @@ class Recorded:
 
 
 def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMap, motor: MotorClock | None,
-                  recorded: Recorded, config: CalibConfig, fit: Solver, notes: list[str]
+                  recorded: Recorded, config: JointConfig, fit: Solver, notes: list[str]
                   ) -> tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]:
     """6b from the marker-only solution ``marker_fit`` of the ``matched`` returns (``motor``: the clock model when
     the clock offset is estimated; ``fit``: lrfcal.estimate.solve.solve bound to the rig): every beam on the markers'
@@ -124,4 +138,4 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
     return ours, list(surface_list), on_surfaces
 
 
-__all__ = ["SCALES", "SCALE_Z_LIMIT", "Recorded", "most_off", "with_surfaces"]
+__all__ = ["SCALES", "JointConfig", "SCALE_Z_LIMIT", "Recorded", "most_off", "with_surfaces"]
