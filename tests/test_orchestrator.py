@@ -58,3 +58,25 @@ def test_each_way_has_the_steps(way: type) -> None:
 def test_each_way_reports_its_stages() -> None:
     assert MarkerWay.STAGES == MARKER_STAGES and "association" in MarkerWay.STAGES
     assert PlaneWay.STAGES == PLANE_STAGES and "planes" in PlaneWay.STAGES
+
+
+@pytest.mark.parametrize("way", [MarkerWay, PlaneWay])
+def test_a_way_keeps_no_state_between_its_steps(way: type) -> None:
+    """A step passes what a later one needs as its result (the next step's argument): no method but ``__init__``
+    assigns an attribute of the way (``self.x = ...``, also as a ``with ... as self.x`` target)."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(way)))
+    set_in = []
+    for fn in ast.walk(tree):
+        if isinstance(fn, ast.FunctionDef) and fn.name != "__init__":
+            for node in ast.walk(fn):
+                if (isinstance(node, ast.Attribute) and isinstance(node.ctx, ast.Store)
+                        and isinstance(node.value, ast.Name) and node.value.id == "self"):
+                    set_in.append(f"{fn.name}: self.{node.attr}")
+    assert not set_in, set_in
+
+
+def test_the_way_protocol_types_its_steps() -> None:
+    """The Way protocol is generic over what each step returns: no step takes or returns Any."""
+    source = inspect.getsource(pipeline.Way)
+    assert "Any" not in source.split('"""')[-1], "a step of Way is typed Any"
+    assert len(pipeline.Way.__parameters__) == 4

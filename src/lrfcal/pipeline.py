@@ -18,7 +18,7 @@ import contextlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -107,9 +107,9 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
     bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
-    way: Way = way_of(covered, joints, config, clock, notes)
-    with way.ahead():  # what runs meanwhile (targetless: the DH search for the check "starts agree")
-        observed = way.observe()  # 2. marker returns, or plane returns
+    way: Way[Any, Any, Any, Any] = way_of(covered, joints, config, clock, notes)  # each way's types: Way's docstring
+    with way.ahead() as meanwhile:  # what runs meanwhile (targetless: the DH search for the check "starts agree")
+        observed = way.observe(meanwhile)  # 2. marker returns, or plane returns
         started = way.starts(observed)  # the estimate from each candidate start, the one chosen
         refined = way.refine(started)  # the sets chosen again until stable
         fit = way.checks(refined, lambda sol: clock_offset_check(sol, *bound))  # 3.
@@ -126,15 +126,26 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
                    config=config)
 
 
-class Way(Protocol):
-    """A way of calibrating (lrfcal.stages.markers.MarkerWay, lrfcal.stages.scene.PlaneWay): its steps, in the order
-    :func:`_calibrate` runs them, each taking what the one before returned."""
+Ahead = TypeVar("Ahead")
+Observed = TypeVar("Observed")
+Started = TypeVar("Started")
+Refined = TypeVar("Refined")
 
-    def ahead(self) -> contextlib.AbstractContextManager[None]: ...
-    def observe(self) -> Any: ...
-    def starts(self, observed: Any) -> Any: ...
-    def refine(self, started: Any) -> Any: ...
-    def checks(self, refined: Any, shared: Callable[[Solution], Check]) -> CalibrationResult: ...
+
+class Way(Protocol[Ahead, Observed, Started, Refined]):
+    """A way of calibrating: its steps, in the order :func:`_calibrate` runs them, each taking what the one before
+    returned (a way keeps no state between its steps): ``ahead`` what runs meanwhile (``Ahead``: what it gives the
+    steps), ``observe`` the observation sets, ``starts`` the estimate from each candidate start and the one chosen,
+    ``refine`` the sets chosen again until stable, ``checks`` the result without clouds. The two ways:
+    ``Way[None, markers.Observed, markers.Started, markers.Refined]`` (lrfcal.stages.markers.MarkerWay) and
+    ``Way[scene.Proposal, scene.Scene, scene.Started, scene.Refined]`` (lrfcal.stages.scene.PlaneWay), checked by
+    mypy (tests/static_types.py); :func:`_calibrate` chooses one at run time, so it holds it as ``Way[Any, ...]``."""
+
+    def ahead(self) -> contextlib.AbstractContextManager[Ahead]: ...
+    def observe(self, ahead: Ahead) -> Observed: ...
+    def starts(self, observed: Observed) -> Started: ...
+    def refine(self, started: Started) -> Refined: ...
+    def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult: ...
 
 
 CLOCK_START = "clock offset: --clock-offset"

@@ -44,13 +44,17 @@ from lrfcal.types import Check, JointStates, Recording, Solution
 
 FloatArray = NDArray[np.float64]
 Segmented = tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
+#: what runs ahead of the plane way: the DH search's proposal, asked for by the check "starts agree"
+#: (lrfcal.stages.propose.proposal_ahead; valid while the way's ``ahead`` context lasts)
+Proposal = Callable[[], propose.DHProposal]
 
 
 @dataclass(frozen=True)
 class Scene:
     """The plane way's observations: the sampled returns ``beams`` and the held-out scans' ``held_beams``, the
     segmentation's sample ``seg``, the start's segmentation, what is held (and why) and whether the clock offset is
-    estimated, the motor clock, the sweep's passes and the design drawing's prior on the DH."""
+    estimated, the motor clock, the sweep's passes, the design drawing's prior on the DH, the first round's planes'
+    thickness and the DH search running ahead (:data:`Proposal`)."""
 
     beams: Beams
     held_beams: Beams
@@ -63,6 +67,14 @@ class Scene:
     passes: NDArray[np.int64]
     prior: tuple[FloatArray, FloatArray]
     first_thickness_m: float
+    proposal: Proposal
+
+
+#: the starts step's outcome: the observations and the rounds' shared inputs from the one start
+Started = tuple[Scene, Segmenting]
+#: the refine step's outcome: the observations, the rounds (their last solution with the model errors added) and
+#: the check "rounds settled"
+Refined = tuple[Scene, Rounds, Check]
 
 
 class PlaneWay:
@@ -75,17 +87,17 @@ class PlaneWay:
     def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
                  notes: list[str]) -> None:
         self.recording, self.joints, self.config, self.clock, self.notes = recording, joints, config, clock, notes
-        self.proposal: Callable[[], propose.DHProposal] | None = None
 
     @contextlib.contextmanager
-    def ahead(self) -> Iterator[None]:
+    def ahead(self) -> Iterator[Proposal]:
         """The DH search for the check "starts agree" in forked children meanwhile (its starts do not depend on the
-        fit; ended at once if the fit is refused)."""
-        with propose.proposal_ahead(self.recording.scans, self.joints) as self.proposal:
-            yield
+        fit; ended at once if the fit is refused): its proposal, when asked for."""
+        with propose.proposal_ahead(self.recording.scans, self.joints) as proposal:
+            yield proposal
 
-    def observe(self) -> Scene:
-        """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held."""
+    def observe(self, ahead: Proposal) -> Scene:
+        """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held
+        (``ahead``: the DH search's proposal, kept for the check "starts agree")."""
         config, clock, notes, joints = self.config, self.clock, self.notes, self.joints
         notes.insert(0, "targetless: the DH parameters from the flatness of the scene's planes; without markers there "
                      "is no world frame, so the mount pose is not estimated (frame M)")
@@ -119,21 +131,20 @@ class PlaneWay:
             raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
                                    "orientations (across the motor axis), or calibrate with markers")
         return Scene(beams, held_beams, seg, (returns, labels, found), held, held_reason, estimate_clock, motor,
-                     passes, prior, start.thickness_m)
+                     passes, prior, start.thickness_m, ahead)
 
-    def starts(self, scene: Scene) -> Segmenting:
+    def starts(self, scene: Scene) -> Started:
         """The one start the rounds run from, the rig file's DH (the other starts the data allow: the check "starts
         agree"), with the solve they share: the held parameters, the prior, the clock."""
         solve_at = partial(solve.solve_planes, range_sigma_m=self.config.range_sigma_m,
                            clock=scene.motor if scene.estimate_clock else None, hold=scene.held,
                            dh_prior=scene.prior)
-        self.scene = scene
-        return Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
+        return scene, Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
 
-    def refine(self, sg: Segmenting) -> tuple[Rounds, Check]:
+    def refine(self, started: Started) -> Refined:
         """Stage 4: segment, solve and re-segment until the DH settle (lrfcal.stages.targetless.settle_rounds); the
         rounds' difference and the held parameters' uncertainty added to the covariance."""
-        config, scene, tau0 = self.config, self.scene, self.config.clock_offset_s
+        (scene, sg), config, tau0 = started, self.config, self.config.clock_offset_s
         start = first_round(self.recording.nominal.dh, tau0, config)
         rs = settle_rounds(sg, start, scene.segmented)
         sol, unsettled, rounds, (returns, _, _) = rs.solution, rs.unsettled, rs.rounds, rs.segmented
@@ -145,12 +156,12 @@ class PlaneWay:
                                  else "as asked)"))
         sol = _consider(sol, returns, scene.motor if scene.estimate_clock else None, scene.held, config, scene.prior)
         self.clock.lap("solve")
-        return replace(rs, solution=sol), settle
+        return scene, replace(rs, solution=sol), settle
 
-    def checks(self, refined: tuple[Rounds, Check], shared: Callable[[Solution], Check]) -> CalibrationResult:
+    def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult:
         """Stage 5: the checks (``shared``: those of both ways, first), the held-out planes, the flatness before and
         after; then, when they pass (or forced), the check "starts agree" (lrfcal.stages.starts)."""
-        (rs, settle), scene, config, clock = refined, self.scene, self.config, self.clock
+        (scene, rs, settle), config, clock = refined, self.config, self.clock
         sol, rounds, (returns, labels, found) = rs.solution, rs.rounds, rs.segmented
         nominal, tau0, beams, motor = self.recording.nominal, config.clock_offset_s, scene.beams, scene.motor
         checks = [settle, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.prior, nominal.dh)]
@@ -171,7 +182,7 @@ class PlaneWay:
         if not (config.force or all(c.passed for c in fit.checks)):
             return fit  # refused anyway: the other starts are not run
         fit = replace(fit, checks=_after_settled(fit.checks, starts.starts_check(fit, evidence, self.joints, config,
-                                                                                   self.proposal)))
+                                                                                   scene.proposal)))
         clock.lap("starts")
         return fit
 
@@ -244,4 +255,4 @@ def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, 
     return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
-__all__ = ["PlaneWay", "Scene"]
+__all__ = ["PlaneWay", "Proposal", "Refined", "Scene", "Started"]
