@@ -26,9 +26,8 @@ def slices(config: CalibConfig) -> tuple[CheckConfig, JointConfig, MatchConfig, 
     return config, config, config, config, config, config, config
 
 
-def ways(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch, notes: list[str]
+def ways(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch
          ) -> tuple[Way[None, markers.Observed, markers.Started, markers.Refined],
                     Way[scene.Proposal, scene.Scene, scene.Started, scene.Refined]]:
     """Each way as the Way of its steps' types (mypy rejects the return if a step takes or returns another type)."""
-    return (markers.MarkerWay(recording, joints, config, clock, notes),
-            scene.PlaneWay(recording, joints, config, clock, notes))
+    return markers.MarkerWay(recording, joints, config, clock), scene.PlaneWay(recording, joints, config, clock)

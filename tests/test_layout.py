@@ -92,6 +92,22 @@ def test_stages_read_their_configuration_slice() -> None:
     assert not bad, "stages outside the ways take the whole CalibConfig (give them a slice):\n" + "\n".join(bad)
 
 
+def test_notes_are_returned_not_appended() -> None:
+    """No function of lrfcal takes a list of notes to append to (an out-parameter): a stage returns its notes with
+    its result (lrfcal.types.Noted, or a field of the result it returns), and the way and the orchestrator collect
+    them into CalibrationResult.notes."""
+    bad = []
+    for path in sorted((SRC / "lrfcal").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                for arg in (*a.posonlyargs, *a.args, *a.kwonlyargs):
+                    if arg.arg == "notes" and arg.annotation is not None and \
+                            ast.unparse(arg.annotation).startswith("list"):
+                        bad.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}({arg.arg})")
+    assert not bad, "functions append to a list of notes passed in (return them instead):\n" + "\n".join(bad)
+
+
 def test_import_lrfcal_is_light() -> None:
     """``import lrfcal`` (and its error types) imports neither numpy's heavy neighbours nor the message types."""
     code = ("import sys, lrfcal; lrfcal.InputError; "

@@ -34,7 +34,7 @@ from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
 from lrfcal.stages.markers import STAGES, MarkerWay
 from lrfcal.stages.scene import PlaneWay
 from lrfcal.stages.timing import usable_scans
-from lrfcal.types import Check, JointStates, Recording, Scans, Solution
+from lrfcal.types import Check, JointStates, Noted, Recording, Scans, Solution
 
 
 def calibrate(
@@ -103,11 +103,11 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     """:func:`calibrate` with ``config.range_sigma_m`` resolved: the method, the same steps for both ways."""
     way_of = PlaneWay if _targetless(recording, config) else MarkerWay  # the one place the way is chosen
     clock = Stopwatch(progress, way_of.STAGES, outputs)
-    notes: list[str] = []
-    scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
+    timed = usable_scans(recording, config.clock_offset_s, config.range_sigma_m)  # 1.
+    scans, joints = timed.value
     bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
-    way: Way[Any, Any, Any, Any] = way_of(covered, joints, config, clock, notes)  # each way's types: Way's docstring
+    way: Way[Any, Any, Any, Any] = way_of(covered, joints, config, clock)  # each way's types: Way's docstring
     with way.ahead() as meanwhile:  # what runs meanwhile (targetless: the DH search for the check "starts agree")
         observed = way.observe(meanwhile)  # 2. marker returns, or plane returns
         started = way.starts(observed)  # the estimate from each candidate start, the one chosen
@@ -116,14 +116,13 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     refuse_failed(list(fit.checks), config)
     if fit.servo_sign < 0:
         joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
-    side_by_side = dict(fit.side_by_side)
-    if config.compare_targetless and way_of is MarkerWay:  # the same recording without its markers, for the report
-        side_by_side.update(_targetless_opinion(recording, config, notes))
+    opinion = (_targetless_opinion(recording, config) if config.compare_targetless and way_of is MarkerWay
+               else Noted({}))  # the same recording without its markers, for the report
     if fitted is not None:
         fitted(fit)
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
-    return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side,
-                   config=config)
+    return replace(fit, **clouds, timings_s=clock.laps, notes=(*way_of.NOTES, *timed.notes, *fit.notes, *opinion.notes),
+                   side_by_side={**fit.side_by_side, **opinion.value}, config=config)
 
 
 Ahead = TypeVar("Ahead")
@@ -197,15 +196,14 @@ def _targetless(recording: Recording, config: CalibConfig) -> bool:
     return bool(targetless)
 
 
-def _targetless_opinion(recording: Recording, config: CalibConfig, notes: list[str]) -> dict[str, Solution]:
+def _targetless_opinion(recording: Recording, config: CalibConfig) -> Noted[dict[str, Solution]]:
     """The targetless calibration of a recording with markers, beside the marker results (empty, with a note, when it
     is refused)."""
     try:
         tl = calibrate(recording, config.replace(targetless=True, force=False, geometry=False, clouds=False))
-        return {"targetless (markers ignored)": tl.solution}
+        return Noted({"targetless (markers ignored)": tl.solution})
     except CalibrationError as err:
-        notes.append(f"the targetless calibration of the same recording was refused: {err}")
-        return {}
+        return Noted({}, (f"the targetless calibration of the same recording was refused: {err}",))
 
 
 def _reproject(recording: Recording, joints: JointStates, sol: Solution, config: CalibConfig, clock: Stopwatch

@@ -48,7 +48,7 @@ class Alternative:
     start: Params
     clock: MotorClock | None
     solution: Solution
-    notes: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()  # what its start noted (MarkerWay.refine: then what its refinement noted)
     estimate: tuple[str, ...] = ()  # the unknowns held by default that its solves estimate (SCALES found off)
     #: a disagreement with the marker map (in words) that the marker-only fit found but could not judge, as it does
     #: not determine the DH parameters (one scan line per marker): judged at the joint solution (_judged_jointly)
@@ -176,8 +176,9 @@ def _marker_solution(
     sol = fit(matched, markers, start, clock=Clock(motor, config.clock_offset_s))
     notes: list[str] = []
     estimate: tuple[str, ...] = ()
-    while off := joint.most_off(sol, notes, config.max_reduced_chi2):  # before any marker is judged moved: a range
-        estimate = (*estimate, off)                              # scale moves every far marker from its tape position
+    while off := joint.most_off(sol, config.max_reduced_chi2):  # before any marker is judged moved: a range scale
+        notes += off.notes                                      # moves every far marker from its tape position
+        estimate = (*estimate, off.value)
         fit = fit.but(estimate=estimate)
         sol = fit(matched, markers, sol.params, clock=Clock(motor, sol.clock_offset_s))
     # blobs whose returns the fit rejects (most of them beyond 4 sigma) are matched wrongly or sit on a marker

@@ -29,12 +29,10 @@ from lrfcal.model.marker import MarkerSensor, crossings
 from lrfcal.model.motor import Clock
 from lrfcal.model.unknowns import dh_difference, pack
 from lrfcal.result import CalibrationResult, MarkerEvidence
-from lrfcal.stages import alternatives, association, detection, joint, mds, surfaces, timing
+from lrfcal.stages import alternatives, association, detection, joint, mds, timing
 from lrfcal.stages.alternatives import Alternative
-from lrfcal.types import Check, Detections, JointStates, MarkerMap, Observations, Recording, Scans, Solution
-
-#: the joint result (lrfcal.stages.joint.with_surfaces): the solution, the surfaces, their returns
-JointFit = tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]
+from lrfcal.stages.joint import JointFit
+from lrfcal.types import Check, Detections, JointStates, MarkerMap, Noted, Observations, Recording, Scans, Solution
 
 
 @dataclass(frozen=True)
@@ -47,6 +45,7 @@ class Observed:
     returns: Observations
     passes: np.ndarray
     estimate_clock: bool
+    notes: tuple[str, ...] = ()  # what observing them noted (the clock offset held)
 
 
 #: the starts step's outcome: the observations and the alternative chosen
@@ -64,10 +63,10 @@ class MarkerWay:
     determine the DH parameters."""
 
     STAGES: tuple[str, ...] = ()  # set below the module's STAGES
+    NOTES: tuple[str, ...] = ()  # what every calibration with markers notes first: nothing
 
-    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
-                 notes: list[str]) -> None:
-        self.recording, self.joints, self.config, self.clock, self.notes = recording, joints, config, clock, notes
+    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch) -> None:
+        self.recording, self.joints, self.config, self.clock = recording, joints, config, clock
         nominal = recording.nominal
         self.fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
                                                 config.range_sigma_m))
@@ -91,12 +90,12 @@ class MarkerWay:
         returns = detection.observations(scans, joints, detections, clock_offset_s=tau0)  # 3.
         passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
         estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
-        if not estimate_clock:
-            self.notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
-                              + ("a one-way sweep does not separate it from the mount's rotation about the motor "
-                                 "axis)" if config.estimate_clock is None else "as asked)"))
+        held = () if estimate_clock else (
+            f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+            + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
+               if config.estimate_clock is None else "as asked)"),)
         clock.lap("timing")
-        return Observed(markers, detections, returns, passes, estimate_clock)
+        return Observed(markers, detections, returns, passes, estimate_clock, held)
 
     def starts(self, observed: Observed) -> Started:
         """4.-6.: the marker-only solution from each candidate start (servo direction, handedness, DH
@@ -108,19 +107,20 @@ class MarkerWay:
         fit = self._fit(chosen)
         chosen = alternatives.in_nominal_representative(alternatives.handedness(chosen, nominal.dh, self.config, fit),
                                                         nominal.dh, fit)
-        self.notes.extend(chosen.notes)
         self.clock.lap("solve", scans=self.recording.scans, detections=observed.detections,
                        association=chosen.assoc, markers=chosen.markers)
         return observed, chosen
 
     def refine(self, started: Started) -> Refined:
-        """6b: the sets chosen again until stable (lrfcal.stages.joint, :func:`_jointly`)."""
+        """6b: the sets chosen again until stable (lrfcal.stages.joint, :func:`_jointly`); the refinement's notes
+        follow the start's in the alternative's."""
         observed, chosen = started
         recorded = joint.Recorded(self.recording, _signed(self.joints, chosen.sign), observed.detections)
-        chosen, joint_fit = _jointly(chosen, recorded, self.config, self._fit(chosen), self.notes)
+        jointly = _jointly(chosen, recorded, self.config, self._fit(chosen))
+        (chosen, joint_fit), notes = jointly.value, jointly.notes
         if self.config.surfaces:
             self.clock.lap("surfaces")
-        return observed, chosen, joint_fit
+        return observed, replace(chosen, notes=(*chosen.notes, *notes)), joint_fit
 
     def _fit(self, chosen: Alternative) -> solve.Solver:
         """The marker solve for ``chosen``: the rig's, estimating the unknowns ``chosen`` found the data need."""
@@ -134,75 +134,74 @@ class MarkerWay:
         checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, observed.passes, config, fit,
                                nominal.dh)
         checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
-        ours = _with_turning_systematic(ours, chosen, fit, self.notes)  # after the checks: they judge the fit
-        baseline = None
+        turning = _with_turning_systematic(ours, chosen, fit)  # after the checks: they judge the fit
+        ours, baseline = turning.value, Noted(None)
         if config.baseline:
-            baseline = _baseline(chosen, self.recording.scans, _signed(self.joints, chosen.sign), config, fit,
-                                 self.notes)
+            baseline = _baseline(chosen, self.recording.scans, _signed(self.joints, chosen.sign), config, fit)
             self.clock.lap("baseline")
         evidence = MarkerEvidence(markers=chosen.markers, detections=observed.detections,
-                                  observations=chosen.matched, association=chosen.assoc, baseline=baseline,
+                                  observations=chosen.matched, association=chosen.assoc, baseline=baseline.value,
                                   surfaces=tuple(surface_list), surface_returns=on_surfaces)
         return CalibrationResult(
             recording=self.recording, evidence=evidence, start=chosen.start, solution=ours,
             checks=(shared(ours), *checks),
-            servo_sign=chosen.sign,
+            servo_sign=chosen.sign, notes=(*observed.notes, *chosen.notes, *turning.notes, *baseline.notes),
             side_by_side={"markers only": chosen.solution,
                           "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
         )
 
 
-def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Solver, notes: list[str]) -> Solution:
+def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Solver) -> Noted[Solution]:
     """``ours`` with the DH covariance widened by d d^T, d the difference the model variant makes where the sweep
     turns on a marker (lrfcal.model.marker.crossings: only the in-plane part of those crossings' lateral residual,
     solve(in_plane_at_turns=True)), between the two marker-only solutions. The lines of a turning crossing crowd
     about the turning point and bias the part across the scan plane; the variant leaves that part out and loses its
     information, so neither is right alone, and their difference is a model error the noise's sigma does not hold
-    (docs/study.md, "A crossing that turns on its marker"). Unchanged where no crossing turns."""
+    (docs/study.md, "A crossing that turns on its marker"), with a note saying so. Unchanged where no crossing
+    turns."""
     sol = chosen.solution
     pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, fit.sensor)
     th, R_ref = pack(sol.params, sol.clock_offset_s)
     if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
-        return ours
+        return Noted(ours)
     try:
         variant = fit(chosen.matched, chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s),
                       in_plane_at_turns=True)
     except CalibrationError:
-        return ours
+        return Noted(ours)
     d = dh_difference(variant.params.dh.vector(), sol.params.dh.vector())
-    notes.append("crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral "
-                 f"residual differ by {dh_text(DH(*d))}, added to the covariance")
-    return ours.with_dh_systematic(d)
+    return Noted(ours.with_dh_systematic(d), (
+        "crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral residual "
+        f"differ by {dh_text(DH(*d))}, added to the covariance",))
 
 
-def _jointly(chosen: Alternative, recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver, notes: list[str]
-             ) -> tuple[Alternative, JointFit]:
+def _jointly(chosen: Alternative, recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver
+             ) -> Noted[tuple[Alternative, JointFit]]:
     """6b (lrfcal.stages.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale
     the
     data contradict estimated (lrfcal.stages.joint.most_off); then the disagreement with the marker map that the
     marker-only fit found but could not judge (``chosen.unjudged``) judged at the joint solution. ``chosen`` as it
     ends up (its solve: ``fit`` estimating ``chosen.estimate``), and the joint result
-    (lrfcal.stages.joint.with_surfaces)."""
+    (lrfcal.stages.joint.with_surfaces), with their notes: the scales found off, the blobs judged, the joint
+    solve's."""
+    notes: list[str] = []
     while True:
-        tried: list[str] = []
         joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recorded,
-                                        config, fit, tried)
-        if not (off := joint.most_off(joint_fit[0], notes, config.max_reduced_chi2)):
+                                        config, fit)
+        if not (off := joint.most_off(joint_fit.value[0], config.max_reduced_chi2)):
             break
-        chosen = replace(chosen, estimate=(*chosen.estimate, off))  # estimated in every solve from the start on
+        notes += off.notes
+        chosen = replace(chosen, estimate=(*chosen.estimate, off.value))  # estimated in every solve from then on
         fit = fit.but(estimate=chosen.estimate)
         chosen = replace(chosen, solution=_refit(chosen, chosen.matched, fit))
     if chosen.unjudged:
-        chosen, joint_fit, tried = _judged_jointly(chosen, joint_fit, recorded, config, fit, notes)
-    notes.extend(tried)
-    return chosen, joint_fit
+        chosen, joint_fit, judged = _judged_jointly(chosen, joint_fit.value, recorded, config, fit)
+        notes += judged
+    return Noted((chosen, joint_fit.value), (*notes, *joint_fit.notes))
 
 
-def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surfaces.Surface],
-                                                          surfaces.SurfaceReturns | None],
-                    recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver, notes: list[str]
-                    ) -> tuple[Alternative, tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None],
-                               list[str]]:
+def _judged_jointly(chosen: Alternative, joint_fit: JointFit, recorded: joint.Recorded, config: CalibConfig,
+                    fit: solve.Solver) -> tuple[Alternative, Noted[JointFit], tuple[str, ...]]:
     """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
     not determine the DH parameters (one scan line per marker: there a wrong match cannot be told from a moved
     marker, and a good marker can look moved), judged at the joint solution ``joint_fit``, whose surfaces determine
@@ -210,7 +209,8 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
     most
     three times. Where no surface returns lie where the marker-only fit puts them (a wrong match can pull it far),
     the joint solution starts from the marker-only fit without the blobs it finds disagreeing, and every blob is
-    judged from there. ``chosen`` with the blobs so kept, the joint result and its notes.
+    judged from there. ``chosen`` with the blobs so kept, the joint result (with the joint solve's notes) and the
+    judgement's notes.
 
     Raises:
         CalibrationError: no surface returns to judge by, or blobs that still disagree after three are left out.
@@ -224,20 +224,20 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
                 break
             kept = alternatives.without_blobs(*kept, bad, why)
             sol = fit(kept[1], chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s))
-            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recorded, config, fit,
-                                             [])[0]) is not sol:
+            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recorded, config,
+                                             fit).value[0]) is not sol:
                 break
     no_surfaces = CalibrationError(observability.unjudged_refusal(
         _observability(chosen.solution), "the markers alone", "and no surface returns were found to add",
         chosen.unjudged))
     if start is chosen.solution or start.n_surface_returns == 0:
         raise no_surfaces
+    notes: list[str] = []
     for left_out in range(4):  # every round from that start: one with a wrong blob in can be far off
-        tried: list[str] = []
-        joint_fit = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recorded, config, fit, tried)
-        if joint_fit[0] is start:  # no surface returns for these blobs
+        tried = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recorded, config, fit)
+        if tried.value[0] is start:  # no surface returns for these blobs
             raise no_surfaces
-        bad, why = association.inconsistent_blobs(matched, joint_fit[0], chosen.markers, config.range_sigma_m)
+        bad, why = association.inconsistent_blobs(matched, tried.value[0], chosen.markers, config.range_sigma_m)
         if not bad.size:
             if not left_out:
                 notes.append(f"the marker-only fit disagreed with the marker map ({chosen.unjudged}); the joint "
@@ -246,13 +246,13 @@ def _judged_jointly(chosen: Alternative, joint_fit: tuple[Solution, list[surface
             break
         if left_out == 3:
             raise CalibrationError(observability.unjudged_refusal(  # what leads: the cause the data support
-                _observability(joint_fit[0]), "the markers and the surfaces they sit on", "",
+                _observability(tried.value[0]), "the markers and the surfaces they sit on", "",
                 f"{why.removesuffix(': left out')}, judged at the joint solution with the surfaces, after three "
                 "blobs were left out"))
         notes.append(f"{why} (judged at the joint solution with the surfaces)")
         assoc, matched = alternatives.without_blobs(assoc, matched, bad, why)
     chosen = replace(chosen, assoc=assoc, matched=matched, unjudged="", solution=_refit(chosen, matched, fit))
-    return chosen, joint_fit, tried
+    return chosen, tried, tuple(notes)
 
 
 def _observability(sol: Solution) -> observability.Observability:
@@ -265,18 +265,17 @@ def _refit(chosen: Alternative, matched: Observations, fit: solve.Solver) -> Sol
                clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
 
 
-def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig,
-              fit: solve.Solver, notes: list[str]) -> Solution | None:
+def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig, fit: solve.Solver
+              ) -> Noted[Solution | None]:
     """The paper's method: the blob's brightest beam, the motor angle at the scan's stamp, point-to-centre residuals,
     on the same detections and association (None, with a note, when it cannot run)."""
     peaks = chosen.matched.subset(chosen.matched.is_peak)
     lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
     peaks = alternatives.replace_arrays(peaks, lambda_rad=lambda_scan[peaks.scan])
     try:
-        return fit.paper()(peaks, chosen.markers, chosen.start)
+        return Noted(fit.paper()(peaks, chosen.markers, chosen.start))
     except CalibrationError as err:
-        notes.append(f"the paper's method could not be run: {err}")
-        return None
+        return Noted(None, (f"the paper's method could not be run: {err}",))
 
 
 def _signed(joints: JointStates, sign: int) -> JointStates:

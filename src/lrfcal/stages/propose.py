@@ -288,8 +288,8 @@ def propose_for_recording(scans: Scans, joints: JointStates,
     angle cannot be interpolated gets no proposal, and the reason."""
     placeholder = Nominal(dh=DH(a=0.0, alpha=0.0, b=0.0, beta=0.0))
     try:
-        covered, joints = usable_scans(Recording(scans=scans, joints=joints, tape=None, nominal=placeholder), 0.0, [],
-                                       RANGE_SIGMA_M)
+        covered, joints = usable_scans(Recording(scans=scans, joints=joints, tape=None, nominal=placeholder), 0.0,
+                                       RANGE_SIGMA_M).value
     except CalibrationError as err:
         return DHProposal(None, reason=str(err))
     return propose_dh(covered, joints, progress)

@@ -40,7 +40,7 @@ from lrfcal.stages.targetless import (
     settle_rounds,
     with_round_difference,
 )
-from lrfcal.types import Check, JointStates, Recording, Solution
+from lrfcal.types import Check, JointStates, Noted, Recording, Solution
 
 FloatArray = NDArray[np.float64]
 Segmented = tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
@@ -68,6 +68,9 @@ class Scene:
     prior: tuple[FloatArray, FloatArray]
     first_thickness_m: float
     proposal: Proposal
+    #: what the plane way noted so far, in order (the scene's: the clock offset held, the parameters held; then the
+    #: refinement's, :meth:`PlaneWay.refine`)
+    notes: tuple[str, ...] = ()
 
 
 #: the starts step's outcome: the observations and the rounds' shared inputs from the one start
@@ -84,9 +87,12 @@ class PlaneWay:
 
     STAGES = STAGES
 
-    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
-                 notes: list[str]) -> None:
-        self.recording, self.joints, self.config, self.clock, self.notes = recording, joints, config, clock, notes
+    #: what every targetless calibration notes first (before the orchestrator's notes on the scans)
+    NOTES = ("targetless: the DH parameters from the flatness of the scene's planes; without markers there is no world "
+             "frame, so the mount pose is not estimated (frame M)",)
+
+    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch) -> None:
+        self.recording, self.joints, self.config, self.clock = recording, joints, config, clock
 
     @contextlib.contextmanager
     def ahead(self) -> Iterator[Proposal]:
@@ -98,9 +104,8 @@ class PlaneWay:
     def observe(self, ahead: Proposal) -> Scene:
         """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held
         (``ahead``: the DH search's proposal, kept for the check "starts agree")."""
-        config, clock, notes, joints = self.config, self.clock, self.notes, self.joints
-        notes.insert(0, "targetless: the DH parameters from the flatness of the scene's planes; without markers there "
-                     "is no world frame, so the mount pose is not estimated (frame M)")
+        config, clock, joints = self.config, self.clock, self.joints
+        notes: list[str] = []
         scans, nominal, tau0 = self.recording.scans, self.recording.nominal, config.clock_offset_s
         motor = MotorClock.from_joints(joints)
         passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
@@ -122,7 +127,9 @@ class PlaneWay:
                                                              range_sigma_m=config.range_sigma_m, clock=motor,
                                                              clock_offset_s=tau0))
         if estimate_clock:
-            estimate_clock = _clock_determined(scene, tau0, notes)
+            determined = _clock_determined(scene, tau0)
+            estimate_clock = determined.value
+            notes += determined.notes
         held = scene.undetermined_dh(() if estimate_clock else ("clock_offset",), prior[1])
         held_reason = _held_reason(held)
         if held_reason:
@@ -131,7 +138,7 @@ class PlaneWay:
             raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
                                    "orientations (across the motor axis), or calibrate with markers")
         return Scene(beams, held_beams, seg, (returns, labels, found), held, held_reason, estimate_clock, motor,
-                     passes, prior, start.thickness_m, ahead)
+                     passes, prior, start.thickness_m, ahead, tuple(notes))
 
     def starts(self, scene: Scene) -> Started:
         """The one start the rounds run from, the rig file's DH (the other starts the data allow: the check "starts
@@ -151,9 +158,9 @@ class PlaneWay:
         settle = settle_check(unsettled, sol, rounds)
         sol = with_round_difference(sol, unsettled)
         if not scene.estimate_clock and scene.passes.max() < 1 or config.estimate_clock is False:
-            self.notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
-                              + ("a one-way sweep does not separate it)" if config.estimate_clock is None
-                                 else "as asked)"))
+            scene = replace(scene, notes=(*scene.notes, f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                                          + ("a one-way sweep does not separate it)" if config.estimate_clock is None
+                                             else "as asked)")))
         sol = _consider(sol, returns, scene.motor if scene.estimate_clock else None, scene.held, config, scene.prior)
         self.clock.lap("solve")
         return scene, replace(rs, solution=sol), settle
@@ -178,7 +185,7 @@ class PlaneWay:
                              scene.held, scene.held_reason, rounds, n_before, n_after)
         evidence = PlaneEvidence(plane_fit=plane_fit, returns=returns)
         fit = CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
-                                solution=sol, checks=(shared(sol), *checks))
+                                solution=sol, checks=(shared(sol), *checks), notes=scene.notes)
         if not (config.force or all(c.passed for c in fit.checks)):
             return fit  # refused anyway: the other starts are not run
         fit = replace(fit, checks=_after_settled(fit.checks, starts.starts_check(fit, evidence, self.joints, config,
@@ -210,16 +217,15 @@ def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> Non
             "calibrate in a room or with markers")
 
 
-def _clock_determined(scene: observability.Information, tau: float, notes: list[str]) -> bool:
+def _clock_determined(scene: observability.Information, tau: float) -> Noted[bool]:
     """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start, without the
     design drawing's prior); when not, a note says it is held."""
     sigma = scene.sigma("clock_offset")
     limit = observability.LIMITS["clock_offset"]
     if sigma <= limit:
-        return True
-    notes.append(f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
-                 f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)")
-    return False
+        return Noted(True)
+    return Noted(False, (f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
+                         f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)",))
 
 
 def _held_reason(held: tuple[str, ...]) -> str:
