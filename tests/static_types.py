@@ -20,10 +20,10 @@ from lrfcal.types import JointStates, Recording
 
 
 def slices(config: CalibConfig) -> tuple[CheckConfig, JointConfig, MatchConfig, StartsConfig, SceneConfig,
-                                         SegmentConfig, AlternativesConfig]:
+                                         SegmentConfig, AlternativesConfig, markers.RefineConfig]:
     """``config`` as each slice (mypy rejects the return if CalibConfig lacks an option a slice names, or types it
     otherwise)."""
-    return config, config, config, config, config, config, config
+    return config, config, config, config, config, config, config, config
 
 
 def ways(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch

@@ -16,6 +16,7 @@ from __future__ import annotations
 import contextlib
 from collections.abc import Callable
 from dataclasses import dataclass, replace
+from typing import Protocol
 
 import numpy as np
 
@@ -137,7 +138,8 @@ class MarkerWay:
         turning = _with_turning_systematic(ours, chosen, fit)  # after the checks: they judge the fit
         ours, baseline = turning.value, Noted(None)
         if config.baseline:
-            baseline = _baseline(chosen, self.recording.scans, _signed(self.joints, chosen.sign), config, fit)
+            baseline = _baseline(chosen, self.recording.scans, _signed(self.joints, chosen.sign), config.clock_offset_s,
+                                 fit)
             self.clock.lap("baseline")
         evidence = MarkerEvidence(markers=chosen.markers, detections=observed.detections,
                                   observations=chosen.matched, association=chosen.assoc, baseline=baseline.value,
@@ -175,7 +177,15 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Sol
         f"differ by {dh_text(DH(*d))}, added to the covariance",))
 
 
-def _jointly(chosen: Alternative, recorded: joint.Recorded, config: CalibConfig, fit: solve.Solver
+class RefineConfig(joint.JointConfig, Protocol):
+    """What the marker way's refinement reads (:func:`_jointly`): the joint solve's options
+    (lrfcal.stages.joint.JointConfig) and the chi-square limit of the scales' score tests."""
+
+    @property
+    def max_reduced_chi2(self) -> float: ...
+
+
+def _jointly(chosen: Alternative, recorded: joint.Recorded, config: RefineConfig, fit: solve.Solver
              ) -> Noted[tuple[Alternative, JointFit]]:
     """6b (lrfcal.stages.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale
     the
@@ -200,7 +210,7 @@ def _jointly(chosen: Alternative, recorded: joint.Recorded, config: CalibConfig,
     return Noted((chosen, joint_fit.value), (*notes, *joint_fit.notes))
 
 
-def _judged_jointly(chosen: Alternative, joint_fit: JointFit, recorded: joint.Recorded, config: CalibConfig,
+def _judged_jointly(chosen: Alternative, joint_fit: JointFit, recorded: joint.Recorded, config: joint.JointConfig,
                     fit: solve.Solver) -> tuple[Alternative, Noted[JointFit], tuple[str, ...]]:
     """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
     not determine the DH parameters (one scan line per marker: there a wrong match cannot be told from a moved
@@ -265,12 +275,13 @@ def _refit(chosen: Alternative, matched: Observations, fit: solve.Solver) -> Sol
                clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
 
 
-def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, config: CalibConfig, fit: solve.Solver
+def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, clock_offset_s: float, fit: solve.Solver
               ) -> Noted[Solution | None]:
     """The paper's method: the blob's brightest beam, the motor angle at the scan's stamp, point-to-centre residuals,
-    on the same detections and association (None, with a note, when it cannot run)."""
+    on the same detections and association, the motor angles at the clock offset ``clock_offset_s`` [s] (None, with
+    a note, when it cannot run)."""
     peaks = chosen.matched.subset(chosen.matched.is_peak)
-    lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=config.clock_offset_s)
+    lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=clock_offset_s)
     peaks = alternatives.replace_arrays(peaks, lambda_rad=lambda_scan[peaks.scan])
     try:
         return Noted(fit.paper()(peaks, chosen.markers, chosen.start))
@@ -291,4 +302,4 @@ STAGES: tuple[str, ...] = ("mds", "detection", "timing", "association", "solve",
 
 MarkerWay.STAGES = STAGES
 
-__all__ = ["STAGES", "Alternative", "MarkerWay", "Observed", "Refined", "Started"]
+__all__ = ["STAGES", "Alternative", "MarkerWay", "Observed", "RefineConfig", "Refined", "Started"]

@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from lrfcal.config import CalibConfig, Stopwatch
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
-from lrfcal.estimate.checks import plane_checks
+from lrfcal.estimate.checks import CheckConfig, plane_checks
 from lrfcal.estimate.information import plane_information
 from lrfcal.model.kinematics import Params, points_M
 from lrfcal.model.motor import MotorClock
@@ -238,7 +238,7 @@ def _held_reason(held: tuple[str, ...]) -> str:
 
 
 def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, held: tuple[str, ...],
-              config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
+              config: CheckConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
     """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
     estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
     if not held:
