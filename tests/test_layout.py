@@ -70,6 +70,44 @@ def test_lrfcal_rooms() -> None:
     assert rooms == ["estimate", "io", "model", "report", "runtime", "stages"]
 
 
+#: the stage modules that may read the whole lrfcal.config.CalibConfig: the two ways (the orchestrator's steps)
+WAYS = ("src/lrfcal/stages/markers.py", "src/lrfcal/stages/scene.py")
+
+
+def test_stages_read_their_configuration_slice() -> None:
+    """No stage but the two ways (:data:`WAYS`) and no module of the estimate package names CalibConfig (imported or
+    as an attribute, e.g. ``config.CalibConfig``): each reads its own slice, a Protocol of the options it reads."""
+    bad = []
+    for folder in ("stages", "estimate"):
+        for path in sorted((SRC / "lrfcal" / folder).glob("*.py")):
+            rel = str(path.relative_to(ROOT))
+            if rel in WAYS:
+                continue
+            for node in ast.walk(ast.parse(path.read_text(), rel)):
+                names = ([a.name for a in node.names] if isinstance(node, (ast.Import, ast.ImportFrom))
+                         else [node.attr] if isinstance(node, ast.Attribute)
+                         else [node.id] if isinstance(node, ast.Name) else [])
+                if any(n == "CalibConfig" or n.endswith(".CalibConfig") for n in names):
+                    bad.append(f"{rel}:{node.lineno}")
+    assert not bad, "stages outside the ways take the whole CalibConfig (give them a slice):\n" + "\n".join(bad)
+
+
+def test_notes_are_returned_not_appended() -> None:
+    """No function of lrfcal takes a list of notes to append to (an out-parameter): a stage returns its notes with
+    its result (lrfcal.types.Noted, or a field of the result it returns), and the way and the orchestrator collect
+    them into CalibrationResult.notes."""
+    bad = []
+    for path in sorted((SRC / "lrfcal").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                a = node.args
+                for arg in (*a.posonlyargs, *a.args, *a.kwonlyargs):
+                    if arg.arg == "notes" and arg.annotation is not None and \
+                            ast.unparse(arg.annotation).startswith("list"):
+                        bad.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name}({arg.arg})")
+    assert not bad, "functions append to a list of notes passed in (return them instead):\n" + "\n".join(bad)
+
+
 def test_import_lrfcal_is_light() -> None:
     """``import lrfcal`` (and its error types) imports neither numpy's heavy neighbours nor the message types."""
     code = ("import sys, lrfcal; lrfcal.InputError; "
@@ -81,8 +119,10 @@ def test_import_lrfcal_is_light() -> None:
 @pytest.mark.skipif(importlib.util.find_spec("mypy") is None and shutil.which("mypy") is None,
                     reason="mypy is not installed (pip install -e '.[test]' installs it)")
 def test_mypy_model_and_estimate() -> None:
-    """The rig model and the estimate package type-check (mypy, the settings in pyproject.toml)."""
-    proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal/model", "src/lrfcal/estimate"], cwd=ROOT,
+    """The rig model and the estimate package type-check (mypy, the settings in pyproject.toml), and CalibConfig
+    satisfies every stage's configuration slice and each way the Way of its steps' types (tests/static_types.py)."""
+    proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal/model", "src/lrfcal/estimate",
+                           "tests/static_types.py"], cwd=ROOT,
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-3000:]
 

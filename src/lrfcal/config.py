@@ -15,6 +15,9 @@ from lrfcal.errors import InputError
 
 #: UTM-30LX-EW repeatability (Hokuyo UTM-30LX-EW specification: sigma < 10 mm below 10 m) [m]
 DEFAULT_RANGE_SIGMA_M = 0.010
+#: returns meeting their plane more obliquely than this are left out by default (CalibConfig.max_incidence_rad;
+#: also the DH search's own, lrfcal.stages.propose) [rad]
+DEFAULT_MAX_INCIDENCE_RAD = math.radians(65.0)
 
 PositiveFloat = Annotated[float, Field(gt=0.0)]
 
@@ -66,7 +69,7 @@ class CalibConfig(BaseModel):
     all_planes: bool = False
     #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
     #: spreads along the plane and the range reads short) [rad]
-    max_incidence_rad: float = Field(math.radians(65.0), gt=0.0, le=math.pi / 2)
+    max_incidence_rad: float = Field(DEFAULT_MAX_INCIDENCE_RAD, gt=0.0, le=math.pi / 2)
 
     def __init__(self, **options: Any) -> None:
         try:
@@ -110,4 +113,4 @@ class Stopwatch:
             self._say(self.stages[self.stages.index(name) + 1])
 
 
-__all__ = ["DEFAULT_RANGE_SIGMA_M", "CalibConfig", "Stopwatch"]
+__all__ = ["DEFAULT_MAX_INCIDENCE_RAD", "DEFAULT_RANGE_SIGMA_M", "CalibConfig", "Stopwatch"]

@@ -18,7 +18,7 @@ import contextlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any, Protocol
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 
@@ -34,7 +34,7 @@ from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
 from lrfcal.stages.markers import STAGES, MarkerWay
 from lrfcal.stages.scene import PlaneWay
 from lrfcal.stages.timing import usable_scans
-from lrfcal.types import Check, JointStates, Recording, Scans, Solution
+from lrfcal.types import Check, JointStates, Noted, Recording, Scans, Solution
 
 
 def calibrate(
@@ -103,38 +103,48 @@ def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[st
     """:func:`calibrate` with ``config.range_sigma_m`` resolved: the method, the same steps for both ways."""
     way_of = PlaneWay if _targetless(recording, config) else MarkerWay  # the one place the way is chosen
     clock = Stopwatch(progress, way_of.STAGES, outputs)
-    notes: list[str] = []
-    scans, joints = usable_scans(recording, config.clock_offset_s, notes, config.range_sigma_m)  # 1.
+    timed = usable_scans(recording, config.clock_offset_s, config.range_sigma_m)  # 1.
+    scans, joints = timed.value
     bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
-    way: Way = way_of(covered, joints, config, clock, notes)
-    with way.ahead():  # what runs meanwhile (targetless: the DH search for the check "starts agree")
-        observed = way.observe()  # 2. marker returns, or plane returns
+    way: Way[Any, Any, Any, Any] = way_of(covered, joints, config, clock)  # each way's types: Way's docstring
+    with way.ahead() as meanwhile:  # what runs meanwhile (targetless: the DH search for the check "starts agree")
+        observed = way.observe(meanwhile)  # 2. marker returns, or plane returns
         started = way.starts(observed)  # the estimate from each candidate start, the one chosen
         refined = way.refine(started)  # the sets chosen again until stable
         fit = way.checks(refined, lambda sol: clock_offset_check(sol, *bound))  # 3.
     refuse_failed(list(fit.checks), config)
     if fit.servo_sign < 0:
         joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
-    side_by_side = dict(fit.side_by_side)
-    if config.compare_targetless and way_of is MarkerWay:  # the same recording without its markers, for the report
-        side_by_side.update(_targetless_opinion(recording, config, notes))
+    opinion = (_targetless_opinion(recording, config) if config.compare_targetless and way_of is MarkerWay
+               else Noted({}))  # the same recording without its markers, for the report
     if fitted is not None:
         fitted(fit)
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
-    return replace(fit, **clouds, timings_s=clock.laps, notes=(*notes, *fit.notes), side_by_side=side_by_side,
-                   config=config)
+    return replace(fit, **clouds, timings_s=clock.laps, notes=(*way_of.NOTES, *timed.notes, *fit.notes, *opinion.notes),
+                   side_by_side={**fit.side_by_side, **opinion.value}, config=config)
 
 
-class Way(Protocol):
-    """A way of calibrating (lrfcal.stages.markers.MarkerWay, lrfcal.stages.scene.PlaneWay): its steps, in the order
-    :func:`_calibrate` runs them, each taking what the one before returned."""
+Ahead = TypeVar("Ahead")
+Observed = TypeVar("Observed")
+Started = TypeVar("Started")
+Refined = TypeVar("Refined")
 
-    def ahead(self) -> contextlib.AbstractContextManager[None]: ...
-    def observe(self) -> Any: ...
-    def starts(self, observed: Any) -> Any: ...
-    def refine(self, started: Any) -> Any: ...
-    def checks(self, refined: Any, shared: Callable[[Solution], Check]) -> CalibrationResult: ...
+
+class Way(Protocol[Ahead, Observed, Started, Refined]):
+    """A way of calibrating: its steps, in the order :func:`_calibrate` runs them, each taking what the one before
+    returned (a way keeps no state between its steps): ``ahead`` what runs meanwhile (``Ahead``: what it gives the
+    steps), ``observe`` the observation sets, ``starts`` the estimate from each candidate start and the one chosen,
+    ``refine`` the sets chosen again until stable, ``checks`` the result without clouds. The two ways:
+    ``Way[None, markers.Observed, markers.Started, markers.Refined]`` (lrfcal.stages.markers.MarkerWay) and
+    ``Way[scene.Proposal, scene.Scene, scene.Started, scene.Refined]`` (lrfcal.stages.scene.PlaneWay), checked by
+    mypy (tests/static_types.py); :func:`_calibrate` chooses one at run time, so it holds it as ``Way[Any, ...]``."""
+
+    def ahead(self) -> contextlib.AbstractContextManager[Ahead]: ...
+    def observe(self, ahead: Ahead) -> Observed: ...
+    def starts(self, observed: Observed) -> Started: ...
+    def refine(self, started: Started) -> Refined: ...
+    def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult: ...
 
 
 CLOCK_START = "clock offset: --clock-offset"
@@ -186,15 +196,14 @@ def _targetless(recording: Recording, config: CalibConfig) -> bool:
     return bool(targetless)
 
 
-def _targetless_opinion(recording: Recording, config: CalibConfig, notes: list[str]) -> dict[str, Solution]:
+def _targetless_opinion(recording: Recording, config: CalibConfig) -> Noted[dict[str, Solution]]:
     """The targetless calibration of a recording with markers, beside the marker results (empty, with a note, when it
     is refused)."""
     try:
         tl = calibrate(recording, config.replace(targetless=True, force=False, geometry=False, clouds=False))
-        return {"targetless (markers ignored)": tl.solution}
+        return Noted({"targetless (markers ignored)": tl.solution})
     except CalibrationError as err:
-        notes.append(f"the targetless calibration of the same recording was refused: {err}")
-        return {}
+        return Noted({}, (f"the targetless calibration of the same recording was refused: {err}",))
 
 
 def _reproject(recording: Recording, joints: JointStates, sol: Solution, config: CalibConfig, clock: Stopwatch

@@ -9,7 +9,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Generic, TypeVar
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -421,3 +421,15 @@ class Check:
     name: str
     passed: bool
     detail: str
+
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Noted(Generic[T]):
+    """A stage's result ``value`` with its ``notes``: what it assumed, trimmed or dropped, in words, in the order
+    they arose (the way and the orchestrator collect them into CalibrationResult.notes)."""
+
+    value: T
+    notes: tuple[str, ...] = ()

@@ -24,7 +24,7 @@ from lrfcal.types import Check, MarkerMap, Observations, Solution
 
 
 class _Alternative(Protocol):
-    """A direction of the servo and the marker-only solution with it (lrfcal.stages.markers.Alternative)."""
+    """A direction of the servo and the marker-only solution with it (lrfcal.stages.alternatives.Alternative)."""
 
     sign: int
     solution: Solution

@@ -2,11 +2,10 @@
 
 The chain's exact twins (lrfcal.model.kinematics.dh_twins) are handled where they arise: the "turned" one is the
 same rig (the canonical DH branch, lrfcal.model.chart), the mirror images explain the data exactly with the marker
-map mirrored (lrfcal.estimate.checks.mirror_check, lrfcal.stages.markers._handedness). With the marker map as it is, a
-mirror image
-is another rig, and near a scan plane perpendicular to the motor axis (where it differs from the estimate by twice
-alpha in attitude) it can explain the same returns about as well: a second minimum the solver may or may not have
-landed in.
+map mirrored (lrfcal.estimate.checks.mirror_check, lrfcal.stages.alternatives.handedness). With the marker map as
+it is, a mirror image is another rig, and near a scan plane perpendicular to the motor axis (where it differs from
+the estimate by twice alpha in attitude) it can explain the same returns about as well: a second minimum the solver
+may or may not have landed in.
 
 :func:`other_minimum` solves the marker-only problem again from the estimate's mirror image (the mount kept) when
 the nominal DH cannot rule that image out (it is within the nominal tolerance, lrfcal.estimate.checks), and compares the

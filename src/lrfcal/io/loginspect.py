@@ -110,7 +110,9 @@ def guess_layout(path: str | Path) -> LogGuess:
         problems.append("no header row of beam angles: give log.angle_min_rad and log.angle_increment_rad (the "
                         "scanner's first beam and step, from its datasheet or driver)")
         log.update(angle_min_rad=None, angle_increment_rad=None)
-    columns = _leading(sample[:, :lead], notes, problems) if lead >= 2 else ["time", "angle"]
+    columns, note, problem = _leading(sample[:, :lead]) if lead >= 2 else (["time", "angle"], "", "")
+    notes += [note] if note else []
+    problems += [problem] if problem else []
     if lead < 2:
         problems.append(f"only {lead} column(s) before the ranges: a log needs the time and the motor angle")
     t = sample[:, columns.index("time")] if sample.size else np.zeros(0)
@@ -141,9 +143,10 @@ def guess_layout(path: str | Path) -> LogGuess:
     return LogGuess(log, servo, layout, tuple(notes), tuple(problems))
 
 
-def _leading(cols: np.ndarray, notes: list[str], problems: list[str]) -> list[str]:
+def _leading(cols: np.ndarray) -> tuple[list[str], str, str]:
     """Names of the leading columns: a row number (ignore), then the first increasing column (time), then the
-    next (angle); the rest ignore."""
+    next (angle); the rest ignore. With a note (a column counting rows) and a problem (no column increasing), each
+    "" when there is none."""
     names = ["ignore"] * cols.shape[1]
     d = np.diff(cols, axis=0)
     counting = [bool(d.shape[0] and np.all(d[:, k] == 1)) for k in range(cols.shape[1])]
@@ -152,13 +155,11 @@ def _leading(cols: np.ndarray, notes: list[str], problems: list[str]) -> list[st
         rest = list(range(cols.shape[1]))
     rising = [k for k in rest if d.shape[0] and np.all(d[:, k] > 0)]
     ti = rising[0] if rising else rest[0]
-    if not rising:
-        problems.append(f"no leading column increases from row to row: column {ti + 1} taken as the time")
+    problem = "" if rising else f"no leading column increases from row to row: column {ti + 1} taken as the time"
     names[ti] = "time"
     names[next(k for k in rest if k != ti)] = "angle"
-    if any(counting):
-        notes.append(f"column {counting.index(True) + 1} counts rows (1, 2, 3, ...): ignored")
-    return names
+    note = f"column {counting.index(True) + 1} counts rows (1, 2, 3, ...): ignored" if any(counting) else ""
+    return names, note, problem
 
 
 def inspect_path(path: str | Path, scan: ScanSource | None = None, servo: ServoSource | None = None,

@@ -13,15 +13,15 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from functools import partial
+from typing import Protocol
 
-from lrfcal.config import CalibConfig
 from lrfcal.estimate import observability
 from lrfcal.estimate.problem import OnPlanes
 from lrfcal.estimate.solve import Solver
 from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.stages import surfaces, timing
-from lrfcal.stages.targetless import merge_returns, scene_plane_returns
-from lrfcal.types import Detections, JointStates, MarkerMap, Observations, Recording, Solution
+from lrfcal.stages.targetless import SceneConfig, merge_returns, scene_plane_returns
+from lrfcal.types import Detections, JointStates, MarkerMap, Noted, Observations, Recording, Solution
 
 #: an intrinsic scale whose score test steps this many sigma from 1 is estimated (a gear ratio, an angle increment)
 SCALE_Z_LIMIT = 4.0
@@ -33,10 +33,10 @@ SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts 
                          "growing with range read as one?)"}
 
 
-def most_off(sol: Solution, notes: list[str], max_chi2: float) -> str | None:
+def most_off(sol: Solution, max_chi2: float) -> Noted[str] | None:
     """The scale of :data:`SCALES` held at 1 that the data contradict most (its score test on ``sol``,
     lrfcal.estimate.solve,
-    beyond SCALE_Z_LIMIT sigma), named in a note with the value it steps to; None when none is. One at a time, the
+    beyond SCALE_Z_LIMIT sigma), with a note naming the value it steps to; None when none is. One at a time, the
     others tested again once it is free: a gear ratio 2 % off also stepped the range scale beyond 4 sigma, which
     it absorbs. None where ``sol``'s reduced chi-square is above ``max_chi2``: a score test means nothing where the
     model does not fit (three times the stated range noise stepped the range scale 4.4 sigma), and the chi-square
@@ -48,9 +48,26 @@ def most_off(sol: Solution, notes: list[str], max_chi2: float) -> str | None:
     if name is None or z[name] <= SCALE_Z_LIMIT:
         return None
     value, sigma = sol.held_score[name]
-    notes.append(f"{SCALES[name]} is off: about {value:.5f} +- {sigma:.5f} ({z[name]:.0f} sigma from 1): estimated "
-                 "in every solve")
-    return name
+    return Noted(name, (f"{SCALES[name]} is off: about {value:.5f} +- {sigma:.5f} ({z[name]:.0f} sigma from 1): "
+                        "estimated in every solve",))
+
+
+class JointConfig(SceneConfig, Protocol):
+    """The configuration the joint solve reads: its slice of lrfcal.config.CalibConfig (which satisfies it): the
+    surfaces' options and, for every other plane of the scene, the scene's (lrfcal.stages.targetless.SceneConfig)."""
+
+    @property
+    def surfaces(self) -> bool: ...
+    @property
+    def surface_max_returns(self) -> int: ...
+    @property
+    def estimate_range_bias(self) -> bool: ...
+    @property
+    def all_planes(self) -> bool: ...
+
+
+#: the joint result (:func:`with_surfaces`): the solution, the surfaces, their returns
+JointFit = tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]
 
 
 @dataclass(frozen=True)
@@ -64,16 +81,16 @@ class Recorded:
 
 
 def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMap, motor: MotorClock | None,
-                  recorded: Recorded, config: CalibConfig, fit: Solver, notes: list[str]
-                  ) -> tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]:
+                  recorded: Recorded, config: JointConfig, fit: Solver) -> Noted[JointFit]:
     """6b from the marker-only solution ``marker_fit`` of the ``matched`` returns (``motor``: the clock model when
     the clock offset is estimated; ``fit``: lrfcal.estimate.solve.solve bound to the rig): every beam on the markers'
     planes
     solved jointly with the markers (and every other plane of the scene with ``config.all_planes``); the marker-only
-    solution itself when ``config.surfaces`` is off or no surface return is found. Notes go to ``notes``."""
+    solution itself when ``config.surfaces`` is off or no surface return is found; with its notes."""
     ours = marker_fit
     if not config.surfaces:
-        return ours, [], None
+        return Noted((ours, [], None))
+    notes: list[str] = []
     scans, nominal = recorded.recording.scans, recorded.recording.nominal
     joints, detections = recorded.joints, recorded.detections
     beam_times = scans.beam_times_s
@@ -121,7 +138,7 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
                        estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=tuple(SCALES))
             notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
                          "free planes")
-    return ours, list(surface_list), on_surfaces
+    return Noted((ours, list(surface_list), on_surfaces), tuple(notes))
 
 
-__all__ = ["SCALES", "SCALE_Z_LIMIT", "Recorded", "most_off", "with_surfaces"]
+__all__ = ["SCALES", "JointConfig", "JointFit", "SCALE_Z_LIMIT", "Recorded", "most_off", "with_surfaces"]

@@ -4,17 +4,25 @@ for the marker way (lrfcal.stages.markers)."""
 
 from __future__ import annotations
 
+from typing import Protocol
+
 import numpy as np
 
-from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.model.kinematics import DH
 from lrfcal.stages import association, detection, start
 from lrfcal.types import Association, Detections, MarkerMap, Nominal, Observations
 
 
+class MatchConfig(Protocol):
+    """The configuration the matching reads: its slice of lrfcal.config.CalibConfig (which satisfies it)."""
+
+    @property
+    def association_gate_m(self) -> float: ...
+
+
 def associate_at(returns: Observations, detections: Detections, markers: MarkerMap, dh: DH, radius_m: float,
-             config: CalibConfig) -> Association | None:
+             config: MatchConfig) -> Association | None:
     """Stage 4 with the blob centres reprojected with ``dh``; None when nothing matches."""
     centres = detection.blob_centres_M(returns, dh, radius_m, n_blobs=len(detections.blobs))
     try:
@@ -24,7 +32,7 @@ def associate_at(returns: Observations, detections: Detections, markers: MarkerM
 
 
 def associate_nominal(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
-                       config: CalibConfig) -> Association | None:
+                       config: MatchConfig) -> Association | None:
     return associate_at(returns, detections, markers, nominal.dh, nominal.marker_radius_m, config)
 
 
@@ -37,13 +45,13 @@ def matches_most(assoc: Association, returns: Observations) -> bool:
     return assoc.n_matched >= MOST_BLOBS * len(np.unique(returns.blob))
 
 
-def good(assoc: Association, returns: Observations, config: CalibConfig) -> bool:
+def good(assoc: Association, returns: Observations, config: MatchConfig) -> bool:
     """An association that leaves nothing to search for: most blobs matched, tight alignment."""
     return matches_most(assoc, returns) and assoc.rms_m <= 0.25 * config.association_gate_m
 
 
 def associate_search(returns: Observations, detections: Detections, markers: MarkerMap, nominal: Nominal,
-                      config: CalibConfig, from_nominal: Association | None, every_attitude: bool = True
+                      config: MatchConfig, from_nominal: Association | None, every_attitude: bool = True
                       ) -> tuple[DH, Association | None]:
     """The association from the candidates of the correspondence-free DH search (lrfcal.stages.start) or from the
     nominal
@@ -65,4 +73,4 @@ def associate_search(returns: Observations, detections: Detections, markers: Mar
     return best_dh, best
 
 
-__all__ = ["MOST_BLOBS", "associate_at", "associate_nominal", "associate_search", "good", "matches_most"]
+__all__ = ["MOST_BLOBS", "MatchConfig", "associate_at", "associate_nominal", "associate_search", "good", "matches_most"]

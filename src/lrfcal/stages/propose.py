@@ -48,7 +48,7 @@ from functools import partial
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.config import CalibConfig
+from lrfcal.config import DEFAULT_MAX_INCIDENCE_RAD
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import solve
 from lrfcal.io.bag import BagData
@@ -82,6 +82,16 @@ SEGMENT_RETURNS = 8000
 RANGE_SIGMA_M = 0.01
 #: a candidate whose |a| or |b| goes beyond this ran off [m]
 MAX_OFFSET_M = 0.3
+
+
+@dataclass(frozen=True)
+class _SearchSegmenting:
+    """The search's own segmentation settings (lrfcal.stages.targetless.SegmentConfig), fixed whatever a calibration's
+    options: the calibration's default incidence limit, the noise the solves assume."""
+
+    range_sigma_m: float = RANGE_SIGMA_M
+    max_incidence_rad: float = DEFAULT_MAX_INCIDENCE_RAD
+
 #: the least motor turn a proposal needs [rad]
 MIN_TURN_RAD = math.radians(10.0)
 #: candidates agree on the attitude within these [deg]; the fewest agreeing candidates for a proposal
@@ -226,7 +236,7 @@ class _Search:
     starts: list[DH]
     beams: targetless.Beams
     motor: MotorClock
-    config: CalibConfig
+    config: targetless.SegmentConfig
     n_groups: int
 
 
@@ -240,7 +250,7 @@ def _search(scans: Scans, joints: JointStates, t0: float) -> _Search | DHProposa
                           f"{math.degrees(MIN_TURN_RAD):g}): the cloud is nearly one scan plane, whose flatness says "
                           "nothing about the DH", n_starts=len(starts), seconds=time.perf_counter() - t0)
     return _Search(starts, targetless.sample_returns(scans, FIT_RETURNS), MotorClock.from_joints(joints),
-                   CalibConfig(), max(1, min(cores(), MAX_GROUPS, len(starts))))
+                   _SearchSegmenting(), max(1, min(cores(), MAX_GROUPS, len(starts))))
 
 
 def _solve_starts(search: _Search, ks: list[int], progress: Callable[[int, int], None] | None = None
@@ -278,8 +288,8 @@ def propose_for_recording(scans: Scans, joints: JointStates,
     angle cannot be interpolated gets no proposal, and the reason."""
     placeholder = Nominal(dh=DH(a=0.0, alpha=0.0, b=0.0, beta=0.0))
     try:
-        covered, joints = usable_scans(Recording(scans=scans, joints=joints, tape=None, nominal=placeholder), 0.0, [],
-                                       RANGE_SIGMA_M)
+        covered, joints = usable_scans(Recording(scans=scans, joints=joints, tape=None, nominal=placeholder), 0.0,
+                                       RANGE_SIGMA_M).value
     except CalibrationError as err:
         return DHProposal(None, reason=str(err))
     return propose_dh(covered, joints, progress)
@@ -297,8 +307,8 @@ def proposed_dh(data: BagData | None, dh: dict[str, float] | None, propose: bool
     return propose_for_recording(data.scans, data.joints, progress)
 
 
-def _candidate(beams: targetless.Beams, seg: NDArray[np.int64], motor: MotorClock, start: DH, config: CalibConfig
-               ) -> tuple[DH, FloatArray] | None:
+def _candidate(beams: targetless.Beams, seg: NDArray[np.int64], motor: MotorClock, start: DH,
+               config: targetless.SegmentConfig) -> tuple[DH, FloatArray] | None:
     """One start solved: the canonical DH and its 1-sigma (4,) scaled by sqrt(reduced chi-square), or None when the
     planes are lost, the solve fails or the offsets run off."""
     prior = (start.vector(), np.array(PRIOR_SIGMA))

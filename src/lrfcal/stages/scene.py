@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from lrfcal.config import CalibConfig, Stopwatch
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
-from lrfcal.estimate.checks import plane_checks
+from lrfcal.estimate.checks import CheckConfig, plane_checks
 from lrfcal.estimate.information import plane_information
 from lrfcal.model.kinematics import Params, points_M
 from lrfcal.model.motor import MotorClock
@@ -40,17 +40,21 @@ from lrfcal.stages.targetless import (
     settle_rounds,
     with_round_difference,
 )
-from lrfcal.types import Check, JointStates, Recording, Solution
+from lrfcal.types import Check, JointStates, Noted, Recording, Solution
 
 FloatArray = NDArray[np.float64]
 Segmented = tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
+#: what runs ahead of the plane way: the DH search's proposal, asked for by the check "starts agree"
+#: (lrfcal.stages.propose.proposal_ahead; valid while the way's ``ahead`` context lasts)
+Proposal = Callable[[], propose.DHProposal]
 
 
 @dataclass(frozen=True)
 class Scene:
     """The plane way's observations: the sampled returns ``beams`` and the held-out scans' ``held_beams``, the
     segmentation's sample ``seg``, the start's segmentation, what is held (and why) and whether the clock offset is
-    estimated, the motor clock, the sweep's passes and the design drawing's prior on the DH."""
+    estimated, the motor clock, the sweep's passes, the design drawing's prior on the DH, the first round's planes'
+    thickness and the DH search running ahead (:data:`Proposal`)."""
 
     beams: Beams
     held_beams: Beams
@@ -63,6 +67,17 @@ class Scene:
     passes: NDArray[np.int64]
     prior: tuple[FloatArray, FloatArray]
     first_thickness_m: float
+    proposal: Proposal
+    #: what the plane way noted so far, in order (the scene's: the clock offset held, the parameters held; then the
+    #: refinement's, :meth:`PlaneWay.refine`)
+    notes: tuple[str, ...] = ()
+
+
+#: the starts step's outcome: the observations and the rounds' shared inputs from the one start
+Started = tuple[Scene, Segmenting]
+#: the refine step's outcome: the observations, the rounds (their last solution with the model errors added) and
+#: the check "rounds settled"
+Refined = tuple[Scene, Rounds, Check]
 
 
 class PlaneWay:
@@ -72,23 +87,25 @@ class PlaneWay:
 
     STAGES = STAGES
 
-    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
-                 notes: list[str]) -> None:
-        self.recording, self.joints, self.config, self.clock, self.notes = recording, joints, config, clock, notes
-        self.proposal: Callable[[], propose.DHProposal] | None = None
+    #: what every targetless calibration notes first (before the orchestrator's notes on the scans)
+    NOTES = ("targetless: the DH parameters from the flatness of the scene's planes; without markers there is no world "
+             "frame, so the mount pose is not estimated (frame M)",)
+
+    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch) -> None:
+        self.recording, self.joints, self.config, self.clock = recording, joints, config, clock
 
     @contextlib.contextmanager
-    def ahead(self) -> Iterator[None]:
+    def ahead(self) -> Iterator[Proposal]:
         """The DH search for the check "starts agree" in forked children meanwhile (its starts do not depend on the
-        fit; ended at once if the fit is refused)."""
-        with propose.proposal_ahead(self.recording.scans, self.joints) as self.proposal:
-            yield
+        fit; ended at once if the fit is refused): its proposal, when asked for."""
+        with propose.proposal_ahead(self.recording.scans, self.joints) as proposal:
+            yield proposal
 
-    def observe(self) -> Scene:
-        """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held."""
-        config, clock, notes, joints = self.config, self.clock, self.notes, self.joints
-        notes.insert(0, "targetless: the DH parameters from the flatness of the scene's planes; without markers there "
-                     "is no world frame, so the mount pose is not estimated (frame M)")
+    def observe(self, ahead: Proposal) -> Scene:
+        """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held
+        (``ahead``: the DH search's proposal, kept for the check "starts agree")."""
+        config, clock, joints = self.config, self.clock, self.joints
+        notes: list[str] = []
         scans, nominal, tau0 = self.recording.scans, self.recording.nominal, config.clock_offset_s
         motor = MotorClock.from_joints(joints)
         passes = timing.sweep_passes(timing.scan_angles(scans, joints, clock_offset_s=tau0))
@@ -110,7 +127,9 @@ class PlaneWay:
                                                              range_sigma_m=config.range_sigma_m, clock=motor,
                                                              clock_offset_s=tau0))
         if estimate_clock:
-            estimate_clock = _clock_determined(scene, tau0, notes)
+            determined = _clock_determined(scene, tau0)
+            estimate_clock = determined.value
+            notes += determined.notes
         held = scene.undetermined_dh(() if estimate_clock else ("clock_offset",), prior[1])
         held_reason = _held_reason(held)
         if held_reason:
@@ -119,38 +138,37 @@ class PlaneWay:
             raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
                                    "orientations (across the motor axis), or calibrate with markers")
         return Scene(beams, held_beams, seg, (returns, labels, found), held, held_reason, estimate_clock, motor,
-                     passes, prior, start.thickness_m)
+                     passes, prior, start.thickness_m, ahead, tuple(notes))
 
-    def starts(self, scene: Scene) -> Segmenting:
+    def starts(self, scene: Scene) -> Started:
         """The one start the rounds run from, the rig file's DH (the other starts the data allow: the check "starts
         agree"), with the solve they share: the held parameters, the prior, the clock."""
         solve_at = partial(solve.solve_planes, range_sigma_m=self.config.range_sigma_m,
                            clock=scene.motor if scene.estimate_clock else None, hold=scene.held,
                            dh_prior=scene.prior)
-        self.scene = scene
-        return Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
+        return scene, Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
 
-    def refine(self, sg: Segmenting) -> tuple[Rounds, Check]:
+    def refine(self, started: Started) -> Refined:
         """Stage 4: segment, solve and re-segment until the DH settle (lrfcal.stages.targetless.settle_rounds); the
         rounds' difference and the held parameters' uncertainty added to the covariance."""
-        config, scene, tau0 = self.config, self.scene, self.config.clock_offset_s
+        (scene, sg), config, tau0 = started, self.config, self.config.clock_offset_s
         start = first_round(self.recording.nominal.dh, tau0, config)
         rs = settle_rounds(sg, start, scene.segmented)
         sol, unsettled, rounds, (returns, _, _) = rs.solution, rs.unsettled, rs.rounds, rs.segmented
         settle = settle_check(unsettled, sol, rounds)
         sol = with_round_difference(sol, unsettled)
         if not scene.estimate_clock and scene.passes.max() < 1 or config.estimate_clock is False:
-            self.notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
-                              + ("a one-way sweep does not separate it)" if config.estimate_clock is None
-                                 else "as asked)"))
+            scene = replace(scene, notes=(*scene.notes, f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                                          + ("a one-way sweep does not separate it)" if config.estimate_clock is None
+                                             else "as asked)")))
         sol = _consider(sol, returns, scene.motor if scene.estimate_clock else None, scene.held, config, scene.prior)
         self.clock.lap("solve")
-        return replace(rs, solution=sol), settle
+        return scene, replace(rs, solution=sol), settle
 
-    def checks(self, refined: tuple[Rounds, Check], shared: Callable[[Solution], Check]) -> CalibrationResult:
+    def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult:
         """Stage 5: the checks (``shared``: those of both ways, first), the held-out planes, the flatness before and
         after; then, when they pass (or forced), the check "starts agree" (lrfcal.stages.starts)."""
-        (rs, settle), scene, config, clock = refined, self.scene, self.config, self.clock
+        (scene, rs, settle), config, clock = refined, self.config, self.clock
         sol, rounds, (returns, labels, found) = rs.solution, rs.rounds, rs.segmented
         nominal, tau0, beams, motor = self.recording.nominal, config.clock_offset_s, scene.beams, scene.motor
         checks = [settle, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.prior, nominal.dh)]
@@ -167,11 +185,11 @@ class PlaneWay:
                              scene.held, scene.held_reason, rounds, n_before, n_after)
         evidence = PlaneEvidence(plane_fit=plane_fit, returns=returns)
         fit = CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
-                                solution=sol, checks=(shared(sol), *checks))
+                                solution=sol, checks=(shared(sol), *checks), notes=scene.notes)
         if not (config.force or all(c.passed for c in fit.checks)):
             return fit  # refused anyway: the other starts are not run
         fit = replace(fit, checks=_after_settled(fit.checks, starts.starts_check(fit, evidence, self.joints, config,
-                                                                                   self.proposal)))
+                                                                                   scene.proposal)))
         clock.lap("starts")
         return fit
 
@@ -199,16 +217,15 @@ def _check_scene(found: list[planes.ScenePlane], returns: SurfaceReturns) -> Non
             "calibrate in a room or with markers")
 
 
-def _clock_determined(scene: observability.Information, tau: float, notes: list[str]) -> bool:
+def _clock_determined(scene: observability.Information, tau: float) -> Noted[bool]:
     """Whether the scene determines the clock offset (1-sigma within its limit, judged at the start, without the
     design drawing's prior); when not, a note says it is held."""
     sigma = scene.sigma("clock_offset")
     limit = observability.LIMITS["clock_offset"]
     if sigma <= limit:
-        return True
-    notes.append(f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
-                 f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)")
-    return False
+        return Noted(True)
+    return Noted(False, (f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
+                         f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)",))
 
 
 def _held_reason(held: tuple[str, ...]) -> str:
@@ -221,7 +238,7 @@ def _held_reason(held: tuple[str, ...]) -> str:
 
 
 def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, held: tuple[str, ...],
-              config: CalibConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
+              config: CheckConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
     """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
     estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
     if not held:
@@ -244,4 +261,4 @@ def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, 
     return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
 
 
-__all__ = ["PlaneWay", "Scene"]
+__all__ = ["PlaneWay", "Proposal", "Refined", "Scene", "Started"]

@@ -24,11 +24,11 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from functools import partial
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
 from lrfcal.model.kinematics import DH, dh_twins
@@ -52,7 +52,17 @@ NAME = "starts agree"
 TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 
 
-def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: CalibConfig,
+class StartsConfig(targetless.SceneConfig, Protocol):
+    """The configuration the check "starts agree" reads: its slice of lrfcal.config.CalibConfig (which satisfies
+    it): the rounds' (lrfcal.stages.targetless.SceneConfig), the design drawing's tolerance and the clock's start."""
+
+    @property
+    def nominal_tolerance(self) -> tuple[float, float, float, float]: ...
+    @property
+    def clock_offset_s(self) -> float: ...
+
+
+def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: StartsConfig,
                  proposal: Callable[[], propose.DHProposal] | None = None) -> Check:
     """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.scene.PlaneWay) of ``fit.recording``
     (the scans the ``joints`` cover), its ``evidence``: the module docstring. ``proposal``: the DH search's proposal on
@@ -74,7 +84,7 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
                      f"{AGREE_SIGMA:g} sigma of the result on every estimated parameter")
     sg = _segmenting(fit, joints, config, held)
     n = max(1, min(cores(), len(starts)))  # the starts are independent: on the cores (lrfcal.runtime.forked)
-    done = call_forked({str(g): partial(_solved, sg, starts[g::n]) for g in range(n)})
+    done = call_forked({str(g): partial(_solved, sg, config.clock_offset_s, starts[g::n]) for g in range(n)})
     ends = [v for g in range(n) for v in done[str(g)]]
     far = np.zeros(4)
     for v in ends:
@@ -95,14 +105,14 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
                  "with markers")
 
 
-def _solved(sg: targetless.Segmenting, starts: list[DH]) -> list[FloatArray | None]:
-    """The DH (4,) each start's rounds settle at (lrfcal.stages.targetless.settle_rounds), None for a start that loses
-    the
-    scene's planes (not a solution to compare)."""
+def _solved(sg: targetless.Segmenting, tau0: float, starts: list[DH]) -> list[FloatArray | None]:
+    """The DH (4,) each start's rounds (from the clock offset ``tau0`` [s]) settle at
+    (lrfcal.stages.targetless.settle_rounds), None for a start that loses the scene's planes (not a solution to
+    compare)."""
     out: list[FloatArray | None] = []
     for dh in starts:
         try:
-            rounds = targetless.settle_rounds(sg, targetless.first_round(dh, sg.config.clock_offset_s, sg.config))
+            rounds = targetless.settle_rounds(sg, targetless.first_round(dh, tau0, sg.config))
             out.append(rounds.solution.params.vector()[6:])
         except (CalibrationError, np.linalg.LinAlgError):
             out.append(None)
@@ -132,7 +142,7 @@ def _other_starts(candidates: list[DH], nominal: DH, sol: Solution, est: list[in
     return kept[:MAX_OTHER_STARTS]
 
 
-def _segmenting(fit: CalibrationResult, joints: JointStates, config: CalibConfig, held: tuple[str, ...]
+def _segmenting(fit: CalibrationResult, joints: JointStates, config: StartsConfig, held: tuple[str, ...]
                 ) -> targetless.Segmenting:
     """The rounds' shared inputs as lrfcal.stages.scene.PlaneWay made them for ``fit``: the same returns sampled
     (the held-out scans skipped), the same segmentation sample, the same held parameters, prior and clock."""
@@ -148,4 +158,4 @@ def _segmenting(fit: CalibrationResult, joints: JointStates, config: CalibConfig
     return targetless.Segmenting(beams, seg, motor, config, solve_at)
 
 
-__all__ = ["AGREE_SIGMA", "MAX_OTHER_STARTS", "starts_check"]
+__all__ = ["AGREE_SIGMA", "MAX_OTHER_STARTS", "StartsConfig", "starts_check"]

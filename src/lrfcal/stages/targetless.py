@@ -32,12 +32,12 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field, replace
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, points_M
@@ -56,6 +56,24 @@ DH_NAMES = observability.DH
 STAGES: tuple[str, ...] = ("timing", "planes", "solve", "checks", "starts", "reprojection", "geometry")
 #: returns used to segment the planes (the solve uses up to CalibConfig.plane_returns, labelled from these)
 SEGMENT_SAMPLES = 40000
+
+
+class SegmentConfig(Protocol):
+    """The configuration the segment-and-solve rounds read: their slice of lrfcal.config.CalibConfig (which
+    satisfies it; validated and written whole into calibration.yaml there). ``range_sigma_m`` is resolved to a
+    number by lrfcal.pipeline.calibrate before any round runs."""
+
+    @property
+    def range_sigma_m(self) -> float | None: ...
+    @property
+    def max_incidence_rad(self) -> float: ...
+
+
+class SceneConfig(SegmentConfig, Protocol):
+    """The configuration the scene's returns are sampled and segmented by (:func:`scene_plane_returns`)."""
+
+    @property
+    def plane_returns(self) -> int: ...
 
 
 @dataclass(frozen=True)
@@ -83,7 +101,7 @@ class Segmenting:
     beams: Beams
     seg: NDArray[np.int64]
     motor: MotorClock
-    config: CalibConfig
+    config: SegmentConfig
     solve_at: Callable[..., Solution]
 
 
@@ -153,18 +171,18 @@ class _Round:
     intrinsics: Mapping[str, float] = field(default_factory=dict)
 
     @staticmethod
-    def after(sol: Solution, config: CalibConfig) -> _Round:
+    def after(sol: Solution, config: SegmentConfig) -> _Round:
         """The next round's, from a round's solution: its estimate, the noise it found."""
         return _Round(sol.params.dh, sol.clock_offset_s,
                       4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2)), sol.intrinsic_values)
 
-    def segment(self, beams: Beams, seg: NDArray[np.int64], motor: MotorClock, config: CalibConfig
+    def segment(self, beams: Beams, seg: NDArray[np.int64], motor: MotorClock, config: SegmentConfig
                 ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
         """:func:`plane_returns_at` here."""
         return plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config, self.intrinsics)
 
 
-def first_round(dh: DH, tau: float, config: CalibConfig) -> _Round:
+def first_round(dh: DH, tau: float, config: SegmentConfig) -> _Round:
     """The first round of a calibration from (dh, tau): its planes' thickness the noise plus what a nominal DH bends
     a plane by."""
     return _Round(dh, tau, 4.0 * config.range_sigma_m + 0.02)
@@ -247,7 +265,7 @@ def sample_returns(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) 
 
 
 def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh: DH, tau: float,
-                   thickness_m: float, config: CalibConfig, intrinsics: Mapping[str, float] | None = None
+                   thickness_m: float, config: SegmentConfig, intrinsics: Mapping[str, float] | None = None
                    ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
     """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau) and ``intrinsics`` (name -> value, the
     scales and offsets of lrfcal.model.unknowns; absent ones at their start); label every sampled return with the
@@ -315,7 +333,7 @@ def _settled(old: Solution, new: Solution) -> bool:
 
 
 def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: NDArray[np.bool_],
-                        marker_planes: list[Surface], config: CalibConfig) -> tuple[SurfaceReturns, list[Surface]]:
+                        marker_planes: list[Surface], config: SceneConfig) -> tuple[SurfaceReturns, list[Surface]]:
     """Every plane of the scene other than the markers' own (stage 6b generalised): segmented in the cloud at a
     marker calibration ``sol``, in W, as surfaces without a prior (free planes) and their returns, numbered after
     ``marker_planes``. ``skip`` (S, N): the marker returns, left out."""
@@ -359,6 +377,7 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     return SurfaceReturns(**fields)
 
 
-__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "Segmenting", "first_round", "settle_check",
+__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "SceneConfig", "SegmentConfig", "Segmenting",
+           "first_round", "settle_check",
            "with_round_difference",
            "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns", "settle_rounds"]

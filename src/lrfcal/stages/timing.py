@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.model.motor import JointGap, clock_offset_bound_s, dequantised, joint_gaps
-from lrfcal.types import JointStates, Recording, Scans
+from lrfcal.types import JointStates, Noted, Recording, Scans
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -183,20 +183,20 @@ def _poorly_interpolated(scans: Scans, joints: JointStates, tau0: float, range_s
     return bad, float(bound.max(initial=0.0))
 
 
-def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigma_m: float | None = None
-                 ) -> tuple[Scans, JointStates]:
+def usable_scans(recording: Recording, tau0: float, range_sigma_m: float | None = None
+                 ) -> Noted[tuple[Scans, JointStates]]:
     """The joint states without encoder spikes and the scans they cover at clock offset ``tau0``, outside the gaps of
     the joint states that may hide a reversal or a stop (:func:`_outside_gaps`); with the range
     noise ``range_sigma_m``, also without the scans whose motor angle the joint states do not interpolate well
     enough (a speed change between sparse samples, :func:`interpolation_error_rad`). The joint states returned have
-    most of the encoder's quantisation taken out (:func:`without_quantisation`). What was dropped is appended to
-    ``notes``.
+    most of the encoder's quantisation taken out (:func:`without_quantisation`); the notes say what was dropped.
 
     Raises:
         CalibrationError: no scan lies within the joint states' time span, most scans fall in gaps of the joint
             states that may hide the servo's motion, or most fall between joint states too sparse to interpolate
             their motor angle.
     """
+    notes: list[str] = []
     joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
     if n_spikes:
         notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
@@ -210,9 +210,11 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigm
     scans = subset_scans(recording.scans, covered)
     if not covered.all():
         notes.append(f"{int((~covered).sum())} of {covered.size} scans outside the joint states' time span trimmed")
-    scans = _outside_gaps(scans, joints, tau0, notes)
+    outside = _outside_gaps(scans, joints, tau0)
+    scans = outside.value
+    notes += outside.notes
     if range_sigma_m is None:
-        return scans, without_quantisation(joints, scans)
+        return Noted((scans, without_quantisation(joints, scans)), tuple(notes))
     poor, worst = _poorly_interpolated(scans, joints, tau0, range_sigma_m)
     if poor.any():
         why = (f"the joint states (every {joint_period_s(joints) * 1000:.0f} ms) interpolate their motor angle only to "
@@ -222,7 +224,7 @@ def usable_scans(recording: Recording, tau0: float, notes: list[str], range_sigm
                                    "(at least the scan rate)")
         notes.append(f"{int(poor.sum())} of {poor.size} scans left out: {why}")
         scans = subset_scans(scans, ~poor)
-    return scans, without_quantisation(joints, scans)
+    return Noted((scans, without_quantisation(joints, scans)), tuple(notes))
 
 
 def scans_in_gaps(scans: Scans, gaps: tuple[JointGap, ...], clock_offset_s: float = 0.0) -> BoolArray:
@@ -235,7 +237,7 @@ def scans_in_gaps(scans: Scans, gaps: tuple[JointGap, ...], clock_offset_s: floa
     return inside
 
 
-def _outside_gaps(scans: Scans, joints: JointStates, tau0: float, notes: list[str]) -> Scans:
+def _outside_gaps(scans: Scans, joints: JointStates, tau0: float) -> Noted[Scans]:
     """The scans outside the gaps of the joint states that may hide the servo's motion (lrfcal.model.motor.joint_gaps;
     a step-and-scan rig's angle is its scan's own: kept), with a note naming the longest; the gaps bridged where the
     motion was steady are named in a note too.
@@ -244,7 +246,8 @@ def _outside_gaps(scans: Scans, joints: JointStates, tau0: float, notes: list[st
         CalibrationError: more than MAX_TRIMMED_SHARE of the scans fall in such gaps.
     """
     if scans.angle_per_scan:
-        return scans
+        return Noted(scans)
+    notes: list[str] = []
     gaps = joint_gaps(joints.stamps_s, joints.positions_rad)
     hiding = tuple(g for g in gaps if g.hides)
     steady = [g for g in gaps if not g.hides]
@@ -253,7 +256,7 @@ def _outside_gaps(scans: Scans, joints: JointStates, tau0: float, notes: list[st
         notes.append(f"the motor angle interpolated across {len(steady)} gap(s) of the joint states where the servo's "
                      f"motion was steady; the longest: {longest.describe(float(joints.stamps_s[0]))}")
     if not hiding:
-        return scans
+        return Noted(scans, tuple(notes))
     inside = scans_in_gaps(scans, hiding, tau0)
     longest = max(hiding, key=lambda g: g.length_s)
     why = (f"{len(hiding)} gap(s) of the joint states may hide the servo's motion, across which the motor angle cannot "
@@ -263,7 +266,7 @@ def _outside_gaps(scans: Scans, joints: JointStates, tau0: float, notes: list[st
                                "without gaps (at least the scan rate throughout)")
     if inside.any():
         notes.append(f"{int(inside.sum())} of {inside.size} scans left out: {why}")
-    return subset_scans(scans, ~inside)
+    return Noted(subset_scans(scans, ~inside), tuple(notes))
 
 
 def without_quantisation(joints: JointStates, scans: Scans) -> JointStates:
