@@ -213,26 +213,37 @@ class _Delivery:
 
 
 class _Sender:
-    """A thread that writes :class:`Ahead`'s calls to the child's pipe in the order sent, so that ``Ahead.start``
-    returns at once even when a call is larger than the pipe's buffer and the child is not reading yet."""
+    """Writes :class:`Ahead`'s calls to the child's pipe in the order sent, in a thread, so that ``Ahead.start``
+    returns at once even when a call is larger than the pipe's buffer and the child is not reading yet. The thread
+    runs only while there is something to write (no thread stays behind for a later fork to copy)."""
 
     def __init__(self, conn: Any) -> None:
-        import queue
         import threading
 
         self._conn = conn
-        self._queue: queue.SimpleQueue[_Delivery | None] = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._queue: list[_Delivery] = []
+        self._thread: threading.Thread | None = None  # the one writing, while there is something to write
         self._broken = False
-        self._thread = threading.Thread(target=self._run, name="lrfcal-ahead-sender", daemon=True)
-        self._thread.start()
 
     def send(self, data: bytes) -> _Delivery:
+        import threading
+
         delivery = _Delivery(data)
-        self._queue.put(delivery)
+        with self._lock:
+            self._queue.append(delivery)
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="lrfcal-ahead-sender", daemon=True)
+                self._thread.start()
         return delivery
 
     def _run(self) -> None:
-        while (delivery := self._queue.get()) is not None:
+        while True:
+            with self._lock:
+                if not self._queue:
+                    self._thread = None
+                    return
+                delivery = self._queue.pop(0)
             if not self._broken:
                 try:
                     self._conn.send_bytes(delivery.data)
@@ -243,9 +254,11 @@ class _Sender:
             delivery.done.set()
 
     def stop(self) -> None:
-        """End the thread once it has written (or failed) the calls sent before."""
-        self._queue.put(None)
-        self._thread.join()
+        """Return once the calls sent before are written (or failed)."""
+        with self._lock:
+            thread = self._thread
+        if thread is not None:
+            thread.join()
 
 
 _NOT_INHERITED = object()  # (None is an object too: a missing id must not match it)
