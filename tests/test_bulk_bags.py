@@ -278,3 +278,23 @@ def test_a_frame_id_new_in_every_message_is_left_to_rosbags_past_the_layout_cap(
     assert sorted(fell_back) == list(range(MAX_LAYOUTS, n))
     same(arrays, scans_of([ts.deserialize_cdr(bytes(raw.message(i)), LASERSCAN) for i in range(n)]))
     assert arrays.frame_ids == [f"laser{k:04d}" for k in range(n)]
+
+
+def test_the_bulk_types_definitions_are_humbles_and_a_read_does_not_load_its_store(
+        shipped_recording: Callable[[str], Path]) -> None:
+    """lrfcal.io.bag_messages.BULK_FIELDDEFS are the definitions ROS 2 Humble's store holds (the layout reader's
+    reference), so that reading a bag that defines its types never loads that store (~900 message classes)."""
+    import subprocess
+    import sys
+
+    from lrfcal.io.bag_messages import BULK_FIELDDEFS
+
+    humble = get_typestore(Stores.ROS2_HUMBLE).fielddefs
+    for name, defs in BULK_FIELDDEFS.items():
+        assert defs == humble[name], name
+    bag = shipped_recording("tunnel_v") / "bag"
+    probe = ("import sys; from lrfcal.io.bag import read_bag; d = read_bag(sys.argv[1]); "
+             "print(len(d.scans.stamps_s), 'rosbags.typesys.stores.ros2_humble' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe, str(bag)], capture_output=True, text=True, check=True)
+    count, loaded = out.stdout.split()
+    assert int(count) > 100 and loaded == "False"

@@ -174,3 +174,17 @@ def test_ahead_nice_child_and_ready_calls() -> None:
         assert ahead.result() == min(19, here + 5)
         assert not ahead.ready()  # no call left
     assert os.nice(0) == here
+
+
+@pytest.mark.skipif(not FORKS, reason=NO_FORKS)
+def test_ahead_start_returns_while_the_child_prepares_even_for_a_call_larger_than_the_pipe() -> None:
+    """The figures' child is sent intensity.png's candidate mask (1.6 MB) while it still imports matplotlib: start()
+    must not wait for the child to read it (a sender thread writes it), and the calls arrive in order."""
+    big = b"x" * 4_000_000  # far beyond a pipe's buffer (64 KiB-1 MiB)
+    with Ahead(lambda: time.sleep(1.5)) as ahead:
+        t0 = time.perf_counter()
+        ahead.start(len, big)
+        ahead.start(len, big[:10])
+        sent_in = time.perf_counter() - t0
+        assert (ahead.result(), ahead.result()) == (4_000_000, 10)
+    assert sent_in < 0.75  # before: the 1.5 s of the child's prepare()

@@ -157,3 +157,17 @@ def test_bad_override_is_one_line_exit_2(monkeypatch: pytest.MonkeyPatch, capsys
     assert _main(["schema"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: LRF_CALIB_BLAS_THREADS") and "'many'" in err[0], err
+
+
+def test_a_job_that_calibrates_nothing_does_not_load_the_pipeline() -> None:
+    """``lrfsim plan`` and ``lrfsim simulate`` draw the progress line too: the calibration's stages (lrfcal.pipeline,
+    which loads every stage and scipy.ndimage, 0.1 s) are imported only when a calibration reports its first stage."""
+    probe = ("import sys\n"
+             "from lrfcal.io.progress import progress_display\n"
+             "with progress_display('job', quiet=True) as hooks:\n"
+             "    hooks.scans(1, 2); hooks.steps('writing', 1, 1)\n"
+             "    before = 'lrfcal.pipeline' in sys.modules\n"
+             "    hooks.stage('mds')\n"
+             "print(before, 'lrfcal.pipeline' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["False", "True"]

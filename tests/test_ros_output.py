@@ -168,3 +168,14 @@ def test_joint_snippet_cautions_where_a_urdf_joint_cannot_say_it() -> None:
         text = ros_files(other)[JOINTS_NAME]
         ET.fromstring(text)  # still XML: no "--" in its comment
         assert "CAUTION" in text and words in text, text
+
+
+def test_urdf_attribute_quoting_is_xml_saxs() -> None:
+    """lrfcal.io.urdf quotes attribute values as xml.sax.saxutils.quoteattr does (without importing it: it loads
+    urllib, http and ssl on every calibration)."""
+    from xml.sax.saxutils import quoteattr
+
+    from lrfcal.io.urdf import _quoteattr
+
+    for text in ("laser", "", "a&b<c>d", 'say "hi"', "it's", "both ' and \"", "tab\there\nnew\rline", "&amp;"):
+        assert _quoteattr(text) == quoteattr(text), text

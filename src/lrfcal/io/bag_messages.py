@@ -35,7 +35,6 @@ def one_line(err: BaseException) -> str:
 def open_reader(path: Path) -> Any:
     """An unopened AnyReader for a ROS 1 .bag file, a ROS 2 bag folder, or a single .mcap/.db3 file."""
     from rosbags.highlevel import AnyReader
-    from rosbags.typesys import Stores, get_typestore
 
     if not path.exists():
         raise InputError(f"{path}: bag not found")
@@ -44,9 +43,20 @@ def open_reader(path: Path) -> Any:
             raise InputError(f"{path}: a recording folder, not a bag: pass its bag, {path / 'bag'}")
         raise InputError(_not_a_bag_folder(path))
     try:
-        return AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
+        return AnyReader([path], default_typestore=_HumbleDefaults())  # type: ignore[arg-type]
     except Exception as err:  # rosbags raises several unrelated types for unreadable input
         raise InputError(f"{path}: cannot open bag: {one_line(err)}") from None
+
+
+class _HumbleDefaults:
+    """AnyReader's default typestore (the types of a bag that defines none), ROS 2 Humble's store loaded only when
+    such a bag asks for it: importing it builds some 900 message classes, 0.06 s of every bag read otherwise."""
+
+    @property
+    def fielddefs(self) -> Any:
+        from rosbags.typesys import Stores, get_typestore
+
+        return get_typestore(Stores.ROS2_HUMBLE).fielddefs
 
 
 def _not_a_bag_folder(path: Path) -> str:
@@ -99,21 +109,38 @@ BULK_TYPES = {"sensor_msgs/msg/LaserScan": "scan", JOINTSTATE_TYPE: "joint"}
 _BULK_USES = ("std_msgs/msg/Header", "builtin_interfaces/msg/Time")
 
 
+#: rosbags' field definitions of the bulk types and the types they use, as ROS 2 Humble's store holds them
+#: (rosbags.interfaces.Nodetype: 1 BASE, 2 NAME, 4 SEQUENCE, an IntEnum equal to these numbers), here so that a bag
+#: read need not load that store (:class:`_HumbleDefaults`; tests/test_bulk_bags.py compares them with it)
+_BASE, _NAME, _SEQUENCE = 1, 2, 4
+_F32, _F64 = (_BASE, ("float32", 0)), (_BASE, ("float64", 0))
+BULK_FIELDDEFS: dict[str, tuple[list[Any], list[tuple[str, Any]]]] = {
+    "sensor_msgs/msg/LaserScan": ([], [
+        ("header", (_NAME, "std_msgs/msg/Header")), ("angle_min", _F32), ("angle_max", _F32),
+        ("angle_increment", _F32), ("time_increment", _F32), ("scan_time", _F32), ("range_min", _F32),
+        ("range_max", _F32), ("ranges", (_SEQUENCE, (_F32, 0))), ("intensities", (_SEQUENCE, (_F32, 0)))]),
+    JOINTSTATE_TYPE: ([], [
+        ("header", (_NAME, "std_msgs/msg/Header")), ("name", (_SEQUENCE, ((_BASE, ("string", 0)), 0))),
+        ("position", (_SEQUENCE, (_F64, 0))), ("velocity", (_SEQUENCE, (_F64, 0))),
+        ("effort", (_SEQUENCE, (_F64, 0)))]),
+    "std_msgs/msg/Header": ([], [("stamp", (_NAME, "builtin_interfaces/msg/Time")),
+                                 ("frame_id", (_BASE, ("string", 0)))]),
+    "builtin_interfaces/msg/Time": ([], [("sec", (_BASE, ("int32", 0))), ("nanosec", (_BASE, ("uint32", 0)))]),
+}
+
+
 def bulk_kind(reader: Any, msgtype: str) -> str | None:
     """"scan" or "joint" when ``msgtype`` is LaserScan or JointState as ROS defines it (the layout lrfcal.io.wire
     reads: the same fields in ROS 1 Noetic and ROS 2 Humble but the header's seq, ROS 1 only), None for every other
     type and for a bag that defines one of them otherwise."""
-    from rosbags.interfaces import Nodetype
-    from rosbags.typesys import Stores, get_typestore
-
     kind = BULK_TYPES.get(msgtype)
     if kind is None:
         return None
     have = reader.typestore.fielddefs
-    ref = dict(get_typestore(Stores.ROS2_HUMBLE).fielddefs)
+    ref = dict(BULK_FIELDDEFS)
     if not reader.is2:
         consts, fields = ref["std_msgs/msg/Header"]
-        ref["std_msgs/msg/Header"] = (consts, [("seq", (Nodetype.BASE, ("uint32", 0))), *fields])
+        ref["std_msgs/msg/Header"] = (consts, [("seq", (_BASE, ("uint32", 0))), *fields])
     return kind if all(have.get(t) == ref[t] for t in (msgtype, *_BULK_USES)) else None
 
 
@@ -149,5 +176,6 @@ def get_field(msg: Any, dotted: str, where: str) -> Any:
     return cur
 
 
-__all__ = ["BULK_TYPES", "DYNAMIXEL_JOINTSTATE_TYPE", "JOINTSTATE_TYPE", "LASERSCAN_TYPES", "MULTIECHO_TYPE", "TF_TYPE",
-           "bulk_kind", "complete_types", "get_field", "ns_to_s", "ns_to_s_array", "one_line", "open_reader", "stamp_s"]
+__all__ = ["BULK_FIELDDEFS", "BULK_TYPES", "DYNAMIXEL_JOINTSTATE_TYPE", "JOINTSTATE_TYPE", "LASERSCAN_TYPES",
+           "MULTIECHO_TYPE", "TF_TYPE", "bulk_kind", "complete_types", "get_field", "ns_to_s", "ns_to_s_array",
+           "one_line", "open_reader", "stamp_s"]

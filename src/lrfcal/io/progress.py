@@ -42,9 +42,6 @@ def progress_display(label: str, *, quiet: bool = False, console: Console | None
     """
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from lrfcal.pipeline import STAGES
-    from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
-
     console = console if console is not None else progress_console()
     with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.fields[what]}"),
                   TimeElapsedColumn(), console=console, transient=True,
@@ -64,7 +61,10 @@ def progress_display(label: str, *, quiet: bool = False, console: Console | None
         calibration: list[tuple[str, ...]] = []  # the stages of the calibration that runs (known at its first)
 
         def stage(name: str) -> None:
-            if not calibration:
+            if not calibration:  # imported here: a job that calibrates nothing (plan, simulate) need not load them
+                from lrfcal.pipeline import STAGES
+                from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
+
                 calibration.append(TARGETLESS_STAGES if name == TARGETLESS_STAGES[0] else STAGES)
             stages = calibration[0]
             if name in stages:  # a calibration stage: every one is drawn at least once (refresh)

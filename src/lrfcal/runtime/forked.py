@@ -95,7 +95,9 @@ class Ahead:
         self._conn: Any = None
         self._proc: Any = None
         self._sent = False
-        self._pending: list[tuple[Callable[..., Any], tuple[Any, ...], bool]] = []  # (fn, args, sent to the child)
+        # (fn, args, its bytes' delivery to the child: None when it runs here)
+        self._pending: list[tuple[Callable[..., Any], tuple[Any, ...], _Delivery | None]] = []
+        self._sender: _Sender | None = None
 
     def __enter__(self) -> Ahead:
         if _can_fork():
@@ -111,19 +113,23 @@ class Ahead:
                 return self
             theirs.close()
             self._conn, self._proc = ours, proc
+            self._sender = _Sender(ours)
         return self
 
     def start(self, fn: Callable[..., Any], *args: Any) -> None:
         """Send ``fn(*args)`` to the child, which runs it (after the calls sent before) while this process goes on;
         :meth:`result` returns its value."""
-        sent = False
-        if self._conn is not None:
+        delivery = None
+        if self._conn is not None and self._sender is not None:
             try:
-                self._conn.send_bytes(_dumps((fn, args), self._inherited))
-                sent = self._sent = True
-            except Exception:  # noqa: BLE001 - a child that died, or a call that does not pickle: run here
+                data = _dumps((fn, args), self._inherited)
+            except Exception:  # noqa: BLE001 - a call that does not pickle: run here
                 self._close()
-        self._pending.append((fn, args, sent))
+            else:  # written by the sender thread: a call larger than the pipe's buffer must not wait for the
+                # child to read it (it reads once prepared, and once the calls before are done)
+                delivery = self._sender.send(data)
+                self._sent = True
+        self._pending.append((fn, args, delivery))
 
     @property
     def started(self) -> bool:
@@ -133,7 +139,8 @@ class Ahead:
     def ready(self) -> bool:
         """Whether the oldest call whose result is not yet taken has finished in the child (its :meth:`result`
         would not wait)."""
-        if not self._pending or not self._pending[0][2] or self._conn is None:
+        delivery = self._pending[0][2] if self._pending else None
+        if delivery is None or not delivery.done.is_set() or not delivery.ok or self._conn is None:
             return False
         try:
             return bool(self._conn.poll())
@@ -145,8 +152,8 @@ class Ahead:
         there is none or it died, run here after ``prepare()``."""
         if not self._pending:
             raise RuntimeError("Ahead.result() without a call: start(fn, *args) first")
-        fn, args, sent = self._pending.pop(0)
-        if sent and self._conn is not None:
+        fn, args, delivery = self._pending.pop(0)
+        if delivery is not None and delivery.wait() and self._conn is not None:
             try:
                 ok, value = self._conn.recv()
                 if ok:
@@ -167,6 +174,9 @@ class Ahead:
         return self.result()  # type: ignore[no-any-return]
 
     def _close(self) -> None:
+        if self._sender is not None:
+            self._sender.stop()  # after the calls sent so far (a child that died fails them at once)
+            self._sender = None
         if self._conn is not None:
             self._conn.close()  # the child's recv ends: it exits
             self._conn = None
@@ -175,6 +185,8 @@ class Ahead:
         # a child that was sent no call is at most preparing, and one whose results are not all taken (an error
         # here) works for nothing: both end at once; one that ran all its calls ends with its pipe
         idle = self._sent and not self._pending
+        if not idle and self._proc is not None:
+            self._proc.terminate()  # a call still being written to it fails at once
         self._close()
         if self._proc is not None:
             self._proc.join(timeout=1.0 if idle else 0.0)
@@ -182,6 +194,71 @@ class Ahead:
                 self._proc.terminate()
                 self._proc.join()
             self._proc = None
+
+
+class _Delivery:
+    """One call's bytes on their way to :class:`Ahead`'s child: ``done`` once written (``ok``) or failed."""
+
+    def __init__(self, data: bytes) -> None:
+        import threading
+
+        self.data: bytes | None = data
+        self.done = threading.Event()
+        self.ok = False
+
+    def wait(self) -> bool:
+        """Whether the bytes reached the child's pipe (waits until they are written or failed)."""
+        self.done.wait()
+        return self.ok
+
+
+class _Sender:
+    """Writes :class:`Ahead`'s calls to the child's pipe in the order sent, in a thread, so that ``Ahead.start``
+    returns at once even when a call is larger than the pipe's buffer and the child is not reading yet. The thread
+    runs only while there is something to write (no thread stays behind for a later fork to copy)."""
+
+    def __init__(self, conn: Any) -> None:
+        import threading
+
+        self._conn = conn
+        self._lock = threading.Lock()
+        self._queue: list[_Delivery] = []
+        self._thread: threading.Thread | None = None  # the one writing, while there is something to write
+        self._broken = False
+
+    def send(self, data: bytes) -> _Delivery:
+        import threading
+
+        delivery = _Delivery(data)
+        with self._lock:
+            self._queue.append(delivery)
+            if self._thread is None:
+                self._thread = threading.Thread(target=self._run, name="lrfcal-ahead-sender", daemon=True)
+                self._thread.start()
+        return delivery
+
+    def _run(self) -> None:
+        while True:
+            with self._lock:
+                if not self._queue:
+                    self._thread = None
+                    return
+                delivery = self._queue.pop(0)
+            if not self._broken:
+                try:
+                    self._conn.send_bytes(delivery.data)
+                    delivery.ok = True
+                except Exception:  # noqa: BLE001 - a child that died: this call and the later ones run here
+                    self._broken = True
+            delivery.data = None
+            delivery.done.set()
+
+    def stop(self) -> None:
+        """Return once the calls sent before are written (or failed)."""
+        with self._lock:
+            thread = self._thread
+        if thread is not None:
+            thread.join()
 
 
 _NOT_INHERITED = object()  # (None is an object too: a missing id must not match it)
