@@ -10,9 +10,10 @@ The expensive runs that several modules assert on are done once per session and 
 once per xdist worker, so :func:`group_of` puts the tests that share one into one group): ``targetless_calibrated``
 (a shipped marker-less scene calibrated targetless and written, for tests/test_targetless.py and
 tests/test_start_dependence.py), ``real_inspected`` (``lrfcal inspect`` of a shared real bag through the installed
-console script, for tests/test_real_walkthrough.py and tests/test_inspect_dh.py) and ``urg_from_the_authors_nominal``
+console script, for tests/test_real_walkthrough.py and tests/test_inspect_dh.py), ``urg_from_the_authors_nominal``
 (the real URG-04LX bag calibrated targetless from its authors' nominal with --force, for tests/test_targetless.py and
-tests/test_real_walkthrough.py).
+tests/test_real_walkthrough.py) and ``full_sweep_run`` (``lrfsim run`` of the small tunnel's full sweep through the
+installed console script, for tests/test_cli_sim.py and tests/test_output_names.py).
 
 The tests run BLAS with the programs' thread policy (lrfcal.runtime.threads), as the console scripts do: one thread per
 process, so two test workers on two cores do not oversubscribe them.
@@ -54,8 +55,9 @@ def group_of(nodeid: str) -> str:
     split and no fixture is shared (recordings are: on disk, below): test_recovery into its random truths and its
     shipped scenarios, test_targetless into its tests, test_trust into its tests. The tests that share a session
     fixture run together: "real bags" (the real-rig walkthrough, inspect_dh's real URG stand and targetless's real
-    box: ``real_inspected``, ``urg_from_the_authors_nominal``) and "room_box targetless" (test_start_dependence and
-    targetless's room_box: ``targetless_calibrated``)."""
+    box: ``real_inspected``, ``urg_from_the_authors_nominal``), "room_box targetless" (test_start_dependence and
+    targetless's room_box: ``targetless_calibrated``) and "lrfsim run" (test_cli_sim and test_output_names:
+    ``full_sweep_run``)."""
     path, _, name = nodeid.partition("::")
     module = Path(path).stem
     if module == "test_real_walkthrough" or module == "test_inspect_dh" and "real_urg" in name \
@@ -63,6 +65,8 @@ def group_of(nodeid: str) -> str:
         return "real bags"
     if module == "test_start_dependence" or module == "test_targetless" and "room_box" in name:
         return "room_box targetless"
+    if module in ("test_cli_sim", "test_output_names"):
+        return "lrfsim run"
     if module == "test_recovery" and "shipped" in name:
         return "test_recovery_shipped"
     if module == "test_targetless" and "real_urg04lx" not in name or module == "test_trust":
@@ -202,3 +206,18 @@ def urg_from_the_authors_nominal() -> Callable[[str], CalibrationResult]:
         return done[name]
 
     return get
+
+
+@pytest.fixture(scope="session")
+def full_sweep_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.CompletedProcess, Path]:
+    """``lrfsim run small.yaml`` through the installed console script, without -o (the folder runs/tunnel_v), in a
+    folder of its own: the small tunnel (tests/test_cli_usage.py's _small) on its full +-90 deg sweep at 30 deg/s,
+    one pass (it calibrates). (The process, that folder); once per session; do not write into it."""
+    import math
+
+    from test_cli_usage import _run, _small
+
+    folder = tmp_path_factory.mktemp("full-sweep-run")
+    scen = _small(folder, **{"servo.start_rad": math.pi / 2, "servo.end_rad": -math.pi / 2,
+                             "servo.speed_rad_s": math.radians(30.0), "servo.settle_s": 0.2})
+    return _run("lrfsim", "run", scen, cwd=folder, timeout=300), folder
