@@ -12,8 +12,10 @@ once per xdist worker, so :func:`group_of` puts the tests that share one into on
 tests/test_start_dependence.py), ``real_inspected`` (``lrfcal inspect`` of a shared real bag through the installed
 console script, for tests/test_real_walkthrough.py and tests/test_inspect_dh.py), ``urg_from_the_authors_nominal``
 (the real URG-04LX bag calibrated targetless from its authors' nominal with --force, for tests/test_targetless.py and
-tests/test_real_walkthrough.py) and ``full_sweep_run`` (``lrfsim run`` of the small tunnel's full sweep through the
-installed console script, for tests/test_cli_sim.py and tests/test_output_names.py).
+tests/test_real_walkthrough.py), ``full_sweep_run`` (``lrfsim run`` of the small tunnel's full sweep through the
+installed console script, for tests/test_cli_sim.py and tests/test_output_names.py) and ``calibrated_trial`` (a
+recording calibrated once per worker for each configuration: tests/test_trust.py's good start on tunnel_fast, which
+five of its tests and tests/test_servo_faults.py compare with).
 
 The tests run BLAS with the programs' thread policy (lrfcal.runtime.threads), as the console scripts do: one thread per
 process, so two test workers on two cores do not oversubscribe them.
@@ -37,7 +39,9 @@ from lrfcal.runtime.threads import apply_thread_policy
 from lrfsim.scenario import Scenario, load_scenario
 
 if TYPE_CHECKING:
+    from lrfcal.config import CalibConfig
     from lrfcal.result import CalibrationResult
+    from lrfsim.trial import Trial
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 #: public recordings of real rigs shared beside the project, not part of a clone (../shared/realbags/README.md)
@@ -221,3 +225,20 @@ def full_sweep_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess
     scen = _small(folder, **{"servo.start_rad": math.pi / 2, "servo.end_rad": -math.pi / 2,
                              "servo.speed_rad_s": math.radians(30.0), "servo.settle_s": 0.2})
     return _run("lrfsim", "run", scen, cwd=folder, timeout=300), folder
+
+
+@pytest.fixture(scope="session")
+def calibrated_trial(recording_of: Callable[[Scenario], Path]) -> Callable[[Scenario, CalibConfig], Trial]:
+    """``calibrated_trial(scenario, config)`` -> lrfsim.trial.calibrate_recording(recording_of(scenario), config,
+    keep_result=True), once per session (per xdist worker) for each scenario and configuration; do not change it."""
+    from lrfsim.trial import calibrate_recording
+
+    done: dict[tuple[str, str], Trial] = {}
+
+    def get(scenario: Scenario, config: CalibConfig) -> Trial:
+        key = scenario.model_dump_json(), config.model_dump_json()
+        if key not in done:
+            done[key] = calibrate_recording(recording_of(scenario), config, keep_result=True)
+        return done[key]
+
+    return get
