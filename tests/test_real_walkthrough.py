@@ -23,26 +23,18 @@ from typing import TYPE_CHECKING
 
 import pytest
 import yaml
+from conftest import REALBAGS, real_bag
 from test_cli_usage import _one_error_line, _run
 
 if TYPE_CHECKING:
     from lrfcal.result import CalibrationResult
 
-REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
 BAGS = ("cardboard_box", "room_240")
 DH = ("a", "alpha", "b", "beta")
 #: the checks a targetless refusal can name first
 CHECKS = ("clock offset", "rounds settled", "starts agree", "convergence", "mirror image", "observability",
           "reduced chi-square", "second opinion", "held-out planes")
 N_SIGMA = 4.0
-
-
-def _bag(name: str) -> Path:
-    path = REALBAGS / f"{name}.bag"
-    if not path.is_file():
-        pytest.skip(f"real recording not present at {path} (public bag shared beside the project, not part of a "
-                    "clone; ../shared/realbags/README.md)")
-    return path
 
 
 #: per bag: the inspect, the calibration, the rig file inspect wrote, the calibration's output folder
@@ -81,7 +73,7 @@ def _estimated(result: CalibrationResult) -> dict[str, tuple[float, float]]:
 
 @pytest.mark.parametrize("name", BAGS)
 def test_inspect_proposes_a_rig_file(walkthrough: Runs, name: str) -> None:
-    _bag(name)
+    real_bag(name)
     inspect, _, rig_file, _ = walkthrough[name]
     assert "Traceback" not in inspect.stderr and inspect.returncode == 0, inspect.stderr
     rig = yaml.safe_load(rig_file.read_text())
@@ -92,7 +84,7 @@ def test_inspect_proposes_a_rig_file(walkthrough: Runs, name: str) -> None:
 @pytest.mark.parametrize("name", BAGS)
 def test_calibrate_with_its_rig_file_agrees_with_the_other_starts_or_is_refused(
         walkthrough: Runs, name: str, urg_from_the_authors_nominal: Callable[[str], CalibrationResult]) -> None:
-    _bag(name)
+    real_bag(name)
     _, calib, _, out = walkthrough[name]
     print(name, "exit", calib.returncode, calib.stderr.strip()[-600:])
     if calib.returncode == 3:
