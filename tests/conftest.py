@@ -6,6 +6,17 @@ recording). Under pytest-xdist every worker is its own session: the folders live
 folders, and the first worker that needs one simulates it while the others wait on a file lock. Tests read these
 folders; one that changes a recording copies it first.
 
+The expensive runs that several modules assert on are done once per session and shared (a session fixture is built
+once per xdist worker, so :func:`group_of` puts the tests that share one into one group): ``targetless_calibrated``
+(a shipped marker-less scene calibrated targetless and written, for tests/test_targetless.py and
+tests/test_start_dependence.py), ``real_inspected`` (``lrfcal inspect`` of a shared real bag through the installed
+console script, for tests/test_real_walkthrough.py and tests/test_inspect_dh.py), ``urg_from_the_authors_nominal``
+(the real URG-04LX bag calibrated targetless from its authors' nominal with --force, for tests/test_targetless.py and
+tests/test_real_walkthrough.py), ``full_sweep_run`` (``lrfsim run`` of the small tunnel's full sweep through the
+installed console script, for tests/test_cli_sim.py and tests/test_output_names.py) and ``calibrated_trial`` (a
+recording calibrated once per worker for each configuration: tests/test_trust.py's good start on tunnel_fast, which
+five of its tests and tests/test_servo_faults.py compare with).
+
 The tests run BLAS with the programs' thread policy (lrfcal.runtime.threads), as the console scripts do: one thread per
 process, so two test workers on two cores do not oversubscribe them.
 """
@@ -15,9 +26,11 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import os
+import subprocess
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 
@@ -25,7 +38,14 @@ from lrfcal.runtime.memory import apply_memory_policy
 from lrfcal.runtime.threads import apply_thread_policy
 from lrfsim.scenario import Scenario, load_scenario
 
+if TYPE_CHECKING:
+    from lrfcal.config import CalibConfig
+    from lrfcal.result import CalibrationResult
+    from lrfsim.trial import Trial
+
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
+#: public recordings of real rigs shared beside the project, not part of a clone (../shared/realbags/README.md)
+REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -37,10 +57,20 @@ def group_of(nodeid: str) -> str:
     """The group of a test (``tests/test_x.py::test_y[param]``): the tests of one group run on one worker, in order,
     so that a module's fixtures are built once. A group is the test's module, except where the longest modules are
     split and no fixture is shared (recordings are: on disk, below): test_recovery into its random truths and its
-    shipped scenarios, test_targetless into its tests (the two on the real box share theirs), test_trust into its
-    tests."""
+    shipped scenarios, test_targetless into its tests, test_trust into its tests. The tests that share a session
+    fixture run together: "real bags" (the real-rig walkthrough, inspect_dh's real URG stand and targetless's real
+    box: ``real_inspected``, ``urg_from_the_authors_nominal``), "room_box targetless" (test_start_dependence and
+    targetless's room_box: ``targetless_calibrated``) and "lrfsim run" (test_cli_sim and test_output_names:
+    ``full_sweep_run``)."""
     path, _, name = nodeid.partition("::")
     module = Path(path).stem
+    if module == "test_real_walkthrough" or module == "test_inspect_dh" and "real_urg" in name \
+            or module == "test_targetless" and "real_urg04lx" in name:
+        return "real bags"
+    if module == "test_start_dependence" or module == "test_targetless" and "room_box" in name:
+        return "room_box targetless"
+    if module in ("test_cli_sim", "test_output_names"):
+        return "lrfsim run"
     if module == "test_recovery" and "shipped" in name:
         return "test_recovery_shipped"
     if module == "test_targetless" and "real_urg04lx" not in name or module == "test_trust":
@@ -105,3 +135,110 @@ def recording_of(tmp_path_factory: pytest.TempPathFactory) -> Callable[[Scenario
 def shipped_recording(recording_of: Callable[[Scenario], Path]) -> Callable[[str], Path]:
     """``shipped_recording(name)`` -> the recording folder of scenarios/<name>.yaml (shared, read-only)."""
     return lambda name: recording_of(load_scenario(SCENARIOS / f"{name}.yaml"))
+
+
+@pytest.fixture(scope="session")
+def targetless_calibrated(shipped_recording: Callable[[str], Path], tmp_path_factory: pytest.TempPathFactory
+                          ) -> Callable[[str], tuple[Path, Path, CalibrationResult]]:
+    """``targetless_calibrated(name)`` -> (recording folder, output folder, result) of scenarios/<name>.yaml's
+    recording calibrated targetless by lrfcal.workflow.calibrate_folder, the function ``lrfcal calibrate REC -o OUT
+    --targetless --no-figures`` runs (a refusal raises, as the command exits 3); once per session."""
+    from lrfcal.config import CalibConfig
+    from lrfcal.workflow import calibrate_folder
+
+    done: dict[str, tuple[Path, Path, CalibrationResult]] = {}
+
+    def get(name: str) -> tuple[Path, Path, CalibrationResult]:
+        if name not in done:
+            folder = shipped_recording(name)
+            out = tmp_path_factory.mktemp(f"targetless-{name}") / "cal"
+            done[name] = folder, out, calibrate_folder(folder, out, config=CalibConfig(targetless=True),
+                                                       figures=False)
+        return done[name]
+
+    return get
+
+
+def real_bag(name: str) -> Path:
+    """../shared/realbags/<name>.bag, or the test is skipped with the reason."""
+    path = REALBAGS / f"{name}.bag"
+    if not path.is_file():
+        pytest.skip(f"real recording not present at {path} (public bag shared beside the project, not part of a "
+                    "clone; ../shared/realbags/README.md)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def real_inspected(tmp_path_factory: pytest.TempPathFactory
+                   ) -> Callable[[str], tuple[subprocess.CompletedProcess, Path]]:
+    """``real_inspected(name)`` -> (the process, its rig file) of ``lrfcal inspect BAG -o rig.yaml`` through the
+    installed console script on the real bag ``name`` (skipped when absent); once per session."""
+    from test_cli_usage import _run
+
+    done: dict[str, tuple[subprocess.CompletedProcess, Path]] = {}
+
+    def get(name: str) -> tuple[subprocess.CompletedProcess, Path]:
+        if name not in done:
+            path = real_bag(name)
+            rig = tmp_path_factory.mktemp(f"inspect-{name}") / "rig.yaml"
+            done[name] = _run("lrfcal", "inspect", path, "-o", rig, timeout=600), rig
+        return done[name]
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def urg_from_the_authors_nominal() -> Callable[[str], CalibrationResult]:
+    """``urg_from_the_authors_nominal(name)`` -> the real URG-04LX bag ``name`` (skipped when absent) calibrated
+    targetless with force (its failed checks recorded, not raised) from the authors' nominal DH
+    (tests/test_real_bags.py: URG_NOMINAL, read with URG_SCAN and URG_SERVO, what ``lrfcal inspect`` proposes for
+    it); once per session."""
+    from test_real_bags import URG_NOMINAL, URG_SCAN, URG_SERVO
+
+    from lrfcal.config import CalibConfig
+    from lrfcal.io.bag import read_bag
+    from lrfcal.pipeline import calibrate
+    from lrfcal.types import Nominal, Recording
+
+    done: dict[str, CalibrationResult] = {}
+
+    def get(name: str) -> CalibrationResult:
+        if name not in done:
+            data = read_bag(real_bag(name), URG_SCAN, URG_SERVO, warn=lambda _t: None)
+            rec = Recording(scans=data.scans, joints=data.joints, tape=None, nominal=Nominal(dh=URG_NOMINAL))
+            done[name] = calibrate(rec, CalibConfig(targetless=True, force=True))
+        return done[name]
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def full_sweep_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess.CompletedProcess, Path]:
+    """``lrfsim run small.yaml`` through the installed console script, without -o (the folder runs/tunnel_v), in a
+    folder of its own: the small tunnel (tests/test_cli_usage.py's _small) on its full +-90 deg sweep at 30 deg/s,
+    one pass (it calibrates). (The process, that folder); once per session; do not write into it."""
+    import math
+
+    from test_cli_usage import _run, _small
+
+    folder = tmp_path_factory.mktemp("full-sweep-run")
+    scen = _small(folder, **{"servo.start_rad": math.pi / 2, "servo.end_rad": -math.pi / 2,
+                             "servo.speed_rad_s": math.radians(30.0), "servo.settle_s": 0.2})
+    return _run("lrfsim", "run", scen, cwd=folder, timeout=300), folder
+
+
+@pytest.fixture(scope="session")
+def calibrated_trial(recording_of: Callable[[Scenario], Path]) -> Callable[[Scenario, CalibConfig], Trial]:
+    """``calibrated_trial(scenario, config)`` -> lrfsim.trial.calibrate_recording(recording_of(scenario), config,
+    keep_result=True), once per session (per xdist worker) for each scenario and configuration; do not change it."""
+    from lrfsim.trial import calibrate_recording
+
+    done: dict[tuple[str, str], Trial] = {}
+
+    def get(scenario: Scenario, config: CalibConfig) -> Trial:
+        key = scenario.model_dump_json(), config.model_dump_json()
+        if key not in done:
+            done[key] = calibrate_recording(recording_of(scenario), config, keep_result=True)
+        return done[key]
+
+    return get

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -62,14 +63,13 @@ def test_bad_scenario_exit_2_one_line_nothing_written(tmp_path: Path, capsys: py
     assert not out.exists()
 
 
-def test_run_closes_the_loop(tmp_path: Path) -> None:
-    """`lrfsim run`: simulate, calibrate, compare; the run folder holds everything; a rerun is replaced."""
-    scen = _write_small(tmp_path, start_rad=1.5707963267948966, end_rad=-1.5707963267948966,
-                        speed_rad_s=0.5235987755982988, settle_s=0.2)  # the full sweep at 30 deg/s, one pass
-    proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen)], cwd=tmp_path,
-                          capture_output=True, text=True, timeout=120)
+def test_run_closes_the_loop(full_sweep_run: tuple[subprocess.CompletedProcess, Path], tmp_path: Path) -> None:
+    """`lrfsim run`: simulate, calibrate, compare; the run folder holds everything; a rerun is replaced. The first
+    run is the session's (tests/conftest.py: full_sweep_run, the installed console script on the full sweep at 30
+    deg/s, one pass, shared with tests/test_output_names.py); the rerun, in a copy of its folder, is `python -m`."""
+    proc, first = full_sweep_run
     assert proc.returncode in (0, 1), proc.stderr  # 1: tolerances missed, still a complete run
-    run_dir = tmp_path / "runs" / "tunnel_v"
+    run_dir = first / "runs" / "tunnel_v"
     assert sorted(p.name for p in run_dir.iterdir()) == sorted([MANIFEST_NAME, "calibration", "comparison.md",
                                                                 "recording", "rerun.rrd"])
     assert sorted(p.name for p in (run_dir / "recording").iterdir()) == FILES
@@ -83,10 +83,14 @@ def test_run_closes_the_loop(tmp_path: Path) -> None:
     assert "Table I" in (run_dir / "comparison.md").read_text()
     # run again, with --spawn where no viewer can start: the default run folder is replaced, nothing else is left
     # beside it, and one warning line says where the rerun recording went
-    proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen), "--spawn"], cwd=tmp_path,
+    work = tmp_path / "again"
+    shutil.copytree(first, work)
+    run_dir = work / "runs" / "tunnel_v"
+    scen = next(work.glob("*.yaml"))
+    proc = subprocess.run([sys.executable, "-m", "lrfsim.cli", "run", str(scen), "--spawn"], cwd=work,
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode in (0, 1), proc.stderr
-    assert sorted(p.name for p in (tmp_path / "runs").iterdir()) == ["tunnel_v"]
+    assert sorted(p.name for p in (work / "runs").iterdir()) == ["tunnel_v"]
     assert "Traceback" not in proc.stderr
     warn = proc.stderr.strip().splitlines()
     assert len(warn) == 1 and warn[0].startswith("warning: --spawn: no rerun viewer") and "rerun.rrd" in warn[0]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,13 +21,12 @@ from test_bag_shapes import write
 from lrfcal.cli import main
 from lrfcal.io.loginspect import inspect_path
 from lrfcal.model.kinematics import DH, points_M
-from lrfcal.stages.propose import DETERMINED, DHProposal, canonical
+from lrfcal.stages.propose import DETERMINED, canonical
 from lrfcal.types import JointStates, Scans
 from lrfsim.compare import load_truth
 
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
 ABSENT = f"real recordings not present at {REALBAGS} (public recordings shared beside the project, not part of a clone)"
-BOX, ROOM = REALBAGS / "cardboard_box.bag", REALBAGS / "room_240.bag"
 LONGARM = REALBAGS / "longarm" / "batchScanned20191114103039.txt"
 RPLIDAR = REALBAGS / "rplidar_servo_3hz"
 #: the authors' model of the URG-04LX stand (liangfok/tilting_lidar_scanner)
@@ -144,16 +144,43 @@ def test_inspect_no_dh_keeps_the_placeholder(tmp_path, monkeypatch, capsys) -> N
 
 # --- real recordings --------------------------------------------------------------------------------------------
 
+@dataclass(frozen=True)
+class Proposed:
+    """What a rig file written by ``lrfcal inspect -o`` proposes: the DH (None: no proposal, ``reason`` says why; m,
+    rad, rounded to 1e-4), their 1-sigma (m, rad; to 0.1 mm and 0.01 deg) and the parameters called not determined
+    by the scene, read from its values and its one comment line (lrfcal.stages.propose.DHProposal.comment)."""
+
+    dh: DH | None
+    sigma: dict[str, float]
+    undetermined: tuple[str, ...]
+    reason: str
+
+
+def _proposed(rig_file: Path) -> Proposed:
+    text = rig_file.read_text()
+    first = text.splitlines()[0]
+    if not first.startswith("# dh: proposed from the scene's planes"):
+        return Proposed(None, {}, (), first)
+    dh = yaml.safe_load(text)["dh"]
+    sigma = dict(zip(("a", "alpha", "b", "beta"), _sigmas(first), strict=True))
+    tail = first.split("; not determined by the scene: ")
+    undetermined = tuple(tail[1].split(";")[0].split(", ")) if len(tail) > 1 else ()
+    return Proposed(DH(**dh), sigma, undetermined, "")
+
+
 @pytest.fixture(scope="module")
-def urg_proposals() -> dict[str, DHProposal]:
+def urg_proposals(real_inspected) -> dict[str, Proposed]:  # type: ignore[no-untyped-def]
+    """The DH proposed for the URG-04LX stand's two bags: the rig files ``lrfcal inspect -o`` wrote (the session's
+    runs through the installed console script, tests/conftest.py: real_inspected, shared with
+    tests/test_real_walkthrough.py)."""
     if not REALBAGS.is_dir():
         pytest.skip(ABSENT)
     out = {}
-    for name, path in (("cardboard_box", BOX), ("room_240", ROOM)):
-        p = inspect_path(path).proposal
-        assert p is not None
-        print(name, p.dh, {k: round(v, 4) for k, v in p.sigma.items()}, p.comment(), f"{p.seconds:.1f} s")
-        out[name] = p
+    for name in ("cardboard_box", "room_240"):
+        proc, rig_file = real_inspected(name)
+        assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+        out[name] = p = _proposed(rig_file)
+        print(name, p.dh, {k: round(v, 4) for k, v in p.sigma.items()}, p.undetermined, p.reason)
     return out
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import re
+import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -41,7 +42,11 @@ def _temporaries(root: Path) -> list[str]:
     return [str(p.relative_to(root)) for p in root.rglob("*") if TEMP_NAME.match(p.name) or LOOSE_TEMP.match(p.name)]
 
 
-def test_no_command_leaves_a_temporary_name(tmp_path: Path) -> None:
+def test_no_command_leaves_a_temporary_name(full_sweep_run: tuple[subprocess.CompletedProcess, Path],
+                                           tmp_path: Path) -> None:
+    """Every command into one folder, its tree walked; ``lrfsim run`` is the session's run of the same full sweep
+    (tests/conftest.py: full_sweep_run, without -o: runs/tunnel_v beside its scenario file, shared with
+    tests/test_cli_sim.py), its folder walked likewise."""
     scen = _small(tmp_path, "full.yaml", **FULL_SWEEP)
     tiny = _small(tmp_path, "tiny.yaml")
     out = tmp_path / "out"
@@ -54,7 +59,6 @@ def test_no_command_leaves_a_temporary_name(tmp_path: Path) -> None:
          "--no-dh", "-q"),
         ("lrfcal", "reproject", str(rec / "bag"), "--nominal", str(rec / "nominal.yaml"), "-o",
          str(out / "cloud.ply"), "--bag-out", str(out / "cloudbag"), "--rrd", str(out / "cloud.rrd"), "-q"),
-        ("lrfsim", "run", str(scen), "-o", str(out / "run"), "-q"),
         ("lrfsim", "study", str(tiny), "-n", "1", "-o", str(out / "study"), "-q"),
     ]
     log = _write_header_log(tmp_path / "scan.txt")
@@ -70,10 +74,13 @@ def test_no_command_leaves_a_temporary_name(tmp_path: Path) -> None:
     assert "Traceback" not in proc.stderr, proc.stderr
     assert _temporaries(out) == []
     assert _temporaries(tmp_path) == []
+    run, ran_in = full_sweep_run
+    assert run.returncode in (0, 3) and "Traceback" not in run.stderr, run.stderr  # as every command above
+    assert _temporaries(ran_in) == []
     for bag in ("converted", "cloudbag", "sim/bag"):  # every bag's data file under its folder's final name
         assert sorted(p.name for p in (out / bag).iterdir()) == sorted([f"{Path(bag).name}.mcap", "metadata.yaml"])
     written = {p.name for p in out.iterdir()}
-    assert {"sim", "cal", "cal.rrd", "rig.yaml", "cloud.ply", "cloudbag", "cloud.rrd", "run", "study",
+    assert {"sim", "cal", "cal.rrd", "rig.yaml", "cloud.ply", "cloudbag", "cloud.rrd", "study",
             "converted"} <= written, written
 
 

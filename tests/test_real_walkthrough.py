@@ -7,55 +7,55 @@ The outcome must be trustworthy (issue 46, case 3): exit 0 with every estimated 
 the other starts' result (the check "starts agree", lrfcal.stages.starts) and within 4 sigma of the calibration started
 from the authors' nominal (forced: its checks may fail, its estimate is the other start's answer), or a refusal
 (exit 3) on one error line naming the check that failed. The recordings are shared beside the project, not part of
-it: skipped with the reason when absent. Each bag's commands run once per module (they take several seconds).
+it: skipped with the reason when absent. Each bag's commands run once (they take several seconds): the inspect and
+the calibration from the authors' nominal are the session's (tests/conftest.py: real_inspected, through the installed
+console script, shared with tests/test_inspect_dh.py; urg_from_the_authors_nominal, in this process, shared with
+tests/test_targetless.py).
 """
 
 from __future__ import annotations
 
 import math
 import subprocess
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pytest
 import yaml
+from conftest import REALBAGS, real_bag
 from test_cli_usage import _one_error_line, _run
 
-REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
+if TYPE_CHECKING:
+    from lrfcal.result import CalibrationResult
+
 BAGS = ("cardboard_box", "room_240")
 DH = ("a", "alpha", "b", "beta")
-#: the authors' model of the stand (liangfok/tilting_lidar_scanner): tilt about the scanner's y axis, the scan plane
-#: about 0.08 m from it (tests/test_real_bags.py, URG_NOMINAL)
-AUTHORS_DH = {"a": 0.0, "alpha": math.pi / 2, "b": 0.08, "beta": 0.0}
 #: the checks a targetless refusal can name first
 CHECKS = ("clock offset", "rounds settled", "starts agree", "convergence", "mirror image", "observability",
           "reduced chi-square", "second opinion", "held-out planes")
 N_SIGMA = 4.0
 
 
-def _bag(name: str) -> Path:
-    path = REALBAGS / f"{name}.bag"
-    if not path.is_file():
-        pytest.skip(f"real recording not present at {path} (public bag shared beside the project, not part of a "
-                    "clone; ../shared/realbags/README.md)")
-    return path
-
-
-Runs = dict[str, tuple[subprocess.CompletedProcess, subprocess.CompletedProcess, Path]]
+#: per bag: the inspect, the calibration, the rig file inspect wrote, the calibration's output folder
+Runs = dict[str, tuple[subprocess.CompletedProcess, subprocess.CompletedProcess, Path, Path]]
 
 
 @pytest.fixture(scope="module")
-def walkthrough(tmp_path_factory: pytest.TempPathFactory) -> Runs:
-    """Per bag: (inspect, calibrate), run once; the folders under one module temporary folder."""
+def walkthrough(real_inspected: Callable[[str], tuple[subprocess.CompletedProcess, Path]],
+                tmp_path_factory: pytest.TempPathFactory) -> Runs:
+    """Per bag: (inspect, calibrate, rig file, output folder), run once; the inspect is the session's
+    (tests/conftest.py: real_inspected, shared with tests/test_inspect_dh.py)."""
     out: Runs = {}
     for name in BAGS:
         path = REALBAGS / f"{name}.bag"
         if not path.is_file():
             continue
-        work = tmp_path_factory.mktemp(name)
-        inspect = _run("lrfcal", "inspect", path, "-o", work / "rig.yaml", timeout=600)
-        calib = _run("lrfcal", "calibrate", path, "--nominal", work / "rig.yaml", "--targetless", "--no-figures",
-                     "-o", work / "cal", timeout=900)
-        out[name] = (inspect, calib, work)
+        inspect, rig = real_inspected(name)
+        cal = tmp_path_factory.mktemp(name) / "cal"
+        calib = _run("lrfcal", "calibrate", path, "--nominal", rig, "--targetless", "--no-figures", "-o", cal,
+                     timeout=900)
+        out[name] = (inspect, calib, rig, cal)
     return out
 
 
@@ -64,22 +64,28 @@ def _estimate(cal: dict) -> dict[str, tuple[float, float]]:
     return {n: (cal["dh"][n]["value"], cal["dh"][n]["sigma"]) for n in DH if cal["dh"][n]["sigma"] is not None}
 
 
+def _estimated(result: CalibrationResult) -> dict[str, tuple[float, float]]:
+    """name -> (value, sigma) of the DH parameters a result estimates (the held ones have no finite sigma)."""
+    sigma = result.solution.sigma[6:10]
+    dh = result.solution.params.dh
+    return {n: (getattr(dh, n), float(s)) for n, s in zip(DH, sigma, strict=True) if math.isfinite(s)}
+
+
 @pytest.mark.parametrize("name", BAGS)
 def test_inspect_proposes_a_rig_file(walkthrough: Runs, name: str) -> None:
-    _bag(name)
-    inspect, _, work = walkthrough[name]
+    real_bag(name)
+    inspect, _, rig_file, _ = walkthrough[name]
     assert "Traceback" not in inspect.stderr and inspect.returncode == 0, inspect.stderr
-    rig = yaml.safe_load((work / "rig.yaml").read_text())
+    rig = yaml.safe_load(rig_file.read_text())
     assert any(rig["dh"][n] != 0 for n in DH), rig["dh"]  # proposed, not the placeholder
-    assert (work / "rig.yaml").read_text().startswith("# dh: proposed from the scene's planes")
+    assert rig_file.read_text().startswith("# dh: proposed from the scene's planes")
 
 
 @pytest.mark.parametrize("name", BAGS)
-def test_calibrate_with_its_rig_file_agrees_with_the_other_starts_or_is_refused(walkthrough: Runs, name: str,
-                                                                               tmp_path: Path) -> None:
-    path = _bag(name)
-    _, calib, work = walkthrough[name]
-    out = work / "cal"
+def test_calibrate_with_its_rig_file_agrees_with_the_other_starts_or_is_refused(
+        walkthrough: Runs, name: str, urg_from_the_authors_nominal: Callable[[str], CalibrationResult]) -> None:
+    real_bag(name)
+    _, calib, _, out = walkthrough[name]
     print(name, "exit", calib.returncode, calib.stderr.strip()[-600:])
     if calib.returncode == 3:
         line = _one_error_line(calib, code=3)
@@ -95,14 +101,9 @@ def test_calibrate_with_its_rig_file_agrees_with_the_other_starts_or_is_refused(
     assert "| passed |" in row and "converge to the result within 1 sigma" in row, row
     ours = _estimate(yaml.safe_load((out / "calibration.yaml").read_text()))
     assert ours, "a result estimates at least one DH parameter"
-    # the other start the user might have used: the authors' nominal (forced: only its estimate is compared)
-    rig = yaml.safe_load((work / "rig.yaml").read_text())
-    rig["dh"] = AUTHORS_DH
-    (tmp_path / "authors.yaml").write_text(yaml.safe_dump(rig))
-    other = _run("lrfcal", "calibrate", path, "--nominal", tmp_path / "authors.yaml", "--targetless", "--force",
-                 "--no-figures", "-o", tmp_path / "authors", timeout=900)
-    assert "Traceback" not in other.stderr and other.returncode == 0, other.stderr
-    theirs = _estimate(yaml.safe_load((tmp_path / "authors" / "calibration.yaml").read_text()))
+    # the other start the user might have used: the authors' nominal (forced: only its estimate is compared); the
+    # session's run (tests/conftest.py), read as the rig file inspect wrote reads the bag
+    theirs = _estimated(urg_from_the_authors_nominal(name))
     print(name, "ours", ours, "from the authors' nominal", theirs)
     for n, (v, s) in ours.items():
         if n in theirs:

@@ -5,6 +5,7 @@ sigma and say what it did, or refuse."""
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ import yaml
 
 from lrfcal.pipeline import CalibConfig
 from lrfsim.scenario import Scenario, parse_scenario, with_changes
-from lrfsim.trial import calibrate_recording, record
+from lrfsim.trial import Trial, calibrate_recording, record
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 FAST = CalibConfig(baseline=False, geometry=False)
@@ -51,9 +52,12 @@ def test_two_hz_joint_states_are_right_or_refused(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize("name", ["gear"])
-def test_clean_recording_keeps_the_scale_held(tmp_path: Path, name: str) -> None:
-    """Without a fault the scale stays held at 1 (no note): the DH keep the precision they have with it held."""
-    trial = calibrate_recording(record(_scenario(f"{name}_clean"), tmp_path / "rec"), FAST, keep_result=True)
+def test_clean_recording_keeps_the_scale_held(calibrated_trial: Callable[[Scenario, CalibConfig], Trial],
+                                              name: str) -> None:
+    """Without a fault the scale stays held at 1 (no note): the DH keep the precision they have with it held. The
+    clean recording is tests/test_trust.py's tunnel_fast (the same scenario and configuration), calibrated once per
+    worker (tests/conftest.py: calibrated_trial)."""
+    trial = calibrated_trial(_scenario("tunnel_fast"), FAST)
     assert trial.result is not None
     assert trial.result.solution.intrinsics["motor_scale"][0] == 1.0
     assert not any("scale" in n for n in trial.result.notes), trial.result.notes

@@ -85,9 +85,11 @@ def test_segmentation_finds_the_faces_of_a_box() -> None:
 
 
 @pytest.fixture(scope="module")
-def room(shipped_recording: Callable[[str], Path]) -> tuple[Path, CalibrationResult]:
-    folder = shipped_recording("room_box")
-    return folder, _calibrate(folder)
+def room(targetless_calibrated: Callable[[str], tuple[Path, Path, CalibrationResult]]
+         ) -> tuple[Path, CalibrationResult]:
+    """room_box calibrated targetless (the session's run, shared with tests/test_start_dependence.py)."""
+    folder, _, result = targetless_calibrated("room_box")
+    return folder, result
 
 
 def _scenario_tolerances_met(result: CalibrationResult, folder: Path, name: str) -> None:
@@ -232,27 +234,12 @@ def test_cli_calibrates_a_recording_without_tape_distances(recording_of: Callabl
     assert "## The scene's planes" in (out / "report.md").read_text()
 
 
-REALBOX = Path(__file__).resolve().parents[2] / "shared" / "realbags" / "cardboard_box.bag"
-
-
-def _real_box() -> CalibrationResult:
-    """The targetless calibration of the real box with --force: the result with its failed checks recorded."""
-    from test_real_bags import URG_NOMINAL, URG_SCAN, URG_SERVO
-
-    from lrfcal.io.bag import read_bag
-    from lrfcal.types import Nominal, Recording
-
-    data = read_bag(REALBOX, URG_SCAN, URG_SERVO, warn=lambda _t: None)
-    rec = Recording(scans=data.scans, joints=data.joints, tape=None, nominal=Nominal(dh=URG_NOMINAL))
-    return calibrate(rec, CalibConfig(targetless=True, force=True))
-
-
 @pytest.fixture(scope="session")  # session: a module fixture is built again when xdist interleaves other modules
-def real_box() -> CalibrationResult:
-    if not REALBOX.is_file():
-        pytest.skip(f"real recording not present at {REALBOX} (public bag shared beside the project, not part of a "
-                    "clone)")
-    return _real_box()
+def real_box(urg_from_the_authors_nominal: Callable[[str], CalibrationResult]) -> CalibrationResult:
+    """The targetless calibration of the real box from the authors' nominal with --force: the result with its failed
+    checks recorded (the session's run, shared with tests/test_real_walkthrough.py; skipped when the bag is
+    absent)."""
+    return urg_from_the_authors_nominal("cardboard_box")
 
 
 def test_real_urg04lx_box_is_refused_because_its_rounds_do_not_settle(real_box: CalibrationResult) -> None:

@@ -107,10 +107,12 @@ def test_clock_offsets_declared_or_not(recordings: Callable[..., Path], offset_s
     {"alpha": math.radians(-45), "beta": math.radians(-45), "a": 0.10, "b": 0.10},
     {"alpha": math.radians(40), "beta": math.radians(-35), "a": -0.07, "b": 0.06},
 ])
-def test_far_start_gives_the_same_result(recordings: Callable[..., Path], start: dict[str, float]) -> None:
-    """Within the promised basin (DH angles 45 deg, a and b 10 cm off) the result is the good start's, to 1 sigma."""
+def test_far_start_gives_the_same_result(recordings: Callable[..., Path], calibrated_trial: Callable[..., Trial],
+                                         start: dict[str, float]) -> None:
+    """Within the promised basin (DH angles 45 deg, a and b 10 cm off) the result is the good start's, to 1 sigma.
+    (The good start's calibration is the session's, tests/conftest.py: calibrated_trial.)"""
     folder = recordings(_scenario("tunnel_v", "tunnel_fast"))
-    good = calibrate_recording(folder, FAST)
+    good = calibrated_trial(_scenario("tunnel_v", "tunnel_fast"), FAST)
     far = calibrate_recording(folder, FAST, mutate=_with_nominal_dh(**start))
     _ok(good)
     _ok(far)
@@ -119,15 +121,16 @@ def test_far_start_gives_the_same_result(recordings: Callable[..., Path], start:
 
 @pytest.mark.parametrize("delta", [{"beta": math.radians(90)}, {"alpha": math.radians(-90)}])
 def test_nominal_far_outside_the_basin_is_found_and_named(recordings: Callable[..., Path],
+                                                          calibrated_trial: Callable[..., Trial],
                                                           delta: dict[str, float]) -> None:
     """A nominal DH 90 deg off (beta, or alpha: a scan plane declared perpendicular to the motor axis that contains
     it) is outside the search's basin around the nominal. The coarse global search (lrfcal.stages.start, every attitude)
     finds the rig: refused, because a nominal this far cannot tell the rig from its mirror image, with the rig file's
     dh named as the likely culprit and the estimate given, within 4 sigma of the truth or of its mirror image. (It
     was refused as "does not determine" with advice to add markers, or matched 4 of 18 markers from the local
-    search's best candidate.)"""
+    search's best candidate.) The good start's calibration is the session's (tests/conftest.py: calibrated_trial)."""
     folder = recordings(_scenario("tunnel_v", "tunnel_fast"))
-    good = calibrate_recording(folder, FAST)
+    good = calibrated_trial(_scenario("tunnel_v", "tunnel_fast"), FAST)
     far = calibrate_recording(folder, FAST, mutate=_with_nominal_dh(**delta))
     _refused(far, "mirror image", "the rig file's dh is likely wrong")
     said = far.reason.split("(the estimate: ")[1]
