@@ -128,7 +128,8 @@ class PlaneWay:
                            clock=scene.motor if scene.estimate_clock else None, hold=scene.held,
                            dh_prior=scene.prior)
         self.scene = scene
-        return Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
+        self.shared = Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
+        return self.shared
 
     def refine(self, sg: Segmenting) -> tuple[Rounds, Check]:
         """Stage 4: segment, solve and re-segment until the DH settle (lrfcal.stages.targetless.settle_rounds); the
@@ -170,8 +171,8 @@ class PlaneWay:
                                 solution=sol, checks=(shared(sol), *checks))
         if not (config.force or all(c.passed for c in fit.checks)):
             return fit  # refused anyway: the other starts are not run
-        fit = replace(fit, checks=_after_settled(fit.checks, starts.starts_check(fit, evidence, self.joints, config,
-                                                                                   self.proposal)))
+        agree = starts.starts_check(fit, evidence, self.joints, config, self.proposal, (self.shared, rs.coarse))
+        fit = replace(fit, checks=_after_settled(fit.checks, agree))
         clock.lap("starts")
         return fit
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 
 import numpy as np
@@ -53,11 +54,14 @@ TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 
 
 def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: CalibConfig,
-                 proposal: Callable[[], propose.DHProposal] | None = None) -> Check:
+                 proposal: Callable[[], propose.DHProposal] | None = None,
+                 rounds: tuple[targetless.Segmenting, Solution | None] | None = None) -> Check:
     """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.scene.PlaneWay) of ``fit.recording``
     (the scans the ``joints`` cover), its ``evidence``: the module docstring. ``proposal``: the DH search's proposal on
     those scans and joints when it was begun before (lrfcal.stages.propose.proposal_ahead, during the fit), else
-    searched here."""
+    searched here. ``rounds``: what the result's rounds shared (their sampled returns and segmentation sample, held
+    parameters, prior and clock) and their last round on the segmentation's sample when those settled
+    (lrfcal.stages.targetless.Rounds.coarse), when at hand (else made again here, and every start runs every round)."""
     sol, nominal = fit.solution, fit.recording.nominal.dh
     held = evidence.plane_fit.held
     est = [k for k, n in enumerate(DH_NAMES) if n not in held]
@@ -72,7 +76,7 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
     if not starts:
         return Check(NAME, True, f"the search's proposal and its {found.n_agreeing} agreeing starts lie within "
                      f"{AGREE_SIGMA:g} sigma of the result on every estimated parameter")
-    sg = _segmenting(fit, joints, config, held)
+    sg = _segmenting(fit, joints, config, held, rounds)
     n = max(1, min(cores(), len(starts)))  # the starts are independent: on the cores (lrfcal.runtime.forked)
     done = call_forked({str(g): partial(_solved, sg, starts[g::n]) for g in range(n)})
     ends = [v for g in range(n) for v in done[str(g)]]
@@ -95,17 +99,49 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
                  "with markers")
 
 
-def _solved(sg: targetless.Segmenting, starts: list[DH]) -> list[FloatArray | None]:
+#: a start whose rounds on the segmentation's sample settle within this many of the result's 1-sigma of where the
+#: result's own did, on every estimated DH parameter, is not run on every return (module docstring)
+NEAR_SIGMA = 0.25
+
+
+@dataclass(frozen=True)
+class _Rerun:
+    """What every other start's rounds share (``sg``), and where the result's rounds on the segmentation's sample
+    settled (``coarse``, DH (4,); None: they did not run on a sample, or did not settle there), the result's DH (4,)
+    and 1-sigma (4,) and the estimated parameters (indices)."""
+
+    sg: targetless.Segmenting
+    coarse: FloatArray | None
+    result: FloatArray
+    sigma: FloatArray
+    est: list[int]
+
+    def near(self, sol: Solution) -> bool:
+        """Whether a start's settled rounds on the sample ended within NEAR_SIGMA of the result's there."""
+        if self.coarse is None:
+            return False
+        d = np.abs(dh_difference(sol.params.vector()[6:], self.coarse))[self.est]
+        return bool(np.all(d <= NEAR_SIGMA * self.sigma[self.est]))
+
+
+def _solved(run: _Rerun, starts: list[DH]) -> list[FloatArray | None]:
     """The DH (4,) each start's rounds settle at (lrfcal.stages.targetless.settle_rounds), None for a start that loses
-    the
-    scene's planes (not a solution to compare)."""
+    the scene's planes (not a solution to compare). A start whose rounds on the segmentation's sample settle near
+    the result's (:meth:`_Rerun.near`) ends there: its DH is the result moved by the difference of the two there
+    (the rounds on every return, segmented at two estimates that close, would differ by less)."""
     out: list[FloatArray | None] = []
+    sg = run.sg
     for dh in starts:
         try:
-            rounds = targetless.settle_rounds(sg, targetless.first_round(dh, sg.config.clock_offset_s, sg.config))
-            out.append(rounds.solution.params.vector()[6:])
+            rounds = targetless.settle_rounds(sg, targetless.first_round(dh, sg.config.clock_offset_s, sg.config),
+                                              enough=run.near)
         except (CalibrationError, np.linalg.LinAlgError):
             out.append(None)
+            continue
+        v = rounds.solution.params.vector()[6:]
+        if rounds.ended_coarse and run.coarse is not None:
+            v = run.result + dh_difference(v, run.coarse)
+        out.append(v)
     return out
 
 
@@ -132,10 +168,24 @@ def _other_starts(candidates: list[DH], nominal: DH, sol: Solution, est: list[in
     return kept[:MAX_OTHER_STARTS]
 
 
-def _segmenting(fit: CalibrationResult, joints: JointStates, config: CalibConfig, held: tuple[str, ...]
-                ) -> targetless.Segmenting:
-    """The rounds' shared inputs as lrfcal.stages.scene.PlaneWay made them for ``fit``: the same returns sampled
-    (the held-out scans skipped), the same segmentation sample, the same held parameters, prior and clock."""
+def _segmenting(fit: CalibrationResult, joints: JointStates, config: CalibConfig, held: tuple[str, ...],
+                rounds: tuple[targetless.Segmenting, Solution | None] | None = None) -> _Rerun:
+    """The rounds' shared inputs as lrfcal.stages.scene.PlaneWay made them for ``fit`` (``rounds``: those it made
+    and its last round on the segmentation's sample, see :func:`starts_check`; else made again here): the same
+    returns sampled (the held-out scans skipped), the same segmentation sample, the same held parameters, prior and
+    clock."""
+    sol = fit.solution
+    est = [k for k, n in enumerate(DH_NAMES) if n not in held]
+    if rounds is not None:
+        sg, coarse = rounds
+        return _Rerun(sg, None if coarse is None else coarse.params.vector()[6:], sol.params.vector()[6:],
+                      sol.sigma[6:10], est)
+    return _Rerun(_shared(fit, joints, config, held), None, sol.params.vector()[6:], sol.sigma[6:10], est)
+
+
+def _shared(fit: CalibrationResult, joints: JointStates, config: CalibConfig, held: tuple[str, ...]
+            ) -> targetless.Segmenting:
+    """:func:`_segmenting`'s shared inputs made again."""
     scans = fit.recording.scans
     hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
     beams = targetless.sample_returns(scans, config.plane_returns, skip=hold)

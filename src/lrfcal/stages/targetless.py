@@ -90,30 +90,42 @@ class Segmenting:
 @dataclass(frozen=True)
 class Rounds:
     """The rounds' outcome: the last solution, the one before it when the rounds did not settle (else None), the
-    rounds run, and the last segmentation (returns, labels (K,), planes)."""
+    rounds run, and the last segmentation (returns, labels (K,), planes); ``coarse``: the last round on the
+    segmentation's sample when those rounds settled (the estimate the round on every return was segmented at), else
+    None; ``ended_coarse``: the rounds ended there, without the round on every return (``enough`` of
+    :func:`settle_rounds`)."""
 
     solution: Solution
     unsettled: Solution | None
     rounds: int
     segmented: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
+    coarse: Solution | None = None
+    ended_coarse: bool = False
 
 
 def settle_rounds(sg: Segmenting, start: _Round,
-                  first: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]] | None = None) -> Rounds:
+                  first: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]] | None = None,
+                  enough: Callable[[Solution], bool] | None = None) -> Rounds:
     """Segment, solve and re-segment with the new estimate from ``start`` until the DH settle (module docstring);
-    ``first``: the start's segmentation of every sampled return when already made (else it is made here).
+    ``first``: the start's segmentation of every sampled return when already made (else the rounds on the
+    segmentation's sample begin with its segmentation of that sample alone: the same labels there).
+    ``enough(solution)``: called with the settled rounds' last solution on the segmentation's sample; when True the
+    rounds end there (:attr:`Rounds.ended_coarse`), without the round on every return.
 
     Raises:
         CalibrationError: a round's cloud shows no plane."""
     beams, seg, motor, config = sg.beams, sg.seg, sg.motor, sg.config
-    returns, labels, found = first if first is not None else start.segment(beams, seg, motor, config)
+    coarse = _coarse(beams, seg)
+    if first is not None:
+        returns, labels, found = first
+    else:  # the first round's segmentation where it is solved: the sample's returns' own labels (_on_sample)
+        returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
     sol: Solution | None = None
     before_last: Solution | None = None
     settled = False
     rounds = 0
-    coarse = _coarse(beams, seg)
     for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
-        if rounds == 1 and coarse is not None:  # the start's segmentation, on its own sample
+        if rounds == 1 and coarse is not None and first is not None:  # the start's segmentation, on its own sample
             returns, labels, found = _on_sample(beams, seg, labels, found, motor, start.tau)
         elif rounds > 1:
             returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
@@ -122,13 +134,16 @@ def settle_rounds(sg: Segmenting, start: _Round,
         before_last, sol, start = sol, new, _Round.after(new, config)
         if settled:
             break
+    assert sol is not None
+    last_coarse = sol if coarse is not None and settled else None
+    if last_coarse is not None and enough is not None and enough(last_coarse):
+        return Rounds(last_coarse, None, rounds, (returns, labels, found), last_coarse, ended_coarse=True)
     # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
     for _ in range(0 if coarse is None else 1 if settled else 2):
         returns, labels, found = start.segment(beams, seg, motor, config)
         before_last, sol = sol, _solve_round(sg.solve_at, returns, found, start, rounds + 1)
         start, rounds = _Round.after(sol, config), rounds + 1
-    assert sol is not None
-    return Rounds(sol, None if settled else before_last, rounds, (returns, labels, found))
+    return Rounds(sol, None if settled else before_last, rounds, (returns, labels, found), last_coarse)
 
 
 #: segment-and-solve rounds at most before the DH settle (then the last two on every return are compared)
