@@ -164,20 +164,29 @@ def segment_planes(
 
 
 def _scores(Pc: FloatArray, Nc: FloatArray, H: FloatArray, d: FloatArray, thickness_m: float, cos_tol: float,
-            chunk: int = 1024) -> IntArray:
+            chunk: int = 256) -> IntArray:
     """Each hypothesis' inliers (h,): the points of Pc (c, 3) within ``thickness_m`` of the plane H_k . p = d_k whose
     normals Nc (c, 3) agree with H_k (|cos| >= cos_tol); counted in chunks of points, so that the (chunk, h)
-    temporaries (2.4 MB for 300 hypotheses) stay in the cache (chunks of 4096 points took 4x as long on a 2-core
-    VM)."""
-    score = np.zeros(H.shape[0], dtype=np.int64)
+    temporaries (0.6 MB for 300 hypotheses, written in place) stay in the cache (chunks of 1024 points took 1.7x as
+    long, of 4096 4x as long on a 2-core VM; every chunk of at most 1024 points gives the products the same bits:
+    OpenBLAS's small-matrix kernel)."""
+    h = H.shape[0]
+    score = np.zeros(h, dtype=np.int64)
     HT = np.ascontiguousarray(H.T)
+    n = min(chunk, Pc.shape[0])
+    dist, cos = np.empty((n, h)), np.empty((n, h))
+    ok, agree = np.empty((n, h), dtype=bool), np.empty((n, h), dtype=bool)
     for s in range(0, Pc.shape[0], chunk):
-        dist = Pc[s:s + chunk] @ HT
-        dist -= d
-        ok = np.abs(dist, out=dist) <= thickness_m
-        cos = Nc[s:s + chunk] @ HT
-        ok &= np.abs(cos, out=cos) >= cos_tol
-        score += ok.sum(0)
+        P_ = Pc[s:s + chunk]
+        m = P_.shape[0]
+        D, C, o, a = dist[:m], cos[:m], ok[:m], agree[:m]
+        np.matmul(P_, HT, out=D)
+        D -= d
+        np.less_equal(np.abs(D, out=D), thickness_m, out=o)
+        np.matmul(Nc[s:s + chunk], HT, out=C)
+        np.greater_equal(np.abs(C, out=C), cos_tol, out=a)
+        o &= a
+        score += o.view(np.uint8).sum(0, dtype=np.int64)
     return score
 
 

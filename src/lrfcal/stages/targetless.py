@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
-from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, points_M
+from lrfcal.model.kinematics import DH, Params, Pose, points_M_trig
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector, dh_difference
@@ -269,34 +269,58 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
     plane of its nearest segmented neighbour when it lies within ``thickness_m`` of that plane and meets it at
     less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane).
     The returns keep what the scanner and the servo reported (the solve applies the model to them)."""
-    lam = motor.angles(beams.times_s, tau)[0]
+    lam = motor.angle(beams.times_s, tau)
     r_true, lam_true, mu_true = true_returns(core_vector(dh, intrinsics or {}), beams.ranges_m, lam, beams.mu_rad)
-    P = points_M(r_true, lam_true, mu_true, dh)
+    phi = dh.beta + mu_true
+    trig = (np.cos(lam_true), np.sin(lam_true), np.cos(phi), np.sin(phi))  # shared by the points and the rays
+    P = points_M_trig(r_true, *trig, dh)
     seg_labels, found = planes.segment_planes(P[seg], thickness_m=thickness_m)
     labels = np.full(P.shape[0], -1, dtype=np.int64)
     if found:
-        has = seg_labels >= 0
-        # the nearest segmented neighbour of every return: exact whatever the threads, on the cores for a big cloud
-        _, nn = cKDTree(P[seg][has]).query(P, k=1, workers=cores() if len(P) > PARALLEL_QUERY else 1)
-        labels = seg_labels[has][nn]
-        N = np.array([p.normal for p in found])
-        off = np.array([p.offset_m for p in found])
-        o, d = beam_rays_W(Params(MOTOR_FRAME, dh), lam_true, mu_true)
-        n = N[labels]
-        near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
-        facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
-        # returns near an edge or a corner, where a beam's footprint straddles two surfaces (mixed pixels), are left
-        # out: judged by where the RAY meets its plane, not by the measured point, whose range noise would keep
-        # the returns that read short on one side of a corner and those that read long on the other (a bias)
-        nd = (d * n).sum(1)
-        hit = o + ((off[labels] - (o * n).sum(1)) / np.where(np.abs(nd) > 1e-9, nd, 1e-9))[:, None] * d
-        dist_all = np.abs(hit @ N.T - off)  # (K, planes)
-        dist_all[np.arange(len(P)), labels] = np.inf
-        clear = dist_all.min(1) > thickness_m
-        labels, found = _with_enough_returns(np.where(near & facing & clear, labels, -1), found)
+        labels, found = _with_enough_returns(_labelled(P, trig, dh, P[seg], seg_labels, found, thickness_m,
+                                                       math.cos(config.max_incidence_rad)), found)
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
     return returns, labels, found
+
+
+def _labelled(P: FloatArray, trig: tuple[FloatArray, ...], dh: DH, P_seg: FloatArray, seg_labels: NDArray[np.int64],
+              found: list[planes.ScenePlane], thickness_m: float, min_cos: float) -> NDArray[np.int64]:
+    """Every return's plane (K,) (-1: none) for :func:`plane_returns_at`: its nearest segmented neighbour's (of
+    ``P_seg`` (S, 3), labelled ``seg_labels`` (S,)) where the return lies within ``thickness_m`` of that plane, its
+    beam meets it at a cosine of at least ``min_cos``, and the ray's hit on it lies farther than ``thickness_m``
+    from every other plane. ``P`` (K, 3) the returns in M at ``dh``, ``trig`` the cos and sin (K,) of their motor
+    angles and of beta plus their bearings. The beams' origins and directions are those of
+    lrfcal.model.kinematics.beam_rays_M, written by component (the same numbers, without (K, 3) temporaries)."""
+    has = seg_labels >= 0
+    # the nearest segmented neighbour of every return: exact whatever the threads, on the cores for a big cloud
+    _, nn = cKDTree(P_seg[has]).query(P, k=1, workers=cores() if len(P) > PARALLEL_QUERY else 1)
+    labels = seg_labels[has][nn]
+    N = np.array([p.normal for p in found])
+    off = np.array([p.offset_m for p in found])
+    cl, sl, cp, sp = trig
+    ca, sa = np.cos(dh.alpha), np.sin(dh.alpha)
+    ox, oy, oz = dh.a, -dh.b * sa, dh.b * ca
+    dy0 = sp * ca
+    o = (cl * ox - sl * oy, sl * ox + cl * oy)  # the origin's z is oz
+    d = (cl * cp - sl * dy0, sl * cp + cl * dy0, sp * sa)
+    n = (N[:, 0][labels], N[:, 1][labels], N[:, 2][labels])
+    off_l = off[labels]
+    near = np.abs(P[:, 0] * n[0] + P[:, 1] * n[1] + P[:, 2] * n[2] - off_l) <= thickness_m
+    nd = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
+    keep = near & (np.abs(nd) >= min_cos)
+    # returns near an edge or a corner, where a beam's footprint straddles two surfaces (mixed pixels), are left
+    # out: judged by where the RAY meets its plane, not by the measured point, whose range noise would keep
+    # the returns that read short on one side of a corner and those that read long on the other (a bias)
+    t = (off_l - (o[0] * n[0] + o[1] * n[1] + oz * n[2])) / np.where(np.abs(nd) > 1e-9, nd, 1e-9)
+    hit = np.empty_like(P)
+    hit[:, 0], hit[:, 1], hit[:, 2] = o[0] + t * d[0], o[1] + t * d[1], oz + t * d[2]
+    dist = hit @ N.T  # (K, planes)
+    dist -= off
+    np.abs(dist, out=dist)
+    for j in range(len(found)):  # clear of every other plane
+        keep &= (dist[:, j] > thickness_m) | (labels == j)
+    return np.where(keep, labels, -1)
 
 
 def _with_enough_returns(labels: NDArray[np.int64], found: list[planes.ScenePlane]
@@ -317,7 +341,7 @@ def _on_sample(beams: Beams, seg: NDArray[np.int64], labels: NDArray[np.int64], 
     labels are those returns' own, with the planes that keep too few of them dropped."""
     sub = beams.subset(seg)
     labels, found = _with_enough_returns(labels[seg], found)
-    lam = motor.angles(sub.times_s, tau)[0]
+    lam = motor.angle(sub.times_s, tau)
     return planes.plane_returns(labels, found, sub.scan, sub.beam, lam, sub.mu_rad, sub.ranges_m, sub.times_s), \
         labels, found
 
