@@ -56,6 +56,21 @@ def point_normals(points: FloatArray, k: int = 30) -> tuple[FloatArray, FloatArr
     return V[:, :, 0], w[:, 0] / np.maximum(w.sum(1), 1e-300)
 
 
+def nearest_of_subset(P: FloatArray, subset: IntArray, workers: int = 1) -> IntArray:
+    """The index into ``subset`` (S,) (distinct rows of P) of each point's (P (K, 3)) nearest point among
+    ``P[subset]``: the point itself for those of the subset (a point at distance 0; a copy of it elsewhere in the
+    subset would have its label and normal, both decided by its coordinates alone), the others by a k-d tree query
+    (``workers`` threads; exact whatever their number)."""
+    nn = np.empty(len(P), dtype=np.int64)
+    nn[subset] = np.arange(subset.size)
+    rest = np.ones(len(P), dtype=bool)
+    rest[subset] = False
+    idx = np.flatnonzero(rest)
+    if idx.size:
+        nn[idx] = cKDTree(P[subset]).query(P[idx], k=1, workers=workers)[1]
+    return nn
+
+
 def fit_plane(points: FloatArray) -> tuple[FloatArray, float, float]:
     """Least-squares plane (normal (3,), offset, RMS distance) through points (P, 3), P >= 3."""
     c = points.mean(0)
@@ -120,7 +135,7 @@ def segment_planes(
     # a dense cloud's nearest neighbours do not), carried to every point from its nearest coarse point
     coarse = np.unique(np.linspace(0, len(P) - 1, min(len(P), n_coarse)).astype(np.int64))
     normals_c, flat_c = point_normals(P[coarse])
-    nn = cKDTree(P[coarse]).query(P)[1]
+    nn = nearest_of_subset(P, coarse)
     normals, flat = normals_c[nn], flat_c[nn]
     is_coarse = np.zeros(len(P), dtype=bool)
     is_coarse[coarse] = True
@@ -234,5 +249,5 @@ def squareness_deg(normals: FloatArray, tol_deg: float = 20.0) -> FloatArray:
     return np.array(out)
 
 
-__all__ = ["DEFAULT_SEGMENTATION", "ScenePlane", "Segmentation", "fit_plane", "flatness", "squareness_deg",
-           "plane_returns", "point_normals", "segment_planes"]
+__all__ = ["DEFAULT_SEGMENTATION", "ScenePlane", "Segmentation", "fit_plane", "flatness", "nearest_of_subset",
+           "plane_returns", "point_normals", "segment_planes", "squareness_deg"]

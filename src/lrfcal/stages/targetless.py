@@ -35,7 +35,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
@@ -277,25 +276,26 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
     seg_labels, found = planes.segment_planes(P[seg], thickness_m=thickness_m)
     labels = np.full(P.shape[0], -1, dtype=np.int64)
     if found:
-        labels, found = _with_enough_returns(_labelled(P, trig, dh, P[seg], seg_labels, found, thickness_m,
+        labels, found = _with_enough_returns(_labelled(P, trig, dh, seg, seg_labels, found, thickness_m,
                                                        math.cos(config.max_incidence_rad)), found)
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
     return returns, labels, found
 
 
-def _labelled(P: FloatArray, trig: tuple[FloatArray, ...], dh: DH, P_seg: FloatArray, seg_labels: NDArray[np.int64],
-              found: list[planes.ScenePlane], thickness_m: float, min_cos: float) -> NDArray[np.int64]:
-    """Every return's plane (K,) (-1: none) for :func:`plane_returns_at`: its nearest segmented neighbour's (of
-    ``P_seg`` (S, 3), labelled ``seg_labels`` (S,)) where the return lies within ``thickness_m`` of that plane, its
+def _labelled(P: FloatArray, trig: tuple[FloatArray, ...], dh: DH, seg: NDArray[np.int64],
+              seg_labels: NDArray[np.int64], found: list[planes.ScenePlane], thickness_m: float, min_cos: float
+              ) -> NDArray[np.int64]:
+    """Every return's plane (K,) (-1: none) for :func:`plane_returns_at`: its nearest segmented neighbour's (of the
+    returns ``seg`` (S,), labelled ``seg_labels`` (S,)) where the return lies within ``thickness_m`` of that plane, its
     beam meets it at a cosine of at least ``min_cos``, and the ray's hit on it lies farther than ``thickness_m``
     from every other plane. ``P`` (K, 3) the returns in M at ``dh``, ``trig`` the cos and sin (K,) of their motor
     angles and of beta plus their bearings. The beams' origins and directions are those of
     lrfcal.model.kinematics.beam_rays_M, written by component (the same numbers, without (K, 3) temporaries)."""
     has = seg_labels >= 0
-    # the nearest segmented neighbour of every return: exact whatever the threads, on the cores for a big cloud
-    _, nn = cKDTree(P_seg[has]).query(P, k=1, workers=cores() if len(P) > PARALLEL_QUERY else 1)
-    labels = seg_labels[has][nn]
+    # the nearest segmented neighbour of every return (a segmented return's is itself): exact whatever the threads,
+    # on the cores for a big cloud
+    labels = seg_labels[has][planes.nearest_of_subset(P, seg[has], cores() if len(P) > PARALLEL_QUERY else 1)]
     N = np.array([p.normal for p in found])
     off = np.array([p.offset_m for p in found])
     cl, sl, cp, sp = trig
