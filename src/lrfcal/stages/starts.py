@@ -99,8 +99,8 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
                  "with markers")
 
 
-#: a start whose rounds on the segmentation's sample settle within this many of the result's 1-sigma of where the
-#: result's own did, on every estimated DH parameter, is not run on every return (module docstring)
+#: a start's rounds end as soon as one on the segmentation's sample lands within this many of the result's 1-sigma
+#: of where the result's own rounds settled there, on every estimated DH parameter (module docstring)
 NEAR_SIGMA = 0.25
 
 
@@ -117,7 +117,7 @@ class _Rerun:
     est: list[int]
 
     def near(self, sol: Solution) -> bool:
-        """Whether a start's settled rounds on the sample ended within NEAR_SIGMA of the result's there."""
+        """Whether a start's round on the sample landed within NEAR_SIGMA of where the result's settled there."""
         if self.coarse is None:
             return False
         d = np.abs(dh_difference(sol.params.vector()[6:], self.coarse))[self.est]
@@ -126,9 +126,10 @@ class _Rerun:
 
 def _solved(run: _Rerun, starts: list[DH]) -> list[FloatArray | None]:
     """The DH (4,) each start's rounds settle at (lrfcal.stages.targetless.settle_rounds), None for a start that loses
-    the scene's planes (not a solution to compare). A start whose rounds on the segmentation's sample settle near
-    the result's (:meth:`_Rerun.near`) ends there: its DH is the result moved by the difference of the two there
-    (the rounds on every return, segmented at two estimates that close, would differ by less)."""
+    the scene's planes (not a solution to compare). A start whose round on the segmentation's sample lands near
+    where the result's rounds settled there (:meth:`_Rerun.near`) ends there: its DH is the result moved by the
+    difference of the two (its further rounds, segmented at estimates that close to the result's settled one, would
+    end closer)."""
     out: list[FloatArray | None] = []
     sg = run.sg
     for dh in starts:

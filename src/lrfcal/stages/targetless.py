@@ -108,8 +108,8 @@ def settle_rounds(sg: Segmenting, start: _Round,
     """Segment, solve and re-segment with the new estimate from ``start`` until the DH settle (module docstring);
     ``first``: the start's segmentation of every sampled return when already made (else the rounds on the
     segmentation's sample begin with its segmentation of that sample alone: the same labels there).
-    ``enough(solution)``: called with the settled rounds' last solution on the segmentation's sample; when True the
-    rounds end there (:attr:`Rounds.ended_coarse`), without the round on every return.
+    ``enough(solution)``: called with every round's solution on the segmentation's sample; when True the rounds end
+    there (:attr:`Rounds.ended_coarse`), without the next round or the round on every return.
 
     Raises:
         CalibrationError: a round's cloud shows no plane."""
@@ -129,14 +129,14 @@ def settle_rounds(sg: Segmenting, start: _Round,
         elif rounds > 1:
             returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
         new = _solve_round(sg.solve_at, returns, found, start, rounds)
+        if coarse is not None and enough is not None and enough(new):
+            return Rounds(new, None, rounds, (returns, labels, found), new, ended_coarse=True)
         settled = sol is not None and _settled(sol, new)
         before_last, sol, start = sol, new, _Round.after(new, config)
         if settled:
             break
     assert sol is not None
     last_coarse = sol if coarse is not None and settled else None
-    if last_coarse is not None and enough is not None and enough(last_coarse):
-        return Rounds(last_coarse, None, rounds, (returns, labels, found), last_coarse, ended_coarse=True)
     # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
     for _ in range(0 if coarse is None else 1 if settled else 2):
         returns, labels, found = start.segment(beams, seg, motor, config)
