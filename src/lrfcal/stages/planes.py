@@ -143,8 +143,9 @@ def segment_planes(
     cos_tol = math.cos(normal_tol_rad)
     rng = np.random.default_rng(seed)
     free = np.ones(len(P), dtype=bool)
+    seeding = is_coarse & (flat <= flat_limit)
     while len(planes) < max_planes:
-        seeds = np.flatnonzero(free & is_coarse & (flat <= flat_limit))
+        seeds = np.flatnonzero(free & seeding)
         if seeds.size < 3:
             break
         pick = rng.choice(seeds, size=min(n_hypotheses, seeds.size), replace=False)
