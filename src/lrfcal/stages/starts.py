@@ -17,6 +17,11 @@ would test nothing). Each estimated DH parameter of every other start's solution
 :data:`AGREE_SIGMA` of the result's 1-sigma (its reported one: statistical, the rounds' difference and the held
 parameters' uncertainty) of the result; otherwise the check "starts agree" fails naming the parameters on which
 they disagree, and the run is refused (exit 3).
+
+The other starts reuse the result's sampled returns and segmentation sample, and a start's rounds end as soon as one
+on the segmentation's sample lands within :data:`NEAR_SIGMA` of where the result's rounds settled on that sample
+(both solves of the same returns: no sampling noise in their difference); its estimate is then the result moved by
+that difference (docs/starts.md).
 """
 
 from __future__ import annotations
