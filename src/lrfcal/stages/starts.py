@@ -123,7 +123,7 @@ class _Rerun:
 
     def near(self, sol: Solution) -> bool:
         """Whether a start's round on the sample landed within NEAR_SIGMA of where the result's settled there."""
-        if self.coarse is None:
+        if self.coarse is None or not self.est:
             return False
         d = np.abs(dh_difference(sol.params.vector()[6:], self.coarse))[self.est]
         return bool(np.all(d <= NEAR_SIGMA * self.sigma[self.est]))
