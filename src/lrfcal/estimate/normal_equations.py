@@ -212,6 +212,7 @@ def levenberg_marquardt(
 
     b = evaluate(th, True)
     c, damp, n_eval = cost(b.residuals()), 1e-4, 1
+    retried = False  # the last iteration's first step was rejected
     for _ in range(max_iter):
         N = assemble(b, core, weights(b.r_dense), weights(b.r_plane))
         sigma = marginal_sigma(N)
@@ -229,7 +230,10 @@ def levenberg_marquardt(
                 if log is not None:
                     log.append(Iteration(c, ratio, damp, n_eval))
                 return trial, n_eval, True
-            b_new = evaluate(trial, True) if ok else None  # with its Jacobian: the next iteration's, if accepted
+            # with its Jacobian (the next iteration's, if accepted), but not where the first step after one that
+            # was rejected is tried: less damped again, it is mostly rejected too (the damping's ping-pong)
+            lazy = first and retried
+            b_new = evaluate(trial, not lazy) if ok else None
             c_new = cost(b_new.residuals()) if b_new is not None else np.inf
             n_eval += ok
             if c_new <= c:
@@ -243,13 +247,16 @@ def levenberg_marquardt(
             if damp > 1e10:
                 return th, n_eval, True  # no step decreases the cost: at the minimum
         flat = first and damp <= 1e-3 and ratio < stall_tol and c - c_new < FLAT_COST
+        retried = not first
         if log is not None:
             log.append(Iteration(c_new, ratio, damp, n_eval))
         th, c, damp = trial, c_new, max(damp / 10.0, 1e-9)
         if small or flat:
             return th, n_eval, True
         assert b_new is not None
-        b = b_new
+        # the residuals at the accepted step are the same either way: its Jacobian, where it was not evaluated,
+        # comes with the same evaluation again (not counted)
+        b = evaluate(th, True) if lazy else b_new
     return th, n_eval, False
 
 

@@ -58,6 +58,10 @@ class MotorClock:
         v = (q[hi] - q[lo]) / np.maximum(t[hi] - t[lo], 1e-12)
         return MotorClock(t, q, v)
 
+    def angle(self, times_s: ArrayLike, tau_s: float) -> FloatArray:
+        """lambda (K,) at laser times (K,) for the clock offset tau_s (the first of :meth:`angles`)."""
+        return np.interp(np.asarray(times_s, dtype=float) - tau_s, self.stamps_s, self.positions_rad)
+
     def angles(self, times_s: ArrayLike, tau_s: float) -> tuple[FloatArray, FloatArray]:
         """lambda (K,) and dlambda/dt (K,) at laser times (K,) for the clock offset tau_s."""
         t = np.asarray(times_s, dtype=float) - tau_s

@@ -36,6 +36,7 @@ from lrfcal.model.scanner import reported_range, true_bearing
 from lrfcal.model.unknowns import BSCALE, N_CORE, SCALE
 
 FloatArray = NDArray[np.float64]
+_EYE = np.eye(3)
 
 
 @dataclass(frozen=True)
@@ -170,7 +171,7 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     lam = motor.lam
     t = th[:3]
     a, al, b, be = th[6:10]
-    R = R_ref @ exp_so3(th[3:6])
+    R = R_ref @ (_EYE if not th[3:6].any() else exp_so3(th[3:6]))  # exp_so3(0) is the identity, bit for bit
     ca, sa = np.cos(al), np.sin(al)
     bearing = true_bearing(th, s.mu)
     cp, sp = _cos_sin_sum(be, bearing.mu, s.trig_mu, th[BSCALE] == 1.0)  # phi = beta + mu_true

@@ -56,6 +56,21 @@ def point_normals(points: FloatArray, k: int = 30) -> tuple[FloatArray, FloatArr
     return V[:, :, 0], w[:, 0] / np.maximum(w.sum(1), 1e-300)
 
 
+def nearest_of_subset(P: FloatArray, subset: IntArray, workers: int = 1) -> IntArray:
+    """The index into ``subset`` (S,) (distinct rows of P) of each point's (P (K, 3)) nearest point among
+    ``P[subset]``: the point itself for those of the subset (a point at distance 0; a copy of it elsewhere in the
+    subset would have its label and normal, both decided by its coordinates alone), the others by a k-d tree query
+    (``workers`` threads; exact whatever their number)."""
+    nn = np.empty(len(P), dtype=np.int64)
+    nn[subset] = np.arange(subset.size)
+    rest = np.ones(len(P), dtype=bool)
+    rest[subset] = False
+    idx = np.flatnonzero(rest)
+    if idx.size:
+        nn[idx] = cKDTree(P[subset]).query(P[idx], k=1, workers=workers)[1]
+    return nn
+
+
 def fit_plane(points: FloatArray) -> tuple[FloatArray, float, float]:
     """Least-squares plane (normal (3,), offset, RMS distance) through points (P, 3), P >= 3."""
     c = points.mean(0)
@@ -120,7 +135,7 @@ def segment_planes(
     # a dense cloud's nearest neighbours do not), carried to every point from its nearest coarse point
     coarse = np.unique(np.linspace(0, len(P) - 1, min(len(P), n_coarse)).astype(np.int64))
     normals_c, flat_c = point_normals(P[coarse])
-    nn = cKDTree(P[coarse]).query(P)[1]
+    nn = nearest_of_subset(P, coarse)
     normals, flat = normals_c[nn], flat_c[nn]
     is_coarse = np.zeros(len(P), dtype=bool)
     is_coarse[coarse] = True
@@ -128,8 +143,9 @@ def segment_planes(
     cos_tol = math.cos(normal_tol_rad)
     rng = np.random.default_rng(seed)
     free = np.ones(len(P), dtype=bool)
+    seeding = is_coarse & (flat <= flat_limit)
     while len(planes) < max_planes:
-        seeds = np.flatnonzero(free & is_coarse & (flat <= flat_limit))
+        seeds = np.flatnonzero(free & seeding)
         if seeds.size < 3:
             break
         pick = rng.choice(seeds, size=min(n_hypotheses, seeds.size), replace=False)
@@ -164,20 +180,29 @@ def segment_planes(
 
 
 def _scores(Pc: FloatArray, Nc: FloatArray, H: FloatArray, d: FloatArray, thickness_m: float, cos_tol: float,
-            chunk: int = 1024) -> IntArray:
+            chunk: int = 256) -> IntArray:
     """Each hypothesis' inliers (h,): the points of Pc (c, 3) within ``thickness_m`` of the plane H_k . p = d_k whose
     normals Nc (c, 3) agree with H_k (|cos| >= cos_tol); counted in chunks of points, so that the (chunk, h)
-    temporaries (2.4 MB for 300 hypotheses) stay in the cache (chunks of 4096 points took 4x as long on a 2-core
-    VM)."""
-    score = np.zeros(H.shape[0], dtype=np.int64)
+    temporaries (0.6 MB for 300 hypotheses, written in place) stay in the cache (chunks of 1024 points took 1.7x as
+    long, of 4096 4x as long on a 2-core VM; every chunk of at most 1024 points gives the products the same bits:
+    OpenBLAS's small-matrix kernel)."""
+    h = H.shape[0]
+    score = np.zeros(h, dtype=np.int64)
     HT = np.ascontiguousarray(H.T)
+    n = min(chunk, Pc.shape[0])
+    dist, cos = np.empty((n, h)), np.empty((n, h))
+    ok, agree = np.empty((n, h), dtype=bool), np.empty((n, h), dtype=bool)
     for s in range(0, Pc.shape[0], chunk):
-        dist = Pc[s:s + chunk] @ HT
-        dist -= d
-        ok = np.abs(dist, out=dist) <= thickness_m
-        cos = Nc[s:s + chunk] @ HT
-        ok &= np.abs(cos, out=cos) >= cos_tol
-        score += ok.sum(0)
+        P_ = Pc[s:s + chunk]
+        m = P_.shape[0]
+        D, C, o, a = dist[:m], cos[:m], ok[:m], agree[:m]
+        np.matmul(P_, HT, out=D)
+        D -= d
+        np.less_equal(np.abs(D, out=D), thickness_m, out=o)
+        np.matmul(Nc[s:s + chunk], HT, out=C)
+        np.greater_equal(np.abs(C, out=C), cos_tol, out=a)
+        o &= a
+        score += o.view(np.uint8).sum(0, dtype=np.int64)
     return score
 
 
@@ -225,5 +250,5 @@ def squareness_deg(normals: FloatArray, tol_deg: float = 20.0) -> FloatArray:
     return np.array(out)
 
 
-__all__ = ["DEFAULT_SEGMENTATION", "ScenePlane", "Segmentation", "fit_plane", "flatness", "squareness_deg",
-           "plane_returns", "point_normals", "segment_planes"]
+__all__ = ["DEFAULT_SEGMENTATION", "ScenePlane", "Segmentation", "fit_plane", "flatness", "nearest_of_subset",
+           "plane_returns", "point_normals", "segment_planes", "squareness_deg"]

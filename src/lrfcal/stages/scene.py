@@ -75,9 +75,9 @@ class Scene:
 
 #: the starts step's outcome: the observations and the rounds' shared inputs from the one start
 Started = tuple[Scene, Segmenting]
-#: the refine step's outcome: the observations, the rounds (their last solution with the model errors added) and
-#: the check "rounds settled"
-Refined = tuple[Scene, Rounds, Check]
+#: the refine step's outcome: the observations, the rounds' shared inputs (the check "starts agree" reuses them), the
+#: rounds (their last solution with the model errors added) and the check "rounds settled"
+Refined = tuple[Scene, Segmenting, Rounds, Check]
 
 
 class PlaneWay:
@@ -163,12 +163,12 @@ class PlaneWay:
                                              else "as asked)")))
         sol = _consider(sol, returns, scene.motor if scene.estimate_clock else None, scene.held, config, scene.prior)
         self.clock.lap("solve")
-        return scene, replace(rs, solution=sol), settle
+        return scene, sg, replace(rs, solution=sol), settle
 
     def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult:
         """Stage 5: the checks (``shared``: those of both ways, first), the held-out planes, the flatness before and
         after; then, when they pass (or forced), the check "starts agree" (lrfcal.stages.starts)."""
-        (scene, rs, settle), config, clock = refined, self.config, self.clock
+        (scene, sg, rs, settle), config, clock = refined, self.config, self.clock
         sol, rounds, (returns, labels, found) = rs.solution, rs.rounds, rs.segmented
         nominal, tau0, beams, motor = self.recording.nominal, config.clock_offset_s, scene.beams, scene.motor
         checks = [settle, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.prior, nominal.dh)]
@@ -188,8 +188,8 @@ class PlaneWay:
                                 solution=sol, checks=(shared(sol), *checks), notes=scene.notes)
         if not (config.force or all(c.passed for c in fit.checks)):
             return fit  # refused anyway: the other starts are not run
-        fit = replace(fit, checks=_after_settled(fit.checks, starts.starts_check(fit, evidence, self.joints, config,
-                                                                                   scene.proposal)))
+        agree = starts.starts_check(fit, evidence, self.joints, config, scene.proposal, (sg, rs.coarse))
+        fit = replace(fit, checks=_after_settled(fit.checks, agree))
         clock.lap("starts")
         return fit
 

@@ -17,12 +17,18 @@ would test nothing). Each estimated DH parameter of every other start's solution
 :data:`AGREE_SIGMA` of the result's 1-sigma (its reported one: statistical, the rounds' difference and the held
 parameters' uncertainty) of the result; otherwise the check "starts agree" fails naming the parameters on which
 they disagree, and the run is refused (exit 3).
+
+The other starts reuse the result's sampled returns and segmentation sample, and a start's rounds end as soon as one
+on the segmentation's sample lands within :data:`NEAR_SIGMA` of where the result's rounds settled on that sample
+(both solves of the same returns: no sampling noise in their difference); its estimate is then the result moved by
+that difference (docs/starts.md).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import partial
 from typing import Protocol
 
@@ -63,11 +69,14 @@ class StartsConfig(targetless.SceneConfig, Protocol):
 
 
 def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: StartsConfig,
-                 proposal: Callable[[], propose.DHProposal] | None = None) -> Check:
+                 proposal: Callable[[], propose.DHProposal] | None = None,
+                 rounds: tuple[targetless.Segmenting, Solution | None] | None = None) -> Check:
     """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.scene.PlaneWay) of ``fit.recording``
     (the scans the ``joints`` cover), its ``evidence``: the module docstring. ``proposal``: the DH search's proposal on
     those scans and joints when it was begun before (lrfcal.stages.propose.proposal_ahead, during the fit), else
-    searched here."""
+    searched here. ``rounds``: what the result's rounds shared (their sampled returns and segmentation sample, held
+    parameters, prior and clock) and their last round on the segmentation's sample when those settled
+    (lrfcal.stages.targetless.Rounds.coarse), when at hand (else made again here, and every start runs every round)."""
     sol, nominal = fit.solution, fit.recording.nominal.dh
     held = evidence.plane_fit.held
     est = [k for k, n in enumerate(DH_NAMES) if n not in held]
@@ -82,7 +91,7 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
     if not starts:
         return Check(NAME, True, f"the search's proposal and its {found.n_agreeing} agreeing starts lie within "
                      f"{AGREE_SIGMA:g} sigma of the result on every estimated parameter")
-    sg = _segmenting(fit, joints, config, held)
+    sg = _segmenting(fit, joints, config, held, rounds)
     n = max(1, min(cores(), len(starts)))  # the starts are independent: on the cores (lrfcal.runtime.forked)
     done = call_forked({str(g): partial(_solved, sg, config.clock_offset_s, starts[g::n]) for g in range(n)})
     ends = [v for g in range(n) for v in done[str(g)]]
@@ -105,17 +114,50 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
                  "with markers")
 
 
-def _solved(sg: targetless.Segmenting, tau0: float, starts: list[DH]) -> list[FloatArray | None]:
+#: a start's rounds end as soon as one on the segmentation's sample lands within this many of the result's 1-sigma
+#: of where the result's own rounds settled there, on every estimated DH parameter (module docstring)
+NEAR_SIGMA = 0.25
+
+
+@dataclass(frozen=True)
+class _Rerun:
+    """What every other start's rounds share (``sg``), and where the result's rounds on the segmentation's sample
+    settled (``coarse``, DH (4,); None: they did not run on a sample, or did not settle there), the result's DH (4,)
+    and 1-sigma (4,) and the estimated parameters (indices)."""
+
+    sg: targetless.Segmenting
+    coarse: FloatArray | None
+    result: FloatArray
+    sigma: FloatArray
+    est: list[int]
+
+    def near(self, sol: Solution) -> bool:
+        """Whether a start's round on the sample landed within NEAR_SIGMA of where the result's settled there."""
+        if self.coarse is None or not self.est:
+            return False
+        d = np.abs(dh_difference(sol.params.vector()[6:], self.coarse))[self.est]
+        return bool(np.all(d <= NEAR_SIGMA * self.sigma[self.est]))
+
+
+def _solved(run: _Rerun, tau0: float, starts: list[DH]) -> list[FloatArray | None]:
     """The DH (4,) each start's rounds (from the clock offset ``tau0`` [s]) settle at
     (lrfcal.stages.targetless.settle_rounds), None for a start that loses the scene's planes (not a solution to
-    compare)."""
+    compare). A start whose round on the segmentation's sample lands near
+    where the result's rounds settled there (:meth:`_Rerun.near`) ends there: its DH is the result moved by the
+    difference of the two (its further rounds, segmented at estimates that close to the result's settled one, would
+    end closer)."""
     out: list[FloatArray | None] = []
+    sg = run.sg
     for dh in starts:
         try:
-            rounds = targetless.settle_rounds(sg, targetless.first_round(dh, tau0, sg.config))
-            out.append(rounds.solution.params.vector()[6:])
+            rounds = targetless.settle_rounds(sg, targetless.first_round(dh, tau0, sg.config), enough=run.near)
         except (CalibrationError, np.linalg.LinAlgError):
             out.append(None)
+            continue
+        v = rounds.solution.params.vector()[6:]
+        if rounds.ended_coarse and run.coarse is not None:
+            v = run.result + dh_difference(v, run.coarse)
+        out.append(v)
     return out
 
 
@@ -142,10 +184,24 @@ def _other_starts(candidates: list[DH], nominal: DH, sol: Solution, est: list[in
     return kept[:MAX_OTHER_STARTS]
 
 
-def _segmenting(fit: CalibrationResult, joints: JointStates, config: StartsConfig, held: tuple[str, ...]
-                ) -> targetless.Segmenting:
-    """The rounds' shared inputs as lrfcal.stages.scene.PlaneWay made them for ``fit``: the same returns sampled
-    (the held-out scans skipped), the same segmentation sample, the same held parameters, prior and clock."""
+def _segmenting(fit: CalibrationResult, joints: JointStates, config: StartsConfig, held: tuple[str, ...],
+                rounds: tuple[targetless.Segmenting, Solution | None] | None = None) -> _Rerun:
+    """The rounds' shared inputs as lrfcal.stages.scene.PlaneWay made them for ``fit`` (``rounds``: those it made
+    and its last round on the segmentation's sample, see :func:`starts_check`; else made again here): the same
+    returns sampled (the held-out scans skipped), the same segmentation sample, the same held parameters, prior and
+    clock."""
+    sol = fit.solution
+    est = [k for k, n in enumerate(DH_NAMES) if n not in held]
+    if rounds is not None:
+        sg, coarse = rounds
+        return _Rerun(sg, None if coarse is None else coarse.params.vector()[6:], sol.params.vector()[6:],
+                      sol.sigma[6:10], est)
+    return _Rerun(_shared(fit, joints, config, held), None, sol.params.vector()[6:], sol.sigma[6:10], est)
+
+
+def _shared(fit: CalibrationResult, joints: JointStates, config: StartsConfig, held: tuple[str, ...]
+            ) -> targetless.Segmenting:
+    """:func:`_segmenting`'s shared inputs made again."""
     scans = fit.recording.scans
     hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
     beams = targetless.sample_returns(scans, config.plane_returns, skip=hold)

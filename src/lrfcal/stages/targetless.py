@@ -36,11 +36,10 @@ from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial import cKDTree
 
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
-from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, points_M
+from lrfcal.model.kinematics import DH, Params, Pose, points_M_trig
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector, dh_difference
@@ -108,45 +107,60 @@ class Segmenting:
 @dataclass(frozen=True)
 class Rounds:
     """The rounds' outcome: the last solution, the one before it when the rounds did not settle (else None), the
-    rounds run, and the last segmentation (returns, labels (K,), planes)."""
+    rounds run, and the last segmentation (returns, labels (K,), planes); ``coarse``: the last round on the
+    segmentation's sample when those rounds settled (the estimate the round on every return was segmented at), else
+    None; ``ended_coarse``: the rounds ended there, without the round on every return (``enough`` of
+    :func:`settle_rounds`)."""
 
     solution: Solution
     unsettled: Solution | None
     rounds: int
     segmented: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
+    coarse: Solution | None = None
+    ended_coarse: bool = False
 
 
 def settle_rounds(sg: Segmenting, start: _Round,
-                  first: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]] | None = None) -> Rounds:
+                  first: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]] | None = None,
+                  enough: Callable[[Solution], bool] | None = None) -> Rounds:
     """Segment, solve and re-segment with the new estimate from ``start`` until the DH settle (module docstring);
-    ``first``: the start's segmentation of every sampled return when already made (else it is made here).
+    ``first``: the start's segmentation of every sampled return when already made (else the rounds on the
+    segmentation's sample begin with its segmentation of that sample alone: the same labels there).
+    ``enough(solution)``: called with every round's solution on the segmentation's sample; when True the rounds end
+    there (:attr:`Rounds.ended_coarse`), without the next round or the round on every return.
 
     Raises:
         CalibrationError: a round's cloud shows no plane."""
     beams, seg, motor, config = sg.beams, sg.seg, sg.motor, sg.config
-    returns, labels, found = first if first is not None else start.segment(beams, seg, motor, config)
+    coarse = _coarse(beams, seg)
+    if first is not None:
+        returns, labels, found = first
+    else:  # the first round's segmentation where it is solved: the sample's returns' own labels (_on_sample)
+        returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
     sol: Solution | None = None
     before_last: Solution | None = None
     settled = False
     rounds = 0
-    coarse = _coarse(beams, seg)
     for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
-        if rounds == 1 and coarse is not None:  # the start's segmentation, on its own sample
+        if rounds == 1 and coarse is not None and first is not None:  # the start's segmentation, on its own sample
             returns, labels, found = _on_sample(beams, seg, labels, found, motor, start.tau)
         elif rounds > 1:
             returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
         new = _solve_round(sg.solve_at, returns, found, start, rounds)
+        if coarse is not None and enough is not None and enough(new):
+            return Rounds(new, None, rounds, (returns, labels, found), new, ended_coarse=True)
         settled = sol is not None and _settled(sol, new)
         before_last, sol, start = sol, new, _Round.after(new, config)
         if settled:
             break
+    assert sol is not None
+    last_coarse = sol if coarse is not None and settled else None
     # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
     for _ in range(0 if coarse is None else 1 if settled else 2):
         returns, labels, found = start.segment(beams, seg, motor, config)
         before_last, sol = sol, _solve_round(sg.solve_at, returns, found, start, rounds + 1)
         start, rounds = _Round.after(sol, config), rounds + 1
-    assert sol is not None
-    return Rounds(sol, None if settled else before_last, rounds, (returns, labels, found))
+    return Rounds(sol, None if settled else before_last, rounds, (returns, labels, found), last_coarse)
 
 
 #: segment-and-solve rounds at most before the DH settle (then the last two on every return are compared)
@@ -272,34 +286,59 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
     plane of its nearest segmented neighbour when it lies within ``thickness_m`` of that plane and meets it at
     less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane).
     The returns keep what the scanner and the servo reported (the solve applies the model to them)."""
-    lam = motor.angles(beams.times_s, tau)[0]
+    lam = motor.angle(beams.times_s, tau)
     r_true, lam_true, mu_true = true_returns(core_vector(dh, intrinsics or {}), beams.ranges_m, lam, beams.mu_rad)
-    P = points_M(r_true, lam_true, mu_true, dh)
+    phi = dh.beta + mu_true
+    trig = (np.cos(lam_true), np.sin(lam_true), np.cos(phi), np.sin(phi))  # shared by the points and the rays
+    P = points_M_trig(r_true, *trig, dh)
     seg_labels, found = planes.segment_planes(P[seg], thickness_m=thickness_m)
     labels = np.full(P.shape[0], -1, dtype=np.int64)
     if found:
-        has = seg_labels >= 0
-        # the nearest segmented neighbour of every return: exact whatever the threads, on the cores for a big cloud
-        _, nn = cKDTree(P[seg][has]).query(P, k=1, workers=cores() if len(P) > PARALLEL_QUERY else 1)
-        labels = seg_labels[has][nn]
-        N = np.array([p.normal for p in found])
-        off = np.array([p.offset_m for p in found])
-        o, d = beam_rays_W(Params(MOTOR_FRAME, dh), lam_true, mu_true)
-        n = N[labels]
-        near = np.abs((P * n).sum(1) - off[labels]) <= thickness_m
-        facing = np.abs((d * n).sum(1)) >= math.cos(config.max_incidence_rad)
-        # returns near an edge or a corner, where a beam's footprint straddles two surfaces (mixed pixels), are left
-        # out: judged by where the RAY meets its plane, not by the measured point, whose range noise would keep
-        # the returns that read short on one side of a corner and those that read long on the other (a bias)
-        nd = (d * n).sum(1)
-        hit = o + ((off[labels] - (o * n).sum(1)) / np.where(np.abs(nd) > 1e-9, nd, 1e-9))[:, None] * d
-        dist_all = np.abs(hit @ N.T - off)  # (K, planes)
-        dist_all[np.arange(len(P)), labels] = np.inf
-        clear = dist_all.min(1) > thickness_m
-        labels, found = _with_enough_returns(np.where(near & facing & clear, labels, -1), found)
+        labels, found = _with_enough_returns(_labelled(P, trig, dh, seg, seg_labels, found, thickness_m,
+                                                       math.cos(config.max_incidence_rad)), found)
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
     return returns, labels, found
+
+
+def _labelled(P: FloatArray, trig: tuple[FloatArray, ...], dh: DH, seg: NDArray[np.int64],
+              seg_labels: NDArray[np.int64], found: list[planes.ScenePlane], thickness_m: float, min_cos: float
+              ) -> NDArray[np.int64]:
+    """Every return's plane (K,) (-1: none) for :func:`plane_returns_at`: its nearest segmented neighbour's (of the
+    returns ``seg`` (S,), labelled ``seg_labels`` (S,)) where the return lies within ``thickness_m`` of that plane, its
+    beam meets it at a cosine of at least ``min_cos``, and the ray's hit on it lies farther than ``thickness_m``
+    from every other plane. ``P`` (K, 3) the returns in M at ``dh``, ``trig`` the cos and sin (K,) of their motor
+    angles and of beta plus their bearings. The beams' origins and directions are those of
+    lrfcal.model.kinematics.beam_rays_M, written by component (the same numbers, without (K, 3) temporaries)."""
+    has = seg_labels >= 0
+    # the nearest segmented neighbour of every return (a segmented return's is itself): exact whatever the threads,
+    # on the cores for a big cloud
+    labels = seg_labels[has][planes.nearest_of_subset(P, seg[has], cores() if len(P) > PARALLEL_QUERY else 1)]
+    N = np.array([p.normal for p in found])
+    off = np.array([p.offset_m for p in found])
+    cl, sl, cp, sp = trig
+    ca, sa = np.cos(dh.alpha), np.sin(dh.alpha)
+    ox, oy, oz = dh.a, -dh.b * sa, dh.b * ca
+    dy0 = sp * ca
+    o = (cl * ox - sl * oy, sl * ox + cl * oy)  # the origin's z is oz
+    d = (cl * cp - sl * dy0, sl * cp + cl * dy0, sp * sa)
+    n = (N[:, 0][labels], N[:, 1][labels], N[:, 2][labels])
+    off_l = off[labels]
+    near = np.abs(P[:, 0] * n[0] + P[:, 1] * n[1] + P[:, 2] * n[2] - off_l) <= thickness_m
+    nd = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
+    keep = near & (np.abs(nd) >= min_cos)
+    # returns near an edge or a corner, where a beam's footprint straddles two surfaces (mixed pixels), are left
+    # out: judged by where the RAY meets its plane, not by the measured point, whose range noise would keep
+    # the returns that read short on one side of a corner and those that read long on the other (a bias)
+    t = (off_l - (o[0] * n[0] + o[1] * n[1] + oz * n[2])) / np.where(np.abs(nd) > 1e-9, nd, 1e-9)
+    hit = np.empty_like(P)
+    hit[:, 0], hit[:, 1], hit[:, 2] = o[0] + t * d[0], o[1] + t * d[1], oz + t * d[2]
+    dist = hit @ N.T  # (K, planes)
+    dist -= off
+    np.abs(dist, out=dist)
+    for j in range(len(found)):  # clear of every other plane
+        keep &= (dist[:, j] > thickness_m) | (labels == j)
+    return np.where(keep, labels, -1)
 
 
 def _with_enough_returns(labels: NDArray[np.int64], found: list[planes.ScenePlane]
@@ -320,7 +359,7 @@ def _on_sample(beams: Beams, seg: NDArray[np.int64], labels: NDArray[np.int64], 
     labels are those returns' own, with the planes that keep too few of them dropped."""
     sub = beams.subset(seg)
     labels, found = _with_enough_returns(labels[seg], found)
-    lam = motor.angles(sub.times_s, tau)[0]
+    lam = motor.angle(sub.times_s, tau)
     return planes.plane_returns(labels, found, sub.scan, sub.beam, lam, sub.mu_rad, sub.ranges_m, sub.times_s), \
         labels, found
 
