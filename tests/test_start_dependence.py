@@ -165,7 +165,7 @@ def test_starts_that_converge_elsewhere_are_refused_naming_the_parameters(
     monkeypatch.setattr(starts, "_segmenting", lambda *args: None)
     ran: list[DHSet] = []
 
-    def land(sg: object, dhs: list[DHSet]) -> list[np.ndarray]:
+    def land(sg: object, tau0: float, dhs: list[DHSet]) -> list[np.ndarray]:
         ran.extend(dhs)
         return [result.vector() + np.r_[0.0, alpha_off_sigma * sigma[7], 0.0, 0.0] for _ in dhs]
 

@@ -37,7 +37,7 @@ CONFIG = CalibConfig(targetless=True, range_sigma_m=0.01)
 def sampled(shipped_recording: Callable[[str], Path]) -> tuple[targetless.Beams, np.ndarray, MotorClock, DH]:
     """room_box's sampled returns and segmentation sample as lrfcal.stages.scene.PlaneWay makes them."""
     rec = read_recording(shipped_recording("room_box"), require_distances=False)
-    scans, joints = usable_scans(rec, 0.0, [], 0.01)
+    scans, joints = usable_scans(rec, 0.0, 0.01).value
     hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
     beams = targetless.sample_returns(scans, CONFIG.plane_returns, skip=hold)
     seg = hash_sample(beams.scan, beams.beam, targetless.SEGMENT_SAMPLES, seed=1)
