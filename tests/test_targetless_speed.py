@@ -5,6 +5,8 @@
 - the first round of another start, segmented on the segmentation's sample alone, has the labels, planes and returns
   that the segmentation of every sampled return gives those returns (lrfcal.stages.targetless._on_sample);
 - a point's nearest neighbour among a subset it belongs to is itself (lrfcal.stages.planes.nearest_of_subset);
+- the segmentation's hypothesis scores (lrfcal.stages.planes._scores, counted per chunk of points and summed once)
+  are the inliers counted over all points at once, whatever the number of chunks;
 - Levenberg-Marquardt with the Jacobian left out of the steps it expects to reject takes the same steps to the bit.
 """
 
@@ -111,6 +113,26 @@ def test_a_point_of_the_subset_is_its_own_nearest_neighbour() -> None:
     assert np.array_equal(got[subset], np.arange(subset.size))
     same = np.all(P[subset][got] == P[subset][idx_ref], axis=1)
     assert same.all()
+
+
+@pytest.mark.parametrize("n_points", [1, 255, 257, 255 * 256, 255 * 256 + 1])
+def test_the_hypothesis_scores_are_the_inliers_counted_at_once(n_points: int) -> None:
+    """Each hypothesis' score is the number of points within the slab whose normals agree, counted over all points
+    in one product: for one chunk, a partial one, and on both sides of the 255 chunks a byte can count (the first
+    hypothesis holds every point, so a count that overflowed would show)."""
+    rng = np.random.default_rng(n_points)
+    H = rng.normal(size=(40, 3))
+    H /= np.linalg.norm(H, axis=1)[:, None]
+    P = 0.3 * rng.normal(size=(n_points, 3))
+    N = rng.normal(size=(n_points, 3)) + 10.0 * H[0]  # all near the first hypothesis' normal
+    N /= np.linalg.norm(N, axis=1)[:, None]
+    d = rng.uniform(-0.5, 0.5, 40)
+    d[0] = 0.0
+    thickness, cos_tol = 2.5, 0.5
+    expected = ((np.abs(P @ H.T - d) <= thickness) & (np.abs(N @ H.T) >= cos_tol)).sum(0)
+    got = planes._scores(P, N, H, d, thickness, cos_tol)
+    assert got[0] == n_points
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_levenberg_marquardt_without_the_jacobians_of_rejected_steps_takes_the_same_steps(sampled: tuple) -> None:

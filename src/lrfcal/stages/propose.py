@@ -5,11 +5,14 @@ The search reuses the targetless calibration's machinery (lrfcal.stages.targetle
 segmented in the cloud at the current DH with grazing and edge returns left out; lrfcal.estimate.solve.solve_planes:
 every
 plane return a ray-plane range residual, planes free). It is started from every combination of
-:data:`START_ALPHA_DEG`, :data:`START_BETA_DEG` and :data:`START_B_M` (a = 0), each with its own subsample of
-returns to segment the planes on, and each start is solved for all four DH parameters with a weak prior around
-the start (:data:`PRIOR_SIGMA`: it keeps a and b from running off where the scene hardly constrains them), a few
-rounds of segment-and-solve (the planes re-segmented with the new estimate). A start that loses its planes, or
-whose offsets leave the plausible range (:data:`MAX_OFFSET_M`), is dropped.
+:data:`START_ALPHA_DEG`, :data:`START_BETA_DEG` and :data:`START_B_M` (a = 0), each segmenting the planes on a
+subsample of the returns salted by its own seed (in fact every start's is the same subsample:
+lrfcal.stages.surfaces.hash_key adds the salt before its modulo, which only turns the ranking cyclically; a redraw
+of the subsamples moves the proposal by 0.1-2.5 of its 1-sigma, docs/speed.md), and each start is solved for all
+four DH parameters with a weak prior around the start (:data:`PRIOR_SIGMA`: it keeps a and b from running off where
+the scene hardly constrains them), a few rounds of segment-and-solve (the planes re-segmented with the new
+estimate). A start that loses its planes, or whose offsets leave the plausible range (:data:`MAX_OFFSET_M`), is
+dropped.
 
 Flatness cannot tell a cloud from its mirror image or from itself turned, so each candidate is first brought to
 one representative of the DH that give the same cloud up to a rigid motion and a mirror (:func:`canonical`):
@@ -23,10 +26,10 @@ The candidates are then grouped by attitude (alpha within :data:`AGREE_ALPHA_DEG
 :data:`AGREE_BETA_DEG`, modulo the 180 deg of the second equivalence); the largest group must hold at least
 :data:`MIN_AGREEING` candidates and half of those that converged, else the scene does not determine a proposal
 (too few planes, or ambiguous). The proposal is the group's median; each value's 1-sigma is the larger of the
-group's spread (1.4826 x the median absolute deviation, a bootstrap over starts and subsamples) and the median of
-the solves' own 1-sigma (scaled by the square root of their reduced chi-square). A value whose 1-sigma exceeds
-:data:`DETERMINED` is named as not determined by the scene (its value is the search's best guess, not a
-measurement).
+group's spread (1.4826 x the median absolute deviation: a spread over the starts, not over subsamples, see above)
+and the median of the solves' own 1-sigma (scaled by the square root of their reduced chi-square). A value whose
+1-sigma exceeds :data:`DETERMINED` is named as not determined by the scene (its value is the search's best guess,
+not a measurement).
 
 The starts are independent: they are solved in groups on the machine's cores, the first group in this process and
 the others in forked children (lrfcal.runtime.forked), and collected in start order, so the proposal does not depend on
