@@ -158,8 +158,11 @@ class SurfaceReturns:
 
 def hash_key(scan: IntArray, beam: IntArray, seed: int = 0) -> NDArray[np.uint64]:
     """The hash of every (scan, beam) pair (K,) (salted by seed) that :func:`hash_sample` ranks them by."""
-    return (np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761) + np.asarray(beam, dtype=np.uint64)
-            * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) % np.uint64(1 << 31)
+    key = np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761)
+    key += np.asarray(beam, dtype=np.uint64) * np.uint64(40503)
+    key += np.uint64(seed) * np.uint64(97)
+    key &= np.uint64((1 << 31) - 1)  # the remainder modulo 2^31 of an unsigned integer, without a division
+    return key
 
 
 def hash_sample(scan: IntArray, beam: IntArray, n: int, seed: int = 0) -> IntArray:
@@ -363,8 +366,8 @@ def observe_surfaces(
     ranges_m, mu_rad, lambda_rad, beam_times_s = grid.ranges_m, grid.mu_rad, grid.lambda_rad, grid.beam_times_s
     max_returns, seed = selection.max_returns, selection.seed
     valid = np.isfinite(ranges_m) & (grid.labels < 0)
-    flat = np.flatnonzero(valid)  # the valid returns, row-major as np.nonzero orders them
-    scan, beam = np.divmod(flat, valid.shape[1])
+    scan, beam = np.nonzero(valid)  # the valid returns, row-major
+    flat = scan * valid.shape[1] + beam  # their flat indices (np.flatnonzero's, without a division to undo them)
     mu_all = np.asarray(mu_rad)
     lam_f, r_f = np.asarray(lambda_rad).ravel(), np.asarray(ranges_m).ravel()
     mu_f = mu_all.ravel() if mu_all.ndim == 2 else None
