@@ -200,7 +200,9 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
         for name in ("scan", "beam", "ranges_m", "surface", "normals"):
             assert np.array_equal(getattr(stepped, name), getattr(at_once, name)), name
     assert len(stepped) == len(everything)
-    assert sf._next_fraction(1 / 16, 0, 100) == 1.0 and sf._next_fraction(1 / 16, 50, 100) == 1 / 4
+    # 1.25 x 2 x 1/16 = 10/64 (on the grid); 1.25 x 3 x 1/16 = 15/64; 1.25 x 2.5 x 1/16 = 12.5/64: 13/64
+    assert sf._next_fraction(1 / 16, 0, 100) == 1.0 and sf._next_fraction(1 / 16, 50, 100) == 10 / 64
+    assert sf._next_fraction(1 / 16, 33, 99) == 15 / 64 and sf._next_fraction(1 / 16, 40, 100) == 13 / 64
 
 
 def test_moved_m_is_how_far_the_returns_move_along_their_planes_normal() -> None:

@@ -404,8 +404,9 @@ def observe_surfaces(
         frac = _next_fraction(frac, len(returns), max_returns)
 
 
-#: the fractions of the rows (by hash key) observe_surfaces tries, smallest first
-_FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0)
+#: the fractions of the rows (by hash key) observe_surfaces tries, smallest first: 1/16, then in steps of 1/64, so
+#: that the second try reprojects little more than it needs (tunnel_v: 9/64 of the rows, not 1/4)
+_FRACTIONS = tuple(k / 64 for k in range(4, 65))
 #: the margin on the fraction the accepted returns so far say is needed (they scatter about their expectation)
 _FRACTION_MARGIN = 1.25
 
