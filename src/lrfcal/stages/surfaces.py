@@ -97,17 +97,33 @@ class ReturnRows:
     times_s: FloatArray | None = None
 
 
+#: per-beam values of a grid of scans by beams: the (S, N) array, or a function of flat indices (K,) into it giving
+#: those beams' values (K,), elementwise (the same bits as the array's)
+GridValues = FloatArray | Callable[[IntArray], FloatArray]
+
+
 @dataclass(frozen=True)
 class ReturnGrid:
     """A recording's returns as a grid of scans (S) by beams (N): ranges_m (S, N), NaN for no return; mu_rad (S, N)
     per-scan bearings (or (N,)); lambda_rad (S, N) per-beam motor angles; labels (S, N) blob labels (>= 0 on marker
-    returns, which are not surface returns); beam_times_s (S, N) laser-clock beam times (None: not carried)."""
+    returns, which are not surface returns); beam_times_s (S, N) laser-clock beam times (None: not carried).
+    lambda_rad and beam_times_s may instead be functions of flat indices (K,) into the grid giving those beams'
+    values (K,) (:data:`GridValues`): :func:`observe_surfaces` then computes them for the returns it reprojects only,
+    a fraction of the grid."""
 
     ranges_m: FloatArray
     mu_rad: FloatArray
-    lambda_rad: FloatArray
+    lambda_rad: GridValues
     labels: IntArray
-    beam_times_s: FloatArray | None = None
+    beam_times_s: GridValues | None = None
+
+
+def _at_flat(values: GridValues) -> Callable[[IntArray], FloatArray]:
+    """A grid's values (:data:`GridValues`) as a function of flat indices (K,) into the grid."""
+    if callable(values):
+        return values
+    flat = np.asarray(values).ravel()
+    return lambda i: flat[i]
 
 
 @dataclass(frozen=True)
@@ -341,7 +357,7 @@ def surface_returns(
     )
 
 
-__all__ = ["DEFAULT_SELECTION", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
+__all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
            "SurfaceSelection", "candidate_planes", "find_surfaces", "hash_key", "hash_sample", "surface_returns"]
 
 
@@ -369,14 +385,14 @@ def observe_surfaces(
     scan, beam = np.nonzero(valid)  # the valid returns, row-major
     flat = scan * valid.shape[1] + beam  # their flat indices (np.flatnonzero's, without a division to undo them)
     mu_all = np.asarray(mu_rad)
-    lam_f, r_f = np.asarray(lambda_rad).ravel(), np.asarray(ranges_m).ravel()
+    lam_at, r_f = _at_flat(lambda_rad), np.asarray(ranges_m).ravel()
     mu_f = mu_all.ravel() if mu_all.ndim == 2 else None
-    times_f = None if beam_times_s is None else np.asarray(beam_times_s).ravel()
+    times_at = None if beam_times_s is None else _at_flat(beam_times_s)
 
     def take(rows: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """motor angles, bearings and ranges of the valid returns ``rows`` (gathered only for those rows)"""
         i = flat[rows]
-        return lam_f[i], (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
+        return lam_at(i), (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
 
     th = core_vector(params.dh, intrinsics or {})
     sensor_W = params.mount.matrix()[:3, 3]
@@ -395,7 +411,7 @@ def observe_surfaces(
         lam_k, mu_k, r_k = take(rows)
         r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
         candidates = ReturnRows(scan[rows], beam[rows], lam_k, mu_k, r_k,
-                          None if times_f is None else times_f[flat[rows]])
+                                None if times_at is None else times_at(flat[rows]))
         returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
                                   selection=selection,
                                   rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]))
