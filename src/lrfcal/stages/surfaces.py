@@ -415,7 +415,7 @@ def observe_surfaces(
         returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
                                   selection=selection,
                                   rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]))
-        if len(returns) >= max_returns or frac >= 1.0:
+        if len(returns) >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, returns
         frac = _next_fraction(frac, len(returns), max_returns)
 
