@@ -80,16 +80,19 @@ def _background_model_log(x: FloatArray, y: FloatArray) -> tuple[FloatArray, Flo
 
 
 def _median_in_place(a: FloatArray) -> float:
-    """``np.median(a)`` of a non-empty 1-D float array, bit for bit (np.median's own steps: the partition at the
-    middle and at the last place, where a NaN would go, then the mean of the middle one or two values), with ``a``
-    itself partitioned (its order is lost): no copy, none of np.median's general machinery (48 bins x 2 medians
-    of a few thousand returns each)."""
+    """``np.median(a)`` of a non-empty 1-D float array that does not hold both 0.0 and -0.0, bit for bit (NaN where
+    it holds a NaN; else the middle value, or the mean of the two middle values as np.median takes it), with ``a``
+    itself partitioned (its order is lost). One partition at the upper middle, the lower middle the largest value
+    below it: np.median partitions at both and at the last place (where a NaN would go), which takes 5 times as
+    long on 1.5 M values (13 ms against 2.4 ms)."""
     n = a.size
     h = n // 2
-    a.partition([h - 1, h, -1] if n % 2 == 0 else [(n - 1) // 2, -1])
-    if np.isnan(a[-1]):
+    a.partition(h)  # a[:h] <= a[h] <= a[h + 1:], NaN last
+    if np.isnan(a[h:].max()):
         return math.nan
-    return float(np.mean(a[h - 1:h + 1] if n % 2 == 0 else a[h:h + 1]))
+    if n % 2:
+        return float(np.mean(a[h:h + 1]))
+    return float(np.mean(np.array([a[:h].max(), a[h]])))
 
 
 def contrast(scans: Scans) -> tuple[FloatArray, float, float]:
@@ -119,10 +122,12 @@ def contrast(scans: Scans) -> tuple[FloatArray, float, float]:
     z = np.full(r.shape, np.nan)
     zv = log_i - np.interp(log_r, kx, ky)
     z[valid] = zv
-    med = float(np.median(zv, overwrite_input=True))  # zv, its deviations and r_v are ours: no copies
-    sigma = 1.4826 * float(np.median(np.abs(zv - med), overwrite_input=True))
+    # zv, its deviations and r_v are ours (no copy needed), and none holds -0.0 (a log, a difference of finite
+    # values that is +0.0 when they are equal, an absolute value, a positive range)
+    med = _median_in_place(zv)
+    sigma = 1.4826 * _median_in_place(np.abs(zv - med))
     t = float(np.clip(med + K_SIGMA * sigma, math.log(MIN_CONTRAST), math.log(MAX_CONTRAST)))
-    r_med = float(np.median(r_v, overwrite_input=True))
+    r_med = _median_in_place(r_v)
     thr_counts = float(np.exp(np.interp(math.log(r_med), kx, ky) + t))
     return z, t, thr_counts
 
