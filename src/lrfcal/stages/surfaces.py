@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -405,21 +406,44 @@ def observe_surfaces(
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
     # them all once they hold max_returns accepted ones, so only those rows are reprojected (the same returns as
     # from every row, at a fraction of the work); the threshold grows until they do, at once to the fraction that
-    # the accepted returns so far say is needed (any fraction gives the same returns: the sequence only saves work)
+    # the accepted returns so far say is needed (any fraction gives the same returns: the sequence only saves work).
+    # Each try judges only the rows above the last one's threshold: the last judged every row below it and
+    # accepted fewer than max_returns, all of which stay (their keys are lower than every new row's)
     key = hash_key(scan, beam, seed)
-    frac = _FRACTIONS[0]
+    frac, below = _FRACTIONS[0], 0.0
+    parts: list[SurfaceReturns] = []
     while True:
-        rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
+        above = key >= np.uint64(below * (1 << 31))
+        rows = np.flatnonzero(above & (key < np.uint64(frac * (1 << 31))) if frac < 1.0 else above)
         lam_k, mu_k, r_k = take(rows)
         r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
         candidates = ReturnRows(scan[rows], beam[rows], lam_k, mu_k, r_k,
                                 None if times_at is None else times_at(flat[rows]))
-        returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
-                                  selection=selection,
-                                  rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]))
-        if len(returns) >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
-            return surfaces, returns
-        frac = _next_fraction(frac, len(returns), max_returns)
+        got = sum(len(p) for p in parts)
+        parts.append(surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
+                                     selection=replace(selection, max_returns=max_returns - got),
+                                     rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i],
+                                                                                           mu_t[i])))
+        got += len(parts[-1])
+        if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
+            return surfaces, _merged(parts, valid.shape[1])
+        below, frac = frac, _next_fraction(frac, got, max_returns)
+
+
+def _merged(parts: list[SurfaceReturns], n_beams: int) -> SurfaceReturns:
+    """The returns of :func:`observe_surfaces`' tries as one, in :func:`surface_returns`' order (surface by surface,
+    each in the grid's row-major order)."""
+    if len(parts) == 1:
+        return parts[0]
+    def cat(name: str) -> NDArray[Any]:
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    scan, beam, surface = cat("scan"), cat("beam"), cat("surface")
+    order = np.lexsort((scan * n_beams + beam, surface))  # (surface, flat index): unique pairs
+    return SurfaceReturns(
+        scan=scan[order], beam=beam[order], lambda_rad=cat("lambda_rad")[order], mu_rad=cat("mu_rad")[order],
+        ranges_m=cat("ranges_m")[order], surface=surface[order], normals=cat("normals")[order],
+        offsets_m=cat("offsets_m")[order], times_s=None if parts[0].times_s is None else cat("times_s")[order])
 
 
 #: the fractions of the rows (by hash key) observe_surfaces tries, smallest first: 1/16, then in steps of 1/64, so
