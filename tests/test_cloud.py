@@ -94,3 +94,28 @@ def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
     assert len(c) == len(ref) > 10_000
     np.testing.assert_allclose(c.points_M, ref, atol=1e-9)
     np.testing.assert_array_equal(c.intensity, inten)
+
+
+def test_clouds_with_shared_bearings_take_each_beams_trig_once_bit_for_bit(monkeypatch) -> None:
+    """When every scan has the same bearings, reproject_clouds takes cos and sin of each beam's phi once and gathers
+    them: the same clouds, bit for bit, as from every return's own phi; with per-scan bearings it takes those."""
+    import lrfcal.stages.reproject as rp
+
+    rng = np.random.default_rng(3)
+    S, N = 40, 181
+    ranges = rng.uniform(0.5, 8.0, (S, N))
+    ranges[rng.random((S, N)) < 0.1] = np.nan
+    mu = np.linspace(-2.0, 2.0, N)
+    scans = Scans(stamps_s=np.arange(S) * 0.025, ranges_m=ranges, intensities=np.ones((S, N)), mu_rad=mu,
+                  time_increment_s=1e-5, scan_time_s=0.025, range_min_m=0.1, range_max_m=30.0)
+    lam = rng.uniform(-1.5, 1.5, (S, N))
+    dhs = (DH(a=0.02, alpha=1.3, b=0.05, beta=0.1), DH(a=0.021, alpha=1.31, b=0.049, beta=0.11))
+    intr = ({}, {"range_offset": 0.003, "beam_scale": 1.001})
+    assert rp._shared_bearings(np.asarray(scans.mu_rad)) is not None
+    clouds, _ = rp.reproject_clouds(scans, lam, dhs, 1, intr)
+    monkeypatch.setattr(rp, "_shared_bearings", lambda mu: None)  # every return's own phi
+    each, _ = rp.reproject_clouds(scans, lam, dhs, 1, intr)
+    assert all(a.tobytes() == b.tobytes() for a, b in zip(clouds, each, strict=True))
+    per_scan = np.asarray(scans.mu_rad).copy()
+    per_scan[3] += 1e-9  # one scan's bearings differ: no shared row
+    assert rp._shared_bearings(per_scan) is None

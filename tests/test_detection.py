@@ -193,3 +193,18 @@ def test_split_by_pass():
     assert sorted(out.blobs[0].scan_idx.tolist()) == [8, 9, 10]
     assert (out.blobs[0].peak_scan, out.blobs[1].peak_scan) == (9, 11)
     assert (out.labels[ss, bb] == [0, 0, 0, 1, 1]).all()
+
+
+def test_median_in_place_is_np_median_bit_for_bit() -> None:
+    """The detection's medians (the background's bins, the contrast's median and spread) partition their own arrays
+    once instead of calling np.median: the same bits on odd and even sizes, with ties, and NaN with a NaN."""
+    from lrfcal.stages.detection import _median_in_place
+
+    rng = np.random.default_rng(7)
+    for n in (*range(1, 40), 4000, 4001, 150_000):
+        a = np.round(np.abs(rng.normal(size=n)) * 30) / 7  # many ties (and zeros)
+        got = np.float64(_median_in_place(a.copy()))
+        assert got.tobytes() == np.median(a).tobytes(), n
+    a = rng.normal(size=101)
+    a[17] = np.nan
+    assert np.isnan(_median_in_place(a.copy())) and np.isnan(np.median(a))

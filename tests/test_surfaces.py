@@ -200,7 +200,28 @@ def test_observe_surfaces_gives_the_returns_of_every_row_whatever_fraction_it_st
         for name in ("scan", "beam", "ranges_m", "surface", "normals"):
             assert np.array_equal(getattr(stepped, name), getattr(at_once, name)), name
     assert len(stepped) == len(everything)
-    assert sf._next_fraction(1 / 16, 0, 100) == 1.0 and sf._next_fraction(1 / 16, 50, 100) == 1 / 4
+    # 1.25 x 2 x 1/16 = 10/64 (on the grid); 1.25 x 3 x 1/16 = 15/64; 1.25 x 2.5 x 1/16 = 12.5/64: 13/64
+    assert sf._next_fraction(1 / 16, 0, 100) == 1.0 and sf._next_fraction(1 / 16, 50, 100) == 10 / 64
+    assert sf._next_fraction(1 / 16, 33, 99) == 15 / 64 and sf._next_fraction(1 / 16, 40, 100) == 13 / 64
+
+
+def test_observe_surfaces_without_a_surface_stops_at_its_first_fraction(monkeypatch) -> None:
+    """No marker plane found (here: too few markers for a plane): no row can give a surface return, so
+    observe_surfaces returns the empty returns of its first fraction instead of reprojecting every row for none."""
+    from synthetic import TRUE, make_result
+
+    import lrfcal.stages.surfaces as sf
+
+    res = make_result(n_scans=60, n_beams=181)
+    sc = res.recording.scans
+    lam = np.repeat(np.linspace(-np.pi / 2, np.pi / 2, sc.ranges_m.shape[0])[:, None], sc.ranges_m.shape[1], axis=1)
+    three = np.array([[2.5, -0.8, 0.3], [2.5, 0.0, 0.5], [2.5, 0.8, 0.4]])  # fewer than a plane needs
+    grid = sf.ReturnGrid(sc.ranges_m, sc.mu_rad, lam, res.evidence.detections.labels)
+    steps: list[float] = []
+    monkeypatch.setattr(sf, "_next_fraction", lambda frac, n, wanted: steps.append(frac) or 1.0)
+    found, returns = sf.observe_surfaces(grid, sf.PlaneMarkers(three, 0.001), TRUE)
+    assert found == [] and len(returns) == 0 and returns.normals.shape == (0, 3)
+    assert steps == []  # it never asked for a larger fraction
 
 
 def test_moved_m_is_how_far_the_returns_move_along_their_planes_normal() -> None:

@@ -62,7 +62,7 @@ def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], mark
 
 
 def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_],
-                 map_cov: FloatArray | None = None
+                 map_cov: FloatArray | None = None, blocks: Blocks | None = None
                  ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread]:
     """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
     cluster (its sets' clusters, Problem.clusters: the cluster of each dense and plane residual row, a marker's
@@ -78,8 +78,9 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
     singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2,
     the rank in words, G (N_CORE, 3n) (None without ``map_cov`` or with rank loss) and the Spread (each cluster's
-    influence and the statistical covariance; empty with rank loss) for lrfcal.estimate.checks.difference_covariance."""
-    b = pb.blocks(th, R_ref)
+    influence and the statistical covariance; empty with rank loss) for lrfcal.estimate.checks.difference_covariance.
+    ``blocks``: ``pb.blocks(th, R_ref)`` when the caller has them already (they are read, not changed)."""
+    b = pb.blocks(th, R_ref) if blocks is None else blocks
     core = np.flatnonzero(free[:N_CORE])
     H, _ = assemble(b, core).dense()
     res = b.residuals()
@@ -139,7 +140,8 @@ SCREEN_Z = 2.0
 
 
 def held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], s2: float,
-                covariance_at: Callable[..., tuple], names: Sequence[str]) -> dict[str, tuple[float, float]]:
+                covariance_at: Callable[..., tuple], names: Sequence[str], blocks: Blocks | None = None
+                ) -> dict[str, tuple[float, float]]:
     """The score test of every unknown of ``names`` the model holds by default and this solve held
     (lrfcal.model.unknowns), each on its own (with its ``tested_with`` companion where that is held too): one
     Gauss-Newton step from the solution with it freed; per name the value it steps to and the 1-sigma the estimate
@@ -150,7 +152,9 @@ def held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.
     Each is tested alone: freed together, a poorly determined one carries the others far. The plain information
     (:data:`SCREEN_Z`) as the sigma put the range scale 4.6-9.9 sigma from 1 on 4 of 70 random truths (errors
     common to a marker's returns); the widened sigma evaluated at the held solution, whose residuals carry the
-    misfit under test, was 5x the estimate's on tunnel_v with ranges 1 % long, and missed it."""
+    misfit under test, was 5x the estimate's on tunnel_v with ranges 1 % long, and missed it.
+    ``blocks``: ``pb.blocks(th, R_ref)`` when the caller has them already (:func:`uncertainty`'s, at the same
+    state: evaluated once)."""
     tested = [i for i, u in enumerate(UNKNOWNS) if u.held and u.name in names and not free[i]]
     if not tested:
         return {}
@@ -158,7 +162,7 @@ def held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.
     beside = [j for j in {CORE_NAMES.index(UNKNOWNS[i].tested_with) for i in tested if UNKNOWNS[i].tested_with}
               if not free[j]]
     cols = np.concatenate([np.flatnonzero(free[:N_CORE]), tested, beside]).astype(np.int64)
-    blocks = pb.blocks(th, R_ref)
+    blocks = pb.blocks(th, R_ref) if blocks is None else blocks
     S_all, rhs_all, _ = schur(assemble(blocks, cols))
     out = {}
     for k, i in enumerate(tested):

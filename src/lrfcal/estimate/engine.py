@@ -193,8 +193,9 @@ def _uncertainty(pb: Problem, state: State, free: BoolArray, map_cov: FloatArray
     """The covariance of the kept problem ``pb`` at ``state`` with its sets' clusters and groups
     (Problem.clusters), and the score tests of ``held_scores``."""
     unc = partial(uncertainty, pb, R_ref=state.R_ref, map_cov=map_cov)
-    cov, info, names, s2, rank, G, spread = unc(th=state.th, free=free)
-    score = held_score(pb, state.th, state.R_ref, free, s2, unc, held_scores)
+    at_solution = pb.blocks(state.th, state.R_ref)  # the residuals and Jacobian at the solution, once for both
+    cov, info, names, s2, rank, G, spread = unc(th=state.th, free=free, blocks=at_solution)
+    score = held_score(pb, state.th, state.R_ref, free, s2, unc, held_scores, blocks=at_solution)
     return Uncertainty(cov, info, names, s2, rank, G, spread, score)
 
 

@@ -67,16 +67,32 @@ def _background_model_log(x: FloatArray, y: FloatArray) -> tuple[FloatArray, Flo
     n_bins = int(max(1, min(_MAX_BINS, x.size // _MIN_PER_BIN)))
     edges = np.linspace(0, x.size, n_bins + 1).astype(int)
     order = np.argpartition(x, edges[1:-1]) if n_bins > 1 else np.arange(x.size)
-    x, y = x[order], y[order]
+    x, y = x[order], y[order]  # fresh arrays: each bin's slice is partitioned in place for its median
     kx = np.empty(n_bins)
     ky = np.empty(n_bins)
     for b in range(n_bins):
         sl = slice(edges[b], edges[b + 1])
-        kx[b] = np.median(x[sl])
-        ky[b] = np.median(y[sl])
+        kx[b] = _median_in_place(x[sl])
+        ky[b] = _median_in_place(y[sl])
     # identical ranges in neighbouring bins (quantised ranges): keep the knots strictly increasing
     keep = np.concatenate([[True], np.diff(kx) > 0])
     return kx[keep], ky[keep]
+
+
+def _median_in_place(a: FloatArray) -> float:
+    """``np.median(a)`` of a non-empty 1-D float array that does not hold both 0.0 and -0.0, bit for bit (NaN where
+    it holds a NaN; else the middle value, or the mean of the two middle values as np.median takes it), with ``a``
+    itself partitioned (its order is lost). One partition at the upper middle, the lower middle the largest value
+    below it: np.median partitions at both and at the last place (where a NaN would go), which takes 5 times as
+    long on 1.5 M values (13 ms against 2.4 ms)."""
+    n = a.size
+    h = n // 2
+    a.partition(h)  # a[:h] <= a[h] <= a[h + 1:], NaN last
+    if np.isnan(a[h:].max()):
+        return math.nan
+    if n % 2:
+        return float(np.mean(a[h:h + 1]))
+    return float(np.mean(np.array([a[:h].max(), a[h]])))
 
 
 def contrast(scans: Scans) -> tuple[FloatArray, float, float]:
@@ -106,10 +122,12 @@ def contrast(scans: Scans) -> tuple[FloatArray, float, float]:
     z = np.full(r.shape, np.nan)
     zv = log_i - np.interp(log_r, kx, ky)
     z[valid] = zv
-    med = float(np.median(zv))
-    sigma = 1.4826 * float(np.median(np.abs(zv - med)))
+    # zv, its deviations and r_v are ours (no copy needed), and none holds -0.0 (a log, a difference of finite
+    # values that is +0.0 when they are equal, an absolute value, a positive range)
+    med = _median_in_place(zv)
+    sigma = 1.4826 * _median_in_place(np.abs(zv - med))
     t = float(np.clip(med + K_SIGMA * sigma, math.log(MIN_CONTRAST), math.log(MAX_CONTRAST)))
-    r_med = float(np.median(r_v))
+    r_med = _median_in_place(r_v)
     thr_counts = float(np.exp(np.interp(math.log(r_med), kx, ky) + t))
     return z, t, thr_counts
 

@@ -11,6 +11,7 @@ the DH parameters (a fast one-pass sweep: one scan line per marker).
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
 from typing import Protocol
@@ -93,16 +94,20 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
     notes: list[str] = []
     scans, nominal = recorded.recording.scans, recorded.recording.nominal
     joints, detections = recorded.joints, recorded.detections
-    beam_times = scans.beam_times_s
+    n_beams = scans.ranges_m.shape[1]
+
+    def times_at(i: surfaces.IntArray) -> surfaces.FloatArray:  # beam times of flat indices (K,), elementwise
+        return scans.angle_times_at(i // n_beams, i % n_beams)
+
     selected_at, note = ours, None
     surface_list: list[surfaces.Surface] = []
     on_surfaces: surfaces.SurfaceReturns | None = None
     on_markers = surfaces.PlaneMarkers(markers.positions_W, nominal.marker_radius_m, max(markers.rms_m, 0.0005))
     selection = surfaces.SurfaceSelection(max_returns=config.surface_max_returns)
     for _ in range(surfaces.ROUNDS):  # the returns chosen again at the joint estimate while it moves them
-        lambda_beams = timing.motor_angles(beam_times, joints, clock_offset_s=selected_at.clock_offset_s,
-                                           tolerance_s=math.inf)
-        grid = surfaces.ReturnGrid(scans.ranges_m, scans.mu_rad, lambda_beams, detections.labels, beam_times)
+        # the motor angles of the beams observe_surfaces reprojects only (elementwise: the same bits as the grid's)
+        lambda_at = partial(_motor_angles_at, times_at, joints, selected_at.clock_offset_s)
+        grid = surfaces.ReturnGrid(scans.ranges_m, scans.mu_rad, lambda_at, detections.labels, times_at)
         found = surfaces.observe_surfaces(grid, on_markers, selected_at.params, selection=selection,
                                           intrinsics=selected_at.intrinsic_values)
         if on_surfaces is None or len(found[1]):
@@ -139,6 +144,12 @@ def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMa
             notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
                          "free planes")
     return Noted((ours, list(surface_list), on_surfaces), tuple(notes))
+
+
+def _motor_angles_at(times_at: Callable[[surfaces.IntArray], surfaces.FloatArray], joints: JointStates,
+                     clock_offset_s: float, i: surfaces.IntArray) -> surfaces.FloatArray:
+    """The motor angles (K,) of the beams of flat indices ``i`` (K,) at ``clock_offset_s`` (lrfcal.stages.timing)."""
+    return timing.motor_angles(times_at(i), joints, clock_offset_s=clock_offset_s, tolerance_s=math.inf)
 
 
 __all__ = ["SCALES", "JointConfig", "JointFit", "SCALE_Z_LIMIT", "Recorded", "most_off", "with_surfaces"]

@@ -67,25 +67,44 @@ def reproject_clouds(
     lk = lam.ravel()[idx] if lam.ndim == 2 else lam[idx // N]
     cl, sl = np.cos(lk), np.sin(lk)
     mu = np.asarray(scans.mu_rad, dtype=np.float64)
-    mk = mu.ravel()[idx] if mu.ndim == 2 else mu[bb]  # (S, N) per-scan bearings (or (N,))
+    row = _shared_bearings(mu)  # (N,) when every scan has the same bearings (a fixed scanner), else None
+    mk = None if row is not None else mu.ravel()[idx] if mu.ndim == 2 else mu[bb]  # (S, N) per-scan bearings
     cores = [core_vector(dh, {} if intrinsics is None else intrinsics[i]) for i, dh in enumerate(dhs)]
 
     def cloud(dh: DH, th: FloatArray) -> FloatArray:
         out = np.empty((rk.size, 3))
+        if row is not None:  # cos and sin of each beam's phi once, gathered: elementwise, the same bits
+            phi_beam = dh.beta + true_bearing(th, row).mu
+            cos_beam, sin_beam = np.cos(phi_beam), np.sin(phi_beam)
         for s in range(0, rk.size, CHUNK_RETURNS):  # elementwise: the same bits, the temporaries reused in cache
             e = min(rk.size, s + CHUNK_RETURNS)
-            phi = dh.beta + true_bearing(th, mk[s:e]).mu
+            if mk is not None:
+                phi = dh.beta + true_bearing(th, mk[s:e]).mu
+                cp, sp = np.cos(phi), np.sin(phi)
+            else:
+                cp, sp = cos_beam[bb[s:e]], sin_beam[bb[s:e]]
             if th[SCALE] == 1.0:
                 c, sn = cl[s:e], sl[s:e]
             else:
                 lam_true = motor_angles(th, lk[s:e], None, None).lam
                 c, sn = np.cos(lam_true), np.sin(lam_true)
-            out[s:e] = points_M_trig(true_range(th, rk[s:e], on_marker=False).r, c, sn, np.cos(phi), np.sin(phi), dh)
+            out[s:e] = points_M_trig(true_range(th, rk[s:e], on_marker=False).r, c, sn, cp, sp, dh)
         return out
 
     clouds = on_cores(cloud, list(zip(dhs, cores, strict=True)), parallel=rk.size > PARALLEL_RETURNS)
     intensity = np.ravel(scans.intensities)[idx].astype(np.float64, copy=False)
     return clouds, intensity
+
+
+def _shared_bearings(mu: FloatArray) -> FloatArray | None:
+    """The bearings (N,) every scan shares, bit for bit, when ``mu`` (S, N) holds one row for all scans (or is (N,)),
+    else None."""
+    if mu.ndim == 1:
+        return mu
+    bits = np.ascontiguousarray(mu).view(np.int64)  # the same bits, not only equal values (-0.0 and 0.0 differ)
+    if mu.shape[0] and bool((bits == bits[0]).all()):
+        return mu[0]
+    return None
 
 
 __all__ = ["reproject_cloud", "reproject_clouds"]

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -97,17 +98,33 @@ class ReturnRows:
     times_s: FloatArray | None = None
 
 
+#: per-beam values of a grid of scans by beams: the (S, N) array, or a function of flat indices (K,) into it giving
+#: those beams' values (K,), elementwise (the same bits as the array's)
+GridValues = FloatArray | Callable[[IntArray], FloatArray]
+
+
 @dataclass(frozen=True)
 class ReturnGrid:
     """A recording's returns as a grid of scans (S) by beams (N): ranges_m (S, N), NaN for no return; mu_rad (S, N)
     per-scan bearings (or (N,)); lambda_rad (S, N) per-beam motor angles; labels (S, N) blob labels (>= 0 on marker
-    returns, which are not surface returns); beam_times_s (S, N) laser-clock beam times (None: not carried)."""
+    returns, which are not surface returns); beam_times_s (S, N) laser-clock beam times (None: not carried).
+    lambda_rad and beam_times_s may instead be functions of flat indices (K,) into the grid giving those beams'
+    values (K,) (:data:`GridValues`): :func:`observe_surfaces` then computes them for the returns it reprojects only,
+    a fraction of the grid."""
 
     ranges_m: FloatArray
     mu_rad: FloatArray
-    lambda_rad: FloatArray
+    lambda_rad: GridValues
     labels: IntArray
-    beam_times_s: FloatArray | None = None
+    beam_times_s: GridValues | None = None
+
+
+def _at_flat(values: GridValues) -> Callable[[IntArray], FloatArray]:
+    """A grid's values (:data:`GridValues`) as a function of flat indices (K,) into the grid."""
+    if callable(values):
+        return values
+    flat = np.asarray(values).ravel()
+    return lambda i: flat[i]
 
 
 @dataclass(frozen=True)
@@ -158,8 +175,11 @@ class SurfaceReturns:
 
 def hash_key(scan: IntArray, beam: IntArray, seed: int = 0) -> NDArray[np.uint64]:
     """The hash of every (scan, beam) pair (K,) (salted by seed) that :func:`hash_sample` ranks them by."""
-    return (np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761) + np.asarray(beam, dtype=np.uint64)
-            * np.uint64(40503) + np.uint64(seed) * np.uint64(97)) % np.uint64(1 << 31)
+    key = np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761)
+    key += np.asarray(beam, dtype=np.uint64) * np.uint64(40503)
+    key += np.uint64(seed) * np.uint64(97)
+    key &= np.uint64((1 << 31) - 1)  # the remainder modulo 2^31 of an unsigned integer, without a division
+    return key
 
 
 def hash_sample(scan: IntArray, beam: IntArray, n: int, seed: int = 0) -> IntArray:
@@ -318,7 +338,9 @@ def surface_returns(
             q = (at - s.centre) @ s.axes.T
             inside = np.all((q >= s.lower) & (q <= s.upper), axis=1)
             m, at = m[inside], at[inside]
-            ok[m[tree.query(at)[0] >= marker_clearance_m]] = True
+            # the nearest marker's distance, searched only within the clearance (beyond it: inf, which passes as
+            # the distance itself would; within it the same distance): the same decisions, a shorter search
+            ok[m[tree.query(at, distance_upper_bound=marker_clearance_m)[0] >= marker_clearance_m]] = True
         accepted.append(pos[ok][:max_returns - n_acc])
         n_acc += accepted[-1].size
         if n_acc >= max_returns:
@@ -338,7 +360,7 @@ def surface_returns(
     )
 
 
-__all__ = ["DEFAULT_SELECTION", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
+__all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
            "SurfaceSelection", "candidate_planes", "find_surfaces", "hash_key", "hash_sample", "surface_returns"]
 
 
@@ -363,17 +385,17 @@ def observe_surfaces(
     ranges_m, mu_rad, lambda_rad, beam_times_s = grid.ranges_m, grid.mu_rad, grid.lambda_rad, grid.beam_times_s
     max_returns, seed = selection.max_returns, selection.seed
     valid = np.isfinite(ranges_m) & (grid.labels < 0)
-    flat = np.flatnonzero(valid)  # the valid returns, row-major as np.nonzero orders them
-    scan, beam = np.divmod(flat, valid.shape[1])
+    scan, beam = np.nonzero(valid)  # the valid returns, row-major
+    flat = scan * valid.shape[1] + beam  # their flat indices (np.flatnonzero's, without a division to undo them)
     mu_all = np.asarray(mu_rad)
-    lam_f, r_f = np.asarray(lambda_rad).ravel(), np.asarray(ranges_m).ravel()
+    lam_at, r_f = _at_flat(lambda_rad), np.asarray(ranges_m).ravel()
     mu_f = mu_all.ravel() if mu_all.ndim == 2 else None
-    times_f = None if beam_times_s is None else np.asarray(beam_times_s).ravel()
+    times_at = None if beam_times_s is None else _at_flat(beam_times_s)
 
     def take(rows: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
         """motor angles, bearings and ranges of the valid returns ``rows`` (gathered only for those rows)"""
         i = flat[rows]
-        return lam_f[i], (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
+        return lam_at(i), (mu_all[beam[rows]] if mu_f is None else mu_f[i]), r_f[i]
 
     th = core_vector(params.dh, intrinsics or {})
     sensor_W = params.mount.matrix()[:3, 3]
@@ -384,25 +406,49 @@ def observe_surfaces(
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
     # them all once they hold max_returns accepted ones, so only those rows are reprojected (the same returns as
     # from every row, at a fraction of the work); the threshold grows until they do, at once to the fraction that
-    # the accepted returns so far say is needed (any fraction gives the same returns: the sequence only saves work)
+    # the accepted returns so far say is needed (any fraction gives the same returns: the sequence only saves work).
+    # Each try judges only the rows above the last one's threshold: the last judged every row below it and
+    # accepted fewer than max_returns, all of which stay (their keys are lower than every new row's)
     key = hash_key(scan, beam, seed)
-    frac = _FRACTIONS[0]
+    frac, below = _FRACTIONS[0], 0.0
+    parts: list[SurfaceReturns] = []
     while True:
-        rows = np.flatnonzero(key < np.uint64(frac * (1 << 31))) if frac < 1.0 else np.arange(flat.size)
+        above = key >= np.uint64(below * (1 << 31))
+        rows = np.flatnonzero(above & (key < np.uint64(frac * (1 << 31))) if frac < 1.0 else above)
         lam_k, mu_k, r_k = take(rows)
         r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
         candidates = ReturnRows(scan[rows], beam[rows], lam_k, mu_k, r_k,
-                          None if times_f is None else times_f[flat[rows]])
-        returns = surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
-                                  selection=selection,
-                                  rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i], mu_t[i]))
-        if len(returns) >= max_returns or frac >= 1.0:
-            return surfaces, returns
-        frac = _next_fraction(frac, len(returns), max_returns)
+                                None if times_at is None else times_at(flat[rows]))
+        got = sum(len(p) for p in parts)
+        parts.append(surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
+                                     selection=replace(selection, max_returns=max_returns - got),
+                                     rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i],
+                                                                                           mu_t[i])))
+        got += len(parts[-1])
+        if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
+            return surfaces, _merged(parts, valid.shape[1])
+        below, frac = frac, _next_fraction(frac, got, max_returns)
 
 
-#: the fractions of the rows (by hash key) observe_surfaces tries, smallest first
-_FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0)
+def _merged(parts: list[SurfaceReturns], n_beams: int) -> SurfaceReturns:
+    """The returns of :func:`observe_surfaces`' tries as one, in :func:`surface_returns`' order (surface by surface,
+    each in the grid's row-major order)."""
+    if len(parts) == 1:
+        return parts[0]
+    def cat(name: str) -> NDArray[Any]:
+        return np.concatenate([getattr(p, name) for p in parts])
+
+    scan, beam, surface = cat("scan"), cat("beam"), cat("surface")
+    order = np.lexsort((scan * n_beams + beam, surface))  # (surface, flat index): unique pairs
+    return SurfaceReturns(
+        scan=scan[order], beam=beam[order], lambda_rad=cat("lambda_rad")[order], mu_rad=cat("mu_rad")[order],
+        ranges_m=cat("ranges_m")[order], surface=surface[order], normals=cat("normals")[order],
+        offsets_m=cat("offsets_m")[order], times_s=None if parts[0].times_s is None else cat("times_s")[order])
+
+
+#: the fractions of the rows (by hash key) observe_surfaces tries, smallest first: 1/16, then in steps of 1/64, so
+#: that the second try reprojects little more than it needs (tunnel_v: 9/64 of the rows, not 1/4)
+_FRACTIONS = tuple(k / 64 for k in range(4, 65))
 #: the margin on the fraction the accepted returns so far say is needed (they scatter about their expectation)
 _FRACTION_MARGIN = 1.25
 
