@@ -14,16 +14,15 @@ from lrfcal.stages import markers, scene
 from lrfcal.stages.alternatives import AlternativesConfig
 from lrfcal.stages.joint import JointConfig
 from lrfcal.stages.matching import MatchConfig
-from lrfcal.stages.starts import StartsConfig
 from lrfcal.stages.targetless import SceneConfig, SegmentConfig
 from lrfcal.types import JointStates, Recording
 
 
-def slices(config: CalibConfig) -> tuple[CheckConfig, JointConfig, MatchConfig, StartsConfig, SceneConfig,
-                                         SegmentConfig, AlternativesConfig, markers.RefineConfig]:
+def slices(config: CalibConfig) -> tuple[CheckConfig, JointConfig, MatchConfig, SceneConfig, SegmentConfig,
+                                         AlternativesConfig, markers.RefineConfig]:
     """``config`` as each slice (mypy rejects the return if CalibConfig lacks an option a slice names, or types it
     otherwise)."""
-    return config, config, config, config, config, config, config, config
+    return config, config, config, config, config, config, config
 
 
 def ways(recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch

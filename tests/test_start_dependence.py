@@ -162,7 +162,7 @@ def test_starts_that_converge_elsewhere_are_refused_naming_the_parameters(
     near = DHSet(a=result.a, alpha=result.alpha - 3 * sigma[7], b=result.b, beta=result.beta)
     monkeypatch.setattr(propose, "propose_dh", lambda scans, joints: propose.DHProposal(
         far, {}, n_converged=6, n_agreeing=4, n_starts=12, agreeing=(far, near, result)))
-    monkeypatch.setattr(starts, "_segmenting", lambda *args: None)
+    monkeypatch.setattr(starts, "_rerun", lambda *args: None)
     ran: list[DHSet] = []
 
     def land(sg: object, tau0: float, dhs: list[DHSet]) -> list[np.ndarray]:
@@ -171,7 +171,7 @@ def test_starts_that_converge_elsewhere_are_refused_naming_the_parameters(
 
     monkeypatch.setattr(starts, "_solved", land)
     monkeypatch.setattr(starts, "call_forked", lambda tasks: {k: f() for k, f in tasks.items()})
-    check = starts.starts_check(fit, evidence, None, CalibConfig())  # type: ignore[arg-type]
+    check = starts.starts_check(fit, evidence, None, 0.0, None)  # type: ignore[arg-type]
     print(check)
     # the proposal first, then the agreeing start farthest from the result; the result itself is not run again
     assert [round((d.alpha - result.alpha) / sigma[7]) for d in ran] == [100, -3]

@@ -188,7 +188,7 @@ class PlaneWay:
                                 solution=sol, checks=(shared(sol), *checks), notes=scene.notes)
         if not (config.force or all(c.passed for c in fit.checks)):
             return fit  # refused anyway: the other starts are not run
-        agree = starts.starts_check(fit, evidence, self.joints, config, scene.proposal, (sg, rs.coarse))
+        agree = starts.starts_check(fit, evidence, self.joints, tau0, (sg, rs.coarse), scene.proposal)
         fit = replace(fit, checks=_after_settled(fit.checks, agree))
         clock.lap("starts")
         return fit

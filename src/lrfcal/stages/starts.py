@@ -30,20 +30,17 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
-from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate import observability, solve
+from lrfcal.estimate import observability
 from lrfcal.model.kinematics import DH, dh_twins
-from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import dh_difference
 from lrfcal.result import CalibrationResult, PlaneEvidence
 from lrfcal.runtime.forked import call_forked, cores
-from lrfcal.stages import holdout, propose, targetless
-from lrfcal.stages.surfaces import hash_sample
+from lrfcal.stages import propose, targetless
 from lrfcal.types import Check, JointStates, Solution
 
 FloatArray = NDArray[np.float64]
@@ -58,25 +55,15 @@ NAME = "starts agree"
 TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 
 
-class StartsConfig(targetless.SceneConfig, Protocol):
-    """The configuration the check "starts agree" reads: its slice of lrfcal.config.CalibConfig (which satisfies
-    it): the rounds' (lrfcal.stages.targetless.SceneConfig), the design drawing's tolerance and the clock's start."""
-
-    @property
-    def nominal_tolerance(self) -> tuple[float, float, float, float]: ...
-    @property
-    def clock_offset_s(self) -> float: ...
-
-
-def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, config: StartsConfig,
-                 proposal: Callable[[], propose.DHProposal] | None = None,
-                 rounds: tuple[targetless.Segmenting, Solution | None] | None = None) -> Check:
+def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointStates, tau0: float,
+                 rounds: tuple[targetless.Segmenting, Solution | None],
+                 proposal: Callable[[], propose.DHProposal] | None = None) -> Check:
     """The check "starts agree" of a targetless result ``fit`` (lrfcal.stages.scene.PlaneWay) of ``fit.recording``
-    (the scans the ``joints`` cover), its ``evidence``: the module docstring. ``proposal``: the DH search's proposal on
-    those scans and joints when it was begun before (lrfcal.stages.propose.proposal_ahead, during the fit), else
-    searched here. ``rounds``: what the result's rounds shared (their sampled returns and segmentation sample, held
+    (the scans the ``joints`` cover), its ``evidence``, its rounds started from the clock offset ``tau0`` [s]: the
+    module docstring. ``rounds``: what the result's rounds shared (their sampled returns and segmentation sample, held
     parameters, prior and clock) and their last round on the segmentation's sample when those settled
-    (lrfcal.stages.targetless.Rounds.coarse), when at hand (else made again here, and every start runs every round)."""
+    (lrfcal.stages.targetless.Rounds.coarse, else None). ``proposal``: the DH search's proposal on those scans and
+    joints when it was begun before (lrfcal.stages.propose.proposal_ahead, during the fit), else searched here."""
     sol, nominal = fit.solution, fit.recording.nominal.dh
     held = evidence.plane_fit.held
     est = [k for k, n in enumerate(DH_NAMES) if n not in held]
@@ -91,9 +78,9 @@ def starts_check(fit: CalibrationResult, evidence: PlaneEvidence, joints: JointS
     if not starts:
         return Check(NAME, True, f"the search's proposal and its {found.n_agreeing} agreeing starts lie within "
                      f"{AGREE_SIGMA:g} sigma of the result on every estimated parameter")
-    sg = _segmenting(fit, joints, config, held, rounds)
+    sg = _rerun(fit, held, rounds)
     n = max(1, min(cores(), len(starts)))  # the starts are independent: on the cores (lrfcal.runtime.forked)
-    done = call_forked({str(g): partial(_solved, sg, config.clock_offset_s, starts[g::n]) for g in range(n)})
+    done = call_forked({str(g): partial(_solved, sg, tau0, starts[g::n]) for g in range(n)})
     ends = [v for g in range(n) for v in done[str(g)]]
     far = np.zeros(4)
     for v in ends:
@@ -184,34 +171,14 @@ def _other_starts(candidates: list[DH], nominal: DH, sol: Solution, est: list[in
     return kept[:MAX_OTHER_STARTS]
 
 
-def _segmenting(fit: CalibrationResult, joints: JointStates, config: StartsConfig, held: tuple[str, ...],
-                rounds: tuple[targetless.Segmenting, Solution | None] | None = None) -> _Rerun:
-    """The rounds' shared inputs as lrfcal.stages.scene.PlaneWay made them for ``fit`` (``rounds``: those it made
-    and its last round on the segmentation's sample, see :func:`starts_check`; else made again here): the same
-    returns sampled (the held-out scans skipped), the same segmentation sample, the same held parameters, prior and
-    clock."""
-    sol = fit.solution
+def _rerun(fit: CalibrationResult, held: tuple[str, ...], rounds: tuple[targetless.Segmenting, Solution | None]
+           ) -> _Rerun:
+    """What the other starts' rounds share with ``fit``'s (``rounds``, see :func:`starts_check`): the same sampled
+    returns (the held-out scans skipped), segmentation sample, held parameters, prior and clock."""
+    sol, (sg, coarse) = fit.solution, rounds
     est = [k for k, n in enumerate(DH_NAMES) if n not in held]
-    if rounds is not None:
-        sg, coarse = rounds
-        return _Rerun(sg, None if coarse is None else coarse.params.vector()[6:], sol.params.vector()[6:],
-                      sol.sigma[6:10], est)
-    return _Rerun(_shared(fit, joints, config, held), None, sol.params.vector()[6:], sol.sigma[6:10], est)
+    return _Rerun(sg, None if coarse is None else coarse.params.vector()[6:], sol.params.vector()[6:],
+                  sol.sigma[6:10], est)
 
 
-def _shared(fit: CalibrationResult, joints: JointStates, config: StartsConfig, held: tuple[str, ...]
-            ) -> targetless.Segmenting:
-    """:func:`_segmenting`'s shared inputs made again."""
-    scans = fit.recording.scans
-    hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
-    beams = targetless.sample_returns(scans, config.plane_returns, skip=hold)
-    seg = hash_sample(beams.scan, beams.beam, targetless.SEGMENT_SAMPLES, seed=1)
-    motor = MotorClock.from_joints(joints)
-    prior = (fit.recording.nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))
-    clock = motor if math.isfinite(fit.solution.clock_offset_sigma_s) else None
-    solve_at = partial(solve.solve_planes, range_sigma_m=config.range_sigma_m, clock=clock, hold=held,
-                       dh_prior=prior)
-    return targetless.Segmenting(beams, seg, motor, config, solve_at)
-
-
-__all__ = ["AGREE_SIGMA", "MAX_OTHER_STARTS", "StartsConfig", "starts_check"]
+__all__ = ["AGREE_SIGMA", "MAX_OTHER_STARTS", "starts_check"]
