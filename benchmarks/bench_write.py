@@ -8,13 +8,15 @@ and thread policies applied; for each of T trials (default 4) the CPU time (time
 the process, less sensitive to other work on a shared machine than the wall time) of the trial's parts, and the
 bag of that trial written R times (default 3) each way, interleaved, so that a busy machine slows both alike:
 
-* ``rosbags``: lrfsim.recording.write_bag of the source tree SRC (``--old-src``, default ``../main/src`` beside
-  the repository if present, else skipped): the messages serialised in bulk, the file written by rosbags' Writer,
+* ``rosbags``: lrfsim.recording.write_bag of the source tree SRC (``--old-src``, e.g. the main branch's ``src``;
+  without it, skipped): the messages serialised in bulk, the file written by rosbags' Writer,
   one call per message (the version before lrfcal.io.mcap_write);
 * ``bulk``: write_bag as it runs (lrfcal.io.mcap_write), whose file must be the same, byte for byte (checked);
-* ``generic``: write_bag(bulk=False): rosbags' serialiser and Writer, one call each per message (the reference).
+* ``generic``: write_bag(bulk=False): rosbags' serialiser and Writer, one call each per message (the reference);
 
-Prints the median CPU of each, the ratio bulk / rosbags, and the write's share of a whole trial's CPU.
+and the recording's declared range noise (nominal.yaml ``range_sigma_m``) both ways, interleaved the same way:
+``np.median`` of every finite range's sigma (before) and lrfsim.lidar.typical_range_sigma (counted by band), the
+same float (checked). Prints the median CPU of each, the ratios, and the write's share of a whole trial's CPU.
 """
 
 from __future__ import annotations
@@ -39,6 +41,14 @@ def _old_write_bag(src: Path):  # noqa: ANN202 - the old tree's write_bag, impor
     return module.write_bag
 
 
+def _median_sigma(ranges_m, sensor) -> float:  # noqa: ANN001 - typical_range_sigma as it was
+    import numpy as np
+
+    from lrfsim.lidar import range_sigma
+
+    return float(np.median(range_sigma(ranges_m[np.isfinite(ranges_m)], sensor)))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--trials", type=int, default=4)
@@ -46,8 +56,11 @@ def main() -> None:
     ap.add_argument("--old-src", type=Path, default=None)
     args = ap.parse_args()
 
+    import numpy as np
+
     from lrfcal.runtime.memory import apply_memory_policy
     from lrfcal.runtime.threads import apply_thread_policy
+    from lrfsim.lidar import typical_range_sigma
     from lrfsim.recording import write_bag, write_recording
     from lrfsim.scenario import load_scenario
     from lrfsim.simulate import cast_geometry, simulate_from_geometry
@@ -78,6 +91,11 @@ def main() -> None:
             timed("trial: write the recording", write_recording, sim, sc, folder)
             timed("trial: read and calibrate", calibrate_recording, folder)
             reference = (folder / "bag" / "bag.mcap").read_bytes()
+            finite = sim.ranges_m[np.isfinite(sim.ranges_m)]
+            for _ in range(args.repeat):
+                median = timed("range sigma np.median", _median_sigma, sim.ranges_m, sc.sensor)
+                counted = timed("range sigma counted", typical_range_sigma, sim.ranges_m, sc.sensor)
+                assert median == counted and finite.size, "another range sigma"
             for k in range(args.repeat):
                 for name, fn in ways.items():
                     bag = Path(tmp) / f"{name}{k}" / "bag"
@@ -91,7 +109,8 @@ def main() -> None:
     trial = sum(v for k, v in med.items() if k.startswith("trial:"))
     print(f"{'a whole trial':30s} median CPU {trial * 1e3:7.1f} ms (the sum of its parts' medians)")
     print(f"bag.mcap {len(reference) / 1e6:.1f} MB, the same bytes every way")
-    if "rosbags" in med:
+    print(f"range sigma counted / np.median: {med['range sigma counted'] / med['range sigma np.median']:.2f}")
+    if "write_bag rosbags" in med:
         print(f"bulk / rosbags: {med['write_bag bulk'] / med['write_bag rosbags']:.2f}; the write's share of a "
               f"trial: {med['write_bag rosbags'] / trial:.1%} -> {med['write_bag bulk'] / trial:.1%}")
     print(f"bulk / generic: {med['write_bag bulk'] / med['write_bag generic']:.2f}")

@@ -28,6 +28,7 @@ from __future__ import annotations
 import struct
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from io import StringIO
 from pathlib import Path
 from typing import Any
@@ -233,6 +234,14 @@ def _metadata(topics: Sequence[BagTopic], counts: list[int], t0: int, t1: int, m
     }
 
 
+@lru_cache(maxsize=1)
+def _library() -> str:
+    """The Header's library: rosbags' own, whose file this is byte for byte (rosbags writes ``rosbags-<version>``)."""
+    from importlib.metadata import version
+
+    return f"rosbags-{version('rosbags')}"
+
+
 def _yaml(data: dict[str, Any]) -> str:
     from ruamel.yaml import YAML
 
@@ -276,8 +285,6 @@ def write_rosbag2_mcap(path: str | Path, topics: Sequence[BagTopic], messages: S
     ``topics`` (T,); ``messages`` (T,): each topic's messages (:data:`Messages`); ``log_ns``, ``channel`` (a topic's
     position in ``topics``) and ``index`` (N,) integers.
     """
-    from importlib.metadata import version
-
     path = Path(path)
     log_ns = np.asarray(log_ns, dtype=np.int64)
     channel = np.asarray(channel, dtype=np.int64)
@@ -291,7 +298,7 @@ def write_rosbag2_mcap(path: str | Path, topics: Sequence[BagTopic], messages: S
     schemas, channels, prefix = _schemas_and_channels(topics)
 
     f = _File()
-    f.add(MAGIC + _record(0x01, _string("ros2") + _string(f"rosbags-{version('rosbags')}")))
+    f.add(MAGIC + _record(0x01, _string("ros2") + _string(_library())))
     index_records = _chunks(f, prefix, heads, pieces, 31 + lengths[which])
     counts = np.bincount(channel, minlength=len(topics)).tolist()
     t0, t1 = (int(log_ns.min()), int(log_ns.max())) if log_ns.size else (_NO_TIME, 0)
