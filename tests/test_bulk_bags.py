@@ -299,6 +299,38 @@ def test_bulk_mcap_writer_is_rosbags_writer_byte_for_byte(tmp_path: Path, n_mess
         assert len(sizes) == 3 and sizes[0] == CHUNK_BYTES + 31 + len(raw(j + 1))
 
 
+def test_bulk_mcap_writer_refuses_what_it_would_misread(tmp_path: Path) -> None:
+    """A topic twice, messages of another dtype, a negative log time, an index past its topic's messages (which
+    would silently take another topic's), an existing folder: refused, nothing written."""
+    from lrfcal.io.mcap_write import BagTopic, write_rosbag2_mcap
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    scan, joint = BagTopic.of("/scan", LASERSCAN, ts), BagTopic.of("/joint_states", JOINTSTATE, ts)
+    rows, raws = np.zeros((2, 8), dtype=np.uint8), [b"ab", b"cde"]
+    good = (np.array([T0_NS, T0_NS + 1, T0_NS + 2]), np.array([0, 1, 1]), np.array([0, 0, 1]))
+    bad = [([scan, scan], [rows, raws], good), ([scan, joint], [rows.astype(np.float32), raws], good),
+           ([scan, joint], [rows, raws], (np.array([-1, 0, 1]), *good[1:])),
+           ([scan, joint], [rows, raws], (good[0], good[1], np.array([0, 0, 2]))),
+           ([scan, joint], [rows, raws], (good[0], np.array([0, 1, 2]), good[2]))]
+    for k, (topics, messages, order) in enumerate(bad):
+        with pytest.raises(ValueError):
+            write_rosbag2_mcap(tmp_path / f"bad{k}" / "bag", topics, messages, *order)
+        assert not (tmp_path / f"bad{k}").exists()
+    write_rosbag2_mcap(tmp_path / "good" / "bag", [scan, joint], [rows, raws], *good)
+    with pytest.raises(FileExistsError):
+        write_rosbag2_mcap(tmp_path / "good" / "bag", [scan, joint], [rows, raws], *good)
+    raw_topics = raw_messages_of(tmp_path / "good" / "bag", ["/scan", "/joint_states"])
+    assert [[bytes(t.message(i)) for i in range(len(t))] for t in raw_topics] == [[bytes(8)] * 1, [b"ab", b"cde"]]
+
+
+def raw_messages_of(bag: Path, topics: list[str]) -> list[Any]:
+    """Each topic's messages as lrfcal.io.bag_raw reads them from the MCAP index."""
+    reader = open_reader(bag)
+    with reader:
+        complete_types(reader)
+        return raw_messages(reader, [[c for c in reader.connections if c.topic == t] for t in topics])
+
+
 def test_a_bag_defining_laserscan_otherwise_is_left_to_rosbags(tmp_path: Path) -> None:
     """A LaserScan whose definition in the bag is not ROS's (a field more) is decoded by rosbags, never by the
     layout reader, which would take the extra field for the beam count."""

@@ -275,6 +275,25 @@ def _write_parts(path: Path, parts: list[Any]) -> None:
         os.close(fd)
 
 
+def _check(topics: Sequence[BagTopic], messages: Sequence[Messages], log_ns: NDArray[np.int64],
+           channel: NDArray[np.int64], index: NDArray[np.int64]) -> None:
+    """Refuse arguments rosbags' Writer would refuse or this writer would misread (a programming error)."""
+    names = [(t.topic, t.msgtype) for t in topics]
+    if len(set(names)) != len(names) or len(messages) != len(topics):
+        raise ValueError(f"bag topics {names}: each once, with one message collection each ({len(messages)} given)")
+    for t, m in zip(topics, messages, strict=True):
+        if isinstance(m, np.ndarray) and (m.dtype != np.uint8 or m.ndim != 2):
+            raise ValueError(f"bag topic {t.topic}: messages as an array must be (n, bytes) uint8, not {m.dtype} "
+                             f"{m.shape}")
+    if not (log_ns.shape == channel.shape == index.shape and log_ns.ndim == 1):
+        raise ValueError(f"log times, topics and indices of one shape (N,) expected: {log_ns.shape}, "
+                         f"{channel.shape}, {index.shape}")
+    counts = np.array([len(m) for m in messages], dtype=np.int64)
+    if log_ns.size and (log_ns.min() < 0 or channel.min() < 0 or channel.max() >= len(topics) or index.min() < 0
+                        or np.any(index >= counts[np.clip(channel, 0, max(len(topics) - 1, 0))])):
+        raise ValueError("a message's log time is negative, or its topic or its index in the topic out of range")
+
+
 def write_rosbag2_mcap(path: str | Path, topics: Sequence[BagTopic], messages: Sequence[Messages],
                        log_ns: NDArray[np.int64], channel: NDArray[np.int64], index: NDArray[np.int64]) -> None:
     """Write the bag folder ``path`` (it must not exist; made with its parents): ``path/<name>.mcap`` and
@@ -284,12 +303,17 @@ def write_rosbag2_mcap(path: str | Path, topics: Sequence[BagTopic], messages: S
 
     ``topics`` (T,); ``messages`` (T,): each topic's messages (:data:`Messages`); ``log_ns``, ``channel`` (a topic's
     position in ``topics``) and ``index`` (N,) integers.
+
+    Raises:
+        ValueError: a topic given twice, messages not (n, bytes) uint8 or bytes-like, a negative log time, a topic
+            or an index out of range (rosbags' Writer refuses the first and the negative time too).
+        FileExistsError: ``path`` exists.
     """
     path = Path(path)
-    log_ns = np.asarray(log_ns, dtype=np.int64)
-    channel = np.asarray(channel, dtype=np.int64)
+    log_ns, channel, index = (np.asarray(v, dtype=np.int64) for v in (log_ns, channel, index))
+    _check(topics, messages, log_ns, channel, index)
     views, lengths, first = _payloads(messages)
-    which = first[channel] + np.asarray(index, dtype=np.int64)
+    which = first[channel] + index
     heads = _heads(log_ns, channel, lengths[which])
     head_bytes = memoryview(heads.tobytes())
     pieces: list[Any] = [None] * (2 * log_ns.size)
