@@ -99,8 +99,8 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path, *, bulk: bool =
     topics, events = bag_messages(result, scenario)
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in topics}
-        for log_ns, topic, typ, msg in events:
-            writer.write(conns[topic], log_ns, encode_cdr(msg) if typ == MULTIECHO_TYPE else ts.serialize_cdr(msg, typ))
+        for t_ns, topic, typ, msg in events:
+            writer.write(conns[topic], t_ns, encode_cdr(msg) if typ == MULTIECHO_TYPE else ts.serialize_cdr(msg, typ))
 
 
 def _stamps(t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

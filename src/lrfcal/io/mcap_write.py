@@ -103,7 +103,7 @@ def _payloads(messages: Sequence[Messages]) -> tuple[list[Any], NDArray[np.int64
     for m in messages:
         if isinstance(m, np.ndarray):
             rows, width = m.shape
-            flat = memoryview(np.ascontiguousarray(m, dtype=np.uint8).reshape(-1))
+            flat = np.ascontiguousarray(m, dtype=np.uint8).reshape(-1).data
             views += [flat[a:a + width] for a in range(0, rows * width, width)]
             lengths.append(np.full(rows, width, dtype=np.int64))
         else:
