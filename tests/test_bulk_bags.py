@@ -299,6 +299,25 @@ def test_bulk_mcap_writer_is_rosbags_writer_byte_for_byte(tmp_path: Path, n_mess
         assert len(sizes) == 3 and sizes[0] == CHUNK_BYTES + 31 + len(raw(j + 1))
 
 
+def test_bag_topics_are_humbles_without_loading_its_store() -> None:
+    """BagTopic.humble names the simulator's types (definition, hash) as rosbags' Writer does with ROS 2 Humble's
+    store, from lrfcal.io's copies of the definitions: writing the simulator's bag does not load that store; another
+    type is taken from the store."""
+    import subprocess
+    import sys
+
+    from lrfcal.io.mcap_write import BagTopic
+
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+    for typ in (LASERSCAN, JOINTSTATE, "sensor_msgs/msg/MultiEchoLaserScan", "std_msgs/msg/String"):
+        assert BagTopic.humble("/t", typ) == BagTopic.of("/t", typ, humble), typ
+    probe = ("import sys; from lrfcal.io.mcap_write import BagTopic; "
+             "t = [BagTopic.humble('/t', 'sensor_msgs/msg/' + n) for n in ('LaserScan', 'JointState', "
+             "'MultiEchoLaserScan')]; print(len(t), 'rosbags.typesys.stores.ros2_humble' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["3", "False"]
+
+
 def test_bulk_mcap_writer_refuses_what_it_would_misread(tmp_path: Path) -> None:
     """A topic twice, messages of another dtype, a negative log time, an index past its topic's messages (which
     would silently take another topic's), an existing folder: refused, nothing written."""

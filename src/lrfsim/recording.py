@@ -86,15 +86,16 @@ def write_bag(result: SimResult, scenario: Scenario, path: Path, *, bulk: bool =
     ``bulk`` False: :func:`bag_messages` serialised by one rosbags call each and written by rosbags' Writer, one
     call each (the same file, in several times the time: the reference tests/test_bulk_bags.py and
     benchmarks/bench_read.py compare with)."""
-    ts = _typestore()
     if bulk:
         from lrfcal.io.mcap_write import BagTopic, write_rosbag2_mcap
 
         topics, messages, log_ns, channel, index = bag_columns(result, scenario)
-        write_rosbag2_mcap(path, [BagTopic.of(topic, typ, ts) for topic, typ in topics], messages, log_ns, channel,
+        write_rosbag2_mcap(path, [BagTopic.humble(topic, typ) for topic, typ in topics], messages, log_ns, channel,
                            index)
         return
     from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = _typestore()
 
     topics, events = bag_messages(result, scenario)
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
