@@ -18,7 +18,8 @@ tunnel_v's recording <= 0.1 s where it took ~0.5 s (a ratio <= 0.2).
 
 Without BAG also the writing of tunnel_v's bag, interleaved the same way: ``write generic``
 (lrfsim.recording.write_bag with ``bulk=False``: one rosbags serialiser call per message) and ``write bulk``
-(write_bag as it runs: the messages serialised as arrays, lrfcal.io.wire), the same file byte for byte.
+(write_bag as it runs: the messages serialised as arrays, lrfcal.io.wire, the file assembled from them,
+lrfcal.io.mcap_write), the same file byte for byte (benchmarks/bench_write.py: against rosbags' Writer alone).
 """
 
 from __future__ import annotations

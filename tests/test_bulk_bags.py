@@ -203,8 +203,12 @@ def test_every_storage_and_odd_layouts_read_alike(tmp_path: Path, kind: str, nam
     {},
     {"sensor": {"echoes": {"enabled": True, "separation_m": 0.004}, "divergence_rad": 0.01},
      "faults": {"angle_increment_off_by_one": True}, "servo": {"clock_offset_s": 0.137}},
-], ids=["plain", "echoes_fault_offset"])
+    {"faults": {"dropped_scans_fraction": 0.3, "stamp_jitter_s": 0.02, "inverted_servo": True, "joint_gap_s": 0.2,
+                "encoder_spikes": 5}},
+], ids=["plain", "echoes_fault_offset", "dropped_jittered_gap"])
 def test_simulated_bag_is_the_file_rosbags_writes(tmp_path: Path, sections: dict[str, Any]) -> None:
+    """write_bag in bulk (messages serialised as arrays, the MCAP file assembled from them, lrfcal.io.mcap_write)
+    writes the bag.mcap and metadata.yaml that rosbags' serialiser and Writer write, one call per message."""
     from test_lidar import small_scenario
 
     from lrfsim.recording import bag_messages, bag_records, write_bag
@@ -214,16 +218,136 @@ def test_simulated_bag_is_the_file_rosbags_writes(tmp_path: Path, sections: dict
     result = simulate(scenario)
     topics, records = bag_records(result, scenario)
     ref_topics, events = bag_messages(result, scenario)
-    assert topics == ref_topics and len(topics) == (3 if sections else 2)
+    assert topics == ref_topics and len(topics) == (3 if "sensor" in sections else 2)
     assert [(t, topic) for t, topic, _ in records] == [(t, topic) for t, topic, _, _ in events]
     ts = get_typestore(Stores.ROS2_HUMBLE)
     for (_, _, raw), (_, _, typ, msg) in zip(records, events, strict=True):
         if typ in (LASERSCAN, JOINTSTATE):
             assert bytes(raw) == bytes(ts.serialize_cdr(msg, typ)), typ
     write_bag(result, scenario, tmp_path / "bulk" / "bag")
-    write_bag(result, scenario, tmp_path / "rosbags" / "bag", bulk=False)  # one rosbags serialiser call a message
+    write_bag(result, scenario, tmp_path / "rosbags" / "bag", bulk=False)  # rosbags' serialiser and Writer
     for name in ("bag.mcap", "metadata.yaml"):
         assert (tmp_path / "bulk" / "bag" / name).read_bytes() == (tmp_path / "rosbags" / "bag" / name).read_bytes()
+    if "dropped_scans_fraction" in sections.get("faults", {}):  # the faults changed what the bag holds
+        assert result.faults["dropped_scans"] and result.faults["joint_gap"]["n_removed"] > 0
+        assert len(result.faults["encoder_spikes"]) == 5 and result.faults["receive_stamps"]["max_delay_s"] > 0
+
+
+def _rosbags_file(path: Path, topics: list[tuple[str, str]], order: list[tuple[int, int, bytes]]) -> Path:
+    """The bag rosbags' Writer writes: ``topics`` added in order, then (log time, topic index, bytes) each."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+        conns = [writer.add_connection(topic, typ, typestore=ts) for topic, typ in topics]
+        for t, c, raw in order:
+            writer.write(conns[c], t, raw)
+    return path
+
+
+@pytest.mark.parametrize("n_messages", [0, 1, 700])
+def test_bulk_mcap_writer_is_rosbags_writer_byte_for_byte(tmp_path: Path, n_messages: int) -> None:
+    """lrfcal.io.mcap_write against rosbags' Writer on records the simulator never writes: 700 messages of 3 MB
+    (3 chunks; the first reaches CHUNK_BYTES exactly after one message, which does not close it, and is closed by
+    the next), two topics of one type (one schema), a topic without messages, empty messages, log times out of
+    order and equal; messages as rows of an array and as bytes; no message at all (one chunk of schemas and
+    channels only) and a single one."""
+    from lrfcal.io.mcap_write import CHUNK_BYTES, BagTopic, write_rosbag2_mcap
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    topics = [BagTopic.of(topic, typ, ts) for topic, typ in
+              (("/scan", LASERSCAN), ("/joint_states", JOINTSTATE), ("/scan_b", LASERSCAN), ("/idle", JOINTSTATE))]
+    rng = np.random.default_rng(3)
+    channel = rng.choice([0, 1, 2], size=n_messages, p=[0.5, 0.3, 0.2]).astype(np.int64)
+    index = np.zeros(n_messages, dtype=np.int64)
+    for c in range(3):
+        index[channel == c] = np.arange(int(np.sum(channel == c)))
+    rows = rng.integers(0, 256, (int(np.sum(channel == 0)), 5000), dtype=np.uint8)  # topic 0: of one length
+    varied = [rng.bytes(int(n)) for n in rng.choice([0, 17, 60, 9000], size=int(np.sum(channel == 1)))]
+    small = rng.integers(0, 256, (int(np.sum(channel == 2)), 8), dtype=np.uint8)
+    messages: list[Any] = [rows, varied, small, np.zeros((0, 8), dtype=np.uint8)]
+    log_ns = T0_NS + np.cumsum(rng.integers(0, 3_000_000, n_messages)) - rng.integers(0, 10_000_000, n_messages)
+    if n_messages:
+        log_ns[n_messages // 2:][:2] = log_ns[n_messages // 2]  # two equal log times
+
+    def raw(j: int) -> bytes:
+        return bytes(memoryview(messages[int(channel[j])][int(index[j])]))
+
+    if n_messages > 600:  # a topic-1 message resized to take the first chunk to CHUNK_BYTES exactly
+        content = 0  # the first chunk: schemas and channels, then message records (31 bytes + the message)
+        for t in topics:
+            content += 9 + 2 + sum(4 + len(x.encode()) for x in (t.topic, "cdr", "offered_qos_profiles", "[]")) + 6
+        content += sum(9 + 2 + 12 + len(t.msgtype) + len("ros2msg") + len(t.msgdef.encode()) for t in topics[:2])
+        j = 0
+        while not (channel[j] == 1 and content >= CHUNK_BYTES - 31 - 60_000):
+            content += 31 + len(raw(j))
+            j += 1
+        assert content <= CHUNK_BYTES - 31, "the first chunk closed before a topic-1 message could fill it"
+        varied[int(index[j])] = rng.bytes(CHUNK_BYTES - 31 - content)
+    order = [(int(log_ns[j]), int(channel[j]), raw(j)) for j in range(n_messages)]
+    ref = _rosbags_file(tmp_path / "rosbags" / "bag", [(t.topic, t.msgtype) for t in topics], order)
+    write_rosbag2_mcap(tmp_path / "bulk" / "bag", topics, messages, log_ns, channel, index)
+    for name in ("bag.mcap", "metadata.yaml"):
+        assert (tmp_path / "bulk" / "bag" / name).read_bytes() == (ref / name).read_bytes(), name
+    if n_messages > 600:  # the edge was there: the first chunk went on past CHUNK_BYTES by message j + 1
+        from rosbags.rosbag2.storage_mcap import McapReader
+
+        reader = McapReader(ref / "bag.mcap")
+        reader.open()
+        sizes = [c.uncompressed_size for c in reader.chunks]
+        reader.close()
+        assert len(sizes) == 3 and sizes[0] == CHUNK_BYTES + 31 + len(raw(j + 1))
+
+
+def test_bag_topics_are_humbles_without_loading_its_store() -> None:
+    """BagTopic.humble names the simulator's types (definition, hash) as rosbags' Writer does with ROS 2 Humble's
+    store, from lrfcal.io's copies of the definitions: writing the simulator's bag does not load that store; another
+    type is taken from the store."""
+    import subprocess
+    import sys
+
+    from lrfcal.io.mcap_write import BagTopic
+
+    humble = get_typestore(Stores.ROS2_HUMBLE)
+    for typ in (LASERSCAN, JOINTSTATE, "sensor_msgs/msg/MultiEchoLaserScan", "std_msgs/msg/String"):
+        assert BagTopic.humble("/t", typ) == BagTopic.of("/t", typ, humble), typ
+    probe = ("import sys; from lrfcal.io.mcap_write import BagTopic; "
+             "t = [BagTopic.humble('/t', 'sensor_msgs/msg/' + n) for n in ('LaserScan', 'JointState', "
+             "'MultiEchoLaserScan')]; print(len(t), 'rosbags.typesys.stores.ros2_humble' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["3", "False"]
+
+
+def test_bulk_mcap_writer_refuses_what_it_would_misread(tmp_path: Path) -> None:
+    """A topic twice, messages of another dtype, a negative log time, an index past its topic's messages (which
+    would silently take another topic's), an existing folder: refused, nothing written."""
+    from lrfcal.io.mcap_write import BagTopic, write_rosbag2_mcap
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    scan, joint = BagTopic.of("/scan", LASERSCAN, ts), BagTopic.of("/joint_states", JOINTSTATE, ts)
+    rows, raws = np.zeros((2, 8), dtype=np.uint8), [b"ab", b"cde"]
+    good = (np.array([T0_NS, T0_NS + 1, T0_NS + 2]), np.array([0, 1, 1]), np.array([0, 0, 1]))
+    bad = [([scan, scan], [rows, raws], good), ([scan, joint], [rows.astype(np.float32), raws], good),
+           ([scan, joint], [rows, raws], (np.array([-1, 0, 1]), *good[1:])),
+           ([scan, joint], [rows, raws], (good[0], good[1], np.array([0, 0, 2]))),
+           ([scan, joint], [rows, raws], (good[0], np.array([0, 1, 2]), good[2]))]
+    for k, (topics, messages, order) in enumerate(bad):
+        with pytest.raises(ValueError):
+            write_rosbag2_mcap(tmp_path / f"bad{k}" / "bag", topics, messages, *order)
+        assert not (tmp_path / f"bad{k}").exists()
+    write_rosbag2_mcap(tmp_path / "good" / "bag", [scan, joint], [rows, raws], *good)
+    with pytest.raises(FileExistsError):
+        write_rosbag2_mcap(tmp_path / "good" / "bag", [scan, joint], [rows, raws], *good)
+    raw_topics = raw_messages_of(tmp_path / "good" / "bag", ["/scan", "/joint_states"])
+    assert [[bytes(t.message(i)) for i in range(len(t))] for t in raw_topics] == [[bytes(8)] * 1, [b"ab", b"cde"]]
+
+
+def raw_messages_of(bag: Path, topics: list[str]) -> list[Any]:
+    """Each topic's messages as lrfcal.io.bag_raw reads them from the MCAP index."""
+    reader = open_reader(bag)
+    with reader:
+        complete_types(reader)
+        return raw_messages(reader, [[c for c in reader.connections if c.topic == t] for t in topics])
 
 
 def test_a_bag_defining_laserscan_otherwise_is_left_to_rosbags(tmp_path: Path) -> None:

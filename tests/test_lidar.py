@@ -208,6 +208,29 @@ def test_range_sigma_bands_and_no_return_inf() -> None:
     assert np.isinf(out.ranges_m).any()
 
 
+def test_typical_range_sigma_is_the_median_of_each_ranges_sigma() -> None:
+    """typical_range_sigma, counted band by band, is np.median of range_sigma over the finite ranges to the bit:
+    bands in any order, sigmas repeated, ranges on the bands' edges, NaN and +-inf, odd and even counts, none."""
+    from lrfsim.scenario_sections import NoiseBand
+
+    base = small_scenario().sensor
+    rng = np.random.default_rng(11)
+    values = [0.5, 1.0, 2.0, 3.0, 5.0, 7.0, 10.0, 40.0, np.nan, np.inf, -np.inf]
+    checked = 0
+    for _ in range(400):
+        ups = rng.choice([1.0, 2.0, 5.0, 10.0, 30.0], size=int(rng.integers(1, 5)), replace=False)
+        sigmas = rng.choice([0.01, 0.02, 0.03, 0.011], size=ups.size)
+        sensor = base.model_copy(update={"noise_bands": tuple(
+            NoiseBand(up_to_m=float(u), sigma_m=float(s)) for u, s in zip(ups, sigmas, strict=True))})
+        r = rng.choice(values, size=int(rng.integers(0, 12)))
+        finite = r[np.isfinite(r)]
+        want = float(np.median(lidar.range_sigma(finite, sensor))) if finite.size else None
+        assert lidar.typical_range_sigma(r, sensor) == want, (ups, sigmas, r)
+        checked += want is not None
+    assert checked > 300
+    assert lidar.typical_range_sigma(np.ones(3), base.model_copy(update={"noise": False})) is None
+
+
 def test_footprint_geometry() -> None:
     sensor = small_scenario(sensor={"footprint_rays": 7, "divergence_rad": 0.004}).sensor
     d = lidar.footprint_directions_L(sensor)

@@ -107,3 +107,12 @@ def test_simulated_echoes_are_the_bytes_rosbags_writes() -> None:
             intensities=[LE(echoes=ei[b][ok[b]]) for b in range(er.shape[0])])
         assert multiecho.encode_cdr(m) == bytes(ts.serialize_cdr(built, MULTIECHO_TYPE))
     assert n_split > 0  # beams with two echoes were among those compared
+
+
+def test_the_definitions_are_humbles() -> None:
+    """multiecho.FIELDDEFS (what lrfcal.io.mcap_write names the type by, without loading Humble's store) are the
+    definitions ROS 2 Humble's store holds."""
+    humble = get_typestore(Stores.ROS2_HUMBLE).fielddefs
+    assert set(multiecho.FIELDDEFS) == {MULTIECHO_TYPE, "sensor_msgs/msg/LaserEcho"}
+    for name, defs in multiecho.FIELDDEFS.items():
+        assert defs == humble[name], name

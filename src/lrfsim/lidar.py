@@ -339,10 +339,21 @@ def typical_range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> float | N
     :func:`range_sigma`; None for a noise-free sensor or no finite range. What a recording declares as its
     scanner's noise (nominal.yaml ``range_sigma_m``) and what ``lrfsim plan`` predicts with."""
     r = np.asarray(ranges_m, dtype=float)
-    r = r[np.isfinite(r)]
-    if not sensor.noise or r.size == 0 or not sensor.noise_bands:
+    finite = np.isfinite(r)
+    n = int(np.count_nonzero(finite))
+    if not sensor.noise or n == 0 or not sensor.noise_bands:
         return None
-    return float(np.median(range_sigma(r, sensor)))
+    # np.median of range_sigma over the finite ranges, from each band's count, not each range's sigma: the values
+    # sorted, the middle one (n odd) or the mean of the two middle ones (n even), as np.median takes them
+    up = np.array([b.up_to_m for b in sensor.noise_bands])
+    order = np.argsort(up)
+    below = [int(np.count_nonzero((r <= u) & finite)) for u in up[order][:-1]]  # range_sigma's band: first r <= up
+    counts = np.diff([0, *below, n])
+    sig = np.array([b.sigma_m for b in sensor.noise_bands])[order]
+    by_value = np.argsort(sig, kind="stable")
+    ends = np.cumsum(counts[by_value])
+    middle = sig[by_value][np.searchsorted(ends, [(n - 1) // 2, n // 2], side="right")]
+    return float(np.mean(middle))
 
 
 @dataclass(frozen=True)

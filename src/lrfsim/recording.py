@@ -1,6 +1,6 @@
 """Write a simulated recording folder exactly as docs/formats.md specifies, atomically.
 
-    DIR/bag/            ROS 2 bag (rosbags.rosbag2.Writer, version 9, MCAP): /scan LaserScan, /joint_states JointState
+    DIR/bag/            ROS 2 bag (version 9, MCAP; lrfcal.io.mcap_write): /scan LaserScan, /joint_states JointState
                         (and, with sensor.echoes.enabled, /echoes MultiEchoLaserScan)
     DIR/distances.csv   marker_i,marker_j,distance_m (not written for a marker-less scene: no tape distances)
     DIR/nominal.yaml    the rig file: nominal DH and mount, marker radius (with markers), scan and servo sources
@@ -27,6 +27,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from lrfcal.io.files import atomic_folder, check_replaceable, check_writable
 from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, Header, MultiEchoScan, Stamp, encode_cdr
@@ -80,22 +81,27 @@ def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, 
 
 
 def write_bag(result: SimResult, scenario: Scenario, path: Path, *, bulk: bool = True) -> None:
-    """The ROS 2 bag (MCAP, version 9) of :func:`bag_records`, one connection per topic in the order listed.
-    ``bulk`` False: :func:`bag_messages` serialised by one rosbags call each (the same file, in several times the
-    time: the reference tests/test_bulk_bags.py and benchmarks/bench_read.py compare with)."""
+    """The ROS 2 bag (MCAP, version 9) of :func:`bag_columns`, one connection per topic in the order listed,
+    written in bulk (lrfcal.io.mcap_write: the messages serialised as arrays, the file assembled from them).
+    ``bulk`` False: :func:`bag_messages` serialised by one rosbags call each and written by rosbags' Writer, one
+    call each (the same file, in several times the time: the reference tests/test_bulk_bags.py and
+    benchmarks/bench_read.py compare with)."""
+    if bulk:
+        from lrfcal.io.mcap_write import BagTopic, write_rosbag2_mcap
+
+        topics, messages, log_ns, channel, index = bag_columns(result, scenario)
+        write_rosbag2_mcap(path, [BagTopic.humble(topic, typ) for topic, typ in topics], messages, log_ns, channel,
+                           index)
+        return
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     ts = _typestore()
-    if bulk:
-        topics, records = bag_records(result, scenario)
-    else:
-        topics, events = bag_messages(result, scenario)
-        records = [(log_ns, topic, encode_cdr(msg) if typ == MULTIECHO_TYPE else ts.serialize_cdr(msg, typ))
-                   for log_ns, topic, typ, msg in events]
+
+    topics, events = bag_messages(result, scenario)
     with Writer(path, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         conns = {topic: writer.add_connection(topic, msgtype, typestore=ts) for topic, msgtype in topics}
-        for log_ns, topic, raw in records:
-            writer.write(conns[topic], log_ns, raw)
+        for t_ns, topic, typ, msg in events:
+            writer.write(conns[topic], t_ns, encode_cdr(msg) if typ == MULTIECHO_TYPE else ts.serialize_cdr(msg, typ))
 
 
 def _stamps(t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -104,9 +110,11 @@ def _stamps(t_s: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return ns, ns // 10**9, ns % 10**9
 
 
-def _log_order(result: SimResult, scenario: Scenario) -> list[tuple[int, int, int]]:
-    """(log time ns, kind (0 scan, 1 joint state), index) of every message, in log-time order: scans are logged at
-    the end of the scan, on the recorder (servo) clock."""
+def _log_order(result: SimResult, scenario: Scenario, echoes: bool
+               ) -> tuple[NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """Every message's log time [ns], topic (0 scan, 1 joint state, 2 echoes) and index in its topic (M,) each, in
+    log-time order: scans are logged at the end of the scan, on the recorder (servo) clock; with ``echoes`` scan
+    k's MultiEchoLaserScan right after its LaserScan."""
     sensor = scenario.sensor
     scan_log, _, _ = _stamps((result.scan_stamps_s - scenario.servo.clock_offset_s) + sensor.scan_period_s)
     joint_log, _, _ = _stamps(result.joints.stamps_s)
@@ -114,38 +122,47 @@ def _log_order(result: SimResult, scenario: Scenario) -> list[tuple[int, int, in
     kind = np.repeat([0, 1], [scan_log.size, joint_log.size])
     index = np.concatenate([np.arange(scan_log.size), np.arange(joint_log.size)])
     order = np.lexsort((index, kind, log))
-    return list(zip(log[order].tolist(), kind[order].tolist(), index[order].tolist(), strict=True))
+    if echoes:  # each scan twice: its LaserScan, then its MultiEchoLaserScan
+        order = np.repeat(order, np.where(kind[order] == 0, 2, 1))
+        kind = kind[order]
+        kind[1:][order[1:] == order[:-1]] = 2
+        return log[order], kind, index[order]
+    return log[order], kind[order], index[order]
 
 
-def bag_records(result: SimResult, scenario: Scenario) -> tuple[list[tuple[str, str]], list[tuple[int, str, Any]]]:
-    """The bag's topics [(topic, type)] and its serialised messages [(log time ns, topic, CDR bytes)] in log-time
-    order: the messages of :func:`bag_messages`, serialised in bulk (lrfcal.io.wire: the LaserScans and the
-    JointStates each as one array; a MultiEchoLaserScan by lrfcal.io.multiecho), the bytes rosbags' serialiser gives
-    for each (tests/test_bulk_bags.py)."""
+def bag_columns(result: SimResult, scenario: Scenario) -> tuple[list[tuple[str, str]], list[Any],
+                                                               NDArray[np.int64], NDArray[np.int64], NDArray[np.int64]]:
+    """The bag's topics [(topic, type)] (T,), their serialised messages (T,) and the file order (M,) x 3: message
+    j is ``messages[topic[j]][index[j]]``, logged at ``log_ns[j]``, for lrfcal.io.mcap_write.write_rosbag2_mcap.
+    The messages of :func:`bag_messages`, serialised in bulk (lrfcal.io.wire: the LaserScans and the JointStates
+    each as one (messages, bytes) array; a MultiEchoLaserScan by lrfcal.io.multiecho, bytes each), the bytes
+    rosbags' serialiser gives for each (tests/test_bulk_bags.py)."""
     from lrfcal.io.wire import encode_joint_states, encode_laserscans
 
     sensor, servo = scenario.sensor, scenario.servo
     floats = np.array(_scan_floats(result, scenario), dtype=np.float32)
     _, sec, nanosec = _stamps(result.scan_stamps_s)
-    scans = encode_laserscans(sec, nanosec, LASER_FRAME, floats, result.ranges_m.astype(np.float32),
-                              result.intensities.astype(np.float32))
+    # float64 ranges and intensities rounded to float32 as they are written in (as astype rounds them)
+    scans = encode_laserscans(sec, nanosec, LASER_FRAME, floats, result.ranges_m, result.intensities)
     j = result.joints
     _, sec, nanosec = _stamps(j.stamps_s)
     joints = encode_joint_states(sec, nanosec, "", (servo.joint,), j.positions_rad[:, None],
                                  j.velocities_rad_s[:, None], np.zeros((j.stamps_s.size, 0)))
     echoes = _echo_messages(result, scenario)
     topics = [(SCAN_TOPIC, LASERSCAN_TYPE), (JOINT_TOPIC, JOINTSTATE_TYPE)]
+    messages: list[Any] = [scans, joints]
     if echoes is not None:
         topics.append((sensor.echoes.topic, MULTIECHO_TYPE))
-    records: list[tuple[int, str, Any]] = []
-    for log_ns, kind, k in _log_order(result, scenario):
-        if kind == 0:
-            records.append((log_ns, SCAN_TOPIC, memoryview(scans[k])))
-            if echoes is not None:
-                records.append((log_ns, sensor.echoes.topic, encode_cdr(echoes(k))))
-        else:
-            records.append((log_ns, JOINT_TOPIC, memoryview(joints[k])))
-    return topics, records
+        messages.append([encode_cdr(echoes(k)) for k in range(scans.shape[0])])
+    return topics, messages, *_log_order(result, scenario, echoes is not None)
+
+
+def bag_records(result: SimResult, scenario: Scenario) -> tuple[list[tuple[str, str]], list[tuple[int, str, Any]]]:
+    """The bag's topics [(topic, type)] and its serialised messages [(log time ns, topic, CDR bytes)] in log-time
+    order: :func:`bag_columns` message by message."""
+    topics, messages, log_ns, channel, index = bag_columns(result, scenario)
+    return topics, [(t, topics[c][0], memoryview(messages[c][k]))
+                    for t, c, k in zip(log_ns.tolist(), channel.tolist(), index.tolist(), strict=True)]
 
 
 def _scan_floats(result: SimResult, scenario: Scenario) -> list[float]:
@@ -331,5 +348,6 @@ def ground_truth_yaml(result: SimResult) -> str:
     })
 
 
-__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_messages", "bag_records", "check_output",
-           "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag", "write_recording"]
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_columns", "bag_messages", "bag_records",
+           "check_output", "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag",
+           "write_recording"]

@@ -4,6 +4,8 @@
   (ROS bags; :mod:`.bag_messages`, :mod:`.bag_scans` and :mod:`.bag_servo` its parts; :mod:`.bag_raw`,
   :mod:`.bag_arrays` and :mod:`.wire` read LaserScan and JointState in bulk, :mod:`.multiecho` MultiEchoLaserScan),
   :mod:`.scanlog` (text logs), :mod:`.yamlfile` (any YAML file a user gives);
+* writing a ROS 2 bag in bulk: :mod:`.mcap_write` (the MCAP file rosbags' Writer writes, from messages as arrays;
+  the simulator's bag);
 * writing a calibration: :mod:`.calibration_folder` (the output folder) with :mod:`.calibration_yaml`,
   :mod:`.urdf`, :mod:`.ply` and :mod:`.report`; :mod:`.truth` aligns a simulator's ground truth to the
   calibration for the report, lrfcal.workflow and lrfsim;

@@ -31,6 +31,14 @@ from numpy.typing import NDArray
 MULTIECHO_TYPE = "sensor_msgs/msg/MultiEchoLaserScan"
 _FLOATS = ("angle_min", "angle_max", "angle_increment", "time_increment", "scan_time", "range_min", "range_max")
 _CDR_LE = b"\x00\x01\x00\x00"
+_ECHOES = (4, ((2, "sensor_msgs/msg/LaserEcho"), 0))  # rosbags.interfaces.Nodetype: 1 BASE, 2 NAME, 4 SEQUENCE
+#: rosbags' field definitions of MultiEchoLaserScan and LaserEcho as ROS 2 Humble's store holds them (its header:
+#: lrfcal.io.bag_messages.BULK_FIELDDEFS), so that writing one need not load that store (tests/test_multiecho.py)
+FIELDDEFS: dict[str, tuple[list[Any], list[tuple[str, Any]]]] = {
+    MULTIECHO_TYPE: ([], [("header", (2, "std_msgs/msg/Header")), *((f, (1, ("float32", 0))) for f in _FLOATS),
+                          ("ranges", _ECHOES), ("intensities", _ECHOES)]),
+    "sensor_msgs/msg/LaserEcho": ([], [("echoes", (4, ((1, ("float32", 0)), 0)))]),
+}
 
 
 @dataclass(frozen=True)
@@ -164,4 +172,4 @@ def _echo_words(e: Echoes) -> bytes:
     return words.tobytes()
 
 
-__all__ = ["MULTIECHO_TYPE", "Echoes", "Header", "MultiEchoScan", "Stamp", "decode", "encode_cdr"]
+__all__ = ["FIELDDEFS", "MULTIECHO_TYPE", "Echoes", "Header", "MultiEchoScan", "Stamp", "decode", "encode_cdr"]

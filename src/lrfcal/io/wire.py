@@ -201,11 +201,12 @@ def _filled(template: bytes, layout: Layout | None, m: int, sec: NDArray[np.int6
 
 
 def encode_laserscans(sec: NDArray[np.int64], nanosec: NDArray[np.int64], frame_id: str, floats: NDArray[np.float32],
-                      ranges: NDArray[np.float32], intensities: NDArray[np.float32], cdr: bool = True
+                      ranges: NDArray[np.floating], intensities: NDArray[np.floating], cdr: bool = True
                       ) -> NDArray[np.uint8]:
     """M LaserScans of one layout serialised (M, L), row k the bytes rosbags' serialiser gives for message k:
     header stamps ``sec``, ``nanosec`` (M,), ``frame_id``, the float fields (7,) (:data:`SCAN_FLOATS` order, the
-    same in every message) or (M, 7), ``ranges`` (M, N) and ``intensities`` (M, K) as float32."""
+    same in every message) or (M, 7), ``ranges`` (M, N) and ``intensities`` (M, K) as float32 (float64 values are
+    rounded to float32 as they are written in, as ``astype(np.float32)`` rounds them)."""
     b = _Builder(cdr)
     b.buf += b"\x00" * 8
     b.string(frame_id)
