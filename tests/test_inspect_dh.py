@@ -194,14 +194,15 @@ def test_real_urg_stand_proposes_alpha_90(urg_proposals, name) -> None:  # type:
 
 
 @pytest.mark.parametrize("name", ["room_240"])
-def test_real_urg_stand_proposes_b_near_the_authors(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
-    """b within 4 cm of the authors' 0.08 m (the issue's target; on room_240 the proposal meets it but calls b not
-    determined: 1-sigma 82 mm). Not asked of cardboard_box: the small box hardly constrains b (1-sigma about 80 mm,
-    3 of 12 starts agree), so where its proposal lands is chance (9 mm, and 118 mm after a change of the Schur
-    complement's rounding); the next test asks of both that b is near the authors' value or named not determined."""
+def test_real_urg_stand_names_b_not_determined(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
+    """room_240 does not determine b, and the proposal says so. Its starts segment on subsamples of their own
+    (lrfcal.stages.surfaces.hash_key): their b spread over 10 cm and more (redraws of the subsamples propose 158 and
+    225 mm, docs/starts.md), so b is named not determined with a 1-sigma of about 8 cm. (When every start segmented
+    on nearly the same subsample, b landed 14 mm from the authors' 0.08 m with a 1-sigma of 53 mm: one draw's
+    chance.) The next test asks that the authors' value lie within 2 of that sigma."""
     p = urg_proposals[name]
     assert p.dh is not None, p.reason
-    assert abs(p.dh.b - URG_B) <= 0.04
+    assert "b" in p.undetermined and p.sigma["b"] > 0.04
 
 
 @pytest.mark.parametrize("name", ["cardboard_box", "room_240"])

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from lrfcal.estimate.problem import Problem
@@ -15,6 +17,8 @@ from lrfcal.stages.surfaces import (
     SurfaceSelection,
     candidate_planes,
     find_surfaces,
+    hash_key,
+    hash_sample,
     surface_returns,
 )
 from lrfcal.types import JointStates
@@ -245,3 +249,26 @@ def test_moved_m_is_how_far_the_returns_move_along_their_planes_normal() -> None
     assert 0.002 * 1.0 < turned <= 0.002 * (ranges.max() + 0.05)
     assert moved_m(SurfaceReturns(*(np.zeros(0) for _ in range(5)), np.zeros(0, dtype=np.int64), np.zeros((0, 3)),
                                   np.zeros(0)), (at, {}), (shifted, {})) == 0.0
+
+
+def test_every_salt_draws_its_own_subsample_and_seed_0_keeps_the_plain_hash() -> None:
+    """Two seeds' subsamples of a fraction f of the pairs share about f of them (the DH search's starts each segment
+    on their own draw; adding the salt to the hash only turned the ranking and gave every seed nearly the same
+    subsample), and seed 0 is the plain hash, which the marker surfaces rank by."""
+    scan = np.repeat(np.arange(1200, dtype=np.int64), 500)
+    beam = np.tile(np.arange(500, dtype=np.int64), 1200)
+    n = 6000
+    f = n / scan.size
+    draws = {seed: set(hash_sample(scan, beam, n, seed=seed).tolist()) for seed in (0, 1, 100, 101, 111)}
+    sd = math.sqrt(n * f * (1 - f))
+    for s in draws:
+        for t in draws:
+            if s < t:
+                assert abs(len(draws[s] & draws[t]) - n * f) < 5 * sd, (s, t, len(draws[s] & draws[t]))
+    plain = (scan.astype(np.uint64) * np.uint64(2654435761) + beam.astype(np.uint64) * np.uint64(40503)) & np.uint64(
+        (1 << 31) - 1)
+    np.testing.assert_array_equal(hash_key(scan, beam), plain)
+    key = hash_key(scan, beam, seed=7)
+    assert key.max() < 1 << 31
+    counts, _ = np.histogram(key.astype(np.float64), bins=8, range=(0.0, float(1 << 31)))
+    assert np.all(np.abs(counts - scan.size / 8) < 5 * math.sqrt(scan.size / 8))  # uniform: fractions of 2^31

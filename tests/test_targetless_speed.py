@@ -42,7 +42,7 @@ def sampled(shipped_recording: Callable[[str], Path]) -> tuple[targetless.Beams,
     scans, joints = usable_scans(rec, 0.0, 0.01).value
     hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
     beams = targetless.sample_returns(scans, CONFIG.plane_returns, skip=hold)
-    seg = hash_sample(beams.scan, beams.beam, targetless.SEGMENT_SAMPLES, seed=1)
+    seg = hash_sample(beams.scan, beams.beam, targetless.SEGMENT_SAMPLES)
     return beams, seg, MotorClock.from_joints(joints), rec.nominal.dh
 
 
@@ -137,10 +137,12 @@ def test_the_hypothesis_scores_are_the_inliers_counted_at_once(n_points: int) ->
 
 def test_levenberg_marquardt_without_the_jacobians_of_rejected_steps_takes_the_same_steps(sampled: tuple) -> None:
     """A solve of the DH search's kind (few returns, started far: its damping goes up and down every iteration)
-    with the Jacobian computed at every step and as the engine does it: the same iterates, evaluations and log."""
+    with the Jacobian computed at every step and as the engine does it: the same iterates, evaluations and log. On
+    the plain hash's 8,000 returns (seed 0; the draw every start of the search used before the salt scrambled the
+    hash) this solve rejects about half its steps."""
     beams, seg, motor, nominal = sampled
     start = DH(0.0, math.radians(90.0), 0.1, 0.0)
-    returns, _, found = targetless.plane_returns_at(beams, hash_sample(beams.scan, beams.beam, 8000, seed=100),
+    returns, _, found = targetless.plane_returns_at(beams, hash_sample(beams.scan, beams.beam, 8000),
                                                     motor, start, 0.0, 0.04, CONFIG)
     small = returns.subset(np.arange(len(returns)) % 10 == 0)
     prior = (start.vector(), np.array([0.05, math.radians(30.0), 0.10, math.radians(30.0)]))

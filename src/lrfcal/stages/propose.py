@@ -6,9 +6,8 @@ segmented in the cloud at the current DH with grazing and edge returns left out;
 every
 plane return a ray-plane range residual, planes free). It is started from every combination of
 :data:`START_ALPHA_DEG`, :data:`START_BETA_DEG` and :data:`START_B_M` (a = 0), each segmenting the planes on a
-subsample of the returns salted by its own seed (in fact every start's is the same subsample:
-lrfcal.stages.surfaces.hash_key adds the salt before its modulo, which only turns the ranking cyclically; a redraw
-of the subsamples moves the proposal by 0.1-2.5 of its 1-sigma, docs/speed.md), and each start is solved for all
+subsample of the returns drawn by its own seed (lrfcal.stages.surfaces.hash_sample: two starts' subsamples share
+about the fraction of the returns each holds), and each start is solved for all
 four DH parameters with a weak prior around the start (:data:`PRIOR_SIGMA`: it keeps a and b from running off where
 the scene hardly constrains them), a few rounds of segment-and-solve (the planes re-segmented with the new
 estimate). A start that loses its planes, or whose offsets leave the plausible range (:data:`MAX_OFFSET_M`), is
@@ -26,7 +25,7 @@ The candidates are then grouped by attitude (alpha within :data:`AGREE_ALPHA_DEG
 :data:`AGREE_BETA_DEG`, modulo the 180 deg of the second equivalence); the largest group must hold at least
 :data:`MIN_AGREEING` candidates and half of those that converged, else the scene does not determine a proposal
 (too few planes, or ambiguous). The proposal is the group's median; each value's 1-sigma is the larger of the
-group's spread (1.4826 x the median absolute deviation: a spread over the starts, not over subsamples, see above)
+group's spread (1.4826 x the median absolute deviation: over the starts and their subsamples)
 and the median of the solves' own 1-sigma (scaled by the square root of their reduced chi-square). A value whose
 1-sigma exceeds :data:`DETERMINED` is named as not determined by the scene (its value is the search's best guess,
 not a measurement).

@@ -114,7 +114,7 @@ class PlaneWay:
         hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
         beams = sample_returns(scans, config.plane_returns, skip=hold)
         held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
-        seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
+        seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES)  # the sample's first, in hash order
         clock.lap("timing")
 
         prior = (nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))

@@ -173,11 +173,24 @@ class SurfaceReturns:
                                  for k in self.__dataclass_fields__})
 
 
+#: an odd 64-bit constant (2^64 / golden ratio) that scrambles a salted key (:func:`hash_key`)
+_SCRAMBLE = 0x9E3779B97F4A7C15
+
+
 def hash_key(scan: IntArray, beam: IntArray, seed: int = 0) -> NDArray[np.uint64]:
-    """The hash of every (scan, beam) pair (K,) (salted by seed) that :func:`hash_sample` ranks them by."""
+    """The hash of every (scan, beam) pair (K,) that :func:`hash_sample` ranks them by, in [0, 2^31).
+
+    Seed 0 is the plain hash of the pair. Another seed scrambles it: an exclusive or with the seed's own multiple of
+    :data:`_SCRAMBLE`, a multiplication by it and an exclusive or with the key's high bits, a bijection of the 64-bit
+    key whose low 31 bits rank the pairs anew for every seed (two seeds' subsamples of a fraction f of the pairs share
+    about f of them). Adding the seed to the plain hash, as this did before, only turned the ranking cyclically:
+    every seed then chose nearly the same subsample."""
     key = np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761)
     key += np.asarray(beam, dtype=np.uint64) * np.uint64(40503)
-    key += np.uint64(seed) * np.uint64(97)
+    if seed:
+        key ^= np.uint64((seed * _SCRAMBLE) & 0xFFFF_FFFF_FFFF_FFFF)
+        key *= np.uint64(_SCRAMBLE)
+        key ^= key >> np.uint64(31)
     key &= np.uint64((1 << 31) - 1)  # the remainder modulo 2^31 of an unsigned integer, without a division
     return key
 

@@ -378,7 +378,7 @@ def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: 
     ``marker_planes``. ``skip`` (S, N): the marker returns, left out."""
     motor = MotorClock.from_joints(joints)
     beams = sample_returns(scans, config.plane_returns, skip)
-    seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES, seed=1)
+    seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES)  # the sample's first, in hash order
     returns, labels, found = _Round.after(sol, config).segment(beams, seg, motor, config)
     T = sol.params.mount.matrix()
     R, t = T[:3, :3], T[:3, 3]
