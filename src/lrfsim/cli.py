@@ -228,6 +228,7 @@ def study(
     from .scenario import load_scenario, scenario_inputs
     from .study import parse_vary, summary_markdown, write_study
     from .study import study as run_study
+    from .study_figures import import_figures
 
     sc = load_scenario(scenario)
     varied = parse_vary(vary) if vary is not None else None
@@ -245,7 +246,8 @@ def study(
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
                            progress=lambda value, done, _n: hooks.trials(values.index(value) * trials + done,
                                                                         len(values) * trials),
-                           perturb_start=perturb_start, new_layout=new_layout)
+                           perturb_start=perturb_start, new_layout=new_layout,
+                           meanwhile=import_figures)  # while the workers run, not after them with one core idle
         hooks.stage("trials.csv, summary.md and figures")
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())
