@@ -281,19 +281,27 @@ def systematic_bias_m(intensities: FloatArray, sensor: SensorConfig,
 def _sensor_model(ranges: FloatArray, intens: FloatArray, sensor: SensorConfig, z_range: FloatArray | None,
                   z_int: FloatArray | None, bias: FloatArray | None) -> FloatArray:
     """Bias, noise, saturation, drop-out and quantisation (module docstring) on noise-free returns of any shape;
-    ``intens`` is modified in place, the ranges are returned (no return: NaN or inf)."""
+    ``ranges`` and ``intens`` are modified in place (the ranges also returned; no return: NaN or inf). Each step is
+    the same floating-point operation as written out (``r = round(r / q) * q``, ...), done in place: the same
+    bits without a fresh 13 MB array per step for tunnel_v."""
     received = intens > 0
     if bias is not None:
-        ranges = ranges + bias
+        ranges += bias
     if sensor.noise and z_int is not None:
-        intens *= np.maximum(0.0, 1.0 + sensor.intensity.relative_noise * z_int)
+        gain = np.multiply(z_int, sensor.intensity.relative_noise)
+        gain += 1.0
+        intens *= np.maximum(0.0, gain, out=gain)
     np.round(intens, out=intens)
     np.minimum(intens, sensor.intensity.saturation_counts, out=intens)
     valid = received & (intens >= sensor.intensity.min_detectable_counts)
     if sensor.noise and z_range is not None:
-        ranges = ranges + range_sigma(np.where(received, ranges, 0.0), sensor) * z_range
+        noise = range_sigma(np.where(received, ranges, 0.0), sensor)
+        noise *= z_range
+        ranges += noise
     if sensor.quantisation_m > 0:
-        ranges = np.round(ranges / sensor.quantisation_m) * sensor.quantisation_m
+        ranges /= sensor.quantisation_m
+        np.round(ranges, out=ranges)
+        ranges *= sensor.quantisation_m
     with np.errstate(invalid="ignore"):
         valid &= (ranges >= sensor.range_min_m) & (ranges <= sensor.range_max_m)
     ranges[~valid] = np.inf if sensor.no_return == "inf" else np.nan
