@@ -5,15 +5,39 @@ field the predicted and measured sigma against its value. matplotlib is imported
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import DH_NAMES
 
 if TYPE_CHECKING:
-    from .study import Study
+    from .plan import Plan
+
+
+class PartLike(Protocol):
+    """What the figures read of a lrfsim.study.StudyPart."""
+
+    @property
+    def value(self) -> str: ...
+    @property
+    def plan(self) -> Plan | None: ...
+    def errors(self) -> NDArray[np.float64]: ...
+    def stats(self) -> dict[str, dict[str, float]]: ...
+
+
+class StudyLike(Protocol):
+    """What the figures read of a lrfsim.study.Study."""
+
+    @property
+    def name(self) -> str: ...
+    @property
+    def key(self) -> str | None: ...
+    @property
+    def parts(self) -> Sequence[PartLike]: ...
 
 
 def import_figures() -> None:
@@ -30,7 +54,7 @@ def _scale(p: str) -> tuple[float, str]:
     return (1000.0, "mm") if p in ("a", "b") else (math.degrees(1.0), "deg")
 
 
-def write_figures(s: Study, folder: Path) -> list[Path]:
+def write_figures(s: StudyLike, folder: Path) -> list[Path]:
     """hist_<P>.png per DH parameter (errors of every part, the predicted sigma drawn) and, with a varied field,
     vary_sigma.png (predicted and measured sigma against the value)."""
     import_figures()
@@ -83,4 +107,4 @@ def write_figures(s: Study, folder: Path) -> list[Path]:
     return written
 
 
-__all__ = ["import_figures", "write_figures"]
+__all__ = ["PartLike", "StudyLike", "import_figures", "write_figures"]
