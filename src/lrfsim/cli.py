@@ -223,6 +223,7 @@ def study(
     the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
     histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
     """
+    from lrfcal import keep_freed_memory
     from lrfcal.io.files import check_no_overlap, check_replaceable
 
     from .scenario import load_scenario, scenario_inputs
@@ -242,6 +243,7 @@ def study(
         for v in varied[1]:
             with_field(sc, varied[0], v)
     values = [""] if varied is None else [str(v) for v in varied[1]]  # the parts' labels, as lrfsim.study's
+    keep_freed_memory()  # the trials' large arrays reused, not faulted in anew (lrfcal.runtime.memory)
     with progress_display(f"study of {sc.name}", quiet=quiet) as hooks:
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
                            progress=lambda value, done, _n: hooks.trials(values.index(value) * trials + done,
