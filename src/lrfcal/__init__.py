@@ -81,6 +81,7 @@ _EXPORTS: dict[str, str] = {
     "call_with_thread_policy": "lrfcal.runtime.threads",
     "one_blas_thread": "lrfcal.runtime.threads",
     "apply_memory_policy": "lrfcal.runtime.memory",
+    "keep_freed_memory": "lrfcal.runtime.memory",
     "cores": "lrfcal.runtime.forked",
 }
 
@@ -90,8 +91,8 @@ __all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "Calibra
            "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns", "SurfaceSelection",
            "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
            "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
-           "information_at", "map_covariance", "map_error_at", "model_error_at", "observe_surfaces",
-           "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
+           "information_at", "keep_freed_memory", "map_covariance", "map_error_at", "model_error_at",
+           "observe_surfaces", "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
            "viewer_can_spawn"]
 
 
@@ -128,7 +129,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.report.summary import print_summary
     from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence, PlaneFit
     from lrfcal.runtime.forked import cores
-    from lrfcal.runtime.memory import apply_memory_policy
+    from lrfcal.runtime.memory import apply_memory_policy, keep_freed_memory
     from lrfcal.runtime.threads import apply_thread_policy, call_with_thread_policy, one_blas_thread
     from lrfcal.stages.detection import detect
     from lrfcal.stages.joint import SCALE_Z_LIMIT, SCALES

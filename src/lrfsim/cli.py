@@ -223,11 +223,13 @@ def study(
     the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
     histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
     """
+    from lrfcal import keep_freed_memory
     from lrfcal.io.files import check_no_overlap, check_replaceable
 
     from .scenario import load_scenario, scenario_inputs
     from .study import parse_vary, summary_markdown, write_study
     from .study import study as run_study
+    from .study_figures import import_figures
 
     sc = load_scenario(scenario)
     varied = parse_vary(vary) if vary is not None else None
@@ -241,11 +243,13 @@ def study(
         for v in varied[1]:
             with_field(sc, varied[0], v)
     values = [""] if varied is None else [str(v) for v in varied[1]]  # the parts' labels, as lrfsim.study's
+    keep_freed_memory()  # the trials' large arrays reused, not faulted in anew (lrfcal.runtime.memory)
     with progress_display(f"study of {sc.name}", quiet=quiet) as hooks:
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
                            progress=lambda value, done, _n: hooks.trials(values.index(value) * trials + done,
                                                                         len(values) * trials),
-                           perturb_start=perturb_start, new_layout=new_layout)
+                           perturb_start=perturb_start, new_layout=new_layout,
+                           meanwhile=import_figures)  # while the workers run, not after them with one core idle
         hooks.stage("trials.csv, summary.md and figures")
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())

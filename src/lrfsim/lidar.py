@@ -281,19 +281,27 @@ def systematic_bias_m(intensities: FloatArray, sensor: SensorConfig,
 def _sensor_model(ranges: FloatArray, intens: FloatArray, sensor: SensorConfig, z_range: FloatArray | None,
                   z_int: FloatArray | None, bias: FloatArray | None) -> FloatArray:
     """Bias, noise, saturation, drop-out and quantisation (module docstring) on noise-free returns of any shape;
-    ``intens`` is modified in place, the ranges are returned (no return: NaN or inf)."""
+    ``ranges`` and ``intens`` are modified in place (the ranges also returned; no return: NaN or inf). Each step is
+    the same floating-point operation as written out (``r = round(r / q) * q``, ...), done in place: the same
+    bits without a fresh 13 MB array per step for tunnel_v."""
     received = intens > 0
     if bias is not None:
-        ranges = ranges + bias
+        ranges += bias
     if sensor.noise and z_int is not None:
-        intens *= np.maximum(0.0, 1.0 + sensor.intensity.relative_noise * z_int)
+        gain = np.multiply(z_int, sensor.intensity.relative_noise)
+        gain += 1.0
+        intens *= np.maximum(0.0, gain, out=gain)
     np.round(intens, out=intens)
     np.minimum(intens, sensor.intensity.saturation_counts, out=intens)
     valid = received & (intens >= sensor.intensity.min_detectable_counts)
     if sensor.noise and z_range is not None:
-        ranges = ranges + range_sigma(np.where(received, ranges, 0.0), sensor) * z_range
+        noise = range_sigma(np.where(received, ranges, 0.0), sensor)
+        noise *= z_range
+        ranges += noise
     if sensor.quantisation_m > 0:
-        ranges = np.round(ranges / sensor.quantisation_m) * sensor.quantisation_m
+        ranges /= sensor.quantisation_m
+        np.round(ranges, out=ranges)
+        ranges *= sensor.quantisation_m
     with np.errstate(invalid="ignore"):
         valid &= (ranges >= sensor.range_min_m) & (ranges <= sensor.range_max_m)
     ranges[~valid] = np.inf if sensor.no_return == "inf" else np.nan
@@ -323,37 +331,55 @@ def split_echoes(r_m: FloatArray, power: FloatArray, hit: NDArray[np.bool_], sep
     return re, pe, single
 
 
+def _bands(sensor: SensorConfig) -> tuple[FloatArray, FloatArray]:
+    """The noise bands sorted by ``up_to_m``: (up_to_m (B,), sigma_m (B,)) [m]."""
+    up = np.array([b.up_to_m for b in sensor.noise_bands], dtype=float)
+    sig = np.array([b.sigma_m for b in sensor.noise_bands], dtype=float)
+    order = np.argsort(up)
+    return up[order], sig[order]
+
+
+def _band_index(ranges_m: FloatArray, up_m: FloatArray) -> NDArray[np.uint8] | NDArray[np.intp]:
+    """Per range, the index of its band (``up_m`` (B,) ascending, B >= 1): the first band with r <= up_to_m, the
+    last beyond and for NaN; ``np.searchsorted(up_m, r, side="left")`` clipped to B - 1, counted with B - 1
+    comparisons (``not r <= up``: NaN counts as beyond, as it sorts last), 5-10x faster for a handful of bands."""
+    if up_m.size > 8:
+        return np.minimum(np.searchsorted(up_m, ranges_m, side="left"), up_m.size - 1)
+    idx = np.zeros(np.shape(ranges_m), dtype=np.uint8)
+    for u in up_m[:-1]:
+        idx += ~(ranges_m <= u)
+    return idx
+
+
 def range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> FloatArray:
     """Range noise sigma [m] per range from ``noise_bands`` (first band with r <= up_to_m; last beyond)."""
-    up = np.array([b.up_to_m for b in sensor.noise_bands])
-    sig = np.array([b.sigma_m for b in sensor.noise_bands])
-    if up.size == 0:
+    if not sensor.noise_bands:
         return np.zeros_like(ranges_m)
-    order = np.argsort(up)
-    idx = np.searchsorted(up[order], ranges_m, side="left")
-    return sig[order][np.minimum(idx, up.size - 1)]
+    up, sig = _bands(sensor)
+    return np.take(sig, _band_index(np.asarray(ranges_m), up))
 
 
 def typical_range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> float | None:
     """The sensor's range noise at typical ranges [m]: the median over the finite ``ranges_m`` (any shape) of
     :func:`range_sigma`; None for a noise-free sensor or no finite range. What a recording declares as its
-    scanner's noise (nominal.yaml ``range_sigma_m``) and what ``lrfsim plan`` predicts with."""
+    scanner's noise (nominal.yaml ``range_sigma_m``) and what ``lrfsim plan`` predicts with. The median of the
+    band sigmas is taken from each band's count of ranges, not from an array of a sigma per range: the same
+    number (the middle one or two of the same sorted values), without the array."""
     r = np.asarray(ranges_m, dtype=float)
-    finite = np.isfinite(r)
-    n = int(np.count_nonzero(finite))
-    if not sensor.noise or n == 0 or not sensor.noise_bands:
+    r = r[np.isfinite(r)]
+    if not sensor.noise or r.size == 0 or not sensor.noise_bands:
         return None
-    # np.median of range_sigma over the finite ranges, from each band's count, not each range's sigma: the values
-    # sorted, the middle one (n odd) or the mean of the two middle ones (n even), as np.median takes them
-    up = np.array([b.up_to_m for b in sensor.noise_bands])
-    order = np.argsort(up)
-    below = [int(np.count_nonzero((r <= u) & finite)) for u in up[order][:-1]]  # range_sigma's band: first r <= up
-    counts = np.diff([0, *below, n])
-    sig = np.array([b.sigma_m for b in sensor.noise_bands])[order]
-    by_value = np.argsort(sig, kind="stable")
-    ends = np.cumsum(counts[by_value])
-    middle = sig[by_value][np.searchsorted(ends, [(n - 1) // 2, n // 2], side="right")]
-    return float(np.mean(middle))
+    up, sig = _bands(sensor)
+    if up.size > 8:
+        counts = np.bincount(_band_index(r, up), minlength=up.size)
+    else:  # ranges beyond each band's limit, counted (r is finite here: "not r <= up" is r > up)
+        beyond = np.array([r.size] + [np.count_nonzero(r > u) for u in up[:-1]] + [0])
+        counts = beyond[:-1] - beyond[1:]
+    order = np.argsort(sig, kind="stable")
+    values, ends = sig[order], np.cumsum(counts[order])  # the sorted sigmas: values[k] up to index ends[k] - 1
+    n = int(r.size)
+    middle = [n // 2] if n % 2 else [n // 2 - 1, n // 2]
+    return float(np.median(values[np.searchsorted(ends, middle, side="right")]))
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,11 @@ are moved by independent draws, uniform in +-s times :data:`PERTURB_HALF_WIDTH` 
 study runs. Without it every trial starts from the scenario's nominal values.
 
 Execution: trials are cut into batches (one batch = one task: the scene is built once per batch); batches run
-in-process (``workers=1``), in a ``concurrent.futures.ProcessPoolExecutor`` (``workers=K``) or on a
-dask.distributed cluster (``dask_address`` or a ``distributed.Client``). A trial's outcome depends only on its
-seed, and the table is sorted by trial, so every way of running gives the same table.
+in-process (``workers=1``), in a ``concurrent.futures.ProcessPoolExecutor`` (``workers=K``: one trial per batch,
+handed out as workers free up, each worker holding the shared cast and its scene from its start,
+lrfsim.poolrun) or on a dask.distributed cluster (``dask_address`` or a ``distributed.Client``). A trial's outcome
+depends only on its seed, and the table is sorted by trial, so every way of running gives the same table. While
+the workers run, this process makes the plan's prediction (and whatever the caller asks, ``meanwhile``).
 
 Outputs (:func:`write_study`, atomic): ``trials.csv`` (one row per trial and varied value), ``summary.md`` (per DH
 parameter: bias, std, RMSE, predicted sigma from lrfsim.plan, RMSE / predicted sigma, RMS of error / reported
@@ -45,17 +47,19 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal import apply_memory_policy, apply_thread_policy, call_with_thread_policy
+from lrfcal import apply_memory_policy, apply_thread_policy, call_with_thread_policy, keep_freed_memory
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.io.files import atomic_folder, check_replaceable
 from lrfcal.model.kinematics import DH_NAMES
 
 from .plan import Plan, format_value, plan
-from .poolrun import run_counted
+from .poolrun import run_counted, worker_held
 from .scenario import Scenario, require_markers
+from .study_figures import write_figures
 from .variants import PERTURB_HALF_WIDTH, TrialDesign, parse_vary, perturbed_start, with_field
 
 if TYPE_CHECKING:
+    from .scene import Scene
     from .simulate import Geometry
 
 FloatArray = NDArray[np.float64]
@@ -179,22 +183,25 @@ DRAWS = {
 
 def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], design: TrialDesign | None = None,
               threads: int | None = None, shared_cast: dict[str, Any] | None = None,
-              progress: Callable[[int], None] | None = None) -> list[TrialRow]:
+              progress: Callable[[int], None] | None = None, scene: Scene | None = None) -> list[TrialRow]:
     """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
     built once from ``scenario``, and so is the ray cast (lrfsim.simulate.cast_geometry: the laser phase of the
     scenario's own seed); each trial draws only its noise from its own seed (module docstring), and differs as
     ``design`` says (:class:`TrialDesign`; None: in its noise only). ``threads``: the cast's
     threads (default: the cores available; 1 when batches run in parallel processes). ``shared_cast``: the fields
     of a lrfsim.simulate.Geometry of ``scenario`` but its scene, cast once by the caller for every batch (the scene
-    is rebuilt here: MjSpec does not pickle); None: cast here. ``progress(k)`` is called after the k-th trial of
-    the batch."""
+    is rebuilt here, or ``scene``, built before from ``scenario``: MjSpec does not pickle); None: cast here.
+    ``progress(k)`` is called after the k-th trial of the batch."""
     from .scene import build_scene
     from .simulate import Geometry, cast_geometry, simulate, simulate_from_geometry, write_recording
     from .trial import calibrate_recording
 
     recast, perturb_start, new_layout = (design.recast, design.perturb_start, design.new_layout) if design else (
         False, 0.0, False)
-    scene = None if new_layout else build_scene(scenario)
+    if new_layout:
+        scene = None
+    elif scene is None:
+        scene = build_scene(scenario)
     geometry = None
     if shared_cast is not None and scene is not None:
         geometry = Geometry(scene=scene, **shared_cast)
@@ -221,13 +228,28 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
 
 def _worker_policy() -> None:
     """A process-pool worker's policies: the programs' memory and thread policy (lrfcal.runtime.memory,
-    lrfcal.runtime.threads), and what it inherited from the study (modules, the shared cast) frozen out of the
-    garbage collector, whose full passes walked it in every trial (13 ms a trial, 1.5 %)."""
+    lrfcal.runtime.threads), the large blocks its trials free kept for the next trial's (keep_freed_memory: 0.06-0.09
+    s of page faults a trial of tunnel_v), and what it inherited from the study (modules, the shared cast) frozen out
+    of the garbage collector, whose full passes walked it in every trial (13 ms a trial, 1.5 %)."""
     import gc
 
     apply_memory_policy()
+    keep_freed_memory()
     apply_thread_policy()
     gc.freeze()
+
+
+def _pool_batch(scenario: Scenario, value: str, design: TrialDesign, trials: Sequence[tuple[int, int]],
+                progress: Callable[[int], None] | None = None) -> list[TrialRow]:
+    """:func:`run_batch` on a local pool's worker: with the shared cast the worker holds (lrfsim.poolrun), and the
+    scene it builds at its first batch and keeps for the next (8 ms for tunnel_v, once per worker)."""
+    held = worker_held()
+    if held.get("scene") is None and not design.new_layout:
+        from .scene import build_scene
+
+        held["scene"] = build_scene(scenario)
+    return run_batch(scenario, value, trials, design, threads=1, shared_cast=held.get("cast"),
+                     progress=progress, scene=held.get("scene"))
 
 
 def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[int, int]]]:
@@ -239,16 +261,18 @@ def run_trials(
     scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
     dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
     recast: bool = False, perturb_start: float = 0.0, new_layout: bool = False, geometry: Geometry | None = None,
+    meanwhile: Callable[[], None] | None = None,
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
-    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one batch per local
-    worker, each casting the rays once, or about 2 per worker on dask; at least 1 trial each); the local workers
-    share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with ``recast`` or
-    ``new_layout``). ``recast``, ``perturb_start``, ``new_layout``: see :class:`TrialDesign`. ``progress(done,
-    trials)`` after every trial in this process or on local workers (lrfsim.poolrun), after every batch on dask.
-    Worker processes (pool and dask) run BLAS with the programs' thread limit (lrfcal.runtime.threads); this process is
-    left as the caller set it."""
+    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one trial each on a
+    local pool, handed out as workers free up; about 2 batches per worker on dask; all in one in this process);
+    the local workers share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with
+    ``recast`` or ``new_layout``), handed to each once. ``recast``, ``perturb_start``, ``new_layout``: see
+    :class:`TrialDesign`. ``progress(done, trials)`` after every trial in this process or on local workers
+    (lrfsim.poolrun), after every batch on dask. ``meanwhile()`` runs in this process while the workers (local or
+    dask) run the trials, before them in this process. Worker processes (pool and dask) run BLAS with the programs'
+    thread limit (lrfcal.runtime.threads); this process is left as the caller set it."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
     perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
@@ -264,8 +288,9 @@ def run_trials(
         from dataclasses import fields
 
         shared = {f.name: getattr(geometry, f.name) for f in fields(geometry) if f.name != "scene"}
-    task = partial(run_batch, scenario, value, design=TrialDesign(recast, perturb_start, new_layout),
-                   threads=1 if workers > 1 or dask is not None else None, shared_cast=shared)
+    design = TrialDesign(recast, perturb_start, new_layout)
+    task = partial(run_batch, scenario, value, design=design, threads=1 if workers > 1 or dask is not None else None,
+                   shared_cast=shared)
     rows: list[TrialRow] = []
 
     def collect(parts: Iterable[list[TrialRow]]) -> None:
@@ -277,17 +302,23 @@ def run_trials(
     if dask is not None:
         client, own = _dask_client(dask)
         try:  # a dask worker is not ours to change for good: the limit is restored after each batch
-            collect(fut.result() for fut in client.map(partial(call_with_thread_policy, task), batches, pure=False))
+            futures = client.map(partial(call_with_thread_policy, task), batches, pure=False)
+            if meanwhile is not None:
+                meanwhile()
+            collect(fut.result() for fut in futures)
         finally:
             if own:
                 client.close()
     elif workers > 1:  # counted as each trial finishes in any worker (lrfsim.poolrun)
-        for part in run_counted(task, batches, workers, _worker_policy,
-                                None if progress is None else (lambda k: progress(k, trials))):
+        for part in run_counted(partial(_pool_batch, scenario, value, design), batches, workers, _worker_policy,
+                                None if progress is None else (lambda k: progress(k, trials)),
+                                held={"cast": shared}, meanwhile=meanwhile):
             rows.extend(part)
         if progress:
             progress(len(rows), trials)
     else:
+        if meanwhile is not None:
+            meanwhile()
         hook = None if progress is None else (lambda k: progress(len(rows) + k, trials))
         collect(task(b, progress=hook) for b in batches)
     return sorted(rows, key=lambda r: r.trial)
@@ -295,7 +326,7 @@ def run_trials(
 
 def _n_batches(trials: int, workers: int, dask: Any, batch_size: int | None) -> int:
     return (math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if dask is not None
-            else max(workers, 1))
+            else trials if workers > 1 else 1)
 
 
 def _shared_cast(scenario: Scenario, trials: int, workers: int, dask: Any, batch_size: int | None, recast: bool,
@@ -329,12 +360,13 @@ def study(
     scenario: Scenario, trials: int, *, seed0: int | None = None, workers: int = 1, dask: Any = None,
     vary: tuple[str, list[Any]] | None = None, batch_size: int | None = None,
     progress: Callable[[str, int, int], None] | None = None, recast: bool = False, perturb_start: float = 0.0,
-    new_layout: bool = False,
+    new_layout: bool = False, meanwhile: Callable[[], None] | None = None,
 ) -> Study:
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
     value of one field (the same seeds for every value); ``perturb_start``: the scale of each trial's perturbed
     start (:func:`perturbed_start`); ``recast``, ``new_layout``: see :class:`TrialDesign` (the predicted sigma is then
-    the scenario's own layout's)."""
+    the scenario's own layout's). The plan's prediction is made while the workers run the trials, and so is
+    ``meanwhile()`` (once, during the first part's trials; e.g. the figures' imports)."""
     # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
     require_markers(scenario, "lrfsim study", "calibrates with markers and tape distances; a targetless "
                     "calibration is not available yet")
@@ -344,21 +376,32 @@ def study(
         key, values = vary
         variants = [(str(v), with_field(scenario, key, v)) for v in values]
     parts = []
-    for value, sc in variants:
+    for k, (value, sc) in enumerate(variants):
         geometry = _shared_cast(sc, trials, workers, dask, batch_size, recast, new_layout)  # plan's cast too
-        try:
-            predicted: Plan | None = plan(sc, geometry=geometry)
-        except CalibrationError:  # too few markers seen: the trials will say how the calibration fares
-            predicted = None
+        predicted: list[Plan | None] = []
+        predict = partial(_predict, sc, geometry, predicted, meanwhile if k == 0 else None)
         hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
         rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
                           progress=hook, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
-                          geometry=geometry)
-        parts.append(StudyPart(value=value, scenario=sc, plan=predicted, rows=tuple(rows)))
+                          geometry=geometry, meanwhile=predict)
+        parts.append(StudyPart(value=value, scenario=sc, plan=predicted[0], rows=tuple(rows)))
     where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
                  seconds=time.perf_counter() - t0, workers=where, perturb_start=perturb_start,
                  draws="layout" if new_layout else "cast" if recast else "noise")
+
+
+def _predict(scenario: Scenario, geometry: Geometry | None, into: list[Plan | None],
+             then: Callable[[], None] | None) -> None:
+    """The plan's prediction for ``scenario`` (on ``geometry``, the trials' shared cast, when there is one) appended
+    to ``into``, None when the plan is refused (too few markers seen: the trials will say how the calibration
+    fares); then ``then()``."""
+    try:
+        into.append(plan(scenario, geometry=geometry))
+    except CalibrationError:
+        into.append(None)
+    if then is not None:
+        then()
 
 
 # --- outputs --------------------------------------------------------------------------------------------------
@@ -419,65 +462,6 @@ def summary_markdown(s: Study) -> str:
     if s.key:
         lines += ["", "![predicted and measured sigma](vary_sigma.png)"]
     return "\n".join(lines) + "\n"
-
-
-def _scale(p: str) -> tuple[float, str]:
-    return (1000.0, "mm") if p in ("a", "b") else (math.degrees(1.0), "deg")
-
-
-def write_figures(s: Study, folder: Path) -> list[Path]:
-    """hist_<P>.png per DH parameter (errors of every part, the predicted sigma drawn) and, with a varied field,
-    vary_sigma.png (predicted and measured sigma against the value)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.ticker import MaxNLocator
-
-    written = []
-    for i, p in enumerate(DH_NAMES):
-        k, unit = _scale(p)
-        fig, ax = plt.subplots(figsize=(5, 3.5))
-        for part in s.parts:
-            e = part.errors()[:, i] * k
-            label = f"{s.key}={part.value}" if s.key else "errors"
-            if e.size:
-                ax.hist(e, bins=max(5, min(30, e.size // 2)), alpha=0.6, label=f"{label} (n={e.size})")
-            if part.plan is not None and math.isfinite(part.plan.sigma[p]):
-                sig = part.plan.sigma[p] * k
-                line = ax.axvline(sig, ls="--", color="k" if not s.key else None)
-                ax.axvline(-sig, ls="--", color=line.get_color())
-        ax.set_xlabel(f"{p} error [{unit}] (dashed: +-predicted 1-sigma)")
-        ax.set_ylabel("trials")
-        ax.yaxis.set_major_locator(MaxNLocator(integer=True))  # trials are counted, never fractions
-        ax.set_title(f"{s.name}: {p}")
-        if ax.get_legend_handles_labels()[0]:
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = folder / f"hist_{p}.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        written.append(path)
-    if s.key:
-        fig, axes = plt.subplots(2, 2, figsize=(8, 6))
-        labels = [part.value for part in s.parts]
-        x = np.arange(len(labels))
-        for p, ax in zip(DH_NAMES, axes.ravel(), strict=True):
-            k, unit = _scale(p)
-            pred = [part.plan.sigma[p] * k if part.plan is not None else np.nan for part in s.parts]
-            meas = [part.stats()[p]["std"] * k for part in s.parts]
-            ax.plot(x, pred, "o-", label="predicted")
-            ax.plot(x, meas, "s--", label="measured (std)")
-            ax.set_xticks(x, labels)
-            ax.set_xlabel(s.key)
-            ax.set_ylabel(f"sigma {p} [{unit}]")
-            ax.legend(fontsize=7)
-        fig.tight_layout()
-        path = folder / "vary_sigma.png"
-        fig.savefig(path, dpi=90)
-        plt.close(fig)
-        written.append(path)
-    return written
 
 
 def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Path:
