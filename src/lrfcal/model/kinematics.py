@@ -146,6 +146,8 @@ def rot_x(t: ArrayLike) -> FloatArray:
     """Rotation matrices about x, shape (..., 3, 3) for angles of shape (...)."""
     t = np.asarray(t, dtype=float)
     c, s = np.cos(t), np.sin(t)
+    if t.ndim == 0:  # one angle: the same entries without the stacks' temporaries
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     o, z = np.ones_like(t), np.zeros_like(t)
     return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
 
@@ -154,6 +156,8 @@ def rot_y(t: ArrayLike) -> FloatArray:
     """Rotation matrices about y, shape (..., 3, 3)."""
     t = np.asarray(t, dtype=float)
     c, s = np.cos(t), np.sin(t)
+    if t.ndim == 0:  # one angle: the same entries without the stacks' temporaries
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     o, z = np.ones_like(t), np.zeros_like(t)
     return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
 
@@ -162,6 +166,8 @@ def rot_z(t: ArrayLike) -> FloatArray:
     """Rotation matrices about z, shape (..., 3, 3)."""
     t = np.asarray(t, dtype=float)
     c, s = np.cos(t), np.sin(t)
+    if t.ndim == 0:  # one angle: the same entries without the stacks' temporaries
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     o, z = np.ones_like(t), np.zeros_like(t)
     return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
 
@@ -340,6 +346,9 @@ def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tup
 def skew(v: ArrayLike) -> FloatArray:
     """[v]x, shape (..., 3, 3), with [v]x u = v x u for v of shape (..., 3)."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:  # one vector: the same entries without the stacks' temporaries
+        x, y, w = v
+        return np.array([[0.0, -w, y], [w, 0.0, -x], [-y, x, 0.0]])
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
     return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)

@@ -1,0 +1,70 @@
+"""The model's fast paths (issue 47) give the bits of the general code they shortcut: the sphere's depth without the
+rim's masking where no point is beyond it, the rotations and skew matrices of one angle or vector without the
+stacks."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.special import expit
+
+from lrfcal.model import kinematics, sphere
+
+
+def _sphere_depth_masked(u: np.ndarray, eta: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """sphere_depth as written before its fast path: both branches masked everywhere."""
+    q = (1.0 - u * u) / eta
+    far = q < -30.0
+    qn = np.where(far, 0.0, q)
+    s_near = np.sqrt(eta * np.logaddexp(0.0, qn))
+    s = np.where(far, np.sqrt(eta) * np.exp(0.5 * q), s_near)
+    ds = np.where(far, -u * np.exp(0.5 * q) / np.sqrt(eta), -u * expit(qn) / s_near)
+    return s, ds
+
+
+def _footprint_small_masked(u: np.ndarray, k: np.ndarray, eta: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+    """footprint_depth's k <= 1 branch as written before its fast paths."""
+    x1, x2 = sphere._DISC[:, 0], sphere._DISC[:, 1]
+    us, ks = u[:, None], k[:, None]
+    a = us + ks * x1
+    rho = np.sqrt(a * a + (ks * x2) ** 2)
+    s, ds = _sphere_depth_masked(rho, eta)
+    q = (1.0 - rho * rho) / eta
+    drho = np.where(rho > 1e-12, a / np.maximum(rho, 1e-12), 1.0)
+    return sphere._weighted_mean(s, ds * drho, q, -2.0 * rho * drho / eta)
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    a, b = np.asarray(a), np.asarray(b)
+    return a.shape == b.shape and a.dtype == b.dtype and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("top", [0.9, 1.2, 3.0])  # no point beyond the rim; near it; some far beyond it
+def test_sphere_depth_same_bits(top: float) -> None:
+    u = np.random.default_rng(3).uniform(-top, top, 997)
+    u[:3] = (0.0, -0.0, 1.0)
+    for got, want in zip(sphere.sphere_depth(u), _sphere_depth_masked(u), strict=True):
+        assert _same(got, want)
+
+
+@pytest.mark.parametrize("top", [0.5, 1.3, 2.5])
+def test_footprint_depth_same_bits(top: float) -> None:
+    rng = np.random.default_rng(4)
+    u = rng.uniform(0.0, top, 500)
+    u[0] = 0.0  # the beam's axis through the centre: a footprint point at rho near 0 is possible only with k = 0
+    k = rng.uniform(0.05, 1.0, 500)
+    got = sphere.footprint_depth(u, k)
+    want = _footprint_small_masked(u, k)
+    assert all(_same(g, w) for g, w in zip(got, want, strict=True))
+
+
+def test_rotations_of_one_angle_same_bits() -> None:
+    for t in [*np.random.default_rng(5).normal(size=50), 0.0, -0.0, np.pi, 1e-300]:
+        for rot in (kinematics.rot_x, kinematics.rot_y, kinematics.rot_z):
+            assert _same(rot(t), rot(np.array([t]))[0])  # the one-angle path against the stacked one
+
+
+def test_skew_of_one_vector_same_bits() -> None:
+    vs = [*np.random.default_rng(6).normal(size=(50, 3)), np.zeros(3), -np.zeros(3), np.array([1e-9, -0.0, 2.0])]
+    for v in vs:
+        assert _same(kinematics.skew(v), kinematics.skew(v[None])[0])
