@@ -385,8 +385,9 @@ def observe_surfaces(
     ranges_m, mu_rad, lambda_rad, beam_times_s = grid.ranges_m, grid.mu_rad, grid.lambda_rad, grid.beam_times_s
     max_returns, seed = selection.max_returns, selection.seed
     valid = np.isfinite(ranges_m) & (grid.labels < 0)
-    scan, beam = np.nonzero(valid)  # the valid returns, row-major
-    flat = scan * valid.shape[1] + beam  # their flat indices (np.flatnonzero's, without a division to undo them)
+    flat = np.flatnonzero(valid)  # the valid returns' flat indices, row-major
+    scan = flat // valid.shape[1]  # their scans and beams: np.nonzero's, at half its cost on the 2-D mask
+    beam = flat - scan * valid.shape[1]
     mu_all = np.asarray(mu_rad)
     lam_at, r_f = _at_flat(lambda_rad), np.asarray(ranges_m).ravel()
     mu_f = mu_all.ravel() if mu_all.ndim == 2 else None
@@ -413,8 +414,12 @@ def observe_surfaces(
     frac, below = _FRACTIONS[0], 0.0
     parts: list[SurfaceReturns] = []
     while True:
-        above = key >= np.uint64(below * (1 << 31))
-        rows = np.flatnonzero(above & (key < np.uint64(frac * (1 << 31))) if frac < 1.0 else above)
+        under = key < np.uint64(frac * (1 << 31)) if frac < 1.0 else None
+        if below == 0.0:  # the first try: every key is >= 0
+            rows = np.flatnonzero(under) if under is not None else np.arange(key.size)
+        else:
+            above = key >= np.uint64(below * (1 << 31))
+            rows = np.flatnonzero(above & under if under is not None else above)
         lam_k, mu_k, r_k = take(rows)
         r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
         candidates = ReturnRows(scan[rows], beam[rows], lam_k, mu_k, r_k,
