@@ -68,3 +68,26 @@ def test_skew_of_one_vector_same_bits() -> None:
     vs = [*np.random.default_rng(6).normal(size=(50, 3)), np.zeros(3), -np.zeros(3), np.array([1e-9, -0.0, 2.0])]
     for v in vs:
         assert _same(kinematics.skew(v), kinematics.skew(v[None])[0])
+
+
+def test_cross_same_bits() -> None:
+    from lrfcal.model.rays import _cross
+
+    rng = np.random.default_rng(8)
+    A, b = rng.normal(size=(300, 3)), rng.normal(size=3)
+    A[0] = (0.0, -0.0, 1.0)
+    for x, y in ((A, b), (b, A), (A, A[::-1].copy())):
+        assert _same(_cross(x, y), np.cross(x, y))
+
+
+def test_footprint_depth_kept_for_the_same_beams_only() -> None:
+    """The last call's depth is returned again for the same beams (read-only, so no caller can change it for the
+    next), and not for others."""
+    u, k = np.linspace(0.0, 1.2, 50), np.full(50, 0.3)
+    S1, dS1 = sphere.footprint_depth(u, k)
+    S2, dS2 = sphere.footprint_depth(u.copy(), k.copy())
+    assert S2 is S1 and dS2 is dS1 and not S1.flags.writeable
+    S3, _ = sphere.footprint_depth(u + 1e-3, k)
+    assert _same(S3, sphere._footprint_depth(u + 1e-3, k, 0.05)[0]) and not _same(S3, S1)
+    with pytest.raises(ValueError):
+        S1[0] = 0.0
