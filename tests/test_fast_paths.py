@@ -91,3 +91,19 @@ def test_footprint_depth_kept_for_the_same_beams_only() -> None:
     assert _same(S3, sphere._footprint_depth(u + 1e-3, k, 0.05)[0]) and not _same(S3, S1)
     with pytest.raises(ValueError):
         S1[0] = 0.0
+
+
+def test_kabsch_determinant_sign() -> None:
+    """The sign of det(V U^T) by cofactors is np.linalg.det's for the SVDs of random (and degenerate) cross-
+    covariances, so the batch Kabsch picks the same rotations."""
+    from lrfcal.stages.association import _det3
+
+    rng = np.random.default_rng(9)
+    Hm = rng.normal(size=(4000, 3, 3))
+    Hm[:500, 2] = 0.0  # rank 2: collinear-ish triangles
+    Hm[500:600] = 0.0
+    U, _, Vt = np.linalg.svd(Hm)
+    M = np.einsum("hji,hkj->hik", Vt, U)
+    want = np.linalg.det(M)
+    got = _det3(M)
+    assert np.array_equal(got < 0, want < 0) and np.all(np.abs(np.abs(got) - 1.0) < 1e-12)
