@@ -134,8 +134,8 @@ def _score(
     rms = np.full(H, np.inf)
     Xc = [np.ascontiguousarray(X[:, i]) for i in range(3)]
     gate2 = gate_m**2
-    # the (h, B, n) temporaries, allocated once for all chunks (fresh ones of this size cost page faults each time)
-    d2_buf, e_buf = np.empty((2, min(chunk, H), len(P), len(X)))
+    # the (h, B, n) temporaries, allocated once for all chunks
+    d2_buf, e_buf = (np.empty((min(chunk, H), len(P), len(X))) for _ in range(2))
     for s in range(0, H, chunk):
         Rc, tc = R[s:s + chunk], t[s:s + chunk]
         Y = np.einsum("hij,bj->hbi", Rc, P) + tc[:, None, :]  # (h, B, 3)
