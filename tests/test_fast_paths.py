@@ -107,3 +107,17 @@ def test_kabsch_determinant_sign() -> None:
     want = np.linalg.det(M)
     got = _det3(M)
     assert np.array_equal(got < 0, want < 0) and np.all(np.abs(np.abs(got) - 1.0) < 1e-12)
+
+
+def test_plane_values_per_row_same_bits() -> None:
+    """PlaneSet.per_row: v[plane] whether the rows are in plane order (repeated runs) or not (gathered)."""
+    from lrfcal.model.plane import PlaneSet
+
+    rng = np.random.default_rng(10)
+    v = rng.normal(size=(4, 3))[:, 1]  # a strided column, as plane_rows passes them
+    for plane in (np.sort(rng.integers(0, 4, 500)), rng.integers(0, 4, 500), np.array([1, 1, 3]),
+                  np.zeros(0, dtype=np.int64)):
+        K = plane.size
+        s = PlaneSet(np.zeros(K), np.zeros(K), np.zeros(K), plane.astype(np.int64), np.zeros((4, 3)),
+                     np.zeros((4, 3)), np.zeros((4, 3)))
+        assert _same(s.per_row(v), v[plane])
