@@ -121,3 +121,39 @@ def test_plane_values_per_row_same_bits() -> None:
         s = PlaneSet(np.zeros(K), np.zeros(K), np.zeros(K), plane.astype(np.int64), np.zeros((4, 3)),
                      np.zeros((4, 3)), np.zeros((4, 3)))
         assert _same(s.per_row(v), v[plane])
+
+
+def _assemble_gathered(b, core):  # type: ignore[no-untyped-def]
+    """assemble's plane blocks as written before: every row gathered by the order of the planes."""
+    Jc, Jn = b.Jc_plane[:, core], b.Jn_plane
+    WJn, P = Jn, b.n_planes
+    order = np.argsort(b.plane, kind="stable")
+    bounds = np.searchsorted(b.plane[order], np.arange(P + 1))
+    Jc_s, Jn_s, WJn_s, wr_s = Jc[order], Jn[order], WJn[order], b.r_plane[order]
+    B, D, g_n = np.zeros((core.size, 3 * P)), np.zeros((P, 3, 3)), np.zeros(3 * P)
+    for j in range(P):
+        rows = slice(bounds[j], bounds[j + 1])
+        B[:, 3 * j:3 * j + 3] = Jc_s[rows].T @ WJn_s[rows]
+        D[j] = Jn_s[rows].T @ WJn_s[rows]
+        g_n[3 * j:3 * j + 3] = Jn_s[rows].T @ wr_s[rows]
+    return B, D, g_n
+
+
+@pytest.mark.parametrize("layout", ["F", "C"])
+@pytest.mark.parametrize("ordered", [True, False])
+def test_assemble_rows_in_plane_order_same_bits(layout: str, ordered: bool) -> None:
+    """Plane rows already in plane order are copied, not gathered: the same normal equations to the bit (the
+    Jacobian blocks F-ordered as plane_rows makes them, or C-ordered)."""
+    from lrfcal.estimate.normal_equations import assemble
+    from lrfcal.model.observations import Blocks
+
+    rng = np.random.default_rng(11)
+    K, P = 5000, 3
+    plane = np.sort(rng.integers(0, P, K)) if ordered else rng.integers(0, P, K)
+    Jc = np.array(rng.normal(size=(K, 16)), order=layout)
+    Jn = np.array(rng.normal(size=(K, 3)), order=layout)
+    b = Blocks(np.zeros(0), np.zeros((0, 16)), rng.normal(size=K), Jc, Jn, plane, P)
+    core = np.arange(13)
+    got = assemble(b, core)
+    for g, w in zip((got.B, got.D, got.g_n), _assemble_gathered(b, core), strict=True):
+        assert _same(g, w)

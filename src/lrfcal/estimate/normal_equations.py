@@ -96,8 +96,14 @@ def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_pla
     P, c = b.n_planes, core.size
     B, D, g_n = np.zeros((c, 3 * P)), np.zeros((P, 3, 3)), np.zeros(3 * P)
     order, bounds = b.segments if b.segments is not None else _segments(b.plane, P)
-    # the plane rows sorted by plane once (each plane's rows then a slice, not a gather per plane)
-    Jc_s, Jn_s, WJn_s, wr_s = Jc[order], Jn[order], WJn[order], wr_p[order]
+    # the plane rows sorted by plane once (each plane's rows then a slice, not a gather per plane); rows already in
+    # plane order (lrfcal.stages.surfaces makes them so) are copied instead, to the gather's C-ordered arrays (the
+    # products below see the same layout, and two arrays where the gather made two: never the same buffer twice,
+    # which matmul would take as J^T J and compute otherwise)
+    if order.size and order[0] == 0 and order[-1] == order.size - 1 and np.array_equal(order, np.arange(order.size)):
+        Jc_s, Jn_s, WJn_s, wr_s = (np.array(x, order="C") for x in (Jc, Jn, WJn, wr_p))
+    else:
+        Jc_s, Jn_s, WJn_s, wr_s = Jc[order], Jn[order], WJn[order], wr_p[order]
     for j in range(P):
         if bounds[j] == bounds[j + 1]:
             continue
