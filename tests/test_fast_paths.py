@@ -1,6 +1,8 @@
-"""The model's fast paths (issue 47) give the bits of the general code they shortcut: the sphere's depth without the
-rim's masking where no point is beyond it, the rotations and skew matrices of one angle or vector without the
-stacks."""
+"""The marker pipeline's fast paths (issue 47) give the bits of the general code they shortcut: the sphere's depth
+without the rim's masking where no point is beyond it (and kept for the next call of the same beams), rotations and
+skew matrices of one angle or vector without the stacks, cross products written out, the Kabsch determinant's sign by
+cofactors, per-plane values repeated over runs of rows, the normal equations' plane rows copied where already in
+plane order, points and rays of the same beams from one cos / sin."""
 
 from __future__ import annotations
 
@@ -8,7 +10,13 @@ import numpy as np
 import pytest
 from scipy.special import expit
 
+from lrfcal.estimate.normal_equations import assemble
 from lrfcal.model import kinematics, sphere
+from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, beam_rays_W_trig, beam_trig, points_W, points_W_trig
+from lrfcal.model.observations import Blocks
+from lrfcal.model.plane import PlaneSet
+from lrfcal.model.rays import _cross
+from lrfcal.stages.association import _det3
 
 
 def _sphere_depth_masked(u: np.ndarray, eta: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
@@ -71,8 +79,6 @@ def test_skew_of_one_vector_same_bits() -> None:
 
 
 def test_cross_same_bits() -> None:
-    from lrfcal.model.rays import _cross
-
     rng = np.random.default_rng(8)
     A, b = rng.normal(size=(300, 3)), rng.normal(size=3)
     A[0] = (0.0, -0.0, 1.0)
@@ -96,8 +102,6 @@ def test_footprint_depth_kept_for_the_same_beams_only() -> None:
 def test_kabsch_determinant_sign() -> None:
     """The sign of det(V U^T) by cofactors is np.linalg.det's for the SVDs of random (and degenerate) cross-
     covariances, so the batch Kabsch picks the same rotations."""
-    from lrfcal.stages.association import _det3
-
     rng = np.random.default_rng(9)
     Hm = rng.normal(size=(4000, 3, 3))
     Hm[:500, 2] = 0.0  # rank 2: collinear-ish triangles
@@ -111,8 +115,6 @@ def test_kabsch_determinant_sign() -> None:
 
 def test_plane_values_per_row_same_bits() -> None:
     """PlaneSet.per_row: v[plane] whether the rows are in plane order (repeated runs) or not (gathered)."""
-    from lrfcal.model.plane import PlaneSet
-
     rng = np.random.default_rng(10)
     v = rng.normal(size=(4, 3))[:, 1]  # a strided column, as plane_rows passes them
     for plane in (np.sort(rng.integers(0, 4, 500)), rng.integers(0, 4, 500), np.array([1, 1, 3]),
@@ -123,7 +125,7 @@ def test_plane_values_per_row_same_bits() -> None:
         assert _same(s.per_row(v), v[plane])
 
 
-def _assemble_gathered(b, core):  # type: ignore[no-untyped-def]
+def _assemble_gathered(b: Blocks, core: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """assemble's plane blocks as written before: every row gathered by the order of the planes."""
     Jc, Jn = b.Jc_plane[:, core], b.Jn_plane
     WJn, P = Jn, b.n_planes
@@ -144,9 +146,6 @@ def _assemble_gathered(b, core):  # type: ignore[no-untyped-def]
 def test_assemble_rows_in_plane_order_same_bits(layout: str, ordered: bool) -> None:
     """Plane rows already in plane order are copied, not gathered: the same normal equations to the bit (the
     Jacobian blocks F-ordered as plane_rows makes them, or C-ordered)."""
-    from lrfcal.estimate.normal_equations import assemble
-    from lrfcal.model.observations import Blocks
-
     rng = np.random.default_rng(11)
     K, P = 5000, 3
     plane = np.sort(rng.integers(0, P, K)) if ordered else rng.integers(0, P, K)
@@ -157,3 +156,17 @@ def test_assemble_rows_in_plane_order_same_bits(layout: str, ordered: bool) -> N
     got = assemble(b, core)
     for g, w in zip((got.B, got.D, got.g_n), _assemble_gathered(b, core), strict=True):
         assert _same(g, w)
+
+
+def test_points_and_rays_from_shared_trig_same_bits() -> None:
+    """observe_surfaces reprojects a try's returns and casts its candidates' rays from one beam_trig: the same
+    bits as points_W and beam_rays_W of the same beams."""
+    rng = np.random.default_rng(12)
+    params = Params(Pose(0.1, -0.2, 0.3, 0.01, -0.02, 0.5), DH(a=0.02, alpha=1.4, b=0.05, beta=0.1))
+    lam, mu, r = rng.uniform(-3, 3, 2000), rng.uniform(-2.3, 2.3, 2000), rng.uniform(0.1, 20, 2000)
+    trig = beam_trig(lam, mu, params.dh)
+    assert _same(points_W_trig(r, trig, params), points_W(r, lam, mu, params))
+    i = np.sort(rng.choice(2000, 700, replace=False))
+    for got, want in zip(beam_rays_W_trig(params, tuple(v[i] for v in trig)), beam_rays_W(params, lam[i], mu[i]),
+                         strict=True):
+        assert _same(got, want)

@@ -229,12 +229,27 @@ def beam_rays_M(lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> tuple[Float
     lam = np.asarray(lambda_rad, dtype=float)
     phi = dh.beta + np.asarray(mu_rad, dtype=float)
     lam, phi = np.broadcast_arrays(lam, phi)
+    return beam_rays_M_trig(np.cos(lam), np.sin(lam), np.cos(phi), np.sin(phi), dh)
+
+
+def beam_trig(lambda_rad: FloatArray, mu_rad: FloatArray, dh: DH) -> tuple[FloatArray, ...]:
+    """cos and sin of the motor angles and of phi = beta + mu (each (K,)), as :func:`points_M` and
+    :func:`beam_rays_M` compute them: for :func:`points_M_trig` and :func:`beam_rays_M_trig` of the same beams
+    (elementwise, so those of a subset of the beams are these values' subset, bit for bit)."""
+    lam = np.asarray(lambda_rad, dtype=float)
+    phi = dh.beta + np.asarray(mu_rad, dtype=float)
+    return np.cos(lam), np.sin(lam), np.cos(phi), np.sin(phi)
+
+
+def beam_rays_M_trig(cos_lambda: FloatArray, sin_lambda: FloatArray, cos_phi: FloatArray, sin_phi: FloatArray,
+                     dh: DH) -> tuple[FloatArray, FloatArray]:
+    """:func:`beam_rays_M` from cos / sin of lambda and of phi = beta + mu (all of one shape (K,))."""
+    cl, sl = cos_lambda, sin_lambda
     ca, sa = np.cos(dh.alpha), np.sin(dh.alpha)
-    cl, sl = np.cos(lam), np.sin(lam)
     # before Rz(lambda)
     ox, oy, oz = dh.a, -dh.b * sa, dh.b * ca
-    dx, dy, dz = np.cos(phi), np.sin(phi) * ca, np.sin(phi) * sa
-    origins = np.stack([cl * ox - sl * oy, sl * ox + cl * oy, np.full(lam.shape, oz)], -1)
+    dx, dy, dz = cos_phi, sin_phi * ca, sin_phi * sa
+    origins = np.stack([cl * ox - sl * oy, sl * ox + cl * oy, np.full(cl.shape, oz)], -1)
     dirs = np.stack([cl * dx - sl * dy, sl * dx + cl * dy, dz], -1)
     return origins, dirs
 
@@ -335,8 +350,21 @@ def points_W(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, para
 def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Beam origins (K, 3) and unit directions (K, 3) in W for motor angles and bearings (K,):
     :func:`beam_rays_M` moved by T_W_M."""
+    return _moved(params, *beam_rays_M(lambda_rad, mu_rad, params.dh))
+
+
+def beam_rays_W_trig(params: Params, trig: tuple[FloatArray, ...]) -> tuple[FloatArray, FloatArray]:
+    """:func:`beam_rays_W` of beams by their :func:`beam_trig`."""
+    return _moved(params, *beam_rays_M_trig(*trig, params.dh))
+
+
+def points_W_trig(ranges_m: FloatArray, trig: tuple[FloatArray, ...], params: Params) -> FloatArray:
+    """:func:`points_W` of returns (K,) by their beams' :func:`beam_trig` (the same bits)."""
+    return transform_points(params.mount.matrix(), points_M_trig(ranges_m, *trig, params.dh))
+
+
+def _moved(params: Params, o_M: FloatArray, d_M: FloatArray) -> tuple[FloatArray, FloatArray]:
     T = params.mount.matrix()
-    o_M, d_M = beam_rays_M(lambda_rad, mu_rad, params.dh)
     return transform_points(T, o_M), d_M @ T[:3, :3].T
 
 
@@ -415,7 +443,10 @@ __all__ = [
     "Params",
     "Pose",
     "beam_rays_M",
+    "beam_rays_M_trig",
     "beam_rays_W",
+    "beam_rays_W_trig",
+    "beam_trig",
     "chain_T_M_L",
     "dh_from_mapping",
     "dh_twins",
@@ -428,6 +459,7 @@ __all__ = [
     "points_M",
     "points_M_trig",
     "points_W",
+    "points_W_trig",
     "pose_from_mapping",
     "pose_matrix",
     "rot_x",

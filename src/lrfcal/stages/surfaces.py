@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from lrfcal.model.kinematics import Params, beam_rays_W, points_W
+from lrfcal.model.kinematics import Params, beam_rays_W_trig, beam_trig, points_W, points_W_trig
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
 
@@ -425,10 +425,10 @@ def observe_surfaces(
         candidates = ReturnRows(scan[rows], beam[rows], lam_k, mu_k, r_k,
                                 None if times_at is None else times_at(flat[rows]))
         got = sum(len(p) for p in parts)
-        parts.append(surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
+        trig = beam_trig(lam_t, mu_t, params.dh)  # once for the points and the candidates' rays (elementwise)
+        parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
-                                     rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i],
-                                                                                           mu_t[i])))
+                                     rays_W=lambda i, trig=trig: beam_rays_W_trig(params, tuple(v[i] for v in trig))))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
