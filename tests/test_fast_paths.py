@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.special import expit
 
-from lrfcal.estimate.normal_equations import assemble
+from lrfcal.estimate.normal_equations import assemble, scores_by_cluster
 from lrfcal.model import kinematics, sphere
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, beam_rays_W_trig, beam_trig, points_W, points_W_trig
 from lrfcal.model.observations import Blocks
@@ -170,3 +170,43 @@ def test_points_and_rays_from_shared_trig_same_bits() -> None:
     for got, want in zip(beam_rays_W_trig(params, tuple(v[i] for v in trig)), beam_rays_W(params, lam[i], mu[i]),
                          strict=True):
         assert _same(got, want)
+
+
+def _scores_flat(b: Blocks, core: np.ndarray, cluster_dense: np.ndarray, cluster_plane: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """scores_by_cluster as written before: a bincount over all of G's entries per column, added to G."""
+    P, c = b.n_planes, core.size
+    n_prior = 0 if b.r_prior is None else b.r_prior.size
+    rows = np.concatenate([cluster_dense, cluster_plane, np.iinfo(np.int64).min + np.arange(n_prior)])
+    ids, inv = np.unique(rows, return_inverse=True)
+    n_cl, m, K, n = ids.size, b.r_dense.size, b.r_plane.size, c + 3 * P
+    G = np.zeros(n_cl * n)
+    inv_d, inv_p, inv_q = inv[:m], inv[m:m + K], inv[m + K:]
+    for k, col in enumerate(core):
+        G += np.bincount(inv_d * n + k, weights=b.J_dense[:, col] * b.r_dense, minlength=n_cl * n)
+        G += np.bincount(inv_p * n + k, weights=b.Jc_plane[:, col] * b.r_plane, minlength=n_cl * n)
+    for i in range(3):
+        G += np.bincount(inv_p * n + c + 3 * b.plane + i, weights=b.Jn_plane[:, i] * b.r_plane, minlength=n_cl * n)
+    if n_prior and b.w_prior is not None and b.r_prior is not None:
+        G[inv_q * n + c + np.arange(n_prior)] += b.w_prior * b.r_prior
+    return ids, G.reshape(n_cl, n)
+
+
+def test_scores_by_cluster_same_bits() -> None:
+    """The cluster scores by one small bincount per column: the same bits as the bincount over all of G, with
+    dense and plane rows sharing clusters or not, zeros and negative zeros among the products, and plane priors."""
+    rng = np.random.default_rng(13)
+    m, K, P = 600, 4000, 3
+    Jd, Jc, Jn = rng.normal(size=(m, 16)), np.asfortranarray(rng.normal(size=(K, 16))), rng.normal(size=(K, 3))
+    Jd[::7] = -0.0
+    Jc[::5, 3] = 0.0
+    r_p = rng.normal(size=K)
+    r_p[::11] = -0.0
+    b = Blocks(rng.normal(size=m), Jd, r_p, Jc, Jn, rng.integers(0, P, K), P, rng.normal(size=3 * P),
+               rng.uniform(1, 2, 3 * P))
+    core = np.array([0, 1, 2, 6, 7, 8, 9, 12])
+    for dense_clusters in (rng.integers(0, 300, m), 1000 + rng.integers(0, 50, m)):  # shared with the scans; apart
+        plane_clusters = rng.integers(0, 300, K)
+        got = scores_by_cluster(b, core, dense_clusters, plane_clusters)
+        want = _scores_flat(b, core, dense_clusters, plane_clusters)
+        assert all(_same(g, w) for g, w in zip(got, want, strict=True))
