@@ -16,7 +16,9 @@ from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, beam_rays_W_t
 from lrfcal.model.observations import Blocks
 from lrfcal.model.plane import PlaneSet
 from lrfcal.model.rays import _cross
+from lrfcal.stages import detection
 from lrfcal.stages.association import _det3
+from lrfcal.types import Scans
 
 
 def _sphere_depth_masked(u: np.ndarray, eta: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
@@ -210,3 +212,35 @@ def test_scores_by_cluster_same_bits() -> None:
         got = scores_by_cluster(b, core, dense_clusters, plane_clusters)
         want = _scores_flat(b, core, dense_clusters, plane_clusters)
         assert all(_same(g, w) for g, w in zip(got, want, strict=True))
+
+
+def _contrast_allocating(scans: Scans) -> tuple[np.ndarray, float, float]:
+    """detection.contrast as written before: fresh arrays for the logs, the contrast and its deviations."""
+    r, inten = scans.ranges_m, scans.intensities
+    valid = np.isfinite(r) & np.isfinite(inten) & (inten > 0)
+    r_v = r[valid]
+    log_r, log_i = np.log(r_v), np.log(inten[valid])
+    kx, ky = detection._background_model_log(log_r, log_i)
+    z = np.full(r.shape, np.nan)
+    zv = log_i - np.interp(log_r, kx, ky)
+    z[valid] = zv
+    med = detection._median_in_place(zv)
+    sigma = 1.4826 * detection._median_in_place(np.abs(zv - med))
+    t = float(np.clip(med + detection.K_SIGMA * sigma, np.log(detection.MIN_CONTRAST), np.log(detection.MAX_CONTRAST)))
+    r_med = detection._median_in_place(r_v)
+    return z, t, float(np.exp(np.interp(np.log(r_med), kx, ky) + t))
+
+
+def test_contrast_in_place_same_bits() -> None:
+    rng = np.random.default_rng(14)
+    S, N = 300, 541
+    r = rng.uniform(0.5, 30.0, (S, N))
+    r[rng.random((S, N)) < 0.05] = np.nan
+    inten = 3e4 / r**2 * rng.uniform(0.3, 1.0, (S, N))
+    inten[rng.random((S, N)) < 0.02] = 0.0
+    inten[:5, :40] *= 200.0  # markers
+    scans = Scans(stamps_s=0.025 * np.arange(S), ranges_m=r, intensities=inten, mu_rad=np.linspace(-2.356, 2.356, N),
+                  time_increment_s=1.7e-5, scan_time_s=0.025, range_min_m=0.023, range_max_m=60.0)
+    z, t, thr = detection.contrast(scans)
+    z0, t0, thr0 = _contrast_allocating(scans)
+    assert _same(z, z0) and t == t0 and thr == thr0
