@@ -232,7 +232,11 @@ def beam_rays_M(lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> tuple[Float
     return beam_rays_M_trig(np.cos(lam), np.sin(lam), np.cos(phi), np.sin(phi), dh)
 
 
-def beam_trig(lambda_rad: FloatArray, mu_rad: FloatArray, dh: DH) -> tuple[FloatArray, ...]:
+#: cos and sin of K beams' motor angles and of their phi = beta + mu, each (K,) (:func:`beam_trig`)
+BeamTrig = tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+
+
+def beam_trig(lambda_rad: FloatArray, mu_rad: FloatArray, dh: DH) -> BeamTrig:
     """cos and sin of the motor angles and of phi = beta + mu (each (K,)), as :func:`points_M` and
     :func:`beam_rays_M` compute them: for :func:`points_M_trig` and :func:`beam_rays_M_trig` of the same beams
     (elementwise, so those of a subset of the beams are these values' subset, bit for bit)."""
@@ -353,12 +357,12 @@ def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tup
     return _moved(params, *beam_rays_M(lambda_rad, mu_rad, params.dh))
 
 
-def beam_rays_W_trig(params: Params, trig: tuple[FloatArray, ...]) -> tuple[FloatArray, FloatArray]:
+def beam_rays_W_trig(params: Params, trig: BeamTrig) -> tuple[FloatArray, FloatArray]:
     """:func:`beam_rays_W` of beams by their :func:`beam_trig`."""
     return _moved(params, *beam_rays_M_trig(*trig, params.dh))
 
 
-def points_W_trig(ranges_m: FloatArray, trig: tuple[FloatArray, ...], params: Params) -> FloatArray:
+def points_W_trig(ranges_m: FloatArray, trig: BeamTrig, params: Params) -> FloatArray:
     """:func:`points_W` of returns (K,) by their beams' :func:`beam_trig` (the same bits)."""
     return transform_points(params.mount.matrix(), points_M_trig(ranges_m, *trig, params.dh))
 
@@ -435,6 +439,7 @@ def wrap_angle(a: ArrayLike) -> FloatArray:
 
 __all__ = [
     "ANGLE_NAMES",
+    "BeamTrig",
     "DH",
     "DH_NAMES",
     "ESTIMATE_NAMES",

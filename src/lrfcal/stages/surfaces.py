@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from lrfcal.model.kinematics import Params, beam_rays_W_trig, beam_trig, points_W, points_W_trig
+from lrfcal.model.kinematics import BeamTrig, Params, beam_rays_W_trig, beam_trig, points_W, points_W_trig
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
 
@@ -428,11 +428,16 @@ def observe_surfaces(
         trig = beam_trig(lam_t, mu_t, params.dh)  # once for the points and the candidates' rays (elementwise)
         parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
-                                     rays_W=lambda i, trig=trig: beam_rays_W_trig(params, tuple(v[i] for v in trig))))
+                                     rays_W=lambda i, trig=trig: beam_rays_W_trig(params, _rows_of(trig, i))))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
         below, frac = frac, _next_fraction(frac, got, max_returns)
+
+
+def _rows_of(trig: BeamTrig, i: IntArray) -> BeamTrig:
+    """The beams ``i`` (k,) of a :data:`lrfcal.model.kinematics.BeamTrig`."""
+    return trig[0][i], trig[1][i], trig[2][i], trig[3][i]
 
 
 def _merged(parts: list[SurfaceReturns], n_beams: int) -> SurfaceReturns:
