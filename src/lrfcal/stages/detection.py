@@ -155,7 +155,9 @@ def detect(scans: Scans, min_blob_size: int = 1) -> Detections:
     labels = np.full(mask.shape, -1, dtype=np.int64)
     if n == 0:
         return Detections(threshold=thr_counts, blobs=(), labels=labels)
-    ss, bb = np.nonzero(lab)
+    flat = np.flatnonzero(lab)  # the labelled pixels, row-major: np.nonzero's, at half its cost on the image
+    ss = flat // lab.shape[1]
+    bb = flat - ss * lab.shape[1]
     ll = lab[ss, bb]
     order = np.argsort(ll, kind="stable")
     ss, bb, ll = ss[order], bb[order], ll[order]
