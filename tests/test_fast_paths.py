@@ -244,3 +244,19 @@ def test_contrast_in_place_same_bits() -> None:
     z, t, thr = detection.contrast(scans)
     z0, t0, thr0 = _contrast_allocating(scans)
     assert _same(z, z0) and t == t0 and thr == thr0
+
+
+def test_plane_subset_carries_its_trig_same_bits() -> None:
+    """A subset of a PlaneSet takes the subset of its cos and sin: the values it would compute itself."""
+    rng = np.random.default_rng(15)
+    K = 3000
+    s = PlaneSet(rng.uniform(-3, 3, K), rng.uniform(-2.3, 2.3, K), rng.uniform(1, 9, K), np.sort(rng.integers(0, 2, K)),
+                 np.zeros((2, 3)), np.zeros((2, 3)), np.zeros((2, 3)))
+    _ = s.trig_lam, s.trig_mu
+    m = rng.random(K) < 0.7
+    sub = s.subset(m)
+    assert "trig_mu" in sub.__dict__ and "trig_lam" in sub.__dict__
+    for got, want in ((sub.trig_lam, (np.cos(s.lam[m]), np.sin(s.lam[m]))),
+                      (sub.trig_mu, (np.cos(s.mu[m]), np.sin(s.mu[m])))):
+        assert _same(got[0], want[0]) and _same(got[1], want[1])
+    assert "trig_mu" not in PlaneSet(s.lam, s.mu, s.r, s.plane, s.n0, s.t1, s.t2).subset(m).__dict__

@@ -62,10 +62,16 @@ class PlaneSet:
     scan: NDArray[np.int64] | None = None  # (K2,) each return's scan (each scan's returns one cluster)
 
     def subset(self, m: NDArray[np.bool_]) -> PlaneSet:
-        """The returns ``m`` (K2,) (on the same planes)."""
-        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
-                       times=None if self.times is None else self.times[m],
-                       scan=None if self.scan is None else self.scan[m])
+        """The returns ``m`` (K2,) (on the same planes); the cos and sin computed so far carried over (elementwise:
+        those of the subset are the subset of these)."""
+        out = replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
+                      times=None if self.times is None else self.times[m],
+                      scan=None if self.scan is None else self.scan[m])
+        for name in ("trig_lam", "trig_mu"):
+            if name in self.__dict__:  # a cached_property computed on this set
+                c, s = self.__dict__[name]
+                out.__dict__[name] = (c[m], s[m])
+        return out
 
     @property
     def n_planes(self) -> int:
