@@ -96,8 +96,14 @@ def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_pla
     P, c = b.n_planes, core.size
     B, D, g_n = np.zeros((c, 3 * P)), np.zeros((P, 3, 3)), np.zeros(3 * P)
     order, bounds = b.segments if b.segments is not None else _segments(b.plane, P)
-    # the plane rows sorted by plane once (each plane's rows then a slice, not a gather per plane)
-    Jc_s, Jn_s, WJn_s, wr_s = Jc[order], Jn[order], WJn[order], wr_p[order]
+    # the plane rows sorted by plane once (each plane's rows then a slice, not a gather per plane); rows already in
+    # plane order (lrfcal.stages.surfaces makes them so) are copied instead, to the gather's C-ordered arrays (the
+    # products below see the same layout, and two arrays where the gather made two: never the same buffer twice,
+    # which matmul would take as J^T J and compute otherwise)
+    if order.size and order[0] == 0 and order[-1] == order.size - 1 and np.array_equal(order, np.arange(order.size)):
+        Jc_s, Jn_s, WJn_s, wr_s = (np.array(x, order="C") for x in (Jc, Jn, WJn, wr_p))
+    else:
+        Jc_s, Jn_s, WJn_s, wr_s = Jc[order], Jn[order], WJn[order], wr_p[order]
     for j in range(P):
         if bounds[j] == bounds[j + 1]:
             continue
@@ -273,16 +279,21 @@ def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluste
     n_cl = ids.size
     m, K = b.r_dense.size, b.r_plane.size
     n = c + 3 * P
-    G = np.zeros(n_cl * n)
+    G = np.zeros((n_cl, n))
     inv_d, inv_p, inv_q = inv[:m], inv[m:m + K], inv[m + K:]
+    # each column's sums per cluster by one bincount over the clusters (each bin the sum of its rows in row order,
+    # never -0.0): the dense rows' and then the plane rows' added to G's zeros, as a bincount over all of G's
+    # entries per column added them (its other bins exact zeros): the same bits, a fraction of the memory
     for k, col in enumerate(core):
-        G += np.bincount(inv_d * n + k, weights=b.J_dense[:, col] * b.r_dense, minlength=n_cl * n)
-        G += np.bincount(inv_p * n + k, weights=b.Jc_plane[:, col] * b.r_plane, minlength=n_cl * n)
+        G[:, k] += np.bincount(inv_d, weights=b.J_dense[:, col] * b.r_dense, minlength=n_cl)
+        G[:, k] += np.bincount(inv_p, weights=b.Jc_plane[:, col] * b.r_plane, minlength=n_cl)
+    Gn = G[:, c:]  # (n_cl, 3P), a view: each plane row's own plane's three columns
     for i in range(3):
-        G += np.bincount(inv_p * n + c + 3 * b.plane + i, weights=b.Jn_plane[:, i] * b.r_plane, minlength=n_cl * n)
+        Gn += np.bincount(inv_p * (3 * P) + 3 * b.plane + i, weights=b.Jn_plane[:, i] * b.r_plane,
+                          minlength=n_cl * 3 * P).reshape(n_cl, 3 * P)
     if n_prior and b.w_prior is not None and b.r_prior is not None:
-        G[inv_q * n + c + np.arange(n_prior)] += b.w_prior * b.r_prior
-    return ids, G.reshape(n_cl, n)
+        G[inv_q, c + np.arange(n_prior)] += b.w_prior * b.r_prior
+    return ids, G
 
 
 __all__ = ["RANK_TOL", "Blocks", "Iteration", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",

@@ -146,6 +146,8 @@ def rot_x(t: ArrayLike) -> FloatArray:
     """Rotation matrices about x, shape (..., 3, 3) for angles of shape (...)."""
     t = np.asarray(t, dtype=float)
     c, s = np.cos(t), np.sin(t)
+    if t.ndim == 0:  # one angle: the same entries without the stacks' temporaries
+        return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     o, z = np.ones_like(t), np.zeros_like(t)
     return np.stack([np.stack([o, z, z], -1), np.stack([z, c, -s], -1), np.stack([z, s, c], -1)], -2)
 
@@ -154,6 +156,8 @@ def rot_y(t: ArrayLike) -> FloatArray:
     """Rotation matrices about y, shape (..., 3, 3)."""
     t = np.asarray(t, dtype=float)
     c, s = np.cos(t), np.sin(t)
+    if t.ndim == 0:  # one angle: the same entries without the stacks' temporaries
+        return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
     o, z = np.ones_like(t), np.zeros_like(t)
     return np.stack([np.stack([c, z, s], -1), np.stack([z, o, z], -1), np.stack([-s, z, c], -1)], -2)
 
@@ -162,6 +166,8 @@ def rot_z(t: ArrayLike) -> FloatArray:
     """Rotation matrices about z, shape (..., 3, 3)."""
     t = np.asarray(t, dtype=float)
     c, s = np.cos(t), np.sin(t)
+    if t.ndim == 0:  # one angle: the same entries without the stacks' temporaries
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     o, z = np.ones_like(t), np.zeros_like(t)
     return np.stack([np.stack([c, -s, z], -1), np.stack([s, c, z], -1), np.stack([z, z, o], -1)], -2)
 
@@ -223,12 +229,31 @@ def beam_rays_M(lambda_rad: ArrayLike, mu_rad: ArrayLike, dh: DH) -> tuple[Float
     lam = np.asarray(lambda_rad, dtype=float)
     phi = dh.beta + np.asarray(mu_rad, dtype=float)
     lam, phi = np.broadcast_arrays(lam, phi)
+    return beam_rays_M_trig(np.cos(lam), np.sin(lam), np.cos(phi), np.sin(phi), dh)
+
+
+#: cos and sin of K beams' motor angles and of their phi = beta + mu, each (K,) (:func:`beam_trig`)
+BeamTrig = tuple[FloatArray, FloatArray, FloatArray, FloatArray]
+
+
+def beam_trig(lambda_rad: FloatArray, mu_rad: FloatArray, dh: DH) -> BeamTrig:
+    """cos and sin of the motor angles and of phi = beta + mu (each (K,)), as :func:`points_M` and
+    :func:`beam_rays_M` compute them: for :func:`points_M_trig` and :func:`beam_rays_M_trig` of the same beams
+    (elementwise, so those of a subset of the beams are these values' subset, bit for bit)."""
+    lam = np.asarray(lambda_rad, dtype=float)
+    phi = dh.beta + np.asarray(mu_rad, dtype=float)
+    return np.cos(lam), np.sin(lam), np.cos(phi), np.sin(phi)
+
+
+def beam_rays_M_trig(cos_lambda: FloatArray, sin_lambda: FloatArray, cos_phi: FloatArray, sin_phi: FloatArray,
+                     dh: DH) -> tuple[FloatArray, FloatArray]:
+    """:func:`beam_rays_M` from cos / sin of lambda and of phi = beta + mu (all of one shape (K,))."""
+    cl, sl = cos_lambda, sin_lambda
     ca, sa = np.cos(dh.alpha), np.sin(dh.alpha)
-    cl, sl = np.cos(lam), np.sin(lam)
     # before Rz(lambda)
     ox, oy, oz = dh.a, -dh.b * sa, dh.b * ca
-    dx, dy, dz = np.cos(phi), np.sin(phi) * ca, np.sin(phi) * sa
-    origins = np.stack([cl * ox - sl * oy, sl * ox + cl * oy, np.full(lam.shape, oz)], -1)
+    dx, dy, dz = cos_phi, sin_phi * ca, sin_phi * sa
+    origins = np.stack([cl * ox - sl * oy, sl * ox + cl * oy, np.full(cl.shape, oz)], -1)
     dirs = np.stack([cl * dx - sl * dy, sl * dx + cl * dy, dz], -1)
     return origins, dirs
 
@@ -329,8 +354,21 @@ def points_W(ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, para
 def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tuple[FloatArray, FloatArray]:
     """Beam origins (K, 3) and unit directions (K, 3) in W for motor angles and bearings (K,):
     :func:`beam_rays_M` moved by T_W_M."""
+    return _moved(params, *beam_rays_M(lambda_rad, mu_rad, params.dh))
+
+
+def beam_rays_W_trig(params: Params, trig: BeamTrig) -> tuple[FloatArray, FloatArray]:
+    """:func:`beam_rays_W` of beams by their :func:`beam_trig`."""
+    return _moved(params, *beam_rays_M_trig(*trig, params.dh))
+
+
+def points_W_trig(ranges_m: FloatArray, trig: BeamTrig, params: Params) -> FloatArray:
+    """:func:`points_W` of returns (K,) by their beams' :func:`beam_trig` (the same bits)."""
+    return transform_points(params.mount.matrix(), points_M_trig(ranges_m, *trig, params.dh))
+
+
+def _moved(params: Params, o_M: FloatArray, d_M: FloatArray) -> tuple[FloatArray, FloatArray]:
     T = params.mount.matrix()
-    o_M, d_M = beam_rays_M(lambda_rad, mu_rad, params.dh)
     return transform_points(T, o_M), d_M @ T[:3, :3].T
 
 
@@ -340,6 +378,9 @@ def beam_rays_W(params: Params, lambda_rad: ArrayLike, mu_rad: ArrayLike) -> tup
 def skew(v: ArrayLike) -> FloatArray:
     """[v]x, shape (..., 3, 3), with [v]x u = v x u for v of shape (..., 3)."""
     v = np.asarray(v, dtype=float)
+    if v.ndim == 1:  # one vector: the same entries without the stacks' temporaries
+        x, y, w = v
+        return np.array([[0.0, -w, y], [w, 0.0, -x], [-y, x, 0.0]])
     z = np.zeros(v.shape[:-1])
     x, y, w = v[..., 0], v[..., 1], v[..., 2]
     return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
@@ -398,6 +439,7 @@ def wrap_angle(a: ArrayLike) -> FloatArray:
 
 __all__ = [
     "ANGLE_NAMES",
+    "BeamTrig",
     "DH",
     "DH_NAMES",
     "ESTIMATE_NAMES",
@@ -406,7 +448,10 @@ __all__ = [
     "Params",
     "Pose",
     "beam_rays_M",
+    "beam_rays_M_trig",
     "beam_rays_W",
+    "beam_rays_W_trig",
+    "beam_trig",
     "chain_T_M_L",
     "dh_from_mapping",
     "dh_twins",
@@ -419,6 +464,7 @@ __all__ = [
     "points_M",
     "points_M_trig",
     "points_W",
+    "points_W_trig",
     "pose_from_mapping",
     "pose_matrix",
     "rot_x",

@@ -62,10 +62,16 @@ class PlaneSet:
     scan: NDArray[np.int64] | None = None  # (K2,) each return's scan (each scan's returns one cluster)
 
     def subset(self, m: NDArray[np.bool_]) -> PlaneSet:
-        """The returns ``m`` (K2,) (on the same planes)."""
-        return replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
-                       times=None if self.times is None else self.times[m],
-                       scan=None if self.scan is None else self.scan[m])
+        """The returns ``m`` (K2,) (on the same planes); the cos and sin computed so far carried over (elementwise:
+        those of the subset are the subset of these)."""
+        out = replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
+                      times=None if self.times is None else self.times[m],
+                      scan=None if self.scan is None else self.scan[m])
+        for name in ("trig_lam", "trig_mu"):
+            if name in self.__dict__:  # a cached_property computed on this set
+                c, s = self.__dict__[name]
+                out.__dict__[name] = (c[m], s[m])
+        return out
 
     @property
     def n_planes(self) -> int:
@@ -80,6 +86,21 @@ class PlaneSet:
     def trig_mu(self) -> tuple[FloatArray, FloatArray]:
         """cos and sin (K2,) of the declared bearings ``mu`` (computed once: lrfcal.model.plane)."""
         return np.cos(self.mu), np.sin(self.mu)
+
+    @cached_property
+    def _plane_runs(self) -> NDArray[np.int64] | None:
+        """How many rows each plane has (P,) when the rows are in plane order (as lrfcal.stages.surfaces makes them),
+        else None."""
+        pl = self.plane
+        if pl.size and not (pl[0] >= 0 and pl[-1] < self.n_planes and bool(np.all(pl[1:] >= pl[:-1]))):
+            return None
+        return np.bincount(pl, minlength=self.n_planes)
+
+    def per_row(self, v: FloatArray) -> FloatArray:
+        """Per-plane values v (P,) at each row (K2,), v[plane]: by repeating each plane's value over its run of rows
+        where the rows are in plane order (a copy, faster than the gather), else by the gather."""
+        runs = self._plane_runs
+        return v[self.plane] if runs is None else np.repeat(v, runs)
 
     @cached_property
     def segments(self) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -176,14 +197,14 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     bearing = true_bearing(th, s.mu)
     cp, sp = _cos_sin_sum(be, bearing.mu, s.trig_mu, th[BSCALE] == 1.0)  # phi = beta + mu_true
     cl, sl = _cos_sin_sum(0.0, lam, s.trig_lam, clock is None and th[SCALE] == 1.0)
-    pl = s.plane
+    pl = s.per_row  # per-plane values (P,) gathered to the rows (K,)
     nM = n_p @ R  # (P, 3): R^T n per plane
-    gx, gy = nM[:, 0][pl], nM[:, 1][pl]
-    nx, ny, nz = cl * gx + sl * gy, cl * gy - sl * gx, nM[:, 2][pl]  # n_0 = Rz(-lambda) R^T n
+    gx, gy = pl(nM[:, 0]), pl(nM[:, 1])
+    nx, ny, nz = cl * gx + sl * gy, cl * gy - sl * gx, pl(nM[:, 2])  # n_0 = Rz(-lambda) R^T n
     oy, oz = -b * sa, b * ca  # o_0 = (a, oy, oz)
     dy, dz = sp * ca, sp * sa  # dir_0 = (cp, dy, dz)
     nd = nx * cp + ny * dy + nz * dz
-    rp = ((nu[:, 2] - n_p @ t)[pl] - (nx * a + ny * oy + nz * oz)) / nd
+    rp = (pl(nu[:, 2] - n_p @ t) - (nx * a + ny * oy + nz * oz)) / nd
     rep = reported_range(th, rp, on_marker=False)
     res = (s.r - rep.r) / sigma_r
     if not jac:
@@ -195,7 +216,7 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     xx, xy, xz = a + rp * cp, oy + rp * dy, oz + rp * dz  # x_0 = o_0 + r_p dir_0
     if mount_jac:
         for i in range(3):
-            Jc[:, i] = -n_p[:, i][pl] * q
+            Jc[:, i] = -pl(n_p[:, i]) * q
         # n_M x x_M = Rz(lambda) (n_0 x x_0)
         cx, cy, cz = ny * xz - nz * xy, nz * xx - nx * xz, nx * xy - ny * xx
         cMx, cMy = cl * cx - sl * cy, sl * cx + cl * cy
@@ -224,8 +245,8 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     for i, tan in enumerate((s.t1, s.t2)):
         dn = (tan - n_p * (n_p * tan).sum(1, keepdims=True)) / m_norm  # (P, 3) in W
         vM = dn @ R
-        gx, gy = vM[:, 0][pl], vM[:, 1][pl]
-        Jn[:, i] = -(xx * (cl * gx + sl * gy) + xy * (cl * gy - sl * gx) + xz * vM[:, 2][pl] + (dn @ t)[pl]) * q
+        gx, gy = pl(vM[:, 0]), pl(vM[:, 1])
+        Jn[:, i] = -(xx * (cl * gx + sl * gy) + xy * (cl * gy - sl * gx) + xz * pl(vM[:, 2]) + pl(dn @ t)) * q
     Jn[:, 2] = q
     return PlaneRows(res, Jc, Jn)
 

@@ -76,12 +76,19 @@ def _kabsch_batch(P: FloatArray, Q: FloatArray) -> tuple[FloatArray, FloatArray]
     cp, cq = P.mean(1), Q.mean(1)
     Hm = np.einsum("hki,hkj->hij", P - cp[:, None], Q - cq[:, None])
     U, _, Vt = np.linalg.svd(Hm)
-    det = np.linalg.det(np.einsum("hji,hkj->hik", Vt, U))  # det(V U^T)
     D = np.ones((len(P), 3))
-    D[:, 2] = np.where(det < 0, -1.0, 1.0)
+    D[:, 2] = np.where(_det3(np.einsum("hji,hkj->hik", Vt, U)) < 0, -1.0, 1.0)  # the sign of det(V U^T)
     R = np.einsum("hji,hj,hkj->hik", Vt, D, U)  # V diag(D) U^T
     t = cq - np.einsum("hij,hj->hi", R, cp)
     return R, t
+
+
+def _det3(M: FloatArray) -> FloatArray:
+    """Determinants (H,) of 3 x 3 matrices M (H, 3, 3) by cofactors along the first row: for the rotations and
+    reflections of :func:`_kabsch_batch` (+-1 to rounding) the sign np.linalg.det gives, without an LU per matrix."""
+    return (M[:, 0, 0] * (M[:, 1, 1] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 1])
+            - M[:, 0, 1] * (M[:, 1, 0] * M[:, 2, 2] - M[:, 1, 2] * M[:, 2, 0])
+            + M[:, 0, 2] * (M[:, 1, 0] * M[:, 2, 1] - M[:, 1, 1] * M[:, 2, 0]))
 
 
 def unmirror(markers: MarkerMap) -> MarkerMap:
@@ -127,15 +134,17 @@ def _score(
     rms = np.full(H, np.inf)
     Xc = [np.ascontiguousarray(X[:, i]) for i in range(3)]
     gate2 = gate_m**2
+    # the (h, B, n) temporaries, allocated once for all chunks
+    d2_buf, e_buf = (np.empty((min(chunk, H), len(P), len(X))) for _ in range(2))
     for s in range(0, H, chunk):
         Rc, tc = R[s:s + chunk], t[s:s + chunk]
         Y = np.einsum("hij,bj->hbi", Rc, P) + tc[:, None, :]  # (h, B, 3)
         # squared distance to every marker, (h, B, n), summed over x, y, z in that order (as a sum over the
         # last axis would), without the (h, B, n, 3) temporary
-        d2 = np.subtract(Y[:, :, 0, None], Xc[0])
+        d2 = np.subtract(Y[:, :, 0, None], Xc[0], out=d2_buf[:len(Rc)])
         np.multiply(d2, d2, out=d2)
         for i in (1, 2):
-            e = np.subtract(Y[:, :, i, None], Xc[i])
+            e = np.subtract(Y[:, :, i, None], Xc[i], out=e_buf[:len(Rc)])
             np.multiply(e, e, out=e)
             d2 += e
         d2 = d2.min(-1)  # (h, B)

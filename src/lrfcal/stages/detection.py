@@ -117,15 +117,20 @@ def contrast(scans: Scans) -> tuple[FloatArray, float, float]:
                              "e.g. urg_node's publish_intensity)")
         raise InputError(f"{src}: no return has both a valid range and an intensity > 0")
     r_v = r[valid]
-    log_r, log_i = np.log(r_v), np.log(inten[valid])  # computed once, for the model and the contrast
+    log_r = np.log(r_v)  # computed once, for the model and the contrast
+    log_i = inten[valid]
+    np.log(log_i, out=log_i)  # in the gathered copy: one pass over 1.5 M values less (the same values)
     kx, ky = _background_model_log(log_r, log_i)
     z = np.full(r.shape, np.nan)
-    zv = log_i - np.interp(log_r, kx, ky)
+    zv = np.interp(log_r, kx, ky)
+    np.subtract(log_i, zv, out=zv)  # log_i - b(r), into the interpolation's array
     z[valid] = zv
     # zv, its deviations and r_v are ours (no copy needed), and none holds -0.0 (a log, a difference of finite
     # values that is +0.0 when they are equal, an absolute value, a positive range)
     med = _median_in_place(zv)
-    sigma = 1.4826 * _median_in_place(np.abs(zv - med))
+    # the deviations into log_r's array, not needed any more (where of zv's type, float64 unless stored else)
+    dev = np.subtract(zv, med, out=log_r if log_r.dtype == zv.dtype else None)
+    sigma = 1.4826 * _median_in_place(np.abs(dev, out=dev))
     t = float(np.clip(med + K_SIGMA * sigma, math.log(MIN_CONTRAST), math.log(MAX_CONTRAST)))
     r_med = _median_in_place(r_v)
     thr_counts = float(np.exp(np.interp(math.log(r_med), kx, ky) + t))
@@ -150,7 +155,9 @@ def detect(scans: Scans, min_blob_size: int = 1) -> Detections:
     labels = np.full(mask.shape, -1, dtype=np.int64)
     if n == 0:
         return Detections(threshold=thr_counts, blobs=(), labels=labels)
-    ss, bb = np.nonzero(lab)
+    flat = np.flatnonzero(lab)  # the labelled pixels, row-major: np.nonzero's, at half its cost on the image
+    ss = flat // lab.shape[1]
+    bb = flat - ss * lab.shape[1]
     ll = lab[ss, bb]
     order = np.argsort(ll, kind="stable")
     ss, bb, ll = ss[order], bb[order], ll[order]

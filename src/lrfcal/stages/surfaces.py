@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from lrfcal.model.kinematics import Params, beam_rays_W, points_W
+from lrfcal.model.kinematics import BeamTrig, Params, beam_rays_W_trig, beam_trig, points_W, points_W_trig
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
 
@@ -398,8 +398,9 @@ def observe_surfaces(
     ranges_m, mu_rad, lambda_rad, beam_times_s = grid.ranges_m, grid.mu_rad, grid.lambda_rad, grid.beam_times_s
     max_returns, seed = selection.max_returns, selection.seed
     valid = np.isfinite(ranges_m) & (grid.labels < 0)
-    scan, beam = np.nonzero(valid)  # the valid returns, row-major
-    flat = scan * valid.shape[1] + beam  # their flat indices (np.flatnonzero's, without a division to undo them)
+    flat = np.flatnonzero(valid)  # the valid returns' flat indices, row-major
+    scan = flat // valid.shape[1]  # their scans and beams: np.nonzero's, at half its cost on the 2-D mask
+    beam = flat - scan * valid.shape[1]
     mu_all = np.asarray(mu_rad)
     lam_at, r_f = _at_flat(lambda_rad), np.asarray(ranges_m).ravel()
     mu_f = mu_all.ravel() if mu_all.ndim == 2 else None
@@ -426,21 +427,30 @@ def observe_surfaces(
     frac, below = _FRACTIONS[0], 0.0
     parts: list[SurfaceReturns] = []
     while True:
-        above = key >= np.uint64(below * (1 << 31))
-        rows = np.flatnonzero(above & (key < np.uint64(frac * (1 << 31))) if frac < 1.0 else above)
+        under = key < np.uint64(frac * (1 << 31)) if frac < 1.0 else None
+        if below == 0.0:  # the first try: every key is >= 0
+            rows = np.flatnonzero(under) if under is not None else np.arange(key.size)
+        else:
+            above = key >= np.uint64(below * (1 << 31))
+            rows = np.flatnonzero(above & under if under is not None else above)
         lam_k, mu_k, r_k = take(rows)
         r_t, lam_t, mu_t = true_returns(th, r_k, lam_k, mu_k)
         candidates = ReturnRows(scan[rows], beam[rows], lam_k, mu_k, r_k,
                                 None if times_at is None else times_at(flat[rows]))
         got = sum(len(p) for p in parts)
-        parts.append(surface_returns(surfaces, points_W(r_t, lam_t, mu_t, params), candidates, markers.positions_W,
+        trig = beam_trig(lam_t, mu_t, params.dh)  # once for the points and the candidates' rays (elementwise)
+        parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
-                                     rays_W=lambda i, lam_t=lam_t, mu_t=mu_t: beam_rays_W(params, lam_t[i],
-                                                                                           mu_t[i])))
+                                     rays_W=lambda i, trig=trig: beam_rays_W_trig(params, _rows_of(trig, i))))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
         below, frac = frac, _next_fraction(frac, got, max_returns)
+
+
+def _rows_of(trig: BeamTrig, i: IntArray) -> BeamTrig:
+    """The beams ``i`` (k,) of a :data:`lrfcal.model.kinematics.BeamTrig`."""
+    return trig[0][i], trig[1][i], trig[2][i], trig[3][i]
 
 
 def _merged(parts: list[SurfaceReturns], n_beams: int) -> SurfaceReturns:
