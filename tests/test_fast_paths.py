@@ -88,19 +88,6 @@ def test_cross_same_bits() -> None:
         assert _same(_cross(x, y), np.cross(x, y))
 
 
-def test_footprint_depth_kept_for_the_same_beams_only() -> None:
-    """The last call's depth is returned again for the same beams (read-only, so no caller can change it for the
-    next), and not for others."""
-    u, k = np.linspace(0.0, 1.2, 50), np.full(50, 0.3)
-    S1, dS1 = sphere.footprint_depth(u, k)
-    S2, dS2 = sphere.footprint_depth(u.copy(), k.copy())
-    assert S2 is S1 and dS2 is dS1 and not S1.flags.writeable
-    S3, _ = sphere.footprint_depth(u + 1e-3, k)
-    assert _same(S3, sphere._footprint_depth(u + 1e-3, k, 0.05)[0]) and not _same(S3, S1)
-    with pytest.raises(ValueError):
-        S1[0] = 0.0
-
-
 def test_kabsch_determinant_sign() -> None:
     """The sign of det(V U^T) by cofactors is np.linalg.det's for the SVDs of random (and degenerate) cross-
     covariances, so the batch Kabsch picks the same rotations."""

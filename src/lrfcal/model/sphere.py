@@ -71,23 +71,6 @@ def footprint_depth(u: ArrayLike, k: ArrayLike, eta: float = _ETA) -> tuple[Floa
     u, k = np.broadcast_arrays(np.asarray(u, dtype=float), np.asarray(k, dtype=float))
     if not np.any(k > 0):
         return sphere_depth(u, eta)
-    key = (u.shape, u.tobytes(), k.tobytes(), eta)
-    last = _LAST[0]  # one read: another thread's call replaces the whole entry, never half of it
-    if last is not None and last[0] == key:  # the beams of the call before (a robust pass's judgement, its solve)
-        return last[1]
-    S, dS = _footprint_depth(u, k, eta)
-    S.flags.writeable = dS.flags.writeable = False  # shared with the next call of the same beams: never modified
-    _LAST[0] = (key, (S, dS))
-    return S, dS
-
-
-#: :func:`footprint_depth`'s last call (its arguments, (S, dS)): a robust pass judges the marker returns at an
-#: estimate and its solve evaluates them again there (with the Jacobian), the same beams to the bit
-_LAST: list[tuple[tuple[object, ...], tuple[FloatArray, FloatArray]] | None] = [None]
-
-
-def _footprint_depth(u: FloatArray, k: FloatArray, eta: float) -> tuple[FloatArray, FloatArray]:
-    """:func:`footprint_depth` of u and k (K,) with some k > 0."""
     S, dS = np.empty(u.shape), np.empty(u.shape)
     x1, x2 = _DISC[:, 0], _DISC[:, 1]
     small = k <= 1.0
