@@ -1,0 +1,140 @@
+"""`lrfsim plan`'s speed-ups change no number (issue 47): the sparse cast shared with a forked helper process
+(lrfsim.castfork) is bit-identical to one cast here, a helper that dies or a chunk that raises is handled here, the
+plan of a cast made beforehand is the plan's own, the servo angles in blocks are the same numbers, and what runs
+before the cast imports no scipy."""
+
+from __future__ import annotations
+
+import math
+import os
+import subprocess
+import sys
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lrfsim import castfork, servo
+from lrfsim.castfork import Forked, can_fork, run_forked, shared_empty
+from lrfsim.plan import plan
+from lrfsim.plan_cast import sparse_geometry, sparse_scans
+from lrfsim.scenario import parse_scenario, with_changes
+from lrfsim.simulate import cast_geometry
+
+ROOT = Path(__file__).resolve().parents[1]
+FORKS = can_fork(2)
+
+
+def _fast_tunnel():  # tunnel_v at 30 deg/s, 2 passes: a third of its scans
+    data = with_changes(yaml.safe_load((ROOT / "scenarios" / "tunnel_v.yaml").read_text()),
+                        {"servo.speed_rad_s": math.radians(30.0), "servo.passes": 2})
+    return parse_scenario(data, "fast tunnel")
+
+
+def test_forked_cast_is_bit_identical_and_runs_meanwhile_here() -> None:
+    sc = _fast_tunnel()
+    here = cast_geometry(sc, noise=False, scans=partial(sparse_scans, sc), threads=1)
+    calls: list[int] = []
+    shared = cast_geometry(sc, noise=False, scans=partial(sparse_scans, sc),
+                           threads=Forked(lambda: calls.append(os.getpid())))
+    assert calls == [os.getpid()]  # once, in this process
+    for name in ("ranges_m", "intensities"):
+        a, b = getattr(here.cast, name), getattr(shared.cast, name)
+        assert a.tobytes() == b.tobytes(), name
+    assert np.isfinite(here.cast.ranges_m).sum() > 100_000  # a real cast, not two empty ones
+    assert (here.cast.n_rays, here.cast.n_calls) == (shared.cast.n_rays, shared.cast.n_calls)
+    assert np.array_equal(here.scans_cast, shared.scans_cast) and 0 < shared.scans_cast.sum() < len(shared.scans_cast)
+
+
+def test_plan_of_a_sparse_cast_made_before_is_the_plans_own() -> None:
+    """`lrfsim plan` casts first (imports overlapped) and hands plan() the cast: the same plan to the bit."""
+    sc = _fast_tunnel()
+    own = plan(sc)
+    given = plan(sc, geometry=sparse_geometry(sc))
+    assert own.sigma == given.sigma and own.n_surface_returns == given.n_surface_returns > 0
+    assert own.covariance.tobytes() == given.covariance.tobytes()
+
+
+@pytest.mark.skipif(not FORKS, reason="no helper process can be forked here (Linux with 2 cores or more)")
+def test_chunks_are_shared_with_the_helper() -> None:
+    n = 24
+    out = shared_empty((n,), np.nan)
+    me = os.getpid()
+
+    def run(i: int) -> tuple[int, int]:
+        out[i] = 2.0 * i
+        return i, os.getpid()
+
+    def wait_for_the_helper() -> None:  # until the helper has cast a chunk (it claims one as soon as it runs)
+        t0 = time.monotonic()
+        while not np.isfinite(out).any() and time.monotonic() - t0 < 30.0:
+            time.sleep(0.001)
+
+    values = run_forked(run, n, wait_for_the_helper)
+    assert [i for i, _ in values] == list(range(n))
+    assert np.array_equal(out, 2.0 * np.arange(n))  # the helper's writes reached this process
+    assert {pid for _, pid in values} - {me}  # some chunks were cast by the helper
+
+
+@pytest.mark.skipif(not FORKS, reason="no helper process can be forked here (Linux with 2 cores or more)")
+def test_a_helper_that_dies_leaves_its_chunks_to_this_process() -> None:
+    n = 8
+    out = shared_empty((n,))
+    me = os.getpid()
+
+    def run(i: int) -> int:
+        if os.getpid() != me:
+            out[i] = -1.0
+            os._exit(7)  # the helper dies in the middle of its first chunk
+        time.sleep(0.01)
+        out[i] = i + 1.0
+        return i
+
+    def until_it_died() -> None:
+        t0 = time.monotonic()
+        while not (out == -1.0).any() and time.monotonic() - t0 < 30.0:
+            time.sleep(0.001)
+
+    assert run_forked(run, n, until_it_died) == list(range(n))
+    assert np.array_equal(out, np.arange(1.0, n + 1.0))  # its chunk cast again here
+
+
+def test_an_error_in_a_chunk_is_raised_here() -> None:
+    def run(i: int) -> int:
+        if i == 3:
+            raise ValueError("chunk 3")
+        time.sleep(0.002)
+        return i
+
+    with pytest.raises(ValueError, match="chunk 3"):
+        run_forked(run, 8)
+
+
+def test_no_helper_casts_here_after_meanwhile(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(castfork, "can_fork", lambda n: False)
+    order: list[str] = []
+    assert run_forked(lambda i: order.append(f"chunk {i}") or i, 2, lambda: order.append("meanwhile")) == [0, 1]
+    assert order == ["meanwhile", "chunk 0", "chunk 1"]
+
+
+def test_servo_angles_in_blocks_are_the_same_numbers(monkeypatch: pytest.MonkeyPatch) -> None:
+    sc = _fast_tunnel()
+    traj = servo.servo_trajectory(sc.servo)
+    t = np.linspace(-0.5, traj.end_s + 0.5, 3 * servo.ANGLE_BLOCK + 17).reshape(-1, 1)
+    blocked = traj.angle(t)
+    monkeypatch.setattr(servo, "ANGLE_BLOCK", t.size)
+    whole = traj.angle(t)
+    assert blocked.shape == t.shape and blocked.tobytes() == whole.tobytes()
+    assert np.ptp(whole) > 0.5  # the sweep moves
+
+
+def test_what_runs_before_the_cast_imports_no_scipy() -> None:
+    """`lrfsim plan`'s helper is forked once the scene is built: scipy (for the prediction) is imported after, while
+    the helper casts."""
+    code = ("import sys, lrfsim.plan_cast, lrfsim.simulate, lrfsim.scene, lrfsim.faults; "
+            "print(','.join(m for m in ('scipy.special', 'scipy.spatial', 'scipy.ndimage') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    assert out == ""
