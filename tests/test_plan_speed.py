@@ -138,3 +138,21 @@ def test_what_runs_before_the_cast_imports_no_scipy() -> None:
             "print(','.join(m for m in ('scipy.special', 'scipy.spatial', 'scipy.ndimage') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ""
+
+
+@pytest.mark.parametrize(("env_value", "expected"), [(None, "disable"), ("glfw", "glfw")])
+def test_the_program_loads_no_opengl_context(env_value: str | None, expected: str) -> None:
+    """The console script sets MUJOCO_GL=disable (it renders nothing) unless the environment sets it."""
+    code = ("import atexit, os, sys\n"
+            "def report():\n"
+            "    import mujoco\n"
+            "    print(os.environ.get('MUJOCO_GL'), 'mujoco.glfw' in sys.modules)\n"
+            "atexit.register(report)\n"
+            "sys.argv = ['lrfsim', 'schema']\n"
+            "from lrfsim.cli import main\n"
+            "main()\n")
+    env = {k: v for k, v in os.environ.items() if k != "MUJOCO_GL"}
+    if env_value is not None:
+        env["MUJOCO_GL"] = env_value
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split()[-2:] == [expected, str(expected != "disable")]

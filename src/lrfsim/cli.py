@@ -13,6 +13,7 @@ rosbags) are imported inside the commands.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -291,7 +292,13 @@ def schema(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Entry point: usage errors and any LrfError become one line on stderr and their exit code."""
+    """Entry point: usage errors and any LrfError become one line on stderr and their exit code.
+
+    The program renders nothing with mujoco (it casts rays; rerun draws), so mujoco's OpenGL context (glfw, 0.03 s
+    of every command that imports mujoco) is not loaded: MUJOCO_GL=disable, unless the environment sets it. Only
+    for the program's own process (``argv`` None: the console script), not for a caller's."""
+    if argv is None:
+        os.environ.setdefault("MUJOCO_GL", "disable")
     run_app(app, argv, "lrfsim")
 
 
