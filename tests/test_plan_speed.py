@@ -5,6 +5,7 @@ before the cast imports no scipy."""
 
 from __future__ import annotations
 
+import json
 import math
 import os
 import subprocess
@@ -156,3 +157,20 @@ def test_the_program_loads_no_opengl_context(env_value: str | None, expected: st
         env["MUJOCO_GL"] = env_value
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.split()[-2:] == [expected, str(expected != "disable")]
+
+
+def test_plan_limits_the_blas_scipy_loads_while_it_casts(tmp_path: Path) -> None:
+    """`lrfsim plan` imports scipy while its helper casts (lrfcal.io.cliutil.Command.load_scipy_first False), and
+    limits scipy's BLAS then, as every other command does before it starts."""
+    path = tmp_path / "fast.yaml"
+    path.write_text(yaml.safe_dump(with_changes(yaml.safe_load((ROOT / "scenarios" / "tunnel_v.yaml").read_text()),
+                                                {"servo.speed_rad_s": math.radians(30.0), "servo.passes": 2})))
+    code = ("import atexit, json, sys, threadpoolctl\n"
+            "atexit.register(lambda: print(json.dumps([i['num_threads'] for i in threadpoolctl.threadpool_info() "
+            "if i['user_api'] == 'blas'])))\n"
+            f"from lrfsim.cli import main\nmain(['plan', {str(path)!r}, '--json'])\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("LRF_CALIB_BLAS_THREADS", "OPENBLAS_NUM_THREADS")}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr
+    threads = json.loads(out.stdout.strip().splitlines()[-1])
+    assert len(threads) >= 2 and threads == [1] * len(threads), threads  # numpy's and scipy's OpenBLAS

@@ -140,7 +140,14 @@ def run(
         raise typer.Exit(1)
 
 
-@app.command(cls=Command)
+class _ScipyLater(Command):
+    """`lrfsim plan`: scipy is imported while the cast runs (:func:`_import_prediction`), and its BLAS limited
+    then."""
+
+    load_scipy_first = False
+
+
+@app.command(cls=_ScipyLater)
 def plan(
     scenario: ScenarioArg,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (SI units) instead of the table.")
@@ -192,11 +199,13 @@ def plan(
 
 def _import_prediction() -> None:
     """Import what `lrfsim plan` predicts with: lrfsim.plan, the parts of lrfcal it uses and the calibration's
-    marker detection (lrfsim.faults.detected_mask), which imports scipy.ndimage."""
+    marker detection (lrfsim.faults.detected_mask), which imports scipy.ndimage; then the programs' thread policy
+    for the BLAS that scipy loads (lrfcal.runtime.threads)."""
     import lrfcal
     import lrfsim.plan  # noqa: F401
 
     _ = lrfcal.detect
+    lrfcal.apply_thread_policy()
 
 
 @app.command(cls=Command)
