@@ -103,6 +103,31 @@ def test_a_helper_that_dies_leaves_its_chunks_to_this_process() -> None:
     assert np.array_equal(out, np.arange(1.0, n + 1.0))  # its chunk cast again here
 
 
+@pytest.mark.skipif(not FORKS, reason="no helper process can be forked here (Linux with 2 cores or more)")
+def test_a_stuck_helper_is_ended_and_its_chunks_cast_here(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(castfork, "HELPER_PATIENCE_S", 0.5)
+    monkeypatch.setattr(castfork, "HELPER_PATIENCE_RATIO", 0.0)
+    n = 6
+    out = shared_empty((n,))
+    me = os.getpid()
+
+    def run(i: int) -> int:
+        if os.getpid() != me:
+            out[i] = -1.0
+            time.sleep(3600.0)  # stuck
+        out[i] = i + 1.0
+        return i
+
+    def until_it_is_stuck() -> None:
+        t0 = time.monotonic()
+        while not (out == -1.0).any() and time.monotonic() - t0 < 30.0:
+            time.sleep(0.001)
+
+    t0 = time.monotonic()
+    assert run_forked(run, n, until_it_is_stuck) == list(range(n))
+    assert np.array_equal(out, np.arange(1.0, n + 1.0)) and time.monotonic() - t0 < 20.0
+
+
 def test_an_error_in_a_chunk_is_raised_here() -> None:
     def run(i: int) -> int:
         if i == 3:

@@ -15,8 +15,10 @@ scans, by the same arithmetic in either process: the cast is bit-identical to on
 chunks (`lrfsim plan` imports the prediction's modules there, while the helper casts).
 
 Where no helper can be forked (no fork on this platform, one core, too many chunks for the pipe) the chunks run in
-this process; where the helper dies or fails, the chunks it claimed and did not report run here again: the same
-outcome, only slower (an error a chunk raises is raised here). Nothing is written to disk.
+this process; where the helper dies or fails, or is stuck (no answer HELPER_PATIENCE_S plus HELPER_PATIENCE_RATIO
+times this process's casting time after this process is done: it is ended), the chunks it claimed and did not
+report run here again: the same outcome, only slower (an error a chunk raises is raised here). Nothing is written to
+disk.
 """
 
 from __future__ import annotations
@@ -24,9 +26,11 @@ from __future__ import annotations
 import mmap
 import os
 import pickle
+import select
 import signal
 import struct
 import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, TypeVar
@@ -40,6 +44,10 @@ T = TypeVar("T")
 
 #: the most chunks whose indices fit the claim pipe's buffer (64 KiB on Linux, 4 bytes per chunk) with room to spare
 MAX_CHUNKS = 8192
+#: once this process has cast its chunks, the helper gets this long plus HELPER_PATIENCE_RATIO times this process's
+#: casting time to send its own (else it is taken for stuck: ended, its chunks cast here)
+HELPER_PATIENCE_S = 30.0
+HELPER_PATIENCE_RATIO = 10.0
 
 
 @dataclass(frozen=True)
@@ -93,8 +101,12 @@ def run_forked(run: Callable[[int], T], n_chunks: int, meanwhile: Callable[[], o
         back_w = -1
         if meanwhile is not None:
             meanwhile()
+        t0 = time.monotonic()
         mine = _claim(run, claim_r)
-        theirs = _collect(back_r, pid) if pid > 0 else {}
+        # a helper that is this much slower than this process is stuck (a fork can inherit a lock that another
+        # thread held): ended, and its chunks cast here
+        patience = HELPER_PATIENCE_S + HELPER_PATIENCE_RATIO * (time.monotonic() - t0)
+        theirs = _collect(back_r, pid, patience) if pid > 0 else {}
         pid = -1
     finally:
         for fd in (claim_r, back_r, back_w):
@@ -132,10 +144,20 @@ def _helper(run: Callable[[int], Any], claim_r: int, back_r: int, back_w: int) -
         os._exit(code)  # no atexit handlers, no flushing of the parent's buffered output
 
 
-def _collect(back_r: int, pid: int) -> dict[int, Any]:
-    """The helper's values by chunk (empty where it died or failed), once it has exited."""
+def _collect(back_r: int, pid: int, patience_s: float) -> dict[int, Any]:
+    """The helper's values by chunk (empty where it died, failed or sent nothing within ``patience_s``: then it is
+    ended), once it has exited."""
     parts = []
-    while chunk := os.read(back_r, 1 << 16):
+    deadline = time.monotonic() + patience_s
+    while True:
+        ready, _, _ = select.select([back_r], [], [], max(0.0, deadline - time.monotonic()))
+        if not ready:  # stuck: ended, its chunks cast here
+            os.kill(pid, signal.SIGKILL)
+            os.waitpid(pid, 0)
+            return {}
+        chunk = os.read(back_r, 1 << 16)
+        if not chunk:
+            break
         parts.append(chunk)
     _, status = os.waitpid(pid, 0)
     if os.waitstatus_to_exitcode(status) != 0 or not parts:
