@@ -23,6 +23,7 @@ disk.
 
 from __future__ import annotations
 
+import contextlib
 import mmap
 import os
 import pickle
@@ -112,9 +113,10 @@ def run_forked(run: Callable[[int], T], n_chunks: int, meanwhile: Callable[[], o
         for fd in (claim_r, back_r, back_w):
             if fd >= 0:
                 os.close(fd)
-        if pid > 0:  # an error here: the helper works for nothing
-            os.kill(pid, signal.SIGKILL)
-            os.waitpid(pid, 0)
+        if pid > 0:  # an error here (Ctrl-C too): the helper works for nothing
+            with contextlib.suppress(OSError):  # (already ended and reaped)
+                os.kill(pid, signal.SIGKILL)
+                os.waitpid(pid, 0)
     done = {**theirs, **mine}
     return [done[i] if i in done else run(i) for i in range(n_chunks)]  # the helper's unreported chunks: here
 
