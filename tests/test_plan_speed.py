@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -59,6 +60,17 @@ def test_plan_of_a_sparse_cast_made_before_is_the_plans_own() -> None:
     assert own.covariance.tobytes() == given.covariance.tobytes()
 
 
+def _until(done: Callable[[], bool]) -> Callable[[], None]:
+    """A ``meanwhile`` that waits (at most 30 s) until ``done()``: what the helper does first is then certain."""
+
+    def wait() -> None:
+        t0 = time.monotonic()
+        while not done() and time.monotonic() - t0 < 30.0:
+            time.sleep(0.001)
+
+    return wait
+
+
 @pytest.mark.skipif(not FORKS, reason="no helper process can be forked here (Linux with 2 cores or more)")
 def test_chunks_are_shared_with_the_helper() -> None:
     n = 24
@@ -69,63 +81,35 @@ def test_chunks_are_shared_with_the_helper() -> None:
         out[i] = 2.0 * i
         return i, os.getpid()
 
-    def wait_for_the_helper() -> None:  # until the helper has cast a chunk (it claims one as soon as it runs)
-        t0 = time.monotonic()
-        while not np.isfinite(out).any() and time.monotonic() - t0 < 30.0:
-            time.sleep(0.001)
-
-    values = run_forked(run, n, wait_for_the_helper)
+    values = run_forked(run, n, _until(lambda: bool(np.isfinite(out).any())))  # the helper has cast a chunk
     assert [i for i, _ in values] == list(range(n))
     assert np.array_equal(out, 2.0 * np.arange(n))  # the helper's writes reached this process
     assert {pid for _, pid in values} - {me}  # some chunks were cast by the helper
 
 
 @pytest.mark.skipif(not FORKS, reason="no helper process can be forked here (Linux with 2 cores or more)")
-def test_a_helper_that_dies_leaves_its_chunks_to_this_process() -> None:
+@pytest.mark.parametrize("fate", ["dies", "is stuck"])
+def test_a_helper_that_dies_or_is_stuck_leaves_its_chunks_here(fate: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(castfork, "HELPER_PATIENCE_S", 0.5)
+    monkeypatch.setattr(castfork, "HELPER_PATIENCE_RATIO", 0.0)
     n = 8
     out = shared_empty((n,))
     me = os.getpid()
 
     def run(i: int) -> int:
-        if os.getpid() != me:
+        if os.getpid() != me:  # the helper, in its first chunk
             out[i] = -1.0
-            os._exit(7)  # the helper dies in the middle of its first chunk
+            if fate == "dies":
+                os._exit(7)
+            time.sleep(3600.0)
         time.sleep(0.01)
         out[i] = i + 1.0
         return i
 
-    def until_it_died() -> None:
-        t0 = time.monotonic()
-        while not (out == -1.0).any() and time.monotonic() - t0 < 30.0:
-            time.sleep(0.001)
-
-    assert run_forked(run, n, until_it_died) == list(range(n))
-    assert np.array_equal(out, np.arange(1.0, n + 1.0))  # its chunk cast again here
-
-
-@pytest.mark.skipif(not FORKS, reason="no helper process can be forked here (Linux with 2 cores or more)")
-def test_a_stuck_helper_is_ended_and_its_chunks_cast_here(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(castfork, "HELPER_PATIENCE_S", 0.5)
-    monkeypatch.setattr(castfork, "HELPER_PATIENCE_RATIO", 0.0)
-    n = 6
-    out = shared_empty((n,))
-    me = os.getpid()
-
-    def run(i: int) -> int:
-        if os.getpid() != me:
-            out[i] = -1.0
-            time.sleep(3600.0)  # stuck
-        out[i] = i + 1.0
-        return i
-
-    def until_it_is_stuck() -> None:
-        t0 = time.monotonic()
-        while not (out == -1.0).any() and time.monotonic() - t0 < 30.0:
-            time.sleep(0.001)
-
     t0 = time.monotonic()
-    assert run_forked(run, n, until_it_is_stuck) == list(range(n))
-    assert np.array_equal(out, np.arange(1.0, n + 1.0)) and time.monotonic() - t0 < 20.0
+    assert run_forked(run, n, _until(lambda: bool((out == -1.0).any()))) == list(range(n))
+    assert np.array_equal(out, np.arange(1.0, n + 1.0))  # its chunk cast again here
+    assert time.monotonic() - t0 < 20.0
 
 
 def test_an_error_in_a_chunk_is_raised_here() -> None:
