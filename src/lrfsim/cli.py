@@ -13,6 +13,7 @@ rosbags) are imported inside the commands.
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 from typing import TYPE_CHECKING, Annotated
@@ -139,7 +140,14 @@ def run(
         raise typer.Exit(1)
 
 
-@app.command(cls=Command)
+class _ScipyLater(Command):
+    """`lrfsim plan`: scipy is imported while the cast runs (:func:`_import_prediction`), and its BLAS limited
+    then."""
+
+    load_scipy_first = False
+
+
+@app.command(cls=_ScipyLater)
 def plan(
     scenario: ScenarioArg,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (SI units) instead of the table.")
@@ -162,14 +170,23 @@ def plan(
     Exit code 3 when the DH parameters are not determined (the calibration would refuse).
     """
     import json
+    import time
+    from dataclasses import replace
 
-    from .plan import format_plan
-    from .plan import plan as make_plan
-    from .scenario import load_scenario
+    from .plan_cast import sparse_geometry
+    from .scenario import load_scenario, require_markers
 
     sc = load_scenario(scenario)
+    require_markers(sc, "lrfsim plan", "predicts from the marker returns")
     with progress_display(f"planning {sc.name}: casting the rays, inverting the information", quiet=quiet):
-        result = make_plan(sc, range_sigma_m=range_sigma, surfaces=not markers_only)
+        t0 = time.perf_counter()
+        # the prediction's modules (scipy, lrfcal's estimate) are imported while a forked helper casts
+        geometry = sparse_geometry(sc, meanwhile=_import_prediction)
+        from .plan import format_plan
+        from .plan import plan as make_plan
+
+        result = make_plan(sc, range_sigma_m=range_sigma, surfaces=not markers_only, geometry=geometry)
+        result = replace(result, seconds=time.perf_counter() - t0)  # the cast's time too
     if as_json:
         print(json.dumps(result.to_json(), indent=2))
     else:
@@ -178,6 +195,17 @@ def plan(
         print(f"error: {result.scenario}: the DH parameters are not determined ({result.weakest}); "
               f"{result.observability.hint()}", file=sys.stderr)
         raise typer.Exit(3)
+
+
+def _import_prediction() -> None:
+    """Import what `lrfsim plan` predicts with: lrfsim.plan, the parts of lrfcal it uses and the calibration's
+    marker detection (lrfsim.faults.detected_mask), which imports scipy.ndimage; then the programs' thread policy
+    for the BLAS that scipy loads (lrfcal.runtime.threads)."""
+    import lrfcal
+    import lrfsim.plan  # noqa: F401
+
+    _ = lrfcal.detect
+    lrfcal.apply_thread_policy()
 
 
 @app.command(cls=Command)
@@ -277,7 +305,13 @@ def schema(
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Entry point: usage errors and any LrfError become one line on stderr and their exit code."""
+    """Entry point: usage errors and any LrfError become one line on stderr and their exit code.
+
+    The program renders nothing with mujoco (it casts rays; rerun draws), so mujoco's OpenGL context (glfw, 0.03 s
+    of every command that imports mujoco) is not loaded: MUJOCO_GL=disable, unless the environment sets it. Only
+    for the program's own process (``argv`` None: the console script), not for a caller's."""
+    if argv is None:
+        os.environ.setdefault("MUJOCO_GL", "disable")
     run_app(app, argv, "lrfsim")
 
 

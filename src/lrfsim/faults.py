@@ -63,7 +63,6 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import Params, beam_rays_M, points_W, transform_points
-from lrfcal.model.marker import footprint_radius_m, ray_to_centre
 
 from .scenario import Scenario
 from .scenario_sections import FaultsConfig, NoiseBand, TapeOutlier
@@ -163,6 +162,8 @@ def marker_returns(result: SimResult, scenario: Scenario, among: NDArray[np.bool
     within radius + footprint + 2 mm of the marker centre, ahead of the scanner. ``among`` (S, N): the returns to
     consider instead of the bright ones (:func:`bright_mask`), e.g. the calibration's detections
     (:func:`detected_mask`)."""
+    from lrfcal.model.marker import footprint_radius_m, ray_to_centre  # (scipy.special: not for the simulation)
+
     S, N = result.ranges_m.shape
     out = np.full((S, N), -1, dtype=np.int64)
     radius_m = result.truth.marker_radius_m

@@ -301,7 +301,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     radius = float(scenario.markers.radius_m)
     on_planes, planes, source = None, None, SOURCE_MARKERS
     if surfaces and config.surfaces:
-        sample = SURFACE_SCAN_STEP if geometry is None else 1
+        sample = SURFACE_SCAN_STEP if cast.scans_cast is not None else 1  # sparse_geometry's cast: a sample
         planes, on_planes = _surface_returns(scenario, result, obs, markers_W, params, config, sample)
         if sample > 1 and planes and len(on_planes) < config.surface_max_returns:  # fewer than the calibration
             cast = sparse_geometry(scenario, rest_of=cast)  # samples: all of them, every scan cast

@@ -3,6 +3,7 @@ them, bit for bit) and every SURFACE_SCAN_STEP-th other scan for the surface ret
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import partial
 from typing import TYPE_CHECKING
 
@@ -11,6 +12,7 @@ from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import Params
 
+from .castfork import Forked
 from .scenario import Scenario
 
 if TYPE_CHECKING:
@@ -46,13 +48,19 @@ def sparse_scans(scenario: Scenario, beam_lambda_rad: FloatArray) -> NDArray[np.
     return near | (np.arange(beam_lambda_rad.shape[0]) % SURFACE_SCAN_STEP == 0)
 
 
-def sparse_geometry(scenario: Scenario, rest_of: Geometry | None = None) -> Geometry:
+def sparse_geometry(scenario: Scenario, rest_of: Geometry | None = None,
+                    meanwhile: Callable[[], object] | None = None) -> Geometry:
     """Plan's noise-free cast of the scans :func:`sparse_scans` picks (the others without a return); with
-    ``rest_of`` (such a cast), the other scans cast and joined to it: the full cast."""
+    ``rest_of`` (such a cast), the other scans cast and joined to it: the full cast.
+
+    The cast's chunks are shared with a forked helper process where one can be forked (lrfsim.castfork: this
+    cast of many short ``mj_multiRay`` calls holds the GIL most of its time, so threads do not overlap it; the
+    result is the same), and ``meanwhile()`` runs here while the helper casts (`lrfsim plan` imports the
+    prediction's modules there)."""
     from .simulate import cast_geometry, joined
 
+    helper = Forked(meanwhile)
     if rest_of is None:
-        return cast_geometry(scenario, noise=False, scans=partial(sparse_scans, scenario))
-    rest = cast_geometry(scenario, noise=False,
-                         scans=lambda lam: ~sparse_scans(scenario, lam))
+        return cast_geometry(scenario, noise=False, scans=partial(sparse_scans, scenario), threads=helper)
+    rest = cast_geometry(scenario, noise=False, scans=lambda lam: ~sparse_scans(scenario, lam), threads=helper)
     return joined(rest_of, rest)

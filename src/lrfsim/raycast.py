@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 from lrfcal import cores, one_blas_thread
 from lrfcal.errors import InputError
 
+from .castfork import Forked, can_fork, run_forked, shared_empty
 from .lidar import (
     _MIN_NORMAL_DOT,
     RETRO_EXPONENT,
@@ -153,12 +154,23 @@ class _Mixture:
         return max_off, max_corr
 
 
-def _run_chunks(run: Callable[[int], _ChunkStats], S: int, chunk_scans: int, n_threads: int,
+def _local_empty(shape: tuple[int, ...], fill: float | None = None) -> FloatArray:
+    """np.empty, or np.full with ``fill`` (lrfsim.castfork.shared_empty's signature)."""
+    return np.empty(shape) if fill is None else np.full(shape, fill)
+
+
+def _run_chunks(run: Callable[[int], _ChunkStats], S: int, chunk_scans: int, n_threads: int | Forked,
                 progress: Callable[[int, int], None] | None) -> list[_ChunkStats]:
-    """``run(s0)`` for every chunk of scans [s0, s0 + chunk_scans), in ``n_threads`` threads; the chunks' stats in
-    scan order, ``progress(done_scans, S)`` after each."""
+    """``run(s0)`` for every chunk of scans [s0, s0 + chunk_scans), in ``n_threads`` threads (or shared with a
+    forked helper process, lrfsim.castfork, ``progress`` then called once all are cast); the chunks' stats in scan
+    order, ``progress(done_scans, S)`` after each."""
     starts = range(0, S, chunk_scans)
     stats: list[_ChunkStats] = []
+    if isinstance(n_threads, Forked):
+        with one_blas_thread():
+            forked = run_forked(lambda i: run(starts[i]), len(starts), n_threads.meanwhile)
+        n_threads = 1
+        run = dict(zip(starts, forked, strict=True)).__getitem__  # collected below, with progress, in scan order
 
     def collect(results: Iterator[_ChunkStats]) -> None:
         for s0, st in zip(starts, results, strict=True):
@@ -177,7 +189,7 @@ def _run_chunks(run: Callable[[int], _ChunkStats], S: int, chunk_scans: int, n_t
 
 def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArray, *, origin_tol_m: float = 1e-6,
                chunk_scans: int = CHUNK_SCANS, progress: Callable[[int, int], None] | None = None,
-               threads: int | None = None, footprint: str | None = None) -> Cast:
+               threads: int | Forked | None = None, footprint: str | None = None) -> Cast:
     """The ray cast and the mixed-pixel model (lrfsim.lidar's module docstring), without the sensor model;
     beam_lambda_rad (S, N).
 
@@ -188,7 +200,8 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
 
     The cast reaches range_max + 5 sigma of the largest noise band when ``sensor.noise`` is set (a return just
     beyond range_max can be pulled back by the noise), else range_max. ``threads``: chunks of ``chunk_scans`` scans
-    cast in that many threads (default :func:`default_threads`; the result does not depend on it);
+    cast in that many threads (default :func:`default_threads`), or a :class:`lrfsim.castfork.Forked`: shared with a
+    forked helper process, where it can be forked (for casts of many short calls; the result does not depend on it);
     ``progress(done_scans, total_scans)`` after every chunk, in scan order. Cast.cast_time_s sums the chunks' time
     inside ``mj_multiRay`` over the threads.
     """
@@ -203,9 +216,15 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
     cutoff = cast_cutoff_m(sensor)
     E = sensor.echoes.max_echoes
     echoes = sensor.echoes.enabled
+    forked = isinstance(threads, Forked) and can_fork(-(-S // chunk_scans))
+    empty = shared_empty if forked else _local_empty
     mix = _Mixture(sensor, np.asarray(scene.geom_reflectivity, dtype=float),
-                   np.asarray(scene.geom_is_marker, dtype=bool), np.empty((S, N)), np.empty((S, N)),
-                   np.full((S, N, E), np.nan) if echoes else None, np.zeros((S, N, E)) if echoes else None)
+                   np.asarray(scene.geom_is_marker, dtype=bool), empty((S, N)), empty((S, N)),
+                   empty((S, N, E), np.nan) if echoes else None, empty((S, N, E), 0.0) if echoes else None)
+    if isinstance(threads, Forked) and not forked:  # no helper: cast here (after ``meanwhile``), in threads
+        if threads.meanwhile is not None:
+            threads.meanwhile()
+        threads = None
     if S == 0:
         return Cast(ranges_m=mix.ranges, intensities=mix.intensities, n_rays=0, n_calls=0, cast_time_s=0.0,
                     total_time_s=time.perf_counter() - t_start, max_origin_error_m=0.0, max_parallax_correction_m=0.0,
@@ -218,7 +237,8 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
     edges = footprint == "edges" and F > 1 and 2.0 * ring_half_angle(sensor) < abs(sensor.angle_increment_rad)
     mk = np.flatnonzero(np.asarray(scene.geom_is_marker, dtype=bool))
     markers = (scene.data.geom_xpos[mk].copy(), scene.model.geom_rbound[mk].copy(), ring_half_angle(sensor))
-    n_threads = max(1, min(default_threads() if threads is None else int(threads), -(-S // chunk_scans)))
+    n_threads: int | Forked = threads if isinstance(threads, Forked) else max(
+        1, min(default_threads() if threads is None else int(threads), -(-S // chunk_scans)))
     local = threading.local()
     halo = 1 if edges else 0  # "edges" compares a chunk's first and last scans with their neighbours outside it
     M = chunk_scans * N * F  # the full cast's hits (the edges' are cast_chunk_edges' own)
@@ -226,7 +246,8 @@ def cast_scans(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: FloatArr
     def workspace() -> _Workspace:
         ws = getattr(local, "ws", None)
         if ws is None:
-            data = scene.data if n_threads == 1 else copy.copy(scene.data)  # a thread's own MjData
+            # a thread's own MjData (a forked helper has its own copy of scene.data)
+            data = scene.data if not isinstance(n_threads, int) or n_threads == 1 else copy.copy(scene.data)
             ws = local.ws = _Workspace(data, np.empty((chunk_scans, N, F, 3)),
                                        np.empty((chunk_scans + 2 * halo, N, 3, 3)),
                                        np.empty(M, dtype=np.int32), np.empty(M), np.empty((M, 3)))

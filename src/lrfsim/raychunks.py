@@ -267,14 +267,20 @@ def cast_chunk_edges(model: Any, data: Any, geomgroup: NDArray[np.uint8], chunk:
     new_call[1:-1] = call_of[1:] != call_of[:-1]
     starts = np.flatnonzero((step[:-1] == 1) | (ring & new_call[:-1]))
     stops = np.flatnonzero((step[1:] == -1) | (ring & new_call[1:])) + 1
-    for b0, b1 in zip(starts.tolist(), stops.tolist(), strict=True):
-        dirs = np.matmul(coef, np.swapaxes(B[b0:b1], -1, -2))  # (nb, F, 3): the full chunk's numbers
-        nb = b1 - b0
-        gb, tb, nvb = np.empty((nb, F), dtype=np.int32), np.empty((nb, F)), np.empty((nb, F, 3))
-        multi_ray(model, data, chunk.call_origins[call_of[b0]], dirs.reshape(-1), geomgroup, 1, -1, gb.reshape(-1),
-                  tb.reshape(-1), nvb.reshape(-1), nb * F, cutoff_m)
-        g[b0:b1], t[b0:b1], nv[b0:b1] = gb, tb, nvb
-        dn[b0:b1] = np.einsum("bfk,bfk->bf", dirs, nvb)
+    # the blocks cover the marked beams in order: their sub-rays computed, and their hits placed, all at once (the
+    # same numbers as block by block; only the calls go one by one)
+    marked = np.flatnonzero(ring)
+    dirs = np.matmul(coef, np.swapaxes(B[marked], -1, -2))  # (nr, F, 3): the full chunk's numbers
+    gb, tb, nvb = np.empty((marked.size, F), dtype=np.int32), np.empty((marked.size, F)), np.empty((marked.size, F, 3))
+    d_all, g_all, t_all, n_all = dirs.reshape(-1), gb.reshape(-1), tb.reshape(-1), nvb.reshape(-1)
+    a = 0  # the block's first sub-ray among the marked beams'
+    for b0, nb in zip(starts.tolist(), (stops - starts).tolist(), strict=True):
+        b = a + nb * F
+        multi_ray(model, data, chunk.call_origins[call_of[b0]], d_all[3 * a:3 * b], geomgroup, 1, -1, g_all[a:b],
+                  t_all[a:b], n_all[3 * a:3 * b], nb * F, cutoff_m)
+        a = b
+    g[marked], t[marked], nv[marked] = gb, tb, nvb
+    dn[marked] = np.einsum("bfk,bfk->bf", dirs, nvb)
     return (g.reshape(-1), t.reshape(-1), nv.reshape(-1, 3), dn.reshape(k1 - k0, N, F),
             Sc * N + int(ring.sum()) * F)
 

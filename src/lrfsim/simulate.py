@@ -26,6 +26,7 @@ from .simresult import SimResult, SimStats, SimTruth
 from .tape import measure_tape
 
 if TYPE_CHECKING:
+    from .castfork import Forked
     from .scene import Scene
 
 FloatArray = NDArray[np.float64]
@@ -69,17 +70,18 @@ class Geometry:
     duration_s: float
     cast: Cast
     beam_times_s: FloatArray | None = None  # (S, N) true beam times (servo clock), for the warm-up drift
+    scans_cast: NDArray[np.bool_] | None = None  # (S,) the scans cast_geometry's ``scans`` chose; None: all, unchosen
 
 
 def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool = True,
-                  progress: Callable[[int, int], None] | None = None, threads: int | None = None,
+                  progress: Callable[[int, int], None] | None = None, threads: int | Forked | None = None,
                   footprint: str | None = None, scans: Callable[[FloatArray], NDArray[np.bool_]] | None = None
                   ) -> Geometry:
     """Cast the scenario's rays once (no noise drawn): the laser phase comes from ``scenario.seed`` as in
     :func:`simulate`; ``noise=False`` casts for a noise-free sensor (range_max cut-off, see simulate); ``threads``:
-    the cast's threads (lrfsim.raycast.cast_scans; the result does not depend on it); ``footprint``: "full", or
-    "edges" for the footprint's ring cast only where it can change a beam (lrfsim.raychunks.cast_chunk_edges);
-    default: the scenario's ``sensor.footprint_cast``;
+    the cast's threads, or a forked helper process (lrfsim.raycast.cast_scans; the result does not depend on it);
+    ``footprint``: "full", or "edges" for the footprint's ring cast only where it can change a beam
+    (lrfsim.raychunks.cast_chunk_edges); default: the scenario's ``sensor.footprint_cast``;
     ``scans(beam_lambda_rad (S, N)) -> (S,) bool``: cast only those scans, the others read as no return (each
     scan is cast on its own, so the scans cast read as in the full cast, up to "edges"' choice of where to cast
     the ring, which compares a scan with the scans cast beside it)."""
@@ -106,7 +108,8 @@ def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool
         cast = _in_scans(cast_scans(scene, sensor, beam_lambda[keep], progress=progress, threads=threads,
                                     footprint=footprint), keep)
     return Geometry(scenario_name=scenario.name, scene=scene, phase_s=phase_s, starts_s=starts_s,
-                    beam_lambda_rad=beam_lambda, duration_s=traj.end_s, cast=cast, beam_times_s=times_s)
+                    beam_lambda_rad=beam_lambda, duration_s=traj.end_s, cast=cast, beam_times_s=times_s,
+                    scans_cast=keep)
 
 
 def _in_scans(cast: Cast, keep: NDArray[np.bool_]) -> Cast:
@@ -137,7 +140,8 @@ def joined(a: Geometry, b: Geometry) -> Geometry:
                    cast_time_s=ca.cast_time_s + cb.cast_time_s, total_time_s=ca.total_time_s + cb.total_time_s,
                    max_origin_error_m=max(ca.max_origin_error_m, cb.max_origin_error_m),
                    max_parallax_correction_m=max(ca.max_parallax_correction_m, cb.max_parallax_correction_m))
-    return replace(a, cast=cast)
+    both = None if a.scans_cast is None or b.scans_cast is None else a.scans_cast | b.scans_cast
+    return replace(a, cast=cast, scans_cast=None if both is None or both.all() else both)
 
 
 def _noise_free(scenario: Scenario) -> Scenario:

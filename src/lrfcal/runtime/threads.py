@@ -66,20 +66,26 @@ def policy_threads() -> int | None:
     return n
 
 
-def _load_libraries() -> None:
+def _load_libraries(scipy: bool = True) -> None:
     """Import the modules that load a BLAS, so that threadpoolctl finds them (module docstring)."""
     import numpy  # noqa: F401
-    import scipy.linalg  # noqa: F401
+
+    if scipy:
+        import scipy.linalg  # noqa: F401
 
 
-def apply_thread_policy() -> int | None:
+def apply_thread_policy(*, scipy: bool = True) -> int | None:
     """Limit every loaded BLAS and OpenMP library of this process to :func:`policy_threads` threads, for good
-    (the programs' entry points and worker initializers). Returns the limit (None: left as it was)."""
+    (the programs' entry points and worker initializers). Returns the limit (None: left as it was).
+
+    ``scipy=False``: scipy.linalg is not imported first (0.1 s), so its BLAS is limited only if loaded already: for a
+    command that imports scipy later and calls this again then (`lrfsim plan`, which imports it while its cast runs
+    in a forked helper: lrfsim.cli)."""
     n = policy_threads()
     if n is not None:
         from threadpoolctl import threadpool_limits
 
-        _load_libraries()
+        _load_libraries(scipy)
         threadpool_limits(limits=n)
     return n
 
