@@ -8,7 +8,7 @@ Each recording (anything ``lrfcal inspect`` reads) is read as inspect reads it; 
 process (pinned to one core, so no start is forked; one BLAS thread), first as shipped, then ``--redraws`` times
 with every start's segmentation subsample drawn afresh (numpy's generator seeded by the redraw and the start: the
 same number of returns, nothing else changed). It also prints how many starts segment on another subsample than
-start 0 as shipped (the search salts lrfcal.stages.surfaces.hash_sample with 100 + k). Printed per run: the CPU of
+start 0 as shipped (the search salts lrfcal.stages.sampling.hash_sample with 100 + k). Printed per run: the CPU of
 the search, of its segmentations (lrfcal.stages.targetless.plane_returns_at) and of its solves
 (lrfcal.estimate.solve.solve_planes); the proposal and its 1-sigma; and for the other draws, each value's change
 from the shipped proposal in units of that proposal's 1-sigma. That change is the noise floor of the search: a
@@ -32,7 +32,7 @@ import numpy as np  # noqa: E402
 from lrfcal.estimate import solve  # noqa: E402
 from lrfcal.io.loginspect import inspect_path  # noqa: E402
 from lrfcal.stages import propose, targetless  # noqa: E402
-from lrfcal.stages.surfaces import hash_sample  # noqa: E402
+from lrfcal.stages.sampling import hash_sample  # noqa: E402
 
 NAMES = ("a", "alpha", "b", "beta")
 

@@ -196,7 +196,7 @@ def test_real_urg_stand_proposes_alpha_90(urg_proposals, name) -> None:  # type:
 @pytest.mark.parametrize("name", ["room_240"])
 def test_real_urg_stand_names_b_not_determined(urg_proposals, name) -> None:  # type: ignore[no-untyped-def]
     """room_240 does not determine b, and the proposal says so. Its starts segment on subsamples of their own
-    (lrfcal.stages.surfaces.hash_key): their b spread over 10 cm and more (redraws of the subsamples propose 158 and
+    (lrfcal.stages.sampling.hash_key): their b spread over 10 cm and more (redraws of the subsamples propose 158 and
     225 mm, docs/starts.md), so b is named not determined with a 1-sigma of about 8 cm. (When every start segmented
     on nearly the same subsample, b landed 14 mm from the authors' 0.08 m with a 1-sigma of 53 mm: one draw's
     chance.) The next test asks that the authors' value lie within 2 of that sigma."""

@@ -11,14 +11,13 @@ from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, transform_poi
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.plane import PlaneSet
 from lrfcal.model.unknowns import N_CORE, pack, plane_nuisance_start
+from lrfcal.stages.sampling import hash_key, hash_sample
 from lrfcal.stages.surfaces import (
     PlaneMarkers,
     ReturnRows,
     SurfaceSelection,
     candidate_planes,
     find_surfaces,
-    hash_key,
-    hash_sample,
     surface_returns,
 )
 from lrfcal.types import JointStates

@@ -276,7 +276,7 @@ def test_planes_are_segmented_with_the_intrinsics(shipped_recording: Callable[[s
     positions x 1.05 (a gear ratio) segmented with motor_scale = 1 / 1.05 label exactly the returns of the clean
     recording; without it the bent cloud loses most of them (it kept 1854 of 4736 before the fix)."""
     from lrfcal.model.motor import MotorClock
-    from lrfcal.stages.surfaces import hash_sample
+    from lrfcal.stages.sampling import hash_sample
     from lrfcal.stages.targetless import plane_returns_at, sample_returns
     from lrfcal.types import JointStates
 

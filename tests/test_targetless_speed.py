@@ -29,7 +29,7 @@ from lrfcal.model.kinematics import DH, Params, beam_rays_W, points_M
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import N_CORE
 from lrfcal.stages import holdout, planes, targetless
-from lrfcal.stages.surfaces import hash_sample
+from lrfcal.stages.sampling import hash_sample
 from lrfcal.stages.timing import usable_scans
 
 CONFIG = CalibConfig(targetless=True, range_sigma_m=0.01)

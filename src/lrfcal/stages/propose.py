@@ -6,7 +6,7 @@ segmented in the cloud at the current DH with grazing and edge returns left out;
 every
 plane return a ray-plane range residual, planes free). It is started from every combination of
 :data:`START_ALPHA_DEG`, :data:`START_BETA_DEG` and :data:`START_B_M` (a = 0), each segmenting the planes on a
-subsample of the returns drawn by its own seed (lrfcal.stages.surfaces.hash_sample: two starts' subsamples share
+subsample of the returns drawn by its own seed (lrfcal.stages.sampling.hash_sample: two starts' subsamples share
 about the fraction of the returns each holds), and each start is solved for all
 four DH parameters with a weak prior around the start (:data:`PRIOR_SIGMA`: it keeps a and b from running off where
 the scene hardly constrains them), a few rounds of segment-and-solve (the planes re-segmented with the new
@@ -60,7 +60,7 @@ from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import wrap_pi
 from lrfcal.runtime.forked import Ahead, call_forked, cores
 from lrfcal.stages import targetless
-from lrfcal.stages.surfaces import hash_sample
+from lrfcal.stages.sampling import hash_sample
 from lrfcal.stages.timing import usable_scans
 from lrfcal.types import JointStates, Nominal, Recording, Scans
 

@@ -25,7 +25,8 @@ from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import CORE_NAMES
 from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
 from lrfcal.stages import holdout, planes, propose, starts, timing
-from lrfcal.stages.surfaces import SurfaceReturns, hash_sample
+from lrfcal.stages.sampling import hash_sample
+from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.stages.targetless import (
     DH_NAMES,
     MOTOR_FRAME,

@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from lrfcal.model.kinematics import BeamTrig, Params, beam_rays_W_trig, beam_trig, points_W, points_W_trig
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
+from lrfcal.stages.sampling import hash_key
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -59,8 +60,9 @@ ROUNDS = 3
 @dataclass(frozen=True)
 class SurfaceSelection:
     """How the surface returns are chosen (:func:`surface_returns`): at most ``max_returns``, those of lowest
-    :func:`hash_key` with ``seed``; candidates within ``gate_m`` of a surface; kept inside the markers' extent and
-    ``marker_clearance_m`` from every marker; with rays, an incidence up to ``max_incidence_rad``."""
+    :func:`lrfcal.stages.sampling.hash_key` with ``seed``; candidates within ``gate_m`` of a surface; kept inside
+    the markers' extent and ``marker_clearance_m`` from every marker; with rays, an incidence up to
+    ``max_incidence_rad``."""
 
     max_returns: int = 40000
     seed: int = 0
@@ -171,37 +173,6 @@ class SurfaceReturns:
     def subset(self, mask: NDArray[np.bool_]) -> SurfaceReturns:
         return SurfaceReturns(**{k: None if getattr(self, k) is None else getattr(self, k)[mask]
                                  for k in self.__dataclass_fields__})
-
-
-#: an odd 64-bit constant (2^64 / golden ratio) that scrambles a salted key (:func:`hash_key`)
-_SCRAMBLE = 0x9E3779B97F4A7C15
-
-
-def hash_key(scan: IntArray, beam: IntArray, seed: int = 0) -> NDArray[np.uint64]:
-    """The hash of every (scan, beam) pair (K,) that :func:`hash_sample` ranks them by, in [0, 2^31).
-
-    Seed 0 is the plain hash of the pair. Another seed scrambles it: an exclusive or with the seed's own multiple of
-    :data:`_SCRAMBLE`, a multiplication by it and an exclusive or with the key's high bits, a bijection of the 64-bit
-    key whose low 31 bits rank the pairs anew for every seed (two seeds' subsamples of a fraction f of the pairs share
-    about f of them). Adding the seed to the plain hash, as this did before, only turned the ranking cyclically:
-    every seed then chose nearly the same subsample."""
-    key = np.asarray(scan, dtype=np.uint64) * np.uint64(2654435761)
-    key += np.asarray(beam, dtype=np.uint64) * np.uint64(40503)
-    if seed:
-        key ^= np.uint64((seed * _SCRAMBLE) & 0xFFFF_FFFF_FFFF_FFFF)
-        key *= np.uint64(_SCRAMBLE)
-        key ^= key >> np.uint64(31)
-    key &= np.uint64((1 << 31) - 1)  # the remainder modulo 2^31 of an unsigned integer, without a division
-    return key
-
-
-def hash_sample(scan: IntArray, beam: IntArray, n: int, seed: int = 0) -> IntArray:
-    """Indices of an even subsample of at most n of the (scan, beam) pairs (K,), chosen by a hash of the pair
-    (salted by seed), in their original order."""
-    K = len(scan)
-    if n >= K:
-        return np.arange(K)
-    return np.sort(np.argsort(hash_key(scan, beam, seed), kind="stable")[:n])
 
 
 def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
@@ -315,9 +286,10 @@ def surface_returns(
     long: a bias); and returns whose incidence (the angle between the ray and the plane's normal) exceeds
     ``max_incidence_rad`` are left out. Without it, the measured points decide and every incidence is kept.
 
-    The subsample is the ``max_returns`` accepted returns of lowest :func:`hash_key` (ties: surface by surface, in
-    row order), as :func:`hash_sample` of all the accepted ones would choose; the candidates within ``gate_m`` of a
-    surface are judged in that order, in batches, until enough are accepted, so the rays of most are never needed."""
+    The subsample is the ``max_returns`` accepted returns of lowest :func:`lrfcal.stages.sampling.hash_key` (ties:
+    surface by surface, in row order), as :func:`lrfcal.stages.sampling.hash_sample` of all the accepted ones would
+    choose; the candidates within ``gate_m`` of a surface are judged in that order, in batches, until enough are
+    accepted, so the rays of most are never needed."""
     sel = selection
     max_returns, seed, gate_m = sel.max_returns, sel.seed, sel.gate_m
     marker_clearance_m, max_incidence_rad = sel.marker_clearance_m, sel.max_incidence_rad
@@ -374,7 +346,7 @@ def surface_returns(
 
 
 __all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
-           "SurfaceSelection", "candidate_planes", "find_surfaces", "hash_key", "hash_sample", "surface_returns"]
+           "SurfaceSelection", "candidate_planes", "find_surfaces", "surface_returns"]
 
 
 def observe_surfaces(

@@ -46,7 +46,8 @@ from lrfcal.model.unknowns import core_vector, dh_difference
 from lrfcal.result import PlaneFit
 from lrfcal.runtime.forked import cores
 from lrfcal.stages import planes
-from lrfcal.stages.surfaces import Surface, SurfaceReturns, hash_sample
+from lrfcal.stages.sampling import hash_sample
+from lrfcal.stages.surfaces import Surface, SurfaceReturns
 from lrfcal.types import Check, JointStates, Scans, Solution
 
 FloatArray = NDArray[np.float64]
