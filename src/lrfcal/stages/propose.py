@@ -199,7 +199,10 @@ def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], D
         yield lambda: search
         return
     n = search.n_groups
-    groups = [list(range(g, len(search.starts), n)) for g in range(n)]
+    # one child per core the fit leaves idle (niced children sharing one core would each have a start cut short
+    # when the proposal is asked for), the starts in turn
+    n_ahead = max(1, min(n, cores() - 1))
+    groups = [list(range(g, len(search.starts), n_ahead)) for g in range(n_ahead)]
     with contextlib.ExitStack() as stack:
         aheads = [stack.enter_context(Ahead(_ready, inherit=(search,), nice=AHEAD_NICE)) for _ in groups]
         for ahead, ks in zip(aheads, groups, strict=True):
