@@ -248,7 +248,8 @@ def _solve_on_cores(search: _Search, ks: list[int], progress: Callable[[int, int
         got = [0] * n_help  # the results taken from each helper (its share's first ones)
 
         def take(h: int) -> None:
-            out.update(helpers[h].result())
+            for k, cand in helpers[h].result():
+                out.setdefault(k, cand)
             got[h] += 1
 
         here: set[int] = set()
