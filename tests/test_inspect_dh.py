@@ -258,6 +258,37 @@ def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch
     assert 0 < len(seen[1]) < n_starts  # some starts failed, in the middle of the groups
 
 
+def test_the_search_shares_its_starts_between_this_process_and_a_helper_from_both_ends(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """On two cores the starts are solved by a forked helper from the front and by this process from the back: each
+    start once, this process's a run of the last starts, the helper's a run of the first, none left out."""
+    import os
+    import time
+
+    import lrfcal.stages.propose as propose
+    from lrfcal.runtime import forked
+
+    here = os.getpid()
+
+    def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]
+        time.sleep(0.05)
+        return start, np.array([float(os.getpid() == here), 0.0, 0.0, 0.0])
+
+    monkeypatch.setattr(propose, "_candidate", candidate)
+    monkeypatch.setattr(propose, "cores", lambda: 2)
+    scans, joints = _random_scans()
+    search = propose._search(scans, joints, 0.0)
+    assert isinstance(search, propose._Search)
+    ks = list(range(len(search.starts)))
+    solved = propose._solve_on_cores(search, ks)
+    assert [k for k, _ in solved] == ks
+    by_here = [k for k, cand in solved if cand is not None and cand[1][0] == 1.0]
+    if forked._can_fork():
+        assert 0 < len(by_here) < len(ks)
+        assert by_here == ks[len(ks) - len(by_here):]  # a run from the back; the helper's a run from the front
+    else:
+        assert by_here == ks
+
+
 def test_the_search_begun_ahead_gives_the_same_proposal_and_ends_with_a_refusal(monkeypatch) -> None:  # type: ignore[no-untyped-def]
     """lrfcal.stages.propose.proposal_ahead (the targetless calibration's DH search, begun in forked children while
     the fit runs) gives propose_dh's proposal; leaving it without asking (a refused fit) ends its children at once,

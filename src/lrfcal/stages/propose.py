@@ -30,10 +30,9 @@ and the median of the solves' own 1-sigma (scaled by the square root of their re
 1-sigma exceeds :data:`DETERMINED` is named as not determined by the scene (its value is the search's best guess,
 not a measurement).
 
-The starts are independent: they are solved in groups on the machine's cores, the first group in this process and
-the others in forked children (lrfcal.runtime.forked), and collected in start order, so the proposal does not depend on
-how
-many cores there are.
+The starts are independent: they are solved on the machine's cores, this process taking them from the back and a
+forked helper per other core its share from the front (lrfcal.runtime.forked.Ahead), and collected in start order,
+so the proposal does not depend on how many cores there are, nor on which core solved which start.
 
 Array shapes: K returns.
 """
@@ -45,7 +44,6 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,13 +56,15 @@ from lrfcal.io.rig import is_placeholder_dh
 from lrfcal.model.kinematics import DH, Params, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import wrap_pi
-from lrfcal.runtime.forked import Ahead, call_forked, cores
+from lrfcal.runtime.forked import Ahead, cores
 from lrfcal.stages import targetless
 from lrfcal.stages.sampling import hash_sample
 from lrfcal.stages.timing import usable_scans
 from lrfcal.types import JointStates, Nominal, Recording, Scans
 
 FloatArray = NDArray[np.float64]
+#: the starts solved: (start index, its candidate or None), in the order asked for
+Solved = list[tuple[int, tuple[DH, FloatArray] | None]]
 NAMES = ("a", "alpha", "b", "beta")
 #: the starts of the search: every combination (a = 0)
 START_ALPHA_DEG = (45.0, 90.0, 135.0)
@@ -173,11 +173,8 @@ def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int],
     search = _search(scans, joints, t0)
     if isinstance(search, DHProposal):
         return search
-    # the starts are independent: solved in groups on the cores (lrfcal.runtime.forked), collected in start order
-    n = search.n_groups
-    parts = call_forked({str(g): partial(_solve_starts, search, list(range(g, len(search.starts), n)),
-                                         progress if g == 0 else None) for g in range(n)})
-    return _proposal(search, list(parts.values()), t0, progress)
+    # the starts are independent: solved on the cores (lrfcal.runtime.forked), collected in start order
+    return _proposal(search, [_solve_on_cores(search, list(range(len(search.starts))), progress)], t0, progress)
 
 
 #: the niceness added to the children of :func:`proposal_ahead`: they take idle cores only, never the fit's
@@ -187,11 +184,11 @@ AHEAD_NICE = 19
 @contextlib.contextmanager
 def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], DHProposal]]:
     """:func:`propose_dh` ``(scans, joints)`` begun now, while this process goes on (the targetless fit: the search
-    does not depend on it), in forked children at the lowest priority (lrfcal.runtime.forked.Ahead, one per group of
-    starts, each inheriting the sampled returns, :data:`AHEAD_NICE`): they use cores that would idle, and take no time
-    from this process where the cores are busy. The callable yielded returns the proposal: the starts the children
-    finished, the others solved then as :func:`propose_dh` solves them (on the cores, at the usual priority), the
-    same proposal as :func:`propose_dh`'s. The children end when it is asked for, or when the context is left (a
+    does not depend on it), in forked children at the lowest priority (lrfcal.runtime.forked.Ahead, one per core beside
+    this process, each inheriting the sampled returns, :data:`AHEAD_NICE`): they use cores that would idle, and take
+    no time from this process where the cores are busy. The callable yielded returns the proposal: the starts the
+    children finished, the others solved then as :func:`propose_dh` solves them (on the cores, at the usual priority),
+    the same proposal as :func:`propose_dh`'s. The children end when it is asked for, or when the context is left (a
     refused fit)."""
     t0 = time.perf_counter()
     search = _search(scans, joints, t0)
@@ -199,7 +196,10 @@ def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], D
         yield lambda: search
         return
     n = search.n_groups
-    groups = [list(range(g, len(search.starts), n)) for g in range(n)]
+    # one child per core the fit leaves idle (niced children sharing one core would each have a start cut short
+    # when the proposal is asked for), the starts in turn
+    n_ahead = max(1, min(n, cores() - 1))
+    groups = [list(range(g, len(search.starts), n_ahead)) for g in range(n_ahead)]
     with contextlib.ExitStack() as stack:
         aheads = [stack.enter_context(Ahead(_ready, inherit=(search,), nice=AHEAD_NICE)) for _ in groups]
         for ahead, ks in zip(aheads, groups, strict=True):
@@ -218,9 +218,7 @@ def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], D
                 stack.close()  # the children end (one still solving a start at once)
                 have = {k for k, _ in done}
                 missing = [k for k in range(len(search.starts)) if k not in have]
-                m = max(1, min(n, len(missing)))
-                rest = call_forked({str(g): partial(_solve_starts, search, missing[g::m]) for g in range(m)})
-                taken.append(_proposal(search, [done, *rest.values()], t0, None))
+                taken.append(_proposal(search, [done, _solve_on_cores(search, missing)], t0, None))
             return taken[0]
 
         yield proposal
@@ -228,6 +226,47 @@ def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], D
 
 def _ready() -> None:
     """An :class:`~lrfcal.runtime.forked.Ahead` child's preparation: none (it inherited what the search reads)."""
+
+
+def _solve_on_cores(search: _Search, ks: list[int], progress: Callable[[int, int], None] | None = None) -> Solved:
+    """The starts ``ks`` solved on the cores at the usual priority (``progress(done, total)`` after every start): a
+    forked helper per other core (lrfcal.runtime.forked.Ahead, at most ``search.n_groups - 1``) takes its share
+    (every n-th start) from the front, one call per start, while this process takes them from the back, skipping
+    any its helper has begun or finished; then it waits for the helpers' starts it did not take (at most the one
+    each is solving), and the helpers end. The cores so end together to within one start, where fixed shares (one
+    group per core) left one core idle while the other solved its group's costlier starts. A start solved both here
+    and by its helper gives the same candidate; it is kept once."""
+    n_help = max(0, min(search.n_groups, len(ks)) - 1)
+    shares = [ks[h::n_help] for h in range(n_help)]
+    owner = {k: (h, p) for h, share in enumerate(shares) for p, k in enumerate(share)}
+    out: dict[int, tuple[DH, FloatArray] | None] = {}
+    with contextlib.ExitStack() as stack:
+        helpers = [stack.enter_context(Ahead(_ready, inherit=(search,))) for _ in shares]
+        for helper, share in zip(helpers, shares, strict=True):
+            for k in share:
+                helper.start(_solve_starts, search, [k])
+        got = [0] * n_help  # the results taken from each helper (its share's first ones)
+
+        def take(h: int) -> None:
+            for k, cand in helpers[h].result():
+                out.setdefault(k, cand)
+            got[h] += 1
+
+        here: set[int] = set()
+        for k in reversed(ks):
+            for h, helper in enumerate(helpers):
+                while got[h] < len(shares[h]) and helper.ready():
+                    take(h)
+            if k in out or (k in owner and owner[k][1] <= got[owner[k][0]]):
+                continue  # its helper has it (done, or the one it is solving)
+            out.update(_solve_starts(search, [k]))
+            here.add(k)
+            if progress is not None:
+                progress(min(len(search.starts) - 1, len(out)), len(search.starts))
+        for h, share in enumerate(shares):  # what is left of each share: the first starts not solved here
+            while got[h] < len(share) and share[got[h]] not in here:
+                take(h)
+    return [(k, out[k]) for k in ks]
 
 
 @dataclass(frozen=True)
