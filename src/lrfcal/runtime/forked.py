@@ -1,7 +1,7 @@
 """Independent tasks on the machine's cores without pickling their inputs: the first task runs in this process, the
 others in forked children, which inherit everything the tasks read (a calibration result, the modules imported).
-Only each task's return value travels back (pickled). Used by the DH proposal's groups of starts
-(lrfcal.stages.propose).
+Only each task's return value travels back (pickled). Used by the check "starts agree" for its other starts
+(lrfcal.stages.starts).
 
 Where no child can be forked (no fork on this platform, one core, a daemonic process such as a pool's worker), or
 a child dies (e.g. out of memory), its task runs here: the outcome is the same, only slower.
