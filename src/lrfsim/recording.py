@@ -157,14 +157,6 @@ def bag_columns(result: SimResult, scenario: Scenario) -> tuple[list[tuple[str, 
     return topics, messages, *_log_order(result, scenario, echoes is not None)
 
 
-def bag_records(result: SimResult, scenario: Scenario) -> tuple[list[tuple[str, str]], list[tuple[int, str, Any]]]:
-    """The bag's topics [(topic, type)] and its serialised messages [(log time ns, topic, CDR bytes)] in log-time
-    order: :func:`bag_columns` message by message."""
-    topics, messages, log_ns, channel, index = bag_columns(result, scenario)
-    return topics, [(t, topics[c][0], memoryview(messages[c][k]))
-                    for t, c, k in zip(log_ns.tolist(), channel.tolist(), index.tolist(), strict=True)]
-
-
 def _scan_floats(result: SimResult, scenario: Scenario) -> list[float]:
     """A LaserScan's float fields (lrfcal.io.wire.SCAN_FLOATS order) as float32 values: the LaserScans declare
     ``result.declared_angle_increment_rad`` when a fault set it, else the sensor's; angle_max is the true span."""
@@ -348,6 +340,5 @@ def ground_truth_yaml(result: SimResult) -> str:
     })
 
 
-__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_columns", "bag_messages", "bag_records",
-           "check_output", "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag",
-           "write_recording"]
+__all__ = ["EPOCH_NS", "JOINT_TOPIC", "MULTIECHO_TYPE", "SCAN_TOPIC", "bag_columns", "bag_messages", "check_output",
+           "distances_csv", "ground_truth_yaml", "in_memory_bag", "nominal_yaml", "write_bag", "write_recording"]

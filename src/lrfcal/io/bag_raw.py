@@ -20,11 +20,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-_MESSAGE_OP, _INDEX_OP = 0x05, 0x07
+#: the MCAP opcodes of a Message record and of a MessageIndex record (mcap.dev/spec; lrfcal.io.mcap_write writes them)
+MESSAGE_OP, INDEX_OP = 0x05, 0x07
 #: a message record's head: opcode, record length (uint64), channel id (uint16), sequence (uint32), log time and
 #: publish time (uint64)
-_MESSAGE_HEAD = np.dtype([("op", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
-                          ("log_time", "<u8"), ("publish_time", "<u8")])
+MESSAGE_HEAD = np.dtype([("op", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"),
+                         ("log_time", "<u8"), ("publish_time", "<u8")])
 
 
 class _NotIndexed(Exception):
@@ -148,7 +149,7 @@ def _indexed(f: Any, chunk: Any, wanted: list[int]) -> tuple[NDArray[np.int64], 
     for cid in wanted:
         f.seek(chunk.message_index_offsets[cid])
         head = f.read(15)
-        if len(head) != 15 or head[0] != _INDEX_OP or int.from_bytes(head[9:11], "little") != cid:
+        if len(head) != 15 or head[0] != INDEX_OP or int.from_bytes(head[9:11], "little") != cid:
             raise _NotIndexed
         pairs = np.frombuffer(f.read(int.from_bytes(head[11:15], "little")), dtype="<u8").reshape(-1, 2)
         times.append(pairs[:, 0].astype(np.int64))
@@ -162,13 +163,13 @@ def _located(data: bytes | memoryview, offsets: NDArray[np.int64], times: NDArra
              ) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
     """(start, length) of each message's serialised bytes in the chunk's records ``data``, its record checked
     against the index (a message record of a wanted channel at the log time the index gives)."""
-    size = _MESSAGE_HEAD.itemsize
+    size = MESSAGE_HEAD.itemsize
     if offsets.size and (offsets.min() < 0 or offsets.max() + size > len(data)):
         raise _NotIndexed
     u8 = np.frombuffer(data, dtype=np.uint8)
-    heads = u8[offsets[:, None] + np.arange(size)].view(_MESSAGE_HEAD)[:, 0]
+    heads = u8[offsets[:, None] + np.arange(size)].view(MESSAGE_HEAD)[:, 0]
     length = heads["length"].astype(np.int64) - (size - 9)
-    ok = ((heads["op"] == _MESSAGE_OP) & np.isin(heads["channel"], wanted)
+    ok = ((heads["op"] == MESSAGE_OP) & np.isin(heads["channel"], wanted)
           & (heads["log_time"].astype(np.int64) == times) & (length >= 0)
           & (offsets + size + length <= len(data)))
     if not ok.all():
@@ -176,4 +177,4 @@ def _located(data: bytes | memoryview, offsets: NDArray[np.int64], times: NDArra
     return offsets + size, length
 
 
-__all__ = ["RawTopic", "raw_messages"]
+__all__ = ["INDEX_OP", "MESSAGE_HEAD", "MESSAGE_OP", "RawTopic", "raw_messages"]

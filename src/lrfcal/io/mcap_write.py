@@ -36,12 +36,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal.io.bag_raw import INDEX_OP, MESSAGE_HEAD, MESSAGE_OP
+
 MAGIC = b"\x89MCAP0\r\n"
 #: a chunk is closed after the message that takes its content past this size [bytes] (rosbags' McapWriter)
 CHUNK_BYTES = 2**20
 _NO_TIME = 2**63 - 1  # rosbags' start time of a chunk (and of a bag) without messages
-_HEAD = np.dtype([("op", "u1"), ("length", "<u8"), ("channel", "<u2"), ("sequence", "<u4"), ("log", "<u8"),
-                  ("publish", "<u8")])  # a Message record's head, packed: 31 bytes
 _ENTRY = np.dtype([("log", "<u8"), ("offset", "<u8")])  # a MessageIndex entry
 _IDL = "=" * 80 + "\nIDL: "
 #: the offered QoS profiles of a topic that declares none, as rosbags' Writer dumps them
@@ -180,7 +180,7 @@ def _chunks(f: _File, prefix: bytes, heads: NDArray[Any], pieces: list[Any], siz
     for s, e in _chunk_bounds(ends, len(prefix)):
         p0 = len(prefix) if s == 0 else 0
         size = p0 + (int(ends[e - 1] - starts[s]) if e > s else 0)
-        log = heads["log"][s:e]
+        log = heads["log_time"][s:e]
         t0, t1 = (int(log.min()), int(log.max())) if e > s else (_NO_TIME, 0)
         chunk_at = f.add(struct.pack("<BQQQQII", 0x06, 40 + size, t0, t1, size, 0, 0) + struct.pack("<Q", size))
         if p0:
@@ -197,7 +197,7 @@ def _chunks(f: _File, prefix: bytes, heads: NDArray[Any], pieces: list[Any], siz
             entries = np.empty(int(sel.sum()), dtype=_ENTRY)
             entries["log"], entries["offset"] = log[sel], offsets[sel]
             where.append(struct.pack("<HQ", cid, f.add(
-                _record(0x07, struct.pack("<HI", cid, entries.nbytes) + entries.tobytes()))))
+                _record(INDEX_OP, struct.pack("<HI", cid, entries.nbytes) + entries.tobytes()))))
         index.append(_record(0x08, struct.pack("<QQQQI", t0, t1, chunk_at, chunk_end - chunk_at, 10 * len(where))
                              + b"".join(where) + struct.pack("<Q", f.pos - chunk_end) + _string("")
                              + struct.pack("<QQ", size, size)))
@@ -205,12 +205,13 @@ def _chunks(f: _File, prefix: bytes, heads: NDArray[Any], pieces: list[Any], siz
 
 
 def _heads(log_ns: NDArray[np.int64], channel: NDArray[np.int64], lengths: NDArray[np.int64]) -> NDArray[Any]:
-    """The Message records' heads (N,) of :data:`_HEAD`: channel ids from 1, sequence 0, publish time = log time."""
-    heads = np.zeros(log_ns.size, dtype=_HEAD)
-    heads["op"] = 0x05
+    """The Message records' heads (N,) of :data:`lrfcal.io.bag_raw.MESSAGE_HEAD`: channel ids from 1, sequence 0,
+    publish time = log time."""
+    heads = np.zeros(log_ns.size, dtype=MESSAGE_HEAD)
+    heads["op"] = MESSAGE_OP
     heads["length"] = 22 + lengths
     heads["channel"] = channel + 1
-    heads["log"] = heads["publish"] = log_ns
+    heads["log_time"] = heads["publish_time"] = log_ns
     return heads
 
 
@@ -342,7 +343,7 @@ def write_rosbag2_mcap(path: str | Path, topics: Sequence[BagTopic], messages: S
     heads = _heads(log_ns, channel, lengths[which])
     head_bytes = memoryview(heads.tobytes())
     pieces: list[Any] = [None] * (2 * log_ns.size)
-    pieces[0::2] = [head_bytes[a:a + _HEAD.itemsize] for a in range(0, heads.nbytes, _HEAD.itemsize)]
+    pieces[0::2] = [head_bytes[a:a + MESSAGE_HEAD.itemsize] for a in range(0, heads.nbytes, MESSAGE_HEAD.itemsize)]
     pieces[1::2] = list(map(views.__getitem__, which.tolist()))
     schemas, channels, prefix = _schemas_and_channels(topics)
 

@@ -53,16 +53,11 @@ def beam_rays(
 
     def rz(v: FloatArray) -> FloatArray:  # Rz(lambda_k) v_k for v (K, 3) or (3,)
         out = np.empty((K, 3))
-        if v.ndim == 1:  # one vector for every beam: its entries as scalars (the same products)
-            v0, v1, v2 = v
-            np.subtract(cl * v0, sl * v1, out=out[:, 0])
-            np.add(sl * v0, cl * v1, out=out[:, 1])
-            out[:, 2] = v2
-            return out
-        v = np.broadcast_to(v, (K, 3))
-        np.subtract(cl * v[:, 0], sl * v[:, 1], out=out[:, 0])
-        np.add(sl * v[:, 0], cl * v[:, 1], out=out[:, 1])
-        out[:, 2] = v[:, 2]
+        # one vector for every beam: its entries as scalars (the same products as its broadcast columns)
+        v0, v1, v2 = v if v.ndim == 1 else (v[:, 0], v[:, 1], v[:, 2])
+        np.subtract(cl * v0, sl * v1, out=out[:, 0])
+        np.add(sl * v0, cl * v1, out=out[:, 1])
+        out[:, 2] = v2
         return out
 
     o_M = rz(np.array([a, -b * sa, b * ca]))
