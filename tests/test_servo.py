@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from pydantic import ValidationError
 
 from lrfsim.scenario import Scenario
@@ -21,6 +22,7 @@ from lrfsim.servo import (
     servo_trajectory,
     sweep_trajectory,
 )
+from lrfsim.servo_timing import servo_run_time_s
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
@@ -198,6 +200,21 @@ def test_spin_is_validated_and_sized() -> None:
     a, b = servo_trajectory(sweep), sweep_trajectory(sweep)
     assert all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("start_s", "from_rad", "direction"))
     assert covered_angles_rad(sweep) == (-0.5, 0.5)
+
+
+def test_the_scenarios_run_time_is_the_trajectorys_end_bit_for_bit() -> None:
+    """The memory estimate's run time (lrfsim.servo_timing.servo_run_time_s, from the servo section alone) is the
+    trajectory's end_s exactly, for sweeps and spins of random lengths, speeds and ramps and for every shipped
+    scenario: the estimate's number of scans is the simulation's."""
+    rng = np.random.default_rng(57)
+    servos = [Scenario.model_validate(yaml.safe_load(p.read_text())).servo for p in sorted(SCENARIOS.glob("*.yaml"))]
+    for _ in range(200):
+        speed, accel, settle = rng.uniform(0.01, 5.0), rng.uniform(0.05, 50.0), rng.uniform(0.0, 3.0)
+        servos.append(_servo(start_rad=rng.uniform(-6, 6), end_rad=rng.uniform(-6, 6), passes=int(rng.integers(1, 9)),
+                             speed_rad_s=speed, accel_rad_s2=accel, settle_s=settle))
+        servos.append(_spin(revolutions=rng.uniform(0.01, 20.0), speed_rad_s=speed, accel_rad_s2=accel,
+                            settle_s=settle, spin_direction=int(rng.choice([-1, 1]))))
+    assert all(servo_run_time_s(sv) == servo_trajectory(sv).end_s for sv in servos)
 
 
 def test_spinning_scenario_bag_has_unwrapped_joint_states(shipped_recording: Callable[[str], Path]) -> None:

@@ -34,6 +34,7 @@ from .scenario_sections import (
     Tolerances,
     doc,
 )
+from .servo_timing import servo_run_time_s
 
 
 class Scenario(Section):
@@ -147,10 +148,8 @@ MAX_SCENARIO_BYTES = 8 * 2**30
 
 def estimate_memory_bytes(scenario: Scenario) -> tuple[int, int]:
     """(number of scans, bytes) a scenario needs: scans x beams x BYTES_PER_BEAM + a chunk's footprint rays."""
-    from .servo import servo_trajectory
-
     se = scenario.sensor
-    n_scans = int(math.ceil(servo_trajectory(scenario.servo).end_s / se.scan_period_s)) + 1
+    n_scans = int(math.ceil(servo_run_time_s(scenario.servo) / se.scan_period_s)) + 1
     chunk_rays = 16 * se.n_beams * se.footprint_rays
     return n_scans, n_scans * se.n_beams * BYTES_PER_BEAM + chunk_rays * BYTES_PER_CHUNK_RAY
 

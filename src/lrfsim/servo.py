@@ -43,9 +43,9 @@ from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.errors import InputError
 
-from .profile import move_profile
+from .servo_timing import move_profile
 
-if TYPE_CHECKING:  # annotations only: scenario.py uses this module (no import circle)
+if TYPE_CHECKING:  # annotations only
     from .scenario_sections import ServoConfig
 
 FloatArray = NDArray[np.float64]
