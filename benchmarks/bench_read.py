@@ -53,9 +53,9 @@ print(time.perf_counter() - t0, time.process_time() - c0)
 
 def _simulated(tmp: Path, repeat: int, times: dict[str, list[float]], cpus: dict[str, list[float]]) -> Path:
     """tunnel_v simulated and written into ``tmp``; its bag's writing timed both ways (module docstring)."""
-    from lrfsim.recording import write_bag
+    from lrfsim.recording import write_bag, write_recording
     from lrfsim.scenario import load_scenario
-    from lrfsim.simulate import simulate, write_recording
+    from lrfsim.simulate import simulate
 
     scenario = load_scenario(ROOT / "scenarios" / "tunnel_v.yaml")
     result = simulate(scenario)

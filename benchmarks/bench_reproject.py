@@ -28,7 +28,7 @@ from lrfcal.io.cloud import BeamCloud, CloudOutputs, reproject_bag, reproject_be
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH
 from lrfsim.scenario import load_scenario
-from lrfsim.simulate import simulate_to_folder
+from lrfsim.to_folder import simulate_to_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -35,7 +35,7 @@ from lrfsim.scenario import Scenario, load_scenario
 from lrfsim.scenario_sections import SensorConfig
 from lrfsim.scene import Scene, build_scene
 from lrfsim.servo import servo_trajectory
-from lrfsim.simulate import simulate_to_folder
+from lrfsim.to_folder import simulate_to_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 

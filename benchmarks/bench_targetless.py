@@ -21,8 +21,9 @@ from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.result import PlaneEvidence
 from lrfsim.compare import load_truth
+from lrfsim.recording import write_recording
 from lrfsim.scenario import load_scenario
-from lrfsim.simulate import simulate, write_recording
+from lrfsim.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 DH = ("a", "alpha", "b", "beta")

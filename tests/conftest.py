@@ -121,7 +121,8 @@ def _shared_root(factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def recording_of(tmp_path_factory: pytest.TempPathFactory) -> Callable[[Scenario], Path]:
     """``recording_of(scenario)`` -> its recording folder (module docstring); do not write into it."""
-    from lrfsim.simulate import simulate, write_recording
+    from lrfsim.recording import write_recording
+    from lrfsim.simulate import simulate
 
     root = _shared_root(tmp_path_factory)
 

@@ -15,8 +15,9 @@ from lrfcal.errors import InputError
 from lrfcal.stages.detection import detect
 from lrfcal.types import Scans
 from lrfsim.faults import apply_faults, bright_mask, marker_returns, scale_range_noise
+from lrfsim.recording import write_recording
 from lrfsim.scenario import Scenario, parse_scenario
-from lrfsim.simulate import SimResult, simulate, write_recording
+from lrfsim.simulate import SimResult, simulate
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 

@@ -160,7 +160,7 @@ def test_near_perpendicular_truth_is_calibrated_within_4_sigma(tmp_path: Path) -
     truths came back 5-9 sigma off and were refused by an attitude limit). Its spin turns on some markers (the band
     a tilted plane sweeps ends there), and that model error joins its sigma near perpendicular too
     (lrfcal.stages.markers._with_turning_systematic; once held back within 15 deg of perpendicular)."""
-    from lrfsim.simulate import write_recording
+    from lrfsim.recording import write_recording
     from lrfsim.trial import calibrate_recording
 
     sc = random_scenario_wide(2, broad=True)
@@ -185,7 +185,7 @@ def test_near_perpendicular_truth_in_the_maps_other_handedness(tmp_path: Path, s
     Truth 14 recorded with seed 1007 (a Monte-Carlo trial of `lrfsim study --recast`), solved so, ended in the
     rig's other DH representative (-a, -alpha, b, beta + pi, the mount turned by pi: the same rig), 435-894 sigma
     off the rig file's DH as reported; it is now solved once more from that twin, in the nominal's representative."""
-    from lrfsim.simulate import write_recording
+    from lrfsim.recording import write_recording
     from lrfsim.trial import calibrate_recording
 
     sc = random_scenario_wide(seed, broad=True)

@@ -14,9 +14,10 @@ import lrfsim.recording as recording
 from lrfcal.errors import InputError
 from lrfcal.io.files import MANIFEST_NAME
 from lrfsim.lidar import beam_times
+from lrfsim.recording import write_recording
 from lrfsim.scenario import Scenario, load_scenario, parse_scenario
 from lrfsim.servo import sweep_trajectory
-from lrfsim.simulate import SimResult, simulate, write_recording
+from lrfsim.simulate import SimResult, simulate
 from lrfsim.tape import affine_dimension, is_rigid, measure_tape
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"

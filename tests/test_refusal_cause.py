@@ -25,7 +25,8 @@ from lrfcal.estimate.checks import refuse_failed
 from lrfcal.estimate.observability import LIMITS, Observability, of_solution, unjudged_refusal
 from lrfcal.types import Check
 from lrfsim.randomize import alpha_kind_of, random_scenario_wide
-from lrfsim.simulate import simulate, write_recording
+from lrfsim.recording import write_recording
+from lrfsim.simulate import simulate
 from lrfsim.variants import with_field
 
 DISAGREEMENT = "marker m17: its returns sit 14 mm from its tape position on average (moved after taping?)"

@@ -28,8 +28,9 @@ from lrfcal.result import CalibrationResult, PlaneEvidence
 from lrfcal.stages.planes import segment_planes, squareness_deg
 from lrfcal.stages.targetless import MAX_ROUNDS, SEGMENT_SAMPLES
 from lrfsim.compare import compare, load_truth
+from lrfsim.recording import write_recording
 from lrfsim.scenario import parse_scenario, with_changes
-from lrfsim.simulate import simulate, write_recording
+from lrfsim.simulate import simulate
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 DH = ("a", "alpha", "b", "beta")

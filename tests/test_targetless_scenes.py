@@ -24,10 +24,11 @@ from lrfcal.io.files import MANIFEST_NAME
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import Params, points_W
 from lrfsim.compare import load_truth
+from lrfsim.recording import write_recording
 from lrfsim.scenario import Scenario, parse_scenario, with_changes
 from lrfsim.scene import build_scene
 from lrfsim.scene_geometry import nearest_box_face, scene_boxes
-from lrfsim.simulate import SimResult, simulate, write_recording
+from lrfsim.simulate import SimResult, simulate
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 #: Short sweeps that keep each simulation well under a second.

@@ -80,7 +80,7 @@ def simulate(
     from lrfcal.io.files import check_no_overlap
 
     from .scenario import load_scenario, scenario_inputs
-    from .simulate import simulate_to_folder
+    from .to_folder import simulate_to_folder
 
     sc = load_scenario(scenario)
     check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))

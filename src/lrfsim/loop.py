@@ -52,9 +52,9 @@ def run_loop(
     from lrfcal import calibrate_folder, viewer_can_spawn
     from lrfcal.io.files import atomic_folder
 
-    from .recording import check_output
+    from .recording import check_output, write_recording
     from .scene import build_scene
-    from .simulate import simulate, write_recording
+    from .simulate import simulate
 
     out_dir = Path(out_dir)
     check_output(out_dir, overwrite)

@@ -13,6 +13,7 @@ for a servo-turned UTM-30LX-EW.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -25,7 +26,6 @@ from .visibility import (
     WIDE_MIN_AXIAL_SPREAD_M,
     WIDE_SIGMA_LIMITS,
     axial_spread_m,
-    detected_markers,
     motor_range_rad,
     rotvec,
     visible_in_M,
@@ -33,6 +33,9 @@ from .visibility import (
     wide_dh_determined,
     wide_dh_sigma,
 )
+
+if TYPE_CHECKING:
+    from .simresult import SimResult
 
 
 def random_scenario(seed: int, *, sweep_speed_deg_s: float = 20.0, passes: int = 1) -> Scenario:
@@ -438,6 +441,16 @@ def _random_noise_bands(rng: np.random.Generator) -> list[dict[str, float]]:
     """Range noise of 5, 10 or 15 mm to 10 m (three times that beyond), as scenario noise_bands."""
     sigma = float(rng.choice([0.005, 0.010, 0.015]))
     return [{"up_to_m": 10.0, "sigma_m": sigma}, {"up_to_m": 60.0, "sigma_m": 3 * sigma}]
+
+
+def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
+    """Indices of the markers on which the calibration's detection (lrfcal.stages.detection.detect) finds a blob in a
+    simulated recording; each blob's owner comes from the truth (lrfsim.faults.marker_returns): whether the markers
+    the labels count as visible are seen."""
+    from .faults import detected_mask, marker_returns
+
+    owner = marker_returns(result, scenario, among=detected_mask(result, scenario))
+    return {int(m) for m in np.unique(owner[owner >= 0])}
 
 
 __all__ = ["ALPHA_KINDS", "ALPHA_RANGES_DEG", "WIDE_AXES", "WIDE_BETAS_DEG", "WIDE_LAYOUTS", "WIDE_MIN_AXIAL_SPREAD_M",

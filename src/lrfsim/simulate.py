@@ -1,4 +1,5 @@
-"""One simulated recording: servo sweep, laser scans, joint states and tape, as arrays (no I/O).
+"""One simulated recording: servo sweep, laser scans, joint states and tape, as arrays (no I/O: the recording
+folder is written by lrfsim.recording; simulate and write in one call: lrfsim.to_folder).
 
 Time: the true time is the servo clock, 0 at the start of the sweep. The laser runs free: its first scan
 starts at a random phase in [0, scan_period) (seeded), and it stamps instants on its own clock,
@@ -11,7 +12,6 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
-from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -201,27 +201,5 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     return simulate_from_geometry(scenario, geometry, noise=noise)
 
 
-def write_recording(result: SimResult, scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,
-                    bag: bool = True) -> Path:
-    """Write the recording folder (docs/formats.md) atomically; see :func:`lrfsim.recording.write_recording`."""
-    from .recording import write_recording as _write
-
-    return _write(result, scenario, out_dir, overwrite=overwrite, bag=bag)
-
-
-def simulate_to_folder(scenario: Scenario, out_dir: str | Path, *, overwrite: bool = False,
-                       progress: Callable[[int, int], None] | None = None) -> tuple[SimResult, Path]:
-    """Simulate and write: the body of ``lrfsim simulate`` and of ``lrfsim run``'s first step.
-
-    The output folder is checked before simulating (InputError if it exists, is not empty and not
-    ``overwrite``), so nothing is computed or written in vain.
-    """
-    from .recording import check_output
-
-    check_output(out_dir, overwrite)
-    result = simulate(scenario, progress)
-    return result, write_recording(result, scenario, out_dir, overwrite=overwrite)
-
-
-__all__ = ["Geometry", "SimResult", "SimStats", "SimTruth", "cast_geometry", "simulate", "simulate_from_geometry",
-           "simulate_to_folder", "systematic_truth", "write_recording"]
+__all__ = ["Geometry", "SimResult", "SimStats", "SimTruth", "cast_geometry", "joined", "simulate",
+           "simulate_from_geometry", "systematic_truth"]

@@ -192,8 +192,9 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
     of a lrfsim.simulate.Geometry of ``scenario`` but its scene, cast once by the caller for every batch (the scene
     is rebuilt here, or ``scene``, built before from ``scenario``: MjSpec does not pickle); None: cast here.
     ``progress(k)`` is called after the k-th trial of the batch."""
+    from .recording import write_recording
     from .scene import build_scene
-    from .simulate import Geometry, cast_geometry, simulate, simulate_from_geometry, write_recording
+    from .simulate import Geometry, cast_geometry, simulate, simulate_from_geometry
     from .trial import calibrate_recording
 
     recast, perturb_start, new_layout = (design.recast, design.perturb_start, design.new_layout) if design else (

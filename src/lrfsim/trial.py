@@ -24,8 +24,9 @@ from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES
 
 from .compare import load_truth
+from .recording import write_recording
 from .scenario import Scenario
-from .simulate import simulate, write_recording
+from .simulate import simulate
 
 #: |error| / sigma beyond which a calibrated result counts as confidently wrong
 CONFIDENT_WRONG_Z = 4.0

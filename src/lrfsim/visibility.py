@@ -4,7 +4,6 @@ labels of :mod:`lrfsim.randomize`'s broad random truths).
 * :func:`visible_markers`: the markers some beam within the field of view meets at some motor angle (geometry
   only); :func:`beam_through` / :func:`visible_in_M`: the same for directions in the motor frame;
 * :func:`wide_dh_sigma`, :func:`axial_spread_m`, :func:`wide_dh_determined`: the determinability label;
-* :func:`detected_markers`: the markers the calibration's detection finds in a simulated recording;
 * :func:`scans_near_markers`: the scans some beam of which can pass near a marker (`lrfsim plan`'s sparse cast).
 
 The geometry takes the optical centre on the motor axis, at its axial coordinate b cos(alpha) (eq. 3: the
@@ -26,21 +25,11 @@ if TYPE_CHECKING:
 
     from .scenario import Scenario
     from .scenario_sections import ServoConfig
-    from .simresult import SimResult
 
 #: margin inside the scanner's field of view and the sweep for a marker to count as visible
 VIS_MARGIN_RAD = math.radians(3.0)
 #: half field of view of the UTM-30LX (270 deg)
 HALF_FOV_RAD = math.radians(135.0)
-
-
-def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
-    """Indices of the markers on which the calibration's detection (lrfcal.stages.detection.detect) finds a blob in a
-    simulated recording; each blob's owner comes from the truth (lrfsim.faults.marker_returns)."""
-    from .faults import detected_mask, marker_returns
-
-    owner = marker_returns(result, scenario, among=detected_mask(result, scenario))
-    return {int(m) for m in np.unique(owner[owner >= 0])}
 
 
 def visible_markers(scenario: Scenario) -> np.ndarray:
