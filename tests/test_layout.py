@@ -130,8 +130,8 @@ def test_mypy_model_and_estimate() -> None:
 #: the functions outside the command lines that may take more than 8 parameters: facades over a command's options
 #: (docs/architecture.md, "What travels together"); every other function takes what travels together as one object
 MANY_PARAMETERS = {"src/lrfcal/io/rig.py:with_overrides", "src/lrfcal/workflow.py:calibrate_folder",
-                   "src/lrfcal/io/recording.py:read_recording", "src/lrfsim/study.py:run_trials",
-                   "src/lrfsim/study.py:study"}
+                   "src/lrfcal/io/recording.py:read_recording", "src/lrfsim/trials/study.py:run_trials",
+                   "src/lrfsim/trials/study.py:study"}
 
 
 def test_at_most_five_functions_take_more_than_eight_parameters() -> None:
