@@ -65,6 +65,9 @@ _EXPORTS: dict[str, str] = {
     "LIMITS": "lrfcal.estimate.observability",
     "Observability": "lrfcal.estimate.observability",
     "analyse": "lrfcal.estimate.observability",
+    "Verdict": "lrfcal.estimate.observability",
+    "mirror_check": "lrfcal.estimate.checks",
+    "of_covariance": "lrfcal.estimate.observability",
     "map_covariance": "lrfcal.stages.mds",
     "SCALES": "lrfcal.stages.joint",
     "SCALE_Z_LIMIT": "lrfcal.stages.joint",
@@ -85,15 +88,15 @@ _EXPORTS: dict[str, str] = {
     "cores": "lrfcal.runtime.forked",
 }
 
-__all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M",
-           "DH", "JointStates", "LIMITS", "MarkerEvidence", "Observability", "Observations", "OnPlanes",
+__all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M", "DH", "InputError",
+           "JointStates", "LIMITS", "LrfError", "MarkerEvidence", "Observability", "Observations", "OnPlanes",
            "PARAM_NAMES", "Params", "PlaneEvidence", "PlaneFit", "PlaneMarkers", "Pose", "Recording", "ReturnGrid",
            "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns", "SurfaceSelection",
-           "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
+           "TunnelGeometry", "Verdict", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
            "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
-           "information_at", "keep_freed_memory", "map_covariance", "map_error_at", "model_error_at",
-           "observe_surfaces", "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
-           "viewer_can_spawn"]
+           "information_at", "keep_freed_memory", "map_covariance", "map_error_at", "mirror_check", "model_error_at",
+           "observe_surfaces", "of_covariance", "one_blas_thread", "print_summary", "read_recording", "scaled_pinv",
+           "turning_error_at", "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:
@@ -112,6 +115,7 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
+    from lrfcal.estimate.checks import mirror_check
     from lrfcal.estimate.information import (
         correlation_error_at,
         estimated,
@@ -121,7 +125,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
         scaled_pinv,
         turning_error_at,
     )
-    from lrfcal.estimate.observability import LIMITS, Observability, analyse
+    from lrfcal.estimate.observability import LIMITS, Observability, Verdict, analyse, of_covariance
     from lrfcal.estimate.problem import OnPlanes
     from lrfcal.io.recording import read_recording
     from lrfcal.model.kinematics import DH, PARAM_NAMES, Params, Pose

@@ -81,7 +81,7 @@ def handedness(chosen: Alternative, nominal: DH, config: AlternativesConfig, fit
     Q the twin's isometry in M). Near a scan plane perpendicular to the motor axis the association cannot tell the
     handedness, so it is chosen here by the nominal DH: solved again from that twin. The result must then pass the
     mirror check; otherwise the first solution stays (and the check refuses it)."""
-    found = nearer_mirror(chosen.solution.params.dh, nominal, config)
+    found = nearer_mirror(chosen.solution.params.dh, nominal, config, chosen.solution.sigma[6:10])
     if found is None:
         return chosen
     name, twin, Q, d_est, d_twin = found
@@ -93,7 +93,7 @@ def handedness(chosen: Alternative, nominal: DH, config: AlternativesConfig, fit
                   clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
     except CalibrationError:
         return chosen
-    if not mirror_check(sol.params.dh, nominal, config).passed:
+    if not mirror_check(sol.params.dh, nominal, config, sol.sigma[6:10]).passed:
         return chosen
     note = (f"the marker map matched in the other handedness: its mirror image ({name}) is {d_twin:.1f} nominal "
             f"tolerances from the nominal DH, the first estimate {d_est:.1f}; solved again in the map's mirror image")
