@@ -12,8 +12,8 @@ from typing import Annotated
 
 import typer
 
-from lrfcal.io.cliutil import Command, QuietOpt, finite_between, make_app, run_app
-from lrfcal.io.progress import progress_display
+from lrfcal.terminal.cliutil import Command, QuietOpt, finite_between, make_app, run_app
+from lrfcal.terminal.progress import progress_display
 
 app = make_app(
     "Calibrate a servo-turned 2D laser range finder from reflective markers (the mount pose [m, rad] and the "
@@ -82,9 +82,9 @@ def calibrate_cmd(
     """
     from rich.console import Console
 
+    from lrfcal.commands.calibrate import calibrate_folder
     from lrfcal.config import CalibConfig
     from lrfcal.report.summary import print_summary
-    from lrfcal.workflow import calibrate_folder
 
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
@@ -187,8 +187,8 @@ def inspect_cmd(
     from the scene's planes (with their uncertainty) unless the rig file gives them or --no-dh."""
     from rich.console import Console
 
+    from lrfcal.commands.inspect_log import inspect_path
     from lrfcal.io.files import atomic_file, check_outputs
-    from lrfcal.io.loginspect import inspect_path
     from lrfcal.io.rig import load_rig, with_overrides
 
     if out is not None:
@@ -211,7 +211,7 @@ def inspect_cmd(
 
 
 def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
-    """Print a lrfcal.io.inspection.BagInspection with rich tables."""
+    """Print a lrfcal.commands.inspect_bag.BagInspection with rich tables."""
     import math
 
     from rich.table import Table
@@ -296,7 +296,7 @@ def reproject_cmd(
     calibrated DH (--calibration) or the rig file's nominal DH. Needs no tape distances."""
     from rich.console import Console
 
-    from lrfcal.io.cloud import CloudOutputs, reproject_bag
+    from lrfcal.commands.reproject import CloudOutputs, reproject_bag
 
     console = Console(stderr=True)
     options = {k: v for k, v in dict(
@@ -327,7 +327,7 @@ def convert_cmd(
 ) -> None:
     """Convert a scan log into a ROS 2 bag (MCAP): sensor_msgs/LaserScan on /scan and sensor_msgs/JointState
     (joint servo, rad) on /joint_states, one of each per row; prints the rig file that reads the bag."""
-    from lrfcal.io.logconvert import convert_log
+    from lrfcal.commands.convert import convert_log
 
     for line in convert_log(log, out, nominal=nominal, overwrite=overwrite,
                             warn=lambda text: print(f"warning: {text}", file=sys.stderr)):

@@ -25,7 +25,7 @@ import numpy as np
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.estimate.checks import clock_offset_check, refuse_failed
-from lrfcal.io.rig import refuse_placeholder_dh
+from lrfcal.model.kinematics import refuse_placeholder_dh
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
 from lrfcal.result import CalibrationResult
 from lrfcal.runtime.forked import on_cores

@@ -19,8 +19,7 @@ from lrfcal.model.chart import gauge_distance
 from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock
 from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
-from lrfcal.stages.surfaces import SurfaceReturns
-from lrfcal.types import Check, MarkerMap, Observations, Solution
+from lrfcal.types import Check, MarkerMap, Observations, Solution, SurfaceReturns
 
 
 class _Alternative(Protocol):

@@ -20,8 +20,7 @@ from lrfcal.model.motor import MotorClock
 from lrfcal.model.observations import Blocks, DHPrior, ObservationSet, RowContext, stack_blocks
 from lrfcal.model.plane import PlaneSet
 from lrfcal.model.unknowns import N_CORE, plane_nuisance_start
-from lrfcal.stages.surfaces import Surface, SurfaceReturns
-from lrfcal.types import Observations
+from lrfcal.types import Observations, Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

@@ -8,7 +8,7 @@
   the simulator's bag);
 * writing a calibration: :mod:`.calibration_folder` (the output folder) with :mod:`.calibration_yaml`,
   :mod:`.urdf`, :mod:`.ply` and :mod:`.report`; :mod:`.truth` aligns a simulator's ground truth to the
-  calibration for the report, lrfcal.workflow and lrfsim;
+  calibration for the report, lrfcal.commands.calibrate and lrfsim;
 * :mod:`.files`: the one atomic writer (files and folders renamed into place when complete), the manifest of an
   output folder and the checks of output paths.
 

@@ -29,7 +29,7 @@ MANIFEST_NAME = ".lrf-calib-output.yaml"
 
 #: the names of the tools' own temporary files and folders: a file being written (``.NAME.<random>.tmp``), a
 #: folder being written or moved aside (``.NAME.tmp-<random>``, ``.NAME.old-<random>``), the write probe of
-#: :func:`check_writable` and the figures' scratch folder (lrfcal.workflow)
+#: :func:`check_writable` and the figures' scratch folder (lrfcal.commands.calibrate)
 TEMP_NAME = re.compile(r"^\.(figures-|lrf-write-probe-|.+\.(tmp|old)-|.+\.tmp$)")
 
 

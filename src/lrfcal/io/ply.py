@@ -1,5 +1,6 @@
 """The clouds of a calibration as PLY files (cloud_before.ply, cloud_after.ply: x, y, z and intensity per point,
-frame M), written atomically. ``lrfcal reproject``'s richer per-beam PLY is lrfcal.io.cloud.write_cloud_ply."""
+frame M), written atomically. ``lrfcal reproject``'s richer per-beam PLY is
+lrfcal.commands.reproject.write_cloud_ply."""
 
 from __future__ import annotations
 

@@ -35,7 +35,7 @@ def check_joint_coverage(scans: Scans, joints: JointStates, where: str = "joint 
     Beam times (laser clock) are converted to the servo clock as t - clock_offset_s. For reporting: the
     reader does not call it (the calibration trims uncovered scans, timing.covered_scans).
     """
-    from lrfcal.stages.timing import joint_period_s, scan_spans
+    from lrfcal.types import joint_period_s, scan_spans
 
     period = joint_period_s(joints)
     lo, hi = scan_spans(scans)

@@ -15,8 +15,8 @@ contiguous memory is free, and on a busy or fragmented machine that costs more t
 
 :func:`apply_memory_policy` turns numpy's madvise off for the process (numpy's own switch, which its environment
 variable NUMPY_MADVISE_HUGEPAGE sets at import); the programs call it before any work
-(lrfcal.io.cliutil.Command.invoke, ``lrfsim study``'s process-pool workers). A user who sets NUMPY_MADVISE_HUGEPAGE
-keeps
+(lrfcal.terminal.cliutil.Command.invoke, ``lrfsim study``'s process-pool workers). A user who sets
+NUMPY_MADVISE_HUGEPAGE keeps
 their choice. A library call leaves the process as it is.
 
 A process that allocates and frees the same large arrays over and over (a study's trials: tunnel_v's 13 MB arrays of

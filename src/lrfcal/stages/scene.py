@@ -26,7 +26,6 @@ from lrfcal.model.unknowns import CORE_NAMES
 from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
 from lrfcal.stages import holdout, planes, propose, starts, timing
 from lrfcal.stages.sampling import hash_sample
-from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.stages.targetless import (
     DH_NAMES,
     MOTOR_FRAME,
@@ -41,7 +40,7 @@ from lrfcal.stages.targetless import (
     settle_rounds,
     with_round_difference,
 )
-from lrfcal.types import Check, JointStates, Noted, Recording, Solution
+from lrfcal.types import Check, JointStates, Noted, Recording, Solution, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 Segmented = tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]

@@ -38,6 +38,7 @@ from lrfcal.model.kinematics import BeamTrig, Params, beam_rays_W_trig, beam_tri
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
 from lrfcal.stages.sampling import hash_key
+from lrfcal.types import Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -127,52 +128,6 @@ def _at_flat(values: GridValues) -> Callable[[IntArray], FloatArray]:
         return values
     flat = np.asarray(values).ravel()
     return lambda i: flat[i]
-
-
-@dataclass(frozen=True)
-class Surface:
-    """A marker-carrying plane in W: n . p = offset_m (n unit, pointing away from the sensor), its markers, and
-    the markers' extent in the plane (2 axes (2, 3), centre (3,), lower/upper bounds (2,) in m).
-
-    prior_sigma (3,): how well the markers fix the plane: tilts (rad) towards axes[0] and axes[1], and the
-    offset (m). The solver treats the plane as a nuisance with this prior, not as exactly known.
-    prior_jacobian (3, 3n): how the prior's mean (those tilts and the offset) moves with the n markers' coordinates
-    (:func:`plane_prior_jacobian`; None when the plane is not the markers'), for the marker map's own uncertainty.
-    """
-
-    normal: FloatArray
-    offset_m: float
-    marker_idx: IntArray
-    axes: FloatArray
-    centre: FloatArray
-    lower: FloatArray
-    upper: FloatArray
-    prior_sigma: FloatArray
-    prior_jacobian: FloatArray | None = None
-
-
-@dataclass(frozen=True)
-class SurfaceReturns:
-    """Non-marker returns on the surfaces (K2 rows): scan, beam indices; lambda_rad, mu_rad, ranges_m; the
-    surface index of each; normals (K2, 3) and offsets (K2,) of their planes in W; times_s (K2,) their beam times
-    on the laser clock (None when unknown)."""
-
-    scan: IntArray
-    beam: IntArray
-    lambda_rad: FloatArray
-    mu_rad: FloatArray
-    ranges_m: FloatArray
-    surface: IntArray
-    normals: FloatArray
-    offsets_m: FloatArray
-    times_s: FloatArray | None = None
-
-    def __len__(self) -> int:
-        return int(self.ranges_m.size)
-
-    def subset(self, mask: NDArray[np.bool_]) -> SurfaceReturns:
-        return SurfaceReturns(**{k: None if getattr(self, k) is None else getattr(self, k)[mask]
-                                 for k in self.__dataclass_fields__})
 
 
 def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
@@ -345,8 +300,8 @@ def surface_returns(
     )
 
 
-__all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
-           "SurfaceSelection", "candidate_planes", "find_surfaces", "surface_returns"]
+__all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "ReturnRows", "SurfaceSelection",
+           "candidate_planes", "find_surfaces", "surface_returns"]
 
 
 def observe_surfaces(

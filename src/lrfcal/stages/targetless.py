@@ -47,8 +47,7 @@ from lrfcal.result import PlaneFit
 from lrfcal.runtime.forked import cores
 from lrfcal.stages import planes
 from lrfcal.stages.sampling import hash_sample
-from lrfcal.stages.surfaces import Surface, SurfaceReturns
-from lrfcal.types import Check, JointStates, Scans, Solution
+from lrfcal.types import Check, JointStates, Scans, Solution, Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH

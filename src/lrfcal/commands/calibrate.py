@@ -15,16 +15,16 @@ from typing import Any
 
 import numpy as np
 
+from lrfcal.commands.calibration_folder import calibration_folder
 from lrfcal.errors import InputError
 from lrfcal.io import files
-from lrfcal.io.calibration_folder import calibration_folder
 from lrfcal.io.recording import read_nominal, read_recording
-from lrfcal.io.report import render_report
 from lrfcal.io.scanlog import resolve_recording
 from lrfcal.io.truth import truth_dict, truth_frame
 from lrfcal.model.kinematics import Params, Pose
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.report import figures as figure_writer
+from lrfcal.report.markdown import render_report
 from lrfcal.result import CalibrationResult
 from lrfcal.runtime.forked import Ahead
 from lrfcal.types import Recording

@@ -43,10 +43,10 @@ from lrfcal.io.bag_scans import is_laserscan, is_multiecho
 from lrfcal.io.bag_servo import default_field
 from lrfcal.io.multiecho import Echoes
 from lrfcal.io.recording import check_units
-from lrfcal.io.rig import ScanSource, ServoSource, TfSource
-from lrfcal.stages.propose import DHProposal, proposed_dh
+from lrfcal.model.kinematics import is_placeholder_dh
+from lrfcal.stages.propose import DHProposal, propose_for_recording
 from lrfcal.stages.timing import covered_scans
-from lrfcal.types import ReadReport
+from lrfcal.types import ReadReport, ScanSource, ServoSource, TfSource
 
 #: messages decoded per topic for the statistics (receive times come from all messages)
 MAX_DECODED = 5000
@@ -159,6 +159,18 @@ def guess_unit(values: np.ndarray) -> tuple[str, float | None]:
     if max(abs(lo), abs(hi)) <= 360.0:
         return "deg", None
     return "counts", 4096.0 if hi <= 4096 else 2.0 ** math.ceil(math.log2(hi + 1))
+
+
+def proposed_dh(data: BagData | None, dh: dict[str, float] | None, propose: bool,
+                progress: Callable[[int, int], None] | None = None) -> DHProposal | None:
+    """``lrfcal inspect``'s proposal: the DH from the recording's planes when none were given (``dh`` None or the
+    placeholder) and ``propose``; None when not searched. Without ``data`` (the recording could not be read) the
+    proposal says so."""
+    if not propose or (dh and not is_placeholder_dh(dh)):
+        return None
+    if data is None:
+        return DHProposal(None, reason="the recording could not be read (see the problems)")
+    return propose_for_recording(data.scans, data.joints, progress)  # the stage takes scans and joint states
 
 
 def inspect_bag(

@@ -300,7 +300,8 @@ def reproject_bag(
         InputError: bad input, or an output path that overlaps an input.
     """
     from lrfcal.io.recording import read_recording
-    from lrfcal.io.rig import refuse_placeholder_dh, with_overrides
+    from lrfcal.io.rig import with_overrides
+    from lrfcal.model.kinematics import refuse_placeholder_dh
 
     bag, nominal, out, rrd, bag_out = Path(bag), Path(nominal), Path(outputs.ply), outputs.rrd, outputs.bag
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
