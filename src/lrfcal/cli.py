@@ -8,12 +8,17 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
 from lrfcal.terminal.cliutil import Command, QuietOpt, finite_between, make_app, run_app
 from lrfcal.terminal.progress import progress_display
+
+if TYPE_CHECKING:  # the types print_inspection prints (imported by the command that runs, not at start-up)
+    from rich.console import Console
+
+    from lrfcal.commands.inspect_bag import BagInspection
 
 app = make_app(
     "Calibrate a servo-turned 2D laser range finder from reflective markers (the mount pose [m, rad] and the "
@@ -210,7 +215,7 @@ def inspect_cmd(
         print(f"wrote {out}")
 
 
-def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
+def print_inspection(result: BagInspection, console: Console) -> None:
     """Print a lrfcal.commands.inspect_bag.BagInspection with rich tables."""
     import math
 
@@ -238,6 +243,7 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
             f"range {g.range_min_m:.3g}..{g.range_max_m:.3g} m; intensities {'yes' if g.has_intensities else 'no'}")
     if result.servo is not None:
         sv = result.servo
+        assert result.servo_source is not None  # the servo's samples were read from it
         rate = "-" if sv.rate_hz is None else f"{sv.rate_hz:.2f} Hz"
         console.print(f"servo: {sv.n_samples} samples at {rate}, {math.degrees(sv.min_rad):.2f}.."
                       f"{math.degrees(sv.max_rad):.2f} deg, median speed {math.degrees(sv.median_speed_rad_s):.2f} "
@@ -252,8 +258,8 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
         console.print(f"note: {note}", markup=False)
     if result.problems:
         console.print("[bold]problems[/bold]:")
-        for p in result.problems:
-            console.print(f"  - {p}", markup=False)
+        for problem in result.problems:
+            console.print(f"  - {problem}", markup=False)
     p = result.proposal
     if p is not None:
         what = (f"proposed from the scene's planes in {p.seconds:.1f} s ({p.n_agreeing} of {p.n_starts} search starts "

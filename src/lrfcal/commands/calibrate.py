@@ -209,6 +209,7 @@ def check_tape_units(recording: Recording, path: Path) -> None:
     Raises:
         InputError: naming the file, the offending statistic and the likely unit.
     """
+    assert recording.tape is not None, "check_tape_units: a recording without tape distances"
     d = np.asarray(recording.tape.distances_m, dtype=float)
     if d.size == 0:
         return

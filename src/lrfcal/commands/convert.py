@@ -108,8 +108,8 @@ def convert_log(log: str | Path, out: str | Path, *, nominal: str | Path | None 
     empty = np.zeros(0, dtype=np.float64)
     ok_scan = np.isfinite(t)
     ok_joint = ok_scan & np.isfinite(lam)
-    events = sorted([(_ns(float(t[k])), 0, k) for k in np.flatnonzero(ok_scan)]
-                    + [(_ns(float(t[k])), 1, k) for k in np.flatnonzero(ok_joint)])
+    events = sorted([(_ns(float(t[k])), 0, int(k)) for k in np.flatnonzero(ok_scan)]
+                    + [(_ns(float(t[k])), 1, int(k)) for k in np.flatnonzero(ok_joint)])
 
     def header(ns: int, frame: str) -> Any:
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)

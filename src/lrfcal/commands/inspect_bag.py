@@ -47,6 +47,7 @@ from lrfcal.model.kinematics import is_placeholder_dh
 from lrfcal.stages.propose import DHProposal, propose_for_recording
 from lrfcal.stages.timing import covered_scans
 from lrfcal.types import ReadReport, ScanSource, ServoSource, TfSource
+from lrfcal.types.sources import ServoStamp, Unit
 
 #: messages decoded per topic for the statistics (receive times come from all messages)
 MAX_DECODED = 5000
@@ -147,7 +148,7 @@ def _laserscan_field(msg: Any) -> str | None:
     return None
 
 
-def guess_unit(values: np.ndarray) -> tuple[str, float | None]:
+def guess_unit(values: np.ndarray) -> tuple[Unit, float | None]:
     """rad / deg / counts (+ a counts_per_rev guess) from the recorded values' range."""
     v = values[np.isfinite(values)]
     if v.size == 0:
@@ -259,8 +260,10 @@ class _Survey:
         st = stamp_s(msg) if fld is None else stamp_s(getattr(msg, fld))  # a LaserScan's own header
         if st is not None:
             self.stamps.setdefault(tp, []).append(st)
-        if ls is not None or fld is not None:
-            self.scan_msgs.setdefault(tp, []).append(ls if ls is not None else getattr(msg, fld))
+        if ls is not None:
+            self.scan_msgs.setdefault(tp, []).append(ls)
+        elif fld is not None:
+            self.scan_msgs.setdefault(tp, []).append(getattr(msg, fld))
         if conn.msgtype == TF_TYPE and tp == "/tf":
             for tr in msg.transforms:
                 key = (tr.header.frame_id, tr.child_frame_id)
@@ -411,7 +414,7 @@ def _guess_servo(types: dict[str, str], first: dict[str, Any], scan: ScanSource,
             joint = next((n for n in names if hinted(n)), names[0] if names else None)
             if joint is None:
                 continue
-            stamp = "header" if stamp_s(first[tp]) is not None else "receive"
+            stamp: ServoStamp = "header" if stamp_s(first[tp]) is not None else "receive"
             return ServoSource(topic=tp, joint=joint, stamp=stamp)
     for tp in order:
         mt = types[tp]

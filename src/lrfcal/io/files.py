@@ -15,7 +15,7 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -229,7 +229,7 @@ def _resolved(p: str | Path) -> Path:
     return Path(p).expanduser().resolve()
 
 
-def check_no_overlap(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None],
+def check_no_overlap(outputs: Mapping[str, str | Path | None], inputs: Mapping[str, str | Path | None],
                      may_nest_in: tuple[str, ...] = ()) -> None:
     """Refuse outputs that are, contain or lie inside an input.
 

@@ -162,6 +162,7 @@ def with_overrides(
     vd = servo.model_dump() if isinstance(servo, ServoSource) else {}
     sd.update({k: v or None for k, v in (("topic", scan_topic), ("field", scan_field), ("stamp", scan_stamp))
                if v is not None})  # an empty string clears a key (e.g. --scan-field "")
+    upd: dict[str, str | float | int | None]
     upd = {k: v for k, v in (("topic", servo_topic), ("field", servo_field), ("joint", joint), ("unit", unit),
                              ("counts_per_rev", counts_per_rev), ("sign", sign), ("offset_rad", servo_offset),
                              ("stamp", servo_stamp)) if v is not None}

@@ -86,7 +86,7 @@ def intensity_figure(scans: Scans, detections: Detections, association: Associat
     x0, x1 = float(mu_deg.min()) - step / 2, float(mu_deg.max()) + step / 2
     flip = N > 1 and mu_deg[-1] < mu_deg[0]  # negative angle increment: show increasing angle left to right
     det = detections
-    cand = np.asarray(det.labels) >= 0
+    cand = det.labels >= 0
     img = inten[:, ::-1] if flip else inten
     cand = cand[:, ::-1] if flip else cand
     pool = max(1, int(np.ceil(S / MAX_FIGURE_ROWS)))  # max-pooled so that thin blobs stay visible

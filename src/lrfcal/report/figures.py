@@ -395,7 +395,7 @@ def drawn_detections(det: Detections) -> Detections:
     """``det`` with its label image (S, N) reduced to what the figures draw of it, whether a return is a marker
     candidate (0) or not (-1), as int8: an eighth of the int64 labels (12.7 MB on tunnel_v) to send to a drawing
     process, which otherwise waits on the pipe while the calibration goes on."""
-    labels = np.where(np.asarray(det.labels) >= 0, 0, -1).astype(np.int8)
+    labels = np.where(det.labels >= 0, 0, -1).astype(np.int8)
     return replace(det, labels=labels)
 
 

@@ -33,6 +33,7 @@ glibc malloc settings (MALLOC_MMAP_THRESHOLD_, MALLOC_TRIM_THRESHOLD_, GLIBC_TUN
 from __future__ import annotations
 
 import ctypes
+import importlib
 import os
 import sys
 
@@ -52,15 +53,14 @@ def apply_memory_policy() -> bool:
     this numpy has no such switch. Returns whether the policy was applied."""
     if os.environ.get(NUMPY_ENV_VAR) is not None:
         return False
-    try:
-        from numpy._core.multiarray import _set_madvise_hugepage
-    except ImportError:  # numpy < 2 named its core module numpy.core
+    for core in ("numpy._core.multiarray", "numpy.core.multiarray"):  # numpy < 2 named its core module numpy.core
         try:
-            from numpy.core.multiarray import _set_madvise_hugepage
-        except ImportError:
-            return False
-    _set_madvise_hugepage(False)
-    return True
+            switch = importlib.import_module(core)._set_madvise_hugepage  # numpy's own, not in its type stubs
+        except (ImportError, AttributeError):
+            continue
+        switch(False)
+        return True
+    return False
 
 
 def keep_freed_memory() -> bool:

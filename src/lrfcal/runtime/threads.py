@@ -71,7 +71,7 @@ def _load_libraries(scipy: bool = True) -> None:
     import numpy  # noqa: F401
 
     if scipy:
-        import scipy.linalg  # noqa: F401
+        from scipy import linalg  # noqa: F401
 
 
 def apply_thread_policy(*, scipy: bool = True) -> int | None:

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -38,7 +39,7 @@ from lrfcal.model.kinematics import BeamTrig, Params, beam_rays_W_trig, beam_tri
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
 from lrfcal.stages.sampling import hash_key
-from lrfcal.types import Surface, SurfaceReturns
+from lrfcal.types import Labels, Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -118,7 +119,7 @@ class ReturnGrid:
     ranges_m: FloatArray
     mu_rad: FloatArray
     lambda_rad: GridValues
-    labels: IntArray
+    labels: Labels
     beam_times_s: GridValues | None = None
 
 
@@ -368,7 +369,7 @@ def observe_surfaces(
         trig = beam_trig(lam_t, mu_t, params.dh)  # once for the points and the candidates' rays (elementwise)
         parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
-                                     rays_W=lambda i, trig=trig: beam_rays_W_trig(params, _rows_of(trig, i))))
+                                     rays_W=partial(_rays_of, params, trig)))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
@@ -378,6 +379,11 @@ def observe_surfaces(
 def _rows_of(trig: BeamTrig, i: IntArray) -> BeamTrig:
     """The beams ``i`` (k,) of a :data:`lrfcal.model.kinematics.BeamTrig`."""
     return trig[0][i], trig[1][i], trig[2][i], trig[3][i]
+
+
+def _rays_of(params: Params, trig: BeamTrig, i: IntArray) -> tuple[FloatArray, FloatArray]:
+    """The rays in W (origins, unit directions (k, 3)) of the beams ``i`` (k,) of ``trig``."""
+    return beam_rays_W_trig(params, _rows_of(trig, i))
 
 
 def _merged(parts: list[SurfaceReturns], n_beams: int) -> SurfaceReturns:

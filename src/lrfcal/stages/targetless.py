@@ -409,11 +409,7 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     """The surface returns of ``a`` followed by those of ``b`` (their surface indices kept)."""
     if a is None or not len(a):
         return b
-    fields = {}
-    for k in a.__dataclass_fields__:
-        va, vb = getattr(a, k), getattr(b, k)
-        fields[k] = None if va is None or vb is None else np.concatenate([va, vb])
-    return SurfaceReturns(**fields)
+    return a.joined(b)
 
 
 __all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "SceneConfig", "SegmentConfig", "Segmenting",

@@ -15,7 +15,7 @@ K marker returns (observations), K2 surface returns.
 from __future__ import annotations
 
 from lrfcal.types.arrays import BoolArray, FloatArray, IntArray
-from lrfcal.types.markers import Association, Blob, Detections, DroppedPair, MarkerMap, Observations
+from lrfcal.types.markers import Association, Blob, Detections, DroppedPair, Labels, MarkerMap, Observations
 from lrfcal.types.recording import (
     JointStates,
     Nominal,
@@ -31,7 +31,7 @@ from lrfcal.types.sources import LogLayout, ScanSource, ServoSource, TfSource
 from lrfcal.types.surfaces import Plane, ScenePlane, Surface, SurfaceReturns, TunnelGeometry
 
 __all__ = ["Association", "Blob", "BoolArray", "Check", "Detections", "DroppedPair", "FloatArray", "IntArray",
-           "Iteration", "JointStates", "LogLayout", "MarkerMap", "Nominal", "Noted", "Observations", "Plane",
+           "Iteration", "JointStates", "Labels", "LogLayout", "MarkerMap", "Nominal", "Noted", "Observations", "Plane",
            "ReadReport", "Recording", "ScanSource", "Scans", "ScenePlane", "ServoSource", "Solution", "Spread",
            "Surface", "SurfaceReturns", "TapeMeasurements", "TfSource", "TunnelGeometry", "joint_period_s",
            "scan_spans"]

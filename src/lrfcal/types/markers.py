@@ -11,6 +11,10 @@ from numpy.typing import NDArray
 
 from lrfcal.types.arrays import BoolArray, FloatArray, IntArray
 
+#: a label image (S, N): a blob's index, -1 for background; int8 where only that sign is kept (the copy the report's
+#: figures draw, lrfcal.report.figures.drawn_detections)
+Labels = NDArray[np.int64] | NDArray[np.int8]
+
 
 @dataclass(frozen=True)
 class MarkerMap:
@@ -77,7 +81,7 @@ class Detections:
 
     threshold: float
     blobs: tuple[Blob, ...]
-    labels: IntArray
+    labels: Labels
 
 
 @dataclass(frozen=True)
@@ -120,4 +124,4 @@ class Association:
     n_matched: int
 
 
-__all__ = ["Association", "Blob", "Detections", "DroppedPair", "MarkerMap", "Observations"]
+__all__ = ["Association", "Blob", "Detections", "DroppedPair", "Labels", "MarkerMap", "Observations"]

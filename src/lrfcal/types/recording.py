@@ -14,6 +14,8 @@ from lrfcal.model.kinematics import DH, Pose
 from lrfcal.types.arrays import FloatArray, IntArray
 from lrfcal.types.sources import LogLayout, ScanSource, ServoSource
 
+#: Scans' beam_counts when none are given: every scan carried all N beams (:meth:`Scans.__post_init__` fills them in)
+_EVERY_BEAM: IntArray = np.zeros(0, dtype=np.int64)
 
 @dataclass(frozen=True)
 class Scans:
@@ -40,7 +42,7 @@ class Scans:
     frame_id: str = "laser"
     #: where the scans came from ("<bag>: <topic>"), for error messages; "" when unknown.
     source: str = ""
-    beam_counts: IntArray | None = None
+    beam_counts: IntArray = field(default_factory=lambda: _EVERY_BEAM)
     angle_per_scan: bool = False
 
     def __post_init__(self) -> None:
@@ -51,7 +53,7 @@ class Scans:
         ti = np.asarray(self.time_increment_s, dtype=np.float64)
         if ti.ndim == 0:
             ti = np.full(S, float(ti))
-        counts = (np.full(S, N, dtype=np.int64) if self.beam_counts is None
+        counts = (np.full(S, N, dtype=np.int64) if self.beam_counts is None or self.beam_counts is _EVERY_BEAM
                   else np.asarray(self.beam_counts, dtype=np.int64))
         if mu.shape != (S, N) or ti.shape != (S,) or counts.shape != (S,):
             raise ValueError(f"Scans: mu_rad {mu.shape}, time_increment_s {ti.shape}, beam_counts {counts.shape} "
@@ -187,7 +189,6 @@ class Recording:
 def scan_spans(scans: Scans) -> tuple[FloatArray, FloatArray]:
     """(S,), (S,): laser-clock times of the first and the last beam each scan carried (beam_counts); both the
     stamp for a step-and-scan rig (Scans.angle_per_scan), whose beams all take the angle at the stamp."""
-    assert scans.beam_counts is not None
     if scans.angle_per_scan:  # step and scan: the angle of every beam is the one at the stamp
         return scans.stamps_s, scans.stamps_s
     t1 = scans.stamps_s + np.maximum(scans.beam_counts - 1, 0) * np.asarray(scans.time_increment_s)

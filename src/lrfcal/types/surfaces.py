@@ -55,8 +55,17 @@ class SurfaceReturns:
         return int(self.ranges_m.size)
 
     def subset(self, mask: NDArray[np.bool_]) -> SurfaceReturns:
-        return SurfaceReturns(**{k: None if getattr(self, k) is None else getattr(self, k)[mask]
-                                 for k in self.__dataclass_fields__})
+        return SurfaceReturns(self.scan[mask], self.beam[mask], self.lambda_rad[mask], self.mu_rad[mask],
+                              self.ranges_m[mask], self.surface[mask], self.normals[mask], self.offsets_m[mask],
+                              None if self.times_s is None else self.times_s[mask])
+
+    def joined(self, other: SurfaceReturns) -> SurfaceReturns:
+        """These returns followed by ``other``'s (their surface indices kept; beam times where both have them)."""
+        a, b, cat = self, other, np.concatenate
+        return SurfaceReturns(cat([a.scan, b.scan]), cat([a.beam, b.beam]), cat([a.lambda_rad, b.lambda_rad]),
+                              cat([a.mu_rad, b.mu_rad]), cat([a.ranges_m, b.ranges_m]), cat([a.surface, b.surface]),
+                              cat([a.normals, b.normals]), cat([a.offsets_m, b.offsets_m]),
+                              None if a.times_s is None or b.times_s is None else cat([a.times_s, b.times_s]))
 
 
 @dataclass(frozen=True)
