@@ -25,8 +25,10 @@ from lrfcal.types import Check, MarkerMap, Observations, Solution, SurfaceReturn
 class _Alternative(Protocol):
     """A direction of the servo and the marker-only solution with it (lrfcal.stages.alternatives.Alternative)."""
 
-    sign: int
-    solution: Solution
+    @property
+    def sign(self) -> int: ...
+    @property
+    def solution(self) -> Solution: ...
 
 
 A = TypeVar("A", bound=_Alternative)

@@ -187,6 +187,7 @@ class _Round:
     @staticmethod
     def after(sol: Solution, config: SegmentConfig) -> _Round:
         """The next round's, from a round's solution: its estimate, the noise it found."""
+        assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
         return _Round(sol.params.dh, sol.clock_offset_s,
                       4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2)), sol.intrinsic_values)
 
@@ -199,6 +200,7 @@ class _Round:
 def first_round(dh: DH, tau: float, config: SegmentConfig) -> _Round:
     """The first round of a calibration from (dh, tau): its planes' thickness the noise plus what a nominal DH bends
     a plane by."""
+    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
     return _Round(dh, tau, 4.0 * config.range_sigma_m + 0.02)
 
 
