@@ -269,8 +269,8 @@ def read_recording(
     tape = None
     if require_distances or distances is not None:
         tape = read_distances(pick(distances, "distances.csv", "distances"))
-    scan_src: ScanSource = scan or nom.scan
-    servo_src: ServoSource = servo or nom.servo
+    scan_src, servo_src = scan or nom.scan, servo or nom.servo
+    assert scan_src is not None and servo_src is not None  # read_nominal sets both from the rig file
     if scan_topic:
         scan_src = scan_src.model_copy(update={"topic": scan_topic})
     if joint_topic or joint_name:
