@@ -191,10 +191,9 @@ def test_import_lrfcal_is_light() -> None:
 
 @pytest.mark.skipif(importlib.util.find_spec("mypy") is None and shutil.which("mypy") is None,
                     reason="mypy is not installed (pip install -e '.[test]' installs it)")
-def test_mypy_model_and_estimate() -> None:
-    """The rig model and the estimate package type-check (mypy, the settings in pyproject.toml), and CalibConfig
-    satisfies every stage's configuration slice and each way the Way of its steps' types (tests/static_types.py)."""
-    proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal/model", "src/lrfcal/estimate",
-                           "tests/static_types.py"], cwd=ROOT,
+def test_mypy_lrfcal() -> None:
+    """All of lrfcal type-checks (mypy, the settings in pyproject.toml), and CalibConfig satisfies every stage's
+    configuration slice and each way the Way of its steps' types (tests/static_types.py)."""
+    proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal", "tests/static_types.py"], cwd=ROOT,
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-3000:]
