@@ -182,7 +182,7 @@ def viewer_can_spawn(spawn: bool, shown: Path, warn: Callable[[str], None] | Non
     return False
 
 
-def _figures_section(figs: Any, drawn: bool, warn: Callable[[str], None] | None) -> str:
+def _figures_section(figs: figure_writer.Figures, drawn: bool, warn: Callable[[str], None] | None) -> str:
     """The report's "Figures" section for ``figs`` (lrfcal.report.figures.Figures): the figures written, or that none
     were asked for; each figure that could not be drawn is named with its reason (and ``warn`` told)."""
     text = "\n## Figures\n\n" + ("\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +23,9 @@ MAX_FIGURE_COLS = 700
 
 #: the colour of the marker candidates (alignment.png draws its markers in the same colour)
 C_MARKER = "#b0209a"
+
+#: a pixel of an image max-pooled for drawing (intensity counts, or a candidate mask's bool)
+Pixel = TypeVar("Pixel", bound=np.generic)
 
 
 def _candidate_panel(ax: Any, shown: Any, cand: NDArray[np.bool_], kw: dict[str, Any], pool: int) -> None:
@@ -43,7 +46,7 @@ def _candidate_panel(ax: Any, shown: Any, cand: NDArray[np.bool_], kw: dict[str,
     ax.set_facecolor("white")
 
 
-def _max_pool(img: NDArray[Any], rows: int, cols: int) -> NDArray[Any]:
+def _max_pool(img: NDArray[Pixel], rows: int, cols: int) -> NDArray[Pixel]:
     """The maximum of each ``rows`` x ``cols`` block of a 2-D image (the image padded with zeros, False)."""
     if rows == cols == 1:
         return img
