@@ -203,7 +203,7 @@ def marker_problem(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor
 @dataclass(frozen=True)
 class OnPlanes:
     """Surface returns with the planes they lie on, as an estimate takes them: ``returns`` (K returns with their
-    plane index) and ``planes`` (the lrfcal.stages.surfaces.Surface of each plane index, whose normal and offset
+    plane index) and ``planes`` (the lrfcal.types.Surface of each plane index, whose normal and offset
     carry the markers' prior; None: free planes, started from the returns' normals and offsets)."""
 
     returns: SurfaceReturns
@@ -215,7 +215,7 @@ class OnPlanes:
 
 def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[PlaneSet, FloatArray]:
     """The surface returns as a PlaneSet with the planes' nuisance start (3P,): started from the returns' normals
-    and offsets; with ``planes`` (each surface index's lrfcal.stages.surfaces.Surface), their tangent axes and the
+    and offsets; with ``planes`` (each surface index's lrfcal.types.Surface), their tangent axes and the
     markers' prior on them."""
     ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
     first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])

@@ -99,7 +99,7 @@ def generate_launch_description() -> LaunchDescription:
 
 
 def servo_joint(result: CalibrationResult) -> tuple[int, float, tuple[str, ...]]:
-    """How the recording's joint position q gives the motor angle, lambda = zero + sign q (lrfcal.io.rig.ServoSource:
+    """How the recording's joint position q gives the motor angle, lambda = zero + sign q (lrfcal.types.ServoSource:
     its sign and offset, the direction the calibration chose, result.servo_sign), as rig_joints.urdf's axis sign and
     zero [rad], and the notes its header needs where lambda is not that (a unit other than rad, an estimated motor
     scale, a servo angle not in a JointState)."""

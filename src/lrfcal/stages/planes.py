@@ -201,7 +201,7 @@ def plane_returns(
     labels: IntArray, planes: list[ScenePlane], scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
     mu_rad: FloatArray, ranges_m: FloatArray, times_s: FloatArray | None = None,
 ) -> SurfaceReturns:
-    """The labelled returns (labels >= 0 of the K inputs, all (K,)) as lrfcal.stages.surfaces.SurfaceReturns carrying
+    """The labelled returns (labels >= 0 of the K inputs, all (K,)) as lrfcal.types.SurfaceReturns carrying
     their plane's normal and offset (the solver's start for the plane's nuisances)."""
     m = np.asarray(labels) >= 0
     surf = np.asarray(labels)[m]
