@@ -18,10 +18,10 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lrfcal.io.rig import ServoSource
 from lrfcal.io.urdf import joints_urdf
 from lrfcal.model.kinematics import ESTIMATE_NAMES, Pose
 from lrfcal.result import CalibrationResult, MarkerEvidence
+from lrfcal.types import ServoSource
 
 #: the file names in a calibration's output folder
 LAUNCH_NAME = "rig_tf.launch.py"
