@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from lrfcal.errors import InputError
 from lrfcal.io.bag import BagData, read_bag
@@ -43,6 +42,7 @@ from lrfcal.io.bag_scans import is_laserscan, is_multiecho
 from lrfcal.io.bag_servo import default_field
 from lrfcal.io.multiecho import Echoes
 from lrfcal.io.recording import check_units
+from lrfcal.io.rig import rig_snippet
 from lrfcal.model.kinematics import is_placeholder_dh
 from lrfcal.stages.propose import DHProposal, propose_for_recording
 from lrfcal.stages.timing import covered_scans
@@ -478,29 +478,4 @@ def _has_intensities(msg: Any) -> bool:
     return len(it) > 0 and bool(np.any(np.asarray(it) > 0))
 
 
-def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str, float] | None = None, *,
-                multiecho: bool = False, comment: str | None = None) -> str:
-    """The rig-file YAML (dh, scan, servo) that reads the bag; dh placeholders when not known. ``multiecho``:
-    the scan topic is a MultiEchoLaserScan, whose ``echo`` choice is then written out even when it is the
-    default (for a LaserScan topic it is meaningless and left out). ``comment``: the line above ``dh`` (a
-    proposal's uncertainty, or why there is none; default: fill in the placeholders)."""
-    data: dict[str, Any] = {"dh": dict(dh) if dh else {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}}
-    if scan is not None:
-        data["scan"] = scan.model_dump(exclude_none=True)
-        if not multiecho and scan.echo == "strongest":  # the default, and meaningless for LaserScan topics
-            data["scan"].pop("echo")
-    if servo is not None:
-        s = servo.model_dump(exclude_none=True)
-        if servo.tf is not None:
-            s.pop("topic", None)
-        data["servo"] = s
-    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
-    if comment is not None:
-        text = comment.rstrip() + "\n" + text
-    elif not dh:
-        text = "# dh: fill in from the drawings (m, rad; docs/formats.md)\n" + text
-    return text
-
-
-__all__ = ["BagInspection", "ScanGeometry", "ServoInfo", "TopicInfo", "guess_unit", "inspect_bag",
-           "rig_snippet"]
+__all__ = ["BagInspection", "ScanGeometry", "ServoInfo", "TopicInfo", "guess_unit", "inspect_bag", "proposed_dh"]

@@ -30,10 +30,9 @@ from lrfcal.commands.inspect_bag import (
     _report_problems,
     inspect_bag,
     proposed_dh,
-    rig_snippet,
 )
 from lrfcal.errors import InputError
-from lrfcal.io.rig import validation_message
+from lrfcal.io.rig import rig_snippet, validation_message
 from lrfcal.io.scanlog import describe_layout, is_scan_log, load_log, log_servo, numbers, parse_rows, read_scan_log
 from lrfcal.stages.timing import covered_scans
 from lrfcal.types import LogLayout, ScanSource, ServoSource

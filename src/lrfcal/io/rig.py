@@ -13,6 +13,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Annotated, Any
 
+import yaml
 from pydantic import AfterValidator, Field, ValidationError, model_validator
 
 from lrfcal.errors import InputError
@@ -185,5 +186,28 @@ def with_overrides(
     return s, v
 
 
+def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str, float] | None = None, *,
+                multiecho: bool = False, comment: str | None = None) -> str:
+    """The rig file's YAML (dh, scan, servo) that reads a bag, as ``lrfcal inspect`` proposes it; dh placeholders
+    when not known. ``multiecho``: the scan topic is a MultiEchoLaserScan, whose ``echo`` choice is then written out
+    even when it is the default (for a LaserScan topic it is meaningless and left out). ``comment``: the line above
+    ``dh`` (a proposal's uncertainty, or why there is none; default: fill in the placeholders)."""
+    data: dict[str, Any] = {"dh": dict(dh) if dh else {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}}
+    if scan is not None:
+        data["scan"] = scan.model_dump(exclude_none=True)
+        if not multiecho and scan.echo == "strongest":  # the default, and meaningless for LaserScan topics
+            data["scan"].pop("echo")
+    if servo is not None:
+        s = servo.model_dump(exclude_none=True)
+        if servo.tf is not None:
+            s.pop("topic", None)
+        data["servo"] = s
+    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
+    if comment is not None:
+        text = comment.rstrip() + "\n" + text
+    elif not dh:
+        text = "# dh: fill in from the drawings (m, rad; docs/formats.md)\n" + text
+    return text
+
 __all__ = ["DHModel", "LogLayout", "MountModel", "RigFile", "ScanSource", "ServoSource", "TfSource", "load_rig",
-           "parse_rig", "validation_message", "with_overrides"]
+           "parse_rig", "rig_snippet", "validation_message", "with_overrides"]
