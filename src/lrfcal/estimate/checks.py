@@ -19,15 +19,16 @@ from lrfcal.model.chart import gauge_distance
 from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock
 from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
-from lrfcal.stages.surfaces import SurfaceReturns
-from lrfcal.types import Check, MarkerMap, Observations, Solution
+from lrfcal.types import Check, MarkerMap, Observations, Solution, SurfaceReturns
 
 
 class _Alternative(Protocol):
     """A direction of the servo and the marker-only solution with it (lrfcal.stages.alternatives.Alternative)."""
 
-    sign: int
-    solution: Solution
+    @property
+    def sign(self) -> int: ...
+    @property
+    def solution(self) -> Solution: ...
 
 
 A = TypeVar("A", bound=_Alternative)
@@ -163,8 +164,8 @@ def judge_minima(lr: float) -> tuple[bool, str]:
 
 #: a mirror image within this many of the estimate's 1-sigma of it, on every DH parameter, is the same rig to within
 #: the estimate's uncertainty (a scan plane a hundredth of a degree from perpendicular to the motor axis and its mirror
-#: image): either is right within its sigma
-MIRROR_SAME_SIGMA = 1.0
+#: image): either is right within a few of its sigma, never confidently wrong (4 sigma)
+MIRROR_SAME_SIGMA = 2.0
 
 
 def _nearest_mirror(dh: DH, nominal: DH, config: CheckConfig) -> tuple[str, DH, FloatArray, float, float]:
@@ -191,10 +192,12 @@ def nearer_mirror(dh: DH, nominal: DH, config: CheckConfig, dh_sigma: FloatArray
 
 
 def _same_rig(twin: DH, dh: DH, dh_sigma: FloatArray) -> bool:
-    """Whether a twin lies within MIRROR_SAME_SIGMA of ``dh``'s 1-sigma ``dh_sigma`` (4,) on every DH parameter."""
+    """Whether a twin, in either of its DH representatives (itself and its "turned" twin: one rig), lies within
+    MIRROR_SAME_SIGMA of ``dh``'s 1-sigma ``dh_sigma`` (4,) on every DH parameter."""
     s = np.asarray(dh_sigma, dtype=float)
-    z = np.abs(dh_difference(twin.vector(), dh.vector())) / np.where(np.isfinite(s) & (s > 0), s, np.inf)
-    return bool(np.all(z <= MIRROR_SAME_SIGMA))
+    scale = np.where(np.isfinite(s) & (s > 0), s, np.inf)
+    return any(bool(np.all(np.abs(dh_difference(t.vector(), dh.vector())) / scale <= MIRROR_SAME_SIGMA))
+               for t in (twin, dh_twins(twin)[0][1]))
 
 
 #: nominal tolerances beyond which a nominal DH far from both the estimate and its mirror image (50 deg at the 5 deg

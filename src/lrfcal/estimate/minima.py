@@ -34,8 +34,7 @@ from lrfcal.model.kinematics import DH, Params, dh_twins
 from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.model.unknowns import dh_difference
-from lrfcal.stages.surfaces import SurfaceReturns
-from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
+from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 

@@ -35,7 +35,7 @@ def check_joint_coverage(scans: Scans, joints: JointStates, where: str = "joint 
     Beam times (laser clock) are converted to the servo clock as t - clock_offset_s. For reporting: the
     reader does not call it (the calibration trims uncovered scans, timing.covered_scans).
     """
-    from lrfcal.stages.timing import joint_period_s, scan_spans
+    from lrfcal.types import joint_period_s, scan_spans
 
     period = joint_period_s(joints)
     lo, hi = scan_spans(scans)
@@ -269,8 +269,8 @@ def read_recording(
     tape = None
     if require_distances or distances is not None:
         tape = read_distances(pick(distances, "distances.csv", "distances"))
-    scan_src: ScanSource = scan or nom.scan
-    servo_src: ServoSource = servo or nom.servo
+    scan_src, servo_src = scan or nom.scan, servo or nom.servo
+    assert scan_src is not None and servo_src is not None  # read_nominal sets both from the rig file
     if scan_topic:
         scan_src = scan_src.model_copy(update={"topic": scan_topic})
     if joint_topic or joint_name:

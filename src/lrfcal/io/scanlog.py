@@ -215,7 +215,7 @@ def load_log(path: str | Path, layout: LogLayout) -> LogRows:
                              + " (check log.columns and log.intensities)")
         n = width // per_beam
         assert layout.angle_min_rad is not None and layout.angle_increment_rad is not None
-        mu = layout.angle_min_rad + layout.angle_increment_rad * np.arange(n)
+        mu = layout.angle_min_rad + layout.angle_increment_rad * np.arange(n, dtype=np.float64)
     want = lead + per_beam * n
     name = _column_name(layout, n)
     data = np.empty((len(rows), want))

@@ -119,7 +119,7 @@ def servo_alternatives(returns: Observations, detections: Detections, markers: M
     # the DH search runs when neither direction associates well (the other is associated only if the declared fails)
     search = not any((a := associated(s)) is not None and matching.good(a, signed[s], config) for s in (1, -1))
     clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
-    alternatives = []
+    alternatives: list[Alternative] = []
     failures = []
     for sign in (1, -1):
         if sign == -1 and alternatives and not far_from_nominal(alternatives[0].solution.params.dh, nominal.dh,
@@ -150,6 +150,7 @@ def _marker_solution(
     Raises CalibrationError when the blobs could not be matched, when the data do not determine the DH parameters
     (judged at the start, before any solver runs), or when blobs disagree with the marker map beyond repair.
     """
+    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
     if assoc is None:
         raise _NoMatch("association: no alignment of the blobs with the marker map (check the tape "
                                "distances' file and unit, and the marker radius)")
