@@ -120,6 +120,9 @@ class ReadReport:
     clock_offset_s: float = 0.0
     clock_offset_applied: bool = False
     notes: tuple[str, ...] = ()
+    #: what the reader recovered of a recording or left out of it (a bag cut short, the other side of a clock
+    #: step: lrfcal.io.bag_recover, lrfcal.io.clocksteps), in words; the calibration repeats them in its notes
+    left_out: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         """The report as human-readable lines (counts and notes)."""
@@ -138,6 +141,7 @@ class ReadReport:
                        f"{k} {v}" for k, v in sorted(self.servo_skipped.items())) + ")"))
         out.append(f"clocks: laser-minus-servo offset {self.clock_offset_s:+.6f} s "
                    f"({'applied' if self.clock_offset_applied else 'not applied, below 1 s'})")
+        out.extend(self.left_out)
         out.extend(self.notes)
         return out
 

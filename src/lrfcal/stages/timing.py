@@ -196,7 +196,7 @@ def usable_scans(recording: Recording, tau0: float, range_sigma_m: float | None 
             states that may hide the servo's motion, or most fall between joint states too sparse to interpolate
             their motor angle.
     """
-    notes: list[str] = []
+    notes: list[str] = [] if recording.report is None else list(recording.report.left_out)  # a cut bag, a clock step
     joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
     if n_spikes:
         notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
