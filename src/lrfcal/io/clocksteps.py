@@ -95,7 +95,13 @@ def level_steps(recv_s: FloatArray, stamps_s: FloatArray) -> tuple[list[LevelSte
     above = np.abs(score) > threshold
     steps = []
     edges = np.flatnonzero(np.diff(np.concatenate([[0], above.astype(np.int8), [0]])))
+    runs: list[list[int]] = []
     for a, b in zip(edges[::2].tolist(), edges[1::2].tolist(), strict=True):  # runs [a, b) of k above
+        if runs and a - runs[-1][1] < w:  # closer than a window: one step (a recorder's step interleaves messages)
+            runs[-1][1] = b
+        else:
+            runs.append([a, b])
+    for a, b in runs:
         lo, hi = max(a - w, 0), min(b - 1 + w, n)
         before = float(np.median(d[max(a - 1 - w, 0):max(a - 1, 1)]))
         after = float(np.median(d[min(b - 1, n - 1):min(b - 1 + w, n)]))
