@@ -42,9 +42,9 @@ from lrfcal.errors import CalibrationError
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
-#: a change of a stream's receive-minus-stamp smaller than this is not a step [s]: one sample period of a fast servo
-#: stream, well above the jitter of a bag's receive times on one computer and well below a clock step (ntpd steps a
-#: clock only when it is off by more than 0.128 s, and slews it below)
+#: a change of a stream's receive-minus-stamp smaller than this is not a step [s]: a fifth of a 100 Hz servo's sample
+#: period, above the jitter of a window's median of a bag's receive times on one computer and well below a clock step
+#: (ntpd steps a clock only when it is off by more than 0.128 s, and slews it below)
 MIN_STEP_S = 0.002
 #: ... nor one smaller than this many times the robust standard deviation of its delays' jitter
 NOISE_FACTOR = 8.0
