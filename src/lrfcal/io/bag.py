@@ -153,7 +153,10 @@ def read_bag(
         progress(total, total)
     for line in recovered:
         (warn or (lambda text: print(f"warning: {text}", file=sys.stderr)))(line)
-    return bag_data(str(path), scans, servo_topic, scan_type, servo_type, scan, servo, warn, recovered)
+    data = bag_data(str(path), scans, servo_topic, scan_type, servo_type, scan, servo, warn)
+    if not recovered:
+        return data
+    return replace(data, report=replace(data.report, left_out=(*recovered, *data.report.left_out)))
 
 
 def read_topic(path: str | Path, topic: str, *, bulk: bool = True) -> Topic:
@@ -195,12 +198,10 @@ def _topic(reader: Any, conns: list[Any], raw: RawTopic, bulk: bool) -> Topic:
 
 
 def bag_data(label: str, scan_topic: Topic, servo_topic: Topic, scan_type: str, servo_type: str, scan: ScanSource,
-             servo: ServoSource, warn: Callable[[str], None] | None = None, recovered: tuple[str, ...] = ()
-             ) -> BagData:
+             servo: ServoSource, warn: Callable[[str], None] | None = None) -> BagData:
     """What :func:`read_bag` makes of a bag's messages: those of the scan topic and of the servo's (empty when the
     angle travels in the scan's message); ``label`` names the bag in messages. A simulation's messages, never
-    serialised, give what its bag file would (lrfsim.recording.in_memory_bag). ``warn``: as in :func:`read_bag`;
-    ``recovered``: what was recovered of a bag cut short (lrfcal.io.bag_recover), for the report's ``left_out``."""
+    serialised, give what its bag file would (lrfsim.recording.in_memory_bag). ``warn``: as in :func:`read_bag`."""
     warn = warn or (lambda text: print(f"warning: {text}", file=sys.stderr))
     where_scan = f"{label}: {scan.topic}"
     if not len(scan_topic):
@@ -252,7 +253,7 @@ def bag_data(label: str, scan_topic: Topic, servo_topic: Topic, scan_type: str, 
         n_servo_messages=len(servo_topic) if len(servo_topic) else len(scan_topic), n_servo_samples=n_used,
         servo_skipped=dict(samples.skipped), scan_receive_minus_stamp_s=scan_med,
         servo_receive_minus_stamp_s=servo_med, clock_offset_s=offset, clock_offset_applied=applied,
-        notes=tuple(notes), left_out=(*recovered, *left_out),
+        notes=tuple(notes), left_out=left_out,
     )
     if servo.steps():  # step and scan: every beam takes the angle of its scan
         scans = replace(scans, angle_per_scan=True)
