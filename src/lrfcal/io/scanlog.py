@@ -82,8 +82,9 @@ def _is_bag(path: Path) -> bool:
 
 
 def resolve_recording(folder: str | Path | None, bag: str | Path | None) -> tuple[Path | None, Path | None]:
-    """(recording folder, bag or log path) for what a user gave: a recording folder (its ``bag/``, else its one
-    scan log), a bag or a scan log itself as the recording (the folder is then the file's), or explicit paths."""
+    """(recording folder, bag or log path) for what a user gave: a recording folder (its ``bag/``, else its one bag
+    under any name or scan log: :func:`find_log`), a bag or a scan log itself as the recording (the folder is then
+    the file's), or explicit paths."""
     base = Path(folder) if folder is not None else None
     given = Path(bag) if bag is not None else None
     if base is not None and given is None and _is_bag(base):  # a bag itself as the recording: its folder
