@@ -34,10 +34,10 @@ import numpy as np
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfsim.compare import Comparison
-from lrfsim.loop import run_loop
-from lrfsim.randomize import random_scenario
-from lrfsim.scenario import Scenario, load_scenario
+from lrfsim.scenario.file import Scenario, load_scenario
+from lrfsim.testing.random_scenarios import random_scenario
+from lrfsim.trials.closed_loop import run_loop
+from lrfsim.trials.compare import Comparison
 
 ROOT = Path(__file__).resolve().parents[1]
 DH_INDEX = [PARAM_NAMES.index(n) for n in DH_NAMES]  # a, alpha, b, beta

@@ -1,7 +1,7 @@
 """How much of a calibration's error is the model's own, not noise (issue 18, item 5: a sigma that includes model
 error).
 
-For each random truth of lrfsim.randomize.random_scenario_wide(seed, broad=True), the same recording is
+For each random truth of lrfsim.testing.random_scenarios.random_scenario_wide(seed, broad=True), the same recording is
 simulated twice, once as shipped and once without range noise and with an exact tape (sigma 1 um). Both are
 calibrated as shipped. An error that the noise-free, exact-map recording reproduces is the model's: noise
 cannot make it, and the reported sigma, which is noise's, does not cover it. Prints per truth and recording
@@ -28,11 +28,11 @@ import time
 from pathlib import Path
 
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.randomize import alpha_kind_of, random_scenario_wide
-from lrfsim.recording import write_recording
-from lrfsim.scenario import Scenario
-from lrfsim.simulate import simulate
-from lrfsim.trial import calibrate_recording
+from lrfsim.scenario.file import Scenario
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import simulate
+from lrfsim.testing.random_scenarios import alpha_kind_of, random_scenario_wide
+from lrfsim.trials.trial import calibrate_recording
 
 #: the tape's sigma of the "exact" map [m]
 EXACT_TAPE_M = 1e-6
@@ -57,7 +57,7 @@ def per_marker(scenario: Scenario) -> list[str]:
     from lrfcal.estimate.information import model_residuals
     from lrfcal.model.kinematics import beam_rays_W
     from lrfcal.model.marker import MarkerSensor
-    from lrfsim.plan import marker_observations
+    from lrfsim.plan.prediction import marker_observations
 
     obs, markers_W, params, _, _, _ = marker_observations(scenario)
     assert scenario.markers is not None

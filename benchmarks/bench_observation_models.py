@@ -1,9 +1,10 @@
 """The simulator's returns against the calibration's observation models, at the truth and without noise (issue 18,
 item 5: where a bias that no noise makes can come from).
 
-A scenario is simulated without range noise and range quantisation (``lrfsim.simulate.simulate(noise=False)``;
-the beam's footprint, its 7 sub-rays and their power-weighted range, stays) and every return is compared with what
-the calibration's models predict with the TRUE DH, mount, motor angles and marker centres:
+A scenario is simulated without range noise and range quantisation
+(``lrfsim.simulation.simulate.simulate(noise=False)``; the beam's footprint, its 7 sub-rays and their power-weighted
+range, stays) and every return is compared with what the calibration's models predict with the TRUE DH, mount, motor
+angles and marker centres:
 
 * surface returns (lrfcal.model.plane): the range against the ray's distance to the markers' plane moved back by
   the marker radius, for the rays that meet it inside the markers' extent (+5 cm) and 3 cm clear of every marker
@@ -31,8 +32,8 @@ from scipy.spatial import cKDTree
 from lrfcal.model.kinematics import Params, beam_rays_W
 from lrfcal.model.marker import ray_to_centre
 from lrfcal.model.sphere import footprint_depth
-from lrfsim.scenario import load_scenario
-from lrfsim.simulate import simulate
+from lrfsim.scenario.file import load_scenario
+from lrfsim.simulation.simulate import simulate
 
 ROOT = Path(__file__).resolve().parents[1]
 #: a surface return must lie this close to the model's range to be counted (the rest: other surfaces) [m]

@@ -17,7 +17,7 @@ sensitive to other work on a shared machine) and the ratios to ``generic`` / ``o
 tunnel_v's recording <= 0.1 s where it took ~0.5 s (a ratio <= 0.2).
 
 Without BAG also the writing of tunnel_v's bag, interleaved the same way: ``write generic``
-(lrfsim.recording.write_bag with ``bulk=False``: one rosbags serialiser call per message) and ``write bulk``
+(lrfsim.simulation.recording.write_bag with ``bulk=False``: one rosbags serialiser call per message) and ``write bulk``
 (write_bag as it runs: the messages serialised as arrays, lrfcal.io.wire, the file assembled from them,
 lrfcal.io.mcap_write), the same file byte for byte (benchmarks/bench_write.py: against rosbags' Writer alone).
 """
@@ -53,9 +53,9 @@ print(time.perf_counter() - t0, time.process_time() - c0)
 
 def _simulated(tmp: Path, repeat: int, times: dict[str, list[float]], cpus: dict[str, list[float]]) -> Path:
     """tunnel_v simulated and written into ``tmp``; its bag's writing timed both ways (module docstring)."""
-    from lrfsim.recording import write_bag
-    from lrfsim.scenario import load_scenario
-    from lrfsim.simulate import simulate, write_recording
+    from lrfsim.scenario.file import load_scenario
+    from lrfsim.simulation.recording import write_bag, write_recording
+    from lrfsim.simulation.simulate import simulate
 
     scenario = load_scenario(ROOT / "scenarios" / "tunnel_v.yaml")
     result = simulate(scenario)

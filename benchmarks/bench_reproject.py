@@ -27,8 +27,8 @@ import yaml
 from lrfcal.io.cloud import BeamCloud, CloudOutputs, reproject_bag, reproject_beams, write_cloud_ply
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH
-from lrfsim.scenario import load_scenario
-from lrfsim.simulate import simulate_to_folder
+from lrfsim.scenario.file import load_scenario
+from lrfsim.simulation.to_folder import simulate_to_folder
 
 ROOT = Path(__file__).resolve().parents[1]
 

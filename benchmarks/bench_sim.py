@@ -4,9 +4,9 @@
 
 1. bare: exactly the simulator's mj_multiRay calls (same origins, directions, counts, geomgroup, cutoff and
    output buffers), generated chunk by chunk outside the timer, timed around the call loop only;
-2. sim: lrfsim.raycast.simulate_scans on the same motor angles (poses, rays, casts, sensor model), with every
+2. sim: lrfsim.cast.scans.simulate_scans on the same motor angles (poses, rays, casts, sensor model), with every
    sub-ray cast (``sensor.footprint_cast: full``, the bare loop's rays) and with the default (``edges``);
-3. recording: lrfsim.simulate.simulate_to_folder (scene build, simulation, bag and side files);
+3. recording: lrfsim.simulation.to_folder.simulate_to_folder (scene build, simulation, bag and side files);
 4. batching: the largest distance between a call's shared origin and a beam's exact origin, and the largest
    angle between a cast direction and the exact beam direction, both against lrfcal.model.kinematics (eq. (3)).
 Targets: sim / bare <= 1.5, recording < 5 s. Prints PASS/MISS per target (exit code 0 either way).
@@ -30,12 +30,13 @@ from pathlib import Path
 import numpy as np
 
 from lrfcal.model.kinematics import beam_rays_M, transform_points
-from lrfsim import lidar, raycast
-from lrfsim.scenario import Scenario, load_scenario
-from lrfsim.scenario_sections import SensorConfig
-from lrfsim.scene import Scene, build_scene
-from lrfsim.servo import servo_trajectory
-from lrfsim.simulate import simulate_to_folder
+from lrfsim.cast import scans
+from lrfsim.scenario.file import Scenario, load_scenario
+from lrfsim.scenario.sections import SensorConfig
+from lrfsim.sensors import lidar
+from lrfsim.sensors.servo import servo_trajectory
+from lrfsim.simulation.to_folder import simulate_to_folder
+from lrfsim.world.scene import Scene, build_scene
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -48,7 +49,7 @@ def main(path: Path) -> None:
     starts = lidar.scan_start_times(traj.end_s, sensor, 0.0)
     lam = traj.angle(lidar.beam_times(starts, sensor))
     N, F = sensor.n_beams, sensor.footprint_rays
-    cutoff = raycast.cast_cutoff_m(sensor)
+    cutoff = scans.cast_cutoff_m(sensor)
     gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
     m, d = scene.model, scene.data
 
@@ -63,9 +64,9 @@ def main(path: Path) -> None:
     gid, dist, nrm = np.empty(M, np.int32), np.empty(M), np.empty((M, 3))
     bare_s, n_rays, n_calls = 0.0, 0, 0
     max_pos_err = max_dir_err = 0.0
-    for ch in raycast.iter_ray_chunks(scene, sensor, lam):
+    for ch in scans.iter_ray_chunks(scene, sensor, lam):
         t0 = time.perf_counter()
-        raycast.cast_chunk(m, d, gg, ch, cutoff, gid, dist, nrm)  # mj_multiRay over the chunk's calls, nothing else
+        scans.cast_chunk(m, d, gg, ch, cutoff, gid, dist, nrm)  # mj_multiRay over the chunk's calls, nothing else
         bare_s += time.perf_counter() - t0
         n_rays += ch.directions.shape[0]
         n_calls += len(ch.call_first)
@@ -82,9 +83,9 @@ def main(path: Path) -> None:
     pose_err = float(np.abs(origins_W - o_ref).max())
 
     # 2. the simulator on the same angles
-    out = raycast.simulate_scans(scene, sensor, lam, np.random.default_rng(0))
+    out = scans.simulate_scans(scene, sensor, lam, np.random.default_rng(0))
     sim_s = out.total_time_s
-    edges = raycast.simulate_scans(scene, sc.sensor.model_copy(update={"footprint_cast": "edges"}), lam,
+    edges = scans.simulate_scans(scene, sc.sensor.model_copy(update={"footprint_cast": "edges"}), lam,
                                    np.random.default_rng(0))
     differ = int(np.sum(~((edges.ranges_m == out.ranges_m) | (np.isnan(edges.ranges_m) & np.isnan(out.ranges_m)))))
 
@@ -134,7 +135,7 @@ def _first_sweep(sc: Scenario) -> tuple[SensorConfig, np.ndarray]:
 def _our_calls(scene: Scene, sensor: SensorConfig, lam: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """Every mj_multiRay call of this project's cast of ``lam`` (S, N): (origin (3,), directions (n, 3)), copied."""
     calls = []
-    for ch in raycast.iter_ray_chunks(scene, sensor, lam):
+    for ch in scans.iter_ray_chunks(scene, sensor, lam):
         for o, a, n in zip(ch.call_origins, ch.call_first, ch.call_count, strict=True):
             calls.append((o.copy(), ch.directions[a:a + n].copy()))
     return calls
@@ -229,14 +230,14 @@ def _peer_workload(name: str, scene: Scene, sensor: SensorConfig, lam: np.ndarra
     from mujoco_lidar.core_cpu import MjLidarCPU, mjlidar_cpu
 
     S, N = lam.shape
-    cutoff = raycast.cast_cutoff_m(sensor)
+    cutoff = scans.cast_cutoff_m(sensor)
     gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
     calls = _our_calls(scene, sensor, lam)
     jobs = _peer_jobs(scene, sensor, lam, per_scan)
     peer = MjLidarCPU(scene.model, cutoff_dist=cutoff, geomgroup=gg, bodyexclude=-1)
     peer.update(scene.data)
     bare_r, bare_gid = _bare(scene, calls, cutoff)  # this cast's rays and hits (its geom ids: Cast has none)
-    cast = raycast.cast_scans(scene, sensor, lam, footprint="full")
+    cast = scans.cast_scans(scene, sensor, lam, footprint="full")
     ours = cast.ranges_m.reshape(-1)
     rec = _GeomRecorder()
     mjlidar_cpu.mujoco = rec  # type: ignore[assignment]
@@ -245,11 +246,11 @@ def _peer_workload(name: str, scene: Scene, sensor: SensorConfig, lam: np.ndarra
     finally:
         mjlidar_cpu.mujoco = mujoco
     peer_gid = np.concatenate(rec.geomids)
-    threads = raycast.default_threads()
+    threads = scans.default_threads()
     runs = {
         "MuJoCo-LiDAR MjLidarCPU": partial(_peer_run, scene, peer, jobs, S * N),
-        "this cast, 1 thread": partial(raycast.cast_scans, scene, sensor, lam, footprint="full", threads=1),
-        f"this cast, {threads} threads": partial(raycast.cast_scans, scene, sensor, lam, footprint="full"),
+        "this cast, 1 thread": partial(scans.cast_scans, scene, sensor, lam, footprint="full", threads=1),
+        f"this cast, {threads} threads": partial(scans.cast_scans, scene, sensor, lam, footprint="full"),
         "bare mj_multiRay, 1 thread": partial(_bare, scene, calls, cutoff),
     }
     times: dict[str, list[float]] = {k: [] for k in runs}
@@ -274,7 +275,7 @@ def _peer_workload(name: str, scene: Scene, sensor: SensorConfig, lam: np.ndarra
 
 
 def peer_main(path: Path, repeats: int) -> int:
-    """--peer (module docstring): the first sweep's centre rays cast by this project (lrfsim.raycast.cast_scans,
+    """--peer (module docstring): the first sweep's centre rays cast by this project (lrfsim.cast.scans.cast_scans,
     1 thread and the default threads), by MuJoCo-LiDAR's ``MjLidarCPU`` and by bare single-thread mj_multiRay, all
     interleaved ``repeats`` times; Mrays/s (median and range) and the ratio to the peer per repeat."""
     try:
@@ -294,7 +295,7 @@ def peer_main(path: Path, repeats: int) -> int:
     sensor, lam_beam = _first_sweep(sc)
     S, N = lam_beam.shape
     print(f"{sc.name}: first sweep, {S} scans x {N} centre rays = {S * N:,} rays; mujoco {mujoco.__version__}, "
-          f"mujoco-lidar {mujoco_lidar.__version__}, {raycast.default_threads()} cast threads, {repeats} repeats")
+          f"mujoco-lidar {mujoco_lidar.__version__}, {scans.default_threads()} cast threads, {repeats} repeats")
     workloads = {  # name: (motor angles (S, N), the peer's calls one per scan?)
         "one pose per scan": (np.repeat(lam_beam[:, N // 2:N // 2 + 1], N, axis=1), True),
         "each beam at its own time (the simulator's rays)": (lam_beam, False),

@@ -15,7 +15,7 @@ imports count), all in this one run, so that a busy machine slows numerator and 
 3. the calibration in-process (``lrfcal.pipeline.calibrate``, no CLI, no figures) with its stage times, under the
    programs' memory and thread policies (lrfcal.runtime.memory, lrfcal.runtime.threads);
 4. ``lrfcal calibrate REC`` again with 4 busy processes beside it (started here, always killed in a finally);
-5. the simulator's cast (lrfsim.raycast.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
+5. the simulator's cast (lrfsim.cast.scans.cast_scans) against bare single-thread ``mj_multiRay`` over the same calls;
 6. ``lrfsim study SCENARIO -n N -j 2``: trials per minute (the study's wall, plan and figures included);
 7. start-up: ``lrfcal --help`` and ``lrfsim --help`` as console scripts (beside ``python -c pass``, the
    interpreter's own start), R runs each and at least 5;
@@ -121,13 +121,14 @@ def busy_processes(n: int) -> list[subprocess.Popen[bytes]]:
 
 
 def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
-    """(cast seconds of lrfsim.raycast.cast_scans, bare single-thread mj_multiRay seconds over the same calls,
+    """(cast seconds of lrfsim.cast.scans.cast_scans, bare single-thread mj_multiRay seconds over the same calls,
     rays, load) on the scenario's noise-free motor angles."""
 
-    from lrfsim import lidar, raycast
-    from lrfsim.scenario import load_scenario
-    from lrfsim.scene import build_scene
-    from lrfsim.servo import servo_trajectory
+    from lrfsim.cast import scans
+    from lrfsim.scenario.file import load_scenario
+    from lrfsim.sensors import lidar
+    from lrfsim.sensors.servo import servo_trajectory
+    from lrfsim.world.scene import build_scene
 
     sc = load_scenario(scenario_path)
     scene = build_scene(sc)
@@ -135,19 +136,19 @@ def cast_vs_bare(scenario_path: Path) -> tuple[float, float, int, float]:
     traj = servo_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sensor, 0.0), sensor))
     N, F = sensor.n_beams, sensor.footprint_rays
-    cutoff = raycast.cast_cutoff_m(sensor)
+    cutoff = scans.cast_cutoff_m(sensor)
     gg = np.ascontiguousarray(scene.lidar_geomgroup, dtype=np.uint8)
     m, d = scene.model, scene.data
     load = _load()
     M = 16 * N * F
     gid, dist, nrm = np.empty(M, np.int32), np.empty(M), np.empty((M, 3))
     bare_s, n_rays = 0.0, 0
-    for ch in raycast.iter_ray_chunks(scene, sensor, lam):
+    for ch in scans.iter_ray_chunks(scene, sensor, lam):
         t0 = time.perf_counter()
-        raycast.cast_chunk(m, d, gg, ch, cutoff, gid, dist, nrm)  # mj_multiRay over the chunk's calls, nothing else
+        scans.cast_chunk(m, d, gg, ch, cutoff, gid, dist, nrm)  # mj_multiRay over the chunk's calls, nothing else
         bare_s += time.perf_counter() - t0
         n_rays += ch.directions.shape[0]
-    cast = raycast.cast_scans(scene, sensor, lam, footprint="full")  # every sub-ray: the bare loop's rays
+    cast = scans.cast_scans(scene, sensor, lam, footprint="full")  # every sub-ray: the bare loop's rays
     return cast.total_time_s, bare_s, n_rays, load
 
 
@@ -230,8 +231,8 @@ def main() -> None:
     args = ap.parse_args()
     from lrfcal.runtime.memory import apply_memory_policy
     from lrfcal.runtime.threads import apply_thread_policy
-    from lrfsim.scenario import dump_scenario, load_scenario
-    from lrfsim.variants import with_field
+    from lrfsim.scenario.file import dump_scenario, load_scenario
+    from lrfsim.trials.variants import with_field
 
     apply_memory_policy()  # the in-process measurements (3., 5.) under the programs' policies, as the commands run
     apply_thread_policy()

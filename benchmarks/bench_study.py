@@ -33,11 +33,11 @@ import time
 from pathlib import Path
 
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.plan import format_value
-from lrfsim.scenario import Scenario, load_scenario
-from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry
-from lrfsim.study import study, write_study
-from lrfsim.variants import with_field
+from lrfsim.plan.prediction import format_value
+from lrfsim.scenario.file import Scenario, load_scenario
+from lrfsim.simulation.simulate import cast_geometry, simulate, simulate_from_geometry
+from lrfsim.trials.study import study, write_study
+from lrfsim.trials.variants import with_field
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -75,7 +75,7 @@ def main() -> None:
     ap.add_argument("--jitter", type=float, default=None, metavar="M",
                     help="the V's or board's jitter_m [m] (with --new-layout: each trial's markers moved by up to M)")
     ap.add_argument("--perturb-start", type=float, default=0.0, metavar="S",
-                    help="move each trial's nominal values (lrfsim.study.perturbed_start; 0: off)")
+                    help="move each trial's nominal values (lrfsim.trials.study.perturbed_start; 0: off)")
     ap.add_argument("-o", "--out", type=Path, default=None, help="keep each study's folder here (DIR/<scenario>)")
     args = ap.parse_args()
     missed: list[str] = []

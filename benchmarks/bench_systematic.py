@@ -1,6 +1,6 @@
 """What each systematic range error costs three calibrations of the same recording (issue 12).
 
-Runs tunnel_v and plane_30deg through lrfsim.trial with each effect of ``sensor.systematic`` switched on in turn,
+Runs tunnel_v and plane_30deg through lrfsim.trials.trial with each effect of ``sensor.systematic`` switched on in turn,
 at the assumed magnitudes of docs/sensor_errors.md (no published UTM-30LX-EW figure was verified: these are of the
 order of the spec's +-30 mm accuracy, not measurements), then all four together, and multi-echo returns read from
 /echoes (strongest echo) instead of /scan. Each case is recorded once and calibrated by three methods:
@@ -32,8 +32,8 @@ import yaml
 
 from lrfcal.model.kinematics import DH_NAMES
 from lrfcal.pipeline import CalibConfig
-from lrfsim.scenario import Scenario, parse_scenario
-from lrfsim.trial import CONFIDENT_WRONG_Z, Trial, calibrate_recording, record
+from lrfsim.scenario.file import Scenario, parse_scenario
+from lrfsim.trials.trial import CONFIDENT_WRONG_Z, Trial, calibrate_recording, record
 
 ROOT = Path(__file__).resolve().parents[1]
 

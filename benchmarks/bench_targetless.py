@@ -20,9 +20,10 @@ import numpy as np
 from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.result import PlaneEvidence
-from lrfsim.compare import load_truth
-from lrfsim.scenario import load_scenario
-from lrfsim.simulate import simulate, write_recording
+from lrfsim.scenario.file import load_scenario
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import simulate
+from lrfsim.trials.compare import load_truth
 
 ROOT = Path(__file__).resolve().parents[1]
 DH = ("a", "alpha", "b", "beta")

@@ -1,16 +1,16 @@
 """Trust benchmark (issue 7): never a confident wrong calibration.
 
 Runs the calibration on
-  1. broad random ground truths (lrfsim.randomize.random_scenario_wide: V on one or both walls, markers on walls,
-     floor and ceiling, a board; DH angles near 0 or +-90 deg with either sign; the motor axis along, across and
-     up the tunnel; 6-30 markers; 1-4 passes), and
+  1. broad random ground truths (lrfsim.testing.random_scenarios.random_scenario_wide: V on one or both walls,
+     markers on walls, floor and ceiling, a board; DH angles near 0 or +-90 deg with either sign; the motor axis
+     along, across and up the tunnel; 6-30 markers; 1-4 passes), and
   2. a fault set on tunnel_v and plane_30deg (false blobs, occluded markers, dropped scans, encoder spikes,
      undeclared clock offsets, tape outliers, an inverted servo, 3x range noise, a gear ratio 2 % off, joint states
      at 2 Hz, ranges 1 % long, joint states missing for 3 s across the servo's first turnaround),
 and prints per case the outcome (calibrated with error / sigma, or refused with the reason), then
   - the number of confident wrong results (exit 0 and some DH error beyond 4 sigma): must be 0;
   - the refusal rate, over all random truths and over those whose layout the generator labels as determining
-    the DH parameters (lrfsim.randomize.wide_dh_determined; target below 10 %);
+    the DH parameters (lrfsim.testing.random_scenarios.wide_dh_determined; target below 10 %);
   - the RMS of error / sigma per DH parameter over the calibrated cases (target 0.8-1.25);
   - the calibration time against the code before the trust work (``--baseline-rev``, run from a git worktree
     in the same run on the same recordings; target at most 2x).
@@ -42,9 +42,9 @@ import numpy as np
 import yaml
 
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.randomize import ALPHA_KINDS, alpha_kind_of, random_scenario_wide, wide_dh_determined
-from lrfsim.scenario import Scenario, parse_scenario, with_changes
-from lrfsim.trial import Trial, calibrate_recording, record
+from lrfsim.scenario.file import Scenario, parse_scenario, with_changes
+from lrfsim.testing.random_scenarios import ALPHA_KINDS, alpha_kind_of, random_scenario_wide, wide_dh_determined
+from lrfsim.trials.trial import Trial, calibrate_recording, record
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,9 +1,9 @@
-"""Are the markers of the broad random truths actually seen? (lrfsim.randomize.random_scenario_wide)
+"""Are the markers of the broad random truths actually seen? (lrfsim.testing.random_scenarios.random_scenario_wide)
 
     python benchmarks/bench_wide_markers.py [N_SEEDS=60] [FIRST_SEED=0]
 
 Per seed: simulate (one at a time), detect intensity blobs (lrfcal.stages.detection.detect) and count the markers
-with a detected blob on their returns (lrfsim.faults.marker_returns attributes returns to markers with the
+with a detected blob on their returns (lrfsim.simulation.faults.marker_returns attributes returns to markers with the
 truth), against the markers the sweep can see by geometry (visible_markers) and the layout's
 wide_dh_determined label. Prints one line per seed, then the fraction of scenarios with fewer than 6 markers
 detected (target: small; measured 0 of 60 at commit time) and the fraction labelled determined.
@@ -16,8 +16,8 @@ import time
 
 import numpy as np
 
-from lrfsim.randomize import detected_markers, random_scenario_wide, visible_markers, wide_dh_determined
-from lrfsim.simulate import simulate
+from lrfsim.simulation.simulate import simulate
+from lrfsim.testing.random_scenarios import detected_markers, random_scenario_wide, visible_markers, wide_dh_determined
 
 MIN_SEEN = 6
 

@@ -2,20 +2,20 @@
 
     python benchmarks/bench_write.py [--trials T] [--repeat R] [--old-src SRC]
 
-A study trial of tunnel_v as ``lrfsim study`` runs it (lrfsim.study.run_batch: the cast once, then per trial its
+A study trial of tunnel_v as ``lrfsim study`` runs it (lrfsim.trials.study.run_batch: the cast once, then per trial its
 noise drawn on that cast, the recording written, read back and calibrated), in this process, the worker's memory
 and thread policies applied; for each of T trials (default 4) the CPU time (time.process_time: user + system of
 the process, less sensitive to other work on a shared machine than the wall time) of the trial's parts, and the
 bag of that trial written R times (default 3) each way, interleaved, so that a busy machine slows both alike:
 
-* ``rosbags``: lrfsim.recording.write_bag of the source tree SRC (``--old-src``, e.g. the main branch's ``src``;
-  without it, skipped): the messages serialised in bulk, the file written by rosbags' Writer,
+* ``rosbags``: lrfsim.simulation.recording.write_bag of the source tree SRC (``--old-src``, e.g. the main branch's
+  ``src``; without it, skipped): the messages serialised in bulk, the file written by rosbags' Writer,
   one call per message (the version before lrfcal.io.mcap_write);
 * ``bulk``: write_bag as it runs (lrfcal.io.mcap_write), whose file must be the same, byte for byte (checked);
 * ``generic``: write_bag(bulk=False): rosbags' serialiser and Writer, one call each per message (the reference);
 
 and the recording's declared range noise (nominal.yaml ``range_sigma_m``) both ways, interleaved the same way:
-``np.median`` of every finite range's sigma (before) and lrfsim.lidar.typical_range_sigma (counted by band), the
+``np.median`` of every finite range's sigma (before) and lrfsim.sensors.lidar.typical_range_sigma (counted by band), the
 same float (checked). Prints the median CPU of each, the ratios, and the write's share of a whole trial's CPU.
 """
 
@@ -34,7 +34,10 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def _old_write_bag(src: Path):  # noqa: ANN202 - the old tree's write_bag, imported beside this tree's package
-    spec = importlib.util.spec_from_file_location("lrfsim._old_recording", src / "lrfsim" / "recording.py")
+    # its relative imports resolve in this tree's package: a tree of the same layout (lrfsim's rooms), not one from
+    # before them (src/lrfsim/recording.py)
+    spec = importlib.util.spec_from_file_location("lrfsim.simulation._old_recording",
+                                                  src / "lrfsim" / "simulation" / "recording.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -44,7 +47,7 @@ def _old_write_bag(src: Path):  # noqa: ANN202 - the old tree's write_bag, impor
 def _median_sigma(ranges_m, sensor) -> float:  # noqa: ANN001 - typical_range_sigma as it was
     import numpy as np
 
-    from lrfsim.lidar import range_sigma
+    from lrfsim.sensors.lidar import range_sigma
 
     return float(np.median(range_sigma(ranges_m[np.isfinite(ranges_m)], sensor)))
 
@@ -60,11 +63,11 @@ def main() -> None:
 
     from lrfcal.runtime.memory import apply_memory_policy
     from lrfcal.runtime.threads import apply_thread_policy
-    from lrfsim.lidar import typical_range_sigma
-    from lrfsim.recording import write_bag, write_recording
-    from lrfsim.scenario import load_scenario
-    from lrfsim.simulate import cast_geometry, simulate_from_geometry
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.scenario.file import load_scenario
+    from lrfsim.sensors.lidar import typical_range_sigma
+    from lrfsim.simulation.recording import write_bag, write_recording
+    from lrfsim.simulation.simulate import cast_geometry, simulate_from_geometry
+    from lrfsim.trials.trial import calibrate_recording
 
     apply_memory_policy()
     apply_thread_policy()

@@ -36,12 +36,12 @@ import pytest
 
 from lrfcal.runtime.memory import apply_memory_policy
 from lrfcal.runtime.threads import apply_thread_policy
-from lrfsim.scenario import Scenario, load_scenario
+from lrfsim.scenario.file import Scenario, load_scenario
 
 if TYPE_CHECKING:
     from lrfcal.config import CalibConfig
     from lrfcal.result import CalibrationResult
-    from lrfsim.trial import Trial
+    from lrfsim.trials.trial import Trial
 
 # The console scripts the tests run (and the xdist workers) cache their bytecode as an installed package does: a
 # machine that sets PYTHONDONTWRITEBYTECODE (some CI images do) would otherwise compile the project's modules again in
@@ -121,7 +121,8 @@ def _shared_root(factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="session")
 def recording_of(tmp_path_factory: pytest.TempPathFactory) -> Callable[[Scenario], Path]:
     """``recording_of(scenario)`` -> its recording folder (module docstring); do not write into it."""
-    from lrfsim.simulate import simulate, write_recording
+    from lrfsim.simulation.recording import write_recording
+    from lrfsim.simulation.simulate import simulate
 
     root = _shared_root(tmp_path_factory)
 
@@ -234,9 +235,9 @@ def full_sweep_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[subprocess
 
 @pytest.fixture(scope="session")
 def calibrated_trial(recording_of: Callable[[Scenario], Path]) -> Callable[[Scenario, CalibConfig], Trial]:
-    """``calibrated_trial(scenario, config)`` -> lrfsim.trial.calibrate_recording(recording_of(scenario), config,
+    """``calibrated_trial(scenario, config)`` -> lrfsim.trials.trial.calibrate_recording(recording_of(scenario), config,
     keep_result=True), once per session (per xdist worker) for each scenario and configuration; do not change it."""
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.trials.trial import calibrate_recording
 
     done: dict[tuple[str, str], Trial] = {}
 

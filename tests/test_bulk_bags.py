@@ -200,8 +200,8 @@ def test_every_storage_and_odd_layouts_read_alike(tmp_path: Path, kind: str, nam
 # --- the simulator's bag, written in bulk -----------------------------------------------------------------------
 
 def _records(result: Any, scenario: Any) -> tuple[list[tuple[str, str]], list[tuple[int, str, memoryview]]]:
-    """lrfsim.recording.bag_columns message by message: [(log time ns, topic, CDR bytes)] in file order."""
-    from lrfsim.recording import bag_columns
+    """lrfsim.simulation.recording.bag_columns message by message: [(log time ns, topic, CDR bytes)] in file order."""
+    from lrfsim.simulation.recording import bag_columns
 
     topics, messages, log_ns, channel, index = bag_columns(result, scenario)
     return topics, [(t, topics[c][0], memoryview(messages[c][k]))
@@ -220,8 +220,8 @@ def test_simulated_bag_is_the_file_rosbags_writes(tmp_path: Path, sections: dict
     writes the bag.mcap and metadata.yaml that rosbags' serialiser and Writer write, one call per message."""
     from test_lidar import small_scenario
 
-    from lrfsim.recording import bag_messages, write_bag
-    from lrfsim.simulate import simulate
+    from lrfsim.simulation.recording import bag_messages, write_bag
+    from lrfsim.simulation.simulate import simulate
 
     scenario = small_scenario(**sections)
     result = simulate(scenario)

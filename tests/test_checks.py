@@ -63,9 +63,9 @@ def test_plan_of_a_scan_plane_near_perpendicular() -> None:
 
     import yaml
 
-    from lrfsim.plan import plan
-    from lrfsim.randomize import random_scenario_wide
-    from lrfsim.scenario import parse_scenario, with_changes
+    from lrfsim.plan.prediction import plan
+    from lrfsim.scenario.file import parse_scenario, with_changes
+    from lrfsim.testing.random_scenarios import random_scenario_wide
 
     sc = random_scenario_wide(41, broad=True)
     assert abs(math.degrees(sc.rig.dh.alpha)) < 1.0

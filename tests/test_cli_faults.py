@@ -1,4 +1,5 @@
-"""Every fault of ``lrfsim.faults`` and every crash or bad input of issue 21, through the INSTALLED console scripts.
+"""Every fault of ``lrfsim.simulation.faults`` and every crash or bad input of issue 21, through the INSTALLED console
+scripts.
 
 A recording with faults (simulated once per test run) is calibrated by ``lrfcal calibrate`` as a user would:
 the exit code is the documented one (0 calibrated, 2 bad input, 3 refused), a refusal or a bad input is exactly one
@@ -18,7 +19,7 @@ import pytest
 import yaml
 from test_cli_usage import ROOT, _one_error_line, _run
 
-from lrfsim.scenario import Scenario, parse_scenario
+from lrfsim.scenario.file import Scenario, parse_scenario
 
 SCENARIO = ROOT / "scenarios" / "plane_30deg.yaml"
 

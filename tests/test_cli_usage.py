@@ -19,7 +19,7 @@ import pytest
 import yaml
 
 from lrfcal.io.files import MANIFEST_NAME
-from lrfsim.scenario import Scenario, load_scenario
+from lrfsim.scenario.file import Scenario, load_scenario
 
 ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
@@ -320,7 +320,7 @@ def test_spawn_without_viewer_saves_rrd_and_goes_on(tmp_path: Path, recording_of
 # --- the scenario format is documented ------------------------------------------------------------------------
 
 def test_schema_and_docs_page_up_to_date() -> None:
-    from lrfsim.scenario_doc import scenario_markdown
+    from lrfsim.scenario.markdown_page import scenario_markdown
 
     proc = _run("lrfsim", "schema")
     assert proc.returncode == 0
@@ -335,9 +335,9 @@ def test_schema_and_docs_page_up_to_date() -> None:
 def test_every_scenario_field_has_a_description_with_unit_or_meaning() -> None:
     from pydantic import BaseModel
 
-    from lrfsim import scenario, scenario_sections
+    from lrfsim.scenario import file, sections
 
-    models = [m for sc in (scenario, scenario_sections) for m in vars(sc).values()
+    models = [m for sc in (file, sections) for m in vars(sc).values()
               if isinstance(m, type) and issubclass(m, BaseModel) and m is not BaseModel
               and m.__module__ == sc.__name__ and not m.__name__.startswith("_")]
     assert len(models) >= 15

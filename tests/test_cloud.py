@@ -74,8 +74,8 @@ def test_simulated_recording_matches_the_pipelines_reprojection(tmp_path):
     from lrfcal.io.recording import read_recording
     from lrfcal.stages.reproject import reproject_cloud
     from lrfcal.stages.timing import beam_motor_angles, covered_scans, without_quantisation
-    from lrfsim.scenario import load_scenario
-    from lrfsim.simulate import simulate_to_folder
+    from lrfsim.scenario.file import load_scenario
+    from lrfsim.simulation.to_folder import simulate_to_folder
 
     simulate_to_folder(load_scenario(_write_small(tmp_path)), tmp_path / "rec")
     rec = read_recording(tmp_path / "rec", require_distances=False)

@@ -1,4 +1,4 @@
-"""Fault injection (lrfsim.faults): each fault, alone, changes the recording exactly as documented."""
+"""Fault injection (lrfsim.simulation.faults): each fault, alone, changes the recording exactly as documented."""
 
 from __future__ import annotations
 
@@ -14,9 +14,10 @@ import yaml
 from lrfcal.errors import InputError
 from lrfcal.stages.detection import detect
 from lrfcal.types import Scans
-from lrfsim.faults import apply_faults, bright_mask, marker_returns, scale_range_noise
-from lrfsim.scenario import Scenario, parse_scenario
-from lrfsim.simulate import SimResult, simulate, write_recording
+from lrfsim.scenario.file import Scenario, parse_scenario
+from lrfsim.simulation.faults import apply_faults, bright_mask, marker_returns, scale_range_noise
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import SimResult, simulate
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 

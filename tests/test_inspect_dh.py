@@ -23,7 +23,7 @@ from lrfcal.io.loginspect import inspect_path
 from lrfcal.model.kinematics import DH, points_M
 from lrfcal.stages.propose import DETERMINED, canonical
 from lrfcal.types import JointStates, Scans
-from lrfsim.compare import load_truth
+from lrfsim.trials.compare import load_truth
 
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
 ABSENT = f"real recordings not present at {REALBAGS} (public recordings shared beside the project, not part of a clone)"

@@ -4,8 +4,8 @@ The motor angle is interpolated linearly between joint states; across a gap that
 wrong by up to half the gap times the sweep's speed. lrfcal.model.motor.joint_gaps names such gaps, the calibration
 leaves their scans out with a note naming the gap (lrfcal.stages.timing.usable_scans), or refuses naming it when most
 scans
-fall in one. The fault ``faults.joint_gap_s`` (lrfsim.faults.joint_gap) makes such a recording; the end-to-end tests
-run the installed console scripts (``lrfsim simulate``, ``lrfcal calibrate``) as a user would.
+fall in one. The fault ``faults.joint_gap_s`` (lrfsim.simulation.faults.joint_gap) makes such a recording; the
+end-to-end tests run the installed console scripts (``lrfsim simulate``, ``lrfcal calibrate``) as a user would.
 """
 
 from __future__ import annotations

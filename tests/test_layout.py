@@ -1,12 +1,13 @@
 """The code's layout as docs/architecture.md states it: lrfsim uses lrfcal only through its public API (lrfcal,
-lrfcal.model, lrfcal.io, lrfcal.errors), the rooms of lrfcal, the public API importable without heavy modules,
-the rig model and the estimate package type-checked by mypy, and at most five functions outside the CLIs with more
-than 8 parameters."""
+lrfcal.model, lrfcal.io, lrfcal.errors), lrfsim's rooms importing one way, the rooms of lrfcal, the public API
+importable without heavy modules, the rig model and the estimate package type-checked by mypy, and at most five
+functions outside the CLIs with more than 8 parameters."""
 
 from __future__ import annotations
 
 import ast
 import importlib.util
+import itertools
 import shutil
 import subprocess
 import sys
@@ -51,6 +52,67 @@ def test_lrfsim_uses_only_lrfcal_public_api() -> None:
                     name == p or name.startswith(p + ".") for p in PUBLIC):
                 bad.append(f"{path.relative_to(ROOT)}:{line}: {name}")
     assert not bad, "lrfsim imports lrfcal internals (use lrfcal's public API):\n" + "\n".join(bad)
+
+
+#: at most this many modules directly in src/lrfsim beside __init__ and cli: the rest live in rooms
+MAX_FLAT_LRFSIM = 6
+
+
+def _lrfsim_part(name: str) -> str | None:
+    """The part of lrfsim a module belongs to: its room (a subpackage of lrfsim), else the flat module itself
+    (e.g. "cli"); None outside lrfsim."""
+    parts = name.split(".")
+    if parts[0] != "lrfsim" or len(parts) < 2:
+        return None
+    return parts[1]
+
+
+def test_lrfsim_rooms_import_one_way() -> None:
+    """lrfsim's rooms (its subpackages) and flat modules import one way: no cycle among them, counting every import
+    (inside functions and under TYPE_CHECKING too); each room's __init__ says what it holds and imports nothing (no
+    re-exports); no command reaches the test support (lrfsim.testing); at most MAX_FLAT_LRFSIM modules stand
+    directly in src/lrfsim beside __init__ and cli."""
+    root = SRC / "lrfsim"
+    rooms = sorted(p.parent.name for p in root.glob("*/__init__.py"))
+    flat = sorted(p.stem for p in root.glob("*.py") if p.stem not in ("__init__", "cli"))
+    assert len(flat) <= MAX_FLAT_LRFSIM, f"{len(flat)} flat lrfsim modules (at most {MAX_FLAT_LRFSIM}): {flat}"
+    for room in rooms:
+        init = root / room / "__init__.py"
+        tree = ast.parse(init.read_text(), str(init))
+        assert ast.get_docstring(tree), f"src/lrfsim/{room}/__init__.py: no docstring saying what the room holds"
+        assert all(isinstance(n, ast.Expr) for n in tree.body), f"src/lrfsim/{room}/__init__.py: more than a docstring"
+
+    edges: dict[str, dict[str, str]] = {}  # part -> {imported part: first site}
+    for path in sorted(root.rglob("*.py")):
+        rel = path.relative_to(SRC).with_suffix("").parts
+        me = _lrfsim_part(".".join(rel[:-1] if rel[-1] == "__init__" else rel))
+        for line, name in _imports(path):
+            other = _lrfsim_part(name)
+            if me is not None and other is not None and other != me:
+                edges.setdefault(me, {}).setdefault(other, f"{path.relative_to(ROOT)}:{line}")
+    assert "testing" not in {t for part, out in edges.items() if part != "testing" for t in out}, \
+        "lrfsim imports its test support (lrfsim.testing): only tests and benchmarks may"
+
+    # a cycle: depth-first search for an edge back to a part on the current path
+    state: dict[str, int] = {}  # 1 on the path, 2 done
+    path_: list[str] = []
+
+    def visit(part: str) -> list[str] | None:
+        state[part] = 1
+        path_.append(part)
+        for nxt in sorted(edges.get(part, {})):
+            if state.get(nxt) == 1:
+                return path_[path_.index(nxt):] + [nxt]
+            if nxt not in state and (loop := visit(nxt)) is not None:
+                return loop
+        path_.pop()
+        state[part] = 2
+        return None
+
+    for part in sorted(edges):
+        if part not in state and (loop := visit(part)) is not None:
+            sites = [f"{a} -> {b} ({edges[a][b]})" for a, b in itertools.pairwise(loop)]
+            raise AssertionError("lrfsim's rooms import in a circle:\n" + "\n".join(sites))
 
 
 def test_public_api_names_resolve() -> None:
@@ -130,8 +192,8 @@ def test_mypy_model_and_estimate() -> None:
 #: the functions outside the command lines that may take more than 8 parameters: facades over a command's options
 #: (docs/architecture.md, "What travels together"); every other function takes what travels together as one object
 MANY_PARAMETERS = {"src/lrfcal/io/rig.py:with_overrides", "src/lrfcal/workflow.py:calibrate_folder",
-                   "src/lrfcal/io/recording.py:read_recording", "src/lrfsim/study.py:run_trials",
-                   "src/lrfsim/study.py:study"}
+                   "src/lrfcal/io/recording.py:read_recording", "src/lrfsim/trials/study.py:run_trials",
+                   "src/lrfsim/trials/study.py:study"}
 
 
 def test_at_most_five_functions_take_more_than_eight_parameters() -> None:

@@ -13,10 +13,11 @@ import yaml
 
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import beam_rays_M, transform_points
-from lrfsim import lidar, raycast
-from lrfsim.scenario import Scenario, parse_scenario
-from lrfsim.scene import build_scene, laser_pose_W
-from lrfsim.servo import sweep_trajectory
+from lrfsim.cast import scans
+from lrfsim.scenario.file import Scenario, parse_scenario
+from lrfsim.sensors import lidar
+from lrfsim.sensors.servo import sweep_trajectory
+from lrfsim.world.scene import build_scene, laser_pose_W
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
@@ -47,7 +48,7 @@ def _run(sc: Scenario, scene=None, seed: int = 0, phase_s: float = 0.0):
     traj = sweep_trajectory(sc.servo)
     starts = lidar.scan_start_times(traj.end_s, sc.sensor, phase_s)
     lam = traj.angle(lidar.beam_times(starts, sc.sensor))
-    return scene, lam, raycast.simulate_scans(scene, sc.sensor, lam, np.random.default_rng(seed))
+    return scene, lam, scans.simulate_scans(scene, sc.sensor, lam, np.random.default_rng(seed))
 
 
 def _exact_rays_W(sc: Scenario, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -129,7 +130,7 @@ def test_beam_poses_match_kinematics_and_move_within_a_scan() -> None:
     assert np.abs(T[:3, 3] - origins[s, -1]).max() < 1e-12
     assert np.abs(T[:3, :3] - R[s, -1]).max() < 1e-12
     # the sub-ray directions of the chunks are exact per beam
-    ch = next(raycast.iter_ray_chunks(scene, sc.sensor, lam[:4]))
+    ch = next(scans.iter_ray_chunks(scene, sc.sensor, lam[:4]))
     assert np.abs(ch.directions.reshape(4, -1, 3) - d_ref[:4]).max() < 1e-12
 
 
@@ -211,7 +212,7 @@ def test_range_sigma_bands_and_no_return_inf() -> None:
 def test_typical_range_sigma_is_the_median_of_each_ranges_sigma() -> None:
     """typical_range_sigma, counted band by band, is np.median of range_sigma over the finite ranges to the bit:
     bands in any order, sigmas repeated, ranges on the bands' edges, NaN and +-inf, odd and even counts, none."""
-    from lrfsim.scenario_sections import NoiseBand
+    from lrfsim.scenario.sections import NoiseBand
 
     base = small_scenario().sensor
     rng = np.random.default_rng(11)
@@ -251,10 +252,10 @@ def test_cast_on_threads_is_byte_identical(footprint: str) -> None:
     traj = sweep_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor, 0.004), sc.sensor))
     seen: list[int] = []
-    one = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=1, footprint=footprint)
+    one = scans.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=1, footprint=footprint)
     for n in (2, 3):
         seen.clear()
-        many = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=n, footprint=footprint,
+        many = scans.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=n, footprint=footprint,
                                   progress=lambda done, total: seen.append(done))
         for a, b in ((one.ranges_m, many.ranges_m), (one.intensities, many.intensities),
                      (one.echo_ranges_m, many.echo_ranges_m), (one.echo_power, many.echo_power)):
@@ -284,9 +285,9 @@ def test_cast_threads_run_their_matrix_products_on_one_blas_thread(monkeypatch: 
         return call
 
     for name in ("cast_chunk", "cast_chunk_edges"):  # footprint_cast full and edges (the default)
-        monkeypatch.setattr(raycast, name, watched(getattr(raycast, name)))
+        monkeypatch.setattr(scans, name, watched(getattr(scans, name)))
     with threadpool_limits(limits=2, user_api="blas"):
-        raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=2)
+        scans.cast_scans(scene, sc.sensor, lam, chunk_scans=4, threads=2)
         after = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
     assert seen and set(seen) == {1}
     assert after and set(after) == {2}
@@ -303,8 +304,8 @@ def test_edges_footprint_is_the_full_cast_where_it_matters(divergence: float) ->
     scene = build_scene(sc)
     traj = sweep_trajectory(sc.servo)
     lam = traj.angle(lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor, 0.004), sc.sensor))
-    full = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4, footprint="full")
-    edges = raycast.cast_scans(scene, sc.sensor, lam, chunk_scans=4)  # the default: sensor.footprint_cast
+    full = scans.cast_scans(scene, sc.sensor, lam, chunk_scans=4, footprint="full")
+    edges = scans.cast_scans(scene, sc.sensor, lam, chunk_scans=4)  # the default: sensor.footprint_cast
     assert np.array_equal(np.isfinite(full.ranges_m), np.isfinite(edges.ranges_m))
     hit = np.isfinite(full.ranges_m)
     dr = np.abs(full.ranges_m - edges.ranges_m)[hit]
@@ -320,14 +321,14 @@ def test_edges_footprint_is_the_full_cast_where_it_matters(divergence: float) ->
     else:
         assert edges.n_rays == full.n_rays and edges.ranges_m.tobytes() == full.ranges_m.tobytes()
     with pytest.raises(InputError, match="footprint"):
-        raycast.cast_scans(scene, sc.sensor, lam[:2], footprint="centre")
+        scans.cast_scans(scene, sc.sensor, lam[:2], footprint="centre")
 
 
 def test_range_noise_correlated_along_the_beams() -> None:
     """sensor.noise_correlation rho: the range noise of beams k apart correlates as rho^k (an AR(1) process along
     the scan, as a real URG-04LX's, docs/real-data.md), with the noise bands' sigma unchanged; rho = 0 draws the
     same numbers as before."""
-    from lrfsim.scenario_sections import SensorConfig
+    from lrfsim.scenario.sections import SensorConfig
 
     S, N = 400, 500
     cast = lidar.Cast(ranges_m=np.full((S, N), 5.0), intensities=np.full((S, N), 5000.0), n_rays=S * N, n_calls=1,

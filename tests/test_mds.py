@@ -11,8 +11,8 @@ import pytest
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.stages.mds import marker_map
 from lrfcal.types import TapeMeasurements
-from lrfsim.scenario import load_scenario
-from lrfsim.scene_geometry import marker_centres_W
+from lrfsim.scenario.file import load_scenario
+from lrfsim.world.geometry import marker_centres_W
 
 
 def _tape(

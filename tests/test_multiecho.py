@@ -14,8 +14,8 @@ from test_lidar import small_scenario
 from lrfcal.io import multiecho
 from lrfcal.io.bag_messages import decode_message
 from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, MultiEchoScan
-from lrfsim.recording import bag_messages
-from lrfsim.simulate import simulate
+from lrfsim.simulation.recording import bag_messages
+from lrfsim.simulation.simulate import simulate
 
 FLOATS = ("angle_min", "angle_max", "angle_increment", "time_increment", "scan_time", "range_min", "range_max")
 

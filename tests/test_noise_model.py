@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from lrfcal.model.noise import correlated_pairs, correlated_range_excess
-from lrfsim.lidar import correlated_along_beams
+from lrfsim.sensors.lidar import correlated_along_beams
 
 
 def _returns(rng: np.random.Generator, S: int, N: int, K: int) -> tuple[np.ndarray, np.ndarray]:
@@ -36,7 +36,7 @@ def test_excess_is_the_dense_correlation_matrix_less_the_identity() -> None:
 
 def test_sandwich_matches_the_scatter_of_a_least_squares_fit_with_ar1_noise() -> None:
     """A linear least-squares fit of rows on some beams of S scans, with range noise drawn as lrfsim draws it
-    (lrfsim.lidar.correlated_along_beams, rho 0.7): the scatter of its estimate is H^-1 (H + Delta) H^-1 (within
+    (lrfsim.sensors.lidar.correlated_along_beams, rho 0.7): the scatter of its estimate is H^-1 (H + Delta) H^-1 (within
     the Monte-Carlo's own 1/sqrt(2 n) of each sigma, 4 of them), about twice the independent-noise H^-1."""
     rng = np.random.default_rng(11)
     S, N, rho, n = 20, 100, 0.7, 2000

@@ -23,7 +23,7 @@ from lrfcal.stages.markers import MarkerWay
 from lrfcal.stages.scene import PlaneWay
 from lrfcal.stages.targetless import STAGES as PLANE_STAGES
 from lrfcal.types import JointStates
-from lrfsim.scenario import parse_scenario, with_changes
+from lrfsim.scenario.file import parse_scenario, with_changes
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 

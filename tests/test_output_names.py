@@ -28,8 +28,8 @@ from lrfcal.io.files import TEMP_NAME
 from lrfcal.io.report import render_report
 from lrfcal.model.kinematics import ESTIMATE_NAMES
 from lrfcal.report.summary import print_summary
-from lrfsim.scenario import load_scenario
-from lrfsim.study import run_trials
+from lrfsim.scenario.file import load_scenario
+from lrfsim.trials.study import run_trials
 
 #: a full +-90 deg sweep of the small tunnel (30 deg/s): it calibrates (tests/test_cli_usage.py's --spawn test)
 FULL_SWEEP = {"servo.start_rad": 1.5707963267948966, "servo.end_rad": -1.5707963267948966,

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from lrfsim.plan import format_plan, plan
-from lrfsim.scenario import parse_scenario, with_changes
+from lrfsim.plan.prediction import format_plan, plan
+from lrfsim.scenario.file import parse_scenario, with_changes
 
 ROOT = Path(__file__).resolve().parents[1]
 LRFSIM = [sys.executable, "-m", "lrfsim.cli"]
@@ -114,7 +114,7 @@ def test_plan_predicts_the_sigma_a_precise_scanner_reports(recording_of) -> None
     it), and the calibration reports them (its per-scan widening). plan adds the same model-error part
     (lrfcal.estimate.information.model_error_at) and predicts the reported sigma within 25 % for every DH parameter.
     (Measured: reported / plan 1.08-1.19; on seeds 1 and 2 before the dequantisation 0.97-1.20.)"""
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.trials.trial import calibrate_recording
 
     sc = parse_scenario(_fast_tunnel(**{"sensor.noise_bands": [{"up_to_m": 60.0, "sigma_m": 0.002}]}), "precise")
     p = plan(sc)
@@ -136,9 +136,9 @@ def test_sparse_cast_has_every_marker_return(which: str) -> None:
     the predicted sigmas move by what another sample of the surface returns moves them (a few %)."""
     import numpy as np
 
-    from lrfsim.plan import marker_observations, sparse_geometry
-    from lrfsim.randomize import random_scenario_wide
-    from lrfsim.simulate import cast_geometry
+    from lrfsim.plan.prediction import marker_observations, sparse_geometry
+    from lrfsim.simulation.simulate import cast_geometry
+    from lrfsim.testing.random_scenarios import random_scenario_wide
 
     sc = (parse_scenario(_fast_tunnel(), "fast tunnel") if which == "fast tunnel"
           else random_scenario_wide(12, alpha_kind="tilted"))
@@ -167,8 +167,8 @@ def test_plan_holds_the_model_error_of_turning_crossings(tunnel_plan, monkeypatc
     about 0.07 deg, gets a wider alpha than the statistics alone give, and says why. tunnel_v has no such crossing."""
     import numpy as np
 
-    import lrfsim.plan as plan_module
-    from lrfsim.randomize import random_scenario_wide
+    import lrfsim.plan.prediction as plan_module
+    from lrfsim.testing.random_scenarios import random_scenario_wide
 
     assert not any("turn on some markers" in n for n in tunnel_plan.notes)
     sc = random_scenario_wide(28, broad=True)
@@ -188,9 +188,9 @@ def test_plan_counts_the_marker_returns_the_detection_sees() -> None:
     bound (3x the brightest surface at that range, above saturation there) kept only its edge beams, a one-sided
     sample 12.8 standard errors off its centre; the detection, whose contrast against the wall is 7x there, below
     its 10x floor, sees none of it, and neither does plan now."""
-    from lrfsim.faults import detected_mask, marker_returns
-    from lrfsim.plan import marker_observations, sparse_geometry
-    from lrfsim.randomize import random_scenario_wide
+    from lrfsim.plan.prediction import marker_observations, sparse_geometry
+    from lrfsim.simulation.faults import detected_mask, marker_returns
+    from lrfsim.testing.random_scenarios import random_scenario_wide
 
     sc = random_scenario_wide(5, broad=True)
     obs, _, _, _, _, result = marker_observations(sc, sparse_geometry(sc))
@@ -206,8 +206,8 @@ def test_plan_predicts_the_smallest_scale_error_the_calibration_finds(shipped_re
     plane_30deg 0.99 and 0.91): a researcher learns which scale error the layout would find before building it."""
     from lrfcal.pipeline import CalibConfig
     from lrfcal.stages.joint import SCALES
-    from lrfsim.scenario import load_scenario
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.scenario.file import load_scenario
+    from lrfsim.trials.trial import calibrate_recording
 
     p = plan(load_scenario(ROOT / "scenarios" / "tunnel_v.yaml"))
     t = calibrate_recording(shipped_recording("tunnel_v"), CalibConfig(baseline=False, geometry=False),

@@ -1,5 +1,5 @@
 """`lrfsim plan`'s speed-ups change no number (issue 47): the sparse cast shared with a forked helper process
-(lrfsim.castfork) is bit-identical to one cast here, a helper that dies or a chunk that raises is handled here, the
+(lrfsim.cast.forked) is bit-identical to one cast here, a helper that dies or a chunk that raises is handled here, the
 plan of a cast made beforehand is the plan's own, the servo angles in blocks are the same numbers, and what runs
 before the cast imports no scipy."""
 
@@ -19,12 +19,13 @@ import numpy as np
 import pytest
 import yaml
 
-from lrfsim import castfork, servo
-from lrfsim.castfork import Forked, can_fork, run_forked, shared_empty
-from lrfsim.plan import plan
-from lrfsim.plan_cast import sparse_geometry, sparse_scans
-from lrfsim.scenario import parse_scenario, with_changes
-from lrfsim.simulate import cast_geometry
+from lrfsim.cast import forked
+from lrfsim.cast.forked import Forked, can_fork, run_forked, shared_empty
+from lrfsim.plan.prediction import plan
+from lrfsim.plan.sparse_cast import sparse_geometry, sparse_scans
+from lrfsim.scenario.file import parse_scenario, with_changes
+from lrfsim.sensors import servo
+from lrfsim.simulation.simulate import cast_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
 FORKS = can_fork(2)
@@ -90,8 +91,8 @@ def test_chunks_are_shared_with_the_helper() -> None:
 @pytest.mark.skipif(not FORKS, reason="no helper process can be forked here (Linux with 2 cores or more)")
 @pytest.mark.parametrize("fate", ["dies", "is stuck"])
 def test_a_helper_that_dies_or_is_stuck_leaves_its_chunks_here(fate: str, monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(castfork, "HELPER_PATIENCE_S", 0.5)
-    monkeypatch.setattr(castfork, "HELPER_PATIENCE_RATIO", 0.0)
+    monkeypatch.setattr(forked, "HELPER_PATIENCE_S", 0.5)
+    monkeypatch.setattr(forked, "HELPER_PATIENCE_RATIO", 0.0)
     n = 8
     out = shared_empty((n,))
     me = os.getpid()
@@ -124,7 +125,7 @@ def test_an_error_in_a_chunk_is_raised_here() -> None:
 
 
 def test_no_helper_casts_here_after_meanwhile(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(castfork, "can_fork", lambda n: False)
+    monkeypatch.setattr(forked, "can_fork", lambda n: False)
     order: list[str] = []
     assert run_forked(lambda i: order.append(f"chunk {i}") or i, 2, lambda: order.append("meanwhile")) == [0, 1]
     assert order == ["meanwhile", "chunk 0", "chunk 1"]
@@ -144,7 +145,8 @@ def test_servo_angles_in_blocks_are_the_same_numbers(monkeypatch: pytest.MonkeyP
 def test_what_runs_before_the_cast_imports_no_scipy() -> None:
     """`lrfsim plan`'s helper is forked once the scene is built: scipy (for the prediction) is imported after, while
     the helper casts."""
-    code = ("import sys, lrfsim.plan_cast, lrfsim.simulate, lrfsim.scene, lrfsim.faults; "
+    code = ("import sys, lrfsim.plan.sparse_cast, lrfsim.simulation.simulate, lrfsim.world.scene, "
+            "lrfsim.simulation.faults; "
             "print(','.join(m for m in ('scipy.special', 'scipy.spatial', 'scipy.ndimage') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ""

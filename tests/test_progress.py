@@ -142,7 +142,7 @@ def test_console_entry_limits_every_blas(package: str) -> None:
 def test_library_leaves_the_callers_threads() -> None:
     """Importing the library and the policy's context manager leave the process's limits as they were."""
     code = ("import threadpoolctl, numpy, scipy.linalg; before = threadpoolctl.threadpool_limits(limits=2)\n"
-            "import lrfcal.pipeline, lrfcal.cli, lrfsim.study\n"
+            "import lrfcal.pipeline, lrfcal.cli, lrfsim.trials.study\n"
             "from lrfcal.runtime.threads import thread_policy\n"
             "info = threadpoolctl.threadpool_info\n"
             "n = lambda: sorted({i['num_threads'] for i in info() if i['user_api'] == 'blas'})\n"

@@ -1,5 +1,5 @@
-"""The broad random-truth generator (lrfsim.randomize.random_scenario_wide), its scan-plane attitudes (broad=True)
-and its determinability label."""
+"""The broad random-truth generator (lrfsim.testing.random_scenarios.random_scenario_wide), its scan-plane attitudes
+(broad=True) and its determinability label."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ import numpy as np
 import pytest
 
 from lrfcal.model.kinematics import Pose
-from lrfsim.randomize import (
+from lrfsim.scenario.file import load_scenario
+from lrfsim.simulation.simulate import simulate
+from lrfsim.testing.random_scenarios import (
     ALPHA_KINDS,
     ALPHA_RANGES_DEG,
     WIDE_AXES,
@@ -27,10 +29,8 @@ from lrfsim.randomize import (
     wide_dh_determined,
     wide_dh_sigma,
 )
-from lrfsim.scenario import load_scenario
-from lrfsim.scene import build_scene
-from lrfsim.scene_geometry import marker_centres_W
-from lrfsim.simulate import simulate
+from lrfsim.world.geometry import marker_centres_W
+from lrfsim.world.scene import build_scene
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 SEEDS = range(60)
@@ -160,8 +160,8 @@ def test_near_perpendicular_truth_is_calibrated_within_4_sigma(tmp_path: Path) -
     truths came back 5-9 sigma off and were refused by an attitude limit). Its spin turns on some markers (the band
     a tilted plane sweeps ends there), and that model error joins its sigma near perpendicular too
     (lrfcal.stages.markers._with_turning_systematic; once held back within 15 deg of perpendicular)."""
-    from lrfsim.simulate import write_recording
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.simulation.recording import write_recording
+    from lrfsim.trials.trial import calibrate_recording
 
     sc = random_scenario_wide(2, broad=True)
     assert alpha_kind_of(sc) == "near_perpendicular" and sc.servo.mode == "spin"
@@ -185,8 +185,8 @@ def test_near_perpendicular_truth_in_the_maps_other_handedness(tmp_path: Path, s
     Truth 14 recorded with seed 1007 (a Monte-Carlo trial of `lrfsim study --recast`), solved so, ended in the
     rig's other DH representative (-a, -alpha, b, beta + pi, the mount turned by pi: the same rig), 435-894 sigma
     off the rig file's DH as reported; it is now solved once more from that twin, in the nominal's representative."""
-    from lrfsim.simulate import write_recording
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.simulation.recording import write_recording
+    from lrfsim.trials.trial import calibrate_recording
 
     sc = random_scenario_wide(seed, broad=True)
     if recording_seed is not None:

@@ -1,6 +1,6 @@
 """The scanner's range scale (issue "every rig geometry and every servo", item 3): every range 1 % long or 2 % short,
-injected by lrfsim.faults into plane_30deg. The score test on the marker-only solution finds it before any marker is
-judged moved; it is then named and estimated in every solve. A clean recording keeps it held at 1."""
+injected by lrfsim.simulation.faults into plane_30deg. The score test on the marker-only solution finds it before any
+marker is judged moved; it is then named and estimated in every solve. A clean recording keeps it held at 1."""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ import pytest
 import yaml
 
 from lrfcal.pipeline import CalibConfig
-from lrfsim.scenario import Scenario, parse_scenario, with_changes
-from lrfsim.trial import calibrate_recording, record
+from lrfsim.scenario.file import Scenario, parse_scenario, with_changes
+from lrfsim.trials.trial import calibrate_recording, record
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 FAST = CalibConfig(baseline=False, geometry=False)
@@ -65,7 +65,7 @@ def test_random_truth_keeps_the_range_scale_held(recording_of) -> None:  # type:
     """Broad random truth 31 (a tilted sweep, scattered markers) has no range scale error: its score test, with the
     sigma the estimate would have (errors shared within a scan and a marker, the marker map), stays within 4 sigma.
     With the plain information as its sigma it stood 7.9 sigma from 1 and the scale was estimated."""
-    from lrfsim.randomize import random_scenario_wide
+    from lrfsim.testing.random_scenarios import random_scenario_wide
 
     trial = calibrate_recording(recording_of(random_scenario_wide(31, broad=True)), FAST, keep_result=True)
     assert trial.status == "calibrated" and trial.result is not None, trial.describe()

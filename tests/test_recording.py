@@ -10,14 +10,15 @@ import pytest
 import yaml
 from rosbags.highlevel import AnyReader
 
-import lrfsim.recording as recording
+import lrfsim.simulation.recording as recording
 from lrfcal.errors import InputError
 from lrfcal.io.files import MANIFEST_NAME
-from lrfsim.lidar import beam_times
-from lrfsim.scenario import Scenario, load_scenario, parse_scenario
-from lrfsim.servo import sweep_trajectory
-from lrfsim.simulate import SimResult, simulate, write_recording
-from lrfsim.tape import affine_dimension, is_rigid, measure_tape
+from lrfsim.scenario.file import Scenario, load_scenario, parse_scenario
+from lrfsim.sensors.lidar import beam_times
+from lrfsim.sensors.servo import sweep_trajectory
+from lrfsim.sensors.tape import affine_dimension, is_rigid, measure_tape
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import SimResult, simulate
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 
@@ -139,7 +140,7 @@ def test_tape_subset_is_rigid_and_noisy(sim: tuple[Scenario, SimResult]) -> None
     deg = np.bincount(res.tape.pairs.ravel(), minlength=n)
     assert deg.min() >= 4 and res.tape.pairs.shape[0] < n * (n - 1) // 2
     assert is_rigid(res.truth.markers_W, res.tape.pairs)
-    from lrfsim.scenario_sections import TapeConfig
+    from lrfsim.scenario.sections import TapeConfig
 
     pts = np.random.default_rng(0).uniform(-1, 1, (12, 3))
     t = measure_tape(tuple(f"p{i}" for i in range(12)), pts, TapeConfig(sigma_m=0.002), np.random.default_rng(1))

@@ -26,7 +26,7 @@ from test_cli_usage import ROOT, _one_error_line, _run
 from lrfcal.errors import CalibrationError
 from lrfcal.io.bag import read_bag
 from lrfcal.io.clocksteps import clock_cut
-from lrfsim.scenario import Scenario, parse_scenario
+from lrfsim.scenario.file import Scenario, parse_scenario
 
 
 def _scenario(name: str, faults: dict[str, object], short: bool = False) -> Scenario:
@@ -100,7 +100,7 @@ def test_a_scan_clock_jump_forward_is_found_alike(recording_of: Callable[[Scenar
     (note,) = data.report.left_out
     assert warned == [note] and "clock step: the scan stamps" in note and "step by +0.300 s" in note, note
     assert "changes there by +0.300 s" in note, note  # the laser clock later: laser-minus-servo larger
-    t = data.scans.stamps_s - 1_700_000_000.0  # lrfsim.recording.EPOCH_NS
+    t = data.scans.stamps_s - 1_700_000_000.0  # lrfsim.simulation.recording.EPOCH_NS
     assert "(start to 8.0" in note and t.max() < 8.0 + 0.1 and t.size == 320, note  # the longer side: before
 
 

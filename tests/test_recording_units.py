@@ -22,7 +22,7 @@ from test_cli_faults import _scenario_data
 from test_cli_usage import _one_error_line, _run
 from test_scanlog import LONGARM_LOG_KEYS
 
-from lrfsim.scenario import Scenario, parse_scenario
+from lrfsim.scenario.file import Scenario, parse_scenario
 
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
 ABSENT = f"real recordings not present at {REALBAGS} (public recordings shared beside the project, not part of a clone)"

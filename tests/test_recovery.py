@@ -2,8 +2,8 @@
 from disk as a real one, calibrate from the perturbed nominal start, and assert that the truth comes back within
 stated absolute bounds and within 4 sigma of the covariance the calibration reports.
 
-1. 20 seeded random ground truths (lrfsim.randomize.random_scenario: random DH, mount pose, marker layout and
-   noise level), one quick sweep each;
+1. 20 seeded random ground truths (lrfsim.testing.random_scenarios.random_scenario: random DH, mount pose, marker
+   layout and noise level), one quick sweep each;
 2. the shipped scenarios (scenarios/*.yaml), each against its own tolerances and the issue's tunnel target;
 3. the covariance itself: pooled over the random cases, error / sigma has an RMS near 1.
 
@@ -25,11 +25,11 @@ from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.result import CalibrationResult, MarkerEvidence
-from lrfsim.compare import Comparison, compare, load_truth
-from lrfsim.randomize import random_scenario
-from lrfsim.scenario import Scenario, load_scenario
-from lrfsim.scenario_sections import Tolerances
-from lrfsim.simulate import systematic_truth
+from lrfsim.scenario.file import Scenario, load_scenario
+from lrfsim.scenario.sections import Tolerances
+from lrfsim.simulation.simulate import systematic_truth
+from lrfsim.testing.random_scenarios import random_scenario
+from lrfsim.trials.compare import Comparison, compare, load_truth
 
 SCENARIOS = {p.stem: p for p in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))}
 MARKERLESS = {name for name, path in SCENARIOS.items() if load_scenario(path).markers is None}
@@ -221,7 +221,7 @@ def test_shipped_paper_baseline_present(name: str, shipped_cases: _Cases) -> Non
 
 
 def _idealised(name: str) -> bool:
-    """The scenario's scanner has no systematic range errors (lrfsim.simulate.systematic_truth)."""
+    """The scenario's scanner has no systematic range errors (lrfsim.simulation.simulate.systematic_truth)."""
     return systematic_truth(load_scenario(SCENARIOS[name]).sensor) is None
 
 

@@ -1,10 +1,10 @@
 """A refusal leads with the cause the data support (issue 46, case 5).
 
-Near-perpendicular random rigs (lrfsim.randomize.random_scenario_wide(seed, broad=True), seed % 3 == 2) whose markers
-alone do not determine b and beta were refused with "marker mXX: its returns sit 6-31 mm from its tape position
-(moved after taping?)" and told to sweep slower, in clean simulations where no marker moved. Where the DH parameters
-are not determined, good markers look moved; the refusal now leads with what the data do not determine and its
-remedy (lrfcal.estimate.observability.unjudged_refusal), and the failed checks are ranked
+Near-perpendicular random rigs (lrfsim.testing.random_scenarios.random_scenario_wide(seed, broad=True), seed % 3 == 2)
+whose markers alone do not determine b and beta were refused with "marker mXX: its returns sit 6-31 mm from its tape
+position (moved after taping?)" and told to sweep slower, in clean simulations where no marker moved. Where the DH
+parameters are not determined, good markers look moved; the refusal now leads with what the data do not determine and
+its remedy (lrfcal.estimate.observability.unjudged_refusal), and the failed checks are ranked
 (lrfcal.estimate.checks.FOLLOWS_FROM).
 """
 
@@ -24,9 +24,10 @@ from lrfcal.errors import CalibrationError
 from lrfcal.estimate.checks import refuse_failed
 from lrfcal.estimate.observability import LIMITS, Observability, of_solution, unjudged_refusal
 from lrfcal.types import Check
-from lrfsim.randomize import alpha_kind_of, random_scenario_wide
-from lrfsim.simulate import simulate, write_recording
-from lrfsim.variants import with_field
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import simulate
+from lrfsim.testing.random_scenarios import alpha_kind_of, random_scenario_wide
+from lrfsim.trials.variants import with_field
 
 DISAGREEMENT = "marker m17: its returns sit 14 mm from its tape position on average (moved after taping?)"
 

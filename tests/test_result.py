@@ -100,8 +100,8 @@ def test_truth_frame_and_comparison_follow_the_evidence(marked: CalibrationResul
     """The marker frame W exists only with markers: the truth aligns to it there, and a targetless comparison has
     no mount errors (NaN) rather than a failure."""
     from lrfcal.model.kinematics import Pose
-    from lrfsim.compare import Truth, compare
-    from lrfsim.scenario_sections import Tolerances
+    from lrfsim.scenario.sections import Tolerances
+    from lrfsim.trials.compare import Truth, compare
 
     ids = marked.evidence.markers.marker_ids
     truth = {"markers": dict(zip(ids, marker_positions_W().tolist(), strict=True))}

@@ -14,8 +14,8 @@ import yaml
 
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import DH, Pose, chain_T_M_L
-from lrfsim.scenario import load_scenario, parse_scenario
-from lrfsim.scene import MODELS_DIR, build_scene, hinge_axis_W, laser_pose_W
+from lrfsim.scenario.file import load_scenario, parse_scenario
+from lrfsim.world.scene import MODELS_DIR, build_scene, hinge_axis_W, laser_pose_W
 
 REPO = Path(__file__).resolve().parents[1]
 SCENARIOS = sorted((REPO / "scenarios").glob("*.yaml"))
@@ -281,8 +281,8 @@ def test_v_layout_jitter_moves_each_marker_along_its_wall_by_the_seed() -> None:
     """A V's jitter_m moves every marker along the tunnel and in height by up to jitter_m, never off its wall; the
     same seed gives the same layout, another seed another (a new layout per Monte-Carlo trial, bench_study.py
     --new-layout --jitter); 0 leaves the drawn V."""
-    from lrfsim.scene_geometry import marker_centres_W
-    from lrfsim.variants import with_field
+    from lrfsim.trials.variants import with_field
+    from lrfsim.world.geometry import marker_centres_W
 
     sc = load_scenario(REPO / "scenarios" / "tunnel_v.yaml")
     assert sc.markers is not None and sc.markers.layout.kind == "v" and sc.markers.layout.jitter_m == 0.0

@@ -1,4 +1,4 @@
-"""Issue 12: each systematic error switched on alone changes the ranges as documented (lrfsim.lidar,
+"""Issue 12: each systematic error switched on alone changes the ranges as documented (lrfsim.sensors.lidar,
 docs/sensor_errors.md), multi-echo returns split at edges, and the MultiEchoLaserScan topic reads back through
 lrfcal.io.bag; a multi-echo recording calibrates through /echoes as through /scan, the strongest echo keeps a split
 marker beam's marker return, `lrfcal inspect` proposes the strongest echo, and `lrfsim run` says whether the
@@ -23,15 +23,16 @@ from lrfcal.io.inspection import inspect_bag
 from lrfcal.io.recording import read_recording
 from lrfcal.io.rig import ScanSource, ServoSource, parse_rig
 from lrfcal.pipeline import CalibConfig
-from lrfsim import lidar, raycast
-from lrfsim.loop import sensor_errors_line
-from lrfsim.recording import write_recording
-from lrfsim.scenario import Scenario, load_scenario, parse_scenario, with_changes
-from lrfsim.scenario_sections import SystematicConfig
-from lrfsim.scene import build_scene
-from lrfsim.servo import sweep_trajectory
-from lrfsim.simulate import simulate, systematic_truth
-from lrfsim.trial import calibrate_recording, record
+from lrfsim.cast import scans
+from lrfsim.scenario.file import Scenario, load_scenario, parse_scenario, with_changes
+from lrfsim.scenario.sections import SystematicConfig
+from lrfsim.sensors import lidar
+from lrfsim.sensors.servo import sweep_trajectory
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import simulate, systematic_truth
+from lrfsim.trials.closed_loop import sensor_errors_line
+from lrfsim.trials.trial import calibrate_recording, record
+from lrfsim.world.scene import build_scene
 
 
 def _with(sc: Scenario, **sensor: object) -> Scenario:
@@ -43,7 +44,7 @@ def _run_timed(sc: Scenario, scene=None, seed: int = 0):
     scene = scene if scene is not None else build_scene(sc)
     traj = sweep_trajectory(sc.servo)
     t = lidar.beam_times(lidar.scan_start_times(traj.end_s, sc.sensor), sc.sensor)
-    out = raycast.simulate_scans(scene, sc.sensor, traj.angle(t), np.random.default_rng(seed), beam_times_s=t)
+    out = scans.simulate_scans(scene, sc.sensor, traj.angle(t), np.random.default_rng(seed), beam_times_s=t)
     return scene, t, out
 
 

@@ -8,11 +8,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from pydantic import ValidationError
 
-from lrfsim.scenario import Scenario
-from lrfsim.scenario_sections import ServoConfig
-from lrfsim.servo import (
+from lrfsim.scenario.file import Scenario
+from lrfsim.scenario.sections import ServoConfig
+from lrfsim.scenario.servo_timing import servo_run_time_s
+from lrfsim.sensors.servo import (
     covered_angles_rad,
     joint_samples,
     laser_time,
@@ -200,12 +202,27 @@ def test_spin_is_validated_and_sized() -> None:
     assert covered_angles_rad(sweep) == (-0.5, 0.5)
 
 
+def test_the_scenarios_run_time_is_the_trajectorys_end_bit_for_bit() -> None:
+    """The memory estimate's run time (lrfsim.scenario.servo_timing.servo_run_time_s, from the servo section alone) is
+    the trajectory's end_s exactly, for sweeps and spins of random lengths, speeds and ramps and for every shipped
+    scenario: the estimate's number of scans is the simulation's."""
+    rng = np.random.default_rng(57)
+    servos = [Scenario.model_validate(yaml.safe_load(p.read_text())).servo for p in sorted(SCENARIOS.glob("*.yaml"))]
+    for _ in range(200):
+        speed, accel, settle = rng.uniform(0.01, 5.0), rng.uniform(0.05, 50.0), rng.uniform(0.0, 3.0)
+        servos.append(_servo(start_rad=rng.uniform(-6, 6), end_rad=rng.uniform(-6, 6), passes=int(rng.integers(1, 9)),
+                             speed_rad_s=speed, accel_rad_s2=accel, settle_s=settle))
+        servos.append(_spin(revolutions=rng.uniform(0.01, 20.0), speed_rad_s=speed, accel_rad_s2=accel,
+                            settle_s=settle, spin_direction=int(rng.choice([-1, 1]))))
+    assert all(servo_run_time_s(sv) == servo_trajectory(sv).end_s for sv in servos)
+
+
 def test_spinning_scenario_bag_has_unwrapped_joint_states(shipped_recording: Callable[[str], Path]) -> None:
     """scenarios/spinning_tilted.yaml: written and read back as a real recording, its joint states run
     monotonically from 0 to 4 pi (two turns), every marker is seen, and the scene's checks accept the spin."""
     from lrfcal.io.recording import read_recording
-    from lrfsim.randomize import visible_markers
-    from lrfsim.scenario import load_scenario
+    from lrfsim.scenario.file import load_scenario
+    from lrfsim.testing.random_scenarios import visible_markers
 
     scenario = load_scenario(SCENARIOS / "spinning_tilted.yaml")
     assert scenario.servo.mode == "spin" and abs(scenario.rig.dh.alpha - 0.494) < 0.02
@@ -225,7 +242,7 @@ def test_spinning_rig_tilted_28_deg_is_calibrated_within_4_sigma(shipped_recordi
     from lrfcal.model.marker import MarkerSensor, two_sided
     from lrfcal.model.unknowns import pack
     from lrfcal.result import MarkerEvidence
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.trials.trial import calibrate_recording
 
     trial = calibrate_recording(shipped_recording("spinning_tilted"), keep_result=True)
     assert trial.status == "calibrated", trial.describe()
@@ -245,8 +262,8 @@ def test_spinning_rig_whose_least_squares_zig_zags_converges(recording_of: Calla
     1e-5, b going back and forth by 0.05 mm for 100 iterations), and the calibration was refused for not
     converging with an estimate within 1 sigma. Such steps now end the pass
     (lrfcal.estimate.normal_equations.FLAT_COST)."""
-    from lrfsim.scenario import load_scenario
-    from lrfsim.trial import calibrate_recording
+    from lrfsim.scenario.file import load_scenario
+    from lrfsim.trials.trial import calibrate_recording
 
     scenario = load_scenario(SCENARIOS / "spinning_tilted.yaml").model_copy(update={"seed": 34})
     trial = calibrate_recording(recording_of(scenario))
@@ -282,10 +299,10 @@ def test_tilted_spin_turning_crossings_widen_the_sigma() -> None:
 
     from lrfcal.io.recording import read_recording
     from lrfcal.pipeline import CalibConfig, calibrate
-    from lrfsim.compare import load_truth
-    from lrfsim.randomize import random_scenario_wide
-    from lrfsim.recording import write_recording
-    from lrfsim.simulate import simulate
+    from lrfsim.simulation.recording import write_recording
+    from lrfsim.simulation.simulate import simulate
+    from lrfsim.testing.random_scenarios import random_scenario_wide
+    from lrfsim.trials.compare import load_truth
 
     sc = random_scenario_wide(28, broad=True)
     exact = sc.model_copy(update={"tape": sc.tape.model_copy(update={"sigma_m": 1e-6})})

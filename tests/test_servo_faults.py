@@ -1,6 +1,6 @@
 """The servo as a real rig has it (issue "every rig geometry and every servo"): a gear ratio 2 % off and joint
-states at 2 Hz, each injected by lrfsim.faults into tunnel_v at 20 deg/s; the calibration must be right within 4
-sigma and say what it did, or refuse."""
+states at 2 Hz, each injected by lrfsim.simulation.faults into tunnel_v at 20 deg/s; the calibration must be right
+within 4 sigma and say what it did, or refuse."""
 
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import pytest
 import yaml
 
 from lrfcal.pipeline import CalibConfig
-from lrfsim.scenario import Scenario, parse_scenario, with_changes
-from lrfsim.trial import Trial, calibrate_recording, record
+from lrfsim.scenario.file import Scenario, parse_scenario, with_changes
+from lrfsim.trials.trial import Trial, calibrate_recording, record
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 FAST = CalibConfig(baseline=False, geometry=False)
@@ -80,8 +80,8 @@ def test_span_off_by_one_is_seen_and_a_full_revolution_is_not() -> None:
 
 def test_angle_increment_off_by_one_is_refused_naming_the_key_then_read_from_the_span(
         tmp_path: Path, recording_of) -> None:  # type: ignore[no-untyped-def]
-    """LaserScans whose angle_increment is declared for one beam too many (lrfsim.faults): the reader refuses them,
-    exit 2 naming scan.angles, before any work (read from the increment, the same recording gave beta 9.9 sigma
+    """LaserScans whose angle_increment is declared for one beam too many (lrfsim.simulation.faults): the reader refuses
+    them, exit 2 naming scan.angles, before any work (read from the increment, the same recording gave beta 9.9 sigma
     off with every check passed); with ``scan: {angles: span}`` in the rig file the DH come back within 4 sigma."""
     import shutil
     import subprocess

@@ -64,7 +64,7 @@ def test_a_start_far_from_where_the_two_directions_line_up_is_refused_naming_it(
     see the same scene (lrfcal.stages.clocksearch) and the start is refused naming --clock-offset and that offset."""
     from test_cli_faults import _scenario_data
 
-    from lrfsim.scenario import parse_scenario
+    from lrfsim.scenario.file import parse_scenario
 
     folder = recording_of(parse_scenario(_scenario_data("fast_clean", {}), "fast_clean.yaml"))
     out = tmp_path / "cal"

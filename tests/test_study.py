@@ -14,9 +14,9 @@ import yaml
 
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.plan import plan
-from lrfsim.scenario import parse_scenario
-from lrfsim.study import (
+from lrfsim.plan.prediction import plan
+from lrfsim.scenario.file import parse_scenario
+from lrfsim.trials.study import (
     CSV_COLUMNS,
     DRAWS,
     PERTURB_HALF_WIDTH,
@@ -89,7 +89,7 @@ def test_study_table(serial, tmp_path: Path) -> None:
 
 def test_process_pool_gives_the_same_table(tiny, serial, monkeypatch: pytest.MonkeyPatch) -> None:
     """Two workers share one cast, which plan reads too (no cast of its own): the same table and prediction."""
-    import lrfsim.study as study_module
+    import lrfsim.trials.study as study_module
 
     given = []
 
@@ -162,7 +162,7 @@ def test_no_wasted_casting(tiny) -> None:
     for the cast's own seed, new noise for another seed, and the cast itself is left untouched."""
     import numpy as np
 
-    from lrfsim.simulate import cast_geometry, simulate, simulate_from_geometry
+    from lrfsim.simulation.simulate import cast_geometry, simulate, simulate_from_geometry
 
     geometry = cast_geometry(tiny)
     before = geometry.cast.ranges_m.copy()
@@ -225,17 +225,17 @@ def test_perturbed_start_draws(tiny) -> None:
 def test_perturbed_start_reaches_nominal_yaml_and_pool_gives_the_same_table(tiny, monkeypatch) -> None:
     """The trial's nominal.yaml (what the calibration reads) holds the perturbed start of that trial's seed, and a
     process pool gives the same table as one process."""
-    import lrfsim.trial
+    import lrfsim.trials.trial
 
     seen: dict[str, dict[str, float]] = {}
-    calibrate = lrfsim.trial.calibrate_recording
+    calibrate = lrfsim.trials.trial.calibrate_recording
 
     def spy(folder, *args, **kwargs):
         data = yaml.safe_load((Path(folder) / "nominal.yaml").read_text())
         seen[folder.name] = {**data["dh"], **data["mount"]}
         return calibrate(folder, *args, **kwargs)
 
-    monkeypatch.setattr(lrfsim.trial, "calibrate_recording", spy)
+    monkeypatch.setattr(lrfsim.trials.trial, "calibrate_recording", spy)
     serial = run_trials(tiny, 2, seed0=10, workers=1, perturb_start=1.0)
     for trial, seed in ((0, 10), (1, 11)):
         expected = _nominal(perturbed_start(tiny, seed, 1.0))
@@ -268,7 +268,7 @@ def test_statistical_efficiency(name: str) -> None:
     one cast freezes that part into a bias and measures the noise alone (docs/study.md). With N = 30 the std is
     known to about +-13 % and a bias to 1 / sqrt(30) = 0.18 std, so the bias is held to 0.3 std plus two of its
     standard errors (the 0.3 itself is measured with N = 100 by benchmarks/bench_study.py --recast)."""
-    from lrfsim.scenario import load_scenario
+    from lrfsim.scenario.file import load_scenario
 
     s = study(load_scenario(ROOT / "scenarios" / f"{name}.yaml"), 30, seed0=100, workers=2, recast=True)
     part = s.parts[0]
@@ -293,7 +293,7 @@ def test_reported_sigma_honest_with_range_noise_correlated_along_the_scan() -> N
     docs/study.md). The plan's prediction with the correlation modelled
     (lrfcal.estimate.information.correlation_error_at)
     against the Monte Carlo's scatter is measured in docs/study.md's table, not asserted here."""
-    from lrfsim.scenario import load_scenario
+    from lrfsim.scenario.file import load_scenario
 
     sc = load_scenario(ROOT / "scenarios" / "tunnel_v.yaml")
     sc = sc.model_copy(update={"sensor": sc.sensor.model_copy(update={"noise_correlation": 0.7})})

@@ -13,9 +13,10 @@ import numpy as np
 import pytest
 
 from lrfcal.io.recording import _median_beyond
-from lrfsim import lidar, poolrun
-from lrfsim.scenario import load_scenario
-from lrfsim.scenario_sections import NoiseBand
+from lrfsim.scenario.file import load_scenario
+from lrfsim.scenario.sections import NoiseBand
+from lrfsim.sensors import lidar
+from lrfsim.trials import pool
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -69,7 +70,7 @@ def test_unit_check_median_computed_when_it_can_be_beyond_the_limit() -> None:
 
 def _held_task(batch: list[int], progress=None) -> list[int]:
     """A pool task: what the worker holds, for each item of the batch (and the calling process told it started)."""
-    held = poolrun.worker_held()
+    held = pool.worker_held()
     held["started"].set()
     out = []
     for k in batch:
@@ -97,7 +98,7 @@ def test_pool_hands_held_values_to_workers_and_runs_meanwhile_while_they_work() 
         seen.append(started.wait(timeout=60))
 
     done = []
-    out = poolrun.run_counted(_held_task, [[1, 2], [3], [4]], 2, _no_policy, done.append,
+    out = pool.run_counted(_held_task, [[1, 2], [3], [4]], 2, _no_policy, done.append,
                               held={"base": 100, "started": started}, meanwhile=meanwhile)
     assert out == [[101, 102], [103], [104]] and seen == [True]
     assert done[-1] == 4 and done == sorted(done)
@@ -113,18 +114,18 @@ def test_pool_meanwhile_failure_is_raised_and_stops_the_batches() -> None:
         raise RuntimeError("meanwhile failed")
 
     with pytest.raises(RuntimeError, match="meanwhile failed"):  # 50 batches of 50 ms: 1.25 s on 2 workers
-        poolrun.run_counted(_held_task, [[k] for k in range(50)], 2, _no_policy, None,
+        pool.run_counted(_held_task, [[k] for k in range(50)], 2, _no_policy, None,
                             held={"base": 0, "started": ctx.Event(), "ran": ran}, meanwhile=fails)
     assert ran.value < 10  # the batches already handed out ran, the others were cancelled
-    assert poolrun.worker_held() == {}  # the calling process holds nothing
+    assert pool.worker_held() == {}  # the calling process holds nothing
 
 
 def test_study_pool_sends_one_small_task_per_trial_and_the_cast_once(monkeypatch: pytest.MonkeyPatch) -> None:
     """A local pool gets one trial per batch (handed out as workers free up); the tasks carry the scenario, not the
     shared cast (51 MB for tunnel_v), which every worker holds from its start; the plan runs meanwhile, on the
     same cast."""
-    import lrfsim.study as study_module
-    from lrfsim.study import run_trials
+    import lrfsim.trials.study as study_module
+    from lrfsim.trials.study import run_trials
 
     sc = load_scenario(ROOT / "scenarios" / "tunnel_v.yaml")
     sent = {}
@@ -137,7 +138,7 @@ def test_study_pool_sends_one_small_task_per_trial_and_the_cast_once(monkeypatch
 
     from dataclasses import fields
 
-    from lrfsim.simulate import Geometry
+    from lrfsim.simulation.simulate import Geometry
 
     cast = np.zeros((1470, 1081))  # stands in for the cast: run_trials hands the fields but the scene to the workers
     geometry = Geometry(**{f.name: None for f in fields(Geometry)} | {"cast": cast})

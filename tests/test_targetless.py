@@ -27,9 +27,10 @@ from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.result import CalibrationResult, PlaneEvidence
 from lrfcal.stages.planes import segment_planes, squareness_deg
 from lrfcal.stages.targetless import MAX_ROUNDS, SEGMENT_SAMPLES
-from lrfsim.compare import compare, load_truth
-from lrfsim.scenario import parse_scenario, with_changes
-from lrfsim.simulate import simulate, write_recording
+from lrfsim.scenario.file import parse_scenario, with_changes
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import simulate
+from lrfsim.trials.compare import compare, load_truth
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 DH = ("a", "alpha", "b", "beta")
@@ -94,7 +95,7 @@ def room(targetless_calibrated: Callable[[str], tuple[Path, Path, CalibrationRes
 
 def _scenario_tolerances_met(result: CalibrationResult, folder: Path, name: str) -> None:
     """The scenario's own tolerances (what `lrfsim run` reports as MISSED)."""
-    from lrfsim.scenario import load_scenario
+    from lrfsim.scenario.file import load_scenario
 
     comparison = compare(result, load_truth(folder / "ground_truth.yaml"), load_scenario(SCENARIOS / f"{name}.yaml")
                          .tolerances)

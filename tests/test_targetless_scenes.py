@@ -23,11 +23,12 @@ from lrfcal.errors import InputError
 from lrfcal.io.files import MANIFEST_NAME
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import Params, points_W
-from lrfsim.compare import load_truth
-from lrfsim.scenario import Scenario, parse_scenario, with_changes
-from lrfsim.scene import build_scene
-from lrfsim.scene_geometry import nearest_box_face, scene_boxes
-from lrfsim.simulate import SimResult, simulate, write_recording
+from lrfsim.scenario.file import Scenario, parse_scenario, with_changes
+from lrfsim.simulation.recording import write_recording
+from lrfsim.simulation.simulate import SimResult, simulate
+from lrfsim.trials.compare import load_truth
+from lrfsim.world.geometry import nearest_box_face, scene_boxes
+from lrfsim.world.scene import build_scene
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 #: Short sweeps that keep each simulation well under a second.

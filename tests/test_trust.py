@@ -24,9 +24,9 @@ from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, dh_twins
 from lrfcal.model.unknowns import wrap_pi
 from lrfcal.pipeline import CalibConfig
 from lrfcal.types import Recording
-from lrfsim.compare import load_truth
-from lrfsim.scenario import Scenario, parse_scenario, with_changes
-from lrfsim.trial import Trial, calibrate_recording, record
+from lrfsim.scenario.file import Scenario, parse_scenario, with_changes
+from lrfsim.trials.compare import load_truth
+from lrfsim.trials.trial import Trial, calibrate_recording, record
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 FAST = CalibConfig(baseline=False, geometry=False)
@@ -166,7 +166,7 @@ def test_tape_outlier_is_dropped_and_named(recordings: Callable[..., Path]) -> N
 
 def test_truth_comparison_uses_the_marker_correspondence(recordings: Callable[..., Path]) -> None:
     """seed 3 of tunnel_v once compared the mount 2.2 m / 180 deg off (the handedness guessed wrongly)."""
-    from lrfsim.compare import compare, load_truth
+    from lrfsim.trials.compare import compare, load_truth
 
     folder = recordings(_scenario("tunnel_v", "tunnel_seed3", seed=3))
     trial = calibrate_recording(folder, FAST, keep_result=True)
@@ -194,7 +194,7 @@ def test_force_records_the_failed_check(recordings: Callable[..., Path]) -> None
 def test_wide_random_truths_are_right_or_refused(tmp_path: Path, seed: int) -> None:
     """A quick subset of the broad random truths (benchmarks/bench_trust.py runs 50): every run is within 4 sigma on
     every DH parameter or refused with a reason; a layout labelled as determining the DH is calibrated."""
-    from lrfsim.randomize import random_scenario_wide, wide_dh_determined
+    from lrfsim.testing.random_scenarios import random_scenario_wide, wide_dh_determined
 
     sc = random_scenario_wide(seed)
     trial = calibrate_recording(record(sc, tmp_path / sc.name))
@@ -211,7 +211,7 @@ def test_marker_moved_after_taping_is_found(recordings: Callable[..., Path], tmp
     within 4 sigma from the others."""
     import csv
 
-    from lrfsim.compare import load_truth
+    from lrfsim.trials.compare import load_truth
 
     folder = tmp_path / "moved"
     shutil.copytree(recordings(_scenario("tunnel_v", "tunnel_fast")), folder)

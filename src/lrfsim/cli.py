@@ -24,7 +24,7 @@ from lrfcal.io.cliutil import Command, QuietOpt, finite_between, make_app, run_a
 from lrfcal.io.progress import progress_display
 
 if TYPE_CHECKING:
-    from .simresult import SimResult
+    from .simulation.result import SimResult
 
 app = make_app("MuJoCo testbench of a servo-turned Hokuyo UTM-30LX-EW: simulate recordings, calibrate them and "
                "compare with the ground truth. Scenario format: docs/scenario.md or 'lrfsim schema'.", "lrfsim")
@@ -79,8 +79,8 @@ def simulate(
     """
     from lrfcal.io.files import check_no_overlap
 
-    from .scenario import load_scenario, scenario_inputs
-    from .simulate import simulate_to_folder
+    from .scenario.file import load_scenario, scenario_inputs
+    from .simulation.to_folder import simulate_to_folder
 
     sc = load_scenario(scenario)
     check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))
@@ -113,8 +113,8 @@ def run(
     from lrfcal import print_summary
     from lrfcal.io.files import check_no_overlap
 
-    from .loop import print_comparison, run_loop, sensor_errors_line
-    from .scenario import load_scenario, scenario_inputs
+    from .scenario.file import load_scenario, scenario_inputs
+    from .trials.closed_loop import print_comparison, run_loop, sensor_errors_line
 
     sc = load_scenario(scenario)
     default_out = out is None
@@ -173,8 +173,8 @@ def plan(
     import time
     from dataclasses import replace
 
-    from .plan_cast import sparse_geometry
-    from .scenario import load_scenario, require_markers
+    from .plan.sparse_cast import sparse_geometry
+    from .scenario.file import load_scenario, require_markers
 
     sc = load_scenario(scenario)
     require_markers(sc, "lrfsim plan", "predicts from the marker returns")
@@ -182,8 +182,8 @@ def plan(
         t0 = time.perf_counter()
         # the prediction's modules (scipy, lrfcal's estimate) are imported while a forked helper casts
         geometry = sparse_geometry(sc, meanwhile=_import_prediction)
-        from .plan import format_plan
-        from .plan import plan as make_plan
+        from .plan.prediction import format_plan
+        from .plan.prediction import plan as make_plan
 
         result = make_plan(sc, range_sigma_m=range_sigma, surfaces=not markers_only, geometry=geometry)
         result = replace(result, seconds=time.perf_counter() - t0)  # the cast's time too
@@ -198,11 +198,11 @@ def plan(
 
 
 def _import_prediction() -> None:
-    """Import what `lrfsim plan` predicts with: lrfsim.plan, the parts of lrfcal it uses and the calibration's
-    marker detection (lrfsim.faults.detected_mask), which imports scipy.ndimage; then the programs' thread policy
-    for the BLAS that scipy loads (lrfcal.runtime.threads)."""
+    """Import what `lrfsim plan` predicts with: lrfsim.plan.prediction, the parts of lrfcal it uses and the
+    calibration's marker detection (lrfsim.simulation.faults.detected_mask), which imports scipy.ndimage; then the
+    programs' thread policy for the BLAS that scipy loads (lrfcal.runtime.threads)."""
     import lrfcal
-    import lrfsim.plan  # noqa: F401
+    import lrfsim.plan.prediction  # noqa: F401
 
     _ = lrfcal.detect
     lrfcal.apply_thread_policy()
@@ -254,10 +254,10 @@ def study(
     from lrfcal import keep_freed_memory
     from lrfcal.io.files import check_no_overlap, check_replaceable
 
-    from .scenario import load_scenario, scenario_inputs
-    from .study import parse_vary, summary_markdown, write_study
-    from .study import study as run_study
-    from .study_figures import import_figures
+    from .scenario.file import load_scenario, scenario_inputs
+    from .trials.study import parse_vary, summary_markdown, write_study
+    from .trials.study import study as run_study
+    from .trials.study_figures import import_figures
 
     sc = load_scenario(scenario)
     varied = parse_vary(vary) if vary is not None else None
@@ -266,11 +266,11 @@ def study(
     check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))
     check_replaceable(out, overwrite)
     if varied is not None:  # every value must make a valid scenario before any trial runs
-        from .study import with_field
+        from .trials.study import with_field
 
         for v in varied[1]:
             with_field(sc, varied[0], v)
-    values = [""] if varied is None else [str(v) for v in varied[1]]  # the parts' labels, as lrfsim.study's
+    values = [""] if varied is None else [str(v) for v in varied[1]]  # the parts' labels, as lrfsim.trials.study's
     keep_freed_memory()  # the trials' large arrays reused, not faulted in anew (lrfcal.runtime.memory)
     with progress_display(f"study of {sc.name}", quiet=quiet) as hooks:
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
@@ -293,13 +293,13 @@ def schema(
     Every field with its unit, default and bounds; --markdown prints docs/scenario.md.
     """
     if markdown:
-        from .scenario_doc import scenario_markdown
+        from .scenario.markdown_page import scenario_markdown
 
         print(scenario_markdown(), end="")
         return
     import json
 
-    from .scenario import Scenario
+    from .scenario.file import Scenario
 
     print(json.dumps(Scenario.model_json_schema(), indent=2))
 

@@ -1,0 +1,486 @@
+"""Monte-Carlo studies: many trials of one scenario, each with new noise, on one core, a process pool or a cluster.
+
+Trial k of a study uses the scenario with ``seed = seed0 + k``: new laser phase, range and intensity noise, tape
+noise and fault draws (lrfsim.simulation.simulate's and lrfsim.simulation.faults' seeded streams). The scene, and with
+it the marker layout (a jittered board grid or V is seeded by the scenario's seed too), is built once from the scenario
+as given, so every trial sees the same markers and only the noise changes. No wasted casting: the rays are cast once per
+batch (lrfsim.simulation.simulate.cast_geometry, with the laser phase of the scenario's own seed) and each trial only
+draws its noise on that cast (simulate_from_geometry); ``recast=True`` casts every trial anew instead, its laser phase
+drawn from the trial's seed as well. Each trial then runs the whole path of a real
+recording: simulate, write the recording folder, read it back, calibrate (lrfsim.trials.trial.calibrate_recording), and
+is recorded as calibrated (errors against the truth, reported sigma) or refused (the reason).
+
+Perturbed start (``perturb_start = s > 0``, ``--perturb-start S``): each trial's nominal values (the scenario's
+``rig.nominal_dh`` and ``rig.nominal_mount``, written to the trial's nominal.yaml, where the calibration starts)
+are moved by independent draws, uniform in +-s times :data:`PERTURB_HALF_WIDTH` (s = 1: a, b +-5 mm, alpha, beta
++-1 deg; mount x, y, z +-2 cm, roll, pitch, yaw +-1 deg), from the trial's seed alone
+(``default_rng([seed, 0x73746172])``, a stream of its own): the same seeds give the same starts however the
+study runs. Without it every trial starts from the scenario's nominal values.
+
+Execution: trials are cut into batches (one batch = one task: the scene is built once per batch); batches run
+in-process (``workers=1``), in a ``concurrent.futures.ProcessPoolExecutor`` (``workers=K``: one trial per batch,
+handed out as workers free up, each worker holding the shared cast and its scene from its start,
+lrfsim.trials.pool) or on a dask.distributed cluster (``dask_address`` or a ``distributed.Client``). A trial's outcome
+depends only on its seed, and the table is sorted by trial, so every way of running gives the same table. While
+the workers run, this process makes the plan's prediction (and whatever the caller asks, ``meanwhile``).
+
+Outputs (:func:`write_study`, atomic): ``trials.csv`` (one row per trial and varied value), ``summary.md`` (per DH
+parameter: bias, std, RMSE, predicted sigma from lrfsim.plan.prediction, RMSE / predicted sigma, RMS of error / reported
+sigma, refusal rate), ``hist_<P>.png`` (error histograms with the predicted sigma drawn) and, with a varied
+field, ``vary_sigma.png`` (predicted and measured sigma against the value).
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal import apply_memory_policy, apply_thread_policy, call_with_thread_policy, keep_freed_memory
+from lrfcal.errors import CalibrationError, InputError
+from lrfcal.io.files import atomic_folder, check_replaceable
+from lrfcal.model.kinematics import DH_NAMES
+from lrfsim.plan.prediction import Plan, format_value, plan
+from lrfsim.scenario.file import Scenario, require_markers
+
+from .pool import run_counted, worker_held
+from .study_figures import write_figures
+from .variants import PERTURB_HALF_WIDTH, TrialDesign, parse_vary, perturbed_start, with_field
+
+if TYPE_CHECKING:
+    from lrfsim.simulation.simulate import Geometry
+    from lrfsim.world.scene import Scene
+
+FloatArray = NDArray[np.float64]
+
+#: the columns of trials.csv, in order (P_error, P_sigma for each DH parameter P, SI units)
+CSV_COLUMNS: tuple[str, ...] = (
+    "value", "trial", "seed", "status", "reason", "exit_code",
+    *(f"{p}_{k}" for p in DH_NAMES for k in ("error", "sigma")), "clock_offset_error",
+)
+
+
+@dataclass(frozen=True)
+class TrialRow:
+    """One trial of a study: value (the varied field's value as text, "" without --vary), trial index, seed,
+    status ("calibrated" | "refused"), reason and exit code when refused, errors and sigma (4,) in DH_NAMES order
+    (SI units, NaN when refused), the clock offset's error [s] and the calibration's seconds."""
+
+    value: str
+    trial: int
+    seed: int
+    status: str
+    reason: str
+    exit_code: int
+    errors: tuple[float, ...]
+    sigma: tuple[float, ...]
+    clock_offset_error_s: float
+    seconds: float
+
+    def csv_row(self) -> list[str]:
+        """The row as CSV cells (12 significant digits: the same seeds give the same text; no timings)."""
+        cells = [self.value, str(self.trial), str(self.seed), self.status, self.reason, str(self.exit_code)]
+        for e, s in zip(self.errors, self.sigma, strict=True):
+            cells += [_num(e), _num(s)]
+        return [*cells, _num(self.clock_offset_error_s)]
+
+
+def _num(v: float) -> str:
+    """12 significant digits: far beyond any meaningful precision, and deaf to the last-bit differences of
+    multithreaded BLAS reductions between one process and another."""
+    return "" if not math.isfinite(v) else f"{float(v):.12g}"
+
+
+@dataclass(frozen=True)
+class StudyPart:
+    """The trials of one scenario variant (one value of the varied field, or the scenario itself) and its plan
+    (None when the plan itself was refused: fewer than 3 markers seen)."""
+
+    value: str
+    scenario: Scenario
+    plan: Plan | None
+    rows: tuple[TrialRow, ...]
+
+    def errors(self) -> FloatArray:
+        """(n_calibrated, 4) errors of the calibrated trials."""
+        ok = [r.errors for r in self.rows if r.status == "calibrated"]
+        return np.array(ok, dtype=float).reshape(-1, 4)
+
+    def sigmas(self) -> FloatArray:
+        ok = [r.sigma for r in self.rows if r.status == "calibrated"]
+        return np.array(ok, dtype=float).reshape(-1, 4)
+
+    @property
+    def refusal_rate(self) -> float:
+        return sum(r.status != "calibrated" for r in self.rows) / max(len(self.rows), 1)
+
+    def stats(self) -> dict[str, dict[str, float]]:
+        """Per DH parameter: n, bias, bias_se, std, rmse, predicted, rmse_over_predicted, std_over_predicted,
+        rms_z (RMS of error / reported sigma), mean_sigma (SI units; NaN where undefined)."""
+        E, S = self.errors(), self.sigmas()
+        n = E.shape[0]
+        out: dict[str, dict[str, float]] = {}
+        for i, p in enumerate(DH_NAMES):
+            e = E[:, i]
+            pred = self.plan.sigma[p] if self.plan is not None else math.nan
+            bias = float(e.mean()) if n else math.nan
+            std = float(e.std(ddof=1)) if n > 1 else math.nan
+            rmse = float(np.sqrt(np.mean(e**2))) if n else math.nan
+            out[p] = {
+                "n": float(n), "bias": bias, "bias_se": std / math.sqrt(n) if n > 1 else math.nan, "std": std,
+                "rmse": rmse, "predicted": pred, "rmse_over_predicted": rmse / pred if pred > 0 else math.nan,
+                "std_over_predicted": std / pred if pred > 0 else math.nan,
+                "rms_z": float(np.sqrt(np.mean((e / S[:, i]) ** 2))) if n else math.nan,
+                "mean_sigma": float(S[:, i].mean()) if n else math.nan,
+            }
+        return out
+
+
+@dataclass(frozen=True)
+class Study:
+    """A study: the scenario's name, the varied field (or None) and one part per value; seconds of wall time;
+    perturb_start: the scale of the perturbed start (0: every trial starts from the scenario's nominal values);
+    draws: what a trial draws from its seed besides the noise and the tape (:data:`DRAWS`)."""
+
+    name: str
+    key: str | None
+    parts: tuple[StudyPart, ...]
+    seconds: float
+    workers: str = ""
+    notes: tuple[str, ...] = field(default=())
+    perturb_start: float = 0.0
+    draws: str = "noise"
+
+    @property
+    def rows(self) -> tuple[TrialRow, ...]:
+        return tuple(r for p in self.parts for r in p.rows)
+
+
+#: what summary.md says a trial draws from its seed: the noise alone on one cast (the default), a cast of its own
+#: (``recast``), a marker layout and cast of its own (``new_layout``)
+DRAWS = {
+    "noise": "One cast for every trial (the laser phase of the scenario's seed), each trial drawing its noise and "
+             "tape: the beams cut the same pattern on the markers in every trial, so the pattern's error is a bias "
+             "here (bias / std), where across recordings it is a scatter; `--recast` draws the pattern anew for "
+             "every trial (docs/study.md, \"The spinning rig\").",
+    "cast": "Every trial cast anew (its laser phase, noise and tape from its seed).",
+    "layout": "Every trial a marker layout and cast of its own (from its seed): the figures average over layouts.",
+}
+
+
+# --- running trials -------------------------------------------------------------------------------------------
+
+def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]], design: TrialDesign | None = None,
+              threads: int | None = None, shared_cast: dict[str, Any] | None = None,
+              progress: Callable[[int], None] | None = None, scene: Scene | None = None) -> list[TrialRow]:
+    """Run trials ``[(trial, seed), ...]`` of ``scenario`` (one task of a study). The scene (marker layout) is
+    built once from ``scenario``, and so is the ray cast (lrfsim.simulation.simulate.cast_geometry: the laser phase of
+    the scenario's own seed); each trial draws only its noise from its own seed (module docstring), and differs as
+    ``design`` says (:class:`TrialDesign`; None: in its noise only). ``threads``: the cast's
+    threads (default: the cores available; 1 when batches run in parallel processes). ``shared_cast``: the fields
+    of a lrfsim.simulation.simulate.Geometry of ``scenario`` but its scene, cast once by the caller for every batch (the
+    scene is rebuilt here, or ``scene``, built before from ``scenario``: MjSpec does not pickle); None: cast here.
+    ``progress(k)`` is called after the k-th trial of the batch."""
+    from lrfsim.simulation.recording import write_recording
+    from lrfsim.simulation.simulate import Geometry, cast_geometry, simulate, simulate_from_geometry
+    from lrfsim.world.scene import build_scene
+
+    from .trial import calibrate_recording
+
+    recast, perturb_start, new_layout = (design.recast, design.perturb_start, design.new_layout) if design else (
+        False, 0.0, False)
+    if new_layout:
+        scene = None
+    elif scene is None:
+        scene = build_scene(scenario)
+    geometry = None
+    if shared_cast is not None and scene is not None:
+        geometry = Geometry(scene=scene, **shared_cast)
+    elif not (recast or new_layout):
+        geometry = cast_geometry(scenario, scene=scene, threads=threads)
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
+        for trial, seed in trials:
+            sc = perturbed_start(scenario.model_copy(update={"seed": int(seed)}), seed, perturb_start)
+            folder = Path(tmp) / f"trial_{trial}"
+            sim = (simulate(sc, scene=scene, threads=threads) if geometry is None
+                   else simulate_from_geometry(sc, geometry))
+            write_recording(sim, sc, folder)  # the bag written and read as a real recording's (in bulk: lrfcal.io.wire)
+            t = calibrate_recording(folder, name=f"{scenario.name}#{trial}")
+            shutil.rmtree(folder, ignore_errors=True)
+            rows.append(TrialRow(value=value, trial=int(trial), seed=int(seed), status=t.status,
+                                 reason=" ".join(t.reason.split()), exit_code=int(t.exit_code),
+                                 errors=tuple(float(v) for v in t.errors), sigma=tuple(float(v) for v in t.sigma),
+                                 clock_offset_error_s=float(t.clock_offset_error_s), seconds=float(t.seconds)))
+            if progress is not None:
+                progress(len(rows))
+    return rows
+
+
+def _worker_policy() -> None:
+    """A process-pool worker's policies: the programs' memory and thread policy (lrfcal.runtime.memory,
+    lrfcal.runtime.threads), the large blocks its trials free kept for the next trial's (keep_freed_memory: 0.06-0.09
+    s of page faults a trial of tunnel_v), and what it inherited from the study (modules, the shared cast) frozen out
+    of the garbage collector, whose full passes walked it in every trial (13 ms a trial, 1.5 %)."""
+    import gc
+
+    apply_memory_policy()
+    keep_freed_memory()
+    apply_thread_policy()
+    gc.freeze()
+
+
+def _pool_batch(scenario: Scenario, value: str, design: TrialDesign, trials: Sequence[tuple[int, int]],
+                progress: Callable[[int], None] | None = None) -> list[TrialRow]:
+    """:func:`run_batch` on a local pool's worker: with the shared cast the worker holds (lrfsim.trials.pool), and the
+    scene it builds at its first batch and keeps for the next (8 ms for tunnel_v, once per worker)."""
+    held = worker_held()
+    if held.get("scene") is None and not design.new_layout:
+        from lrfsim.world.scene import build_scene
+
+        held["scene"] = build_scene(scenario)
+    return run_batch(scenario, value, trials, design, threads=1, shared_cast=held.get("cast"),
+                     progress=progress, scene=held.get("scene"))
+
+
+def _batches(items: list[tuple[int, int]], n_batches: int) -> list[list[tuple[int, int]]]:
+    n_batches = max(1, min(n_batches, len(items)))
+    return [b for b in (items[i::n_batches] for i in range(n_batches)) if b]
+
+
+def run_trials(
+    scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
+    dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
+    recast: bool = False, perturb_start: float = 0.0, new_layout: bool = False, geometry: Geometry | None = None,
+    meanwhile: Callable[[], None] | None = None,
+) -> list[TrialRow]:
+    """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
+    trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
+    ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one trial each on a
+    local pool, handed out as workers free up; about 2 batches per worker on dask; all in one in this process);
+    the local workers share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with
+    ``recast`` or ``new_layout``), handed to each once. ``recast``, ``perturb_start``, ``new_layout``: see
+    :class:`TrialDesign`. ``progress(done, trials)`` after every trial in this process or on local workers
+    (lrfsim.trials.pool), after every batch on dask. ``meanwhile()`` runs in this process while the workers (local or
+    dask) run the trials, before them in this process. Worker processes (pool and dask) run BLAS with the programs'
+    thread limit (lrfcal.runtime.threads); this process is left as the caller set it."""
+    if trials < 1:
+        raise InputError(f"study: --trials must be >= 1, got {trials}")
+    perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
+    s0 = scenario.seed if seed0 is None else int(seed0)
+    items = [(k, s0 + k) for k in range(trials)]
+    batches = _batches(items, _n_batches(trials, workers, dask, batch_size))
+    shared = None
+    if recast or new_layout:  # every trial casts its own
+        geometry = None
+    elif geometry is None:
+        geometry = _shared_cast(scenario, trials, workers, dask, batch_size, recast, new_layout)
+    if geometry is not None:  # one cast (on every core) for all the local workers, instead of one per worker
+        from dataclasses import fields
+
+        shared = {f.name: getattr(geometry, f.name) for f in fields(geometry) if f.name != "scene"}
+    design = TrialDesign(recast, perturb_start, new_layout)
+    task = partial(run_batch, scenario, value, design=design, threads=1 if workers > 1 or dask is not None else None,
+                   shared_cast=shared)
+    rows: list[TrialRow] = []
+
+    def collect(parts: Iterable[list[TrialRow]]) -> None:
+        for part in parts:
+            rows.extend(part)
+            if progress:
+                progress(len(rows), trials)
+
+    if dask is not None:
+        client, own = _dask_client(dask)
+        try:  # a dask worker is not ours to change for good: the limit is restored after each batch
+            futures = client.map(partial(call_with_thread_policy, task), batches, pure=False)
+            if meanwhile is not None:
+                meanwhile()
+            collect(fut.result() for fut in futures)
+        finally:
+            if own:
+                client.close()
+    elif workers > 1:  # counted as each trial finishes in any worker (lrfsim.trials.pool)
+        for part in run_counted(partial(_pool_batch, scenario, value, design), batches, workers, _worker_policy,
+                                None if progress is None else (lambda k: progress(k, trials)),
+                                held={"cast": shared}, meanwhile=meanwhile):
+            rows.extend(part)
+        if progress:
+            progress(len(rows), trials)
+    else:
+        if meanwhile is not None:
+            meanwhile()
+        hook = None if progress is None else (lambda k: progress(len(rows) + k, trials))
+        collect(task(b, progress=hook) for b in batches)
+    return sorted(rows, key=lambda r: r.trial)
+
+
+def _n_batches(trials: int, workers: int, dask: Any, batch_size: int | None) -> int:
+    return (math.ceil(trials / batch_size) if batch_size else 2 * max(workers, 1) if dask is not None
+            else trials if workers > 1 else 1)
+
+
+def _shared_cast(scenario: Scenario, trials: int, workers: int, dask: Any, batch_size: int | None, recast: bool,
+                 new_layout: bool) -> Geometry | None:
+    """The cast :func:`run_trials` makes once for all its batches (lrfsim.simulation.simulate.cast_geometry), when it
+    makes one: local workers (no dask), one layout and one laser phase (no ``recast``, no ``new_layout``), more than one
+    batch; else None (each batch casts its own). Cast beside a forked helper process (lrfsim.cast.forked): the cast's
+    many short calls hold the GIL, so two processes cast it faster than two threads (tunnel_v: 0.85 s against 1.2 s,
+    the same arrays)."""
+    if not (workers > 1 and dask is None and not (recast or new_layout)
+            and min(trials, _n_batches(trials, workers, dask, batch_size)) > 1):
+        return None
+    from lrfsim.cast.forked import Forked
+    from lrfsim.simulation.simulate import cast_geometry
+
+    return cast_geometry(scenario, threads=Forked())
+
+
+def _dask_client(dask: Any) -> tuple[Any, bool]:
+    """(client, whether we own it): a Client passed in is used as is; an address is connected to."""
+    if not isinstance(dask, str):
+        return dask, False
+    try:
+        from distributed import Client
+    except ImportError:  # pragma: no cover - a dependency of the project
+        raise InputError("--dask: dask.distributed is not installed (pip install 'dask[distributed]')") from None
+    try:
+        return Client(dask, timeout="10s"), True
+    except (OSError, TimeoutError) as e:
+        raise InputError(f"--dask: cannot connect to the scheduler at {dask} ({e})") from None
+
+
+def study(
+    scenario: Scenario, trials: int, *, seed0: int | None = None, workers: int = 1, dask: Any = None,
+    vary: tuple[str, list[Any]] | None = None, batch_size: int | None = None,
+    progress: Callable[[str, int, int], None] | None = None, recast: bool = False, perturb_start: float = 0.0,
+    new_layout: bool = False, meanwhile: Callable[[], None] | None = None,
+) -> Study:
+    """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
+    value of one field (the same seeds for every value); ``perturb_start``: the scale of each trial's perturbed
+    start (:func:`perturbed_start`); ``recast``, ``new_layout``: see :class:`TrialDesign` (the predicted sigma is then
+    the scenario's own layout's). The plan's prediction is made while the workers run the trials, and so is
+    ``meanwhile()`` (once, during the first part's trials; e.g. the figures' imports)."""
+    # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
+    require_markers(scenario, "lrfsim study", "calibrates with markers and tape distances; a targetless "
+                    "calibration is not available yet")
+    t0 = time.perf_counter()
+    variants: list[tuple[str, Scenario]] = [("", scenario)]
+    if vary is not None:
+        key, values = vary
+        variants = [(str(v), with_field(scenario, key, v)) for v in values]
+    parts = []
+    for k, (value, sc) in enumerate(variants):
+        geometry = _shared_cast(sc, trials, workers, dask, batch_size, recast, new_layout)  # plan's cast too
+        predicted: list[Plan | None] = []
+        predict = partial(_predict, sc, geometry, predicted, meanwhile if k == 0 else None)
+        hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
+        rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
+                          progress=hook, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
+                          geometry=geometry, meanwhile=predict)
+        parts.append(StudyPart(value=value, scenario=sc, plan=predicted[0], rows=tuple(rows)))
+    where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
+    return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
+                 seconds=time.perf_counter() - t0, workers=where, perturb_start=perturb_start,
+                 draws="layout" if new_layout else "cast" if recast else "noise")
+
+
+def _predict(scenario: Scenario, geometry: Geometry | None, into: list[Plan | None],
+             then: Callable[[], None] | None) -> None:
+    """The plan's prediction for ``scenario`` (on ``geometry``, the trials' shared cast, when there is one) appended
+    to ``into``, None when the plan is refused (too few markers seen: the trials will say how the calibration
+    fares); then ``then()``."""
+    try:
+        into.append(plan(scenario, geometry=geometry))
+    except CalibrationError:
+        into.append(None)
+    if then is not None:
+        then()
+
+
+# --- outputs --------------------------------------------------------------------------------------------------
+
+def trials_csv(s: Study) -> str:
+    """trials.csv as text (CSV_COLUMNS; rows sorted by value order, then trial)."""
+    buf = io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for r in s.rows:
+        w.writerow(r.csv_row())
+    return buf.getvalue()
+
+
+def _fmt(p: str, v: float) -> str:
+    return "-" if not math.isfinite(v) else format_value(p, v)
+
+
+def summary_markdown(s: Study) -> str:
+    """summary.md: per part, the efficiency table of the DH parameters and the refusals."""
+    lines = [f"# Monte-Carlo study of {s.name}", "",
+             f"{len(s.parts[0].rows)} trials per {'value' if s.key else 'study'} ({s.workers}, {s.seconds:.0f} s). "
+             "Errors against the truth; predicted sigma from `lrfsim plan` (Fisher information of the noise-free "
+             "geometry). Efficiency: RMSE / predicted sigma (1 = the method reaches the predicted accuracy); "
+             "calibration: RMS of error / reported sigma (1 = the reported sigma is honest).", "",
+             DRAWS[s.draws], ""]
+    if s.perturb_start > 0:
+        h = {k: s.perturb_start * v for k, v in PERTURB_HALF_WIDTH.items()}
+        lines += [f"Perturbed start (scale {s.perturb_start:g}): each trial's nominal values moved by uniform draws "
+                  f"in +-{h['a'] * 1000:g} mm (a, b), +-{math.degrees(h['alpha']):g} deg (alpha, beta), "
+                  f"+-{h['x'] * 100:g} cm and +-{math.degrees(h['roll']):g} deg (mount), from the trial's seed.", ""]
+    for part in s.parts:
+        st = part.stats()
+        n = int(st["a"]["n"])
+        title = f"## {s.key} = {part.value}" if s.key else "## Results"
+        lines += [title, "", f"calibrated {n} of {len(part.rows)}, refusal rate {100 * part.refusal_rate:.0f} %"
+                  + ("" if part.plan is not None else "; plan refused (too few markers seen)"), "",
+                  "| parameter | bias (+- its s.e.) | bias / std | std | RMSE | predicted sigma | RMSE / predicted | "
+                  "std / predicted | RMS error / reported sigma | mean reported sigma |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
+        for p in DH_NAMES:
+            d = st[p]
+            bz = d["bias"] / d["std"] if d["std"] > 0 else math.nan
+            lines.append(f"| {p} | {_fmt(p, d['bias'])} +- {_fmt(p, d['bias_se'])} | {bz:+.2f} | "
+                         f"{_fmt(p, d['std'])} | {_fmt(p, d['rmse'])} | "
+                         f"{_fmt(p, d['predicted'])} | {d['rmse_over_predicted']:.2f} | "
+                         f"{d['std_over_predicted']:.2f} | {d['rms_z']:.2f} | {_fmt(p, d['mean_sigma'])} |")
+        reasons: dict[str, int] = {}
+        for r in part.rows:
+            if r.status != "calibrated":
+                reasons[r.reason] = reasons.get(r.reason, 0) + 1
+        if reasons:
+            lines += ["", "Refusals:"] + [f"- {k} x {v}" for v, k in sorted(((v, k) for k, v in reasons.items()),
+                                                                              reverse=True)]
+        lines.append("")
+    figs = [f"![{p}](hist_{p}.png)" for p in DH_NAMES]
+    lines += ["## Figures", "", *figs]
+    if s.key:
+        lines += ["", "![predicted and measured sigma](vary_sigma.png)"]
+    return "\n".join(lines) + "\n"
+
+
+def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Path:
+    """Write trials.csv, summary.md and the figures into ``out_dir`` atomically (a temporary folder beside it,
+    renamed into place when complete; an existing folder is replaced only with ``overwrite`` and only if this
+    project wrote it)."""
+    out = check_replaceable(out_dir, overwrite)
+    with atomic_folder(out, "lrfsim study") as tmp:
+        (tmp / "trials.csv").write_text(trials_csv(s), encoding="utf-8")
+        (tmp / "summary.md").write_text(summary_markdown(s), encoding="utf-8")
+        write_figures(s, tmp)
+    return out
+
+
+__all__ = ["CSV_COLUMNS", "DRAWS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialDesign", "TrialRow", "parse_vary",
+           "perturbed_start", "run_batch", "run_trials", "study", "summary_markdown", "trials_csv", "with_field",
+           "write_figures", "write_study"]

@@ -1,0 +1,104 @@
+"""Scenario variants of a study (lrfsim.trials.study): one field set (``--vary``) and the perturbed start of a trial
+(``--perturb-start``; lrfsim.trials.study's module docstring has the draws)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lrfcal.errors import InputError
+from lrfsim.scenario.file import Scenario, parse_scenario
+from lrfsim.scenario.sections import DHConfig, PoseConfig
+
+#: --perturb-start 1: half-widths of the uniform perturbation of each nominal value (SI units: m, rad)
+PERTURB_HALF_WIDTH: dict[str, float] = {
+    "a": 0.005, "alpha": math.radians(1.0), "b": 0.005, "beta": math.radians(1.0),
+    "x": 0.02, "y": 0.02, "z": 0.02, "roll": math.radians(1.0), "pitch": math.radians(1.0), "yaw": math.radians(1.0),
+}
+#: the perturbed start's random stream ("star"; lrfsim.simulation.simulate's are "phas", "nois", ...)
+_RNG_START = 0x73746172
+
+
+def with_field(scenario: Scenario, dotted: str, value: Any) -> Scenario:
+    """The scenario with one field (dotted path, e.g. ``servo.passes``) set to ``value`` (validated).
+
+    Raises:
+        InputError: unknown path or invalid value (naming the field).
+    """
+    data = scenario.model_dump(mode="python")
+    node: Any = data
+    *head, last = dotted.split(".")
+    for k in head:
+        if not isinstance(node, dict) or k not in node or not isinstance(node[k], dict):
+            raise InputError(f"--vary: {dotted!r}: no section {k!r} in the scenario")
+        node = node[k]
+    if not isinstance(node, dict) or last not in node:
+        raise InputError(f"--vary: {dotted!r}: no field {last!r} in the scenario")
+    node[last] = value
+    return parse_scenario(data, f"{scenario.name} with {dotted}={value!r}")
+
+
+def parse_vary(text: str) -> tuple[str, list[Any]]:
+    """``KEY=V1,V2,...`` -> (KEY, [values]); each value is read as YAML (numbers, true/false, text)."""
+    key, sep, values = text.partition("=")
+    key = key.strip()
+    if not sep or not key or not values.strip():
+        raise InputError(f"--vary: expected KEY=V1,V2,... (e.g. servo.passes=1,2,4), got {text!r}")
+    out = []
+    for v in values.split(","):
+        v = v.strip()
+        if not v:
+            raise InputError(f"--vary: empty value in {text!r}")
+        try:
+            out.append(yaml.safe_load(v))
+        except yaml.YAMLError:
+            raise InputError(f"--vary: cannot read the value {v!r}") from None
+    return key, out
+
+
+def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
+    """The scenario with its nominal DH and mount (``rig.nominal_dh``, ``rig.nominal_mount``: the trial's
+    nominal.yaml) each moved by an independent uniform draw in +-``scale`` x :data:`PERTURB_HALF_WIDTH`, drawn
+    from ``seed`` alone (module docstring); angles wrapped to [-pi, pi]. ``scale`` = 0 returns ``scenario``.
+
+    Raises:
+        InputError: a negative or non-finite scale.
+    """
+    if not (math.isfinite(scale) and scale >= 0):
+        raise InputError(f"--perturb-start: expected a scale >= 0, got {scale}")
+    if scale == 0:
+        return scenario
+    u = np.random.default_rng([int(seed), _RNG_START]).uniform(-1.0, 1.0, len(PERTURB_HALF_WIDTH))
+    step = dict(zip(PERTURB_HALF_WIDTH, scale * u * np.array(list(PERTURB_HALF_WIDTH.values())), strict=True))
+    rig = scenario.rig
+
+    def moved(config: DHConfig | PoseConfig) -> dict[str, float]:
+        out = {}
+        for k, v in config.model_dump().items():
+            v = float(v + step[k])
+            out[k] = math.remainder(v, 2 * math.pi) if k in ("alpha", "beta", "roll", "pitch", "yaw") else v
+        return out
+
+    new_rig = rig.model_copy(update={"nominal_dh": DHConfig(**moved(rig.nominal_dh)),
+                                     "nominal_mount": PoseConfig(**moved(rig.nominal_mount))})
+    return scenario.model_copy(update={"rig": new_rig})
+
+
+@dataclass(frozen=True)
+class TrialDesign:
+    """How each trial differs from the scenario besides its noise. ``recast``: cast every trial anew (the laser
+    phase drawn from the trial's seed too). ``perturb_start``: the scale of each trial's perturbed start
+    (:func:`perturbed_start`; 0: the scenario's nominal values). ``new_layout``: build every trial's scene from its
+    own seed too (a board's jittered grid, a random layout: a new marker layout per trial; implies ``recast``), to
+    average over layouts rather than over the noise of one."""
+
+    recast: bool = False
+    perturb_start: float = 0.0
+    new_layout: bool = False
+
+
+__all__ = ["PERTURB_HALF_WIDTH", "TrialDesign", "parse_vary", "perturbed_start", "with_field"]
