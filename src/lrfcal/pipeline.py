@@ -59,12 +59,24 @@ def calibrate(
     try:
         return _calibrate(recording, config, progress, fitted, outputs)
     except CalibrationError as err:
+        left = _left_out_hint(recording)
         if "time span" in str(err) or str(err).startswith(CLOCK_START):
-            raise
-        hint = _trimmed_hint(recording, config.clock_offset_s) or _start_hint(config.clock_offset_s)
+            if not left:
+                raise
+            raise CalibrationError(f"{err}; {left}") from None
+        hint = "; ".join(h for h in (_trimmed_hint(recording, config.clock_offset_s) or _start_hint(
+            config.clock_offset_s), left) if h)
         if not hint:
             raise
         raise CalibrationError(f"{err}; {hint}") from None
+
+
+def _left_out_hint(recording: Recording) -> str:
+    """What the reader left out of the recording (a clock step's other side, a cut bag's lost end; ReadReport's
+    left_out), for a refusal: the data refused are not the whole recording (empty when nothing was left out)."""
+    if recording.report is None or not recording.report.left_out:
+        return ""
+    return "note: the calibration had only part of the recording: " + "; ".join(recording.report.left_out)
 
 
 def _start_hint(tau0: float) -> str:

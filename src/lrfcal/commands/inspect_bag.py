@@ -350,6 +350,7 @@ def _report_problems(rep: ReadReport) -> list[str]:
         out.append("masked returns: " + ", ".join(f"{k} {v}" for k, v in sorted(rep.masked.items())))
     if rep.servo_skipped:
         out.append("servo samples skipped: " + ", ".join(f"{k} {v}" for k, v in sorted(rep.servo_skipped.items())))
+    out.extend(rep.left_out)
     out.extend(rep.notes)
     return out
 

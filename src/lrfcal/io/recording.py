@@ -20,7 +20,7 @@ from lrfcal.errors import InputError
 from lrfcal.io.bag import BagReader, Progress, read_bag
 from lrfcal.io.bag_messages import one_line
 from lrfcal.io.rig import ScanSource, ServoSource, load_rig
-from lrfcal.io.scanlog import is_scan_log, read_scan_log, resolve_recording
+from lrfcal.io.scanlog import LOOKED_FOR, is_scan_log, read_scan_log, resolve_recording
 from lrfcal.model.kinematics import DH, Pose
 from lrfcal.types import JointStates, Nominal, Recording, Scans, TapeMeasurements
 
@@ -257,6 +257,9 @@ def read_recording(
         base = None if folder is None else Path(folder)
     if base is not None and not base.is_dir():
         raise InputError(f"{base}: recording folder not found")
+    if bag_reader is None and bag is None and base is not None and not (base / "bag").exists():
+        raise InputError(f"{base}: no bag found in the recording folder: looked for {LOOKED_FOR}; give the bag with "
+                         "--bag PATH (a ROS 1 .bag file, a ROS 2 bag folder or its .mcap/.db3 file, a scan log)")
 
     def pick(given: str | Path | None, default: str, what: str) -> Path:
         if given is not None:

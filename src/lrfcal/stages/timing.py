@@ -98,15 +98,8 @@ def covered_scans(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0
 
 
 def subset_scans(scans: Scans, mask: np.ndarray) -> Scans:
-    """The scans where ``mask`` (S,) is True: every per-scan array field is subset, the rest kept."""
-    S = mask.size
-    if mask.all():
-        return scans
-    fields = {}
-    for k in scans.__dataclass_fields__:
-        v = getattr(scans, k)
-        fields[k] = v[mask] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == S else v
-    return Scans(**fields)
+    """The scans where ``mask`` (S,) is True (:meth:`lrfcal.types.Scans.subset`)."""
+    return scans.subset(mask)
 
 
 #: a scan whose motor angle the joint states interpolate worse than this share of the range noise (at its median
@@ -179,7 +172,7 @@ def usable_scans(recording: Recording, tau0: float, range_sigma_m: float | None 
             states that may hide the servo's motion, or most fall between joint states too sparse to interpolate
             their motor angle.
     """
-    notes: list[str] = []
+    notes: list[str] = [] if recording.report is None else list(recording.report.left_out)  # a cut bag, a clock step
     joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
     if n_spikes:
         notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")

@@ -4,11 +4,12 @@ kept, skipped, masked and assumed. Array shapes: S scans, N beams per scan, J jo
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.model.kinematics import DH, Pose
 from lrfcal.types.arrays import FloatArray, IntArray
@@ -68,6 +69,15 @@ class Scans:
         S, N = self.ranges_m.shape
         return self.angle_times_at(np.arange(S)[:, None], np.arange(N)[None, :])
 
+    def subset(self, mask: NDArray[np.bool_]) -> Scans:
+        """The scans where ``mask`` (S,) is True: every per-scan array field subset, the rest kept."""
+        S = mask.size
+        if mask.all():
+            return self
+        fields: dict[str, Any] = {k: v[mask] for k, v in vars(self).items()
+                                  if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == S}
+        return replace(self, **fields)
+
     def angle_times_at(self, scan: ArrayLike, beam: ArrayLike) -> FloatArray:
         """The laser-clock time at which the motor angle of beam ``beam`` of scan ``scan`` is taken (index arrays
         that broadcast together; the result has their shape): the beam's own time, stamp + beam * time_increment,
@@ -112,6 +122,9 @@ class ReadReport:
     clock_offset_s: float = 0.0
     clock_offset_applied: bool = False
     notes: tuple[str, ...] = ()
+    #: what the reader recovered of a recording or left out of it (a bag cut short, the other side of a clock
+    #: step: lrfcal.io.bag_recover, lrfcal.io.clocksteps), in words; the calibration repeats them in its notes
+    left_out: tuple[str, ...] = ()
 
     def lines(self) -> list[str]:
         """The report as human-readable lines (counts and notes)."""
@@ -130,6 +143,7 @@ class ReadReport:
                        f"{k} {v}" for k, v in sorted(self.servo_skipped.items())) + ")"))
         out.append(f"clocks: laser-minus-servo offset {self.clock_offset_s:+.6f} s "
                    f"({'applied' if self.clock_offset_applied else 'not applied, below 1 s'})")
+        out.extend(self.left_out)
         out.extend(self.notes)
         return out
 
