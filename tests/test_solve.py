@@ -2,12 +2,16 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.estimate.information import jacobian_check, model_residuals
-from lrfcal.estimate.solve import SolveOptions, Solver, solve
+from lrfcal.estimate.engine import solved
+from lrfcal.estimate.request import MarkerRequest
+from lrfcal.estimate.solve import SolveOptions, solve
 from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points
 from lrfcal.model.marker import MarkerModel, MarkerSensor
 from lrfcal.model.motor import MotorClock
@@ -187,21 +191,22 @@ def test_sphere_model_recovers_within_4_sigma_and_beats_paper(data: tuple[Observ
     assert ours.residuals_m.shape == (len(obs), 3)
 
 
-def test_solver_is_solve_bound_to_its_sensor_and_options(data: tuple[Observations, np.ndarray]) -> None:
-    """lrfcal.estimate.solve.Solver (the marker stages' re-solves): the same solution as solve with the same sensor
-    and options, whether the options are changed for good (but), for one call (keywords) or the model (paper)."""
+def test_a_request_is_solve_of_its_arguments(data: tuple[Observations, np.ndarray]) -> None:
+    """lrfcal.estimate.request.MarkerRequest (what the stages hand the orchestrator), solved by the engine
+    (lrfcal.estimate.engine.solved): the same solution as solve with the same sensor and options, whether the options
+    are changed or the model (paper)."""
     obs, X = data
     start = _perturbed(np.random.default_rng(12))
     sensor = MarkerSensor.of("sphere", R_M)
-    fit = Solver(sensor)
+    request = MarkerRequest(obs, X, start, sensor)
     plain = solve(obs, X, start, sensor=sensor, options=SolveOptions(robust=False))
-    for sol in (fit.but(robust=False)(obs, X, start), fit(obs, X, start, robust=False)):
-        np.testing.assert_array_equal(sol.params.vector(), plain.params.vector())
-        np.testing.assert_array_equal(sol.covariance, plain.covariance)
-    assert not np.array_equal(fit(obs, X, start).params.vector(), plain.params.vector())  # the robust passes differ
+    sol = solved(replace(request, options=SolveOptions(robust=False)))
+    np.testing.assert_array_equal(sol.params.vector(), plain.params.vector())
+    np.testing.assert_array_equal(sol.covariance, plain.covariance)
+    assert not np.array_equal(solved(request).params.vector(), plain.params.vector())  # the robust passes differ
     paper = solve(obs, X, start, sensor=MarkerSensor.of("paper", R_M))
-    np.testing.assert_array_equal(fit.paper()(obs, X, start).params.vector(), paper.params.vector())
-    assert fit.paper().sensor.model is MarkerModel.PAPER and fit.sensor.model is MarkerModel.SPHERE
+    np.testing.assert_array_equal(solved(request.paper()).params.vector(), paper.params.vector())
+    assert request.paper().sensor.model is MarkerModel.PAPER and request.sensor.model is MarkerModel.SPHERE
 
 
 def test_outliers_are_dropped(data: tuple[Observations, np.ndarray]) -> None:

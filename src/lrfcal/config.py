@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -85,30 +85,24 @@ class CalibConfig(BaseModel):
 
 
 class Stopwatch:
-    """Times the stages; tells ``progress`` which stage comes next (the names in ``stages``, in order), and
-    ``outputs(stage, values)`` what a stage produced that others may start on at once (e.g. the intensity figure
-    on the association, drawn while the solve goes on)."""
+    """Times the stages; tells ``progress`` which stage comes next (the names in ``stages``, in order)."""
 
-    def __init__(self, progress: Callable[[str], None] | None, stages: tuple[str, ...],
-                 outputs: Callable[[str, Mapping[str, Any]], None] | None = None) -> None:
+    def __init__(self, progress: Callable[[str], None] | None, stages: tuple[str, ...]) -> None:
         self.stages = stages
         self.laps: dict[str, float] = {}
         self._t = time.perf_counter()
         self._progress = progress
-        self._outputs = outputs
         self._say(self.stages[0])
 
     def _say(self, stage: str) -> None:
         if self._progress is not None:
             self._progress(stage)
 
-    def lap(self, name: str, **outputs: Any) -> None:
-        """Stage ``name`` ended, with ``outputs`` (names and values, for ``outputs``)."""
+    def lap(self, name: str) -> None:
+        """Stage ``name`` ended."""
         now = time.perf_counter()
         self.laps[name] = now - self._t
         self._t = now
-        if outputs and self._outputs is not None:
-            self._outputs(name, outputs)
         if name in self.stages and self.stages.index(name) + 1 < len(self.stages):
             self._say(self.stages[self.stages.index(name) + 1])
 

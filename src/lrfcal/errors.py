@@ -29,3 +29,9 @@ class CalibrationError(LrfError):
     leave undetermined, ambiguous alternatives, failed consistency checks, ...)."""
 
     exit_code = 3
+
+
+class ClockOffsetError(CalibrationError):
+    """A refusal over the clock offset itself: no scan lies within the joint states' time span at it, or its start
+    (``--clock-offset``) lies beyond what the recording allows or far from where the sweep's two directions line up.
+    Its message names the clock offset, so no further hint about the offset is added to it (lrfcal.pipeline)."""

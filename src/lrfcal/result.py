@@ -32,6 +32,7 @@ from lrfcal.types import (
     MarkerMap,
     Observations,
     Recording,
+    Scans,
     ScenePlane,
     Solution,
     Surface,
@@ -132,4 +133,31 @@ class CalibrationResult:
         return self.evidence.METHOD
 
 
-__all__ = ["CalibrationResult", "Evidence", "MarkerEvidence", "PlaneEvidence", "PlaneFit"]
+@dataclass(frozen=True)
+class Matched:
+    """The marker way's blobs matched to the marker map, as its alternative is chosen (before the refinement): the
+    scans, the blobs, the association and the marker map (in its handedness), for the intensity figure drawn while
+    the refinement goes on."""
+
+    scans: Scans
+    detections: Detections
+    association: Association
+    markers: MarkerMap
+
+
+class Observer:
+    """What a calibration tells whoever runs it while it goes on (lrfcal.pipeline.calibrate's ``observer``): each
+    event does nothing here; a command's subclass shows the progress and draws the report's figures meanwhile
+    (lrfcal.commands.calibrate). The method does not wait for it nor read anything back."""
+
+    def stage(self, name: str) -> None:
+        """The stage ``name`` begins (the way's STAGES, in order)."""
+
+    def matched(self, matched: Matched) -> None:
+        """The marker way chose its alternative: its blobs matched to the marker map."""
+
+    def fitted(self, result: CalibrationResult) -> None:
+        """The result passed its checks, before its clouds are made (drawn meanwhile: the figures that need none)."""
+
+
+__all__ = ["CalibrationResult", "Evidence", "MarkerEvidence", "Matched", "Observer", "PlaneEvidence", "PlaneFit"]

@@ -9,7 +9,7 @@ import os
 import shutil
 import sys
 import tempfile
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,7 @@ from lrfcal.model.kinematics import Params, Pose
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.report import figures as figure_writer
 from lrfcal.report.markdown import render_report
-from lrfcal.result import CalibrationResult
+from lrfcal.result import CalibrationResult, Matched, Observer
 from lrfcal.runtime.forked import Ahead
 from lrfcal.types import Recording
 
@@ -97,8 +97,8 @@ def calibrate_folder(
     with tempfile.TemporaryDirectory(prefix=".figures-", dir=tmp_parent) as tmp, \
             (Ahead(figure_writer.preload, inherit=(recording.scans,)) if figures else contextlib.nullcontext()) \
             as ahead:
-        drawer = _Drawer(ahead, Path(tmp), truth)
-        result = calibrate(recording, config, progress=progress, fitted=drawer.fitted, outputs=drawer.outputs)
+        drawer = _Drawer(ahead, Path(tmp), truth, progress)
+        result = calibrate(recording, config, drawer)
         if progress is not None:
             progress("figures and report")
         drawer.the_rest(result)
@@ -117,29 +117,35 @@ def calibrate_folder(
     return result
 
 
-class _Drawer:
-    """The report's figures, drawn by ``ahead`` (None: no figures), a child forked when the calibration starts that
-    imports matplotlib on another core meanwhile and draws each figure into ``folder`` as soon as what it shows is
-    there: the intensity image on the association (:meth:`outputs`, while the surface returns are fitted), the
-    others once the checks have passed (:meth:`fitted`, while the clouds are made), or on the result with its
-    clouds (:meth:`the_rest`: targetless's flatness). The child has the scans already (sent by reference)."""
+class _Drawer(Observer):
+    """The calibration's observer (lrfcal.result.Observer): the progress (``progress(stage)``), and the report's
+    figures, drawn by ``ahead`` (None: no figures), a child forked when the calibration starts that imports
+    matplotlib on another core meanwhile and draws each figure into ``folder`` as soon as what it shows is there: the
+    intensity image on the association (:meth:`matched`, while the surface returns are fitted), the others once the
+    checks have passed (:meth:`fitted`, while the clouds are made), or on the result with its clouds
+    (:meth:`the_rest`: targetless's flatness). The child has the scans already (sent by reference)."""
 
-    def __init__(self, ahead: Ahead | None, folder: Path, truth: Any) -> None:
-        self._ahead, self._folder, self._truth = ahead, folder, truth
+    def __init__(self, ahead: Ahead | None, folder: Path, truth: Any, progress: Callable[[str], None] | None) -> None:
+        self._ahead, self._folder, self._truth, self._progress = ahead, folder, truth, progress
         self._sent: list[str] = []  # the figures sent so far ("rest": all the others)
 
-    def outputs(self, stage: str, out: Mapping[str, Any]) -> None:
-        """lrfcal.pipeline.calibrate's ``outputs``: intensity.png once the association is final."""
-        if self._ahead is not None and stage == "solve":
-            self._ahead.start(figure_writer.write_intensity, out["scans"],
-                              figure_writer.drawn_detections(out["detections"]), out["association"],
-                              out["markers"].marker_ids, self._folder)
+    def stage(self, name: str) -> None:
+        """A calibration stage begins: the progress."""
+        if self._progress is not None:
+            self._progress(name)
+
+    def matched(self, matched: Matched) -> None:
+        """intensity.png once the association is final."""
+        if self._ahead is not None:
+            self._ahead.start(figure_writer.write_intensity, matched.scans,
+                              figure_writer.drawn_detections(matched.detections), matched.association,
+                              matched.markers.marker_ids, self._folder)
             self._sent.append("intensity")
 
-    def fitted(self, fit: CalibrationResult) -> None:
-        """lrfcal.pipeline.calibrate's ``fitted``: the figures that need no clouds, drawn during the reprojection."""
-        if not figure_writer.needs_clouds(fit):
-            self.the_rest(fit)
+    def fitted(self, result: CalibrationResult) -> None:
+        """The figures that need no clouds, drawn during the reprojection."""
+        if not figure_writer.needs_clouds(result):
+            self.the_rest(result)
 
     def the_rest(self, part: CalibrationResult) -> None:
         """The figures not sent yet, once, drawn from ``part`` (a result, with its clouds where they are drawn)."""

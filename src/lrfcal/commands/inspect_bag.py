@@ -44,7 +44,8 @@ from lrfcal.io.multiecho import Echoes
 from lrfcal.io.recording import check_units
 from lrfcal.io.rig import rig_snippet
 from lrfcal.model.kinematics import is_placeholder_dh
-from lrfcal.stages.propose import DHProposal, propose_for_recording
+from lrfcal.pipeline.search import propose_for_recording
+from lrfcal.stages.propose import DHProposal
 from lrfcal.stages.timing import covered_scans
 from lrfcal.types import ReadReport, ScanSource, ServoSource, TfSource
 from lrfcal.types.sources import ServoStamp, Unit

@@ -7,31 +7,23 @@ the servo's direction; and the refusal when one fails.
 from __future__ import annotations
 
 import math
-from typing import Protocol, TypeVar
+from collections.abc import Mapping
+from dataclasses import replace
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate import observability, solve
+from lrfcal.estimate import observability
 from lrfcal.estimate.covariance import widen
+from lrfcal.estimate.engine import solved
+from lrfcal.estimate.request import MarkerRequest, PlaneOptions, PlaneRequest
 from lrfcal.model.chart import gauge_distance
 from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock
 from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
-from lrfcal.types import Check, MarkerMap, Observations, Solution, SurfaceReturns
-
-
-class _Alternative(Protocol):
-    """A direction of the servo and the marker-only solution with it (lrfcal.stages.alternatives.Alternative)."""
-
-    @property
-    def sign(self) -> int: ...
-    @property
-    def solution(self) -> Solution: ...
-
-
-A = TypeVar("A", bound=_Alternative)
+from lrfcal.types import Check, MarkerMap, Solution, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -114,15 +106,15 @@ def chi2_check(chi2: float, config: CheckConfig, what: str, otherwise: str) -> C
                  + ("" if ok else f"; if the scanner is this noisy, pass --range-sigma; otherwise {otherwise}"))
 
 
-def servo_direction(alts: list[A], nominal_dh: DH, config: CheckConfig) -> A:
-    """The servo's direction: the declared one (+1) unless the nominal DH contradicts it and fits the other.
+def servo_direction(by_sign: Mapping[int, Solution], nominal_dh: DH, config: CheckConfig) -> int:
+    """The servo's direction (``by_sign``: the marker-only solution with each direction tried): the declared one
+    (+1) unless the nominal DH contradicts it and fits the other.
 
     A negated motor angle together with a mirrored marker map and (alpha, b) -> (pi - alpha, -b) predicts exactly
     the same ranges (distances fix the marker map only up to a reflection), so only the nominal values can tell
     the two apart. When they contradict the declared direction, the calibration is refused with the rig-file
     setting that resolves it.
     """
-    by_sign = {a.sign: a for a in alts}
     declared = by_sign.get(1)
     other = by_sign.get(-1)
     if declared is None:
@@ -132,8 +124,8 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CheckConfig) -> A:
             "servo.sign: -1 in the rig file (or --servo-sign -1) if it is mounted the other way round"
         )
     if other is None:
-        return declared
-    dh1, dh2 = declared.solution.params.dh, other.solution.params.dh
+        return 1
+    dh1, dh2 = declared.params.dh, other.params.dh
     if far_from_nominal(dh1, nominal_dh, config) and not far_from_nominal(dh2, nominal_dh, config):
         _, far_decl = nominal_distance(dh1, nominal_dh, config)
         raise CalibrationError(
@@ -142,7 +134,7 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CheckConfig) -> A:
             "explains the data equally well. If the servo turns the other way, set servo.sign: -1 in the rig file "
             "(or --servo-sign -1)"
         )
-    return declared
+    return 1
 
 
 #: chi-square quantile with 1 degree of freedom at p = 1e-3: a difference of cost below it does not tell two
@@ -260,15 +252,14 @@ def dh_text(dh: DH) -> str:
             f"beta {math.degrees(dh.beta):.2f} deg")
 
 
-def marker_checks(
-    sol: Solution, marker_only: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray,
-    config: CheckConfig, fit: solve.Solver, nominal: DH,
-) -> list[Check]:
+def marker_checks(sol: Solution, marker_only: Solution, request: MarkerRequest, passes: np.ndarray,
+                  config: CheckConfig, nominal: DH) -> list[Check]:
     """The consistency checks a result must pass before it is written (docs/method.md, stage 6c). The second opinion
-    compares parts of the marker returns with the marker-only solution of them all (the same model and data
-    type, so that it tests the recording's parts, not the markers against the surfaces)."""
+    compares parts of the marker returns with the marker-only solution of them all (``request``: the marker-only
+    problem it solved, its returns and marker map; the same model and data type, so that it tests the recording's
+    parts, not the markers against the surfaces)."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
-              mirror_check(sol.params.dh, nominal, config, sol.sigma[6:10])]
+              mirror_check(sol.params.dh, nominal, config, sol.dh_sigma)]
     finite = bool(np.all(np.isfinite(sol.sigma)))
     if sol.information is not None and finite:
         obs = observability.analyse(sol.information, sol.information_names, sol.params.dh.alpha)
@@ -279,7 +270,7 @@ def marker_checks(
                             "not determine the parameters jointly (no finite covariance)"))
     checks.append(chi2_check(sol.reduced_chi2, config, "residuals", "the model does not explain the data (an "
                              "unmodelled clock offset or motion, a wrong marker radius)"))
-    checks.append(_marker_second_opinion(marker_only, matched, markers, passes, config, fit))
+    checks.append(_marker_second_opinion(marker_only, request, passes, config))
     return checks
 
 
@@ -312,16 +303,16 @@ def difference_covariance(part: Solution, joint: Solution, idx: list[int], map_c
     return widen(nested, D.T @ D) + shared
 
 
-def _marker_second_opinion(
-    sol: Solution, matched: Observations, markers: MarkerMap, passes: np.ndarray, config: CheckConfig,
-    fit: solve.Solver,
-) -> Check:
+def _marker_second_opinion(sol: Solution, request: MarkerRequest, passes: np.ndarray, config: CheckConfig) -> Check:
     """Calibrate two independent parts of the data (odd and even passes of the sweep, or its two halves in time)
     and test that each agrees with the joint solution: chi2 = d^T (C_part - C_joint)^-1 d over the DH parameters
     (the part's data are a subset of the joint's; the marker map's shared error enters as (G_part - G_joint) C_map
-    (G_part - G_joint)^T), against the chi-square quantile with 4 degrees of freedom."""
+    (G_part - G_joint)^T), against the chi-square quantile with 4 degrees of freedom. ``request``: the marker-only
+    problem ``sol`` solved; each part is solved from ``sol``, its clock offset held."""
     from scipy.special import chdtri  # chi-square quantile: chdtri(k, 1 - q) = ppf(q) (scipy.stats is slow to import)
 
+    matched = request.obs
+    map_cov = request.markers.covariance if isinstance(request.markers, MarkerMap) else None
     groups, how = split_in_two(matched.scan, passes)
     dh = [PARAM_NAMES.index(n) for n in ("a", "alpha", "b", "beta")]
     limit = float(chdtri(4, 1.0 - (1.0 - config.second_opinion_p / 2.0)))
@@ -329,13 +320,13 @@ def _marker_second_opinion(
     for g in groups:
         part = matched.subset(g)
         try:
-            ps = fit(part, markers, sol.params, clock=Clock(None, sol.clock_offset_s))
+            ps = solved(replace(request, obs=part, start=sol.params, clock=Clock(None, sol.clock_offset_s)))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few returns")
         if ps.information is None or not observability.analyse(ps.information, ps.information_names).determined:
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
         d = dh_difference(ps.params.vector()[dh], sol.params.vector()[dh])
-        C = difference_covariance(ps, sol, dh, markers.covariance)
+        C = difference_covariance(ps, sol, dh, map_cov)
         if not (np.all(np.isfinite(C)) and np.all(np.isfinite(d))):
             return Check("second opinion", True, f"not available: {how} alone do not determine the DH parameters")
         w, V = np.linalg.eigh(0.5 * (C + C.T))
@@ -362,7 +353,7 @@ def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int6
     """Convergence, mirror image, observability of the estimated parameters, reduced chi-square and a
     second opinion."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
-              mirror_check(sol.params.dh, nominal, config, sol.sigma[6:10])]
+              mirror_check(sol.params.dh, nominal, config, sol.dh_sigma)]
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
     ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())
@@ -392,9 +383,9 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
     for g in groups:
         try:
             kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
-            parts.append(solve.solve_planes(returns.subset(kept), sol.params, range_sigma_m=sigma_r,
-                                            clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
-                                            options=solve.PlaneOptions(robust=False)))
+            parts.append(solved(PlaneRequest(returns.subset(kept), sol.params, range_sigma_m=sigma_r,
+                                             clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
+                                             options=PlaneOptions(robust=False))))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
     d = parts[0].params.vector()[est] - parts[1].params.vector()[est]

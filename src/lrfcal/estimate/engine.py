@@ -15,6 +15,11 @@ free, which are held and why), and returns a typed :class:`Estimate`:
 Each pass is Levenberg-Marquardt on the normal equations (lrfcal.estimate.normal_equations), the planes' nuisances
 eliminated by the Schur complement; with the mount and every DH parameter free and no prior on them, the scan plane
 moves in the regular chart (lrfcal.model.chart), the gauge into the mount after every step.
+
+:func:`solved` is how a calibration's solves reach the engine: a request (lrfcal.estimate.request: what to estimate,
+built by the stages) posed and estimated, its estimate reported as a Solution. The orchestrator (lrfcal.pipeline)
+calls it for every start and every set chosen again, and the checks that solve again (lrfcal.estimate.checks,
+minima) call it themselves.
 """
 
 from __future__ import annotations
@@ -23,6 +28,7 @@ import enum
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from functools import partial
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -33,7 +39,7 @@ from lrfcal.estimate.problem import Problem
 from lrfcal.model.chart import regular_chart_at, regular_step
 from lrfcal.model.kinematics import exp_so3
 from lrfcal.model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
-from lrfcal.types import Iteration, Spread
+from lrfcal.types import Iteration, Solution, Spread
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -211,6 +217,40 @@ def estimate(pb: Problem, start: State, unknowns: Unknowns, passes: Passes = MAR
     return Estimate(state, pb, keep, status, nfev, tuple(log), unc)
 
 
+class Posed(Protocol):
+    """A request as the engine takes it (lrfcal.estimate.request): the problem, the start, the unknowns, the passes,
+    the marker map's covariance and the score tests to run, and how the estimate is reported as a Solution."""
+
+    @property
+    def problem(self) -> Problem: ...
+    @property
+    def start(self) -> State: ...
+    @property
+    def unknowns(self) -> Unknowns: ...
+    @property
+    def passes(self) -> Passes: ...
+    @property
+    def map_cov(self) -> FloatArray | None: ...
+    @property
+    def held_scores(self) -> Sequence[str]: ...
+    def solution(self, est: Estimate) -> Solution: ...
+
+
+class Request(Protocol):
+    """What to estimate (lrfcal.estimate.request.MarkerRequest, PlaneRequest): posed to the engine on demand (posing
+    may refuse it: CalibrationError)."""
+
+    def posed(self) -> Posed: ...
+
+
+def solved(request: Request) -> Solution:
+    """The estimate of one request (:func:`estimate` on it, reported as its Solution): how every solve of a
+    calibration reaches the engine. Raises CalibrationError where the request cannot be posed (too few returns)."""
+    p = request.posed()
+    return p.solution(estimate(p.problem, p.start, p.unknowns, p.passes, map_cov=p.map_cov,
+                               held_scores=p.held_scores))
+
+
 def information(pb: Problem, state: State, core: IntArray) -> tuple[FloatArray, tuple[str, ...]]:
     """What the observation sets of ``pb`` determine at ``state`` without iterating: the information (k, k) over the
     core unknowns ``core`` (indices into CORE_NAMES), every set's nuisances marginalised (the Schur complement of the
@@ -219,5 +259,5 @@ def information(pb: Problem, state: State, core: IntArray) -> tuple[FloatArray, 
     return S, tuple(CORE_NAMES[k] for k in core)
 
 
-__all__ = ["MARKER_PASSES", "PLANE_PASSES", "Estimate", "Passes", "State", "Status", "Stop", "Uncertainty",
-           "Unknowns", "estimate", "information"]
+__all__ = ["MARKER_PASSES", "PLANE_PASSES", "Estimate", "Passes", "Posed", "Request", "State", "Status", "Stop",
+           "Uncertainty", "Unknowns", "estimate", "information", "solved"]

@@ -28,13 +28,13 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate.checks import CheckConfig, dh_text, judge_minima, nominal_distance
+from lrfcal.estimate.engine import solved
 from lrfcal.estimate.information import model_residuals
-from lrfcal.estimate.solve import Solver
+from lrfcal.estimate.request import MarkerRequest
 from lrfcal.model.kinematics import DH, Params, dh_twins
-from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.model.unknowns import dh_difference
-from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution, SurfaceReturns
+from lrfcal.types import Check, MarkerMap, Nominal, Solution, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 
@@ -44,18 +44,17 @@ SAME_SIGMA = 4.0
 NAME = "other minimum"
 
 
-def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nominal: Nominal, config: CheckConfig,
-                  fit: Solver) -> Check:
-    """The marker-only solution ``sol`` of the returns ``matched`` against the minimum its mirror image leads to
-    (module docstring), the clock offset held at the estimate's: passed unless a distinct rig explains the data as
-    well or better."""
+def other_minimum(sol: Solution, request: MarkerRequest, nominal: Nominal, config: CheckConfig) -> Check:
+    """The marker-only solution ``sol`` of ``request`` (the marker-only problem: its returns, marker map and model)
+    against the minimum its mirror image leads to (module docstring), the clock offset held at the estimate's: passed
+    unless a distinct rig explains the data as well or better."""
     twin = dh_twins(sol.params.dh)[1][1]  # "mirrored", the marker map as it is
     if nominal_distance(twin, nominal.dh, config)[0] > 1.0:
         return Check(NAME, True, f"not searched: the estimate's mirror image ({dh_text(twin)}) is beyond the "
                                  "nominal tolerance")
     none = Check(NAME, True, "the solve from the estimate's mirror image found no other minimum")
     try:
-        alt = fit(matched, markers, Params(sol.params.mount, twin), clock=Clock(None, sol.clock_offset_s))
+        alt = solved(replace(request, start=Params(sol.params.mount, twin), clock=Clock(None, sol.clock_offset_s)))
     except CalibrationError:
         return none
     z = _dh_z(alt.params.dh, sol)
@@ -64,7 +63,7 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
     if np.abs(z).max() <= SAME_SIGMA:
         return Check(NAME, True, f"the solve from the estimate's mirror image returned to it (DH within "
                                  f"{np.abs(z).max():.1f} sigma)")
-    lr = _cost(alt, matched, markers, fit.sensor, sol) - _cost(sol, matched, markers, fit.sensor, alt)
+    lr = _cost(alt, request, sol) - _cost(sol, request, alt)
     lr /= max(1.0, sol.reduced_chi2)
     ok, words = judge_minima(lr)
     if ok:
@@ -117,21 +116,22 @@ def _dh_z(dh: DH, sol: Solution) -> FloatArray:
     """(4,) DH differences of ``dh`` (or of its "turned" representative, whichever is nearer) from ``sol``'s, in
     ``sol``'s sigma."""
     def z(cand: DH) -> FloatArray:
-        return dh_difference(cand.vector(), sol.params.dh.vector()) / np.asarray(sol.sigma[6:10], dtype=float)
+        return dh_difference(cand.vector(), sol.params.dh.vector()) / np.asarray(sol.dh_sigma, dtype=float)
 
     return min((z(dh), z(dh_twins(dh)[0][1])), key=lambda v: float(np.nanmax(np.abs(v))))
 
 
-def _cost(sol: Solution, matched: Observations, markers: MarkerMap, sensor: MarkerSensor, other: Solution
-          ) -> float:
+def _cost(sol: Solution, request: MarkerRequest, other: Solution) -> float:
     """The sum of squared whitened residuals (range and lateral, lrfcal.estimate.information.model_residuals) of ``sol``
-    over the returns it and ``other`` both keep, the motor angles at its own clock offset."""
+    over the returns of ``request`` it and ``other`` both keep, the motor angles at its own clock offset."""
+    matched, markers = request.obs, request.markers
     keep = np.ones(len(matched), dtype=bool)
     for s in (sol, other):
         if s.inlier is not None:
             keep &= s.inlier
     obs = matched if sol.lambda_rad is None else replace(matched, lambda_rad=sol.lambda_rad)
-    res, _ = model_residuals(sol.params, obs.subset(keep), markers.positions_W, sensor=sensor)
+    X = markers.positions_W if isinstance(markers, MarkerMap) else markers
+    res, _ = model_residuals(sol.params, obs.subset(keep), X, sensor=request.sensor)
     return float(res @ res)
 
 

@@ -1,6 +1,7 @@
-"""Stage 6b: the marker returns solved jointly with the ordinary returns from the surfaces the markers sit on
-(lrfcal.stages.surfaces), and with every other plane of the scene when asked; the intrinsic scales the data contradict
-found by their score tests (:func:`most_off`).
+"""Stage 6b's choices: the surfaces the markers sit on and their ordinary returns (lrfcal.stages.surfaces), to solve
+jointly with the marker returns, and every other plane of the scene when asked; the range bias held where the
+recording does not separate it; the intrinsic scales the data contradict, found by their score tests
+(:func:`most_off`). The rounds that solve with them are lrfcal.stages.refinement's.
 
 The surface returns are chosen at an estimate (lrfcal.stages.surfaces.surface_returns: the gate on a return's distance
 from its plane) and chosen again at the joint estimate while it moves them (lrfcal.stages.surfaces.RESELECT_M): the
@@ -17,12 +18,9 @@ from functools import partial
 from typing import Protocol
 
 from lrfcal.estimate import observability
-from lrfcal.estimate.problem import OnPlanes
-from lrfcal.estimate.solve import Solver
-from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.stages import surfaces, timing
 from lrfcal.stages.targetless import SceneConfig, merge_returns, scene_plane_returns
-from lrfcal.types import Detections, JointStates, MarkerMap, Noted, Observations, Recording, Solution
+from lrfcal.types import Detections, JointStates, MarkerMap, Noted, Recording, Solution
 
 #: an intrinsic scale whose score test steps this many sigma from 1 is estimated (a gear ratio, an angle increment)
 SCALE_Z_LIMIT = 4.0
@@ -67,83 +65,63 @@ class JointConfig(SceneConfig, Protocol):
     def all_planes(self) -> bool: ...
 
 
-#: the joint result (:func:`with_surfaces`): the solution, the surfaces, their returns
-JointFit = tuple[Solution, list[surfaces.Surface], surfaces.SurfaceReturns | None]
-
-
 @dataclass(frozen=True)
 class Recorded:
-    """A recording as the joint solve reads it: the recording (its scans and nominal values), its joint states
-    (with the servo's direction applied) and the marker returns detected in it."""
+    """A recording as the joint solve's choices read it: the recording (its scans and nominal values), its joint
+    states (with the servo's direction applied) and the marker returns detected in it."""
 
     recording: Recording
     joints: JointStates
     detections: Detections
 
 
-def with_surfaces(marker_fit: Solution, matched: Observations, markers: MarkerMap, motor: MotorClock | None,
-                  recorded: Recorded, config: JointConfig, fit: Solver) -> Noted[JointFit]:
-    """6b from the marker-only solution ``marker_fit`` of the ``matched`` returns (``motor``: the clock model when
-    the clock offset is estimated; ``fit``: lrfcal.estimate.solve.solve bound to the rig): every beam on the markers'
-    planes
-    solved jointly with the markers (and every other plane of the scene with ``config.all_planes``); the marker-only
-    solution itself when ``config.surfaces`` is off or no surface return is found; with its notes."""
-    ours = marker_fit
-    if not config.surfaces:
-        return Noted((ours, [], None))
-    notes: list[str] = []
+def surfaces_at(at: Solution, markers: MarkerMap, recorded: Recorded, config: JointConfig
+                ) -> tuple[list[surfaces.Surface], surfaces.SurfaceReturns]:
+    """6b's surfaces chosen at the estimate ``at`` (lrfcal.stages.surfaces.observe_surfaces): the planes the markers
+    sit on and the returns on them (every beam but the marker returns), the returns' motor angles at ``at``'s clock
+    offset."""
     scans, nominal = recorded.recording.scans, recorded.recording.nominal
-    joints, detections = recorded.joints, recorded.detections
     n_beams = scans.ranges_m.shape[1]
 
     def times_at(i: surfaces.IntArray) -> surfaces.FloatArray:  # beam times of flat indices (K,), elementwise
         return scans.angle_times_at(i // n_beams, i % n_beams)
 
-    selected_at, note = ours, None
-    surface_list: list[surfaces.Surface] = []
-    on_surfaces: surfaces.SurfaceReturns | None = None
     on_markers = surfaces.PlaneMarkers(markers.positions_W, nominal.marker_radius_m, max(markers.rms_m, 0.0005))
     selection = surfaces.SurfaceSelection(max_returns=config.surface_max_returns)
-    for _ in range(surfaces.ROUNDS):  # the returns chosen again at the joint estimate while it moves them
-        # the motor angles of the beams observe_surfaces reprojects only (elementwise: the same bits as the grid's)
-        lambda_at = partial(_motor_angles_at, times_at, joints, selected_at.clock_offset_s)
-        grid = surfaces.ReturnGrid(scans.ranges_m, scans.mu_rad, lambda_at, detections.labels, times_at)
-        found = surfaces.observe_surfaces(grid, on_markers, selected_at.params, selection=selection,
-                                          intrinsics=selected_at.intrinsic_values)
-        if on_surfaces is None or len(found[1]):
-            surface_list, on_surfaces = found
-        if not len(found[1]):
-            break
-        joint = partial(fit, matched, markers, selected_at.params, surfaces=OnPlanes(on_surfaces, surface_list),
-                        clock=Clock(motor, selected_at.clock_offset_s), held_scores=tuple(SCALES))
-        ours = joint(estimate_range_bias=config.estimate_range_bias)
-        if config.estimate_range_bias and not (max(ours.range_offset_sigma_m, ours.marker_range_bias_sigma_m)
-                                               <= observability.RANGE_BIAS_LIMIT_M):
-            note = (f"range offset and marker range bias not separable by this recording (1-sigma "
-                    f"{ours.range_offset_sigma_m * 1000:.3g} / {ours.marker_range_bias_sigma_m * 1000:.3g} mm): "
-                    "held at 0")
-            ours = joint(estimate_range_bias=False)
-        if surfaces.moved_m(on_surfaces, (selected_at.params, selected_at.intrinsic_values),
-                            (ours.params, ours.intrinsic_values)) <= surfaces.RESELECT_M:
-            break
-        selected_at = ours  # after ROUNDS choices the last stands (fast sweeps settle in 3: 35, 2.4, 0.1 mm)
-    if note:
-        notes.append(note)
-    if on_surfaces is not None and not len(on_surfaces) and config.estimate_range_bias:
-        notes.append("range offset and marker range bias held at 0: without surface returns the markers alone "
-                     "do not separate them from the marker radius and the mount")
-    if config.all_planes:  # 6b generalised: every other plane of the scene too, as free planes
-        others, other_planes = scene_plane_returns(scans, joints, ours, detections.labels >= 0,
-                                                   list(surface_list), config)
-        if len(others):
-            on_surfaces = merge_returns(on_surfaces, others)
-            surface_list = [*surface_list, *other_planes]
-            ours = fit(matched, markers, ours.params, surfaces=OnPlanes(on_surfaces, surface_list),
-                       clock=Clock(motor, ours.clock_offset_s),
-                       estimate_range_bias=math.isfinite(ours.range_offset_sigma_m), held_scores=tuple(SCALES))
-            notes.append(f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as "
-                         "free planes")
-    return Noted((ours, list(surface_list), on_surfaces), tuple(notes))
+    # the motor angles of the beams observe_surfaces reprojects only (elementwise: the same bits as the grid's)
+    lambda_at = partial(_motor_angles_at, times_at, recorded.joints, at.clock_offset_s)
+    grid = surfaces.ReturnGrid(scans.ranges_m, scans.mu_rad, lambda_at, recorded.detections.labels, times_at)
+    return surfaces.observe_surfaces(grid, on_markers, at.params, selection=selection,
+                                     intrinsics=at.intrinsic_values)
+
+
+def unseparated_range_bias(sol: Solution) -> str:
+    """Why the range offset and the marker range bias a joint solution ``sol`` estimated are held at 0 instead: not
+    separable by this recording (1-sigma beyond lrfcal.estimate.observability.RANGE_BIAS_LIMIT_M); "" when they
+    are."""
+    if max(sol.range_offset_sigma_m, sol.marker_range_bias_sigma_m) <= observability.RANGE_BIAS_LIMIT_M:
+        return ""
+    return (f"range offset and marker range bias not separable by this recording (1-sigma "
+            f"{sol.range_offset_sigma_m * 1000:.3g} / {sol.marker_range_bias_sigma_m * 1000:.3g} mm): held at 0")
+
+
+#: why the range offset and the marker range bias are held where no surface returns were found
+NO_SURFACE_RANGE_BIAS = ("range offset and marker range bias held at 0: without surface returns the markers alone do "
+                         "not separate them from the marker radius and the mount")
+
+
+def every_plane(ours: Solution, found: tuple[list[surfaces.Surface], surfaces.SurfaceReturns | None],
+                recorded: Recorded, config: JointConfig
+                ) -> Noted[tuple[list[surfaces.Surface], surfaces.SurfaceReturns]] | None:
+    """6b generalised (``config.all_planes``): every other plane of the scene at the joint estimate ``ours``, as free
+    planes, after the markers' surfaces ``found``; the surfaces and returns to solve jointly with a note, None when
+    the scene shows no other plane."""
+    scans, joints, detections = recorded.recording.scans, recorded.joints, recorded.detections
+    others, other_planes = scene_plane_returns(scans, joints, ours, detections.labels >= 0, list(found[0]), config)
+    if not len(others):
+        return None
+    return Noted(([*found[0], *other_planes], merge_returns(found[1], others)), (
+        f"{len(other_planes)} more planes of the scene ({len(others)} returns) solved jointly as free planes",))
 
 
 def _motor_angles_at(times_at: Callable[[surfaces.IntArray], surfaces.FloatArray], joints: JointStates,
@@ -152,4 +130,5 @@ def _motor_angles_at(times_at: Callable[[surfaces.IntArray], surfaces.FloatArray
     return timing.motor_angles(times_at(i), joints, clock_offset_s=clock_offset_s, tolerance_s=math.inf)
 
 
-__all__ = ["SCALES", "JointConfig", "JointFit", "SCALE_Z_LIMIT", "Recorded", "most_off", "with_surfaces"]
+__all__ = ["NO_SURFACE_RANGE_BIAS", "SCALES", "JointConfig", "SCALE_Z_LIMIT", "Recorded", "every_plane", "most_off",
+           "surfaces_at", "unseparated_range_bias"]

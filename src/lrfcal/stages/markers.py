@@ -1,85 +1,99 @@
-"""Calibration with markers: the seed paper's Sec. III and IV-C as observation sets and a start.
+"""Calibration with markers: the seed paper's Sec. III and IV-C as the steps of lrfcal.pipeline's loop.
 
 1. markers from tape distances (mds)          5. start: mount pose from that alignment, DH from nominal
-2. marker returns in the intensity image      6. the marker returns solved for each direction of the servo
-   (detection)                                   (solve), the direction chosen (lrfcal.estimate.checks.servo_direction);
-3. per-beam time and motor angle (timing)        then jointly with the surfaces the markers sit on (surfaces),
-4. blobs matched to markers (association)        and with every other plane of the scene when asked
+2. marker returns in the intensity image      6. the marker returns solved for each direction of the servo,
+   (detection)                                   the direction chosen (lrfcal.stages.alternatives); then jointly
+3. per-beam time and motor angle (timing)        with the surfaces the markers sit on, and with every other plane
+4. blobs matched to markers (association)        of the scene when asked (lrfcal.stages.refinement)
 
 The paper's own variant (one max-intensity beam per blob, one motor angle per scan) runs beside ours as the
-baseline, on the same detections and association, so that the gain is measured. lrfcal.pipeline runs this and
-the shared stages (checks, reprojection, geometry); the start's alternatives (4.-6.) are lrfcal.stages.alternatives.
+baseline, on the same detections and association, so that the gain is measured. Nothing here solves: each step
+returns what to estimate (lrfcal.estimate.request) or what it chose, and lrfcal.pipeline solves it.
 """
 
 from __future__ import annotations
 
-import contextlib
-from collections.abc import Callable
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
 from lrfcal.config import CalibConfig, Stopwatch
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate import minima, observability, solve
-from lrfcal.estimate.checks import dh_text, marker_checks
-from lrfcal.estimate.problem import marker_problem
-from lrfcal.model.kinematics import DH
+from lrfcal.estimate.checks import marker_checks
+from lrfcal.estimate.minima import other_minimum
+from lrfcal.estimate.problem import OnPlanes, marker_problem
+from lrfcal.estimate.request import MarkerRequest, SolveOptions
+from lrfcal.estimate.systematics import ModelError, Systematics
 from lrfcal.model.marker import MarkerSensor, crossings
 from lrfcal.model.motor import Clock
-from lrfcal.model.unknowns import dh_difference, pack
-from lrfcal.result import CalibrationResult, MarkerEvidence
-from lrfcal.stages import alternatives, association, detection, joint, mds, timing
-from lrfcal.stages.alternatives import Alternative
-from lrfcal.stages.joint import JointFit
-from lrfcal.types import Check, Detections, JointStates, MarkerMap, Noted, Observations, Recording, Scans, Solution
+from lrfcal.model.unknowns import pack
+from lrfcal.result import CalibrationResult, MarkerEvidence, Matched, Observer
+from lrfcal.stages import alternatives, detection, joint, mds, refinement, timing
+from lrfcal.stages.alternatives import Direction, Matching, Mirrored, Start, Turned
+from lrfcal.stages.marker_sets import (
+    AllPlanes,
+    Chosen,
+    FromStart,
+    Joint,
+    MarkerSets,
+    Once,
+    Refit,
+    Settled,
+    Stood,
+)
+from lrfcal.stages.propose import Proposal
+from lrfcal.types import Detections, Fit, JointStates, MarkerMap, Noted, Observations, Recording, Solution, Tried
 
 
 @dataclass(frozen=True)
 class Observed:
     """The marker way's observations: the marker map, the blobs, every blob's returns with their motor angles, the
-    sweep's passes (per scan) and whether the clock offset is estimated."""
+    sweep's passes (per scan), whether the clock offset is estimated, and what the directions' starts are matched
+    from (lrfcal.stages.alternatives.Matching)."""
 
     markers: MarkerMap
     detections: Detections
     returns: Observations
     passes: np.ndarray
     estimate_clock: bool
+    matching: Matching
     notes: tuple[str, ...] = ()  # what observing them noted (the clock offset held)
 
 
-#: the starts step's outcome: the observations and the alternative chosen
-Started = tuple[Observed, Alternative]
-#: the refine step's outcome: the observations, the alternative as it ends up and the joint result
-Refined = tuple[Observed, Alternative, JointFit]
+class RefineConfig(joint.JointConfig, Protocol):
+    """What the marker way's refinement reads (lrfcal.stages.refinement): the joint solve's options
+    (lrfcal.stages.joint.JointConfig) and the chi-square limit of the scales' score tests."""
+
+    @property
+    def max_reduced_chi2(self) -> float: ...
 
 
 class MarkerWay:
-    """Calibration with markers as the steps of lrfcal.pipeline's orchestrator: observe (stages 1-3: the marker map,
-    the marker returns, their times), starts (4.-6.: the marker-only solve from each candidate start, servo direction,
-    handedness, DH representative), refine (6b: jointly with the surfaces, scales the data contradict, the blobs the
-    marker-only fit could not judge), checks (and the turning systematic, the paper's baseline): a result without
-    clouds (lrfcal.pipeline adds them). Raises CalibrationError: no marker returns, no match, or the layout does not
-    determine the DH parameters."""
+    """Calibration with markers as the steps of lrfcal.pipeline's loop (a ``Way[Observed, alternatives.Start,
+    MarkerSets]``): observe (stages 1-4: the marker map, the marker returns, their times, the association's search
+    decided), the sets at each candidate start and their problem (4.-6.: servo direction, handedness, DH
+    representative), the sets chosen again at each estimate (a start's: scales freed, blobs left out; after the
+    choice: jointly with the surfaces, scales the data contradict, blobs the marker-only fit could not judge), the
+    turning systematic, the paper's baseline beside, the checks: a result without clouds (lrfcal.pipeline adds them).
+    Raises CalibrationError: no marker returns, no match, or the layout does not determine the DH parameters."""
 
-    STAGES: tuple[str, ...] = ()  # set below the module's STAGES
-    NOTES: tuple[str, ...] = ()  # what every calibration with markers notes first: nothing
+    STAGES: ClassVar[tuple[str, ...]] = ()  # set below the module's STAGES
+    NOTES: ClassVar[tuple[str, ...]] = ()  # what every calibration with markers notes first: nothing
+    SEARCH: ClassVar[bool] = False  # its starts need no DH search's proposal
 
-    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch) -> None:
-        self.recording, self.joints, self.config, self.clock = recording, joints, config, clock
+    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
+                 observer: Observer) -> None:
+        self.recording, self.joints, self.config, self.clock, self.observer = recording, joints, config, clock, observer
         nominal = recording.nominal
         assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
-        self.fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
-                                                config.range_sigma_m))
+        self.sensor = MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
+                                      config.range_sigma_m)
 
-    def ahead(self) -> contextlib.AbstractContextManager[None]:
-        """Nothing runs ahead of the marker way."""
-        return contextlib.nullcontext()
-
-    def observe(self, ahead: None) -> Observed:
-        """Stages 1-3: the marker map, the blobs, the marker returns with their motor angles (``ahead``: nothing runs
-        ahead)."""
+    def observe(self, proposal: Proposal | None) -> tuple[Observed, list[Start]]:
+        """Stages 1-4: the marker map, the blobs, the marker returns with their motor angles, whether the DH search
+        matches them (``proposal``: none is asked for); the first start, the declared direction of the servo."""
         recording, joints, config, clock = self.recording, self.joints, self.config, self.clock
         scans, tau0 = recording.scans, config.clock_offset_s
         assert recording.tape is not None
@@ -97,206 +111,133 @@ class MarkerWay:
             + ("a one-way sweep does not separate it from the mount's rotation about the motor axis)"
                if config.estimate_clock is None else "as asked)"),)
         clock.lap("timing")
-        return Observed(markers, detections, returns, passes, estimate_clock, held)
+        matching = alternatives.matching_of(returns, detections, markers, recording.nominal, config)  # 4.
+        clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
+        return Observed(markers, detections, returns, passes, bool(estimate_clock), matching, held), [Direction(1)]
 
-    def starts(self, observed: Observed) -> Started:
-        """4.-6.: the marker-only solution from each candidate start (servo direction, handedness, DH
-        representative), the one chosen."""
-        nominal = self.recording.nominal
-        chosen = alternatives.servo_alternatives(observed.returns, observed.detections, observed.markers,
-                                     self.joints if observed.estimate_clock else None, nominal, self.config,
-                                     self.fit, self.clock)
-        fit = self._fit(chosen)
-        chosen = alternatives.in_nominal_representative(alternatives.handedness(chosen, nominal.dh, self.config, fit),
-                                                        nominal.dh, fit)
-        self.clock.lap("solve", scans=self.recording.scans, detections=observed.detections,
-                       association=chosen.assoc, markers=chosen.markers)
-        return observed, chosen
+    def sets_at(self, observed: Observed, start: Start) -> MarkerSets:
+        """5.: the marker-only sets at a candidate start (lrfcal.stages.alternatives)."""
+        match start:
+            case Direction():
+                return alternatives.direction_sets(observed.matching, start,
+                                                   self.joints if observed.estimate_clock else None,
+                                                   self.recording.nominal, self.config, self.sensor)
+            case Mirrored():
+                return alternatives.mirrored_sets(start)
+            case Turned():
+                return alternatives.turned_sets(start)
+        raise AssertionError(start)
 
-    def refine(self, started: Started) -> Refined:
-        """6b: the sets chosen again until stable (lrfcal.stages.joint, :func:`_jointly`); the refinement's notes
-        follow the start's in the alternative's."""
-        observed, chosen = started
-        recorded = joint.Recorded(self.recording, _signed(self.joints, chosen.sign), observed.detections)
-        jointly = _jointly(chosen, recorded, self.config, self._fit(chosen))
-        (chosen, joint_fit), notes = jointly.value, jointly.notes
+    def problem(self, observed: Observed, sets: MarkerSets) -> MarkerRequest:
+        """What to estimate on ``sets``: the marker returns (with the surfaces' returns in a joint solve), from the
+        sets' start, the unknowns their alternative found the data need estimated."""
+        alt, step = sets.alt, sets.step
+        matched, surfaces, range_bias = alt.matched, None, False
+        scores: tuple[str, ...] = ()
+        match step:
+            case FromStart():
+                scores = tuple(joint.SCALES)  # the scales' score tests read its solution
+            case Joint() | AllPlanes():
+                assert step.rounds.found.returns is not None
+                matched, range_bias, scores = step.rounds.matched, step.range_bias, tuple(joint.SCALES)
+                surfaces = OnPlanes(step.rounds.found.returns, list(step.rounds.found.surfaces))
+            case Refit(after=after) if after is not None:
+                matched = after.matched
+            case Once() | Refit():
+                pass
+            case _:
+                raise AssertionError(f"nothing to solve at {step}")
+        return MarkerRequest(matched, alt.markers, sets.origin, self.sensor, surfaces, Clock(alt.clock, sets.tau),
+                             SolveOptions(estimate=alt.estimate, estimate_range_bias=range_bias, held_scores=scores))
+
+    def reselect(self, observed: Observed, fit: Fit[MarkerSets]) -> MarkerSets | Fit[MarkerSets] | None:
+        """The sets chosen again at ``fit``'s estimate: a candidate start's (lrfcal.stages.alternatives.reselected),
+        or after the choice the refinement's (lrfcal.stages.refinement)."""
+        if isinstance(fit.sets.step, FromStart | Once | Stood):
+            return alternatives.reselected(fit, self.config)
+        recorded = joint.Recorded(self.recording, self.joints.signed(fit.sets.alt.sign), observed.detections)
+        return refinement.refined(refinement.Context(self.config, self.config.max_reduced_chi2, recorded), fit)
+
+    def choose(self, observed: Observed, tried: Sequence[Tried[Start, MarkerSets]]
+               ) -> Fit[MarkerSets] | list[Start]:
+        """6.: the alternative chosen, or the further starts it needs (lrfcal.stages.alternatives.chosen)."""
+        chosen = alternatives.chosen(tried, self.recording.nominal.dh, self.config)
+        if not isinstance(chosen, Fit):
+            return chosen
+        alt = chosen.sets.alt
+        self.clock.lap("solve")
+        self.observer.matched(Matched(self.recording.scans, observed.detections, alt.assoc, alt.markers))
+        return Fit(replace(chosen.sets, step=Chosen()), chosen.solution)
+
+    def systematics(self, observed: Observed, best: Fit[MarkerSets]) -> Systematics:
+        """The turning systematic: where the sweep turns on a marker (lrfcal.model.marker.crossings), the marker-only
+        problem solved with only the in-plane part of those crossings' lateral residual. The lines of a turning
+        crossing crowd about the turning point and bias the part across the scan plane; the variant leaves that part
+        out and loses its information, so neither is right alone, and their difference is a model error the noise's
+        sigma does not hold (docs/study.md, "A crossing that turns on its marker"). None where no crossing turns."""
         if self.config.surfaces:
             self.clock.lap("surfaces")
-        return observed, replace(chosen, notes=(*chosen.notes, *notes)), joint_fit
+        alt, sol = best.sets.alt, best.sets.refined.marker_only
+        pb, _ = marker_problem(alt.matched, alt.markers.positions_W, self.sensor)
+        th, R_ref = pack(sol.params, sol.clock_offset_s)
+        assert pb.markers is not None  # a problem of marker returns
+        if not np.any(crossings(th, pb.markers, R_ref, alt.clock)[1]):
+            return Systematics()
+        variant = replace(self._marker_only(best), options=SolveOptions(estimate=alt.estimate, in_plane_at_turns=True))
+        return Systematics(model_errors=(ModelError(
+            "crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral residual",
+            variant, sol),))
 
-    def _fit(self, chosen: Alternative) -> solve.Solver:
-        """The marker solve for ``chosen``: the rig's, estimating the unknowns ``chosen`` found the data need."""
-        return self.fit.but(estimate=chosen.estimate)
+    def beside(self, observed: Observed, best: Fit[MarkerSets]) -> Mapping[str, MarkerRequest]:
+        """The paper's method beside ours (``config.baseline``): the blob's brightest beam, the motor angle at the
+        scan's stamp, point-to-centre residuals, on the same detections and association, the motor angles at the
+        clock offset's start."""
+        if not self.config.baseline:
+            return {}
+        alt = best.sets.alt
+        peaks = alt.matched.subset(alt.matched.is_peak)
+        lambda_scan = timing.scan_angles(self.recording.scans, self.joints.signed(alt.sign),
+                                         clock_offset_s=self.config.clock_offset_s)
+        peaks = alternatives.replace_arrays(peaks, lambda_rad=lambda_scan[peaks.scan])
+        return {BASELINE: MarkerRequest(peaks, alt.markers, alt.start, self.sensor,
+                                        options=SolveOptions(estimate=alt.estimate)).paper()}
 
-    def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult:
-        """The checks (``shared``: those of both ways, first), the turning systematic, the paper's baseline: the
-        result without clouds."""
-        observed, chosen, (ours, surface_list, on_surfaces) = refined
-        config, fit, nominal = self.config, self._fit(chosen), self.recording.nominal
-        checks = marker_checks(ours, chosen.solution, chosen.matched, chosen.markers, observed.passes, config, fit,
-                               nominal.dh)
-        checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
-        turning = _with_turning_systematic(ours, chosen, fit)  # after the checks: they judge the fit
-        baseline: Noted[Solution | None]
-        ours, baseline = turning.value, Noted(None)
-        if config.baseline:
-            baseline = _baseline(chosen, self.recording.scans, _signed(self.joints, chosen.sign), config.clock_offset_s,
-                                 fit)
+    def checks(self, observed: Observed, best: Fit[MarkerSets], widened: Noted[Solution],
+               beside: Mapping[str, Solution | CalibrationError]) -> CalibrationResult:
+        """The checks of the estimate as solved (the systematics widen the result's covariance beside them), the
+        other minimum, the paper's baseline: the result without clouds."""
+        config, nominal, sets = self.config, self.recording.nominal, best.sets
+        assert isinstance(sets.step, Settled)
+        alt, marker_only, found = sets.alt, sets.refined.marker_only, sets.step.joint.found
+        request = self._marker_only(best)
+        checks = marker_checks(best.solution, marker_only, request, observed.passes, config, nominal.dh)
+        checks.append(other_minimum(marker_only, request, nominal, config))
+        baseline: Noted[Solution | None] = Noted(None)
+        if BASELINE in beside:
+            paper = beside[BASELINE]
+            baseline = (Noted(paper) if isinstance(paper, Solution)
+                        else Noted(None, (f"the paper's method could not be run: {paper}",)))
             self.clock.lap("baseline")
-        evidence = MarkerEvidence(markers=chosen.markers, detections=observed.detections,
-                                  observations=chosen.matched, association=chosen.assoc, baseline=baseline.value,
-                                  surfaces=tuple(surface_list), surface_returns=on_surfaces)
+        evidence = MarkerEvidence(markers=alt.markers, detections=observed.detections, observations=alt.matched,
+                                  association=alt.assoc, baseline=baseline.value, surfaces=found.surfaces,
+                                  surface_returns=found.returns)
+        ours = widened.value
         return CalibrationResult(
-            recording=self.recording, evidence=evidence, start=chosen.start, solution=ours,
-            checks=(shared(ours), *checks),
-            servo_sign=chosen.sign, notes=(*observed.notes, *chosen.notes, *turning.notes, *baseline.notes),
-            side_by_side={"markers only": chosen.solution,
+            recording=self.recording, evidence=evidence, start=alt.start, solution=ours, checks=tuple(checks),
+            servo_sign=alt.sign, notes=(*observed.notes, *alt.notes, *widened.notes, *baseline.notes),
+            side_by_side={"markers only": marker_only,
                           "markers and every plane" if config.all_planes else "markers and their surfaces": ours},
         )
 
-
-def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Solver) -> Noted[Solution]:
-    """``ours`` with the DH covariance widened by d d^T, d the difference the model variant makes where the sweep
-    turns on a marker (lrfcal.model.marker.crossings: only the in-plane part of those crossings' lateral residual,
-    solve(in_plane_at_turns=True)), between the two marker-only solutions. The lines of a turning crossing crowd
-    about the turning point and bias the part across the scan plane; the variant leaves that part out and loses its
-    information, so neither is right alone, and their difference is a model error the noise's sigma does not hold
-    (docs/study.md, "A crossing that turns on its marker"), with a note saying so. Unchanged where no crossing
-    turns."""
-    sol = chosen.solution
-    pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, fit.sensor)
-    th, R_ref = pack(sol.params, sol.clock_offset_s)
-    assert pb.markers is not None  # a problem of marker returns
-    if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
-        return Noted(ours)
-    try:
-        variant = fit(chosen.matched, chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s),
-                      in_plane_at_turns=True)
-    except CalibrationError:
-        return Noted(ours)
-    d = dh_difference(variant.params.dh.vector(), sol.params.dh.vector())
-    return Noted(ours.with_dh_systematic(d), (
-        "crossings of the sweep turn on some markers: the DH with only the in-plane part of their lateral residual "
-        f"differ by {dh_text(DH(*d))}, added to the covariance",))
+    def _marker_only(self, best: Fit[MarkerSets]) -> MarkerRequest:
+        """The marker-only problem of the chosen alternative as it ends up, from its marker-only solution."""
+        alt, sol = best.sets.alt, best.sets.refined.marker_only
+        return MarkerRequest(alt.matched, alt.markers, sol.params, self.sensor,
+                             clock=Clock(alt.clock, sol.clock_offset_s), options=SolveOptions(estimate=alt.estimate))
 
 
-class RefineConfig(joint.JointConfig, Protocol):
-    """What the marker way's refinement reads (:func:`_jointly`): the joint solve's options
-    (lrfcal.stages.joint.JointConfig) and the chi-square limit of the scales' score tests."""
-
-    @property
-    def max_reduced_chi2(self) -> float: ...
-
-
-def _jointly(chosen: Alternative, recorded: joint.Recorded, config: RefineConfig, fit: solve.Solver
-             ) -> Noted[tuple[Alternative, JointFit]]:
-    """6b (lrfcal.stages.joint) from ``chosen``'s marker-only solution, again from the marker-only fit on with a scale
-    the
-    data contradict estimated (lrfcal.stages.joint.most_off); then the disagreement with the marker map that the
-    marker-only fit found but could not judge (``chosen.unjudged``) judged at the joint solution. ``chosen`` as it
-    ends up (its solve: ``fit`` estimating ``chosen.estimate``), and the joint result
-    (lrfcal.stages.joint.with_surfaces), with their notes: the scales found off, the blobs judged, the joint
-    solve's."""
-    notes: list[str] = []
-    while True:
-        joint_fit = joint.with_surfaces(chosen.solution, chosen.matched, chosen.markers, chosen.clock, recorded,
-                                        config, fit)
-        if not (off := joint.most_off(joint_fit.value[0], config.max_reduced_chi2)):
-            break
-        notes += off.notes
-        chosen = replace(chosen, estimate=(*chosen.estimate, off.value))  # estimated in every solve from then on
-        fit = fit.but(estimate=chosen.estimate)
-        chosen = replace(chosen, solution=_refit(chosen, chosen.matched, fit))
-    if chosen.unjudged:
-        chosen, joint_fit, judged = _judged_jointly(chosen, joint_fit.value, recorded, config, fit)
-        notes += judged
-    return Noted((chosen, joint_fit.value), (*notes, *joint_fit.notes))
-
-
-def _judged_jointly(chosen: Alternative, joint_fit: JointFit, recorded: joint.Recorded, config: joint.JointConfig,
-                    fit: solve.Solver) -> tuple[Alternative, Noted[JointFit], tuple[str, ...]]:
-    """The disagreement with the marker map that ``chosen``'s marker-only fit found but could not judge, as it does
-    not determine the DH parameters (one scan line per marker: there a wrong match cannot be told from a moved
-    marker, and a good marker can look moved), judged at the joint solution ``joint_fit``, whose surfaces determine
-    them: the blobs that disagree there (lrfcal.stages.association.inconsistent_blobs) left out and solved again, at
-    most
-    three times. Where no surface returns lie where the marker-only fit puts them (a wrong match can pull it far),
-    the joint solution starts from the marker-only fit without the blobs it finds disagreeing, and every blob is
-    judged from there. ``chosen`` with the blobs so kept, the joint result (with the joint solve's notes) and the
-    judgement's notes.
-
-    Raises:
-        CalibrationError: no surface returns to judge by, or blobs that still disagree after three are left out.
-    """
-    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
-    assoc, matched, start = chosen.assoc, chosen.matched, joint_fit[0]
-    if start is chosen.solution:  # no surface returns where the marker-only fit puts them: try it without the blobs
-        sol, kept = chosen.solution, (assoc, matched)  # it finds disagreeing, for a start only
-        for _ in range(3):
-            bad, why = association.inconsistent_blobs(kept[1], sol, chosen.markers, config.range_sigma_m)
-            if not bad.size:
-                break
-            kept = alternatives.without_blobs(*kept, bad, why)
-            sol = fit(kept[1], chosen.markers, sol.params, clock=Clock(chosen.clock, sol.clock_offset_s))
-            if (start := joint.with_surfaces(sol, kept[1], chosen.markers, chosen.clock, recorded, config,
-                                             fit).value[0]) is not sol:
-                break
-    no_surfaces = CalibrationError(observability.unjudged_refusal(
-        _observability(chosen.solution), "the markers alone", "and no surface returns were found to add",
-        chosen.unjudged))
-    if start is chosen.solution or start.n_surface_returns == 0:
-        raise no_surfaces
-    notes: list[str] = []
-    for left_out in range(4):  # every round from that start: one with a wrong blob in can be far off
-        tried = joint.with_surfaces(start, matched, chosen.markers, chosen.clock, recorded, config, fit)
-        if tried.value[0] is start:  # no surface returns for these blobs
-            raise no_surfaces
-        bad, why = association.inconsistent_blobs(matched, tried.value[0], chosen.markers, config.range_sigma_m)
-        if not bad.size:
-            if not left_out:
-                notes.append(f"the marker-only fit disagreed with the marker map ({chosen.unjudged}); the joint "
-                             "solution with the surfaces does not (the markers alone do not determine the DH "
-                             "parameters here)")
-            break
-        if left_out == 3:
-            raise CalibrationError(observability.unjudged_refusal(  # what leads: the cause the data support
-                _observability(tried.value[0]), "the markers and the surfaces they sit on", "",
-                f"{why.removesuffix(': left out')}, judged at the joint solution with the surfaces, after three "
-                "blobs were left out"))
-        notes.append(f"{why} (judged at the joint solution with the surfaces)")
-        assoc, matched = alternatives.without_blobs(assoc, matched, bad, why)
-    chosen = replace(chosen, assoc=assoc, matched=matched, unjudged="", solution=_refit(chosen, matched, fit))
-    return chosen, tried, tuple(notes)
-
-
-def _observability(sol: Solution) -> observability.Observability:
-    return observability.of_solution(sol.information, sol.information_names, sol.sigma[6:10], sol.params.dh.alpha)
-
-
-def _refit(chosen: Alternative, matched: Observations, fit: solve.Solver) -> Solution:
-    """``chosen``'s marker-only solution solved again for ``matched``, from itself."""
-    return fit(matched, chosen.markers, chosen.solution.params,
-               clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
-
-
-def _baseline(chosen: Alternative, scans: Scans, joints: JointStates, clock_offset_s: float, fit: solve.Solver
-              ) -> Noted[Solution | None]:
-    """The paper's method: the blob's brightest beam, the motor angle at the scan's stamp, point-to-centre residuals,
-    on the same detections and association, the motor angles at the clock offset ``clock_offset_s`` [s] (None, with
-    a note, when it cannot run)."""
-    peaks = chosen.matched.subset(chosen.matched.is_peak)
-    lambda_scan = timing.scan_angles(scans, joints, clock_offset_s=clock_offset_s)
-    peaks = alternatives.replace_arrays(peaks, lambda_rad=lambda_scan[peaks.scan])
-    try:
-        return Noted(fit.paper()(peaks, chosen.markers, chosen.start))
-    except CalibrationError as err:
-        return Noted(None, (f"the paper's method could not be run: {err}",))
-
-
-def _signed(joints: JointStates, sign: int) -> JointStates:
-    """``joints`` with the servo's direction ``sign`` applied."""
-    return joints if sign > 0 else alternatives.negated(joints)
-
+#: the paper's method, beside ours
+BASELINE = "the paper's method"
 
 #: The stages of a calibration with markers in the order they run, as reported to ``progress`` and in
 #: CalibrationResult.timings_s.
@@ -306,4 +247,4 @@ STAGES: tuple[str, ...] = ("mds", "detection", "timing", "association", "solve",
 
 MarkerWay.STAGES = STAGES
 
-__all__ = ["STAGES", "Alternative", "MarkerWay", "Observed", "RefineConfig", "Refined", "Started"]
+__all__ = ["BASELINE", "STAGES", "MarkerWay", "Observed", "RefineConfig"]

@@ -2,9 +2,9 @@
 (alpha, beta) and its offsets (a, b) that make the scene's planes planar, with the proposal's own uncertainty.
 
 The search reuses the targetless calibration's machinery (lrfcal.stages.targetless: the returns' subsample, the planes
-segmented in the cloud at the current DH with grazing and edge returns left out; lrfcal.estimate.solve.solve_planes:
-every
-plane return a ray-plane range residual, planes free). It is started from every combination of
+segmented in the cloud at the current DH with grazing and edge returns left out, the one cost as a
+lrfcal.estimate.request.PlaneRequest: every plane return a ray-plane range residual, planes free). It is started
+from every combination of
 :data:`START_ALPHA_DEG`, :data:`START_BETA_DEG` and :data:`START_B_M` (a = 0), each segmenting the planes on a
 subsample of the returns drawn by its own seed (lrfcal.stages.sampling.hash_sample: two starts' subsamples share
 about the fraction of the returns each holds), and each start is solved for all
@@ -30,40 +30,38 @@ and the median of the solves' own 1-sigma (scaled by the square root of their re
 1-sigma exceeds :data:`DETERMINED` is named as not determined by the scene (its value is the search's best guess,
 not a measurement).
 
-The starts are independent: they are solved on the machine's cores, this process taking them from the back and a
-forked helper per other core its share from the front (lrfcal.runtime.forked.Ahead), and collected in start order,
-so the proposal does not depend on how many cores there are, nor on which core solved which start.
+This module says what each start estimates (:func:`start_request`), what its minimum proposes (:func:`candidate`)
+and the proposal from the candidates (:func:`proposal_of`); it solves nothing. The starts are independent:
+lrfcal.pipeline.search solves them on the machine's cores (or ahead, while a targetless calibration goes on) and
+collects them in start order, so the proposal does not depend on how many cores there are, nor on which core solved
+which start.
 
 Array shapes: K returns.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.config import DEFAULT_MAX_INCIDENCE_RAD
-from lrfcal.errors import CalibrationError
-from lrfcal.estimate import solve
+from lrfcal.estimate.request import PlaneRequest
 from lrfcal.model.kinematics import DH, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import wrap_pi
-from lrfcal.runtime.forked import Ahead, cores
+from lrfcal.runtime.forked import cores
 from lrfcal.stages import targetless
 from lrfcal.stages.sampling import hash_sample
-from lrfcal.stages.timing import usable_scans
-from lrfcal.types import JointStates, Nominal, Recording, Scans
+from lrfcal.types import JointStates, Scans, Solution
 
 FloatArray = NDArray[np.float64]
-#: the starts solved: (start index, its candidate or None), in the order asked for
-Solved = list[tuple[int, tuple[DH, FloatArray] | None]]
+#: a start's candidate: its canonical DH and their 1-sigma (4,)
+Candidate = tuple[DH, FloatArray]
 NAMES = ("a", "alpha", "b", "beta")
 #: the starts of the search: every combination (a = 0)
 START_ALPHA_DEG = (45.0, 90.0, 135.0)
@@ -147,6 +145,10 @@ class DHProposal:
         return {"a": round(d.a, 4), "alpha": round(d.alpha, 4), "b": round(d.b, 4), "beta": round(d.beta, 4)}
 
 
+#: the DH search's proposal, when asked for (lrfcal.pipeline.search: begun ahead, solved meanwhile)
+Proposal = Callable[[], DHProposal]
+
+
 def canonical(dh: DH) -> DH:
     """The representative of the DH parameters that give the same cloud up to a rigid motion and a mirror (the
     chain's twins, lrfcal.model.kinematics.dh_twins): alpha in [0, pi], b >= 0, beta in (-pi, pi]."""
@@ -164,111 +166,8 @@ def motor_turn_rad(joints: JointStates) -> float:
     return float(p.max() - p.min()) if p.size else 0.0
 
 
-def propose_dh(scans: Scans, joints: JointStates, progress: Callable[[int, int], None] | None = None) -> DHProposal:
-    """Search the DH parameters that make the scene's planes planar (module docstring). ``scans``: the scans the
-    joint states cover; ``progress(done, total)`` after every start."""
-    t0 = time.perf_counter()
-    search = _search(scans, joints, t0)
-    if isinstance(search, DHProposal):
-        return search
-    # the starts are independent: solved on the cores (lrfcal.runtime.forked), collected in start order
-    return _proposal(search, [_solve_on_cores(search, list(range(len(search.starts))), progress)], t0, progress)
-
-
-#: the niceness added to the children of :func:`proposal_ahead`: they take idle cores only, never the fit's
-AHEAD_NICE = 19
-
-
-@contextlib.contextmanager
-def proposal_ahead(scans: Scans, joints: JointStates) -> Iterator[Callable[[], DHProposal]]:
-    """:func:`propose_dh` ``(scans, joints)`` begun now, while this process goes on (the targetless fit: the search
-    does not depend on it), in forked children at the lowest priority (lrfcal.runtime.forked.Ahead, one per core beside
-    this process, each inheriting the sampled returns, :data:`AHEAD_NICE`): they use cores that would idle, and take
-    no time from this process where the cores are busy. The callable yielded returns the proposal: the starts the
-    children finished, the others solved then as :func:`propose_dh` solves them (on the cores, at the usual priority),
-    the same proposal as :func:`propose_dh`'s. The children end when it is asked for, or when the context is left (a
-    refused fit)."""
-    t0 = time.perf_counter()
-    search = _search(scans, joints, t0)
-    if isinstance(search, DHProposal):
-        yield lambda: search
-        return
-    n = search.n_groups
-    # one child per core the fit leaves idle (niced children sharing one core would each have a start cut short
-    # when the proposal is asked for), the starts in turn
-    n_ahead = max(1, min(n, cores() - 1))
-    groups = [list(range(g, len(search.starts), n_ahead)) for g in range(n_ahead)]
-    with contextlib.ExitStack() as stack:
-        aheads = [stack.enter_context(Ahead(_ready, inherit=(search,), nice=AHEAD_NICE)) for _ in groups]
-        for ahead, ks in zip(aheads, groups, strict=True):
-            for k in ks:  # one call per start: what is done when the proposal is asked for is kept
-                ahead.start(_solve_starts, search, [k])
-        taken: list[DHProposal] = []
-
-        def proposal() -> DHProposal:
-            if not taken:
-                done: list[tuple[int, tuple[DH, FloatArray] | None]] = []
-                for ahead, ks in zip(aheads, groups, strict=True):
-                    for _ in ks:
-                        if not ahead.ready():
-                            break
-                        done.extend(ahead.result())
-                stack.close()  # the children end (one still solving a start at once)
-                have = {k for k, _ in done}
-                missing = [k for k in range(len(search.starts)) if k not in have]
-                taken.append(_proposal(search, [done, _solve_on_cores(search, missing)], t0, None))
-            return taken[0]
-
-        yield proposal
-
-
-def _ready() -> None:
-    """An :class:`~lrfcal.runtime.forked.Ahead` child's preparation: none (it inherited what the search reads)."""
-
-
-def _solve_on_cores(search: _Search, ks: list[int], progress: Callable[[int, int], None] | None = None) -> Solved:
-    """The starts ``ks`` solved on the cores at the usual priority (``progress(done, total)`` after every start): a
-    forked helper per other core (lrfcal.runtime.forked.Ahead, at most ``search.n_groups - 1``) takes its share
-    (every n-th start) from the front, one call per start, while this process takes them from the back, skipping
-    any its helper has begun or finished; then it waits for the helpers' starts it did not take (at most the one
-    each is solving), and the helpers end. The cores so end together to within one start, where fixed shares (one
-    group per core) left one core idle while the other solved its group's costlier starts. A start solved both here
-    and by its helper gives the same candidate; it is kept once."""
-    n_help = max(0, min(search.n_groups, len(ks)) - 1)
-    shares = [ks[h::n_help] for h in range(n_help)]
-    owner = {k: (h, p) for h, share in enumerate(shares) for p, k in enumerate(share)}
-    out: dict[int, tuple[DH, FloatArray] | None] = {}
-    with contextlib.ExitStack() as stack:
-        helpers = [stack.enter_context(Ahead(_ready, inherit=(search,))) for _ in shares]
-        for helper, share in zip(helpers, shares, strict=True):
-            for k in share:
-                helper.start(_solve_starts, search, [k])
-        got = [0] * n_help  # the results taken from each helper (its share's first ones)
-
-        def take(h: int) -> None:
-            for k, cand in helpers[h].result():
-                out.setdefault(k, cand)
-            got[h] += 1
-
-        here: set[int] = set()
-        for k in reversed(ks):
-            for h, helper in enumerate(helpers):
-                while got[h] < len(shares[h]) and helper.ready():
-                    take(h)
-            if k in out or (k in owner and owner[k][1] <= got[owner[k][0]]):
-                continue  # its helper has it (done, or the one it is solving)
-            out.update(_solve_starts(search, [k]))
-            here.add(k)
-            if progress is not None:
-                progress(min(len(search.starts) - 1, len(out)), len(search.starts))
-        for h, share in enumerate(shares):  # what is left of each share: the first starts not solved here
-            while got[h] < len(share) and share[got[h]] not in here:
-                take(h)
-    return [(k, out[k]) for k in ks]
-
-
 @dataclass(frozen=True)
-class _Search:
+class Search:
     """What every start of the search reads: the starts, the returns sampled, the motor clock, the configuration,
     and the groups the starts are solved in (one per core, at most MAX_GROUPS)."""
 
@@ -279,7 +178,7 @@ class _Search:
     n_groups: int
 
 
-def _search(scans: Scans, joints: JointStates, t0: float) -> _Search | DHProposal:
+def search_of(scans: Scans, joints: JointStates, t0: float) -> Search | DHProposal:
     """The search's inputs, or the proposal refused at once (the motor turns too little)."""
     turn = motor_turn_rad(joints)
     starts = [DH(a=0.0, alpha=math.radians(al), b=b, beta=math.radians(be))
@@ -288,26 +187,36 @@ def _search(scans: Scans, joints: JointStates, t0: float) -> _Search | DHProposa
         return DHProposal(None, reason=f"the motor turns only {math.degrees(turn):.1f} deg (a proposal needs "
                           f"{math.degrees(MIN_TURN_RAD):g}): the cloud is nearly one scan plane, whose flatness says "
                           "nothing about the DH", n_starts=len(starts), seconds=time.perf_counter() - t0)
-    return _Search(starts, targetless.sample_returns(scans, FIT_RETURNS), MotorClock.from_joints(joints),
+    return Search(starts, targetless.sample_returns(scans, FIT_RETURNS), MotorClock.from_joints(joints),
                    _SearchSegmenting(), max(1, min(cores(), MAX_GROUPS, len(starts))))
 
 
-def _solve_starts(search: _Search, ks: list[int], progress: Callable[[int, int], None] | None = None
-                  ) -> list[tuple[int, tuple[DH, FloatArray] | None]]:
-    """The starts ``ks`` solved, each on its own segmentation subsample (``progress`` from the first group of
-    :func:`propose_dh`, which runs in this process)."""
-    starts, n = search.starts, search.n_groups
-    out = []
-    for k in ks:
-        seg = hash_sample(search.beams.scan, search.beams.beam, SEGMENT_RETURNS, seed=100 + k)
-        out.append((k, _candidate(search.beams, seg, search.motor, starts[k], search.config)))
-        if progress is not None:
-            progress(min(len(starts) - 1, len(out) * n), len(starts))
-    return out
+def start_request(search: Search, k: int) -> PlaneRequest | None:
+    """What start ``k`` of the search estimates: the targetless cost (lrfcal.stages.targetless: the planes segmented
+    once, at the start, :data:`START_THICKNESS_M` thick, on the start's own subsample, the assignment fixed) from it,
+    with the weak prior around it; None when the planes are too few."""
+    start = search.starts[k]
+    seg = hash_sample(search.beams.scan, search.beams.beam, SEGMENT_RETURNS, seed=100 + k)
+    at = targetless.Start.of(start, 0.0, search.config, START_THICKNESS_M - 4.0 * RANGE_SIGMA_M)
+    segmented = at.segment(search.beams, seg, search.motor, search.config)
+    if len(segmented.planes) < 2 or len(segmented.returns) < 300:
+        return None
+    prior = (start.vector(), np.array(PRIOR_SIGMA))
+    return targetless.OneCost(RANGE_SIGMA_M, None, (), prior, at.footing(search.config)).request(segmented, start, 0.0)
 
 
-def _proposal(search: _Search, parts: list[list[tuple[int, tuple[DH, FloatArray] | None]]], t0: float,
-              progress: Callable[[int, int], None] | None) -> DHProposal:
+def candidate(sol: Solution) -> Candidate | None:
+    """A start's minimum as a candidate: the canonical DH and its 1-sigma (4,) scaled by sqrt(reduced chi-square), or
+    None when the solve did not converge or the offsets ran off (:data:`MAX_OFFSET_M`)."""
+    dh = sol.params.dh
+    sigma = np.asarray(sol.dh_sigma, dtype=float) * math.sqrt(max(1.0, sol.reduced_chi2))
+    if not sol.converged or max(abs(dh.a), abs(dh.b)) > MAX_OFFSET_M or not np.all(np.isfinite(sigma)):
+        return None
+    return canonical(dh), sigma
+
+
+def proposal_of(search: Search, parts: list[list[tuple[int, Candidate | None]]], t0: float,
+                progress: Callable[[int, int], None] | None) -> DHProposal:
     """The proposal from the groups' candidates, collected in start order."""
     n_starts = len(search.starts)
     solved = sorted(kc for part in parts for kc in part)
@@ -317,45 +226,6 @@ def _proposal(search: _Search, parts: list[list[tuple[int, tuple[DH, FloatArray]
     out = _consensus(found, n_starts)
     return DHProposal(out.dh, out.sigma, out.n_converged, out.n_agreeing, n_starts, out.reason,
                       time.perf_counter() - t0, out.group)
-
-
-def propose_for_recording(scans: Scans, joints: JointStates,
-                          progress: Callable[[int, int], None] | None = None) -> DHProposal:
-    """:func:`propose_dh` on a recording as read (every scan, every joint state): the scans the joint states cover
-    and interpolate well enough (lrfcal.stages.timing.usable_scans, as a calibration takes them); a recording whose
-    motor
-    angle cannot be interpolated gets no proposal, and the reason."""
-    placeholder = Nominal(dh=DH(a=0.0, alpha=0.0, b=0.0, beta=0.0))
-    try:
-        covered, joints = usable_scans(Recording(scans=scans, joints=joints, tape=None, nominal=placeholder), 0.0,
-                                       RANGE_SIGMA_M).value
-    except CalibrationError as err:
-        return DHProposal(None, reason=str(err))
-    return propose_dh(covered, joints, progress)
-
-
-def _candidate(beams: targetless.Beams, seg: NDArray[np.int64], motor: MotorClock, start: DH,
-               config: targetless.SegmentConfig) -> tuple[DH, FloatArray] | None:
-    """One start solved: the targetless cost (lrfcal.stages.targetless: the planes segmented once, at the start,
-    :data:`START_THICKNESS_M` thick, the assignment fixed) minimised from it with the weak prior around it; the
-    canonical DH and its 1-sigma (4,) scaled by sqrt(reduced chi-square), or None when the planes are too few, the
-    solve fails or the offsets run off."""
-    prior = (start.vector(), np.array(PRIOR_SIGMA))
-    at = targetless.Start.of(start, 0.0, config, START_THICKNESS_M - 4.0 * RANGE_SIGMA_M)
-    segmented = at.segment(beams, seg, motor, config)
-    if len(segmented.planes) < 2 or len(segmented.returns) < 300:
-        return None
-    try:
-        sol = targetless.fixed_solve(partial(solve.solve_planes, range_sigma_m=RANGE_SIGMA_M, dh_prior=prior,
-                                             options=solve.PlaneOptions(footing=at.footing(config))),
-                                     segmented, start, 0.0)
-    except (CalibrationError, np.linalg.LinAlgError):
-        return None
-    dh = sol.params.dh
-    sigma = np.asarray(sol.sigma[6:10], dtype=float) * math.sqrt(max(1.0, sol.reduced_chi2))
-    if not sol.converged or max(abs(dh.a), abs(dh.b)) > MAX_OFFSET_M or not np.all(np.isfinite(sigma)):
-        return None
-    return canonical(dh), sigma
 
 
 @dataclass(frozen=True)
@@ -407,4 +277,5 @@ def _consensus(found: list[tuple[DH, FloatArray]], n_starts: int) -> _Consensus:
                       tuple(found[i][0] for i in group))
 
 
-__all__ = ["DETERMINED", "DHProposal", "canonical", "motor_turn_rad", "propose_dh", "propose_for_recording"]
+__all__ = ["DETERMINED", "Candidate", "DHProposal", "Proposal", "Search", "canonical", "candidate", "motor_turn_rad",
+           "proposal_of", "search_of", "start_request"]

@@ -1,32 +1,33 @@
-"""Targetless calibration as the steps of lrfcal.pipeline's orchestrator (the plane way; lrfcal.stages.targetless
-holds its segmentation and its one cost): observe (the sampled returns, the planes segmented once at the rig file's
-DH, what the scene determines), starts (the solve every start shares: the held parameters, the prior, the clock),
-refine (the cost minimised from the rig file's DH and from every other start the data allow, the lowest minimum
-kept: lrfcal.stages.starts), checks.
+"""Targetless calibration as the steps of lrfcal.pipeline's loop (the plane way; lrfcal.stages.targetless holds its
+segmentation and its one cost): observe (the sampled returns, the planes segmented once at the rig file's DH, what
+the scene determines), the cost minimised from the rig file's DH and then from every other start the data allow (the
+DH search's proposal and agreeing starts), the lowest minimum chosen (lrfcal.stages.starts), nothing chosen again (the
+assignment is fixed by design), the held parameters' uncertainty carried into the covariance, the checks.
 """
 
 from __future__ import annotations
 
-import contextlib
 import math
-from collections.abc import Callable, Iterator
-from dataclasses import dataclass, replace
-from functools import partial
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.config import CalibConfig, Stopwatch
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate import observability, solve
-from lrfcal.estimate.checks import CheckConfig, plane_checks
+from lrfcal.estimate import observability
+from lrfcal.estimate.checks import plane_checks
 from lrfcal.estimate.information import plane_information
-from lrfcal.model.kinematics import DH, Params, points_M
+from lrfcal.estimate.request import PlaneRequest
+from lrfcal.estimate.systematics import Considered, Systematics
+from lrfcal.model.kinematics import Params, points_M
 from lrfcal.model.motor import MotorClock
-from lrfcal.model.unknowns import CORE_NAMES
-from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
+from lrfcal.result import CalibrationResult, Observer, PlaneEvidence, PlaneFit
 from lrfcal.stages import holdout, planes, propose, starts, timing
 from lrfcal.stages.sampling import hash_sample
+from lrfcal.stages.starts import NOMINAL, PlaneSets, PlaneStart
 from lrfcal.stages.targetless import (
     BENDING_M,
     DH_NAMES,
@@ -34,25 +35,22 @@ from lrfcal.stages.targetless import (
     SEGMENT_SAMPLES,
     STAGES,
     Beams,
+    OneCost,
     Segmented,
     Start,
-    fixed_solve,
     sample_returns,
 )
-from lrfcal.types import Check, JointStates, Noted, Recording, Solution, SurfaceReturns
+from lrfcal.types import Check, Fit, JointStates, Noted, Recording, Solution, SurfaceReturns, Tried
 
 FloatArray = NDArray[np.float64]
-#: what runs ahead of the plane way: the DH search's proposal, asked for by the check "starts agree"
-#: (lrfcal.stages.propose.proposal_ahead; valid while the way's ``ahead`` context lasts)
-Proposal = Callable[[], propose.DHProposal]
 
 
 @dataclass(frozen=True)
 class Scene:
     """The plane way's observations: the sampled returns ``beams`` and the held-out scans' ``held_beams``, the
     segmentation's sample ``seg``, the start's segmentation, what is held (and why) and whether the clock offset is
-    estimated, the motor clock, the sweep's passes, the design drawing's prior on the DH, the first round's planes'
-    thickness and the DH search running ahead (:data:`Proposal`)."""
+    estimated, the motor clock, the sweep's passes, the one cost every start minimises (its held parameters, prior,
+    clock and footing), the first round's planes' thickness and the DH search's proposal (None: not searched)."""
 
     beams: Beams
     held_beams: Beams
@@ -63,44 +61,33 @@ class Scene:
     estimate_clock: bool
     motor: MotorClock
     passes: NDArray[np.int64]
-    prior: tuple[FloatArray, FloatArray]
+    cost: OneCost
     first_thickness_m: float
-    proposal: Proposal
-    #: what the plane way noted so far, in order (the scene's: the clock offset held, the parameters held; then the
-    #: refinement's, :meth:`PlaneWay.refine`)
+    proposal: propose.Proposal | None
+    #: what the plane way noted observing the scene, in order (the clock offset held, the parameters held)
     notes: tuple[str, ...] = ()
-
-
-#: the starts step's outcome: the observations and the one cost's solve from a start ((dh, tau) -> its minimum)
-Started = tuple[Scene, Callable[[DH, float], Solution]]
-#: the refine step's outcome: the observations and the lowest minimum with the check "starts agree"
-Refined = tuple[Scene, starts.Minima]
 
 
 class PlaneWay:
     """The targetless way (module docstring) on ``recording`` (its scans those the joint states cover; its markers,
-    if any, ignored): a result without clouds (lrfcal.pipeline adds them).
+    if any, ignored), a ``Way[Scene, PlaneStart, PlaneSets]``: a result without clouds (lrfcal.pipeline adds them).
     Raises CalibrationError: the scene shows no plane, or determines no DH parameter."""
 
-    STAGES = STAGES
+    STAGES: ClassVar[tuple[str, ...]] = STAGES
 
     #: what every targetless calibration notes first (before the orchestrator's notes on the scans)
-    NOTES = ("targetless: the DH parameters from the flatness of the scene's planes; without markers there is no world "
-             "frame, so the mount pose is not estimated (frame M)",)
+    NOTES: ClassVar[tuple[str, ...]] = (
+        "targetless: the DH parameters from the flatness of the scene's planes; without markers there is no world "
+        "frame, so the mount pose is not estimated (frame M)",)
+    SEARCH: ClassVar[bool] = True  # its other starts are the DH search's proposal and agreeing starts
 
-    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch) -> None:
+    def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
+                 observer: Observer) -> None:
         self.recording, self.joints, self.config, self.clock = recording, joints, config, clock
 
-    @contextlib.contextmanager
-    def ahead(self) -> Iterator[Proposal]:
-        """The DH search for the check "starts agree" in forked children meanwhile (its starts do not depend on the
-        fit; ended at once if the fit is refused): its proposal, when asked for."""
-        with propose.proposal_ahead(self.recording.scans, self.joints) as proposal:
-            yield proposal
-
-    def observe(self, ahead: Proposal) -> Scene:
+    def observe(self, proposal: propose.Proposal | None) -> tuple[Scene, list[PlaneStart]]:
         """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held
-        (``ahead``: the DH search's proposal, kept for the check "starts agree")."""
+        (``proposal``: the DH search's, for the other starts); the first start, the rig file's DH."""
         config, clock, joints = self.config, self.clock, self.joints
         assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
         notes: list[str] = []
@@ -136,54 +123,81 @@ class PlaneWay:
         if len(held) == len(DH_NAMES):
             raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
                                    "orientations (across the motor axis), or calibrate with markers")
-        return Scene(beams, held_beams, seg, segmented, held, held_reason, estimate_clock, motor,
-                     passes, prior, start.thickness_m, ahead, tuple(notes))
+        footing = Start.of(nominal.dh, 0.0, config).footing(config)
+        cost = OneCost(config.range_sigma_m, motor if estimate_clock else None, held, prior, footing)
+        return (Scene(beams, held_beams, seg, segmented, held, held_reason, bool(estimate_clock), motor, passes, cost,
+                      start.thickness_m, proposal, tuple(notes)), [PlaneStart(NOMINAL, nominal.dh)])
 
-    def starts(self, scene: Scene) -> Started:
-        """The solve every start shares (the rig file's DH, the DH search's proposal and agreeing starts: refine):
-        the one cost over the fixed planes, the held parameters, the prior, the clock."""
-        assert self.config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
-        footing = Start.of(self.recording.nominal.dh, 0.0, self.config).footing(self.config)
-        solve_at = partial(solve.solve_planes, range_sigma_m=self.config.range_sigma_m,
-                           clock=scene.motor if scene.estimate_clock else None, hold=scene.held,
-                           dh_prior=scene.prior, options=solve.PlaneOptions(footing=footing))
-        return scene, partial(fixed_solve, solve_at, scene.segmented)
+    def sets_at(self, scene: Scene, start: PlaneStart) -> PlaneSets:
+        """The sets at a start: the scene's planes and returns, fixed; only where the cost is minimised from differs."""
+        return PlaneSets(start)
 
-    def refine(self, started: Started) -> Refined:
-        """Stage 4: the cost minimised from the rig file's DH and from the other starts the data allow, the lowest
-        minimum kept (lrfcal.stages.starts); the held parameters' uncertainty added to its covariance."""
-        (scene, fit), config, tau0 = started, self.config, self.config.clock_offset_s
-        first = fit(self.recording.nominal.dh, tau0)
-        cost = starts.Cost(scene.segmented, scene.motor, float(config.range_sigma_m or 0.0), scene.prior)
-        found = starts.lowest_minimum(first, fit, cost, scene.held, self.recording.nominal.dh, tau0, scene.proposal)
+    def problem(self, scene: Scene, sets: PlaneSets) -> PlaneRequest:
+        """Stage 4: the one cost over the fixed planes from the start (lrfcal.stages.targetless.OneCost)."""
+        return scene.cost.request(scene.segmented, sets.start.dh, self.config.clock_offset_s)
+
+    def reselect(self, scene: Scene, fit: Fit[PlaneSets]) -> PlaneSets | Fit[PlaneSets] | None:
+        """Nothing is chosen again: the planes and their returns were segmented once, at the start (the one cost
+        cannot oscillate, lrfcal.stages.targetless)."""
+        return None
+
+    def choose(self, scene: Scene, tried: Sequence[Tried[PlaneStart, PlaneSets]]
+               ) -> Fit[PlaneSets] | list[PlaneStart]:
+        """The lowest minimum among the starts tried, with the check "starts agree" (lrfcal.stages.starts); after the
+        rig file's DH, the other starts the DH search's proposal gives first."""
+        first = tried[0].outcome
+        if not isinstance(first, Fit):
+            raise first  # the rig file's DH: its failure is the calibration's (the search is not waited for)
+        found = starts.searched(scene.proposal)
+        if len(tried) == 1 and (more := starts.further(first.solution, found, scene.held, self.recording.nominal.dh)):
+            return more
+        cost = starts.Cost(scene.segmented, scene.motor, float(self.config.range_sigma_m or 0.0), scene.cost.prior)
+        lowest = starts.lowest(tried, cost, scene.held, found)
         self.clock.lap("starts")
-        if not scene.estimate_clock and scene.passes.max() < 1 or config.estimate_clock is False:
-            scene = replace(scene, notes=(*scene.notes, f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
-                                          + ("a one-way sweep does not separate it)" if config.estimate_clock is None
-                                             else "as asked)")))
-        if found.start != "the rig file's DH":
-            scene = replace(scene, notes=(*scene.notes, f"the estimate is the minimum reached from {found.start}: it "
-                                          "fits the scene's planes better than the one from the rig file's DH"))
-        counted = scene.segmented.returns
-        if found.solution.inlier is not None:  # the returns that count at the estimate
-            counted = counted.subset(found.solution.inlier)
-        sol = _consider(found.solution, counted, scene.motor if scene.estimate_clock else None, scene.held, config,
-                        scene.prior)
-        self.clock.lap("solve")
-        return scene, replace(found, solution=sol)
+        return Fit(PlaneSets(lowest.start, lowest.check), lowest.solution)
 
-    def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult:
-        """Stage 5: the checks (``shared``: those of both ways, first), "starts agree", the held-out planes, the
-        flatness before and after."""
-        (scene, found), config, clock = refined, self.config, self.clock
-        sol, segmented = found.solution, scene.segmented
+    def systematics(self, scene: Scene, best: Fit[PlaneSets]) -> Systematics:
+        """The held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's), carried into the
+        estimated ones (a "consider" covariance, lrfcal.estimate.systematics), from the information at the estimate
+        over the returns that count there."""
+        if not scene.held:
+            return Systematics()
+        assert self.config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
+        sol, counted = best.solution, scene.segmented.returns
+        if sol.inlier is not None:  # the returns that count at the estimate
+            counted = counted.subset(sol.inlier)
+        info, names = plane_information(counted, sol.params, range_sigma_m=self.config.range_sigma_m,
+                                        clock=scene.cost.clock, clock_offset_s=sol.clock_offset_s,
+                                        dh_prior=scene.cost.prior)
+        tol = dict(zip(DH_NAMES, self.config.nominal_tolerance, strict=True))
+        return Systematics(considered=Considered(info, names, {n: tol[n] for n in scene.held}))
+
+    def beside(self, scene: Scene, best: Fit[PlaneSets]) -> Mapping[str, PlaneRequest]:
+        """No other method runs beside the targetless one."""
+        return {}
+
+    def checks(self, scene: Scene, best: Fit[PlaneSets], widened: Noted[Solution],
+               beside: Mapping[str, Solution | CalibrationError]) -> CalibrationResult:
+        """Stage 5: "starts agree" (the choice's), the checks of the widened estimate, the held-out planes, the
+        flatness before and after; the notes: the scene's, the clock offset held, the start the estimate came from."""
+        config, clock, tau0 = self.config, self.clock, self.config.clock_offset_s
+        clock.lap("solve")
+        notes = list(scene.notes)
+        if not scene.estimate_clock and scene.passes.max() < 1 or config.estimate_clock is False:
+            notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
+                         + ("a one-way sweep does not separate it)" if config.estimate_clock is None else "as asked)"))
+        if best.sets.start.name != NOMINAL:
+            notes.append(f"the estimate is the minimum reached from {best.sets.start.name}: it fits the scene's planes "
+                         "better than the one from the rig file's DH")
+        sol, segmented = widened.value, scene.segmented
         returns, planes_found = segmented.returns, segmented.planes
         labels = segmented.labels.copy()  # the returns that count at the estimate (its cut, incidence, edges)
         if sol.inlier is not None:
             labels[labels >= 0] = np.where(sol.inlier, labels[labels >= 0], -1)
-        nominal, tau0, beams, motor = self.recording.nominal, config.clock_offset_s, scene.beams, scene.motor
-        checks = [found.check, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.prior,
-                                             nominal.dh)]
+        nominal, beams, motor = self.recording.nominal, scene.beams, scene.motor
+        assert best.sets.agree is not None  # the choice's verdict
+        checks = [best.sets.agree, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.cost.prior,
+                                                 nominal.dh)]
         checks.append(_held_out_check(scene.held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol,
                                       scene.first_thickness_m))
         clock.lap("checks")
@@ -195,10 +209,10 @@ class PlaneWay:
                                          len(planes_found))
         plane_fit = PlaneFit(tuple(planes_found), before, after,
                              np.bincount(labels[labels >= 0], minlength=len(planes_found)), scene.held,
-                             scene.held_reason, found.start, n_before, n_after)
+                             scene.held_reason, best.sets.start.name, n_before, n_after)
         evidence = PlaneEvidence(plane_fit=plane_fit, returns=returns)
         return CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
-                                 solution=sol, checks=(shared(sol), *checks), notes=scene.notes)
+                                 solution=sol, checks=tuple(checks), notes=(*notes, *widened.notes))
 
 
 def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,
@@ -238,29 +252,4 @@ def _held_reason(held: tuple[str, ...]) -> str:
             f" deg, judged at the start): held at the nominal value, not estimated")
 
 
-def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, held: tuple[str, ...],
-              config: CheckConfig, prior: tuple[FloatArray, FloatArray]) -> Solution:
-    """Carry the held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's) into the
-    estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
-    if not held:
-        return sol
-    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
-    info, names = plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
-                                          clock_offset_s=sol.clock_offset_s, dh_prior=prior)
-    info = info / max(sol.reduced_chi2, 1.0)
-    est = [i for i, n in enumerate(names) if n not in held]
-    hid = [names.index(n) for n in held]
-    S = -np.linalg.solve(info[np.ix_(est, est)], info[np.ix_(est, hid)])
-    tol = dict(zip(DH_NAMES, config.nominal_tolerance, strict=True))
-    extra = S @ np.diag([tol[n] ** 2 for n in held]) @ S.T
-    cov = sol.covariance.copy()
-    pos = {n: CORE_NAMES.index(n) for n in names}
-    for i, a in enumerate(est):
-        for j, b in enumerate(est):
-            ia, ib = pos[names[a]], pos[names[b]]
-            if ia < 10 and ib < 10:
-                cov[ia, ib] += extra[i, j]
-    return replace(sol, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
-
-
-__all__ = ["PlaneWay", "Proposal", "Refined", "Scene", "Started"]
+__all__ = ["PlaneWay", "Scene"]

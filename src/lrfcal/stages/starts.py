@@ -22,9 +22,9 @@ check "starts agree" fails naming the parameters on which they differ: the scene
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from functools import partial
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,11 +35,11 @@ from lrfcal.estimate.checks import LR_LIMIT, judge_minima
 from lrfcal.model.kinematics import DH, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import dh_difference
-from lrfcal.runtime.forked import call_forked, cores
 from lrfcal.stages import propose, targetless
-from lrfcal.types import Check, Solution
+from lrfcal.types import Check, Fit, Solution, Tried
 
 FloatArray = NDArray[np.float64]
+S = TypeVar("S")
 DH_NAMES = observability.DH
 #: other minima within this many of the estimate's 1-sigma of it, on every estimated DH parameter, are the same one
 AGREE_SIGMA = 1.0
@@ -51,12 +51,33 @@ TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 
 
 @dataclass(frozen=True)
+class PlaneStart:
+    """A start of the targetless cost: its name ("the rig file's DH", "the DH search's proposal", "the DH search's
+    agreeing start 1", ...) and its DH (the clock offset at the calibration's start)."""
+
+    name: str
+    dh: DH
+
+
+NOMINAL = "the rig file's DH"
+
+
+@dataclass(frozen=True)
+class PlaneSets:
+    """The targetless cost's sets at a start (the plane returns and their planes are the scene's, fixed: only the
+    start differs) and, once chosen, the check "starts agree" that came with the choice (:func:`lowest`)."""
+
+    start: PlaneStart
+    agree: Check | None = None
+
+
+@dataclass(frozen=True)
 class Minima:
-    """The targetless cost minimised from every start: the estimate (the lowest cost), its start ("the rig file's DH"
-    or "the DH search's proposal", ...) and the check "starts agree"."""
+    """The targetless cost minimised from every start: the estimate (the lowest cost), its start and the check
+    "starts agree"."""
 
     solution: Solution
-    start: str
+    start: PlaneStart
     check: Check
 
 
@@ -74,48 +95,71 @@ class Cost:
         return minima.plane_cost(self.segmented.returns, sol, self.motor, self.range_sigma_m * scale, self.prior)
 
 
-def lowest_minimum(first: Solution, fit: Callable[..., Solution], cost: Cost, held: tuple[str, ...], nominal: DH,
-                   tau0: float, proposal: Callable[[], propose.DHProposal] | None) -> Minima:
-    """The targetless cost's minimum of lowest cost among the nominal's (``first``, from the rig file's DH) and the
-    other starts' (module docstring), and the check "starts agree". ``fit`` minimises the cost from a start
-    (lrfcal.stages.targetless.fixed_solve's), ``tau0`` the clock offset every start begins at [s]; ``proposal``:
-    the DH search's proposal (begun ahead, lrfcal.stages.propose.proposal_ahead), else none is searched."""
-    est = [k for k, n in enumerate(DH_NAMES) if n not in held]
-    found = propose.DHProposal(None, reason="not searched")
-    if proposal is not None:
-        try:
-            found = proposal()
-        except (CalibrationError, np.linalg.LinAlgError) as err:
-            found = propose.DHProposal(None, reason=str(err))
+def searched(proposal: propose.Proposal | None) -> propose.DHProposal:
+    """The DH search's proposal (begun ahead, lrfcal.pipeline.search), or why there is none (None: not searched)."""
+    if proposal is None:
+        return propose.DHProposal(None, reason="not searched")
+    try:
+        return proposal()
+    except (CalibrationError, np.linalg.LinAlgError) as err:
+        return propose.DHProposal(None, reason=str(err))
+
+
+def further(first: Solution, found: propose.DHProposal, held: tuple[str, ...], nominal: DH) -> list[PlaneStart]:
+    """The other starts to minimise the cost from, beside the nominal's minimum ``first`` (module docstring): the
+    search's proposal and its agreeing starts ``found``, each as the twin nearest the nominal, without those within
+    AGREE_SIGMA of ``first`` or of another on every estimated parameter (``held``: the others), at most
+    MAX_OTHER_STARTS."""
     if found.dh is None:
-        return Minima(first, "the rig file's DH", Check(NAME, True, "no other start: the DH search found none "
-                                                                     f"({found.reason})"))
-    starts = _other_starts([found.dh, *found.agreeing], nominal, first, est)
-    if not starts:
-        return Minima(first, "the rig file's DH", Check(
+        return []
+    est = [k for k, n in enumerate(DH_NAMES) if n not in held]
+    return [PlaneStart(_start_name(i), dh)
+            for i, dh in enumerate(_other_starts([found.dh, *found.agreeing], nominal, first, est))]
+
+
+def lowest(tried: Sequence[Tried[PlaneStart, S]], cost: Callable[[Solution, float], float],
+           held: tuple[str, ...], found: propose.DHProposal) -> Minima:
+    """The targetless cost's minimum of lowest cost among the starts ``tried`` (the nominal's first, then those
+    :func:`further` gave) and the check "starts agree": another start's minimum is the estimate only where it fits
+    clearly better than the nominal's (lrfcal.estimate.checks.LR_LIMIT) and lies apart from it; every other minimum
+    apart from the estimate is judged by the likelihood-ratio rule. ``cost(minimum, scale)``: the cost on the fixed
+    plane returns (:class:`Cost`); ``found``: the DH search's outcome the other starts came from.
+
+    Raises:
+        CalibrationError: the nominal's start could not be solved (or np.linalg.LinAlgError).
+    """
+    est = [k for k, n in enumerate(DH_NAMES) if n not in held]
+    nominal = tried[0]
+    if not isinstance(nominal.outcome, Fit):
+        raise nominal.outcome
+    first = nominal.outcome.solution
+    if len(tried) == 1:
+        if found.dh is None:
+            return Minima(first, nominal.start, Check(NAME, True, "no other start: the DH search found none "
+                                                                   f"({found.reason})"))
+        return Minima(first, nominal.start, Check(
             NAME, True, f"the search's proposal and its {found.n_agreeing} agreeing starts lie within {AGREE_SIGMA:g} "
             "sigma of the minimum from the rig file's DH on every estimated parameter"))
-    n = max(1, min(cores(), len(starts)))  # the starts are independent: on the cores (lrfcal.runtime.forked)
-    done = call_forked({str(g): partial(_solved, fit, tau0, starts[g::n]) for g in range(n)})
-    ends = [done[str(i % n)][i // n] for i in range(len(starts))]
-    named = [("the rig file's DH", first), *[(_start_name(i), s) for i, s in enumerate(ends) if s is not None]]
-    lost = sum(s is None for s in ends)
+    ends = [(t.start, t.outcome.solution) for t in tried[1:]
+            if isinstance(t.outcome, Fit) and t.outcome.solution.converged]  # a start lost or not converged: none
+    named = [(nominal.start, first), *ends]
+    lost = len(tried) - len(named)
     scale = math.sqrt(max(1.0, first.reduced_chi2))
     costs = [cost(s, scale) for _, s in named]
     k = int(np.argmin(costs))  # the lowest, where it is another minimum that fits clearly better than the first's
     if k and (costs[0] - costs[k] < LR_LIMIT or not _apart(named[k][1], first, est)):
         k = 0
-    best_name, best = named[k]
-    others = [(name, s, c - costs[k]) for i, ((name, s), c) in enumerate(zip(named, costs, strict=True)) if i != k]
-    what = (f"{len(starts) - lost} other start{'s' if len(starts) - lost != 1 else ''} (the DH search's proposal and "
-            f"agreeing starts, {found.n_agreeing} of {found.n_starts})" + (f"; {lost} lost the scene's planes"
-                                                                             if lost else ""))
-    return Minima(best, best_name, _judged(best, others, est, what))
+    best_start, best = named[k]
+    others = [(at.name, s, c - costs[k]) for i, ((at, s), c) in enumerate(zip(named, costs, strict=True)) if i != k]
+    n_other = len(tried) - 1 - lost
+    what = (f"{n_other} other start{'s' if n_other != 1 else ''} (the DH search's proposal and agreeing starts, "
+            f"{found.n_agreeing} of {found.n_starts})" + (f"; {lost} lost the scene's planes" if lost else ""))
+    return Minima(best, best_start, _judged(best, others, est, what))
 
 
 def _apart(sol: Solution, ref: Solution, est: list[int]) -> bool:
     """Whether ``sol`` lies more than AGREE_SIGMA of ``ref``'s 1-sigma from it on an estimated DH parameter."""
-    z = np.abs(dh_difference(sol.params.vector()[6:], ref.params.vector()[6:])) / np.maximum(ref.sigma[6:10], 1e-300)
+    z = np.abs(dh_difference(sol.params.dh.vector(), ref.params.dh.vector())) / np.maximum(ref.dh_sigma, 1e-300)
     return bool(np.any(z[est] > AGREE_SIGMA))
 
 
@@ -126,12 +170,11 @@ def _start_name(i: int) -> str:
 def _judged(best: Solution, others: list[tuple[str, Solution, float]], est: list[int], what: str) -> Check:
     """The check "starts agree": every other minimum the same as ``best`` (within AGREE_SIGMA) or worse by the
     likelihood-ratio rule (lrfcal.estimate.checks.judge_minima); ``others``: (start, minimum, cost above best's)."""
-    sigma = best.sigma[6:10]
+    sigma = best.dh_sigma
     far = np.zeros(4)
     verdicts: list[tuple[str, float, list[str]]] = []
     for name, sol, extra in others:
-        z = np.abs(dh_difference(sol.params.vector()[6:], best.params.vector()[6:])) / np.where(sigma > 0, sigma,
-                                                                                                  np.inf)
+        z = np.abs(dh_difference(sol.params.dh.vector(), best.params.dh.vector())) / np.where(sigma > 0, sigma, np.inf)
         z = np.where(np.isin(np.arange(4), est), z, 0.0)
         far = np.maximum(far, z)
         apart = [DH_NAMES[k] for k in est if z[k] > AGREE_SIGMA]
@@ -152,33 +195,19 @@ def _judged(best: Solution, others: list[tuple[str, Solution, float]], est: list
                               "with markers")
 
 
-def _solved(fit: Callable[..., Solution], tau0: float, starts: list[DH]) -> list[Solution | None]:
-    """The minimum the targetless cost reaches from each start (``fit``, from the clock offset ``tau0`` [s]); None
-    where the solve fails (not a minimum to compare)."""
-    out: list[Solution | None] = []
-    for dh in starts:
-        try:
-            sol = fit(dh, tau0)
-        except (CalibrationError, np.linalg.LinAlgError):
-            out.append(None)
-            continue
-        out.append(sol if sol.converged else None)
-    return out
-
-
 def _other_starts(candidates: list[DH], nominal: DH, first: Solution, est: list[int]) -> list[DH]:
     """The starts to run: each candidate as the twin nearest the nominal, its held parameters at the nominal's
     values, without those within AGREE_SIGMA of the nominal's minimum ``first`` or of a start kept before on every
     estimated parameter (the first, the proposal, kept first; then the farthest from it), at most
     MAX_OTHER_STARTS."""
-    sigma = first.sigma[6:10]
+    sigma = first.dh_sigma
     ref = nominal.vector()
     out: list[tuple[float, DH]] = []
     for i, cand in enumerate(candidates):
         near = min((cand, *(t for _, t, _ in dh_twins(cand))),
                    key=lambda t: float(np.sum(np.abs(dh_difference(t.vector(), ref)) / TWIN_SCALE)))
         v = np.where(np.isin(np.arange(4), est), near.vector(), ref)
-        z = np.abs(dh_difference(v, first.params.vector()[6:]))[est] / np.maximum(sigma[est], 1e-12)
+        z = np.abs(dh_difference(v, first.params.dh.vector()))[est] / np.maximum(sigma[est], 1e-12)
         if z.size and z.max() > AGREE_SIGMA:
             out.append((math.inf if i == 0 else float(z.max()), DH(*(float(x) for x in v))))
     out.sort(key=lambda p: -p[0])
@@ -190,4 +219,5 @@ def _other_starts(candidates: list[DH], nominal: DH, first: Solution, est: list[
     return kept[:MAX_OTHER_STARTS]
 
 
-__all__ = ["AGREE_SIGMA", "MAX_OTHER_STARTS", "Cost", "Minima", "lowest_minimum"]
+__all__ = ["AGREE_SIGMA", "MAX_OTHER_STARTS", "NOMINAL", "Cost", "Minima", "PlaneSets", "PlaneStart", "further",
+           "lowest", "searched"]

@@ -36,7 +36,7 @@ covariance), so that holding a wrong nominal cannot make the others confidently 
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Protocol
 
@@ -45,6 +45,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability
+from lrfcal.estimate.request import PlaneOptions, PlaneRequest
 from lrfcal.model.kinematics import DH, Params, Pose, points_M_trig
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.plane import Footing
@@ -159,12 +160,29 @@ def _sigma(config: SegmentConfig) -> float:
     return float(config.range_sigma_m)
 
 
-def fixed_solve(fit: Callable[..., Solution], segmented: Segmented, dh: DH, tau: float) -> Solution:
-    """The targetless cost minimised from (dh, tau) over the planes and returns of ``segmented`` (their assignment
-    fixed): ``fit`` (lrfcal.estimate.solve.solve_planes with the calibration's held parameters, prior and clock)."""
-    if not segmented.planes:
-        raise CalibrationError("targetless: the scene shows no plane to solve on")
-    return fit(segmented.returns, Params(MOTOR_FRAME, dh), clock_offset_s=tau)
+@dataclass(frozen=True)
+class OneCost:
+    """The targetless cost every start minimises (module docstring), but for where it starts: the range noise [m],
+    the motor clock (None: the clock offset held), the parameters held at the start's values, the design drawing's
+    prior on the DH ((4,) mean and sigma) and where a return counts (lrfcal.model.plane.Footing)."""
+
+    range_sigma_m: float
+    clock: MotorClock | None
+    hold: tuple[str, ...]
+    prior: tuple[FloatArray, FloatArray]
+    footing: Footing
+
+    def request(self, segmented: Segmented, dh: DH, tau: float) -> PlaneRequest:
+        """The cost over the planes and returns of ``segmented`` (their assignment fixed), from (dh, tau): what to
+        estimate (lrfcal.estimate.request.PlaneRequest).
+
+        Raises:
+            CalibrationError: the scene shows no plane.
+        """
+        if not segmented.planes:
+            raise CalibrationError("targetless: the scene shows no plane to solve on")
+        return PlaneRequest(segmented.returns, Params(MOTOR_FRAME, dh), self.range_sigma_m, self.clock, tau,
+                            self.hold, self.prior, PlaneOptions(footing=self.footing))
 
 
 #: returns a plane keeps at least (fewer: dropped, mostly grazing returns)
@@ -363,4 +381,4 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
 
 
 __all__ = ["BENDING_M", "MOTOR_FRAME", "STAGES", "Beams", "SceneConfig", "SegmentConfig", "Segmented", "Start",
-           "fixed_solve", "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns"]
+           "OneCost", "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns"]

@@ -13,7 +13,7 @@ import math
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrfcal.errors import CalibrationError, InputError
+from lrfcal.errors import CalibrationError, ClockOffsetError, InputError
 from lrfcal.model.motor import JointGap, clock_offset_bound_s, dequantised, joint_gaps
 from lrfcal.types import JointStates, Noted, Recording, Scans, joint_period_s, scan_spans
 
@@ -168,7 +168,8 @@ def usable_scans(recording: Recording, tau0: float, range_sigma_m: float | None 
     most of the encoder's quantisation taken out (:func:`without_quantisation`); the notes say what was dropped.
 
     Raises:
-        CalibrationError: no scan lies within the joint states' time span, most scans fall in gaps of the joint
+        ClockOffsetError: no scan lies within the joint states' time span at ``tau0``.
+        CalibrationError: most scans fall in gaps of the joint
             states that may hide the servo's motion, or most fall between joint states too sparse to interpolate
             their motor angle.
     """
@@ -178,7 +179,7 @@ def usable_scans(recording: Recording, tau0: float, range_sigma_m: float | None 
         notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")
     covered = covered_scans(recording.scans, joints, tau0)
     if not covered.any():
-        raise CalibrationError(
+        raise ClockOffsetError(
             f"no scan lies within the joint states' time span at clock offset {tau0:+.3f} s (laser "
             f"{recording.scans.stamps_s[0]:.3f}-{recording.scans.stamps_s[-1]:.3f} s, servo {joints.stamps_s[0]:.3f}-"
             f"{joints.stamps_s[-1]:.3f} s): pass the offset with --clock-offset"

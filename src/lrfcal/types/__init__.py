@@ -6,6 +6,7 @@ Below the estimate, the stages and the readers, which all take them from here (d
 bag keeps its data (:mod:`.sources`: the rig file's ScanSource, ServoSource, TfSource and LogLayout); the marker
 way's map, blobs, returns and association (:mod:`.markers`); the surfaces and planes observed (:mod:`.surfaces`);
 a solve's Solution with its Levenberg-Marquardt Iterations, a Check, a stage's Noted result (:mod:`.solution`);
+what the orchestrator's loop passes between a way's steps, a Fit and a start Tried (:mod:`.fit`);
 the array types (:mod:`.arrays`). Every name is importable from ``lrfcal.types`` itself.
 
 Array shapes: S scans, N beams per scan, J joint-state samples, n markers, P measured pairs, B blobs,
@@ -15,6 +16,7 @@ K marker returns (observations), K2 surface returns.
 from __future__ import annotations
 
 from lrfcal.types.arrays import BoolArray, FloatArray, IntArray
+from lrfcal.types.fit import Fit, Refusal, Tried
 from lrfcal.types.markers import Association, Blob, Detections, DroppedPair, Labels, MarkerMap, Observations
 from lrfcal.types.recording import (
     JointStates,
@@ -30,8 +32,8 @@ from lrfcal.types.solution import Check, Iteration, Noted, Solution, Spread
 from lrfcal.types.sources import LogLayout, ScanSource, ServoSource, TfSource
 from lrfcal.types.surfaces import Plane, ScenePlane, Surface, SurfaceReturns, TunnelGeometry
 
-__all__ = ["Association", "Blob", "BoolArray", "Check", "Detections", "DroppedPair", "FloatArray", "IntArray",
+__all__ = ["Association", "Blob", "BoolArray", "Check", "Detections", "DroppedPair", "Fit", "FloatArray", "IntArray",
            "Iteration", "JointStates", "Labels", "LogLayout", "MarkerMap", "Nominal", "Noted", "Observations", "Plane",
-           "ReadReport", "Recording", "ScanSource", "Scans", "ScenePlane", "ServoSource", "Solution", "Spread",
-           "Surface", "SurfaceReturns", "TapeMeasurements", "TfSource", "TunnelGeometry", "joint_period_s",
-           "scan_spans"]
+           "ReadReport", "Recording", "Refusal", "ScanSource", "Scans", "ScenePlane", "ServoSource", "Solution",
+           "Spread", "Surface", "SurfaceReturns", "TapeMeasurements", "TfSource", "Tried", "TunnelGeometry",
+           "joint_period_s", "scan_spans"]

@@ -156,6 +156,13 @@ class JointStates:
     positions_rad: FloatArray
     name: str = "servo"
 
+    def signed(self, sign: int) -> JointStates:
+        """These joint states with the servo's direction ``sign`` applied (+1: as recorded; -1: every angle negated,
+        the servo turning the other way than declared): the one place the servo's sign is applied."""
+        if sign > 0:
+            return self
+        return JointStates(stamps_s=self.stamps_s, positions_rad=-self.positions_rad, name=self.name)
+
 
 @dataclass(frozen=True)
 class TapeMeasurements:

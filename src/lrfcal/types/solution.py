@@ -5,13 +5,14 @@ iterations it took, the covariance's parts, a check's verdict, and a stage's res
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Generic, TypeVar
 
 import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import Params
+from lrfcal.model.unknowns import DH_SLICE
 from lrfcal.types.arrays import BoolArray, FloatArray
 
 
@@ -85,13 +86,10 @@ class Solution:
     #: each accepted Levenberg-Marquardt iteration of every pass (lrfcal.estimate.engine.Estimate.log)
     iterations: tuple[Iteration, ...] = ()
 
-    def with_dh_systematic(self, d: ArrayLike) -> Solution:
-        """This solution with its DH covariance widened by d d^T, d (4,) a model error in (a, alpha, b, beta) that
-        the noise's sigma does not hold (two defensible models or rounds that differ by d)."""
-        d = np.asarray(d, dtype=float)
-        cov = np.array(self.covariance, dtype=float)
-        cov[6:10, 6:10] += np.outer(d, d)
-        return replace(self, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+    @property
+    def dh_sigma(self) -> FloatArray:
+        """(4,) the DH parameters' 1-sigma (a, alpha, b, beta; NaN where held): the DH block of :attr:`sigma`."""
+        return self.sigma[DH_SLICE]
 
     @property
     def intrinsic_values(self) -> dict[str, float]:

@@ -1,54 +1,54 @@
-"""The calibration, as one method: the beams' times, the observation sets and a start, the solve, the checks, the
-reprojection.
+"""The calibration, as one method: the beams' times, the observation sets and their starts, the estimates, the
+checks, the reprojection.
 
     calibrate(recording)
       1. the scans the joint states cover, each beam's time              lrfcal.stages.timing
-      2. one of two ways, through the same steps (:func:`_calibrate`): observe, estimate from each candidate
-         start, refine the observation sets until stable, check
+      2. one of two ways through the same loop (lrfcal.pipeline.loop): observe, estimate from each candidate
+         start, choose, choose the sets again until they stand, widen by the systematics, check
          with markers (the seed paper, Sec. III and IV-C)               lrfcal.stages.markers.MarkerWay
          from the scene's planes alone (targetless)                      lrfcal.stages.scene.PlaneWay
-         both use one model (lrfcal.model) and one engine (lrfcal.estimate.engine)
+         both use one model (lrfcal.model) and one engine (lrfcal.estimate.engine), which the loop calls
       3. refused when a check fails                                      lrfcal.estimate.checks
       4. every beam reprojected before and after; tunnel planes          lrfcal.stages.reproject, lrfcal.stages.geometry
+
+The DH search a targetless calibration's starts need runs ahead, in forked children (lrfcal.pipeline.search); what
+the calibration tells its caller meanwhile goes through one observer (lrfcal.result.Observer).
 """
 
 from __future__ import annotations
 
 import contextlib
 import math
-from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any, Protocol, TypedDict, TypeVar
+from typing import Protocol, TypedDict, TypeVar
 
 import numpy as np
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
-from lrfcal.errors import CalibrationError, InputError
+from lrfcal.errors import CalibrationError, ClockOffsetError, InputError
 from lrfcal.estimate.checks import clock_offset_check, refuse_failed
 from lrfcal.model.kinematics import refuse_placeholder_dh
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
-from lrfcal.result import CalibrationResult
+from lrfcal.pipeline.loop import Way, estimated
+from lrfcal.pipeline.search import proposal_ahead
+from lrfcal.result import CalibrationResult, Observer
 from lrfcal.runtime.forked import on_cores
 from lrfcal.stages import geometry, reproject, timing
 from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
 from lrfcal.stages.markers import STAGES, MarkerWay
 from lrfcal.stages.scene import PlaneWay
 from lrfcal.stages.timing import usable_scans
-from lrfcal.types import Check, FloatArray, JointStates, Noted, Recording, Scans, Solution, TunnelGeometry
+from lrfcal.types import FloatArray, JointStates, Noted, Recording, Scans, Solution, TunnelGeometry
 
 
-def calibrate(
-    recording: Recording, config: CalibConfig | None = None, progress: Callable[[str], None] | None = None,
-    fitted: Callable[[CalibrationResult], None] | None = None,
-    outputs: Callable[[str, Mapping[str, Any]], None] | None = None,
-) -> CalibrationResult:
+def calibrate(recording: Recording, config: CalibConfig | None = None, observer: Observer | None = None
+              ) -> CalibrationResult:
     """Run stages 1-8 on a recording; see the module docstring.
 
-    ``progress(stage)`` is called with the name of each stage as it starts (for a CLI's status line);
-    ``fitted(result)`` with the result once its checks passed, before its clouds are made (step 4), e.g. to draw
-    figures that need no clouds meanwhile; ``outputs(stage, values)`` with what a stage produced, as soon as it is
-    there (with markers, after "solve": the ``scans`` the joint states cover, their ``detections``, the
-    ``association`` and the ``markers``, all final; for the intensity figure).
+    ``observer`` (lrfcal.result.Observer) is told each stage as it starts (for a CLI's status line), the marker way's
+    blobs matched to the marker map once its alternative is chosen (for the intensity figure, drawn while the
+    refinement goes on), and the result once its checks passed, before its clouds are made (step 4: e.g. to draw
+    figures that need no clouds meanwhile).
     Raises CalibrationError (exit code 3) with the reason when the data do not support a trustworthy result,
     unless ``config.force``, which records the failed checks in the result instead.
     """
@@ -57,15 +57,14 @@ def calibrate(
         declared = recording.nominal.range_sigma_m
         config = config.replace(range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
     try:
-        return _calibrate(recording, config, progress, fitted, outputs)
+        return _calibrate(recording, config, observer or Observer())
+    except ClockOffsetError as err:  # the refusal names the clock offset: only what the reader left out is added
+        if not (left := _left_out_hint(recording)):
+            raise
+        raise ClockOffsetError(f"{err}; {left}") from None
     except CalibrationError as err:
-        left = _left_out_hint(recording)
-        if "time span" in str(err) or str(err).startswith(CLOCK_START):
-            if not left:
-                raise
-            raise CalibrationError(f"{err}; {left}") from None
         hint = "; ".join(h for h in (_trimmed_hint(recording, config.clock_offset_s) or _start_hint(
-            config.clock_offset_s), left) if h)
+            config.clock_offset_s), _left_out_hint(recording)) if h)
         if not hint:
             raise
         raise CalibrationError(f"{err}; {hint}") from None
@@ -109,54 +108,50 @@ def _trimmed_hint(recording: Recording, tau0: float) -> str:
             "explain this refusal")
 
 
-def _calibrate(recording: Recording, config: CalibConfig, progress: Callable[[str], None] | None,
-               fitted: Callable[[CalibrationResult], None] | None,
-               outputs: Callable[[str, Mapping[str, Any]], None] | None) -> CalibrationResult:
+def _calibrate(recording: Recording, config: CalibConfig, observer: Observer) -> CalibrationResult:
     """:func:`calibrate` with ``config.range_sigma_m`` resolved: the method, the same steps for both ways."""
-    way_of = PlaneWay if _targetless(recording, config) else MarkerWay  # the one place the way is chosen
-    clock = Stopwatch(progress, way_of.STAGES, outputs)
+    if _targetless(recording, config):  # the one place the way is chosen
+        return _through(PlaneWay, recording, config, observer, compare=False)
+    return _through(MarkerWay, recording, config, observer, compare=config.compare_targetless)
+
+
+Ob = TypeVar("Ob")
+St = TypeVar("St")
+S = TypeVar("S")
+
+
+class WayOf(Protocol[Ob, St, S]):
+    """A way's class: its stages (as the observer is told them), the notes every result of it begins with, whether
+    its starts need the DH search's proposal, and the way on a recording (lrfcal.pipeline.loop.Way)."""
+
+    STAGES: tuple[str, ...]
+    NOTES: tuple[str, ...]
+    SEARCH: bool
+
+    def __call__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
+                 observer: Observer) -> Way[Ob, St, S]: ...
+
+
+def _through(way_of: WayOf[Ob, St, S], recording: Recording, config: CalibConfig, observer: Observer, compare: bool
+             ) -> CalibrationResult:
+    """The four steps through one way (``compare``: the targetless calibration of the same recording beside it)."""
+    clock = Stopwatch(observer.stage, way_of.STAGES)
     timed = usable_scans(recording, config.clock_offset_s, config.range_sigma_m)  # 1.
     scans, joints = timed.value
     bound = _clock_start(scans, joints, config.clock_offset_s)
     covered = replace(recording, scans=scans)
-    way: Way[Any, Any, Any, Any] = way_of(covered, joints, config, clock)  # each way's types: Way's docstring
-    with way.ahead() as meanwhile:  # what runs meanwhile (targetless: the DH search for the check "starts agree")
-        observed = way.observe(meanwhile)  # 2. marker returns, or plane returns
-        started = way.starts(observed)  # the estimate from each candidate start, the one chosen
-        refined = way.refine(started)  # the sets chosen again until stable
-        fit = way.checks(refined, lambda sol: clock_offset_check(sol, *bound))  # 3.
-    refuse_failed(list(fit.checks), config)
-    if fit.servo_sign < 0:
-        joints = JointStates(stamps_s=joints.stamps_s, positions_rad=-joints.positions_rad, name=joints.name)
-    opinion = (_targetless_opinion(recording, config) if config.compare_targetless and way_of is MarkerWay
-               else Noted({}))  # the same recording without its markers, for the report
-    if fitted is not None:
-        fitted(fit)
+    way = way_of(covered, joints, config, clock, observer)
+    # the DH search the way's starts need, begun now in forked children (lrfcal.pipeline.search)
+    with proposal_ahead(scans, joints) if way_of.SEARCH else contextlib.nullcontext() as proposal:
+        fit = estimated(way, proposal)  # 2. (lrfcal.pipeline.loop)
+    fit = replace(fit, checks=(clock_offset_check(fit.solution, *bound), *fit.checks))  # what both ways check
+    refuse_failed(list(fit.checks), config)  # 3.
+    joints = joints.signed(fit.servo_sign)
+    opinion = _targetless_opinion(recording, config) if compare else Noted({})  # without its markers, for the report
+    observer.fitted(fit)
     clouds = _reproject(covered, joints, fit.solution, config, clock)  # 4.
     return replace(fit, **clouds, timings_s=clock.laps, notes=(*way_of.NOTES, *timed.notes, *fit.notes, *opinion.notes),
                    side_by_side={**fit.side_by_side, **opinion.value}, config=config)
-
-
-Ahead = TypeVar("Ahead")
-Observed = TypeVar("Observed")
-Started = TypeVar("Started")
-Refined = TypeVar("Refined")
-
-
-class Way(Protocol[Ahead, Observed, Started, Refined]):
-    """A way of calibrating: its steps, in the order :func:`_calibrate` runs them, each taking what the one before
-    returned (a way keeps no state between its steps): ``ahead`` what runs meanwhile (``Ahead``: what it gives the
-    steps), ``observe`` the observation sets, ``starts`` the estimate from each candidate start and the one chosen,
-    ``refine`` the sets chosen again until stable, ``checks`` the result without clouds. The two ways:
-    ``Way[None, markers.Observed, markers.Started, markers.Refined]`` (lrfcal.stages.markers.MarkerWay) and
-    ``Way[scene.Proposal, scene.Scene, scene.Started, scene.Refined]`` (lrfcal.stages.scene.PlaneWay), checked by
-    mypy (tests/static_types.py); :func:`_calibrate` chooses one at run time, so it holds it as ``Way[Any, ...]``."""
-
-    def ahead(self) -> contextlib.AbstractContextManager[Ahead]: ...
-    def observe(self, ahead: Ahead) -> Observed: ...
-    def starts(self, observed: Observed) -> Started: ...
-    def refine(self, started: Started) -> Refined: ...
-    def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult: ...
 
 
 CLOCK_START = "clock offset: --clock-offset"
@@ -167,12 +162,12 @@ def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float,
     (lrfcal.stages.timing.clock_offset_bound).
 
     Raises:
-        CalibrationError: the start ``tau0`` (``--clock-offset``) lies beyond it, or (a start other than 0) too far
+        ClockOffsetError: the start ``tau0`` (``--clock-offset``) lies beyond it, or (a start other than 0) too far
             from where the sweep's two directions line up (lrfcal.stages.clocksearch): the solve would settle near it.
     """
     bound, shortest = timing.clock_offset_bound(joints)
     if abs(tau0) > bound:
-        raise CalibrationError(
+        raise ClockOffsetError(
             f"{CLOCK_START} {tau0:+g} s is beyond the +-{bound * 1000:.0f} ms a calibration of this recording starts "
             f"from (the smaller of {MAX_CLOCK_OFFSET_S:g} s, beyond which the laser's and the servo's clocks differ "
             "rather than lag and the bag reader applies the offset from the receive times, and "
@@ -183,7 +178,7 @@ def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float,
     found = line_up(scans, joints, bound, tau0) if tau0 != 0.0 else None
     if found is not None and found.refutes(tau0):
         ms, deg = 1000.0, math.degrees(found.start_error_rad(tau0))
-        raise CalibrationError(
+        raise ClockOffsetError(
             f"{CLOCK_START} {tau0:+g} s: the sweep's two directions see the same scene at {found.offset_s * ms:+.0f} "
             f"ms (searched over +-{bound * ms:.0f} ms; their ranges differ by {found.mismatch_m * ms:.1f} mm there, "
             f"{found.start_mismatch_m * ms:.1f} mm at the start), {deg:.1f} deg of motor angle from the start, "
@@ -249,4 +244,4 @@ def _reproject(recording: Recording, joints: JointStates, sol: Solution, config:
     return out
 
 
-__all__ = ["STAGES", "CalibConfig", "calibrate"]
+__all__ = ["STAGES", "CalibConfig", "Observer", "Way", "calibrate"]
