@@ -1,4 +1,5 @@
-"""The DH search (lrfcal.stages.propose, ``lrfcal inspect``'s proposal and the starts of the check "starts agree"):
+"""The DH search (lrfcal.stages.propose run by lrfcal.pipeline.search, ``lrfcal inspect``'s proposal and the
+targetless calibration's other starts):
 its CPU and where it goes, and how far its proposal moves when only the draw of its segmentation subsamples
 changes (issue 47).
 
@@ -10,7 +11,8 @@ with every start's segmentation subsample drawn afresh (numpy's generator seeded
 same number of returns, nothing else changed). It also prints how many starts segment on another subsample than
 start 0 as shipped (the search salts lrfcal.stages.sampling.hash_sample with 100 + k). Printed per run: the CPU of
 the search, of its segmentations (lrfcal.stages.targetless.plane_returns_at) and of its solves
-(lrfcal.estimate.solve.solve_planes); the proposal and its 1-sigma; and for the other draws, each value's change
+(lrfcal.estimate.engine.solved, as lrfcal.pipeline.search calls it); the
+proposal and its 1-sigma; and for the other draws, each value's change
 from the shipped proposal in units of that proposal's 1-sigma. That change is the noise floor of the search: a
 change of the search's arithmetic that moves a proposal by less is not distinguishable from a redraw.
 """
@@ -30,7 +32,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from lrfcal.commands.inspect_log import inspect_path  # noqa: E402
-from lrfcal.estimate import solve  # noqa: E402
+from lrfcal.pipeline import search as searching  # noqa: E402
 from lrfcal.stages import propose, targetless  # noqa: E402
 from lrfcal.stages.sampling import hash_sample  # noqa: E402
 
@@ -54,17 +56,17 @@ def _timed(module: Any, name: str, spent: dict[str, float]) -> None:
 def _inputs(path: str) -> tuple[Any, Any]:
     """The scans and joint states the search gets from ``lrfcal inspect path`` (the search itself not run)."""
     got: list[tuple[Any, Any]] = []
-    search = propose.propose_dh
+    search = searching.propose_dh
 
     def keep(scans: Any, joints: Any, progress: Any = None) -> propose.DHProposal:
         got.append((scans, joints))
         return propose.DHProposal(None, reason="not searched")
 
-    propose.propose_dh = keep
+    searching.propose_dh = keep  # type: ignore[assignment]
     try:
         inspect_path(path)
     finally:
-        propose.propose_dh = search
+        searching.propose_dh = search  # type: ignore[assignment]
     if not got:
         sys.exit(f"{path}: inspect did not reach the search (see `lrfcal inspect {path}`)")
     return got[0]
@@ -107,7 +109,7 @@ def main() -> None:
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})  # one core: lrfcal.runtime.forked forks nothing
     spent: dict[str, float] = {}
     _timed(targetless, "plane_returns_at", spent)
-    _timed(solve, "solve_planes", spent)
+    _timed(searching, "solved", spent)
     for path in args.recordings:
         scans, joints = _inputs(path)
         print(f"{path}: {scans.ranges_m.shape[0]} scans; starts 1-11 segmenting on another subsample than start 0: "
@@ -119,13 +121,13 @@ def main() -> None:
             spent.clear()
             t = time.process_time()
             try:
-                p = propose.propose_dh(scans, joints)
+                p = searching.propose_dh(scans, joints)
             finally:
                 propose.hash_sample = hash_sample  # type: ignore[assignment]
             cpu = time.process_time() - t
             run = f"redraw {redraw}" if redraw else "shipped"
             line = (f"  {run}: CPU {cpu:.2f} s (segmentations {spent.get('plane_returns_at', 0.0):.2f}, "
-                    f"solves {spent.get('solve_planes', 0.0):.2f}); {_row(p)}")
+                    f"solves {spent.get('solved', 0.0):.2f}); {_row(p)}")
             if base is None:
                 base = p
             elif base.dh is not None and p.dh is not None:

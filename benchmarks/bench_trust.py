@@ -64,7 +64,7 @@ FAULTS: dict[str, dict[str, object]] = {
     "joint states at 2 Hz": {"faults.joint_rate_hz": 2.0},
     "range scale 1 %": {"faults.range_scale": 1.01},
     "joint states missing 3 s across a turnaround": {"faults.joint_gap_s": 3.0},
-    # one scan line per marker: the markers alone do not determine the DH (lrfcal.stages.markers._judged_jointly)
+    # one scan line per marker: the markers alone do not determine the DH (lrfcal.stages.refinement)
     "fast single sweep (90 deg/s, one pass)": {"servo.speed_rad_s": math.radians(90.0), "servo.passes": 1},
 }
 

@@ -15,10 +15,10 @@ from lrfcal.pipeline.loop import Way
 from lrfcal.result import Observer
 from lrfcal.stages import markers, scene
 from lrfcal.stages.alternatives import AlternativesConfig, Start
-from lrfcal.stages.marker_sets import MarkerSets
-from lrfcal.stages.starts import PlaneSets, PlaneStart
 from lrfcal.stages.joint import JointConfig
+from lrfcal.stages.marker_sets import MarkerSets
 from lrfcal.stages.matching import MatchConfig
+from lrfcal.stages.starts import PlaneSets, PlaneStart
 from lrfcal.stages.targetless import SceneConfig, SegmentConfig
 from lrfcal.types import JointStates, Recording
 

@@ -13,7 +13,8 @@ import pytest
 from lrfcal.config import CalibConfig
 from lrfcal.estimate.minima import other_minimum
 from lrfcal.estimate.problem import Problem
-from lrfcal.estimate.solve import Solver, solve
+from lrfcal.estimate.request import MarkerRequest
+from lrfcal.estimate.solve import solve
 from lrfcal.model.chart import canonical_dh, dh_chart, regular_chart, regular_chart_at, regular_step, scan_plane_pose
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_W, rot_x, rot_z, transform_points
 from lrfcal.model.marker import MarkerModel, MarkerSensor, MarkerSet, ray_to_centre
@@ -177,13 +178,14 @@ def test_solver_reaches_a_scanner_tilted_towards_the_motor_axis_from_alpha_0(see
 def _other_minimum(truth: Params, C: np.ndarray, obs: Observations, nominal_dh: DH) -> tuple[Solution, Check]:
     """The marker-only solve from the nominal (the mount 2-5 cm and 1-3 deg off) and lrfcal.estimate.minima's check
     of it."""
-    fit = Solver(MarkerSensor.of("sphere", 0.05, 0.0, 0.005))
+    sensor = MarkerSensor.of("sphere", 0.05, 0.0, 0.005)
     m = truth.mount
     start = Params(Pose(m.x + 0.02, m.y - 0.02, m.z + 0.01, m.roll + 0.02, m.pitch, m.yaw + 0.05), nominal_dh)
-    sol = fit(obs, C, start)
+    sol = solve(obs, C, start, sensor=sensor)
     markers = MarkerMap(tuple(map(str, range(len(C)))), C, 0.0, 0.0, 1.0, False)
     nominal = Nominal(nominal_dh, marker_radius_m=0.05)
-    return sol, other_minimum(sol, obs, markers, nominal, CalibConfig(range_sigma_m=0.005), fit)
+    return sol, other_minimum(sol, MarkerRequest(obs, markers, sol.params, sensor), nominal,
+                              CalibConfig(range_sigma_m=0.005))
 
 
 def test_a_distinct_rig_that_explains_the_data_equally_well_is_refused() -> None:

@@ -160,7 +160,7 @@ def _niceness() -> int:
 @pytest.mark.skipif(not FORKS, reason=NO_FORKS)
 def test_ahead_nice_child_and_ready_calls() -> None:
     """Ahead(nice=) raises its child's niceness, not this process's; ready() is False while the oldest call runs in
-    the child and True once it has finished (lrfcal.stages.propose.proposal_ahead keeps the finished starts)."""
+    the child and True once it has finished (lrfcal.pipeline.search.proposal_ahead keeps the finished starts)."""
     here = os.nice(0)
     with Ahead(_prepare, nice=5) as ahead:
         ahead.start(_slow_pid, 1.0)

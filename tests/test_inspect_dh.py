@@ -232,10 +232,12 @@ def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch
     """The DH search's starts are solved in groups on the cores (one in this process, the others in forked children)
     and collected in start order: the candidates reach the consensus in the same order whatever the number of cores,
     and the progress ends at the number of starts."""
+    import lrfcal.pipeline.search as searching
     import lrfcal.stages.propose as propose
 
-    def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]
+    def candidate(search, k):  # type: ignore[no-untyped-def]
         # a cheap stand-in for a solve: fails on some starts, else depends on the start and its own subsample
+        start, seg = search.starts[k], _subsample(search, k)
         if start.b > 0 and start.beta < 0:
             return None
         return start, np.array([float(seg[:50].sum()), start.alpha])
@@ -246,13 +248,14 @@ def test_the_search_gives_the_same_candidates_on_any_number_of_cores(monkeypatch
         seen[n_cores] = [(c[0], c[1].tolist()) for c in found]
         return propose._Consensus(None, {}, len(found), 0, "stand-in")
 
-    monkeypatch.setattr(propose, "_candidate", candidate)
+    monkeypatch.setattr(searching, "_candidate", candidate)
     monkeypatch.setattr(propose, "_consensus", consensus)
     scans, joints = _random_scans()
     for n_cores in (1, 2, 3):
         monkeypatch.setattr(propose, "cores", lambda n=n_cores: n)
+        monkeypatch.setattr(searching, "cores", lambda n=n_cores: n)
         ticks: list[tuple[int, int]] = []
-        propose.propose_dh(scans, joints, progress=lambda done, total, t=ticks: t.append((done, total)))
+        searching.propose_dh(scans, joints, progress=lambda done, total, t=ticks: t.append((done, total)))
         n_starts = len(propose.START_ALPHA_DEG) * len(propose.START_BETA_DEG) * len(propose.START_B_M)
         assert ticks[-1] == (n_starts, n_starts) and all(d <= n_starts for d, _ in ticks)
     assert seen[1] == seen[2] == seen[3]
@@ -265,22 +268,24 @@ def test_the_search_shares_its_starts_between_this_process_and_a_helper_from_bot
     import os
     import time
 
+    import lrfcal.pipeline.search as searching
     import lrfcal.stages.propose as propose
     from lrfcal.runtime import forked
 
     here = os.getpid()
 
-    def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]
+    def candidate(search, k):  # type: ignore[no-untyped-def]
         time.sleep(0.05)
-        return start, np.array([float(os.getpid() == here), 0.0, 0.0, 0.0])
+        return search.starts[k], np.array([float(os.getpid() == here), 0.0, 0.0, 0.0])
 
-    monkeypatch.setattr(propose, "_candidate", candidate)
+    monkeypatch.setattr(searching, "_candidate", candidate)
     monkeypatch.setattr(propose, "cores", lambda: 2)
+    monkeypatch.setattr(searching, "cores", lambda: 2)
     scans, joints = _random_scans()
-    search = propose._search(scans, joints, 0.0)
-    assert isinstance(search, propose._Search)
+    search = propose.search_of(scans, joints, 0.0)
+    assert isinstance(search, propose.Search)
     ks = list(range(len(search.starts)))
-    solved = propose._solve_on_cores(search, ks)
+    solved = searching._solve_on_cores(search, ks)
     assert [k for k, _ in solved] == ks
     by_here = [k for k, cand in solved if cand is not None and cand[1][0] == 1.0]
     if forked._can_fork():
@@ -291,28 +296,31 @@ def test_the_search_shares_its_starts_between_this_process_and_a_helper_from_bot
 
 
 def test_the_search_begun_ahead_gives_the_same_proposal_and_ends_with_a_refusal(monkeypatch) -> None:  # type: ignore[no-untyped-def]
-    """lrfcal.stages.propose.proposal_ahead (the targetless calibration's DH search, begun in forked children while
+    """lrfcal.pipeline.search.proposal_ahead (the targetless calibration's DH search, begun in forked children while
     the fit runs) gives propose_dh's proposal; leaving it without asking (a refused fit) ends its children at once,
     before their starts are solved."""
     import multiprocessing
     import time
 
+    import lrfcal.pipeline.search as searching
     import lrfcal.stages.propose as propose
     from lrfcal.model.kinematics import DH
 
     slow = [0.0]
 
-    def candidate(beams, seg, motor, start, config):  # type: ignore[no-untyped-def]
+    def candidate(search, k):  # type: ignore[no-untyped-def]
         time.sleep(slow[0])
+        start, seg = search.starts[k], _subsample(search, k)
         if start.b > 0 and start.beta < 0:
             return None
         return DH(a=0.0, alpha=1.5 + 1e-3 * float(seg[:50].sum() % 7), b=0.01, beta=0.1), np.full(4, 1e-3)
 
-    monkeypatch.setattr(propose, "_candidate", candidate)
+    monkeypatch.setattr(searching, "_candidate", candidate)
     monkeypatch.setattr(propose, "cores", lambda: 2)
+    monkeypatch.setattr(searching, "cores", lambda: 2)
     scans, joints = _random_scans()
-    here = propose.propose_dh(scans, joints)
-    with propose.proposal_ahead(scans, joints) as proposal:
+    here = searching.propose_dh(scans, joints)
+    with searching.proposal_ahead(scans, joints) as proposal:
         ahead = proposal()
         assert proposal() is ahead  # asked twice: the same
     assert here.dh is not None and ahead.dh == here.dh and ahead.agreeing == here.agreeing
@@ -320,11 +328,19 @@ def test_the_search_begun_ahead_gives_the_same_proposal_and_ends_with_a_refusal(
                                                                                here.n_agreeing, here.reason)
     slow[0] = 5.0  # each group would take 30 s
     t0 = time.perf_counter()
-    with pytest.raises(RuntimeError, match="refused"), propose.proposal_ahead(scans, joints):
-        assert len(multiprocessing.active_children()) >= 1 or propose.cores() < 2
+    with pytest.raises(RuntimeError, match="refused"), searching.proposal_ahead(scans, joints):
+        assert len(multiprocessing.active_children()) >= 1 or searching.cores() < 2
         raise RuntimeError("refused")
     assert time.perf_counter() - t0 < 15.0
     assert not multiprocessing.active_children()
+
+
+def _subsample(search, k):  # type: ignore[no-untyped-def]
+    """The segmentation subsample start ``k`` of the DH search draws (lrfcal.stages.propose.start_request)."""
+    from lrfcal.stages import propose
+    from lrfcal.stages.sampling import hash_sample
+
+    return hash_sample(search.beams.scan, search.beams.beam, propose.SEGMENT_RETURNS, seed=100 + k)
 
 
 def _random_scans() -> tuple[Scans, JointStates]:

@@ -162,7 +162,7 @@ def test_sparse_cast_has_every_marker_return(which: str) -> None:
 
 def test_plan_holds_the_model_error_of_turning_crossings(tunnel_plan, monkeypatch: pytest.MonkeyPatch) -> None:
     """Where the sweep turns on a marker the calibration widens the DH covariance by the difference the in-plane
-    variant makes (lrfcal.stages.markers._with_turning_systematic); plan predicts that term from the noise-free returns
+    variant makes (lrfcal.stages.markers.MarkerWay.systematics); plan predicts that term from the noise-free returns
     (lrfcal.estimate.information.turning_error_at): broad truth 28, a tilted spin whose turning crossings bias alpha by
     about 0.07 deg, gets a wider alpha than the statistics alone give, and says why. tunnel_v has no such crossing."""
     import numpy as np

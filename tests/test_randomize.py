@@ -159,7 +159,7 @@ def test_near_perpendicular_truth_is_calibrated_within_4_sigma(tmp_path: Path) -
     back within 4 sigma (before the marker map's uncertainty and the per-marker widening entered the sigma, such
     truths came back 5-9 sigma off and were refused by an attitude limit). Its spin turns on some markers (the band
     a tilted plane sweeps ends there), and that model error joins its sigma near perpendicular too
-    (lrfcal.stages.markers._with_turning_systematic; once held back within 15 deg of perpendicular)."""
+    (lrfcal.stages.markers.MarkerWay.systematics; once held back within 15 deg of perpendicular)."""
     from lrfsim.simulation.recording import write_recording
     from lrfsim.trials.trial import calibrate_recording
 

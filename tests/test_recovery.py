@@ -24,7 +24,7 @@ import pytest
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
-from lrfcal.result import CalibrationResult, MarkerEvidence
+from lrfcal.result import CalibrationResult, MarkerEvidence, Matched, Observer
 from lrfsim.scenario.file import Scenario, load_scenario
 from lrfsim.scenario.sections import Tolerances
 from lrfsim.simulation.simulate import systematic_truth
@@ -72,8 +72,8 @@ class Case:
     errors: np.ndarray
     sigma: np.ndarray
     seconds: float
-    fitted: tuple[CalibrationResult, ...] = ()  # what calibrate(fitted=) was given, before the clouds
-    outputs: tuple[tuple[str, dict[str, object]], ...] = ()  # what calibrate(outputs=) was given, stage by stage
+    fitted: tuple[CalibrationResult, ...] = ()  # what the observer's fitted was told, before the clouds
+    matched: tuple[Matched, ...] = ()  # what the observer's matched was told (the marker way's association)
 
     @property
     def z(self) -> np.ndarray:
@@ -102,16 +102,28 @@ def run_case(scenario: Scenario, folder: Path, tolerances: Tolerances | None = N
     (against ``tolerances``, default the scenario's own)."""
     recording = read_recording(folder, require_distances=(folder / "distances.csv").exists())
     t0 = time.perf_counter()
-    fitted: list[CalibrationResult] = []
-    outputs: list[tuple[str, dict[str, object]]] = []
-    result = calibrate(recording, CalibConfig(range_sigma_m=0.010, baseline=baseline), fitted=fitted.append,
-                       outputs=lambda stage, out: outputs.append((stage, dict(out))))
+    told = _Told()
+    result = calibrate(recording, CalibConfig(range_sigma_m=0.010, baseline=baseline), told)
     seconds = time.perf_counter() - t0
     comparison = compare(result, load_truth(folder / "ground_truth.yaml"), tolerances or scenario.tolerances)
     errors = np.array([row.error for row in comparison.dh_rows])
     assert [row.name for row in comparison.dh_rows] == list(DH_NAMES)
     return Case(scenario.name, result, comparison, errors, result.solution.sigma[list(DH_INDEX)], seconds,
-                tuple(fitted), tuple(outputs))
+                tuple(told.results), tuple(told.associations))
+
+
+class _Told(Observer):
+    """What a calibration told its observer (lrfcal.result.Observer)."""
+
+    def __init__(self) -> None:
+        self.results: list[CalibrationResult] = []
+        self.associations: list[Matched] = []
+
+    def matched(self, matched: Matched) -> None:
+        self.associations.append(matched)
+
+    def fitted(self, result: CalibrationResult) -> None:
+        self.results.append(result)
 
 
 class _Cases:
@@ -203,12 +215,12 @@ def test_shipped_fitted_result_comes_before_the_clouds_and_is_the_results(shippe
     early = case.fitted[0]
     assert early.cloud_after_M.size == 0 and case.result.cloud_after_M.size > 0
     assert early.solution is case.result.solution and early.evidence is case.result.evidence
-    # the intensity figure's inputs, given as soon as the solve stage ends (drawn while the surfaces are fitted)
-    assert [stage for stage, _ in case.outputs] == ["solve"]
-    out, ev = case.outputs[0][1], case.result.evidence
+    # the intensity figure's inputs, told once the alternative is chosen (drawn while the surfaces are fitted)
+    assert len(case.matched) == 1
+    out, ev = case.matched[0], case.result.evidence
     assert isinstance(ev, MarkerEvidence)
-    assert out["detections"] is ev.detections and out["association"] is ev.association
-    assert out["markers"] is ev.markers and out["scans"] is case.result.recording.scans
+    assert out.detections is ev.detections and out.association is ev.association
+    assert out.markers is ev.markers and out.scans is case.result.recording.scans
 
 
 @pytest.mark.parametrize("name", SHIPPED)

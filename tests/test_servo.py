@@ -294,7 +294,7 @@ def test_tilted_spin_turning_crossings_widen_the_sigma() -> None:
     exact tape: 12 of its 18 markers are crossed by a sweep that turns on them, whose lines crowd about the turning
     point and pull alpha 0.074 deg off (-3.4 sigma before: a model error, the same from the true start). The DH
     with only the in-plane part of those crossings' lateral residual differ by about that much, and that difference
-    now joins the covariance (lrfcal.stages.markers._with_turning_systematic): within 2 sigma, and named in a note."""
+    now joins the covariance (lrfcal.stages.markers.MarkerWay.systematics): within 2 sigma, and named in a note."""
     import tempfile
 
     from lrfcal.io.recording import read_recording

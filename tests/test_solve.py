@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.estimate.information import jacobian_check, model_residuals
 from lrfcal.estimate.engine import solved
+from lrfcal.estimate.information import jacobian_check, model_residuals
 from lrfcal.estimate.request import MarkerRequest
 from lrfcal.estimate.solve import SolveOptions, solve
 from lrfcal.model.kinematics import DH, ESTIMATE_NAMES, Params, Pose, beam_rays_M, log_so3, transform_points

@@ -144,12 +144,12 @@ def test_shipped_targetless_scenes_calibrate_with_the_starts_agreeing(
 ])
 def test_the_lowest_minimum_of_the_one_cost_is_the_estimate_and_a_tie_is_refused(
         monkeypatch: pytest.MonkeyPatch, alpha_off_sigma: float, extra_cost: float, passed: bool, start: str) -> None:
-    """lrfcal.stages.starts' rule, on a minimum of tunnel_v's size: the other starts (the search's proposal, 100
-    sigma off in alpha, and an agreeing start) minimise the same cost and land ``alpha_off_sigma`` of the first
-    minimum's sigma from it in alpha, their cost ``extra_cost`` above it (in whitened units). Within 1 sigma they are
-    the same minimum; beyond it the likelihood-ratio rule of lrfcal.estimate.minima decides: as good a fit is a second
-    rig (refused naming alpha only, and the refusal leads with it), a clearly worse one a local minimum, a clearly
-    better one the estimate."""
+    """lrfcal.stages.starts' rule (the plane way's choice) on a minimum of tunnel_v's size: the other starts (the
+    search's proposal, 100 sigma off in alpha, and an agreeing start) minimise the same cost and land
+    ``alpha_off_sigma`` of the first minimum's sigma from it in alpha, their cost ``extra_cost`` above it (in whitened
+    units). Within 1 sigma they are the same minimum; beyond it the likelihood-ratio rule of lrfcal.estimate.minima
+    decides: as good a fit is a second rig (refused naming alpha only, and the refusal leads with it), a clearly worse
+    one a local minimum, a clearly better one the estimate."""
     from lrfcal.config import CalibConfig
     from lrfcal.errors import CalibrationError
     from lrfcal.estimate.checks import refuse_failed
@@ -157,13 +157,15 @@ def test_the_lowest_minimum_of_the_one_cost_is_the_estimate_and_a_tie_is_refused
     from lrfcal.model.kinematics import Params
     from lrfcal.stages import propose, starts
     from lrfcal.stages.targetless import MOTOR_FRAME
+    from lrfcal.types import Fit, Tried
 
     nominal = DHSet(a=0.010, alpha=math.pi / 2, b=0.020, beta=-math.pi / 2)
     result = DHSet(a=0.0101, alpha=1.574, b=0.0182, beta=-1.575)
     sigma = np.r_[np.full(6, np.nan), 6e-5, 1e-4, 1.5e-4, 4e-5]
 
     def minimum(dh: DHSet) -> SimpleNamespace:
-        return SimpleNamespace(params=Params(MOTOR_FRAME, dh), sigma=sigma, converged=True, reduced_chi2=1.0)
+        return SimpleNamespace(params=Params(MOTOR_FRAME, dh), sigma=sigma, dh_sigma=sigma[6:10], converged=True,
+                               reduced_chi2=1.0)
 
     far = DHSet(a=result.a, alpha=result.alpha + 100 * sigma[7], b=result.b, beta=result.beta)
     near = DHSet(a=result.a, alpha=result.alpha - 3 * sigma[7], b=result.b, beta=result.beta)
@@ -176,15 +178,17 @@ def test_the_lowest_minimum_of_the_one_cost_is_the_estimate_and_a_tie_is_refused
         return minimum(landed)
 
     first = minimum(result)
-    monkeypatch.setattr(starts, "call_forked", lambda tasks: {k: f() for k, f in tasks.items()})
-    found = starts.lowest_minimum(first, fit, lambda sol, scale: 0.0 if sol is first else extra_cost,  # type: ignore
-                                  (), nominal, 0.0, lambda: proposal)
+    nominal_start = starts.PlaneStart(starts.NOMINAL, nominal)
+    further = starts.further(first, proposal, (), nominal)  # type: ignore[arg-type]
+    tried = [Tried(nominal_start, Fit(nominal_start, first)),
+             *(Tried(s, Fit(s, fit(s.dh, 0.0))) for s in further)]
+    found = starts.lowest(tried, lambda sol, scale: 0.0 if sol is first else extra_cost, (), proposal)  # type: ignore
     check = found.check
     print(found.start, check)
     # the proposal first, then the agreeing start farthest from the first minimum; that minimum itself not again
     assert [round((d.alpha - result.alpha) / sigma[7]) for d in ran] == [100, -3]
     assert check.name == "starts agree" and check.passed is passed, check
-    assert found.start == start and (found.solution is first) is (start == "the rig file's DH")
+    assert found.start.name == start and (found.solution is first) is (start == "the rig file's DH")
     if alpha_off_sigma < 1.0:
         assert "converge to the estimate within 1 sigma" in check.detail
     elif passed:

@@ -262,7 +262,7 @@ def test_fast_single_sweep_is_right_or_refused_naming_the_sweep(recordings: Call
       RESELECT_M). Over 40 seeds, RMS of error / sigma went from 1.37, 1.63, 1.47, 0.96 to 0.86, 0.97, 0.95, 0.87.
     - Seed 10: its marker-only fit puts a marker's returns far from the tape, which that fit cannot judge; it was
       refused, and before that, judged on that fit, confidently wrong (alpha -6.7, b -8.3 sigma). The joint solution
-      with the surfaces judges it (lrfcal.stages.markers._judged_jointly): the marker is where the tape says.
+      with the surfaces judges it (lrfcal.stages.refinement): the marker is where the tape says.
     - Seed 22: blobs that disagree with the map even at the joint solution: right, or refused naming the sweep."""
     sc = _scenario("tunnel_v", f"fast_single_{seed}", **{
         "servo.speed_rad_s": math.radians(90.0), "servo.passes": 1, "servo.start_rad": 1.2, "servo.end_rad": -1.2,

@@ -80,10 +80,10 @@ class Passes:
     step_tol: float = 1e-2
 
 
-#: the marker returns' passes (lrfcal.estimate.solve.solve): steps below 1e-2 sigma converge (the clock offset's
-#: Jacobian, a smoothed joint velocity, makes the last iterations converge only linearly)
+#: the marker returns' passes (lrfcal.estimate.request.MarkerRequest): steps below 1e-2 sigma converge (the clock
+#: offset's Jacobian, a smoothed joint velocity, makes the last iterations converge only linearly)
 MARKER_PASSES = Passes()
-#: the targetless passes (lrfcal.estimate.solve.solve_planes)
+#: the targetless passes (lrfcal.estimate.request.PlaneRequest)
 PLANE_PASSES = Passes(rounds=6, stop=Stop.BEFORE_REFIT, last_refit=False, max_iter=60, step_tol=1e-3)
 
 

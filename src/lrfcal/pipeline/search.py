@@ -133,23 +133,27 @@ def _solve_on_cores(search: propose.Search, ks: list[int], progress: Callable[[i
 
 def _solve_starts(search: propose.Search, ks: list[int], progress: Callable[[int, int], None] | None = None
                   ) -> Solved:
-    """The starts ``ks`` solved (lrfcal.stages.propose.start_request, each on its own segmentation subsample; a start
-    whose planes are too few, whose solve fails or whose minimum runs off gives no candidate); ``progress`` from the
-    first group of :func:`propose_dh`, which runs in this process."""
+    """The starts ``ks`` solved (:func:`_candidate`); ``progress`` from the first group of :func:`propose_dh`, which
+    runs in this process."""
     starts, n = search.starts, search.n_groups
     out: Solved = []
     for k in ks:
-        request = propose.start_request(search, k)
-        found: propose.Candidate | None = None
-        if request is not None:
-            try:
-                found = propose.candidate(solved(request))
-            except (CalibrationError, np.linalg.LinAlgError):
-                found = None
-        out.append((k, found))
+        out.append((k, _candidate(search, k)))
         if progress is not None:
             progress(min(len(starts) - 1, len(out) * n), len(starts))
     return out
+
+
+def _candidate(search: propose.Search, k: int) -> propose.Candidate | None:
+    """Start ``k`` solved (lrfcal.stages.propose.start_request, on its own segmentation subsample) and its candidate;
+    None where its planes are too few, its solve fails or its minimum runs off."""
+    request = propose.start_request(search, k)
+    if request is None:
+        return None
+    try:
+        return propose.candidate(solved(request))
+    except (CalibrationError, np.linalg.LinAlgError):
+        return None
 
 
 def propose_for_recording(scans: Scans, joints: JointStates,

@@ -34,12 +34,11 @@ SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts 
 
 def most_off(sol: Solution, max_chi2: float) -> Noted[str] | None:
     """The scale of :data:`SCALES` held at 1 that the data contradict most (its score test on ``sol``,
-    lrfcal.estimate.solve,
-    beyond SCALE_Z_LIMIT sigma), with a note naming the value it steps to; None when none is. One at a time, the
-    others tested again once it is free: a gear ratio 2 % off also stepped the range scale beyond 4 sigma, which
-    it absorbs. None where ``sol``'s reduced chi-square is above ``max_chi2``: a score test means nothing where the
-    model does not fit (three times the stated range noise stepped the range scale 4.4 sigma), and the chi-square
-    check names that."""
+    Solution.held_score, beyond SCALE_Z_LIMIT sigma), with a note naming the value it steps to; None when none is. One
+    at a time, the others tested again once it is free: a gear ratio 2 % off also stepped the range scale beyond 4
+    sigma, which it absorbs. None where ``sol``'s reduced chi-square is above ``max_chi2``: a score test means nothing
+    where the model does not fit (three times the stated range noise stepped the range scale 4.4 sigma), and the
+    chi-square check names that."""
     if not sol.reduced_chi2 <= max_chi2:
         return None
     z = {n: abs(v - 1.0) / s for n, (v, s) in sol.held_score.items() if n in SCALES and math.isfinite(s) and s > 0}

@@ -3,7 +3,7 @@
 Without markers, the DH parameters are calibrated from the flatness of the scene's planar surfaces (walls, floor,
 boxes): a wrong DH bends and thickens every plane of the cloud, because each return is reprojected with its own
 motor angle (Kang & Doh, T-RO 2016; LM-Calibr, RA-L 2026). This module finds the planes in a cloud (in frame M)
-and turns their returns into the ray-plane observations of lrfcal.estimate.solve.solve_planes.
+and turns their returns into the ray-plane observations of lrfcal.estimate.request.PlaneRequest.
 
 Segmentation (:func:`segment_planes`): every point's normal and flatness from the k nearest neighbours (PCA) of the
 nearest point of a coarse subsample (so that a neighbourhood spans many times the range noise);

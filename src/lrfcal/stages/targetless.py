@@ -4,7 +4,7 @@
 2. planes: segmented ONCE, in the cloud reprojected at the        (the rig file's DH, the DH search's proposal and its
    rig file's DH (lrfcal.stages.planes), grazing and edge         agreeing starts): every plane return's ray-plane
    returns left out: which return lies on which plane is          range residual, the planes free
-   fixed from here on                                             (lrfcal.estimate.solve.solve_planes); the lowest
+   fixed from here on                                             (lrfcal.estimate.request.PlaneRequest); the lowest
 3. observability: which of a, alpha, b, beta (and the clock       cost is the estimate
    offset) the scene determines, from the information at    5. checks: convergence, observability, reduced
    the start; the others are held at the nominal value            chi-square, a second opinion (even / odd passes),
@@ -12,7 +12,8 @@
                                                                   that fits as well: not determined)
                                                                6. reprojection, flatness before / after
 
-The steps run as lrfcal.stages.scene.PlaneWay (lrfcal.pipeline's orchestrator); this module holds the segmentation.
+The steps run as lrfcal.stages.scene.PlaneWay (lrfcal.pipeline's loop); this module holds the segmentation and the
+one cost every start minimises (:class:`OneCost`).
 
 **One cost, which cannot oscillate.** The planes and their returns are segmented once, at the start, and that
 assignment is never made again: the estimate minimises one robust point-to-plane cost over it (the planes' normals

@@ -74,7 +74,7 @@ class Solution:
     #: every intrinsic of the rig model (lrfcal.model.unknowns.INTRINSICS): name -> (value, sigma; NaN when held)
     intrinsics: dict[str, tuple[float, float]] = field(default_factory=dict)
     #: every unknown held by default that this solve held: name -> (the value one Gauss-Newton step with it freed
-    #: reaches, its 1-sigma) (lrfcal.estimate.solve's score test)
+    #: reaches, its 1-sigma) (the score test of lrfcal.estimate.covariance.held_score)
     held_score: dict[str, tuple[float, float]] = field(default_factory=dict)
     #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.estimate.covariance.uncertainty); the
     #: covariance holds the map's part, G C_map G^T (None: the map was taken as exact)
