@@ -138,9 +138,8 @@ class MarkerRequest:
 
 
 @dataclass(frozen=True)
-class _MarkerPosed:
-    """A :class:`MarkerRequest` as the engine takes it, with what its Solution reports from: the returns, which of
-    them the marker set uses, the number of markers."""
+class _Posed:
+    """A request as the engine takes it (lrfcal.estimate.engine.Posed, but for the report of its estimate)."""
 
     problem: Problem
     start: State
@@ -148,6 +147,13 @@ class _MarkerPosed:
     passes: Passes
     map_cov: FloatArray | None
     held_scores: tuple[str, ...]
+
+
+@dataclass(frozen=True)
+class _MarkerPosed(_Posed):
+    """A :class:`MarkerRequest` as the engine takes it, with what its Solution reports from: the returns, which of
+    them the marker set uses, the number of markers."""
+
     obs: Observations
     use: BoolArray
     n_markers: int
@@ -297,16 +303,10 @@ class PlaneRequest:
 
 
 @dataclass(frozen=True)
-class _PlanePosed:
+class _PlanePosed(_Posed):
     """A :class:`PlaneRequest` as the engine takes it, with what its Solution reports from: the number of returns
     and the clock."""
 
-    problem: Problem
-    start: State
-    unknowns: Unknowns
-    passes: Passes
-    map_cov: FloatArray | None
-    held_scores: tuple[str, ...]
     n_returns: int
     clock: MotorClock | None
 
