@@ -314,6 +314,10 @@ class _PlanePosed(_Posed):
         """The Solution of the estimate: covariance, the kept returns and their residuals' RMS, status."""
         K, free = self.n_returns, self.unknowns.free
         keep = est.keep[-1]
+        if 10 * int(free.sum()) > int(keep.sum()):  # the returns that count at the estimate: too few to judge by
+            raise CalibrationError(f"targetless solve: {int(keep.sum())} of {K} plane returns count at the estimate "
+                                   f"(their plane's 4 sigma, incidence and edges) for {int(free.sum())} unknowns (need "
+                                   "10 each)")
         surf = est.kept.surf
         assert surf is not None
         th, unc = est.state.th, est.uncertainty
