@@ -66,22 +66,37 @@ def test_the_engine_is_called_by_the_orchestrator_and_the_estimate_only() -> Non
     assert not bad, "the engine reached from elsewhere:\n" + "\n".join(bad)
 
 
+#: the modules that may ask the engine for an estimate: the loop, the DH search, the checks that solve again
+ASKERS = {"pipeline/loop.py", "pipeline/search.py", "estimate/checks.py", "estimate/minima.py"}
+
+
 def _callers_of_the_engine(monkeypatch: pytest.MonkeyPatch) -> list[str]:
     """Every call of the engine (lrfcal.estimate.engine.estimate) from now on, as the module of lrfcal that asked for
-    it (the innermost frame outside the engine itself), every one in this process."""
-    from lrfcal.runtime import forked
-
-    monkeypatch.setattr(forked, "_can_fork", lambda: False)  # every start and every search start in this process
+    it (the innermost frame outside the engine itself), in this process; one asked for by another module raises
+    (in a forked child too: its task then runs again here, and raises here)."""
     callers: list[str] = []
     real = engine.estimate
 
     def spy(*args: Any, **kwargs: Any) -> engine.Estimate:
         frames = [Path(f.filename) for f in traceback.extract_stack()[:-1]]
-        callers.append(str([f for f in frames if SRC in f.parents and f.name != "engine.py"][-1].relative_to(SRC)))
+        caller = str([f for f in frames if SRC in f.parents and f.name != "engine.py"][-1].relative_to(SRC))
+        assert caller in ASKERS, f"the engine asked by {caller}"
+        callers.append(caller)
         return real(*args, **kwargs)
 
     monkeypatch.setattr(engine, "estimate", spy)
     return callers
+
+
+def _spiked_and_trimmed(rec: Any) -> Any:
+    """``rec`` with one encoder spike and the last tenth of its joint states missing (the scans beyond them
+    trimmed)."""
+    n = rec.joints.stamps_s.size
+    positions = rec.joints.positions_rad.copy()
+    positions[n // 3] += 0.5  # one encoder spike
+    keep = slice(0, int(0.9 * n))  # the last tenth of the joint states missing: the scans beyond them trimmed
+    return replace(rec, joints=JointStates(stamps_s=rec.joints.stamps_s[keep], positions_rad=positions[keep],
+                                           name=rec.joints.name))
 
 
 @pytest.mark.parametrize("name", ["plane_30deg", "room_box"])
@@ -89,10 +104,15 @@ def test_both_ways_pass_through_the_same_loop(name: str, recording_of: Callable[
                                                monkeypatch: pytest.MonkeyPatch) -> None:
     """A calibration with markers and a targetless one each run the orchestrator's loop once, with their own way,
     and every solve of either is asked for by that loop, by the DH search it begins ahead, or by a check that solves
-    again (lrfcal/estimate's checks and minima): none by a stage."""
+    again (lrfcal/estimate's checks and minima): none by a stage. (Quick recordings: one pass of the servo.)
+
+    The targetless one (room_box with an encoder spike and its joint states cut short) keeps its notes in the order
+    they were appended before the loop (issue 45): the plane way's own note first, then the orchestrator's on the
+    scans (a spike dropped, scans beyond the joint states trimmed), then the way's steps'."""
+    targetless = name == "room_box"
     data = yaml.safe_load((SCENARIOS / f"{name}.yaml").read_text())
-    rec = read_recording(recording_of(parse_scenario(with_changes(data, QUICK), name)),
-                         require_distances=name != "room_box")
+    folder = recording_of(parse_scenario(with_changes(data, QUICK), name))
+    rec = read_recording(folder, require_distances=not targetless)
     ways: list[str] = []
     real = loop.estimated
 
@@ -102,13 +122,18 @@ def test_both_ways_pass_through_the_same_loop(name: str, recording_of: Callable[
 
     monkeypatch.setattr(pipeline, "estimated", counted)
     callers = _callers_of_the_engine(monkeypatch)
-    result = pipeline.calibrate(rec, CalibConfig(targetless=name == "room_box", force=True, clouds=False,
-                                                 geometry=False, compare_targetless=False))
-    assert ways == ["PlaneWay" if name == "room_box" else "MarkerWay"], ways
-    assert result.method == ("targetless" if name == "room_box" else "markers")
-    assert callers and set(callers) <= {"pipeline/loop.py", "pipeline/search.py", "estimate/checks.py",
-                                        "estimate/minima.py"}, sorted(set(callers))
-    assert "pipeline/loop.py" in callers
+    result = pipeline.calibrate(_spiked_and_trimmed(rec) if targetless else rec,
+                                CalibConfig(targetless=targetless, force=True, clouds=False, geometry=False,
+                                            compare_targetless=False))
+    assert ways == ["PlaneWay" if targetless else "MarkerWay"], ways
+    assert result.method == ("targetless" if targetless else "markers")
+    assert "pipeline/loop.py" in callers and set(callers) <= ASKERS, sorted(set(callers))
+    if targetless:
+        notes = list(result.notes)
+        assert notes[:1] == list(PlaneWay.NOTES), notes
+        spike = next(i for i, s in enumerate(notes) if "jump away from their neighbours dropped" in s)
+        trimmed = next(i for i, s in enumerate(notes) if "outside the joint states' time span trimmed" in s)
+        assert (spike, trimmed) == (1, 2), notes
 
 
 def test_the_loop_names_no_way() -> None:
@@ -183,24 +208,3 @@ def test_refusals_are_told_apart_by_their_type(recording_of: Callable[[Any], Pat
         pipeline.calibrate(rec, CalibConfig(clock_offset_s=5.0, clouds=False, geometry=False))
     assert isinstance(refused.value, CalibrationError) and "note: the calibration started from" not in str(
         refused.value)
-
-
-def test_notes_keep_their_order_way_first_then_the_scans_then_the_steps(
-        recording_of: Callable[[Any], Path]) -> None:
-    """The notes are returned by the stages and collected in the order they were appended before (issue 45): the
-    plane way's own note first, then the orchestrator's on the scans (a spike dropped, scans beyond the joint states
-    trimmed), then the way's steps'. (room_box in one quick pass, as tests/test_targetless.py's CLI test.)"""
-    data = yaml.safe_load((SCENARIOS / "room_box.yaml").read_text())
-    rec = read_recording(recording_of(parse_scenario(with_changes(data, QUICK), "room_box")), require_distances=False)
-    n = rec.joints.stamps_s.size
-    positions = rec.joints.positions_rad.copy()
-    positions[n // 3] += 0.5  # one encoder spike
-    keep = slice(0, int(0.9 * n))  # the last tenth of the joint states missing: the scans beyond them trimmed
-    rec = replace(rec, joints=JointStates(stamps_s=rec.joints.stamps_s[keep], positions_rad=positions[keep],
-                                          name=rec.joints.name))
-    result = pipeline.calibrate(rec, CalibConfig(targetless=True, force=True, clouds=False, geometry=False))
-    notes = list(result.notes)
-    assert notes[:1] == list(PlaneWay.NOTES), notes
-    spike = next(i for i, s in enumerate(notes) if "jump away from their neighbours dropped" in s)
-    trimmed = next(i for i, s in enumerate(notes) if "outside the joint states' time span trimmed" in s)
-    assert (spike, trimmed) == (1, 2), notes

@@ -34,6 +34,7 @@ _EXPORTS: dict[str, str] = {
     # calibrating
     "calibrate": "lrfcal.pipeline",
     "STAGES": "lrfcal.pipeline",
+    "Observer": "lrfcal.result",
     "CalibConfig": "lrfcal.config",
     "DEFAULT_RANGE_SIGMA_M": "lrfcal.config",
     "calibrate_folder": "lrfcal.commands.calibrate",
@@ -99,8 +100,8 @@ _EXPORTS: dict[str, str] = {
 
 __all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "Command", "DEFAULT_RANGE_SIGMA_M", "DH",
            "InputError", "JointStates", "LIMITS", "LrfError", "MarkerEvidence", "Observability", "Observations",
-           "OnPlanes", "PARAM_NAMES", "Params", "PlaneEvidence", "PlaneFit", "PlaneMarkers", "Pose", "QuietOpt",
-           "Recording", "ReturnGrid", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface",
+           "Observer", "OnPlanes", "PARAM_NAMES", "Params", "PlaneEvidence", "PlaneFit", "PlaneMarkers", "Pose",
+           "QuietOpt", "Recording", "ReturnGrid", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface",
            "SurfaceReturns", "SurfaceSelection", "TunnelGeometry", "Verdict", "analyse", "apply_memory_policy",
            "apply_thread_policy", "calibrate", "calibrate_folder", "call_with_thread_policy", "cores",
            "correlation_error_at", "detect", "estimated", "finite_between", "information_at", "keep_freed_memory",
@@ -142,7 +143,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.model.kinematics import DH, PARAM_NAMES, Params, Pose
     from lrfcal.pipeline import STAGES, calibrate
     from lrfcal.report.summary import print_summary
-    from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence, PlaneFit
+    from lrfcal.result import CalibrationResult, MarkerEvidence, Observer, PlaneEvidence, PlaneFit
     from lrfcal.runtime.forked import cores
     from lrfcal.runtime.memory import apply_memory_policy, keep_freed_memory
     from lrfcal.runtime.threads import apply_thread_policy, call_with_thread_policy, one_blas_thread
