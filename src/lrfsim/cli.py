@@ -158,6 +158,9 @@ def plan(
              "the UTM-30LX-EW]")] = None,
     markers_only: Annotated[bool, typer.Option(
         "--markers-only", help="Predict from the marker returns alone (without the surface returns).")] = False,
+    false_alarm: Annotated[float, typer.Option(
+        "--false-alarm", metavar="P", callback=finite_between(1e-6, 0.49, ""),
+        help="The false-alarm rate of `lrfcal check` for the smallest drift it detects.")] = 0.05,
     quiet: QuietOpt = False,
 ) -> None:
     """Predict the accuracy of a layout and sweep before building it.
@@ -165,7 +168,9 @@ def plan(
     Casts the scenario's rays once without noise and inverts the Fisher information of the calibration's own
     observation model at the true parameters: the predicted 1-sigma of x, y, z, rx, ry, rz (rotation vector in
     frame M), a, alpha, b, beta and the clock offset (when the sweep goes both ways), the weakest direction and
-    what would strengthen it, and whether the scenario's tolerances are reachable (>= 4 predicted sigma).
+    what would strengthen it, whether the scenario's tolerances are reachable (>= 4 predicted sigma), and, for
+    SCENARIO as the new recording of `lrfcal check` against a calibration of the same layout, the smallest drift of
+    each tested parameter the check detects with 95 % probability at --false-alarm.
 
     Exit code 3 when the DH parameters are not determined (the calibration would refuse).
     """
@@ -188,9 +193,13 @@ def plan(
         result = make_plan(sc, range_sigma_m=range_sigma, surfaces=not markers_only, geometry=geometry)
         result = replace(result, seconds=time.perf_counter() - t0)  # the cast's time too
     if as_json:
-        print(json.dumps(result.to_json(), indent=2))
+        data = result.to_json()
+        data["check_detects_95"] = {n: (v if v != float("inf") else None)
+                                    for n, v in result.check_detects(false_alarm).items()}
+        data["check_false_alarm"] = false_alarm
+        print(json.dumps(data, indent=2))
     else:
-        print(format_plan(result))
+        print(format_plan(result, false_alarm))
     if not result.determined:
         print(f"error: {result.scenario}: the DH parameters are not determined ({result.weakest}); "
               f"{result.observability.hint()}", file=sys.stderr)

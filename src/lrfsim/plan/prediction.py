@@ -46,6 +46,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal import (
+    DEFAULT_FALSE_ALARM,
     DEFAULT_RANGE_SIGMA_M,
     LIMITS,
     SCALE_Z_LIMIT,
@@ -63,6 +64,7 @@ from lrfcal import (
     Verdict,
     analyse,
     correlation_error_at,
+    detectable_drift,
     estimated,
     information_at,
     map_covariance,
@@ -154,6 +156,23 @@ class Plan:
     #: whether the rig file's nominal tells the rig from its mirror image (lrfcal's mirror check on the true DH and
     #: the sigma predicted here), and the words; None: not judged
     mirror: tuple[bool, str] | None = None
+    #: the names of ``covariance``'s rows: ``names`` and, with the surface returns, the range offset and the marker
+    #: range bias after them (the calibration estimates both; () : ``names``)
+    covariance_names: tuple[str, ...] = ()
+
+    def check_detects(self, false_alarm: float = DEFAULT_FALSE_ALARM, power: float = 0.95) -> dict[str, float]:
+        """For this scenario used as `lrfcal check`'s new recording against a calibration of the same layout and sweep
+        (whose covariance is then this one too: C = 2 x the predicted covariance over the parameters the check
+        tests, the DH, the clock offset and the intrinsics estimated), the smallest drift of each tested parameter
+        alone that the check's joint test detects with probability ``power`` at ``false_alarm``
+        (lrfcal.estimate.drift.detectable_drift); inf where the DH are not determined."""
+        names = self.covariance_names or self.names
+        tested = [n for n in names if n not in ESTIMATE_NAMES[:6]]
+        if not self.determined:
+            return {n: math.inf for n in tested}
+        i = [names.index(n) for n in tested]
+        delta = detectable_drift(2.0 * self.covariance[np.ix_(i, i)], false_alarm, power)
+        return {n: float(v) for n, v in zip(tested, delta, strict=True)}
 
     @property
     def final_observability(self) -> Observability:
@@ -216,10 +235,13 @@ class Plan:
             "information": self.information_source,
             "seconds": self.seconds,
             "notes": list(self.notes),
+            "check_detects_95": {n: num(v) for n, v in self.check_detects().items()},
         }
 
 
 def _unit(name: str) -> str:
+    if name in BY_NAME and BY_NAME[name].kind == "intrinsic":
+        return BY_NAME[name].unit
     if name in ("x", "y", "z", "a", "b"):
         return "m"
     return "s" if name == "clock_offset" else "rad"
@@ -358,7 +380,8 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 model_sigma=model_sigma,
                 map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base),
                 range_correlation=float(scenario.sensor.noise_correlation),
-                mirror=_mirror(params.dh, scenario, config, np.array([sigma[n] for n in DH_NAMES])))
+                mirror=_mirror(params.dh, scenario, config, np.array([sigma[n] for n in DH_NAMES])),
+                covariance_names=base if len(base) == cov.shape[0] else names)
 
 
 def _mirror(truth: DH, scenario: Scenario, config: CalibConfig, dh_sigma: FloatArray) -> tuple[bool, str]:
@@ -474,11 +497,14 @@ def format_value(name: str, value: float) -> str:
         return f"{value * 1000:.3g} mm"
     if unit == "s":
         return f"{value * 1000:.3g} ms"
+    if unit == "1":
+        return f"{value * 1e6:.3g} ppm"
     return f"{math.degrees(value):.3g} deg"
 
 
-def format_plan(p: Plan) -> str:
-    """The plan as text: the sigma table, the weakest direction, what would strengthen it, the tolerances."""
+def format_plan(p: Plan, false_alarm: float = DEFAULT_FALSE_ALARM) -> str:
+    """The plan as text: the sigma table, the weakest direction, what would strengthen it, the tolerances, the
+    smallest drift `lrfcal check` detects (:meth:`Plan.check_detects` at ``false_alarm``)."""
     lines = [f"plan {p.scenario}: {p.n_returns} marker returns on {p.n_markers_seen}/{p.n_markers} markers, "
              f"{p.n_surface_returns} surface returns, range noise {p.range_sigma_m * 1000:g} mm"
              + (f", correlated {p.range_correlation:g} between neighbouring beams" if p.range_correlation else ""),
@@ -510,6 +536,11 @@ def format_plan(p: Plan) -> str:
                      "sigma): the smallest error found, at least")
         lines.extend(f"  {n:<12} 1-sigma {v:.2g}: {100 * SCALE_Z_LIMIT * v:.2g} % or more" for n, v in
                      p.scale_sigma.items())
+    detects = p.check_detects(false_alarm)
+    lines.append(f"lrfcal check with this recording against a calibration of the same layout: the smallest drift of "
+                 f"each parameter alone it detects with 95 % probability at a false-alarm rate of "
+                 f"{100 * false_alarm:g} % ({len(detects)} parameters tested):")
+    lines.append("  " + ", ".join(f"{n} {format_value(n, v)}" for n, v in detects.items()))
     lines.extend(f"note: {n}" for n in p.notes)
     lines.append(f"({p.seconds:.1f} s)")
     return "\n".join(lines)
