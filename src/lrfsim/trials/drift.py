@@ -286,13 +286,15 @@ def drift_summary(s: DriftStudy) -> list[dict[str, object]]:
 def summary_markdown(s: DriftStudy) -> str:
     """summary.md of a drift study: one row per drift."""
     lines = [f"# Drift study of {s.name}", "",
-             f"{len(s.rows) // max(len(s.drifts), 1)} pairs per drift ({s.workers} worker{'s' if s.workers > 1 else ''}, "
-             f"{s.seconds:.0f} s); `lrfcal check` at a false-alarm rate of {100 * s.false_alarm:g} %"
+             f"{len(s.rows) // max(len(s.drifts), 1)} pairs per drift ({s.workers} "
+             f"worker{'s' if s.workers > 1 else ''}, {s.seconds:.0f} s); `lrfcal check` at a false-alarm rate of "
+             f"{100 * s.false_alarm:g} %"
              + (" with --fixed-mount" if s.fixed_mount else "") + ". Pair k: a recording (seed s0 + 2k) calibrated, "
              "a second one (seed s0 + 2k + 1) of the rig changed by the drift checked against it. Rate: pairs "
              "called drifted of those checked, with its 95 % Clopper-Pearson interval (with no drift: the false-alarm "
              "rate).", "",
-             "| drift | checked | called drifted | rate | 95 % interval | named first right | refused (first / check) |",
+             "| drift | checked | called drifted | rate | 95 % interval | named first right "
+             "| refused (first / check) |",
              "|---|---|---|---|---|---|---|"]
     for r in drift_summary(s):
         lo, hi = r["interval"]  # type: ignore[misc]
