@@ -286,11 +286,17 @@ def check_recording(calibration: str | Path, recording: str | Path, *, bag: Path
 
     Raises:
         InputError: not a calibration, a calibration of another scanner, a recording the rig file does not read.
-        CalibrationError: the new recording does not calibrate, or determines nothing the check can test.
+        CalibrationError: the saved calibration failed its checks (written with --force), the new recording does not
+            calibrate, or determines nothing the check can test.
     """
     t0 = time.perf_counter()
     false_alarm = check_rate(false_alarm)
     saved = read_saved(calibration)
+    if saved.failed_checks:
+        raise CalibrationError(f"check: {saved.path} was written with --force although its checks "
+                               f"{', '.join(saved.failed_checks)} failed: its values and sigmas are not trusted, so "
+                               "no change from them can be tested; calibrate a recording of the rig that passes its "
+                               "checks and check against that")
     rec, is_targetless, notes = _read(saved, Path(recording), bag=bag, distances=distances, nominal=nominal,
                                       targetless=targetless, warn=warn)
     notes += _same_scanner(saved, rec)

@@ -51,6 +51,8 @@ class SavedCalibration:
     scanner: dict[str, Any] | None
     config: dict[str, Any]
     notes: tuple[str, ...] = field(default=())
+    #: the names of the checks it failed and was written anyway (--force): its values and sigmas are not trusted
+    failed_checks: tuple[str, ...] = field(default=())
 
     @property
     def dh(self) -> DH:
@@ -151,7 +153,9 @@ def read_saved(path: str | Path) -> SavedCalibration:
     rig = parse_rig(data["rig"], f"{file}: rig") if data.get("rig") is not None else None
     scanner = data.get("scanner") if isinstance(data.get("scanner"), dict) else None
     config: dict[str, Any] = data["config"] if isinstance(data.get("config"), dict) else {}
-    return SavedCalibration(file, method, values, names, cov, held, mount, rig, scanner, config, notes)
+    failed = tuple(str(c.get("name")) for c in data.get("checks") or () if isinstance(c, dict) and
+                   c.get("passed") is False)
+    return SavedCalibration(file, method, values, names, cov, held, mount, rig, scanner, config, notes, failed)
 
 
 def _covariance(data: dict[str, Any], sigma: dict[str, float | None], file: Path
