@@ -34,12 +34,8 @@ def calibrate_cmd(
         metavar="RECORDING", show_default=False)],
     out: Annotated[Path, typer.Option("-o", "--out", metavar="DIR", show_default=False,
                                       help="Output folder (written atomically; must not overlap an input).")],
-    bag: Annotated[Path | None, typer.Option(
-        metavar="PATH", show_default=False,
-        help="Bag (ROS 1 .bag or ROS 2) or scan log to read  [default: RECORDING/bag]")] = None,
-    distances: Annotated[Path | None, typer.Option(metavar="CSV", show_default=False,
-                                                   help="Tape distances [m]  [default: RECORDING/distances.csv]")
-                         ] = None,
+    bag: BagOpt = None,
+    distances: DistancesOpt = None,
     nominal: Annotated[Path | None, typer.Option(metavar="YAML", show_default=False,
                                                  help="Nominal values  [default: RECORDING/nominal.yaml]")] = None,
     range_sigma: Annotated[float | None, typer.Option(
@@ -120,6 +116,11 @@ def calibrate_cmd(
     console.print(f"wrote {out}", markup=False)
 
 
+BagOpt = Annotated[Path | None, typer.Option(
+    "--bag", metavar="PATH", show_default=False,
+    help="Bag (ROS 1 .bag or ROS 2) or scan log to read  [default: RECORDING/bag]")]
+DistancesOpt = Annotated[Path | None, typer.Option(
+    "--distances", metavar="CSV", show_default=False, help="Tape distances [m]  [default: RECORDING/distances.csv]")]
 ScanTopicOpt = Annotated[str | None, typer.Option(
     "--scan-topic", metavar="TOPIC", show_default=False,
     help="Topic of the scans (rig file scan.topic; default /scan).")]
@@ -189,12 +190,8 @@ def check_cmd(
         "--history", metavar="CSV", show_default=False,
         help="Append this check as one row to CSV (atomically; created when absent; never inside the calibration "
         "folder) and draw each parameter over its rows.")] = None,
-    bag: Annotated[Path | None, typer.Option(
-        metavar="PATH", show_default=False,
-        help="Bag (ROS 1 .bag or ROS 2) or scan log to read  [default: RECORDING/bag]")] = None,
-    distances: Annotated[Path | None, typer.Option(metavar="CSV", show_default=False,
-                                                   help="Tape distances [m]  [default: RECORDING/distances.csv]")
-                         ] = None,
+    bag: BagOpt = None,
+    distances: DistancesOpt = None,
     nominal: Annotated[Path | None, typer.Option(
         metavar="YAML", show_default=False,
         help="A rig file saying where this recording keeps its scans and servo angle (its DH are not used)  "
