@@ -200,9 +200,9 @@ def plan(
         print(json.dumps(data, indent=2))
     else:
         print(format_plan(result, false_alarm))
-    if not result.determined:
-        print(f"error: {result.scenario}: the DH parameters are not determined ({result.weakest}); "
-              f"{result.observability.hint()}", file=sys.stderr)
+    if not result.determined:  # calibrate's rule (lrfcal.estimate.observability.Verdict), its reason
+        why = result.verdict.reason() or "a DH parameter has no finite sigma"
+        print(f"error: {result.scenario}: the calibration would refuse: {why}", file=sys.stderr)
         raise typer.Exit(3)
 
 
