@@ -187,8 +187,8 @@ def plan(
         t0 = time.perf_counter()
         # the prediction's modules (scipy, lrfcal's estimate) are imported while a forked helper casts
         geometry = sparse_geometry(sc, meanwhile=_import_prediction)
-        from .plan.prediction import format_plan
         from .plan.prediction import plan as make_plan
+        from .plan.text import format_plan
 
         result = make_plan(sc, range_sigma_m=range_sigma, surfaces=not markers_only, geometry=geometry)
         result = replace(result, seconds=time.perf_counter() - t0)  # the cast's time too
