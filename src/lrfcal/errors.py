@@ -6,10 +6,15 @@ name the file, the field and the offending value. Exit codes (the same for every
 * 0: done (calibrated);
 * 2: bad input (:class:`InputError`): a file, field or option is wrong, and the message says how;
 * 3: the data do not support a trustworthy result (:class:`CalibrationError`): the calibration was refused,
-  and the message names the check that failed and its numbers.
+  and the message names the check that failed and its numbers;
+* 4: ``lrfcal check`` only: the rig drifted (:data:`EXIT_DRIFTED`): the new recording's calibration differs from the
+  saved one beyond its noise; not an error (the check's outputs are written), a verdict.
 """
 
 from __future__ import annotations
+
+#: the exit code of `lrfcal check` when the rig drifted (a verdict, not an error: its outputs are written)
+EXIT_DRIFTED = 4
 
 
 class LrfError(Exception):
@@ -35,3 +40,8 @@ class ClockOffsetError(CalibrationError):
     """A refusal over the clock offset itself: no scan lies within the joint states' time span at it, or its start
     (``--clock-offset``) lies beyond what the recording allows or far from where the sweep's two directions line up.
     Its message names the clock offset, so no further hint about the offset is added to it (lrfcal.pipeline)."""
+
+
+class ClockStartError(ClockOffsetError):
+    """The clock offset's start (``--clock-offset``, or a saved calibration's) refused: beyond what the recording
+    allows, or far from where the sweep's two directions line up (lrfcal.pipeline); a start of 0 may calibrate."""

@@ -16,6 +16,7 @@ Array shapes as in lrfcal.types: K marker returns, P planes.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -146,12 +147,17 @@ class Matched:
 
 
 class Observer:
-    """What a calibration tells whoever runs it while it goes on (lrfcal.pipeline.calibrate's ``observer``): each
-    event does nothing here; a command's subclass shows the progress and draws the report's figures meanwhile
-    (lrfcal.commands.calibrate). The method does not wait for it nor read anything back."""
+    """What a calibration tells whoever runs it while it goes on (lrfcal.pipeline.calibrate's ``observer``): here
+    the stages to ``progress`` (None: nothing), and nothing else; a command's subclass also draws the report's figures
+    meanwhile (lrfcal.commands.calibrate). The method does not wait for it nor read anything back."""
+
+    def __init__(self, progress: Callable[[str], None] | None = None) -> None:
+        self._progress = progress
 
     def stage(self, name: str) -> None:
-        """The stage ``name`` begins (the way's STAGES, in order)."""
+        """The stage ``name`` begins (the way's STAGES, in order): told to ``progress``."""
+        if self._progress is not None:
+            self._progress(name)
 
     def matched(self, matched: Matched) -> None:
         """The marker way chose its alternative: its blobs matched to the marker map."""

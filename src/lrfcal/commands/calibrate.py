@@ -126,13 +126,9 @@ class _Drawer(Observer):
     (:meth:`the_rest`: targetless's flatness). The child has the scans already (sent by reference)."""
 
     def __init__(self, ahead: Ahead | None, folder: Path, truth: Any, progress: Callable[[str], None] | None) -> None:
-        self._ahead, self._folder, self._truth, self._progress = ahead, folder, truth, progress
+        super().__init__(progress)
+        self._ahead, self._folder, self._truth = ahead, folder, truth
         self._sent: list[str] = []  # the figures sent so far ("rest": all the others)
-
-    def stage(self, name: str) -> None:
-        """A calibration stage begins: the progress."""
-        if self._progress is not None:
-            self._progress(name)
 
     def matched(self, matched: Matched) -> None:
         """intensity.png once the association is final."""

@@ -25,7 +25,7 @@ from typing import Protocol, TypedDict, TypeVar
 import numpy as np
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
-from lrfcal.errors import CalibrationError, ClockOffsetError, InputError
+from lrfcal.errors import CalibrationError, ClockOffsetError, ClockStartError, InputError
 from lrfcal.estimate.checks import clock_offset_check, refuse_failed
 from lrfcal.model.kinematics import refuse_placeholder_dh
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
@@ -61,7 +61,7 @@ def calibrate(recording: Recording, config: CalibConfig | None = None, observer:
     except ClockOffsetError as err:  # the refusal names the clock offset: only what the reader left out is added
         if not (left := _left_out_hint(recording)):
             raise
-        raise ClockOffsetError(f"{err}; {left}") from None
+        raise type(err)(f"{err}; {left}") from None
     except CalibrationError as err:
         hint = "; ".join(h for h in (_trimmed_hint(recording, config.clock_offset_s) or _start_hint(
             config.clock_offset_s), _left_out_hint(recording)) if h)
@@ -162,12 +162,12 @@ def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float,
     (lrfcal.stages.timing.clock_offset_bound).
 
     Raises:
-        ClockOffsetError: the start ``tau0`` (``--clock-offset``) lies beyond it, or (a start other than 0) too far
+        ClockStartError: the start ``tau0`` (``--clock-offset``) lies beyond it, or (a start other than 0) too far
             from where the sweep's two directions line up (lrfcal.stages.clocksearch): the solve would settle near it.
     """
     bound, shortest = timing.clock_offset_bound(joints)
     if abs(tau0) > bound:
-        raise ClockOffsetError(
+        raise ClockStartError(
             f"{CLOCK_START} {tau0:+g} s is beyond the +-{bound * 1000:.0f} ms a calibration of this recording starts "
             f"from (the smaller of {MAX_CLOCK_OFFSET_S:g} s, beyond which the laser's and the servo's clocks differ "
             "rather than lag and the bag reader applies the offset from the receive times, and "
@@ -178,7 +178,7 @@ def _clock_start(scans: Scans, joints: JointStates, tau0: float) -> tuple[float,
     found = line_up(scans, joints, bound, tau0) if tau0 != 0.0 else None
     if found is not None and found.refutes(tau0):
         ms, deg = 1000.0, math.degrees(found.start_error_rad(tau0))
-        raise ClockOffsetError(
+        raise ClockStartError(
             f"{CLOCK_START} {tau0:+g} s: the sweep's two directions see the same scene at {found.offset_s * ms:+.0f} "
             f"ms (searched over +-{bound * ms:.0f} ms; their ranges differ by {found.mismatch_m * ms:.1f} mm there, "
             f"{found.start_mismatch_m * ms:.1f} mm at the start), {deg:.1f} deg of motor angle from the start, "
