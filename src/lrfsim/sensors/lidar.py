@@ -51,8 +51,9 @@ Noise (``noise: true``): I <- I * max(0, 1 + relative_noise * z), then I is roun
 clipped at ``saturation_counts``; I < ``min_detectable_counts`` -> no return. Range: r <- r + sigma(r) z with
 sigma from the first ``noise_bands`` entry with r <= up_to_m (the last band beyond), then quantised to
 ``quantisation_m`` (1 mm; 0 = exact); with ``noise_range_fraction`` k > 0, sigma(r) = max(band sigma, k r) (noise
-proportional to the range, as the URG-04LX datasheet's 1 % of range beyond 1 m). Ranges outside [range_min, range_max] -> no return. No return is NaN
-(urg_node) or +inf (``no_return: inf``). ``noise: false`` skips both random terms only.
+proportional to the range, as the URG-04LX datasheet's 1 % of range beyond 1 m). Ranges outside [range_min,
+range_max] -> no return. No return is NaN (urg_node) or +inf (``no_return: inf``). ``noise: false`` skips both
+random terms only.
 
 Systematic errors (``sensor.systematic``, all off by default; docs/sensor_errors.md). Incidence: every sub-ray's
 range gets k_theta * theta_f (theta_f = arccos|n.d| its incidence angle) before the mixture (the received power
@@ -63,8 +64,8 @@ still uses the true range). Then, before noise, every return (beam or echo) gets
 
 I the return's noise-free intensity (the mean received power above), t the beam's true time from the start of the
 sweep, t_on the time from power-on to that start, i the beam's index in its scan (a wiggle along the scan, the same
-in every scan) and r the return's noise-free range (a cyclic error). Every term is skipped when its coefficient is 0, so the
-defaults reproduce the ranges without the model bit for bit.
+in every scan) and r the return's noise-free range (a cyclic error). Every term is skipped when its coefficient is
+0, so the defaults reproduce the ranges without the model bit for bit.
 
 Multi-echo (``sensor.echoes.enabled``). Per beam the hit sub-rays are sorted by (biased) range; a gap wider than
 ``separation_m`` starts a new echo; echo e's range is the power-weighted mean of its group, its intensity the

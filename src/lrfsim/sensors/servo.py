@@ -254,8 +254,8 @@ def servo_trajectory(servo: ServoConfig) -> Trajectory:
 
 def covered_angles_rad(servo: ServoConfig) -> tuple[float, float]:
     """(lo, hi), lo < hi: the motor angles [rad] the trajectory passes through (unwrapped): a sweep's (or step and
-    scan's) start and end, sorted; a spin's start_rad and where it stops (hi - lo = 2 pi revolutions, more than a turn when it
-    turns more than once)."""
+    scan's) start and end, sorted; a spin's start_rad and where it stops (hi - lo = 2 pi revolutions, more than a
+    turn when it turns more than once)."""
     end = _spin_stop_rad(servo) if servo.mode == "spin" else servo.end_rad
     return min(servo.start_rad, end), max(servo.start_rad, end)
 
