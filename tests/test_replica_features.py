@@ -180,18 +180,18 @@ def test_wiggles_along_the_scan_and_in_range() -> None:
     ranges = np.array([[0.3, 1.0, 2.55] + [1.0] * (sensor.n_beams - 3)] * 2)
     bias = lidar.systematic_bias_m(np.full(ranges.shape, 500.0), sensor, ranges_m=ranges)
     i = np.arange(sensor.n_beams)
-    expect = 0.0013 * np.sin(2 * np.pi * i / 58.0) + 0.002 * np.sin(2 * np.pi * ranges / 0.4)
+    expect = 0.0012 * np.sin(2 * np.pi * i / 61.0) + 0.002 * np.sin(2 * np.pi * ranges / 0.4)
     np.testing.assert_allclose(bias, expect, atol=1e-15)
     truth = systematic_truth(sensor)
-    assert truth == {"beam_wiggle_m": 0.0013, "range_wiggle_m": 0.002, "beam_wiggle_period_beams": 58.0,
+    assert truth == {"beam_wiggle_m": 0.0012, "range_wiggle_m": 0.002, "beam_wiggle_period_beams": 61.0,
                      "range_wiggle_period_m": 0.4}
     # in a simulation, noise-free: each beam's range off the exact one by its wiggle, the same in every scan
-    sc = _room(**{**EXACT, "sensor.systematic.beam_wiggle_m": 0.0013})
+    sc = _room(**{**EXACT, "sensor.systematic.beam_wiggle_m": 0.0012})
     exact = simulate(_room(**EXACT))
     wiggled = simulate(sc)
     both = np.isfinite(exact.ranges_m) & np.isfinite(wiggled.ranges_m)
     diff = np.where(both, wiggled.ranges_m - exact.ranges_m, np.nan)
-    np.testing.assert_allclose(diff[both], np.broadcast_to(0.0013 * np.sin(2 * np.pi * i / 58.0), diff.shape)[both],
+    np.testing.assert_allclose(diff[both], np.broadcast_to(0.0012 * np.sin(2 * np.pi * i / 61.0), diff.shape)[both],
                                atol=1e-12)
     off = _room(**EXACT).sensor
     assert lidar.systematic_bias_m(np.full((2, 3), 500.0), off, ranges_m=np.ones((2, 3))) is None

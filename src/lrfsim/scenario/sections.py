@@ -138,8 +138,8 @@ class SystematicConfig(Section):
     beam_wiggle_m: Annotated[float, doc(
         "amplitude of a range bias that wiggles along the scan, the same in every scan: a sine of the beam index "
         "(on the real URG-04LX box recording, the facing wall's residual averaged per beam over 1599 scans wiggles "
-        "with about 1.3 mm at a period of about 58 beams, docs/real-data.md; 0 = off) [m]", ge=-0.1, le=0.1)] = 0.0
-    beam_wiggle_period_beams: Annotated[float, doc("period of that wiggle, in beams [1]", gt=0, le=100000)] = 58.0
+        "with about 1.2 mm at a period of about 61 beams, docs/real-data.md; 0 = off) [m]", ge=-0.1, le=0.1)] = 0.0
+    beam_wiggle_period_beams: Annotated[float, doc("period of that wiggle, in beams [1]", gt=0, le=100000)] = 61.0
     range_wiggle_m: Annotated[float, doc(
         "amplitude of a range bias periodic in the range, a sine of the noise-free range (the cyclic error of a "
         "phase-shift rangefinder such as the URG-04LX; 0 = off, value assumed) [m]", ge=-0.1, le=0.1)] = 0.0
