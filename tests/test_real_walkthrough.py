@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 BAGS = ("cardboard_box", "room_240")
 DH = ("a", "alpha", "b", "beta")
 #: the checks a targetless refusal can name first
-CHECKS = ("clock offset", "rounds settled", "starts agree", "convergence", "mirror image", "observability",
+CHECKS = ("clock offset", "starts agree", "convergence", "mirror image", "observability",
           "reduced chi-square", "second opinion", "held-out planes")
 N_SIGMA = 4.0
 
@@ -92,13 +92,13 @@ def test_calibrate_with_its_rig_file_agrees_with_the_other_starts_or_is_refused(
         first = line.removeprefix("error: ").split(":")[0]
         assert first in CHECKS, line
         if first == "starts agree":
-            assert "disagree on" in line and any(n in line.split("disagree on")[1] for n in DH), line
+            assert "do not determine" in line and any(n in line.split("do not determine")[1] for n in DH), line
         assert not out.exists(), "a refusal writes nothing"
         return
     assert "Traceback" not in calib.stderr and calib.returncode == 0, calib.stderr
     report = (out / "report.md").read_text()
     row = next(r for r in report.splitlines() if r.startswith("| starts agree |"))
-    assert "| passed |" in row and "converge to the result within 1 sigma" in row, row
+    assert "| passed |" in row and ("converge to the estimate within 1 sigma" in row or "worse" in row), row
     ours = _estimate(yaml.safe_load((out / "calibration.yaml").read_text()))
     assert ours, "a result estimates at least one DH parameter"
     # the other start the user might have used: the authors' nominal (forced: only its estimate is compared); the

@@ -13,6 +13,7 @@ import shutil
 import subprocess
 import sys
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +26,8 @@ from lrfcal.estimate.checks import refuse_failed
 from lrfcal.io.recording import read_recording
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.result import CalibrationResult, PlaneEvidence
-from lrfcal.stages.planes import segment_planes, squareness_deg
-from lrfcal.stages.targetless import MAX_ROUNDS, SEGMENT_SAMPLES
+from lrfcal.stages.planes import segment_planes
+from lrfcal.stages.targetless import SEGMENT_SAMPLES
 from lrfsim.scenario.file import parse_scenario, with_changes
 from lrfsim.simulation.recording import write_recording
 from lrfsim.simulation.simulate import simulate
@@ -120,10 +121,11 @@ def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, Calibratio
     assert not np.any(result.evidence.returns.scan % HOLDOUT_EVERY == HOLDOUT_EVERY - 1)
     held = next(c for c in result.checks if c.name == "held-out planes")
     assert held.passed and "left out of the fit" in held.detail
-    # the coarse rounds settled, then one round on every sampled return (more returns than the coarse rounds')
-    settle = next(c for c in result.checks if c.name == "rounds settled")
-    assert "moved by less than a tenth of a sigma" in settle.detail
-    assert len(result.evidence.returns) > SEGMENT_SAMPLES and 3 <= fit.rounds < MAX_ROUNDS + 1
+    # the planes segmented once, at the rig file's DH, labelled every sampled return (more than the segmentation's
+    # sample); the other starts the data allow end in the same minimum
+    assert len(result.evidence.returns) > SEGMENT_SAMPLES and fit.start == "the rig file's DH"
+    agree = next(c for c in result.checks if c.name == "starts agree")
+    assert agree.passed and "rounds" not in agree.detail
 
 
 def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(shipped_recording: Callable[[str], Path]
@@ -243,33 +245,48 @@ def real_box(urg_from_the_authors_nominal: Callable[[str], CalibrationResult]) -
     return urg_from_the_authors_nominal("cardboard_box")
 
 
-def test_real_urg04lx_box_is_refused_because_its_rounds_do_not_settle(real_box: CalibrationResult) -> None:
-    """The real URG-04LX in its cardboard box (liangfok/tilting_lidar_scanner, bags/cardboard_box.bag). No truth
-    exists. Its segment-and-solve rounds swing between two states: beta about 1.6 and 2.7-4.2 deg, alpha 89.6-89.8
-    deg (measured, in this version and the last), while the statistical sigma of beta is about 0.5 deg. Which round
-    it stops at decides the answer, so the rounds' difference joins the covariance and the result is refused
-    naming it (exit 3) rather than reported at 0.5 deg. What the result says otherwise: this small box does not
-    determine a and b (once the returns near its edges and corners are left out), held at the nominal value and
-    named without a sigma; the planes are no thicker after than before. The box's corners (mean |90 deg - angle|,
-    printed) are a symptom, not a test: 1.30 deg nominal against 1.87 deg calibrated at one state, 1.65 against 1.46
-    at the other. Estimate and sigma are printed."""
-    fit, sol = real_box.evidence.plane_fit, real_box.solution
-    nominal = real_box.recording.nominal.dh
-    print("real box:", sol.params.dh, "sigma", sol.sigma[6:], "held", fit.held, "checks", real_box.checks)
-    settle = next(c for c in real_box.checks if c.name == "rounds settled")
-    assert not settle.passed, settle
-    with pytest.raises(CalibrationError, match="^rounds settled: .* did not settle .* sigma"):
-        refuse_failed(list(real_box.checks), CalibConfig(targetless=True))
-    assert len(fit.planes) >= 3
-    for n in fit.held:
-        assert not math.isfinite(sol.sigma[6 + DH.index(n)])
-        assert getattr(sol.params.dh, n) == getattr(nominal, n)
-    est = [n for n in DH if n not in fit.held]
-    assert est and all(math.isfinite(sol.sigma[6 + DH.index(n)]) for n in est)
-    assert np.all(fit.rms_after_m <= fit.rms_before_m + 1e-4), (fit.rms_before_m, fit.rms_after_m)
-    sq_b, sq_a = squareness_deg(fit.normals_before), squareness_deg(fit.normals_after)
-    print("corners |90 - angle| [deg] nominal", sq_b, "calibrated", sq_a)
-    assert sq_b.size >= 2 and sq_a.size == sq_b.size and np.all(np.isfinite(sq_a))
+def test_real_urg04lx_box_gives_one_verdict_for_either_half_of_its_scans(real_box: CalibrationResult) -> None:
+    """The real URG-04LX in its cardboard box (liangfok/tilting_lidar_scanner, bags/cardboard_box.bag), no truth, from
+    the authors' nominal: every scan (the session's run), only the even scans and only the odd scans (issue 54). The
+    targetless cost (the planes segmented once, the assignment fixed) gives each the same verdict, naming the same
+    property of the data, never the method's own rounds; the three estimates agree within 2 of their combined sigma
+    on every DH parameter all three estimate. Measured (docs/real-data.md): a -40, -41, -31 mm (+-4.4), alpha 87.0,
+    86.5, 87.4 deg (+-0.37), b 46, 48, 52 mm (+-2.6), beta 5.5, 5.8, 4.9 deg (+-0.4); refused by the held-out planes,
+    0.3-0.6 mm thicker with the calibrated DH than with the nominal."""
+    from lrfcal.stages.timing import subset_scans
+    from lrfcal.types import JointStates
+
+    rec = real_box.recording
+    results = [real_box]
+    for half in (0, 1):
+        keep = np.arange(rec.scans.stamps_s.size) % 2 == half
+        joints = rec.joints
+        if joints.stamps_s.size == keep.size:  # the stand's angle travels with its scan: halved with the scans
+            joints = JointStates(stamps_s=joints.stamps_s[keep], positions_rad=joints.positions_rad[keep],
+                                 name=joints.name)
+        part = replace(rec, scans=subset_scans(rec.scans, keep), joints=joints)
+        results.append(calibrate(part, CalibConfig(targetless=True, force=True, clouds=False, geometry=False)))
+    verdicts = []
+    for r in results:
+        try:
+            refuse_failed(list(r.checks), CalibConfig(targetless=True))
+            verdicts.append("calibrated")
+        except CalibrationError as err:
+            verdicts.append(str(err).split(":")[0])
+        print("real box:", r.solution.params.dh, "sigma", r.solution.sigma[6:], "held", r.evidence.plane_fit.held,
+              "verdict", verdicts[-1])
+    assert len(set(verdicts)) == 1 and "rounds settled" not in verdicts, verdicts
+    est = [n for n in DH if all(n not in r.evidence.plane_fit.held for r in results)]
+    assert est
+    for i, j in ((0, 1), (0, 2), (1, 2)):
+        for n in est:
+            k = DH.index(n)
+            a, b = results[i].solution, results[j].solution
+            d = getattr(a.params.dh, n) - getattr(b.params.dh, n)
+            d = math.remainder(d, 2 * math.pi) if n in ("alpha", "beta") else d
+            assert abs(d) <= 2.0 * math.hypot(a.sigma[6 + k], b.sigma[6 + k]), (n, i, j, d)
+    fit = real_box.evidence.plane_fit
+    assert fit.start == "the rig file's DH" and len(fit.planes) >= 3
 
 
 def test_planes_are_segmented_with_the_intrinsics(shipped_recording: Callable[[str], Path]) -> None:

@@ -2,8 +2,6 @@
 
 - a segmentation's labels on every sampled return (lrfcal.stages.targetless.plane_returns_at) are those of the
   plain vectorised form (the beams' rays in W, the distances to every plane as one product) to the bit;
-- the first round of another start, segmented on the segmentation's sample alone, has the labels, planes and returns
-  that the segmentation of every sampled return gives those returns (lrfcal.stages.targetless._on_sample);
 - a point's nearest neighbour among a subset it belongs to is itself (lrfcal.stages.planes.nearest_of_subset);
 - the segmentation's hypothesis scores (lrfcal.stages.planes._scores, counted per chunk of points and summed once)
   are the inliers counted over all points at once, whatever the number of chunks;
@@ -83,22 +81,6 @@ def test_the_labels_are_those_of_the_plain_vectorised_form(sampled: tuple) -> No
         assert len(found) == len(ref_found)
         assert np.array_equal(labels, ref), (dh, int((labels != ref).sum()))
         assert (labels >= 0).sum() > 1000  # planes were found and labelled: the comparison tests something
-
-
-def test_a_first_round_on_the_sample_alone_labels_it_as_the_segmentation_of_every_return(sampled: tuple) -> None:
-    beams, seg, motor, nominal = sampled
-    coarse = targetless._coarse(beams, seg)
-    assert coarse is not None
-    for dh in _dhs(nominal):
-        start = targetless.first_round(dh, 0.0, CONFIG)
-        full = start.segment(beams, seg, motor, CONFIG)
-        r1, l1, f1 = targetless._on_sample(beams, seg, full[1], full[2], motor, 0.0)
-        r2, l2, f2 = start.segment(*coarse, motor, CONFIG)
-        assert np.array_equal(l1, l2) and len(f1) == len(f2) and (l1 >= 0).any()
-        assert all(np.array_equal(a.normal, b.normal) and a.offset_m == b.offset_m for a, b in zip(f1, f2, strict=True))
-        for name in r1.__dataclass_fields__:
-            a, b = getattr(r1, name), getattr(r2, name)
-            assert (a is None and b is None) or np.array_equal(a, b), name
 
 
 def test_a_point_of_the_subset_is_its_own_nearest_neighbour() -> None:

@@ -43,10 +43,10 @@ if TYPE_CHECKING:  # the stages' own types, named here for the reader and the ty
 
 @dataclass(frozen=True)
 class PlaneFit:
-    """What the targetless calibration found and used: the scene's planes (frame M, at the estimate), each
-    plane's thickness (RMS distance of its returns from their best-fit plane, m) and best-fit normal (P, 3) with the
-    nominal and with the calibrated DH, the parameters held at nominal (with why), and the rounds of
-    re-segmentation run."""
+    """What the targetless calibration found and used: the scene's planes (frame M, as segmented at the rig file's
+    DH), each plane's thickness (RMS distance of its returns from their best-fit plane, m) and best-fit normal (P, 3)
+    with the nominal and with the calibrated DH, the parameters held at nominal (with why), and the start whose
+    minimum of the cost is the estimate ("the rig file's DH", "the DH search's proposal", ...)."""
 
     planes: tuple[ScenePlane, ...]
     rms_before_m: FloatArray
@@ -54,7 +54,7 @@ class PlaneFit:
     n_returns: NDArray[np.int64]
     held: tuple[str, ...]
     held_reason: str
-    rounds: int
+    start: str
     normals_before: FloatArray
     normals_after: FloatArray
 

@@ -32,8 +32,9 @@ from lrfcal.estimate.information import model_residuals
 from lrfcal.estimate.solve import Solver
 from lrfcal.model.kinematics import DH, Params, dh_twins
 from lrfcal.model.marker import MarkerSensor
-from lrfcal.model.motor import Clock
+from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.model.unknowns import dh_difference
+from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
 
 FloatArray = NDArray[np.float64]
@@ -69,16 +70,63 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
                                  f"{np.abs(z).max():.1f} sigma)")
     lr = _cost(alt, matched, markers, fit.sensor, sol) - _cost(sol, matched, markers, fit.sensor, alt)
     lr /= max(1.0, sol.reduced_chi2)
-    ok = lr >= LR_LIMIT
-    both = f"{dh_text(sol.params.dh)} and {dh_text(alt.params.dh)}"
+    ok, words = judge_minima(lr)
     if ok:
-        return Check(NAME, True, f"another minimum ({dh_text(alt.params.dh)}) explains the data worse by "
-                                 f"{lr:.1f} (limit {LR_LIMIT})")
-    what = ("explain the data equally well" if lr > -LR_LIMIT
-            else "the second explains the data better: the solver landed in a local minimum")
-    return Check(NAME, False, f"two distinct rigs, {both}, {what} (likelihood ratio {lr:+.1f}, limit "
-                              f"{LR_LIMIT}); markers spread further along the motor axis tell them apart, or a "
-                              "scan plane further from perpendicular to it")
+        return Check(NAME, True, f"another minimum ({dh_text(alt.params.dh)}) explains the data worse ({words})")
+    both = f"{dh_text(sol.params.dh)} and {dh_text(alt.params.dh)}"
+    return Check(NAME, False, f"two distinct rigs, {both}: {words}; markers spread further along the motor axis tell "
+                              "them apart, or a scan plane further from perpendicular to it")
+
+
+def judge_minima(lr: float) -> tuple[bool, str]:
+    """The one rule for two distinct minima of a calibration's cost: ``lr`` (the other minimum's cost above the
+    estimate's, in the estimate's whitened units, i.e. twice the log-likelihood ratio) must reach :data:`LR_LIMIT`
+    for the estimate to stand (the other a local minimum); below it the two explain the data equally well, and below
+    -LR_LIMIT the other explains them better. Whether it stands, and the verdict in words."""
+    if lr >= LR_LIMIT:
+        return True, f"by a likelihood ratio of {lr:.1f}, limit {LR_LIMIT}"
+    what = ("they explain the data equally well" if lr > -LR_LIMIT
+            else "the other explains the data better: the solve landed in a local minimum")
+    return False, f"{what} (likelihood ratio {lr:+.1f}, limit {LR_LIMIT})"
+
+
+def plane_cost(returns: SurfaceReturns, sol: Solution, motor: MotorClock, sigma_m: float,
+               prior: tuple[FloatArray, FloatArray] | None = None) -> float:
+    """The targetless cost of a minimum ``sol`` on the fixed plane ``returns``, comparable between minima: the
+    returns reprojected in M at its DH, clock offset and intrinsics, each plane fitted afresh (least squares, twice
+    without the returns beyond :data:`CUT_SIGMA` of ``sigma_m`` from it), and the truncated squares
+    sum_k min(e_k, c)^2 / sigma_m^2 of their distances e_k (c = CUT_SIGMA sigma_m: the returns the robust passes
+    leave out count as at the cut), plus the design drawing's prior ((4,) mean and sigma of the DH; the held ones
+    equal in every minimum)."""
+    from lrfcal.model.kinematics import points_M
+    from lrfcal.model.scanner import true_returns
+    from lrfcal.model.unknowns import core_vector
+
+    lam = motor.angle(returns.times_s, sol.clock_offset_s) if returns.times_s is not None else returns.lambda_rad
+    dh = sol.params.dh
+    r, lam_t, mu_t = true_returns(core_vector(dh, sol.intrinsic_values), returns.ranges_m, lam, returns.mu_rad)
+    P = points_M(r, lam_t, mu_t, dh)
+    c = CUT_SIGMA * sigma_m
+    total = 0.0
+    for j in np.unique(returns.surface):
+        Q = P[returns.surface == j]
+        keep = np.ones(len(Q), dtype=bool)
+        for _ in range(3):
+            m = Q[keep].mean(0)
+            n = np.linalg.svd(Q[keep] - m, full_matrices=False)[2][2]
+            e = np.abs((Q - m) @ n)
+            keep = e <= c
+            if keep.sum() < 3:
+                break
+        total += float(np.sum(np.minimum(e, c) ** 2))
+    total /= sigma_m**2
+    if prior is not None:
+        total += float(np.sum((dh_difference(dh.vector(), prior[0]) / prior[1]) ** 2))
+    return total
+
+
+#: the truncated squares' cut of :func:`plane_cost`, in sigma (the robust passes' rejection)
+CUT_SIGMA = 4.0
 
 
 def _dh_z(dh: DH, sol: Solution) -> FloatArray:
@@ -103,4 +151,4 @@ def _cost(sol: Solution, matched: Observations, markers: MarkerMap, sensor: Mark
     return float(res @ res)
 
 
-__all__ = ["LR_LIMIT", "SAME_SIGMA", "other_minimum"]
+__all__ = ["CUT_SIGMA", "LR_LIMIT", "SAME_SIGMA", "judge_minima", "other_minimum", "plane_cost"]

@@ -131,7 +131,10 @@ def _eliminated(N: Normal, damp: float) -> tuple[FloatArray, FloatArray, FloatAr
     if damp:
         idx = np.arange(3)
         D[:, idx, idx] += damp * np.maximum(N.D[:, idx, idx], 1e-300)
-    Dinv = np.linalg.pinv(D, rcond=1e-12) if D.shape[0] else D
+    Dinv = np.zeros_like(D)
+    has = N.D.any(axis=(1, 2))  # a plane without rows (the robust passes left none) has no information: D_j^-1 = 0
+    if has.any():
+        Dinv[has] = np.linalg.pinv(D[has], rcond=1e-12)
     BDi = _times_blocks(N.B, Dinv)  # (c, 3P): B_j D_j^-1 side by side
     S = A - BDi @ N.B.T
     return 0.5 * (S + S.T), BDi @ N.g_n - N.g_c, Dinv, BDi

@@ -18,7 +18,7 @@ from lrfcal.errors import InputError
 from lrfcal.model.marker import MarkerSensor, MarkerSet, centre_jacobian, marker_rows
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.observations import Blocks, DHPrior, ObservationSet, RowContext, stack_blocks
-from lrfcal.model.plane import PlaneSet
+from lrfcal.model.plane import Footing, PlaneSet
 from lrfcal.model.unknowns import N_CORE, plane_nuisance_start
 from lrfcal.stages.surfaces import Surface, SurfaceReturns
 from lrfcal.types import Observations
@@ -236,9 +236,11 @@ def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tup
 
 
 def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorClock | None,
-                  dh_prior: tuple[FloatArray, FloatArray] | None = None) -> tuple[Problem, FloatArray]:
+                  dh_prior: tuple[FloatArray, FloatArray] | None = None, footing: Footing | None = None
+                  ) -> tuple[Problem, FloatArray]:
     """A problem of surface returns only (no marker returns) on free planes (with the design drawing's prior on
-    the DH parameters when given: its mean (4,) and sigma (4,)), and the planes' nuisance start.
+    the DH parameters when given: its mean (4,) and sigma (4,); where a return counts judged at every estimate by
+    ``footing``, lrfcal.model.plane.Footing), and the planes' nuisance start.
 
     Raises:
         InputError: a range noise not above 0, or a clock without the returns' beam times.
@@ -248,6 +250,7 @@ def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorCl
     if clock is not None and surfaces.times_s is None:
         raise InputError("solve: the clock offset needs the surface returns' beam times (times_s)")
     surf, nu0 = plane_set(surfaces, None)
+    surf = replace(surf, footing=footing)
     sets: tuple[ObservationSet, ...] = (surf,) if dh_prior is None else (DHPrior(*dh_prior), surf)
     return Problem(sets, float(range_sigma_m), clock=clock, mount_jac=False), nu0
 

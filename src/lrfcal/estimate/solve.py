@@ -30,7 +30,7 @@ from lrfcal.estimate.problem import OnPlanes, Problem, marker_set, plane_problem
 from lrfcal.model.kinematics import Params
 from lrfcal.model.marker import MarkerModel, MarkerSensor, residuals_3d
 from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock, motor_angles
-from lrfcal.model.plane import plane_rows
+from lrfcal.model.plane import Footing, plane_rows
 from lrfcal.model.scanner import true_bearing, true_range
 from lrfcal.model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack, unpack
 from lrfcal.stages.surfaces import SurfaceReturns
@@ -241,11 +241,14 @@ class PlaneOptions:
     huber_first: with ``robust``, the Huber pass (False: a start that a robust solve of nearly the same returns gave,
         which the 4-sigma rejection alone keeps from stray returns; the same solution to 1e-4 sigma on room_box,
         15 % of its targetless time saved).
+    footing: where a return counts, judged with the 4-sigma rejection at every estimate (lrfcal.model.plane.Footing:
+        the targetless cost's incidence and edge rule; None: every return may).
     """
 
     estimate_range_offset: bool = False
     robust: bool = True
     huber_first: bool = True
+    footing: Footing | None = None
 
 
 #: the targetless defaults: robust, a Huber pass first
@@ -287,7 +290,7 @@ def solve_planes(
     Raises:
         CalibrationError: fewer returns than 10 per unknown.
     """
-    pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior)
+    pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior, options.footing)
     th, R_ref = pack(start, clock_offset_s)
     th = np.concatenate([th, nu0])
     free = plane_free(th.size, hold, clock, options.estimate_range_offset)

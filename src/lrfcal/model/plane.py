@@ -30,13 +30,24 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import exp_so3, right_jacobian_so3
-from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.motor import MotorAngles, MotorClock, motor_angles
 from lrfcal.model.observations import Blocks, RowContext, robust_kept
-from lrfcal.model.scanner import reported_range, true_bearing
+from lrfcal.model.scanner import TrueBearing, reported_range, true_bearing
 from lrfcal.model.unknowns import BSCALE, N_CORE, SCALE
 
 FloatArray = NDArray[np.float64]
 _EYE = np.eye(3)
+
+
+@dataclass(frozen=True)
+class Footing:
+    """Where a plane return counts, judged at every estimate (the targetless cost's rule, lrfcal.stages.targetless):
+    its beam meets its plane at a |cos| of at least ``min_cos`` (a plane seen edge-on reads short: the footprint
+    spreads along it), and its ray meets the plane ``clearance_m`` or farther from every other plane (an edge or a
+    corner mixes two surfaces)."""
+
+    min_cos: float
+    clearance_m: float
 
 
 @dataclass(frozen=True)
@@ -60,6 +71,7 @@ class PlaneSet:
     times: FloatArray | None = None  # (K2,) laser-clock beam times (for the clock offset)
     prior_jacobian: FloatArray | None = None  # (3P, 3n) d prior_mean / d marker coordinates (the map's uncertainty)
     scan: NDArray[np.int64] | None = None  # (K2,) each return's scan (each scan's returns one cluster)
+    footing: Footing | None = None  # where a return counts, judged at every estimate (None: every return may)
 
     def subset(self, m: NDArray[np.bool_]) -> PlaneSet:
         """The returns ``m`` (K2,) (on the same planes); the cos and sin computed so far carried over (elementwise:
@@ -145,9 +157,20 @@ class PlaneSet:
     def kept(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, keep: NDArray[np.bool_]
              ) -> NDArray[np.bool_]:
         """(K2,) the returns whose |whitened residual| is within 4 robust sigma, the scale the median absolute
-        residual of the returns ``keep`` over the normal distribution's (0.674, the MAD), never below 1."""
+        residual of the returns ``keep`` over the normal distribution's (0.674, the MAD), never below 1; with a
+        :class:`Footing` (the targetless cost), each plane's returns by the scale of its own, and only those whose
+        beam meets their plane where it counts at th (:func:`footing`)."""
         rs = np.abs(plane_rows(th, self, ctx.sigma_r, R_ref, jac=False, clock=ctx.clock).res)
-        return robust_kept(rs, keep, 0.674, squared=False)
+        if self.footing is None:
+            return robust_kept(rs, keep, 0.674, squared=False)
+        kept = np.zeros(self.size, dtype=bool)
+        order, bounds = self.segments
+        for j in range(self.n_planes):  # each plane by its own scale: a rougher one is not given up whole
+            rows = order[bounds[j]:bounds[j + 1]]
+            if rows.size and keep[rows].any():
+                kept[rows] = robust_kept(rs[rows], keep[rows], 0.674, squared=False)
+        cos_incidence, clear_m = footing(th, self, R_ref, ctx.clock)
+        return kept & (cos_incidence >= self.footing.min_cos) & (clear_m >= self.footing.clearance_m)
 
     def chosen_at(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> PlaneSet:
         """The same set: every plane return's one residual counts at every estimate (the surface returns chosen
@@ -183,28 +206,10 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     columns 0 (a held mount); ``chart`` (6, 4): what the scan-plane columns are derivatives by (None: the DH
     parameters). Per-plane quantities are gathered to the rows as scalars (K,), and the Jacobian blocks
     are column-major: both keep the work a few passes over (K,) arrays."""
-    P = s.n_planes
-    nu = th[N_CORE:].reshape(P, 3)
-    m = s.n0 + nu[:, :1] * s.t1 + nu[:, 1:2] * s.t2
-    m_norm = np.linalg.norm(m, axis=1, keepdims=True)
-    n_p = m / m_norm  # (P, 3) in W
-    motor = motor_angles(th, s.lam, s.times, clock)
-    lam = motor.lam
-    t = th[:3]
-    a, al, b, be = th[6:10]
-    R = R_ref @ (_EYE if not th[3:6].any() else exp_so3(th[3:6]))  # exp_so3(0) is the identity, bit for bit
-    ca, sa = np.cos(al), np.sin(al)
-    bearing = true_bearing(th, s.mu)
-    cp, sp = _cos_sin_sum(be, bearing.mu, s.trig_mu, th[BSCALE] == 1.0)  # phi = beta + mu_true
-    cl, sl = _cos_sin_sum(0.0, lam, s.trig_lam, clock is None and th[SCALE] == 1.0)
-    pl = s.per_row  # per-plane values (P,) gathered to the rows (K,)
-    nM = n_p @ R  # (P, 3): R^T n per plane
-    gx, gy = pl(nM[:, 0]), pl(nM[:, 1])
-    nx, ny, nz = cl * gx + sl * gy, cl * gy - sl * gx, pl(nM[:, 2])  # n_0 = Rz(-lambda) R^T n
-    oy, oz = -b * sa, b * ca  # o_0 = (a, oy, oz)
-    dy, dz = sp * ca, sp * sa  # dir_0 = (cp, dy, dz)
-    nd = nx * cp + ny * dy + nz * dz
-    rp = (pl(nu[:, 2] - n_p @ t) - (nx * a + ny * oy + nz * oz)) / nd
+    g = _rays_on_planes(th, s, R_ref, clock)
+    n_p, m_norm, motor, t, R, pl = g.n_p, g.m_norm, g.motor, g.t, g.R, s.per_row
+    a, b, ca, sa, cp, sp, cl, sl = g.a, g.b, g.ca, g.sa, g.cp, g.sp, g.cl, g.sl
+    nx, ny, nz, oy, oz, dy, dz, nd, rp, bearing = g.nx, g.ny, g.nz, g.oy, g.oz, g.dy, g.dz, g.nd, g.rp, g.bearing
     rep = reported_range(th, rp, on_marker=False)
     res = (s.r - rep.r) / sigma_r
     if not jac:
@@ -250,6 +255,86 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     Jn[:, 2] = q
     return PlaneRows(res, Jc, Jn)
 
+
+
+@dataclass(frozen=True)
+class _RaysOnPlanes:
+    """Every plane return's ray and its own plane at th, in the frame before the motor's turn (L0; module
+    docstring): the planes' unit normals n_p (P, 3) in W and their norms before normalising (P, 1), the motor angles,
+    the mount (t (3,), R (3, 3)), the DH's a, b and cos/sin of alpha, the rows' cos/sin of phi and lambda, n_0 =
+    (nx, ny, nz), o_0 = (a, oy, oz), dir_0 = (cp, dy, dz), nd = n_0 . dir_0 and the ray-plane range r_p (all (K,)),
+    and the bearing."""
+
+    n_p: FloatArray
+    m_norm: FloatArray
+    motor: MotorAngles
+    t: FloatArray
+    R: FloatArray
+    a: float
+    b: float
+    ca: float
+    sa: float
+    cp: FloatArray
+    sp: FloatArray
+    cl: FloatArray
+    sl: FloatArray
+    nx: FloatArray
+    ny: FloatArray
+    nz: FloatArray
+    oy: float
+    oz: float
+    dy: FloatArray
+    dz: FloatArray
+    nd: FloatArray
+    rp: FloatArray
+    bearing: TrueBearing
+
+
+def _rays_on_planes(th: FloatArray, s: PlaneSet, R_ref: FloatArray, clock: MotorClock | None) -> _RaysOnPlanes:
+    """:class:`_RaysOnPlanes` at th (what :func:`plane_rows` and :func:`footing` share)."""
+    P = s.n_planes
+    nu = th[N_CORE:].reshape(P, 3)
+    m = s.n0 + nu[:, :1] * s.t1 + nu[:, 1:2] * s.t2
+    m_norm = np.linalg.norm(m, axis=1, keepdims=True)
+    n_p = m / m_norm  # (P, 3) in W
+    motor = motor_angles(th, s.lam, s.times, clock)
+    lam = motor.lam
+    t = th[:3]
+    a, al, b, be = th[6:10]
+    R = R_ref @ (_EYE if not th[3:6].any() else exp_so3(th[3:6]))  # exp_so3(0) is the identity, bit for bit
+    ca, sa = np.cos(al), np.sin(al)
+    bearing = true_bearing(th, s.mu)
+    cp, sp = _cos_sin_sum(be, bearing.mu, s.trig_mu, th[BSCALE] == 1.0)  # phi = beta + mu_true
+    cl, sl = _cos_sin_sum(0.0, lam, s.trig_lam, clock is None and th[SCALE] == 1.0)
+    pl = s.per_row  # per-plane values (P,) gathered to the rows (K,)
+    nM = n_p @ R  # (P, 3): R^T n per plane
+    gx, gy = pl(nM[:, 0]), pl(nM[:, 1])
+    nx, ny, nz = cl * gx + sl * gy, cl * gy - sl * gx, pl(nM[:, 2])  # n_0 = Rz(-lambda) R^T n
+    oy, oz = -b * sa, b * ca  # o_0 = (a, oy, oz)
+    dy, dz = sp * ca, sp * sa  # dir_0 = (cp, dy, dz)
+    nd = nx * cp + ny * dy + nz * dz
+    rp = (pl(nu[:, 2] - n_p @ t) - (nx * a + ny * oy + nz * oz)) / nd
+    return _RaysOnPlanes(n_p, m_norm, motor, t, R, a, b, ca, sa, cp, sp, cl, sl, nx, ny, nz, oy, oz, dy, dz, nd, rp,
+                         bearing)
+
+
+def footing(th: FloatArray, s: PlaneSet, R_ref: FloatArray, clock: MotorClock | None = None
+            ) -> tuple[FloatArray, FloatArray]:
+    """Where each plane return's beam meets its own plane at th: |cos| of the angle between beam and normal (K,),
+    and how far that point lies from the nearest other plane [m] (K,) (inf with one plane): a return on a plane seen
+    edge-on reads short (its footprint spreads along the plane), and one whose ray meets its plane near another
+    (an edge, a corner) mixes the two surfaces."""
+    g = _rays_on_planes(th, s, R_ref, clock)
+    x0 = (g.a + g.rp * g.cp, g.oy + g.rp * g.dy, g.oz + g.rp * g.dz)  # the ray's hit in L0
+    nM = g.n_p @ g.R  # (P, 3)
+    off = th[N_CORE:].reshape(s.n_planes, 3)[:, 2] - g.n_p @ g.t  # (P,): n . x = off in M
+    clear = np.full(s.size, np.inf)
+    for j in range(s.n_planes):
+        nx = g.cl * nM[j, 0] + g.sl * nM[j, 1]
+        ny = g.cl * nM[j, 1] - g.sl * nM[j, 0]
+        d = np.abs(nx * x0[0] + ny * x0[1] + nM[j, 2] * x0[2] - off[j])
+        np.minimum(clear, np.where(s.plane == j, np.inf, d), out=clear)
+    return np.abs(g.nd), clear
 
 def _dot(c: FloatArray | tuple[float, float, float], v: tuple[FloatArray, FloatArray, FloatArray]) -> FloatArray:
     """sum_i c_i v_i (K,) of a constant 3-vector c and three (K,) arrays."""

@@ -9,9 +9,9 @@ plane return a ray-plane range residual, planes free). It is started from every 
 subsample of the returns drawn by its own seed (lrfcal.stages.sampling.hash_sample: two starts' subsamples share
 about the fraction of the returns each holds), and each start is solved for all
 four DH parameters with a weak prior around the start (:data:`PRIOR_SIGMA`: it keeps a and b from running off where
-the scene hardly constrains them), a few rounds of segment-and-solve (the planes re-segmented with the new
-estimate). A start that loses its planes, or whose offsets leave the plausible range (:data:`MAX_OFFSET_M`), is
-dropped.
+the scene hardly constrains them), on the targetless calibration's one cost: the planes segmented once, at the
+start, and that assignment kept while the solve minimises the cost from it. A start that loses its planes, or whose
+offsets leave the plausible range (:data:`MAX_OFFSET_M`), is dropped.
 
 Flatness cannot tell a cloud from its mirror image or from itself turned, so each candidate is first brought to
 one representative of the DH that give the same cloud up to a rigid motion and a mirror (:func:`canonical`):
@@ -44,6 +44,7 @@ import math
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,7 +54,7 @@ from lrfcal.errors import CalibrationError
 from lrfcal.estimate import solve
 from lrfcal.io.bag import BagData
 from lrfcal.io.rig import is_placeholder_dh
-from lrfcal.model.kinematics import DH, Params, dh_twins
+from lrfcal.model.kinematics import DH, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import wrap_pi
 from lrfcal.runtime.forked import Ahead, cores
@@ -72,8 +73,7 @@ START_BETA_DEG = (-90.0, 0.0)  # beta + 180 deg with (a, b) negated is the same 
 START_B_M = (0.0, 0.1)
 #: the weak prior around each start (a, alpha, b, beta) [m, rad]
 PRIOR_SIGMA = (0.05, math.radians(30.0), 0.10, math.radians(30.0))
-#: segment-and-solve rounds per start; the first round's inlier half-width [m]
-ROUNDS = 3
+#: the planes' half-width at a start [m] (a coarse start bends the scene's planes by centimetres)
 #: the starts are solved in at most this many groups at once, one per core (the first in this process)
 MAX_GROUPS = 4
 START_THICKNESS_M = 0.04
@@ -350,23 +350,22 @@ def proposed_dh(data: BagData | None, dh: dict[str, float] | None, propose: bool
 
 def _candidate(beams: targetless.Beams, seg: NDArray[np.int64], motor: MotorClock, start: DH,
                config: targetless.SegmentConfig) -> tuple[DH, FloatArray] | None:
-    """One start solved: the canonical DH and its 1-sigma (4,) scaled by sqrt(reduced chi-square), or None when the
-    planes are lost, the solve fails or the offsets run off."""
+    """One start solved: the targetless cost (lrfcal.stages.targetless: the planes segmented once, at the start,
+    :data:`START_THICKNESS_M` thick, the assignment fixed) minimised from it with the weak prior around it; the
+    canonical DH and its 1-sigma (4,) scaled by sqrt(reduced chi-square), or None when the planes are too few, the
+    solve fails or the offsets run off."""
     prior = (start.vector(), np.array(PRIOR_SIGMA))
-    dh, thickness = start, START_THICKNESS_M
-    sol = None
-    for _ in range(ROUNDS):
-        returns, _, planes = targetless.plane_returns_at(beams, seg, motor, dh, 0.0, thickness, config)
-        if len(planes) < 2 or len(returns) < 300:
-            return None
-        try:
-            sol = solve.solve_planes(returns, Params(targetless.MOTOR_FRAME, dh), range_sigma_m=RANGE_SIGMA_M,
-                                     dh_prior=prior)
-        except (CalibrationError, np.linalg.LinAlgError):
-            return None
-        dh = sol.params.dh
-        thickness = max(0.015, 4.0 * RANGE_SIGMA_M * math.sqrt(max(1.0, sol.reduced_chi2)))
-    assert sol is not None
+    at = targetless.Start.of(start, 0.0, config, START_THICKNESS_M - 4.0 * RANGE_SIGMA_M)
+    segmented = at.segment(beams, seg, motor, config)
+    if len(segmented.planes) < 2 or len(segmented.returns) < 300:
+        return None
+    try:
+        sol = targetless.fixed_solve(partial(solve.solve_planes, range_sigma_m=RANGE_SIGMA_M, dh_prior=prior,
+                                             options=solve.PlaneOptions(footing=at.footing(config))),
+                                     segmented, start, 0.0)
+    except (CalibrationError, np.linalg.LinAlgError):
+        return None
+    dh = sol.params.dh
     sigma = np.asarray(sol.sigma[6:10], dtype=float) * math.sqrt(max(1.0, sol.reduced_chi2))
     if not sol.converged or max(abs(dh.a), abs(dh.b)) > MAX_OFFSET_M or not np.all(np.isfinite(sigma)):
         return None

@@ -1,7 +1,8 @@
 """Targetless calibration as the steps of lrfcal.pipeline's orchestrator (the plane way; lrfcal.stages.targetless
-holds its rounds and segmentation): observe (the sampled returns, the start's segmentation and what the scene
-determines), starts (the one start the fit runs from, the rig file's DH; the other starts the data allow are the
-check "starts agree", lrfcal.stages.starts), refine (the segment-and-solve rounds until the DH settle), checks.
+holds its segmentation and its one cost): observe (the sampled returns, the planes segmented once at the rig file's
+DH, what the scene determines), starts (the solve every start shares: the held parameters, the prior, the clock),
+refine (the cost minimised from the rig file's DH and from every other start the data allow, the lowest minimum
+kept: lrfcal.stages.starts), checks.
 """
 
 from __future__ import annotations
@@ -20,7 +21,7 @@ from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability, solve
 from lrfcal.estimate.checks import CheckConfig, plane_checks
 from lrfcal.estimate.information import plane_information
-from lrfcal.model.kinematics import Params, points_M
+from lrfcal.model.kinematics import DH, Params, points_M
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import CORE_NAMES
 from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
@@ -28,23 +29,20 @@ from lrfcal.stages import holdout, planes, propose, starts, timing
 from lrfcal.stages.sampling import hash_sample
 from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.stages.targetless import (
+    BENDING_M,
     DH_NAMES,
     MOTOR_FRAME,
     SEGMENT_SAMPLES,
     STAGES,
     Beams,
-    Rounds,
-    Segmenting,
-    first_round,
+    Segmented,
+    Start,
+    fixed_solve,
     sample_returns,
-    settle_check,
-    settle_rounds,
-    with_round_difference,
 )
 from lrfcal.types import Check, JointStates, Noted, Recording, Solution
 
 FloatArray = NDArray[np.float64]
-Segmented = tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
 #: what runs ahead of the plane way: the DH search's proposal, asked for by the check "starts agree"
 #: (lrfcal.stages.propose.proposal_ahead; valid while the way's ``ahead`` context lasts)
 Proposal = Callable[[], propose.DHProposal]
@@ -74,11 +72,10 @@ class Scene:
     notes: tuple[str, ...] = ()
 
 
-#: the starts step's outcome: the observations and the rounds' shared inputs from the one start
-Started = tuple[Scene, Segmenting]
-#: the refine step's outcome: the observations, the rounds' shared inputs (the check "starts agree" reuses them), the
-#: rounds (their last solution with the model errors added) and the check "rounds settled"
-Refined = tuple[Scene, Segmenting, Rounds, Check]
+#: the starts step's outcome: the observations and the one cost's solve from a start ((dh, tau) -> its minimum)
+Started = tuple[Scene, Callable[[DH, float], Solution]]
+#: the refine step's outcome: the observations and the lowest minimum with the check "starts agree"
+Refined = tuple[Scene, starts.Minima]
 
 
 class PlaneWay:
@@ -119,8 +116,9 @@ class PlaneWay:
         clock.lap("timing")
 
         prior = (nominal.dh.vector(), np.array(config.nominal_tolerance, dtype=float))
-        start = first_round(nominal.dh, tau0, config)
-        returns, labels, found = start.segment(beams, seg, motor, config)
+        start = Start.of(nominal.dh, tau0, config, BENDING_M)
+        segmented = start.segment(beams, seg, motor, config)  # once: the assignment the cost keeps (targetless)
+        returns, found = segmented.returns, segmented.planes
         clock.lap("planes")
         _check_scene(found, returns)
         # what the scene determines, judged at the start: one information, each judgement takes its part of it
@@ -138,67 +136,68 @@ class PlaneWay:
         if len(held) == len(DH_NAMES):
             raise CalibrationError(f"the scene does not determine any DH parameter: {held_reason}; add planes of other "
                                    "orientations (across the motor axis), or calibrate with markers")
-        return Scene(beams, held_beams, seg, (returns, labels, found), held, held_reason, estimate_clock, motor,
+        return Scene(beams, held_beams, seg, segmented, held, held_reason, estimate_clock, motor,
                      passes, prior, start.thickness_m, ahead, tuple(notes))
 
     def starts(self, scene: Scene) -> Started:
-        """The one start the rounds run from, the rig file's DH (the other starts the data allow: the check "starts
-        agree"), with the solve they share: the held parameters, the prior, the clock."""
+        """The solve every start shares (the rig file's DH, the DH search's proposal and agreeing starts: refine):
+        the one cost over the fixed planes, the held parameters, the prior, the clock."""
+        footing = Start.of(self.recording.nominal.dh, 0.0, self.config).footing(self.config)
         solve_at = partial(solve.solve_planes, range_sigma_m=self.config.range_sigma_m,
                            clock=scene.motor if scene.estimate_clock else None, hold=scene.held,
-                           dh_prior=scene.prior)
-        return scene, Segmenting(scene.beams, scene.seg, scene.motor, self.config, solve_at)
+                           dh_prior=scene.prior, options=solve.PlaneOptions(footing=footing))
+        return scene, partial(fixed_solve, solve_at, scene.segmented)
 
     def refine(self, started: Started) -> Refined:
-        """Stage 4: segment, solve and re-segment until the DH settle (lrfcal.stages.targetless.settle_rounds); the
-        rounds' difference and the held parameters' uncertainty added to the covariance."""
-        (scene, sg), config, tau0 = started, self.config, self.config.clock_offset_s
-        start = first_round(self.recording.nominal.dh, tau0, config)
-        rs = settle_rounds(sg, start, scene.segmented)
-        sol, unsettled, rounds, (returns, _, _) = rs.solution, rs.unsettled, rs.rounds, rs.segmented
-        settle = settle_check(unsettled, sol, rounds)
-        sol = with_round_difference(sol, unsettled)
+        """Stage 4: the cost minimised from the rig file's DH and from the other starts the data allow, the lowest
+        minimum kept (lrfcal.stages.starts); the held parameters' uncertainty added to its covariance."""
+        (scene, fit), config, tau0 = started, self.config, self.config.clock_offset_s
+        first = fit(self.recording.nominal.dh, tau0)
+        cost = starts.Cost(scene.segmented, scene.motor, float(config.range_sigma_m or 0.0), scene.prior)
+        found = starts.lowest_minimum(first, fit, cost, scene.held, self.recording.nominal.dh, tau0, scene.proposal)
+        self.clock.lap("starts")
         if not scene.estimate_clock and scene.passes.max() < 1 or config.estimate_clock is False:
             scene = replace(scene, notes=(*scene.notes, f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
                                           + ("a one-way sweep does not separate it)" if config.estimate_clock is None
                                              else "as asked)")))
-        sol = _consider(sol, returns, scene.motor if scene.estimate_clock else None, scene.held, config, scene.prior)
+        if found.start != "the rig file's DH":
+            scene = replace(scene, notes=(*scene.notes, f"the estimate is the minimum reached from {found.start}: it "
+                                          "fits the scene's planes better than the one from the rig file's DH"))
+        counted = scene.segmented.returns
+        if found.solution.inlier is not None:  # the returns that count at the estimate
+            counted = counted.subset(found.solution.inlier)
+        sol = _consider(found.solution, counted, scene.motor if scene.estimate_clock else None, scene.held, config,
+                        scene.prior)
         self.clock.lap("solve")
-        return scene, sg, replace(rs, solution=sol), settle
+        return scene, replace(found, solution=sol)
 
     def checks(self, refined: Refined, shared: Callable[[Solution], Check]) -> CalibrationResult:
-        """Stage 5: the checks (``shared``: those of both ways, first), the held-out planes, the flatness before and
-        after; then, when they pass (or forced), the check "starts agree" (lrfcal.stages.starts)."""
-        (scene, sg, rs, settle), config, clock = refined, self.config, self.clock
-        sol, rounds, (returns, labels, found) = rs.solution, rs.rounds, rs.segmented
+        """Stage 5: the checks (``shared``: those of both ways, first), "starts agree", the held-out planes, the
+        flatness before and after."""
+        (scene, found), config, clock = refined, self.config, self.clock
+        sol, segmented = found.solution, scene.segmented
+        returns, planes_found = segmented.returns, segmented.planes
+        labels = segmented.labels.copy()  # the returns that count at the estimate (its cut, incidence, edges)
+        if sol.inlier is not None:
+            labels[labels >= 0] = np.where(sol.inlier, labels[labels >= 0], -1)
         nominal, tau0, beams, motor = self.recording.nominal, config.clock_offset_s, scene.beams, scene.motor
-        checks = [settle, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.prior, nominal.dh)]
+        checks = [found.check, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.prior,
+                                             nominal.dh)]
         checks.append(_held_out_check(scene.held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol,
                                       scene.first_thickness_m))
         clock.lap("checks")
         lam_b = motor.angles(beams.times_s, tau0)[0]
         lam_a = motor.angles(beams.times_s, sol.clock_offset_s)[0]
         before, n_before = planes.flatness(points_M(beams.ranges_m, lam_b, beams.mu_rad, nominal.dh), labels,
-                                           len(found))
+                                           len(planes_found))
         after, n_after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels,
-                                         len(found))
-        plane_fit = PlaneFit(tuple(found), before, after, np.bincount(labels[labels >= 0], minlength=len(found)),
-                             scene.held, scene.held_reason, rounds, n_before, n_after)
+                                         len(planes_found))
+        plane_fit = PlaneFit(tuple(planes_found), before, after,
+                             np.bincount(labels[labels >= 0], minlength=len(planes_found)), scene.held,
+                             scene.held_reason, found.start, n_before, n_after)
         evidence = PlaneEvidence(plane_fit=plane_fit, returns=returns)
-        fit = CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
-                                solution=sol, checks=(shared(sol), *checks), notes=scene.notes)
-        if not (config.force or all(c.passed for c in fit.checks)):
-            return fit  # refused anyway: the other starts are not run
-        agree = starts.starts_check(fit, evidence, self.joints, tau0, (sg, rs.coarse), scene.proposal)
-        fit = replace(fit, checks=_after_settled(fit.checks, agree))
-        clock.lap("starts")
-        return fit
-
-
-def _after_settled(checks: tuple[Check, ...], check: Check) -> tuple[Check, ...]:
-    """``checks`` with ``check`` after "rounds settled" (or first)."""
-    k = next((i + 1 for i, c in enumerate(checks) if c.name == "rounds settled"), 0)
-    return (*checks[:k], check, *checks[k:])
+        return CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
+                                 solution=sol, checks=(shared(sol), *checks), notes=scene.notes)
 
 
 def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, sol: Solution,

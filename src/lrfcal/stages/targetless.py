@@ -1,24 +1,30 @@
 """Targetless calibration: the DH parameters from the flatness of the scene's own planes (no markers, no tape).
 
-1. timing: the joint states and the scans they cover          4. solve: every plane return's ray-plane range
-2. planes: segmented from the cloud reprojected with the          residual, planes free
-(lrfcal.estimate.solve.solve_planes);
-   current DH (lrfcal.stages.planes), grazing returns left out          2.-4. repeated, re-segmenting with the new
-   estimate
-3. observability: which of a, alpha, b, beta (and the clock    5. checks: the rounds settled, convergence,
-   offset) the scene determines, from the information at        observability, reduced chi-square, a second
-   the start; the others are held at the nominal value            opinion (even / odd passes), held-out planes
+1. timing: the joint states and the scans they cover          4. the targetless cost minimised from every start
+2. planes: segmented ONCE, in the cloud reprojected at the        (the rig file's DH, the DH search's proposal and its
+   rig file's DH (lrfcal.stages.planes), grazing and edge         agreeing starts): every plane return's ray-plane
+   returns left out: which return lies on which plane is          range residual, the planes free
+   fixed from here on                                             (lrfcal.estimate.solve.solve_planes); the lowest
+3. observability: which of a, alpha, b, beta (and the clock       cost is the estimate
+   offset) the scene determines, from the information at    5. checks: convergence, observability, reduced
+   the start; the others are held at the nominal value            chi-square, a second opinion (even / odd passes),
+                                                                  held-out planes, starts agree (another minimum
+                                                                  that fits as well: not determined)
                                                                6. reprojection, flatness before / after
 
-The steps run as lrfcal.stages.scene.PlaneWay (lrfcal.pipeline's orchestrator); this module holds the rounds and the
-segmentation they use.
+The steps run as lrfcal.stages.scene.PlaneWay (lrfcal.pipeline's orchestrator); this module holds the segmentation.
 
-The rounds of 2.-4. before the DH settle segment and solve the segmentation's own sample (SEGMENT_SAMPLES returns)
-when it is at most COARSE_FRACTION of the sampled returns; the settled estimate then segments and solves every
-sampled return once (the same DH to 0.1 sigma in a third to two fifths less time: benchmarks/bench_targetless.py).
-Rounds that do not settle in MAX_ROUNDS end with two rounds on every return: their difference is added to the
-covariance (which returns the segmentation keeps is a model error), and beyond SETTLE_LIMIT_SIGMA the result is
-refused, since it would depend on the round the loop stopped at (the real URG-04LX box: docs/real-data.md).
+**One cost, which cannot oscillate.** The planes and their returns are segmented once, at the start, and that
+assignment is never made again: the estimate minimises one robust point-to-plane cost over it (the planes' normals
+and offsets free nuisances, a Huber pass then the returns beyond 4 robust sigma left out, lrfcal.estimate.engine),
+whatever start it runs from. There is no round to stop at: a calibration that segmented again at each new estimate
+(the version before, "segment-and-solve rounds") swung between two segmentations on real recordings (the URG-04LX
+box: beta 1-3 deg between the last two rounds) and its verdict depended on which half of the scans was given. The
+starts all minimise the same function, so where they end elsewhere the scene's planes fit two rigs (a property of
+the data: the check "starts agree", lrfcal.stages.starts); the lowest cost among them is the estimate. The
+segmentation at the start takes the planes :data:`BENDING_M` thicker than the noise, so that a nominal DH a few mm
+and degrees off still puts a wall's returns on one plane; returns the start puts on the wrong plane (near edges)
+are the robust passes' to leave out.
 
 Without markers there is no world frame: the planes and the cloud are in the motor frame M, and the mount pose is
 not estimated. A parameter the scene does not determine (1-sigma beyond lrfcal.estimate.observability.LIMITS, e.g. b and
@@ -31,24 +37,24 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate import observability, solve
+from lrfcal.estimate import observability
 from lrfcal.model.kinematics import DH, Params, Pose, points_M_trig
 from lrfcal.model.motor import MotorClock
+from lrfcal.model.plane import Footing
 from lrfcal.model.scanner import true_returns
-from lrfcal.model.unknowns import core_vector, dh_difference
-from lrfcal.result import PlaneFit
+from lrfcal.model.unknowns import core_vector
 from lrfcal.runtime.forked import cores
 from lrfcal.stages import planes
 from lrfcal.stages.sampling import hash_sample
 from lrfcal.stages.surfaces import Surface, SurfaceReturns
-from lrfcal.types import Check, JointStates, Scans, Solution
+from lrfcal.types import JointStates, Scans, Solution
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -92,170 +98,74 @@ class Beams:
 
 
 @dataclass(frozen=True)
-class Segmenting:
-    """What every segment-and-solve round of one calibration shares: the sampled returns, the segmentation's sample
-    ``seg`` (indices into them), the motor clock, the configuration and the solve (lrfcal.estimate.solve.solve_planes
-    with
-    the calibration's held parameters, prior and clock)."""
+class Segmented:
+    """The scene's planes as segmented once, at the start: the plane returns (their plane in ``surface``), every
+    sampled return's plane (K,) (-1: none) and the planes; the assignment the targetless cost keeps whatever the
+    estimate (module docstring)."""
 
-    beams: Beams
-    seg: NDArray[np.int64]
-    motor: MotorClock
-    config: SegmentConfig
-    solve_at: Callable[..., Solution]
+    returns: SurfaceReturns
+    labels: NDArray[np.int64]
+    planes: list[planes.ScenePlane]
 
 
 @dataclass(frozen=True)
-class Rounds:
-    """The rounds' outcome: the last solution, the one before it when the rounds did not settle (else None), the
-    rounds run, and the last segmentation (returns, labels (K,), planes); ``coarse``: the last round on the
-    segmentation's sample when those rounds settled (the estimate the round on every return was segmented at), else
-    None; ``ended_coarse``: the rounds ended there, without the round on every return (``enough`` of
-    :func:`settle_rounds`)."""
-
-    solution: Solution
-    unsettled: Solution | None
-    rounds: int
-    segmented: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]
-    coarse: Solution | None = None
-    ended_coarse: bool = False
-
-
-def settle_rounds(sg: Segmenting, start: _Round,
-                  first: tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]] | None = None,
-                  enough: Callable[[Solution], bool] | None = None) -> Rounds:
-    """Segment, solve and re-segment with the new estimate from ``start`` until the DH settle (module docstring);
-    ``first``: the start's segmentation of every sampled return when already made (else the rounds on the
-    segmentation's sample begin with its segmentation of that sample alone: the same labels there).
-    ``enough(solution)``: called with every round's solution on the segmentation's sample; when True the rounds end
-    there (:attr:`Rounds.ended_coarse`), without the next round or the round on every return.
-
-    Raises:
-        CalibrationError: a round's cloud shows no plane."""
-    beams, seg, motor, config = sg.beams, sg.seg, sg.motor, sg.config
-    coarse = _coarse(beams, seg)
-    if first is not None:
-        returns, labels, found = first
-    else:  # the first round's segmentation where it is solved: the sample's returns' own labels (_on_sample)
-        returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
-    sol: Solution | None = None
-    before_last: Solution | None = None
-    settled = False
-    rounds = 0
-    for rounds in range(1, MAX_ROUNDS + 1):  # segment, solve, re-segment with the new estimate until the DH settle
-        if rounds == 1 and coarse is not None and first is not None:  # the start's segmentation, on its own sample
-            returns, labels, found = _on_sample(beams, seg, labels, found, motor, start.tau)
-        elif rounds > 1:
-            returns, labels, found = start.segment(*(coarse or (beams, seg)), motor, config)
-        new = _solve_round(sg.solve_at, returns, found, start, rounds)
-        if coarse is not None and enough is not None and enough(new):
-            return Rounds(new, None, rounds, (returns, labels, found), new, ended_coarse=True)
-        settled = sol is not None and _settled(sol, new)
-        before_last, sol, start = sol, new, _Round.after(new, config)
-        if settled:
-            break
-    assert sol is not None
-    last_coarse = sol if coarse is not None and settled else None
-    # the estimate on every sampled return, segmented at the coarse rounds' estimate; twice when those did not settle
-    for _ in range(0 if coarse is None else 1 if settled else 2):
-        returns, labels, found = start.segment(beams, seg, motor, config)
-        before_last, sol = sol, _solve_round(sg.solve_at, returns, found, start, rounds + 1)
-        start, rounds = _Round.after(sol, config), rounds + 1
-    return Rounds(sol, None if settled else before_last, rounds, (returns, labels, found), last_coarse)
-
-
-#: segment-and-solve rounds at most before the DH settle (then the last two on every return are compared)
-MAX_ROUNDS = 5
-#: the last two rounds on every return may differ by this many sigma at most when the rounds do not settle: more,
-#: and the estimate depends on the round it stops at (the planes are not segmented consistently): refused
-SETTLE_LIMIT_SIGMA = 1.0
-
-#: the rounds before the DH settle solve the segmentation's own sample (SEGMENT_SAMPLES returns) when it is at most
-#: this fraction of the sampled returns; one round on every sampled return follows (module docstring)
-COARSE_FRACTION = 0.5
-
-
-@dataclass(frozen=True)
-class _Round:
-    """Where a round segments the planes: the DH, the clock offset [s], the planes' thickness [m] and the
-    intrinsics (name -> value, lrfcal.model.unknowns; absent ones at their start)."""
+class Start:
+    """Where the planes are segmented, and how the returns are put on them: the DH, the clock offset [s], the
+    planes' thickness [m] (the noise plus what a start's DH bends a plane by), the gate [m] within which a return
+    joins its nearest segmented neighbour's plane, and the clearance [m] from every other plane its ray must meet
+    its own at; ``footing_here``: the incidence and the clearance judged here (False: left to the estimate, which
+    judges them at every estimate, :attr:`footing`)."""
 
     dh: DH
     tau: float
     thickness_m: float
-    intrinsics: Mapping[str, float] = field(default_factory=dict)
+    gate_m: float
+    clearance_m: float
+    footing_here: bool = True
 
     @staticmethod
-    def after(sol: Solution, config: SegmentConfig) -> _Round:
-        """The next round's, from a round's solution: its estimate, the noise it found."""
-        return _Round(sol.params.dh, sol.clock_offset_s,
-                      4.0 * config.range_sigma_m * max(1.0, math.sqrt(sol.reduced_chi2)), sol.intrinsic_values)
+    def of(dh: DH, tau: float, config: SegmentConfig, bending_m: float = 0.0) -> Start:
+        """The targetless cost's start at (dh, tau) (module docstring): planes ``bending_m`` thicker than four sigma
+        of the noise, a return on the plane of its nearest segmented neighbour within :data:`GATE` times that (the
+        cut is the estimate's, at the estimate: no selection at the start), the incidence and the clearance (four
+        sigma: where a beam's footprint straddles two surfaces) judged at every estimate."""
+        thickness = 4.0 * _sigma(config) + bending_m
+        return Start(dh, tau, thickness, GATE * thickness, 4.0 * _sigma(config), footing_here=False)
 
-    def segment(self, beams: Beams, seg: NDArray[np.int64], motor: MotorClock, config: SegmentConfig
-                ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
+    def footing(self, config: SegmentConfig) -> Footing:
+        """The rule the estimate judges where a return counts by (lrfcal.model.plane.Footing)."""
+        return Footing(math.cos(config.max_incidence_rad), self.clearance_m)
+
+    def segment(self, beams: Beams, seg: NDArray[np.int64], motor: MotorClock, config: SegmentConfig) -> Segmented:
         """:func:`plane_returns_at` here."""
-        return plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config, self.intrinsics)
+        return Segmented(*plane_returns_at(beams, seg, motor, self.dh, self.tau, self.thickness_m, config,
+                                           labelling=self))
 
 
-def first_round(dh: DH, tau: float, config: SegmentConfig) -> _Round:
-    """The first round of a calibration from (dh, tau): its planes' thickness the noise plus what a nominal DH bends
-    a plane by."""
-    return _Round(dh, tau, 4.0 * config.range_sigma_m + 0.02)
+#: how far a plane of the scene may bend out of flat at the rig file's DH, beyond the noise, and still be segmented
+#: as one [m] (a nominal DH a few mm and a degree or two off bends a wall 2 m away by about this much)
+BENDING_M = 0.02
+#: a return joins the plane of its nearest segmented neighbour within this many of the planes' thickness at the
+#: start (wide: which returns count is the estimate's 4-sigma cut, judged at the estimate; a gate as narrow as the
+#: thickness selects the returns by how the start bends the planes, and biased the estimate towards the start by up
+#: to 10 sigma on room_box's random truths 2 deg from their nominal)
+GATE = 3.0
+#: where the estimate judges the incidence, the start leaves out only the returns beyond the incidence limit and
+#: this much more (a ray nearly along its plane has no range on it to solve with) [rad]
+SLACK_RAD = math.radians(10.0)
 
 
-def _coarse(beams: Beams, seg: NDArray[np.int64]) -> tuple[Beams, NDArray[np.int64]] | None:
-    """The coarse rounds' returns, the segmentation's sample (all of it segmented), or None when it is not much
-    smaller than the sampled returns."""
-    if seg.size > COARSE_FRACTION * beams.scan.size:
-        return None
-    return beams.subset(seg), np.arange(seg.size)
+def _sigma(config: SegmentConfig) -> float:
+    assert config.range_sigma_m is not None, "resolved by lrfcal.pipeline.calibrate"
+    return float(config.range_sigma_m)
 
 
-def _round_difference(a: Solution, b: Solution) -> FloatArray:
-    """b's DH minus a's (4,), angles wrapped; 0 where a parameter is held (no sigma)."""
-    d = dh_difference(b.params.vector()[6:], a.params.vector()[6:])
-    return np.where(np.isfinite(b.sigma[6:10]), d, 0.0)
-
-
-def settle_check(before_last: Solution | None, last: Solution, rounds: int) -> Check:
-    """Whether the segment-and-solve rounds settled (``before_last`` None), or else the last two rounds on every
-    return differ by at most SETTLE_LIMIT_SIGMA of the last one's sigma (statistical, before the difference is added
-    to it by :func:`with_round_difference`)."""
-    if before_last is None:
-        return Check("rounds settled", True, f"the DH moved by less than a tenth of a sigma between two rounds "
-                     f"({rounds} rounds)")
-    d = _round_difference(before_last, last)
-    s = last.sigma[6:10]
-    z = np.where(d != 0.0, np.abs(d) / np.where(s > 0, s, np.inf), 0.0)
-    k = int(np.argmax(z))
-    name = DH_NAMES[k]
-    text = f"{math.degrees(d[k]):+.3g} deg" if name in ("alpha", "beta") else f"{d[k] * 1000:+.3g} mm"
-    ok = bool(z[k] <= SETTLE_LIMIT_SIGMA)
-    detail = (f"the planes' segmentation and the DH did not settle in {rounds} rounds: the last two on every return "
-              f"differ by {name} {text} ({z[k]:.1f} sigma), added to the covariance")
-    if not ok:
-        detail += (f" (limit {SETTLE_LIMIT_SIGMA:g} sigma): the estimate depends on the round it stops at, the scene's "
-                   "planes are not segmented the same way twice (small planes, edges, clutter); calibrate in a larger "
-                   "scene or with markers")
-    return Check("rounds settled", ok, detail)
-
-
-def with_round_difference(sol: Solution, before_last: Solution | None) -> Solution:
-    """``sol`` with the difference d (4,) from the round before it added to its DH covariance (d d^T, a model error:
-    which returns the segmentation keeps), when the rounds did not settle (``before_last`` not None)."""
-    if before_last is None:
-        return sol
-    return sol.with_dh_systematic(_round_difference(before_last, sol))
-
-
-def _solve_round(fit: Callable[..., Solution], returns: SurfaceReturns, found: list[planes.ScenePlane], start: _Round,
-                 rounds: int) -> Solution:
-    """One round's solve from ``start`` (a Huber pass first in the first round only)."""
-    if not found:
-        raise CalibrationError(f"targetless: after round {rounds - 1} the cloud shows no plane: the estimate does "
-                               "not hold the scene's planes together")
-    return fit(returns, Params(MOTOR_FRAME, start.dh), clock_offset_s=start.tau,
-               options=solve.PlaneOptions(huber_first=rounds == 1))
+def fixed_solve(fit: Callable[..., Solution], segmented: Segmented, dh: DH, tau: float) -> Solution:
+    """The targetless cost minimised from (dh, tau) over the planes and returns of ``segmented`` (their assignment
+    fixed): ``fit`` (lrfcal.estimate.solve.solve_planes with the calibration's held parameters, prior and clock)."""
+    if not segmented.planes:
+        raise CalibrationError("targetless: the scene shows no plane to solve on")
+    return fit(segmented.returns, Params(MOTOR_FRAME, dh), clock_offset_s=tau)
 
 
 #: returns a plane keeps at least (fewer: dropped, mostly grazing returns)
@@ -280,12 +190,15 @@ def sample_returns(scans: Scans, n: int, skip: NDArray[np.bool_] | None = None) 
 
 
 def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh: DH, tau: float,
-                   thickness_m: float, config: SegmentConfig, intrinsics: Mapping[str, float] | None = None
+                   thickness_m: float, config: SegmentConfig, intrinsics: Mapping[str, float] | None = None,
+                   labelling: Start | None = None
                    ) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
     """Segment the planes on the ``seg`` subsample of the cloud at (dh, tau) and ``intrinsics`` (name -> value, the
     scales and offsets of lrfcal.model.unknowns; absent ones at their start); label every sampled return with the
-    plane of its nearest segmented neighbour when it lies within ``thickness_m`` of that plane and meets it at
-    less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane).
+    plane of its nearest segmented neighbour when it lies within ``thickness_m`` of that plane, meets it at
+    less than ``config.max_incidence_rad`` (grazing returns read short: the footprint spreads along the plane) and
+    its ray meets it ``thickness_m`` from every other plane (edges: mixed pixels); ``labelling`` (a :class:`Start`):
+    its gate and clearance instead, and the incidence and clearance only where it judges them here.
     The returns keep what the scanner and the servo reported (the solve applies the model to them)."""
     lam = motor.angle(beams.times_s, tau)
     r_true, lam_true, mu_true = true_returns(core_vector(dh, intrinsics or {}), beams.ranges_m, lam, beams.mu_rad)
@@ -294,21 +207,30 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
     P = points_M_trig(r_true, *trig, dh)
     seg_labels, found = planes.segment_planes(P[seg], thickness_m=thickness_m)
     labels = np.full(P.shape[0], -1, dtype=np.int64)
+    if labelling is not None and not labelling.footing_here:  # the cost's planes: one per surface (clearance)
+        seg_labels, found = _coincident_merged(P[seg], seg_labels, found, thickness_m)
     if found:
-        labels, found = _with_enough_returns(_labelled(P, trig, dh, seg, seg_labels, found, thickness_m,
-                                                       math.cos(config.max_incidence_rad)), found)
+        rule = labelling or Start(dh, tau, thickness_m, thickness_m, thickness_m)
+        strict = (math.cos(config.max_incidence_rad), rule.clearance_m)
+        # where the estimate judges the footing, the start leaves out only the rays nearly along their plane
+        loose = strict if rule.footing_here else (math.cos(min(config.max_incidence_rad + SLACK_RAD,
+                                                               math.pi / 2 - SLACK_RAD)), 0.0)
+        labels, footed = _labelled(P, trig, dh, seg, seg_labels, found, rule.gate_m, loose, strict)
+        # a plane needs its returns where the footing holds at the start (else the estimate would find none)
+        labels, found = _with_enough_returns(labels, found, np.where(footed, labels, -1))
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
     return returns, labels, found
 
 
 def _labelled(P: FloatArray, trig: tuple[FloatArray, ...], dh: DH, seg: NDArray[np.int64],
-              seg_labels: NDArray[np.int64], found: list[planes.ScenePlane], thickness_m: float, min_cos: float
-              ) -> NDArray[np.int64]:
+              seg_labels: NDArray[np.int64], found: list[planes.ScenePlane], gate_m: float,
+              footing: tuple[float, float], strict: tuple[float, float]) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
     """Every return's plane (K,) (-1: none) for :func:`plane_returns_at`: its nearest segmented neighbour's (of the
-    returns ``seg`` (S,), labelled ``seg_labels`` (S,)) where the return lies within ``thickness_m`` of that plane, its
-    beam meets it at a cosine of at least ``min_cos``, and the ray's hit on it lies farther than ``thickness_m``
-    from every other plane. ``P`` (K, 3) the returns in M at ``dh``, ``trig`` the cos and sin (K,) of their motor
+    returns ``seg`` (S,), labelled ``seg_labels`` (S,)) where the return lies within ``gate_m`` of that plane and its
+    footing holds (``footing``: its beam meets the plane at a |cos| of at least the first, and the ray's hit on it lies
+    farther than the second [m] from every other plane); and whether the ``strict`` footing holds too (K,).
+    ``P`` (K, 3) the returns in M at ``dh``, ``trig`` the cos and sin (K,) of their motor
     angles and of beta plus their bearings. The beams' origins and directions are those of
     lrfcal.model.kinematics.beam_rays_M, written by component (the same numbers, without (K, 3) temporaries)."""
     has = seg_labels >= 0
@@ -325,9 +247,10 @@ def _labelled(P: FloatArray, trig: tuple[FloatArray, ...], dh: DH, seg: NDArray[
     d = (cl * cp - sl * dy0, sl * cp + cl * dy0, sp * sa)
     n = (N[:, 0][labels], N[:, 1][labels], N[:, 2][labels])
     off_l = off[labels]
-    near = np.abs(P[:, 0] * n[0] + P[:, 1] * n[1] + P[:, 2] * n[2] - off_l) <= thickness_m
+    near = np.abs(P[:, 0] * n[0] + P[:, 1] * n[1] + P[:, 2] * n[2] - off_l) <= gate_m
     nd = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
-    keep = near & (np.abs(nd) >= min_cos)
+    keep = near & (np.abs(nd) >= footing[0])
+    kept_strict = near & (np.abs(nd) >= strict[0])
     # returns near an edge or a corner, where a beam's footprint straddles two surfaces (mixed pixels), are left
     # out: judged by where the RAY meets its plane, not by the measured point, whose range noise would keep
     # the returns that read short on one side of a corner and those that read long on the other (a bias)
@@ -338,38 +261,63 @@ def _labelled(P: FloatArray, trig: tuple[FloatArray, ...], dh: DH, seg: NDArray[
     dist -= off
     np.abs(dist, out=dist)
     for j in range(len(found)):  # clear of every other plane
-        keep &= (dist[:, j] > thickness_m) | (labels == j)
-    return np.where(keep, labels, -1)
+        own = labels == j
+        keep &= (dist[:, j] > footing[1]) | own
+        kept_strict &= (dist[:, j] > strict[1]) | own
+    return np.where(keep, labels, -1), kept_strict & keep
 
 
-def _with_enough_returns(labels: NDArray[np.int64], found: list[planes.ScenePlane]
+#: two segmented planes whose normals lie within this angle and whose offsets within the planes' thickness are one
+#: surface split by a start that bends it [rad]
+MERGE_ANGLE_RAD = math.radians(5.0)
+
+
+def _coincident_merged(Q: FloatArray, labels: NDArray[np.int64], found: list[planes.ScenePlane], thickness_m: float
+                       ) -> tuple[NDArray[np.int64], list[planes.ScenePlane]]:
+    """The segmented points ``Q`` (S, 3) and their planes with every pair of coincident planes (normals within
+    :data:`MERGE_ANGLE_RAD`, offsets within ``thickness_m``) merged into one, fitted afresh to their points: a surface
+    a start bends is segmented in pieces, and two planes where there is one surface would leave the returns near their
+    seam clear of neither (lrfcal.model.plane.Footing)."""
+    parent = list(range(len(found)))
+
+    def root(i: int) -> int:
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    cos_merge = math.cos(MERGE_ANGLE_RAD)
+    for i in range(len(found)):
+        for j in range(i + 1, len(found)):
+            c = float(found[i].normal @ found[j].normal)
+            apart_m = abs(found[i].offset_m - math.copysign(1.0, c) * found[j].offset_m)
+            if abs(c) >= cos_merge and apart_m <= thickness_m:
+                parent[root(j)] = root(i)
+    roots = sorted({root(i) for i in range(len(found))})
+    if len(roots) == len(found):
+        return labels, found
+    new_of = np.array([roots.index(root(i)) for i in range(len(found))] + [-1], dtype=np.int64)
+    labels = new_of[np.where(labels >= 0, labels, len(found))]
+    merged = []
+    for k in range(len(roots)):
+        pts = Q[labels == k]
+        normal, offset, rms = planes.fit_plane(pts)
+        if offset < 0:  # pointing away from the origin (lrfcal.stages.planes.ScenePlane)
+            normal, offset = -normal, -offset
+        merged.append(planes.ScenePlane(normal, offset, int(len(pts)), rms, pts.mean(0)))
+    return labels, merged
+
+
+def _with_enough_returns(labels: NDArray[np.int64], found: list[planes.ScenePlane],
+                         counted: NDArray[np.int64] | None = None
                          ) -> tuple[NDArray[np.int64], list[planes.ScenePlane]]:
-    """The planes left with at least MIN_PLANE_RETURNS (the others, mostly grazing, dropped) and the labels (K,)
-    renumbered."""
-    counts = np.bincount(labels[labels >= 0], minlength=len(found))
+    """The planes left with at least MIN_PLANE_RETURNS in ``counted`` (K,) (None: ``labels``; the others, mostly
+    grazing, dropped) and the labels (K,) renumbered."""
+    c = labels if counted is None else counted
+    counts = np.bincount(c[c >= 0], minlength=len(found))
     keep = np.flatnonzero(counts >= MIN_PLANE_RETURNS)
     remap = np.full(len(found), -1, dtype=np.int64)
     remap[keep] = np.arange(keep.size)
     return np.where(labels >= 0, remap[np.maximum(labels, 0)], -1), [found[k] for k in keep]
-
-
-def _on_sample(beams: Beams, seg: NDArray[np.int64], labels: NDArray[np.int64], found: list[planes.ScenePlane],
-               motor: MotorClock, tau: float) -> tuple[SurfaceReturns, NDArray[np.int64], list[planes.ScenePlane]]:
-    """:func:`plane_returns_at` on the segmentation's sample ``seg`` at the estimate whose ``labels`` (K,) on every
-    sampled return are given: the same segmentation, the same nearest neighbours and tests per return, so the
-    labels are those returns' own, with the planes that keep too few of them dropped."""
-    sub = beams.subset(seg)
-    labels, found = _with_enough_returns(labels[seg], found)
-    lam = motor.angle(sub.times_s, tau)
-    return planes.plane_returns(labels, found, sub.scan, sub.beam, lam, sub.mu_rad, sub.ranges_m, sub.times_s), \
-        labels, found
-
-
-def _settled(old: Solution, new: Solution) -> bool:
-    """The DH estimate moved by less than a tenth of its sigma between two rounds."""
-    d, s = _round_difference(old, new), new.sigma[6:10]
-    ok = np.isfinite(s) & (s > 0)
-    return bool(np.all(np.abs(d[ok]) <= 0.1 * s[ok]))
 
 
 def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: NDArray[np.bool_],
@@ -380,7 +328,9 @@ def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: 
     motor = MotorClock.from_joints(joints)
     beams = sample_returns(scans, config.plane_returns, skip)
     seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES)  # the sample's first, in hash order
-    returns, labels, found = _Round.after(sol, config).segment(beams, seg, motor, config)
+    thickness = 4.0 * _sigma(config) * max(1.0, math.sqrt(sol.reduced_chi2))  # at a calibrated estimate
+    returns, labels, found = plane_returns_at(beams, seg, motor, sol.params.dh, sol.clock_offset_s, thickness,
+                                              config, sol.intrinsic_values)
     T = sol.params.mount.matrix()
     R, t = T[:3, :3], T[:3, 3]
     keep, out = [], []
@@ -417,7 +367,5 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     return SurfaceReturns(**fields)
 
 
-__all__ = ["MOTOR_FRAME", "STAGES", "Beams", "PlaneFit", "Rounds", "SceneConfig", "SegmentConfig", "Segmenting",
-           "first_round", "settle_check",
-           "with_round_difference",
-           "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns", "settle_rounds"]
+__all__ = ["BENDING_M", "MOTOR_FRAME", "STAGES", "Beams", "SceneConfig", "SegmentConfig", "Segmented", "Start",
+           "fixed_solve", "merge_returns", "plane_returns_at", "sample_returns", "scene_plane_returns"]
