@@ -29,8 +29,8 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 
+from lrfcal.commands.inspect_log import inspect_path  # noqa: E402
 from lrfcal.estimate import solve  # noqa: E402
-from lrfcal.io.loginspect import inspect_path  # noqa: E402
 from lrfcal.stages import propose, targetless  # noqa: E402
 from lrfcal.stages.sampling import hash_sample  # noqa: E402
 

@@ -4,9 +4,11 @@
 
 Measured in the same run, on the same beams:
 
-1. ``lrfcal reproject`` end to end in-process (lrfcal.io.cloud.reproject_bag: read the bag, reproject every beam
+1. ``lrfcal reproject`` end to end in-process (lrfcal.commands.reproject.reproject_bag: read the bag, reproject every
+beam
    at its own time and motor angle, write the PLY), beams per second;
-2. the reprojection alone (lrfcal.io.cloud.reproject_beams) against a plain numpy loop over the scans (per scan:
+2. the reprojection alone (lrfcal.commands.reproject.reproject_beams) against a plain numpy loop over the scans (per
+scan:
    beam times, np.interp of the motor angle, the eq. (3) chain as 4x4 matrices per beam), beams per second and
    the ratio; the two clouds are checked to agree to 1e-9 m;
 3. the time to write the PLY of ~1.6 M points (write_cloud_ply, atomic).
@@ -24,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from lrfcal.io.cloud import BeamCloud, CloudOutputs, reproject_bag, reproject_beams, write_cloud_ply
+from lrfcal.commands.reproject import BeamCloud, CloudOutputs, reproject_bag, reproject_beams, write_cloud_ply
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH
 from lrfsim.scenario.file import load_scenario

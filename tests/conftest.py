@@ -147,10 +147,10 @@ def shipped_recording(recording_of: Callable[[Scenario], Path]) -> Callable[[str
 def targetless_calibrated(shipped_recording: Callable[[str], Path], tmp_path_factory: pytest.TempPathFactory
                           ) -> Callable[[str], tuple[Path, Path, CalibrationResult]]:
     """``targetless_calibrated(name)`` -> (recording folder, output folder, result) of scenarios/<name>.yaml's
-    recording calibrated targetless by lrfcal.workflow.calibrate_folder, the function ``lrfcal calibrate REC -o OUT
-    --targetless --no-figures`` runs (a refusal raises, as the command exits 3); once per session."""
+    recording calibrated targetless by lrfcal.commands.calibrate.calibrate_folder, the function ``lrfcal calibrate REC
+    -o OUT --targetless --no-figures`` runs (a refusal raises, as the command exits 3); once per session."""
+    from lrfcal.commands.calibrate import calibrate_folder
     from lrfcal.config import CalibConfig
-    from lrfcal.workflow import calibrate_folder
 
     done: dict[str, tuple[Path, Path, CalibrationResult]] = {}
 

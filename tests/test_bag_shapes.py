@@ -16,8 +16,8 @@ import numpy as np
 import pytest
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
+from lrfcal.commands.reproject import BeamCloud, reproject_beams
 from lrfcal.io.bag import read_bag
-from lrfcal.io.cloud import BeamCloud, reproject_beams
 from lrfcal.io.rig import ScanSource, ServoSource, TfSource
 from lrfcal.model.kinematics import DH
 
@@ -267,7 +267,7 @@ def test_wrong_sign_is_not_the_same_cloud(tmp_path, canonical):
 
 
 def test_inspect_guesses_the_moving_tf_joint(tmp_path):
-    from lrfcal.io.inspection import inspect_bag
+    from lrfcal.commands.inspect_bag import inspect_bag
 
     result = inspect_bag(write(tmp_path / "bag", "mcap", "tf"), propose=False)
     assert result.servo_source is not None and result.servo_source.tf == TfSource(parent="base", child="tilt")

@@ -123,10 +123,37 @@ def test_mirror_check_passes_when_the_nominal_tells_the_rig_from_its_mirror_imag
 
     config = CalibConfig()
     est = DH(a=0.012, alpha=math.radians(35.0), b=0.04, beta=0.1)
-    near = mirror_check(est, DH(a=0.010, alpha=math.radians(33.0), b=0.042, beta=0.09), config)
-    assert near.passed and "mirror image" in near.name
+    near = mirror_check(est, DH(a=0.010, alpha=math.radians(33.0), b=0.042, beta=0.09), config, SIGMA)
+    assert near.passed and "mirror image" in near.name and "the nominal favours the estimate" in near.detail
     # 45 deg off, but the mirror image (alpha -35 deg) is farther still: passed
-    assert mirror_check(est, DH(a=0.012, alpha=math.radians(80.0), b=0.04, beta=0.1), config).passed
+    assert mirror_check(est, DH(a=0.012, alpha=math.radians(80.0), b=0.04, beta=0.1), config, SIGMA).passed
+
+
+#: a calibration's 1-sigma of (a, alpha, b, beta) [m, rad]
+SIGMA = np.array([5e-4, math.radians(0.05), 5e-4, math.radians(0.05)])
+
+
+def test_mirror_check_refuses_a_nominal_alpha_of_0_between_the_rig_and_its_mirror_image() -> None:
+    """Issue 56's rig: a scan plane 4.6 deg from perpendicular to the motor axis, the nominal alpha exactly 0. The
+    estimate (alpha +4.61 deg, b +16.6 mm) and its mirror image (alpha -4.61 deg, b -16.6 mm) are each 0.9 nominal
+    tolerances from the nominal and 84 sigma apart: nothing tells them apart, so the check refuses, saying what would
+    (a nominal alpha away from 0); with the drawing's alpha of 20 deg the nominal decides, by the likelihood-ratio rule
+    of every choice between two minima; and where the twin lies within 2 sigma, either is right."""
+    from lrfcal.config import CalibConfig
+    from lrfcal.estimate.checks import mirror_check
+
+    config = CalibConfig()
+    est = DH(a=0.003, alpha=math.radians(4.61), b=0.0166, beta=math.radians(30.0))
+    tie = mirror_check(est, DH(a=0.0, alpha=0.0, b=0.0, beta=math.radians(30.0)), config,
+                       np.array([5e-4, math.radians(0.11), 3.4e-3, math.radians(0.05)]))
+    assert not tie.passed and "do not tell which" in tie.detail and "a nominal alpha away from 0" in tie.detail
+    assert "likelihood ratio +0.0" in tie.detail
+    drawn = mirror_check(est, DH(a=0.0, alpha=math.radians(20.0), b=0.02, beta=math.radians(30.0)), config,
+                         np.array([5e-4, math.radians(0.11), 3.4e-3, math.radians(0.05)]))
+    assert drawn.passed and "the nominal favours the estimate" in drawn.detail
+    loose = mirror_check(est, DH(a=0.0, alpha=0.0, b=0.0, beta=math.radians(30.0)), config,
+                         np.array([5e-4, math.radians(5.0), 0.02, math.radians(0.05)]))
+    assert loose.passed and "one rig within" in loose.detail
 
 
 def test_mirror_check_refuses_a_nominal_nearer_the_mirror_image_naming_both() -> None:
@@ -136,7 +163,7 @@ def test_mirror_check_refuses_a_nominal_nearer_the_mirror_image_naming_both() ->
     from lrfcal.estimate.checks import mirror_check
 
     est = DH(a=0.012, alpha=math.radians(35.0), b=0.04, beta=0.1)
-    c = mirror_check(est, DH(a=0.012, alpha=math.radians(-10.0), b=0.0, beta=0.1), CalibConfig())
+    c = mirror_check(est, DH(a=0.012, alpha=math.radians(-10.0), b=0.0, beta=0.1), CalibConfig(), SIGMA)
     assert not c.passed
     assert "mirrored" in c.detail and "alpha -35.00 deg" in c.detail and "signs of alpha and b" in c.detail
 
@@ -156,7 +183,8 @@ def testnominal_distance_compares_poses_not_dh_near_perpendicular() -> None:
     nominal = DH(a=0.02, alpha=0.0, b=0.0, beta=math.radians(105.0))
     d, text = nominal_distance(est, nominal, config)
     assert d < 1.0 and "2.6 mm" in text and not far_from_nominal(est, nominal, config)
-    assert mirror_check(est, nominal, config).passed
+    # alpha 0.04 +- 0.05 deg and b undetermined (metres): its mirror image is the same rig within 2 sigma
+    assert mirror_check(est, nominal, config, np.array([1e-3, math.radians(0.05), 4.0, math.radians(0.05)])).passed
     turned = dh_twins(est)[0][1]
     assert math.isclose(nominal_distance(turned, nominal, config)[0], d, abs_tol=1e-9)
     # far in pose: the servo direction and the mirror check still see it

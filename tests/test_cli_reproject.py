@@ -12,8 +12,8 @@ import yaml
 from test_bag_shapes import DH_TEST, S, write
 
 from lrfcal.cli import main
+from lrfcal.commands.reproject import POINT_DTYPE, read_cloud_ply, reproject_beams
 from lrfcal.io.bag import read_bag
-from lrfcal.io.cloud import POINT_DTYPE, read_cloud_ply, reproject_beams
 from lrfcal.io.rig import ScanSource, ServoSource
 from lrfcal.model.kinematics import DH
 

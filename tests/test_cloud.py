@@ -1,10 +1,10 @@
-"""Sweeps, uncovered scans and per-scan layouts in lrfcal.io.cloud.reproject_beams."""
+"""Sweeps, uncovered scans and per-scan layouts in lrfcal.commands.reproject.reproject_beams."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from lrfcal.io.cloud import reproject_beams
+from lrfcal.commands.reproject import reproject_beams
 from lrfcal.model.kinematics import DH, points_M
 from lrfcal.stages.timing import sweep_passes
 from lrfcal.types import JointStates, Scans
@@ -48,8 +48,8 @@ def test_calibration_intrinsics_are_read_only_when_estimated(tmp_path):
     estimated range_offset_m; a name the model does not know is refused naming it."""
     import pytest
 
+    from lrfcal.commands.reproject import read_calibration_intrinsics
     from lrfcal.errors import InputError
-    from lrfcal.io.cloud import read_calibration_intrinsics
 
     new, old, held, bad = (tmp_path / f"{n}.yaml" for n in ("new", "old", "held", "bad"))
     new.write_text("intrinsics:\n  range_offset: {value: 0.0125, sigma: 0.0012}\n"

@@ -271,9 +271,9 @@ def test_tape_outlier_end_to_end(tmp_path: Path) -> None:
     whose marker map is then back at tape noise and whose DH parameters are within 4 sigma of the truth."""
     from lrfcal.io.calibration_yaml import calibration_dict
     from lrfcal.io.recording import read_recording
-    from lrfcal.io.report import render_report
     from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
     from lrfcal.pipeline import CalibConfig, calibrate
+    from lrfcal.report.markdown import render_report
 
     data = _data(tape_outliers=[{"pair": ["m02", "m13"], "error_m": 0.5}])
     data["servo"].update({"start_rad": math.pi / 2, "end_rad": -math.pi / 2, "speed_rad_s": math.radians(30)})

@@ -19,7 +19,7 @@ import yaml
 from test_bag_shapes import write
 
 from lrfcal.cli import main
-from lrfcal.io.loginspect import inspect_path
+from lrfcal.commands.inspect_log import inspect_path
 from lrfcal.model.kinematics import DH, points_M
 from lrfcal.stages.propose import DETERMINED, canonical
 from lrfcal.types import JointStates, Scans
@@ -110,7 +110,8 @@ def _sigmas(comment: str) -> list[float]:
 def test_written_rig_file_reads_back_one_line_each(room_box_inspected) -> None:  # type: ignore[no-untyped-def]
     """inspect -o writes the rig file printed last: no trailing spaces, no wrapped line (the comment is one line),
     and it reads as a rig file whose dh are not the placeholder."""
-    from lrfcal.io.rig import is_placeholder_dh, load_rig
+    from lrfcal.io.rig import load_rig
+    from lrfcal.model.kinematics import is_placeholder_dh
 
     _, out, stdout = room_box_inspected
     text = out.read_text()

@@ -1,7 +1,7 @@
 """The code's layout as docs/architecture.md states it: lrfsim uses lrfcal only through its public API (lrfcal,
-lrfcal.model, lrfcal.io, lrfcal.errors), lrfsim's rooms importing one way, the rooms of lrfcal, the public API
-importable without heavy modules, the rig model and the estimate package type-checked by mypy, and at most five
-functions outside the CLIs with more than 8 parameters."""
+lrfcal.model, lrfcal.io, lrfcal.errors), lrfsim's rooms importing one way, the rooms of lrfcal and the one direction
+of the imports between them (no cycle; io/ below the method), the public API importable without heavy modules, and
+all of lrfcal type-checked by mypy."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ import itertools
 import shutil
 import subprocess
 import sys
+from collections import defaultdict
 from pathlib import Path
 
 import pytest
@@ -22,12 +23,17 @@ PUBLIC = ("lrfcal", "lrfcal.model", "lrfcal.io", "lrfcal.errors")
 
 
 def _imports(path: Path) -> list[tuple[int, str]]:
-    """(line, module) of every import in ``path``, relative ones resolved against its package."""
+    """(line, module) of every import in ``path`` (at the top, in functions, under TYPE_CHECKING), relative ones
+    resolved against its package; in a package's ``__init__.py`` also the modules its lazy table names (a dict of
+    "name": "lrfcal.module" strings, as lrfcal/__init__.py's PEP 562 facade)."""
     tree = ast.parse(path.read_text(), str(path))
     package = ".".join(path.relative_to(SRC).with_suffix("").parts[:-1])
     found = []
     for node in ast.walk(tree):
-        if isinstance(node, ast.Import):
+        if isinstance(node, ast.Dict) and path.name == "__init__.py":
+            found += [(v.lineno, v.value) for v in node.values
+                      if isinstance(v, ast.Constant) and isinstance(v.value, str) and v.value.startswith("lrfcal.")]
+        elif isinstance(node, ast.Import):
             found += [(node.lineno, alias.name) for alias in node.names]
         elif isinstance(node, ast.ImportFrom):
             base = node.module or ""
@@ -124,12 +130,79 @@ def test_public_api_names_resolve() -> None:
         _ = lrfcal.no_such_name  # type: ignore[attr-defined]
 
 
+#: the rooms of lrfcal (its subpackages and the modules directly in src/lrfcal), in an order their imports run down
+#: (docs/architecture.md, "The rooms"): each imports only rooms before it
+ROOMS = ("errors", "config", "model", "types", "runtime", "result", "io", "estimate", "stages", "pipeline", "report",
+         "commands", "terminal", "cli")
+#: what io/ (it reads and writes files) must not import: the method and the rooms above it
+ABOVE_IO = ("estimate", "stages", "pipeline", "report", "commands", "terminal", "cli")
+
+
+def _room(module: str) -> str | None:
+    parts = module.split(".")
+    return parts[1] if parts[0] == "lrfcal" and len(parts) > 1 else None
+
+
+def _room_imports() -> dict[tuple[str, str], list[str]]:
+    """(room, a room it imports) -> where ("src/lrfcal/...:line"), for every import of lrfcal (every kind, as
+    :func:`_imports`) between two rooms; lrfcal/__init__.py, the public API, stands in no room."""
+    arrows: dict[tuple[str, str], list[str]] = defaultdict(list)
+    for path in sorted((SRC / "lrfcal").rglob("*.py")):
+        here = _room(".".join(path.relative_to(SRC).with_suffix("").parts))
+        if here is None or here == "__init__":
+            continue
+        for line, name in _imports(path):
+            there = _room(name)
+            if there is not None and there != here:
+                arrows[(here, there)].append(f"{path.relative_to(ROOT)}:{line}")
+    return arrows
+
+
 def test_lrfcal_rooms() -> None:
-    """At most 12 modules directly in src/lrfcal; the rest in subpackages named for what they are."""
-    top = sorted(p.name for p in (SRC / "lrfcal").glob("*.py"))
-    assert len(top) <= 12, top
-    rooms = sorted(p.parent.name for p in (SRC / "lrfcal").glob("*/__init__.py"))
-    assert rooms == ["estimate", "io", "model", "report", "runtime", "stages"]
+    """src/lrfcal holds the rooms of :data:`ROOMS`, each a subpackage or a module named for what it holds."""
+    rooms = {p.parent.name for p in (SRC / "lrfcal").glob("*/__init__.py")}
+    rooms |= {p.stem for p in (SRC / "lrfcal").glob("*.py") if p.stem != "__init__"}
+    assert sorted(rooms) == sorted(ROOMS)
+
+
+def test_imports_between_rooms_run_one_way() -> None:
+    """The rooms' imports form no cycle: following the arrows from any room never leads back to it (each room imports
+    only rooms below it, an order :data:`ROOMS` gives). Every import counts: at the top, in functions, under
+    TYPE_CHECKING."""
+    arrows = _room_imports()
+    graph: dict[str, set[str]] = defaultdict(set)
+    for a, b in arrows:
+        graph[a].add(b)
+
+    def cycle_from(room: str, path: tuple[str, ...], done: set[str]) -> tuple[str, ...] | None:
+        if room in path:
+            return path[path.index(room):] + (room,)
+        if room in done:
+            return None
+        for other in sorted(graph[room]):
+            found = cycle_from(other, (*path, room), done)
+            if found:
+                return found
+        done.add(room)
+        return None
+
+    done: set[str] = set()
+    for room in sorted(graph):
+        cycle = cycle_from(room, (), done)
+        assert cycle is None, "the rooms' imports run in a circle: " + " -> ".join(cycle) + "\n" + "\n".join(
+            f"{a} -> {b}: {arrows[(a, b)][0]}" for a, b in zip(cycle, cycle[1:], strict=False))
+    order = {room: k for k, room in enumerate(ROOMS)}
+    upward = sorted(f"{a} -> {b}: {arrows[(a, b)][0]}" for a, b in arrows if order[a] < order[b])
+    assert not upward, "a room imports one above it in ROOMS (reorder ROOMS if the design allows it):\n" + "\n".join(
+        upward)
+
+
+def test_io_imports_nothing_above_it() -> None:
+    """io/ reads and writes files: it imports the data types, the model, the result, the errors and the runtime,
+    nothing of the method or above it (:data:`ABOVE_IO`)."""
+    bad = [f"io -> {b}: {where}" for (a, b), sites in sorted(_room_imports().items()) if a == "io" and b in ABOVE_IO
+           for where in sites]
+    assert not bad, "io/ imports the method or what stands above it:\n" + "\n".join(bad)
 
 
 #: the stage modules that may read the whole lrfcal.config.CalibConfig: the two ways (the orchestrator's steps)
@@ -180,34 +253,9 @@ def test_import_lrfcal_is_light() -> None:
 
 @pytest.mark.skipif(importlib.util.find_spec("mypy") is None and shutil.which("mypy") is None,
                     reason="mypy is not installed (pip install -e '.[test]' installs it)")
-def test_mypy_model_and_estimate() -> None:
-    """The rig model and the estimate package type-check (mypy, the settings in pyproject.toml), and CalibConfig
-    satisfies every stage's configuration slice and each way the Way of its steps' types (tests/static_types.py)."""
-    proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal/model", "src/lrfcal/estimate",
-                           "tests/static_types.py"], cwd=ROOT,
+def test_mypy_lrfcal() -> None:
+    """All of lrfcal type-checks (mypy, the settings in pyproject.toml), and CalibConfig satisfies every stage's
+    configuration slice and each way the Way of its steps' types (tests/static_types.py)."""
+    proc = subprocess.run([sys.executable, "-m", "mypy", "src/lrfcal", "tests/static_types.py"], cwd=ROOT,
                           capture_output=True, text=True)
     assert proc.returncode == 0, proc.stdout[-3000:]
-
-
-#: the functions outside the command lines that may take more than 8 parameters: facades over a command's options
-#: (docs/architecture.md, "What travels together"); every other function takes what travels together as one object
-MANY_PARAMETERS = {"src/lrfcal/io/rig.py:with_overrides", "src/lrfcal/workflow.py:calibrate_folder",
-                   "src/lrfcal/io/recording.py:read_recording", "src/lrfsim/trials/study.py:run_trials",
-                   "src/lrfsim/trials/study.py:study"}
-
-
-def test_at_most_five_functions_take_more_than_eight_parameters() -> None:
-    """Outside the CLIs (cli.py), no function takes more than 8 parameters (self and cls not counted) but the five
-    command facades of MANY_PARAMETERS."""
-    many = set()
-    for path in sorted(SRC.rglob("*.py")):
-        if path.name == "cli.py":
-            continue
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
-                a = node.args
-                names = [x.arg for x in (*a.posonlyargs, *a.args, *a.kwonlyargs)]
-                k = len(names) + (a.vararg is not None) + (a.kwarg is not None) - (names[:1] in (["self"], ["cls"]))
-                if k > 8:
-                    many.add(f"{path.relative_to(ROOT)}:{node.name}")
-    assert many <= MANY_PARAMETERS and len(MANY_PARAMETERS) <= 5, sorted(many - MANY_PARAMETERS)

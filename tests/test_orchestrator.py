@@ -37,10 +37,8 @@ def _calibrate_tree() -> ast.FunctionDef:
     return node
 
 
-def test_the_orchestrator_is_short_and_runs_every_step_once() -> None:
+def test_the_orchestrator_runs_every_step_once() -> None:
     node = _calibrate_tree()
-    lines = node.end_lineno - node.lineno + 1 if node.end_lineno else 0
-    assert lines <= 45, f"pipeline._calibrate is {lines} lines, the orchestrator should read in about 40"
     calls = [c.func.attr for c in ast.walk(node) if isinstance(c, ast.Call) and isinstance(c.func, ast.Attribute)
              and isinstance(c.func.value, ast.Name) and c.func.value.id == "way"]
     assert sorted(calls) == sorted(STEPS), calls

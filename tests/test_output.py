@@ -11,13 +11,13 @@ import trimesh
 import yaml
 from synthetic import START, TRUE, make_result
 
+from lrfcal.commands.calibration_folder import calibration_folder, write_calibration
 from lrfcal.errors import InputError
-from lrfcal.io.calibration_folder import calibration_folder, write_calibration
 from lrfcal.io.files import MANIFEST_NAME
 from lrfcal.io.ply import write_ply
-from lrfcal.io.report import render_report
 from lrfcal.io.urdf import dh_matrix, urdf_snippet
 from lrfcal.model.kinematics import ESTIMATE_NAMES, PARAM_NAMES, chain_T_M_L, points_W, pose_matrix, rot_z
+from lrfcal.report.markdown import render_report
 from lrfcal.stages.reproject import reproject_cloud
 from lrfcal.types import TunnelGeometry
 

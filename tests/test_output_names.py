@@ -25,8 +25,8 @@ from test_cli_usage import _one_error_line, _run, _small
 from test_scanlog import HEADER_LAYOUT, _write_header_log
 
 from lrfcal.io.files import TEMP_NAME
-from lrfcal.io.report import render_report
 from lrfcal.model.kinematics import ESTIMATE_NAMES
+from lrfcal.report.markdown import render_report
 from lrfcal.report.summary import print_summary
 from lrfsim.scenario.file import load_scenario
 from lrfsim.trials.study import run_trials

@@ -1,4 +1,5 @@
-"""The programs' progress display (lrfcal.io.progress.progress_display) and BLAS thread policy (lrfcal.runtime.threads).
+"""The programs' progress display (lrfcal.terminal.progress.progress_display) and BLAS thread policy
+(lrfcal.runtime.threads).
 
 The display is drawn on a terminal only, never with --quiet: stage names, scans and trials appear on a (forced)
 terminal, nothing of them on a pipe or a file. The thread limit is set by the console scripts' entry (run_app),
@@ -19,10 +20,10 @@ from rich.console import Console
 from test_cli_sim import _main, _write_small
 from test_memory import fresh_python
 
-import lrfcal.io.progress as progress
-from lrfcal.io.progress import progress_display
+import lrfcal.terminal.progress as progress
 from lrfcal.pipeline import STAGES
 from lrfcal.stages.targetless import STAGES as TARGETLESS_STAGES
+from lrfcal.terminal.progress import progress_display
 
 
 def _terminal() -> tuple[Console, io.StringIO]:
@@ -110,7 +111,7 @@ PROBE = """
 import json, sys
 import threadpoolctl
 from {package}.cli import app, main
-from lrfcal.io.cliutil import Command
+from lrfcal.terminal.cliutil import Command
 
 @app.command("probe", cls=Command)
 def probe() -> None:
@@ -163,7 +164,7 @@ def test_a_job_that_calibrates_nothing_does_not_load_the_pipeline() -> None:
     """``lrfsim plan`` and ``lrfsim simulate`` draw the progress line too: the calibration's stages (lrfcal.pipeline,
     which loads every stage and scipy.ndimage, 0.1 s) are imported only when a calibration reports its first stage."""
     probe = ("import sys\n"
-             "from lrfcal.io.progress import progress_display\n"
+             "from lrfcal.terminal.progress import progress_display\n"
              "with progress_display('job', quiet=True) as hooks:\n"
              "    hooks.scans(1, 2); hooks.steps('writing', 1, 1)\n"
              "    before = 'lrfcal.pipeline' in sys.modules\n"

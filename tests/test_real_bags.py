@@ -13,9 +13,9 @@ import numpy as np
 import pytest
 import yaml
 
+from lrfcal.commands.inspect_bag import inspect_bag
+from lrfcal.commands.reproject import reproject_beams
 from lrfcal.io.bag import read_bag
-from lrfcal.io.cloud import reproject_beams
-from lrfcal.io.inspection import inspect_bag
 from lrfcal.io.rig import ScanSource, ServoSource, parse_rig
 from lrfcal.model.kinematics import DH
 

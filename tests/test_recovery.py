@@ -196,7 +196,8 @@ def test_shipped_dh_within_4_sigma(name: str, shipped_cases: _Cases) -> None:
 
 
 def test_shipped_fitted_result_comes_before_the_clouds_and_is_the_results(shipped_cases: _Cases) -> None:
-    """What the figures are drawn from during the reprojection (lrfcal.workflow): the result without its clouds."""
+    """What the figures are drawn from during the reprojection (lrfcal.commands.calibrate): the result without its
+    clouds."""
     case = shipped_cases[SHIPPED[0]]
     assert len(case.fitted) == 1
     early = case.fitted[0]

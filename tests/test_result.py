@@ -15,12 +15,11 @@ from synthetic import make_result, marker_positions_W
 
 import lrfcal
 from lrfcal.io.calibration_yaml import calibration_dict
-from lrfcal.io.report import render_report, residual_summary
 from lrfcal.io.truth import truth_frame
 from lrfcal.report.figures import needs_clouds
+from lrfcal.report.markdown import render_report, residual_summary
 from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence, PlaneFit
-from lrfcal.stages.planes import ScenePlane
-from lrfcal.stages.surfaces import SurfaceReturns
+from lrfcal.types import ScenePlane, SurfaceReturns
 
 
 @pytest.fixture(scope="module")

@@ -16,7 +16,7 @@ import pytest
 import yaml
 from synthetic import make_result
 
-from lrfcal.io.calibration_folder import write_calibration
+from lrfcal.commands.calibration_folder import write_calibration
 from lrfcal.io.rig import ServoSource
 from lrfcal.io.ros_launch import JOINTS_NAME, LAUNCH_NAME, MOTOR_FRAME, WORLD_FRAME, quaternion_xyzw
 from lrfcal.model.kinematics import DH, Pose, chain_T_M_L, pose_matrix, rot_z

@@ -20,11 +20,11 @@ import numpy as np
 import pytest
 import yaml
 
+from lrfcal.commands.convert import convert_log
+from lrfcal.commands.inspect_log import guess_layout, inspect_path
+from lrfcal.commands.reproject import read_cloud_ply, reproject_beams
 from lrfcal.errors import InputError
 from lrfcal.io.bag import read_bag
-from lrfcal.io.cloud import read_cloud_ply, reproject_beams
-from lrfcal.io.logconvert import convert_log
-from lrfcal.io.loginspect import guess_layout, inspect_path
 from lrfcal.io.recording import read_recording
 from lrfcal.io.rig import LogLayout, ScanSource, ServoSource, parse_rig
 from lrfcal.io.scanlog import read_scan_log, resolve_recording

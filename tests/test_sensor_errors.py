@@ -16,10 +16,10 @@ import pytest
 import yaml
 from test_lidar import EXACT, _deep_update, _exact_rays_W, _marker_on_beam, _run, _tunnel_hits, small_scenario
 
+from lrfcal.commands.inspect_bag import inspect_bag
 from lrfcal.errors import InputError
 from lrfcal.io.bag import read_bag
 from lrfcal.io.bag_scans import select_echo
-from lrfcal.io.inspection import inspect_bag
 from lrfcal.io.recording import read_recording
 from lrfcal.io.rig import ScanSource, ServoSource, parse_rig
 from lrfcal.pipeline import CalibConfig

@@ -120,8 +120,8 @@ def test_shipped_targetless_scenes_calibrate_with_the_starts_agreeing(
         tmp_path: Path, name: str) -> None:
     """The multi-start agreement does not refuse good runs: exit 0, every estimated DH parameter within 4 sigma of the
     truth, and at least one other start run and agreeing. tunnel_v through the installed console script; room_box
-    through the function it runs (lrfcal.workflow.calibrate_folder, which raises where the command exits 3), the
-    session's run that tests/test_targetless.py asserts on too (tests/conftest.py)."""
+    through the function it runs (lrfcal.commands.calibrate.calibrate_folder, which raises where the command exits 3),
+    the session's run that tests/test_targetless.py asserts on too (tests/conftest.py)."""
     if name == "room_box":
         folder, out, _ = targetless_calibrated(name)
     else:

@@ -2,8 +2,8 @@
 
 ``lrfcal`` and ``lrfsim`` import numpy, scipy, mujoco, matplotlib, rerun and rosbags inside the commands that use
 them (issue 47), and the thread policy that loads numpy's and scipy's BLAS runs only once a command's arguments are
-parsed (lrfcal.io.cliutil.Command.invoke). Each program is run in a fresh interpreter, as its console script runs it
-(``main()`` with ``sys.argv``), for every case in turn; after each, the heavy modules in ``sys.modules`` are listed.
+parsed (lrfcal.terminal.cliutil.Command.invoke). Each program is run in a fresh interpreter, as its console script runs
+it (``main()`` with ``sys.argv``), for every case in turn; after each, the heavy modules in ``sys.modules`` are listed.
 Not timed: the time is benchmarks/bench_speed.py's (docs/speed.md).
 """
 
@@ -79,7 +79,7 @@ def test_every_command_applies_the_programs_policies() -> None:
     """The thread and memory policies run in Command.invoke: every command of both programs must be a Command (or
     a subclass of it: `lrfsim plan` limits scipy's BLAS once it has imported scipy, lrfsim.cli._ScipyLater)."""
     from lrfcal.cli import app as lrfcal_app
-    from lrfcal.io.cliutil import Command
+    from lrfcal.terminal.cliutil import Command
     from lrfsim.cli import app as lrfsim_app
 
     for app in (lrfcal_app, lrfsim_app):

@@ -130,7 +130,8 @@ def test_surface_returns_are_chosen_by_their_ray_not_their_noisy_point() -> None
     where the rays meet the wall obliquely, the returns that read short move inside and those that read long move
     out (the cause of a Monte-Carlo bias of a and beta, issue 10). Chosen by where the ray meets the plane, the kept
     returns' range errors are the noise's, mean 0; and no return beyond the incidence limit is kept."""
-    from lrfcal.stages.surfaces import MAX_INCIDENCE_RAD, Surface
+    from lrfcal.stages.surfaces import MAX_INCIDENCE_RAD
+    from lrfcal.types import Surface
 
     rng = np.random.default_rng(3)
     K = 400_000
@@ -231,7 +232,8 @@ def test_moved_m_is_how_far_the_returns_move_along_their_planes_normal() -> None
     """The joint solve chooses its surface returns again while its estimate moves them (lrfcal.stages.joint): by the
     distance along the plane's normal that the gate judges. The mount shifted 5 mm along the normal moves every
     return 5 mm; turned by 2 mrad, the farthest return moves most (about 2 mrad times its distance from the axis)."""
-    from lrfcal.stages.surfaces import SurfaceReturns, moved_m
+    from lrfcal.stages.surfaces import moved_m
+    from lrfcal.types import SurfaceReturns
 
     rng = np.random.default_rng(0)
     K = 300

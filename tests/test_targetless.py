@@ -132,8 +132,8 @@ def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(shipped_reco
                                                                    ) -> None:
     """tunnel_v calibrated with its markers and, with compare_targetless, from its planes alone: the targetless
     estimate is right within 4 sigma, and the report shows the methods side by side with the truth."""
-    from lrfcal.io.report import render_report
     from lrfcal.io.truth import truth_dict
+    from lrfcal.report.markdown import render_report
 
     folder = shipped_recording("tunnel_v")
     recording = read_recording(folder)

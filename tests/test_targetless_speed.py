@@ -29,6 +29,7 @@ from lrfcal.model.unknowns import N_CORE
 from lrfcal.stages import holdout, planes, targetless
 from lrfcal.stages.sampling import hash_sample
 from lrfcal.stages.timing import usable_scans
+from lrfcal.types import Iteration
 
 CONFIG = CalibConfig(targetless=True, range_sigma_m=0.01)
 
@@ -140,7 +141,7 @@ def test_levenberg_marquardt_without_the_jacobians_of_rejected_steps_takes_the_s
 
     runs = []
     for evaluate in (lazy, lambda x, jac: pb.blocks(x, R, True)):
-        log: list[normal_equations.Iteration] = []
+        log: list[Iteration] = []
         th, n_eval, ok = normal_equations.levenberg_marquardt(th0, evaluate, core, N_CORE, huber=2.0, log=log)
         runs.append((th, n_eval, ok, log))
     (th_a, n_a, ok_a, log_a), (th_b, n_b, ok_b, log_b) = runs

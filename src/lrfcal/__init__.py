@@ -3,7 +3,7 @@ method) or from the scene's planes.
 
 The public API: what other code (lrfsim, benchmarks, a user's script) may use. Everything else in lrfcal is internal
 and may move. Besides this module, other code may import :mod:`lrfcal.model` (the rig model), :mod:`lrfcal.io`
-(reading recordings, writing calibrations, the parts both command lines share) and :mod:`lrfcal.errors`.
+(reading recordings and writing files) and :mod:`lrfcal.errors`.
 
 - calibrate: :func:`calibrate` a :class:`Recording` (read with :func:`read_recording`) with a :class:`CalibConfig`;
   :func:`calibrate_folder` does it for a recording folder and writes the results, as ``lrfcal calibrate`` does;
@@ -12,7 +12,9 @@ and may move. Besides this module, other code may import :mod:`lrfcal.model` (th
 - what ``plan`` needs to predict accuracy without calibrating: the information of marker and surface returns at
   given parameters (:func:`information_at` and its error terms), the observability verdict (:func:`analyse`), the
   marker map's covariance (:func:`map_covariance`), the surfaces the markers sit on (:func:`observe_surfaces`);
-- the runtime policies the programs and their worker processes apply (BLAS threads, memory, cores).
+- the runtime policies the programs and their worker processes apply (BLAS threads, memory, cores);
+- what the two command lines share (lrfsim's too): the typer app (:func:`make_app`, :class:`Command`,
+  :func:`run_app`, :data:`QuietOpt`, :func:`finite_between`) and the progress display (:func:`progress_display`).
 
 Names are imported when first used (PEP 562), so ``import lrfcal`` costs nothing: ``lrfcal --help`` imports
 neither scipy nor mujoco.
@@ -34,8 +36,8 @@ _EXPORTS: dict[str, str] = {
     "STAGES": "lrfcal.pipeline",
     "CalibConfig": "lrfcal.config",
     "DEFAULT_RANGE_SIGMA_M": "lrfcal.config",
-    "calibrate_folder": "lrfcal.workflow",
-    "viewer_can_spawn": "lrfcal.workflow",
+    "calibrate_folder": "lrfcal.commands.calibrate",
+    "viewer_can_spawn": "lrfcal.commands.calibrate",
     "read_recording": "lrfcal.io.recording",
     # the rig model's parameters
     "DH": "lrfcal.model.kinematics",
@@ -65,15 +67,18 @@ _EXPORTS: dict[str, str] = {
     "LIMITS": "lrfcal.estimate.observability",
     "Observability": "lrfcal.estimate.observability",
     "analyse": "lrfcal.estimate.observability",
+    "Verdict": "lrfcal.estimate.observability",
+    "mirror_check": "lrfcal.estimate.checks",
+    "of_covariance": "lrfcal.estimate.observability",
     "map_covariance": "lrfcal.stages.mds",
     "SCALES": "lrfcal.stages.joint",
     "SCALE_Z_LIMIT": "lrfcal.stages.joint",
     "OnPlanes": "lrfcal.estimate.problem",
-    "Surface": "lrfcal.stages.surfaces",
+    "Surface": "lrfcal.types",
     "PlaneMarkers": "lrfcal.stages.surfaces",
     "ReturnGrid": "lrfcal.stages.surfaces",
     "SurfaceSelection": "lrfcal.stages.surfaces",
-    "SurfaceReturns": "lrfcal.stages.surfaces",
+    "SurfaceReturns": "lrfcal.types",
     "observe_surfaces": "lrfcal.stages.surfaces",
     "detect": "lrfcal.stages.detection",
     # the runtime policies
@@ -83,17 +88,25 @@ _EXPORTS: dict[str, str] = {
     "apply_memory_policy": "lrfcal.runtime.memory",
     "keep_freed_memory": "lrfcal.runtime.memory",
     "cores": "lrfcal.runtime.forked",
+    # the command lines' shared parts (lrfsim's too): the typer app, its errors as one line, the progress display
+    "Command": "lrfcal.terminal.cliutil",
+    "QuietOpt": "lrfcal.terminal.cliutil",
+    "finite_between": "lrfcal.terminal.cliutil",
+    "make_app": "lrfcal.terminal.cliutil",
+    "run_app": "lrfcal.terminal.cliutil",
+    "progress_display": "lrfcal.terminal.progress",
 }
 
-__all__ = ["CalibrationError", "InputError", "LrfError", "CalibConfig", "CalibrationResult", "DEFAULT_RANGE_SIGMA_M",
-           "DH", "JointStates", "LIMITS", "MarkerEvidence", "Observability", "Observations", "OnPlanes",
-           "PARAM_NAMES", "Params", "PlaneEvidence", "PlaneFit", "PlaneMarkers", "Pose", "Recording", "ReturnGrid",
-           "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface", "SurfaceReturns", "SurfaceSelection",
-           "TunnelGeometry", "analyse", "apply_memory_policy", "apply_thread_policy", "calibrate",
-           "calibrate_folder", "call_with_thread_policy", "cores", "correlation_error_at", "detect", "estimated",
-           "information_at", "keep_freed_memory", "map_covariance", "map_error_at", "model_error_at",
-           "observe_surfaces", "one_blas_thread", "print_summary", "read_recording", "scaled_pinv", "turning_error_at",
-           "viewer_can_spawn"]
+__all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "Command", "DEFAULT_RANGE_SIGMA_M", "DH",
+           "InputError", "JointStates", "LIMITS", "LrfError", "MarkerEvidence", "Observability", "Observations",
+           "OnPlanes", "PARAM_NAMES", "Params", "PlaneEvidence", "PlaneFit", "PlaneMarkers", "Pose", "QuietOpt",
+           "Recording", "ReturnGrid", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface",
+           "SurfaceReturns", "SurfaceSelection", "TunnelGeometry", "Verdict", "analyse", "apply_memory_policy",
+           "apply_thread_policy", "calibrate", "calibrate_folder", "call_with_thread_policy", "cores",
+           "correlation_error_at", "detect", "estimated", "finite_between", "information_at", "keep_freed_memory",
+           "make_app", "map_covariance", "map_error_at", "mirror_check", "model_error_at", "observe_surfaces",
+           "of_covariance", "one_blas_thread", "print_summary", "progress_display", "read_recording", "run_app",
+           "scaled_pinv", "turning_error_at", "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:
@@ -111,7 +124,9 @@ def __dir__() -> list[str]:
 
 
 if TYPE_CHECKING:  # the same names for type checkers and editors
+    from lrfcal.commands.calibrate import calibrate_folder, viewer_can_spawn
     from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
+    from lrfcal.estimate.checks import mirror_check
     from lrfcal.estimate.information import (
         correlation_error_at,
         estimated,
@@ -121,7 +136,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
         scaled_pinv,
         turning_error_at,
     )
-    from lrfcal.estimate.observability import LIMITS, Observability, analyse
+    from lrfcal.estimate.observability import LIMITS, Observability, Verdict, analyse, of_covariance
     from lrfcal.estimate.problem import OnPlanes
     from lrfcal.io.recording import read_recording
     from lrfcal.model.kinematics import DH, PARAM_NAMES, Params, Pose
@@ -134,20 +149,16 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.stages.detection import detect
     from lrfcal.stages.joint import SCALE_Z_LIMIT, SCALES
     from lrfcal.stages.mds import map_covariance
-    from lrfcal.stages.surfaces import (
-        PlaneMarkers,
-        ReturnGrid,
-        Surface,
-        SurfaceReturns,
-        SurfaceSelection,
-        observe_surfaces,
-    )
+    from lrfcal.stages.surfaces import PlaneMarkers, ReturnGrid, SurfaceSelection, observe_surfaces
+    from lrfcal.terminal.cliutil import Command, QuietOpt, finite_between, make_app, run_app
+    from lrfcal.terminal.progress import progress_display
     from lrfcal.types import (
         JointStates,
         Observations,
         Recording,
         Scans,
         Solution,
+        Surface,
+        SurfaceReturns,
         TunnelGeometry,
     )
-    from lrfcal.workflow import calibrate_folder, viewer_can_spawn

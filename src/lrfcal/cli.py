@@ -8,12 +8,17 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.io.cliutil import Command, QuietOpt, finite_between, make_app, run_app
-from lrfcal.io.progress import progress_display
+from lrfcal.terminal.cliutil import Command, QuietOpt, finite_between, make_app, run_app
+from lrfcal.terminal.progress import progress_display
+
+if TYPE_CHECKING:  # the types print_inspection prints (imported by the command that runs, not at start-up)
+    from rich.console import Console
+
+    from lrfcal.commands.inspect_bag import BagInspection
 
 app = make_app(
     "Calibrate a servo-turned 2D laser range finder from reflective markers (the mount pose [m, rad] and the "
@@ -82,9 +87,9 @@ def calibrate_cmd(
     """
     from rich.console import Console
 
+    from lrfcal.commands.calibrate import calibrate_folder
     from lrfcal.config import CalibConfig
     from lrfcal.report.summary import print_summary
-    from lrfcal.workflow import calibrate_folder
 
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
@@ -187,8 +192,8 @@ def inspect_cmd(
     from the scene's planes (with their uncertainty) unless the rig file gives them or --no-dh."""
     from rich.console import Console
 
+    from lrfcal.commands.inspect_log import inspect_path
     from lrfcal.io.files import atomic_file, check_outputs
-    from lrfcal.io.loginspect import inspect_path
     from lrfcal.io.rig import load_rig, with_overrides
 
     if out is not None:
@@ -210,8 +215,8 @@ def inspect_cmd(
         print(f"wrote {out}")
 
 
-def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
-    """Print a lrfcal.io.inspection.BagInspection with rich tables."""
+def print_inspection(result: BagInspection, console: Console) -> None:
+    """Print a lrfcal.commands.inspect_bag.BagInspection with rich tables."""
     import math
 
     from rich.table import Table
@@ -238,6 +243,7 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
             f"range {g.range_min_m:.3g}..{g.range_max_m:.3g} m; intensities {'yes' if g.has_intensities else 'no'}")
     if result.servo is not None:
         sv = result.servo
+        assert result.servo_source is not None  # the servo's samples were read from it
         rate = "-" if sv.rate_hz is None else f"{sv.rate_hz:.2f} Hz"
         console.print(f"servo: {sv.n_samples} samples at {rate}, {math.degrees(sv.min_rad):.2f}.."
                       f"{math.degrees(sv.max_rad):.2f} deg, median speed {math.degrees(sv.median_speed_rad_s):.2f} "
@@ -252,8 +258,8 @@ def print_inspection(result, console) -> None:  # type: ignore[no-untyped-def]
         console.print(f"note: {note}", markup=False)
     if result.problems:
         console.print("[bold]problems[/bold]:")
-        for p in result.problems:
-            console.print(f"  - {p}", markup=False)
+        for problem in result.problems:
+            console.print(f"  - {problem}", markup=False)
     p = result.proposal
     if p is not None:
         what = (f"proposed from the scene's planes in {p.seconds:.1f} s ({p.n_agreeing} of {p.n_starts} search starts "
@@ -296,7 +302,7 @@ def reproject_cmd(
     calibrated DH (--calibration) or the rig file's nominal DH. Needs no tape distances."""
     from rich.console import Console
 
-    from lrfcal.io.cloud import CloudOutputs, reproject_bag
+    from lrfcal.commands.reproject import CloudOutputs, reproject_bag
 
     console = Console(stderr=True)
     options = {k: v for k, v in dict(
@@ -327,7 +333,7 @@ def convert_cmd(
 ) -> None:
     """Convert a scan log into a ROS 2 bag (MCAP): sensor_msgs/LaserScan on /scan and sensor_msgs/JointState
     (joint servo, rad) on /joint_states, one of each per row; prints the rig file that reads the bag."""
-    from lrfcal.io.logconvert import convert_log
+    from lrfcal.commands.convert import convert_log
 
     for line in convert_log(log, out, nominal=nominal, overwrite=overwrite,
                             warn=lambda text: print(f"warning: {text}", file=sys.stderr)):

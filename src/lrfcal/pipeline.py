@@ -18,14 +18,14 @@ import contextlib
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import replace
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol, TypedDict, TypeVar
 
 import numpy as np
 
 from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.estimate.checks import clock_offset_check, refuse_failed
-from lrfcal.io.rig import refuse_placeholder_dh
+from lrfcal.model.kinematics import refuse_placeholder_dh
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S
 from lrfcal.result import CalibrationResult
 from lrfcal.runtime.forked import on_cores
@@ -34,7 +34,7 @@ from lrfcal.stages.clocksearch import MAX_START_ERROR_RAD, line_up
 from lrfcal.stages.markers import STAGES, MarkerWay
 from lrfcal.stages.scene import PlaneWay
 from lrfcal.stages.timing import usable_scans
-from lrfcal.types import Check, JointStates, Noted, Recording, Scans, Solution
+from lrfcal.types import Check, FloatArray, JointStates, Noted, Recording, Scans, Solution, TunnelGeometry
 
 
 def calibrate(
@@ -59,12 +59,24 @@ def calibrate(
     try:
         return _calibrate(recording, config, progress, fitted, outputs)
     except CalibrationError as err:
+        left = _left_out_hint(recording)
         if "time span" in str(err) or str(err).startswith(CLOCK_START):
-            raise
-        hint = _trimmed_hint(recording, config.clock_offset_s) or _start_hint(config.clock_offset_s)
+            if not left:
+                raise
+            raise CalibrationError(f"{err}; {left}") from None
+        hint = "; ".join(h for h in (_trimmed_hint(recording, config.clock_offset_s) or _start_hint(
+            config.clock_offset_s), left) if h)
         if not hint:
             raise
         raise CalibrationError(f"{err}; {hint}") from None
+
+
+def _left_out_hint(recording: Recording) -> str:
+    """What the reader left out of the recording (a clock step's other side, a cut bag's lost end; ReadReport's
+    left_out), for a refusal: the data refused are not the whole recording (empty when nothing was left out)."""
+    if recording.report is None or not recording.report.left_out:
+        return ""
+    return "note: the calibration had only part of the recording: " + "; ".join(recording.report.left_out)
 
 
 def _start_hint(tau0: float) -> str:
@@ -206,8 +218,18 @@ def _targetless_opinion(recording: Recording, config: CalibConfig) -> Noted[dict
         return Noted({}, (f"the targetless calibration of the same recording was refused: {err}",))
 
 
+class _Clouds(TypedDict, total=False):
+    """4.'s fields of the result (CalibrationResult's names): the clouds in M, their intensities, the geometry."""
+
+    cloud_before_M: FloatArray
+    cloud_after_M: FloatArray
+    cloud_intensity: FloatArray
+    geometry_before: TunnelGeometry | None
+    geometry_after: TunnelGeometry | None
+
+
 def _reproject(recording: Recording, joints: JointStates, sol: Solution, config: CalibConfig, clock: Stopwatch
-               ) -> dict[str, object]:
+               ) -> _Clouds:
     """4.: every ``config.cloud_stride``-th scan reprojected in M with the nominal and with the calibrated DH (and
     the range offset), and the tunnel's planes and dimensions in each; the result's fields."""
     empty = np.zeros((0, 3))
@@ -220,7 +242,7 @@ def _reproject(recording: Recording, joints: JointStates, sol: Solution, config:
                                                             config.cloud_stride,
                                                             ({}, sol.intrinsic_values))
     clock.lap("reprojection")
-    out: dict[str, object] = {"cloud_before_M": before, "cloud_after_M": after, "cloud_intensity": intensity}
+    out: _Clouds = {"cloud_before_M": before, "cloud_after_M": after, "cloud_intensity": intensity}
     if config.geometry:
         out["geometry_before"], out["geometry_after"] = on_cores(geometry.tunnel_geometry, [(before,), (after,)])
         clock.lap("geometry")

@@ -17,7 +17,7 @@ Array shapes as in lrfcal.types: K marker returns, P planes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, ClassVar
+from typing import ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -32,13 +32,12 @@ from lrfcal.types import (
     MarkerMap,
     Observations,
     Recording,
+    ScenePlane,
     Solution,
+    Surface,
+    SurfaceReturns,
     TunnelGeometry,
 )
-
-if TYPE_CHECKING:  # the stages' own types, named here for the reader and the type checker only
-    from lrfcal.stages.planes import ScenePlane
-    from lrfcal.stages.surfaces import Surface, SurfaceReturns
 
 
 @dataclass(frozen=True)

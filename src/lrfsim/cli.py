@@ -20,8 +20,7 @@ from typing import TYPE_CHECKING, Annotated
 
 import typer
 
-from lrfcal.io.cliutil import Command, QuietOpt, finite_between, make_app, run_app
-from lrfcal.io.progress import progress_display
+from lrfcal import Command, QuietOpt, finite_between, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
     from .simulation.result import SimResult

@@ -19,15 +19,16 @@ from lrfcal.model.chart import gauge_distance
 from lrfcal.model.kinematics import DH, PARAM_NAMES, dh_twins
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, Clock
 from lrfcal.model.unknowns import CORE_NAMES, dh_difference, wrap_pi
-from lrfcal.stages.surfaces import SurfaceReturns
-from lrfcal.types import Check, MarkerMap, Observations, Solution
+from lrfcal.types import Check, MarkerMap, Observations, Solution, SurfaceReturns
 
 
 class _Alternative(Protocol):
     """A direction of the servo and the marker-only solution with it (lrfcal.stages.alternatives.Alternative)."""
 
-    sign: int
-    solution: Solution
+    @property
+    def sign(self) -> int: ...
+    @property
+    def solution(self) -> Solution: ...
 
 
 A = TypeVar("A", bound=_Alternative)
@@ -144,12 +145,27 @@ def servo_direction(alts: list[A], nominal_dh: DH, config: CheckConfig) -> A:
     return declared
 
 
-#: a mirror image of the rig must be this many times farther from the nominal DH than the estimate, unless the
-#: estimate is within the nominal tolerance (:func:`mirror_check`). The distances are the scanner's poses'
-#: (:func:`nominal_distance`), and a mirror image has the estimate's origin: the attitudes tell them apart. A scan
-#: plane along the motor axis and its mirror image are 180 deg apart, so 1.5 accepts a nominal up to 72 deg off
-#: in attitude (45 deg off in both alpha and beta is 61 deg, tests/test_trust.py's far starts)
-MIRROR_MARGIN = 1.5
+#: chi-square quantile with 1 degree of freedom at p = 1e-3: a difference of cost below it does not tell two
+#: minima apart
+LR_LIMIT = 10.83
+
+
+def judge_minima(lr: float) -> tuple[bool, str]:
+    """The one rule for two distinct minima of a calibration's cost: ``lr`` (the other minimum's cost above the
+    estimate's, in the estimate's whitened units, i.e. twice the log-likelihood ratio) must reach :data:`LR_LIMIT`
+    for the estimate to stand (the other a local minimum); below it the two explain the data equally well, and below
+    -LR_LIMIT the other explains them better. Whether it stands, and the verdict in words."""
+    if lr >= LR_LIMIT:
+        return True, f"by a likelihood ratio of {lr:.1f}, limit {LR_LIMIT}"
+    what = ("they explain the data equally well" if lr > -LR_LIMIT
+            else "the other explains the data better: the solve landed in a local minimum")
+    return False, f"{what} (likelihood ratio {lr:+.1f}, limit {LR_LIMIT})"
+
+
+#: a mirror image within this many of the estimate's 1-sigma of it, on every DH parameter, is the same rig to within
+#: the estimate's uncertainty (a scan plane a hundredth of a degree from perpendicular to the motor axis and its mirror
+#: image): either is right within a few of its sigma, never confidently wrong (4 sigma)
+MIRROR_SAME_SIGMA = 2.0
 
 
 def _nearest_mirror(dh: DH, nominal: DH, config: CheckConfig) -> tuple[str, DH, FloatArray, float, float]:
@@ -162,12 +178,26 @@ def _nearest_mirror(dh: DH, nominal: DH, config: CheckConfig) -> tuple[str, DH, 
     return name, twin, Q, d_est, d_twin
 
 
-def nearer_mirror(dh: DH, nominal: DH, config: CheckConfig) -> tuple[str, DH, FloatArray, float, float] | None:
-    """The nearest mirror twin of ``dh`` (as :func:`_nearest_mirror`) when the nominal DH prefer it: the estimate is
-    beyond the nominal tolerance and the twin at least MIRROR_MARGIN times closer; else None."""
+def nearer_mirror(dh: DH, nominal: DH, config: CheckConfig, dh_sigma: FloatArray
+                  ) -> tuple[str, DH, FloatArray, float, float] | None:
+    """The nearest mirror twin of ``dh`` (as :func:`_nearest_mirror`) when the nominal DH prefer it by the rule that
+    decides between minima (lrfcal.estimate.minima.judge_minima: the nominal's prior, each distance d in nominal
+    tolerances counting d^2, must favour the twin by LR_LIMIT) and the twin is not the same rig within ``dh_sigma``
+    (4,), the estimate's 1-sigma; else None."""
     found = _nearest_mirror(dh, nominal, config)
-    d_est, d_twin = found[3], found[4]
-    return found if d_est > 1.0 and MIRROR_MARGIN * d_twin <= d_est else None
+    twin, d_est, d_twin = found[1], found[3], found[4]
+    if _same_rig(twin, dh, dh_sigma) or not judge_minima(d_est**2 - d_twin**2)[0]:
+        return None
+    return found
+
+
+def _same_rig(twin: DH, dh: DH, dh_sigma: FloatArray) -> bool:
+    """Whether a twin, in either of its DH representatives (itself and its "turned" twin: one rig), lies within
+    MIRROR_SAME_SIGMA of ``dh``'s 1-sigma ``dh_sigma`` (4,) on every DH parameter."""
+    s = np.asarray(dh_sigma, dtype=float)
+    scale = np.where(np.isfinite(s) & (s > 0), s, np.inf)
+    return any(bool(np.all(np.abs(dh_difference(t.vector(), dh.vector())) / scale <= MIRROR_SAME_SIGMA))
+               for t in (twin, dh_twins(twin)[0][1]))
 
 
 #: nominal tolerances beyond which a nominal DH far from both the estimate and its mirror image (50 deg at the 5 deg
@@ -175,24 +205,35 @@ def nearer_mirror(dh: DH, nominal: DH, config: CheckConfig) -> tuple[str, DH, Fl
 FAR_FROM_BOTH = 10.0
 
 
-def mirror_check(dh: DH, nominal: DH, config: CheckConfig) -> Check:
+def mirror_check(dh: DH, nominal: DH, config: CheckConfig, dh_sigma: FloatArray) -> Check:
     """The rig or its mirror image: each mirror twin of the estimate (lrfcal.model.kinematics.dh_twins) explains the
-    data exactly as well (with the marker map mirrored; flatness alike), so only the nominal DH tell them apart.
-    Passed when the estimate is within the nominal tolerance (config.nominal_tolerance) of the nominal, or
-    MIRROR_MARGIN times closer to it than the nearest mirror twin; else refused naming both."""
+    data exactly as well (with the marker map mirrored; flatness alike): tape distances fix the map only up to a
+    reflection, and the servo's declared direction and the beams' order are the same in both. So only the nominal DH
+    (a prior of the nominal tolerance, config.nominal_tolerance) can tell them apart, by the rule every choice between
+    two minima is made by (lrfcal.estimate.minima.judge_minima: a distance d in nominal tolerances counts d^2). Passed
+    when the nearest mirror twin is the same rig within the estimate's 1-sigma ``dh_sigma`` (4,), or the nominal
+    favours the estimate by that rule; else refused naming both and what would tell them apart."""
     name, twin, _, d_est, d_twin = _nearest_mirror(dh, nominal, config)
-    ok = d_est <= 1.0 or d_twin >= MIRROR_MARGIN * d_est
-    why = ": the data fit the rig and its mirror image equally well (tape distances fix the marker map only up to a "
-    if min(d_est, d_twin) <= FAR_FROM_BOTH:
-        why += "reflection) and the nominal DH do not tell which; check the signs of alpha and b in the rig file's dh "
-        why += "against the drawings"
-    else:  # e.g. a nominal beta 90 deg off: the DH search (lrfcal.stages.start) found the rig; the nominal can't judge
-        why += (f"reflection), and the nominal DH, far from both, cannot tell which: the rig file's dh is likely wrong "
-                f"(the estimate: {dh_text(dh)}); set it to whichever of the two the drawings confirm and calibrate "
-                "again")
-    return Check("mirror image", ok,
-                 f"the estimate is {d_est:.1f} nominal tolerances from the nominal DH, its nearest mirror image "
-                 f"({name}: {dh_text(twin)}) {d_twin:.1f}" + ("" if ok else why))
+    head = (f"the estimate is {d_est:.1f} nominal tolerances from the nominal DH, its nearest mirror image "
+            f"({name}: {dh_text(twin)}) {d_twin:.1f}")
+    if _same_rig(twin, dh, dh_sigma):
+        return Check("mirror image", True, f"{head}; the two are one rig within the estimate's {MIRROR_SAME_SIGMA:g} "
+                                           "sigma")
+    ok, words = judge_minima(d_twin**2 - d_est**2)
+    if ok:
+        return Check("mirror image", True, f"{head}: the nominal favours the estimate ({words})")
+    why = (": the data fit the rig and its mirror image exactly as well (tape distances fix the marker map only up "
+           f"to a reflection; flatness likewise) and the nominal DH do not tell which ({words})")
+    if min(d_est, d_twin) > FAR_FROM_BOTH:  # e.g. a nominal beta 90 deg off: the nominal can't judge
+        why += (f"; the nominal DH, far from both, is likely wrong (the estimate: {dh_text(dh)}): set it to whichever "
+                "of the two the drawings confirm and calibrate again")
+    elif abs(d_est - d_twin) < 1.0:
+        why += ("; the nominal lies between the two (a scan plane near perpendicular to the motor axis, alpha near 0): "
+                "give the nominal alpha and b with the signs the drawings show (a nominal alpha away from 0 tells the "
+                "two apart), or tilt the scan plane further from perpendicular")
+    else:
+        why += "; check the signs of alpha and b in the rig file's dh against the drawings"
+    return Check("mirror image", False, head + why)
 
 
 def far_from_nominal(dh: DH, nominal: DH, config: CheckConfig) -> bool:
@@ -227,7 +268,7 @@ def marker_checks(
     compares parts of the marker returns with the marker-only solution of them all (the same model and data
     type, so that it tests the recording's parts, not the markers against the surfaces)."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
-              mirror_check(sol.params.dh, nominal, config)]
+              mirror_check(sol.params.dh, nominal, config, sol.sigma[6:10])]
     finite = bool(np.all(np.isfinite(sol.sigma)))
     if sol.information is not None and finite:
         obs = observability.analyse(sol.information, sol.information_names, sol.params.dh.alpha)
@@ -321,7 +362,7 @@ def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int6
     """Convergence, mirror image, observability of the estimated parameters, reduced chi-square and a
     second opinion."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
-              mirror_check(sol.params.dh, nominal, config)]
+              mirror_check(sol.params.dh, nominal, config, sol.sigma[6:10])]
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
     ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())
@@ -372,5 +413,6 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
                                   "clock offset, a scene that moved)"))
 
 
-__all__ = ["Check", "CheckConfig", "chi2_check", "clock_offset_check", "dh_text", "marker_checks", "mirror_check",
-           "nearer_mirror", "nominal_distance", "plane_checks", "refuse_failed", "servo_direction", "split_in_two"]
+__all__ = ["LR_LIMIT", "Check", "CheckConfig", "chi2_check", "clock_offset_check", "dh_text", "judge_minima",
+           "marker_checks", "mirror_check", "nearer_mirror", "nominal_distance", "plane_checks", "refuse_failed",
+           "servo_direction", "split_in_two"]

@@ -28,12 +28,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.estimate.covariance import held_score, uncertainty
-from lrfcal.estimate.normal_equations import Iteration, Limits, assemble, levenberg_marquardt, schur
+from lrfcal.estimate.normal_equations import Limits, assemble, levenberg_marquardt, schur
 from lrfcal.estimate.problem import Problem
 from lrfcal.model.chart import regular_chart_at, regular_step
 from lrfcal.model.kinematics import exp_so3
 from lrfcal.model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
-from lrfcal.types import Spread
+from lrfcal.types import Iteration, Spread
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]

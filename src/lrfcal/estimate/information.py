@@ -20,8 +20,7 @@ from lrfcal.model.marker import MarkerModel, MarkerSensor
 from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock
 from lrfcal.model.noise import correlated_range_excess
 from lrfcal.model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
-from lrfcal.stages.surfaces import SurfaceReturns
-from lrfcal.types import Observations
+from lrfcal.types import Observations, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]

@@ -27,21 +27,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate.checks import CheckConfig, dh_text, nominal_distance
+from lrfcal.estimate.checks import CheckConfig, dh_text, judge_minima, nominal_distance
 from lrfcal.estimate.information import model_residuals
 from lrfcal.estimate.solve import Solver
 from lrfcal.model.kinematics import DH, Params, dh_twins
 from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.motor import Clock, MotorClock
 from lrfcal.model.unknowns import dh_difference
-from lrfcal.stages.surfaces import SurfaceReturns
-from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution
+from lrfcal.types import Check, MarkerMap, Nominal, Observations, Solution, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 
-#: chi-square quantile with 1 degree of freedom at p = 1e-3: a difference of cost below it does not tell two
-#: minima apart
-LR_LIMIT = 10.83
 #: DH differences within this many sigma (the estimate's) are one minimum
 SAME_SIGMA = 4.0
 
@@ -76,18 +72,6 @@ def other_minimum(sol: Solution, matched: Observations, markers: MarkerMap, nomi
     both = f"{dh_text(sol.params.dh)} and {dh_text(alt.params.dh)}"
     return Check(NAME, False, f"two distinct rigs, {both}: {words}; markers spread further along the motor axis tell "
                               "them apart, or a scan plane further from perpendicular to it")
-
-
-def judge_minima(lr: float) -> tuple[bool, str]:
-    """The one rule for two distinct minima of a calibration's cost: ``lr`` (the other minimum's cost above the
-    estimate's, in the estimate's whitened units, i.e. twice the log-likelihood ratio) must reach :data:`LR_LIMIT`
-    for the estimate to stand (the other a local minimum); below it the two explain the data equally well, and below
-    -LR_LIMIT the other explains them better. Whether it stands, and the verdict in words."""
-    if lr >= LR_LIMIT:
-        return True, f"by a likelihood ratio of {lr:.1f}, limit {LR_LIMIT}"
-    what = ("they explain the data equally well" if lr > -LR_LIMIT
-            else "the other explains the data better: the solve landed in a local minimum")
-    return False, f"{what} (likelihood ratio {lr:+.1f}, limit {LR_LIMIT})"
 
 
 def plane_cost(returns: SurfaceReturns, sol: Solution, motor: MotorClock, sigma_m: float,
@@ -151,4 +135,4 @@ def _cost(sol: Solution, matched: Observations, markers: MarkerMap, sensor: Mark
     return float(res @ res)
 
 
-__all__ = ["CUT_SIGMA", "LR_LIMIT", "SAME_SIGMA", "judge_minima", "other_minimum", "plane_cost"]
+__all__ = ["CUT_SIGMA", "SAME_SIGMA", "other_minimum", "plane_cost"]

@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.model.observations import Blocks
+from lrfcal.types import Iteration
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -34,18 +35,6 @@ IntArray = NDArray[np.int64]
 #: eigenvalues of the column-scaled information below this fraction of the largest count as rank loss (the normal
 #: equations resolve singular values of J to about sqrt(machine epsilon) of the largest, not below)
 RANK_TOL = 1e-15
-
-
-@dataclass(frozen=True)
-class Iteration:
-    """One accepted Levenberg-Marquardt iteration (as mujoco's ``minimize.IterLog``): the (Huber) cost 0.5 sum r^2
-    after the step, the step's largest ratio to its unknown's sigma, the damping it was taken with, and the
-    evaluations of the residuals so far."""
-
-    cost: float
-    step_sigma: float
-    damping: float
-    evaluations: int
 
 
 @dataclass(frozen=True)
@@ -299,5 +288,5 @@ def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluste
     return ids, G
 
 
-__all__ = ["RANK_TOL", "Blocks", "Iteration", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
+__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
            "schur", "scores_by_cluster", "solve_step"]

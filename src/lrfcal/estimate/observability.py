@@ -228,6 +228,55 @@ def of_solution(information: FloatArray | None, names: Sequence[str], dh_sigma: 
                          tilt_rad=tilt)
 
 
+def of_covariance(cov: FloatArray, names: Sequence[str], alpha: float | None = None) -> Observability:
+    """:func:`analyse` of the information a covariance (k, k) over ``names`` holds (its inverse; the pseudo-inverse
+    where it is singular): the judgement of a final, widened covariance, as calibrate's observability check makes it
+    of a solution (its information is the inverse of its covariance) and plan of the covariance it predicts."""
+    C = np.asarray(cov, dtype=float)
+    finite = np.isfinite(np.diag(C))
+    keep = [i for i, n in enumerate(names) if finite[i]]
+    kept = tuple(names[i] for i in keep)
+    if any(n not in kept for n in DH):
+        tilt = math.nan if alpha is None else math.asin(min(1.0, abs(math.sin(alpha))))
+        return Observability(sigma=np.array([math.inf if n not in kept else math.sqrt(C[names.index(n),
+                             names.index(n)]) for n in DH]), spectrum=np.zeros(4), weakest=np.full(4, 0.5),
+                             tilt_rad=tilt)
+    sub = C[np.ix_(keep, keep)]
+    return analyse(np.linalg.pinv(0.5 * (sub + sub.T), rcond=1e-12), kept, alpha)
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Whether the DH parameters are determined, by the one rule ``lrfcal calibrate`` refuses on (exit 3) and
+    ``lrfsim plan`` predicts: the marker returns alone at the start (``start``: calibrate refuses before it solves
+    where they do not determine the DH) and the final covariance (``final``: calibrate's observability check after it
+    solves, with every widening; :func:`of_covariance`) must determine the DH, and the nominal must tell the rig from
+    its mirror image (``mirror``)."""
+
+    start: Observability
+    final: Observability
+    #: whether the nominal tells the rig from its mirror image, and the words (lrfcal.estimate.checks.mirror_check:
+    #: calibrate refuses where it cannot; None: not judged)
+    mirror: tuple[bool, str] | None = None
+
+    @property
+    def determined(self) -> bool:
+        return self.start.determined and self.final.determined and (self.mirror is None or self.mirror[0])
+
+    def reason(self) -> str:
+        """Why not (empty when determined): the judgement that fails, its weakest combination and every sigma."""
+        if self.determined:
+            return ""
+        if self.start.determined and self.final.determined and self.mirror is not None:
+            return f"the rig cannot be told from its mirror image: {self.mirror[1]}"
+        obs, when = ((self.start, "the marker returns alone, judged before solving") if not self.start.determined
+                     else (self.final, "the final covariance, judged after solving"))
+        names = obs.undetermined or tuple(n for n, v, lim in zip(DH, obs.sigma, obs.limits, strict=True)
+                                          if not v <= lim)
+        return (f"{', '.join(names) or 'the DH parameters'} not determined by {when} ({obs.describe()} at "
+                f"{obs.weakest_sigma_in_limits:.2g} of the limit; 1-sigma {sigma_words(obs.sigma)}): {obs.hint()}")
+
+
 def unjudged_refusal(obs: Observability, what: str, and_: str, disagreement: str) -> str:
     """The refusal where blobs disagree with the marker map (``disagreement``, lrfcal.stages.association's words) at a
     solution of ``what`` (e.g. "the markers alone") whose observability is ``obs``; ``and_``: what else is missing.
@@ -254,5 +303,5 @@ def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
 
 
 __all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",
-           "analyse", "marginal", "marginal_information", "of_solution", "sigma_words", "unjudged_refusal",
-           "within_limits"]
+           "Verdict", "analyse", "marginal", "marginal_information", "of_covariance", "of_solution", "sigma_words",
+           "unjudged_refusal", "within_limits"]

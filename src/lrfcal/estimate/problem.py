@@ -20,8 +20,7 @@ from lrfcal.model.motor import MotorClock
 from lrfcal.model.observations import Blocks, DHPrior, ObservationSet, RowContext, stack_blocks
 from lrfcal.model.plane import Footing, PlaneSet
 from lrfcal.model.unknowns import N_CORE, plane_nuisance_start
-from lrfcal.stages.surfaces import Surface, SurfaceReturns
-from lrfcal.types import Observations
+from lrfcal.types import Observations, Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -204,7 +203,7 @@ def marker_problem(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor
 @dataclass(frozen=True)
 class OnPlanes:
     """Surface returns with the planes they lie on, as an estimate takes them: ``returns`` (K returns with their
-    plane index) and ``planes`` (the lrfcal.stages.surfaces.Surface of each plane index, whose normal and offset
+    plane index) and ``planes`` (the lrfcal.types.Surface of each plane index, whose normal and offset
     carry the markers' prior; None: free planes, started from the returns' normals and offsets)."""
 
     returns: SurfaceReturns
@@ -216,7 +215,7 @@ class OnPlanes:
 
 def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tuple[PlaneSet, FloatArray]:
     """The surface returns as a PlaneSet with the planes' nuisance start (3P,): started from the returns' normals
-    and offsets; with ``planes`` (each surface index's lrfcal.stages.surfaces.Surface), their tangent axes and the
+    and offsets; with ``planes`` (each surface index's lrfcal.types.Surface), their tangent axes and the
     markers' prior on them."""
     ids, plane_idx = np.unique(surfaces.surface, return_inverse=True)
     first = np.array([np.nonzero(surfaces.surface == p)[0][0] for p in ids])

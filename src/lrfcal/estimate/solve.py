@@ -33,8 +33,7 @@ from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock, motor_angles
 from lrfcal.model.plane import Footing, plane_rows
 from lrfcal.model.scanner import true_bearing, true_range
 from lrfcal.model.unknowns import CORE_NAMES, INTRINSICS, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack, unpack
-from lrfcal.stages.surfaces import SurfaceReturns
-from lrfcal.types import MarkerMap, Observations, Solution
+from lrfcal.types import MarkerMap, Observations, Solution, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 

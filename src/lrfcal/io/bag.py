@@ -38,8 +38,10 @@ from lrfcal.io.bag_messages import (
     open_reader,
 )
 from lrfcal.io.bag_raw import RawTopic, raw_messages
+from lrfcal.io.bag_recover import recovered_notes
 from lrfcal.io.bag_scans import laser_arrays, scans_from_arrays
-from lrfcal.io.bag_servo import joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
+from lrfcal.io.bag_servo import Samples, joints_from, servo_field, servo_in_scan, servo_joint_state, servo_tf
+from lrfcal.io.clocksteps import clock_cut
 from lrfcal.io.rig import ScanSource, ServoSource
 from lrfcal.types import JointStates, ReadReport, Scans
 
@@ -142,13 +144,19 @@ def read_bag(
             scans = _topic(reader, scan_conns, raw[0], bulk and scan.field is None and servo.stamp != "scan")
             servo_topic = _topic(reader, servo_conns, raw[1], bulk and servo.tf is None) if servo_conns else \
                 Topic(np.zeros(0))
+            recovered = recovered_notes(reader)
     except InputError:
         raise
     except Exception as err:
         raise InputError(f"{path}: cannot read bag: {one_line(err)}") from None
     if progress is not None:
         progress(total, total)
-    return bag_data(str(path), scans, servo_topic, scan_type, servo_type, scan, servo, warn)
+    for line in recovered:
+        (warn or (lambda text: print(f"warning: {text}", file=sys.stderr)))(line)
+    data = bag_data(str(path), scans, servo_topic, scan_type, servo_type, scan, servo, warn)
+    if not recovered:
+        return data
+    return replace(data, report=replace(data.report, left_out=(*recovered, *data.report.left_out)))
 
 
 def read_topic(path: str | Path, topic: str, *, bulk: bool = True) -> Topic:
@@ -221,6 +229,9 @@ def bag_data(label: str, scan_topic: Topic, servo_topic: Topic, scan_type: str, 
     else:
         samples = servo_field(servo_items, servo, servo_type, where_servo)
     srep.pop("_kept_rows", None)
+    scans, samples, left_out = _one_clock(scans, srep, samples, scan, servo, where_scan, where_servo)
+    for line in left_out:
+        warn(line)
     joints, servo_stamps, servo_recv, n_used = joints_from(samples, servo, scans, srep["recv_s"], where_servo)
     scan_med = float(np.median(srep["recv_s"] - scans.stamps_s))
     servo_med = float(np.median(servo_recv - servo_stamps))
@@ -242,11 +253,39 @@ def bag_data(label: str, scan_topic: Topic, servo_topic: Topic, scan_type: str, 
         n_servo_messages=len(servo_topic) if len(servo_topic) else len(scan_topic), n_servo_samples=n_used,
         servo_skipped=dict(samples.skipped), scan_receive_minus_stamp_s=scan_med,
         servo_receive_minus_stamp_s=servo_med, clock_offset_s=offset, clock_offset_applied=applied,
-        notes=tuple(notes),
+        notes=tuple(notes), left_out=left_out,
     )
     if servo.steps():  # step and scan: every beam takes the angle of its scan
         scans = replace(scans, angle_per_scan=True)
     return BagData(scans=scans, joints=joints, report=report)
+
+
+def _one_clock(scans: Scans, srep: dict[str, Any], samples: Samples, scan: ScanSource, servo: ServoSource,
+               where_scan: str, where_servo: str) -> tuple[Scans, Samples, tuple[str, ...]]:
+    """The scans and servo samples that share one laser-minus-servo clock offset (lrfcal.io.clocksteps.clock_cut:
+    a clock step's shorter side left out, named), ``srep["recv_s"]`` cut alike. Nothing to cut where the servo's
+    angle has no clock of its own (its stamps the scans' or the receive times).
+
+    Raises:
+        CalibrationError: too little of the recording has one clock offset."""
+    if samples.on_laser_clock or (servo.stamp == "receive" and scan.stamp == "receive"):
+        return scans, samples, ()
+    servo_stamps = samples.recv_s if servo.stamp == "receive" else samples.stamps_s
+    if servo_stamps is None:
+        return scans, samples, ()
+    ok = np.isfinite(servo_stamps) & np.isfinite(samples.values)
+    cut = clock_cut(srep["recv_s"], scans.stamps_s, samples.recv_s[ok], servo_stamps[ok], where_scan, where_servo)
+    if cut.keep_scans.all() and cut.keep_servo.all():
+        return scans, samples, cut.notes
+    keep_servo = np.zeros(ok.size, dtype=bool)
+    keep_servo[np.flatnonzero(ok)[cut.keep_servo]] = True
+    keep_servo |= ~ok  # the non-finite ones are counted where they are dropped
+    scans = scans.subset(cut.keep_scans)
+    srep["recv_s"] = srep["recv_s"][cut.keep_scans]
+    stamps = None if samples.stamps_s is None else samples.stamps_s[keep_servo]
+    samples = replace(samples, stamps_s=stamps, recv_s=samples.recv_s[keep_servo],
+                      values=samples.values[keep_servo])
+    return scans, samples, cut.notes
 
 
 def timing_notes(scans: Scans, joints: JointStates, where_scan: str, where_servo: str) -> list[str]:

@@ -37,15 +37,33 @@ def open_reader(path: Path) -> Any:
     from rosbags.highlevel import AnyReader
 
     if not path.exists():
-        raise InputError(f"{path}: bag not found")
+        raise InputError(f"{path}: bag not found (no such file or folder; a bag is a ROS 1 .bag file, a ROS 2 bag "
+                         "folder or its .mcap/.db3 file, which --bag takes)")
     if path.is_dir() and not (path / "metadata.yaml").exists():
         if (path / "bag").exists():
             raise InputError(f"{path}: a recording folder, not a bag: pass its bag, {path / 'bag'}")
         raise InputError(_not_a_bag_folder(path))
+    from lrfcal.io.bag_recover import wal_copy, with_recovery
+
+    read_from, tmp = path, None
+    if path.suffix == ".db3" or path.is_dir():
+        try:
+            copied = wal_copy(path)
+        except Exception as err:  # sqlite cannot merge the log
+            raise InputError(f"{path}: cannot merge the sqlite write-ahead log beside the .db3 ({one_line(err)}): "
+                             f"open the bag once with sqlite3 (it merges the log), or give a complete copy") from None
+        if copied is not None:
+            read_from, tmp = copied
     try:
-        return AnyReader([path], default_typestore=_HumbleDefaults())  # type: ignore[arg-type]
+        reader = AnyReader([read_from], default_typestore=_HumbleDefaults())  # type: ignore[arg-type]
     except Exception as err:  # rosbags raises several unrelated types for unreadable input
         raise InputError(f"{path}: cannot open bag: {one_line(err)}") from None
+    with_recovery(reader)  # a bag cut short is read up to its last complete record (lrfcal.io.bag_recover)
+    if tmp is not None:
+        wal = (tmp, f"{path}: its sqlite write-ahead log (.db3-wal) not merged (the recorder did not close the bag): "
+                    "read from a copy with the log merged")
+        setattr(reader, "lrfcal_wal", wal)  # noqa: B010 - read by lrfcal.io.bag_recover (rosbags' reader has no slot)
+    return reader
 
 
 class _HumbleDefaults:

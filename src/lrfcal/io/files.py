@@ -15,7 +15,7 @@ import os
 import re
 import shutil
 import tempfile
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -29,7 +29,7 @@ MANIFEST_NAME = ".lrf-calib-output.yaml"
 
 #: the names of the tools' own temporary files and folders: a file being written (``.NAME.<random>.tmp``), a
 #: folder being written or moved aside (``.NAME.tmp-<random>``, ``.NAME.old-<random>``), the write probe of
-#: :func:`check_writable` and the figures' scratch folder (lrfcal.workflow)
+#: :func:`check_writable` and the figures' scratch folder (lrfcal.commands.calibrate)
 TEMP_NAME = re.compile(r"^\.(figures-|lrf-write-probe-|.+\.(tmp|old)-|.+\.tmp$)")
 
 
@@ -229,7 +229,7 @@ def _resolved(p: str | Path) -> Path:
     return Path(p).expanduser().resolve()
 
 
-def check_no_overlap(outputs: dict[str, str | Path | None], inputs: dict[str, str | Path | None],
+def check_no_overlap(outputs: Mapping[str, str | Path | None], inputs: Mapping[str, str | Path | None],
                      may_nest_in: tuple[str, ...] = ()) -> None:
     """Refuse outputs that are, contain or lie inside an input.
 

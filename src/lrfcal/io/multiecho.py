@@ -114,12 +114,13 @@ def decode(raw: bytes | memoryview, cdr: bool) -> MultiEchoScan:
         _seq, sec, nanosec, n = struct.unpack_from("<4I", buf, 0)
         frame = buf[16:16 + n]
         off = 16 + n
-    floats = struct.unpack_from("<7f", buf, off)
+    a_min, a_max, a_inc, t_inc, scan_time, r_min, r_max = struct.unpack_from("<7f", buf, off)
     ranges, off = _echoes(buf, off + 28)
     intensities, off = _echoes(buf, off)
     if off != len(buf):
         raise ValueError(f"{len(buf) - off} bytes after the intensities")
-    return MultiEchoScan(Header(Stamp(int(sec), int(nanosec)), frame.decode()), *floats, ranges, intensities)
+    return MultiEchoScan(Header(Stamp(int(sec), int(nanosec)), frame.decode()), a_min, a_max, a_inc, t_inc, scan_time,
+                         r_min, r_max, ranges, intensities)
 
 
 def _align4(n: int) -> int:

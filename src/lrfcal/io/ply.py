@@ -1,5 +1,6 @@
 """The clouds of a calibration as PLY files (cloud_before.ply, cloud_after.ply: x, y, z and intensity per point,
-frame M), written atomically. ``lrfcal reproject``'s richer per-beam PLY is lrfcal.io.cloud.write_cloud_ply."""
+frame M), written atomically. ``lrfcal reproject``'s richer per-beam PLY is
+lrfcal.commands.reproject.write_cloud_ply."""
 
 from __future__ import annotations
 
@@ -32,7 +33,7 @@ def write_ply(path: str | Path, points: ArrayLike, intensity: ArrayLike | None =
     rows = np.empty((len(pts), 4), dtype="<f4")
     rows[:, :3] = pts
     rows[:, 3] = inten
-    return write_bytes_atomic(path, [_PLY_HEADER.format(n=len(pts)).encode("ascii"), memoryview(rows).cast("B")])
+    return write_bytes_atomic(path, [_PLY_HEADER.format(n=len(pts)).encode("ascii"), rows.data.cast("B")])
 
 
 __all__ = ["write_ply"]

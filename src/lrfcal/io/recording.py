@@ -20,7 +20,7 @@ from lrfcal.errors import InputError
 from lrfcal.io.bag import BagReader, Progress, read_bag
 from lrfcal.io.bag_messages import one_line
 from lrfcal.io.rig import ScanSource, ServoSource, load_rig
-from lrfcal.io.scanlog import is_scan_log, read_scan_log, resolve_recording
+from lrfcal.io.scanlog import LOOKED_FOR, is_scan_log, read_scan_log, resolve_recording
 from lrfcal.model.kinematics import DH, Pose
 from lrfcal.types import JointStates, Nominal, Recording, Scans, TapeMeasurements
 
@@ -35,7 +35,7 @@ def check_joint_coverage(scans: Scans, joints: JointStates, where: str = "joint 
     Beam times (laser clock) are converted to the servo clock as t - clock_offset_s. For reporting: the
     reader does not call it (the calibration trims uncovered scans, timing.covered_scans).
     """
-    from lrfcal.stages.timing import joint_period_s, scan_spans
+    from lrfcal.types import joint_period_s, scan_spans
 
     period = joint_period_s(joints)
     lo, hi = scan_spans(scans)
@@ -257,6 +257,9 @@ def read_recording(
         base = None if folder is None else Path(folder)
     if base is not None and not base.is_dir():
         raise InputError(f"{base}: recording folder not found")
+    if bag_reader is None and bag is None and base is not None and not (base / "bag").exists():
+        raise InputError(f"{base}: no bag found in the recording folder: looked for {LOOKED_FOR}; give the bag with "
+                         "--bag PATH (a ROS 1 .bag file, a ROS 2 bag folder or its .mcap/.db3 file, a scan log)")
 
     def pick(given: str | Path | None, default: str, what: str) -> Path:
         if given is not None:
@@ -269,8 +272,8 @@ def read_recording(
     tape = None
     if require_distances or distances is not None:
         tape = read_distances(pick(distances, "distances.csv", "distances"))
-    scan_src: ScanSource = scan or nom.scan
-    servo_src: ServoSource = servo or nom.servo
+    scan_src, servo_src = scan or nom.scan, servo or nom.servo
+    assert scan_src is not None and servo_src is not None  # read_nominal sets both from the rig file
     if scan_topic:
         scan_src = scan_src.model_copy(update={"topic": scan_topic})
     if joint_topic or joint_name:

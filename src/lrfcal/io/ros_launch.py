@@ -18,10 +18,10 @@ import math
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from lrfcal.io.rig import ServoSource
 from lrfcal.io.urdf import joints_urdf
 from lrfcal.model.kinematics import ESTIMATE_NAMES, Pose
 from lrfcal.result import CalibrationResult, MarkerEvidence
+from lrfcal.types import ServoSource
 
 #: the file names in a calibration's output folder
 LAUNCH_NAME = "rig_tf.launch.py"
@@ -99,7 +99,7 @@ def generate_launch_description() -> LaunchDescription:
 
 
 def servo_joint(result: CalibrationResult) -> tuple[int, float, tuple[str, ...]]:
-    """How the recording's joint position q gives the motor angle, lambda = zero + sign q (lrfcal.io.rig.ServoSource:
+    """How the recording's joint position q gives the motor angle, lambda = zero + sign q (lrfcal.types.ServoSource:
     its sign and offset, the direction the calibration chose, result.servo_sign), as rig_joints.urdf's axis sign and
     zero [rad], and the notes its header needs where lambda is not that (a unit other than rad, an estimated motor
     scale, a servo angle not in a JointState)."""

@@ -57,13 +57,21 @@ def is_scan_log(path: str | Path) -> bool:
 
 
 def find_log(folder: Path) -> Path | None:
-    """The one scan log in a recording folder without ``bag/`` (distances.csv is not one); None when there is
-    none. Raises InputError when there are several."""
-    logs = sorted(p for p in folder.iterdir() if p.name != "distances.csv" and is_scan_log(p))
-    if len(logs) > 1:
-        raise InputError(f"{folder}: no bag/ and {len(logs)} scan logs ({', '.join(p.name for p in logs)}); "
-                         f"pick one with --bag LOG")
-    return logs[0] if logs else None
+    """The one recording in a recording folder without ``bag/``: a bag under any name (a ROS 1 ``.bag``, an
+    ``.mcap`` or ``.db3`` file, a ROS 2 bag folder with its metadata.yaml) or a scan log (distances.csv is not one);
+    None when there is none. Raises InputError naming them when there are several."""
+    found = sorted(p for p in folder.iterdir() if (p.name != "distances.csv" and is_scan_log(p)) or _is_bag(p))
+    if len(found) > 1:
+        logs = all(is_scan_log(p) for p in found)
+        what = f"{len(found)} scan logs" if logs else f"{len(found)} bags or scan logs"
+        raise InputError(f"{folder}: no bag/ and {what} ({', '.join(p.name for p in found)}); "
+                         f"pick one with --bag {'LOG' if logs else 'PATH'}")
+    return found[0] if found else None
+
+
+#: what a recording folder is searched for (:func:`find_log`), in words for the error that finds none
+LOOKED_FOR = ("bag/ (a ROS 2 bag folder), or else one bag under any name (a ROS 1 .bag, an .mcap or .db3 file, a "
+              "folder with metadata.yaml) or one scan log (.txt, .csv, .log)")
 
 
 def _is_bag(path: Path) -> bool:
@@ -74,8 +82,9 @@ def _is_bag(path: Path) -> bool:
 
 
 def resolve_recording(folder: str | Path | None, bag: str | Path | None) -> tuple[Path | None, Path | None]:
-    """(recording folder, bag or log path) for what a user gave: a recording folder (its ``bag/``, else its one
-    scan log), a bag or a scan log itself as the recording (the folder is then the file's), or explicit paths."""
+    """(recording folder, bag or log path) for what a user gave: a recording folder (its ``bag/``, else its one bag
+    under any name or scan log: :func:`find_log`), a bag or a scan log itself as the recording (the folder is then
+    the file's), or explicit paths."""
     base = Path(folder) if folder is not None else None
     given = Path(bag) if bag is not None else None
     if base is not None and given is None and _is_bag(base):  # a bag itself as the recording: its folder
@@ -215,7 +224,7 @@ def load_log(path: str | Path, layout: LogLayout) -> LogRows:
                              + " (check log.columns and log.intensities)")
         n = width // per_beam
         assert layout.angle_min_rad is not None and layout.angle_increment_rad is not None
-        mu = layout.angle_min_rad + layout.angle_increment_rad * np.arange(n)
+        mu = layout.angle_min_rad + layout.angle_increment_rad * np.arange(n, dtype=np.float64)
     want = lead + per_beam * n
     name = _column_name(layout, n)
     data = np.empty((len(rows), want))
@@ -359,5 +368,6 @@ def _gap_notes(rows: LogRows, period: float) -> list[str]:
             f"{rows.lines[order[big + 1]]}"]
 
 
-__all__ = ["LOG_SUFFIXES", "LogRows", "beam_time_increment_s", "describe_layout", "find_log", "is_scan_log",
-           "load_log", "log_servo", "numbers", "parse_rows", "read_scan_log", "resolve_recording", "scan_period_s"]
+__all__ = ["LOOKED_FOR", "LOG_SUFFIXES", "LogRows", "beam_time_increment_s", "describe_layout", "find_log",
+           "is_scan_log", "load_log", "log_servo", "numbers", "parse_rows", "read_scan_log", "resolve_recording",
+           "scan_period_s"]

@@ -1,7 +1,7 @@
 """A simulator's ground truth in the calibration's frame: the alignment of the truth's world to the marker frame W.
 
-Used by the report (the truth and the errors of every parameter), by lrfcal.workflow (the nominal mount and the
-true markers in W for the figures and rerun) and by lrfsim.compare (Tables I and III); it needs no simulator:
+Used by the report (the truth and the errors of every parameter), by lrfcal.commands.calibrate (the nominal mount and
+the true markers in W for the figures and rerun) and by lrfsim.compare (Tables I and III); it needs no simulator:
 ``truth`` is the plain content of ground_truth.yaml (:func:`truth_dict`).
 """
 

@@ -139,6 +139,25 @@ def _floats(data: Any, names: tuple[str, ...], where: str) -> dict[str, float]:
     return out
 
 
+def is_placeholder_dh(dh: object) -> bool:
+    """Whether DH values (a mapping or an object with a, alpha, b, beta) are all 0: the placeholder a rig file from
+    ``lrfcal inspect`` holds when the recording did not determine a proposal."""
+    values = dh if isinstance(dh, dict) else {n: getattr(dh, n, None) for n in DH_NAMES}
+    return all(values.get(n, None) == 0.0 for n in DH_NAMES)
+
+
+def refuse_placeholder_dh(dh: object, where: str, before: str) -> None:
+    """The one check of calibrate and reproject on the nominal DH: the placeholder (:func:`is_placeholder_dh`) is
+    refused.
+
+    Raises:
+        InputError: ``dh`` is the placeholder (the line names ``where``, the key ``dh`` and what to do ``before``).
+    """
+    if is_placeholder_dh(dh):
+        raise InputError(f"{where}: dh: a, alpha, b and beta are all 0, the placeholder `lrfcal inspect` writes: fill "
+                         f"in the design values (m, rad; docs/formats.md) before {before}")
+
+
 # --- elementary transforms ----------------------------------------------------------------------------------
 
 
@@ -437,40 +456,9 @@ def wrap_angle(a: ArrayLike) -> FloatArray:
     return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
 
 
-__all__ = [
-    "ANGLE_NAMES",
-    "BeamTrig",
-    "DH",
-    "DH_NAMES",
-    "ESTIMATE_NAMES",
-    "MOUNT_NAMES",
-    "PARAM_NAMES",
-    "Params",
-    "Pose",
-    "beam_rays_M",
-    "beam_rays_M_trig",
-    "beam_rays_W",
-    "beam_rays_W_trig",
-    "beam_trig",
-    "chain_T_M_L",
-    "dh_from_mapping",
-    "dh_twins",
-    "exp_so3",
-    "log_so3",
-    "right_jacobian_so3",
-    "rotation_angle",
-    "skew",
-    "homogeneous",
-    "points_M",
-    "points_M_trig",
-    "points_W",
-    "points_W_trig",
-    "pose_from_mapping",
-    "pose_matrix",
-    "rot_x",
-    "rot_y",
-    "rot_z",
-    "rpy_matrix",
-    "transform_points",
-    "wrap_angle",
-]
+__all__ = ["ANGLE_NAMES", "BeamTrig", "DH", "DH_NAMES", "ESTIMATE_NAMES", "MOUNT_NAMES", "PARAM_NAMES", "Params",
+           "Pose", "beam_rays_M", "beam_rays_M_trig", "beam_rays_W", "beam_rays_W_trig", "beam_trig", "chain_T_M_L",
+           "dh_from_mapping", "dh_twins", "exp_so3", "homogeneous", "is_placeholder_dh", "log_so3", "points_M",
+           "points_M_trig", "points_W", "points_W_trig", "pose_from_mapping", "pose_matrix", "refuse_placeholder_dh",
+           "right_jacobian_so3", "rot_x", "rot_y", "rot_z", "rotation_angle", "rpy_matrix", "skew", "transform_points",
+           "wrap_angle"]

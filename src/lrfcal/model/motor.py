@@ -28,9 +28,12 @@ class JointSamples(Protocol):
     """What the model reads of joint states (lrfcal.types.JointStates): their stamps (J,) on the servo clock, the
     positions (J,) and the joint's name. A protocol, so the model does not import the data layer."""
 
-    stamps_s: ArrayLike
-    positions_rad: ArrayLike
-    name: str
+    @property
+    def stamps_s(self) -> ArrayLike: ...
+    @property
+    def positions_rad(self) -> ArrayLike: ...
+    @property
+    def name(self) -> str: ...
 
 
 @dataclass(frozen=True)

@@ -206,10 +206,11 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     columns 0 (a held mount); ``chart`` (6, 4): what the scan-plane columns are derivatives by (None: the DH
     parameters). Per-plane quantities are gathered to the rows as scalars (K,), and the Jacobian blocks
     are column-major: both keep the work a few passes over (K,) arrays."""
-    g = _rays_on_planes(th, s, R_ref, clock)
-    n_p, m_norm, motor, t, R, pl = g.n_p, g.m_norm, g.motor, g.t, g.R, s.per_row
-    a, b, ca, sa, cp, sp, cl, sl = g.a, g.b, g.ca, g.sa, g.cp, g.sp, g.cl, g.sl
-    nx, ny, nz, oy, oz, dy, dz, nd, rp, bearing = g.nx, g.ny, g.nz, g.oy, g.oz, g.dy, g.dz, g.nd, g.rp, g.bearing
+    geo = _rays_on_planes(th, s, R_ref, clock)
+    n_p, m_norm, motor, t, R, pl = geo.n_p, geo.m_norm, geo.motor, geo.t, geo.R, s.per_row
+    a, b, ca, sa, cp, sp, cl, sl = geo.a, geo.b, geo.ca, geo.sa, geo.cp, geo.sp, geo.cl, geo.sl
+    nx, ny, nz, oy, oz, dy, dz, nd, rp = geo.nx, geo.ny, geo.nz, geo.oy, geo.oz, geo.dy, geo.dz, geo.nd, geo.rp
+    bearing = geo.bearing
     rep = reported_range(th, rp, on_marker=False)
     res = (s.r - rep.r) / sigma_r
     if not jac:

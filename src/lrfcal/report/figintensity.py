@@ -1,12 +1,12 @@
 """The intensity figure of a calibration (intensity.png, the seed paper's Figs. 8/9): the (scan, beam) intensity
 image and the marker returns detected in it. It needs only the detection and the association, so the calibration
-draws it while its solve goes on (lrfcal.workflow)."""
+draws it while its solve goes on (lrfcal.commands.calibrate)."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +23,9 @@ MAX_FIGURE_COLS = 700
 
 #: the colour of the marker candidates (alignment.png draws its markers in the same colour)
 C_MARKER = "#b0209a"
+
+#: a pixel of an image max-pooled for drawing (intensity counts, or a candidate mask's bool)
+Pixel = TypeVar("Pixel", bound=np.generic)
 
 
 def _candidate_panel(ax: Any, shown: Any, cand: NDArray[np.bool_], kw: dict[str, Any], pool: int) -> None:
@@ -43,7 +46,7 @@ def _candidate_panel(ax: Any, shown: Any, cand: NDArray[np.bool_], kw: dict[str,
     ax.set_facecolor("white")
 
 
-def _max_pool(img: NDArray[Any], rows: int, cols: int) -> NDArray[Any]:
+def _max_pool(img: NDArray[Pixel], rows: int, cols: int) -> NDArray[Pixel]:
     """The maximum of each ``rows`` x ``cols`` block of a 2-D image (the image padded with zeros, False)."""
     if rows == cols == 1:
         return img
@@ -86,7 +89,7 @@ def intensity_figure(scans: Scans, detections: Detections, association: Associat
     x0, x1 = float(mu_deg.min()) - step / 2, float(mu_deg.max()) + step / 2
     flip = N > 1 and mu_deg[-1] < mu_deg[0]  # negative angle increment: show increasing angle left to right
     det = detections
-    cand = np.asarray(det.labels) >= 0
+    cand = det.labels >= 0
     img = inten[:, ::-1] if flip else inten
     cand = cand[:, ::-1] if flip else cand
     pool = max(1, int(np.ceil(S / MAX_FIGURE_ROWS)))  # max-pooled so that thin blobs stay visible

@@ -327,7 +327,7 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
 
     ``before``: the parameters of the "before" views, described by ``before_label`` (default: the calibration's
     start, the nominal DH with the mount fitted to the markers: a nominal mount has no place in W, the tape's frame,
-    unless the true marker positions are known, see :func:`lrfcal.workflow.calibrate_folder`).
+    unless the true marker positions are known, see :func:`lrfcal.commands.calibrate.calibrate_folder`).
 
     A figure is an aid, the result exists without it: a figure that cannot be drawn (an exception while drawing
     it, whatever the recording) is skipped and its reason returned, never raised after the calibration is done.
@@ -395,7 +395,7 @@ def drawn_detections(det: Detections) -> Detections:
     """``det`` with its label image (S, N) reduced to what the figures draw of it, whether a return is a marker
     candidate (0) or not (-1), as int8: an eighth of the int64 labels (12.7 MB on tunnel_v) to send to a drawing
     process, which otherwise waits on the pipe while the calibration goes on."""
-    labels = np.where(np.asarray(det.labels) >= 0, 0, -1).astype(np.int8)
+    labels = np.where(det.labels >= 0, 0, -1).astype(np.int8)
     return replace(det, labels=labels)
 
 

@@ -22,8 +22,8 @@ def print_summary(result: CalibrationResult, console: Console) -> None:
 
     from rich.table import Table
 
-    from lrfcal.io.report import residual_summary
     from lrfcal.model.kinematics import ANGLE_NAMES, ESTIMATE_NAMES, PARAM_NAMES
+    from lrfcal.report.markdown import residual_summary
     from lrfcal.result import MarkerEvidence, PlaneEvidence
 
     sol = result.solution

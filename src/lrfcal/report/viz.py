@@ -280,6 +280,7 @@ def log_calibration(
                 sinks.append(rr.FileSink(tmp))
             rec.set_sinks(*sinks, default_blueprint=blueprint)
         else:
+            assert tmp is not None  # no viewer: rrd_path is given (checked above)
             rec.save(tmp, default_blueprint=blueprint)
 
         rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
@@ -290,7 +291,7 @@ def log_calibration(
                 _log_markers(rec, result, ev)
             case PlaneEvidence():  # the clouds in frame M and the rig, nothing of markers
                 for which in ("before", "after"):
-                    _log_cloud(rec, result, which)  # type: ignore[arg-type]
+                    _log_cloud(rec, result, which)
                 _log_rig(rec, result, motor_angle_per_scan_rad(result))
         rec.flush()
         rec.disconnect()
@@ -305,7 +306,7 @@ def _log_markers(rec: Any, result: CalibrationResult, ev: MarkerEvidence) -> Non
         ev.markers.positions_W, radii=0.012, colors=_COLOR_MDS,
         labels=list(ev.markers.marker_ids), show_labels=True,
     ), static=True)
-    norms = {w: _log_stage(rec, result, ev, w) for w in ("before", "after")}  # type: ignore[arg-type]
+    norms = {w: _log_stage(rec, result, ev, w) for w in ("before", "after")}
 
     S = int(result.recording.scans.stamps_s.size)
     _, _, _, scan = marker_returns(result, ev, result.start)

@@ -1,5 +1,5 @@
 """What the rerun viewer (:mod:`lrfcal.report.viz`) and the figures (:mod:`lrfcal.report.figures`,
-:mod:`lrfcal.io.cloud`) draw,
+:mod:`lrfcal.commands.reproject`) draw,
 computed from a :class:`CalibrationResult` (pure numpy; matplotlib only for the colour map, imported lazily).
 
 Residuals (:func:`marker_returns`) go from each reprojected marker return to the nearest point on its marker sphere

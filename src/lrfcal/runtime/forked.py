@@ -171,7 +171,7 @@ class Ahead:
         if self._pending:
             raise RuntimeError("Ahead.call() while a call started before waits for its result()")
         self.start(fn, *args)
-        return self.result()  # type: ignore[no-any-return]
+        return self.result()
 
     def _close(self) -> None:
         if self._sender is not None:

@@ -15,8 +15,8 @@ contiguous memory is free, and on a busy or fragmented machine that costs more t
 
 :func:`apply_memory_policy` turns numpy's madvise off for the process (numpy's own switch, which its environment
 variable NUMPY_MADVISE_HUGEPAGE sets at import); the programs call it before any work
-(lrfcal.io.cliutil.Command.invoke, ``lrfsim study``'s process-pool workers). A user who sets NUMPY_MADVISE_HUGEPAGE
-keeps
+(lrfcal.terminal.cliutil.Command.invoke, ``lrfsim study``'s process-pool workers). A user who sets
+NUMPY_MADVISE_HUGEPAGE keeps
 their choice. A library call leaves the process as it is.
 
 A process that allocates and frees the same large arrays over and over (a study's trials: tunnel_v's 13 MB arrays of
@@ -33,6 +33,7 @@ glibc malloc settings (MALLOC_MMAP_THRESHOLD_, MALLOC_TRIM_THRESHOLD_, GLIBC_TUN
 from __future__ import annotations
 
 import ctypes
+import importlib
 import os
 import sys
 
@@ -52,15 +53,14 @@ def apply_memory_policy() -> bool:
     this numpy has no such switch. Returns whether the policy was applied."""
     if os.environ.get(NUMPY_ENV_VAR) is not None:
         return False
-    try:
-        from numpy._core.multiarray import _set_madvise_hugepage
-    except ImportError:  # numpy < 2 named its core module numpy.core
+    for core in ("numpy._core.multiarray", "numpy.core.multiarray"):  # numpy < 2 named its core module numpy.core
         try:
-            from numpy.core.multiarray import _set_madvise_hugepage
-        except ImportError:
-            return False
-    _set_madvise_hugepage(False)
-    return True
+            switch = importlib.import_module(core)._set_madvise_hugepage  # numpy's own, not in its type stubs
+        except (ImportError, AttributeError):
+            continue
+        switch(False)
+        return True
+    return False
 
 
 def keep_freed_memory() -> bool:

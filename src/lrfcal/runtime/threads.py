@@ -10,7 +10,7 @@ by benchmarks/bench_threads.py (docs/speed.md, "Threads").
 Where the policy applies (one function each, used by every entry point):
 
 * :func:`apply_thread_policy`: for the whole process; called by every command of ``lrfcal`` and ``lrfsim`` when
-  it starts (lrfcal.io.cliutil.Command.invoke: not for ``--help`` or a usage error) and as the initializer of
+  it starts (lrfcal.terminal.cliutil.Command.invoke: not for ``--help`` or a usage error) and as the initializer of
   ``lrfsim study``'s process-pool workers;
 * :func:`thread_policy`: a context manager that restores the previous limits on exit; ``lrfsim study`` runs every
   batch it sends to a dask worker in it (:func:`call_with_thread_policy`: a cluster's workers are not ours to
@@ -71,7 +71,7 @@ def _load_libraries(scipy: bool = True) -> None:
     import numpy  # noqa: F401
 
     if scipy:
-        import scipy.linalg  # noqa: F401
+        from scipy import linalg  # noqa: F401
 
 
 def apply_thread_policy(*, scipy: bool = True) -> int | None:

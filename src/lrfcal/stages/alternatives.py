@@ -81,7 +81,7 @@ def handedness(chosen: Alternative, nominal: DH, config: AlternativesConfig, fit
     Q the twin's isometry in M). Near a scan plane perpendicular to the motor axis the association cannot tell the
     handedness, so it is chosen here by the nominal DH: solved again from that twin. The result must then pass the
     mirror check; otherwise the first solution stays (and the check refuses it)."""
-    found = nearer_mirror(chosen.solution.params.dh, nominal, config)
+    found = nearer_mirror(chosen.solution.params.dh, nominal, config, chosen.solution.sigma[6:10])
     if found is None:
         return chosen
     name, twin, Q, d_est, d_twin = found
@@ -93,7 +93,7 @@ def handedness(chosen: Alternative, nominal: DH, config: AlternativesConfig, fit
                   clock=Clock(chosen.clock, chosen.solution.clock_offset_s))
     except CalibrationError:
         return chosen
-    if not mirror_check(sol.params.dh, nominal, config).passed:
+    if not mirror_check(sol.params.dh, nominal, config, sol.sigma[6:10]).passed:
         return chosen
     note = (f"the marker map matched in the other handedness: its mirror image ({name}) is {d_twin:.1f} nominal "
             f"tolerances from the nominal DH, the first estimate {d_est:.1f}; solved again in the map's mirror image")
@@ -119,7 +119,7 @@ def servo_alternatives(returns: Observations, detections: Detections, markers: M
     # the DH search runs when neither direction associates well (the other is associated only if the declared fails)
     search = not any((a := associated(s)) is not None and matching.good(a, signed[s], config) for s in (1, -1))
     clock.lap("association")  # from the nominal DH; the DH search, when needed, counts with the solve
-    alternatives = []
+    alternatives: list[Alternative] = []
     failures = []
     for sign in (1, -1):
         if sign == -1 and alternatives and not far_from_nominal(alternatives[0].solution.params.dh, nominal.dh,
@@ -150,6 +150,7 @@ def _marker_solution(
     Raises CalibrationError when the blobs could not be matched, when the data do not determine the DH parameters
     (judged at the start, before any solver runs), or when blobs disagree with the marker map beyond repair.
     """
+    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
     if assoc is None:
         raise _NoMatch("association: no alignment of the blobs with the marker map (check the tape "
                                "distances' file and unit, and the marker radius)")

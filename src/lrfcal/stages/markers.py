@@ -69,6 +69,7 @@ class MarkerWay:
     def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch) -> None:
         self.recording, self.joints, self.config, self.clock = recording, joints, config, clock
         nominal = recording.nominal
+        assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
         self.fit = solve.Solver(MarkerSensor.of("sphere", nominal.marker_radius_m, nominal.beam_divergence_rad,
                                                 config.range_sigma_m))
 
@@ -136,6 +137,7 @@ class MarkerWay:
                                nominal.dh)
         checks.append(minima.other_minimum(chosen.solution, chosen.matched, chosen.markers, nominal, config, fit))
         turning = _with_turning_systematic(ours, chosen, fit)  # after the checks: they judge the fit
+        baseline: Noted[Solution | None]
         ours, baseline = turning.value, Noted(None)
         if config.baseline:
             baseline = _baseline(chosen, self.recording.scans, _signed(self.joints, chosen.sign), config.clock_offset_s,
@@ -164,6 +166,7 @@ def _with_turning_systematic(ours: Solution, chosen: Alternative, fit: solve.Sol
     sol = chosen.solution
     pb, _ = marker_problem(chosen.matched, chosen.markers.positions_W, fit.sensor)
     th, R_ref = pack(sol.params, sol.clock_offset_s)
+    assert pb.markers is not None  # a problem of marker returns
     if not np.any(crossings(th, pb.markers, R_ref, chosen.clock)[1]):
         return Noted(ours)
     try:
@@ -225,6 +228,7 @@ def _judged_jointly(chosen: Alternative, joint_fit: JointFit, recorded: joint.Re
     Raises:
         CalibrationError: no surface returns to judge by, or blobs that still disagree after three are left out.
     """
+    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
     assoc, matched, start = chosen.assoc, chosen.matched, joint_fit[0]
     if start is chosen.solution:  # no surface returns where the marker-only fit puts them: try it without the blobs
         sol, kept = chosen.solution, (assoc, matched)  # it finds disagreeing, for a start only

@@ -23,25 +23,13 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from lrfcal.stages.surfaces import SurfaceReturns
+from lrfcal.types import ScenePlane, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 #: hypotheses scored on all free points, the best by their score on the coarse subsample
 _FINALISTS = 8
-
-
-@dataclass(frozen=True)
-class ScenePlane:
-    """A plane of the scene in frame M: n . p = offset_m (n unit, pointing away from the motor axis' origin), the
-    number of points assigned to it, their RMS distance from it (m) and their centroid (3,)."""
-
-    normal: FloatArray
-    offset_m: float
-    n_points: int
-    rms_m: float
-    centroid: FloatArray
 
 
 def point_normals(points: FloatArray, k: int = 30) -> tuple[FloatArray, FloatArray]:
@@ -213,7 +201,7 @@ def plane_returns(
     labels: IntArray, planes: list[ScenePlane], scan: IntArray, beam: IntArray, lambda_rad: FloatArray,
     mu_rad: FloatArray, ranges_m: FloatArray, times_s: FloatArray | None = None,
 ) -> SurfaceReturns:
-    """The labelled returns (labels >= 0 of the K inputs, all (K,)) as lrfcal.stages.surfaces.SurfaceReturns carrying
+    """The labelled returns (labels >= 0 of the K inputs, all (K,)) as lrfcal.types.SurfaceReturns carrying
     their plane's normal and offset (the solver's start for the plane's nuisances)."""
     m = np.asarray(labels) >= 0
     surf = np.asarray(labels)[m]
@@ -253,5 +241,5 @@ def squareness_deg(normals: FloatArray, tol_deg: float = 20.0) -> FloatArray:
     return np.array(out)
 
 
-__all__ = ["DEFAULT_SEGMENTATION", "ScenePlane", "Segmentation", "fit_plane", "flatness", "nearest_of_subset",
+__all__ = ["DEFAULT_SEGMENTATION", "Segmentation", "fit_plane", "flatness", "nearest_of_subset",
            "plane_returns", "point_normals", "segment_planes", "squareness_deg"]

@@ -52,8 +52,6 @@ from numpy.typing import NDArray
 from lrfcal.config import DEFAULT_MAX_INCIDENCE_RAD
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import solve
-from lrfcal.io.bag import BagData
-from lrfcal.io.rig import is_placeholder_dh
 from lrfcal.model.kinematics import DH, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import wrap_pi
@@ -336,18 +334,6 @@ def propose_for_recording(scans: Scans, joints: JointStates,
     return propose_dh(covered, joints, progress)
 
 
-def proposed_dh(data: BagData | None, dh: dict[str, float] | None, propose: bool,
-                progress: Callable[[int, int], None] | None = None) -> DHProposal | None:
-    """``lrfcal inspect``'s proposal: the DH from the recording's planes when none were given (``dh`` None or the
-    placeholder) and ``propose``; None when not searched. Without ``data`` (the recording could not be read) the
-    proposal says so."""
-    if not propose or (dh and not is_placeholder_dh(dh)):
-        return None
-    if data is None:
-        return DHProposal(None, reason="the recording could not be read (see the problems)")
-    return propose_for_recording(data.scans, data.joints, progress)
-
-
 def _candidate(beams: targetless.Beams, seg: NDArray[np.int64], motor: MotorClock, start: DH,
                config: targetless.SegmentConfig) -> tuple[DH, FloatArray] | None:
     """One start solved: the targetless cost (lrfcal.stages.targetless: the planes segmented once, at the start,
@@ -421,5 +407,4 @@ def _consensus(found: list[tuple[DH, FloatArray]], n_starts: int) -> _Consensus:
                       tuple(found[i][0] for i in group))
 
 
-__all__ = ["DETERMINED", "DHProposal", "canonical", "motor_turn_rad", "propose_dh", "propose_for_recording",
-           "proposed_dh"]
+__all__ = ["DETERMINED", "DHProposal", "canonical", "motor_turn_rad", "propose_dh", "propose_for_recording"]

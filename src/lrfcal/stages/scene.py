@@ -27,7 +27,6 @@ from lrfcal.model.unknowns import CORE_NAMES
 from lrfcal.result import CalibrationResult, PlaneEvidence, PlaneFit
 from lrfcal.stages import holdout, planes, propose, starts, timing
 from lrfcal.stages.sampling import hash_sample
-from lrfcal.stages.surfaces import SurfaceReturns
 from lrfcal.stages.targetless import (
     BENDING_M,
     DH_NAMES,
@@ -40,7 +39,7 @@ from lrfcal.stages.targetless import (
     fixed_solve,
     sample_returns,
 )
-from lrfcal.types import Check, JointStates, Noted, Recording, Solution
+from lrfcal.types import Check, JointStates, Noted, Recording, Solution, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 #: what runs ahead of the plane way: the DH search's proposal, asked for by the check "starts agree"
@@ -103,6 +102,7 @@ class PlaneWay:
         """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held
         (``ahead``: the DH search's proposal, kept for the check "starts agree")."""
         config, clock, joints = self.config, self.clock, self.joints
+        assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
         notes: list[str] = []
         scans, nominal, tau0 = self.recording.scans, self.recording.nominal, config.clock_offset_s
         motor = MotorClock.from_joints(joints)
@@ -142,6 +142,7 @@ class PlaneWay:
     def starts(self, scene: Scene) -> Started:
         """The solve every start shares (the rig file's DH, the DH search's proposal and agreeing starts: refine):
         the one cost over the fixed planes, the held parameters, the prior, the clock."""
+        assert self.config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
         footing = Start.of(self.recording.nominal.dh, 0.0, self.config).footing(self.config)
         solve_at = partial(solve.solve_planes, range_sigma_m=self.config.range_sigma_m,
                            clock=scene.motor if scene.estimate_clock else None, hold=scene.held,
@@ -206,7 +207,7 @@ def _held_out_check(held: Beams, motor: MotorClock, start: Params, tau0: float, 
     with the first round's ``thickness_m``."""
     clouds = [points_M(held.ranges_m, motor.angles(held.times_s, tau)[0], held.mu_rad, dh)
               for dh, tau in ((start.dh, tau0), (sol.params.dh, sol.clock_offset_s))]
-    result = holdout.held_out_flatness(*clouds, thickness_m)
+    result = holdout.held_out_flatness(clouds[0], clouds[1], thickness_m)
     return Check("held-out planes", result.passed, result.detail())
 
 
@@ -243,6 +244,7 @@ def _consider(sol: Solution, returns: SurfaceReturns, motor: MotorClock | None, 
     estimated ones: cov_e += S C_h S^T, S = -I_ee^-1 I_eh (the sensitivity of the estimate to the held value)."""
     if not held:
         return sol
+    assert config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
     info, names = plane_information(returns, sol.params, range_sigma_m=config.range_sigma_m, clock=motor,
                                           clock_offset_s=sol.clock_offset_s, dh_prior=prior)
     info = info / max(sol.reduced_chi2, 1.0)

@@ -14,7 +14,7 @@ only where the solve starts differs. Each is first brought to the chain's twin n
 The estimate is the minimum of lowest cost (lrfcal.estimate.minima.plane_cost: the planes fitted afresh at each
 minimum's DH, the same truncated squares for all). Every other minimum more than :data:`AGREE_SIGMA` of the
 estimate's 1-sigma from it on an estimated parameter is judged by the likelihood-ratio rule the marker calibration's
-"other minimum" uses (lrfcal.estimate.minima.judge_minima): a minimum that fits clearly worse is a local one
+"other minimum" uses (lrfcal.estimate.checks.judge_minima): a minimum that fits clearly worse is a local one
 (passed); one that fits about as well is a second rig the scene's planes cannot tell from the estimate, and the
 check "starts agree" fails naming the parameters on which they differ: the scene does not determine them.
 """
@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import minima, observability
+from lrfcal.estimate.checks import LR_LIMIT, judge_minima
 from lrfcal.model.kinematics import DH, dh_twins
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.unknowns import dh_difference
@@ -102,7 +103,7 @@ def lowest_minimum(first: Solution, fit: Callable[..., Solution], cost: Cost, he
     scale = math.sqrt(max(1.0, first.reduced_chi2))
     costs = [cost(s, scale) for _, s in named]
     k = int(np.argmin(costs))  # the lowest, where it is another minimum that fits clearly better than the first's
-    if k and (costs[0] - costs[k] < minima.LR_LIMIT or not _apart(named[k][1], first, est)):
+    if k and (costs[0] - costs[k] < LR_LIMIT or not _apart(named[k][1], first, est)):
         k = 0
     best_name, best = named[k]
     others = [(name, s, c - costs[k]) for i, ((name, s), c) in enumerate(zip(named, costs, strict=True)) if i != k]
@@ -124,7 +125,7 @@ def _start_name(i: int) -> str:
 
 def _judged(best: Solution, others: list[tuple[str, Solution, float]], est: list[int], what: str) -> Check:
     """The check "starts agree": every other minimum the same as ``best`` (within AGREE_SIGMA) or worse by the
-    likelihood-ratio rule (lrfcal.estimate.minima.judge_minima); ``others``: (start, minimum, cost above best's)."""
+    likelihood-ratio rule (lrfcal.estimate.checks.judge_minima); ``others``: (start, minimum, cost above best's)."""
     sigma = best.sigma[6:10]
     far = np.zeros(4)
     verdicts: list[tuple[str, float, list[str]]] = []
@@ -140,11 +141,11 @@ def _judged(best: Solution, others: list[tuple[str, Solution, float]], est: list
     if not verdicts:
         return Check(NAME, True, f"{what} converge to the estimate within {AGREE_SIGMA:g} sigma ({worst})")
     lr = min(v[1] for v in verdicts)
-    ok, words = minima.judge_minima(lr)
+    ok, words = judge_minima(lr)
     if ok:
         return Check(NAME, True, f"{what}: the other minima fit the scene's planes worse ({words}); the estimate is "
                                  f"the lowest ({worst})")
-    apart = sorted({n for v in verdicts if v[1] <= minima.LR_LIMIT for n in v[2]}, key=DH_NAMES.index)
+    apart = sorted({n for v in verdicts if v[1] <= LR_LIMIT for n in v[2]}, key=DH_NAMES.index)
     return Check(NAME, False, f"{what} end in another minimum that fits the scene's planes as well ({words}), "
                               f"{', '.join(apart)} apart (farthest {worst}): the scene's planes do not determine "
                               f"{', '.join(apart)}; calibrate in a scene with more planes across the motor axis, or "

@@ -28,6 +28,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import Any
 
 import numpy as np
@@ -38,6 +39,7 @@ from lrfcal.model.kinematics import BeamTrig, Params, beam_rays_W_trig, beam_tri
 from lrfcal.model.scanner import true_returns
 from lrfcal.model.unknowns import core_vector
 from lrfcal.stages.sampling import hash_key
+from lrfcal.types import Labels, Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
@@ -117,7 +119,7 @@ class ReturnGrid:
     ranges_m: FloatArray
     mu_rad: FloatArray
     lambda_rad: GridValues
-    labels: IntArray
+    labels: Labels
     beam_times_s: GridValues | None = None
 
 
@@ -127,52 +129,6 @@ def _at_flat(values: GridValues) -> Callable[[IntArray], FloatArray]:
         return values
     flat = np.asarray(values).ravel()
     return lambda i: flat[i]
-
-
-@dataclass(frozen=True)
-class Surface:
-    """A marker-carrying plane in W: n . p = offset_m (n unit, pointing away from the sensor), its markers, and
-    the markers' extent in the plane (2 axes (2, 3), centre (3,), lower/upper bounds (2,) in m).
-
-    prior_sigma (3,): how well the markers fix the plane: tilts (rad) towards axes[0] and axes[1], and the
-    offset (m). The solver treats the plane as a nuisance with this prior, not as exactly known.
-    prior_jacobian (3, 3n): how the prior's mean (those tilts and the offset) moves with the n markers' coordinates
-    (:func:`plane_prior_jacobian`; None when the plane is not the markers'), for the marker map's own uncertainty.
-    """
-
-    normal: FloatArray
-    offset_m: float
-    marker_idx: IntArray
-    axes: FloatArray
-    centre: FloatArray
-    lower: FloatArray
-    upper: FloatArray
-    prior_sigma: FloatArray
-    prior_jacobian: FloatArray | None = None
-
-
-@dataclass(frozen=True)
-class SurfaceReturns:
-    """Non-marker returns on the surfaces (K2 rows): scan, beam indices; lambda_rad, mu_rad, ranges_m; the
-    surface index of each; normals (K2, 3) and offsets (K2,) of their planes in W; times_s (K2,) their beam times
-    on the laser clock (None when unknown)."""
-
-    scan: IntArray
-    beam: IntArray
-    lambda_rad: FloatArray
-    mu_rad: FloatArray
-    ranges_m: FloatArray
-    surface: IntArray
-    normals: FloatArray
-    offsets_m: FloatArray
-    times_s: FloatArray | None = None
-
-    def __len__(self) -> int:
-        return int(self.ranges_m.size)
-
-    def subset(self, mask: NDArray[np.bool_]) -> SurfaceReturns:
-        return SurfaceReturns(**{k: None if getattr(self, k) is None else getattr(self, k)[mask]
-                                 for k in self.__dataclass_fields__})
 
 
 def candidate_planes(markers_W: FloatArray, tol_m: float = 0.004, min_markers: int = 5, seed: int = 0,
@@ -345,8 +301,8 @@ def surface_returns(
     )
 
 
-__all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "ReturnRows", "Surface", "SurfaceReturns",
-           "SurfaceSelection", "candidate_planes", "find_surfaces", "surface_returns"]
+__all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "ReturnRows", "SurfaceSelection",
+           "candidate_planes", "find_surfaces", "surface_returns"]
 
 
 def observe_surfaces(
@@ -413,7 +369,7 @@ def observe_surfaces(
         trig = beam_trig(lam_t, mu_t, params.dh)  # once for the points and the candidates' rays (elementwise)
         parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
-                                     rays_W=lambda i, trig=trig: beam_rays_W_trig(params, _rows_of(trig, i))))
+                                     rays_W=partial(_rays_of, params, trig)))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
@@ -423,6 +379,11 @@ def observe_surfaces(
 def _rows_of(trig: BeamTrig, i: IntArray) -> BeamTrig:
     """The beams ``i`` (k,) of a :data:`lrfcal.model.kinematics.BeamTrig`."""
     return trig[0][i], trig[1][i], trig[2][i], trig[3][i]
+
+
+def _rays_of(params: Params, trig: BeamTrig, i: IntArray) -> tuple[FloatArray, FloatArray]:
+    """The rays in W (origins, unit directions (k, 3)) of the beams ``i`` (k,) of ``trig``."""
+    return beam_rays_W_trig(params, _rows_of(trig, i))
 
 
 def _merged(parts: list[SurfaceReturns], n_beams: int) -> SurfaceReturns:

@@ -53,8 +53,7 @@ from lrfcal.model.unknowns import core_vector
 from lrfcal.runtime.forked import cores
 from lrfcal.stages import planes
 from lrfcal.stages.sampling import hash_sample
-from lrfcal.stages.surfaces import Surface, SurfaceReturns
-from lrfcal.types import JointStates, Scans, Solution
+from lrfcal.types import JointStates, Scans, Solution, Surface, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
 DH_NAMES = observability.DH
@@ -360,11 +359,7 @@ def merge_returns(a: SurfaceReturns | None, b: SurfaceReturns) -> SurfaceReturns
     """The surface returns of ``a`` followed by those of ``b`` (their surface indices kept)."""
     if a is None or not len(a):
         return b
-    fields = {}
-    for k in a.__dataclass_fields__:
-        va, vb = getattr(a, k), getattr(b, k)
-        fields[k] = None if va is None or vb is None else np.concatenate([va, vb])
-    return SurfaceReturns(**fields)
+    return a.joined(b)
 
 
 __all__ = ["BENDING_M", "MOTOR_FRAME", "STAGES", "Beams", "SceneConfig", "SegmentConfig", "Segmented", "Start",

@@ -15,7 +15,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.model.motor import JointGap, clock_offset_bound_s, dequantised, joint_gaps
-from lrfcal.types import JointStates, Noted, Recording, Scans
+from lrfcal.types import JointStates, Noted, Recording, Scans, joint_period_s, scan_spans
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -24,23 +24,6 @@ BoolArray = NDArray[np.bool_]
 def beam_times(scans: Scans) -> FloatArray:
     """(S, N) laser-clock time of every beam: stamp + i * time_increment (each scan's own increment)."""
     return scans.beam_times_s
-
-
-def scan_spans(scans: Scans) -> tuple[FloatArray, FloatArray]:
-    """(S,), (S,): laser-clock times of the first and the last beam each scan carried (beam_counts); both the
-    stamp for a step-and-scan rig (Scans.angle_per_scan), whose beams all take the angle at the stamp."""
-    assert scans.beam_counts is not None
-    if scans.angle_per_scan:  # step and scan: the angle of every beam is the one at the stamp
-        return scans.stamps_s, scans.stamps_s
-    t1 = scans.stamps_s + np.maximum(scans.beam_counts - 1, 0) * np.asarray(scans.time_increment_s)
-    return np.minimum(scans.stamps_s, t1), np.maximum(scans.stamps_s, t1)
-
-
-def joint_period_s(joints: JointStates) -> float:
-    """Median sampling period of the joint states [s] (0 for fewer than 2 samples)."""
-    if joints.stamps_s.size < 2:
-        return 0.0
-    return float(np.median(np.diff(joints.stamps_s)))
 
 
 def unwrapped_positions(joints: JointStates) -> FloatArray:
@@ -115,15 +98,8 @@ def covered_scans(scans: Scans, joints: JointStates, clock_offset_s: float = 0.0
 
 
 def subset_scans(scans: Scans, mask: np.ndarray) -> Scans:
-    """The scans where ``mask`` (S,) is True: every per-scan array field is subset, the rest kept."""
-    S = mask.size
-    if mask.all():
-        return scans
-    fields = {}
-    for k in scans.__dataclass_fields__:
-        v = getattr(scans, k)
-        fields[k] = v[mask] if isinstance(v, np.ndarray) and v.ndim >= 1 and v.shape[0] == S else v
-    return Scans(**fields)
+    """The scans where ``mask`` (S,) is True (:meth:`lrfcal.types.Scans.subset`)."""
+    return scans.subset(mask)
 
 
 #: a scan whose motor angle the joint states interpolate worse than this share of the range noise (at its median
@@ -196,7 +172,7 @@ def usable_scans(recording: Recording, tau0: float, range_sigma_m: float | None 
             states that may hide the servo's motion, or most fall between joint states too sparse to interpolate
             their motor angle.
     """
-    notes: list[str] = []
+    notes: list[str] = [] if recording.report is None else list(recording.report.left_out)  # a cut bag, a clock step
     joints, n_spikes = remove_spikes(recording.joints)  # joint states: spikes out, uncovered scans trimmed
     if n_spikes:
         notes.append(f"{n_spikes} joint-state samples that jump away from their neighbours dropped")

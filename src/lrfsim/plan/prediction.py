@@ -60,19 +60,22 @@ from lrfcal import (
     Surface,
     SurfaceReturns,
     SurfaceSelection,
+    Verdict,
     analyse,
     correlation_error_at,
     estimated,
     information_at,
     map_covariance,
     map_error_at,
+    mirror_check,
     model_error_at,
     observe_surfaces,
+    of_covariance,
     scaled_pinv,
     turning_error_at,
 )
 from lrfcal.errors import CalibrationError
-from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, Params
+from lrfcal.model.kinematics import DH, DH_NAMES, ESTIMATE_NAMES, Params
 from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.motor import Clock, MotorClock, dequantised
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES
@@ -148,6 +151,9 @@ class Plan:
     #: and estimates it where its score test steps SCALE_Z_LIMIT of this (or more) from 1
     scale_sigma: dict[str, float] = field(default_factory=dict)
     range_correlation: float = 0.0  #: the range noise's correlation between neighbouring beams (sandwich term)
+    #: whether the rig file's nominal tells the rig from its mirror image (lrfcal's mirror check on the true DH and
+    #: the sigma predicted here), and the words; None: not judged
+    mirror: tuple[bool, str] | None = None
 
     @property
     def final_observability(self) -> Observability:
@@ -155,9 +161,14 @@ class Plan:
         return self.observability_solved if self.observability_solved is not None else self.observability
 
     @property
+    def verdict(self) -> Verdict:
+        """Determined or not by the rule calibrate refuses on (lrfcal.estimate.observability.Verdict): the marker
+        returns alone at the start, and the covariance predicted here (:attr:`final_observability`)."""
+        return Verdict(self.observability, self.final_observability, self.mirror)
+
+    @property
     def determined(self) -> bool:
-        return (self.observability.determined
-                and all(math.isfinite(v) for v in self.sigma.values()))
+        return self.verdict.determined and all(math.isfinite(self.sigma[n]) for n in DH_NAMES)
 
     @property
     def tolerances_reachable(self) -> bool:
@@ -190,6 +201,7 @@ class Plan:
             "weakest_sigma_in_limits_markers_only": num(self.observability.weakest_sigma_in_limits),
             "strengthen": self.strengthen,
             "determined": self.determined,
+            "verdict": self.verdict.reason() or "determined: the marker returns alone and the predicted covariance",
             "tolerances_reachable": self.tolerances_reachable,
             "tolerances": {t.name: {"tolerance": t.tolerance, "predicted_sigma": num(t.predicted),
                                     "reachable": t.reachable} for t in self.tolerances},
@@ -342,10 +354,18 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 n_markers=int(len(markers_W)), clock_estimated=two_way, range_sigma_m=sigma_r,
                 seconds=time.perf_counter() - t0, information_source=source,
                 n_surface_returns=0 if on_planes is None else len(on_planes), notes=tuple(notes),
-                observability_solved=None if on_planes is None else analyse(info, names, params.dh.alpha),
+                observability_solved=of_covariance(cov, names, params.dh.alpha),  # calibrate's final check's rule
                 model_sigma=model_sigma,
                 map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base),
-                range_correlation=float(scenario.sensor.noise_correlation))
+                range_correlation=float(scenario.sensor.noise_correlation),
+                mirror=_mirror(params.dh, scenario, config, np.array([sigma[n] for n in DH_NAMES])))
+
+
+def _mirror(truth: DH, scenario: Scenario, config: CalibConfig, dh_sigma: FloatArray) -> tuple[bool, str]:
+    """Whether the calibration's mirror check passes for an estimate at the truth with the predicted ``dh_sigma`` (4,)
+    and the scenario's nominal DH (lrfcal.estimate.checks.mirror_check: the same rule), and its words."""
+    c = mirror_check(truth, scenario.rig.nominal_dh.to_dh(), config, dh_sigma)
+    return c.passed, c.detail
 
 
 def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[str, ...]) -> dict[str, float]:
@@ -470,12 +490,13 @@ def format_plan(p: Plan) -> str:
         lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{model:>20}{tape:>14}{format_value(n, LIMITS[n]):>14}")
     lines.append("")
     state = "determined" if p.determined else "NOT DETERMINED (the calibration would refuse, exit 3)"
-    alone = ("" if p.observability_solved is None else
-             f"; {p.observability.weakest_sigma_in_limits:.2g} from the marker returns alone, the test the "
+    alone = (f"; {p.observability.weakest_sigma_in_limits:.2g} from the marker returns alone, the test the "
              "calibration refuses on before solving")
     lines.append(f"DH parameters: {state}; weakest direction: {p.weakest} "
-                 f"(1-sigma {p.final_observability.weakest_sigma_in_limits:.2g} of the limit, as `lrfcal calibrate` "
-                 f"reports it after solving{alone})")
+                 f"(1-sigma {p.final_observability.weakest_sigma_in_limits:.2g} of the limit in the covariance above, "
+                 f"as `lrfcal calibrate` judges it after solving{alone})")
+    if not p.determined:
+        lines.append(f"why: {p.verdict.reason() or 'a DH parameter has no finite sigma'}")
     lines.append(f"to strengthen it: {p.strengthen}")
     lines.append(f"tolerances (reachable when >= {REACHABLE_K:g} x predicted sigma):")
     for t in p.tolerances:

@@ -511,3 +511,15 @@ class FaultsConfig(Section):
     angle_increment_off_by_one: Annotated[bool, doc(
         "the LaserScans declare angle_increment = (angle_max - angle_min) / N instead of / (N - 1) (a driver's "
         "off-by-one, N beams); angle_min, angle_max and the ranges are unchanged")] = False
+    joint_clock_step_s: Annotated[float | None, doc(
+        "the servo computer's clock steps by this much (negative: back, as an NTP correction) at "
+        "joint_clock_step_at_s: every later JointState stamp moved by it, the bag's receive times not (null: off) "
+        "[s]", ge=-3600, le=3600)] = None
+    joint_clock_step_at_s: Annotated[float | None, doc(
+        "when the servo clock steps (true servo-clock time, t = 0: the start of the motion; null: the middle of the "
+        "joint states) [s]", ge=0)] = None
+    scan_clock_step_s: Annotated[float | None, doc(
+        "the laser's clock steps by this much at scan_clock_step_at_s: every later LaserScan stamp moved by it, "
+        "the bag's receive times not (null: off) [s]", ge=-3600, le=3600)] = None
+    scan_clock_step_at_s: Annotated[float | None, doc(
+        "when the laser clock steps (true laser-clock time; null: the middle of the scans) [s]", ge=0)] = None

@@ -47,6 +47,14 @@ The scenario's ``faults:`` section (lrfsim.scenario.sections.FaultsConfig), appl
     removed (a joint-state stream that stalled; by default t is the middle of the servo's first turnaround, the
     middle of the joint states for a spin); after the thinning, before the encoder spikes (:func:`joint_gap`).
     Recorded: the gap's start, end and length on the servo clock and the number of samples removed.
+13. ``joint_clock_step_s: X`` (``joint_clock_step_at_s: t``): the servo computer's clock steps by X (negative:
+    back, an NTP correction) at its true time t (default: the middle of the joint states): every JointState stamp
+    from then on is X later, its receive time in the bag is not (the recorder's clock does not step); last of all
+    (:func:`clock_step`). Recorded as ``joint_clock_step``: X, t, the index of the first stamp moved, how many, and
+    the true laser-minus-servo offset after the step (``clock_offset_after_s``, servo.clock_offset_s - X).
+14. ``scan_clock_step_s: X`` (``scan_clock_step_at_s: t``): the same for the laser's clock and the LaserScan
+    stamps (default t: the middle of the scans). Recorded as ``scan_clock_step``, the offset after it
+    servo.clock_offset_s + X.
 
 Not a fault of this module: ``servo.clock_offset_s`` (laser stamp - servo stamp) already simulates an unknown
 laser-servo clock offset (the recording does not declare it; ground_truth.yaml has it as clock_offset_s).
@@ -391,6 +399,38 @@ def scale_ranges(result: SimResult, scale: float) -> SimResult:
     return _with_record(result, "range_scale", float(scale), ranges_m=result.ranges_m * scale, echo_ranges_m=echoes)
 
 
+def clock_step(result: SimResult, scenario: Scenario, clock: str, step_s: float | None, at_s: float | None
+               ) -> SimResult:
+    """The stamps of one clock (``clock`` "joint": the JointStates', "scan": the LaserScans') from its true time
+    ``at_s`` on (default: the middle of the stream) moved by ``step_s``; the bag's log times stay the true ones
+    (:func:`true_stamps`)."""
+    if step_s is None:
+        return result
+    stamps = result.joints.stamps_s if clock == "joint" else result.scan_stamps_s
+    at = float(0.5 * (stamps[0] + stamps[-1])) if at_s is None else float(at_s)
+    first = int(np.searchsorted(stamps, at))
+    moved = stamps.copy()
+    moved[first:] += step_s
+    sign = -1.0 if clock == "joint" else 1.0  # laser stamp - servo stamp after the step
+    record = {"step_s": float(step_s), "at_s": at, "first_index": first, "n_moved": int(stamps.size - first),
+              "clock_offset_after_s": float(scenario.servo.clock_offset_s + sign * step_s)}
+    if clock == "joint":
+        return _with_record(result, "joint_clock_step", record, joints=replace(result.joints, stamps_s=moved))
+    return _with_record(result, "scan_clock_step", record, scan_stamps_s=moved)
+
+
+def true_stamps(result: SimResult, clock: str) -> FloatArray:
+    """The stamps of ``clock`` ("joint" or "scan") with an injected clock step (:func:`clock_step`) undone: the times
+    the recorder logs the messages at (lrfsim.simulation.recording)."""
+    stamps = result.joints.stamps_s if clock == "joint" else result.scan_stamps_s
+    step = result.faults.get(f"{clock}_clock_step")
+    if step is None:
+        return stamps
+    out = stamps.copy()
+    out[int(step["first_index"]):] -= float(step["step_s"])
+    return out
+
+
 def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     """Every fault of ``scenario.faults`` except the range noise scale (applied before simulating), in the
     module docstring's order; the result's ``faults`` record lists what was done."""
@@ -410,10 +450,13 @@ def apply_faults(result: SimResult, scenario: Scenario) -> SimResult:
     result = receive_stamps(result, scenario, f.stamp_latency_s, f.stamp_jitter_s)
     if f.angle_increment_off_by_one:
         result = off_by_one_increment(result, scenario)
-    return scale_ranges(result, f.range_scale)
+    result = scale_ranges(result, f.range_scale)
+    result = clock_step(result, scenario, "joint", f.joint_clock_step_s, f.joint_clock_step_at_s)
+    return clock_step(result, scenario, "scan", f.scan_clock_step_s, f.scan_clock_step_at_s)
 
 
-__all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask", "detected_mask",
+__all__ = ["BRIGHT_FACTOR", "FALSE_BLOB_CLEARANCE_M", "add_false_blobs", "apply_faults", "bright_mask", "clock_step",
+           "detected_mask",
            "drop_scans", "encoder_spikes", "first_turnaround_s", "invert_servo", "joint_gap", "marker_returns",
            "occlude_markers", "off_by_one_increment", "receive_stamps", "scale_joints", "scale_range_noise",
-           "scale_ranges", "tape_outliers", "thin_joints"]
+           "scale_ranges", "tape_outliers", "thin_joints", "true_stamps"]

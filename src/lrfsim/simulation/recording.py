@@ -9,7 +9,8 @@
 Stamps: the simulation's times (seconds from the start of the sweep) are offset by :data:`EPOCH_NS`
 (2023-11-14 22:13:20 UTC) so the bag carries realistic ROS times; header stamps are exact integers of ns.
 Bag (log) times are the recorder's clock, taken to be the servo clock: a JointState is logged at its stamp, a
-LaserScan when urg_node would publish it, at the end of the scan (servo time of beam 0 + scan_time).
+LaserScan when urg_node would publish it, at the end of the scan (servo time of beam 0 + scan_time); a clock step
+lrfsim.simulation.faults injects moves the stamps only, never the log times (lrfsim.simulation.faults.true_stamps).
 
 Atomicity: everything is written into a hidden temporary folder next to DIR, which is renamed onto DIR when
 complete (an existing DIR is first moved aside and deleted after the rename, only with ``overwrite`` and only when
@@ -34,6 +35,8 @@ from lrfcal.io.multiecho import MULTIECHO_TYPE, Echoes, Header, MultiEchoScan, S
 from lrfcal.io.wire import SCAN_FLOATS
 from lrfsim.scenario.file import Scenario, dump_scenario
 from lrfsim.sensors.lidar import typical_range_sigma
+
+from .faults import true_stamps
 
 if TYPE_CHECKING:
     from lrfcal.io.bag import BagData, BagReader
@@ -115,8 +118,8 @@ def _log_order(result: SimResult, scenario: Scenario, echoes: bool
     log-time order: scans are logged at the end of the scan, on the recorder (servo) clock; with ``echoes`` scan
     k's MultiEchoLaserScan right after its LaserScan."""
     sensor = scenario.sensor
-    scan_log, _, _ = _stamps((result.scan_stamps_s - scenario.servo.clock_offset_s) + sensor.scan_period_s)
-    joint_log, _, _ = _stamps(result.joints.stamps_s)
+    scan_log, _, _ = _stamps((true_stamps(result, "scan") - scenario.servo.clock_offset_s) + sensor.scan_period_s)
+    joint_log, _, _ = _stamps(true_stamps(result, "joint"))
     log = np.concatenate([scan_log, joint_log])
     kind = np.repeat([0, 1], [scan_log.size, joint_log.size])
     index = np.concatenate([np.arange(scan_log.size), np.arange(joint_log.size)])
@@ -223,8 +226,8 @@ def bag_messages(result: SimResult, scenario: Scenario
     intens32 = result.intensities.astype(np.float32)
     offset = servo.clock_offset_s
     # (log time ns, kind, index): scans are logged at the end of the scan, on the recorder (servo) clock
-    order = [(_ns(float(t) - offset + sensor.scan_period_s), 0, k) for k, t in enumerate(result.scan_stamps_s)]
-    order += [(_ns(float(t)), 1, k) for k, t in enumerate(result.joints.stamps_s)]
+    order = [(_ns(float(t) - offset + sensor.scan_period_s), 0, k) for k, t in enumerate(true_stamps(result, "scan"))]
+    order += [(_ns(float(t)), 1, k) for k, t in enumerate(true_stamps(result, "joint"))]
     order.sort()
     empty = np.zeros(0, dtype=np.float64)
     topics = [(SCAN_TOPIC, LASERSCAN_TYPE), (JOINT_TOPIC, JOINTSTATE_TYPE)]

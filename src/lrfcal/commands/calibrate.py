@@ -15,16 +15,16 @@ from typing import Any
 
 import numpy as np
 
+from lrfcal.commands.calibration_folder import calibration_folder
 from lrfcal.errors import InputError
 from lrfcal.io import files
-from lrfcal.io.calibration_folder import calibration_folder
 from lrfcal.io.recording import read_nominal, read_recording
-from lrfcal.io.report import render_report
 from lrfcal.io.scanlog import resolve_recording
 from lrfcal.io.truth import truth_dict, truth_frame
 from lrfcal.model.kinematics import Params, Pose
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.report import figures as figure_writer
+from lrfcal.report.markdown import render_report
 from lrfcal.result import CalibrationResult
 from lrfcal.runtime.forked import Ahead
 from lrfcal.types import Recording
@@ -182,7 +182,7 @@ def viewer_can_spawn(spawn: bool, shown: Path, warn: Callable[[str], None] | Non
     return False
 
 
-def _figures_section(figs: Any, drawn: bool, warn: Callable[[str], None] | None) -> str:
+def _figures_section(figs: figure_writer.Figures, drawn: bool, warn: Callable[[str], None] | None) -> str:
     """The report's "Figures" section for ``figs`` (lrfcal.report.figures.Figures): the figures written, or that none
     were asked for; each figure that could not be drawn is named with its reason (and ``warn`` told)."""
     text = "\n## Figures\n\n" + ("\n\n".join(f"![{name}]({p.name})" for name, p in figs.written.items())
@@ -209,6 +209,7 @@ def check_tape_units(recording: Recording, path: Path) -> None:
     Raises:
         InputError: naming the file, the offending statistic and the likely unit.
     """
+    assert recording.tape is not None, "check_tape_units: a recording without tape distances"
     d = np.asarray(recording.tape.distances_m, dtype=float)
     if d.size == 0:
         return

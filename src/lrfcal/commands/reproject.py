@@ -97,7 +97,7 @@ def reproject_beams(
     if covered.any():
         lam_mid = motor_angles(mid_t[covered], joints, clock_offset_s)
         scan_sweep[covered] = sweep_passes(lam_mid, min_fraction=0.0, min_scans=1)
-    parts: list[tuple[FloatArray, ...]] = []
+    parts: list[tuple[FloatArray, FloatArray, FloatArray, IntArray, IntArray, FloatArray]] = []
     for s0 in range(0, S, chunk_scans):
         sl = slice(s0, min(S, s0 + chunk_scans))
         r = scans.ranges_m[sl]
@@ -143,7 +143,7 @@ def write_cloud_ply(path: str | Path, cloud: BeamCloud) -> Path:
         f"element vertex {rec.size}\nproperty float x\nproperty float y\nproperty float z\n"
         "property float intensity\nproperty double time\nproperty uint scan\nproperty uint beam\nend_header\n"
     )
-    return write_bytes_atomic(Path(path), [header.encode("ascii"), memoryview(rec).cast("B")])
+    return write_bytes_atomic(Path(path), [header.encode("ascii"), rec.data.cast("B")])
 
 
 def read_cloud_ply(path: str | Path) -> NDArray[Any]:
@@ -167,7 +167,9 @@ def write_cloud_bag(path: str | Path, cloud: BeamCloud, frame_id: str = CLOUD_FR
     PF = ts.types["sensor_msgs/msg/PointField"]
     Header = ts.types["std_msgs/msg/Header"]
     Time = ts.types["builtin_interfaces/msg/Time"]
-    fields = [PF(name=n, offset=POINT_DTYPE.fields[n][1], datatype=d, count=1) for n, d in (
+    layout = POINT_DTYPE.fields
+    assert layout is not None  # a structured dtype
+    fields = [PF(name=n, offset=layout[n][1], datatype=d, count=1) for n, d in (
         ("x", _PF_FLOAT32), ("y", _PF_FLOAT32), ("z", _PF_FLOAT32), ("intensity", _PF_FLOAT32),
         ("time", _PF_FLOAT64), ("scan", _PF_UINT32), ("beam", _PF_UINT32))]
     # rosbags' Writer makes the bag folder and names its data file after it: swapped_folder names it out's name
@@ -300,7 +302,8 @@ def reproject_bag(
         InputError: bad input, or an output path that overlaps an input.
     """
     from lrfcal.io.recording import read_recording
-    from lrfcal.io.rig import refuse_placeholder_dh, with_overrides
+    from lrfcal.io.rig import with_overrides
+    from lrfcal.model.kinematics import refuse_placeholder_dh
 
     bag, nominal, out, rrd, bag_out = Path(bag), Path(nominal), Path(outputs.ply), outputs.rrd, outputs.bag
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]

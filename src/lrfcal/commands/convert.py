@@ -27,11 +27,12 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lrfcal.commands.inspect_log import guess_layout
 from lrfcal.errors import InputError
 from lrfcal.io.files import check_outputs, swapped_folder
-from lrfcal.io.loginspect import guess_layout
-from lrfcal.io.rig import LogLayout, ServoSource, load_rig
+from lrfcal.io.rig import load_rig
 from lrfcal.io.scanlog import beam_time_increment_s, is_scan_log, load_log, log_servo, scan_period_s
+from lrfcal.types import LogLayout, ServoSource
 
 LASERSCAN_TYPE = "sensor_msgs/msg/LaserScan"
 JOINTSTATE_TYPE = "sensor_msgs/msg/JointState"
@@ -45,7 +46,7 @@ def _ns(t_s: float) -> int:
 
 
 def log_layout(log: Path, nominal: Path | None) -> tuple[LogLayout, ServoSource, list[str]]:
-    """The layout and servo keys from the rig file, else guessed (lrfcal.io.loginspect.guess_layout); notes say
+    """The layout and servo keys from the rig file, else guessed (lrfcal.commands.inspect_log.guess_layout); notes say
     which. Raises InputError: no log: section in the rig file, or a layout that cannot be guessed."""
     if nominal is not None:
         rig = load_rig(nominal)
@@ -107,8 +108,8 @@ def convert_log(log: str | Path, out: str | Path, *, nominal: str | Path | None 
     empty = np.zeros(0, dtype=np.float64)
     ok_scan = np.isfinite(t)
     ok_joint = ok_scan & np.isfinite(lam)
-    events = sorted([(_ns(float(t[k])), 0, k) for k in np.flatnonzero(ok_scan)]
-                    + [(_ns(float(t[k])), 1, k) for k in np.flatnonzero(ok_joint)])
+    events = sorted([(_ns(float(t[k])), 0, int(k)) for k in np.flatnonzero(ok_scan)]
+                    + [(_ns(float(t[k])), 1, int(k)) for k in np.flatnonzero(ok_joint)])
 
     def header(ns: int, frame: str) -> Any:
         return Header(stamp=Time(sec=ns // 10**9, nanosec=ns % 10**9), frame_id=frame)

@@ -1,5 +1,5 @@
 """What the two command-line programs (``lrfcal``, ``lrfsim``) share: the typer app settings, usage lines, the
-mapping of errors to one line and an exit code and option checks (their progress display: lrfcal.io.progress).
+mapping of errors to one line and an exit code and option checks (their progress display: lrfcal.terminal.progress).
 
 Exit codes (the same for every command; see :mod:`lrfcal.errors`): 0 done, 1 ``lrfsim run`` missed its
 tolerances, 2 bad input or usage (one line ``error: ...`` on stderr), 3 no trustworthy calibration.

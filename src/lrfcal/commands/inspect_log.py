@@ -6,7 +6,7 @@ as guessed): a first row whose values end in a strictly monotonic, evenly spaced
 first increasing one the time, the next the motor angle; the time unit from the rows' median spacing (a scanner
 turns at 1-100 Hz); ranges in millimetres when their median exceeds 100; range_min_m 0.02 proposed when returns
 below 2 cm occur (no scanner measures there: they are error codes, as a Hokuyo URG reports 0-19 mm).
-:func:`inspect_path` dispatches: a scan log here, anything else to :func:`lrfcal.io.inspection.inspect_bag`.
+:func:`inspect_path` dispatches: a scan log here, anything else to :func:`lrfcal.commands.inspect_bag.inspect_bag`.
 
 Array shapes: R rows, N beams.
 """
@@ -22,20 +22,20 @@ from typing import Any
 import numpy as np
 from pydantic import ValidationError
 
-from lrfcal.errors import InputError
-from lrfcal.io.inspection import (
+from lrfcal.commands.inspect_bag import (
     BagInspection,
     ScanGeometry,
     ServoInfo,
     TopicInfo,
     _report_problems,
     inspect_bag,
-    rig_snippet,
+    proposed_dh,
 )
-from lrfcal.io.rig import LogLayout, ScanSource, ServoSource, validation_message
+from lrfcal.errors import InputError
+from lrfcal.io.rig import rig_snippet, validation_message
 from lrfcal.io.scanlog import describe_layout, is_scan_log, load_log, log_servo, numbers, parse_rows, read_scan_log
-from lrfcal.stages.propose import proposed_dh
 from lrfcal.stages.timing import covered_scans
+from lrfcal.types import LogLayout, ScanSource, ServoSource
 
 #: rows parsed to guess the layout
 GUESS_ROWS = 500
@@ -166,7 +166,8 @@ def inspect_path(path: str | Path, scan: ScanSource | None = None, servo: ServoS
                  dh: dict[str, float] | None = None, log: LogLayout | None = None, *, propose: bool = True,
                  progress: Callable[[int, int], None] | None = None) -> BagInspection:
     """:func:`inspect_log` for a scan log (lrfcal.io.scanlog.is_scan_log), else
-    :func:`lrfcal.io.inspection.inspect_bag`; ``propose``, ``progress``: the DH proposal (lrfcal.stages.propose)."""
+    :func:`lrfcal.commands.inspect_bag.inspect_bag`; ``propose``, ``progress``: the DH proposal
+    (lrfcal.stages.propose)."""
     if is_scan_log(path):
         return inspect_log(path, log, servo, dh, propose=propose, progress=progress)
     return inspect_bag(path, scan, servo, dh=dh, propose=propose, progress=progress)

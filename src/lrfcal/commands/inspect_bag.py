@@ -22,7 +22,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from lrfcal.errors import InputError
 from lrfcal.io.bag import BagData, read_bag
@@ -43,10 +42,12 @@ from lrfcal.io.bag_scans import is_laserscan, is_multiecho
 from lrfcal.io.bag_servo import default_field
 from lrfcal.io.multiecho import Echoes
 from lrfcal.io.recording import check_units
-from lrfcal.io.rig import ScanSource, ServoSource, TfSource
-from lrfcal.stages.propose import DHProposal, proposed_dh
+from lrfcal.io.rig import rig_snippet
+from lrfcal.model.kinematics import is_placeholder_dh
+from lrfcal.stages.propose import DHProposal, propose_for_recording
 from lrfcal.stages.timing import covered_scans
-from lrfcal.types import ReadReport
+from lrfcal.types import ReadReport, ScanSource, ServoSource, TfSource
+from lrfcal.types.sources import ServoStamp, Unit
 
 #: messages decoded per topic for the statistics (receive times come from all messages)
 MAX_DECODED = 5000
@@ -147,7 +148,7 @@ def _laserscan_field(msg: Any) -> str | None:
     return None
 
 
-def guess_unit(values: np.ndarray) -> tuple[str, float | None]:
+def guess_unit(values: np.ndarray) -> tuple[Unit, float | None]:
     """rad / deg / counts (+ a counts_per_rev guess) from the recorded values' range."""
     v = values[np.isfinite(values)]
     if v.size == 0:
@@ -159,6 +160,18 @@ def guess_unit(values: np.ndarray) -> tuple[str, float | None]:
     if max(abs(lo), abs(hi)) <= 360.0:
         return "deg", None
     return "counts", 4096.0 if hi <= 4096 else 2.0 ** math.ceil(math.log2(hi + 1))
+
+
+def proposed_dh(data: BagData | None, dh: dict[str, float] | None, propose: bool,
+                progress: Callable[[int, int], None] | None = None) -> DHProposal | None:
+    """``lrfcal inspect``'s proposal: the DH from the recording's planes when none were given (``dh`` None or the
+    placeholder) and ``propose``; None when not searched. Without ``data`` (the recording could not be read) the
+    proposal says so."""
+    if not propose or (dh and not is_placeholder_dh(dh)):
+        return None
+    if data is None:
+        return DHProposal(None, reason="the recording could not be read (see the problems)")
+    return propose_for_recording(data.scans, data.joints, progress)  # the stage takes scans and joint states
 
 
 def inspect_bag(
@@ -247,8 +260,10 @@ class _Survey:
         st = stamp_s(msg) if fld is None else stamp_s(getattr(msg, fld))  # a LaserScan's own header
         if st is not None:
             self.stamps.setdefault(tp, []).append(st)
-        if ls is not None or fld is not None:
-            self.scan_msgs.setdefault(tp, []).append(ls if ls is not None else getattr(msg, fld))
+        if ls is not None:
+            self.scan_msgs.setdefault(tp, []).append(ls)
+        elif fld is not None:
+            self.scan_msgs.setdefault(tp, []).append(getattr(msg, fld))
         if conn.msgtype == TF_TYPE and tp == "/tf":
             for tr in msg.transforms:
                 key = (tr.header.frame_id, tr.child_frame_id)
@@ -335,6 +350,7 @@ def _report_problems(rep: ReadReport) -> list[str]:
         out.append("masked returns: " + ", ".join(f"{k} {v}" for k, v in sorted(rep.masked.items())))
     if rep.servo_skipped:
         out.append("servo samples skipped: " + ", ".join(f"{k} {v}" for k, v in sorted(rep.servo_skipped.items())))
+    out.extend(rep.left_out)
     out.extend(rep.notes)
     return out
 
@@ -399,7 +415,7 @@ def _guess_servo(types: dict[str, str], first: dict[str, Any], scan: ScanSource,
             joint = next((n for n in names if hinted(n)), names[0] if names else None)
             if joint is None:
                 continue
-            stamp = "header" if stamp_s(first[tp]) is not None else "receive"
+            stamp: ServoStamp = "header" if stamp_s(first[tp]) is not None else "receive"
             return ServoSource(topic=tp, joint=joint, stamp=stamp)
     for tp in order:
         mt = types[tp]
@@ -463,29 +479,4 @@ def _has_intensities(msg: Any) -> bool:
     return len(it) > 0 and bool(np.any(np.asarray(it) > 0))
 
 
-def rig_snippet(scan: ScanSource | None, servo: ServoSource | None, dh: dict[str, float] | None = None, *,
-                multiecho: bool = False, comment: str | None = None) -> str:
-    """The rig-file YAML (dh, scan, servo) that reads the bag; dh placeholders when not known. ``multiecho``:
-    the scan topic is a MultiEchoLaserScan, whose ``echo`` choice is then written out even when it is the
-    default (for a LaserScan topic it is meaningless and left out). ``comment``: the line above ``dh`` (a
-    proposal's uncertainty, or why there is none; default: fill in the placeholders)."""
-    data: dict[str, Any] = {"dh": dict(dh) if dh else {"a": 0.0, "alpha": 0.0, "b": 0.0, "beta": 0.0}}
-    if scan is not None:
-        data["scan"] = scan.model_dump(exclude_none=True)
-        if not multiecho and scan.echo == "strongest":  # the default, and meaningless for LaserScan topics
-            data["scan"].pop("echo")
-    if servo is not None:
-        s = servo.model_dump(exclude_none=True)
-        if servo.tf is not None:
-            s.pop("topic", None)
-        data["servo"] = s
-    text = yaml.safe_dump(data, sort_keys=False, default_flow_style=False)
-    if comment is not None:
-        text = comment.rstrip() + "\n" + text
-    elif not dh:
-        text = "# dh: fill in from the drawings (m, rad; docs/formats.md)\n" + text
-    return text
-
-
-__all__ = ["BagInspection", "ScanGeometry", "ServoInfo", "TopicInfo", "guess_unit", "inspect_bag",
-           "rig_snippet"]
+__all__ = ["BagInspection", "ScanGeometry", "ServoInfo", "TopicInfo", "guess_unit", "inspect_bag", "proposed_dh"]

@@ -19,9 +19,9 @@ from lrfcal.errors import InputError
 from lrfcal.io.calibration_yaml import calibration_dict
 from lrfcal.io.files import atomic_folder, check_replaceable
 from lrfcal.io.ply import write_ply
-from lrfcal.io.report import render_report
 from lrfcal.io.ros_launch import ros_files
 from lrfcal.io.urdf import urdf_snippet
+from lrfcal.report.markdown import render_report
 from lrfcal.result import CalibrationResult
 
 

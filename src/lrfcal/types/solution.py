@@ -1,0 +1,143 @@
+"""What a solve returns and what the checks say: the estimate with its uncertainty, the Levenberg-Marquardt
+iterations it took, the covariance's parts, a check's verdict, and a stage's result with its notes.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Generic, TypeVar
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from lrfcal.model.kinematics import Params
+from lrfcal.types.arrays import BoolArray, FloatArray
+
+
+@dataclass(frozen=True)
+class Spread:
+    """What the covariance of the difference of two solutions of overlapping data is made of (lrfcal.estimate.checks):
+    each
+    cluster's id (C,) and influence (J^T J)^-1 J_c^T r_c over the core unknowns (C, N_CORE), and the statistical
+    covariance max(s^2, 1) (J^T J)^-1 (N_CORE, N_CORE), before any widening (NaN where held or with rank loss)."""
+
+    ids: NDArray[np.int64]
+    influence: FloatArray
+    statistical: FloatArray
+
+
+@dataclass(frozen=True)
+class Iteration:
+    """One accepted Levenberg-Marquardt iteration (as mujoco's ``minimize.IterLog``): the (Huber) cost 0.5 sum r^2
+    after the step, the step's largest ratio to its unknown's sigma, the damping it was taken with, and the
+    evaluations of the residuals so far."""
+
+    cost: float
+    step_sigma: float
+    damping: float
+    evaluations: int
+
+
+@dataclass(frozen=True)
+class Solution:
+    """Stage 6: the estimate and its uncertainty.
+
+    covariance (10, 10) and sigma (10,) in kinematics.ESTIMATE_NAMES order (x, y, z, the mount rotation as a
+    rotation vector rx, ry, rz in frame M, a, alpha, b, beta; NaN for parameters held fixed, inf where the data do
+    not determine them); residual_rms_m: RMS of the 3D residuals of the returns kept; residuals_m (K, 3): reprojected
+    return minus its model point in W; per-marker RMS (n,); clock offset (laser stamp - servo stamp) and its sigma
+    (NaN when held); information (k, k): the marginal information over ``information_names`` (the estimated core
+    unknowns, lrfcal.model.unknowns.CORE_NAMES); chi (K,): whitened residual per return (NaN for unused rows);
+    inlier (K,): returns kept; lambda_rad (K,): the motor angle of each return at the estimated clock offset."""
+
+    params: Params
+    covariance: FloatArray
+    sigma: FloatArray
+    residual_rms_m: float
+    residuals_m: FloatArray
+    per_marker_rms_m: FloatArray
+    n_observations: int
+    n_iterations: int
+    status: str
+    clock_offset_s: float = 0.0
+    clock_offset_sigma_s: float = float("nan")
+    information: FloatArray | None = None
+    information_names: tuple[str, ...] = ()
+    reduced_chi2: float = float("nan")
+    converged: bool = True
+    chi: FloatArray | None = None
+    inlier: BoolArray | None = None
+    lambda_rad: FloatArray | None = None
+    n_surface_returns: int = 0
+    #: every intrinsic of the rig model (lrfcal.model.unknowns.INTRINSICS): name -> (value, sigma; NaN when held)
+    intrinsics: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: every unknown held by default that this solve held: name -> (the value one Gauss-Newton step with it freed
+    #: reaches, its 1-sigma) (lrfcal.estimate.solve's score test)
+    held_score: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: (10, 3n): how the estimate moves with the marker map's coordinates (lrfcal.estimate.covariance.uncertainty); the
+    #: covariance holds the map's part, G C_map G^T (None: the map was taken as exact)
+    map_sensitivity: FloatArray | None = None
+    #: each cluster's influence and the statistical covariance (Spread, lrfcal.estimate.covariance), for the second
+    #: opinion's
+    #: covariance of the difference of two solutions (lrfcal.estimate.checks.difference_covariance); None with rank loss
+    spread: Spread | None = None
+    #: each accepted Levenberg-Marquardt iteration of every pass (lrfcal.estimate.engine.Estimate.log)
+    iterations: tuple[Iteration, ...] = ()
+
+    def with_dh_systematic(self, d: ArrayLike) -> Solution:
+        """This solution with its DH covariance widened by d d^T, d (4,) a model error in (a, alpha, b, beta) that
+        the noise's sigma does not hold (two defensible models or rounds that differ by d)."""
+        d = np.asarray(d, dtype=float)
+        cov = np.array(self.covariance, dtype=float)
+        cov[6:10, 6:10] += np.outer(d, d)
+        return replace(self, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+
+    @property
+    def intrinsic_values(self) -> dict[str, float]:
+        """The intrinsics' values by name, estimated or held (what lrfcal.model.unknowns.core_vector takes)."""
+        return {name: value for name, (value, _) in self.intrinsics.items()}
+
+    @property
+    def range_offset_m(self) -> float:
+        """Added to every reported range (estimated with estimate_range_bias; 0 when held)."""
+        return self.intrinsics.get("range_offset", (0.0, math.nan))[0]
+
+    @property
+    def range_offset_sigma_m(self) -> float:
+        """Its 1-sigma, NaN when held."""
+        return self.intrinsics.get("range_offset", (0.0, math.nan))[1]
+
+    @property
+    def marker_range_bias_m(self) -> float:
+        """Added to the ranges of marker returns only."""
+        return self.intrinsics.get("marker_range_bias", (0.0, math.nan))[0]
+
+    @property
+    def marker_range_bias_sigma_m(self) -> float:
+        """Its 1-sigma, NaN when held."""
+        return self.intrinsics.get("marker_range_bias", (0.0, math.nan))[1]
+
+
+@dataclass(frozen=True)
+class Check:
+    """One consistency check of the result: its name, whether it passed, and the numbers."""
+
+    name: str
+    passed: bool
+    detail: str
+
+
+T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Noted(Generic[T]):
+    """A stage's result ``value`` with its ``notes``: what it assumed, trimmed or dropped, in words, in the order
+    they arose (the way and the orchestrator collect them into CalibrationResult.notes)."""
+
+    value: T
+    notes: tuple[str, ...] = ()
+
+
+__all__ = ["Check", "Iteration", "Noted", "Solution", "Spread"]
