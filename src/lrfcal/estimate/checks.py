@@ -225,8 +225,8 @@ def mirror_check(dh: DH, nominal: DH, config: CheckConfig, dh_sigma: FloatArray)
     why = (": the data fit the rig and its mirror image exactly as well (tape distances fix the marker map only up "
            f"to a reflection; flatness likewise) and the nominal DH do not tell which ({words})")
     if min(d_est, d_twin) > FAR_FROM_BOTH:  # e.g. a nominal beta 90 deg off: the nominal can't judge
-        why += (f"; the nominal DH, far from both, is likely wrong (the estimate: {dh_text(dh)}): set it to whichever "
-                "of the two the drawings confirm and calibrate again")
+        why += (f"; the nominal DH are far from both: the rig file's dh is likely wrong (the estimate: {dh_text(dh)}): "
+                "set it to whichever of the two the drawings confirm and calibrate again")
     elif abs(d_est - d_twin) < 1.0:
         why += ("; the nominal lies between the two (a scan plane near perpendicular to the motor axis, alpha near 0): "
                 "give the nominal alpha and b with the signs the drawings show (a nominal alpha away from 0 tells the "

@@ -301,6 +301,9 @@ def solve_planes(
     passes = replace(PLANE_PASSES, robust=options.robust, huber_first=options.huber_first)
     est = engine.estimate(pb, State(th, R_ref), unknowns, passes)
     keep = est.keep[-1]
+    if 10 * int(free.sum()) > int(keep.sum()):  # the returns that count at the estimate: too few to judge by
+        raise CalibrationError(f"targetless solve: {int(keep.sum())} of {K} plane returns count at the estimate (their "
+                               f"plane's 4 sigma, incidence and edges) for {int(free.sum())} unknowns (need 10 each)")
     surf = est.kept.surf
     assert surf is not None
     th, unc = est.state.th, est.uncertainty
