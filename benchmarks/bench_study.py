@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.plan.prediction import format_value
+from lrfsim.plan.result import format_value
 from lrfsim.scenario.file import Scenario, load_scenario
 from lrfsim.simulation.simulate import cast_geometry, simulate, simulate_from_geometry
 from lrfsim.trials.study import study, write_study

@@ -63,16 +63,18 @@ def group_of(nodeid: str) -> str:
     so that a module's fixtures are built once. A group is the test's module, except where the longest modules are
     split and no fixture is shared (recordings are: on disk, below): test_recovery into its random truths and its
     shipped scenarios, test_targetless into its tests, test_trust into its tests. The tests that share a session
-    fixture run together: "real bags" (the real-rig walkthrough, inspect_dh's real URG stand and targetless's real
-    box: ``real_inspected``, ``urg_from_the_authors_nominal``), "room_box targetless" (test_start_dependence and
-    targetless's room_box: ``targetless_calibrated``) and "lrfsim run" (test_cli_sim and test_output_names:
+    fixture run together: "real bags" (the real-rig walkthrough, inspect_dh's real URG stand, targetless's real
+    box and test_check's real recording: ``real_inspected``, ``urg_from_the_authors_nominal``), "room_box targetless"
+    (test_start_dependence, targetless's room_box and test_check's targetless pair: ``targetless_calibrated``) and
+    "lrfsim run" (test_cli_sim and test_output_names:
     ``full_sweep_run``)."""
     path, _, name = nodeid.partition("::")
     module = Path(path).stem
     if module == "test_real_walkthrough" or module == "test_inspect_dh" and "real_urg" in name \
-            or module == "test_targetless" and "real_urg04lx" in name:
+            or module == "test_targetless" and "real_urg04lx" in name or module == "test_check" and "real" in name:
         return "real bags"
-    if module == "test_start_dependence" or module == "test_targetless" and "room_box" in name:
+    if module == "test_start_dependence" or module == "test_targetless" and "room_box" in name \
+            or module == "test_check" and "targetless" in name:
         return "room_box targetless"
     if module in ("test_cli_sim", "test_output_names"):
         return "lrfsim run"

@@ -89,6 +89,8 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
 HELP = {
     ("lrfcal", "calibrate"): ["[m]", "[s]", "[default: the rig file's range_sigma_m, else 0.01]", "[default: 0.0",
                               "[default: RECORDING/bag]"],
+    ("lrfcal", "check"): ["CALIBRATION RECORDING -o DIR", "[default: 0.05]", "[default: the calibration's own rig "
+                          "file]", "4: drifted"],
     ("lrfcal", "convert"): ["LOG -o BAG", "[default: guessed from the log, as lrfcal inspect does]",
                             "sensor_msgs/LaserScan on /scan", "Scan logs"],
     ("lrfsim", "simulate"): ["-o DIR", "SCENARIO"],
@@ -112,7 +114,7 @@ def test_help_shows_units_defaults_and_clean_usage(prog: str, cmd: str) -> None:
 
 
 def test_top_level_help() -> None:
-    for prog, commands in (("lrfcal", ["calibrate", "inspect", "reproject", "convert"]),
+    for prog, commands in (("lrfcal", ["calibrate", "check", "inspect", "reproject", "convert"]),
                            ("lrfsim", ["simulate", "run", "schema"])):
         proc = _run(prog, "--help")
         assert proc.returncode == 0 and "thin CLI" not in proc.stdout

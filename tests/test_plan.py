@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from lrfsim.plan.prediction import format_plan, plan
+from lrfsim.plan.prediction import plan
+from lrfsim.plan.text import format_plan
 from lrfsim.scenario.file import parse_scenario, with_changes
 
 ROOT = Path(__file__).resolve().parents[1]

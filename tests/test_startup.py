@@ -24,7 +24,7 @@ CASES: dict[str, list[tuple[list[str], int]]] = {
     "lrfcal": [
         (["--help"], 0), ([], 2), (["--version"], 0),
         (["calibrate", "--help"], 0), (["inspect", "--help"], 0), (["reproject", "--help"], 0),
-        (["convert", "--help"], 0),
+        (["convert", "--help"], 0), (["check", "--help"], 0), (["check", "cal", "rec"], 2),
         (["calibrate"], 2), (["calibrate", "rec"], 2), (["calibrate", "rec", "-o", "out", "--bogus"], 2),
         (["calibrate", "rec", "-o", "out", "--range-sigma", "nan"], 2), (["nonsense"], 2), (["--bogus"], 2),
     ],

@@ -7,6 +7,8 @@ and may move. Besides this module, other code may import :mod:`lrfcal.model` (th
 
 - calibrate: :func:`calibrate` a :class:`Recording` (read with :func:`read_recording`) with a :class:`CalibConfig`;
   :func:`calibrate_folder` does it for a recording folder and writes the results, as ``lrfcal calibrate`` does;
+- check a saved calibration against a new recording: :func:`check_recording` (``lrfcal check``), its
+  :class:`CheckOutcome` and :class:`DriftTest`, and the smallest drift a check detects (:func:`detectable_drift`);
 - the results: :class:`CalibrationResult`, typed by its evidence (:class:`MarkerEvidence` or :class:`PlaneEvidence`,
   with its :class:`PlaneFit`), :class:`Solution`, :class:`TunnelGeometry`, and the data they hold;
 - what ``plan`` needs to predict accuracy without calibrating: the information of marker and surface returns at
@@ -39,6 +41,12 @@ _EXPORTS: dict[str, str] = {
     "calibrate_folder": "lrfcal.commands.calibrate",
     "viewer_can_spawn": "lrfcal.commands.calibrate",
     "read_recording": "lrfcal.io.recording",
+    # checking a calibration against a new recording (lrfcal check; lrfsim's drift study and plan)
+    "check_recording": "lrfcal.commands.check",
+    "CheckOutcome": "lrfcal.commands.check",
+    "DriftTest": "lrfcal.estimate.drift",
+    "DEFAULT_FALSE_ALARM": "lrfcal.estimate.drift",
+    "detectable_drift": "lrfcal.estimate.drift",
     # the rig model's parameters
     "DH": "lrfcal.model.kinematics",
     "PARAM_NAMES": "lrfcal.model.kinematics",
@@ -97,7 +105,8 @@ _EXPORTS: dict[str, str] = {
     "progress_display": "lrfcal.terminal.progress",
 }
 
-__all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "Command", "DEFAULT_RANGE_SIGMA_M", "DH",
+__all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "CheckOutcome", "Command", "DEFAULT_FALSE_ALARM",
+           "DEFAULT_RANGE_SIGMA_M", "DH", "DriftTest", "check_recording", "detectable_drift",
            "InputError", "JointStates", "LIMITS", "LrfError", "MarkerEvidence", "Observability", "Observations",
            "OnPlanes", "PARAM_NAMES", "Params", "PlaneEvidence", "PlaneFit", "PlaneMarkers", "Pose", "QuietOpt",
            "Recording", "ReturnGrid", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface",
@@ -125,8 +134,10 @@ def __dir__() -> list[str]:
 
 if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.commands.calibrate import calibrate_folder, viewer_can_spawn
+    from lrfcal.commands.check import CheckOutcome, check_recording
     from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig
     from lrfcal.estimate.checks import mirror_check
+    from lrfcal.estimate.drift import DEFAULT_FALSE_ALARM, DriftTest, detectable_drift
     from lrfcal.estimate.information import (
         correlation_error_at,
         estimated,

@@ -1,7 +1,7 @@
 """``lrfcal``: calibrate a servo-turned 2D laser range finder from a recording with reflective markers.
 
-Exit codes: 0 done; 2 bad input or usage (one line ``error: ...`` on stderr); 3 the data do not support a
-trustworthy calibration (one line naming the check).
+Exit codes: 0 done (``check``: still valid); 2 bad input or usage (one line ``error: ...`` on stderr); 3 the data do
+not support a trustworthy calibration (one line naming the check); 4 ``check`` only: the rig drifted.
 """
 
 from __future__ import annotations
@@ -34,12 +34,8 @@ def calibrate_cmd(
         metavar="RECORDING", show_default=False)],
     out: Annotated[Path, typer.Option("-o", "--out", metavar="DIR", show_default=False,
                                       help="Output folder (written atomically; must not overlap an input).")],
-    bag: Annotated[Path | None, typer.Option(
-        metavar="PATH", show_default=False,
-        help="Bag (ROS 1 .bag or ROS 2) or scan log to read  [default: RECORDING/bag]")] = None,
-    distances: Annotated[Path | None, typer.Option(metavar="CSV", show_default=False,
-                                                   help="Tape distances [m]  [default: RECORDING/distances.csv]")
-                         ] = None,
+    bag: BagOpt = None,
+    distances: DistancesOpt = None,
     nominal: Annotated[Path | None, typer.Option(metavar="YAML", show_default=False,
                                                  help="Nominal values  [default: RECORDING/nominal.yaml]")] = None,
     range_sigma: Annotated[float | None, typer.Option(
@@ -120,6 +116,11 @@ def calibrate_cmd(
     console.print(f"wrote {out}", markup=False)
 
 
+BagOpt = Annotated[Path | None, typer.Option(
+    "--bag", metavar="PATH", show_default=False,
+    help="Bag (ROS 1 .bag or ROS 2) or scan log to read  [default: RECORDING/bag]")]
+DistancesOpt = Annotated[Path | None, typer.Option(
+    "--distances", metavar="CSV", show_default=False, help="Tape distances [m]  [default: RECORDING/distances.csv]")]
 ScanTopicOpt = Annotated[str | None, typer.Option(
     "--scan-topic", metavar="TOPIC", show_default=False,
     help="Topic of the scans (rig file scan.topic; default /scan).")]
@@ -166,6 +167,65 @@ TfChildOpt = Annotated[str | None, typer.Option("--tf-child", metavar="FRAME", s
 TfAxisOpt = Annotated[str | None, typer.Option(
     "--tf-axis", metavar="AXIS", show_default=False,
     help="x | y | z: rotation axis of the tf joint in the parent frame (default z).")]
+
+
+@app.command("check", cls=Command)
+def check_cmd(
+    calibration: Annotated[Path, typer.Argument(
+        help="The calibration to check: the folder `lrfcal calibrate` wrote, or its calibration.yaml.",
+        metavar="CALIBRATION", show_default=False)],
+    recording: Annotated[Path, typer.Argument(
+        help="A new recording of the same rig: a recording folder, a scan log, or a folder with --bag.",
+        metavar="RECORDING", show_default=False)],
+    out: Annotated[Path, typer.Option("-o", "--out", metavar="DIR", show_default=False,
+                                      help="Output folder: check.yaml, report.md, check.png (written atomically; "
+                                      "must not overlap an input).")],
+    false_alarm: Annotated[float, typer.Option(
+        "--false-alarm", metavar="P", callback=finite_between(1e-6, 0.49, ""),
+        help="The joint test's false-alarm rate: the probability of calling an unchanged rig drifted.")] = 0.05,
+    fixed_mount: Annotated[bool, typer.Option(
+        "--fixed-mount", help="Also test the mount (the rig's pose in the marker frame): only when the rig was not "
+        "moved against the markers.")] = False,
+    history: Annotated[Path | None, typer.Option(
+        "--history", metavar="CSV", show_default=False,
+        help="Append this check as one row to CSV (atomically; created when absent; never inside the calibration "
+        "folder) and draw each parameter over its rows.")] = None,
+    bag: BagOpt = None,
+    distances: DistancesOpt = None,
+    nominal: Annotated[Path | None, typer.Option(
+        metavar="YAML", show_default=False,
+        help="A rig file saying where this recording keeps its scans and servo angle (its DH are not used)  "
+        "[default: the calibration's own rig file]")] = None,
+    targetless: Annotated[bool, typer.Option(
+        "--targetless", help="Calibrate the new recording from the scene's planes even when it has tape "
+        "distances.")] = False,
+    overwrite: Annotated[bool, typer.Option("--overwrite",
+                                            help="Replace an output folder lrfcal wrote before.")] = False,
+    no_figures: Annotated[bool, typer.Option("--no-figures", help="Do not draw check.png.")] = False,
+    quiet: QuietOpt = False,
+) -> None:
+    """Check whether CALIBRATION still holds for a new RECORDING of the same rig.
+
+    The recording is calibrated on the same path as `lrfcal calibrate`, started from the saved values, and every
+    parameter of the rig both estimated (DH, clock offset, intrinsics; the mount with --fixed-mount) is compared:
+    change, sigma, z, and one joint test of "nothing changed" at the false-alarm rate. Exit 0: still valid; 4:
+    drifted (naming what moved); 3: the recording determines nothing that can be tested (naming why).
+    """
+    from lrfcal.commands.check import check_inputs, check_recording, write_check
+    from lrfcal.errors import EXIT_DRIFTED
+
+    check_inputs(calibration, recording, out, history, bag=bag, distances=distances, nominal=nominal,
+                 overwrite=overwrite)
+    with progress_display(f"checking {calibration} against {recording.name}", quiet=quiet) as hooks:
+        outcome = check_recording(calibration, recording, bag=bag, distances=distances, nominal=nominal,
+                                  false_alarm=false_alarm, fixed_mount=fixed_mount, targetless=targetless,
+                                  progress=hooks.stage, warn=lambda line: print(f"warning: {line}", file=sys.stderr))
+        hooks.stage("check.yaml, report.md" + ("" if no_figures else " and check.png"))
+        write_check(outcome, out, overwrite=overwrite, history=history, figures=not no_figures)
+    print(outcome.line())
+    print(f"wrote {out}" + (f"; appended to {history}" if history is not None else ""))
+    if outcome.drifted:
+        raise typer.Exit(EXIT_DRIFTED)
 
 
 @app.command("inspect", cls=Command)

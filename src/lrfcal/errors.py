@@ -6,10 +6,15 @@ name the file, the field and the offending value. Exit codes (the same for every
 * 0: done (calibrated);
 * 2: bad input (:class:`InputError`): a file, field or option is wrong, and the message says how;
 * 3: the data do not support a trustworthy result (:class:`CalibrationError`): the calibration was refused,
-  and the message names the check that failed and its numbers.
+  and the message names the check that failed and its numbers;
+* 4: ``lrfcal check`` only: the rig drifted (:data:`EXIT_DRIFTED`): the new recording's calibration differs from the
+  saved one beyond its noise; not an error (the check's outputs are written), a verdict.
 """
 
 from __future__ import annotations
+
+#: the exit code of `lrfcal check` when the rig drifted (a verdict, not an error: its outputs are written)
+EXIT_DRIFTED = 4
 
 
 class LrfError(Exception):

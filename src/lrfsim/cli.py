@@ -23,6 +23,7 @@ import typer
 from lrfcal import Command, QuietOpt, finite_between, make_app, progress_display, run_app
 
 if TYPE_CHECKING:
+    from .scenario.file import Scenario
     from .simulation.result import SimResult
 
 app = make_app("MuJoCo testbench of a servo-turned Hokuyo UTM-30LX-EW: simulate recordings, calibrate them and "
@@ -157,6 +158,9 @@ def plan(
              "the UTM-30LX-EW]")] = None,
     markers_only: Annotated[bool, typer.Option(
         "--markers-only", help="Predict from the marker returns alone (without the surface returns).")] = False,
+    false_alarm: Annotated[float, typer.Option(
+        "--false-alarm", metavar="P", callback=finite_between(1e-6, 0.49, ""),
+        help="The false-alarm rate of `lrfcal check` for the smallest drift it detects.")] = 0.05,
     quiet: QuietOpt = False,
 ) -> None:
     """Predict the accuracy of a layout and sweep before building it.
@@ -164,7 +168,9 @@ def plan(
     Casts the scenario's rays once without noise and inverts the Fisher information of the calibration's own
     observation model at the true parameters: the predicted 1-sigma of x, y, z, rx, ry, rz (rotation vector in
     frame M), a, alpha, b, beta and the clock offset (when the sweep goes both ways), the weakest direction and
-    what would strengthen it, and whether the scenario's tolerances are reachable (>= 4 predicted sigma).
+    what would strengthen it, whether the scenario's tolerances are reachable (>= 4 predicted sigma), and, for
+    SCENARIO as the new recording of `lrfcal check` against a calibration of the same layout, the smallest drift of
+    each tested parameter the check detects with 95 % probability at --false-alarm.
 
     Exit code 3 when the DH parameters are not determined (the calibration would refuse).
     """
@@ -181,18 +187,22 @@ def plan(
         t0 = time.perf_counter()
         # the prediction's modules (scipy, lrfcal's estimate) are imported while a forked helper casts
         geometry = sparse_geometry(sc, meanwhile=_import_prediction)
-        from .plan.prediction import format_plan
         from .plan.prediction import plan as make_plan
+        from .plan.text import format_plan
 
         result = make_plan(sc, range_sigma_m=range_sigma, surfaces=not markers_only, geometry=geometry)
         result = replace(result, seconds=time.perf_counter() - t0)  # the cast's time too
     if as_json:
-        print(json.dumps(result.to_json(), indent=2))
+        data = result.to_json()
+        data["check_detects_95"] = {n: (v if v != float("inf") else None)
+                                    for n, v in result.check_detects(false_alarm).items()}
+        data["check_false_alarm"] = false_alarm
+        print(json.dumps(data, indent=2))
     else:
-        print(format_plan(result))
-    if not result.determined:
-        print(f"error: {result.scenario}: the DH parameters are not determined ({result.weakest}); "
-              f"{result.observability.hint()}", file=sys.stderr)
+        print(format_plan(result, false_alarm))
+    if not result.determined:  # calibrate's rule (lrfcal.estimate.observability.Verdict), its reason
+        why = result.verdict.reason() or "a DH parameter has no finite sigma"
+        print(f"error: {result.scenario}: the calibration would refuse: {why}", file=sys.stderr)
         raise typer.Exit(3)
 
 
@@ -233,6 +243,17 @@ def study(
     new_layout: Annotated[bool, typer.Option("--new-layout", help="Build every trial's marker layout from its own "
                                              "seed too (the jitter_m of a board or a V, a random layout) and "
                                              "cast anew: the accuracy over layouts, not of one.")] = False,
+    drift: Annotated[list[str] | None, typer.Option(
+        "--drift", metavar="NAME=VALUE", show_default=False,
+        help="The drift's Monte Carlo (repeatable): N pairs, a recording calibrated and a second one of the rig "
+             "changed by NAME=VALUE (a, alpha, b, beta, x, y, z, roll, pitch, yaw, clock_offset, range_offset; "
+             "units mm, deg, ms, ...; several joined by commas) checked against it by `lrfcal check`; 'none': no "
+             "drift, the false-alarm rate. Works without markers too (targetless).")] = None,
+    false_alarm: Annotated[float, typer.Option(
+        "--false-alarm", metavar="P", callback=finite_between(1e-6, 0.49, ""),
+        help="With --drift: the check's false-alarm rate.")] = 0.05,
+    fixed_mount: Annotated[bool, typer.Option("--fixed-mount", help="With --drift: the check tests the mount too.")
+                           ] = False,
     perturb_start: Annotated[float, typer.Option(
         "--perturb-start", metavar="S", min=0.0, max=100.0, show_default=False,
         help="Start each trial from the nominal values moved by uniform draws in +-S x (a, b: 5 mm; alpha, beta: "
@@ -265,6 +286,9 @@ def study(
     from .trials.study_figures import import_figures
 
     sc = load_scenario(scenario)
+    if drift:
+        _drift_study(sc, scenario, drift, trials, out, overwrite, workers, seed0, false_alarm, fixed_mount, quiet)
+        return
     varied = parse_vary(vary) if vary is not None else None
     if out is None:
         out, overwrite = Path("runs") / f"{sc.name}_study", True
@@ -287,6 +311,27 @@ def study(
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())
     print(f"wrote {path} (trials.csv, summary.md, figures)")
+
+
+def _drift_study(sc: Scenario, path: Path, drifts: list[str], pairs: int, out: Path | None, overwrite: bool,
+                 workers: int, seed0: int | None, false_alarm: float, fixed_mount: bool, quiet: bool) -> None:
+    """`lrfsim study --drift`: the drift's Monte Carlo (lrfsim.trials.drift), pairs.csv and summary.md."""
+    from lrfcal.io.files import check_no_overlap, check_replaceable
+
+    from .scenario.file import scenario_inputs
+    from .trials.drift import drift_study, parse_drift, summary_markdown, write_drift_study
+
+    parsed = [parse_drift(d) for d in drifts]
+    if out is None:
+        out, overwrite = Path("runs") / f"{sc.name}_drift", True
+    check_no_overlap({"-o": out}, scenario_inputs(sc, path))
+    check_replaceable(out, overwrite)
+    with progress_display(f"drift study of {sc.name}", quiet=quiet) as hooks:
+        result = drift_study(sc, parsed, pairs, seed0=seed0, workers=workers, false_alarm=false_alarm,
+                             fixed_mount=fixed_mount, progress=lambda done, n: hooks.steps("pairs", done, n))
+        written = write_drift_study(result, out, overwrite=overwrite)
+    print(summary_markdown(result).rstrip())
+    print(f"wrote {written} (pairs.csv, summary.md)")
 
 
 @app.command(cls=Command)

@@ -48,16 +48,20 @@ _MIN_MARKER_CLUSTERS = 4
 
 
 def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], marker_dense: NDArray[np.int64],
-                         scan_plane: NDArray[np.int64], JtJ_inv: FloatArray) -> FloatArray:
+                         scan_plane: NDArray[np.int64], JtJ_inv: FloatArray, live: NDArray[np.bool_] | None = None
+                         ) -> FloatArray:
     """Widen ``cov`` (p, p) per parameter to the cluster-robust covariance with every marker's returns one cluster
     (each scan's surface returns one, as before), times G / (G - 1) for G markers: the errors the returns of one
     marker share (an uneven coverage of its disc by the beams, the marker map's error of it) are then counted once
-    per marker, not as independent per return. The larger of the two per parameter, the correlations kept."""
+    per marker, not as independent per return. The larger of the two per parameter, the correlations kept. ``live``
+    (c + 3P,): the columns the covariance keeps (None: all)."""
     n_markers = np.unique(marker_dense).size
     if n_markers < _MIN_MARKER_CLUSTERS:
         return cov
     ids = marker_dense + (int(scan_plane.max()) + 1 if scan_plane.size else 0)  # apart from the scans' ids
     G = scores_by_cluster(b, core, ids, scan_plane)[1]
+    if live is not None:
+        G = G[:, live]
     return widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1)))
 
 
@@ -83,6 +87,12 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     b = pb.blocks(th, R_ref) if blocks is None else blocks
     core = np.flatnonzero(free[:N_CORE])
     H, _ = assemble(b, core).dense()
+    # a plane the robust passes left without a return (and without a prior) carries no information: its nuisances
+    # are no unknowns of this covariance (not a rank loss of the core)
+    live = np.ones(H.shape[0], dtype=bool)
+    live[core.size:] = np.diag(H)[core.size:] > 0
+    if not live.all():
+        H = H[np.ix_(live, live)]
     res = b.residuals()
     n_par = H.shape[0]
     n_rows = sum(s.n_independent for s in pb.sets)
@@ -105,6 +115,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     else:
         JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
         ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane)
+        scores = scores if live.all() else scores[:, live]
         cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
         spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan))
         spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * JtJ_inv[np.ix_(core_pos, core_pos)]
@@ -116,13 +127,14 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
             cross = pb.centre_cross(th, R_ref, core, n_m, b.J_dense)
             prior = pb.prior_cross(n_m)  # one row per nuisance, in H's order after the core
             if prior is not None:
-                cross = np.vstack([cross, prior])
+                cross = np.vstack([cross, prior[live[core.size:]]])
             G_free = -JtJ_inv[core_pos, :cross.shape[0]] @ cross
             cov[np.ix_(core_pos, core_pos)] += G_free @ map_cov @ G_free.T
             G = np.zeros((N_CORE, len(map_cov)))
             G[core] = G_free
         if marker_dense is not None:
-            cov = np.asarray(inflate_for_markers(cov, b, core, marker_dense, cluster_plane, JtJ_inv), dtype=np.float64)
+            cov = np.asarray(inflate_for_markers(cov, b, core, marker_dense, cluster_plane, JtJ_inv,
+                                                 None if live.all() else live), dtype=np.float64)
         info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
         rank_txt = f"full rank (condition {np.sqrt(eig[-1] / eig[0]):.2e})"
     cov_core = np.full((N_CORE, N_CORE), np.nan)

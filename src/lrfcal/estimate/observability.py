@@ -267,7 +267,8 @@ class Verdict:
         """Why not (empty when determined): the judgement that fails, its weakest combination and every sigma."""
         if self.determined:
             return ""
-        if self.start.determined and self.final.determined and self.mirror is not None:
+        # in the order calibrate names them: before it solves, then its checks (mirror image before observability)
+        if self.start.determined and self.mirror is not None and not self.mirror[0]:
             return f"the rig cannot be told from its mirror image: {self.mirror[1]}"
         obs, when = ((self.start, "the marker returns alone, judged before solving") if not self.start.determined
                      else (self.final, "the final covariance, judged after solving"))

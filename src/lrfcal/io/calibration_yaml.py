@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES
 from lrfcal.model.unknowns import BY_NAME
 from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence
-from lrfcal.types import MarkerMap, Solution, TunnelGeometry
+from lrfcal.types import MarkerMap, Nominal, Scans, Solution, TunnelGeometry
 
 FloatArray = NDArray[np.float64]
 
@@ -55,6 +55,7 @@ def _solution_dict(sol: Solution) -> dict[str, Any]:
         "mount_rotation_sigma_rad": {n: param_sigma(sol, n) for n in ("rx", "ry", "rz")},
         "covariance": {"names": list(ESTIMATE_NAMES),
                        "matrix": [[_f(v) for v in row] for row in cov] if cov.shape == (10, 10) else None},
+        "covariance_estimated": _estimated_dict(sol),
         "clock_offset_s": {"value": _f(sol.clock_offset_s), "sigma": _f(sol.clock_offset_sigma_s)},
         "range_offset_m": {"value": _f(sol.range_offset_m), "sigma": _f(sol.range_offset_sigma_m)},
         "marker_range_bias_m": {"value": _f(sol.marker_range_bias_m), "sigma": _f(sol.marker_range_bias_sigma_m)},
@@ -64,6 +65,40 @@ def _solution_dict(sol: Solution) -> dict[str, Any]:
         "reduced_chi2": _f(sol.reduced_chi2),
         "status": str(sol.status),
     }
+
+
+def _estimated_dict(sol: Solution) -> dict[str, Any]:
+    """The covariance of every unknown the solution estimated, with the cross terms between the mount, the DH, the
+    clock offset and the intrinsics (Solution.estimated_covariance; what `lrfcal check` compares a new calibration
+    with)."""
+    names, cov = sol.estimated_covariance()
+    return {"names": list(names), "matrix": [[_f(v) for v in row] for row in cov]}
+
+
+def _rig_dict(nominal: Nominal) -> dict[str, Any]:
+    """The rig file the calibration read the recording with (lrfcal.io.rig.RigFile's keys: the nominal values and
+    where the bag keeps the scans and the servo angle, one-off command-line settings applied), so that the
+    calibration alone reads a new recording of the same rig (`lrfcal check`)."""
+    out: dict[str, Any] = {"dh": {n: float(v) for n, v in zip(DH_NAMES, nominal.dh.vector(), strict=True)}}
+    if nominal.mount is not None:
+        out["mount"] = {n: float(getattr(nominal.mount, n)) for n in MOUNT_NAMES}
+    out["marker_radius_m"] = float(nominal.marker_radius_m)
+    out["beam_divergence_rad"] = float(nominal.beam_divergence_rad)
+    if nominal.range_sigma_m is not None:
+        out["range_sigma_m"] = float(nominal.range_sigma_m)
+    for key, section in (("scan", nominal.scan), ("servo", nominal.servo), ("log", nominal.log)):
+        if section is not None:
+            out[key] = section.model_dump(mode="json", exclude_none=True)
+    return out
+
+
+def scanner_dict(scans: Scans) -> dict[str, Any]:
+    """The scanner as its scans describe it: frame_id, the most beams a scan carried, the median angle_min and
+    angle_increment [rad] (what tells one scanner from another: `lrfcal check` refuses a calibration of another)."""
+    mu = np.asarray(scans.mu_rad, dtype=float)
+    inc = float(np.median(mu[:, 1] - mu[:, 0])) if mu.ndim == 2 and mu.shape[1] > 1 else math.nan
+    return {"frame_id": scans.frame_id, "beams": int(np.max(scans.beam_counts)) if scans.beam_counts.size else 0,
+            "angle_min_rad": _f(float(np.median(mu[:, 0])) if mu.size else math.nan), "angle_increment_rad": _f(inc)}
 
 
 def _intrinsics_dict(sol: Solution) -> dict[str, Any]:
@@ -125,6 +160,8 @@ def calibration_dict(result: CalibrationResult) -> dict[str, Any]:
         "checks": [{"name": c.name, "passed": bool(c.passed), "detail": c.detail} for c in result.checks],
         "notes": list(result.notes),
         "servo_sign": int(result.servo_sign),
+        "rig": _rig_dict(result.recording.nominal),
+        "scanner": scanner_dict(result.recording.scans),
         "start": {k: float(v) for k, v in result.start.as_dict().items()},
         "baseline": None if baseline is None else {
             "method": "seed paper: blob peaks only, one motor angle per scan",
@@ -212,4 +249,4 @@ def _marker_dict(sol: Solution, evidence: MarkerEvidence) -> dict[str, Any]:
     }
 
 
-__all__ = ["FORMAT_VERSION", "calibration_dict", "map_sigma", "param_sigma", "plain_float"]
+__all__ = ["FORMAT_VERSION", "calibration_dict", "map_sigma", "param_sigma", "plain_float", "scanner_dict"]

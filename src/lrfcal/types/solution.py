@@ -11,7 +11,7 @@ from typing import Generic, TypeVar
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrfcal.model.kinematics import Params
+from lrfcal.model.kinematics import ESTIMATE_NAMES, Params
 from lrfcal.types.arrays import BoolArray, FloatArray
 
 
@@ -92,6 +92,44 @@ class Solution:
         cov = np.array(self.covariance, dtype=float)
         cov[6:10, 6:10] += np.outer(d, d)
         return replace(self, covariance=cov, sigma=np.sqrt(np.clip(np.diag(cov), 0.0, None)))
+
+    def estimated_covariance(self) -> tuple[tuple[str, ...], FloatArray]:
+        """(names, covariance (k, k)) of every unknown this solution estimated with a finite sigma, in the solver's
+        order (lrfcal.model.unknowns.CORE_NAMES: the mount as x, y, z, rx, ry, rz, the DH, the clock offset, the
+        intrinsics), with their cross terms: the inverse of :attr:`information` (the covariance the solve reported,
+        widened for shared errors and the marker map), its mount and DH block replaced by :attr:`covariance`'s,
+        which holds what was added after the solve (a model error between two defensible models, the held
+        parameters' tolerance: ``with_dh_systematic``, targetless's consider term), the cross terms kept (adding a
+        positive semi-definite part to a block keeps the whole positive semi-definite). Without the information
+        (a solution made by hand), the diagonal of the sigmas alone. ``((), (0, 0))`` when nothing is finite."""
+        sig = {n: float(s) for n, s in zip(ESTIMATE_NAMES, np.asarray(self.sigma, dtype=float).reshape(-1),
+                                            strict=False)}
+        sig["clock_offset"] = float(self.clock_offset_sigma_s)
+        sig.update({n: float(s) for n, (_, s) in self.intrinsics.items()})
+        info_names = tuple(self.information_names)
+        if self.information is not None and info_names and np.all(np.isfinite(self.information)):
+            info = np.asarray(self.information, dtype=float)
+            try:
+                col = np.sqrt(np.maximum(np.diag(info), 1e-300))
+                base = np.linalg.inv(info / np.outer(col, col)) / np.outer(col, col)
+            except np.linalg.LinAlgError:
+                base = None
+        else:
+            base = None
+        if base is None:
+            names = tuple(n for n in (*ESTIMATE_NAMES, "clock_offset", *self.intrinsics)
+                          if math.isfinite(sig.get(n, math.nan)) and sig[n] > 0)
+            return names, np.diag([sig[n] ** 2 for n in names])
+        cov = np.asarray(self.covariance, dtype=float)
+        for i, a in enumerate(info_names):
+            for j, b in enumerate(info_names):
+                if a in ESTIMATE_NAMES and b in ESTIMATE_NAMES:
+                    v = cov[ESTIMATE_NAMES.index(a), ESTIMATE_NAMES.index(b)]
+                    if math.isfinite(v):
+                        base[i, j] = v
+        keep = [i for i, n in enumerate(info_names) if math.isfinite(base[i, i]) and base[i, i] > 0
+                and math.isfinite(sig.get(n, math.nan))]
+        return tuple(info_names[i] for i in keep), base[np.ix_(keep, keep)]
 
     @property
     def intrinsic_values(self) -> dict[str, float]:

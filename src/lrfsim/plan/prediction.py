@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -47,12 +47,9 @@ from numpy.typing import NDArray
 
 from lrfcal import (
     DEFAULT_RANGE_SIGMA_M,
-    LIMITS,
-    SCALE_Z_LIMIT,
     SCALES,
     CalibConfig,
     JointStates,
-    Observability,
     Observations,
     OnPlanes,
     PlaneMarkers,
@@ -60,7 +57,6 @@ from lrfcal import (
     Surface,
     SurfaceReturns,
     SurfaceSelection,
-    Verdict,
     analyse,
     correlation_error_at,
     estimated,
@@ -81,6 +77,7 @@ from lrfcal.model.motor import Clock, MotorClock, dequantised
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES
 from lrfsim.scenario.file import Scenario, require_markers
 
+from .result import SOURCE_MARKERS, SOURCE_SURFACES, Plan, ToleranceCheck, format_value
 from .sparse_cast import NOT_SAMPLED, SURFACE_SCAN_STEP, sparse_geometry
 
 if TYPE_CHECKING:
@@ -90,141 +87,6 @@ FloatArray = NDArray[np.float64]
 
 #: the DH block of the covariance (ESTIMATE_NAMES order)
 DH_ROWS = np.ix_(*[[ESTIMATE_NAMES.index(n) for n in DH_NAMES]] * 2)
-#: a tolerance counts as reachable when it is at least this many predicted sigmas
-REACHABLE_K = 4.0
-#: what enters the information (printed with the plan)
-SOURCE_MARKERS = "marker returns (sphere model, stage 6)"
-SOURCE_SURFACES = "marker returns (sphere model) and surface returns with plane priors (stages 6 and 6b)"
-
-
-@dataclass(frozen=True)
-class ToleranceCheck:
-    """One tolerance of the scenario against the prediction: ``predicted_m_or_rad`` is the predicted 1-sigma of
-    that quantity (for the mount position and rotation, the RMS of the error's norm, sqrt of the trace)."""
-
-    name: str
-    tolerance: float
-    predicted: float
-
-    @property
-    def reachable(self) -> bool:
-        return bool(self.tolerance >= REACHABLE_K * self.predicted)
-
-
-@dataclass(frozen=True)
-class Plan:
-    """The prediction for one scenario.
-
-    names: the estimated parameters in order (ESTIMATE_NAMES [+ clock_offset]); covariance (k, k) over them in SI
-    units (the rotation as a rotation vector in frame M); sigma: name -> predicted 1-sigma; observability: the DH
-    verdict of the calibration from the marker returns (lrfcal.estimate.observability); tolerances: the scenario's
-    tolerances against 4 sigma;
-    n_returns / n_markers_seen: the marker returns the information is built from; range_sigma_m: the noise model.
-    """
-
-    scenario: str
-    names: tuple[str, ...]
-    covariance: FloatArray
-    sigma: dict[str, float]
-    observability: Observability
-    tolerances: tuple[ToleranceCheck, ...]
-    n_returns: int
-    n_markers_seen: int
-    n_markers: int
-    clock_estimated: bool
-    range_sigma_m: float
-    seconds: float
-    information_source: str = SOURCE_MARKERS
-    n_surface_returns: int = 0
-    notes: tuple[str, ...] = field(default=())
-    #: the DH verdict from all the returns the calibration solves with (the surfaces' too): what the calibration's
-    #: "observability" check reports after solving (None: the same as ``observability``, markers only)
-    observability_solved: Observability | None = None
-    #: name -> the 1-sigma the model's own errors contribute (lrfcal.estimate.information.model_error_at), included in
-    #: ``sigma`` (added in variance)
-    model_sigma: dict[str, float] = field(default_factory=dict)
-    #: name -> the 1-sigma the marker map's own uncertainty (the tape's noise) contributes
-    #: (lrfcal.estimate.information.map_error_at), included in ``sigma``
-    map_sigma: dict[str, float] = field(default_factory=dict)
-    #: scale name (lrfcal.stages.joint.SCALES) -> its statistical 1-sigma if freed: the calibration holds each scale at
-    #: 1
-    #: and estimates it where its score test steps SCALE_Z_LIMIT of this (or more) from 1
-    scale_sigma: dict[str, float] = field(default_factory=dict)
-    range_correlation: float = 0.0  #: the range noise's correlation between neighbouring beams (sandwich term)
-    #: whether the rig file's nominal tells the rig from its mirror image (lrfcal's mirror check on the true DH and
-    #: the sigma predicted here), and the words; None: not judged
-    mirror: tuple[bool, str] | None = None
-
-    @property
-    def final_observability(self) -> Observability:
-        """What `lrfcal calibrate`'s observability check will report (after the joint solve)."""
-        return self.observability_solved if self.observability_solved is not None else self.observability
-
-    @property
-    def verdict(self) -> Verdict:
-        """Determined or not by the rule calibrate refuses on (lrfcal.estimate.observability.Verdict): the marker
-        returns alone at the start, and the covariance predicted here (:attr:`final_observability`)."""
-        return Verdict(self.observability, self.final_observability, self.mirror)
-
-    @property
-    def determined(self) -> bool:
-        return self.verdict.determined and all(math.isfinite(self.sigma[n]) for n in DH_NAMES)
-
-    @property
-    def tolerances_reachable(self) -> bool:
-        return self.determined and all(t.reachable for t in self.tolerances)
-
-    @property
-    def weakest(self) -> str:
-        return self.final_observability.describe()
-
-    @property
-    def strengthen(self) -> str:
-        """What would strengthen the weakest direction, in words."""
-        hint = self.observability.hint()
-        return f"{hint}; more passes of the sweep (turns of a spin) shrink every sigma by about 1/sqrt(passes)"
-
-    def to_json(self) -> dict[str, Any]:
-        """The plan as one JSON-able mapping (SI units; infinity as null)."""
-
-        def num(v: float) -> float | None:
-            return float(v) if math.isfinite(v) else None
-
-        return {
-            "scenario": self.scenario,
-            "sigma": {n: num(self.sigma[n]) for n in self.names},
-            "model_error_sigma": {n: num(self.model_sigma[n]) for n in self.names if n in self.model_sigma},
-            "tape_sigma": {n: num(self.map_sigma[n]) for n in self.names if n in self.map_sigma},
-            "units": {n: _unit(n) for n in self.names},
-            "weakest": self.weakest,
-            "weakest_sigma_in_limits": num(self.final_observability.weakest_sigma_in_limits),
-            "weakest_sigma_in_limits_markers_only": num(self.observability.weakest_sigma_in_limits),
-            "strengthen": self.strengthen,
-            "determined": self.determined,
-            "verdict": self.verdict.reason() or "determined: the marker returns alone and the predicted covariance",
-            "tolerances_reachable": self.tolerances_reachable,
-            "tolerances": {t.name: {"tolerance": t.tolerance, "predicted_sigma": num(t.predicted),
-                                    "reachable": t.reachable} for t in self.tolerances},
-            "clock_offset_estimated": self.clock_estimated,
-            "n_returns": self.n_returns,
-            "n_markers_seen": self.n_markers_seen,
-            "n_markers": self.n_markers,
-            "n_surface_returns": self.n_surface_returns,
-            "range_sigma_m": self.range_sigma_m, "range_noise_correlation": self.range_correlation,
-            "held_scale_sigma": {n: num(v) for n, v in self.scale_sigma.items()},
-            "held_scale_found_beyond": {n: num(SCALE_Z_LIMIT * v) for n, v in self.scale_sigma.items()},
-            "information": self.information_source,
-            "seconds": self.seconds,
-            "notes": list(self.notes),
-        }
-
-
-def _unit(name: str) -> str:
-    if name in ("x", "y", "z", "a", "b"):
-        return "m"
-    return "s" if name == "clock_offset" else "rad"
-
-
 def marker_observations(scenario: Scenario, geometry: Geometry | None = None
                         ) -> tuple[Observations, FloatArray, Params, MotorClock, float, Any]:
     """Cast the scenario's rays once without noise and return the marker returns as the calibration sees them.
@@ -358,7 +220,8 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 model_sigma=model_sigma,
                 map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base),
                 range_correlation=float(scenario.sensor.noise_correlation),
-                mirror=_mirror(params.dh, scenario, config, np.array([sigma[n] for n in DH_NAMES])))
+                mirror=_mirror(params.dh, scenario, config, np.array([sigma[n] for n in DH_NAMES])),
+                covariance_names=base if len(base) == cov.shape[0] else names)
 
 
 def _mirror(truth: DH, scenario: Scenario, config: CalibConfig, dh_sigma: FloatArray) -> tuple[bool, str]:
@@ -465,55 +328,4 @@ def _surface_returns(scenario: Scenario, result: Any, obs: Observations, markers
     return observe_surfaces(grid, on_markers, params, selection=SurfaceSelection(config.surface_max_returns))
 
 
-def format_value(name: str, value: float) -> str:
-    """A parameter's value in display units (mm, deg, ms)."""
-    if not math.isfinite(value):
-        return "unbounded"
-    unit = _unit(name)
-    if unit == "m":
-        return f"{value * 1000:.3g} mm"
-    if unit == "s":
-        return f"{value * 1000:.3g} ms"
-    return f"{math.degrees(value):.3g} deg"
-
-
-def format_plan(p: Plan) -> str:
-    """The plan as text: the sigma table, the weakest direction, what would strengthen it, the tolerances."""
-    lines = [f"plan {p.scenario}: {p.n_returns} marker returns on {p.n_markers_seen}/{p.n_markers} markers, "
-             f"{p.n_surface_returns} surface returns, range noise {p.range_sigma_m * 1000:g} mm"
-             + (f", correlated {p.range_correlation:g} between neighbouring beams" if p.range_correlation else ""),
-             f"information: {p.information_source}", "",
-             f"{'parameter':<14}{'predicted 1-sigma':>20}{'model-error part':>20}{'tape part':>14}{'limit':>14}"]
-    for n in p.names:
-        model = format_value(n, p.model_sigma[n]) if n in p.model_sigma else "-"
-        tape = format_value(n, p.map_sigma[n]) if n in p.map_sigma else "-"
-        lines.append(f"{n:<14}{format_value(n, p.sigma[n]):>20}{model:>20}{tape:>14}{format_value(n, LIMITS[n]):>14}")
-    lines.append("")
-    state = "determined" if p.determined else "NOT DETERMINED (the calibration would refuse, exit 3)"
-    alone = (f"; {p.observability.weakest_sigma_in_limits:.2g} from the marker returns alone, the test the "
-             "calibration refuses on before solving")
-    lines.append(f"DH parameters: {state}; weakest direction: {p.weakest} "
-                 f"(1-sigma {p.final_observability.weakest_sigma_in_limits:.2g} of the limit in the covariance above, "
-                 f"as `lrfcal calibrate` judges it after solving{alone})")
-    if not p.determined:
-        lines.append(f"why: {p.verdict.reason() or 'a DH parameter has no finite sigma'}")
-    lines.append(f"to strengthen it: {p.strengthen}")
-    lines.append(f"tolerances (reachable when >= {REACHABLE_K:g} x predicted sigma):")
-    for t in p.tolerances:
-        ratio = t.tolerance / t.predicted if t.predicted > 0 and math.isfinite(t.predicted) else 0.0
-        name = t.name if t.name in p.sigma else ("x" if t.name == "position" else "rx")
-        lines.append(f"  {t.name:<10} {format_value(name, t.tolerance):>12} = {ratio:6.1f} sigma  "
-                     f"{'reachable' if t.reachable else 'NOT reachable'}")
-    lines.append(f"tolerances reachable: {'yes' if p.tolerances_reachable else 'no'}")
-    if p.scale_sigma:
-        lines.append(f"scales held at 1 and tested (estimated where the data put them beyond {SCALE_Z_LIMIT:g} "
-                     "sigma): the smallest error found, at least")
-        lines.extend(f"  {n:<12} 1-sigma {v:.2g}: {100 * SCALE_Z_LIMIT * v:.2g} % or more" for n, v in
-                     p.scale_sigma.items())
-    lines.extend(f"note: {n}" for n in p.notes)
-    lines.append(f"({p.seconds:.1f} s)")
-    return "\n".join(lines)
-
-
-__all__ = ["REACHABLE_K", "SOURCE_MARKERS", "SOURCE_SURFACES", "Plan", "ToleranceCheck", "format_plan", "format_value",
-           "marker_observations", "plan", "scenario_range_sigma"]
+__all__ = ["marker_observations", "plan", "scenario_range_sigma"]

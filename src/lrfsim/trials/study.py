@@ -61,7 +61,8 @@ from lrfcal import apply_memory_policy, apply_thread_policy, call_with_thread_po
 from lrfcal.errors import CalibrationError, InputError
 from lrfcal.io.files import atomic_folder, check_replaceable
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.plan.prediction import Plan, format_value, plan
+from lrfsim.plan.prediction import plan
+from lrfsim.plan.result import Plan, format_value
 from lrfsim.scenario.file import Scenario
 
 from .pool import run_counted, worker_held

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from lrfcal.model.kinematics import DH_NAMES
 
 if TYPE_CHECKING:
-    from lrfsim.plan.prediction import Plan
+    from lrfsim.plan.result import Plan
 
 
 class PartLike(Protocol):
