@@ -259,14 +259,20 @@ def study(
         help="Start each trial from the nominal values moved by uniform draws in +-S x (a, b: 5 mm; alpha, beta: "
              "1 deg; mount: 2 cm, 1 deg), drawn from the trial's seed  [default: 0, the scenario's nominal "
              "values]")] = 0.0,
+    truth_spread: Annotated[float, typer.Option(
+        "--truth-spread", metavar="S", min=0.0, max=100.0, show_default=False,
+        help="Draw each trial's true DH around the nominal DH, uniform in +-S x (a, b: 5 mm; alpha, beta: 1.5 "
+             "deg), from the trial's seed (each trial builds its scene and casts anew)  [default: 0, the "
+             "scenario's truth]")] = 0.0,
     quiet: QuietOpt = False,
 ) -> None:
     """Monte-Carlo study: calibrate N noisy recordings of SCENARIO.
 
     Trial k simulates SCENARIO with seed S + k (new range, intensity, tape and encoder noise; the marker layout
     stays; the rays are cast once and reused, see --recast), writes and reads the recording back and calibrates
-    it; --perturb-start S also moves each trial's nominal values (its nominal.yaml, where the calibration
-    starts). Writes DIR/trials.csv (one row per trial:
+    it (a marker-less scenario targetless, as `lrfcal calibrate REC --targetless` does); --perturb-start S also
+    moves each trial's nominal values (its nominal.yaml, where the calibration starts), --truth-spread S draws
+    each trial's true DH around the nominal. Writes DIR/trials.csv (one row per trial:
     status, reason, P_error and P_sigma in SI units for each DH parameter P), DIR/summary.md (bias, std, RMSE,
     the predicted sigma of 'lrfsim plan', RMSE / predicted, RMS of error / reported sigma, refusal rate) and
     histograms DIR/hist_P.png. The same seeds give the same trials.csv with any --workers or --dask.
@@ -299,7 +305,7 @@ def study(
         result = run_study(sc, trials, seed0=seed0, workers=workers, dask=dask, vary=varied, recast=recast,
                            progress=lambda value, done, _n: hooks.trials(values.index(value) * trials + done,
                                                                         len(values) * trials),
-                           perturb_start=perturb_start, new_layout=new_layout,
+                           perturb_start=perturb_start, new_layout=new_layout, truth_spread=truth_spread,
                            meanwhile=import_figures)  # while the workers run, not after them with one core idle
         hooks.stage("trials.csv, summary.md and figures")
         path = write_study(result, out, overwrite=overwrite)

@@ -139,8 +139,10 @@ def iter_ray_chunks(scene: SceneLike, sensor: SensorConfig, beam_lambda_rad: Flo
 
 
 def cast_cutoff_m(sensor: SensorConfig) -> float:
-    """How far a ray is cast [m]: the longest range plus 5 sigma of the widest noise band (and 1 mm)."""
+    """How far a ray is cast [m]: the longest range plus 5 sigma of the widest noise band or of the range-proportional
+    noise at the longest range (and 1 mm)."""
     sig_max = max((b.sigma_m for b in sensor.noise_bands), default=0.0)
+    sig_max = max(sig_max, sensor.noise_range_fraction * sensor.range_max_m)
     return sensor.range_max_m + (5.0 * sig_max if sensor.noise else 0.0) + 1e-3
 
 

@@ -34,7 +34,7 @@ from .sections import (
     Tolerances,
     doc,
 )
-from .servo_timing import servo_run_time_s
+from .servo_timing import servo_run_time_s, step_move_s
 
 
 class Scenario(Section):
@@ -56,6 +56,8 @@ class Scenario(Section):
 
     @model_validator(mode="after")
     def _check(self) -> Scenario:
+        if self.servo.mode == "step":
+            _check_step_and_scan(self.servo, self.sensor)
         if self.markers is None:
             if self.faults.tape_outliers:
                 raise ValueError("faults.tape_outliers needs markers (the scenario has none)")
@@ -72,6 +74,20 @@ class Scenario(Section):
     def marker_radius_m(self) -> float | None:
         """The markers' sphere radius [m]; None for a marker-less scene."""
         return None if self.markers is None else self.markers.radius_m
+
+
+def _check_step_and_scan(servo: ServoConfig, sensor: SensorConfig) -> None:
+    """Mode step: one scan per step (step_period_s = sensor.scan_period_s), and each step's move fits in the time
+    the laser does not scan, so that every beam of a scan sees the motor stand still."""
+    if abs(servo.step_period_s - sensor.scan_period_s) > 1e-9 * sensor.scan_period_s:
+        raise ValueError(f"servo.step_period_s {servo.step_period_s:g} s must equal sensor.scan_period_s "
+                         f"{sensor.scan_period_s:g} s (mode step: one scan per step)")
+    move_s = step_move_s(servo)
+    beams_s = (sensor.n_beams - 1) * sensor.time_increment_s
+    if move_s + beams_s > sensor.scan_period_s:
+        raise ValueError(f"servo: a step's move takes {move_s * 1e3:.3g} ms (step_rad, speed_rad_s, accel_rad_s2) and "
+                         f"the beams {beams_s * 1e3:.3g} ms of each {sensor.scan_period_s * 1e3:.3g} ms scan period: "
+                         "the servo would move while the laser scans (mode step); raise speed_rad_s or accel_rad_s2")
 
 
 def _field_path(loc: tuple[int | str, ...]) -> str:
@@ -168,7 +184,7 @@ def check_resources(scenario: Scenario, source: str) -> None:
     limit = _memory_limit_bytes()
     if need > limit:
         se, sv = scenario.sensor, scenario.servo
-        key, value = ("passes", sv.passes) if sv.mode == "sweep" else ("revolutions", sv.revolutions)
+        key, value = ("revolutions", sv.revolutions) if sv.mode == "spin" else ("passes", sv.passes)
         raise InputError(
             f"{source}: sensor/servo: this scenario needs about {need / 2**30:.3g} GiB ({n_scans:,} scans x "
             f"{se.n_beams:,} beams x {BYTES_PER_BEAM} bytes; scan_period_s {se.scan_period_s:g}, servo.{key} "

@@ -58,13 +58,30 @@ class PoseConfig(Section):
         return Pose(self.x, self.y, self.z, self.roll, self.pitch, self.yaw)
 
 
+class StandPartConfig(Section):
+    """A solid box of the stand that holds the motor (a base plate, an upright, the motor's housing), fixed to the
+    motor frame M: it moves with the rig's mount, not with the motor's turn, and the laser sees it (unlike the rig's
+    own servo and scanner housing, which it never sees): a tilting scanner looks down at its stand at large tilts."""
+
+    pose: Annotated[PoseConfig, doc("pose of the part's centre in the motor frame M (z_M the motor axis; the true "
+                                    "frame, as the part is built onto the motor)")]
+    size_x_m: Annotated[float, doc("edge length along the part's local x [m]", gt=0, le=10)]
+    size_y_m: Annotated[float, doc("edge length along the part's local y [m]", gt=0, le=10)]
+    size_z_m: Annotated[float, doc("edge length along the part's local z [m]", gt=0, le=10)]
+    reflectivity: Annotated[float, doc("Lambertian albedo of its faces [1]", ge=0, le=1)] = 0.5
+
+
 class RigConfig(Section):
-    """The rig: true DH and mount pose (ground truth) and the design-drawing (nominal) values."""
+    """The rig: true DH and mount pose (ground truth) and the design-drawing (nominal) values; optionally the stand
+    that holds the motor, as geometry the laser sees."""
 
     dh: Annotated[DHConfig, doc("true DH parameters (ground truth)")]
     mount: Annotated[PoseConfig, doc("true mount pose T_W_M of the motor frame M in W (ground truth)")]
     nominal_dh: Annotated[DHConfig, doc("design DH values written to nominal.yaml (the calibration's start)")]
     nominal_mount: Annotated[PoseConfig, doc("design mount pose written to nominal.yaml")]
+    stand: Annotated[tuple[StandPartConfig, ...], doc(
+        "the stand's parts, boxes fixed to the motor frame M that the laser sees (none by default: only the scene "
+        "is seen)")] = ()
 
 
 class NoiseBand(Section):
@@ -97,9 +114,10 @@ class SystematicConfig(Section):
     2002) show each effect, but no figure for the UTM-30LX-EW could be read for this model, so every value
     here is assumed. Added to each return before noise and quantisation:
     b = range_offset_m + intensity_bias_m_per_decade * log10(min(I, saturation) / intensity_ref_counts)
-    + incidence_bias_m * theta / (1 rad) + drift_amplitude_m * exp(-(drift_elapsed_s + t) / drift_time_constant_s),
+    + incidence_bias_m * theta / (1 rad) + drift_amplitude_m * exp(-(drift_elapsed_s + t) / drift_time_constant_s)
+    + beam_wiggle_m * sin(2 pi i / beam_wiggle_period_beams) + range_wiggle_m * sin(2 pi r / range_wiggle_period_m),
     I the return's noise-free intensity, theta the incidence angle of each footprint sub-ray, t the beam's
-    time from the start of the sweep."""
+    time from the start of the sweep, i the beam's index in its scan, r its noise-free range."""
 
     range_offset_m: Annotated[float, doc("constant added to every range (the spec's +-30 mm accuracy bounds it; "
                                          "0 = off, value assumed) [m]", ge=-1, le=1)] = 0.0
@@ -117,6 +135,15 @@ class SystematicConfig(Section):
     drift_time_constant_s: Annotated[float, doc("time constant of the warm-up drift (assumed) [s]", gt=0, le=1e6)
                                      ] = 1200.0
     drift_elapsed_s: Annotated[float, doc("time from power-on to the start of the sweep [s]", ge=0, le=1e6)] = 0.0
+    beam_wiggle_m: Annotated[float, doc(
+        "amplitude of a range bias that wiggles along the scan, the same in every scan: a sine of the beam index "
+        "(on the real URG-04LX box recording, the facing wall's residual averaged per beam over 1599 scans wiggles "
+        "with about 1.2 mm at a period of about 61 beams, docs/real-data.md; 0 = off) [m]", ge=-0.1, le=0.1)] = 0.0
+    beam_wiggle_period_beams: Annotated[float, doc("period of that wiggle, in beams [1]", gt=0, le=100000)] = 61.0
+    range_wiggle_m: Annotated[float, doc(
+        "amplitude of a range bias periodic in the range, a sine of the noise-free range (the cyclic error of a "
+        "phase-shift rangefinder such as the URG-04LX; 0 = off, value assumed) [m]", ge=-0.1, le=0.1)] = 0.0
+    range_wiggle_period_m: Annotated[float, doc("period of that wiggle, in range [m]", gt=0, le=1000)] = 0.5
 
 
 class EchoesConfig(Section):
@@ -154,6 +181,10 @@ class SensorConfig(Section):
         NoiseBand(up_to_m=30.0, sigma_m=0.030),
         NoiseBand(up_to_m=60.0, sigma_m=0.050),
     )
+    noise_range_fraction: Annotated[float, doc(
+        "range-proportional noise: the range noise sigma is at least this fraction of the range, sigma(r) = "
+        "max(the band's sigma_m, noise_range_fraction x r) (the URG-04LX datasheet's accuracy: +-10 mm to 1 m, 1 % of "
+        "the range beyond; 0: the bands alone) [1]", ge=0, le=0.1)] = 0.0
     noise_correlation: Annotated[float, doc(
         "correlation of the range noise of neighbouring beams in a scan: an AR(1) process along the beams, rho^k "
         "at k beams apart (0: independent; measured 0.70 on a real URG-04LX, docs/real-data.md; no public figure "
@@ -196,29 +227,46 @@ class SensorConfig(Section):
 class ServoConfig(Section):
     """The servo's motion (lrfsim.sensors.servo): ``mode: sweep`` turns from ``start_rad`` to ``end_rad`` at
     ``speed_rad_s``, ``passes`` times (alternating); ``mode: spin`` turns continuously one way for ``revolutions`` full
-    turns from ``start_rad`` (a continuous joint: the joint states carry the unwrapped angle, beyond +-pi)."""
+    turns from ``start_rad`` (a continuous joint: the joint states carry the unwrapped angle, beyond +-pi); ``mode:
+    step`` steps from ``start_rad`` to ``end_rad`` in steps of ``step_rad`` and stands still while the laser scans
+    (step and scan, as a stepper tilt stand: one step and one scan every ``step_period_s``, one joint state per scan
+    at the scan's stamp; the recording's rig file says ``servo.motion: step``)."""
 
     joint: Annotated[str, doc("joint name in the JointState messages (as the rig file's servo.joint; the old key "
                               "joint_name is still read)", min_length=1,
                               validation_alias=AliasChoices("joint", "joint_name"))] = "servo"
-    mode: Annotated[Literal["sweep", "spin"], doc(
+    mode: Annotated[Literal["sweep", "spin", "step"], doc(
         "sweep: back and forth between start_rad and end_rad; spin: one way for `revolutions` full turns from "
-        "start_rad (accelerate, cruise, decelerate and stop; the ramps count in the turns), end_rad not used")
+        "start_rad (accelerate, cruise, decelerate and stop; the ramps count in the turns), end_rad not used; "
+        "step: step and scan between start_rad and end_rad (step_rad, step_period_s), back and forth as a sweep")
                     ] = "sweep"
     start_rad: Annotated[float, doc("motor angle where the motion starts [rad]", ge=-2 * math.pi, le=2 * math.pi)
                          ] = math.pi / 2
-    end_rad: Annotated[float, doc("motor angle where the first pass ends (mode sweep; not used with mode spin) "
-                                  "[rad]", ge=-2 * math.pi, le=2 * math.pi)] = -math.pi / 2
+    end_rad: Annotated[float, doc("motor angle where the first pass ends (modes sweep and step; not used with mode "
+                                  "spin) [rad]", ge=-2 * math.pi, le=2 * math.pi)] = -math.pi / 2
     revolutions: Annotated[float, doc("mode spin: full turns from start to stop, ramps included (may be "
                                       "fractional; not used with mode sweep) [1]", gt=0, le=1000)] = 1.0
     spin_direction: Annotated[Literal[1, -1], doc("mode spin: +1 turns towards increasing motor angle, -1 "
                                                   "towards decreasing [1]")] = 1
-    speed_rad_s: Annotated[float, doc("cruise speed [rad/s]", gt=0, le=10)] = math.radians(10.0)
-    accel_rad_s2: Annotated[float, doc("acceleration of the trapezoidal ramps [rad/s^2]", gt=0, le=1000)] = 2.0
+    step_rad: Annotated[float, doc(
+        "mode step: the turn of one step; |end_rad - start_rad| must be a whole number of steps (the URG-04LX stand "
+        "of github.com/liangfok/tilting_lidar_scanner: 360 / 4800 deg = 0.075 deg, its Arduino program's "
+        "STEPS_PER_REV) [rad]", gt=0, le=math.pi / 4)] = math.radians(0.075)
+    step_period_s: Annotated[float, doc(
+        "mode step: time from one step to the next; one scan per step, so it must equal sensor.scan_period_s, and "
+        "the step's move (speed_rad_s, accel_rad_s2) must fit in the time the laser does not scan: the scans are "
+        "timed to stand still, each centred in its step's standstill [s]", gt=0, le=10)] = 0.1
+    speed_rad_s: Annotated[float, doc("cruise speed (mode step: of each step's move) [rad/s]", gt=0, le=10)
+                           ] = math.radians(10.0)
+    accel_rad_s2: Annotated[float, doc("acceleration of the trapezoidal ramps (mode step: of each step's move) "
+                                       "[rad/s^2]", gt=0, le=1000)] = 2.0
     passes: Annotated[int, doc("number of passes, alternating direction (mode spin: must be 1) [1]", ge=1, le=100)
                       ] = 1
-    settle_s: Annotated[float, doc("standing still at each end [s]", ge=0, le=3600)] = 0.2
-    rate_hz: Annotated[float, doc("JointState publishing rate [Hz]", gt=0, le=10000)] = 100.0
+    settle_s: Annotated[float, doc("standing still at each end (mode step: a whole number of step_period_s) [s]",
+                                   ge=0, le=3600)] = 0.2
+    rate_hz: Annotated[float, doc("JointState publishing rate (mode step: not used, one joint state per scan, "
+                                  "stamped with the scan's stamp, as the stand reports its angle with each scan) "
+                                  "[Hz]", gt=0, le=10000)] = 100.0
     encoder_counts: Annotated[int, doc("encoder counts per revolution (0: no quantisation) [1]", ge=0, le=2**30)] = 4096
     backlash_rad: Annotated[float, doc("gear play, total width (play operator) [rad]", ge=0, le=math.pi / 4)] = 0.0
     clock_offset_s: Annotated[float, doc("laser stamp minus servo stamp of the same instant [s]", ge=-1, le=1)
@@ -232,6 +280,15 @@ class ServoConfig(Section):
                                  "(more turns: revolutions)")
         elif self.start_rad == self.end_rad:
             raise ValueError(f"start_rad and end_rad are equal ({self.start_rad}): nothing to sweep")
+        if self.mode == "step":
+            steps = abs(self.end_rad - self.start_rad) / self.step_rad
+            if abs(steps - round(steps)) > 1e-6:
+                raise ValueError(f"mode step: |end_rad - start_rad| is {steps:.6g} steps of step_rad "
+                                 f"{self.step_rad:.6g} rad: it must be a whole number of steps")
+            holds = self.settle_s / self.step_period_s
+            if abs(holds - round(holds)) > 1e-6:
+                raise ValueError(f"mode step: settle_s {self.settle_s:g} s must be a whole number of step_period_s "
+                                 f"({self.step_period_s:g} s), so that every scan stands still")
         return self
 
 
@@ -305,6 +362,24 @@ class BoxConfig(Section):
     reflectivity: Annotated[float, doc("Lambertian albedo of its faces [1]", ge=0, le=1)] = 0.5
 
 
+class CylinderConfig(Section):
+    """A solid cylinder (a person standing, a bin, a pipe: a surface that is not a plane), its axis the local z of
+    ``pose``, centred on the pose's origin."""
+
+    pose: Annotated[PoseConfig, doc("pose of the cylinder's centre in W (its axis along the local z)")]
+    radius_m: Annotated[float, doc("radius [m]", gt=0, le=100)]
+    height_m: Annotated[float, doc("length along its axis, end face to end face [m]", gt=0, le=100)]
+    reflectivity: Annotated[float, doc("Lambertian albedo of its surface [1]", ge=0, le=1)] = 0.5
+
+
+class SphereConfig(Section):
+    """A solid sphere (a ball, a globe lamp: a surface that is not a plane)."""
+
+    center_m: Annotated[tuple[float, float, float], doc("its centre [x, y, z] in W [m]")]
+    radius_m: Annotated[float, doc("radius [m]", gt=0, le=100)]
+    reflectivity: Annotated[float, doc("Lambertian albedo of its surface [1]", ge=0, le=1)] = 0.5
+
+
 class RoomConfig(Section):
     """A closed rectangular room (or, without ceiling, an open box) built from boxes: inner floor at z = 0, inner
     size size_x_m x size_y_m x size_z_m centred on (center_x_m, center_y_m) and turned by ``yaw`` about z;
@@ -322,12 +397,15 @@ class RoomConfig(Section):
 
 
 class SceneConfig(Section):
-    """What the laser sees: a tunnel, a room, a board, boxes, extra meshes, the materials."""
+    """What the laser sees: a tunnel, a room, a board, boxes, cylinders, spheres, extra meshes, the materials."""
 
     tunnel: Annotated[TunnelConfig | None, doc("a box-girder tunnel (none by default)")] = None
     room: Annotated[RoomConfig | None, doc("a rectangular room (none by default)")] = None
     board: Annotated[BoardConfig | None, doc("a planar marker board (none by default)")] = None
     boxes: Annotated[tuple[BoxConfig, ...], doc("solid boxes, e.g. furniture in a room")] = ()
+    cylinders: Annotated[tuple[CylinderConfig, ...], doc("solid cylinders, e.g. a person-sized one (0.3 m across, "
+                                                         "1.7 m tall): clutter that is not planar")] = ()
+    spheres: Annotated[tuple[SphereConfig, ...], doc("solid spheres: clutter that is not planar")] = ()
     meshes: Annotated[tuple[MeshConfig, ...], doc("extra geometry")] = ()
     materials: Annotated[MaterialsConfig, doc("reflectivities")] = MaterialsConfig()
 

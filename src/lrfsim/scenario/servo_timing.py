@@ -31,12 +31,27 @@ def move_profile(distance_rad: float, speed_rad_s: float, accel_rad_s2: float) -
     return 2.0 * ramp, ramp, accel_rad_s2 * ramp
 
 
+def steps_per_pass(servo: ServoConfig) -> int:
+    """Mode step: the steps of one pass, |end_rad - start_rad| / step_rad (a whole number, ServoConfig checks)."""
+    return int(round(abs(servo.end_rad - servo.start_rad) / servo.step_rad))
+
+
+def step_move_s(servo: ServoConfig) -> float:
+    """Mode step: the duration [s] of one step's move (a trapezoid or triangle of speed_rad_s, accel_rad_s2)."""
+    return move_profile(servo.step_rad, servo.speed_rad_s, servo.accel_rad_s2)[0]
+
+
 def servo_run_time_s(servo: ServoConfig) -> float:
     """The duration [s] of the servo's whole motion (lrfsim.sensors.servo.servo_trajectory(servo).end_s): a sweep is a
-    hold, then ``passes`` times a move and a hold; a spin a hold, one move of ``revolutions`` turns and a hold."""
+    hold, then ``passes`` times a move and a hold; a spin a hold, one move of ``revolutions`` turns and a hold; a step
+    and scan a hold, then ``passes`` times (a step's move and the rest of its step period, per step) and a hold."""
     if servo.mode == "spin":
         move = move_profile(2.0 * math.pi * servo.revolutions, servo.speed_rad_s, servo.accel_rad_s2)[0]
         durations = [servo.settle_s, move, servo.settle_s]
+    elif servo.mode == "step":
+        move = step_move_s(servo)
+        one_pass = [move, servo.step_period_s - move] * steps_per_pass(servo)
+        durations = [servo.settle_s] + (one_pass + [servo.settle_s]) * servo.passes
     else:
         move = move_profile(abs(servo.end_rad - servo.start_rad), servo.speed_rad_s, servo.accel_rad_s2)[0]
         durations = [servo.settle_s] + [move, servo.settle_s] * servo.passes
@@ -46,4 +61,4 @@ def servo_run_time_s(servo: ServoConfig) -> float:
     return start + durations[-1]
 
 
-__all__ = ["move_profile", "servo_run_time_s"]
+__all__ = ["move_profile", "servo_run_time_s", "step_move_s", "steps_per_pass"]

@@ -50,18 +50,22 @@ This mixture is /scan; the UTM-30LX-EW also reports up to 3 separate echoes (``s
 Noise (``noise: true``): I <- I * max(0, 1 + relative_noise * z), then I is rounded to integer counts and
 clipped at ``saturation_counts``; I < ``min_detectable_counts`` -> no return. Range: r <- r + sigma(r) z with
 sigma from the first ``noise_bands`` entry with r <= up_to_m (the last band beyond), then quantised to
-``quantisation_m`` (1 mm; 0 = exact). Ranges outside [range_min, range_max] -> no return. No return is NaN
-(urg_node) or +inf (``no_return: inf``). ``noise: false`` skips both random terms only.
+``quantisation_m`` (1 mm; 0 = exact); with ``noise_range_fraction`` k > 0, sigma(r) = max(band sigma, k r) (noise
+proportional to the range, as the URG-04LX datasheet's 1 % of range beyond 1 m). Ranges outside [range_min,
+range_max] -> no return. No return is NaN (urg_node) or +inf (``no_return: inf``). ``noise: false`` skips both
+random terms only.
 
 Systematic errors (``sensor.systematic``, all off by default; docs/sensor_errors.md). Incidence: every sub-ray's
 range gets k_theta * theta_f (theta_f = arccos|n.d| its incidence angle) before the mixture (the received power
 still uses the true range). Then, before noise, every return (beam or echo) gets
 
-    b = offset + k_I * log10(min(I, saturation_counts) / I_ref) + A * exp(-(t_on + t) / tau),
+    b = offset + k_I * log10(min(I, saturation_counts) / I_ref) + A * exp(-(t_on + t) / tau)
+        + A_beam * sin(2 pi i / P_beam) + A_range * sin(2 pi r / P_range),
 
 I the return's noise-free intensity (the mean received power above), t the beam's true time from the start of the
-sweep, t_on the time from power-on to that start. Every term is skipped when its coefficient is 0, so the
-defaults reproduce the ranges without the model bit for bit.
+sweep, t_on the time from power-on to that start, i the beam's index in its scan (a wiggle along the scan, the same
+in every scan) and r the return's noise-free range (a cyclic error). Every term is skipped when its coefficient is
+0, so the defaults reproduce the ranges without the model bit for bit.
 
 Multi-echo (``sensor.echoes.enabled``). Per beam the hit sub-rays are sorted by (biased) range; a gap wider than
 ``separation_m`` starts a new echo; echo e's range is the power-weighted mean of its group, its intensity the
@@ -254,10 +258,29 @@ class LidarOutput:
 
 
 def systematic_bias_m(intensities: FloatArray, sensor: SensorConfig,
-                      beam_times_s: FloatArray | None = None) -> FloatArray | None:
+                      beam_times_s: FloatArray | None = None, ranges_m: FloatArray | None = None) -> FloatArray | None:
     """The return-level systematic range bias [m] (module docstring), shape of ``intensities`` ((S, N) or
-    (S, N, E)); None when offset, intensity bias and drift are all off. ``intensities``: noise-free received
-    intensity [counts]; ``beam_times_s`` (S, N): true beam times [s], needed only for the drift."""
+    (S, N, E)); None when offset, intensity bias, drift and wiggles are all off. ``intensities``: noise-free received
+    intensity [counts]; ``beam_times_s`` (S, N): true beam times [s], needed only for the drift; ``ranges_m`` (the
+    shape of ``intensities``): noise-free ranges [m], needed only for the range wiggle."""
+    c = sensor.systematic
+    out = _drift_and_levels(intensities, sensor, beam_times_s)
+    if c.beam_wiggle_m != 0.0:
+        i = np.arange(intensities.shape[1], dtype=float)
+        b = c.beam_wiggle_m * np.sin(2.0 * np.pi * i / c.beam_wiggle_period_beams)
+        b = b[:, None] if intensities.ndim == 3 else b
+        out = np.broadcast_to(b, intensities.shape).copy() if out is None else out + b
+    if c.range_wiggle_m != 0.0:
+        if ranges_m is None:
+            raise InputError("lidar: sensor.systematic.range_wiggle_m needs the noise-free ranges")
+        b = c.range_wiggle_m * np.sin(2.0 * np.pi * np.asarray(ranges_m, dtype=float) / c.range_wiggle_period_m)
+        out = b if out is None else out + b
+    return out
+
+
+def _drift_and_levels(intensities: FloatArray, sensor: SensorConfig,
+                      beam_times_s: FloatArray | None) -> FloatArray | None:
+    """The offset, intensity bias and warm-up drift of :func:`systematic_bias_m` (None when all three are off)."""
     c = sensor.systematic
     out: FloatArray | None = None
     if c.range_offset_m != 0.0:
@@ -351,11 +374,17 @@ def _band_index(ranges_m: FloatArray, up_m: FloatArray) -> NDArray[np.uint8] | N
 
 
 def range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> FloatArray:
-    """Range noise sigma [m] per range from ``noise_bands`` (first band with r <= up_to_m; last beyond)."""
+    """Range noise sigma [m] per range from ``noise_bands`` (first band with r <= up_to_m; last beyond), at least
+    ``noise_range_fraction`` times the range."""
     if not sensor.noise_bands:
-        return np.zeros_like(ranges_m)
-    up, sig = _bands(sensor)
-    return np.take(sig, _band_index(np.asarray(ranges_m), up))
+        sigma = np.zeros_like(ranges_m, dtype=float)
+    else:
+        up, sig = _bands(sensor)
+        sigma = np.take(sig, _band_index(np.asarray(ranges_m), up))
+    if sensor.noise_range_fraction > 0.0:
+        with np.errstate(invalid="ignore"):
+            sigma = np.fmax(sigma, sensor.noise_range_fraction * np.abs(np.asarray(ranges_m, dtype=float)))
+    return sigma
 
 
 def typical_range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> float | None:
@@ -366,8 +395,10 @@ def typical_range_sigma(ranges_m: FloatArray, sensor: SensorConfig) -> float | N
     number (the middle one or two of the same sorted values), without the array."""
     r = np.asarray(ranges_m, dtype=float)
     r = r[np.isfinite(r)]
-    if not sensor.noise or r.size == 0 or not sensor.noise_bands:
+    if not sensor.noise or r.size == 0 or not (sensor.noise_bands or sensor.noise_range_fraction > 0.0):
         return None
+    if sensor.noise_range_fraction > 0.0:  # a sigma per range: the median of the array
+        return float(np.median(range_sigma(r, sensor)))
     up, sig = _bands(sensor)
     if up.size > 8:
         counts = np.bincount(_band_index(r, up), minlength=up.size)
@@ -436,14 +467,14 @@ def sensor_model(cast: Cast, sensor: SensorConfig, rng: np.random.Generator,
             zr = np.concatenate([z_range[..., None], rng.standard_normal((S, N, E - 1))], -1)
             zi = np.concatenate([z_int[..., None], rng.standard_normal((S, N, E - 1))], -1)
         echo_ranges = _sensor_model(cast.echo_ranges_m.copy(), echo_intens, sensor, zr, zi,
-                                    systematic_bias_m(echo_intens, sensor, beam_times_s))
+                                    systematic_bias_m(echo_intens, sensor, beam_times_s, cast.echo_ranges_m))
         # reported in arrival order: noise may swap close echoes; no-return echoes last
         order = np.argsort(np.where(np.isfinite(echo_ranges), echo_ranges, np.inf), axis=-1, kind="stable")
         echo_ranges = np.take_along_axis(echo_ranges, order, -1)
         echo_intens = np.take_along_axis(echo_intens, order, -1)
     intens = cast.intensities.copy()
     ranges = _sensor_model(cast.ranges_m.copy(), intens, sensor, z_range, z_int,
-                           systematic_bias_m(intens, sensor, beam_times_s))
+                           systematic_bias_m(intens, sensor, beam_times_s, cast.ranges_m))
     return LidarOutput(ranges_m=ranges, intensities=intens, n_rays=cast.n_rays, n_calls=cast.n_calls,
                        cast_time_s=cast.cast_time_s, total_time_s=cast.total_time_s + time.perf_counter() - t_start,
                        max_origin_error_m=cast.max_origin_error_m, max_direction_error_rad=0.0,

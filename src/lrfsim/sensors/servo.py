@@ -14,8 +14,17 @@ deceleration (a triangle when the move is too short to reach the speed). Positio
 continuous, acceleration piecewise constant. Angles are never wrapped: a spin's angle runs monotonically beyond
 +-pi, as a ROS continuous joint publishes it.
 
+``step`` (:func:`step_trajectory`, step and scan: a stepper tilt stand such as the URG-04LX stand of
+github.com/liangfok/tilting_lidar_scanner, whose node commands one step, then takes the next scan stamped after
+it): ``settle_s`` standstill, then ``passes`` passes alternating start -> end -> start ..., each of
+|end - start| / ``step_rad`` steps, one every ``step_period_s``: a trapezoidal move of ``step_rad`` and a
+standstill for the rest of the period; ``settle_s`` standstill after each pass. The laser is timed to the steps
+(:func:`step_scan_phase_s`): one scan per step, centred in the step's standstill, so every beam of a scan sees the
+same motor angle.
+
 Joint states. Samples every ``1 / rate_hz`` from t = 0 to the end of the trajectory, stamped with the servo
-clock. The reported position is the true angle passed through a backlash (play) operator of width
+clock; with ``mode: step`` one sample per scan instead, stamped with the scan's start (the angle the stand reports
+with each scan). The reported position is the true angle passed through a backlash (play) operator of width
 ``backlash_rad`` and then quantised to the encoder's grid ``2 pi / encoder_counts`` (Dynamixel MX/XM: 4096
 counts per revolution and 0.25-0.33 deg backlash: ROBOTIS e-Manual, emanual.robotis.com, MX-28 and XM430
 pages). Velocity is the true velocity (not quantised).
@@ -42,10 +51,10 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from lrfcal.errors import InputError
-from lrfsim.scenario.servo_timing import move_profile
+from lrfsim.scenario.servo_timing import move_profile, step_move_s, steps_per_pass
 
 if TYPE_CHECKING:  # annotations only
-    from lrfsim.scenario.sections import ServoConfig
+    from lrfsim.scenario.sections import SensorConfig, ServoConfig
 
 FloatArray = NDArray[np.float64]
 
@@ -174,9 +183,40 @@ def _trajectory(rows: list[_Row], backlash_rad: float) -> Trajectory:
                       backlash_rad=backlash_rad)
 
 
+def step_trajectory(servo: ServoConfig) -> Trajectory:
+    """The step and scan of a scenario (mode step): hold, then per pass (move of step_rad, hold for the rest of
+    step_period_s) x steps_per_pass and a hold of settle_s (module docstring)."""
+    if servo.mode != "step":
+        raise ValueError(f"step_trajectory: servo.mode is {servo.mode!r} (use servo_trajectory)")
+    sign = math.copysign(1.0, servo.end_rad - servo.start_rad)
+    n = steps_per_pass(servo)
+    move = _move(0.0, 0.0, servo.step_rad, servo)
+    rest = servo.step_period_s - move[0]
+    rows = [_hold(servo.settle_s, servo.start_rad)]
+    for p in range(servo.passes):
+        d = sign if p % 2 == 0 else -sign
+        at = servo.start_rad if p % 2 == 0 else servo.end_rad
+        for k in range(n):
+            here = at + d * k * servo.step_rad
+            rows += [(move[0], here, d, *move[3:]), _hold(rest, here + d * servo.step_rad)]
+        rows.append(_hold(servo.settle_s, servo.end_rad if p % 2 == 0 else servo.start_rad))
+    return _trajectory(rows, servo.backlash_rad)
+
+
+def step_scan_phase_s(servo: ServoConfig, sensor: SensorConfig) -> float:
+    """Mode step: the laser's phase [s] (lrfsim.sensors.lidar.scan_start_times) that centres every scan's beams in a
+    step's standstill: the steps start at settle_s + k step_period_s (settle_s a whole number of periods), each
+    standstill begins when the step's move ends, and the beams take (n_beams - 1) time_increment_s of it."""
+    move = step_move_s(servo)
+    beams = (sensor.n_beams - 1) * sensor.time_increment_s
+    slack = servo.step_period_s - move - beams
+    return math.fmod(servo.settle_s + move + 0.5 * slack, servo.step_period_s)
+
+
 def sweep_trajectory(servo: ServoConfig) -> Trajectory:
     """The sweep of a scenario: hold, (move, hold) x passes (module docstring). A spin is
-    :func:`spin_trajectory`; :func:`servo_trajectory` picks by ``servo.mode``."""
+    :func:`spin_trajectory`, a step and scan :func:`step_trajectory`; :func:`servo_trajectory` picks by
+    ``servo.mode``."""
     if servo.mode != "sweep":
         raise ValueError(f"sweep_trajectory: servo.mode is {servo.mode!r} (use servo_trajectory)")
     dist = abs(servo.end_rad - servo.start_rad)
@@ -205,14 +245,17 @@ def _spin_stop_rad(servo: ServoConfig) -> float:
 
 
 def servo_trajectory(servo: ServoConfig) -> Trajectory:
-    """The scenario's motor trajectory: :func:`sweep_trajectory` or :func:`spin_trajectory` by ``servo.mode``."""
-    return spin_trajectory(servo) if servo.mode == "spin" else sweep_trajectory(servo)
+    """The scenario's motor trajectory: :func:`sweep_trajectory`, :func:`spin_trajectory` or :func:`step_trajectory`
+    by ``servo.mode``."""
+    if servo.mode == "spin":
+        return spin_trajectory(servo)
+    return step_trajectory(servo) if servo.mode == "step" else sweep_trajectory(servo)
 
 
 def covered_angles_rad(servo: ServoConfig) -> tuple[float, float]:
-    """(lo, hi), lo < hi: the motor angles [rad] the trajectory passes through (unwrapped): a sweep's start and
-    end, sorted; a spin's start_rad and where it stops (hi - lo = 2 pi revolutions, more than a turn when it
-    turns more than once)."""
+    """(lo, hi), lo < hi: the motor angles [rad] the trajectory passes through (unwrapped): a sweep's (or step and
+    scan's) start and end, sorted; a spin's start_rad and where it stops (hi - lo = 2 pi revolutions, more than a
+    turn when it turns more than once)."""
     end = _spin_stop_rad(servo) if servo.mode == "spin" else servo.end_rad
     return min(servo.start_rad, end), max(servo.start_rad, end)
 
@@ -237,10 +280,16 @@ class JointSamples:
     true_positions_rad: FloatArray
 
 
-def joint_samples(traj: Trajectory, servo: ServoConfig) -> JointSamples:
-    """Samples at k / rate_hz, k = 0 .. floor(end * rate_hz), on the servo clock."""
-    n = int(math.floor(traj.end_s * servo.rate_hz + 1e-9)) + 1
-    t = np.arange(n, dtype=float) / servo.rate_hz
+def joint_samples(traj: Trajectory, servo: ServoConfig, scan_starts_s: FloatArray | None = None) -> JointSamples:
+    """Samples at k / rate_hz, k = 0 .. floor(end * rate_hz), on the servo clock; with ``mode: step`` one sample at
+    each scan's start ``scan_starts_s`` (S,) (servo clock; required then) instead."""
+    if servo.mode == "step":
+        if scan_starts_s is None:
+            raise ValueError("joint_samples: mode step publishes one joint state per scan: give scan_starts_s")
+        t = np.asarray(scan_starts_s, dtype=float).copy()
+    else:
+        n = int(math.floor(traj.end_s * servo.rate_hz + 1e-9)) + 1
+        t = np.arange(n, dtype=float) / servo.rate_hz
     return JointSamples(
         stamps_s=t,
         positions_rad=quantise_encoder(traj.reported_angle(t), servo.encoder_counts),
@@ -261,4 +310,5 @@ def check_trajectory(traj: Trajectory, max_duration_s: float = 3600.0) -> None:
 
 
 __all__ = ["JointSamples", "Trajectory", "check_trajectory", "covered_angles_rad", "joint_samples", "laser_time",
-           "move_profile", "quantise_encoder", "servo_trajectory", "spin_trajectory", "sweep_trajectory"]
+           "move_profile", "quantise_encoder", "servo_trajectory", "spin_trajectory", "step_scan_phase_s",
+           "step_trajectory", "sweep_trajectory"]

@@ -97,12 +97,15 @@ def _with_record(result: SimResult, key: str, value: Any, **changes: Any) -> Sim
 
 
 def scale_range_noise(scenario: Scenario) -> Scenario:
-    """The scenario with every range noise band's sigma times ``faults.range_noise_scale`` (unchanged at 1)."""
+    """The scenario with every range noise band's sigma (and the range-proportional noise) times
+    ``faults.range_noise_scale`` (unchanged at 1)."""
     k = scenario.faults.range_noise_scale
     if k == 1.0:
         return scenario
     bands = tuple(NoiseBand(up_to_m=b.up_to_m, sigma_m=b.sigma_m * k) for b in scenario.sensor.noise_bands)
-    return scenario.model_copy(update={"sensor": scenario.sensor.model_copy(update={"noise_bands": bands})})
+    fraction = scenario.sensor.noise_range_fraction * k
+    return scenario.model_copy(update={"sensor": scenario.sensor.model_copy(
+        update={"noise_bands": bands, "noise_range_fraction": fraction})})
 
 
 def tape_outliers(result: SimResult, outliers: tuple[TapeOutlier, ...]) -> SimResult:

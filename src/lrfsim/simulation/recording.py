@@ -309,7 +309,8 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_
     """nominal.yaml (the rig file, docs/formats.md) from the scenario's design values (rig.nominal_dh,
     rig.nominal_mount) and where this bag keeps the scans and the joint; ``marker_radius_m`` (and the sensor's
     ``beam_divergence_rad``, which the marker model uses) only with markers (None: the key is left out);
-    ``range_sigma_m``: the scanner's declared range noise (None: left out)."""
+    ``range_sigma_m``: the scanner's declared range noise (None: left out). A step-and-scan servo (``servo.mode:
+    step``) is declared ``servo.motion: step``: every beam of a scan takes the angle at its scan's stamp."""
     rig = scenario.rig
     radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m),
                                                   "beam_divergence_rad": float(scenario.sensor.divergence_rad)}
@@ -320,7 +321,8 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_
         **radius,
         **noise,
         "scan": {"topic": SCAN_TOPIC, "stamp": "header"},
-        "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint, "unit": "rad", "stamp": "header"},
+        "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint, "unit": "rad", "stamp": "header",
+                  **({"motion": "step"} if scenario.servo.mode == "step" else {})},
     })
 
 

@@ -21,7 +21,7 @@ from lrfsim.cast.scans import cast_scans
 from lrfsim.scenario.file import Scenario
 from lrfsim.scenario.sections import SensorConfig
 from lrfsim.sensors.lidar import Cast, beam_angles, beam_times, scan_start_times, sensor_model
-from lrfsim.sensors.servo import check_trajectory, joint_samples, laser_time, servo_trajectory
+from lrfsim.sensors.servo import check_trajectory, joint_samples, laser_time, servo_trajectory, step_scan_phase_s
 from lrfsim.sensors.tape import measure_tape
 
 from .result import SimResult, SimStats, SimTruth
@@ -44,7 +44,7 @@ def systematic_truth(sensor: SensorConfig) -> dict[str, float] | None:
     c = sensor.systematic
     out = {k: float(v) for k, v in c.model_dump().items()
            if v != 0.0 and k in ("range_offset_m", "intensity_bias_m_per_decade", "incidence_bias_m",
-                                 "drift_amplitude_m")}
+                                 "drift_amplitude_m", "beam_wiggle_m", "range_wiggle_m")}
     if not out:
         return None
     if "intensity_bias_m_per_decade" in out:
@@ -54,6 +54,10 @@ def systematic_truth(sensor: SensorConfig) -> dict[str, float] | None:
     if "drift_amplitude_m" in out:
         out["drift_time_constant_s"] = float(c.drift_time_constant_s)
         out["drift_elapsed_s"] = float(c.drift_elapsed_s)
+    if "beam_wiggle_m" in out:
+        out["beam_wiggle_period_beams"] = float(c.beam_wiggle_period_beams)
+    if "range_wiggle_m" in out:
+        out["range_wiggle_period_m"] = float(c.range_wiggle_period_m)
     return out
 
 
@@ -98,7 +102,7 @@ def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool
     sensor, servo = scenario.sensor, scenario.servo
     traj = servo_trajectory(servo)
     check_trajectory(traj)
-    phase_s = float(np.random.default_rng([scenario.seed, _RNG_PHASE]).uniform(0.0, sensor.scan_period_s))
+    phase_s = laser_phase_s(scenario)
     starts_s = scan_start_times(traj.end_s, sensor, phase_s)
     times_s = beam_times(starts_s, sensor)
     beam_lambda = traj.angle(times_s)
@@ -111,6 +115,16 @@ def cast_geometry(scenario: Scenario, *, scene: Scene | None = None, noise: bool
     return Geometry(scenario_name=scenario.name, scene=scene, phase_s=phase_s, starts_s=starts_s,
                     beam_lambda_rad=beam_lambda, duration_s=traj.end_s, cast=cast, beam_times_s=times_s,
                     scans_cast=keep)
+
+
+def laser_phase_s(scenario: Scenario) -> float:
+    """When the laser's first scan starts [s] (servo clock, in [0, scan_period_s)): drawn from ``scenario.seed``
+    (the laser runs free), or, with ``servo.mode: step``, timed to the steps (lrfsim.sensors.servo.step_scan_phase_s:
+    every scan centred in a step's standstill)."""
+    if scenario.servo.mode == "step":
+        return step_scan_phase_s(scenario.servo, scenario.sensor)
+    rng = np.random.default_rng([scenario.seed, _RNG_PHASE])
+    return float(rng.uniform(0.0, scenario.sensor.scan_period_s))
 
 
 def _in_scans(cast: Cast, keep: NDArray[np.bool_]) -> Cast:
@@ -164,7 +178,7 @@ def simulate_from_geometry(scenario: Scenario, geometry: Geometry, *, noise: boo
     sensor, servo = scenario.sensor, scenario.servo
     lid = sensor_model(geometry.cast, sensor, np.random.default_rng([scenario.seed, _RNG_SENSOR]),
                        geometry.beam_times_s)
-    joints = joint_samples(servo_trajectory(servo), servo)
+    joints = joint_samples(servo_trajectory(servo), servo, geometry.starts_s)
     tape = measure_tape(scene.marker_ids, scene.markers_W, scenario.tape,
                         np.random.default_rng([scenario.seed, _RNG_TAPE]))
     truth = SimTruth(dh=scenario.rig.dh.to_dh(), mount=scenario.rig.mount.to_pose(),
@@ -202,5 +216,5 @@ def simulate(scenario: Scenario, progress: Callable[[int, int], None] | None = N
     return simulate_from_geometry(scenario, geometry, noise=noise)
 
 
-__all__ = ["Geometry", "SimResult", "SimStats", "SimTruth", "cast_geometry", "joined", "simulate",
-           "simulate_from_geometry", "systematic_truth"]
+__all__ = ["Geometry", "SimResult", "SimStats", "SimTruth", "cast_geometry", "joined", "laser_phase_s",
+           "simulate", "simulate_from_geometry", "systematic_truth"]

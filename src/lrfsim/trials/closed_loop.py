@@ -92,6 +92,11 @@ def sensor_errors_line(sensor: SensorConfig) -> str:
         ("incidence", c.incidence_bias_m, "mm/rad"), ("drift", c.drift_amplitude_m, "mm")) if v != 0.0]
     if c.drift_amplitude_m != 0.0:
         parts[-1] += f" (tau {c.drift_time_constant_s:g} s)"
+    if c.beam_wiggle_m != 0.0:
+        parts.append(f"wiggle along the scan {c.beam_wiggle_m * 1000:g} mm every {c.beam_wiggle_period_beams:g} "
+                     "beams")
+    if c.range_wiggle_m != 0.0:
+        parts.append(f"cyclic {c.range_wiggle_m * 1000:g} mm every {c.range_wiggle_period_m * 1000:g} mm of range")
     echoes = f"; multi-echo returns on {sensor.echoes.topic}" if sensor.echoes.enabled else ""
     if parts:
         return f"sensor: systematic range errors ON ({', '.join(parts)}){echoes}; their cost: docs/sensor_errors.md"

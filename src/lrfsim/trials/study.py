@@ -10,6 +10,16 @@ drawn from the trial's seed as well. Each trial then runs the whole path of a re
 recording: simulate, write the recording folder, read it back, calibrate (lrfsim.trials.trial.calibrate_recording), and
 is recorded as calibrated (errors against the truth, reported sigma) or refused (the reason).
 
+Marker-less scenarios: each trial is calibrated targetless exactly as ``lrfcal calibrate REC --targetless
+--no-figures`` does (lrfsim.trials.trial.calibrate_as_user: lrfcal.workflow.calibrate_folder with the command's
+configuration); a DH parameter the calibration held (the scene does not determine it) has an empty sigma in
+trials.csv and counts in no RMS of error / sigma; no plan's prediction is made (it needs markers).
+
+Drawn truth (``truth_spread = s > 0``, ``--truth-spread S``): each trial's true DH (``rig.dh``) is drawn around the
+nominal DH, uniform in +-s times :data:`TRUTH_HALF_WIDTH` (s = 1: a, b +-5 mm, alpha, beta +-1.5 deg), from the trial's
+seed alone (lrfsim.trials.variants.drawn_truth); every trial then builds its scene and casts its rays (the true DH is in
+the scene's model).
+
 Perturbed start (``perturb_start = s > 0``, ``--perturb-start S``): each trial's nominal values (the scenario's
 ``rig.nominal_dh`` and ``rig.nominal_mount``, written to the trial's nominal.yaml, where the calibration starts)
 are moved by independent draws, uniform in +-s times :data:`PERTURB_HALF_WIDTH` (s = 1: a, b +-5 mm, alpha, beta
@@ -53,11 +63,19 @@ from lrfcal.io.files import atomic_folder, check_replaceable
 from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan.prediction import plan
 from lrfsim.plan.result import Plan, format_value
-from lrfsim.scenario.file import Scenario, require_markers
+from lrfsim.scenario.file import Scenario
 
 from .pool import run_counted, worker_held
 from .study_figures import write_figures
-from .variants import PERTURB_HALF_WIDTH, TrialDesign, parse_vary, perturbed_start, with_field
+from .variants import (
+    PERTURB_HALF_WIDTH,
+    TRUTH_HALF_WIDTH,
+    TrialDesign,
+    drawn_truth,
+    parse_vary,
+    perturbed_start,
+    with_field,
+)
 
 if TYPE_CHECKING:
     from lrfsim.simulation.simulate import Geometry
@@ -128,12 +146,14 @@ class StudyPart:
 
     def stats(self) -> dict[str, dict[str, float]]:
         """Per DH parameter: n, bias, bias_se, std, rmse, predicted, rmse_over_predicted, std_over_predicted,
-        rms_z (RMS of error / reported sigma), mean_sigma (SI units; NaN where undefined)."""
+        rms_z (RMS of error / reported sigma), mean_sigma (SI units; NaN where undefined), over the calibrated trials
+        that estimated it (a targetless calibration holds, with sigma NaN, what the scene does not determine)."""
         E, S = self.errors(), self.sigmas()
-        n = E.shape[0]
         out: dict[str, dict[str, float]] = {}
         for i, p in enumerate(DH_NAMES):
-            e = E[:, i]
+            estimated = np.isfinite(S[:, i])
+            e, sig = E[estimated, i], S[estimated, i]
+            n = e.size
             pred = self.plan.sigma[p] if self.plan is not None else math.nan
             bias = float(e.mean()) if n else math.nan
             std = float(e.std(ddof=1)) if n > 1 else math.nan
@@ -142,8 +162,8 @@ class StudyPart:
                 "n": float(n), "bias": bias, "bias_se": std / math.sqrt(n) if n > 1 else math.nan, "std": std,
                 "rmse": rmse, "predicted": pred, "rmse_over_predicted": rmse / pred if pred > 0 else math.nan,
                 "std_over_predicted": std / pred if pred > 0 else math.nan,
-                "rms_z": float(np.sqrt(np.mean((e / S[:, i]) ** 2))) if n else math.nan,
-                "mean_sigma": float(S[:, i].mean()) if n else math.nan,
+                "rms_z": float(np.sqrt(np.mean((e / sig) ** 2))) if n else math.nan,
+                "mean_sigma": float(sig.mean()) if n else math.nan,
             }
         return out
 
@@ -162,6 +182,7 @@ class Study:
     notes: tuple[str, ...] = field(default=())
     perturb_start: float = 0.0
     draws: str = "noise"
+    truth_spread: float = 0.0
 
     @property
     def rows(self) -> tuple[TrialRow, ...]:
@@ -177,6 +198,7 @@ DRAWS = {
              "every trial (docs/study.md, \"The spinning rig\").",
     "cast": "Every trial cast anew (its laser phase, noise and tape from its seed).",
     "layout": "Every trial a marker layout and cast of its own (from its seed): the figures average over layouts.",
+    "truth": "Every trial a true DH, scene and cast of its own (from its seed): the figures average over truths.",
 }
 
 
@@ -197,28 +219,31 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
     from lrfsim.simulation.simulate import Geometry, cast_geometry, simulate, simulate_from_geometry
     from lrfsim.world.scene import build_scene
 
-    from .trial import calibrate_recording
+    from .trial import calibrate_as_user, calibrate_recording
 
-    recast, perturb_start, new_layout = (design.recast, design.perturb_start, design.new_layout) if design else (
-        False, 0.0, False)
-    if new_layout:
+    design = design or TrialDesign()
+    if design.own_scene:
         scene = None
     elif scene is None:
         scene = build_scene(scenario)
     geometry = None
     if shared_cast is not None and scene is not None:
         geometry = Geometry(scene=scene, **shared_cast)
-    elif not (recast or new_layout):
+    elif not design.own_cast:
         geometry = cast_geometry(scenario, scene=scene, threads=threads)
     rows = []
     with tempfile.TemporaryDirectory(prefix="lrfsim-study-") as tmp:
         for trial, seed in trials:
-            sc = perturbed_start(scenario.model_copy(update={"seed": int(seed)}), seed, perturb_start)
+            sc = perturbed_start(scenario.model_copy(update={"seed": int(seed)}), seed, design.perturb_start)
+            sc = drawn_truth(sc, seed, design.truth_spread)
             folder = Path(tmp) / f"trial_{trial}"
             sim = (simulate(sc, scene=scene, threads=threads) if geometry is None
                    else simulate_from_geometry(sc, geometry))
             write_recording(sim, sc, folder)  # the bag written and read as a real recording's (in bulk: lrfcal.io.wire)
-            t = calibrate_recording(folder, name=f"{scenario.name}#{trial}")
+            label = f"{scenario.name}#{trial}"
+            # a marker-less recording: calibrated targetless as `lrfcal calibrate REC --targetless` does
+            t = (calibrate_as_user(folder, name=label, force=design.force) if sc.markers is None
+                 else calibrate_recording(folder, name=label))
             shutil.rmtree(folder, ignore_errors=True)
             rows.append(TrialRow(value=value, trial=int(trial), seed=int(seed), status=t.status,
                                  reason=" ".join(t.reason.split()), exit_code=int(t.exit_code),
@@ -247,7 +272,7 @@ def _pool_batch(scenario: Scenario, value: str, design: TrialDesign, trials: Seq
     """:func:`run_batch` on a local pool's worker: with the shared cast the worker holds (lrfsim.trials.pool), and the
     scene it builds at its first batch and keeps for the next (8 ms for tunnel_v, once per worker)."""
     held = worker_held()
-    if held.get("scene") is None and not design.new_layout:
+    if held.get("scene") is None and not design.own_scene:
         from lrfsim.world.scene import build_scene
 
         held["scene"] = build_scene(scenario)
@@ -264,34 +289,36 @@ def run_trials(
     scenario: Scenario, trials: int, *, seed0: int | None = None, value: str = "", workers: int = 1,
     dask: Any = None, batch_size: int | None = None, progress: Callable[[int, int], None] | None = None,
     recast: bool = False, perturb_start: float = 0.0, new_layout: bool = False, geometry: Geometry | None = None,
-    meanwhile: Callable[[], None] | None = None,
+    meanwhile: Callable[[], None] | None = None, truth_spread: float = 0.0, force: bool = False,
 ) -> list[TrialRow]:
     """Run ``trials`` trials (seeds seed0 .. seed0 + trials - 1; seed0 defaults to the scenario's seed), sorted by
     trial. ``workers`` > 1: a local process pool; ``dask``: a dask.distributed address (str) or Client, then
     ``workers`` only sets the number of batches. Batches hold ``batch_size`` trials (default: one trial each on a
     local pool, handed out as workers free up; about 2 batches per worker on dask; all in one in this process);
     the local workers share one cast (:func:`_shared_cast`: ``geometry`` when the caller has made it; not with
-    ``recast`` or ``new_layout``), handed to each once. ``recast``, ``perturb_start``, ``new_layout``: see
-    :class:`TrialDesign`. ``progress(done, trials)`` after every trial in this process or on local workers
-    (lrfsim.trials.pool), after every batch on dask. ``meanwhile()`` runs in this process while the workers (local or
-    dask) run the trials, before them in this process. Worker processes (pool and dask) run BLAS with the programs'
-    thread limit (lrfcal.runtime.threads); this process is left as the caller set it."""
+    ``recast``, ``new_layout`` or ``truth_spread``), handed to each once. ``recast``, ``perturb_start``,
+    ``new_layout``, ``truth_spread``, ``force``: see :class:`TrialDesign`. ``progress(done, trials)`` after every
+    trial in this process or on local workers (lrfsim.trials.pool), after every batch on dask. ``meanwhile()`` runs
+    in this process while the workers (local or dask) run the trials, before them in this process. Worker processes
+    (pool and dask) run BLAS with the programs' thread limit (lrfcal.runtime.threads); this process is left as the
+    caller set it."""
     if trials < 1:
         raise InputError(f"study: --trials must be >= 1, got {trials}")
     perturbed_start(scenario, 0, perturb_start)  # a bad scale is refused before any trial runs
+    drawn_truth(scenario, 0, truth_spread)
+    design = TrialDesign(recast, perturb_start, new_layout, truth_spread, force)
     s0 = scenario.seed if seed0 is None else int(seed0)
     items = [(k, s0 + k) for k in range(trials)]
     batches = _batches(items, _n_batches(trials, workers, dask, batch_size))
     shared = None
-    if recast or new_layout:  # every trial casts its own
+    if design.own_cast:  # every trial casts its own
         geometry = None
     elif geometry is None:
-        geometry = _shared_cast(scenario, trials, workers, dask, batch_size, recast, new_layout)
+        geometry = _shared_cast(scenario, trials, workers, dask, batch_size, design)
     if geometry is not None:  # one cast (on every core) for all the local workers, instead of one per worker
         from dataclasses import fields
 
         shared = {f.name: getattr(geometry, f.name) for f in fields(geometry) if f.name != "scene"}
-    design = TrialDesign(recast, perturb_start, new_layout)
     task = partial(run_batch, scenario, value, design=design, threads=1 if workers > 1 or dask is not None else None,
                    shared_cast=shared)
     rows: list[TrialRow] = []
@@ -332,14 +359,14 @@ def _n_batches(trials: int, workers: int, dask: Any, batch_size: int | None) -> 
             else trials if workers > 1 else 1)
 
 
-def _shared_cast(scenario: Scenario, trials: int, workers: int, dask: Any, batch_size: int | None, recast: bool,
-                 new_layout: bool) -> Geometry | None:
+def _shared_cast(scenario: Scenario, trials: int, workers: int, dask: Any, batch_size: int | None,
+                 design: TrialDesign) -> Geometry | None:
     """The cast :func:`run_trials` makes once for all its batches (lrfsim.simulation.simulate.cast_geometry), when it
-    makes one: local workers (no dask), one layout and one laser phase (no ``recast``, no ``new_layout``), more than one
-    batch; else None (each batch casts its own). Cast beside a forked helper process (lrfsim.cast.forked): the cast's
-    many short calls hold the GIL, so two processes cast it faster than two threads (tunnel_v: 0.85 s against 1.2 s,
-    the same arrays)."""
-    if not (workers > 1 and dask is None and not (recast or new_layout)
+    makes one: local workers (no dask), one layout, one truth and one laser phase (not ``design.own_cast``), more
+    than one batch; else None (each batch casts its own). Cast beside a forked helper process (lrfsim.cast.forked):
+    the cast's many short calls hold the GIL, so two processes cast it faster than two threads (tunnel_v: 0.85 s
+    against 1.2 s, the same arrays)."""
+    if not (workers > 1 and dask is None and not design.own_cast
             and min(trials, _n_batches(trials, workers, dask, batch_size)) > 1):
         return None
     from lrfsim.cast.forked import Forked
@@ -366,16 +393,16 @@ def study(
     scenario: Scenario, trials: int, *, seed0: int | None = None, workers: int = 1, dask: Any = None,
     vary: tuple[str, list[Any]] | None = None, batch_size: int | None = None,
     progress: Callable[[str, int, int], None] | None = None, recast: bool = False, perturb_start: float = 0.0,
-    new_layout: bool = False, meanwhile: Callable[[], None] | None = None,
+    new_layout: bool = False, meanwhile: Callable[[], None] | None = None, truth_spread: float = 0.0,
+    force: bool = False,
 ) -> Study:
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
     value of one field (the same seeds for every value); ``perturb_start``: the scale of each trial's perturbed
-    start (:func:`perturbed_start`); ``recast``, ``new_layout``: see :class:`TrialDesign` (the predicted sigma is then
-    the scenario's own layout's). The plan's prediction is made while the workers run the trials, and so is
-    ``meanwhile()`` (once, during the first part's trials; e.g. the figures' imports)."""
-    # issue 9: drop this check when lrfcal calibrates a recording without tape distances (targetless)
-    require_markers(scenario, "lrfsim study", "calibrates with markers and tape distances; a targetless "
-                    "calibration is not available yet")
+    start (:func:`perturbed_start`); ``truth_spread``: the scale of each trial's drawn truth (:func:`drawn_truth`);
+    ``force``: marker-less trials calibrate with ``--force`` (:class:`TrialDesign`);
+    ``recast``, ``new_layout``: see :class:`TrialDesign` (the predicted sigma is then the scenario's own layout's and
+    truth's). The plan's prediction (none for a marker-less scenario) is made while the workers run the trials, and
+    so is ``meanwhile()`` (once, during the first part's trials; e.g. the figures' imports)."""
     t0 = time.perf_counter()
     variants: list[tuple[str, Scenario]] = [("", scenario)]
     if vary is not None:
@@ -383,27 +410,29 @@ def study(
         variants = [(str(v), with_field(scenario, key, v)) for v in values]
     parts = []
     for k, (value, sc) in enumerate(variants):
-        geometry = _shared_cast(sc, trials, workers, dask, batch_size, recast, new_layout)  # plan's cast too
+        design = TrialDesign(recast, perturb_start, new_layout, truth_spread, force)
+        geometry = _shared_cast(sc, trials, workers, dask, batch_size, design)  # plan's cast too
         predicted: list[Plan | None] = []
         predict = partial(_predict, sc, geometry, predicted, meanwhile if k == 0 else None)
         hook = None if progress is None else (lambda d, n, v=value: progress(v, d, n))
         rows = run_trials(sc, trials, seed0=seed0, value=value, workers=workers, dask=dask, batch_size=batch_size,
                           progress=hook, recast=recast, perturb_start=perturb_start, new_layout=new_layout,
-                          geometry=geometry, meanwhile=predict)
+                          geometry=geometry, meanwhile=predict, truth_spread=truth_spread, force=force)
         parts.append(StudyPart(value=value, scenario=sc, plan=predicted[0], rows=tuple(rows)))
     where = ("dask" if dask is not None else f"{workers} worker{'s' if workers > 1 else ''}")
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
                  seconds=time.perf_counter() - t0, workers=where, perturb_start=perturb_start,
-                 draws="layout" if new_layout else "cast" if recast else "noise")
+                 draws="layout" if new_layout else "truth" if truth_spread > 0 else "cast" if recast else "noise",
+                 truth_spread=truth_spread)
 
 
 def _predict(scenario: Scenario, geometry: Geometry | None, into: list[Plan | None],
              then: Callable[[], None] | None) -> None:
     """The plan's prediction for ``scenario`` (on ``geometry``, the trials' shared cast, when there is one) appended
     to ``into``, None when the plan is refused (too few markers seen: the trials will say how the calibration
-    fares); then ``then()``."""
+    fares; a marker-less scenario, whose calibration is targetless); then ``then()``."""
     try:
-        into.append(plan(scenario, geometry=geometry))
+        into.append(None if scenario.markers is None else plan(scenario, geometry=geometry))
     except CalibrationError:
         into.append(None)
     if then is not None:
@@ -434,6 +463,11 @@ def summary_markdown(s: Study) -> str:
              "geometry). Efficiency: RMSE / predicted sigma (1 = the method reaches the predicted accuracy); "
              "calibration: RMS of error / reported sigma (1 = the reported sigma is honest).", "",
              DRAWS[s.draws], ""]
+    if s.truth_spread > 0:
+        h = {k: s.truth_spread * v for k, v in TRUTH_HALF_WIDTH.items()}
+        lines += [f"Drawn truth (scale {s.truth_spread:g}): each trial's true DH drawn around the nominal, uniform in "
+                  f"+-{h['a'] * 1000:g} mm (a, b) and +-{math.degrees(h['alpha']):g} deg (alpha, beta), from the "
+                  "trial's seed.", ""]
     if s.perturb_start > 0:
         h = {k: s.perturb_start * v for k, v in PERTURB_HALF_WIDTH.items()}
         lines += [f"Perturbed start (scale {s.perturb_start:g}): each trial's nominal values moved by uniform draws "
@@ -441,10 +475,12 @@ def summary_markdown(s: Study) -> str:
                   f"+-{h['x'] * 100:g} cm and +-{math.degrees(h['roll']):g} deg (mount), from the trial's seed.", ""]
     for part in s.parts:
         st = part.stats()
-        n = int(st["a"]["n"])
         title = f"## {s.key} = {part.value}" if s.key else "## Results"
+        n = sum(r.status == "calibrated" for r in part.rows)
+        no_plan = ("; no plan (a targetless calibration; a parameter a trial held counts in no column)"
+                   if part.scenario.markers is None else "; plan refused (too few markers seen)")
         lines += [title, "", f"calibrated {n} of {len(part.rows)}, refusal rate {100 * part.refusal_rate:.0f} %"
-                  + ("" if part.plan is not None else "; plan refused (too few markers seen)"), "",
+                  + ("" if part.plan is not None else no_plan), "",
                   "| parameter | bias (+- its s.e.) | bias / std | std | RMSE | predicted sigma | RMSE / predicted | "
                   "std / predicted | RMS error / reported sigma | mean reported sigma |",
                   "|---|---|---|---|---|---|---|---|---|---|"]
@@ -482,6 +518,6 @@ def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Pa
     return out
 
 
-__all__ = ["CSV_COLUMNS", "DRAWS", "PERTURB_HALF_WIDTH", "Study", "StudyPart", "TrialDesign", "TrialRow", "parse_vary",
-           "perturbed_start", "run_batch", "run_trials", "study", "summary_markdown", "trials_csv", "with_field",
-           "write_figures", "write_study"]
+__all__ = ["CSV_COLUMNS", "DRAWS", "PERTURB_HALF_WIDTH", "TRUTH_HALF_WIDTH", "Study", "StudyPart", "TrialDesign",
+           "TrialRow", "drawn_truth", "parse_vary", "perturbed_start", "run_batch", "run_trials", "study",
+           "summary_markdown", "trials_csv", "with_field", "write_figures", "write_study"]

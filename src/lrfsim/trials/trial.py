@@ -26,7 +26,7 @@ from lrfsim.scenario.file import Scenario
 from lrfsim.simulation.recording import write_recording
 from lrfsim.simulation.simulate import simulate
 
-from .compare import load_truth
+from .compare import Truth, load_truth
 
 #: |error| / sigma beyond which a calibrated result counts as confidently wrong
 CONFIDENT_WRONG_Z = 4.0
@@ -99,7 +99,37 @@ def calibrate_recording(
     except LrfError as err:
         return Trial(label, "refused", nan4, nan4, reason=str(err), exit_code=err.exit_code,
                      seconds=time.perf_counter() - t0)
-    seconds = time.perf_counter() - t0
+    return _compared(result, truth, label, time.perf_counter() - t0, paper=paper, keep_result=keep_result)
+
+
+def calibrate_as_user(folder: Path, *, name: str | None = None, keep_result: bool = False,
+                      force: bool = False) -> Trial:
+    """Calibrate a marker-less recording folder written by lrfsim exactly as ``lrfcal calibrate FOLDER --targetless
+    --no-figures -o OUT`` does (lrfcal.workflow.calibrate_folder with the command's configuration, its outputs
+    written into a temporary folder and dropped; ``force``: with ``--force``), and compare the DH parameters with its
+    ground_truth.yaml. A DH parameter the calibration held (not determined by the scene) has sigma NaN."""
+    from lrfcal import calibrate_folder
+
+    truth = load_truth(folder / "ground_truth.yaml")
+    label = name or folder.name
+    nan4 = np.full(4, np.nan)
+    # the configuration `lrfcal calibrate --targetless` makes (lrfcal.cli.calibrate_cmd's defaults)
+    config = CalibConfig(range_sigma_m=None, clock_offset_s=0.0, baseline=True, force=force,
+                         estimate_range_bias=True, targetless=True, compare_targetless=False, all_planes=False)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory(prefix="lrfsim-calibration-") as tmp:
+        try:
+            result = calibrate_folder(folder, Path(tmp) / "calibration", config=config, figures=False)
+        except LrfError as err:
+            return Trial(label, "refused", nan4, nan4, reason=str(err), exit_code=err.exit_code,
+                         seconds=time.perf_counter() - t0)
+    return _compared(result, truth, label, time.perf_counter() - t0, keep_result=keep_result)
+
+
+def _compared(result: CalibrationResult, truth: Truth, label: str, seconds: float, *, paper: bool = False,
+              keep_result: bool = False) -> Trial:
+    """A calibrated trial: the result's DH errors against the truth and its sigma (NaN for a parameter it held)."""
+    nan4 = np.full(4, np.nan)
     sol: Solution | None = result.solution
     if paper:  # the paper's method runs with markers only
         sol = result.evidence.baseline if isinstance(result.evidence, MarkerEvidence) else None
@@ -122,4 +152,4 @@ def run_trial(scenario: Scenario, config: CalibConfig | None = None, *, workdir:
         return calibrate_recording(folder, config, name=scenario.name)
 
 
-__all__ = ["CONFIDENT_WRONG_Z", "Trial", "calibrate_recording", "record", "run_trial"]
+__all__ = ["CONFIDENT_WRONG_Z", "Trial", "calibrate_as_user", "calibrate_recording", "record", "run_trial"]

@@ -1,5 +1,5 @@
-"""Scenario variants of a study (lrfsim.trials.study): one field set (``--vary``) and the perturbed start of a trial
-(``--perturb-start``; lrfsim.trials.study's module docstring has the draws)."""
+"""Scenario variants of a study (lrfsim.trials.study): one field set (``--vary``), the perturbed start of a trial
+(``--perturb-start``) and its drawn truth (``--truth-spread``; lrfsim.trials.study's module docstring has the draws)."""
 
 from __future__ import annotations
 
@@ -21,6 +21,11 @@ PERTURB_HALF_WIDTH: dict[str, float] = {
 }
 #: the perturbed start's random stream ("star"; lrfsim.simulation.simulate's are "phas", "nois", ...)
 _RNG_START = 0x73746172
+#: --truth-spread 1: half-widths of the uniform draw of each true DH parameter around the nominal (SI units: m, rad):
+#: a real build is a few mm and a degree or two off its drawing
+TRUTH_HALF_WIDTH: dict[str, float] = {"a": 0.005, "alpha": math.radians(1.5), "b": 0.005, "beta": math.radians(1.5)}
+#: the drawn truth's random stream ("true")
+_RNG_TRUTH = 0x74727565
 
 
 def with_field(scenario: Scenario, dotted: str, value: Any) -> Scenario:
@@ -88,17 +93,53 @@ def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
     return scenario.model_copy(update={"rig": new_rig})
 
 
+def drawn_truth(scenario: Scenario, seed: int, scale: float) -> Scenario:
+    """The scenario with its true DH (``rig.dh``) drawn around its nominal DH (``rig.nominal_dh``), each parameter
+    uniform in +-``scale`` x :data:`TRUTH_HALF_WIDTH`, from ``seed`` alone (a stream of its own); the mount and the
+    nominal values unchanged. ``scale`` = 0 returns ``scenario``.
+
+    Raises:
+        InputError: a negative or non-finite scale.
+    """
+    if not (math.isfinite(scale) and scale >= 0):
+        raise InputError(f"--truth-spread: expected a scale >= 0, got {scale}")
+    if scale == 0:
+        return scenario
+    u = np.random.default_rng([int(seed), _RNG_TRUTH]).uniform(-1.0, 1.0, len(TRUTH_HALF_WIDTH))
+    nominal = scenario.rig.nominal_dh.model_dump()
+    dh = {k: float(nominal[k] + scale * w * u[i]) for i, (k, w) in enumerate(TRUTH_HALF_WIDTH.items())}
+    for k in ("alpha", "beta"):
+        dh[k] = math.remainder(dh[k], 2 * math.pi)
+    return scenario.model_copy(update={"rig": scenario.rig.model_copy(update={"dh": DHConfig(**dh)})})
+
+
 @dataclass(frozen=True)
 class TrialDesign:
     """How each trial differs from the scenario besides its noise. ``recast``: cast every trial anew (the laser
     phase drawn from the trial's seed too). ``perturb_start``: the scale of each trial's perturbed start
     (:func:`perturbed_start`; 0: the scenario's nominal values). ``new_layout``: build every trial's scene from its
     own seed too (a board's jittered grid, a random layout: a new marker layout per trial; implies ``recast``), to
-    average over layouts rather than over the noise of one."""
+    average over layouts rather than over the noise of one. ``truth_spread``: the scale of each trial's true DH drawn
+    around the nominal (:func:`drawn_truth`; 0: the scenario's truth); a drawn truth builds its own scene and cast
+    (the true DH is in the scene's model). ``force``: a marker-less trial calibrates as ``lrfcal calibrate
+    --targetless --force`` does (a failed check recorded, not refused: what the refusals would have reported)."""
 
     recast: bool = False
     perturb_start: float = 0.0
     new_layout: bool = False
+    truth_spread: float = 0.0
+    force: bool = False
+
+    @property
+    def own_scene(self) -> bool:
+        """Every trial builds its scene from its own scenario (a layout or a truth of its own)."""
+        return self.new_layout or self.truth_spread > 0
+
+    @property
+    def own_cast(self) -> bool:
+        """Every trial casts its own rays (no cast shared between trials)."""
+        return self.recast or self.own_scene
 
 
-__all__ = ["PERTURB_HALF_WIDTH", "TrialDesign", "parse_vary", "perturbed_start", "with_field"]
+__all__ = ["PERTURB_HALF_WIDTH", "TRUTH_HALF_WIDTH", "TrialDesign", "drawn_truth", "parse_vary", "perturbed_start",
+           "with_field"]

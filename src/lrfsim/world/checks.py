@@ -2,15 +2,17 @@
 naming the field, e.g. "markers.layout: marker m03 at (...) intersects the left wall".
 
 - ``scene.tunnel.manhole``: the opening fits in the plate;
-- ``markers.layout``: every marker inside the tunnel and the room, outside every box and the board, on the board
-  for a board layout, and no two markers overlapping;
-- ``rig.mount``: the laser's optical centre inside the tunnel and the room and outside every box over the whole
-  sweep or spin (it circles the motor axis).
+- ``markers.layout``: every marker inside the tunnel and the room, outside every box, cylinder, sphere and the board,
+  on the board for a board layout, and no two markers overlapping;
+- ``rig.mount``: the laser's optical centre inside the tunnel and the room and outside every box, cylinder, sphere
+  and part of the stand over the whole sweep or spin (it circles the motor axis).
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -152,30 +154,58 @@ def _enclosure_violation(p: FloatArray, r: float, scenario: Scenario) -> str | N
     return what
 
 
-def _box_violation(p: FloatArray, r: float, scenario: Scenario) -> str | None:
-    """Which of scene.boxes a sphere (centre p (3,) in W, radius r; r = 0: a point) enters, or None."""
+def _cylinder_distance(p: FloatArray, T_W_C: FloatArray, radius: float, half_height: float) -> float:
+    """Distance from a point p (3,) in W to a solid cylinder (centre/orientation T_W_C, axis its local z); 0 inside."""
+    q = T_W_C[:3, :3].T @ (p - T_W_C[:3, 3])
+    radial = max(float(np.hypot(q[0], q[1])) - radius, 0.0)
+    return float(np.hypot(radial, max(abs(float(q[2])) - half_height, 0.0)))
+
+
+def _solids(scenario: Scenario) -> list[tuple[str, Callable[[FloatArray], float]]]:
+    """The scene's solids as (name, distance from a point in W; 0 inside): scene.boxes, cylinders and spheres."""
+    out: list[tuple[str, Callable[[FloatArray], float]]] = []
     for i, box in enumerate(scenario.scene.boxes):
-        T = box.pose.to_pose().matrix()
         half = np.array([box.size_x_m, box.size_y_m, box.size_z_m]) / 2
-        d = _box_distance(p, T, half)
+        out.append((f"scene.boxes[{i}]", partial(_box_distance, T_W_B=box.pose.to_pose().matrix(), half=half)))
+    for i, cyl in enumerate(scenario.scene.cylinders):
+        out.append((f"scene.cylinders[{i}]", partial(_cylinder_distance, T_W_C=cyl.pose.to_pose().matrix(),
+                                                     radius=cyl.radius_m, half_height=cyl.height_m / 2)))
+    for i, sph in enumerate(scenario.scene.spheres):
+        c, rs = np.asarray(sph.center_m, dtype=float), sph.radius_m
+        out.append((f"scene.spheres[{i}]", lambda p, c=c, rs=rs: max(float(np.linalg.norm(p - c)) - rs, 0.0)))
+    return out
+
+
+def _box_violation(p: FloatArray, r: float, scenario: Scenario) -> str | None:
+    """Which of scene.boxes, scene.cylinders and scene.spheres a sphere (centre p (3,) in W, radius r; r = 0: a
+    point) enters, or None."""
+    for name, distance in _solids(scenario):
+        d = distance(p)
         if r == 0.0 and d == 0.0:
-            return f"is inside scene.boxes[{i}]"
+            return f"is inside {name}"
         if r > 0.0 and d < r - _EPS_M:
-            return f"intersects scene.boxes[{i}]"
+            return f"intersects {name}"
     return None
 
 
 def _check_optical_centre(scenario: Scenario) -> None:
-    """The optical centre must stay inside the tunnel and the room, and outside every box, over the whole sweep
-    or spin (it circles the motor axis; a spin of a turn or more: the whole circle)."""
-    if scenario.scene.tunnel is None and scenario.scene.room is None and not scenario.scene.boxes:
+    """The optical centre must stay inside the tunnel and the room, and outside every box, cylinder, sphere and part
+    of the stand, over the whole sweep or spin (it circles the motor axis; a spin of a turn or more: the whole
+    circle)."""
+    scene = scenario.scene
+    if (scene.tunnel is None and scene.room is None and not scene.boxes and not scene.cylinders and not scene.spheres
+            and not scenario.rig.stand):
         return
     lo, hi = covered_angles_rad(scenario.servo)
     lam = np.linspace(lo, min(hi, lo + 2 * np.pi), 73)
     origins_M, _ = beam_rays_M(lam, np.zeros_like(lam), scenario.rig.dh.to_dh())
     origins_W = transform_points(scenario.rig.mount.to_pose().matrix(), origins_M)
-    for lam_k, p in zip(lam, origins_W, strict=True):
+    for lam_k, p, p_M in zip(lam, origins_W, origins_M, strict=True):
         what = _enclosure_violation(p, 0.0, scenario) or _box_violation(p, 0.0, scenario)
+        for i, part in enumerate(scenario.rig.stand):
+            half = np.array([part.size_x_m, part.size_y_m, part.size_z_m]) / 2
+            if what is None and _box_distance(p_M, part.pose.to_pose().matrix(), half) == 0.0:
+                what = f"is inside rig.stand[{i}]"
         if what is not None:
             raise InputError(
                 f"rig.mount: the laser's optical centre at {_fmt(p)} {what} (motor angle {lam_k:.3f} rad)"

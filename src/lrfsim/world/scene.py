@@ -6,9 +6,11 @@ bodies ``M`` (mount, T_W_M), ``I`` (Tx(a)), ``I_prime`` (Rx(alpha)), ``L_star`` 
 
     T_W_L' = T_W_M  Rz(lambda) Tx(a) Rx(alpha) Tz(b) Rz(beta)     (site ``laser``; lambda: hinge ``servo``)
 
-The scene (tunnel, room, board and box geoms, meshes, marker spheres) is static: all its geoms are on the world body, in
-geom groups 0 (surfaces) and 1 (markers), the only groups the lidar sees (:data:`LIDAR_GEOMGROUP`); the rig's
-geoms are in groups 2 (visual) and 3 (collision). Each geom's user data is [reflectivity, is_marker]:
+The scene (tunnel, room, board, box, cylinder and sphere geoms, meshes, marker spheres) is static: all its geoms are on
+the world body, in geom groups 0 (surfaces) and 1 (markers), the only groups the lidar sees
+(:data:`LIDAR_GEOMGROUP`); the rig's geoms are in groups 2 (visual) and 3 (collision). The stand's parts
+(``rig.stand``) are boxes on the body ``M`` (they move with the mount, not with the motor's turn), in group 0: the
+lidar sees them, as a tilting scanner sees its own stand. Each geom's user data is [reflectivity, is_marker]:
 reflectivity is the Lambertian albedo of a surface, the retroreflector gain of a marker and 0 for the rig.
 No contacts (contype = conaffinity = 0), no gravity: the hinge is set kinematically, never simulated.
 
@@ -48,6 +50,8 @@ USER_REFLECTIVITY, USER_IS_MARKER = 0, 1
 
 _RGBA_MESH = (0.6, 0.55, 0.5, 1.0)
 _RGBA_MARKER = (0.95, 0.95, 1.0, 1.0)
+_RGBA_CLUTTER = (0.45, 0.5, 0.7, 1.0)
+_RGBA_STAND = (0.3, 0.3, 0.3, 1.0)
 
 
 @dataclass(frozen=True, eq=False)
@@ -137,8 +141,8 @@ def hinge_axis_W(scene: Scene) -> tuple[FloatArray, FloatArray]:
 
 def _scene_spec(scenario: Scenario, markers_W: FloatArray, marker_ids: tuple[str, ...],
                 meshes: list[tuple[FloatArray, NDArray[np.int64]]]) -> mujoco.MjSpec:
-    """The rig of ``models/rig.xml`` with the true values, and on the world body the scene's boxes, meshes
-    (vertices in W, faces) and marker spheres (centres (n, 3) in W)."""
+    """The rig of ``models/rig.xml`` with the true values and the stand's parts on its body M, and on the world body
+    the scene's boxes, cylinders, spheres, meshes (vertices in W, faces) and marker spheres (centres (n, 3) in W)."""
     radius_m = scenario.marker_radius_m
     spec = mujoco.MjSpec.from_file(str(RIG_XML))
     _set_rig(spec, scenario)
@@ -147,6 +151,20 @@ def _scene_spec(scenario: Scenario, markers_W: FloatArray, marker_ids: tuple[str
     for box in scene_boxes(scenario):
         _add_box(world, box.name, tuple(box.half_m), box.T_W_B[:3, 3], box.T_W_B[:3, :3], box.reflectivity,
                  box.rgba)
+    for i, cyl in enumerate(scenario.scene.cylinders):
+        T = cyl.pose.to_pose().matrix()
+        geom = world.add_geom(name=f"cylinder{i}", type=mujoco.mjtGeom.mjGEOM_CYLINDER,
+                              size=[cyl.radius_m, cyl.height_m / 2, 0.0], pos=T[:3, 3], quat=_quat_wxyz(T[:3, :3]))
+        _scene_geom(geom, cyl.reflectivity, _RGBA_CLUTTER)
+    for i, sph in enumerate(scenario.scene.spheres):
+        geom = world.add_geom(name=f"sphere{i}", type=mujoco.mjtGeom.mjGEOM_SPHERE, size=[sph.radius_m, 0.0, 0.0],
+                              pos=np.asarray(sph.center_m, dtype=float))
+        _scene_geom(geom, sph.reflectivity, _RGBA_CLUTTER)
+    body_M = spec.body("M")
+    for i, part in enumerate(scenario.rig.stand):  # in frame M, after _set_rig (which mirrors the rig's own geoms)
+        T = part.pose.to_pose().matrix()
+        _add_box(body_M, f"stand{i}", (part.size_x_m / 2, part.size_y_m / 2, part.size_z_m / 2), T[:3, 3],
+                 T[:3, :3], part.reflectivity, _RGBA_STAND)
     for i, (cfg, (verts_W, faces)) in enumerate(zip(scenario.scene.meshes, meshes, strict=True)):
         mesh = spec.add_mesh(name=f"mesh{i}_asset")
         mesh.uservert = verts_W.ravel().tolist()
@@ -215,10 +233,10 @@ def _scene_geom(geom: Any, reflectivity: float, rgba: tuple[float, ...], is_mark
     geom.userdata = [float(reflectivity), 1.0 if is_marker else 0.0]
 
 
-def _add_box(world: Any, name: str, half: tuple[float, ...], pos: Any, R: FloatArray, reflectivity: float,
+def _add_box(body: Any, name: str, half: tuple[float, ...], pos: Any, R: FloatArray, reflectivity: float,
              rgba: tuple[float, ...]) -> None:
-    geom = world.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=np.asarray(half, dtype=float),
-                          pos=np.asarray(pos, dtype=float), quat=_quat_wxyz(R))
+    geom = body.add_geom(name=name, type=mujoco.mjtGeom.mjGEOM_BOX, size=np.asarray(half, dtype=float),
+                         pos=np.asarray(pos, dtype=float), quat=_quat_wxyz(R))
     _scene_geom(geom, reflectivity, rgba)
 
 

@@ -50,11 +50,11 @@ def directions_M(scenario: Scenario, points_W: np.ndarray) -> np.ndarray:
 
 def motor_range_rad(servo: ServoConfig) -> tuple[float, float]:
     """The motor angles the servo covers (lrfsim.sensors.servo.covered_angles_rad) as the visibility tests take them
-    (their candidate angles lie within [-7 pi / 2, 9 pi / 2]): a sweep's as they are; a spin's moved by whole
-    turns to start in [-pi, pi); a spin that turns a full circle beyond the margins: (-pi, pi) widened by the
-    margin, the whole circle."""
+    (their candidate angles lie within [-7 pi / 2, 9 pi / 2]): a sweep's (and a step and scan's) as they are; a
+    spin's moved by whole turns to start in [-pi, pi); a spin that turns a full circle beyond the margins: (-pi, pi)
+    widened by the margin, the whole circle."""
     lo, hi = covered_angles_rad(servo)
-    if servo.mode == "sweep":
+    if servo.mode != "spin":  # a sweep, a step and scan
         return lo, hi
     if hi - lo >= 2 * math.pi + 2 * VIS_MARGIN_RAD:
         return -math.pi - VIS_MARGIN_RAD, math.pi + VIS_MARGIN_RAD
@@ -134,7 +134,7 @@ def wide_dh_sigma(scenario: Scenario, sigma_m: float | None = None) -> np.ndarra
     if sv[-1] < 1e-9 * sv[0]:
         return np.full(4, np.inf)
     servo = scenario.servo  # a sweep sees each marker once a pass, a spin (at least) once a turn
-    looks = servo.passes if servo.mode == "sweep" else max(1.0, servo.revolutions)
+    looks = max(1.0, servo.revolutions) if servo.mode == "spin" else servo.passes
     cov = np.linalg.inv(Js.T @ Js) / np.outer(scale, scale) * sigma**2 / looks
     return np.sqrt(np.diag(cov)[:4])
 
