@@ -37,7 +37,8 @@ import numpy as np
 
 from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.scenario.file import Scenario, load_scenario
-from lrfsim.trials.study import Study, TrialRow, study, write_study
+from lrfsim.trials.study import study
+from lrfsim.trials.study_result import Study, TrialRow, write_study
 from lrfsim.trials.variants import drawn_truth
 
 ROOT = Path(__file__).resolve().parents[1]

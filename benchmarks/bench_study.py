@@ -36,7 +36,8 @@ from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan.result import format_value
 from lrfsim.scenario.file import Scenario, load_scenario
 from lrfsim.simulation.simulate import cast_geometry, simulate, simulate_from_geometry
-from lrfsim.trials.study import study, write_study
+from lrfsim.trials.study import study
+from lrfsim.trials.study_result import write_study
 from lrfsim.trials.variants import with_field
 
 ROOT = Path(__file__).resolve().parents[1]

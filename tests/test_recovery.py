@@ -116,6 +116,7 @@ class _Told(Observer):
     """What a calibration told its observer (lrfcal.result.Observer)."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.results: list[CalibrationResult] = []
         self.associations: list[Matched] = []
 

@@ -218,6 +218,7 @@ def test_a_study_of_a_marker_less_scenario_calibrates_each_drawn_truth_as_a_user
     from lrfsim.trials import study as study_module
     from lrfsim.trials import trial as trial_module
     from lrfsim.trials.compare import load_truth
+    from lrfsim.trials.study_result import summary_markdown
 
     seen: list[tuple[float, ...]] = []
 
@@ -236,4 +237,4 @@ def test_a_study_of_a_marker_less_scenario_calibrates_each_drawn_truth_as_a_user
     np.testing.assert_allclose(seen, [(t.a, t.alpha, t.b, t.beta) for t in drawn], atol=1e-12)
     st = s.parts[0].stats()
     assert st["a"]["n"] == 0 and math.isnan(st["a"]["rms_z"]) and st["b"]["rms_z"] == pytest.approx(2.0)
-    assert "Drawn truth (scale 1)" in study_module.summary_markdown(s)
+    assert "Drawn truth (scale 1)" in summary_markdown(s)

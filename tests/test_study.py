@@ -16,19 +16,9 @@ from lrfcal.errors import InputError
 from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan.prediction import plan
 from lrfsim.scenario.file import parse_scenario
-from lrfsim.trials.study import (
-    CSV_COLUMNS,
-    DRAWS,
-    PERTURB_HALF_WIDTH,
-    parse_vary,
-    perturbed_start,
-    run_trials,
-    study,
-    summary_markdown,
-    trials_csv,
-    with_field,
-    write_study,
-)
+from lrfsim.trials.study import run_trials, study
+from lrfsim.trials.study_result import CSV_COLUMNS, DRAWS, summary_markdown, trials_csv, write_study
+from lrfsim.trials.variants import PERTURB_HALF_WIDTH, parse_vary, perturbed_start, with_field
 
 ROOT = Path(__file__).resolve().parents[1]
 LRFSIM = [sys.executable, "-m", "lrfsim.cli"]

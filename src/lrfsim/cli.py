@@ -281,9 +281,10 @@ def study(
     from lrfcal.io.files import check_no_overlap, check_replaceable
 
     from .scenario.file import load_scenario, scenario_inputs
-    from .trials.study import parse_vary, summary_markdown, write_study
     from .trials.study import study as run_study
     from .trials.study_figures import import_figures
+    from .trials.study_result import summary_markdown, write_study
+    from .trials.variants import parse_vary, with_field
 
     sc = load_scenario(scenario)
     if drift:
@@ -295,8 +296,6 @@ def study(
     check_no_overlap({"-o": out}, scenario_inputs(sc, scenario))
     check_replaceable(out, overwrite)
     if varied is not None:  # every value must make a valid scenario before any trial runs
-        from .trials.study import with_field
-
         for v in varied[1]:
             with_field(sc, varied[0], v)
     values = [""] if varied is None else [str(v) for v in varied[1]]  # the parts' labels, as lrfsim.trials.study's

@@ -22,11 +22,11 @@ from pydantic import BaseModel, ValidationError, model_validator
 from lrfcal.errors import InputError
 from lrfcal.io.yamlfile import read_yaml
 
+from .scene_sections import SceneConfig
 from .sections import (
     FaultsConfig,
     MarkersConfig,
     RigConfig,
-    SceneConfig,
     Section,
     SensorConfig,
     ServoConfig,

@@ -397,7 +397,8 @@ def _board_beside(rng: np.random.Generator, origin: np.ndarray, e_axis: np.ndarr
 
 def _board_centres(scene: dict[str, object], markers: dict[str, object], radius: float, seed: int) -> np.ndarray:
     """The marker centres (n, 3) the simulator will put on that board."""
-    from lrfsim.scenario.sections import BoardConfig, BoardLayout
+    from lrfsim.scenario.scene_sections import BoardConfig
+    from lrfsim.scenario.sections import BoardLayout
     from lrfsim.world.geometry import board_markers
 
     return board_markers(BoardLayout.model_validate(markers["layout"]),

@@ -42,14 +42,11 @@ field, ``vary_sigma.png`` (predicted and measured sigma against the value).
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 import shutil
 import tempfile
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -59,20 +56,15 @@ from numpy.typing import NDArray
 
 from lrfcal import apply_memory_policy, apply_thread_policy, call_with_thread_policy, keep_freed_memory
 from lrfcal.errors import CalibrationError, InputError
-from lrfcal.io.files import atomic_folder, check_replaceable
-from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan.prediction import plan
-from lrfsim.plan.result import Plan, format_value
+from lrfsim.plan.result import Plan
 from lrfsim.scenario.file import Scenario
 
 from .pool import run_counted, worker_held
-from .study_figures import write_figures
+from .study_result import Study, StudyPart, TrialRow
 from .variants import (
-    PERTURB_HALF_WIDTH,
-    TRUTH_HALF_WIDTH,
     TrialDesign,
     drawn_truth,
-    parse_vary,
     perturbed_start,
     with_field,
 )
@@ -82,125 +74,6 @@ if TYPE_CHECKING:
     from lrfsim.world.scene import Scene
 
 FloatArray = NDArray[np.float64]
-
-#: the columns of trials.csv, in order (P_error, P_sigma for each DH parameter P, SI units)
-CSV_COLUMNS: tuple[str, ...] = (
-    "value", "trial", "seed", "status", "reason", "exit_code",
-    *(f"{p}_{k}" for p in DH_NAMES for k in ("error", "sigma")), "clock_offset_error",
-)
-
-
-@dataclass(frozen=True)
-class TrialRow:
-    """One trial of a study: value (the varied field's value as text, "" without --vary), trial index, seed,
-    status ("calibrated" | "refused"), reason and exit code when refused, errors and sigma (4,) in DH_NAMES order
-    (SI units, NaN when refused), the clock offset's error [s] and the calibration's seconds."""
-
-    value: str
-    trial: int
-    seed: int
-    status: str
-    reason: str
-    exit_code: int
-    errors: tuple[float, ...]
-    sigma: tuple[float, ...]
-    clock_offset_error_s: float
-    seconds: float
-
-    def csv_row(self) -> list[str]:
-        """The row as CSV cells (12 significant digits: the same seeds give the same text; no timings)."""
-        cells = [self.value, str(self.trial), str(self.seed), self.status, self.reason, str(self.exit_code)]
-        for e, s in zip(self.errors, self.sigma, strict=True):
-            cells += [_num(e), _num(s)]
-        return [*cells, _num(self.clock_offset_error_s)]
-
-
-def _num(v: float) -> str:
-    """12 significant digits: far beyond any meaningful precision, and deaf to the last-bit differences of
-    multithreaded BLAS reductions between one process and another."""
-    return "" if not math.isfinite(v) else f"{float(v):.12g}"
-
-
-@dataclass(frozen=True)
-class StudyPart:
-    """The trials of one scenario variant (one value of the varied field, or the scenario itself) and its plan
-    (None when the plan itself was refused: fewer than 3 markers seen)."""
-
-    value: str
-    scenario: Scenario
-    plan: Plan | None
-    rows: tuple[TrialRow, ...]
-
-    def errors(self) -> FloatArray:
-        """(n_calibrated, 4) errors of the calibrated trials."""
-        ok = [r.errors for r in self.rows if r.status == "calibrated"]
-        return np.array(ok, dtype=float).reshape(-1, 4)
-
-    def sigmas(self) -> FloatArray:
-        ok = [r.sigma for r in self.rows if r.status == "calibrated"]
-        return np.array(ok, dtype=float).reshape(-1, 4)
-
-    @property
-    def refusal_rate(self) -> float:
-        return sum(r.status != "calibrated" for r in self.rows) / max(len(self.rows), 1)
-
-    def stats(self) -> dict[str, dict[str, float]]:
-        """Per DH parameter: n, bias, bias_se, std, rmse, predicted, rmse_over_predicted, std_over_predicted,
-        rms_z (RMS of error / reported sigma), mean_sigma (SI units; NaN where undefined), over the calibrated trials
-        that estimated it (a targetless calibration holds, with sigma NaN, what the scene does not determine)."""
-        E, S = self.errors(), self.sigmas()
-        out: dict[str, dict[str, float]] = {}
-        for i, p in enumerate(DH_NAMES):
-            estimated = np.isfinite(S[:, i])
-            e, sig = E[estimated, i], S[estimated, i]
-            n = e.size
-            pred = self.plan.sigma[p] if self.plan is not None else math.nan
-            bias = float(e.mean()) if n else math.nan
-            std = float(e.std(ddof=1)) if n > 1 else math.nan
-            rmse = float(np.sqrt(np.mean(e**2))) if n else math.nan
-            out[p] = {
-                "n": float(n), "bias": bias, "bias_se": std / math.sqrt(n) if n > 1 else math.nan, "std": std,
-                "rmse": rmse, "predicted": pred, "rmse_over_predicted": rmse / pred if pred > 0 else math.nan,
-                "std_over_predicted": std / pred if pred > 0 else math.nan,
-                "rms_z": float(np.sqrt(np.mean((e / sig) ** 2))) if n else math.nan,
-                "mean_sigma": float(sig.mean()) if n else math.nan,
-            }
-        return out
-
-
-@dataclass(frozen=True)
-class Study:
-    """A study: the scenario's name, the varied field (or None) and one part per value; seconds of wall time;
-    perturb_start: the scale of the perturbed start (0: every trial starts from the scenario's nominal values);
-    draws: what a trial draws from its seed besides the noise and the tape (:data:`DRAWS`)."""
-
-    name: str
-    key: str | None
-    parts: tuple[StudyPart, ...]
-    seconds: float
-    workers: str = ""
-    notes: tuple[str, ...] = field(default=())
-    perturb_start: float = 0.0
-    draws: str = "noise"
-    truth_spread: float = 0.0
-
-    @property
-    def rows(self) -> tuple[TrialRow, ...]:
-        return tuple(r for p in self.parts for r in p.rows)
-
-
-#: what summary.md says a trial draws from its seed: the noise alone on one cast (the default), a cast of its own
-#: (``recast``), a marker layout and cast of its own (``new_layout``)
-DRAWS = {
-    "noise": "One cast for every trial (the laser phase of the scenario's seed), each trial drawing its noise and "
-             "tape: the beams cut the same pattern on the markers in every trial, so the pattern's error is a bias "
-             "here (bias / std), where across recordings it is a scatter; `--recast` draws the pattern anew for "
-             "every trial (docs/study.md, \"The spinning rig\").",
-    "cast": "Every trial cast anew (its laser phase, noise and tape from its seed).",
-    "layout": "Every trial a marker layout and cast of its own (from its seed): the figures average over layouts.",
-    "truth": "Every trial a true DH, scene and cast of its own (from its seed): the figures average over truths.",
-}
-
 
 # --- running trials -------------------------------------------------------------------------------------------
 
@@ -439,85 +312,4 @@ def _predict(scenario: Scenario, geometry: Geometry | None, into: list[Plan | No
         then()
 
 
-# --- outputs --------------------------------------------------------------------------------------------------
-
-def trials_csv(s: Study) -> str:
-    """trials.csv as text (CSV_COLUMNS; rows sorted by value order, then trial)."""
-    buf = io.StringIO()
-    w = csv.writer(buf, lineterminator="\n")
-    w.writerow(CSV_COLUMNS)
-    for r in s.rows:
-        w.writerow(r.csv_row())
-    return buf.getvalue()
-
-
-def _fmt(p: str, v: float) -> str:
-    return "-" if not math.isfinite(v) else format_value(p, v)
-
-
-def summary_markdown(s: Study) -> str:
-    """summary.md: per part, the efficiency table of the DH parameters and the refusals."""
-    lines = [f"# Monte-Carlo study of {s.name}", "",
-             f"{len(s.parts[0].rows)} trials per {'value' if s.key else 'study'} ({s.workers}, {s.seconds:.0f} s). "
-             "Errors against the truth; predicted sigma from `lrfsim plan` (Fisher information of the noise-free "
-             "geometry). Efficiency: RMSE / predicted sigma (1 = the method reaches the predicted accuracy); "
-             "calibration: RMS of error / reported sigma (1 = the reported sigma is honest).", "",
-             DRAWS[s.draws], ""]
-    if s.truth_spread > 0:
-        h = {k: s.truth_spread * v for k, v in TRUTH_HALF_WIDTH.items()}
-        lines += [f"Drawn truth (scale {s.truth_spread:g}): each trial's true DH drawn around the nominal, uniform in "
-                  f"+-{h['a'] * 1000:g} mm (a, b) and +-{math.degrees(h['alpha']):g} deg (alpha, beta), from the "
-                  "trial's seed.", ""]
-    if s.perturb_start > 0:
-        h = {k: s.perturb_start * v for k, v in PERTURB_HALF_WIDTH.items()}
-        lines += [f"Perturbed start (scale {s.perturb_start:g}): each trial's nominal values moved by uniform draws "
-                  f"in +-{h['a'] * 1000:g} mm (a, b), +-{math.degrees(h['alpha']):g} deg (alpha, beta), "
-                  f"+-{h['x'] * 100:g} cm and +-{math.degrees(h['roll']):g} deg (mount), from the trial's seed.", ""]
-    for part in s.parts:
-        st = part.stats()
-        title = f"## {s.key} = {part.value}" if s.key else "## Results"
-        n = sum(r.status == "calibrated" for r in part.rows)
-        no_plan = ("; no plan (a targetless calibration; a parameter a trial held counts in no column)"
-                   if part.scenario.markers is None else "; plan refused (too few markers seen)")
-        lines += [title, "", f"calibrated {n} of {len(part.rows)}, refusal rate {100 * part.refusal_rate:.0f} %"
-                  + ("" if part.plan is not None else no_plan), "",
-                  "| parameter | bias (+- its s.e.) | bias / std | std | RMSE | predicted sigma | RMSE / predicted | "
-                  "std / predicted | RMS error / reported sigma | mean reported sigma |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
-        for p in DH_NAMES:
-            d = st[p]
-            bz = d["bias"] / d["std"] if d["std"] > 0 else math.nan
-            lines.append(f"| {p} | {_fmt(p, d['bias'])} +- {_fmt(p, d['bias_se'])} | {bz:+.2f} | "
-                         f"{_fmt(p, d['std'])} | {_fmt(p, d['rmse'])} | "
-                         f"{_fmt(p, d['predicted'])} | {d['rmse_over_predicted']:.2f} | "
-                         f"{d['std_over_predicted']:.2f} | {d['rms_z']:.2f} | {_fmt(p, d['mean_sigma'])} |")
-        reasons: dict[str, int] = {}
-        for r in part.rows:
-            if r.status != "calibrated":
-                reasons[r.reason] = reasons.get(r.reason, 0) + 1
-        if reasons:
-            lines += ["", "Refusals:"] + [f"- {k} x {v}" for v, k in sorted(((v, k) for k, v in reasons.items()),
-                                                                              reverse=True)]
-        lines.append("")
-    figs = [f"![{p}](hist_{p}.png)" for p in DH_NAMES]
-    lines += ["## Figures", "", *figs]
-    if s.key:
-        lines += ["", "![predicted and measured sigma](vary_sigma.png)"]
-    return "\n".join(lines) + "\n"
-
-
-def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Path:
-    """Write trials.csv, summary.md and the figures into ``out_dir`` atomically (a temporary folder beside it,
-    renamed into place when complete; an existing folder is replaced only with ``overwrite`` and only if this
-    project wrote it)."""
-    out = check_replaceable(out_dir, overwrite)
-    with atomic_folder(out, "lrfsim study") as tmp:
-        (tmp / "trials.csv").write_text(trials_csv(s), encoding="utf-8")
-        (tmp / "summary.md").write_text(summary_markdown(s), encoding="utf-8")
-        write_figures(s, tmp)
-    return out
-
-
-__all__ = ["CSV_COLUMNS", "DRAWS", "PERTURB_HALF_WIDTH", "TRUTH_HALF_WIDTH", "Study", "StudyPart", "TrialDesign",
-           "TrialRow", "drawn_truth", "parse_vary", "perturbed_start", "run_batch", "run_trials", "study",
-           "summary_markdown", "trials_csv", "with_field", "write_figures", "write_study"]
+__all__ = ["run_batch", "run_trials", "study"]

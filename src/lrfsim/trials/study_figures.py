@@ -19,7 +19,7 @@ if TYPE_CHECKING:
 
 
 class PartLike(Protocol):
-    """What the figures read of a lrfsim.trials.study.StudyPart."""
+    """What the figures read of a lrfsim.trials.study_result.StudyPart."""
 
     @property
     def value(self) -> str: ...
@@ -30,7 +30,7 @@ class PartLike(Protocol):
 
 
 class StudyLike(Protocol):
-    """What the figures read of a lrfsim.trials.study.Study."""
+    """What the figures read of a lrfsim.trials.study_result.Study."""
 
     @property
     def name(self) -> str: ...

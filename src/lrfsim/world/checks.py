@@ -20,7 +20,8 @@ from numpy.typing import NDArray
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import beam_rays_M, transform_points
 from lrfsim.scenario.file import Scenario
-from lrfsim.scenario.sections import BoardLayout, RoomConfig, TunnelConfig
+from lrfsim.scenario.scene_sections import RoomConfig, TunnelConfig
+from lrfsim.scenario.sections import BoardLayout
 from lrfsim.sensors.servo import covered_angles_rad
 
 from .geometry import room_pose_W

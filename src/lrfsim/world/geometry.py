@@ -18,15 +18,8 @@ from numpy.typing import NDArray
 from lrfcal.errors import InputError
 from lrfcal.model.kinematics import homogeneous, rot_z, transform_points
 from lrfsim.scenario.file import Scenario
-from lrfsim.scenario.sections import (
-    BoardConfig,
-    BoardLayout,
-    MeshConfig,
-    PointsLayout,
-    RoomConfig,
-    TunnelConfig,
-    VLayout,
-)
+from lrfsim.scenario.scene_sections import BoardConfig, MeshConfig, RoomConfig, TunnelConfig
+from lrfsim.scenario.sections import BoardLayout, PointsLayout, VLayout
 
 FloatArray = NDArray[np.float64]
 
