@@ -66,9 +66,9 @@ SEGMENT_SAMPLES = 40000
 
 
 class SegmentConfig(Protocol):
-    """The configuration the segment-and-solve rounds read: their slice of lrfcal.config.CalibConfig (which
-    satisfies it; validated and written whole into calibration.yaml there). ``range_sigma_m`` is resolved to a
-    number by lrfcal.pipeline.calibrate before any round runs."""
+    """The configuration the planes are segmented and their returns judged by: its slice of
+    lrfcal.config.CalibConfig (which satisfies it; validated and written whole into calibration.yaml there).
+    ``range_sigma_m`` is resolved to a number by lrfcal.pipeline.calibrate before the planes are segmented."""
 
     @property
     def range_sigma_m(self) -> float | None: ...
