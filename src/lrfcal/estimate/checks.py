@@ -356,7 +356,7 @@ def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int6
               mirror_check(sol.params.dh, nominal, config, sol.dh_sigma)]
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
-    ok = all(np.isfinite(v) and v <= observability.LIMITS[n] for n, v in s.items())
+    ok = not observability.beyond_limits(s)
     checks.append(Check("observability", ok, "1-sigma " + ", ".join(
         f"{n} {math.degrees(v):.3g} deg" if n in ("alpha", "beta") else f"{n} {v * 1000:.3g} mm"
         for n, v in s.items()) + (f"; held at nominal: {', '.join(held)}" if held else "")))

@@ -11,7 +11,7 @@ combination in words ("b against alpha"), with what would determine it.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -297,6 +297,13 @@ def unjudged_refusal(obs: Observability, what: str, and_: str, disagreement: str
             f"match cannot be told from a moved marker ({disagreement.replace(' (moved after taping?)', '')})")
 
 
+def beyond_limits(sigma: Mapping[str, float]) -> tuple[str, ...]:
+    """The DH parameters among ``sigma`` (name -> 1-sigma, m or rad) whose 1-sigma is not finite or beyond
+    :data:`LIMITS`, the farthest beyond first (empty: every one is determined)."""
+    over = {n: (v / LIMITS[n] if math.isfinite(v) else math.inf) for n, v in sigma.items()}
+    return tuple(sorted((n for n, r in over.items() if r > 1.0), key=lambda n: -over[n]))
+
+
 def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
     """Whether every DH parameter's 1-sigma (a, alpha, b, beta: (4,) in m and rad) is within :data:`LIMITS`."""
     s = np.asarray(dh_sigma, dtype=float)
@@ -304,5 +311,5 @@ def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
 
 
 __all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",
-           "Verdict", "analyse", "marginal", "marginal_information", "of_covariance", "of_solution", "sigma_words",
-           "unjudged_refusal", "within_limits"]
+           "Verdict", "analyse", "beyond_limits", "marginal", "marginal_information", "of_covariance", "of_solution",
+           "sigma_words", "unjudged_refusal", "within_limits"]
