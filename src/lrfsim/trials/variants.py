@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 from lrfsim.scenario.file import Scenario, parse_scenario
@@ -73,11 +74,9 @@ def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
     Raises:
         InputError: a negative or non-finite scale.
     """
-    if not (math.isfinite(scale) and scale >= 0):
-        raise InputError(f"--perturb-start: expected a scale >= 0, got {scale}")
-    if scale == 0:
+    u = _uniform(seed, _RNG_START, scale, len(PERTURB_HALF_WIDTH), "--perturb-start")
+    if u is None:
         return scenario
-    u = np.random.default_rng([int(seed), _RNG_START]).uniform(-1.0, 1.0, len(PERTURB_HALF_WIDTH))
     step = dict(zip(PERTURB_HALF_WIDTH, scale * u * np.array(list(PERTURB_HALF_WIDTH.values())), strict=True))
     rig = scenario.rig
 
@@ -101,16 +100,28 @@ def drawn_truth(scenario: Scenario, seed: int, scale: float) -> Scenario:
     Raises:
         InputError: a negative or non-finite scale.
     """
-    if not (math.isfinite(scale) and scale >= 0):
-        raise InputError(f"--truth-spread: expected a scale >= 0, got {scale}")
-    if scale == 0:
+    u = _uniform(seed, _RNG_TRUTH, scale, len(TRUTH_HALF_WIDTH), "--truth-spread")
+    if u is None:
         return scenario
-    u = np.random.default_rng([int(seed), _RNG_TRUTH]).uniform(-1.0, 1.0, len(TRUTH_HALF_WIDTH))
     nominal = scenario.rig.nominal_dh.model_dump()
     dh = {k: float(nominal[k] + scale * w * u[i]) for i, (k, w) in enumerate(TRUTH_HALF_WIDTH.items())}
     for k in ("alpha", "beta"):
         dh[k] = math.remainder(dh[k], 2 * math.pi)
     return scenario.model_copy(update={"rig": scenario.rig.model_copy(update={"dh": DHConfig(**dh)})})
+
+
+def _uniform(seed: int, stream: int, scale: float, n: int, option: str) -> NDArray[np.float64] | None:
+    """``n`` independent uniform draws in [-1, 1] from ``seed`` alone (the stream ``stream`` of its own), or None
+    where ``scale`` is 0 (nothing is drawn).
+
+    Raises:
+        InputError: a negative or non-finite scale (``option`` names it).
+    """
+    if not (math.isfinite(scale) and scale >= 0):
+        raise InputError(f"{option}: expected a scale >= 0, got {scale}")
+    if scale == 0:
+        return None
+    return np.random.default_rng([int(seed), stream]).uniform(-1.0, 1.0, n)
 
 
 @dataclass(frozen=True)
