@@ -1,13 +1,11 @@
-"""The two keyword front-ends of the one estimate, for callers outside a calibration's orchestrator (``plan``,
-``study``, the tests): :func:`solve`, the marker calibration (marker returns, optionally with surface returns on their
-planes), and :func:`solve_planes`, the targetless one (plane returns alone). Each builds its request
-(lrfcal.estimate.request: what to estimate, and how it is posed to the engine and reported) and solves it
+"""The keyword front-end of the one estimate, for callers outside a calibration's orchestrator (``plan``, ``study``,
+the tests): :func:`solve`, the marker calibration (marker returns, optionally with surface returns on their planes).
+It builds its request (lrfcal.estimate.request: what to estimate, and how it is posed to the engine and reported)
+and solves it
 (lrfcal.estimate.engine.solved), as the orchestrator (lrfcal.pipeline) does with the requests the stages build.
 """
 
 from __future__ import annotations
-
-from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -19,7 +17,6 @@ from lrfcal.estimate.request import (
     MarkerRequest,
     OnPlanes,
     PlaneOptions,
-    PlaneRequest,
     SolveOptions,
     plane_free,
 )
@@ -27,7 +24,7 @@ from lrfcal.model.kinematics import Params
 from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock
 from lrfcal.model.unknowns import CORE_NAMES, pack
-from lrfcal.types import MarkerMap, Observations, Solution, SurfaceReturns
+from lrfcal.types import MarkerMap, Observations, Solution
 
 FloatArray = NDArray[np.float64]
 
@@ -52,25 +49,5 @@ def solve(
     return solved(MarkerRequest(obs, markers, start, sensor, surfaces, clock, options))
 
 
-def solve_planes(
-    surfaces: SurfaceReturns,
-    start: Params,
-    *,
-    range_sigma_m: float = 0.010,
-    clock: MotorClock | None = None,
-    clock_offset_s: float = 0.0,
-    hold: Sequence[str] = (),
-    dh_prior: tuple[FloatArray, FloatArray] | None = None,
-    options: PlaneOptions = DEFAULT_PLANE_OPTIONS,
-) -> Solution:
-    """Targetless: the DH parameters (and the clock offset, the range offset) from the flatness of planes alone: the
-    lrfcal.estimate.request.PlaneRequest of these arguments (its docstring), solved.
-
-    Raises:
-        CalibrationError: fewer returns than 10 per unknown.
-    """
-    return solved(PlaneRequest(surfaces, start, range_sigma_m, clock, clock_offset_s, tuple(hold), dh_prior, options))
-
-
 __all__ = ["CORE_NAMES", "DEFAULT_OPTIONS", "DEFAULT_PLANE_OPTIONS", "Clock", "MotorClock", "OnPlanes", "PlaneOptions",
-           "SolveOptions", "pack", "plane_free", "solve", "solve_planes"]
+           "SolveOptions", "pack", "plane_free", "solve"]
