@@ -305,9 +305,9 @@ def beyond_limits(sigma: Mapping[str, float]) -> tuple[str, ...]:
 
 
 def within_limits(dh_sigma: NDArray[np.float64]) -> bool:
-    """Whether every DH parameter's 1-sigma (a, alpha, b, beta: (4,) in m and rad) is within :data:`LIMITS`."""
-    s = np.asarray(dh_sigma, dtype=float)
-    return bool(np.all(np.isfinite(s) & (s <= [LIMITS[n] for n in DH])))
+    """Whether every DH parameter's 1-sigma (a, alpha, b, beta: (4,) in m and rad) is within :data:`LIMITS`
+    (:func:`beyond_limits` names none)."""
+    return not beyond_limits(dict(zip(DH, np.asarray(dh_sigma, dtype=float).tolist(), strict=True)))
 
 
 __all__ = ["DH", "LIMITS", "NEAR_PERPENDICULAR_RAD", "RANGE_BIAS_LIMIT_M", "Information", "Observability",
