@@ -221,8 +221,8 @@ def of_solution(information: FloatArray | None, names: Sequence[str], dh_sigma: 
     obs = analyse(information, tuple(names), alpha)
     if not obs.determined or within_limits(sigma):
         return obs
-    limits = np.array([LIMITS[n] for n in DH])
-    over = np.where(np.isfinite(sigma) & (sigma <= limits), 0.0, 1.0)
+    beyond = beyond_limits(dict(zip(DH, sigma.tolist(), strict=True)))
+    over = np.array([1.0 if n in beyond else 0.0 for n in DH])
     return Observability(sigma=np.maximum(obs.sigma, np.where(np.isfinite(sigma), sigma, math.inf)),
                          spectrum=obs.spectrum, weakest=over / float(np.linalg.norm(over)),
                          tilt_rad=tilt)
