@@ -27,10 +27,10 @@ import fcntl
 import hashlib
 import os
 import subprocess
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import pytest
 
@@ -51,6 +51,17 @@ os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 #: public recordings of real rigs shared beside the project, not part of a clone (../shared/realbags/README.md)
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
+
+
+def tiered(values: Iterable[Any], keep: int = 1) -> list[Any]:
+    """``values`` for ``pytest.mark.parametrize``: the first ``keep`` in the suite, the rest marked ``slow`` (run with
+    ``python -m pytest -m slow``, docs/tests.md): a family of repeats (seeds, scenarios, variants) whose first members
+    test the behaviour and whose rest measure its spread, which keeps the suite within CI's 4 minutes."""
+    out = []
+    for i, v in enumerate(values):
+        args = v if isinstance(v, tuple) else (v,)
+        out.append(v if i < keep else pytest.param(*args, marks=pytest.mark.slow))
+    return out
 
 
 def pytest_configure(config: pytest.Config) -> None:

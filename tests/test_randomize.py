@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import tiered
 
 from lrfcal.config import CalibConfig
 from lrfcal.model.kinematics import Pose
@@ -181,7 +182,7 @@ def test_near_perpendicular_truth_is_calibrated_within_4_sigma(tmp_path: Path) -
     assert any("turn on some markers" in n for n in trial.result.notes), trial.result.notes
 
 
-@pytest.mark.parametrize(("seed", "recording_seed"), [(8, None), (14, 1007)])
+@pytest.mark.parametrize(("seed", "recording_seed"), tiered([(8, None), (14, 1007)]))
 def test_near_perpendicular_truth_in_the_maps_other_handedness(tmp_path: Path, seed: int,
                                                                recording_seed: int | None) -> None:
     """Near perpendicular the association cannot tell the marker map's handedness: seed 8 (alpha -9.6 deg) landed on

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import tiered
 
 from lrfcal.io.recording import read_recording
 from lrfcal.model.kinematics import DH_NAMES, PARAM_NAMES
@@ -37,6 +38,7 @@ MARKERLESS = {name for name, path in SCENARIOS.items() if load_scenario(path).ma
 #: in tests/test_targetless.py, which checks their 4 sigma and their scenario's tolerances
 SHIPPED = [name for name in SCENARIOS if name not in MARKERLESS]
 SEEDS = tuple(range(20))
+IN_SUITE = 8  # the random truths the suite runs (the rest with -m slow: tests/conftest.py, tiered)
 N_SIGMA = 4.0
 DH_INDEX = tuple(PARAM_NAMES.index(n) for n in DH_NAMES)  # a, alpha, b, beta in the (10,) sigma
 
@@ -170,7 +172,7 @@ def within_sigma(case: Case) -> list[str]:
 # --- 1. random ground truths ------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("seed", SEEDS)
+@pytest.mark.parametrize("seed", tiered(SEEDS, keep=IN_SUITE))
 def test_random_truth_is_recovered(seed: int, random_cases: _Cases) -> None:
     case = random_cases[seed]
     truth, start = case.comparison, case.result.start
@@ -189,10 +191,11 @@ def test_random_truth_is_recovered(seed: int, random_cases: _Cases) -> None:
         assert r.calibrated is not None and abs(r.calibrated - r.truth) <= bound, (r, bound, case.describe())
 
 
-def test_reported_sigma_is_honest(random_cases: _Cases) -> None:
-    """Pooled over the random cases, err / sigma of a, b, alpha, beta has an RMS near 1: the reported covariance
-    is neither wildly optimistic (RMS >> 1) nor pessimistic (RMS << 1)."""
-    z = np.array([random_cases[seed].z for seed in SEEDS])  # (seeds, 4)
+@pytest.mark.parametrize("n_seeds", tiered([IN_SUITE, len(SEEDS)]))
+def test_reported_sigma_is_honest(random_cases: _Cases, n_seeds: int) -> None:
+    """Pooled over the random cases (the suite's, or all with -m slow), err / sigma of a, b, alpha, beta has an RMS
+    near 1: the reported covariance is neither wildly optimistic (RMS >> 1) nor pessimistic (RMS << 1)."""
+    z = np.array([random_cases[seed].z for seed in SEEDS[:n_seeds]])  # (seeds, 4)
     rms = float(np.sqrt(np.mean(z**2)))
     per_param = ", ".join(f"{n} {np.sqrt(np.mean(z[:, i] ** 2)):.2f}" for i, n in enumerate(DH_NAMES))
     lo, hi = Z_RMS_RANGE
