@@ -99,14 +99,17 @@ def _row(base: str, case: str, method: str, t: Trial) -> str:
 
 
 def _biases(t: Trial) -> str:
-    """The range offset and marker range bias ``est`` estimated, mm +- 1-sigma (or why they were held)."""
+    """The range offset and marker range bias ``est`` estimated, mm +- 1-sigma (or why they were held), and the
+    incidence bias, mm/rad +- 1-sigma where estimated."""
     if t.result is None:
         return "-"
     sol = t.result.solution
     if not math.isfinite(sol.range_offset_sigma_m):
         return "held: " + next((n for n in t.result.notes if "range" in n and "held" in n), "not estimated")
+    inc, inc_sigma = sol.intrinsics.get("incidence_bias", (0.0, math.nan))
     return (f"{sol.range_offset_m * 1000:+6.2f} +- {sol.range_offset_sigma_m * 1000:4.2f}   "
-            f"{sol.marker_range_bias_m * 1000:+6.2f} +- {sol.marker_range_bias_sigma_m * 1000:4.2f}")
+            f"{sol.marker_range_bias_m * 1000:+6.2f} +- {sol.marker_range_bias_sigma_m * 1000:4.2f}   "
+            + (f"{inc * 1000:+6.2f} +- {inc_sigma * 1000:4.2f}" if math.isfinite(inc_sigma) else f"{'held':>15s}"))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -130,8 +133,9 @@ def main(argv: list[str] | None = None) -> int:
                     refused[m] += t.status != "calibrated"
                     print(_row(base, case, m, t), flush=True)
                 biases.append(f"{base:12s} {case:27s} {_biases(trials['est'])}")
-    print(f"\nest: range offset and marker-return range bias [mm], estimate +- 1-sigma\n"
-          f"{'scenario':12s} {'case':27s} {'offset':>15s}   {'marker bias':>15s}")
+    print(f"\nest: range offset and marker-return range bias [mm], incidence bias [mm/rad] (held at 0 unless its score "
+          f"test puts it beyond 4 sigma), estimate +- 1-sigma\n"
+          f"{'scenario':12s} {'case':27s} {'offset':>15s}   {'marker bias':>15s}   {'incidence':>15s}")
     print("\n".join(biases))
     print("\n" + "; ".join(f"{m}: {wrong[m]} confident wrong (|error| > {CONFIDENT_WRONG_Z:g} sigma), "
                            f"{refused[m]} refused" for m in METHODS) + f". {time.perf_counter() - t0:.0f} s")

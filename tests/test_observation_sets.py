@@ -131,10 +131,12 @@ def test_sets_of_one_kind_estimate_as_their_union() -> None:
     assert not unknowns.free[CORE_NAMES.index("x")] and unknowns.free[N_CORE:].all()
 
 
-def test_stacked_sets_jacobian_matches_finite_differences() -> None:
+@pytest.mark.parametrize("incidence_bias", [0.0, 0.05])
+def test_stacked_sets_jacobian_matches_finite_differences(incidence_bias: float) -> None:
     """Four sets in one problem (marker returns, the DH prior, two plane sets, the second with a prior on its
     planes): each set's nuisances follow the core in the sets' order, and the stacked Jacobian is the derivative of
-    the stacked residuals, column by column."""
+    the stacked residuals, column by column; with an incidence bias, its own column and the incidence's change with
+    every other unknown (lrfcal.model.plane, lrfcal.model.marker)."""
     rng = np.random.default_rng(5)
     K = 80
     lam, mu = rng.uniform(-1.5, 1.5, K), rng.uniform(-2.0, 2.0, K)
@@ -157,6 +159,7 @@ def test_stacked_sets_jacobian_matches_finite_differences() -> None:
         nus.append(nu0 + rng.normal(0, 0.01, nu0.size))
     pb = Problem(tuple(sets), 0.01)
     core, R_ref = pack(Params(Pose(0.1, -0.2, 0.3, 0.2, -0.1, 0.4), dh))
+    core[CORE_NAMES.index("incidence_bias")] = incidence_bias
     th = np.concatenate([core, *nus])
     res, J = pb.stacked(th, R_ref)
     # prior rows: one per nuisance, 0 (residual and weight) for the planes without a prior

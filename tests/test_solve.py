@@ -131,10 +131,12 @@ def test_jacobian_matches_central_differences(model: str, divergence: float) -> 
         # the sphere residuals are evaluated at scale: put the markers near the beams (|e| ~ R)
         radius = 0.3 if model == "sphere" else R_M
         for w in ((0.0, 0.0, 0.0), (0.4, -0.7, 1.1)):  # the right Jacobian of SO(3) away from w = 0 too
-            err = jacobian_check(Params.from_vector(theta), obs, X, sensor=MarkerSensor.of(model, radius, divergence),
-                                 clock=clock, rotation_vector=w)
-            assert err[:10].max() < 1e-6 and err[11:].max() < 1e-6, err  # 10 parameters, range offset and bias
-            assert err[10] < 5e-3, err  # the clock column: smoothed joint velocity (see jacobian_check)
+            for incidence_bias in (0.0, 0.05):  # the incidence's own change enters every column where it is not 0
+                err = jacobian_check(Params.from_vector(theta), obs, X,
+                                     sensor=MarkerSensor.of(model, radius, divergence), clock=clock,
+                                     rotation_vector=w, intrinsics={"incidence_bias": incidence_bias})
+                assert err[:10].max() < 1e-6 and err[11:].max() < 1e-6, err  # 10 parameters and the intrinsics
+                assert err[10] < 5e-3, err  # the clock column: smoothed joint velocity (see jacobian_check)
 
 
 def test_footprint_depth() -> None:

@@ -71,6 +71,7 @@ _EXPORTS: dict[str, str] = {
     "correlation_error_at": "lrfcal.estimate.information",
     "map_error_at": "lrfcal.estimate.information",
     "model_error_at": "lrfcal.estimate.information",
+    "held_steps_at": "lrfcal.estimate.information",
     "turning_error_at": "lrfcal.estimate.information",
     "scaled_pinv": "lrfcal.estimate.information",
     "LIMITS": "lrfcal.estimate.observability",
@@ -82,6 +83,7 @@ _EXPORTS: dict[str, str] = {
     "map_covariance": "lrfcal.stages.mds",
     "SCALES": "lrfcal.stages.joint",
     "SCALE_Z_LIMIT": "lrfcal.stages.joint",
+    "most_contradicted": "lrfcal.stages.joint",
     "OnPlanes": "lrfcal.estimate.problem",
     "Surface": "lrfcal.types",
     "PlaneMarkers": "lrfcal.stages.surfaces",
@@ -113,8 +115,10 @@ __all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "CheckOutcome
            "QuietOpt", "Recording", "ReturnGrid", "SCALES", "SCALE_Z_LIMIT", "STAGES", "Scans", "Solution", "Surface",
            "SurfaceReturns", "SurfaceSelection", "TunnelGeometry", "Verdict", "analyse", "apply_memory_policy",
            "apply_thread_policy", "calibrate", "calibrate_folder", "call_with_thread_policy", "cores",
-           "correlation_error_at", "detect", "estimated", "finite_between", "information_at", "keep_freed_memory",
-           "make_app", "map_covariance", "map_error_at", "mirror_check", "model_error_at", "observe_surfaces",
+           "correlation_error_at", "detect", "estimated", "finite_between", "held_steps_at", "information_at",
+           "keep_freed_memory",
+           "make_app", "map_covariance", "map_error_at", "mirror_check", "model_error_at", "most_contradicted",
+           "observe_surfaces",
            "of_covariance", "one_blas_thread", "print_summary", "progress_display", "read_recording", "run_app",
            "scaled_pinv", "turning_error_at", "viewer_can_spawn"]
 
@@ -142,6 +146,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.estimate.information import (
         correlation_error_at,
         estimated,
+        held_steps_at,
         information_at,
         map_error_at,
         model_error_at,
@@ -159,7 +164,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
     from lrfcal.runtime.memory import apply_memory_policy, keep_freed_memory
     from lrfcal.runtime.threads import apply_thread_policy, call_with_thread_policy, one_blas_thread
     from lrfcal.stages.detection import detect
-    from lrfcal.stages.joint import SCALE_Z_LIMIT, SCALES
+    from lrfcal.stages.joint import SCALE_Z_LIMIT, SCALES, most_contradicted
     from lrfcal.stages.mds import map_covariance
     from lrfcal.stages.surfaces import PlaneMarkers, ReturnGrid, SurfaceSelection, observe_surfaces
     from lrfcal.terminal.cliutil import Command, QuietOpt, finite_between, make_app, run_app

@@ -4,7 +4,7 @@ differences (a test of the observation models)."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import replace
 
 import numpy as np
@@ -19,7 +19,7 @@ from lrfcal.model.kinematics import Params
 from lrfcal.model.marker import MarkerModel, MarkerSensor
 from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock
 from lrfcal.model.noise import correlated_range_excess
-from lrfcal.model.unknowns import CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
+from lrfcal.model.unknowns import BY_NAME, CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from lrfcal.types import Observations, SurfaceReturns
 
 FloatArray = NDArray[np.float64]
@@ -62,11 +62,12 @@ def jacobian_check(
     step: float = 1e-6,
     clock: MotorClock | None = None,
     rotation_vector: ArrayLike = (0.0, 0.0, 0.0),
+    intrinsics: Mapping[str, float] | None = None,
 ) -> FloatArray:
     """Per column, the largest relative difference between the analytic Jacobian and central finite differences:
     every core unknown in CORE_NAMES order (lrfcal.model.unknowns), the clock offset only when ``clock`` is given
     (obs.times_s the beam times; N_CORE or N_CORE - 1 columns), evaluated at the rotation increment ``rotation_vector``
-    (to test the right Jacobian away from 0).
+    (to test the right Jacobian away from 0) and with the ``intrinsics`` named at the values given (name -> value).
 
     Each column's difference is divided by max(|J_analytic| column max, 1) in whitened units. The clock column
     uses the joint velocity smoothed over ~50 ms, not the slope of the piecewise-linear interpolation, so it
@@ -74,6 +75,8 @@ def jacobian_check(
     """
     pb, th, R_ref = _at(params, obs, markers_W, sensor, Clock(clock))
     th[3:6] = np.asarray(rotation_vector, dtype=float)
+    for name, value in (intrinsics or {}).items():
+        th[CORE_NAMES.index(name)] = value
     _, J = pb.marker_rows(th, R_ref)
     assert J is not None
     J = J.reshape(-1, N_CORE)
@@ -110,7 +113,7 @@ def information_at(
 
 def model_error_at(
     obs: Observations, markers_W: ArrayLike, params: Params, *, sensor: MarkerSensor, clock: Clock = NO_CLOCK,
-    surfaces: OnPlanes | None = None,
+    surfaces: OnPlanes | None = None, estimate: Sequence[str] = (),
 ) -> FloatArray:
     """The covariance (k, k) that the model's own errors add to an estimate, over the unknowns (and in the order)
     of :func:`information_at`, from returns without noise (``obs`` and ``surfaces`` of a noise-free simulation at
@@ -120,8 +123,9 @@ def model_error_at(
     scan's surface returns: lrfcal.estimate.problem.Problem.clusters), one Gauss-Newton step from
     the truth (at the noise-free optimum): the part of the calibration's per-scan widening (lrfcal.estimate.solve) that
     noise does not explain. ``lrfsim plan`` adds it to the statistical covariance, as a noisy recording's sandwich
-    holds both."""
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces)
+    holds both. ``estimate``: unknowns held by default that are estimated (those the data contradict,
+    :func:`held_steps_at`)."""
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, estimate=estimate)
     # one Gauss-Newton step to the noise-free optimum: what the unknowns absorb (the marker range bias of a
     # footprint, the planes' offsets) is a shift of the estimate, not a scatter
     step = solve_step(assemble(pb.blocks(th, R_ref), idx), 0.0)
@@ -144,9 +148,28 @@ def model_error_at(
     return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
 
 
+def held_steps_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, names: Sequence[str], *, sensor: MarkerSensor,
+    clock: Clock = NO_CLOCK, surfaces: OnPlanes | None = None, estimate: Sequence[str] = (),
+) -> dict[str, float]:
+    """Name -> the value each unknown of ``names`` (held by default, not in ``estimate``) steps to when freed alone
+    (with its ``tested_with`` companion, lrfcal.model.unknowns) beside ``estimate``: one Gauss-Newton step from the
+    truth on returns without noise, what the calibration's score test (lrfcal.estimate.covariance.held_score) steps
+    to on a recording of them. Different from its start where the simulated scanner has an error the held model
+    lacks (the scenario's sensor.systematic: an incidence law)."""
+    out = {}
+    for n in (m for m in names if m not in estimate):
+        freed = [*estimate, n, *([BY_NAME[n].tested_with] if BY_NAME[n].tested_with else [])]
+        pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, estimate=freed)
+        step = solve_step(assemble(pb.blocks(th, R_ref), idx), 0.0)
+        i = CORE_NAMES.index(n)
+        out[n] = float(th[i] + step[int(np.searchsorted(idx, i))])
+    return out
+
+
 def correlation_error_at(
     obs: Observations, markers_W: ArrayLike, params: Params, rho: float, *, sensor: MarkerSensor,
-    clock: Clock = NO_CLOCK, surfaces: OnPlanes | None = None,
+    clock: Clock = NO_CLOCK, surfaces: OnPlanes | None = None, estimate: Sequence[str] = (),
 ) -> FloatArray:
     """The covariance (k, k) that range noise correlated along the scan (neighbouring beams ``rho``, an AR(1)
     process: lrfcal.model.noise) adds to the independent-noise one (the inverse of :func:`information_at`), over the
@@ -159,7 +182,7 @@ def correlation_error_at(
     range row is the one the range noise enters)."""
     if sensor.model is not MarkerModel.SPHERE:
         raise ValueError(f"correlation_error_at: the sphere model only, got {sensor.model.value!r}")
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, estimate=estimate)
     k = idx.size
     if rho == 0.0:
         return np.zeros((k, k))
@@ -210,7 +233,7 @@ def turning_error_at(
 
 def map_error_at(
     info: FloatArray, obs: Observations, markers_W: ArrayLike, params: Params, map_cov: FloatArray, *,
-    sensor: MarkerSensor, clock: Clock = NO_CLOCK, surfaces: OnPlanes | None = None,
+    sensor: MarkerSensor, clock: Clock = NO_CLOCK, surfaces: OnPlanes | None = None, estimate: Sequence[str] = (),
 ) -> FloatArray:
     """The covariance (k, k) the marker map's own uncertainty ``map_cov`` (3n, 3n) (lrfcal.stages.mds.map_covariance)
     adds
@@ -218,7 +241,7 @@ def map_error_at(
     G map_cov G^T with G = -info^-1 J_m^T J_c (lrfcal.estimate.problem.Problem.centre_cross), as lrfcal.estimate.solve
     adds it to a
     calibration's covariance."""
-    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces)
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, estimate=estimate)
     G = -scaled_pinv(info) @ pb.centre_cross(
         th, R_ref, idx, len(map_cov) // 3)
     return G @ map_cov @ G.T

@@ -106,8 +106,10 @@ class MarkerRequest:
     options: SolveOptions = DEFAULT_OPTIONS
 
     def paper(self) -> MarkerRequest:
-        """The same request with the seed paper's marker model (eq. (10))."""
-        return replace(self, sensor=replace(self.sensor, model=MarkerModel.PAPER))
+        """The same request with the seed paper's marker model (eq. (10)): a return's point, which knows no surface
+        and so no incidence (the incidence bias held, lrfcal.model.scanner)."""
+        options = replace(self.options, estimate=tuple(n for n in self.options.estimate if n != "incidence_bias"))
+        return replace(self, sensor=replace(self.sensor, model=MarkerModel.PAPER), options=options)
 
     def posed(self) -> _MarkerPosed:
         """The request as the engine takes it (lrfcal.estimate.engine.Posed)."""

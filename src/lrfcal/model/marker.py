@@ -2,7 +2,7 @@
 
 Two models (o, d: the beam's origin and unit direction in W, lrfcal.model.rays; r: the reported range, compared
 with what the scanner reports of the predicted true range, rep(r_hat) = range_scale r_hat + range_offset +
-marker_range_bias, lrfcal.model.scanner):
+marker_range_bias + incidence_bias theta, lrfcal.model.scanner):
 
 * ``"paper"`` (seed paper eq. (10)): residual (o + r_true d - c) / sigma_r, 3 per return (r_true the reported
   range's true range).
@@ -21,11 +21,14 @@ marker_range_bias, lrfcal.model.scanner):
   the footprint, two independent uniform discs). Modelling the beam as its axis alone leaves the footprint in the
   marker returns' ranges: on lrfsim's 4.4 mrad beam and 5 mm spheres a marker-return range bias of -0.9 mm
   (plane_30deg), +0.04 mm with the footprint (docs/study.md).
+  The incidence theta where the beam meets the sphere is atan2(u, s(u)) (sin theta = u on the sphere), its mean over
+  the same part of the footprint (footprint_incidence): 0 through the centre, pi/2 at the rim.
 
 Jacobian (chain rule from lrfcal.model.rays' o_j, d_j):
     paper: (o + r_true d)_j / sigma_r, plus d dr_true/dtheta_j / sigma_r for the range's unknowns.
     sphere: v_j = -o_j; t_j = v_j.d + v.d_j; e_j = v_j - t_j d - t d_j; |e|_j = (e/|e|).e_j;
-      r_hat_j = t_j - s'(u) |e|_j;  range residual_j = -(range_scale r_hat_j + drep/dtheta_j) / sigma_r;
+      r_hat_j = t_j - s'(u) |e|_j;  range residual_j = -(range_scale r_hat_j + incidence_bias theta'(u) |e|_j / R_m
+      + drep/dtheta_j) / sigma_r;
       lateral_j = e_j / sigma_lat.
 """
 
@@ -41,8 +44,8 @@ from lrfcal.model.motor import MotorClock, motor_angles
 from lrfcal.model.observations import Blocks, MarkerModel, MarkerSensor, RowContext, robust_kept
 from lrfcal.model.rays import beam_rays
 from lrfcal.model.scanner import reported_range, true_range
-from lrfcal.model.sphere import footprint_depth
-from lrfcal.model.unknowns import DH_SLICE, N_CORE, RSCALE
+from lrfcal.model.sphere import footprint_depth, footprint_incidence
+from lrfcal.model.unknowns import DH_SLICE, INC, N_CORE, RSCALE
 
 FloatArray = NDArray[np.float64]
 
@@ -232,7 +235,9 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     v, t, e = ray_to_centre(o, d, ms.c)
     rho = np.linalg.norm(e, axis=1)
     s, ds = footprint_depth(rho / R, ms.footprint)
-    rep = reported_range(th, t - R * s, on_marker=True)  # the range the scanner reports of r_hat = t - R s
+    inc, dinc = footprint_incidence(rho / R, ms.footprint)  # where the beam meets the sphere
+    # the range the scanner reports of r_hat = t - R s, met at the incidence inc
+    rep = reported_range(th, t - R * s, on_marker=True, incidence=inc)
     sig_lat = ms.sigma_lat[:, None]
     res = np.concatenate([((ms.r - rep.r) / sigma_r)[:, None], e / sig_lat], 1)
     if ms.lateral is not None:
@@ -248,6 +253,8 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     Jrho = np.einsum("ki,kij->kj", n_e, Je)
     Jrhat = Jt - ds[:, None] * Jrho
     J = np.concatenate([(-rep.scale * Jrhat / sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
+    if th[INC] != 0.0:  # the incidence's own change: d inc = dinc d rho / R
+        J[:, 0, :] -= (th[INC] * dinc / (R * sigma_r))[:, None] * Jrho
     for j, dr in rep.partials:
         J[:, 0, j] = -dr / sigma_r
     if ms.lateral is not None:

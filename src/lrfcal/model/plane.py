@@ -1,8 +1,9 @@
 """Ray-plane range residuals and their Jacobian, row by row without (K, 3, N_CORE) temporaries.
 
-A return k on plane j (:class:`PlaneSet`) has the residual (r_k - range_scale r_p - range_offset) /
-sigma_r (lrfcal.model.scanner.reported_range) against the ray-plane distance r_p = (d_j - n_j . o) / (n_j . dir)
-(lrfcal.estimate.solve's module docstring has the forward model).
+A return k on plane j (:class:`PlaneSet`) has the residual (r_k - range_scale r_p - range_offset - incidence_bias
+theta) / sigma_r (lrfcal.model.scanner.reported_range) against the ray-plane distance r_p = (d_j - n_j . o) /
+(n_j . dir), theta = arccos |n_j . dir| the beam's incidence on the plane (lrfcal.estimate.solve's module docstring
+has the forward model; the incidence's own derivatives: :func:`_add_incidence_change`).
 Everything is evaluated in the frame of the beam before the motor's turn ("L0": M turned back by lambda_k), where
 the ray is fixed by the DH parameters alone, o_0 = [a, -b sin alpha, b cos alpha] and
 dir_0 = [cos phi, sin phi cos alpha, sin phi sin alpha] (phi = beta + mu_k), and the plane's normal is
@@ -33,7 +34,7 @@ from lrfcal.model.kinematics import exp_so3, right_jacobian_so3
 from lrfcal.model.motor import MotorAngles, MotorClock, motor_angles
 from lrfcal.model.observations import Blocks, RowContext, robust_kept
 from lrfcal.model.scanner import TrueBearing, reported_range, true_bearing
-from lrfcal.model.unknowns import BSCALE, N_CORE, SCALE
+from lrfcal.model.unknowns import BSCALE, INC, N_CORE, SCALE
 
 FloatArray = NDArray[np.float64]
 _EYE = np.eye(3)
@@ -211,7 +212,8 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
     a, b, ca, sa, cp, sp, cl, sl = geo.a, geo.b, geo.ca, geo.sa, geo.cp, geo.sp, geo.cl, geo.sl
     nx, ny, nz, oy, oz, dy, dz, nd, rp = geo.nx, geo.ny, geo.nz, geo.oy, geo.oz, geo.dy, geo.dz, geo.nd, geo.rp
     bearing = geo.bearing
-    rep = reported_range(th, rp, on_marker=False)
+    incidence = np.arccos(np.minimum(np.abs(nd), 1.0))
+    rep = reported_range(th, rp, on_marker=False, incidence=incidence)
     res = (s.r - rep.r) / sigma_r
     if not jac:
         return PlaneRows(res)
@@ -254,7 +256,47 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
         gx, gy = pl(vM[:, 0]), pl(vM[:, 1])
         Jn[:, i] = -(xx * (cl * gx + sl * gy) + xy * (cl * gy - sl * gx) + xz * pl(vM[:, 2]) + pl(dn @ t)) * q
     Jn[:, 2] = q
+    if th[INC] != 0.0:  # the incidence's own change with the unknowns
+        _add_incidence_change(th, geo, incidence, sigma_r, Jc, Jn, s, mount_jac, chart)
     return PlaneRows(res, Jc, Jn)
+
+
+def _add_incidence_change(th: FloatArray, geo: _RaysOnPlanes, incidence: FloatArray, sigma_r: float, Jc: FloatArray,
+                          Jn: FloatArray, s: PlaneSet, mount_jac: bool, chart: FloatArray | None) -> None:
+    """Adds -incidence_bias d theta / sigma_r to the Jacobian blocks, theta = arccos |nd| (nd = n_0 . dir_0): nd
+    changes with the directions alone (not a, b, the translation or the planes' offsets),
+    d nd = n_0 . (dw x dir_0) = dw . (dir_0 x n_0) for a turn dw of the ray (alpha about x, beta and the bearing about
+    the scanner's axis (0, -sin alpha, cos alpha), a chart column's dw_k), d nd / d lambda = n_y cos phi - n_x dir_y,
+    d nd / dw_mount = -(n_M x d_M)^T J_r(w), d nd / du_i = dir_0 . Rz(-lambda) R^T dn/du_i."""
+    nx, ny, nz, cp, dy, dz, cl, sl = geo.nx, geo.ny, geo.nz, geo.cp, geo.dy, geo.dz, geo.cl, geo.sl
+    sin_t = np.maximum(np.sin(incidence), 1e-9)
+    f = th[INC] * np.sign(geo.nd) / (sin_t * sigma_r)  # -k d theta / sigma_r = f d nd (d theta = -sign d nd / sin)
+    g = (dy * nz - dz * ny, dz * nx - cp * nz, cp * ny - dy * nx)  # dir_0 x n_0
+    if mount_jac:
+        cMx, cMy = -(cl * g[0] - sl * g[1]), -(sl * g[0] + cl * g[1])  # n_M x d_M = -Rz(lambda) g
+        Jr = right_jacobian_so3(th[3:6])
+        for j in range(3):
+            Jc[:, 3 + j] -= f * (cMx * Jr[0, j] + cMy * Jr[1, j] - g[2] * Jr[2, j])
+    turn_axis = (0.0, -geo.sa, geo.ca)
+    if chart is None:
+        Jc[:, 7] += f * g[0]
+        Jc[:, 9] += f * (turn := _dot(turn_axis, g))
+    else:
+        for k in range(4):
+            Jc[:, 6 + k] += f * _dot(chart[3:, k], g)
+        turn = _dot(turn_axis, g)
+    for j, dmu in geo.bearing.partials:
+        Jc[:, j] += f * turn * dmu
+    if geo.motor.partials:
+        dnd_dlam = ny * cp - nx * dy
+        for j, dlam in geo.motor.partials:
+            Jc[:, j] += f * dnd_dlam * dlam
+    pl = s.per_row
+    for i, tan in enumerate((s.t1, s.t2)):
+        dn = (tan - geo.n_p * (geo.n_p * tan).sum(1, keepdims=True)) / geo.m_norm
+        vM = dn @ geo.R
+        gx, gy = pl(vM[:, 0]), pl(vM[:, 1])
+        Jn[:, i] += f * (cp * (cl * gx + sl * gy) + dy * (cl * gy - sl * gx) + dz * pl(vM[:, 2]))
 
 
 

@@ -1,8 +1,12 @@
 """The scanner's intrinsics: the range it reports of a true range, and the true bearing of a declared one.
 
-    r = range_scale r_true + range_offset + marker_range_bias [marker returns only]
+    r = range_scale r_true + range_offset + marker_range_bias [marker returns only] + incidence_bias theta
     mu_true = beam_scale mu          (mu = angle_min + i angle_increment as the scan declares it; beta, the DH
                                       angle, absorbs any constant, so a wrongly declared increment is a scale)
+
+theta is the beam's incidence on the surface it meets [rad] (0 head-on), which each observation model knows from its
+geometry (a plane's normal, where the beam meets a sphere): a range read longer the more obliquely a surface is met
+(docs/sensor_errors.md, "incidence"). :func:`true_range` has no geometry and leaves that term out.
 
 The range observation models predict a beam's true range r_hat from the geometry and compare the reported range
 with :func:`reported_range` of it: the scale multiplies the prediction, never the measurement, so the range noise
@@ -21,7 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.model.motor import motor_angles
-from lrfcal.model.unknowns import BSCALE, MBIAS, ROFF, RSCALE
+from lrfcal.model.unknowns import BSCALE, INC, MBIAS, ROFF, RSCALE
 
 FloatArray = NDArray[np.float64]
 
@@ -36,16 +40,22 @@ class Reported:
     partials: tuple[tuple[int, FloatArray], ...]
 
 
-def reported_range(th: FloatArray, r_true: FloatArray, on_marker: bool) -> Reported:
+def reported_range(th: FloatArray, r_true: FloatArray, on_marker: bool, incidence: FloatArray | None = None
+                   ) -> Reported:
     """The range the scanner reports of the true ranges ``r_true`` (K,) at the unknowns ``th`` (module docstring);
-    ``on_marker``: the returns are from retroreflective markers (their range bias applies)."""
+    ``on_marker``: the returns are from retroreflective markers (their range bias applies); ``incidence``: each
+    beam's incidence on its surface [rad] (K,) (None: not known, the incidence bias left out). The partials are those
+    at a fixed incidence: the observation model adds the incidence's own change (incidence_bias d theta)."""
     r_true = np.asarray(r_true, dtype=float)
     k = float(th[RSCALE])
     one = np.ones(r_true.shape)
     r = (r_true if k == 1.0 else k * r_true) + th[ROFF]
+    partials: tuple[tuple[int, FloatArray], ...] = ((ROFF, one), (RSCALE, r_true))
     if on_marker:
-        return Reported(r + th[MBIAS], k, ((ROFF, one), (MBIAS, one), (RSCALE, r_true)))
-    return Reported(r, k, ((ROFF, one), (RSCALE, r_true)))
+        r, partials = r + th[MBIAS], (*partials, (MBIAS, one))
+    if incidence is not None:
+        r, partials = (r if th[INC] == 0.0 else r + th[INC] * incidence), (*partials, (INC, incidence))
+    return Reported(r, k, partials)
 
 
 @dataclass(frozen=True)

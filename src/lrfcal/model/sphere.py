@@ -8,6 +8,8 @@ docstring.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy.special import expit
@@ -51,6 +53,17 @@ def _unit_disc(n: int) -> FloatArray:
 _DISC = _unit_disc(37)  # the beam's footprint, in units of its radius (37 points: the depth to ~0.04 R_m at k = 1,
 #                             0.2 mm on 5 mm markers, beside 10 mm of range noise)
 _DISC_DEPTH = np.sqrt(np.maximum(0.0, 1.0 - (_DISC ** 2).sum(1)))  # s on the sphere's own disc (k > 1)
+_DISC_INCIDENCE = np.arcsin(np.minimum(1.0, np.sqrt((_DISC ** 2).sum(1))))  # the incidence there (k > 1)
+
+#: what is averaged over a footprint at offsets rho from the centre (q = (1 - rho^2) / eta): its value and d/d rho
+_PointValue = Callable[[FloatArray, FloatArray, float], tuple[FloatArray, FloatArray]]
+
+
+def _incidence_q(rho: FloatArray, q: FloatArray, eta: float) -> tuple[FloatArray, FloatArray]:
+    """The incidence angle where a ray at offset rho meets the unit sphere, theta = atan2(rho, s(rho)) (sin theta = rho
+    and cos theta = s on the sphere; smooth through the rim, where theta -> pi / 2), and d theta / d rho."""
+    s, ds = _sphere_depth_q(rho, q, eta)
+    return np.arctan2(rho, s), (s - rho * ds) / (rho * rho + s * s)
 
 
 def footprint_depth(u: ArrayLike, k: ArrayLike, eta: float = _ETA) -> tuple[FloatArray, FloatArray]:
@@ -68,9 +81,22 @@ def footprint_depth(u: ArrayLike, k: ArrayLike, eta: float = _ETA) -> tuple[Floa
     Returns:
         S (K,), dS/du (K,).
     """
+    return _over_footprint(u, k, eta, _sphere_depth_q, _DISC_DEPTH)
+
+
+def footprint_incidence(u: ArrayLike, k: ArrayLike, eta: float = _ETA) -> tuple[FloatArray, FloatArray]:
+    """The beam's mean incidence angle on a unit sphere [rad] (K,) over the same part of its footprint as
+    :func:`footprint_depth`, and its derivative in u (K,): what a range's incidence bias sees on a marker."""
+    return _over_footprint(u, k, eta, _incidence_q, _DISC_INCIDENCE)
+
+
+def _over_footprint(u: ArrayLike, k: ArrayLike, eta: float, value: _PointValue, on_disc: FloatArray
+                    ) -> tuple[FloatArray, FloatArray]:
+    """The mean of ``value`` over the footprint's hits (:func:`footprint_depth`) and its derivative in u;
+    ``on_disc``: its values on the sphere's own disc (k > 1)."""
     u, k = np.broadcast_arrays(np.asarray(u, dtype=float), np.asarray(k, dtype=float))
     if not np.any(k > 0):
-        return sphere_depth(u, eta)
+        return value(u, (1.0 - u * u) / eta, eta)
     S, dS = np.empty(u.shape), np.empty(u.shape)
     x1, x2 = _DISC[:, 0], _DISC[:, 1]
     small = k <= 1.0
@@ -79,13 +105,13 @@ def footprint_depth(u: ArrayLike, k: ArrayLike, eta: float = _ETA) -> tuple[Floa
         a = us + ks * x1
         rho = np.sqrt(a * a + (ks * x2) ** 2)
         q = (1.0 - rho * rho) / eta
-        s, ds = _sphere_depth_q(rho, q, eta)
+        s, ds = value(rho, q, eta)
         # d rho / d u (a / rho where rho > 1e-12, the usual case everywhere: no masking then, the same bits)
         drho = a / rho if (rho > 1e-12).all() else np.where(rho > 1e-12, a / np.maximum(rho, 1e-12), 1.0)
         S[small], dS[small] = _weighted_mean(s, ds * drho, q, -2.0 * rho * drho / eta)
     if np.any(~small):  # points of the sphere's disc, weighted by lying in the footprint
         ub, kb = u[~small][:, None], k[~small][:, None]
-        s = np.broadcast_to(_DISC_DEPTH, (ub.shape[0], _DISC_DEPTH.size))
+        s = np.broadcast_to(on_disc, (ub.shape[0], on_disc.size))
         dx = x1 - ub
         q = (kb * kb - dx * dx - x2 * x2) / (eta * kb * kb)
         S[~small], dS[~small] = _weighted_mean(s, np.zeros_like(s), q, 2.0 * dx / (eta * kb * kb))
@@ -102,4 +128,4 @@ def _weighted_mean(v: FloatArray, dv: FloatArray, q: FloatArray, dq: FloatArray)
     return m, ((w * dv).sum(-1) + (dw * v).sum(-1) - m * dw.sum(-1)) / W
 
 
-__all__ = ["footprint_depth", "sphere_depth"]
+__all__ = ["footprint_depth", "footprint_incidence", "sphere_depth"]

@@ -64,6 +64,10 @@ UNKNOWNS: tuple[Unknown, ...] = (
             "the joint's reported angle times this is the motor angle (a gear ratio or counts per turn off)"),
     Unknown("beam_scale", "1", "intrinsic", 1.0, "the scan's declared angle increment is trusted: held at 1",
             "the declared bearing times this is the beam's bearing (an angle increment declared wrongly)"),
+    Unknown("incidence_bias", "m", "intrinsic", 0.0,
+            "the ranges are taken as independent of the beam's incidence on the surface: held at 0 unless the data "
+            "contradict it", "added to a range per radian of the beam's incidence on the surface it meets [m/rad]",
+            "range_offset"),
 )
 assert tuple(u.name for u in UNKNOWNS[:10]) == ESTIMATE_NAMES
 
@@ -77,6 +81,7 @@ MBIAS = CORE_NAMES.index("marker_range_bias")
 RSCALE = CORE_NAMES.index("range_scale")
 SCALE = CORE_NAMES.index("motor_scale")
 BSCALE = CORE_NAMES.index("beam_scale")
+INC = CORE_NAMES.index("incidence_bias")
 DH_SLICE = slice(6, 10)
 INTRINSICS: tuple[str, ...] = tuple(u.name for u in UNKNOWNS if u.kind == "intrinsic")
 

@@ -12,24 +12,39 @@ the DH parameters (a fast one-pass sweep: one scan line per marker).
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from functools import partial
 from typing import Protocol
 
 from lrfcal.estimate import observability
+from lrfcal.model.unknowns import BY_NAME
 from lrfcal.stages import surfaces, timing
 from lrfcal.stages.targetless import SceneConfig, merge_returns, scene_plane_returns
 from lrfcal.types import Detections, JointStates, MarkerMap, Noted, Recording, Solution
 
-#: an intrinsic scale whose score test steps this many sigma from 1 is estimated (a gear ratio, an angle increment)
+#: an intrinsic held at its start by default whose score test steps this many sigma from it is estimated (a gear
+#: ratio, a range scale, ranges that grow with the incidence)
 SCALE_Z_LIMIT = 4.0
-#: what is off when a scale held at 1 by default is not 1 (lrfcal.model.unknowns, kind "intrinsic"). The bearing
-#: scale (beam_scale) is not tested: on tunnel_v_systematic the unmodelled range errors move its score test 15 sigma
-#: from 1 (0.99147 +- 0.00057, truth 1), and estimating it puts the mount 10 mm off
+#: what is off when an intrinsic held at its start by default is not (lrfcal.model.unknowns, kind "intrinsic"): the
+#: scales (held at 1) and the incidence bias (held at 0). The bearing scale (beam_scale) is not tested: on
+#: tunnel_v_systematic the unmodelled range errors moved its score test 15 sigma from 1 (0.99147 +- 0.00057, truth 1),
+#: and estimating it put the mount 10 mm off
 SCALES = {"motor_scale": "the servo's motor-angle scale (a gear ratio or counts per turn in the joint states?)",
           "range_scale": "the scanner's range scale (ranges off in proportion to their length, or a range bias "
-                         "growing with range read as one?)"}
+                         "growing with range read as one?)",
+          "incidence_bias": "the ranges' growth with the beam's incidence on the surface (a time-of-flight scanner "
+                            "reading an oblique surface long?)"}
+
+
+def most_contradicted(scores: Mapping[str, tuple[float, float]]) -> str | None:
+    """The rule for freeing a held intrinsic, written once (the calibration's :func:`most_off`, ``lrfsim plan``'s
+    prediction): of :data:`SCALES` in ``scores`` (name -> the value its score test steps to and its sigma), the one
+    furthest from its start in sigma, where that is beyond :data:`SCALE_Z_LIMIT`; else None."""
+    z = {n: abs(v - BY_NAME[n].start) / s for n, (v, s) in scores.items()
+         if n in SCALES and math.isfinite(s) and s > 0}
+    name = max(z, key=z.__getitem__, default=None)
+    return None if name is None or z[name] <= SCALE_Z_LIMIT else name
 
 
 def most_off(sol: Solution, max_chi2: float) -> Noted[str] | None:
@@ -39,15 +54,15 @@ def most_off(sol: Solution, max_chi2: float) -> Noted[str] | None:
     sigma, which it absorbs. None where ``sol``'s reduced chi-square is above ``max_chi2``: a score test means nothing
     where the model does not fit (three times the stated range noise stepped the range scale 4.4 sigma), and the
     chi-square check names that."""
-    if not sol.reduced_chi2 <= max_chi2:
-        return None
-    z = {n: abs(v - 1.0) / s for n, (v, s) in sol.held_score.items() if n in SCALES and math.isfinite(s) and s > 0}
-    name = max(z, key=z.__getitem__, default=None)
-    if name is None or z[name] <= SCALE_Z_LIMIT:
+    if not sol.reduced_chi2 <= max_chi2 or (name := most_contradicted(sol.held_score)) is None:
         return None
     value, sigma = sol.held_score[name]
-    return Noted(name, (f"{SCALES[name]} is off: about {value:.5f} +- {sigma:.5f} ({z[name]:.0f} sigma from 1): "
-                        "estimated in every solve",))
+    z = abs(value - BY_NAME[name].start) / sigma
+    if BY_NAME[name].unit == "m":  # the incidence bias, per radian
+        about = f"{value * 1000:.3g} +- {sigma * 1000:.2g} mm/rad ({z:.0f} sigma from 0)"
+    else:
+        about = f"{value:.5f} +- {sigma:.5f} ({z:.0f} sigma from {BY_NAME[name].start:g})"
+    return Noted(name, (f"{SCALES[name]} is off: about {about}: estimated in every solve",))
 
 
 class JointConfig(SceneConfig, Protocol):
@@ -129,5 +144,5 @@ def _motor_angles_at(times_at: Callable[[surfaces.IntArray], surfaces.FloatArray
     return timing.motor_angles(times_at(i), joints, clock_offset_s=clock_offset_s, tolerance_s=math.inf)
 
 
-__all__ = ["NO_SURFACE_RANGE_BIAS", "SCALES", "JointConfig", "SCALE_Z_LIMIT", "Recorded", "every_plane", "most_off",
-           "surfaces_at", "unseparated_range_bias"]
+__all__ = ["NO_SURFACE_RANGE_BIAS", "SCALES", "JointConfig", "SCALE_Z_LIMIT", "Recorded", "every_plane",
+           "most_contradicted", "most_off", "surfaces_at", "unseparated_range_bias"]

@@ -60,11 +60,13 @@ from lrfcal import (
     analyse,
     correlation_error_at,
     estimated,
+    held_steps_at,
     information_at,
     map_covariance,
     map_error_at,
     mirror_check,
     model_error_at,
+    most_contradicted,
     observe_surfaces,
     of_covariance,
     scaled_pinv,
@@ -194,10 +196,11 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     wide, wide_names = information_at(obs, markers_W, params, sensor=sensor, clock=ev.clock, surfaces=ev.surfaces,
                                       estimate=freed)
     wide = 0.5 * (wide + wide.T)
-    base = tuple(CORE_NAMES[i] for i in estimated(two_way, on_planes is not None))
-    info = wide[np.ix_(*[[wide_names.index(n) for n in base]] * 2)]
     notes: list[str] = []
-    cov, model_sigma, map_sigma = _covariance(scenario, info, names, ev, notes)
+    freed = _contradicted(ev, wide, wide_names, two_way, notes)
+    base = tuple(CORE_NAMES[i] for i in estimated(two_way, on_planes is not None, freed))
+    info = wide[np.ix_(*[[wide_names.index(n) for n in base]] * 2)]
+    cov, model_sigma, map_sigma = _covariance(scenario, info, names, ev, notes, freed)
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
     # the verdict the calibration gives before solving: from the marker returns alone (lrfcal.pipeline)
     obsv = analyse(0.5 * (info_markers + info_markers.T), names, params.dh.alpha)
@@ -218,7 +221,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 n_surface_returns=0 if on_planes is None else len(on_planes), notes=tuple(notes),
                 observability_solved=of_covariance(cov, names, params.dh.alpha),  # calibrate's final check's rule
                 model_sigma=model_sigma,
-                map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base),
+                map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base, freed),
                 range_correlation=float(scenario.sensor.noise_correlation),
                 mirror=_mirror(params.dh, scenario, config, np.array([sigma[n] for n in DH_NAMES])),
                 covariance_names=base if len(base) == cov.shape[0] else names)
@@ -231,13 +234,36 @@ def _mirror(truth: DH, scenario: Scenario, config: CalibConfig, dh_sigma: FloatA
     return c.passed, c.detail
 
 
-def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[str, ...]) -> dict[str, float]:
+def _contradicted(ev: _Evidence, wide: FloatArray, wide_names: tuple[str, ...], two_way: bool, notes: list[str]
+                  ) -> tuple[str, ...]:
+    """The held intrinsics the calibration would free on a recording of this scenario: where the noise-free returns
+    step one beyond SCALE_Z_LIMIT of its sigma (lrfcal.stages.joint.most_contradicted, the calibration's rule;
+    lrfcal.estimate.information.held_steps_at), one at a time as the calibration frees them (the scenario's
+    sensor.systematic: an incidence law the held model lacks)."""
+    at = (ev.obs, ev.markers_W, ev.params)
+    freed: tuple[str, ...] = ()
+    while True:
+        base = tuple(CORE_NAMES[i] for i in estimated(two_way, ev.surfaces is not None, freed))
+        sigma = _scale_sigmas(wide, wide_names, base, freed)
+        steps = held_steps_at(*at, tuple(sigma), sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces,
+                              estimate=freed)
+        name = most_contradicted({n: (steps[n], sigma[n]) for n in steps})
+        if name is None:
+            return freed
+        freed = (*freed, name)
+        notes.append(f"{name} estimated, as the calibration would: the recording's returns step it to "
+                     f"{steps[name]:.4g}, {abs(steps[name] - BY_NAME[name].start) / sigma[name]:.0f} sigma from "
+                     f"{BY_NAME[name].start:g} (the scenario's scanner has an error the held model lacks)")
+
+
+def _scale_sigmas(wide: FloatArray, wide_names: tuple[str, ...], names: tuple[str, ...],
+                  freed: tuple[str, ...] = ()) -> dict[str, float]:
     """Scale name -> the statistical 1-sigma it would have if freed beside ``names`` (with the unknown its score
     test frees beside it, lrfcal.model.unknowns ``tested_with``), from the information ``wide`` over ``wide_names``:
     the size of scale error the calibration's score test finds (SCALE_Z_LIMIT of it; at least, since where the plain
     score steps beyond 2 sigma the calibration widens that sigma for the model error, lrfcal.estimate.covariance)."""
     out = {}
-    for n in SCALES:
+    for n in (m for m in SCALES if m not in freed):
         sub = [*names, *dict.fromkeys(m for m in (n, BY_NAME[n].tested_with) if m and m not in names)]
         k = [wide_names.index(m) for m in sub]
         var = scaled_pinv(wide[np.ix_(k, k)])[sub.index(n), sub.index(n)]
@@ -258,8 +284,8 @@ class _Evidence:
     surfaces: OnPlanes | None
 
 
-def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ev: _Evidence, notes: list[str]
-                ) -> tuple[FloatArray, dict[str, float], dict[str, float]]:
+def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ev: _Evidence, notes: list[str],
+                freed: tuple[str, ...] = ()) -> tuple[FloatArray, dict[str, float], dict[str, float]]:
     """The predicted covariance from the information ``info`` over ``names`` (column-scaled inversion: the
     parameters mix metres, radians and seconds), with the model error and the marker map's part added, and those
     two parts' sigmas by name; infinite where the information is singular (said in ``notes``)."""
@@ -272,12 +298,12 @@ def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ev
     # the statistical covariance, plus what the model's own errors add (the residuals of the noise-free returns at
     # the truth: lrfcal.estimate.information.model_error_at), as the calibration's per-scan widening holds both
     at = (ev.obs, ev.markers_W, ev.params)
-    model_cov = model_error_at(*at, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces)
+    model_cov = model_error_at(*at, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces, estimate=freed)
     rho = float(scenario.sensor.noise_correlation)  # range noise correlated along the scan: its sandwich term
-    corr_cov = correlation_error_at(*at, rho, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces)
+    corr_cov = correlation_error_at(*at, rho, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces, estimate=freed)
     # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
     tape_cov = map_error_at(info, *at, expected_map_covariance(scenario, ev.markers_W), sensor=ev.sensor,
-                            clock=ev.clock, surfaces=ev.surfaces)
+                            clock=ev.clock, surfaces=ev.surfaces, estimate=freed)
     # where the sweep turns on a marker, the model error the calibration adds for it too (DH only)
     turn_cov = turning_error_at(*at, sensor=ev.sensor, clock=ev.clock)
     model_cov[DH_ROWS] += turn_cov

@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 from lrfcal import DEFAULT_FALSE_ALARM, LIMITS, SCALE_Z_LIMIT
+from lrfcal.model.unknowns import BY_NAME
 from lrfsim.plan.result import REACHABLE_K, Plan, format_value
 
 
@@ -39,10 +40,10 @@ def format_plan(p: Plan, false_alarm: float = DEFAULT_FALSE_ALARM) -> str:
                      f"{'reachable' if t.reachable else 'NOT reachable'}")
     lines.append(f"tolerances reachable: {'yes' if p.tolerances_reachable else 'no'}")
     if p.scale_sigma:
-        lines.append(f"scales held at 1 and tested (estimated where the data put them beyond {SCALE_Z_LIMIT:g} "
-                     "sigma): the smallest error found, at least")
-        lines.extend(f"  {n:<12} 1-sigma {v:.2g}: {100 * SCALE_Z_LIMIT * v:.2g} % or more" for n, v in
-                     p.scale_sigma.items())
+        lines.append(f"intrinsics held and tested, the scales at 1 and the incidence bias at 0 (estimated where the "
+                     f"data put them beyond {SCALE_Z_LIMIT:g} sigma): the smallest error found, at least")
+        lines.extend(f"  {n:<14} 1-sigma {_held_error(n, v)}: {_held_error(n, SCALE_Z_LIMIT * v)} or more"
+                     for n, v in p.scale_sigma.items())
     detects = p.check_detects(false_alarm)
     lines.append(f"lrfcal check with this recording against a calibration of the same layout: the smallest drift of "
                  f"each parameter alone it detects with 95 % probability at a false-alarm rate of "
@@ -51,6 +52,11 @@ def format_plan(p: Plan, false_alarm: float = DEFAULT_FALSE_ALARM) -> str:
     lines.extend(f"note: {n}" for n in p.notes)
     lines.append(f"({p.seconds:.1f} s)")
     return "\n".join(lines)
+
+
+def _held_error(name: str, v: float) -> str:
+    """An error of a held intrinsic: a scale's in percent, the incidence bias's in mm per radian."""
+    return f"{100 * v:.2g} %" if BY_NAME[name].unit == "1" else f"{1000 * v:.2g} mm/rad"
 
 
 __all__ = ["format_plan"]
