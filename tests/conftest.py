@@ -18,11 +18,7 @@ recording calibrated once per worker for each configuration: tests/test_trust.py
 five of its tests and tests/test_servo_faults.py compare with).
 
 The tests run BLAS with the programs' thread policy (lrfcal.runtime.threads), as the console scripts do: one thread per
-process, so two test workers on two cores do not oversubscribe them. For the same reason each xdist worker runs on a
-core of its own, and so does every process it starts (:func:`_one_core_per_worker`): a calibration sees one core and
-does its work in its own process, where with both cores it would fork children that compete with the other worker
-(and begin the DH search ahead, work a saturated machine pays for twice). tests/test_forked.py gives its tests every
-core back (:func:`every_core`) to test the forked paths, as does tests/test_plan_speed.py.
+process, so two test workers on two cores do not oversubscribe them.
 """
 
 from __future__ import annotations
@@ -68,48 +64,9 @@ def tiered(values: Iterable[Any], keep: int = 1) -> list[Any]:
     return out
 
 
-#: the cores the test run was given, before a worker took one of them (:func:`_one_core_per_worker`)
-_ALL_CORES = "LRF_TEST_ALL_CORES"
-
-
-def _one_core_per_worker() -> None:
-    """Under xdist with as many cores as workers or more, this worker (gw<i>) on core i alone (module docstring)."""
-    worker, n = os.environ.get("PYTEST_XDIST_WORKER", ""), int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "0"))
-    if not worker.startswith("gw") or not hasattr(os, "sched_setaffinity"):
-        return
-    cpus = sorted(os.sched_getaffinity(0))
-    if 2 <= n <= len(cpus):
-        os.environ[_ALL_CORES] = ",".join(map(str, cpus))
-        os.sched_setaffinity(0, {cpus[int(worker[2:]) % len(cpus)]})
-
-
-@contextmanager
-def every_core() -> Iterator[None]:
-    """Within it this worker runs on every core the test run was given (the forked paths' tests: their children
-    compete with the other worker for a few seconds; module docstring)."""
-    cores = os.environ.get(_ALL_CORES)
-    if not cores:
-        yield
-        return
-    mine = os.sched_getaffinity(0)
-    os.sched_setaffinity(0, {int(c) for c in cores.split(",")})
-    try:
-        yield
-    finally:
-        os.sched_setaffinity(0, mine)
-
-
-@pytest.fixture(scope="module")
-def on_every_core() -> Iterator[None]:
-    """A module's tests on every core (:func:`every_core`): ``pytestmark = pytest.mark.usefixtures(...)``."""
-    with every_core():
-        yield
-
-
 def pytest_configure(config: pytest.Config) -> None:
     apply_memory_policy()  # the programs' policies, in every worker (lrfcal.runtime.memory, lrfcal.runtime.threads)
     apply_thread_policy()
-    _one_core_per_worker()
 
 
 def group_of(nodeid: str) -> str:

@@ -7,7 +7,6 @@ import os
 import time
 
 import pytest
-from conftest import every_core
 
 from lrfcal.runtime.forked import Ahead, call_forked, cores
 
@@ -24,9 +23,7 @@ def _dies_in_a_child() -> str:
     return "here"
 
 
-with every_core():  # a test worker runs on one core (tests/conftest.py); the forked paths are tested on them all
-    FORKS = cores() >= 2 and "fork" in multiprocessing.get_all_start_methods()
-pytestmark = pytest.mark.usefixtures("on_every_core")
+FORKS = cores() >= 2 and "fork" in multiprocessing.get_all_start_methods()
 NO_FORKS = "one core or no fork: every task runs in the process (the fallback tested below)"
 
 

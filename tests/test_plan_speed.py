@@ -18,7 +18,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-from conftest import every_core
 
 from lrfsim.cast import forked
 from lrfsim.cast.forked import Forked, can_fork, run_forked, shared_empty
@@ -29,9 +28,7 @@ from lrfsim.sensors import servo
 from lrfsim.simulation.simulate import cast_geometry
 
 ROOT = Path(__file__).resolve().parents[1]
-with every_core():  # a test worker runs on one core (tests/conftest.py); the forked cast is tested on them all
-    FORKS = can_fork(2)
-pytestmark = pytest.mark.usefixtures("on_every_core")
+FORKS = can_fork(2)
 
 
 def _fast_tunnel():  # tunnel_v at 30 deg/s, 2 passes: a third of its scans
