@@ -28,7 +28,7 @@ def test_table_packs_and_unpacks() -> None:
     assert np.allclose(back.vector(), TRUE.vector(), atol=1e-12)
     for name in CORE_NAMES:
         u = BY_NAME[name]
-        assert u.unit in ("m", "rad", "s", "1") and u.meaning
+        assert u.unit in ("m", "rad", "s", "1", "m/rad") and u.meaning
         assert th[CORE_NAMES.index(name)] == u.start or u.kind in ("mount", "dh", "clock")
     free = free_by_default()
     assert all(free[CORE_NAMES.index(u)] == (not BY_NAME[u].held) for u in CORE_NAMES)

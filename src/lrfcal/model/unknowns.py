@@ -29,7 +29,7 @@ FloatArray = NDArray[np.float64]
 class Unknown:
     """One unknown of the rig model.
 
-    name: as in files and APIs; unit: "m", "rad", "s" or "1"; kind: "mount", "dh", "clock" or "intrinsic";
+    name: as in files and APIs; unit: "m", "rad", "s", "1" or "m/rad"; kind: "mount", "dh", "clock" or "intrinsic";
     start: its value before any data (and while held, unless a stage gives another); held: empty when the
     calibration estimates it by default, else why it is held by default; meaning: one line for reports;
     tested_with: an unknown freed beside it in its score test (lrfcal.estimate.solve) when a solve holds both (a scale
@@ -64,7 +64,7 @@ UNKNOWNS: tuple[Unknown, ...] = (
             "the joint's reported angle times this is the motor angle (a gear ratio or counts per turn off)"),
     Unknown("beam_scale", "1", "intrinsic", 1.0, "the scan's declared angle increment is trusted: held at 1",
             "the declared bearing times this is the beam's bearing (an angle increment declared wrongly)"),
-    Unknown("incidence_bias", "m", "intrinsic", 0.0,
+    Unknown("incidence_bias", "m/rad", "intrinsic", 0.0,
             "the ranges are taken as independent of the beam's incidence on the surface: held at 0 unless the data "
             "contradict it", "added to a range per radian of the beam's incidence on the surface it meets [m/rad]",
             "range_offset"),

@@ -16,10 +16,11 @@ from lrfcal.report.figlayout import FONT_SIZE_PT, new_figure, rc, save
 
 
 def unit_scale(name: str) -> tuple[float, str]:
-    """(factor, unit) of a parameter's display unit: mm for metres, deg for radians, ms for seconds, ppm for
-    scales."""
+    """(factor, unit) of a parameter's display unit: mm for metres, deg for radians, ms for seconds, mm/rad for the
+    incidence bias, ppm for scales."""
     unit = BY_NAME[name].unit if name in BY_NAME else "1"
-    return {"m": (1000.0, "mm"), "rad": (math.degrees(1.0), "deg"), "s": (1000.0, "ms")}.get(unit, (1e6, "ppm"))
+    return {"m": (1000.0, "mm"), "rad": (math.degrees(1.0), "deg"), "s": (1000.0, "ms"),
+            "m/rad": (1000.0, "mm/rad")}.get(unit, (1e6, "ppm"))
 
 
 def show(name: str, value: float, *, signed: bool = False) -> str:

@@ -58,7 +58,7 @@ def most_off(sol: Solution, max_chi2: float) -> Noted[str] | None:
         return None
     value, sigma = sol.held_score[name]
     z = abs(value - BY_NAME[name].start) / sigma
-    if BY_NAME[name].unit == "m":  # the incidence bias, per radian
+    if BY_NAME[name].unit == "m/rad":  # the incidence bias
         about = f"{value * 1000:.3g} +- {sigma * 1000:.2g} mm/rad ({z:.0f} sigma from 0)"
     else:
         about = f"{value:.5f} +- {sigma:.5f} ({z:.0f} sigma from {BY_NAME[name].start:g})"

@@ -179,6 +179,8 @@ def format_value(name: str, value: float) -> str:
     if not math.isfinite(value):
         return "unbounded"
     unit = _unit(name)
+    if unit == "m/rad":  # the incidence bias
+        return f"{value * 1000:.3g} mm/rad"
     if unit == "m":
         return f"{value * 1000:.3g} mm"
     if unit == "s":
