@@ -116,11 +116,9 @@ __all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "CheckOutcome
            "SurfaceReturns", "SurfaceSelection", "TunnelGeometry", "Verdict", "analyse", "apply_memory_policy",
            "apply_thread_policy", "calibrate", "calibrate_folder", "call_with_thread_policy", "cores",
            "correlation_error_at", "detect", "estimated", "finite_between", "held_steps_at", "information_at",
-           "keep_freed_memory",
-           "make_app", "map_covariance", "map_error_at", "mirror_check", "model_error_at", "most_contradicted",
-           "observe_surfaces",
-           "of_covariance", "one_blas_thread", "print_summary", "progress_display", "read_recording", "run_app",
-           "scaled_pinv", "turning_error_at", "viewer_can_spawn"]
+           "keep_freed_memory", "make_app", "map_covariance", "map_error_at", "mirror_check", "model_error_at",
+           "most_contradicted", "observe_surfaces", "of_covariance", "one_blas_thread", "print_summary",
+           "progress_display", "read_recording", "run_app", "scaled_pinv", "turning_error_at", "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:

@@ -36,6 +36,9 @@ class Problem:
     sigma_r: float
     clock: MotorClock | None = None  # set when the clock offset is estimated
     mount_jac: bool = True  # False: the mount is held, its Jacobian columns are not computed (left 0)
+    #: False: the incidence bias is held and never score-tested (the targetless problem), its column left 0: the
+    #: incidence of every plane return (an arccos per row) is not computed for it
+    incidence_jac: bool = True
 
     def _first(self, kind: type) -> ObservationSet | None:
         return next((s for s in self.sets if isinstance(s, kind)), None)
@@ -60,7 +63,7 @@ class Problem:
 
     def context(self, chart: FloatArray | None = None) -> RowContext:
         """How the sets' rows are evaluated (``chart``: lrfcal.model.chart, None for the DH parameters)."""
-        return RowContext(self.sigma_r, self.clock, self.mount_jac, chart)
+        return RowContext(self.sigma_r, self.clock, self.mount_jac, chart, self.incidence_jac)
 
     def with_sets(self, sets: Sequence[ObservationSet]) -> Problem:
         """The same problem of other sets (as many, with as many nuisances each)."""
@@ -251,7 +254,7 @@ def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorCl
     surf, nu0 = plane_set(surfaces, None)
     surf = replace(surf, footing=footing)
     sets: tuple[ObservationSet, ...] = (surf,) if dh_prior is None else (DHPrior(*dh_prior), surf)
-    return Problem(sets, float(range_sigma_m), clock=clock, mount_jac=False), nu0
+    return Problem(sets, float(range_sigma_m), clock=clock, mount_jac=False, incidence_jac=False), nu0
 
 
 __all__ = ["OnPlanes", "Problem", "marker_problem", "marker_set", "plane_problem", "plane_set"]

@@ -235,7 +235,8 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     v, t, e = ray_to_centre(o, d, ms.c)
     rho = np.linalg.norm(e, axis=1)
     s, ds = footprint_depth(rho / R, ms.footprint)
-    inc, dinc = footprint_incidence(rho / R, ms.footprint)  # where the beam meets the sphere
+    # where the beam meets the sphere: for the bias where it is not 0, or for its Jacobian column
+    inc, dinc = footprint_incidence(rho / R, ms.footprint) if jac or th[INC] != 0.0 else (None, None)
     # the range the scanner reports of r_hat = t - R s, met at the incidence inc
     rep = reported_range(th, t - R * s, on_marker=True, incidence=inc)
     sig_lat = ms.sigma_lat[:, None]
@@ -253,7 +254,7 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
     Jrho = np.einsum("ki,kij->kj", n_e, Je)
     Jrhat = Jt - ds[:, None] * Jrho
     J = np.concatenate([(-rep.scale * Jrhat / sigma_r)[:, None, :], Je / sig_lat[:, :, None]], 1)
-    if th[INC] != 0.0:  # the incidence's own change: d inc = dinc d rho / R
+    if th[INC] != 0.0 and dinc is not None:  # the incidence's own change: d inc = dinc d rho / R
         J[:, 0, :] -= (th[INC] * dinc / (R * sigma_r))[:, None] * Jrho
     for j, dr in rep.partials:
         J[:, 0, j] = -dr / sigma_r

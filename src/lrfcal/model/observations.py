@@ -147,13 +147,14 @@ def stack_blocks(parts: Sequence[Blocks]) -> Blocks:
 class RowContext:
     """How a set's rows are evaluated: the range noise sigma_r [m] that whitens the range residuals, the motor clock
     (the clock offset an unknown; None: held), whether the mount's Jacobian columns are computed (False: a held
-    mount, left 0), and the chart (6, 4) the scan-plane columns are derivatives by (lrfcal.model.chart; None: the
-    DH parameters)."""
+    mount, left 0), the chart (6, 4) the scan-plane columns are derivatives by (lrfcal.model.chart; None: the
+    DH parameters), and whether the incidence bias's column is computed (False: held and never tested, left 0)."""
 
     sigma_r: float
     clock: MotorClock | None = None
     mount_jac: bool = True
     chart: FloatArray | None = None
+    incidence_jac: bool = True
 
 
 _Set = TypeVar("_Set", bound="ObservationSet")

@@ -147,7 +147,7 @@ class PlaneSet:
     def blocks(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, jac: bool = True) -> Blocks:
         """The ray-plane rows (:func:`plane_rows`) and the planes' priors (th_nu - prior_mean) / prior_sigma."""
         rows = plane_rows(th, self, ctx.sigma_r, R_ref, jac=jac, clock=ctx.clock, mount_jac=ctx.mount_jac,
-                          chart=ctx.chart)
+                          chart=ctx.chart, incidence_jac=ctx.incidence_jac)
         r_q = w_q = None
         if self.prior_sigma is not None and self.prior_mean is not None:  # the markers' word on the planes
             r_q, w_q = (th[N_CORE:] - self.prior_mean) / self.prior_sigma, 1.0 / self.prior_sigma
@@ -199,20 +199,23 @@ class PlaneRows:
 
 
 def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *, jac: bool = True,
-               clock: MotorClock | None = None, mount_jac: bool = True, chart: FloatArray | None = None
-               ) -> PlaneRows:
+               clock: MotorClock | None = None, mount_jac: bool = True, chart: FloatArray | None = None,
+               incidence_jac: bool = True) -> PlaneRows:
     """The plane returns' whitened residuals and Jacobian blocks at th (N_CORE + 3P,) (module docstring).
 
     ``clock``: the clock offset is an unknown (its column is 0 otherwise); ``mount_jac`` False leaves the mount's
     columns 0 (a held mount); ``chart`` (6, 4): what the scan-plane columns are derivatives by (None: the DH
-    parameters). Per-plane quantities are gathered to the rows as scalars (K,), and the Jacobian blocks
-    are column-major: both keep the work a few passes over (K,) arrays."""
+    parameters); ``incidence_jac`` False leaves the incidence bias's column 0 while the bias is 0 (held and not
+    tested). Per-plane quantities are gathered to the rows as scalars (K,), and the Jacobian blocks are column-major:
+    both keep the work a few passes over (K,) arrays."""
     geo = _rays_on_planes(th, s, R_ref, clock)
-    n_p, m_norm, motor, t, R, pl = geo.n_p, geo.m_norm, geo.motor, geo.t, geo.R, s.per_row
+    n_p, motor, pl = geo.n_p, geo.motor, s.per_row
     a, b, ca, sa, cp, sp, cl, sl = geo.a, geo.b, geo.ca, geo.sa, geo.cp, geo.sp, geo.cl, geo.sl
     nx, ny, nz, oy, oz, dy, dz, nd, rp = geo.nx, geo.ny, geo.nz, geo.oy, geo.oz, geo.dy, geo.dz, geo.nd, geo.rp
     bearing = geo.bearing
-    incidence = np.arccos(np.minimum(np.abs(nd), 1.0))
+    # the beam's incidence on its plane: where the bias is not 0, or for its Jacobian column (an arccos of every row,
+    # left out while the bias is 0 and its column is not asked for)
+    incidence = (np.arccos(np.minimum(np.abs(nd), 1.0)) if (jac and incidence_jac) or th[INC] != 0.0 else None)
     rep = reported_range(th, rp, on_marker=False, incidence=incidence)
     res = (s.r - rep.r) / sigma_r
     if not jac:
@@ -237,7 +240,7 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
         Jc[:, 8] = (ny * sa - nz * ca) * q
         Jc[:, 9] = turn = -rp * (-nx * sp + (ny * ca + nz * sa) * cp) * q
     else:
-        g = (dy * nz - dz * ny, dz * nx - cp * nz, cp * ny - dy * nx)  # dir_0 x n_0
+        g = _dir_x_normal(geo)
         for k in range(4):
             Jc[:, 6 + k] = -(_dot(chart[:3, k], (nx, ny, nz)) + rp * _dot(chart[3:, k], g)) * q
         turn = -rp * _dot((0.0, -sa, ca), g) * q
@@ -251,14 +254,29 @@ def plane_rows(th: FloatArray, s: PlaneSet, sigma_r: float, R_ref: FloatArray, *
         Jc[:, j] = -dr / sigma_r
     Jn = np.empty((K, 3), order="F")
     for i, tan in enumerate((s.t1, s.t2)):
-        dn = (tan - n_p * (n_p * tan).sum(1, keepdims=True)) / m_norm  # (P, 3) in W
-        vM = dn @ R
-        gx, gy = pl(vM[:, 0]), pl(vM[:, 1])
-        Jn[:, i] = -(xx * (cl * gx + sl * gy) + xy * (cl * gy - sl * gx) + xz * pl(vM[:, 2]) + pl(dn @ t)) * q
+        (ux, uy, uz), shift = _normal_turn(s, geo, tan)
+        Jn[:, i] = -(xx * ux + xy * uy + xz * uz + shift) * q
     Jn[:, 2] = q
     if th[INC] != 0.0:  # the incidence's own change with the unknowns
+        assert incidence is not None
         _add_incidence_change(th, geo, incidence, sigma_r, Jc, Jn, s, mount_jac, chart)
     return PlaneRows(res, Jc, Jn)
+
+
+def _dir_x_normal(geo: _RaysOnPlanes) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """dir_0 x n_0 per row (3 x (K,)): a turn dw of the ray changes n_0 . dir_0 by dw . (dir_0 x n_0)."""
+    return (geo.dy * geo.nz - geo.dz * geo.ny, geo.dz * geo.nx - geo.cp * geo.nz, geo.cp * geo.ny - geo.dy * geo.nx)
+
+
+def _normal_turn(s: PlaneSet, geo: _RaysOnPlanes, tan: FloatArray
+                 ) -> tuple[tuple[FloatArray, FloatArray, FloatArray], FloatArray]:
+    """How each row's plane normal moves with its nuisance along the tangent ``tan`` (P, 3): dn/du in L0,
+    Rz(-lambda) R^T dn/du (3 x (K,)), and dn/du . t (K,), dn/du = (tan - n (n . tan)) / |m| (module docstring)."""
+    pl = s.per_row
+    dn = (tan - geo.n_p * (geo.n_p * tan).sum(1, keepdims=True)) / geo.m_norm  # (P, 3) in W
+    vM = dn @ geo.R
+    gx, gy = pl(vM[:, 0]), pl(vM[:, 1])
+    return (geo.cl * gx + geo.sl * gy, geo.cl * gy - geo.sl * gx, pl(vM[:, 2])), pl(dn @ geo.t)
 
 
 def _add_incidence_change(th: FloatArray, geo: _RaysOnPlanes, incidence: FloatArray, sigma_r: float, Jc: FloatArray,
@@ -268,10 +286,10 @@ def _add_incidence_change(th: FloatArray, geo: _RaysOnPlanes, incidence: FloatAr
     d nd = n_0 . (dw x dir_0) = dw . (dir_0 x n_0) for a turn dw of the ray (alpha about x, beta and the bearing about
     the scanner's axis (0, -sin alpha, cos alpha), a chart column's dw_k), d nd / d lambda = n_y cos phi - n_x dir_y,
     d nd / dw_mount = -(n_M x d_M)^T J_r(w), d nd / du_i = dir_0 . Rz(-lambda) R^T dn/du_i."""
-    nx, ny, nz, cp, dy, dz, cl, sl = geo.nx, geo.ny, geo.nz, geo.cp, geo.dy, geo.dz, geo.cl, geo.sl
+    nx, ny, cp, dy, dz, cl, sl = geo.nx, geo.ny, geo.cp, geo.dy, geo.dz, geo.cl, geo.sl
     sin_t = np.maximum(np.sin(incidence), 1e-9)
     f = th[INC] * np.sign(geo.nd) / (sin_t * sigma_r)  # -k d theta / sigma_r = f d nd (d theta = -sign d nd / sin)
-    g = (dy * nz - dz * ny, dz * nx - cp * nz, cp * ny - dy * nx)  # dir_0 x n_0
+    g = _dir_x_normal(geo)
     if mount_jac:
         cMx, cMy = -(cl * g[0] - sl * g[1]), -(sl * g[0] + cl * g[1])  # n_M x d_M = -Rz(lambda) g
         Jr = right_jacobian_so3(th[3:6])
@@ -291,12 +309,9 @@ def _add_incidence_change(th: FloatArray, geo: _RaysOnPlanes, incidence: FloatAr
         dnd_dlam = ny * cp - nx * dy
         for j, dlam in geo.motor.partials:
             Jc[:, j] += f * dnd_dlam * dlam
-    pl = s.per_row
     for i, tan in enumerate((s.t1, s.t2)):
-        dn = (tan - geo.n_p * (geo.n_p * tan).sum(1, keepdims=True)) / geo.m_norm
-        vM = dn @ geo.R
-        gx, gy = pl(vM[:, 0]), pl(vM[:, 1])
-        Jn[:, i] += f * (cp * (cl * gx + sl * gy) + dy * (cl * gy - sl * gx) + dz * pl(vM[:, 2]))
+        (ux, uy, uz), _ = _normal_turn(s, geo, tan)
+        Jn[:, i] += f * (cp * ux + dy * uy + dz * uz)
 
 
 

@@ -197,8 +197,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                                       estimate=freed)
     wide = 0.5 * (wide + wide.T)
     notes: list[str] = []
-    freed = _contradicted(ev, wide, wide_names, two_way, notes)
-    base = tuple(CORE_NAMES[i] for i in estimated(two_way, on_planes is not None, freed))
+    freed, base, scale_sigma = _contradicted(ev, wide, wide_names, two_way, notes)
     info = wide[np.ix_(*[[wide_names.index(n) for n in base]] * 2)]
     cov, model_sigma, map_sigma = _covariance(scenario, info, names, ev, notes, freed)
     sigma = {n: float(math.sqrt(max(cov[i, i], 0.0))) for i, n in enumerate(names)}
@@ -221,7 +220,7 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
                 n_surface_returns=0 if on_planes is None else len(on_planes), notes=tuple(notes),
                 observability_solved=of_covariance(cov, names, params.dh.alpha),  # calibrate's final check's rule
                 model_sigma=model_sigma,
-                map_sigma=map_sigma, scale_sigma=_scale_sigmas(wide, wide_names, base, freed),
+                map_sigma=map_sigma, scale_sigma=scale_sigma,
                 range_correlation=float(scenario.sensor.noise_correlation),
                 mirror=_mirror(params.dh, scenario, config, np.array([sigma[n] for n in DH_NAMES])),
                 covariance_names=base if len(base) == cov.shape[0] else names)
@@ -235,11 +234,12 @@ def _mirror(truth: DH, scenario: Scenario, config: CalibConfig, dh_sigma: FloatA
 
 
 def _contradicted(ev: _Evidence, wide: FloatArray, wide_names: tuple[str, ...], two_way: bool, notes: list[str]
-                  ) -> tuple[str, ...]:
+                  ) -> tuple[tuple[str, ...], tuple[str, ...], dict[str, float]]:
     """The held intrinsics the calibration would free on a recording of this scenario: where the noise-free returns
     step one beyond SCALE_Z_LIMIT of its sigma (lrfcal.stages.joint.most_contradicted, the calibration's rule;
     lrfcal.estimate.information.held_steps_at), one at a time as the calibration frees them (the scenario's
-    sensor.systematic: an incidence law the held model lacks)."""
+    sensor.systematic: an incidence law the held model lacks). With them: the unknowns estimated and the sigmas of
+    those still held (:func:`_scale_sigmas`)."""
     at = (ev.obs, ev.markers_W, ev.params)
     freed: tuple[str, ...] = ()
     while True:
@@ -249,7 +249,7 @@ def _contradicted(ev: _Evidence, wide: FloatArray, wide_names: tuple[str, ...], 
                               estimate=freed)
         name = most_contradicted({n: (steps[n], sigma[n]) for n in steps})
         if name is None:
-            return freed
+            return freed, base, sigma
         freed = (*freed, name)
         notes.append(f"{name} estimated, as the calibration would: the recording's returns step it to "
                      f"{steps[name]:.4g}, {abs(steps[name] - BY_NAME[name].start) / sigma[name]:.0f} sigma from "
