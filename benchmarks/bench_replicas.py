@@ -15,11 +15,13 @@ command makes). Prints per replica:
   - the range of the true DH drawn.
 Every missed target is named. ``--force`` also calibrates the same recordings with ``--force`` (the failed checks
 recorded, not refused) and prints, as a diagnostic beside the targets, what those seeds would have reported: the RMS
-of error / sigma and the seeds more than 3 sigma off. The studies' trials.csv and summary.md are written to
-OUT/<replica>/ (default: a temporary folder).
+of error / sigma, the mean error / sigma (a bias) and the seeds more than 3 sigma off. ``--without PART ...`` leaves
+parts of every replica out (the stand, the clutter or a kind of it, the desk, the noise's extras, the footprint:
+:data:`WITHOUT`) to trace a bias to its cause. The studies' trials.csv and summary.md are written to OUT/<replica>/
+(default: a temporary folder).
 
     python benchmarks/bench_replicas.py [--seeds 40] [--seed0 1000] [--workers 2] [--replicas urg_box_60 urg_room_90]
-                                        [--truth-spread 1] [--force] [-o OUT]
+                                        [--truth-spread 1] [--force] [--without PART ...] [-o OUT]
 """
 
 from __future__ import annotations
@@ -34,9 +36,10 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from lrfcal.model.kinematics import DH_NAMES
-from lrfsim.scenario.file import Scenario, load_scenario
+from lrfsim.scenario.file import Scenario, load_scenario, parse_scenario
 from lrfsim.trials.study import study
 from lrfsim.trials.study_result import Study, TrialRow, write_study
 from lrfsim.trials.variants import drawn_truth
@@ -124,8 +127,40 @@ def forced_line(name: str, s: Study) -> str:
         z = Z[:, i][np.isfinite(Z[:, i])] if Z.size else np.zeros(0)
         cells.append(f"{p} {np.sqrt(np.mean(z**2)):.2f} ({z.size})" if z.size else f"{p} -")
     off = sum(bool(np.any(np.abs(z[np.isfinite(z)]) > WRONG_Z)) for z in Z)
+    mean = [f"{p} {np.mean(Z[:, i][np.isfinite(Z[:, i])]):+.2f}" for i, p in enumerate(DH_NAMES)
+            if Z.size and np.isfinite(Z[:, i]).any()]
     return (f"{name} with --force: {len(ok)} of {len(s.rows)} results; RMS of error / sigma " + ", ".join(cells)
+            + f"; mean error / sigma (a bias) {', '.join(mean) or '-'}"
             + f"; more than {WRONG_Z:g} sigma off on an estimated parameter: {off}")
+
+
+#: what ``--without`` leaves out of a replica, to trace a bias to its cause (the scenario's YAML changed before it is
+#: parsed): the stand on the motor frame, the room's clutter (its cylinders, its spheres, its furniture: every box
+#: but the first, the desk top; "clutter" all three), every box (the desk top too), the noise's correlation,
+#: range-proportional part and systematic wiggle (white noise of the bands only), the beam's footprint (divergence
+#: 0: no mixed pixels)
+WITHOUT = ("stand", "clutter", "cylinders", "spheres", "furniture", "desk", "noise", "footprint")
+
+
+def without(data: dict, parts: list[str]) -> dict:
+    """The replica's scenario data with ``parts`` (of :data:`WITHOUT`) left out."""
+    rig, scene, sensor = data["rig"], data["scene"], data["sensor"]
+    if "stand" in parts:
+        rig.pop("stand", None)
+    if "clutter" in parts or "cylinders" in parts:
+        scene.pop("cylinders", None)
+    if "clutter" in parts or "spheres" in parts:
+        scene.pop("spheres", None)
+    if "clutter" in parts or "furniture" in parts:
+        scene["boxes"] = scene.get("boxes", [])[:1]
+    if "desk" in parts:
+        scene.pop("boxes", None)
+    if "noise" in parts:
+        sensor.update(noise_correlation=0.0, noise_range_fraction=0.0)
+        sensor.pop("systematic", None)
+    if "footprint" in parts:
+        sensor["divergence_rad"] = 0.0
+    return data
 
 
 def _main_commit() -> str:
@@ -146,6 +181,8 @@ def main() -> None:
     ap.add_argument("--truth-spread", type=float, default=1.0)
     ap.add_argument("--force", action="store_true", help="also calibrate every seed with --force (a diagnostic)")
     ap.add_argument("-o", "--out", type=Path, default=None)
+    ap.add_argument("--without", nargs="+", default=[], choices=WITHOUT,
+                    help="leave these parts out of every replica (to trace a bias to its cause)")
     args = ap.parse_args()
     out = args.out or Path(tempfile.mkdtemp(prefix="bench_replicas-"))
     t0 = time.perf_counter()
@@ -153,6 +190,9 @@ def main() -> None:
     for name in args.replicas:
         path = ROOT / "scenarios" / f"{name}.yaml"
         sc = load_scenario(path if path.is_file() else Path(name))
+        if args.without:
+            data = without(yaml.safe_load((path if path.is_file() else Path(name)).read_text()), args.without)
+            sc = parse_scenario(data, f"{sc.name}_without_{'_'.join(args.without)}")
         s = study(sc, args.seeds, seed0=args.seed0, workers=args.workers, truth_spread=args.truth_spread)
         write_study(s, out / sc.name, overwrite=True)
         truths = [drawn_truth(sc, args.seed0 + k, args.truth_spread) for k in range(args.seeds)]

@@ -12,7 +12,7 @@ from lrfcal.estimate.solve import SolveOptions, solve
 from lrfcal.model.kinematics import DH, Params, Pose
 from lrfcal.model.marker import MarkerSensor
 from lrfcal.model.motor import MotorClock, motor_angles
-from lrfcal.model.scanner import reported_range, true_range
+from lrfcal.model.scanner import jump_edges, reported_range, true_range
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES, INTRINSICS, N_CORE, free_by_default, pack, unpack
 from lrfcal.types import JointStates, Observations
 
@@ -102,3 +102,35 @@ def test_range_scale_is_estimated_when_asked() -> None:
     held = solve(long, X, TRUE, sensor=sensor)
     assert held.intrinsics["range_scale"] == (1.0, pytest.approx(np.nan, nan_ok=True))
     assert np.max(np.abs((held.params.dh.vector() - TRUE.dh.vector()) / held.sigma[6:])) > 4
+
+
+def test_jump_edges_are_the_returns_beside_a_range_jump_only() -> None:
+    """The returns on either side of a near surface's edge against a far one are found (mixed pixels, veil points),
+    along the scan and across it; a wall met obliquely (70-80 deg), a corner between two walls, noise below the
+    floor, a missing return and its neighbours are not."""
+    mu = np.radians(np.linspace(-60.0, 60.0, 121))  # 1 deg apart
+    wall = 1.0 / np.cos(mu)  # a wall at x = 1 m, met at up to 60 deg
+    near = wall.copy()
+    near[50:71] = 0.4 / np.cos(mu[50:71])  # a box in front of it, at x = 0.4 m: edges at 49|50 and 70|71
+    near[90] = np.nan  # no return
+    assert np.flatnonzero(jump_edges(near[None], mu)[0]).tolist() == [49, 50, 70, 71]
+    # the walls of a corner (x = 1 and y = 1) meet at 45 deg: no jump; a wall along y = 0.3 met at 70-80 deg: none
+    corner = np.minimum(1.0 / np.abs(np.cos(mu)), 1.0 / np.maximum(np.sin(mu), 1e-9))
+    assert not jump_edges(corner[None], mu).any()
+    steep = np.radians(np.linspace(10.0, 20.0, 11))
+    assert not jump_edges((0.3 / np.sin(steep))[None], steep).any()
+    # per-scan bearings (S, N) give the same as one row of them
+    assert np.array_equal(jump_edges(np.vstack([near, wall]), np.vstack([mu, mu])),
+                          jump_edges(np.vstack([near, wall]), mu))
+    # across the scans: the motor turns 0.1 deg a scan and the box's edge passes between scans 2 and 3
+    scans = np.vstack([wall, wall, wall, near, near])
+    lam = np.radians(0.1 * np.arange(5))
+    across = jump_edges(scans, mu, lam)
+    assert np.flatnonzero(across[:, 60]).tolist() == [2, 3]  # the same beam on either side of the edge
+    assert not jump_edges(scans, mu)[:, 60].any()  # not seen along the scan alone
+    # noise: 5 mm on a wall 0.3 m away, beams 1 deg apart (5 mm of spacing: cot(10 deg) of it is 30 mm)
+    rng = np.random.default_rng(0)
+    noisy = (0.3 / np.cos(mu) + rng.normal(0.0, 0.005, (50, mu.size)))
+    assert jump_edges(noisy, mu, np.radians(0.01 * np.arange(50))).mean() > 0.5  # noise beyond the spacing
+    # beyond the floor (4 sigma of the difference) only as often as the noise goes there (6e-5 of the pairs)
+    assert jump_edges(noisy, mu, np.radians(0.01 * np.arange(50)), noise_m=0.005).mean() < 1e-3

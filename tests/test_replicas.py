@@ -95,3 +95,28 @@ def _value_and_sigma(cal: dict[str, Any], p: str) -> tuple[float, float | None]:
     sigma = entry.get("sigma")
     held = p in (cal.get("held_at_nominal") or []) or sigma is None or not math.isfinite(float(sigma))
     return float(entry["value"]), None if held else float(sigma)
+
+
+def test_the_mixed_pixels_the_simulator_makes_are_the_returns_beside_jump_edges(tmp_path: Path) -> None:
+    """The returns the targetless calibration leaves out as beside a jump edge (lrfcal.stages.targetless.mixed_pixels)
+    hold the mixed pixels of the short room replica: noise off, its footprint of 7 sub-rays against the centre ray
+    alone, every return whose range the footprint moves by more than 1 cm (a range on neither surface) is among
+    them, and they are a few per cent of the returns."""
+    from lrfcal.stages.targetless import mixed_pixels
+
+    ranges, rec = {}, None
+    for rays in (7, 1):
+        sc = parse_scenario(with_changes(_short("urg_room_90"), {"sensor.noise": False,
+                                                                 "sensor.footprint_rays": rays}), "urg_room_90")
+        folder = tmp_path / f"rays{rays}"
+        write_recording(simulate(sc), sc, folder)
+        got = read_recording(folder, require_distances=False)
+        ranges[rays] = got.scans.ranges_m
+        rec = rec or got
+    assert rec is not None
+    with np.errstate(invalid="ignore"):
+        moved = np.abs(ranges[7] - ranges[1]) > 0.01  # NaN (no return in either) compares False
+    flagged = mixed_pixels(rec.scans, rec.joints, 0.0, 0.0055)
+    assert moved.sum() > 20  # the scene has edges the footprint straddles
+    assert (moved & flagged).sum() >= 0.9 * moved.sum(), (int((moved & ~flagged).sum()), int(moved.sum()))
+    assert flagged.mean() < 0.05

@@ -15,10 +15,18 @@ noise, which correlates with the residual; with 10 mm noise and the planes free,
 it stepped the range scale's score test 2.5 % from 1, 30-46 sigma, on clean recordings.) :func:`true_range` inverts
 it, for the reprojection and the paper's point model. The partial derivatives are the range and bearing columns of
 every observation model's Jacobian, so an unknown acting on the range or the bearing is written here once.
+
+A beam whose footprint straddles a jump edge (a near surface's edge against a far one behind it) reports a range
+between the two, on neither surface (a mixed pixel, or veil point): :func:`jump_edges` finds the returns beside such
+an edge from the ranges alone, as ROS's laser_filters ScanShadowsFilter does along the scan
+(github.com/ros-perception/laser_filters, src/scan_shadows_filter.cpp: a return whose segment to a neighbouring
+return makes an angle below ``min_angle`` with its beam), and across it: the footprint is a disc, and where the motor
+turns the scan plane over an edge a few scans straddle it too.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -101,4 +109,44 @@ def true_returns(th: FloatArray, r: FloatArray, q: FloatArray, mu: FloatArray, o
             true_bearing(th, mu).mu)
 
 
-__all__ = ["Reported", "TrueBearing", "TrueRange", "reported_range", "true_bearing", "true_range", "true_returns"]
+#: a return whose range differs from a neighbouring return's by more than the cotangent of this angle times their
+#: spacing across the beam sits beside a jump edge (the segment between them lies within this angle of the beam:
+#: laser_filters ScanShadowsFilter's usual min_angle; a plane met at the default 65 deg limit of incidence makes
+#: 25 deg with the beam) [rad]
+JUMP_EDGE_ANGLE_RAD = float(np.radians(10.0))
+#: ... and by more than this many sigma of the difference of two returns' noise (sqrt(2) range sigma): range noise
+#: alone is no edge where neighbours lie closer than the noise (near returns, fine steps of the motor)
+JUMP_EDGE_NOISE_SIGMA = 4.0
+
+
+def jump_edges(ranges_m: FloatArray, mu_rad: FloatArray, lam_rad: FloatArray | None = None, noise_m: float = 0.0,
+               min_angle_rad: float = JUMP_EDGE_ANGLE_RAD) -> NDArray[np.bool_]:
+    """The returns (S, N) beside a jump edge (module docstring): those whose range differs from a neighbour's by
+    more than cot(``min_angle_rad``) times their spacing across the beam and by more than JUMP_EDGE_NOISE_SIGMA
+    sqrt(2) ``noise_m``. Neighbours are the next and the previous beam of the scan (spacing r |d mu|, ``mu_rad`` the
+    declared bearings (N,) or (S, N)) and, with ``lam_rad`` (S,) the scans' motor angles, the same beam of the next
+    and the previous scan (spacing about r |d lambda|: the footprint is a disc, and it straddles an edge across the
+    scan plane as it does along it). ``ranges_m`` (S, N) as reported (no return: not finite, never judged)."""
+    r = np.asarray(ranges_m, dtype=float)
+    mu = np.broadcast_to(np.asarray(mu_rad, dtype=float), r.shape)
+    slope = 1.0 / math.tan(min_angle_rad)
+    floor = JUMP_EDGE_NOISE_SIGMA * math.sqrt(2.0) * noise_m
+    edge = np.zeros(r.shape, dtype=bool)
+    steps = [(1, np.abs(np.diff(mu, axis=1)))]
+    if lam_rad is not None and r.shape[0] > 1:
+        steps.append((0, np.abs(np.diff(np.asarray(lam_rad, dtype=float)))[:, None]))
+    for axis, step in steps:
+        first = [slice(None)] * 2
+        second = [slice(None)] * 2
+        first[axis], second[axis] = slice(None, -1), slice(1, None)
+        a, b = r[tuple(first)], r[tuple(second)]
+        with np.errstate(invalid="ignore"):
+            d = np.abs(b - a)
+            jump = (d > slope * np.fmin(a, b) * step) & (d > floor)  # NaN (no return) compares False
+        edge[tuple(first)] |= jump
+        edge[tuple(second)] |= jump
+    return edge
+
+
+__all__ = ["JUMP_EDGE_ANGLE_RAD", "JUMP_EDGE_NOISE_SIGMA", "Reported", "TrueBearing", "TrueRange", "jump_edges",
+           "reported_range", "true_bearing", "true_range", "true_returns"]

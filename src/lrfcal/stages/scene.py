@@ -38,6 +38,7 @@ from lrfcal.stages.targetless import (
     OneCost,
     Segmented,
     Start,
+    mixed_pixels,
     sample_returns,
 )
 from lrfcal.types import Check, Fit, JointStates, Noted, Recording, Solution, SurfaceReturns, Tried
@@ -97,8 +98,10 @@ class PlaneWay:
         estimate_clock = (passes.max() >= 1) if config.estimate_clock is None else config.estimate_clock
         # every 5th scan is held out of the fit: the calibration must not make those scans' planes thicker (holdout)
         hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
-        beams = sample_returns(scans, config.plane_returns, skip=hold)
-        held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold)
+        # neither the fit nor the held-out planes take the returns beside a jump edge (mixed pixels)
+        mixed = mixed_pixels(scans, joints, tau0, config.range_sigma_m)
+        beams = sample_returns(scans, config.plane_returns, skip=hold | mixed)
+        held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold | mixed)
         seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES)  # the sample's first, in hash order
         clock.lap("timing")
 
