@@ -114,6 +114,9 @@ def test_jump_edges_are_the_returns_beside_a_range_jump_only() -> None:
     near[50:71] = 0.4 / np.cos(mu[50:71])  # a box in front of it, at x = 0.4 m: edges at 49|50 and 70|71
     near[90] = np.nan  # no return
     assert np.flatnonzero(jump_edges(near[None], mu)[0]).tolist() == [49, 50, 70, 71]
+    beyond = wall.copy()
+    beyond[100:] = np.inf  # nothing within range (REP 117): the farthest background, its edge a jump
+    assert np.flatnonzero(jump_edges(beyond[None], mu)[0]).tolist() == [99]
     # the walls of a corner (x = 1 and y = 1) meet at 45 deg: no jump; a wall along y = 0.3 met at 70-80 deg: none
     corner = np.minimum(1.0 / np.abs(np.cos(mu)), 1.0 / np.maximum(np.sin(mu), 1e-9))
     assert not jump_edges(corner[None], mu).any()

@@ -126,7 +126,9 @@ def jump_edges(ranges_m: FloatArray, mu_rad: FloatArray, lam_rad: FloatArray | N
     sqrt(2) ``noise_m``. Neighbours are the next and the previous beam of the scan (spacing r |d mu|, ``mu_rad`` the
     declared bearings (N,) or (S, N)) and, with ``lam_rad`` (S,) the scans' motor angles, the same beam of the next
     and the previous scan (spacing about r |d lambda|: the footprint is a disc, and it straddles an edge across the
-    scan plane as it does along it). ``ranges_m`` (S, N) as reported (no return: not finite, never judged)."""
+    scan plane as it does along it). ``ranges_m`` (S, N) as reported: NaN (an invalid reading) is never judged nor
+    makes its neighbours judged; +inf (nothing within range, REP 117) is the farthest background, so a return beside
+    it sits beside a jump edge."""
     r = np.asarray(ranges_m, dtype=float)
     mu = np.broadcast_to(np.asarray(mu_rad, dtype=float), r.shape)
     slope = 1.0 / math.tan(min_angle_rad)
@@ -145,7 +147,7 @@ def jump_edges(ranges_m: FloatArray, mu_rad: FloatArray, lam_rad: FloatArray | N
             jump = (d > slope * np.fmin(a, b) * step) & (d > floor)  # NaN (no return) compares False
         edge[tuple(first)] |= jump
         edge[tuple(second)] |= jump
-    return edge
+    return edge & np.isfinite(r)  # a return (no reading is one)
 
 
 __all__ = ["JUMP_EDGE_ANGLE_RAD", "JUMP_EDGE_NOISE_SIGMA", "Reported", "TrueBearing", "TrueRange", "jump_edges",
