@@ -136,10 +136,11 @@ def forced_line(name: str, s: Study) -> str:
 
 #: what ``--without`` leaves out of a replica, to trace a bias to its cause (the scenario's YAML changed before it is
 #: parsed): the stand on the motor frame, the room's clutter (its cylinders, its spheres, its furniture: every box
-#: but the first, the desk top; "clutter" all three), every box (the desk top too), the noise's correlation,
-#: range-proportional part and systematic wiggle (white noise of the bands only), the beam's footprint (divergence
-#: 0: no mixed pixels)
-WITHOUT = ("stand", "clutter", "cylinders", "spheres", "furniture", "desk", "noise", "footprint")
+#: but the first, the desk top; "clutter" all three), every box (the desk top too), the noise's systematic wiggle,
+#: its correlation, its range-proportional part ("noise" all three: white noise of the bands only), the beam's
+#: footprint (divergence 0: no mixed pixels)
+WITHOUT = ("stand", "clutter", "cylinders", "spheres", "furniture", "desk", "wiggle", "correlation",
+           "proportional", "noise", "footprint")
 
 
 def without(data: dict, parts: list[str]) -> dict:
@@ -155,8 +156,11 @@ def without(data: dict, parts: list[str]) -> dict:
         scene["boxes"] = scene.get("boxes", [])[:1]
     if "desk" in parts:
         scene.pop("boxes", None)
-    if "noise" in parts:
-        sensor.update(noise_correlation=0.0, noise_range_fraction=0.0)
+    if "noise" in parts or "correlation" in parts:
+        sensor["noise_correlation"] = 0.0
+    if "noise" in parts or "proportional" in parts:
+        sensor["noise_range_fraction"] = 0.0
+    if "noise" in parts or "wiggle" in parts:
         sensor.pop("systematic", None)
     if "footprint" in parts:
         sensor["divergence_rad"] = 0.0
