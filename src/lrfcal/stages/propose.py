@@ -187,7 +187,9 @@ def search_of(scans: Scans, joints: JointStates, t0: float) -> Search | DHPropos
         return DHProposal(None, reason=f"the motor turns only {math.degrees(turn):.1f} deg (a proposal needs "
                           f"{math.degrees(MIN_TURN_RAD):g}): the cloud is nearly one scan plane, whose flatness says "
                           "nothing about the DH", n_starts=len(starts), seconds=time.perf_counter() - t0)
-    return Search(starts, targetless.sample_returns(scans, FIT_RETURNS), MotorClock.from_joints(joints),
+    # the calibration's own sample: without the returns beside a jump edge (mixed pixels, on neither surface)
+    mixed = targetless.mixed_pixels(scans, joints, 0.0, RANGE_SIGMA_M)
+    return Search(starts, targetless.sample_returns(scans, FIT_RETURNS, skip=mixed), MotorClock.from_joints(joints),
                    _SearchSegmenting(), max(1, min(cores(), MAX_GROUPS, len(starts))))
 
 
