@@ -130,23 +130,19 @@ def jump_edges(ranges_m: FloatArray, mu_rad: FloatArray, lam_rad: FloatArray | N
     makes its neighbours judged; +inf (nothing within range, REP 117) is the farthest background, so a return beside
     it sits beside a jump edge."""
     r = np.asarray(ranges_m, dtype=float)
-    mu = np.broadcast_to(np.asarray(mu_rad, dtype=float), r.shape)
     slope = 1.0 / math.tan(min_angle_rad)
     floor = JUMP_EDGE_NOISE_SIGMA * math.sqrt(2.0) * noise_m
     edge = np.zeros(r.shape, dtype=bool)
-    steps = [(1, np.abs(np.diff(mu, axis=1)))]
+    # (one side, the other side, their angular step): beside along the scan, then across the scans
+    pairs = [(edge[:, :-1], edge[:, 1:], r[:, :-1], r[:, 1:], np.abs(np.diff(np.asarray(mu_rad, dtype=float))))]
     if lam_rad is not None and r.shape[0] > 1:
-        steps.append((0, np.abs(np.diff(np.asarray(lam_rad, dtype=float)))[:, None]))
-    for axis, step in steps:
-        first = [slice(None)] * 2
-        second = [slice(None)] * 2
-        first[axis], second[axis] = slice(None, -1), slice(1, None)
-        a, b = r[tuple(first)], r[tuple(second)]
+        pairs.append((edge[:-1], edge[1:], r[:-1], r[1:], np.abs(np.diff(np.asarray(lam_rad, dtype=float)))[:, None]))
+    for one, other, a, b, step in pairs:
         with np.errstate(invalid="ignore"):
             d = np.abs(b - a)
             jump = (d > slope * np.fmin(a, b) * step) & (d > floor)  # NaN (no return) compares False
-        edge[tuple(first)] |= jump
-        edge[tuple(second)] |= jump
+        one |= jump  # views of edge
+        other |= jump
     return edge & np.isfinite(r)  # a return (no reading is one)
 
 
