@@ -29,6 +29,10 @@ def test_the_memory_policy_keeps_numpys_large_arrays_off_huge_pages() -> None:
     assert ours.stdout.split() == ["True", "False"], ours.stderr  # applied; the switch was off
     users = fresh_python(code, unset="NUMPY_MADVISE_HUGEPAGE", NUMPY_MADVISE_HUGEPAGE="1")
     assert users.stdout.split() == ["False", "True"], users.stderr  # the user's choice stands
+    before = ("from lrfcal.runtime.memory import apply_memory_policy\napplied = apply_memory_policy()\n"
+              + code.replace("applied = apply_memory_policy()\n", ""))  # the policy applied before numpy loads
+    early = fresh_python(before, unset="NUMPY_MADVISE_HUGEPAGE")
+    assert early.stdout.split() == ["True", "False"], early.stderr  # numpy loaded with the switch off
 
 
 def test_keep_freed_memory_reuses_large_blocks_without_page_faults() -> None:

@@ -171,8 +171,8 @@ def test_the_program_loads_no_opengl_context(env_value: str | None, expected: st
 
 
 def test_plan_limits_the_blas_scipy_loads_while_it_casts(tmp_path: Path) -> None:
-    """`lrfsim plan` imports scipy while its helper casts (lrfcal.terminal.cliutil.Command.load_scipy_first False), and
-    limits scipy's BLAS then, as every other command does before it starts."""
+    """`lrfsim plan` imports scipy while its helper casts, and scipy's BLAS is limited as it loads (the thread policy,
+    applied before the command starts, set the variables the BLAS libraries read as they load)."""
     path = tmp_path / "fast.yaml"
     path.write_text(yaml.safe_dump(with_changes(yaml.safe_load((ROOT / "scenarios" / "tunnel_v.yaml").read_text()),
                                                 {"servo.speed_rad_s": math.radians(30.0), "servo.passes": 2})))

@@ -1,8 +1,9 @@
 """Start-up of the command-line programs: help and usage errors answer without loading the heavy modules.
 
 ``lrfcal`` and ``lrfsim`` import numpy, scipy, mujoco, matplotlib, rerun and rosbags inside the commands that use
-them (issue 47), and the thread policy that loads numpy's and scipy's BLAS runs only once a command's arguments are
-parsed (lrfcal.terminal.cliutil.Command.invoke). Each program is run in a fresh interpreter, as its console script runs
+them (issue 47), and the thread and memory policies run only once a command's arguments are parsed
+(lrfcal.terminal.cliutil.Command.invoke), loading nothing themselves. A calibration's bad input is answered before the
+method's modules load (scipy, the pipeline, matplotlib). Each program is run in a fresh interpreter, as its console script runs
 it (``main()`` with ``sys.argv``), for every case in turn; after each, the heavy modules in ``sys.modules`` are listed.
 Not timed: the time is benchmarks/bench_speed.py's (docs/speed.md).
 """
@@ -75,9 +76,44 @@ def test_help_and_usage_errors_import_nothing_heavy(package: str, tmp_path: Path
     assert list(tmp_path.iterdir()) == []
 
 
+BAD_INPUT_PROBE = """
+import contextlib, io, json, sys
+from lrfcal.cli import main
+
+sys.argv = ["lrfcal", *sys.argv[1:]]
+err = io.StringIO()
+with contextlib.redirect_stderr(err):
+    try:
+        main()
+    except SystemExit as e:
+        code = e.code
+method = ("scipy", "matplotlib", "rerun", "mujoco", "lrfcal.pipeline", "lrfcal.estimate", "lrfcal.stages")
+print(json.dumps([code, sorted(m for m in method if m in sys.modules), err.getvalue()]))
+"""
+
+
+def test_a_calibrations_bad_input_is_answered_before_the_method_loads(tmp_path: Path) -> None:
+    """A missing recording, a folder without a bag, a rig file that does not parse: exit 2 and one line, with neither
+    scipy nor the method's modules (the pipeline, the estimate, the stages) nor matplotlib, rerun or mujoco loaded
+    (lrfcal.commands.calibrate reads the inputs, then imports lrfcal.commands.calibration_run)."""
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    broken = tmp_path / "broken"
+    (broken / "bag").mkdir(parents=True)
+    (broken / "nominal.yaml").write_text("dh: [unclosed\n")
+    for folder, words in ((tmp_path / "nowhere", "not found"), (empty, "bag"), (broken, "nominal.yaml")):
+        proc = subprocess.run([sys.executable, "-c", BAD_INPUT_PROBE, "calibrate", str(folder), "-o",
+                               str(tmp_path / "out")], capture_output=True, text=True, timeout=60)
+        code, loaded, err = json.loads(proc.stdout.strip().splitlines()[-1])
+        lines = err.strip().splitlines()
+        assert code == 2 and len(lines) == 1 and words in lines[0], (folder, err)
+        assert loaded == [], f"{folder.name}: {loaded} loaded before the input was judged"
+    assert not (tmp_path / "out").exists()
+
+
 def test_every_command_applies_the_programs_policies() -> None:
     """The thread and memory policies run in Command.invoke: every command of both programs must be a Command (or
-    a subclass of it: `lrfsim plan` limits scipy's BLAS once it has imported scipy, lrfsim.cli._ScipyLater)."""
+    a subclass of it)."""
     from lrfcal.cli import app as lrfcal_app
     from lrfcal.terminal.cliutil import Command
     from lrfsim.cli import app as lrfsim_app

@@ -140,14 +140,7 @@ def run(
         raise typer.Exit(1)
 
 
-class _ScipyLater(Command):
-    """`lrfsim plan`: scipy is imported while the cast runs (:func:`_import_prediction`), and its BLAS limited
-    then."""
-
-    load_scipy_first = False
-
-
-@app.command(cls=_ScipyLater)
+@app.command(cls=Command)
 def plan(
     scenario: ScenarioArg,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object (SI units) instead of the table.")

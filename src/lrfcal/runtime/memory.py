@@ -50,9 +50,14 @@ KEEP_FREE_UP_TO = 1024 * 1024 * 1024
 
 def apply_memory_policy() -> bool:
     """numpy's huge-page madvise off for this process (module docstring), unless :data:`NUMPY_ENV_VAR` is set or
-    this numpy has no such switch. Returns whether the policy was applied."""
+    this numpy has no such switch: numpy's own switch once numpy is loaded, before that the variable numpy reads as
+    it loads (so that a command that ends on bad input answers without loading numpy; the process's children
+    inherit it). Returns whether the policy was applied."""
     if os.environ.get(NUMPY_ENV_VAR) is not None:
         return False
+    if "numpy" not in sys.modules:  # numpy reads the variable as it loads: nothing imported for the policy's sake
+        os.environ[NUMPY_ENV_VAR] = "0"
+        return True
     for core in ("numpy._core.multiarray", "numpy.core.multiarray"):  # numpy < 2 named its core module numpy.core
         try:
             switch = importlib.import_module(core)._set_madvise_hugepage  # numpy's own, not in its type stubs

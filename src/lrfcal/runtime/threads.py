@@ -24,13 +24,15 @@ settings as they are; wrap it in :func:`thread_policy` to get the programs' beha
 The environment variable :data:`ENV_VAR` overrides the number of threads (a positive integer, or ``default`` for
 the libraries' own choice), e.g. to measure the policy: ``LRF_CALIB_BLAS_THREADS=default lrfcal calibrate ...``.
 
-threadpoolctl only reaches the libraries loaded when it is called, so numpy and scipy.linalg (each ships its own
-OpenBLAS) are imported first; every BLAS and OpenMP library loaded at that point is limited.
+threadpoolctl only reaches the libraries loaded when it is called: :func:`apply_thread_policy` limits those and sets
+the variables the libraries read when they load (:data:`LIBRARY_ENV`) for the rest; :func:`thread_policy`, which
+restores the limits it found, imports numpy and scipy.linalg (each ships its own OpenBLAS) first.
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
@@ -66,27 +68,32 @@ def policy_threads() -> int | None:
     return n
 
 
-def _load_libraries(scipy: bool = True) -> None:
+def _load_libraries() -> None:
     """Import the modules that load a BLAS, so that threadpoolctl finds them (module docstring)."""
     import numpy  # noqa: F401
-
-    if scipy:
-        from scipy import linalg  # noqa: F401
+    from scipy import linalg  # noqa: F401
 
 
-def apply_thread_policy(*, scipy: bool = True) -> int | None:
-    """Limit every loaded BLAS and OpenMP library of this process to :func:`policy_threads` threads, for good
-    (the programs' entry points and worker initializers). Returns the limit (None: left as it was).
+#: The environment variables the BLAS and OpenMP libraries read when they are loaded (OpenBLAS, which numpy's and
+#: scipy's wheels ship, reads OPENBLAS_NUM_THREADS in its constructor; libgomp OMP_NUM_THREADS; MKL, BLIS and
+#: Apple's Accelerate their own).
+LIBRARY_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS",
+               "VECLIB_MAXIMUM_THREADS")
 
-    ``scipy=False``: scipy.linalg is not imported first (0.1 s), so its BLAS is limited only if loaded already: for a
-    command that imports scipy later and calls this again then (`lrfsim plan`, which imports it while its cast runs
-    in a forked helper: lrfsim.cli)."""
+
+def apply_thread_policy() -> int | None:
+    """Limit every BLAS and OpenMP library of this process to :func:`policy_threads` threads, for good (the
+    programs' entry points and worker initializers): those loaded already through threadpoolctl, those loaded later
+    (and the process's children) through the variables they read when they load (:data:`LIBRARY_ENV`), so that
+    nothing is imported for the policy's sake: a command that ends on bad input answers before numpy or scipy is
+    loaded. Returns the limit (None: left as it was)."""
     n = policy_threads()
     if n is not None:
-        from threadpoolctl import threadpool_limits
+        os.environ.update(dict.fromkeys(LIBRARY_ENV, str(n)))
+        if "numpy" in sys.modules or "scipy" in sys.modules:
+            from threadpoolctl import threadpool_limits
 
-        _load_libraries(scipy)
-        threadpool_limits(limits=n)
+            threadpool_limits(limits=n)
     return n
 
 
@@ -122,5 +129,5 @@ def call_with_thread_policy(fn: Callable[..., T], /, *args: Any, **kwargs: Any) 
         return fn(*args, **kwargs)
 
 
-__all__ = ["DEFAULT_THREADS", "ENV_VAR", "apply_thread_policy", "call_with_thread_policy", "one_blas_thread",
-           "policy_threads", "thread_policy"]
+__all__ = ["DEFAULT_THREADS", "ENV_VAR", "LIBRARY_ENV", "apply_thread_policy", "call_with_thread_policy",
+           "one_blas_thread", "policy_threads", "thread_policy"]

@@ -30,15 +30,10 @@ class Command(TyperCommand):
     shows its required options (``-o DIR``), and that applies the programs' thread and memory policies when it runs
     (:meth:`invoke`). Every command of ``lrfcal`` and ``lrfsim`` is one (``@app.command(cls=Command)``)."""
 
-    #: import scipy.linalg before the thread policy limits the BLAS libraries; False for a command that imports
-    #: scipy later and applies the policy again then (lrfcal.runtime.threads.apply_thread_policy)
-    load_scipy_first: bool = True
-
     def invoke(self, ctx: Any) -> Any:
         """Run the command once its arguments are parsed: first the process's BLAS / OpenMP thread pools limited
-        by the programs' thread policy (:func:`lrfcal.runtime.threads.apply_thread_policy`, which loads numpy's and
-        scipy's
-        BLAS) and numpy's large arrays kept off transparent huge pages
+        by the programs' thread policy (:func:`lrfcal.runtime.threads.apply_thread_policy`: the libraries the command
+        loads are limited as they load) and numpy's large arrays kept off transparent huge pages
         (:func:`lrfcal.runtime.memory.apply_memory_policy`).
         Here and not before parsing, so that ``--help`` and a usage error answer without importing numpy or scipy.
         """
@@ -46,7 +41,7 @@ class Command(TyperCommand):
         from lrfcal.runtime.threads import apply_thread_policy
 
         apply_memory_policy()
-        apply_thread_policy(scipy=self.load_scipy_first)
+        apply_thread_policy()
         return super().invoke(ctx)
 
     def collect_usage_pieces(self, ctx: Any) -> list[str]:
