@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 import yaml
 
+from lrfcal.runtime.threads import LIBRARY_ENV
 from lrfsim.cast import forked
 from lrfsim.cast.forked import Forked, can_fork, run_forked, shared_empty
 from lrfsim.plan.prediction import plan
@@ -180,7 +181,7 @@ def test_plan_limits_the_blas_scipy_loads_while_it_casts(tmp_path: Path) -> None
             "atexit.register(lambda: print(json.dumps([i['num_threads'] for i in threadpoolctl.threadpool_info() "
             "if i['user_api'] == 'blas'])))\n"
             f"from lrfsim.cli import main\nmain(['plan', {str(path)!r}, '--json'])\n")
-    env = {k: v for k, v in os.environ.items() if k not in ("LRF_CALIB_BLAS_THREADS", "OPENBLAS_NUM_THREADS")}
+    env = {k: v for k, v in os.environ.items() if k != "LRF_CALIB_BLAS_THREADS" and k not in LIBRARY_ENV}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert out.returncode == 0, out.stderr
     threads = json.loads(out.stdout.strip().splitlines()[-1])

@@ -125,7 +125,10 @@ main(["probe"])
 
 def _threads_in_a_run(package: str, env_value: str | None) -> list[int]:
     """BLAS threads per loaded BLAS library, as seen by a command run through the console entry of ``package``."""
-    env = {k: v for k, v in os.environ.items() if k != "LRF_CALIB_BLAS_THREADS"}
+    from lrfcal.runtime.threads import LIBRARY_ENV
+
+    # neither the override nor the variables this process's own policy set (the policy under test sets them)
+    env = {k: v for k, v in os.environ.items() if k != "LRF_CALIB_BLAS_THREADS" and k not in LIBRARY_ENV}
     if env_value is not None:
         env["LRF_CALIB_BLAS_THREADS"] = env_value
     proc = subprocess.run([sys.executable, "-c", PROBE.format(package=package)], capture_output=True, text=True,

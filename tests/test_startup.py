@@ -3,9 +3,9 @@
 ``lrfcal`` and ``lrfsim`` import numpy, scipy, mujoco, matplotlib, rerun and rosbags inside the commands that use
 them (issue 47), and the thread and memory policies run only once a command's arguments are parsed
 (lrfcal.terminal.cliutil.Command.invoke), loading nothing themselves. A calibration's bad input is answered before the
-method's modules load (scipy, the pipeline, matplotlib). Each program is run in a fresh interpreter, as its console script runs
-it (``main()`` with ``sys.argv``), for every case in turn; after each, the heavy modules in ``sys.modules`` are listed.
-Not timed: the time is benchmarks/bench_speed.py's (docs/speed.md).
+method's modules load (scipy, the pipeline, matplotlib). Each program is run in a fresh interpreter, as its console
+script runs it (``main()`` with ``sys.argv``), for every case in turn; after each, the heavy modules in
+``sys.modules`` are listed. Not timed: the time is benchmarks/bench_speed.py's (docs/speed.md).
 """
 
 from __future__ import annotations
