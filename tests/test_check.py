@@ -3,7 +3,8 @@
 Through the INSTALLED console script: a simulated tunnel_v pair without drift (exit 0, check.yaml, report.md,
 check.png, a history row appended, the calibration folder untouched) and with a 3 mm change of a (exit 4, naming a
 first); a targetless pair (room_box); a real recording checked against its own calibration (valid, or not testable
-with the reason); bad input in one line and exit 2 (not a calibration, another scanner, topics the calibration's rig
+with the reason); bad input in one line and exit 2 (through the command's entry point in this process, tests/
+test_cli_usage.py's ``_call``) (not a calibration, another scanner, topics the calibration's rig
 file does not find, a history inside the calibration folder). And the joint test's arithmetic
 (lrfcal.estimate.drift). The false-alarm and detection rates are Monte-Carlo targets: benchmarks/bench_check.py,
 docs/check.md.
@@ -19,7 +20,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import SCENARIOS, real_bag
-from test_cli_usage import _one_error_line, _run, _tree
+from test_cli_usage import _call, _one_error_line, _run, _tree
 
 from lrfsim.scenario.file import Scenario, load_scenario
 from lrfsim.trials.variants import with_field
@@ -110,25 +111,25 @@ def test_an_unchanged_rig_is_still_valid_and_a_drifted_one_named(tunnel: dict[st
 def test_bad_input_is_one_line_and_exit_2(tunnel: dict[str, Path], tmp_path: Path) -> None:
     cal, rec = tunnel["cal"], tunnel["same"]
     # a file that is not a calibration
-    line = _one_error_line(_run("lrfcal", "check", rec / "nominal.yaml", rec, "-o", tmp_path / "o1"))
+    line = _one_error_line(_call("lrfcal", "check", rec / "nominal.yaml", rec, "-o", tmp_path / "o1"))
     assert "not a calibration" in line and "nominal.yaml" in line
     # a calibration of another rig: another beam count, another scanner
     data = yaml.safe_load((cal / "calibration.yaml").read_text())
     for key, value in (("beams", 721), ("angle_increment_rad", math.radians(0.352))):
         other = tmp_path / f"other_{key}.yaml"
         other.write_text(yaml.safe_dump({**data, "scanner": {**data["scanner"], key: value}}))
-        line = _one_error_line(_run("lrfcal", "check", other, rec, "-o", tmp_path / "o2", timeout=300))
+        line = _one_error_line(_call("lrfcal", "check", other, rec, "-o", tmp_path / "o2"))
         assert "a calibration of another rig" in line and "scanner" in line
     # a recording whose topics the calibration's rig file does not find
     moved = tmp_path / "moved.yaml"
     moved.write_text(yaml.safe_dump({**data, "rig": {**data["rig"], "scan": {"topic": "/laser"}}}))
-    line = _one_error_line(_run("lrfcal", "check", moved, rec, "-o", tmp_path / "o3", timeout=300))
+    line = _one_error_line(_call("lrfcal", "check", moved, rec, "-o", tmp_path / "o3"))
     assert "/laser" in line and "not in bag" in line and "--nominal" in line
     # outputs never inside an input: the history in the calibration folder, -o the calibration folder
-    line = _one_error_line(_run("lrfcal", "check", cal, rec, "-o", tmp_path / "o4", "--history", cal / "h.csv"))
+    line = _one_error_line(_call("lrfcal", "check", cal, rec, "-o", tmp_path / "o4", "--history", cal / "h.csv"))
     assert "--history" in line and "calibration" in line
-    _one_error_line(_run("lrfcal", "check", cal, rec, "-o", cal))
-    line = _one_error_line(_run("lrfcal", "check", cal, rec, "-o", tmp_path / "o5", "--false-alarm", "0.7"))
+    _one_error_line(_call("lrfcal", "check", cal, rec, "-o", cal))
+    line = _one_error_line(_call("lrfcal", "check", cal, rec, "-o", tmp_path / "o5", "--false-alarm", "0.7"))
     assert "--false-alarm" in line
     assert not any((tmp_path / f"o{i}").exists() for i in range(1, 6))
 

@@ -1,5 +1,6 @@
-"""Every fault of ``lrfsim.simulation.faults`` and every crash or bad input of issue 21, through the INSTALLED console
-scripts.
+"""Every fault of ``lrfsim.simulation.faults`` and every crash or bad input of issue 21, through the programs' entry
+points as the console scripts call them (``main(argv)`` in this process: tests/test_cli_usage.py's ``_call``; the
+installed scripts themselves run in tests/test_cli_usage.py, test_check.py, test_recording_faults.py and others).
 
 A recording with faults (simulated once per test run) is calibrated by ``lrfcal calibrate`` as a user would:
 the exit code is the documented one (0 calibrated, 2 bad input, 3 refused), a refusal or a bad input is exactly one
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from test_cli_usage import ROOT, _one_error_line, _run
+from test_cli_usage import ROOT, _call, _one_error_line
 
 from lrfsim.scenario.file import Scenario, parse_scenario
 
@@ -88,7 +89,7 @@ def _refused(proc, out: Path) -> str:
 
 def test_repaired_faults_calibrate_with_figures(recordings: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "cal"
-    report = _calibrated(_run("lrfcal", "calibrate", recordings["combo"], "-o", out, "--no-baseline", timeout=600),
+    report = _calibrated(_call("lrfcal", "calibrate", recordings["combo"], "-o", out, "--no-baseline"),
                          out)
     assert "tape pair m00-m12 dropped" in report  # the misread tape pair is named
     assert "joint-state samples that jump away from their neighbours dropped" in report
@@ -98,7 +99,7 @@ def test_untold_clock_offset_and_receive_stamps_calibrate_with_figures(recording
                                                                       tmp_path: Path) -> None:
     """The crash of issue 21: the scans the joint states do not cover are trimmed, and the figures still match."""
     out = tmp_path / "cal"
-    report = _calibrated(_run("lrfcal", "calibrate", recordings["timing"], "-o", out, "--no-baseline", timeout=600),
+    report = _calibrated(_call("lrfcal", "calibrate", recordings["timing"], "-o", out, "--no-baseline"),
                          out)
     assert "scans outside the joint states' time span trimmed" in report
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
@@ -109,20 +110,20 @@ def test_untold_clock_offset_and_receive_stamps_calibrate_with_figures(recording
 
 def test_wrong_clock_offset_option_is_refused_naming_it(recordings: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "cal"
-    line = _refused(_run("lrfcal", "calibrate", recordings["timing"], "-o", out, "--clock-offset", "5",
-                         "--no-baseline", timeout=600), out)
+    line = _refused(_call("lrfcal", "calibrate", recordings["timing"], "-o", out, "--clock-offset", "5",
+                         "--no-baseline"), out)
     assert "clock offset" in line and "--clock-offset +5 s" in line
 
 
 def test_inverted_servo_is_refused_naming_the_sign(recordings: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "cal"
-    line = _refused(_run("lrfcal", "calibrate", recordings["inverted"], "-o", out, "--no-baseline", timeout=600), out)
+    line = _refused(_call("lrfcal", "calibrate", recordings["inverted"], "-o", out, "--no-baseline"), out)
     assert "servo.sign: -1" in line
 
 
 def test_three_times_the_noise_is_refused_naming_range_sigma(recordings: dict[str, Path], tmp_path: Path) -> None:
     out = tmp_path / "cal"
-    line = _refused(_run("lrfcal", "calibrate", recordings["noisy"], "-o", out, "--no-baseline", timeout=600), out)
+    line = _refused(_call("lrfcal", "calibrate", recordings["noisy"], "-o", out, "--no-baseline"), out)
     assert "reduced chi-square" in line and "--range-sigma" in line
 
 
@@ -144,7 +145,7 @@ def test_unit_mistakes_in_the_rig_file_name_field_and_unit(recordings: dict[str,
     bad = tmp_path / "nominal.yaml"
     bad.write_text(yaml.safe_dump(rig))
     out = tmp_path / "cal"
-    line = _one_error_line(_run("lrfcal", "calibrate", recordings["combo"], "-o", out, "--nominal", bad))
+    line = _one_error_line(_call("lrfcal", "calibrate", recordings["combo"], "-o", out, "--nominal", bad))
     assert all(w in line for w in words), line
     assert not out.exists()
 
@@ -160,13 +161,13 @@ def test_absurd_scenario_values_are_refused_naming_the_field(tmp_path: Path, sec
                                                              value: object, named: str) -> None:
     path = _scenario(tmp_path, "absurd", {section: {field: value}})
     out = tmp_path / "rec"
-    line = _one_error_line(_run("lrfsim", "simulate", path, "-o", out))
+    line = _one_error_line(_call("lrfsim", "simulate", path, "-o", out))
     assert named in line and "absurd.yaml" in line, line
     assert not out.exists()
 
 
 def test_unwritable_output_is_found_before_the_work(recordings: dict[str, Path]) -> None:
-    proc = _run("lrfcal", "calibrate", recordings["combo"], "-o", "/proc/lrf_out", timeout=60)
+    proc = _call("lrfcal", "calibrate", recordings["combo"], "-o", "/proc/lrf_out")
     line = _one_error_line(proc)
     assert "/proc/lrf_out" in line and "cannot write" in line
     assert ".figures-" not in line and ".tmp" not in line  # never the tool's own temporary paths
@@ -176,21 +177,20 @@ def test_garbage_mesh_is_named_as_unreadable(tmp_path: Path) -> None:
     junk = tmp_path / "junk.stl"
     junk.write_bytes(bytes(range(256)) * 12)  # neither a binary nor an ASCII STL
     path = _scenario(tmp_path, "mesh", {"scene": {"meshes": [{"file": str(junk)}]}})
-    line = _one_error_line(_run("lrfsim", "simulate", path, "-o", tmp_path / "rec"))
+    line = _one_error_line(_call("lrfsim", "simulate", path, "-o", tmp_path / "rec"))
     assert "junk.stl" in line and "not a mesh trimesh can read" in line and "charset" not in line
 
 
 def test_version() -> None:
     for prog in ("lrfcal", "lrfsim"):
-        proc = _run(prog, "--version")
+        proc = _call(prog, "--version")
         assert proc.returncode == 0 and re.fullmatch(rf"{prog} \d+\.\d+\.\d+\S*\n", proc.stdout), proc.stdout
 
 
 def test_force_writes_a_refused_result_with_its_failed_checks_and_no_figures(recordings: dict[str, Path],
                                                                              tmp_path: Path) -> None:
     out = tmp_path / "cal"
-    proc = _run("lrfcal", "calibrate", recordings["noisy"], "-o", out, "--no-baseline", "--force", "--no-figures",
-                timeout=600)
+    proc = _call("lrfcal", "calibrate", recordings["noisy"], "-o", out, "--no-baseline", "--force", "--no-figures")
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     report = (out / "report.md").read_text()
     assert "| reduced chi-square | **FAILED** |" in report

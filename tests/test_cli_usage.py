@@ -1,4 +1,6 @@
-"""The first hour of a new user (issue 11), through the INSTALLED console scripts ``lrfcal`` and ``lrfsim``.
+"""The first hour of a new user (issue 11), through the INSTALLED console scripts ``lrfcal`` and ``lrfsim`` (their help
+and usage errors, :func:`_run`) and through their entry points called in this process (:func:`_call`: the same
+``main(argv)`` the scripts call, without a new interpreter's start-up for every call).
 
 Every mistake ends in exit code 2 (bad input or usage), exactly one line on stderr starting with ``error:``, no
 traceback, and nothing written or deleted that should not be. Every command's help shows its units and defaults.
@@ -6,12 +8,16 @@ traceback, and nothing written or deleted that should not be. Every command's he
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import importlib
+import io
 import json
 import os
 import shutil
 import subprocess
 import sys
+import traceback
 from collections.abc import Callable
 from pathlib import Path
 
@@ -42,6 +48,37 @@ def _env(columns: int = 80) -> dict[str, str]:
 def _run(prog: str, *args: str | Path, cwd: Path | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
     return subprocess.run([_script(prog), *map(str, args)], capture_output=True, text=True, cwd=cwd, env=_env(),
                           timeout=timeout)
+
+
+def _call(prog: str, *args: str | Path, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    """``prog``'s ``main(argv)`` called in this process as its console script calls it, with what :func:`_run` gives
+    the script (COLUMNS=80, no display, ``cwd``) and its stdout, stderr and exit code caught alike: an exception
+    that escapes ``main`` is a crash, its traceback on stderr and exit 1, as the interpreter would end the script.
+    The environment and the working folder are restored after. For the tests of what a command does; the scripts
+    themselves are run by :func:`_run` (their start-up, tests/test_startup.py)."""
+    main = importlib.import_module(f"{prog}.cli").main
+    argv = [str(a) for a in args]
+    out, err = io.StringIO(), io.StringIO()
+    env, here = dict(os.environ), Path.cwd()
+    os.environ.clear()
+    os.environ.update(_env())
+    code: int = 0
+    try:
+        if cwd is not None:
+            os.chdir(cwd)
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+            try:
+                main(argv)
+            except SystemExit as e:
+                code = e.code if isinstance(e.code, int) else (0 if e.code is None else 1)
+            except Exception:  # the crash, as the interpreter reports it
+                traceback.print_exc()
+                code = 1
+    finally:
+        os.chdir(here)
+        os.environ.clear()
+        os.environ.update(env)
+    return subprocess.CompletedProcess([prog, *argv], code, out.getvalue(), err.getvalue())
 
 
 def _one_error_line(proc: subprocess.CompletedProcess, code: int = 2) -> str:
@@ -176,7 +213,7 @@ BAD_SCENARIOS = [
 @pytest.mark.parametrize(("changes", "words"), BAD_SCENARIOS)
 def test_bad_scenario_one_line_nothing_written(changes: dict[str, object], words: str, tmp_path: Path) -> None:
     scen = _small(tmp_path, **changes)
-    proc = _run("lrfsim", "simulate", scen, "-o", tmp_path / "rec")
+    proc = _call("lrfsim", "simulate", scen, "-o", tmp_path / "rec")
     line = _one_error_line(proc)
     assert words in line and str(scen) in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["small.yaml"]
@@ -187,10 +224,10 @@ def test_bad_scenario_one_line_nothing_written(changes: dict[str, object], words
 def test_binary_and_broken_yaml_scenarios(tmp_path: Path) -> None:
     binary = tmp_path / "binary.yaml"
     binary.write_bytes(bytes(range(256)) * 4)
-    assert "not a text (UTF-8) file" in _one_error_line(_run("lrfsim", "simulate", binary, "-o", tmp_path / "o"))
+    assert "not a text (UTF-8) file" in _one_error_line(_call("lrfsim", "simulate", binary, "-o", tmp_path / "o"))
     broken = tmp_path / "broken.yaml"
     broken.write_text("name: x\nrig: {dh: [1, 2\n")
-    line = _one_error_line(_run("lrfsim", "run", broken, "-o", tmp_path / "o"))
+    line = _one_error_line(_call("lrfsim", "run", broken, "-o", tmp_path / "o"))
     assert f"{broken}:3:1: YAML syntax error" in line, line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["binary.yaml", "broken.yaml"]
 
@@ -199,16 +236,16 @@ def test_unwritable_output(tmp_path: Path) -> None:
     scen = _small(tmp_path)
     blocker = tmp_path / "file"
     blocker.write_text("x")
-    line = _one_error_line(_run("lrfsim", "simulate", scen, "-o", blocker / "sub" / "rec"))
+    line = _one_error_line(_call("lrfsim", "simulate", scen, "-o", blocker / "sub" / "rec"))
     assert "cannot write" in line and str(blocker / "sub" / "rec") in line
-    line = _one_error_line(_run("lrfcal", "calibrate", tmp_path, "-o", blocker / "cal"))
+    line = _one_error_line(_call("lrfcal", "calibrate", tmp_path, "-o", blocker / "cal"))
     assert "cannot write" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["file", "small.yaml"]
 
 
 def test_output_may_not_overlap_the_scenario(tmp_path: Path) -> None:
     scen = _small(tmp_path)
-    line = _one_error_line(_run("lrfsim", "simulate", scen, "-o", tmp_path, "--overwrite"))
+    line = _one_error_line(_call("lrfsim", "simulate", scen, "-o", tmp_path, "--overwrite"))
     assert "overlap" in line
     assert sorted(p.name for p in tmp_path.iterdir()) == ["small.yaml"]
 
@@ -218,7 +255,7 @@ def test_run_without_o_keeps_user_files(tmp_path: Path) -> None:
     mine = tmp_path / "runs" / "tunnel_v" / "my_notes.txt"
     mine.parent.mkdir(parents=True)
     mine.write_text("precious")
-    line = _one_error_line(_run("lrfsim", "run", scen, cwd=tmp_path))
+    line = _one_error_line(_call("lrfsim", "run", scen, cwd=tmp_path))
     assert "not written by lrf-calib" in line
     assert mine.read_text() == "precious"
     assert sorted(p.name for p in mine.parent.iterdir()) == ["my_notes.txt"]
@@ -229,14 +266,14 @@ def test_run_without_o_keeps_user_files(tmp_path: Path) -> None:
 def test_recording_is_never_an_output(recording: Path, tmp_path: Path) -> None:
     before = _tree(recording)
     for out in (recording, recording / "bag", recording.parent):
-        line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out, "--overwrite"))
+        line = _one_error_line(_call("lrfcal", "calibrate", recording, "-o", out, "--overwrite"))
         assert "outputs never overlap inputs" in line, line
-    line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", tmp_path / "cal", "--rrd",
+    line = _one_error_line(_call("lrfcal", "calibrate", recording, "-o", tmp_path / "cal", "--rrd",
                                 recording / "nominal.yaml"))
     assert "--rrd" in line
     assert _tree(recording) == before and list(tmp_path.iterdir()) == []
     # inside the recording folder but beside its inputs is allowed (REC/calibration touches no input file)
-    proc = _run("lrfcal", "calibrate", recording, "-o", recording / "calibration")
+    proc = _call("lrfcal", "calibrate", recording, "-o", recording / "calibration")
     assert "overlap" not in proc.stderr and "Traceback" not in proc.stderr
     assert {k: v for k, v in _tree(recording).items() if not k.startswith("calibration")} == before
 
@@ -246,15 +283,15 @@ def test_overwrite_only_replaces_own_output(recording: Path, tmp_path: Path) -> 
     out.mkdir()
     (out / "thesis.tex").write_text("years of work")
     for extra in ((), ("--overwrite",)):  # without --overwrite the message already says it would not help
-        line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out, *extra))
+        line = _one_error_line(_call("lrfcal", "calibrate", recording, "-o", out, *extra))
         assert "not written by lrf-calib" in line and "not even with --overwrite" in line
     (out / MANIFEST_NAME).write_text(yaml.safe_dump({"written_by": "lrfcal calibrate", "entries": ["report.md"]}))
-    line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out, "--overwrite"))
+    line = _one_error_line(_call("lrfcal", "calibrate", recording, "-o", out, "--overwrite"))
     assert "thesis.tex" in line and "did not write" in line
     assert (out / "thesis.tex").read_text() == "years of work"
     (tmp_path / "thesis.tex").write_bytes((out / "thesis.tex").read_bytes())
     (out / "thesis.tex").unlink()  # the user moves it away: now it is our own folder, --overwrite replaces it
-    line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", out))
+    line = _one_error_line(_call("lrfcal", "calibrate", recording, "-o", out))
     assert "use --overwrite" in line
 
 
@@ -269,7 +306,7 @@ def test_nominal_alpha_in_degrees(recording: Path, tmp_path: Path) -> None:
     nominal = yaml.safe_load((rec / "nominal.yaml").read_text())
     nominal["dh"]["alpha"] = 90
     (rec / "nominal.yaml").write_text(yaml.safe_dump(nominal))
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", tmp_path / "cal"))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", tmp_path / "cal"))
     assert "dh.alpha" in line and "looks like degrees" in line and "nominal.yaml" in line
     assert not (tmp_path / "cal").exists()
 
@@ -277,7 +314,7 @@ def test_nominal_alpha_in_degrees(recording: Path, tmp_path: Path) -> None:
 def test_nominal_yaml_syntax_error_has_line_and_column(recording: Path, tmp_path: Path) -> None:
     rec = _copy_recording(recording, tmp_path)
     (rec / "nominal.yaml").write_text("dh: {a: 0.01, alpha: 1.57\nmount: x\n")
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", tmp_path / "cal"))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", tmp_path / "cal"))
     assert "nominal.yaml:" in line and "YAML syntax error" in line
     assert line.split("nominal.yaml:")[1].split(":")[0].isdigit() and line.split("nominal.yaml:")[1].split(":")[1]\
         .isdigit()
@@ -290,7 +327,7 @@ def test_tape_in_mm_or_cm(recording: Path, tmp_path: Path, scale: float, unit: s
     rows = (rec / "distances.csv").read_text().splitlines()
     scaled = [rows[0]] + [",".join([*r.split(",")[:2], f"{float(r.split(',')[2]) * scale:.3f}"]) for r in rows[1:]]
     (rec / "distances.csv").write_text("\n".join(scaled) + "\n")
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", tmp_path / "cal"))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", tmp_path / "cal"))
     assert "distances.csv" in line and unit in line.split("looks like it is in")[1].split(" or ")[0], line
     assert not (tmp_path / "cal").exists()
 
@@ -304,7 +341,7 @@ def test_spawn_without_viewer_saves_rrd_and_goes_on(tmp_path: Path, recording_of
     recording = recording_of(load_scenario(scen))
     # lrfcal on a recording, --spawn without --rrd: the recording lands in the output folder
     cal = tmp_path / "cal"
-    proc = _run("lrfcal", "calibrate", recording, "-o", cal, "--spawn", "--no-figures")
+    proc = _call("lrfcal", "calibrate", recording, "-o", cal, "--spawn", "--no-figures")
     assert proc.returncode == 0, proc.stderr
     assert len(proc.stderr.strip().splitlines()) == 1 and "rerun.rrd" in proc.stderr
     assert (cal / "rerun.rrd").stat().st_size > 0
@@ -315,7 +352,7 @@ def test_spawn_without_viewer_saves_rrd_and_goes_on(tmp_path: Path, recording_of
     assert any(line.startswith("solver: ") for line in proc.stdout.splitlines())
     assert all(f"{n} (deg)" in proc.stdout for n in ("rx", "ry", "rz"))  # the rotation's sigma rows
     # a second run into the same folder replaces only what lrfcal wrote
-    proc = _run("lrfcal", "calibrate", recording, "-o", cal, "--overwrite", "--no-figures")
+    proc = _call("lrfcal", "calibrate", recording, "-o", cal, "--overwrite", "--no-figures")
     assert proc.returncode == 0, proc.stderr
 
 
@@ -324,14 +361,14 @@ def test_spawn_without_viewer_saves_rrd_and_goes_on(tmp_path: Path, recording_of
 def test_schema_and_docs_page_up_to_date() -> None:
     from lrfsim.scenario.markdown_page import scenario_markdown
 
-    proc = _run("lrfsim", "schema")
+    proc = _call("lrfsim", "schema")
     assert proc.returncode == 0
     schema = json.loads(proc.stdout)
     sensor = schema["$defs"]["SensorConfig"]["properties"]
     assert "[s]" in sensor["scan_period_s"]["description"] and sensor["scan_period_s"]["default"] == 0.025
     page = (ROOT / "docs" / "scenario.md").read_text()
     assert page == scenario_markdown(), "docs/scenario.md is stale: run lrfsim schema --markdown > docs/scenario.md"
-    assert _run("lrfsim", "schema", "--markdown").stdout == page
+    assert _call("lrfsim", "schema", "--markdown").stdout == page
 
 
 def test_every_scenario_field_has_a_description_with_unit_or_meaning() -> None:

@@ -5,7 +5,8 @@ wrong by up to half the gap times the sweep's speed. lrfcal.model.motor.joint_ga
 leaves their scans out with a note naming the gap (lrfcal.stages.timing.usable_scans), or refuses naming it when most
 scans
 fall in one. The fault ``faults.joint_gap_s`` (lrfsim.simulation.faults.joint_gap) makes such a recording; the
-end-to-end tests run the installed console scripts (``lrfsim simulate``, ``lrfcal calibrate``) as a user would.
+end-to-end tests run ``lrfsim simulate`` and ``lrfcal calibrate`` as a user would, through their entry points
+(``main(argv)`` in this process, tests/test_cli_usage.py's ``_call``).
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from test_cli_usage import ROOT, _one_error_line, _run
+from test_cli_usage import ROOT, _call, _one_error_line
 
 from lrfcal.model.motor import joint_gaps
 from lrfcal.stages.timing import interpolation_error_rad, motor_angles
@@ -80,7 +81,7 @@ def _scenario(tmp: Path, name: str, faults: dict[str, object], fast: bool) -> Pa
 
 def _simulated(tmp: Path, name: str, faults: dict[str, object], fast: bool = False) -> Path:
     rec = tmp / name
-    proc = _run("lrfsim", "simulate", _scenario(tmp, name, faults, fast), "-o", rec, timeout=300)
+    proc = _call("lrfsim", "simulate", _scenario(tmp, name, faults, fast), "-o", rec)
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     return rec
 
@@ -93,7 +94,7 @@ def test_joint_states_missing_across_the_turnaround_calibrate_within_4_sigma(tmp
     gap = truth["faults"]["joint_gap"]
     assert gap["length_s"] == 3.0 and gap["n_removed"] == 300  # 100 Hz
     out = tmp_path / "cal"
-    proc = _run("lrfcal", "calibrate", rec, "-o", out, "--no-baseline", "--no-figures", timeout=600)
+    proc = _call("lrfcal", "calibrate", rec, "-o", out, "--no-baseline", "--no-figures")
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
     for name in ("a", "alpha", "b", "beta"):
@@ -111,7 +112,7 @@ def test_joint_states_missing_across_the_turnaround_calibrate_within_4_sigma(tmp
 def test_a_gap_over_most_of_the_recording_is_refused_naming_it(tmp_path: Path) -> None:
     rec = _simulated(tmp_path, "long_gap", {"joint_gap_s": 6.0}, fast=True)
     out = tmp_path / "cal"
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", out, "--no-baseline", "--no-figures", timeout=600),
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", out, "--no-baseline", "--no-figures"),
                            code=3)
     assert "gap(s) of the joint states may hide the servo's motion" in line and "no joint states for 6" in line, line
     assert not out.exists()
@@ -119,5 +120,5 @@ def test_a_gap_over_most_of_the_recording_is_refused_naming_it(tmp_path: Path) -
 
 def test_a_gap_at_a_negative_time_is_a_bad_scenario(tmp_path: Path) -> None:
     path = _scenario(tmp_path, "bad", {"joint_gap_s": 1.0, "joint_gap_at_s": -1.0}, True)
-    line = _one_error_line(_run("lrfsim", "simulate", path, "-o", tmp_path / "rec"))
+    line = _one_error_line(_call("lrfsim", "simulate", path, "-o", tmp_path / "rec"))
     assert "joint_gap_at_s" in line and "bad.yaml" in line, line

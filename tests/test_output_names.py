@@ -1,4 +1,5 @@
-"""Files and feedback (issue 46, case 6), through the INSTALLED console scripts ``lrfcal`` and ``lrfsim``.
+"""Files and feedback (issue 46, case 6), through the entry points of ``lrfcal`` and ``lrfsim`` as their console
+scripts call them (``main(argv)`` in this process: tests/test_cli_usage.py's ``_call``).
 
 * No output folder keeps a temporary name: every command that writes a file or a folder (lrfcal calibrate, convert,
   inspect -o, reproject with --bag-out and --rrd; lrfsim simulate, run, study; lrfsim plan --json writes nothing)
@@ -21,7 +22,7 @@ import pytest
 import yaml
 from rich.console import Console
 from synthetic import make_result
-from test_cli_usage import _one_error_line, _run, _small
+from test_cli_usage import _call, _one_error_line, _small
 from test_scanlog import HEADER_LAYOUT, _write_header_log
 
 from lrfcal.io.files import TEMP_NAME
@@ -67,10 +68,10 @@ def test_no_command_leaves_a_temporary_name(full_sweep_run: tuple[subprocess.Com
                                    "log": HEADER_LAYOUT.model_dump(mode="json", exclude_defaults=True)}))
     steps.append(("lrfcal", "convert", str(log), "--nominal", str(rig), "-o", str(out / "converted")))
     for prog, *args in steps:
-        proc = _run(prog, *args, timeout=300)
+        proc = _call(prog, *args)
         assert proc.returncode in (0, 3), (prog, args[0], proc.returncode, proc.stderr)  # run, study: may refuse
         assert "Traceback" not in proc.stderr, proc.stderr
-    proc = _run("lrfsim", "plan", tiny, "--json", "-q", cwd=out)  # prints only
+    proc = _call("lrfsim", "plan", tiny, "--json", "-q", cwd=out)  # prints only
     assert "Traceback" not in proc.stderr, proc.stderr
     assert _temporaries(out) == []
     assert _temporaries(tmp_path) == []
@@ -91,7 +92,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A tiny recording by the installed ``lrfsim simulate`` (only read: each test copies what it changes)."""
     tmp = tmp_path_factory.mktemp("rec")
     rec = tmp / "rec"
-    proc = _run("lrfsim", "simulate", _small(tmp), "-o", rec, "-q")
+    proc = _call("lrfsim", "simulate", _small(tmp), "-o", rec, "-q")
     assert proc.returncode == 0, proc.stderr
     return rec
 
@@ -104,12 +105,12 @@ def _copy(rec: Path, dest: Path) -> Path:
 
 
 def test_a_folder_given_as_a_scenario_or_rig_file(recording: Path, tmp_path: Path) -> None:
-    line = _one_error_line(_run("lrfsim", "simulate", recording, "-o", tmp_path / "o"))
+    line = _one_error_line(_call("lrfsim", "simulate", recording, "-o", tmp_path / "o"))
     assert f"{recording}: a folder, not a scenario file: give the file itself, e.g. {recording / 'scenario.yaml'}" \
         in line, line
-    line = _one_error_line(_run("lrfsim", "plan", tmp_path))  # a folder without any YAML file
+    line = _one_error_line(_call("lrfsim", "plan", tmp_path))  # a folder without any YAML file
     assert "a folder, not a scenario file" in line and "holds no YAML file" in line, line
-    line = _one_error_line(_run("lrfcal", "calibrate", recording, "-o", tmp_path / "c", "--nominal", recording))
+    line = _one_error_line(_call("lrfcal", "calibrate", recording, "-o", tmp_path / "c", "--nominal", recording))
     assert f"a folder, not a nominal file: give the file itself, e.g. {recording / 'nominal.yaml'}" in line, line
     assert not (tmp_path / "o").exists() and not (tmp_path / "c").exists()
 
@@ -118,11 +119,11 @@ def test_an_empty_bag_folder(recording: Path, tmp_path: Path) -> None:
     rec = _copy(recording, tmp_path / "rec")
     for p in (rec / "bag").iterdir():
         p.unlink()
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", tmp_path / "c"))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", tmp_path / "c"))
     assert f"{rec / 'bag'}: empty folder, not a ROS 2 bag" in line and "metadata.yaml" in line, line
     assert "Expected metadata file" not in line  # not rosbags' own words, which call the folder a metadata file
     (rec / "bag" / "bag.mcap").write_bytes((recording / "bag" / "bag.mcap").read_bytes())  # the data, no metadata
-    line = _one_error_line(_run("lrfcal", "inspect", rec / "bag"))
+    line = _one_error_line(_call("lrfcal", "inspect", rec / "bag"))
     assert f"metadata.yaml missing from the bag folder (it holds bag.mcap): give that file itself, " \
            f"{rec / 'bag' / 'bag.mcap'}" in line, line
 
@@ -130,7 +131,7 @@ def test_an_empty_bag_folder(recording: Path, tmp_path: Path) -> None:
 def test_a_binary_distances_file(recording: Path, tmp_path: Path) -> None:
     rec = _copy(recording, tmp_path / "rec")
     (rec / "distances.csv").write_bytes(bytes(range(256)) * 4)
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", tmp_path / "c"))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", tmp_path / "c"))
     assert f"{rec / 'distances.csv'}: not a text (UTF-8) file: byte 0x80 at offset 128" in line, line
     assert "marker_i,marker_j,distance_m" in line and "codec" not in line, line
 
@@ -140,7 +141,7 @@ def test_marker_radius_zero_is_named_at_the_rig_file(recording: Path, tmp_path: 
     rig = yaml.safe_load((rec / "nominal.yaml").read_text())
     rig["marker_radius_m"] = 0
     (rec / "nominal.yaml").write_text(yaml.safe_dump(rig))
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", tmp_path / "c"))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", tmp_path / "c"))
     assert f"{rec / 'nominal.yaml'}: marker_radius_m: 0 m is no sphere" in line and "> 0" in line, line
     assert "e.g. 0.005" in line and line.endswith("got 0"), line
 

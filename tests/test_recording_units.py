@@ -1,6 +1,7 @@
 """Unit mistakes in a recording are named at reading time (issue 46, case 4): ranges written in millimetres and joint
 positions written in degrees are refused (exit 2) naming the file, the field, the value and the likely unit, through
-the installed console scripts; the public recordings of real rigs (../shared/realbags) still read.
+the programs' entry points (``main(argv)`` in this process, tests/test_cli_usage.py's ``_call``); the public
+recordings of real rigs (../shared/realbags) still read.
 
 The faulty bags are a short simulated plane_30deg recording (tests/test_cli_faults.py's) rewritten message by
 message with rosbags: every range, range_min and range_max times 1000, or every joint position in degrees.
@@ -19,7 +20,7 @@ import numpy as np
 import pytest
 import yaml
 from test_cli_faults import _scenario_data
-from test_cli_usage import _one_error_line, _run
+from test_cli_usage import _call, _one_error_line
 from test_scanlog import LONGARM_LOG_KEYS
 
 from lrfsim.scenario.file import Scenario, parse_scenario
@@ -70,7 +71,7 @@ def _degrees(msgtype: str, msg: Any) -> Any:
 def test_ranges_in_millimetres_are_refused_naming_the_field_and_unit(clean: Path, tmp_path: Path) -> None:
     rec = _rewritten(clean, tmp_path / "mm", _millimetres)
     out = tmp_path / "cal"
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", out, "--no-baseline", timeout=300))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", out, "--no-baseline"))
     assert str(rec / "bag") in line and "/scan" in line and "ranges look like millimetres" in line, line
     assert "range_max 60000 m" in line and "(as millimetres: 60 m" in line, line
     assert not out.exists()
@@ -79,7 +80,7 @@ def test_ranges_in_millimetres_are_refused_naming_the_field_and_unit(clean: Path
 def test_joint_positions_in_degrees_are_refused_naming_the_field_and_unit(clean: Path, tmp_path: Path) -> None:
     rec = _rewritten(clean, tmp_path / "deg", _degrees)
     out = tmp_path / "cal"
-    line = _one_error_line(_run("lrfcal", "calibrate", rec, "-o", out, "--no-baseline", timeout=300))
+    line = _one_error_line(_call("lrfcal", "calibrate", rec, "-o", out, "--no-baseline"))
     assert str(rec / "bag") in line and "/joint_states" in line and "joint positions" in line, line
     assert "look like degrees: set servo.unit: deg" in line and "-90" in line and "90" in line, line
     assert not out.exists()
@@ -88,7 +89,7 @@ def test_joint_positions_in_degrees_are_refused_naming_the_field_and_unit(clean:
     rig.setdefault("servo", {})["unit"] = "deg"
     fixed = tmp_path / "deg.yaml"
     fixed.write_text(yaml.safe_dump(rig))
-    proc = _run("lrfcal", "reproject", rec / "bag", "--nominal", fixed, "-o", tmp_path / "cloud.ply", timeout=300)
+    proc = _call("lrfcal", "reproject", rec / "bag", "--nominal", fixed, "-o", tmp_path / "cloud.ply")
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
 
 
@@ -116,6 +117,6 @@ def test_real_recordings_are_not_taken_for_unit_mistakes(name: str, tmp_path: Pa
     path, sources = REAL[name]
     rig = tmp_path / "rig.yaml"
     rig.write_text(yaml.safe_dump({"dh": {"a": 0.0, "alpha": math.pi / 2, "b": 0.05, "beta": 0.0}, **sources}))
-    proc = _run("lrfcal", "reproject", REALBAGS / path, "--nominal", rig, "-o", tmp_path / "cloud.ply", timeout=300)
+    proc = _call("lrfcal", "reproject", REALBAGS / path, "--nominal", rig, "-o", tmp_path / "cloud.ply")
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
     assert (tmp_path / "cloud.ply").stat().st_size > 100_000

@@ -1,5 +1,6 @@
-"""Results that depend on where the solve starts (issue 46, cases 2 and 3), through the INSTALLED console scripts
-(room_box's targetless run through the function ``lrfcal calibrate`` runs, shared with tests/test_targetless.py).
+"""Results that depend on where the solve starts (issue 46, cases 2 and 3), through ``lrfcal calibrate``'s entry point
+(``main(argv)`` in this process, tests/test_cli_usage.py's ``_call``; room_box's targetless run through the function
+``lrfcal calibrate`` runs, shared with tests/test_targetless.py).
 
 - The clock offset: ``--clock-offset 5`` on simulated tunnel_v (true offset 0) reported +6.119 +- 0.011 s with every
   check passed (and from 2 s: +1.94 s). A start beyond the bound the model sets (lrfcal.model.motor:
@@ -25,7 +26,7 @@ import numpy as np
 import pytest
 import yaml
 from conftest import tiered
-from test_cli_usage import _one_error_line, _run
+from test_cli_usage import _call, _one_error_line
 
 from lrfcal.estimate.checks import clock_offset_check
 from lrfcal.model.motor import CLOCK_OFFSET_PASS_SHARE, MAX_CLOCK_OFFSET_S, clock_offset_bound_s
@@ -50,8 +51,8 @@ def test_a_clock_offset_start_beyond_the_bound_is_refused_naming_it(
         shipped_recording: Callable[[str], Path], tmp_path: Path, start: str) -> None:
     """tunnel_v (true offset 0): from 5 s it reported +6.119 s and from 2 s +1.94 s, exit 0; now refused."""
     out = tmp_path / "cal"
-    proc = _run("lrfcal", "calibrate", shipped_recording("tunnel_v"), "-o", out, "--clock-offset", start,
-                "--no-figures", "--no-baseline", timeout=600)
+    proc = _call("lrfcal", "calibrate", shipped_recording("tunnel_v"), "-o", out, "--clock-offset", start,
+                "--no-figures", "--no-baseline")
     line = _one_error_line(proc, code=3)
     assert line.startswith(f"error: clock offset: --clock-offset {float(start):+g} s is beyond the +-1000 ms"), line
     assert "1/16 of the sweep's shortest pass" in line
@@ -69,8 +70,8 @@ def test_a_start_far_from_where_the_two_directions_line_up_is_refused_naming_it(
 
     folder = recording_of(parse_scenario(_scenario_data("fast_clean", {}), "fast_clean.yaml"))
     out = tmp_path / "cal"
-    line = _one_error_line(_run("lrfcal", "calibrate", folder, "-o", out, "--clock-offset", "0.2", "--no-figures",
-                                "--no-baseline", timeout=600), code=3)
+    line = _one_error_line(_call("lrfcal", "calibrate", folder, "-o", out, "--clock-offset", "0.2", "--no-figures",
+                                "--no-baseline"), code=3)
     assert line.startswith("error: clock offset: --clock-offset +0.2 s: the sweep's two directions see the same "
                            "scene at "), line
     found_ms = float(line.split("see the same scene at ")[1].split(" ms")[0])
@@ -96,8 +97,7 @@ def test_a_clock_offset_start_within_the_bound_finds_the_true_offset(shipped_rec
                                                                      tmp_path: Path) -> None:
     """tunnel_v from --clock-offset 0.6 (6 deg of motor angle at 10 deg/s): the estimate is the true 0 again."""
     folder, out = shipped_recording("tunnel_v"), tmp_path / "cal"
-    proc = _run("lrfcal", "calibrate", folder, "-o", out, "--clock-offset", "0.6", "--no-figures", "--no-baseline",
-                timeout=900)
+    proc = _call("lrfcal", "calibrate", folder, "-o", out, "--clock-offset", "0.6", "--no-figures", "--no-baseline")
     assert "Traceback" not in proc.stderr and proc.returncode == 0, proc.stderr
     cal = yaml.safe_load((out / "calibration.yaml").read_text())
     truth = yaml.safe_load((folder / "ground_truth.yaml").read_text())
@@ -120,14 +120,14 @@ def test_shipped_targetless_scenes_calibrate_with_the_starts_agreeing(
         shipped_recording: Callable[[str], Path], targetless_calibrated: Callable[[str], tuple[Path, Path, object]],
         tmp_path: Path, name: str) -> None:
     """The multi-start agreement does not refuse good runs: exit 0, every estimated DH parameter within 4 sigma of the
-    truth, and at least one other start run and agreeing. tunnel_v through the installed console script; room_box
+    truth, and at least one other start run and agreeing. tunnel_v through the command's entry point; room_box
     through the function it runs (lrfcal.commands.calibrate.calibrate_folder, which raises where the command exits 3),
     the session's run that tests/test_targetless.py asserts on too (tests/conftest.py)."""
     if name == "room_box":
         folder, out, _ = targetless_calibrated(name)
     else:
         folder, out = shipped_recording(name), tmp_path / "cal"
-        proc = _run("lrfcal", "calibrate", folder, "-o", out, "--targetless", "--no-figures", timeout=900)
+        proc = _call("lrfcal", "calibrate", folder, "-o", out, "--targetless", "--no-figures")
         assert "Traceback" not in proc.stderr and proc.returncode == 0, proc.stderr
     z = _dh_z(out, folder)
     print(name, "z", z, _starts_row(out))
