@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import tiered
 from test_cli_usage import ROOT, _one_error_line, _run
 
 from lrfcal.errors import CalibrationError
@@ -72,7 +73,7 @@ def _servo_clock_stepped(rec: Path, dst: Path, step_s: float, at_s: float) -> Pa
     return dst
 
 
-@pytest.mark.parametrize("name", ["plane_30deg", "tunnel_v"])
+@pytest.mark.parametrize("name", tiered(["plane_30deg", "tunnel_v"]))  # tunnel_v in the slow tier
 def test_a_servo_clock_step_keeps_one_side_and_its_offset_is_the_truth_there(
         name: str, shipped_recording: Callable[[str], Path], tmp_path: Path) -> None:
     """The servo computer's clock steps back 0.4 s a third of the way through (an NTP correction): the step is named,
