@@ -149,7 +149,7 @@ class Matched:
 class Observer:
     """What a calibration tells whoever runs it while it goes on (lrfcal.pipeline.calibrate's ``observer``): here
     the stages to ``progress`` (None: nothing), and nothing else; a command's subclass also draws the report's figures
-    meanwhile (lrfcal.commands.calibrate). The method does not wait for it nor read anything back."""
+    meanwhile (lrfcal.commands.calibration_run). The method does not wait for it nor read anything back."""
 
     def __init__(self, progress: Callable[[str], None] | None = None) -> None:
         self._progress = progress

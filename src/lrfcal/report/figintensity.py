@@ -1,6 +1,6 @@
 """The intensity figure of a calibration (intensity.png, the seed paper's Figs. 8/9): the (scan, beam) intensity
 image and the marker returns detected in it. It needs only the detection and the association, so the calibration
-draws it while its solve goes on (lrfcal.commands.calibrate)."""
+draws it while its solve goes on (lrfcal.commands.calibration_run)."""
 
 from __future__ import annotations
 

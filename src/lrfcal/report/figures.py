@@ -327,7 +327,7 @@ def write_figures(result: CalibrationResult, out_dir: Path | str, before: Params
 
     ``before``: the parameters of the "before" views, described by ``before_label`` (default: the calibration's
     start, the nominal DH with the mount fitted to the markers: a nominal mount has no place in W, the tape's frame,
-    unless the true marker positions are known, see :func:`lrfcal.commands.calibrate.calibrate_folder`).
+    unless the true marker positions are known, see lrfcal.commands.calibration_run's ``_nominal_in_W``).
 
     A figure is an aid, the result exists without it: a figure that cannot be drawn (an exception while drawing
     it, whatever the recording) is skipped and its reason returned, never raised after the calibration is done.
