@@ -87,28 +87,35 @@ with contextlib.redirect_stderr(err):
         main()
     except SystemExit as e:
         code = e.code
-method = ("scipy", "matplotlib", "rerun", "mujoco", "lrfcal.pipeline", "lrfcal.estimate", "lrfcal.stages")
+method = ("scipy", "matplotlib", "rerun", "mujoco", "lrfcal.pipeline", "lrfcal.estimate.engine",
+          "lrfcal.stages.propose")
 print(json.dumps([code, sorted(m for m in method if m in sys.modules), err.getvalue()]))
 """
 
 
-def test_a_calibrations_bad_input_is_answered_before_the_method_loads(tmp_path: Path) -> None:
-    """A missing recording, a folder without a bag, a rig file that does not parse: exit 2 and one line, with neither
-    scipy nor the method's modules (the pipeline, the estimate, the stages) nor matplotlib, rerun or mujoco loaded
-    (lrfcal.commands.calibrate reads the inputs, then imports lrfcal.commands.calibration_run)."""
+def test_bad_input_is_answered_before_the_method_loads(tmp_path: Path) -> None:
+    """A missing recording, a folder without a bag, a rig file that does not parse (lrfcal calibrate), a missing
+    calibration (check), a missing bag (inspect), a missing scan log (convert): exit 2 and one line, with neither
+    scipy nor the method's modules (the pipeline, the estimate, the stages' search) nor matplotlib, rerun or mujoco
+    loaded (each command reads and judges its inputs first: lrfcal.commands.calibrate imports
+    lrfcal.commands.calibration_run only then, check and inspect the pipeline and the DH search only then)."""
     empty = tmp_path / "empty"
     empty.mkdir()
     broken = tmp_path / "broken"
     (broken / "bag").mkdir(parents=True)
     (broken / "nominal.yaml").write_text("dh: [unclosed\n")
-    for folder, words in ((tmp_path / "nowhere", "not found"), (empty, "bag"), (broken, "nominal.yaml")):
-        proc = subprocess.run([sys.executable, "-c", BAD_INPUT_PROBE, "calibrate", str(folder), "-o",
-                               str(tmp_path / "out")], capture_output=True, text=True, timeout=60)
+    out, nowhere = tmp_path / "out", tmp_path / "nowhere"
+    cases = [(["calibrate", nowhere, "-o", out], "not found"), (["calibrate", empty, "-o", out], "bag"),
+             (["calibrate", broken, "-o", out], "nominal.yaml"), (["check", nowhere, empty, "-o", out], "nowhere"),
+             (["inspect", nowhere / "bag"], "nowhere"), (["convert", nowhere / "scan.log", "-o", out], "nowhere")]
+    for argv, words in cases:
+        proc = subprocess.run([sys.executable, "-c", BAD_INPUT_PROBE, *map(str, argv)], capture_output=True,
+                              text=True, timeout=60)
         code, loaded, err = json.loads(proc.stdout.strip().splitlines()[-1])
         lines = err.strip().splitlines()
-        assert code == 2 and len(lines) == 1 and words in lines[0], (folder, err)
-        assert loaded == [], f"{folder.name}: {loaded} loaded before the input was judged"
-    assert not (tmp_path / "out").exists()
+        assert code == 2 and len(lines) == 1 and words in lines[0], (argv[:2], err)
+        assert loaded == [], f"lrfcal {argv[0]} {argv[1]}: {loaded} loaded before the input was judged"
+    assert not out.exists()
 
 
 def test_every_command_applies_the_programs_policies() -> None:

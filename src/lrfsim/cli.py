@@ -274,9 +274,6 @@ def study(
     from lrfcal.io.files import check_no_overlap, check_replaceable
 
     from .scenario.file import load_scenario, scenario_inputs
-    from .trials.study import study as run_study
-    from .trials.study_figures import import_figures
-    from .trials.study_result import summary_markdown, write_study
     from .trials.variants import parse_vary, with_field
 
     sc = load_scenario(scenario)
@@ -291,6 +288,11 @@ def study(
     if varied is not None:  # every value must make a valid scenario before any trial runs
         for v in varied[1]:
             with_field(sc, varied[0], v)
+    # the trials' modules (the simulator, the calibration) once the inputs are judged: bad input answers without them
+    from .trials.study import study as run_study
+    from .trials.study_figures import import_figures
+    from .trials.study_result import summary_markdown, write_study
+
     values = [""] if varied is None else [str(v) for v in varied[1]]  # the parts' labels, as lrfsim.trials.study's
     keep_freed_memory()  # the trials' large arrays reused, not faulted in anew (lrfcal.runtime.memory)
     with progress_display(f"study of {sc.name}", quiet=quiet) as hooks:

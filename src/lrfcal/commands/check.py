@@ -36,7 +36,6 @@ from lrfcal.io.saved_calibration import SavedCalibration, calibration_file, read
 from lrfcal.io.scanlog import resolve_recording
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, log_so3
 from lrfcal.model.unknowns import BY_NAME, INTRINSICS, wrap_pi
-from lrfcal.pipeline import calibrate
 from lrfcal.report.check_report import check_figure, check_markdown, show
 from lrfcal.result import CalibrationResult, Observer
 from lrfcal.types import Recording
@@ -194,6 +193,8 @@ def _calibrate(rec: Recording, config: CalibConfig, progress: Callable[[str], No
     Raises:
         CalibrationError: the new recording does not calibrate: nothing can be tested (the reason named).
     """
+    from lrfcal.pipeline import calibrate  # the method, once the inputs are read (bad input answered without it)
+
     try:
         return calibrate(rec, config, Observer(progress)), []
     except CalibrationError as err:

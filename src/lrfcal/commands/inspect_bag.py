@@ -19,7 +19,7 @@ import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -44,11 +44,12 @@ from lrfcal.io.multiecho import Echoes
 from lrfcal.io.recording import check_units
 from lrfcal.io.rig import rig_snippet
 from lrfcal.model.kinematics import is_placeholder_dh
-from lrfcal.pipeline.search import propose_for_recording
-from lrfcal.stages.propose import DHProposal
 from lrfcal.stages.timing import covered_scans
 from lrfcal.types import ReadReport, ScanSource, ServoSource, TfSource
 from lrfcal.types.sources import ServoStamp, Unit
+
+if TYPE_CHECKING:
+    from lrfcal.stages.propose import DHProposal
 
 #: messages decoded per topic for the statistics (receive times come from all messages)
 MAX_DECODED = 5000
@@ -170,6 +171,10 @@ def proposed_dh(data: BagData | None, dh: dict[str, float] | None, propose: bool
     proposal says so."""
     if not propose or (dh and not is_placeholder_dh(dh)):
         return None
+    # the search's modules (scipy) once the recording is read: bad input is answered without them
+    from lrfcal.pipeline.search import propose_for_recording
+    from lrfcal.stages.propose import DHProposal
+
     if data is None:
         return DHProposal(None, reason="the recording could not be read (see the problems)")
     return propose_for_recording(data.scans, data.joints, progress)  # the stage takes scans and joint states
