@@ -138,3 +138,8 @@ def test_reproject_applies_the_calibrations_clock_offset(tmp_path, monkeypatch, 
         expect = reproject_beams(data.scans, data.joints, DH_TEST, offset)
         ply = read_cloud_ply(out)
         np.testing.assert_allclose(np.c_[ply["x"], ply["y"], ply["z"]], expect.points_M, atol=1e-6)
+    # the calibration folder stands for its calibration.yaml, as lrfcal check takes it
+    folder_out = tmp_path / "folder.ply"
+    assert _main(monkeypatch, ["reproject", str(canonical_bag), "--nominal", str(_rig(tmp_path)), "--calibration",
+                               str(tmp_path), "-o", str(folder_out)]) == 0
+    assert folder_out.read_bytes() == (tmp_path / "c0.ply").read_bytes()

@@ -341,7 +341,8 @@ def reproject_cmd(
                                       "intensity, time (s), scan, beam per point; written atomically).")],
     calibration: Annotated[Path | None, typer.Option(
         "--calibration", metavar="YAML", show_default=False,
-        help="calibration.yaml whose dh replaces the rig file's nominal DH.")] = None,
+        help="calibration.yaml (or the folder `lrfcal calibrate` wrote) whose dh replaces the rig file's nominal "
+        "DH.")] = None,
     rrd: Annotated[Path | None, typer.Option("--rrd", metavar="FILE", show_default=False,
         help="Also save a rerun recording (.rrd).")] = None,
     bag_out: Annotated[Path | None, typer.Option(

@@ -303,8 +303,11 @@ def reproject_bag(
     """
     from lrfcal.io.recording import read_recording
     from lrfcal.io.rig import with_overrides
+    from lrfcal.io.saved_calibration import calibration_file
     from lrfcal.model.kinematics import refuse_placeholder_dh
 
+    # a calibration folder stands for its calibration.yaml, as `lrfcal check` takes it
+    calibration = calibration_file(calibration) if calibration is not None else None
     bag, nominal, out, rrd, bag_out = Path(bag), Path(nominal), Path(outputs.ply), outputs.rrd, outputs.bag
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
     check_outputs([p for p in (bag, nominal, Path(calibration) if calibration else None) if p is not None], outs)
