@@ -201,8 +201,9 @@ def plan(
 
 def _import_prediction() -> None:
     """Import what `lrfsim plan` predicts with: lrfsim.plan.prediction, the parts of lrfcal it uses and the
-    calibration's marker detection (lrfsim.simulation.faults.detected_mask), which imports scipy.ndimage; then the
-    programs' thread policy for the BLAS that scipy loads (lrfcal.runtime.threads)."""
+    calibration's marker detection (lrfsim.simulation.faults.detected_mask), which imports scipy.ndimage. scipy's BLAS
+    is limited as it loads (the policy's variables, set as the command started: lrfcal.runtime.threads); the policy
+    is applied once more for what loaded otherwise."""
     import lrfcal
     import lrfsim.plan.prediction  # noqa: F401
 
