@@ -193,9 +193,10 @@ def main() -> None:
     lines, misses, table, forced = [], [], [], []
     for name in args.replicas:
         path = ROOT / "scenarios" / f"{name}.yaml"
-        sc = load_scenario(path if path.is_file() else Path(name))
+        path = path if path.is_file() else Path(name)
+        sc = load_scenario(path)
         if args.without:
-            data = without(yaml.safe_load((path if path.is_file() else Path(name)).read_text()), args.without)
+            data = without(yaml.safe_load(path.read_text()), args.without)
             sc = parse_scenario(data, f"{sc.name}_without_{'_'.join(args.without)}")
         s = study(sc, args.seeds, seed0=args.seed0, workers=args.workers, truth_spread=args.truth_spread)
         write_study(s, out / sc.name, overwrite=True)

@@ -202,13 +202,11 @@ def plan(
 def _import_prediction() -> None:
     """Import what `lrfsim plan` predicts with: lrfsim.plan.prediction, the parts of lrfcal it uses and the
     calibration's marker detection (lrfsim.simulation.faults.detected_mask), which imports scipy.ndimage. scipy's BLAS
-    is limited as it loads (the policy's variables, set as the command started: lrfcal.runtime.threads); the policy
-    is applied once more for what loaded otherwise."""
+    is limited as it loads (the thread policy's variables, set as the command started: lrfcal.runtime.threads)."""
     import lrfcal
     import lrfsim.plan.prediction  # noqa: F401
 
     _ = lrfcal.detect
-    lrfcal.apply_thread_policy()
 
 
 @app.command(cls=Command)

@@ -310,7 +310,7 @@ def reproject_bag(
     calibration = calibration_file(calibration) if calibration is not None else None
     bag, nominal, out, rrd, bag_out = Path(bag), Path(nominal), Path(outputs.ply), outputs.rrd, outputs.bag
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
-    check_outputs([p for p in (bag, nominal, Path(calibration) if calibration else None) if p is not None], outs)
+    check_outputs([p for p in (bag, nominal, calibration) if p is not None], outs)
     from lrfcal.io.recording import read_nominal
 
     nom = read_nominal(nominal)
