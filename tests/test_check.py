@@ -137,9 +137,12 @@ def test_bad_input_is_one_line_and_exit_2(tunnel: dict[str, Path], tmp_path: Pat
 def test_a_targetless_pair(targetless_calibrated: Callable[[str], tuple[Path, Path, object]],
                            recording_of: Callable[[Scenario], Path], tmp_path: Path) -> None:
     _, cal, _ = targetless_calibrated("room_box")
-    # the new recording one pass (half the work): the check compares what both estimate (the clock offset, estimated
-    # only from a sweep both ways, is then not tested)
-    second = recording_of(with_field(_second(load_scenario(SCENARIOS / "room_box.yaml"), 5), "servo.passes", 1))
+    # the new recording one quick pass (a fifth of the scans): the check compares what both estimate (the clock
+    # offset, estimated only from a sweep both ways, is then not tested)
+    second = _second(load_scenario(SCENARIOS / "room_box.yaml"), 5)
+    for key, value in (("servo.passes", 1), ("servo.speed_rad_s", 1.0), ("servo.settle_s", 0.05)):
+        second = with_field(second, key, value)
+    second = recording_of(second)
     proc = _run("lrfcal", "check", cal, second, "-o", tmp_path / "chk", "--no-figures", timeout=300)
     assert proc.returncode == 0, proc.stderr
     data = yaml.safe_load((tmp_path / "chk" / "check.yaml").read_text())
