@@ -16,7 +16,14 @@ lateral residual, with the standard error of each mean over the marker's scan li
 return's residual as independent noise of mean 0; a mean many standard errors from 0 is a per-marker model error
 (near perpendicular truth 5: the across-plane part, up to 12 standard errors on one marker; docs/study.md).
 
-    python benchmarks/bench_model_error.py [--seeds 28 67 6 12] [--per-marker]
+With ``--stated-sigma S`` the noise-free recording is calibrated again with the rig file's range noise replaced by S
+(``--range-sigma``): the weight the range residuals get against the lateral ones, which do not scale with it. With
+``--first-order``, the first-order shift from the truth that the noise-free residuals of the marker returns alone
+make, -(J^T J)^-1 J^T r at the truth (marker-only, every lateral residual kept), in units of its sigma, and the part
+of b's shift that each kind of residual and each marker makes (seed 1046, the one confident wrong of
+bench_promise: docs/trust.md).
+
+    python benchmarks/bench_model_error.py [--seeds 28 67 6 12] [--per-marker] [--first-order] [--stated-sigma S]
 """
 
 from __future__ import annotations
@@ -26,6 +33,7 @@ import math
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.scenario.file import Scenario
@@ -38,9 +46,14 @@ from lrfsim.trials.trial import calibrate_recording
 EXACT_TAPE_M = 1e-6
 
 
-def _row(scenario: Scenario, noise: bool, folder: Path) -> str:
-    write_recording(simulate(scenario, noise=noise), scenario, folder)
-    trial = calibrate_recording(folder)
+def _row(scenario: Scenario, noise: bool, folder: Path, stated_sigma_m: float | None = None) -> str:
+    from lrfcal.config import CalibConfig
+
+    if not folder.exists():
+        write_recording(simulate(scenario, noise=noise), scenario, folder)
+    config = None if stated_sigma_m is None else CalibConfig(baseline=False, geometry=False, clouds=False,
+                                                              range_sigma_m=stated_sigma_m)
+    trial = calibrate_recording(folder, config)
     if trial.status != "calibrated":
         return f"refused: {trial.reason[:100]}"
     parts = []
@@ -50,8 +63,10 @@ def _row(scenario: Scenario, noise: bool, folder: Path) -> str:
     return ", ".join(parts)
 
 
-def per_marker(scenario: Scenario) -> list[str]:
-    """Lines of the per-marker mean whitened residuals at the truth (module docstring)."""
+def _at_truth(scenario: Scenario) -> tuple[Any, Any, Any, Any, Any]:
+    """The noise-free marker returns of ``scenario`` at the truth (``lrfsim plan``'s): their observations, whitened
+    residuals (K, 4: range, then the lateral residual in W), Jacobian (K, 4, 10), and per return the unit vectors in
+    the scan plane across the beam and along the scan plane's normal (K, 3) each."""
     import numpy as np
 
     from lrfcal.estimate.information import model_residuals
@@ -62,11 +77,45 @@ def per_marker(scenario: Scenario) -> list[str]:
     obs, markers_W, params, _, _, _ = marker_observations(scenario)
     assert scenario.markers is not None
     sensor = MarkerSensor.of("sphere", float(scenario.markers.radius_m), float(scenario.sensor.divergence_rad))
-    res, _ = model_residuals(params, obs, markers_W, sensor=sensor)
-    res = res.reshape(-1, 4)  # range, then the lateral residual in W
+    res, J = model_residuals(params, obs, markers_W, sensor=sensor)
     _, d = beam_rays_W(params, obs.lambda_rad, obs.mu_rad + 0.5 * math.pi)  # in the scan plane, across the beam
     _, d0 = beam_rays_W(params, obs.lambda_rad, obs.mu_rad)
-    n = np.cross(d0, d)  # the scan plane's normal
+    return obs, res.reshape(-1, 4), J.reshape(-1, 4, 10), d, np.cross(d0, d)
+
+
+def first_order(scenario: Scenario) -> list[str]:
+    """Lines of the first-order shift from the truth its noise-free marker residuals make (module docstring)."""
+    import numpy as np
+
+    obs, res, J, d, n = _at_truth(scenario)
+    Jf = J.reshape(-1, 10)
+    cov = np.linalg.pinv(Jf.T @ Jf)
+    sigma = np.sqrt(np.diag(cov))[6:]
+
+    def shift(r: Any) -> Any:
+        return (-cov @ Jf.T @ r.ravel())[6:]
+
+    lateral = res[:, 1:]
+    parts = {"range": np.concatenate([res[:, :1], 0 * lateral], 1)}
+    for name, u in (("in-plane lateral", d), ("across-plane lateral", n)):
+        parts[name] = np.concatenate([0 * res[:, :1], (lateral * u).sum(1)[:, None] * u], 1)
+    total = shift(res)
+    out = ["    first-order shift / sigma: " + ", ".join(f"{k} {v:+.2f}" for k, v in zip(DH_NAMES, total / sigma,
+                                                                                           strict=True))]
+    out.append("    b's shift [mm] by part: " + ", ".join(f"{k} {shift(r)[2] * 1000:+.2f}" for k, r in parts.items()))
+    per = []
+    for m in np.unique(obs.marker):
+        r = np.where((obs.marker == m)[:, None], res, 0.0)
+        per.append((abs(shift(r)[2]), f"marker {m} {shift(r)[2] * 1000:+.2f}"))
+    out.append("    b's shift [mm], largest markers: " + ", ".join(t for _, t in sorted(per, reverse=True)[:4]))
+    return out
+
+
+def per_marker(scenario: Scenario) -> list[str]:
+    """Lines of the per-marker mean whitened residuals at the truth (module docstring)."""
+    import numpy as np
+
+    obs, res, _, d, n = _at_truth(scenario)
     parts = {"range": res[:, 0], "in-plane": (res[:, 1:] * d).sum(1), "across": (res[:, 1:] * n).sum(1)}
     out = []
     for m in np.unique(obs.marker):
@@ -83,6 +132,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[28, 67, 6, 12])
     ap.add_argument("--per-marker", action="store_true", help="also the residuals at the truth, per marker")
+    ap.add_argument("--first-order", action="store_true", help="also the first-order shift the truth's residuals make")
+    ap.add_argument("--stated-sigma", type=float, default=None, metavar="S",
+                    help="also the noise-free recording calibrated with a stated range noise of S [m]")
     args = ap.parse_args()
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
@@ -92,6 +144,12 @@ def main() -> None:
             print(f"seed {seed} ({alpha_kind_of(sc)}, alpha {math.degrees(sc.rig.dh.alpha):+.2f} deg):", flush=True)
             print(f"  as shipped:            {_row(sc, True, Path(tmp) / f'{seed}_noisy')}", flush=True)
             print(f"  no noise, exact tape:  {_row(exact, False, Path(tmp) / f'{seed}_exact')}", flush=True)
+            if args.stated_sigma is not None:
+                row = _row(exact, False, Path(tmp) / f"{seed}_exact", args.stated_sigma)
+                print(f"  the same, {args.stated_sigma * 1000:g} mm stated: {row}", flush=True)
+            if args.first_order:
+                print("  at the truth, marker returns alone, noise-free:")
+                print("\n".join(first_order(exact)), flush=True)
             if args.per_marker:
                 print("  at the truth, mean whitened residual per marker (standard errors over its lines):")
                 print("\n".join(per_marker(exact)), flush=True)
