@@ -101,3 +101,25 @@ def test_failed_checks_lead_with_observability() -> None:
     agree = Check("starts agree", False, "another minimum fits the scene's planes as well, beta 3 sigma apart")
     with pytest.raises(CalibrationError, match=r"^starts agree: "):  # a cause observability follows from leads
         refuse_failed([agree, *checks], CalibConfig())
+
+
+def test_a_targetless_cost_that_runs_off_from_the_rig_files_dh_is_refused_for_convergence() -> None:
+    """When the solve from the rig file's DH ends where too few returns count (its cost ran off: the real URG-04LX
+    box from a rig file 0.05 deg off inspect's proposal, tests/test_real_walkthrough.py), the calibration's refusal
+    names the check and what the data say (the scene's planes do not hold the DH there) with the start, not the
+    solver's count of returns per unknown."""
+    from lrfcal.errors import RunOffError
+    from lrfcal.model.kinematics import DH
+    from lrfcal.stages.scene import PlaneWay
+    from lrfcal.stages.starts import PlaneStart
+    from lrfcal.types import Tried
+
+    start = PlaneStart("the rig file's DH", DH(-0.1553, math.radians(89.27), 0.0272, 0.0034))
+    ran_off = RunOffError("targetless solve: 0 of 69413 plane returns count at the estimate", 0, 69413)
+    way = PlaneWay.__new__(PlaneWay)  # choose reads nothing of the way before the first start's outcome
+    with pytest.raises(CalibrationError) as err:
+        way.choose(None, [Tried(start, ran_off)])  # type: ignore[arg-type]
+    text = str(err.value)
+    assert text.startswith("convergence: ") and "0 of its 69413 returns" in text, text
+    assert "a -155.3 mm, alpha 89.27 deg, b 27.2 mm, beta 0.19 deg" in text and "do not hold the DH" in text, text
+    assert "need 10 each" not in text

@@ -36,6 +36,16 @@ class CalibrationError(LrfError):
     exit_code = 3
 
 
+class RunOffError(CalibrationError):
+    """A solve that ended where too few of its returns count (beyond their 4 sigma, or no longer meeting their plane
+    at a usable incidence): its cost ran off from its start; ``counted`` of ``returns`` count where it ended (the way
+    that started it says what that means: lrfcal.stages.scene)."""
+
+    def __init__(self, message: str, counted: int, returns: int) -> None:
+        super().__init__(message)
+        self.counted, self.returns = counted, returns
+
+
 class ClockOffsetError(CalibrationError):
     """A refusal over the clock offset itself: no scan lies within the joint states' time span at it, or its start
     (``--clock-offset``) lies beyond what the recording allows or far from where the sweep's two directions line up.

@@ -22,7 +22,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.errors import CalibrationError
+from lrfcal.errors import CalibrationError, RunOffError
 from lrfcal.estimate.engine import MARKER_PASSES, PLANE_PASSES, Estimate, Passes, State, Status, Unknowns
 from lrfcal.estimate.problem import OnPlanes, Problem, marker_set, plane_problem, plane_set
 from lrfcal.model.kinematics import Params
@@ -317,9 +317,9 @@ class _PlanePosed(_Posed):
         K, free = self.n_returns, self.unknowns.free
         keep = est.keep[-1]
         if 10 * int(free.sum()) > int(keep.sum()):  # the returns that count at the estimate: too few to judge by
-            raise CalibrationError(f"targetless solve: {int(keep.sum())} of {K} plane returns count at the estimate "
-                                   f"(their plane's 4 sigma, incidence and edges) for {int(free.sum())} unknowns (need "
-                                   "10 each)")
+            raise RunOffError(f"targetless solve: {int(keep.sum())} of {K} plane returns count at the estimate "
+                              f"(their plane's 4 sigma, incidence and edges) for {int(free.sum())} unknowns (need "
+                              "10 each)", int(keep.sum()), K)
         surf = est.kept.surf
         assert surf is not None
         th, unc = est.state.th, est.uncertainty

@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.config import CalibConfig, Stopwatch
-from lrfcal.errors import CalibrationError
+from lrfcal.errors import CalibrationError, RunOffError
 from lrfcal.estimate import observability
-from lrfcal.estimate.checks import plane_checks
+from lrfcal.estimate.checks import dh_text, plane_checks
 from lrfcal.estimate.information import plane_information
 from lrfcal.estimate.request import PlaneRequest
 from lrfcal.estimate.systematics import Considered, Systematics
@@ -149,6 +149,13 @@ class PlaneWay:
         """The lowest minimum among the starts tried, with the check "starts agree" (lrfcal.stages.starts); after the
         rig file's DH, the other starts the DH search's proposal gives first."""
         first = tried[0].outcome
+        if isinstance(first, RunOffError):  # what the data say: the planes do not hold the DH near the rig file's
+            raise CalibrationError(
+                f"convergence: the planes' cost, minimised from the rig file's DH ({dh_text(tried[0].start.dh)}), ran "
+                f"off to where {first.counted} of its {first.returns} returns meet their plane within 4 sigma at a "
+                "usable incidence: the scene's planes do not hold the DH near the rig file's values; check its dh "
+                "against the drawings (lrfcal inspect BAG proposes them from the planes) or record a scene with more "
+                "planes, seen at more motor angles") from None
         if not isinstance(first, Fit):
             raise first  # the rig file's DH: its failure is the calibration's (the search is not waited for)
         found = starts.searched(scene.proposal)
