@@ -20,8 +20,8 @@ With ``--stated-sigma S`` the noise-free recording is calibrated again with the 
 (``--range-sigma``): the weight the range residuals get against the lateral ones, which do not scale with it. With
 ``--first-order``, the first-order shift from the truth that the noise-free residuals of the marker returns alone
 make, -(J^T J)^-1 J^T r at the truth (marker-only, every lateral residual kept), in units of its sigma, and the part
-of b's shift that each kind of residual and each marker makes (seed 1046, the one confident wrong of
-bench_promise: docs/trust.md).
+of b's shift that each kind of residual and each marker makes (seed 1046, bench_promise's one confident wrong
+before the marker surfaces' scan-line rule: docs/trust.md).
 
     python benchmarks/bench_model_error.py [--seeds 28 67 6 12] [--per-marker] [--first-order] [--stated-sigma S]
 """

@@ -57,6 +57,15 @@ _GATE_M = 0.03
 #: 1.18, 1.42 for a, alpha, b, beta with one choice)
 RESELECT_M = 0.002
 ROUNDS = 3
+#: a return is on a surface only where its scan line runs along it: the mean distance from the plane of the measured
+#: points of this many neighbours along the scan, on either side, within half the gate (:func:`observe_surfaces`).
+#: Where a marker surface meets another (the tunnel's ceiling and its side wall), the other surface's returns next
+#: to the corner pass the gate (their rays meet the plane, extended, just beyond the corner, inside the markers'
+#: extent) and read short on one side of it: 0.75 % of a near-perpendicular spin's ceiling returns, up to 30 mm
+#: below it, moved b by +2.8 mm without noise (docs/trust.md, seed 1046). The neighbours on the other surface's side
+#: run away from the plane at the beam spacing (4-11 mm a beam at 1-2.5 m); on the plane their mean is the range
+#: noise's over 5 returns (6.7 mm at 15 mm of noise, 2.2 of it within half the 30 mm gate)
+ALONG_BEAMS = 5
 
 
 @dataclass(frozen=True)
@@ -230,6 +239,7 @@ def surface_returns(
     surfaces: list[Surface], points_W: FloatArray, rows_in: ReturnRows, markers_W: FloatArray, *,
     selection: SurfaceSelection = DEFAULT_SELECTION,
     rays_W: tuple[FloatArray, FloatArray] | Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = None,
+    along: Callable[[IntArray, Surface], NDArray[np.bool_]] | None = None,
 ) -> SurfaceReturns:
     """The returns (of the P rows ``rows_in``) on the surfaces, away from markers, at most ``max_returns`` (an even
     random subsample; the other limits too are the ``selection``'s, :class:`SurfaceSelection`). points_W (P, 3)
@@ -245,7 +255,8 @@ def surface_returns(
     The subsample is the ``max_returns`` accepted returns of lowest :func:`lrfcal.stages.sampling.hash_key` (ties:
     surface by surface, in row order), as :func:`lrfcal.stages.sampling.hash_sample` of all the accepted ones would
     choose; the candidates within ``gate_m`` of a surface are judged in that order, in batches, until enough are
-    accepted, so the rays of most are never needed."""
+    accepted, so the rays of most are never needed. ``along(rows, surface)``: (k,) whether the scan line about each
+    of the rows ``rows`` runs along the surface (:data:`ALONG_BEAMS`; None: not judged), asked of the candidates."""
     sel = selection
     max_returns, seed, gate_m = sel.max_returns, sel.seed, sel.gate_m
     marker_clearance_m, max_incidence_rad = sel.marker_clearance_m, sel.max_incidence_rad
@@ -256,6 +267,8 @@ def surface_returns(
     rays = (lambda i: (rays_W[0][i], rays_W[1][i])) if isinstance(rays_W, tuple) else rays_W
     # every (row, surface) candidate, surface by surface in row order: the order of the ties
     cand = [np.flatnonzero(np.abs(points_W @ s.normal - s.offset_m) < gate_m) for s in surfaces]
+    if along is not None:
+        cand = [c[along(c, s)] for c, s in zip(cand, surfaces, strict=True)]
     rows = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
     which = np.concatenate([np.full(c.size, k) for k, c in enumerate(cand)]) if cand else np.zeros(0, dtype=np.int64)
     order = np.argsort(hash_key(np.asarray(scan)[rows], np.asarray(beam)[rows], seed), kind="stable")
@@ -341,6 +354,31 @@ def observe_surfaces(
 
     th = core_vector(params.dh, intrinsics or {})
     sensor_W = params.mount.matrix()[:3, 3]
+    row_of = np.full(valid.shape, -1, dtype=np.int64)  # each cell's valid return (-1: none)
+    row_of.ravel()[flat] = np.arange(flat.size)
+
+    def along(rows: IntArray, surface: Surface) -> NDArray[np.bool_]:
+        """(k,) whether the scan line about each valid return ``rows`` runs along ``surface`` (:data:`ALONG_BEAMS`):
+        on either side, the mean distance from its plane of the neighbours that have a return within half the gate
+        (a side without one passes)."""
+        offsets = np.concatenate([-np.arange(1, ALONG_BEAMS + 1), np.arange(1, ALONG_BEAMS + 1)])
+        nb_beam = beam[rows][:, None] + offsets[None, :]
+        inside = (nb_beam >= 0) & (nb_beam < valid.shape[1])
+        nb = np.full(nb_beam.shape, -1, dtype=np.int64)
+        nb[inside] = row_of[np.broadcast_to(scan[rows][:, None], nb_beam.shape)[inside], nb_beam[inside]]
+        have = nb >= 0
+        need, back = np.unique(nb[have], return_inverse=True)
+        lam_n, mu_n, r_n = take(need)
+        r_n, lam_n, mu_n = true_returns(th, r_n, lam_n, mu_n)
+        dist = np.zeros(nb.shape)
+        dist[have] = (points_W(r_n, lam_n, mu_n, params) @ surface.normal - surface.offset_m)[back]
+        ok = np.ones(rows.size, dtype=bool)
+        for half in (slice(0, ALONG_BEAMS), slice(ALONG_BEAMS, 2 * ALONG_BEAMS)):
+            n_side = have[:, half].sum(1)
+            mean = dist[:, half].sum(1) / np.maximum(n_side, 1)
+            ok &= (n_side == 0) | (np.abs(mean) < 0.5 * selection.gate_m)
+        return ok
+
     step = max(1, flat.size // 100_000)
     lam_s, mu_s, r_s = take(np.arange(0, flat.size, step))
     r_s, lam_s, mu_s = true_returns(th, r_s, lam_s, mu_s)
@@ -369,7 +407,8 @@ def observe_surfaces(
         trig = beam_trig(lam_t, mu_t, params.dh)  # once for the points and the candidates' rays (elementwise)
         parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
-                                     rays_W=partial(_rays_of, params, trig)))
+                                     rays_W=partial(_rays_of, params, trig),
+                                     along=lambda c, surface, rows=rows: along(rows[c], surface)))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
