@@ -256,7 +256,8 @@ def surface_returns(
     surface by surface, in row order), as :func:`lrfcal.stages.sampling.hash_sample` of all the accepted ones would
     choose; the candidates within ``gate_m`` of a surface are judged in that order, in batches, until enough are
     accepted, so the rays of most are never needed. ``along(rows, surface)``: (k,) whether the scan line about each
-    of the rows ``rows`` runs along the surface (:data:`ALONG_BEAMS`; None: not judged), asked of the candidates."""
+    of the rows ``rows`` runs along the surface (:data:`ALONG_BEAMS`; None: not judged), asked last, of the
+    candidates the other rules accept."""
     sel = selection
     max_returns, seed, gate_m = sel.max_returns, sel.seed, sel.gate_m
     marker_clearance_m, max_incidence_rad = sel.marker_clearance_m, sel.max_incidence_rad
@@ -267,8 +268,6 @@ def surface_returns(
     rays = (lambda i: (rays_W[0][i], rays_W[1][i])) if isinstance(rays_W, tuple) else rays_W
     # every (row, surface) candidate, surface by surface in row order: the order of the ties
     cand = [np.flatnonzero(np.abs(points_W @ s.normal - s.offset_m) < gate_m) for s in surfaces]
-    if along is not None:
-        cand = [c[along(c, s)] for c, s in zip(cand, surfaces, strict=True)]
     rows = np.concatenate(cand) if cand else np.zeros(0, dtype=np.int64)
     which = np.concatenate([np.full(c.size, k) for k, c in enumerate(cand)]) if cand else np.zeros(0, dtype=np.int64)
     order = np.argsort(hash_key(np.asarray(scan)[rows], np.asarray(beam)[rows], seed), kind="stable")
@@ -294,7 +293,8 @@ def surface_returns(
             m, at = m[inside], at[inside]
             # the nearest marker's distance, searched only within the clearance (beyond it: inf, which passes as
             # the distance itself would; within it the same distance): the same decisions, a shorter search
-            ok[m[tree.query(at, distance_upper_bound=marker_clearance_m)[0] >= marker_clearance_m]] = True
+            m = m[tree.query(at, distance_upper_bound=marker_clearance_m)[0] >= marker_clearance_m]
+            ok[m if along is None else m[along(rows[pos[m]], s)]] = True
         accepted.append(pos[ok][:max_returns - n_acc])
         n_acc += accepted[-1].size
         if n_acc >= max_returns:
@@ -408,11 +408,17 @@ def observe_surfaces(
         parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
                                      rays_W=partial(_rays_of, params, trig),
-                                     along=lambda c, surface, rows=rows: along(rows[c], surface)))
+                                     along=partial(_of_rows, along, rows)))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
         below, frac = frac, _next_fraction(frac, got, max_returns)
+
+
+def _of_rows(along: Callable[[IntArray, Surface], NDArray[np.bool_]], rows: IntArray, c: IntArray,
+             surface: Surface) -> NDArray[np.bool_]:
+    """``along`` of the rows ``rows[c]``: the candidates ``c`` (k,) of a try, numbered among its ``rows``."""
+    return along(rows[c], surface)
 
 
 def _rows_of(trig: BeamTrig, i: IntArray) -> BeamTrig:
