@@ -143,3 +143,15 @@ def test_reproject_applies_the_calibrations_clock_offset(tmp_path, monkeypatch, 
     assert _main(monkeypatch, ["reproject", str(canonical_bag), "--nominal", str(_rig(tmp_path)), "--calibration",
                                str(tmp_path), "-o", str(folder_out)]) == 0
     assert folder_out.read_bytes() == (tmp_path / "c0.ply").read_bytes()
+
+
+def test_reproject_takes_a_recording_folder_as_calibrate_does(tmp_path, monkeypatch, canonical_bag, capsys):
+    """The folder holding bag/ (what lrfsim writes, what `lrfcal calibrate REC` takes) stands for its bag: the same
+    cloud as from the bag itself (it said "a recording folder, not a bag: pass its bag")."""
+    assert (canonical_bag.parent / "bag") == canonical_bag
+    rig = _rig(tmp_path)
+    outs = [tmp_path / "from_bag.ply", tmp_path / "from_folder.ply"]
+    for given, out in zip((canonical_bag, canonical_bag.parent), outs, strict=True):
+        assert _main(monkeypatch, ["reproject", str(given), "--nominal", str(rig), "-o", str(out)]) == 0, \
+            capsys.readouterr().err
+    np.testing.assert_array_equal(read_cloud_ply(outs[0]), read_cloud_ply(outs[1]))

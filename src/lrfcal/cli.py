@@ -331,8 +331,8 @@ def print_inspection(result: BagInspection, console: Console) -> None:
 
 @app.command("reproject", cls=Command)
 def reproject_cmd(
-    bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file or ROS 2 bag folder (sqlite3 or MCAP).",
-                                        metavar="BAG", show_default=False)],
+    bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file, ROS 2 bag folder (sqlite3 or MCAP), scan log, or a "
+                                        "recording folder holding one.", metavar="BAG", show_default=False)],
     nominal: Annotated[Path, typer.Option(
         "--nominal", metavar="YAML", show_default=False,
         help="Rig file (nominal.yaml): nominal DH and where the data are in the bag.")],

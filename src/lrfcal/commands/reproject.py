@@ -304,6 +304,7 @@ def reproject_bag(
     from lrfcal.io.recording import read_recording
     from lrfcal.io.rig import with_overrides
     from lrfcal.io.saved_calibration import calibration_file
+    from lrfcal.io.scanlog import resolve_recording
     from lrfcal.model.kinematics import refuse_placeholder_dh
 
     # a calibration folder stands for its calibration.yaml, as `lrfcal check` takes it
@@ -321,8 +322,12 @@ def reproject_bag(
     def stage(name: str) -> Callable[[int, int], None] | None:
         return None if progress is None else (lambda d, t: progress(name, d, t))
 
-    rec = read_recording(None, bag=bag, nominal=nominal, scan=scan, servo=servo, require_distances=False,
-                         progress=stage("reading"), warn=warn)
+    # a recording folder (a folder that is no ROS 2 bag) stands for its bag (its bag/, else its one bag or scan log),
+    # as `lrfcal calibrate` takes it
+    folder, found = (resolve_recording(bag, None) if bag.is_dir() and not (bag / "metadata.yaml").exists()
+                     else (None, bag))
+    rec = read_recording(folder if found is None else None, bag=found, nominal=nominal, scan=scan, servo=servo,
+                         require_distances=False, progress=stage("reading"), warn=warn)
     dh = read_calibration_dh(calibration) if calibration is not None else rec.nominal.dh
     if clock_offset_s is not None:
         offset, offset_from = float(clock_offset_s), "given"
