@@ -324,10 +324,10 @@ def reproject_bag(
 
     # a recording folder (a folder that is no ROS 2 bag) stands for its bag (its bag/, else its one bag or scan log),
     # as `lrfcal calibrate` takes it
-    folder, found = (resolve_recording(bag, None) if bag.is_dir() and not (bag / "metadata.yaml").exists()
-                     else (None, bag))
-    rec = read_recording(folder if found is None else None, bag=found, nominal=nominal, scan=scan, servo=servo,
-                         require_distances=False, progress=stage("reading"), warn=warn)
+    rec_folder, rec_bag = (resolve_recording(bag, None) if bag.is_dir() and not (bag / "metadata.yaml").exists()
+                           else (None, bag))
+    rec = read_recording(rec_folder if rec_bag is None else None, bag=rec_bag, nominal=nominal, scan=scan,
+                         servo=servo, require_distances=False, progress=stage("reading"), warn=warn)
     dh = read_calibration_dh(calibration) if calibration is not None else rec.nominal.dh
     if clock_offset_s is not None:
         offset, offset_from = float(clock_offset_s), "given"

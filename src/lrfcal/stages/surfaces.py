@@ -62,9 +62,9 @@ ROUNDS = 3
 #: Where a marker surface meets another (the tunnel's ceiling and its side wall), the other surface's returns next
 #: to the corner pass the gate (their rays meet the plane, extended, just beyond the corner, inside the markers'
 #: extent) and read short on one side of it: 0.75 % of a near-perpendicular spin's ceiling returns, up to 30 mm
-#: below it, moved b by +2.8 mm without noise (docs/trust.md, seed 1046). The neighbours on the other surface's side
+#: below it, moved b by +2.7 mm without noise (docs/trust.md, seed 1046). The neighbours on the other surface's side
 #: run away from the plane at the beam spacing (4-11 mm a beam at 1-2.5 m); on the plane their mean is the range
-#: noise's over 5 returns (6.7 mm at 15 mm of noise, 2.2 of it within half the 30 mm gate)
+#: noise's over 5 returns (6.7 mm at 15 mm of noise: half the 30 mm gate is 2.2 times that)
 ALONG_BEAMS = 5
 
 
