@@ -322,10 +322,9 @@ def reproject_bag(
     def stage(name: str) -> Callable[[int, int], None] | None:
         return None if progress is None else (lambda d, t: progress(name, d, t))
 
-    # a recording folder (a folder that is no ROS 2 bag) stands for its bag (its bag/, else its one bag or scan log),
-    # as `lrfcal calibrate` takes it
-    rec_folder, rec_bag = (resolve_recording(bag, None) if bag.is_dir() and not (bag / "metadata.yaml").exists()
-                           else (None, bag))
+    # a recording folder stands for its bag (its bag/, else its one bag or scan log), as `lrfcal calibrate` takes it
+    # (a ROS 2 bag folder stays itself); any other path is the bag, named as such when missing
+    rec_folder, rec_bag = resolve_recording(bag, None) if bag.is_dir() else (None, bag)
     rec = read_recording(rec_folder if rec_bag is None else None, bag=rec_bag, nominal=nominal, scan=scan,
                          servo=servo, require_distances=False, progress=stage("reading"), warn=warn)
     dh = read_calibration_dh(calibration) if calibration is not None else rec.nominal.dh

@@ -239,7 +239,7 @@ def surface_returns(
     surfaces: list[Surface], points_W: FloatArray, rows_in: ReturnRows, markers_W: FloatArray, *,
     selection: SurfaceSelection = DEFAULT_SELECTION,
     rays_W: tuple[FloatArray, FloatArray] | Callable[[IntArray], tuple[FloatArray, FloatArray]] | None = None,
-    along: Callable[[IntArray, Surface], NDArray[np.bool_]] | None = None,
+    along: Callable[[IntArray, IntArray, Surface], NDArray[np.bool_]] | None = None,
 ) -> SurfaceReturns:
     """The returns (of the P rows ``rows_in``) on the surfaces, away from markers, at most ``max_returns`` (an even
     random subsample; the other limits too are the ``selection``'s, :class:`SurfaceSelection`). points_W (P, 3)
@@ -255,9 +255,9 @@ def surface_returns(
     The subsample is the ``max_returns`` accepted returns of lowest :func:`lrfcal.stages.sampling.hash_key` (ties:
     surface by surface, in row order), as :func:`lrfcal.stages.sampling.hash_sample` of all the accepted ones would
     choose; the candidates within ``gate_m`` of a surface are judged in that order, in batches, until enough are
-    accepted, so the rays of most are never needed. ``along(rows, surface)``: (k,) whether the scan line about each
-    of the rows ``rows`` runs along the surface (:data:`ALONG_BEAMS`; None: not judged), asked last, of the
-    candidates the other rules accept."""
+    accepted, so the rays of most are never needed. ``along(scan, beam, surface)``: (k,) whether the scan line about
+    each return (its scan and beam (k,)) runs along the surface (:data:`ALONG_BEAMS`; None: not judged), asked last,
+    of the candidates the other rules accept."""
     sel = selection
     max_returns, seed, gate_m = sel.max_returns, sel.seed, sel.gate_m
     marker_clearance_m, max_incidence_rad = sel.marker_clearance_m, sel.max_incidence_rad
@@ -294,7 +294,9 @@ def surface_returns(
             # the nearest marker's distance, searched only within the clearance (beyond it: inf, which passes as
             # the distance itself would; within it the same distance): the same decisions, a shorter search
             m = m[tree.query(at, distance_upper_bound=marker_clearance_m)[0] >= marker_clearance_m]
-            ok[m if along is None else m[along(rows[pos[m]], s)]] = True
+            if along is not None:
+                m = m[along(np.asarray(scan)[rows[pos[m]]], np.asarray(beam)[rows[pos[m]]], s)]
+            ok[m] = True
         accepted.append(pos[ok][:max_returns - n_acc])
         n_acc += accepted[-1].size
         if n_acc >= max_returns:
@@ -357,22 +359,22 @@ def observe_surfaces(
     row_of = np.full(valid.shape, -1, dtype=np.int64)  # each cell's valid return (-1: none)
     row_of.ravel()[flat] = np.arange(flat.size)
 
-    def along(rows: IntArray, surface: Surface) -> NDArray[np.bool_]:
-        """(k,) whether the scan line about each valid return ``rows`` runs along ``surface`` (:data:`ALONG_BEAMS`):
-        on either side, the mean distance from its plane of the neighbours that have a return within half the gate
-        (a side without one passes)."""
+    def along(at_scan: IntArray, at_beam: IntArray, surface: Surface) -> NDArray[np.bool_]:
+        """(k,) whether the scan line about each return (its scan and beam (k,)) runs along ``surface``
+        (:data:`ALONG_BEAMS`): on either side, the mean distance from its plane of the neighbours that have a return
+        within half the gate (a side without one passes)."""
         offsets = np.concatenate([-np.arange(1, ALONG_BEAMS + 1), np.arange(1, ALONG_BEAMS + 1)])
-        nb_beam = beam[rows][:, None] + offsets[None, :]
+        nb_beam = at_beam[:, None] + offsets[None, :]
         inside = (nb_beam >= 0) & (nb_beam < valid.shape[1])
         nb = np.full(nb_beam.shape, -1, dtype=np.int64)
-        nb[inside] = row_of[np.broadcast_to(scan[rows][:, None], nb_beam.shape)[inside], nb_beam[inside]]
+        nb[inside] = row_of[np.broadcast_to(at_scan[:, None], nb_beam.shape)[inside], nb_beam[inside]]
         have = nb >= 0
         need, back = np.unique(nb[have], return_inverse=True)
         lam_n, mu_n, r_n = take(need)
         r_n, lam_n, mu_n = true_returns(th, r_n, lam_n, mu_n)
         dist = np.zeros(nb.shape)
         dist[have] = (points_W(r_n, lam_n, mu_n, params) @ surface.normal - surface.offset_m)[back]
-        ok = np.ones(rows.size, dtype=bool)
+        ok = np.ones(at_scan.size, dtype=bool)
         for half in (slice(0, ALONG_BEAMS), slice(ALONG_BEAMS, 2 * ALONG_BEAMS)):
             n_side = have[:, half].sum(1)
             mean = dist[:, half].sum(1) / np.maximum(n_side, 1)
@@ -408,17 +410,11 @@ def observe_surfaces(
         parts.append(surface_returns(surfaces, points_W_trig(r_t, trig, params), candidates, markers.positions_W,
                                      selection=replace(selection, max_returns=max_returns - got),
                                      rays_W=partial(_rays_of, params, trig),
-                                     along=partial(_of_rows, along, rows)))
+                                     along=along))
         got += len(parts[-1])
         if got >= max_returns or frac >= 1.0 or not surfaces:  # no surface: no return at any fraction
             return surfaces, _merged(parts, valid.shape[1])
         below, frac = frac, _next_fraction(frac, got, max_returns)
-
-
-def _of_rows(along: Callable[[IntArray, Surface], NDArray[np.bool_]], rows: IntArray, c: IntArray,
-             surface: Surface) -> NDArray[np.bool_]:
-    """``along`` of the rows ``rows[c]``: the candidates ``c`` (k,) of a try, numbered among its ``rows``."""
-    return along(rows[c], surface)
 
 
 def _rows_of(trig: BeamTrig, i: IntArray) -> BeamTrig:
