@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 BAGS = ("cardboard_box", "room_240")
 DH = ("a", "alpha", "b", "beta")
 #: the checks a targetless refusal can name first
-CHECKS = ("clock offset", "starts agree", "convergence", "mirror image", "observability",
+CHECKS = ("clock offset", "starts agree", "convergence", "mirror image", "planes agree", "observability",
           "reduced chi-square", "second opinion", "held-out planes")
 N_SIGMA = 4.0
 

@@ -23,8 +23,9 @@ import yaml
 from conftest import tiered
 
 from lrfcal.errors import CalibrationError
-from lrfcal.estimate.checks import refuse_failed
+from lrfcal.estimate.checks import planes_agree, refuse_failed
 from lrfcal.io.recording import read_recording
+from lrfcal.model.unknowns import CORE_NAMES
 from lrfcal.pipeline import CalibConfig, calibrate
 from lrfcal.result import CalibrationResult, PlaneEvidence
 from lrfcal.stages.planes import segment_planes
@@ -127,6 +128,32 @@ def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, Calibratio
     assert len(result.evidence.returns) > SEGMENT_SAMPLES and fit.start == "the rig file's DH"
     agree = next(c for c in result.checks if c.name == "starts agree")
     assert agree.passed and "rounds" not in agree.detail
+
+
+def test_room_box_planes_agree_and_one_that_pulls_is_named(room: tuple[Path, CalibrationResult]) -> None:
+    """The check "planes agree" (lrfcal.estimate.checks.planes_agree) on room_box's estimate: every plane judged,
+    their pulls within the noise; the same estimate with the largest plane's pull made 10 stated sigma on
+    the DH parameter the plane constrains most (a plane the model does not explain) fails, naming that plane by its
+    normal."""
+    _, result = room
+    sol, held = result.solution, result.evidence.plane_fit.held
+    check = planes_agree(sol, held, result.evidence.returns)
+    assert check.passed and check.detail.startswith("without any one of the"), check.detail
+    assert sol.spread is not None and (pulls := sol.spread.planes) is not None
+    j = int(np.argmax(pulls.returns))
+    at = [pulls.names.index(n) for n in DH]
+    # the difference's variance of each DH parameter in units of its stated sigma (as the check scales it): the
+    # pull goes on the one it constrains most, 10 of its stated sigma
+    unit = np.sqrt(np.diag(sol.spread.statistical)[[CORE_NAMES.index(n) for n in DH]])
+    var = np.diag(pulls.difference[j][np.ix_(at, at)]) / unit ** 2
+    k = int(np.argmin(np.where(var >= 0.01, var, np.inf)))
+    shift = pulls.shift.copy()
+    shift[j, at] = 0.0
+    shift[j, at[k]] = 10.0 * sol.dh_sigma[k]
+    bad = replace(sol, spread=replace(sol.spread, planes=replace(pulls, shift=shift)))
+    failed = planes_agree(bad, held, result.evidence.returns)
+    assert not failed.passed and f"without plane {j} (normal (" in failed.detail, failed.detail
+    assert f"it moves by {DH[k]} +10.0 sigma" in failed.detail, failed.detail
 
 
 def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(shipped_recording: Callable[[str], Path]

@@ -350,10 +350,11 @@ def _marker_second_opinion(sol: Solution, request: MarkerRequest, passes: np.nda
 
 def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],
             config: CheckConfig, prior: tuple[FloatArray, FloatArray], nominal: DH) -> list[Check]:
-    """Convergence, mirror image, observability of the estimated parameters, reduced chi-square and a
-    second opinion."""
+    """Convergence, mirror image, the planes' agreement, observability of the estimated parameters, reduced
+    chi-square and a second opinion."""
     checks = [Check("convergence", sol.converged, sol.status.split(";")[0]),
               mirror_check(sol.params.dh, nominal, config, sol.dh_sigma)]
+    checks.append(planes_agree(sol, held, returns))
     est = [n for n in DH_NAMES if n not in held]
     s = {n: sol.sigma[6 + DH_NAMES.index(n)] for n in est}
     ok = not observability.beyond_limits(s)
@@ -365,6 +366,81 @@ def plane_checks(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int6
                              "offset)"))
     checks.append(_plane_second_opinion(sol, returns, passes, held, config, prior))
     return checks
+
+
+#: "planes agree": a plane's pull on the estimate fails where its chi-square (over the estimated DH parameters,
+#: against the difference's covariance by the noise, lrfcal.estimate.influence) has a tail probability below
+#: PULL_P and it moves some estimated DH parameter by more than PULL_SIGMA of its stated sigma (a plane whose
+#: pull is beyond the noise but within the sigma biases the estimate by less than its sigma)
+PULL_P, PULL_SIGMA = 1e-6, 3.0
+#: the least variance [stated sigma^2] a pull's chi-square divides by: where a plane adds nothing to a combination of
+#: the DH parameters the pull along it is 0 but for the one Gauss-Newton step's own error, not noise to judge
+PULL_FLOOR = 0.01
+
+
+def planes_agree(sol: Solution, held: tuple[str, ...], returns: SurfaceReturns) -> Check:
+    """The check "planes agree": no plane pulls the estimate beyond the noise and the stated sigma (:data:`PULL_P`,
+    :data:`PULL_SIGMA`), judged for each plane without which the other planes alone (the design drawing's prior left
+    out) determine the estimated DH parameters within lrfcal.estimate.observability's limits (without the others,
+    the estimate without the plane is the prior's). The difference's covariance is the statistical one's
+    (Solution.spread), scaled as the stated sigma is (the scans' correlated noise, the held parameters' tolerance)
+    on each parameter. ``returns``: the plane returns solved (the failure names the plane by its normal and
+    offset)."""
+    from scipy.special import chdtri  # chi-square quantile (scipy.stats is slow to import)
+
+    spread = sol.spread
+    pulls = spread.planes if spread is not None else None
+    est = [n for n in DH_NAMES if n not in held and pulls is not None and n in pulls.names]
+    if spread is None or pulls is None or not est:
+        return Check("planes agree", True, "not available: no plane returns, or no DH parameter estimated")
+    at = [pulls.names.index(n) for n in est]
+    stated = sol.dh_sigma[[DH_NAMES.index(n) for n in est]]
+    scale = stated / np.sqrt(np.diag(spread.statistical)[[CORE_NAMES.index(n) for n in est]])
+    limit = float(chdtri(len(est), PULL_P))
+    judged = []  # (largest |shift| / sigma, chi-square, plane)
+    for j in map(int, np.flatnonzero(pulls.returns)):
+        if observability.beyond_limits(dict(zip(est, (pulls.others[j, at] * scale).tolist(), strict=True))):
+            continue  # the others alone do not determine the DH: the estimate without the plane is the prior's
+        pull = _pull(pulls.shift[j, at] / stated,
+                     pulls.difference[j][np.ix_(at, at)] * np.outer(scale / stated, scale / stated))
+        if pull is not None:
+            judged.append((*pull, j))
+    if not judged:
+        return Check("planes agree", True, "not available: no plane without which the other planes determine the DH")
+    bad = [x for x in judged if x[1] > limit and x[0] > PULL_SIGMA]
+    if not bad:
+        most, chi2, j = max(judged)
+        return Check("planes agree", True, f"without any one of the {len(judged)} planes the estimate moves by at "
+                                           f"most {most:.2g} sigma (plane {j}, chi-square {chi2:.3g} on {len(est)})")
+    _, chi2, j = max(bad)
+    moved = ", ".join(f"{n} {v:+.1f}" for n, v in zip(est, pulls.shift[j, at] / stated, strict=True)
+                      if abs(v) > PULL_SIGMA)
+    return Check("planes agree", False, (
+        f"{len(bad)} of {len(judged)} planes judged pull{'s' if len(bad) == 1 else ''} the estimate beyond the noise; "
+        f"without plane {j} ({_plane_words(returns, j)}{pulls.returns[j]} of the {int(pulls.returns.sum())} returns) "
+        f"it moves by {moved} sigma (chi-square {chi2:.3g} on {len(est)}, limit {limit:.3g}): the scene's planes do "
+        "not agree on the DH parameters; that plane is not one flat surface the rig model explains (two surfaces "
+        "taken as one, a curved or moving one, the stand itself, a range error along the scan); calibrate in a "
+        "scene of plain walls, or with markers"))
+
+
+def _pull(z: FloatArray, C: FloatArray) -> tuple[float, float] | None:
+    """A plane's pull ``z`` (k,) and its covariance by the noise ``C`` (k, k), both in units of the stated sigma:
+    (its largest |z|, its chi-square with the variances floored at :data:`PULL_FLOOR`), None where not finite."""
+    if not (np.all(np.isfinite(z)) and np.all(np.isfinite(C))):
+        return None
+    w, U = np.linalg.eigh(0.5 * (C + C.T))
+    return float(np.max(np.abs(z))), float(np.sum((U.T @ z) ** 2 / np.maximum(w, PULL_FLOOR)))
+
+
+def _plane_words(returns: SurfaceReturns, j: int) -> str:
+    """Plane ``j`` of ``returns`` by its normal and offset, as the start of a parenthesis ("" without returns)."""
+    rows = np.flatnonzero(returns.surface == j)
+    if not rows.size:
+        return ""
+    n = returns.normals[rows[0]]
+    return (f"normal ({n[0]:+.2f}, {n[1]:+.2f}, {n[2]:+.2f}), {returns.offsets_m[rows[0]]:.2f} m from the frame's "
+            "origin, ")
 
 
 def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArray[np.int64], held: tuple[str, ...],

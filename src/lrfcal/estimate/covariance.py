@@ -13,6 +13,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal.estimate.influence import plane_pulls
 from lrfcal.estimate.normal_equations import RANK_TOL, Blocks, assemble, schur, scores_by_cluster, solve_step
 from lrfcal.estimate.observability import marginal_information
 from lrfcal.estimate.problem import Problem
@@ -117,8 +118,10 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
         ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane)
         scores = scores if live.all() else scores[:, live]
         cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
-        spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan))
-        spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * JtJ_inv[np.ix_(core_pos, core_pos)]
+        V = JtJ_inv[np.ix_(core_pos, core_pos)]
+        spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan),
+                        plane_pulls(b, core, V, max(s2, 1.0), core_names))
+        spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * V
         spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:
             # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the

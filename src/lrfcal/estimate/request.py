@@ -332,7 +332,7 @@ class _PlanePosed(_Posed):
                          n_iterations=est.n_evaluations, status=status, information=unc.information,
                          information_names=unc.names, reduced_chi2=unc.reduced_chi2,
                          converged=est.status is Status.CONVERGED, chi=np.zeros(0), inlier=keep, lambda_rad=None,
-                         n_surface_returns=int(keep.sum()), iterations=est.log)
+                         n_surface_returns=int(keep.sum()), spread=unc.spread, iterations=est.log)
 
 
 #: what the engine solves: a marker calibration's request or a targetless one's

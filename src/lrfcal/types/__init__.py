@@ -28,12 +28,13 @@ from lrfcal.types.recording import (
     joint_period_s,
     scan_spans,
 )
-from lrfcal.types.solution import Check, Iteration, Noted, Solution, Spread
+from lrfcal.types.solution import Check, Iteration, Noted, PlanePulls, Solution, Spread
 from lrfcal.types.sources import LogLayout, ScanSource, ServoSource, TfSource
 from lrfcal.types.surfaces import Plane, ScenePlane, Surface, SurfaceReturns, TunnelGeometry
 
 __all__ = ["Association", "Blob", "BoolArray", "Check", "Detections", "DroppedPair", "Fit", "FloatArray", "IntArray",
            "Iteration", "JointStates", "Labels", "LogLayout", "MarkerMap", "Nominal", "Noted", "Observations", "Plane",
+           "PlanePulls",
            "ReadReport", "Recording", "Refusal", "ScanSource", "Scans", "ScenePlane", "ServoSource", "Solution",
            "Spread", "Surface", "SurfaceReturns", "TapeMeasurements", "TfSource", "Tried", "TunnelGeometry",
            "joint_period_s", "scan_spans"]

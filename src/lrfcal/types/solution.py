@@ -17,15 +17,33 @@ from lrfcal.types.arrays import BoolArray, FloatArray
 
 
 @dataclass(frozen=True)
+class PlanePulls:
+    """Each plane's pull on a solution (lrfcal.estimate.influence): over the estimated core unknowns ``names`` (c,),
+    the returns of each of the P planes (P,), the estimate without the plane's returns minus the estimate (one
+    Gauss-Newton step) (P, c), that difference's covariance by the noise alone (P, c, c) (NaN where the others with
+    the dense rows determine nothing) and the 1-sigma the other planes alone give (P, c) (the dense rows, the design
+    drawing's prior, left out; inf where they do not determine every unknown), on the scale of the Spread's
+    statistical covariance."""
+
+    names: tuple[str, ...]
+    returns: NDArray[np.int64]
+    shift: FloatArray
+    difference: FloatArray
+    others: FloatArray
+
+
+@dataclass(frozen=True)
 class Spread:
     """What the covariance of the difference of two solutions of overlapping data is made of (lrfcal.estimate.checks):
     each
     cluster's id (C,) and influence (J^T J)^-1 J_c^T r_c over the core unknowns (C, N_CORE), and the statistical
-    covariance max(s^2, 1) (J^T J)^-1 (N_CORE, N_CORE), before any widening (NaN where held or with rank loss)."""
+    covariance max(s^2, 1) (J^T J)^-1 (N_CORE, N_CORE), before any widening (NaN where held or with rank loss); and
+    each plane's pull (the solution without one plane's returns, :class:`PlanePulls`; None without planes)."""
 
     ids: NDArray[np.int64]
     influence: FloatArray
     statistical: FloatArray
+    planes: PlanePulls | None = None
 
 
 @dataclass(frozen=True)

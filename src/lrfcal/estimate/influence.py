@@ -1,0 +1,78 @@
+"""Each plane's pull on a solution: where the estimate would go without one plane's returns, and how far it may go
+by the noise alone (Cook's distance for a cluster, Cook 1977; the leave-one-cluster-out shift of a least-squares fit).
+
+At the solution the gradients of the planes' marginal costs cancel: sum_j g_j = 0 (the dense rows, the design
+drawing's prior, have none there but their own). Without plane j, one Gauss-Newton step from the solution moves the
+core unknowns by
+
+    d_j = (S - S_j)^-1 g_j,
+
+S the core unknowns' marginal information (every plane's nuisances eliminated: lrfcal.estimate.normal_equations),
+S_j = A_j - B_j D_j^-1 B_j^T and g_j = J_cj^T r_j - B_j D_j^-1 (J_nj^T r_j + the plane prior's term) plane j's own
+parts of it. Where every plane is a plane the model explains, d_j is noise, with the covariance of the difference
+of two nested least-squares estimates, (S - S_j)^-1 - S^-1 (unit noise). A plane that is not one surface the DH
+model explains (two surfaces taken as one, a curved or moving one, a range error along the scan that one plane's
+returns share) pulls the estimate by more than that: the check "planes agree" (lrfcal.estimate.checks) judges the
+pulls against the stated sigma, where the other planes alone (without the design drawing's prior) determine the DH.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from lrfcal.model.observations import Blocks
+from lrfcal.types import PlanePulls
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.int64]
+
+
+def plane_pulls(b: Blocks, core: IntArray, V: FloatArray, scale: float, names: tuple[str, ...]
+                ) -> PlanePulls | None:
+    """The pull of each plane of ``b`` (module docstring) over the core columns ``core`` (c,) named ``names``, from
+    the core block V (c, c) of the inverse information (unit noise) at the solution whose blocks ``b`` are; the
+    difference covariances times ``scale`` (the statistical covariance's noise variance,
+    lrfcal.estimate.covariance). None without planes."""
+    P = b.n_planes
+    if P == 0 or b.Jc_plane is None or b.Jn_plane is None:
+        return None
+    c = core.size
+    S = np.linalg.inv(V)
+    shift, difference, others = np.zeros((P, c)), np.zeros((P, c, c)), np.full((P, c), np.inf)
+    dense = b.J_dense[:, core] if b.J_dense is not None else np.zeros((0, c))
+    planes_only = S - dense.T @ dense  # without the dense rows (the design drawing's prior on the DH)
+    returns = np.bincount(b.plane, minlength=P)
+    Jc, Jn, r = b.Jc_plane[:, core], b.Jn_plane, b.r_plane
+    order = np.argsort(b.plane, kind="stable")
+    bounds = np.searchsorted(b.plane[order], np.arange(P + 1))
+    for j in range(P):
+        rows = order[bounds[j]:bounds[j + 1]]
+        if rows.size == 0:
+            continue
+        A_j, N_j, r_j = Jc[rows], Jn[rows], r[rows]
+        D = N_j.T @ N_j
+        n = N_j.T @ r_j
+        if b.w_prior is not None and b.r_prior is not None:  # the plane's prior rows (its three nuisances)
+            w = b.w_prior[3 * j:3 * j + 3]
+            D = D + np.diag(w ** 2)
+            n = n + w * b.r_prior[3 * j:3 * j + 3]
+        B = A_j.T @ N_j  # (c, 3)
+        BDi = B @ np.linalg.pinv(D, rcond=1e-12)
+        S_j = A_j.T @ A_j - BDi @ B.T
+        g_j = A_j.T @ r_j - BDi @ n
+        without = S - 0.5 * (S_j + S_j.T)
+        try:
+            V_without = np.linalg.inv(without)
+        except np.linalg.LinAlgError:  # the others alone determine nothing there: no pull to judge
+            shift[j], difference[j] = np.nan, np.nan
+            continue
+        shift[j] = V_without @ g_j
+        difference[j] = scale * (V_without - V)
+        alone = planes_only - 0.5 * (S_j + S_j.T)
+        if np.linalg.matrix_rank(alone) == c:
+            others[j] = np.sqrt(scale * np.maximum(np.diag(np.linalg.inv(alone)), 0.0))
+    return PlanePulls(names=names, returns=returns, shift=shift, difference=difference, others=others)
+
+
+__all__ = ["plane_pulls"]
