@@ -155,3 +155,10 @@ def test_reproject_takes_a_recording_folder_as_calibrate_does(tmp_path, monkeypa
         assert _main(monkeypatch, ["reproject", str(given), "--nominal", str(rig), "-o", str(out)]) == 0, \
             capsys.readouterr().err
     np.testing.assert_array_equal(read_cloud_ply(outs[0]), read_cloud_ply(outs[1]))
+    # a folder holding no bag: one line saying what was looked for and how reproject takes a bag (it has no --bag)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    capsys.readouterr()
+    assert _main(monkeypatch, ["reproject", str(empty), "--nominal", str(rig), "-o", str(tmp_path / "e.ply")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "no bag found" in err and "as BAG" in err and "--bag" not in err, err

@@ -326,7 +326,8 @@ def reproject_bag(
     # (a ROS 2 bag folder stays itself); any other path is the bag, named as such when missing
     rec_folder, rec_bag = resolve_recording(bag, None) if bag.is_dir() else (None, bag)
     rec = read_recording(rec_folder if rec_bag is None else None, bag=rec_bag, nominal=nominal, scan=scan,
-                         servo=servo, require_distances=False, progress=stage("reading"), warn=warn)
+                         servo=servo, require_distances=False, progress=stage("reading"), warn=warn,
+                         give_bag="give the bag itself as BAG")
     dh = read_calibration_dh(calibration) if calibration is not None else rec.nominal.dh
     if clock_offset_s is not None:
         offset, offset_from = float(clock_offset_s), "given"

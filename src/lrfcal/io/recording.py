@@ -237,6 +237,7 @@ def read_recording(
     progress: Progress | None = None,
     warn: Callable[[str], None] | None = None,
     bag_reader: BagReader | None = None,
+    give_bag: str = "give the bag with --bag PATH",
 ) -> Recording:
     """Read a recording: the bag (lrfcal.io.bag.read_bag) or scan log (lrfcal.io.scanlog.read_scan_log, for a .txt,
     .csv or .log file), ``distances.csv`` and the rig file ``nominal.yaml``.
@@ -250,6 +251,7 @@ def read_recording(
     distances (Recording.tape is then None unless a distances file is given). The reader does not check that
     the joint states cover the scans (see :func:`check_joint_coverage`, timing.covered_scans). ``bag_reader(scan,
     servo, warn)``: the bag's data from elsewhere than a file (a simulation's messages: lrfsim.recording).
+    ``give_bag``: how the command that reads takes a bag, for the message when a folder holds none.
     """
     if bag_reader is None:
         base, bag = resolve_recording(folder, bag)  # a scan log as the recording, or a folder holding one
@@ -258,8 +260,8 @@ def read_recording(
     if base is not None and not base.is_dir():
         raise InputError(f"{base}: recording folder not found")
     if bag_reader is None and bag is None and base is not None and not (base / "bag").exists():
-        raise InputError(f"{base}: no bag found in the recording folder: looked for {LOOKED_FOR}; give the bag with "
-                         "--bag PATH (a ROS 1 .bag file, a ROS 2 bag folder or its .mcap/.db3 file, a scan log)")
+        raise InputError(f"{base}: no bag found in the recording folder: looked for {LOOKED_FOR}; {give_bag} (a ROS 1 "
+                         ".bag file, a ROS 2 bag folder or its .mcap/.db3 file, a scan log)")
 
     def pick(given: str | Path | None, default: str, what: str) -> Path:
         if given is not None:
