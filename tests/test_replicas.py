@@ -66,10 +66,15 @@ def test_replica_calibrates_targetless_or_refuses(name: str, tmp_path: Path) -> 
         tilt = result.beam_lambda_rad[:, 0]
         assert near[tilt > math.radians(60)].any() and not near[tilt < math.radians(30)].any()
 
+    # the room with --force: its result written whatever the checks say (observability refuses it: a and b are not
+    # determined within their limits), and still right within 4 sigma: its desk top and the stand's base board 2 cm
+    # above it, taken as one plane, are given up (lrfcal.model.plane.THICK; kept, they put a 59 +- 16 mm off for a
+    # true -2 mm and b 119 +- 7 mm for 84.5 mm)
+    force = ["--force"] if name == "urg_room_90" else []
     proc = subprocess.run([_script("lrfcal"), "calibrate", str(rec), "--targetless", "--no-figures", "-o",
-                           str(tmp_path / "cal"), "-q"], capture_output=True, text=True, timeout=600)
+                           str(tmp_path / "cal"), "-q", *force], capture_output=True, text=True, timeout=600)
     assert "Traceback" not in proc.stderr, proc.stderr
-    assert proc.returncode in (0, 3), proc.stderr
+    assert proc.returncode in ((0,) if force else (0, 3)), proc.stderr
     if proc.returncode == 3:  # refused: one line naming the check, nothing written
         assert proc.stderr.strip().startswith("error: ") and not (tmp_path / "cal").exists()
         return

@@ -40,6 +40,13 @@ FloatArray = NDArray[np.float64]
 _EYE = np.eye(3)
 
 
+#: a plane whose robust scale at an estimate is this many times the planes' median (and at least the noise's) is
+#: given up whole: it is not one flat surface (two taken as one: the room replica's desk top and the stand's base
+#: board 2 cm above it, whitened scale 2.1 and flat-topped where the median plane's is 1.1-1.2; every plane of the
+#: box replica, room_box and cardboard_box 1.00-1.06)
+THICK = 1.6
+
+
 @dataclass(frozen=True)
 class Footing:
     """Where a plane return counts, judged at every estimate (the targetless cost's rule, lrfcal.stages.targetless):
@@ -159,17 +166,23 @@ class PlaneSet:
              ) -> NDArray[np.bool_]:
         """(K2,) the returns whose |whitened residual| is within 4 robust sigma, the scale the median absolute
         residual of the returns ``keep`` over the normal distribution's (0.674, the MAD), never below 1; with a
-        :class:`Footing` (the targetless cost), each plane's returns by the scale of its own, and only those whose
-        beam meets their plane where it counts at th (:func:`footing`)."""
+        :class:`Footing` (the targetless cost), each plane's returns by the scale of its own, none of a plane whose
+        scale is :data:`THICK` times the planes' median, and only those whose beam meets their plane where it counts
+        at th (:func:`footing`)."""
         rs = np.abs(plane_rows(th, self, ctx.sigma_r, R_ref, jac=False, clock=ctx.clock).res)
         if self.footing is None:
             return robust_kept(rs, keep, 0.674, squared=False)
         kept = np.zeros(self.size, dtype=bool)
         order, bounds = self.segments
+        scale = np.full(self.n_planes, np.nan)
         for j in range(self.n_planes):  # each plane by its own scale: a rougher one is not given up whole
             rows = order[bounds[j]:bounds[j + 1]]
             if rows.size and keep[rows].any():
                 kept[rows] = robust_kept(rs[rows], keep[rows], 0.674, squared=False)
+                scale[j] = float(np.median(rs[rows][keep[rows]])) / 0.674
+        if np.isfinite(scale).any():  # but one far thicker than the others is no one flat surface: given up
+            thick = np.flatnonzero(scale > THICK * max(1.0, float(np.nanmedian(scale))))
+            kept[np.isin(self.plane, thick)] = False
         cos_incidence, clear_m = footing(th, self, R_ref, ctx.clock)
         return kept & (cos_incidence >= self.footing.min_cos) & (clear_m >= self.footing.clearance_m)
 
