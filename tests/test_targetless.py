@@ -132,9 +132,9 @@ def test_room_box_recovers_the_truth_within_4_sigma(room: tuple[Path, Calibratio
 
 def test_room_box_planes_agree_and_one_that_pulls_is_named(room: tuple[Path, CalibrationResult]) -> None:
     """The check "planes agree" (lrfcal.estimate.checks.planes_agree) on room_box's estimate: every plane judged,
-    their pulls within the noise; the same estimate with the largest plane's pull made 10 stated sigma on
-    the DH parameter the plane constrains most (a plane the model does not explain) fails, naming that plane by its
-    normal."""
+    their pulls within the noise; the same estimate with the largest plane's pull made 10 stated sigma on the DH
+    parameter whose pull the noise moves least (above the check's floor: a plane the model does not explain) fails,
+    naming that plane by its normal."""
     _, result = room
     sol, held = result.solution, result.evidence.plane_fit.held
     check = planes_agree(sol, held, result.evidence.returns)
@@ -142,8 +142,8 @@ def test_room_box_planes_agree_and_one_that_pulls_is_named(room: tuple[Path, Cal
     assert sol.spread is not None and (pulls := sol.spread.planes) is not None
     j = int(np.argmax(pulls.returns))
     at = [pulls.names.index(n) for n in DH]
-    # the difference's variance of each DH parameter in units of its stated sigma (as the check scales it): the
-    # pull goes on the one it constrains most, 10 of its stated sigma
+    # the difference's variance of each DH parameter in units of its stated sigma (as the check scales it: the
+    # statistical sigma's units, the scaling cancels): the pull goes on the least variable one, 10 stated sigma
     unit = np.sqrt(np.diag(sol.spread.statistical)[[CORE_NAMES.index(n) for n in DH]])
     var = np.diag(pulls.difference[j][np.ix_(at, at)]) / unit ** 2
     k = int(np.argmin(np.where(var >= 0.01, var, np.inf)))
