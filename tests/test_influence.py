@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from lrfcal.estimate.influence import plane_pulls
+from lrfcal.estimate.normal_equations import assemble
 from lrfcal.model.observations import Blocks
 
 C, P, ROWS = 3, 5, 120  # core unknowns, planes, rows per plane
@@ -43,7 +44,7 @@ def _pulls(Jc: np.ndarray, Jn: np.ndarray, plane: np.ndarray, y: np.ndarray):
     r = J @ x - y  # the whitened residuals at the solution, d r / d x = J
     V = np.linalg.inv(J.T @ J)[:C, :C]
     b = Blocks(np.zeros(0), np.zeros((0, C)), r, Jc, Jn, plane, P)
-    pulls = plane_pulls(b, np.arange(C), V, 1.0, ("u", "v", "w"))
+    pulls = plane_pulls(b, assemble(b, np.arange(C)), np.arange(C), V, 1.0, ("u", "v", "w"))
     assert pulls is not None
     return x[:C], pulls
 

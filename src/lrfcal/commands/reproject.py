@@ -304,7 +304,6 @@ def reproject_bag(
     from lrfcal.io.recording import read_recording
     from lrfcal.io.rig import with_overrides
     from lrfcal.io.saved_calibration import calibration_file
-    from lrfcal.io.scanlog import resolve_recording
     from lrfcal.model.kinematics import refuse_placeholder_dh
 
     # a calibration folder stands for its calibration.yaml, as `lrfcal check` takes it
@@ -322,11 +321,11 @@ def reproject_bag(
     def stage(name: str) -> Callable[[int, int], None] | None:
         return None if progress is None else (lambda d, t: progress(name, d, t))
 
-    # a recording folder stands for its bag (its bag/, else its one bag or scan log), as `lrfcal calibrate` takes it
-    # (a ROS 2 bag folder stays itself); any other path is the bag, named as such when missing
-    rec_folder, rec_bag = resolve_recording(bag, None) if bag.is_dir() else (None, bag)
-    rec = read_recording(rec_folder if rec_bag is None else None, bag=rec_bag, nominal=nominal, scan=scan,
-                         servo=servo, require_distances=False, progress=stage("reading"), warn=warn,
+    # a folder is read as `lrfcal calibrate` reads a recording folder (its bag/, else its one bag or scan log; a ROS 2
+    # bag folder stays itself: read_recording resolves it); any other path is the bag, named as such when missing
+    folder = bag if bag.is_dir() else None
+    rec = read_recording(folder, bag=None if folder else bag, nominal=nominal, scan=scan, servo=servo,
+                         require_distances=False, progress=stage("reading"), warn=warn,
                          give_bag="give the bag itself as BAG")
     dh = read_calibration_dh(calibration) if calibration is not None else rec.nominal.dh
     if clock_offset_s is not None:

@@ -87,7 +87,8 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     ``blocks``: ``pb.blocks(th, R_ref)`` when the caller has them already (they are read, not changed)."""
     b = pb.blocks(th, R_ref) if blocks is None else blocks
     core = np.flatnonzero(free[:N_CORE])
-    H, _ = assemble(b, core).dense()
+    normal = assemble(b, core)
+    H, _ = normal.dense()
     # a plane the robust passes left without a return (and without a prior) carries no information: its nuisances
     # are no unknowns of this covariance (not a rank loss of the core)
     live = np.ones(H.shape[0], dtype=bool)
@@ -120,7 +121,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
         cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
         V = JtJ_inv[np.ix_(core_pos, core_pos)]
         spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan),
-                        plane_pulls(b, core, V, max(s2, 1.0), core_names))
+                        plane_pulls(b, normal, core, V, max(s2, 1.0), core_names))
         spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * V
         spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:

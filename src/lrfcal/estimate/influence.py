@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from lrfcal.estimate.normal_equations import Normal, plane_segments
 from lrfcal.model.observations import Blocks
 from lrfcal.types import PlanePulls
 
@@ -28,14 +29,15 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
 
-def plane_pulls(b: Blocks, core: IntArray, V: FloatArray, scale: float, names: tuple[str, ...]
+def plane_pulls(b: Blocks, N: Normal, core: IntArray, V: FloatArray, scale: float, names: tuple[str, ...]
                 ) -> PlanePulls | None:
-    """The pull of each plane of ``b`` (module docstring) over the core columns ``core`` (c,) named ``names``, from
-    the core block V (c, c) of the inverse information (unit noise) at the solution whose blocks ``b`` are; the
+    """The pull of each plane of ``b`` (module docstring) over the core columns ``core`` (c,) named ``names``: N the
+    normal equations of ``b`` over them (its planes' B_j, D_j and nuisance gradients, their priors included), V
+    (c, c) the core block of the inverse information (unit noise) at the solution whose blocks ``b`` are; the
     difference covariances times ``scale`` (the statistical covariance's noise variance,
     lrfcal.estimate.covariance). None without planes."""
     P = b.n_planes
-    if P == 0 or b.Jc_plane is None or b.Jn_plane is None:
+    if P == 0 or b.Jc_plane is None:
         return None
     c = core.size
     S = np.linalg.inv(V)
@@ -43,24 +45,16 @@ def plane_pulls(b: Blocks, core: IntArray, V: FloatArray, scale: float, names: t
     dense = b.J_dense[:, core] if b.J_dense is not None else np.zeros((0, c))
     planes_only = S - dense.T @ dense  # without the dense rows (the design drawing's prior on the DH)
     returns = np.bincount(b.plane, minlength=P)
-    Jc, Jn, r = b.Jc_plane[:, core], b.Jn_plane, b.r_plane
-    order = np.argsort(b.plane, kind="stable")
-    bounds = np.searchsorted(b.plane[order], np.arange(P + 1))
+    Jc, r = b.Jc_plane[:, core], b.r_plane
+    order, bounds = b.segments if b.segments is not None else plane_segments(b.plane, P)
     for j in range(P):
         rows = order[bounds[j]:bounds[j + 1]]
         if rows.size == 0:
             continue
-        A_j, N_j, r_j = Jc[rows], Jn[rows], r[rows]
-        D = N_j.T @ N_j
-        n = N_j.T @ r_j
-        if b.w_prior is not None and b.r_prior is not None:  # the plane's prior rows (its three nuisances)
-            w = b.w_prior[3 * j:3 * j + 3]
-            D = D + np.diag(w ** 2)
-            n = n + w * b.r_prior[3 * j:3 * j + 3]
-        B = A_j.T @ N_j  # (c, 3)
-        BDi = B @ np.linalg.pinv(D, rcond=1e-12)
-        S_j = A_j.T @ A_j - BDi @ B.T
-        g_j = A_j.T @ r_j - BDi @ n
+        A_j = Jc[rows]
+        BDi = N.B[:, 3 * j:3 * j + 3] @ np.linalg.pinv(N.D[j], rcond=1e-12)
+        S_j = A_j.T @ A_j - BDi @ N.B[:, 3 * j:3 * j + 3].T
+        g_j = A_j.T @ r[rows] - BDi @ N.g_n[3 * j:3 * j + 3]
         without = S - 0.5 * (S_j + S_j.T)
         try:
             V_without = np.linalg.inv(without)

@@ -60,7 +60,7 @@ class Normal:
         return H, np.concatenate([self.g_c, self.g_n])
 
 
-def _segments(plane: IntArray, n_planes: int) -> tuple[IntArray, IntArray]:
+def plane_segments(plane: IntArray, n_planes: int) -> tuple[IntArray, IntArray]:
     """A stable ordering of the rows by plane and each plane's [start, stop) in it."""
     order = np.argsort(plane, kind="stable")
     bounds = np.searchsorted(plane[order], np.arange(n_planes + 1))
@@ -84,7 +84,7 @@ def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_pla
     g_c = Jd.T @ wr_d + Jc.T @ wr_p
     P, c = b.n_planes, core.size
     B, D, g_n = np.zeros((c, 3 * P)), np.zeros((P, 3, 3)), np.zeros(3 * P)
-    order, bounds = b.segments if b.segments is not None else _segments(b.plane, P)
+    order, bounds = b.segments if b.segments is not None else plane_segments(b.plane, P)
     # the plane rows sorted by plane once (each plane's rows then a slice, not a gather per plane); rows already in
     # plane order (lrfcal.stages.surfaces makes them so) are copied instead, to the gather's C-ordered arrays (the
     # products below see the same layout, and two arrays where the gather made two: never the same buffer twice,
@@ -289,4 +289,4 @@ def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluste
 
 
 __all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
-           "schur", "scores_by_cluster", "solve_step"]
+           "plane_segments", "schur", "scores_by_cluster", "solve_step"]

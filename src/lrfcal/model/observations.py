@@ -271,16 +271,19 @@ class DHPrior:
         return None
 
 
-def robust_kept(score: FloatArray, keep: BoolArray, median_of_unit: float, squared: bool) -> BoolArray:
-    """(K,) the scores within CUT_SIGMA robust sigma, the scale from the median of the scores kept so far
-    (``keep``) over its value ``median_of_unit`` for unit noise (of score^2 when ``squared``), never below 1 (the
-    model's own noise)."""
+def robust_scale(score: FloatArray, keep: BoolArray, median_of_unit: float, squared: bool) -> float:
+    """The robust scale of the scores kept so far (``keep``): their median over its value ``median_of_unit`` for unit
+    noise (of score^2 when ``squared``)."""
     if squared:
-        scale = max(1.0, float(np.sqrt(np.median(score[keep] ** 2) / median_of_unit)))
-    else:
-        scale = max(1.0, float(np.median(score[keep]) / median_of_unit))
-    return score <= CUT_SIGMA * scale
+        return float(np.sqrt(np.median(score[keep] ** 2) / median_of_unit))
+    return float(np.median(score[keep]) / median_of_unit)
+
+
+def robust_kept(score: FloatArray, keep: BoolArray, median_of_unit: float, squared: bool) -> BoolArray:
+    """(K,) the scores within CUT_SIGMA robust sigma, the scale :func:`robust_scale`'s, never below 1 (the model's
+    own noise)."""
+    return score <= CUT_SIGMA * max(1.0, robust_scale(score, keep, median_of_unit, squared))
 
 
 __all__ = ["CUT_SIGMA", "Blocks", "DHPrior", "MarkerModel", "MarkerSensor", "ObservationSet", "RowContext",
-           "robust_kept", "stack_blocks"]
+           "robust_kept", "robust_scale", "stack_blocks"]
