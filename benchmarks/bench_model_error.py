@@ -23,7 +23,18 @@ make, -(J^T J)^-1 J^T r at the truth (marker-only, every lateral residual kept),
 of b's shift that each kind of residual and each marker makes (seed 1046, bench_promise's one confident wrong
 before the marker surfaces' scan-line rule: docs/trust.md).
 
+With ``--lateral-parts NAME ...`` (shipped scenarios) instead: is the marker model's lateral residual honest about
+what it adds to the DH's error (issue 56, the stated sigma too wide on marker layouts)? Over ``--phases`` casts of each
+scenario without noise (seeds 1..N: each a new laser phase on the markers, as a new recording is), the first-order DH
+shift that each part of the residuals at the truth makes (marker returns alone, the lateral residual used where the
+calibration uses it: markers crossed on both sides, lrfcal.model.marker.crossings, every crossing whole), in units of
+the marker-only model sigma: its RMS over the phases ("actual") beside the part of the sigma the model gives it
+("model", sqrt of that part's share of the variance). The range part's actual is the model's error alone (its noise
+is drawn in a recording, not here); where the lateral parts' actual is below their model, the model counts a
+marker's lateral offsets as independent draws where the beam grid makes them an even sample (docs/study.md).
+
     python benchmarks/bench_model_error.py [--seeds 28 67 6 12] [--per-marker] [--first-order] [--stated-sigma S]
+    python benchmarks/bench_model_error.py --lateral-parts spinning_tilted plane_30deg tunnel_v [--phases 12]
 """
 
 from __future__ import annotations
@@ -128,6 +139,57 @@ def per_marker(scenario: Scenario) -> list[str]:
     return out
 
 
+def _lateral_parts(scenario: Scenario) -> dict[str, tuple[Any, Any]]:
+    """Per part of the noise-free marker residuals at the truth of ``scenario`` (the lateral one where its marker is
+    crossed on both sides): the first-order DH shift it makes and the model's sigma of that shift, both over the
+    marker-only model sigma (4,) each (module docstring)."""
+    import numpy as np
+
+    obs, res, J, d, n = _at_truth(scenario)
+    side = np.sign((res[:, 1:] * n).sum(1))  # the centre's side of the scan plane: the lateral residual's across part
+    lo, hi = np.full(obs.marker.max() + 1, 2.0), np.full(obs.marker.max() + 1, -2.0)
+    np.minimum.at(lo, obs.marker, side)
+    np.maximum.at(hi, obs.marker, side)
+    both = ((lo < 0) & (hi > 0))[obs.marker].astype(float)
+    res, J = res.copy(), J.copy()
+    res[:, 1:] *= both[:, None]
+    J[:, 1:, :] *= both[:, None, None]
+    Jf = J.reshape(-1, 10)
+    cov = np.linalg.pinv(Jf.T @ Jf)
+    sigma = np.sqrt(np.diag(cov))[6:]
+    parts = {"range": (res[:, :1], J[:, :1, :])}
+    for name, u in (("in-plane", d), ("across", n)):
+        parts[name] = ((res[:, 1:] * u).sum(1)[:, None], np.einsum("ki,kij->kj", u, J[:, 1:, :])[:, None, :])
+    out = {}
+    for name, (r, Jp) in parts.items():
+        Jp = Jp.reshape(-1, 10)
+        shift = -(cov @ (Jp.T @ r.ravel()))[6:]
+        model = np.sqrt(np.diag(cov @ Jp.T @ Jp @ cov)[6:])
+        out[name] = (shift / sigma, model / sigma)
+    return out
+
+
+def lateral_parts(name: str, phases: int) -> list[str]:
+    """Lines of the lateral parts' actual and model share for the shipped scenario ``name`` (module docstring)."""
+    import numpy as np
+    import yaml
+
+    from lrfsim.scenario.file import parse_scenario
+
+    data = yaml.safe_load((Path(__file__).resolve().parents[1] / "scenarios" / f"{name}.yaml").read_text())
+    runs = []
+    for seed in range(1, phases + 1):
+        data["seed"] = seed
+        runs.append(_lateral_parts(parse_scenario(data, name)))
+    lines = [f"{name} ({phases} laser phases, marker returns alone, noise-free; a, alpha, b, beta):"]
+    for part in runs[0]:
+        actual = np.sqrt(np.mean([r[part][0] ** 2 for r in runs], axis=0))
+        model = np.mean([r[part][1] for r in runs], axis=0)
+        lines.append(f"  {part:9s} actual " + ", ".join(f"{v:.2f}" for v in actual)
+                     + " | model " + ", ".join(f"{v:.2f}" for v in model))
+    return lines
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[28, 67, 6, 12])
@@ -135,8 +197,16 @@ def main() -> None:
     ap.add_argument("--first-order", action="store_true", help="also the first-order shift the truth's residuals make")
     ap.add_argument("--stated-sigma", type=float, default=None, metavar="S",
                     help="also the noise-free recording calibrated with a stated range noise of S [m]")
+    ap.add_argument("--lateral-parts", nargs="+", default=None, metavar="NAME",
+                    help="instead: the lateral residual's parts against the model on these shipped scenarios")
+    ap.add_argument("--phases", type=int, default=12, help="laser phases (casts) per scenario for --lateral-parts")
     args = ap.parse_args()
     t0 = time.perf_counter()
+    if args.lateral_parts:
+        for name in args.lateral_parts:
+            print("\n".join(lateral_parts(name, args.phases)), flush=True)
+        print(f"benchmark wall time {time.perf_counter() - t0:.0f} s")
+        return
     with tempfile.TemporaryDirectory() as tmp:
         for seed in args.seeds:
             sc = random_scenario_wide(seed, broad=True)
