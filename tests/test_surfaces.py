@@ -313,8 +313,8 @@ def test_a_range_offset_and_noise_correlated_along_the_scan_leave_the_surfaces_u
     seed 5, through the installed script. The scan-line rule judged the neighbours' mean distance from the plane
     itself, every point a centimetre beyond it: it left out 40-97 % of the candidates and kept, of the correlated
     noise, the returns that read short; alpha came out 5.2 and b 6.7 sigma off, exit 0 (24 recordings: RMS of error /
-    sigma 1.22, 3.24, 2.73, 1.72). Judged from the surface's level (its candidates' median distance,
-    lrfcal.stages.surfaces.ALONG_BEAMS): within 2 sigma here, and 1.12, 0.94, 0.97, 1.17 over the 24."""
+    sigma 1.22, 3.24, 2.73, 1.72). Judged from the surface's level (the median distance of the returns within the gate,
+    lrfcal.stages.surfaces.ALONG_BEAMS): within 2 sigma here, and 1.12, 0.93, 0.97, 1.17 over the 24."""
     import shutil
     import subprocess
     import sys
