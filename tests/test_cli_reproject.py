@@ -162,3 +162,22 @@ def test_reproject_takes_a_recording_folder_as_calibrate_does(tmp_path, monkeypa
     assert _main(monkeypatch, ["reproject", str(empty), "--nominal", str(rig), "-o", str(tmp_path / "e.ply")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "no bag found" in err and "as BAG" in err and "--bag" not in err, err
+
+
+def test_reproject_reads_a_recording_folders_own_rig_file(tmp_path, monkeypatch, canonical_bag, capsys):
+    """A recording folder holds its rig file (nominal.yaml), as `lrfcal calibrate REC` reads it: reproject takes it
+    without --nominal (the same cloud as with it); a bag without one, and no --nominal, is one line naming the
+    option and how to get a rig file (it said "Missing option '--nominal'" for the folder too)."""
+    rec = tmp_path / "rec"
+    rec.mkdir()
+    (rec / "bag").symlink_to(canonical_bag, target_is_directory=True)
+    (rec / "nominal.yaml").write_text(_rig(tmp_path).read_text())
+    outs = [tmp_path / "given.ply", tmp_path / "own.ply"]
+    assert _main(monkeypatch, ["reproject", str(rec), "--nominal", str(rec / "nominal.yaml"), "-o", str(outs[0])]) == 0
+    assert _main(monkeypatch, ["reproject", str(rec), "-o", str(outs[1])]) == 0, capsys.readouterr().err
+    np.testing.assert_array_equal(read_cloud_ply(outs[0]), read_cloud_ply(outs[1]))
+    capsys.readouterr()
+    assert _main(monkeypatch, ["reproject", str(canonical_bag), "-o", str(tmp_path / "b.ply")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--nominal" in err and "lrfcal inspect" in err, err
+    assert not (tmp_path / "b.ply").exists()

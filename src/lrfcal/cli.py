@@ -333,12 +333,13 @@ def print_inspection(result: BagInspection, console: Console) -> None:
 def reproject_cmd(
     bag: Annotated[Path, typer.Argument(help="ROS 1 .bag file, ROS 2 bag folder (sqlite3 or MCAP), scan log, or a "
                                         "recording folder holding one.", metavar="BAG", show_default=False)],
-    nominal: Annotated[Path, typer.Option(
-        "--nominal", metavar="YAML", show_default=False,
-        help="Rig file (nominal.yaml): nominal DH and where the data are in the bag.")],
     out: Annotated[Path, typer.Option("-o", "--out", metavar="PLY", show_default=False,
         help="Output PLY (binary; x y z (m) in frame M, "
                                       "intensity, time (s), scan, beam per point; written atomically).")],
+    nominal: Annotated[Path | None, typer.Option(
+        "--nominal", metavar="YAML", show_default=False,
+        help="Rig file (nominal.yaml): nominal DH and where the data are in the bag  [default: BAG/nominal.yaml "
+        "where BAG is a recording folder]")] = None,
     calibration: Annotated[Path | None, typer.Option(
         "--calibration", metavar="YAML", show_default=False,
         help="calibration.yaml (or the folder `lrfcal calibrate` wrote) whose dh replaces the rig file's nominal "

@@ -283,7 +283,7 @@ class CloudOutputs:
 
 def reproject_bag(
     bag: str | Path,
-    nominal: str | Path,
+    nominal: str | Path | None,
     outputs: CloudOutputs,
     *,
     calibration: str | Path | None = None,
@@ -292,7 +292,8 @@ def reproject_bag(
     progress: Callable[[str, int, int], None] | None = None,
     warn: Callable[[str], None] | None = None,
 ) -> list[str]:
-    """``lrfcal reproject``: read BAG as the rig file says (``options``: lrfcal.io.rig.with_overrides keywords),
+    """``lrfcal reproject``: read BAG as the rig file ``nominal`` says (None: the nominal.yaml of BAG, a recording
+    folder, as `lrfcal calibrate` takes it; ``options``: lrfcal.io.rig.with_overrides keywords),
     reproject every beam with the calibration's DH (else the nominal) and its clock offset (``clock_offset_s``
     when given, else the calibration's estimate, else 0; on top of the reader's coarse offset), write the PLY
     (and the PointCloud2 bag, the rerun file). ``progress(stage, done, total)`` reports reading and
@@ -308,6 +309,11 @@ def reproject_bag(
 
     # a calibration folder stands for its calibration.yaml, as `lrfcal check` takes it
     calibration = calibration_file(calibration) if calibration is not None else None
+    if nominal is None:  # a recording folder holds its rig file, as `lrfcal calibrate REC` reads it
+        if not (Path(bag).is_dir() and (Path(bag) / "nominal.yaml").is_file()):
+            raise InputError(f"{bag}: no rig file: give --nominal YAML (a recording folder holds its nominal.yaml; "
+                             f"`lrfcal inspect {bag} -o rig.yaml` writes one)")
+        nominal = Path(bag) / "nominal.yaml"
     bag, nominal, out, rrd, bag_out = Path(bag), Path(nominal), Path(outputs.ply), outputs.rrd, outputs.bag
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
     check_outputs([p for p in (bag, nominal, calibration) if p is not None], outs)
