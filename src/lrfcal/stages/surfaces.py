@@ -325,6 +325,15 @@ __all__ = ["DEFAULT_SELECTION", "GridValues", "PlaneMarkers", "ReturnGrid", "Ret
            "candidate_planes", "find_surfaces", "surface_returns"]
 
 
+def level_m(surface: Surface, points_W: FloatArray, gate_m: float) -> float:
+    """The surface's level for the scan-line rule (:data:`ALONG_BEAMS`): the median signed distance from its plane of
+    the ``points_W`` (n, 3) within ``gate_m`` of it (0 without any). A corner's few returns do not move it; computed on
+    one fixed sample, it leaves the returns chosen independent of the fraction of rows judged."""
+    h = points_W @ surface.normal - surface.offset_m
+    near = np.abs(h) < gate_m
+    return float(np.median(h[near])) if near.any() else 0.0
+
+
 def observe_surfaces(
     grid: ReturnGrid, markers: PlaneMarkers, params: Params, *, selection: SurfaceSelection = DEFAULT_SELECTION,
     intrinsics: Mapping[str, float] | None = None,
@@ -391,14 +400,7 @@ def observe_surfaces(
     r_s, lam_s, mu_s = true_returns(th, r_s, lam_s, mu_s)
     sample_W = points_W(r_s, lam_s, mu_s, params)
     surfaces = find_surfaces(markers, sensor_W, sample_W)
-    # each surface's level for the scan-line rule: the median distance from it of the sample's points within the gate
-    # (a corner's few returns do not move it; taken from this fixed sample, the returns chosen do not depend on the
-    # fractions below)
-    level: dict[int, float] = {}
-    for surface in surfaces:
-        h = sample_W @ surface.normal - surface.offset_m
-        near = np.abs(h) < selection.gate_m
-        level[id(surface)] = float(np.median(h[near])) if near.any() else 0.0
+    level = {id(surface): level_m(surface, sample_W, selection.gate_m) for surface in surfaces}  # from this one sample
     # surface_returns keeps the accepted returns of lowest hash_key: the rows whose key is below a threshold hold
     # them all once they hold max_returns accepted ones, so only those rows are reprojected (the same returns as
     # from every row, at a fraction of the work); the threshold grows until they do, at once to the fraction that
@@ -488,4 +490,4 @@ def moved_m(returns: SurfaceReturns, before: tuple[Params, Mapping[str, float]],
     return float(np.max(np.abs(along(*after) - along(*before))))
 
 
-__all__ += ["moved_m", "observe_surfaces"]
+__all__ += ["level_m", "moved_m", "observe_surfaces"]
