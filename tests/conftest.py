@@ -26,7 +26,9 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import os
+import shutil
 import subprocess
+import sys
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -51,6 +53,14 @@ os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
 SCENARIOS = Path(__file__).resolve().parents[1] / "scenarios"
 #: public recordings of real rigs shared beside the project, not part of a clone (../shared/realbags/README.md)
 REALBAGS = Path(__file__).resolve().parents[2] / "shared" / "realbags"
+
+
+def console_script(name: str) -> str:
+    """The installed console script ``name`` (next to this interpreter, else on PATH), as a user runs it."""
+    here = Path(sys.executable).parent / name
+    found = str(here) if here.is_file() else shutil.which(name)
+    assert found, f"console script {name} is not installed (pip install -e .)"
+    return found
 
 
 def tiered(values: Iterable[Any], keep: int = 1) -> list[Any]:

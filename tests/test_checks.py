@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import console_script
 
 from lrfcal.model.kinematics import DH, Params, Pose
 from lrfcal.types import Solution
@@ -90,7 +91,7 @@ def test_placeholder_dh_is_refused_naming_the_key(shipped_recording, tmp_path) -
     rig = yaml.safe_load((rec / "nominal.yaml").read_text())
     rig["dh"] = {"a": 0, "alpha": 0, "b": 0, "beta": 0}
     (rec / "nominal.yaml").write_text(yaml.safe_dump(rig))
-    out = subprocess.run([shutil.which("lrfcal") or "lrfcal", "calibrate", str(rec), "-o", str(tmp_path / "cal"),
+    out = subprocess.run([console_script("lrfcal"), "calibrate", str(rec), "-o", str(tmp_path / "cal"),
                           "--quiet"], capture_output=True, text=True)
     assert out.returncode == 2, out.stderr
     assert "dh" in out.stderr and "placeholder" in out.stderr and "Traceback" not in out.stderr

@@ -16,13 +16,13 @@ import json
 import os
 import shutil
 import subprocess
-import sys
 import traceback
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 import yaml
+from conftest import console_script
 
 from lrfcal.io.files import MANIFEST_NAME
 from lrfsim.scenario.file import Scenario, load_scenario
@@ -31,12 +31,6 @@ ROOT = Path(__file__).resolve().parents[1]
 SCENARIOS = ROOT / "scenarios"
 
 
-def _script(name: str) -> str:
-    """The installed console script (next to this interpreter, else on PATH)."""
-    here = Path(sys.executable).parent / name
-    found = str(here) if here.is_file() else shutil.which(name)
-    assert found, f"console script {name} is not installed (pip install -e .)"
-    return found
 
 
 def _env(columns: int = 80) -> dict[str, str]:
@@ -46,7 +40,7 @@ def _env(columns: int = 80) -> dict[str, str]:
 
 
 def _run(prog: str, *args: str | Path, cwd: Path | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
-    return subprocess.run([_script(prog), *map(str, args)], capture_output=True, text=True, cwd=cwd, env=_env(),
+    return subprocess.run([console_script(prog), *map(str, args)], capture_output=True, text=True, cwd=cwd, env=_env(),
                           timeout=timeout)
 
 

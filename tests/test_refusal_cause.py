@@ -11,13 +11,12 @@ its remedy (lrfcal.estimate.observability.unjudged_refusal), and the failed chec
 from __future__ import annotations
 
 import math
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import console_script
 
 from lrfcal.config import CalibConfig
 from lrfcal.errors import CalibrationError
@@ -32,11 +31,6 @@ from lrfsim.trials.variants import with_field
 DISAGREEMENT = "marker m17: its returns sit 14 mm from its tape position on average (moved after taping?)"
 
 
-def _lrfcal() -> str:
-    here = Path(sys.executable).parent / "lrfcal"
-    found = str(here) if here.is_file() else shutil.which("lrfcal")
-    assert found, "console script lrfcal is not installed (pip install -e .)"
-    return found
 
 
 def test_near_perpendicular_rig_is_refused_for_what_it_does_not_determine(tmp_path: Path) -> None:
@@ -48,8 +42,8 @@ def test_near_perpendicular_rig_is_refused_for_what_it_does_not_determine(tmp_pa
     assert alpha_kind_of(sc) == "near_perpendicular"
     rec = tmp_path / "rec"
     write_recording(simulate(sc), sc, rec)
-    proc = subprocess.run([_lrfcal(), "calibrate", str(rec), "-o", str(tmp_path / "cal"), "--no-figures",
-                           "--no-baseline", "-q"], capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([console_script("lrfcal"), "calibrate", str(rec), "-o", str(tmp_path / "cal"),
+                           "--no-figures", "--no-baseline", "-q"], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 3, (proc.returncode, proc.stderr)
     assert "Traceback" not in proc.stderr, proc.stderr
     first = proc.stderr.strip().splitlines()[0]

@@ -7,15 +7,14 @@ suite fast; benchmarks/bench_replicas.py measures the full replicas over 40 seed
 from __future__ import annotations
 
 import math
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
 import yaml
+from conftest import console_script
 
 from lrfcal.io.recording import read_recording
 from lrfsim.scenario.file import load_scenario, parse_scenario, with_changes
@@ -29,11 +28,6 @@ SHORT: dict[str, Any] = {"servo.step_rad": math.radians(1.5), "servo.speed_rad_s
 DH = ("a", "alpha", "b", "beta")
 
 
-def _script(name: str) -> str:
-    here = Path(sys.executable).parent / name
-    found = str(here) if here.is_file() else shutil.which(name)
-    assert found, f"console script {name} is not installed (pip install -e .)"
-    return found
 
 
 def _short(name: str) -> dict[str, Any]:
@@ -71,7 +65,7 @@ def test_replica_calibrates_targetless_or_refuses(name: str, tmp_path: Path) -> 
     # above it, taken as one plane, are given up (lrfcal.model.plane.THICK; kept, they put a 59 +- 16 mm off for a
     # true -2 mm and b 119 +- 7 mm for 84.5 mm)
     force = ["--force"] if name == "urg_room_90" else []
-    proc = subprocess.run([_script("lrfcal"), "calibrate", str(rec), "--targetless", "--no-figures", "-o",
+    proc = subprocess.run([console_script("lrfcal"), "calibrate", str(rec), "--targetless", "--no-figures", "-o",
                            str(tmp_path / "cal"), "-q", *force], capture_output=True, text=True, timeout=600)
     assert "Traceback" not in proc.stderr, proc.stderr
     assert proc.returncode in ((0,) if force else (0, 3)), proc.stderr

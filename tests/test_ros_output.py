@@ -6,7 +6,6 @@ from __future__ import annotations
 import ast
 import dataclasses
 import math
-import shutil
 import subprocess
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -14,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import console_script
 from synthetic import make_result
 
 from lrfcal.commands.calibration_folder import write_calibration
@@ -96,7 +96,7 @@ def test_calibrate_writes_the_ros_files(tmp_path: Path, shipped_recording) -> No
     static transform is the calibrated mount (translation, and the quaternion's rotation against the mount's roll,
     pitch, yaw in calibration.yaml), the URDF parses and its joints compose to the calibrated T_M_L at a test angle."""
     out = tmp_path / "cal"
-    proc = subprocess.run([shutil.which("lrfcal") or "lrfcal", "calibrate", str(shipped_recording("plane_30deg")),
+    proc = subprocess.run([console_script("lrfcal"), "calibrate", str(shipped_recording("plane_30deg")),
                            "-o", str(out), "--no-baseline", "--no-figures"], capture_output=True, text=True,
                           timeout=600)
     assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr

@@ -11,14 +11,13 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from conftest import console_script
 
 from lrfcal.commands.convert import convert_log
 from lrfcal.commands.inspect_log import guess_layout, inspect_path
@@ -47,17 +46,12 @@ LONGARM_LOG_KEYS = {"columns": ["ignore", "time", "angle"], "time_unit": "ms", "
                     "time_increment_s": URG_TIME_INCREMENT_S}
 
 
-def _script(name: str) -> str:
-    here = Path(sys.executable).parent / name
-    found = str(here) if here.is_file() else shutil.which(name)
-    assert found, f"console script {name} is not installed (pip install -e .)"
-    return found
 
 
 def _run(*args: str | Path, timeout: float = 300) -> subprocess.CompletedProcess:
     env = {k: v for k, v in os.environ.items() if k not in ("DISPLAY", "WAYLAND_DISPLAY")}
     env.update(COLUMNS="200", OPENBLAS_NUM_THREADS="1")
-    return subprocess.run([_script("lrfcal"), *map(str, args)], capture_output=True, text=True, env=env,
+    return subprocess.run([console_script("lrfcal"), *map(str, args)], capture_output=True, text=True, env=env,
                           timeout=timeout)
 
 

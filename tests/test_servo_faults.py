@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from conftest import console_script
 
 from lrfcal.pipeline import CalibConfig
 from lrfsim.scenario.file import Scenario, parse_scenario, with_changes
@@ -89,7 +90,7 @@ def test_angle_increment_off_by_one_is_refused_naming_the_key_then_read_from_the
     folder = tmp_path / "rec"
     shutil.copytree(recording_of(_scenario("off_by_one", **{"faults.angle_increment_off_by_one": True,
                                                             "servo.passes": 1})), folder)
-    out = subprocess.run([shutil.which("lrfcal") or "lrfcal", "calibrate", str(folder), "-o", str(tmp_path / "cal"),
+    out = subprocess.run([console_script("lrfcal"), "calibrate", str(folder), "-o", str(tmp_path / "cal"),
                           "--quiet"], capture_output=True, text=True)
     assert out.returncode == 2, out.stderr
     lines = out.stderr.strip().splitlines()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from conftest import console_script
 
 from lrfcal.estimate.problem import Problem
 from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, transform_points
@@ -315,9 +316,7 @@ def test_a_range_offset_and_noise_correlated_along_the_scan_leave_the_surfaces_u
     noise, the returns that read short; alpha came out 5.2 and b 6.7 sigma off, exit 0 (24 recordings: RMS of error /
     sigma 1.22, 3.24, 2.73, 1.72). Judged from the surface's level (the median distance of the returns within the gate,
     lrfcal.stages.surfaces.ALONG_BEAMS): within 2 sigma here, and 1.12, 0.93, 0.97, 1.17 over the 24."""
-    import shutil
     import subprocess
-    import sys
     from pathlib import Path
 
     import yaml
@@ -330,11 +329,8 @@ def test_a_range_offset_and_noise_correlated_along_the_scan_leave_the_surfaces_u
     path = Path(__file__).resolve().parents[1] / "scenarios" / "tunnel_v_systematic.yaml"
     sc = with_field(with_field(load_scenario(path), "sensor.noise_correlation", 0.7), "seed", 5)
     rec = write_recording(simulate(sc), sc, tmp_path / "rec")
-    here = Path(sys.executable).parent / "lrfcal"
-    script = str(here) if here.is_file() else shutil.which("lrfcal")
-    assert script, "console script lrfcal is not installed (pip install -e .)"
-    proc = subprocess.run([script, "calibrate", str(rec), "--no-figures", "-q", "-o", str(tmp_path / "cal")],
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run([console_script("lrfcal"), "calibrate", str(rec), "--no-figures", "-q", "-o",
+                           str(tmp_path / "cal")], capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr
     cal = yaml.safe_load((tmp_path / "cal" / "calibration.yaml").read_text())["dh"]
     truth = yaml.safe_load((rec / "ground_truth.yaml").read_text())["dh"]

@@ -9,9 +9,7 @@ undetermined parameters must be held, not estimated.
 from __future__ import annotations
 
 import math
-import shutil
 import subprocess
-import sys
 from collections.abc import Callable
 from dataclasses import replace
 from pathlib import Path
@@ -20,7 +18,7 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from conftest import tiered
+from conftest import console_script, tiered
 
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate.checks import planes_agree, refuse_failed
@@ -240,10 +238,6 @@ def test_a_single_plane_across_the_motor_axis_holds_b_and_names_it(tmp_path: Pat
     assert set(z) == {"a", "alpha", "beta"} and all(abs(v) <= N_SIGMA for v in z.values()), z
 
 
-def _script(name: str) -> str:
-    found = shutil.which(name, path=str(Path(sys.executable).parent))
-    assert found, f"console script {name} not installed beside {sys.executable}"
-    return found
 
 
 def test_cli_calibrates_a_recording_without_tape_distances(recording_of: Callable[[Any], Path],
@@ -254,7 +248,7 @@ def test_cli_calibrates_a_recording_without_tape_distances(recording_of: Callabl
     quick = {"servo.speed_rad_s": 1.0, "servo.passes": 1, "servo.settle_s": 0.05}
     folder = recording_of(parse_scenario(with_changes(_data("room_box"), quick), "room_box"))
     out = tmp_path / "cal"
-    proc = subprocess.run([_script("lrfcal"), "calibrate", str(folder), "-o", str(out)], capture_output=True,
+    proc = subprocess.run([console_script("lrfcal"), "calibrate", str(folder), "-o", str(out)], capture_output=True,
                           text=True, timeout=600, env={"PATH": "/usr/bin:/bin"})
     assert proc.returncode == 0, proc.stderr
     assert "targetless" in proc.stdout

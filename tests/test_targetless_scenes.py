@@ -8,9 +8,7 @@ boxes are refused with one line naming the field.
 from __future__ import annotations
 
 import math
-import shutil
 import subprocess
-import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +16,7 @@ import mujoco
 import numpy as np
 import pytest
 import yaml
+from conftest import console_script
 
 from lrfcal.errors import InputError
 from lrfcal.io.files import MANIFEST_NAME
@@ -271,11 +270,6 @@ def test_open_box_refuses_a_sensor_above_its_walls() -> None:
 
 # --- the commands on a marker-less scenario (installed console scripts) ----------------------------------------
 
-def _script(name: str) -> str:
-    here = Path(sys.executable).parent / name
-    found = str(here) if here.is_file() else shutil.which(name)
-    assert found, f"console script {name} is not installed (pip install -e .)"
-    return found
 
 
 def _small_file(tmp_path: Path, name: str, **changes: Any) -> Path:
@@ -293,13 +287,13 @@ def _one_error_line(proc: subprocess.CompletedProcess) -> str:
 
 def test_simulate_cli_marker_less_and_a_bad_room(tmp_path: Path) -> None:
     scen = _small_file(tmp_path, "room_box")
-    proc = subprocess.run([_script("lrfsim"), "simulate", str(scen), "-o", str(tmp_path / "rec")],
+    proc = subprocess.run([console_script("lrfsim"), "simulate", str(scen), "-o", str(tmp_path / "rec")],
                           capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr
     assert sorted(p.name for p in (tmp_path / "rec").iterdir()) == MARKERLESS_FILES
     assert "markers" in proc.stdout
     bad = _small_file(tmp_path, "cardboard_box", **{"scene.room.size_y_m": -0.3})
-    proc = subprocess.run([_script("lrfsim"), "simulate", str(bad), "-o", str(tmp_path / "bad")],
+    proc = subprocess.run([console_script("lrfsim"), "simulate", str(bad), "-o", str(tmp_path / "bad")],
                           capture_output=True, text=True, timeout=120)
     line = _one_error_line(proc)
     assert f"{bad}: scene.room.size_y_m: Input should be greater than 0" in line
@@ -312,7 +306,7 @@ def test_run_and_plan_refuse_a_marker_less_scenario_in_one_line(command: str, tm
     calibrates it targetless: test_run_calibrates_a_marker_less_scenario)."""
     scen = _small_file(tmp_path, "cardboard_box")
     args = ["-o", str(tmp_path / "out")] if command == "run" else []
-    proc = subprocess.run([_script("lrfsim"), command, str(scen), *args], capture_output=True, text=True,
+    proc = subprocess.run([console_script("lrfsim"), command, str(scen), *args], capture_output=True, text=True,
                           timeout=120, cwd=tmp_path)
     line = _one_error_line(proc)
     assert "cardboard_box: markers: the scenario has no markers" in line and f"lrfsim {command}" in line
@@ -321,8 +315,8 @@ def test_run_and_plan_refuse_a_marker_less_scenario_in_one_line(command: str, tm
 
 def test_run_calibrates_a_marker_less_scenario(tmp_path: Path) -> None:
     scen = _small_file(tmp_path, "room_box")
-    proc = subprocess.run([_script("lrfsim"), "run", str(scen), "-o", str(tmp_path / "out")], capture_output=True,
-                          text=True, timeout=300, cwd=tmp_path)
+    proc = subprocess.run([console_script("lrfsim"), "run", str(scen), "-o", str(tmp_path / "out")],
+                          capture_output=True, text=True, timeout=300, cwd=tmp_path)
     assert proc.returncode in (0, 1), proc.stderr  # 1: a tolerance missed on this short sweep (printed, not hidden)
     cal = yaml.safe_load((tmp_path / "out" / "calibration" / "calibration.yaml").read_text())
     assert cal["method"] == "targetless"

@@ -16,7 +16,7 @@ import numpy as np
 from lrfcal.config import CalibConfig
 from lrfcal.errors import InputError
 from lrfcal.io import files
-from lrfcal.io.recording import read_nominal, read_recording
+from lrfcal.io.recording import RIG_FILE, read_nominal, read_recording
 from lrfcal.io.scanlog import resolve_recording
 from lrfcal.types import Recording
 
@@ -66,7 +66,7 @@ def calibrate_folder(
         "recording folder": rec,
         "bag": bag if bag is not None else (rec / "bag" if rec is not None else None),
         "distances": distances if distances is not None else (rec / "distances.csv" if rec is not None else None),
-        "nominal": nominal if nominal is not None else (rec / "nominal.yaml" if rec is not None else None),
+        "nominal": nominal if nominal is not None else (rec / RIG_FILE if rec is not None else None),
     }
     files.check_no_overlap({"-o": out_dir, "--rrd": rrd_path}, inputs, may_nest_in=("recording folder",))
     files.check_no_overlap({"--rrd": rrd_path}, {"output folder": out_dir})
@@ -78,7 +78,7 @@ def calibrate_folder(
     if options:  # one-off rig-file settings (lrfcal.io.rig.with_overrides keywords) from the command line
         from lrfcal.io.rig import with_overrides
 
-        nom = read_nominal(nominal if nominal is not None else Path(recording_dir) / "nominal.yaml")
+        nom = read_nominal(nominal if nominal is not None else Path(recording_dir) / RIG_FILE)
         scan, servo = with_overrides(nom.scan, nom.servo, **options)
     # without tape distances (no distances.csv and none given) the calibration is targetless (lrfcal.stages.targetless)
     tape_path = inputs["distances"]

@@ -302,7 +302,7 @@ def reproject_bag(
     Raises:
         InputError: bad input, or an output path that overlaps an input.
     """
-    from lrfcal.io.recording import read_recording
+    from lrfcal.io.recording import RIG_FILE, read_recording
     from lrfcal.io.rig import with_overrides
     from lrfcal.io.saved_calibration import calibration_file
     from lrfcal.model.kinematics import refuse_placeholder_dh
@@ -310,10 +310,10 @@ def reproject_bag(
     # a calibration folder stands for its calibration.yaml, as `lrfcal check` takes it
     calibration = calibration_file(calibration) if calibration is not None else None
     if nominal is None:  # a recording folder holds its rig file, as `lrfcal calibrate REC` reads it
-        if not (Path(bag).is_dir() and (Path(bag) / "nominal.yaml").is_file()):
-            raise InputError(f"{bag}: no rig file: give --nominal YAML (a recording folder holds its nominal.yaml; "
+        if not (Path(bag) / RIG_FILE).is_file():
+            raise InputError(f"{bag}: no rig file: give --nominal YAML (a recording folder holds its {RIG_FILE}; "
                              f"`lrfcal inspect {bag} -o rig.yaml` writes one)")
-        nominal = Path(bag) / "nominal.yaml"
+        nominal = Path(bag) / RIG_FILE
     bag, nominal, out, rrd, bag_out = Path(bag), Path(nominal), Path(outputs.ply), outputs.rrd, outputs.bag
     outs = [Path(p) for p in (out, rrd, bag_out) if p is not None]
     check_outputs([p for p in (bag, nominal, calibration) if p is not None], outs)

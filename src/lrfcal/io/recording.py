@@ -204,6 +204,11 @@ def _components(n: int, pairs: Iterable[Iterable[int]]) -> list[list[int]]:
 
 # --- nominal.yaml -------------------------------------------------------------------------------------------
 
+#: the rig file's name in a recording folder (what `lrfcal calibrate REC` and `lrfcal reproject REC` read without
+#: --nominal)
+RIG_FILE = "nominal.yaml"
+
+
 def read_nominal(path: str | Path) -> Nominal:
     """Read the rig file nominal.yaml (lrfcal.io.rig.RigFile; keys in docs/formats.md).
 
@@ -270,7 +275,7 @@ def read_recording(
             raise InputError(f"{what}: no path given and no recording folder")
         return base / default
 
-    nom = read_nominal(pick(nominal, "nominal.yaml", "nominal"))
+    nom = read_nominal(pick(nominal, RIG_FILE, "nominal"))
     tape = None
     if require_distances or distances is not None:
         tape = read_distances(pick(distances, "distances.csv", "distances"))
@@ -299,5 +304,5 @@ def read_recording(
 
 __all__ = [
     "MAX_MEDIAN_RANGE_M", "MAX_RANGE_MAX_M", "MAX_SWEEP_RAD", "MIN_MEDIAN_MM_M", "check_joint_coverage", "check_units",
-    "read_distances", "read_nominal", "read_recording",
+    "RIG_FILE", "read_distances", "read_nominal", "read_recording",
 ]

@@ -279,11 +279,15 @@ def robust_scale(score: FloatArray, keep: BoolArray, median_of_unit: float, squa
     return float(np.median(score[keep]) / median_of_unit)
 
 
+def within_cut(score: FloatArray, scale: float) -> BoolArray:
+    """(K,) the scores within CUT_SIGMA times the robust ``scale``, never below 1 (the model's own noise)."""
+    return score <= CUT_SIGMA * max(1.0, scale)
+
+
 def robust_kept(score: FloatArray, keep: BoolArray, median_of_unit: float, squared: bool) -> BoolArray:
-    """(K,) the scores within CUT_SIGMA robust sigma, the scale :func:`robust_scale`'s, never below 1 (the model's
-    own noise)."""
-    return score <= CUT_SIGMA * max(1.0, robust_scale(score, keep, median_of_unit, squared))
+    """(K,) the scores within CUT_SIGMA robust sigma (:func:`within_cut`), the scale :func:`robust_scale`'s."""
+    return within_cut(score, robust_scale(score, keep, median_of_unit, squared))
 
 
 __all__ = ["CUT_SIGMA", "Blocks", "DHPrior", "MarkerModel", "MarkerSensor", "ObservationSet", "RowContext",
-           "robust_kept", "robust_scale", "stack_blocks"]
+           "robust_kept", "robust_scale", "stack_blocks", "within_cut"]

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import exp_so3, right_jacobian_so3
 from lrfcal.model.motor import MotorAngles, MotorClock, motor_angles
-from lrfcal.model.observations import CUT_SIGMA, Blocks, RowContext, robust_kept, robust_scale
+from lrfcal.model.observations import Blocks, RowContext, robust_kept, robust_scale, within_cut
 from lrfcal.model.scanner import TrueBearing, reported_range, true_bearing
 from lrfcal.model.unknowns import BSCALE, INC, N_CORE, SCALE
 
@@ -179,7 +179,7 @@ class PlaneSet:
             rows = order[bounds[j]:bounds[j + 1]]
             if rows.size and keep[rows].any():
                 scale[j] = robust_scale(rs[rows], keep[rows], 0.674, squared=False)
-                kept[rows] = rs[rows] <= CUT_SIGMA * max(1.0, scale[j])  # as robust_kept, the scale kept
+                kept[rows] = within_cut(rs[rows], scale[j])  # as robust_kept, the scale kept
         if np.isfinite(scale).any():  # but one far thicker than the others is no one flat surface: given up
             thick = np.flatnonzero(scale > THICK * max(1.0, float(np.nanmedian(scale))))
             kept[np.isin(self.plane, thick)] = False
