@@ -10,11 +10,15 @@ thickness with the design values and with the calibrated DH). Then per bag: whet
 the largest difference between two runs' estimates in their combined sigma. Targets: one exit code per bag, and
 where exit 0 the runs within 2 combined sigma and the held-out planes no thicker than with the design values.
 
-    python benchmarks/bench_real_halves.py
+    python benchmarks/bench_real_halves.py [--range-pattern]
+
+``--range-pattern``: the rig file declares the scanner's range error along the scan (``range_pattern: true``: the
+calibration estimates it with the DH, lrfcal.model.range_pattern).
 """
 
 from __future__ import annotations
 
+import argparse
 import math
 import tempfile
 from pathlib import Path
@@ -72,12 +76,15 @@ def text(result: CalibrationResult) -> str:
 
 
 def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--range-pattern", action="store_true", help="the rig file declares range_pattern: true")
+    args = ap.parse_args()
     if not REALBAGS.is_dir():
         print(f"skipped: {REALBAGS} is absent (the shared real recordings, not part of a clone)")
         return
     with tempfile.TemporaryDirectory() as tmp:
         rig = Path(tmp) / "rig.yaml"
-        rig.write_text(RIG)
+        rig.write_text(RIG + ("range_pattern: true\n" if args.range_pattern else ""))
         for name in ("cardboard_box", "room_240"):
             src = REALBAGS / f"{name}.bag"
             runs = []

@@ -51,6 +51,8 @@ def test_replica_calibrates_targetless_or_refuses(name: str, tmp_path: Path) -> 
     # read as the real stand's recording is: one angle per scan, the scan's, taken at its stamp
     nominal = yaml.safe_load((rec / "nominal.yaml").read_text())
     assert nominal["servo"]["motion"] == "step" and "distances.csv" not in {p.name for p in rec.iterdir()}
+    # the URG-04LX's range error along the scan declared, as its user's rig file would: estimated with the DH
+    assert nominal["range_pattern"] is True
     recording = read_recording(rec, require_distances=False)
     assert recording.scans.angle_per_scan
     assert recording.joints.stamps_s.size == recording.scans.stamps_s.size == result.ranges_m.shape[0]
@@ -73,6 +75,7 @@ def test_replica_calibrates_targetless_or_refuses(name: str, tmp_path: Path) -> 
         assert proc.stderr.strip().startswith("error: ") and not (tmp_path / "cal").exists()
         return
     cal = yaml.safe_load((tmp_path / "cal" / "calibration.yaml").read_text())
+    assert cal["rig"]["range_pattern"] is True and cal["config"]["range_pattern"] is True
     truth = yaml.safe_load((rec / "ground_truth.yaml").read_text())["dh"]
     estimated = 0
     for p in DH:

@@ -70,6 +70,10 @@ def calibrate_cmd(
     compare_targetless: Annotated[bool, typer.Option(
         "--compare-targetless", help="With markers: also calibrate the recording from its planes alone and show the "
         "methods side by side in the report.")] = False,
+    range_pattern: Annotated[bool, typer.Option(
+        "--range-pattern", help="Targetless: estimate the scanner's range error along the scan with the DH (a range "
+        "offset per 6 beams, its slow part held), as the URG-04LX needs (docs/real-data.md); sigma a little wider.")
+                             ] = False,
     scan_topic: ScanTopicOpt = None, scan_field: ScanFieldOpt = None, scan_stamp: ScanStampOpt = None,
     servo_topic: ServoTopicOpt = None, servo_field: ServoFieldOpt = None, joint: JointOpt = None,
     unit: UnitOpt = None, counts_per_rev: CountsOpt = None, sign: SignOpt = None, servo_offset: OffsetOpt = None,
@@ -90,7 +94,7 @@ def calibrate_cmd(
     console = Console()
     config = CalibConfig(range_sigma_m=range_sigma, clock_offset_s=clock_offset, baseline=not no_baseline,
                          force=force, estimate_range_bias=not no_range_bias, targetless=True if targetless else None,
-                         compare_targetless=compare_targetless, all_planes=all_planes)
+                         compare_targetless=compare_targetless, all_planes=all_planes, range_pattern=range_pattern)
     options = {k: v for k, v in dict(
         scan_topic=scan_topic, scan_field=scan_field, scan_stamp=scan_stamp, servo_topic=servo_topic,
         servo_field=servo_field, joint=joint, unit=unit, counts_per_rev=counts_per_rev, sign=sign,

@@ -70,6 +70,9 @@ class CalibConfig(BaseModel):
     #: targetless: returns meeting their plane more obliquely than this are left out (the beam's footprint
     #: spreads along the plane and the range reads short) [rad]
     max_incidence_rad: float = Field(DEFAULT_MAX_INCIDENCE_RAD, gt=0.0, le=math.pi / 2)
+    #: targetless: estimate the scanner's range error along the scan with the DH (a range offset per bin of beams,
+    #: its slowly varying part held; lrfcal.model.range_pattern), a nuisance of the cost like the planes
+    range_pattern: bool = False
 
     def __init__(self, **options: Any) -> None:
         try:

@@ -43,6 +43,8 @@ class CheckConfig(Protocol):
     def range_sigma_m(self) -> float | None: ...
     @property
     def second_opinion_p(self) -> float: ...
+    @property
+    def range_pattern(self) -> bool: ...
 
 
 #: failed checks that follow from another failed check, by the check they follow from: where the data do not
@@ -461,7 +463,8 @@ def _plane_second_opinion(sol: Solution, returns: SurfaceReturns, passes: NDArra
             kept = g if sol.inlier is None else g & sol.inlier  # the joint solve's outliers stay out
             parts.append(solved(PlaneRequest(returns.subset(kept), sol.params, range_sigma_m=sigma_r,
                                              clock_offset_s=sol.clock_offset_s, hold=held, dh_prior=prior,
-                                             options=PlaneOptions(robust=False))))
+                                             options=PlaneOptions(robust=False,
+                                                                  range_pattern=config.range_pattern))))
         except CalibrationError:
             return Check("second opinion", True, f"not available: {how} alone have too few plane returns")
     d = parts[0].params.vector()[est] - parts[1].params.vector()[est]

@@ -99,7 +99,8 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     n_par = H.shape[0]
     n_rows = sum(s.n_independent for s in pb.sets)
     cluster_dense, cluster_plane, marker_dense = pb.clusters()
-    s2 = float(res @ res / max(n_rows - n_par, 1))
+    n_pattern = 0 if normal.pattern is None else normal.pattern.g.size  # the range pattern's unknowns, eliminated
+    s2 = float(res @ res / max(n_rows - n_par - n_pattern, 1))
     col = np.sqrt(np.diag(H))
     col[col == 0] = 1.0
     H_s = H / np.outer(col, col)  # column-scaled: the covariance is computed in these units, then scaled back

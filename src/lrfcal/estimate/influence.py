@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.estimate.normal_equations import Normal, plane_segments
+from lrfcal.estimate.normal_equations import Normal, plane_segments, schur
 from lrfcal.model.observations import Blocks
 from lrfcal.types import PlanePulls
 
@@ -40,9 +40,18 @@ def plane_pulls(b: Blocks, N: Normal, core: IntArray, V: FloatArray, scale: floa
     if P == 0 or b.Jc_plane is None:
         return None
     c = core.size
-    S = np.linalg.inv(V)
-    shift, difference, others = np.zeros((P, c)), np.zeros((P, c, c)), np.full((P, c), np.inf)
-    dense = b.J_dense[:, core] if b.J_dense is not None else np.zeros((0, c))
+    pr = b.pattern if N.pattern is not None else None
+    if pr is not None:  # the range pattern's unknowns beside the core (lrfcal.model.range_pattern): each plane's
+        N = N.extended  # pull over both, of which the core's is reported
+        S = schur(N)[0]
+        V = np.asarray(np.linalg.inv(S), dtype=np.float64)
+    else:
+        S = np.asarray(np.linalg.inv(V), dtype=np.float64)
+    n = S.shape[0]
+    shift, difference, others = np.zeros((P, n)), np.zeros((P, n, n)), np.full((P, n), np.inf)
+    dense = np.zeros((0, n))
+    if b.J_dense is not None:
+        dense = np.hstack([b.J_dense[:, core], np.zeros((b.J_dense.shape[0], n - c))])
     planes_only = S - dense.T @ dense  # without the dense rows (the design drawing's prior on the DH)
     returns = np.bincount(b.plane, minlength=P)
     Jc, r = b.Jc_plane[:, core], b.r_plane
@@ -51,22 +60,32 @@ def plane_pulls(b: Blocks, N: Normal, core: IntArray, V: FloatArray, scale: floa
         rows = order[bounds[j]:bounds[j + 1]]
         if rows.size == 0:
             continue
-        A_j = Jc[rows]
+        A_j = Jc[rows] if pr is None else np.hstack([Jc[rows], pr.value * pr.Z[pr.bins[rows]]])
         BDi = N.B[:, 3 * j:3 * j + 3] @ np.linalg.pinv(N.D[j], rcond=1e-12)
         S_j = A_j.T @ A_j - BDi @ N.B[:, 3 * j:3 * j + 3].T
         g_j = A_j.T @ r[rows] - BDi @ N.g_n[3 * j:3 * j + 3]
         without = S - 0.5 * (S_j + S_j.T)
         try:
-            V_without = np.linalg.inv(without)
+            # a bin of the pattern seen by plane j alone is not determined without it: nothing of the core's
+            V_without = np.linalg.inv(without) if pr is None else np.linalg.pinv(without, rcond=1e-12, hermitian=True)
         except np.linalg.LinAlgError:  # the others alone determine nothing there: no pull to judge
             shift[j], difference[j] = np.nan, np.nan
             continue
         shift[j] = V_without @ g_j
         difference[j] = scale * (V_without - V)
-        alone = planes_only - 0.5 * (S_j + S_j.T)
+        alone = _core_part(planes_only - 0.5 * (S_j + S_j.T), c)
         if np.linalg.matrix_rank(alone) == c:
-            others[j] = np.sqrt(scale * np.maximum(np.diag(np.linalg.inv(alone)), 0.0))
-    return PlanePulls(names=names, returns=returns, shift=shift, difference=difference, others=others)
+            others[j, :c] = np.sqrt(scale * np.maximum(np.diag(np.linalg.inv(alone)), 0.0))
+    return PlanePulls(names=names, returns=returns, shift=shift[:, :c], difference=difference[:, :c, :c],
+                      others=others[:, :c])
+
+
+def _core_part(S: FloatArray, c: int) -> FloatArray:
+    """The information (c, c) of the first c unknowns of S (n, n) with the others unknown (their Schur complement, by
+    the pseudo-inverse: a pattern bin no row sees is no information of the core's)."""
+    if S.shape[0] == c:
+        return S
+    return S[:c, :c] - S[:c, c:] @ np.linalg.pinv(S[c:, c:], rcond=1e-12, hermitian=True) @ S[c:, :c]
 
 
 __all__ = ["plane_pulls"]

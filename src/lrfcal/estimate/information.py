@@ -288,12 +288,13 @@ def _problem_at(
 def plane_information(
     surfaces: SurfaceReturns, params: Params, *, range_sigma_m: float = 0.010, clock: MotorClock | None = None,
     clock_offset_s: float = 0.0, hold: Sequence[str] = (), estimate_range_offset: bool = False,
-    dh_prior: tuple[FloatArray, FloatArray] | None = None,
+    dh_prior: tuple[FloatArray, FloatArray] | None = None, range_pattern: bool = False,
 ) -> tuple[FloatArray, tuple[str, ...]]:
     """The information (k, k) of plane returns at ``params`` (no fit) over the unknowns :func:`solve_planes`
-    would estimate, the planes' nuisances marginalised, and their names: what the scene determines, judged
-    before any solver runs."""
-    pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior)
+    would estimate, the planes' nuisances (and with ``range_pattern`` the range error along the scan,
+    lrfcal.model.range_pattern) marginalised, and their names: what the scene determines, judged before any solver
+    runs."""
+    pb, nu0 = plane_problem(surfaces, range_sigma_m, clock, dh_prior, range_pattern=range_pattern)
     th, R_ref = pack(params, clock_offset_s)
     th = np.concatenate([th, nu0])
     free = plane_free(th.size, hold, clock, estimate_range_offset)

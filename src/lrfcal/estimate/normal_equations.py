@@ -38,18 +38,47 @@ RANK_TOL = 1e-15
 
 
 @dataclass(frozen=True)
+class PatternNormal:
+    """The range pattern's unknowns (q of them, lrfcal.model.range_pattern) in the normal equations: their cross
+    information with the core unknowns C_c (c, q) and with the planes' nuisances C_n (3P, q), their own E (q, q), and
+    their gradient g (q,)."""
+
+    C_c: FloatArray
+    C_n: FloatArray
+    E: FloatArray
+    g: FloatArray
+
+
+@dataclass(frozen=True)
 class Normal:
     """H and g = J^T W r over the free core unknowns (A (c, c), g_c (c,)) and every plane's nuisances
-    (B (c, 3P), D (P, 3, 3), g_n (3P,))."""
+    (B (c, 3P), D (P, 3, 3), g_n (3P,)), and the range pattern's unknowns where the plane rows have one (eliminated
+    from every result: a step, S, H and the sigmas are those of the core unknowns and planes with the pattern
+    unknown)."""
 
     A: FloatArray
     B: FloatArray
     D: FloatArray
     g_c: FloatArray
     g_n: FloatArray
+    pattern: PatternNormal | None = None
+
+    @property
+    def extended(self) -> Normal:
+        """The same equations with the pattern's unknowns as core columns after the core ones (itself without a
+        pattern)."""
+        p = self.pattern
+        if p is None:
+            return self
+        return Normal(np.block([[self.A, p.C_c], [p.C_c.T, p.E]]), np.vstack([self.B, p.C_n.T]), self.D,
+                      np.concatenate([self.g_c, p.g]), self.g_n)
 
     def dense(self) -> tuple[FloatArray, FloatArray]:
-        """The full H (c + 3P, c + 3P) and g (c + 3P,)."""
+        """The full H (c + 3P, c + 3P) and g (c + 3P,) (the pattern's unknowns eliminated)."""
+        if self.pattern is not None:
+            c, q = self.A.shape[0], self.pattern.g.size
+            H, g = self.extended.dense()
+            return _eliminate(H, g, np.arange(c, c + q))
         c, P = self.A.shape[0], self.D.shape[0]
         H = np.zeros((c + 3 * P, c + 3 * P))
         H[:c, :c] = self.A
@@ -58,6 +87,16 @@ class Normal:
         for j in range(P):
             H[c + 3 * j:c + 3 * j + 3, c + 3 * j:c + 3 * j + 3] = self.D[j]
         return H, np.concatenate([self.g_c, self.g_n])
+
+
+def _eliminate(H: FloatArray, g: FloatArray, idx: IntArray) -> tuple[FloatArray, FloatArray]:
+    """H (n, n) and g (n,) with the unknowns ``idx`` eliminated (their Schur complement): the information and
+    gradient of the others with those unknown, (n - idx.size, ...)."""
+    keep = np.setdiff1d(np.arange(H.shape[0]), idx)
+    H_ok, H_oi = H[np.ix_(keep, keep)], H[np.ix_(keep, idx)]
+    X = np.linalg.solve(H[np.ix_(idx, idx)], np.column_stack([H_oi.T, g[idx]]))
+    S = H_ok - H_oi @ X[:, :-1]
+    return 0.5 * (S + S.T), g[keep] - H_oi @ X[:, -1]
 
 
 def plane_segments(plane: IntArray, n_planes: int) -> tuple[IntArray, IntArray]:
@@ -104,13 +143,34 @@ def assemble(b: Blocks, core: IntArray, w_dense: FloatArray | None = None, w_pla
     if b.w_prior is not None and b.r_prior is not None:
         D[:, [0, 1, 2], [0, 1, 2]] += (b.w_prior ** 2).reshape(P, 3)
         g_n += b.w_prior * b.r_prior
-    return Normal(A, B, D, g_c, g_n)
+    return Normal(A, B, D, g_c, g_n,
+                  None if b.pattern is None or not b.pattern.q else _pattern_normal(b, core, w_plane))
+
+
+def _pattern_normal(b: Blocks, core: IntArray, w: FloatArray | None) -> PatternNormal:
+    """The range pattern's part of the normal equations of ``b`` over ``core``, each plane row weighted by w."""
+    assert b.pattern is not None and b.Jc_plane is not None and b.Jn_plane is not None
+    pr, P = b.pattern, b.n_planes
+    ww = np.ones(b.r_plane.size) if w is None else w
+    C_c = np.stack([pr.sums(b.Jc_plane[:, col] * ww) for col in core]) if core.size else np.zeros((0, pr.q))
+    n_bins = pr.Z.shape[0]
+    C_n = np.zeros((3 * P, pr.q))
+    for i in range(3):
+        per_plane = np.bincount(b.plane * n_bins + pr.bins, weights=b.Jn_plane[:, i] * ww, minlength=P * n_bins)
+        C_n[i::3] = pr.value * (per_plane.reshape(P, n_bins) @ pr.Z)
+    return PatternNormal(C_c, C_n, pr.gram(w), pr.sums(ww * b.r_plane))
 
 
 def schur(N: Normal, damp: float = 0.0) -> tuple[FloatArray, FloatArray, FloatArray]:
     """The planes eliminated from (H + damp diag H): the reduced matrix S (c, c), the reduced right-hand side of
-    S dx_c = rhs, and the per-plane inverses D_j^-1 (P, 3, 3) (pseudo-inverses for planes without information)."""
-    return _eliminated(N, damp)[:3]
+    S dx_c = rhs, and the per-plane inverses D_j^-1 (P, 3, 3) (pseudo-inverses for planes without information); the
+    range pattern's unknowns eliminated as well."""
+    if N.pattern is None:
+        return _eliminated(N, damp)[:3]
+    S, rhs, Dinv = _eliminated(N.extended, damp)[:3]
+    c = N.A.shape[0]
+    S_c, rhs_c = _eliminate(S, -rhs, np.arange(c, S.shape[0]))
+    return S_c, -rhs_c, Dinv
 
 
 def _eliminated(N: Normal, damp: float) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
@@ -137,7 +197,12 @@ def _times_blocks(B: FloatArray, blocks: FloatArray) -> FloatArray:
 
 
 def solve_step(N: Normal, damp: float) -> FloatArray:
-    """The LM step (c + 3P,) of the damped normal equations, core first."""
+    """The LM step (c + 3P,) of the damped normal equations, core first (the range pattern's part of the step is
+    not kept: the residuals take the best pattern out at every evaluation, lrfcal.model.range_pattern)."""
+    if N.pattern is not None:
+        c, q = N.A.shape[0], N.pattern.g.size
+        step = solve_step(N.extended, damp)
+        return np.concatenate([step[:c], step[c + q:]])
     S, rhs, Dinv = schur(N, damp)
     dx_c = np.linalg.solve(S, rhs)
     v = (N.g_n + N.B.T @ dx_c).reshape(-1, 3, 1)  # per plane: dx_j = -D_j^-1 (g_j + B_j^T dx_c)
@@ -145,7 +210,12 @@ def solve_step(N: Normal, damp: float) -> FloatArray:
 
 
 def marginal_sigma(N: Normal) -> FloatArray:
-    """The 1-sigma (c + 3P,) of every unknown from the undamped information (pseudo-inverse where singular)."""
+    """The 1-sigma (c + 3P,) of every unknown from the undamped information (pseudo-inverse where singular), the
+    range pattern unknown."""
+    if N.pattern is not None:
+        c, q = N.A.shape[0], N.pattern.g.size
+        sigma = marginal_sigma(N.extended)
+        return np.concatenate([sigma[:c], sigma[c + q:]])
     S, _, Dinv, BDi = _eliminated(N, 0.0)
     Sinv = np.linalg.pinv(S)
     # per plane: diag(D_j^-1 + (B_j D_j^-1)^T S^-1 B_j D_j^-1), for all planes at once
@@ -285,8 +355,16 @@ def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluste
                           minlength=n_cl * 3 * P).reshape(n_cl, 3 * P)
     if n_prior and b.w_prior is not None and b.r_prior is not None:
         G[inv_q, c + np.arange(n_prior)] += b.w_prior * b.r_prior
+    if b.pattern is not None and b.pattern.q:
+        # the scores of the cost with the pattern eliminated: each cluster's own pattern score taken out along the
+        # pattern's cross information, G - G_z E^-1 C^T
+        pr, n_bins = b.pattern, b.pattern.Z.shape[0]
+        G_z = pr.value * (np.bincount(inv_p * n_bins + pr.bins, weights=b.r_plane, minlength=n_cl * n_bins)
+                          .reshape(n_cl, n_bins) @ pr.Z)
+        pn = _pattern_normal(b, core, None)
+        G -= G_z @ np.linalg.solve(pn.E, np.vstack([pn.C_c, pn.C_n]).T)
     return ids, G
 
 
-__all__ = ["RANK_TOL", "Blocks", "Normal", "assemble", "levenberg_marquardt", "marginal_sigma",
+__all__ = ["RANK_TOL", "Blocks", "Normal", "PatternNormal", "assemble", "levenberg_marquardt", "marginal_sigma",
            "plane_segments", "schur", "scores_by_cluster", "solve_step"]

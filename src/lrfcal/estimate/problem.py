@@ -19,6 +19,7 @@ from lrfcal.model.marker import MarkerSensor, MarkerSet, centre_jacobian, marker
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.observations import Blocks, DHPrior, ObservationSet, RowContext, stack_blocks
 from lrfcal.model.plane import Footing, PlaneSet
+from lrfcal.model.range_pattern import beam_bins
 from lrfcal.model.unknowns import N_CORE, plane_nuisance_start
 from lrfcal.types import Observations, Surface, SurfaceReturns
 
@@ -68,6 +69,17 @@ class Problem:
     def with_sets(self, sets: Sequence[ObservationSet]) -> Problem:
         """The same problem of other sets (as many, with as many nuisances each)."""
         return replace(self, sets=tuple(sets))
+
+    @property
+    def has_pattern(self) -> bool:
+        """Whether a plane set has the range pattern along the scan as a nuisance (lrfcal.model.range_pattern)."""
+        return any(isinstance(s, PlaneSet) and s.pattern_bins is not None for s in self.sets)
+
+    def without_pattern(self) -> Problem:
+        """The same problem with the plane sets' range pattern along the scan held at 0 (lrfcal.model.range_pattern)."""
+        if not self.has_pattern:
+            return self
+        return self.with_sets([replace(s, pattern_bins=None) if isinstance(s, PlaneSet) else s for s in self.sets])
 
     def subset(self, keeps: Sequence[BoolArray]) -> Problem:
         """Each set's returns ``keeps[i]``."""
@@ -238,11 +250,12 @@ def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tup
 
 
 def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorClock | None,
-                  dh_prior: tuple[FloatArray, FloatArray] | None = None, footing: Footing | None = None
-                  ) -> tuple[Problem, FloatArray]:
+                  dh_prior: tuple[FloatArray, FloatArray] | None = None, footing: Footing | None = None,
+                  range_pattern: bool = False) -> tuple[Problem, FloatArray]:
     """A problem of surface returns only (no marker returns) on free planes (with the design drawing's prior on
     the DH parameters when given: its mean (4,) and sigma (4,); where a return counts judged at every estimate by
-    ``footing``, lrfcal.model.plane.Footing), and the planes' nuisance start.
+    ``footing``, lrfcal.model.plane.Footing; with ``range_pattern``, the scanner's range error along the scan a
+    nuisance beside the planes, lrfcal.model.range_pattern), and the planes' nuisance start.
 
     Raises:
         InputError: a range noise not above 0, or a clock without the returns' beam times.
@@ -252,7 +265,7 @@ def plane_problem(surfaces: SurfaceReturns, range_sigma_m: float, clock: MotorCl
     if clock is not None and surfaces.times_s is None:
         raise InputError("solve: the clock offset needs the surface returns' beam times (times_s)")
     surf, nu0 = plane_set(surfaces, None)
-    surf = replace(surf, footing=footing)
+    surf = replace(surf, footing=footing, pattern_bins=beam_bins(surfaces.beam) if range_pattern else None)
     sets: tuple[ObservationSet, ...] = (surf,) if dh_prior is None else (DHPrior(*dh_prior), surf)
     return Problem(sets, float(range_sigma_m), clock=clock, mount_jac=False, incidence_jac=False), nu0
 

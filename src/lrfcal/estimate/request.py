@@ -243,12 +243,14 @@ class PlaneOptions:
         15 % of its targetless time saved).
     footing: where a return counts, judged with the 4-sigma rejection at every estimate (lrfcal.model.plane.Footing:
         the targetless cost's incidence and edge rule; None: every return may).
+    range_pattern: the scanner's range error along the scan a nuisance of the cost (lrfcal.model.range_pattern).
     """
 
     estimate_range_offset: bool = False
     robust: bool = True
     huber_first: bool = True
     footing: Footing | None = None
+    range_pattern: bool = False
 
 
 #: the targetless defaults: robust, a Huber pass first
@@ -291,7 +293,8 @@ class PlaneRequest:
     def posed(self) -> _PlanePosed:
         """The request as the engine takes it (lrfcal.estimate.engine.Posed)."""
         surfaces, clock, hold, options = self.surfaces, self.clock, self.hold, self.options
-        pb, nu0 = plane_problem(surfaces, self.range_sigma_m, clock, self.dh_prior, options.footing)
+        pb, nu0 = plane_problem(surfaces, self.range_sigma_m, clock, self.dh_prior, options.footing,
+                                options.range_pattern)
         th, R_ref = pack(self.start, self.clock_offset_s)
         th = np.concatenate([th, nu0])
         free = plane_free(th.size, hold, clock, options.estimate_range_offset)

@@ -86,6 +86,8 @@ def _rig_dict(nominal: Nominal) -> dict[str, Any]:
     out["beam_divergence_rad"] = float(nominal.beam_divergence_rad)
     if nominal.range_sigma_m is not None:
         out["range_sigma_m"] = float(nominal.range_sigma_m)
+    if nominal.range_pattern:
+        out["range_pattern"] = True
     for key, section in (("scan", nominal.scan), ("servo", nominal.servo), ("log", nominal.log)):
         if section is not None:
             out[key] = section.model_dump(mode="json", exclude_none=True)

@@ -220,7 +220,8 @@ def read_nominal(path: str | Path) -> Nominal:
     mount = Pose(**rig.mount.model_dump()) if rig.mount is not None else None
     scan, servo = rig.scan_source(), rig.servo_source()
     return Nominal(dh=dh, mount=mount, marker_radius_m=rig.marker_radius_m,
-                   beam_divergence_rad=rig.beam_divergence_rad, range_sigma_m=rig.range_sigma_m, scan_topic=scan.topic,
+                   beam_divergence_rad=rig.beam_divergence_rad, range_sigma_m=rig.range_sigma_m,
+                   range_pattern=rig.range_pattern, scan_topic=scan.topic,
                    joint_topic=servo.topic or "", joint_name=servo.joint or "", scan=scan, servo=servo,
                    log=rig.log)
 

@@ -74,8 +74,8 @@ class MountModel(Strict):
 
 class RigFile(Strict):
     """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``beam_divergence_rad``,
-    ``range_sigma_m``, ``scan``, ``servo``, ``log`` (a scan log's layout; and the old keys ``scan_topic``,
-    ``joint_topic``, ``joint_name``)."""
+    ``range_sigma_m``, ``range_pattern``, ``scan``, ``servo``, ``log`` (a scan log's layout; and the old keys
+    ``scan_topic``, ``joint_topic``, ``joint_name``)."""
 
     dh: DHModel
     mount: MountModel | None = None
@@ -87,6 +87,9 @@ class RigFile(Strict):
     #: the scanner's range noise, 1-sigma [m]: the calibration's default --range-sigma (absent: 0.010, the
     #: UTM-30LX-EW's specified repeatability); lrfsim writes its sensor's noise here
     range_sigma_m: float | None = Field(default=None, gt=0.0, le=1.0)
+    #: the scanner's ranges carry an error along the scan, the same in every scan (the URG-04LX's, docs/real-data.md):
+    #: a targetless calibration estimates it with the DH (lrfcal.model.range_pattern; ``--range-pattern``)
+    range_pattern: bool = False
     scan: ScanSource | None = None
     servo: ServoSource | None = None
     #: how a scan log is laid out (lrfcal.io.scanlog); ignored for bags

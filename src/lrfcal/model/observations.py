@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 from lrfcal.model.motor import MotorClock
+from lrfcal.model.range_pattern import PatternRows
 from lrfcal.model.unknowns import DH_SLICE, N_CORE, dh_difference
 
 FloatArray = NDArray[np.float64]
@@ -94,6 +95,9 @@ class Blocks:
     r_prior: FloatArray | None = None
     w_prior: FloatArray | None = None
     segments: tuple[IntArray, IntArray] | None = None  # the plane rows ordered by plane, and each plane's bounds
+    #: the plane rows' range pattern along the scan (lrfcal.model.range_pattern), eliminated beside the core unknowns;
+    #: r_plane is then the residual with the best pattern taken out (None: no pattern)
+    pattern: PatternRows | None = None
 
     @classmethod
     def dense(cls, r: FloatArray, J: FloatArray | None) -> Blocks:
@@ -125,7 +129,8 @@ def stack_blocks(parts: Sequence[Blocks]) -> Blocks:
     if len(planes) <= 1:
         q = planes[0] if planes else parts[0]
         return Blocks(r_d, J_d, q.r_plane, q.Jc_plane, q.Jn_plane, q.plane, q.n_planes, q.r_prior, q.w_prior,
-                      q.segments)
+                      q.segments, q.pattern)
+    assert all(p.pattern is None for p in planes), "a range pattern is the one plane set's (the targetless cost)"
     offsets = np.cumsum([0, *(p.n_planes for p in planes)])
     jac = all(p.Jc_plane is not None and p.Jn_plane is not None for p in planes)
     priors = any(p.r_prior is not None for p in planes)

@@ -33,6 +33,7 @@ from numpy.typing import NDArray
 from lrfcal.model.kinematics import exp_so3, right_jacobian_so3
 from lrfcal.model.motor import MotorAngles, MotorClock, motor_angles
 from lrfcal.model.observations import Blocks, RowContext, robust_kept, robust_scale, within_cut
+from lrfcal.model.range_pattern import PatternRows, pattern_rows, projected
 from lrfcal.model.scanner import TrueBearing, reported_range, true_bearing
 from lrfcal.model.unknowns import BSCALE, INC, N_CORE, SCALE
 
@@ -80,13 +81,17 @@ class PlaneSet:
     prior_jacobian: FloatArray | None = None  # (3P, 3n) d prior_mean / d marker coordinates (the map's uncertainty)
     scan: NDArray[np.int64] | None = None  # (K2,) each return's scan (each scan's returns one cluster)
     footing: Footing | None = None  # where a return counts, judged at every estimate (None: every return may)
+    #: (K2,) each return's bin of beams for the range pattern along the scan (lrfcal.model.range_pattern), a nuisance
+    #: of the cost eliminated beside the core unknowns (None: no pattern)
+    pattern_bins: NDArray[np.int64] | None = None
 
     def subset(self, m: NDArray[np.bool_]) -> PlaneSet:
         """The returns ``m`` (K2,) (on the same planes); the cos and sin computed so far carried over (elementwise:
         those of the subset are the subset of these)."""
         out = replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
                       times=None if self.times is None else self.times[m],
-                      scan=None if self.scan is None else self.scan[m])
+                      scan=None if self.scan is None else self.scan[m],
+                      pattern_bins=None if self.pattern_bins is None else self.pattern_bins[m])
         for name in ("trig_lam", "trig_mu"):
             if name in self.__dict__:  # a cached_property computed on this set
                 c, s = self.__dict__[name]
@@ -159,8 +164,14 @@ class PlaneSet:
         if self.prior_sigma is not None and self.prior_mean is not None:  # the markers' word on the planes
             r_q, w_q = (th[N_CORE:] - self.prior_mean) / self.prior_sigma, 1.0 / self.prior_sigma
         J_d = np.zeros((0, N_CORE))
-        return Blocks(np.zeros(0), J_d, rows.res, rows.Jc, rows.Jn, self.plane, self.n_planes, r_q, w_q,
-                      self.segments)
+        pattern = self.pattern(ctx)
+        res = rows.res if pattern is None else projected(rows.res, pattern)
+        return Blocks(np.zeros(0), J_d, res, rows.Jc, rows.Jn, self.plane, self.n_planes, r_q, w_q,
+                      self.segments, pattern)
+
+    def pattern(self, ctx: RowContext) -> PatternRows | None:
+        """The rows' range pattern along the scan (None: the set has none)."""
+        return None if self.pattern_bins is None else pattern_rows(self.pattern_bins, ctx.sigma_r)
 
     def kept(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, keep: NDArray[np.bool_]
              ) -> NDArray[np.bool_]:

@@ -166,13 +166,15 @@ def _sigma(config: SegmentConfig) -> float:
 class OneCost:
     """The targetless cost every start minimises (module docstring), but for where it starts: the range noise [m],
     the motor clock (None: the clock offset held), the parameters held at the start's values, the design drawing's
-    prior on the DH ((4,) mean and sigma) and where a return counts (lrfcal.model.plane.Footing)."""
+    prior on the DH ((4,) mean and sigma), where a return counts (lrfcal.model.plane.Footing) and whether the
+    scanner's range error along the scan is a nuisance of it (lrfcal.model.range_pattern)."""
 
     range_sigma_m: float
     clock: MotorClock | None
     hold: tuple[str, ...]
     prior: tuple[FloatArray, FloatArray]
     footing: Footing
+    range_pattern: bool = False
 
     def request(self, segmented: Segmented, dh: DH, tau: float) -> PlaneRequest:
         """The cost over the planes and returns of ``segmented`` (their assignment fixed), from (dh, tau): what to
@@ -184,7 +186,7 @@ class OneCost:
         if not segmented.planes:
             raise CalibrationError("targetless: the scene shows no plane to solve on")
         return PlaneRequest(segmented.returns, Params(MOTOR_FRAME, dh), self.range_sigma_m, self.clock, tau,
-                            self.hold, self.prior, PlaneOptions(footing=self.footing))
+                            self.hold, self.prior, PlaneOptions(footing=self.footing, range_pattern=self.range_pattern))
 
 
 #: returns a plane keeps at least (fewer: dropped, mostly grazing returns)

@@ -182,6 +182,7 @@ class Nominal:
     marker_radius_m: float = 0.005
     beam_divergence_rad: float = 0.0  # full angle: the footprint on a marker (lrfcal.model.sphere.footprint_depth)
     range_sigma_m: float | None = None  # the scanner's range noise [m] (None: not declared)
+    range_pattern: bool = False  # the scanner's ranges carry an error along the scan (lrfcal.model.range_pattern)
     scan_topic: str = "/scan"
     joint_topic: str = "/joint_states"
     joint_name: str = "servo"

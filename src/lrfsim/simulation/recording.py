@@ -310,7 +310,9 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_
     rig.nominal_mount) and where this bag keeps the scans and the joint; ``marker_radius_m`` (and the sensor's
     ``beam_divergence_rad``, which the marker model uses) only with markers (None: the key is left out);
     ``range_sigma_m``: the scanner's declared range noise (None: left out). A step-and-scan servo (``servo.mode:
-    step``) is declared ``servo.motion: step``: every beam of a scan takes the angle at its scan's stamp."""
+    step``) is declared ``servo.motion: step``: every beam of a scan takes the angle at its scan's stamp. A scanner
+    whose ranges wiggle along the scan (``sensor.systematic.beam_wiggle_m``, the URG-04LX's) is declared
+    ``range_pattern: true``, as its user's rig file would (docs/real-data.md)."""
     rig = scenario.rig
     radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m),
                                                   "beam_divergence_rad": float(scenario.sensor.divergence_rad)}
@@ -320,6 +322,7 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_
         "mount": rig.nominal_mount.to_pose().as_dict(),
         **radius,
         **noise,
+        **({"range_pattern": True} if scenario.sensor.systematic.beam_wiggle_m != 0.0 else {}),
         "scan": {"topic": SCAN_TOPIC, "stamp": "header"},
         "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint, "unit": "rad", "stamp": "header",
                   **({"motion": "step"} if scenario.servo.mode == "step" else {})},
