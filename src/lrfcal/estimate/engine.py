@@ -7,7 +7,8 @@ free, which are held and why), and returns a typed :class:`Estimate`:
 1. the robust passes (:class:`Passes`): a Huber-weighted pass (threshold 2 sigma) from the start, then plain least
    squares with each set's returns beyond 4 robust sigma left out (each set's own rule,
    ObservationSet.kept), every set chosen again at each new estimate (ObservationSet.chosen_at: the markers crossed
-   on both sides), repeated until the kept sets are stable;
+   on both sides), repeated until the kept sets are stable; a plane set's range pattern along the scan
+   (lrfcal.model.range_pattern) is held in these passes and estimated in one more pass over the kept returns;
 2. the covariance at the solution (lrfcal.estimate.covariance.uncertainty): s^2 (J^T J)^-1 with its
    cluster-robust widening (each set's clusters, ObservationSet.clusters; its groups, ObservationSet.groups), the
    marker map's own uncertainty, and the score tests of unknowns held by default.

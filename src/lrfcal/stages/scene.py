@@ -24,6 +24,7 @@ from lrfcal.estimate.request import PlaneRequest
 from lrfcal.estimate.systematics import Considered, Systematics
 from lrfcal.model.kinematics import Params, points_M
 from lrfcal.model.motor import MotorClock
+from lrfcal.model.range_pattern import WIDTH_BEAMS
 from lrfcal.result import CalibrationResult, Observer, PlaneEvidence, PlaneFit
 from lrfcal.stages import holdout, planes, propose, starts, timing
 from lrfcal.stages.sampling import hash_sample
@@ -198,6 +199,10 @@ class PlaneWay:
         if not scene.estimate_clock and scene.passes.max() < 1 or config.estimate_clock is False:
             notes.append(f"clock offset held at {tau0 * 1000:+.1f} ms (not estimated: "
                          + ("a one-way sweep does not separate it)" if config.estimate_clock is None else "as asked)"))
+        if config.range_pattern:
+            notes.append("the scanner's range error along the scan estimated with the DH (a range offset per "
+                         f"{WIDTH_BEAMS} beams, its slow part held: lrfcal.model.range_pattern), as the rig file "
+                         "(range_pattern) or --range-pattern asks")
         if best.sets.start.name != NOMINAL:
             notes.append(f"the estimate is the minimum reached from {best.sets.start.name}: it fits the scene's planes "
                          "better than the one from the rig file's DH")
