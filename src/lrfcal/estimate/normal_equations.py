@@ -11,7 +11,10 @@ information H = J^T W J is arrow-shaped,
 
 assembled in O(rows) without the dense (rows, N_CORE + 3P) Jacobian, and a (damped) step solves
 (A - sum_j B_j D_j^-1 B_j^T) dx_c = -(g_c - sum_j B_j D_j^-1 g_j), dx_j = -D_j^-1 (g_j + B_j^T dx_c); the same Schur
-complement is the core unknowns' marginal information with the planes unknown.
+complement is the core unknowns' marginal information with the planes unknown. Where the plane rows carry a range
+pattern along the scan (lrfcal.model.range_pattern), its unknowns join the core block (:attr:`Normal.extended`: its
+columns, assembled per bin by bincount, couple with every plane) and are eliminated from every result, as the
+residuals take the best pattern out at every evaluation (variable projection).
 
 :func:`levenberg_marquardt`: LM on those normal equations (J^T W J + m diag(J^T W J)) dx = -J^T W r, W the Huber
 weights of the whitened residuals (or 1), stopped when every step is below ``step_tol`` of its unknown's sigma (or
