@@ -88,6 +88,9 @@ def _rig_dict(nominal: Nominal) -> dict[str, Any]:
         out["range_sigma_m"] = float(nominal.range_sigma_m)
     if nominal.range_pattern:
         out["range_pattern"] = True
+    if nominal.self_boxes:
+        out["self_boxes"] = [{"pose": {n: float(getattr(b.pose, n)) for n in MOUNT_NAMES},
+                              "size_m": [float(v) for v in b.size_m]} for b in nominal.self_boxes]
     for key, section in (("scan", nominal.scan), ("servo", nominal.servo), ("log", nominal.log)):
         if section is not None:
             out[key] = section.model_dump(mode="json", exclude_none=True)

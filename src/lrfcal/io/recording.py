@@ -22,7 +22,7 @@ from lrfcal.io.bag_messages import one_line
 from lrfcal.io.rig import ScanSource, ServoSource, load_rig
 from lrfcal.io.scanlog import LOOKED_FOR, is_scan_log, read_scan_log, resolve_recording
 from lrfcal.model.kinematics import DH, Pose
-from lrfcal.types import JointStates, Nominal, Recording, Scans, TapeMeasurements
+from lrfcal.types import JointStates, Nominal, Recording, Scans, SelfBox, TapeMeasurements
 
 DISTANCES_HEADER = ("marker_i", "marker_j", "distance_m")
 MIN_MARKERS = 4
@@ -221,7 +221,9 @@ def read_nominal(path: str | Path) -> Nominal:
     scan, servo = rig.scan_source(), rig.servo_source()
     return Nominal(dh=dh, mount=mount, marker_radius_m=rig.marker_radius_m,
                    beam_divergence_rad=rig.beam_divergence_rad, range_sigma_m=rig.range_sigma_m,
-                   range_pattern=rig.range_pattern, scan_topic=scan.topic,
+                   range_pattern=rig.range_pattern,
+                   self_boxes=tuple(SelfBox(Pose(**b.pose.model_dump()), b.size_m) for b in rig.self_boxes),
+                   scan_topic=scan.topic,
                    joint_topic=servo.topic or "", joint_name=servo.joint or "", scan=scan, servo=servo,
                    log=rig.log)
 

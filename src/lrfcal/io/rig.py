@@ -72,10 +72,19 @@ class MountModel(Strict):
     yaw: Radians
 
 
+class SelfBoxModel(Strict):
+    """One of the rig's own parts the scanner sees, a box fixed to the motor frame M: its centre's pose in M and its
+    edge lengths along its own x, y, z [m]."""
+
+    pose: MountModel
+    size_m: tuple[Annotated[float, Field(gt=0.0, le=10.0)], Annotated[float, Field(gt=0.0, le=10.0)],
+                  Annotated[float, Field(gt=0.0, le=10.0)]]
+
+
 class RigFile(Strict):
     """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``beam_divergence_rad``,
-    ``range_sigma_m``, ``range_pattern``, ``scan``, ``servo``, ``log`` (a scan log's layout; and the old keys
-    ``scan_topic``, ``joint_topic``, ``joint_name``)."""
+    ``range_sigma_m``, ``range_pattern``, ``self_boxes``, ``scan``, ``servo``, ``log`` (a scan log's layout; and the
+    old keys ``scan_topic``, ``joint_topic``, ``joint_name``)."""
 
     dh: DHModel
     mount: MountModel | None = None
@@ -90,6 +99,9 @@ class RigFile(Strict):
     #: the scanner's ranges carry an error along the scan, the same in every scan (the URG-04LX's, docs/real-data.md):
     #: a targetless calibration estimates it with the DH (lrfcal.model.range_pattern; ``--range-pattern``)
     range_pattern: bool = False
+    #: the rig's own parts the scanner sees (its stand, at large tilts), boxes fixed to M: a targetless calibration
+    #: leaves the returns inside them out of the scene (as ROS's laser_filters LaserScanBoxFilter)
+    self_boxes: tuple[SelfBoxModel, ...] = ()
     scan: ScanSource | None = None
     servo: ServoSource | None = None
     #: how a scan log is laid out (lrfcal.io.scanlog); ignored for bags

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import numpy as np
@@ -21,7 +21,7 @@ from lrfcal.estimate import observability
 from lrfcal.estimate.checks import dh_text, plane_checks
 from lrfcal.estimate.information import plane_information
 from lrfcal.estimate.request import PlaneRequest
-from lrfcal.estimate.systematics import Considered, Systematics
+from lrfcal.estimate.systematics import Considered, Systematics, widened
 from lrfcal.model.kinematics import Params, points_M
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.range_pattern import WIDTH_BEAMS
@@ -40,6 +40,7 @@ from lrfcal.stages.targetless import (
     Segmented,
     Start,
     mixed_pixels,
+    own_returns,
     sample_returns,
 )
 from lrfcal.types import Check, Fit, JointStates, Noted, Recording, Solution, SurfaceReturns, Tried
@@ -101,6 +102,7 @@ class PlaneWay:
         hold = np.broadcast_to(holdout.held_out_scans(scans.stamps_s.size)[:, None], scans.ranges_m.shape)
         # neither the fit nor the held-out planes take the returns beside a jump edge (mixed pixels)
         mixed = mixed_pixels(scans, joints, tau0, config.range_sigma_m)
+        mixed |= own_returns(scans, joints, tau0, nominal.dh, nominal.self_boxes)  # the rig's own parts: no scene
         beams = sample_returns(scans, config.plane_returns, skip=hold | mixed)
         held_beams = sample_returns(scans, holdout.HOLDOUT_RETURNS, skip=~hold | mixed)
         seg = hash_sample(beams.scan, beams.beam, SEGMENT_SAMPLES)  # the sample's first, in hash order
@@ -139,13 +141,31 @@ class PlaneWay:
         return PlaneSets(start)
 
     def problem(self, scene: Scene, sets: PlaneSets) -> PlaneRequest:
-        """Stage 4: the one cost over the fixed planes from the start (lrfcal.stages.targetless.OneCost)."""
-        return scene.cost.request(scene.segmented, sets.start.dh, self.config.clock_offset_s)
+        """Stage 4: the one cost over the fixed planes from the start (lrfcal.stages.targetless.OneCost), the
+        parameters the start holds beyond the scene's held too."""
+        cost = scene.cost if not sets.start.held else replace(scene.cost, hold=(*scene.cost.hold, *sets.start.held))
+        return cost.request(scene.segmented, sets.start.dh, self.config.clock_offset_s)
 
     def reselect(self, scene: Scene, fit: Fit[PlaneSets]) -> PlaneSets | Fit[PlaneSets] | None:
-        """Nothing is chosen again: the planes and their returns were segmented once, at the start (the one cost
-        cannot oscillate, lrfcal.stages.targetless)."""
-        return None
+        """What the scene determines, judged again at the estimate: the planes and their returns are never chosen
+        again (segmented once, at the start: the one cost cannot oscillate, lrfcal.stages.targetless), but an
+        estimated DH parameter whose 1-sigma at the estimate is beyond its limit (lrfcal.estimate.observability's,
+        the rule the start's judgement uses) is held at the nominal value, the farthest beyond first, and the cost
+        minimised again with it held: the sets of a start from the estimate (None: every one within its limit, or
+        holding one more would leave none estimated; the check "observability" then judges). The start's judgement
+        takes the noise as independent; the estimate's sigma (as the check judges it: with the held parameters'
+        tolerance carried in, :meth:`systematics`) counts its correlation along the scan (the per-scan sandwich),
+        which can put a parameter just beyond its limit (the box replica's a: 5.2-6.2 mm against 5 mm, then b with
+        a's tolerance: 5.3 mm). Each round holds one more parameter, so there are at most four."""
+        held = (*scene.held, *fit.sets.start.held)
+        stated = widened(fit.solution, self.systematics(scene, fit), []).value.sigma
+        sigma = {n: float(stated[6 + DH_NAMES.index(n)]) for n in DH_NAMES if n not in held}
+        beyond = observability.beyond_limits(sigma)
+        if not beyond or len(sigma) == 1:
+            return None
+        nominal = self.recording.nominal.dh
+        dh = replace(fit.solution.params.dh, **{beyond[0]: getattr(nominal, beyond[0])})
+        return PlaneSets(PlaneStart(fit.sets.start.name, dh, (*fit.sets.start.held, beyond[0])))
 
     def choose(self, scene: Scene, tried: Sequence[Tried[PlaneStart, PlaneSets]]
                ) -> Fit[PlaneSets] | list[PlaneStart]:
@@ -167,13 +187,17 @@ class PlaneWay:
         cost = starts.Cost(scene.segmented, scene.motor, float(self.config.range_sigma_m or 0.0), scene.cost.prior)
         lowest = starts.lowest(tried, cost, scene.held, found)
         self.clock.lap("starts")
-        return Fit(PlaneSets(lowest.start, lowest.check), lowest.solution)
+        # the start as its estimate stood (with what was held there, reselect)
+        start = next(t.outcome.sets.start for t in tried
+                     if isinstance(t.outcome, Fit) and t.outcome.solution is lowest.solution)
+        return Fit(PlaneSets(start, lowest.check), lowest.solution)
 
     def systematics(self, scene: Scene, best: Fit[PlaneSets]) -> Systematics:
         """The held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's), carried into the
         estimated ones (a "consider" covariance, lrfcal.estimate.systematics), from the information at the estimate
         over the returns that count there."""
-        if not scene.held:
+        held = (*scene.held, *best.sets.start.held)
+        if not held:
             return Systematics()
         assert self.config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
         sol, counted = best.solution, scene.segmented.returns
@@ -183,7 +207,7 @@ class PlaneWay:
                                         clock=scene.cost.clock, clock_offset_s=sol.clock_offset_s,
                                         dh_prior=scene.cost.prior, range_pattern=scene.cost.range_pattern)
         tol = dict(zip(DH_NAMES, self.config.nominal_tolerance, strict=True))
-        return Systematics(considered=Considered(info, names, {n: tol[n] for n in scene.held}))
+        return Systematics(considered=Considered(info, names, {n: tol[n] for n in held}))
 
     def beside(self, scene: Scene, best: Fit[PlaneSets]) -> Mapping[str, PlaneRequest]:
         """No other method runs beside the targetless one."""
@@ -213,7 +237,10 @@ class PlaneWay:
             labels[labels >= 0] = np.where(sol.inlier, labels[labels >= 0], -1)
         nominal, beams, motor = self.recording.nominal, scene.beams, scene.motor
         assert best.sets.agree is not None  # the choice's verdict
-        checks = [best.sets.agree, *plane_checks(sol, returns, scene.passes, scene.held, config, scene.cost.prior,
+        held = (*scene.held, *best.sets.start.held)
+        if best.sets.start.held:
+            notes.append(_held_reason(best.sets.start.held, AT_ESTIMATE))
+        checks = [best.sets.agree, *plane_checks(sol, returns, scene.passes, held, config, scene.cost.prior,
                                                  nominal.dh)]
         checks.append(_held_out_check(scene.held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol,
                                       scene.first_thickness_m))
@@ -225,8 +252,9 @@ class PlaneWay:
         after, n_after = planes.flatness(points_M(beams.ranges_m, lam_a, beams.mu_rad, sol.params.dh), labels,
                                          len(planes_found))
         plane_fit = PlaneFit(tuple(planes_found), before, after,
-                             np.bincount(labels[labels >= 0], minlength=len(planes_found)), scene.held,
-                             scene.held_reason, best.sets.start.name, n_before, n_after)
+                             np.bincount(labels[labels >= 0], minlength=len(planes_found)), held,
+                             "; ".join(n for n in (scene.held_reason, _held_reason(best.sets.start.held, AT_ESTIMATE))
+                                       if n), best.sets.start.name, n_before, n_after)
         evidence = PlaneEvidence(plane_fit=plane_fit, returns=returns)
         return CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
                                  solution=sol, checks=tuple(checks), notes=(*notes, *widened.notes))
@@ -260,13 +288,17 @@ def _clock_determined(scene: observability.Information, tau: float) -> Noted[boo
                          f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)",))
 
 
-def _held_reason(held: tuple[str, ...]) -> str:
-    """Why the DH parameters ``held`` are held ("" when none)."""
+#: where the parameters held beyond the start's were judged (PlaneWay.reselect)
+AT_ESTIMATE = "judged at the estimate, whose sigma counts the noise's correlation along the scan"
+
+
+def _held_reason(held: tuple[str, ...], where: str = "judged at the start") -> str:
+    """Why the DH parameters ``held`` are held ("" when none), judged ``where``."""
     if not held:
         return ""
     return (f"the scene's planes do not determine {', '.join(held)} (1-sigma beyond "
             f"{observability.LIMITS['a'] * 1000:g} mm / {math.degrees(observability.LIMITS['alpha']):g}"
-            f" deg, judged at the start): held at the nominal value, not estimated")
+            f" deg, {where}): held at the nominal value, not estimated")
 
 
 __all__ = ["PlaneWay", "Scene"]

@@ -53,10 +53,12 @@ TWIN_SCALE = np.array([0.01, 0.1, 0.01, 0.1])
 @dataclass(frozen=True)
 class PlaneStart:
     """A start of the targetless cost: its name ("the rig file's DH", "the DH search's proposal", "the DH search's
-    agreeing start 1", ...) and its DH (the clock offset at the calibration's start)."""
+    agreeing start 1", ...), its DH (the clock offset at the calibration's start) and the DH parameters held at the
+    nominal beyond the scene's, judged at an estimate from it (lrfcal.stages.scene.PlaneWay.reselect)."""
 
     name: str
     dh: DH
+    held: tuple[str, ...] = ()
 
 
 NOMINAL = "the rig file's DH"

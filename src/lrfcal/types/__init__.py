@@ -24,6 +24,7 @@ from lrfcal.types.recording import (
     ReadReport,
     Recording,
     Scans,
+    SelfBox,
     TapeMeasurements,
     joint_period_s,
     scan_spans,
@@ -34,6 +35,6 @@ from lrfcal.types.surfaces import Plane, ScenePlane, Surface, SurfaceReturns, Tu
 
 __all__ = ["Association", "Blob", "BoolArray", "Check", "Detections", "DroppedPair", "Fit", "FloatArray", "IntArray",
            "Iteration", "JointStates", "Labels", "LogLayout", "MarkerMap", "Nominal", "Noted", "Observations", "Plane",
-           "PlanePulls", "ReadReport", "Recording", "Refusal", "ScanSource", "Scans", "ScenePlane", "ServoSource",
-           "Solution", "Spread", "Surface", "SurfaceReturns", "TapeMeasurements", "TfSource", "Tried", "TunnelGeometry",
-           "joint_period_s", "scan_spans"]
+           "PlanePulls", "ReadReport", "Recording", "Refusal", "ScanSource", "Scans", "ScenePlane", "SelfBox",
+           "ServoSource", "Solution", "Spread", "Surface", "SurfaceReturns", "TapeMeasurements", "TfSource", "Tried",
+           "TunnelGeometry", "joint_period_s", "scan_spans"]

@@ -174,6 +174,15 @@ class TapeMeasurements:
 
 
 @dataclass(frozen=True)
+class SelfBox:
+    """A part of the rig the scanner sees (its stand: a base board, an upright, the motor's housing), a box fixed to
+    the motor frame M: its centre's pose in M and its edge lengths [m] along the box's own x, y, z."""
+
+    pose: Pose
+    size_m: tuple[float, float, float]
+
+
+@dataclass(frozen=True)
 class Nominal:
     """Design values the calibration starts from (nominal.yaml)."""
 
@@ -183,6 +192,8 @@ class Nominal:
     beam_divergence_rad: float = 0.0  # full angle: the footprint on a marker (lrfcal.model.sphere.footprint_depth)
     range_sigma_m: float | None = None  # the scanner's range noise [m] (None: not declared)
     range_pattern: bool = False  # the scanner's ranges carry an error along the scan (lrfcal.model.range_pattern)
+    #: the rig's own parts the scanner sees (the rig file's ``self_boxes``): their returns are no scene
+    self_boxes: tuple[SelfBox, ...] = ()
     scan_topic: str = "/scan"
     joint_topic: str = "/joint_states"
     joint_name: str = "servo"

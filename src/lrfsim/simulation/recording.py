@@ -312,7 +312,8 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_
     ``range_sigma_m``: the scanner's declared range noise (None: left out). A step-and-scan servo (``servo.mode:
     step``) is declared ``servo.motion: step``: every beam of a scan takes the angle at its scan's stamp. A scanner
     whose ranges wiggle along the scan (``sensor.systematic.beam_wiggle_m``, the URG-04LX's) is declared
-    ``range_pattern: true``, as its user's rig file would (docs/real-data.md)."""
+    ``range_pattern: true``, as its user's rig file would (docs/real-data.md). The stand's parts (``rig.stand``) are
+    declared as ``self_boxes``, as built (their user has the drawing)."""
     rig = scenario.rig
     radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m),
                                                   "beam_divergence_rad": float(scenario.sensor.divergence_rad)}
@@ -323,6 +324,9 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_
         **radius,
         **noise,
         **({"range_pattern": True} if scenario.sensor.systematic.beam_wiggle_m != 0.0 else {}),
+        **({"self_boxes": [{"pose": part.pose.to_pose().as_dict(),
+                            "size_m": [part.size_x_m, part.size_y_m, part.size_z_m]} for part in rig.stand]}
+           if rig.stand else {}),
         "scan": {"topic": SCAN_TOPIC, "stamp": "header"},
         "servo": {"topic": JOINT_TOPIC, "joint": scenario.servo.joint, "unit": "rad", "stamp": "header",
                   **({"motion": "step"} if scenario.servo.mode == "step" else {})},
