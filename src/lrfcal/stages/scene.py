@@ -157,7 +157,7 @@ class PlaneWay:
         tolerance carried in, :meth:`systematics`) counts its correlation along the scan (the per-scan sandwich),
         which can put a parameter just beyond its limit (the box replica's a: 5.2-6.2 mm against 5 mm, then b with
         a's tolerance: 5.3 mm). Each round holds one more parameter, so there are at most four."""
-        held = (*scene.held, *fit.sets.start.held)
+        held = _held(scene, fit.sets)
         stated = widened(fit.solution, self.systematics(scene, fit), []).value.sigma
         sigma = {n: float(stated[6 + DH_NAMES.index(n)]) for n in DH_NAMES if n not in held}
         beyond = observability.beyond_limits(sigma)
@@ -196,7 +196,7 @@ class PlaneWay:
         """The held parameters' uncertainty (CalibConfig.nominal_tolerance, the design drawing's), carried into the
         estimated ones (a "consider" covariance, lrfcal.estimate.systematics), from the information at the estimate
         over the returns that count there."""
-        held = (*scene.held, *best.sets.start.held)
+        held = _held(scene, best.sets)
         if not held:
             return Systematics()
         assert self.config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
@@ -237,7 +237,7 @@ class PlaneWay:
             labels[labels >= 0] = np.where(sol.inlier, labels[labels >= 0], -1)
         nominal, beams, motor = self.recording.nominal, scene.beams, scene.motor
         assert best.sets.agree is not None  # the choice's verdict
-        held = (*scene.held, *best.sets.start.held)
+        held = _held(scene, best.sets)
         if best.sets.start.held:
             notes.append(_held_reason(best.sets.start.held, AT_ESTIMATE))
         checks = [best.sets.agree, *plane_checks(sol, returns, scene.passes, held, config, scene.cost.prior,
@@ -286,6 +286,12 @@ def _clock_determined(scene: observability.Information, tau: float) -> Noted[boo
         return Noted(True)
     return Noted(False, (f"clock offset held at {tau * 1000:+.1f} ms: the scene's planes determine it only to "
                          f"{sigma * 1000:.3g} ms (limit {limit * 1000:g} ms)",))
+
+
+def _held(scene: Scene, sets: PlaneSets) -> tuple[str, ...]:
+    """The DH parameters held at the nominal: those the start's information does not determine, then those held at
+    an estimate (PlaneWay.reselect)."""
+    return (*scene.held, *sets.start.held)
 
 
 #: where the parameters held beyond the start's were judged (PlaneWay.reselect)

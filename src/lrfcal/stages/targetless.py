@@ -3,12 +3,13 @@
 1. timing: the joint states and the scans they cover          4. the targetless cost minimised from every start
 2. planes: segmented ONCE, in the cloud reprojected at the        (the rig file's DH, the DH search's proposal and its
    rig file's DH (lrfcal.stages.planes), grazing and edge         agreeing starts): every plane return's ray-plane
-   returns left out: which return lies on which plane is          range residual, the planes free
-   fixed from here on                                             (lrfcal.estimate.request.PlaneRequest); the lowest
+   returns and the rig's own parts left out: which return lies    range residual, the planes free (and the scanner's
+   on which plane is fixed from here on                           range error along the scan, with --range-pattern)
+                                                                  (lrfcal.estimate.request.PlaneRequest); the lowest
 3. observability: which of a, alpha, b, beta (and the clock       cost is the estimate
    offset) the scene determines, from the information at    5. checks: convergence, observability, reduced
-   the start; the others are held at the nominal value            chi-square, a second opinion (even / odd passes),
-                                                                  held-out planes, starts agree (another minimum
+   the start and again at the estimate; the others are            chi-square, a second opinion (even / odd passes),
+   held at the nominal value                                      held-out planes, starts agree (another minimum
                                                                   that fits as well: not determined)
                                                                6. reprojection, flatness before / after
 
