@@ -69,10 +69,6 @@ class PatternRows:
         """The pattern's unknowns."""
         return int(self.Z.shape[1])
 
-    def subset(self, m: NDArray[np.bool_]) -> PatternRows:
-        """The rows ``m`` (K,), Z unchanged."""
-        return PatternRows(self.bins[m], self.value, self.Z)
-
     def sums(self, weights: FloatArray) -> FloatArray:
         """(q,) sum over the rows of weights (K,) times the row's column."""
         return self.value * (np.bincount(self.bins, weights=weights, minlength=self.Z.shape[0]) @ self.Z)
@@ -89,23 +85,20 @@ def pattern_rows(bins: IntArray, sigma_r: float, degree: int = DEGREE) -> Patter
     return PatternRows(bins, -1.0 / sigma_r, basis(np.bincount(bins, minlength=n_bins).astype(float), degree))
 
 
-def projected(res: FloatArray, rows: PatternRows) -> FloatArray:
-    """The whitened residuals (K,) with the best pattern for them taken out: res - X (X^T X)^-1 X^T res, X the
-    rows' pattern columns (the variable projection's residual)."""
-    if rows.q == 0:
-        return res
-    G = rows.gram()
-    z = np.linalg.solve(G, rows.sums(res))
-    return res - rows.value * (rows.Z @ z)[rows.bins]
-
-
 def estimated_m(res: FloatArray, rows: PatternRows) -> FloatArray:
-    """The pattern (n_bins,) [m] the whitened residuals (K,) hold (its polynomial part 0): the range offset per bin
-    the cost takes out of them (:func:`projected`)."""
+    """The pattern (n_bins,) [m] the whitened residuals (K,) hold (its polynomial part 0): the least-squares z of
+    X z = res, X the rows' pattern columns, as p = -Z z (res - value Z z = (r - rep - p) / sigma_r)."""
     if rows.q == 0:
         return np.zeros(rows.Z.shape[0])
-    # res - value Z z = res + (Z z) / sigma_r = (r - rep - p) / sigma_r: p = -Z z
     return -(rows.Z @ np.linalg.solve(rows.gram(), rows.sums(res)))
+
+
+def projected(res: FloatArray, rows: PatternRows) -> FloatArray:
+    """The whitened residuals (K,) with the best pattern for them taken out, res - X (X^T X)^-1 X^T res (the
+    variable projection's residual): the reported ranges less :func:`estimated_m`, whitened."""
+    if rows.q == 0:
+        return res
+    return res + rows.value * estimated_m(res, rows)[rows.bins]
 
 
 __all__ = ["DEGREE", "WIDTH_BEAMS", "PatternRows", "basis", "beam_bins", "estimated_m", "pattern_rows", "projected"]

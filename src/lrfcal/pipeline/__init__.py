@@ -56,8 +56,8 @@ def calibrate(recording: Recording, config: CalibConfig | None = None, observer:
     if config.range_sigma_m is None:  # the sensor's noise as the rig file declares it, else the UTM-30LX-EW's
         declared = recording.nominal.range_sigma_m
         config = config.replace(range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
-    if recording.nominal.range_pattern != config.range_pattern:  # as the rig file declares its scanner, or the
-        # command line: the rig written with the result says so (`lrfcal check` reads a new recording with it)
+    if config.range_pattern or recording.nominal.range_pattern:  # the rig file's declaration or the command line's:
+        # both say so, and the rig written with the result (`lrfcal check` reads a new recording with it)
         config = config.replace(range_pattern=True)
         recording = replace(recording, nominal=replace(recording.nominal, range_pattern=True))
     try:

@@ -237,9 +237,9 @@ class PlaneWay:
             labels[labels >= 0] = np.where(sol.inlier, labels[labels >= 0], -1)
         nominal, beams, motor = self.recording.nominal, scene.beams, scene.motor
         assert best.sets.agree is not None  # the choice's verdict
-        held = _held(scene, best.sets)
-        if best.sets.start.held:
-            notes.append(_held_reason(best.sets.start.held, AT_ESTIMATE))
+        held, at_estimate = _held(scene, best.sets), _held_reason(best.sets.start.held, AT_ESTIMATE)
+        if at_estimate:
+            notes.append(at_estimate)
         checks = [best.sets.agree, *plane_checks(sol, returns, scene.passes, held, config, scene.cost.prior,
                                                  nominal.dh)]
         checks.append(_held_out_check(scene.held_beams, motor, Params(MOTOR_FRAME, nominal.dh), tau0, sol,
@@ -253,8 +253,8 @@ class PlaneWay:
                                          len(planes_found))
         plane_fit = PlaneFit(tuple(planes_found), before, after,
                              np.bincount(labels[labels >= 0], minlength=len(planes_found)), held,
-                             "; ".join(n for n in (scene.held_reason, _held_reason(best.sets.start.held, AT_ESTIMATE))
-                                       if n), best.sets.start.name, n_before, n_after)
+                             "; ".join(n for n in (scene.held_reason, at_estimate) if n), best.sets.start.name,
+                             n_before, n_after)
         evidence = PlaneEvidence(plane_fit=plane_fit, returns=returns)
         return CalibrationResult(recording=self.recording, evidence=evidence, start=Params(MOTOR_FRAME, nominal.dh),
                                  solution=sol, checks=tuple(checks), notes=(*notes, *widened.notes))
