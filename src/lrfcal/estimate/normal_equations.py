@@ -76,6 +76,12 @@ class Normal:
         return Normal(np.block([[self.A, p.C_c], [p.C_c.T, p.E]]), np.vstack([self.B, p.C_n.T]), self.D,
                       np.concatenate([self.g_c, p.g]), self.g_n)
 
+    @property
+    def given_pattern(self) -> Normal:
+        """The same equations with the pattern held at the value the residuals take out (itself without a
+        pattern)."""
+        return Normal(self.A, self.B, self.D, self.g_c, self.g_n)
+
     def dense(self) -> tuple[FloatArray, FloatArray]:
         """The full H (c + 3P, c + 3P) and g (c + 3P,) (the pattern's unknowns eliminated)."""
         if self.pattern is not None:
