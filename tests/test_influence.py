@@ -92,7 +92,8 @@ def test_with_a_range_pattern_the_pull_holds_it_at_its_estimate() -> None:
     """Where the cost has a range pattern along the scan (lrfcal.model.range_pattern), each plane's pull is the
     estimate without its rows, the pattern held at its estimate from every plane, minus the estimate (the linear
     problem with the pattern's columns beside the core's, solved explicitly); its covariance is that of the same
-    two estimates given the pattern (their difference's spread over noise draws)."""
+    two estimates given the pattern (their difference's spread over noise draws), and a plane whose rows carry an
+    error the model does not have still pulls far beyond it."""
     from lrfcal.model.range_pattern import beam_bins, pattern_rows
 
     rng = np.random.default_rng(4)
@@ -117,6 +118,11 @@ def test_with_a_range_pattern_the_pull_holds_it_at_its_estimate() -> None:
     for j in range(P):
         without = _solved(Jc, Jn, plane, given, plane != j)
         np.testing.assert_allclose(pulls.shift[j], without - x[:C], rtol=1e-8, atol=1e-12)
+    bad = y.copy()  # a plane the model does not explain still pulls far beyond the noise with the pattern held
+    bad[plane == 2] += 2.0 * Jc[plane == 2] @ np.array([1.0, -0.5, 0.3])
+    bent = pulls_of(bad)[1]
+    chi2 = [float(d @ np.linalg.solve(D, d)) for d, D in zip(bent.shift, bent.difference, strict=True)]
+    assert chi2[2] > 100 and chi2[2] == pytest.approx(max(chi2))
     draws = np.array([pulls_of(y_k)[1].shift for y_k in rng.normal(size=(1000, plane.size))])
     for j in range(P):  # within 15 % (measured 0.88-1.01: the pattern, estimated with the plane, takes up a share
         # of its noise)
