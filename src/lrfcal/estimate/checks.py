@@ -386,7 +386,8 @@ def planes_agree(sol: Solution, held: tuple[str, ...], returns: SurfaceReturns) 
     out) determine the estimated DH parameters within lrfcal.estimate.observability's limits (without the others,
     the estimate without the plane is the prior's). The difference's covariance is the statistical one's
     (Solution.spread), scaled as the stated sigma is (the scans' correlated noise, the held parameters' tolerance)
-    on each parameter. ``returns``: the plane returns solved (the failure names the plane by its normal and
+    on each parameter; a range pattern in the cost is held at its estimate from every plane in each pull
+    (lrfcal.estimate.influence). ``returns``: the plane returns solved (the failure names the plane by its normal and
     offset)."""
     from scipy.special import chdtri  # chi-square quantile (scipy.stats is slow to import)
 

@@ -42,9 +42,10 @@ def plane_pulls(b: Blocks, N: Normal, core: IntArray, V: FloatArray, scale: floa
                 ) -> PlanePulls | None:
     """The pull of each plane of ``b`` (module docstring) over the core columns ``core`` (c,) named ``names``: N the
     normal equations of ``b`` over them (its planes' B_j, D_j and nuisance gradients, their priors included), V
-    (c, c) the core block of the inverse information (unit noise) at the solution whose blocks ``b`` are; the
-    difference covariances times ``scale`` (the statistical covariance's noise variance,
-    lrfcal.estimate.covariance). None without planes."""
+    (c, c) the core block of the inverse information (unit noise) at the solution whose blocks ``b`` are (where N
+    has a range pattern, the one with the pattern held is used instead: module docstring); the difference
+    covariances times ``scale`` (the statistical covariance's noise variance, lrfcal.estimate.covariance). None
+    without planes."""
     P = b.n_planes
     if P == 0 or b.Jc_plane is None:
         return None
