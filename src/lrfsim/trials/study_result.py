@@ -159,6 +159,11 @@ def _fmt(p: str, v: float) -> str:
     return "-" if not math.isfinite(v) else format_value(p, v)
 
 
+def _ratio(v: float, spec: str = ".2f") -> str:
+    """A ratio of the summary's table, "-" where there is none (no plan, no trial that estimated the parameter)."""
+    return "-" if not math.isfinite(v) else format(v, spec)
+
+
 def summary_markdown(s: Study) -> str:
     """summary.md: per part, the efficiency table of the DH parameters and the refusals."""
     lines = [f"# Monte-Carlo study of {s.name}", "",
@@ -191,10 +196,10 @@ def summary_markdown(s: Study) -> str:
         for p in DH_NAMES:
             d = st[p]
             bz = d["bias"] / d["std"] if d["std"] > 0 else math.nan
-            lines.append(f"| {p} | {_fmt(p, d['bias'])} +- {_fmt(p, d['bias_se'])} | {bz:+.2f} | "
+            lines.append(f"| {p} | {_fmt(p, d['bias'])} +- {_fmt(p, d['bias_se'])} | {_ratio(bz, '+.2f')} | "
                          f"{_fmt(p, d['std'])} | {_fmt(p, d['rmse'])} | "
-                         f"{_fmt(p, d['predicted'])} | {d['rmse_over_predicted']:.2f} | "
-                         f"{d['std_over_predicted']:.2f} | {d['rms_z']:.2f} | {_fmt(p, d['mean_sigma'])} |")
+                         f"{_fmt(p, d['predicted'])} | {_ratio(d['rmse_over_predicted'])} | "
+                         f"{_ratio(d['std_over_predicted'])} | {_ratio(d['rms_z'])} | {_fmt(p, d['mean_sigma'])} |")
         reasons: dict[str, int] = {}
         for r in part.rows:
             if r.status != "calibrated":
