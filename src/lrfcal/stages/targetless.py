@@ -222,34 +222,42 @@ def mixed_pixels(scans: Scans, joints: JointStates, clock_offset_s: float, range
     return jump_edges(scans.ranges_m, scans.mu_rad, scan_angles(scans, joints, clock_offset_s), range_sigma_m)
 
 
-#: how far beyond a declared part of the rig a return still counts as the part's [m]: the nominal DH a few mm and a
-#: degree or two off puts the part's returns up to about 1 cm beside it at the stand's 5-20 cm, and the surface a
-#: part stands on is seen beside it (the room replica's desk top, 2 cm below the stand's base board). At 2 cm the
-#: room replica calibrated 39 of 40 seeds but 2 confidently wrong (a -1.15, b +0.74 sigma on average with --force);
-#: at 5 cm 28 of 40, none wrong (docs/real-data.md: chosen on that replica, not yet on another rig)
-SELF_MARGIN_M = 0.05
+#: how far from a declared part of the rig a beam may pass and still count as seeing it [m]: the nominal DH a few mm
+#: and a degree or two off puts the part up to about 1 cm from where its rays pass at the stand's 5-20 cm, and a
+#: beam's footprint straddles the part's edge and what lies behind it (docs/real-data.md: chosen on the room
+#: replica, not yet on another rig)
+SELF_MARGIN_M = 0.02
 
 
 def own_returns(scans: Scans, joints: JointStates, clock_offset_s: float, dh: DH, boxes: Sequence[SelfBox]
                 ) -> NDArray[np.bool_]:
-    """The returns (S, N) on the rig's own parts the rig file declares (``boxes`` fixed to M, each grown by
-    :data:`SELF_MARGIN_M`), reprojected with the nominal ``dh`` at the scans' motor angles: the stand a tilting
-    scanner sees at large tilts is no scene (as ROS's laser_filters LaserScanBoxFilter leaves a robot's body out).
-    On the replica of the real room its close returns made alpha's sigma about 20 % narrow and left a and b
-    undetermined (docs/real-data.md)."""
+    """The returns (S, N) whose beams meet the rig's own parts the rig file declares (``boxes`` fixed to M, each
+    grown by :data:`SELF_MARGIN_M`), the rays cast with the nominal ``dh`` at the scans' motor angles: the stand a
+    tilting scanner sees at large tilts is no scene (as ROS's laser_filters LaserScanBoxFilter leaves a robot's body
+    out). Judged by the ray alone, not by the range it returned: a rule on the return's measured position keeps,
+    at the edge of a part's margin, the returns whose noise reads long and leaves out those that read short, which
+    biased the room replica's b by +0.8 sigma on average (docs/real-data.md). On that replica the stand's close
+    returns made alpha's sigma about 20 % narrow and left a and b undetermined."""
     out = np.zeros(scans.ranges_m.shape, dtype=bool)
     if not boxes:
         return out
     s, b = np.nonzero(np.isfinite(scans.ranges_m))
     # each scan's angle at its stamp: the motor's turn within a scan (a degree at 10 deg/s) moves a part 20 cm away
     # by 3.5 mm, within the margin
-    P = points_M(scans.ranges_m[s, b], scan_angles(scans, joints, clock_offset_s)[s], scans.mu_rad[s, b], dh)
-    inside = np.zeros(s.size, dtype=bool)
+    lam, mu = scan_angles(scans, joints, clock_offset_s)[s], scans.mu_rad[s, b]
+    origin = points_M(np.zeros(s.size), lam, mu, dh)
+    direction = points_M(np.ones(s.size), lam, mu, dh) - origin
+    meets = np.zeros(s.size, dtype=bool)
     for box in boxes:
         T = box.pose.matrix()
-        local = (P - T[:3, 3]) @ T[:3, :3]  # R^T (p - t), row-wise
-        inside |= np.all(np.abs(local) <= 0.5 * np.asarray(box.size_m) + SELF_MARGIN_M, axis=1)
-    out[s[inside], b[inside]] = True
+        o, d = (origin - T[:3, 3]) @ T[:3, :3], direction @ T[:3, :3]  # in the box's frame: R^T (p - t), row-wise
+        half = 0.5 * np.asarray(box.size_m) + SELF_MARGIN_M
+        with np.errstate(divide="ignore", invalid="ignore"):  # a ray parallel to a face: +-inf, or NaN on it
+            t1, t2 = (-half - o) / d, (half - o) / d
+        enter = np.max(np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2)), axis=1)
+        leave = np.min(np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)), axis=1)
+        meets |= leave >= np.maximum(enter, 0.0)  # the slabs' intervals overlap ahead of the scanner
+    out[s[meets], b[meets]] = True
     return out
 
 
