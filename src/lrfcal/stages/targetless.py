@@ -48,7 +48,7 @@ from numpy.typing import NDArray
 from lrfcal.errors import CalibrationError
 from lrfcal.estimate import observability
 from lrfcal.estimate.request import PlaneOptions, PlaneRequest
-from lrfcal.model.kinematics import DH, Params, Pose, points_M, points_M_trig
+from lrfcal.model.kinematics import DH, Params, Pose, beam_rays_M, points_M_trig
 from lrfcal.model.motor import MotorClock
 from lrfcal.model.plane import Footing
 from lrfcal.model.scanner import jump_edges, true_returns
@@ -244,9 +244,7 @@ def own_returns(scans: Scans, joints: JointStates, clock_offset_s: float, dh: DH
     s, b = np.nonzero(np.isfinite(scans.ranges_m))
     # each scan's angle at its stamp: the motor's turn within a scan (a degree at 10 deg/s) moves a part 20 cm away
     # by 3.5 mm, within the margin
-    lam, mu = scan_angles(scans, joints, clock_offset_s)[s], scans.mu_rad[s, b]
-    origin = points_M(np.zeros(s.size), lam, mu, dh)
-    direction = points_M(np.ones(s.size), lam, mu, dh) - origin
+    origin, direction = beam_rays_M(scan_angles(scans, joints, clock_offset_s)[s], scans.mu_rad[s, b], dh)
     meets = np.zeros(s.size, dtype=bool)
     for box in boxes:
         T = box.pose.matrix()
