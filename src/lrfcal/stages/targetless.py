@@ -250,10 +250,10 @@ def own_returns(scans: Scans, joints: JointStates, clock_offset_s: float, dh: DH
         T = box.pose.matrix()
         o, d = (origin - T[:3, 3]) @ T[:3, :3], direction @ T[:3, :3]  # in the box's frame: R^T (p - t), row-wise
         half = 0.5 * np.asarray(box.size_m) + SELF_MARGIN_M
-        with np.errstate(divide="ignore", invalid="ignore"):  # a ray parallel to a face: +-inf, or NaN on it
+        with np.errstate(divide="ignore", invalid="ignore"):  # a ray parallel to a face: +-inf (NaN on its plane)
             t1, t2 = (-half - o) / d, (half - o) / d
-        enter = np.max(np.where(np.isnan(t1), -np.inf, np.minimum(t1, t2)), axis=1)
-        leave = np.min(np.where(np.isnan(t1), np.inf, np.maximum(t1, t2)), axis=1)
+        enter = np.max(np.fmin(t1, t2), axis=1)  # fmin / fmax: a NaN counts as the other bound
+        leave = np.min(np.fmax(t1, t2), axis=1)
         meets |= leave >= np.maximum(enter, 0.0)  # the slabs' intervals overlap ahead of the scanner
     out[s[meets], b[meets]] = True
     return out
