@@ -117,7 +117,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
         rank_txt = f"rank deficient ({rank}/{n_par})"
     else:
         JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
-        ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane)
+        ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane, normal.pattern)
         scores = scores if live.all() else scores[:, live]
         cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
         V = JtJ_inv[np.ix_(core_pos, core_pos)]

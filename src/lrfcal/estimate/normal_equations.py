@@ -209,22 +209,25 @@ def solve_step(N: Normal, damp: float) -> FloatArray:
     """The LM step (c + 3P,) of the damped normal equations, core first (the range pattern's part of the step is
     not kept: the residuals take the best pattern out at every evaluation, lrfcal.model.range_pattern)."""
     if N.pattern is not None:
-        c, q = N.A.shape[0], N.pattern.g.size
-        step = solve_step(N.extended, damp)
-        return np.concatenate([step[:c], step[c + q:]])
+        return _pattern_dropped(N, solve_step(N.extended, damp))
     S, rhs, Dinv = schur(N, damp)
     dx_c = np.linalg.solve(S, rhs)
     v = (N.g_n + N.B.T @ dx_c).reshape(-1, 3, 1)  # per plane: dx_j = -D_j^-1 (g_j + B_j^T dx_c)
     return np.concatenate([dx_c, -np.matmul(Dinv, v).ravel()])
 
 
+def _pattern_dropped(N: Normal, v: FloatArray) -> FloatArray:
+    """A vector (c + q + 3P,) over :attr:`Normal.extended`'s unknowns without the pattern's q: (c + 3P,)."""
+    assert N.pattern is not None
+    c, q = N.A.shape[0], N.pattern.g.size
+    return np.concatenate([v[:c], v[c + q:]])
+
+
 def marginal_sigma(N: Normal) -> FloatArray:
     """The 1-sigma (c + 3P,) of every unknown from the undamped information (pseudo-inverse where singular), the
     range pattern unknown."""
     if N.pattern is not None:
-        c, q = N.A.shape[0], N.pattern.g.size
-        sigma = marginal_sigma(N.extended)
-        return np.concatenate([sigma[:c], sigma[c + q:]])
+        return _pattern_dropped(N, marginal_sigma(N.extended))
     S, _, Dinv, BDi = _eliminated(N, 0.0)
     Sinv = np.linalg.pinv(S)
     # per plane: diag(D_j^-1 + (B_j D_j^-1)^T S^-1 B_j D_j^-1), for all planes at once
@@ -337,11 +340,12 @@ def levenberg_marquardt(
     return th, n_eval, False
 
 
-def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray
-                      ) -> tuple[IntArray, FloatArray]:
+def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluster_plane: IntArray,
+                      pattern: PatternNormal | None = None) -> tuple[IntArray, FloatArray]:
     """For the cluster-robust (sandwich) covariance: the clusters' ids (clusters,), sorted (each prior row a
     cluster of its own, ids below every other), and G (clusters, c + 3P), per cluster the sum of J_i^T r_i over
-    its rows, in that order."""
+    its rows, in that order. ``pattern``: the range pattern's part of the unweighted normal equations of ``b``
+    (Normal.pattern of ``assemble(b, core)``) when the caller has it (None: computed here where ``b`` has one)."""
     assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
     P, c = b.n_planes, core.size
     n_prior = 0 if b.r_prior is None else b.r_prior.size
@@ -370,7 +374,7 @@ def scores_by_cluster(b: Blocks, core: IntArray, cluster_dense: IntArray, cluste
         pr, n_bins = b.pattern, b.pattern.Z.shape[0]
         G_z = pr.value * (np.bincount(inv_p * n_bins + pr.bins, weights=b.r_plane, minlength=n_cl * n_bins)
                           .reshape(n_cl, n_bins) @ pr.Z)
-        pn = _pattern_normal(b, core, None)
+        pn = pattern if pattern is not None else _pattern_normal(b, core, None)
         G -= G_z @ np.linalg.solve(pn.E, np.vstack([pn.C_c, pn.C_n]).T)
     return ids, G
 

@@ -100,7 +100,7 @@ class RigFile(Strict):
     #: a targetless calibration estimates it with the DH (lrfcal.model.range_pattern; ``--range-pattern``)
     range_pattern: bool = False
     #: the rig's own parts the scanner sees (its stand, at large tilts), boxes fixed to M: a targetless calibration
-    #: leaves the returns inside them out of the scene (as ROS's laser_filters LaserScanBoxFilter)
+    #: leaves the returns of the beams that meet them out of the scene (lrfcal.stages.targetless.own_returns)
     self_boxes: tuple[SelfBoxModel, ...] = ()
     scan: ScanSource | None = None
     servo: ServoSource | None = None

@@ -87,6 +87,9 @@ class PlaneWay:
     def __init__(self, recording: Recording, joints: JointStates, config: CalibConfig, clock: Stopwatch,
                  observer: Observer) -> None:
         self.recording, self.joints, self.config, self.clock = recording, joints, config, clock
+        #: the held parameters' consider covariance of each estimate judged (reselect) by its solution's id, with
+        #: the solution and what was held: the one kept is widened by the same, not computed again
+        self._considered: dict[int, tuple[Solution, tuple[str, ...], Systematics]] = {}
 
     def observe(self, proposal: propose.Proposal | None) -> tuple[Scene, list[PlaneStart]]:
         """Stages 1-3: the returns sampled, segmented at the start; what the scene determines, the rest held
@@ -199,15 +202,21 @@ class PlaneWay:
         held = _held(scene, best.sets)
         if not held:
             return Systematics()
+        sol = best.solution
+        known = self._considered.get(id(sol))
+        if known is not None and known[0] is sol and known[1] == held:
+            return known[2]
         assert self.config.range_sigma_m is not None  # resolved by lrfcal.pipeline.calibrate
-        sol, counted = best.solution, scene.segmented.returns
+        counted = scene.segmented.returns
         if sol.inlier is not None:  # the returns that count at the estimate
             counted = counted.subset(sol.inlier)
         info, names = plane_information(counted, sol.params, range_sigma_m=self.config.range_sigma_m,
                                         clock=scene.cost.clock, clock_offset_s=sol.clock_offset_s,
                                         dh_prior=scene.cost.prior, range_pattern=scene.cost.range_pattern)
         tol = dict(zip(DH_NAMES, self.config.nominal_tolerance, strict=True))
-        return Systematics(considered=Considered(info, names, {n: tol[n] for n in held}))
+        out = Systematics(considered=Considered(info, names, {n: tol[n] for n in held}))
+        self._considered[id(sol)] = (sol, held, out)
+        return out
 
     def beside(self, scene: Scene, best: Fit[PlaneSets]) -> Mapping[str, PlaneRequest]:
         """No other method runs beside the targetless one."""
