@@ -173,7 +173,7 @@ def test_near_perpendicular_truth_is_calibrated_within_4_sigma(tmp_path: Path) -
     # the drawing to 2 deg: the nominal (alpha -4.75 deg) then tells the rig (-4.0 deg) from its mirror image
     # (+4.0 deg); with the default 5 deg it cannot, and the calibration refuses naming the mirror image
     # (tests/test_checks.py)
-    config = CalibConfig(nominal_tolerance=(0.010, math.radians(2.0), 0.010, math.radians(2.0)))
+    config = CalibConfig(dh_tolerance=(0.010, math.radians(2.0), 0.010, math.radians(2.0)))
     trial = calibrate_recording(tmp_path / sc.name, config, keep_result=True)
     assert abs(math.degrees(sc.rig.dh.alpha)) < 15.0
     assert trial.status == "calibrated", trial.describe()

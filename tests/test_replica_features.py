@@ -5,16 +5,22 @@ the motor frame and seen by the laser (``rig.stand``), and the wiggles of the ra
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
 import pytest
 import yaml
 
+from lrfcal import pipeline
+from lrfcal.config import DEFAULT_NOMINAL_TOLERANCE, CalibConfig
 from lrfcal.errors import InputError
-from lrfcal.io.recording import read_recording
+from lrfcal.io.calibration_yaml import _rig_dict
+from lrfcal.io.recording import read_nominal, read_recording
+from lrfcal.io.rig import parse_rig
 from lrfcal.model.kinematics import Params, beam_rays_W, points_M
 from lrfcal.stages.timing import scan_angles
 from lrfsim.scenario.file import Scenario, parse_scenario, with_changes
@@ -208,6 +214,54 @@ def test_drawn_truth_stays_around_the_nominal() -> None:
         assert np.all(np.abs(d) <= w) and np.ptp(d) > 1.5 * w  # within the half-width, and spread over it
     assert drawn_truth(sc, 7, 1.0) == drawn_truth(sc, 7, 1.0) and drawn_truth(sc, 7, 0.0) is sc
     assert drawn_truth(sc, 7, 1.0).rig.nominal_dh == nominal and drawn_truth(sc, 7, 1.0).rig.mount == sc.rig.mount
+
+
+def test_drawn_truth_tells_the_calibration_how_well_the_nominal_knows_it(tmp_path: Path,
+                                                                          monkeypatch: pytest.MonkeyPatch) -> None:
+    """A drawn truth's spread (uniform in +-scale x TRUTH_HALF_WIDTH) is the nominal's 1-sigma the rig file declares
+    (``dh_tolerance``, its half width / sqrt 3); the calibration takes it (the consider covariance, the cost's prior,
+    the checks' scale) unless its caller gives one, and writes it into the rig it saves (for `lrfcal check`)."""
+    sc = drawn_truth(_room(), 7, 2.0)
+    tol = sc.rig.nominal_dh_tolerance
+    assert tol is not None
+    declared = tuple(2.0 * w / math.sqrt(3.0) for w in TRUTH_HALF_WIDTH.values())
+    np.testing.assert_allclose([tol.a, tol.alpha, tol.b, tol.beta], declared, rtol=1e-12)
+    (tmp_path / "nominal.yaml").write_text(nominal_yaml(sc, None))
+    rig = read_nominal(tmp_path / "nominal.yaml")
+    assert rig.dh_tolerance is not None
+    np.testing.assert_allclose(rig.dh_tolerance, declared, rtol=1e-12)
+    assert parse_rig(_rig_dict(rig), "saved").dh_tolerance == parse_rig(
+        yaml.safe_load((tmp_path / "nominal.yaml").read_text()), "written").dh_tolerance
+
+    class Seen(Exception):
+        pass
+
+    def capture(recording: Any, config: CalibConfig, observer: Any) -> None:
+        raise Seen(config.nominal_tolerance)
+
+    monkeypatch.setattr(pipeline, "_calibrate", capture)
+
+    def used(nominal: Any, config: CalibConfig) -> tuple[float, ...]:
+        with pytest.raises(Seen) as e:
+            pipeline.calibrate(SimpleNamespace(nominal=dataclasses.replace(nominal, range_pattern=False), report=None),
+                               config)  # type: ignore[arg-type]
+        return tuple(e.value.args[0])
+
+    assert used(rig, CalibConfig()) == rig.dh_tolerance
+    mine = (0.001, 0.01, 0.002, 0.02)
+    assert used(rig, CalibConfig(dh_tolerance=mine)) == mine
+    assert used(dataclasses.replace(rig, dh_tolerance=None), CalibConfig()) == DEFAULT_NOMINAL_TOLERANCE
+    assert drawn_truth(_room(), 7, 0.0).rig.nominal_dh_tolerance is None  # nothing drawn: nothing declared
+
+
+def test_a_rig_file_tolerance_in_millimetres_or_degrees_is_refused_naming_it() -> None:
+    dh = {"a": 0.0, "alpha": 1.5708, "b": 0.08, "beta": 0.0}
+    for key, value, unit in (("a", 3.0, "millimetres"), ("beta", 2.0, "degrees"), ("b", 0.0, "greater than 0")):
+        tol = {"a": 0.003, "alpha": 0.02, "b": 0.003, "beta": 0.02, key: value}
+        with pytest.raises(InputError) as e:
+            parse_rig({"dh": dh, "dh_tolerance": tol}, "rig/nominal.yaml")
+        line = str(e.value)
+        assert "\n" not in line and line.startswith(f"rig/nominal.yaml: dh_tolerance.{key}: ") and unit in line, line
 
 
 def test_a_study_of_a_marker_less_scenario_calibrates_each_drawn_truth_as_a_user(monkeypatch: pytest.MonkeyPatch

@@ -329,7 +329,7 @@ def test_planes_are_segmented_with_the_intrinsics(shipped_recording: Callable[[s
 
     def labelled(k: float, intrinsics: dict[str, float]) -> int:
         motor = MotorClock.from_joints(JointStates(js.stamps_s, js.positions_rad * k))
-        labels = plane_returns_at(beams, seg, motor, dh, 0.0, 0.012, CalibConfig(), intrinsics)[1]
+        labels = plane_returns_at(beams, seg, motor, dh, 0.0, 0.012, CalibConfig(range_sigma_m=0.01), intrinsics)[1]
         return int((labels >= 0).sum())
 
     clean = labelled(1.0, {})

@@ -20,6 +20,9 @@ DEFAULT_RANGE_SIGMA_M = 0.010
 DEFAULT_MAX_INCIDENCE_RAD = math.radians(65.0)
 
 PositiveFloat = Annotated[float, Field(gt=0.0)]
+#: the nominal DH values' 1-sigma when the rig file does not declare it (a, alpha, b, beta [m, rad]): a hand-built
+#: rig's centimetre and few degrees (CalibConfig.nominal_tolerance)
+DEFAULT_NOMINAL_TOLERANCE = (0.010, math.radians(5.0), 0.010, math.radians(5.0))
 
 
 class CalibConfig(BaseModel):
@@ -53,12 +56,10 @@ class CalibConfig(BaseModel):
     #: residuals more than 2x the stated noise: the model does not explain the data
     max_reduced_chi2: float = Field(4.0, gt=0.0)
     second_opinion_p: float = Field(1e-3, gt=0.0, lt=1.0)  # false-alarm rate of the second-opinion test
-    #: how far the design-drawing (nominal) DH may be from the truth before it stops telling the servo's
-    #: direction apart (a, b [m], alpha, beta [rad]); the checks compare the scanner's poses (lrfcal.estimate.checks),
-    #: the
-    #: larger of a's and b's against the offset, of alpha's and beta's against the angle
-    nominal_tolerance: tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat] = (
-        0.010, math.radians(5.0), 0.010, math.radians(5.0))
+    #: the design-drawing (nominal) DH values' 1-sigma (a, b [m], alpha, beta [rad]); None: the rig file's
+    #: ``dh_tolerance``, else DEFAULT_NOMINAL_TOLERANCE (lrfcal.pipeline.calibrate resolves it). Read as
+    #: :attr:`nominal_tolerance`; see there for its uses
+    dh_tolerance: tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat] | None = None
     #: calibrate from the scene's planes without markers (lrfcal.stages.targetless); None: when there are no tape
     #: distances
     targetless: bool | None = None
@@ -81,6 +82,14 @@ class CalibConfig(BaseModel):
             e = err.errors()[0]
             where = ".".join(str(x) for x in e["loc"]) or "options"
             raise InputError(f"calibration option {where}: {e['msg']} (got {e.get('input')!r})") from None
+
+    @property
+    def nominal_tolerance(self) -> tuple[float, float, float, float]:
+        """The nominal DH values' 1-sigma (a, alpha, b, beta [m, rad]; ``dh_tolerance``, else the default): the
+        targetless cost's prior on the DH and the held parameters' uncertainty carried into the others (the consider
+        covariance, lrfcal.stages.scene), and the scale by which the checks judge a DH estimate's distance from the
+        nominal (the mirror image, the servo's direction: lrfcal.estimate.checks)."""
+        return DEFAULT_NOMINAL_TOLERANCE if self.dh_tolerance is None else self.dh_tolerance
 
     def replace(self, **changes: Any) -> CalibConfig:
         """A copy with ``changes``, validated."""

@@ -46,6 +46,9 @@ def widen(cov: FloatArray, sandwich: FloatArray) -> FloatArray:
 
 #: markers needed for the per-marker sandwich (fewer: it says nothing)
 _MIN_MARKER_CLUSTERS = 4
+#: a null direction of the information (unit vector, column-scaled) whose components on the core unknowns all stay
+#: below this lies in the nuisances alone: no rank loss of the core (:func:`uncertainty`)
+NULL_CORE_TOL = 1e-6
 
 
 def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], marker_dense: NDArray[np.int64],
@@ -104,19 +107,26 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     col = np.sqrt(np.diag(H))
     col[col == 0] = 1.0
     H_s = H / np.outer(col, col)  # column-scaled: the covariance is computed in these units, then scaled back
-    eig = np.linalg.eigvalsh(H_s)
-    rank = int(np.sum(eig > eig[-1] * RANK_TOL))  # only numerically null directions count as rank loss
+    eig, vec = np.linalg.eigh(H_s)
+    null = eig <= eig[-1] * RANK_TOL  # only numerically null directions count as rank loss
+    rank = n_par - int(null.sum())
+    # a null direction of the planes' nuisances alone (a plane whose returns one half of a sweep holds on one line:
+    # its tilt about that line) leaves the core's covariance what it is (H is positive semi-definite, so H [0; v] = 0
+    # and the pseudo-inverse's core block is the inverse of the core's marginal information): only a null direction
+    # that moves a core unknown is rank loss
+    core_rank_loss = bool(np.any(np.abs(vec[:core.size, null]) > NULL_CORE_TOL))
     core_pos = list(range(core.size))
     core_names = tuple(CORE_NAMES[k] for k in core)
     G: FloatArray | None = None
     info_scale = 1.0 / max(s2, 1.0)  # the information per unit of the (possibly widened) noise
-    if rank < n_par:
+    if core_rank_loss:
         cov = s2 * np.linalg.pinv(H_s, rcond=1e-15) / np.outer(col, col)
         spread = Spread(np.zeros(0, dtype=np.int64), np.zeros((0, N_CORE)), np.full((N_CORE, N_CORE), np.nan))
         info = marginal_information(H * info_scale, core_pos)
         rank_txt = f"rank deficient ({rank}/{n_par})"
     else:
-        JtJ_inv = np.linalg.inv(H_s) / np.outer(col, col)
+        JtJ_inv = (np.linalg.inv(H_s) if rank == n_par else np.linalg.pinv(H_s, rcond=RANK_TOL, hermitian=True)
+                   ) / np.outer(col, col)
         ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane, normal.pattern)
         scores = scores if live.all() else scores[:, live]
         cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
@@ -141,10 +151,11 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
             cov = np.asarray(inflate_for_markers(cov, b, core, marker_dense, cluster_plane, JtJ_inv,
                                                  None if live.all() else live), dtype=np.float64)
         info = np.linalg.inv(cov[np.ix_(core_pos, core_pos)])
-        rank_txt = f"full rank (condition {np.sqrt(eig[-1] / eig[0]):.2e})"
+        rank_txt = f"full rank (condition {np.sqrt(eig[-1] / eig[~null][0]):.2e})" + (
+            "" if rank == n_par else f"; {n_par - rank} direction(s) of the planes alone undetermined")
     cov_core = np.full((N_CORE, N_CORE), np.nan)
     cov_core[np.ix_(core, core)] = cov[np.ix_(core_pos, core_pos)]
-    if rank < n_par:
+    if core_rank_loss:
         # a covariance from a singular information would be meaningless (and can be 0): none is reported
         cov_core[np.ix_(core, core)] = np.inf
     return cov_core, info, core_names, s2, rank_txt, G, spread

@@ -38,7 +38,10 @@ _HINTS = {
     frozenset({"alpha", "b"}): "the markers are all at about one distance along the motor axis: place markers at "
                                "several depths along the axis (a board extending along it, or a second board)",
     frozenset({"a"}): "a needs markers at several ranges, seen over a wide sweep of the motor angle",
-    frozenset({"b"}): "b needs markers spread along the motor axis",
+    # b moves a marker across the scan plane as the mount's turn about the motor axis does, by its distance from the
+    # axis: markers all at one distance from it (a board beside the rig facing the axis) cannot tell them apart
+    frozenset({"b"}): "b needs markers spread along the motor axis and at several distances from it (a board "
+                      "turned obliquely to the axis, or markers near and far from it)",
     frozenset({"alpha"}): "alpha needs markers spread along the motor axis and seen over a wide sweep",
     frozenset({"beta"}): "beta needs markers spread across the scan's field of view",
 }

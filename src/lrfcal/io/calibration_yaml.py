@@ -80,6 +80,8 @@ def _rig_dict(nominal: Nominal) -> dict[str, Any]:
     where the bag keeps the scans and the servo angle, one-off command-line settings applied), so that the
     calibration alone reads a new recording of the same rig (`lrfcal check`)."""
     out: dict[str, Any] = {"dh": {n: float(v) for n, v in zip(DH_NAMES, nominal.dh.vector(), strict=True)}}
+    if nominal.dh_tolerance is not None:
+        out["dh_tolerance"] = {n: float(v) for n, v in zip(DH_NAMES, nominal.dh_tolerance, strict=True)}
     if nominal.mount is not None:
         out["mount"] = {n: float(getattr(nominal.mount, n)) for n in MOUNT_NAMES}
     out["marker_radius_m"] = float(nominal.marker_radius_m)

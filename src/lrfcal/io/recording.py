@@ -219,7 +219,9 @@ def read_nominal(path: str | Path) -> Nominal:
     dh = DH(**rig.dh.model_dump())
     mount = Pose(**rig.mount.model_dump()) if rig.mount is not None else None
     scan, servo = rig.scan_source(), rig.servo_source()
-    return Nominal(dh=dh, mount=mount, marker_radius_m=rig.marker_radius_m,
+    tol = rig.dh_tolerance
+    return Nominal(dh=dh, dh_tolerance=None if tol is None else (tol.a, tol.alpha, tol.b, tol.beta), mount=mount,
+                   marker_radius_m=rig.marker_radius_m,
                    beam_divergence_rad=rig.beam_divergence_rad, range_sigma_m=rig.range_sigma_m,
                    range_pattern=rig.range_pattern,
                    self_boxes=tuple(SelfBox(Pose(**b.pose.model_dump()), b.size_m) for b in rig.self_boxes),

@@ -10,6 +10,7 @@ The pre-issue-8 keys ``scan_topic``, ``joint_topic``, ``joint_name`` are still a
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -61,6 +62,33 @@ class DHModel(Strict):
     beta: Radians
 
 
+#: beyond these a DH tolerance was written in millimetres or degrees (a 1-sigma of half a metre or of 90 deg is no
+#: design value) [m, rad]
+MAX_DH_TOLERANCE_M, MAX_DH_TOLERANCE_RAD = 0.5, math.pi / 2
+
+
+def _tolerance_angle(v: float) -> float:
+    """A DH angle's 1-sigma in rad; beyond 90 deg it was written in degrees."""
+    if v > MAX_DH_TOLERANCE_RAD:
+        raise ValueError(f"{v:g} rad is beyond {MAX_DH_TOLERANCE_RAD:.4g} rad (90 deg) for a DH tolerance: it looks "
+                         f"like degrees; angles are in radians ({v:g} deg = {math.radians(v):.6g} rad)")
+    return v
+
+
+DHTolerance = Annotated[float, Field(gt=0.0), _metres(MAX_DH_TOLERANCE_M, "a DH tolerance")]
+AngleTolerance = Annotated[float, Field(gt=0.0), AfterValidator(_tolerance_angle)]
+
+
+class DHToleranceModel(Strict):
+    """The design DH values' 1-sigma [m, rad]: how well the drawing knows them. A drawing's +-t with the truth
+    anywhere within is t / sqrt(3) (a rectangular distribution, JCGM 100:2008 "GUM" 4.3.7)."""
+
+    a: DHTolerance
+    alpha: AngleTolerance
+    b: DHTolerance
+    beta: AngleTolerance
+
+
 class MountModel(Strict):
     """T_W_M: translation [m], then R = Rz(yaw) Ry(pitch) Rx(roll) [rad]."""
 
@@ -82,11 +110,14 @@ class SelfBoxModel(Strict):
 
 
 class RigFile(Strict):
-    """nominal.yaml: ``dh`` (required), ``mount``, ``marker_radius_m``, ``beam_divergence_rad``,
+    """nominal.yaml: ``dh`` (required), ``dh_tolerance``, ``mount``, ``marker_radius_m``, ``beam_divergence_rad``,
     ``range_sigma_m``, ``range_pattern``, ``self_boxes``, ``scan``, ``servo``, ``log`` (a scan log's layout; and the
     old keys ``scan_topic``, ``joint_topic``, ``joint_name``)."""
 
     dh: DHModel
+    #: the design DH values' 1-sigma (absent: 10 mm and 5 deg, lrfcal.config.DEFAULT_NOMINAL_TOLERANCE): the
+    #: targetless cost's prior, the held parameters' uncertainty, the mirror-image check's scale
+    dh_tolerance: DHToleranceModel | None = None
     mount: MountModel | None = None
     marker_radius_m: Annotated[float, AfterValidator(_positive_radius),
                                _metres(MAX_MARKER_RADIUS_M, "a marker radius")] = 0.005

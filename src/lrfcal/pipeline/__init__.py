@@ -24,7 +24,7 @@ from typing import Protocol, TypedDict, TypeVar
 
 import numpy as np
 
-from lrfcal.config import DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
+from lrfcal.config import DEFAULT_NOMINAL_TOLERANCE, DEFAULT_RANGE_SIGMA_M, CalibConfig, Stopwatch
 from lrfcal.errors import CalibrationError, ClockOffsetError, ClockStartError, InputError
 from lrfcal.estimate.checks import clock_offset_check, refuse_failed
 from lrfcal.model.kinematics import refuse_placeholder_dh
@@ -56,6 +56,8 @@ def calibrate(recording: Recording, config: CalibConfig | None = None, observer:
     if config.range_sigma_m is None:  # the sensor's noise as the rig file declares it, else the UTM-30LX-EW's
         declared = recording.nominal.range_sigma_m
         config = config.replace(range_sigma_m=DEFAULT_RANGE_SIGMA_M if declared is None else declared)
+    if config.dh_tolerance is None:  # the nominal's 1-sigma as the rig file declares it, else the default
+        config = config.replace(dh_tolerance=recording.nominal.dh_tolerance or DEFAULT_NOMINAL_TOLERANCE)
     if config.range_pattern or recording.nominal.range_pattern:  # the rig file's declaration or the command line's:
         # both say so, and the rig written with the result (`lrfcal check` reads a new recording with it)
         config = config.replace(range_pattern=True)

@@ -31,8 +31,8 @@ are the robust passes' to leave out.
 Without markers there is no world frame: the planes and the cloud are in the motor frame M, and the mount pose is
 not estimated. A parameter the scene does not determine (1-sigma beyond lrfcal.estimate.observability.LIMITS, e.g. b and
 alpha when every plane contains the motor axis) is held at its nominal value and named, never estimated; the
-nominal's uncertainty (CalibConfig.nominal_tolerance) is then carried into the others' covariance (a "consider"
-covariance), so that holding a wrong nominal cannot make the others confidently wrong.
+nominal's uncertainty (CalibConfig.nominal_tolerance: the rig file's dh_tolerance) is then carried into the others'
+covariance (a "consider" covariance), so that holding a wrong nominal cannot make the others confidently wrong.
 """
 
 from __future__ import annotations
@@ -286,8 +286,20 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
         loose = strict if rule.footing_here else (math.cos(min(config.max_incidence_rad + SLACK_RAD,
                                                                math.pi / 2 - SLACK_RAD)), 0.0)
         labels, footed = _labelled(P, trig, dh, seg, seg_labels, found, rule.gate_m, loose, strict)
-        # a plane needs its returns where the footing holds at the start (else the estimate would find none)
-        labels, found = _with_enough_returns(labels, found, np.where(footed, labels, -1))
+        # a plane needs its returns where the footing holds at the start (else the estimate would find none). One
+        # without is no surface the beams see; where its segmented points lie on the planes that are, as their own
+        # returns do (on the box replica: the patches where the motor axis meets the two side walls, joined by the
+        # segmentation into a plane the beams graze), they are theirs, and every return is labelled again: labelled
+        # beside it, the side walls' returns were lost to it or cut by its clearance, and beta came out 4 sigma off
+        # on such a seed (docs/method.md). One off the others (a surface seen only at grazing incidence) stays for
+        # the labelling, and its returns are left out
+        keep = _seen(np.where(footed, labels, -1), len(found))
+        merged_labels, merged = _dissolved(P[seg], seg_labels, found, keep, _sigma(config))
+        if len(merged) < len(found):  # one was dissolved
+            labels, footed = _labelled(P, trig, dh, seg, merged_labels, merged, rule.gate_m, loose, strict)
+            found = merged
+        keep = _seen(np.where(footed, labels, -1), len(found))
+        labels, found = _renumbered(labels, keep, len(found)), [found[k] for k in keep]
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
     return returns, labels, found
@@ -377,17 +389,42 @@ def _coincident_merged(Q: FloatArray, labels: NDArray[np.int64], found: list[pla
     return labels, merged
 
 
-def _with_enough_returns(labels: NDArray[np.int64], found: list[planes.ScenePlane],
-                         counted: NDArray[np.int64] | None = None
-                         ) -> tuple[NDArray[np.int64], list[planes.ScenePlane]]:
-    """The planes left with at least MIN_PLANE_RETURNS in ``counted`` (K,) (None: ``labels``; the others, mostly
-    grazing, dropped) and the labels (K,) renumbered."""
-    c = labels if counted is None else counted
-    counts = np.bincount(c[c >= 0], minlength=len(found))
-    keep = np.flatnonzero(counts >= MIN_PLANE_RETURNS)
-    remap = np.full(len(found), -1, dtype=np.int64)
+def _seen(counted: NDArray[np.int64], n_planes: int) -> NDArray[np.int64]:
+    """The planes (of ``n_planes``) with at least MIN_PLANE_RETURNS returns labelled theirs in ``counted`` (K,) (-1:
+    none): the others are mostly grazed, no surface the beams see."""
+    return np.flatnonzero(np.bincount(counted[counted >= 0], minlength=n_planes) >= MIN_PLANE_RETURNS)
+
+
+def _dissolved(Q: FloatArray, labels: NDArray[np.int64], found: list[planes.ScenePlane], keep: NDArray[np.int64],
+               sigma_m: float) -> tuple[NDArray[np.int64], list[planes.ScenePlane]]:
+    """The segmented points ``Q`` (S, 3), labelled ``labels`` (S,) with ``found``'s planes, with each plane not in
+    ``keep`` dissolved where its points lie on the kept planes as their own returns do (their median distance from
+    the nearest kept plane within the range noise ``sigma_m``; a plane's own returns: 0.67 sigma): each point joins
+    its nearest kept plane. The kept planes first, in order, then the planes not dissolved, whole."""
+    kept = [found[k] for k in keep]
+    if len(kept) == len(found):
+        return labels, found
+    out = _renumbered(labels, keep, len(found))
+    whole: list[planes.ScenePlane] = []
+    N = np.array([p.normal for p in kept]).reshape(-1, 3)
+    off = np.array([p.offset_m for p in kept])
+    for k in np.setdiff1d(np.arange(len(found)), keep):
+        mine = np.flatnonzero(labels == k)
+        dist = np.abs(Q[mine] @ N.T - off)
+        if kept and mine.size and np.median(dist.min(1)) <= sigma_m:
+            out[mine] = dist.argmin(1)
+        else:
+            out[mine] = len(kept) + len(whole)
+            whole.append(found[k])
+    return out, kept + whole
+
+
+def _renumbered(labels: NDArray[np.int64], keep: NDArray[np.int64], n_planes: int) -> NDArray[np.int64]:
+    """``labels`` (K,) of ``n_planes`` planes with only the planes ``keep`` (sorted indices) left, renumbered in
+    order; the others' returns -1."""
+    remap = np.full(n_planes + 1, -1, dtype=np.int64)
     remap[keep] = np.arange(keep.size)
-    return np.where(labels >= 0, remap[np.maximum(labels, 0)], -1), [found[k] for k in keep]
+    return remap[np.where(labels >= 0, labels, n_planes)]
 
 
 def scene_plane_returns(scans: Scans, joints: JointStates, sol: Solution, skip: NDArray[np.bool_],

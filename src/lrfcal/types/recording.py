@@ -187,6 +187,8 @@ class Nominal:
     """Design values the calibration starts from (nominal.yaml)."""
 
     dh: DH
+    #: the design DH values' 1-sigma (a, alpha, b, beta [m, rad]; the rig file's ``dh_tolerance``; None: not declared)
+    dh_tolerance: tuple[float, float, float, float] | None = None
     mount: Pose | None = None
     marker_radius_m: float = 0.005
     beam_divergence_rad: float = 0.0  # full angle: the footprint on a marker (lrfcal.model.sphere.footprint_depth)

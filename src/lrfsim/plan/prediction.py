@@ -164,7 +164,8 @@ def plan(scenario: Scenario, *, range_sigma_m: float | None = None, surfaces: bo
     """
     require_markers(scenario, "lrfsim plan", "predicts from the marker returns")
     t0 = time.perf_counter()
-    config = CalibConfig()
+    tol = scenario.rig.nominal_dh_tolerance  # the rig file's dh_tolerance, as the calibration reads it
+    config = CalibConfig(dh_tolerance=None if tol is None else (tol.a, tol.alpha, tol.b, tol.beta))
     cast = sparse_geometry(scenario) if geometry is None else geometry
     obs, markers_W, params, motor, tau, result = marker_observations(scenario, cast)
     sigma_r = scenario_range_sigma(scenario, obs.ranges_m) if range_sigma_m is None else float(range_sigma_m)

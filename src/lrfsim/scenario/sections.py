@@ -44,6 +44,15 @@ class DHConfig(Section):
         return DH(self.a, self.alpha, self.b, self.beta)
 
 
+class DHToleranceConfig(Section):
+    """The design DH values' 1-sigma, written to nominal.yaml as ``dh_tolerance`` (lrfcal.io.rig.DHToleranceModel)."""
+
+    a: Annotated[float, doc("a's 1-sigma [m]", gt=0, le=0.5)]
+    alpha: Annotated[float, doc("alpha's 1-sigma [rad] (not degrees)", gt=0, le=math.pi / 2)]
+    b: Annotated[float, doc("b's 1-sigma [m]", gt=0, le=0.5)]
+    beta: Annotated[float, doc("beta's 1-sigma [rad] (not degrees)", gt=0, le=math.pi / 2)]
+
+
 class PoseConfig(Section):
     """A pose: translation x, y, z [m], then R = Rz(yaw) Ry(pitch) Rx(roll) [rad] (as URDF)."""
 
@@ -79,6 +88,9 @@ class RigConfig(Section):
     mount: Annotated[PoseConfig, doc("true mount pose T_W_M of the motor frame M in W (ground truth)")]
     nominal_dh: Annotated[DHConfig, doc("design DH values written to nominal.yaml (the calibration's start)")]
     nominal_mount: Annotated[PoseConfig, doc("design mount pose written to nominal.yaml")]
+    nominal_dh_tolerance: Annotated[DHToleranceConfig | None, doc(
+        "the design DH values' 1-sigma written to nominal.yaml (none: left out, the calibration's default 10 mm and "
+        "5 deg; a drawn truth writes the spread it is drawn with)")] = None
     stand: Annotated[tuple[StandPartConfig, ...], doc(
         "the stand's parts, boxes fixed to the motor frame M that the laser sees (none by default: only the scene "
         "is seen)")] = ()

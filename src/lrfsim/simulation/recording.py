@@ -313,13 +313,15 @@ def nominal_yaml(scenario: Scenario, marker_radius_m: float | None, range_sigma_
     step``) is declared ``servo.motion: step``: every beam of a scan takes the angle at its scan's stamp. A scanner
     whose ranges wiggle along the scan (``sensor.systematic.beam_wiggle_m``, the URG-04LX's) is declared
     ``range_pattern: true``, as its user's rig file would (docs/real-data.md). The stand's parts (``rig.stand``) are
-    declared as ``self_boxes``, as built (their user has the drawing)."""
+    declared as ``self_boxes``, as built (their user has the drawing); the design DH values' 1-sigma
+    (``rig.nominal_dh_tolerance``) as ``dh_tolerance``."""
     rig = scenario.rig
     radius = {} if marker_radius_m is None else {"marker_radius_m": float(marker_radius_m),
                                                   "beam_divergence_rad": float(scenario.sensor.divergence_rad)}
     noise = {} if range_sigma_m is None else {"range_sigma_m": float(round(range_sigma_m, 9))}
     return _dump({
         "dh": rig.nominal_dh.to_dh().as_dict(),
+        **({"dh_tolerance": rig.nominal_dh_tolerance.model_dump()} if rig.nominal_dh_tolerance is not None else {}),
         "mount": rig.nominal_mount.to_pose().as_dict(),
         **radius,
         **noise,

@@ -3,7 +3,8 @@ for a servo-turned UTM-30LX-EW.
 
 * :func:`random_scenario`: the recovery suite's generator (tunnel, markers on walls, floor and ceiling, motor
   axis along the tunnel, alpha = -beta = +-90 deg);
-* :func:`random_scenario_wide`: a broader one (V on one or both walls, scattered markers, a board; either sign
+* :func:`random_scenario_wide`: a broader one (V on one or both walls, scattered markers, a board
+  (:mod:`lrfsim.testing.boards`: beside the rig, or, named, the one the motor axis points at); either sign
   of alpha and beta, beta 0 or +-90 deg; motor axis along, across or vertical; 1-4 passes; with ``alpha_kind``
   or ``broad=True`` also scan planes tilted 20-70 deg or near perpendicular to the motor axis, markers placed on
   their beams), with :func:`wide_dh_determined` (lrfsim.world.visibility, re-exported here) labelling whether a
@@ -23,8 +24,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from lrfcal.model.kinematics import Pose
 from lrfsim.scenario.file import Scenario, parse_scenario
+from lrfsim.testing.boards import board_beside, board_on_axis, perpendicular_basis, pose_dict
 from lrfsim.world.visibility import (
     HALF_FOV_RAD,
     VIS_MARGIN_RAD,
@@ -127,6 +128,9 @@ def _plain(x: object) -> object:
 
 #: layouts of :func:`random_scenario_wide`
 WIDE_LAYOUTS = ("v_one_wall", "v_both_walls", "scattered", "board")
+#: layouts it makes only when named (``layout=``), never drawn: the board the motor axis points at
+#: (lrfsim.testing.boards.board_on_axis), added after WIDE_LAYOUTS' seeds were in use
+NAMED_LAYOUTS = ("board_on_axis",)
 #: motor axis directions in W (the tunnel runs along x): along the tunnel, across it, vertical
 WIDE_AXES = {"along": (1.0, 0.0, 0.0), "across": (0.0, 1.0, 0.0), "vertical": (0.0, 0.0, 1.0)}
 #: nominal DH beta before its jitter: the front beam across the motor axis (0) or along it (+-90 deg)
@@ -170,7 +174,9 @@ def random_scenario_wide(
 
     * layout (WIDE_LAYOUTS): a V on one tunnel wall, a V on both walls, markers scattered on the walls, floor and
       ceiling, or a board beside the rig (no tunnel) extending ALONG the motor axis; 6-30 markers of radius
-      5-10 mm;
+      5-10 mm. That board leaves b undetermined (every marker at about one distance from the motor axis, b one
+      with the mount's turn about it: lrfsim.testing.boards); ``layout="board_on_axis"`` (NAMED_LAYOUTS, only when
+      named) is a board the motor axis points at, turned 40-65 deg from across it, which determines b;
     * DH: alpha = +-90 deg (either sign) and beta = 0 or +-90 deg, each +-3 deg; a in +-2 cm, |b| <= 4 cm with
       either sign;
     * motor axis (WIDE_AXES) along the tunnel, across it or vertical, either direction; the rotation about
@@ -196,16 +202,16 @@ def random_scenario_wide(
     rng = np.random.default_rng([seed, 0x77696465])  # "wide": a stream apart from random_scenario's
     layout = layout if layout is not None else str(rng.choice(WIDE_LAYOUTS))
     axis = axis if axis is not None else str(rng.choice(list(WIDE_AXES)))
-    if layout not in WIDE_LAYOUTS or axis not in WIDE_AXES:
-        raise ValueError(f"layout must be one of {WIDE_LAYOUTS}, axis one of {tuple(WIDE_AXES)}")
+    if layout not in WIDE_LAYOUTS + NAMED_LAYOUTS or axis not in WIDE_AXES:
+        raise ValueError(f"layout must be one of {WIDE_LAYOUTS + NAMED_LAYOUTS}, axis one of {tuple(WIDE_AXES)}")
     dh, beta0 = _wide_dh(rng, kind, beta_deg)
     radius = float(rng.uniform(0.005, 0.010))
     e_axis = np.array(WIDE_AXES[axis])
     scene: dict[str, object]
     markers: dict[str, object]
-    if layout == "board":
+    if layout in ("board", "board_on_axis"):
         origin = np.array([0.0, 0.0, 1.0]) + rng.uniform(-0.05, 0.05, 3)
-        scene, markers = _board_beside(rng, origin, e_axis, radius)
+        scene, markers = (board_beside if layout == "board" else board_on_axis)(rng, origin, e_axis, radius)
         positions = _board_centres(scene, markers, radius, seed)
     else:
         scene, origin = _tunnel_and_origin(rng)
@@ -253,7 +259,7 @@ def _wide_scenario(rng: np.random.Generator, seed: int, name: str, dh: dict[str,
     sections), with its nominal start and range noise drawn last."""
     T = np.eye(4)
     T[:3, :3], T[:3, 3] = R, origin
-    mount = _pose_dict(T)
+    mount = pose_dict(T)
     nominal_dh = {k: v + (rng.uniform(-0.003, 0.003) if k in ("a", "b") else math.radians(rng.uniform(-3, 3)))
                   for k, v in dh.items()}
     nominal_mount = {k: (math.remainder(v, 2 * math.pi) if k not in "xyz" else v)
@@ -357,42 +363,11 @@ def _v_points(rng: np.random.Generator, walls: list[str], per_arm: int, width: f
     return out
 
 
-def _perpendicular_basis(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Two unit vectors (3,) completing the unit vector e to a right-handed frame (p1, p2, e)."""
-    helper = np.array([0.0, 0.0, 1.0]) if abs(e[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    p1 = np.cross(helper, e)
-    p1 /= np.linalg.norm(p1)
-    return p1, np.cross(e, p1)
-
-
 def _axis_frame(z: np.ndarray, psi: float) -> np.ndarray:
-    """The rotation (3, 3) with z axis z (unit) and x axis at angle psi from _perpendicular_basis(z)'s first."""
-    p1, p2 = _perpendicular_basis(z)
+    """The rotation (3, 3) with z axis z (unit) and x axis at angle psi from perpendicular_basis(z)'s first."""
+    p1, p2 = perpendicular_basis(z)
     x = math.cos(psi) * p1 + math.sin(psi) * p2
     return np.column_stack([x, np.cross(z, x), z])
-
-
-def _board_beside(rng: np.random.Generator, origin: np.ndarray, e_axis: np.ndarray, radius: float
-                  ) -> tuple[dict[str, object], dict[str, object]]:
-    """A board beside the rig, its width along the motor axis (markers at many axial distances), facing the
-    rig: centre 0.3-1.0 m along the axis and 0.5-1.2 m off it, in a random direction."""
-    p1, p2 = _perpendicular_basis(e_axis)
-    ang = rng.uniform(0, 2 * math.pi)
-    n = math.cos(ang) * p1 + math.sin(ang) * p2  # from the axis towards the board
-    width, height = rng.uniform(0.9, 1.5), rng.uniform(0.6, 1.0)
-    centre = origin + rng.uniform(0.5, 1.2) * n + rng.uniform(0.3, 1.0) * float(rng.choice([-1, 1])) * e_axis
-    ex, ez = e_axis, -n  # board width along the axis, front face (local +z) towards the rig
-    R = np.column_stack([ex, np.cross(ez, ex), ez])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, centre
-    cols = int(rng.integers(3, 7))
-    rows = int(rng.integers(max(2, -(-6 // cols)), min(5, 30 // cols) + 1))
-    spacing = min(0.2, (width - 0.1) / (cols - 1), (height - 0.1) / max(rows - 1, 1))
-    scene = {"board": {"pose": _pose_dict(T), "width_m": width, "height_m": height,
-                       "thickness_m": 0.01}}
-    markers = {"radius_m": radius, "layout": {"kind": "board", "rows": rows, "cols": cols, "spacing_m": spacing,
-                                              "jitter_m": min(0.02, spacing / 4)}}
-    return scene, markers
 
 
 def _board_centres(scene: dict[str, object], markers: dict[str, object], radius: float, seed: int) -> np.ndarray:
@@ -425,17 +400,6 @@ def _best_mount_rotation(rng: np.random.Generator, positions: np.ndarray, origin
     return best[int(rng.integers(len(best)))]
 
 
-def _pose_dict(T: np.ndarray) -> dict[str, float]:
-    """x, y, z, roll, pitch, yaw of T (4, 4), also at the pitch = +-90 deg gimbal lock (then roll absorbs yaw)."""
-    pose = Pose.from_matrix(T).as_dict()
-    R = T[:3, :3]
-    if abs(R[2, 0]) > 1 - 1e-9:
-        s = -float(np.sign(R[2, 0]))  # sin(pitch)
-        pose.update(pitch=s * math.pi / 2, yaw=0.0, roll=math.atan2(s * R[0, 1], s * R[0, 2]))
-    assert np.allclose(Pose(**pose).matrix(), T, atol=1e-9), "rpy conversion"
-    return pose
-
-
 def _perturbed_mount(rng: np.random.Generator, mount: dict[str, float]) -> dict[str, float]:
     """A tape-measured nominal mount: the true one off by up to 3 cm and 3 deg per component."""
     return {k: v + (rng.uniform(-0.03, 0.03) if k in "xyz" else math.radians(rng.uniform(-3, 3)))
@@ -458,6 +422,7 @@ def detected_markers(result: SimResult, scenario: Scenario) -> set[int]:
     return {int(m) for m in np.unique(owner[owner >= 0])}
 
 
-__all__ = ["ALPHA_KINDS", "ALPHA_RANGES_DEG", "WIDE_AXES", "WIDE_BETAS_DEG", "WIDE_LAYOUTS", "WIDE_MIN_AXIAL_SPREAD_M",
-           "WIDE_SIGMA_LIMITS", "alpha_kind_of", "axial_spread_m", "broad_alpha_kind", "detected_markers",
-           "random_scenario", "random_scenario_wide", "visible_markers", "wide_dh_determined", "wide_dh_sigma"]
+__all__ = ["ALPHA_KINDS", "ALPHA_RANGES_DEG", "NAMED_LAYOUTS", "WIDE_AXES", "WIDE_BETAS_DEG", "WIDE_LAYOUTS",
+           "WIDE_MIN_AXIAL_SPREAD_M", "WIDE_SIGMA_LIMITS", "alpha_kind_of", "axial_spread_m", "broad_alpha_kind",
+           "detected_markers", "random_scenario", "random_scenario_wide", "visible_markers", "wide_dh_determined",
+           "wide_dh_sigma"]

@@ -17,8 +17,9 @@ trials.csv and counts in no RMS of error / sigma; no plan's prediction is made (
 
 Drawn truth (``truth_spread = s > 0``, ``--truth-spread S``): each trial's true DH (``rig.dh``) is drawn around the
 nominal DH, uniform in +-s times :data:`TRUTH_HALF_WIDTH` (s = 1: a, b +-5 mm, alpha, beta +-1.5 deg), from the trial's
-seed alone (lrfsim.trials.variants.drawn_truth); every trial then builds its scene and casts its rays (the true DH is in
-the scene's model).
+seed alone (lrfsim.trials.variants.drawn_truth), and the trial's nominal.yaml declares that spread as the nominal's
+1-sigma (``dh_tolerance``: the half width / sqrt 3); every trial then builds its scene and casts its rays (the true DH
+is in the scene's model).
 
 Perturbed start (``perturb_start = s > 0``, ``--perturb-start S``): each trial's nominal values (the scenario's
 ``rig.nominal_dh`` and ``rig.nominal_mount``, written to the trial's nominal.yaml, where the calibration starts)

@@ -176,7 +176,7 @@ def summary_markdown(s: Study) -> str:
         h = {k: s.truth_spread * v for k, v in TRUTH_HALF_WIDTH.items()}
         lines += [f"Drawn truth (scale {s.truth_spread:g}): each trial's true DH drawn around the nominal, uniform in "
                   f"+-{h['a'] * 1000:g} mm (a, b) and +-{math.degrees(h['alpha']):g} deg (alpha, beta), from the "
-                  "trial's seed.", ""]
+                  "trial's seed; its nominal.yaml declares that spread (dh_tolerance: the half width / sqrt 3).", ""]
     if s.perturb_start > 0:
         h = {k: s.perturb_start * v for k, v in PERTURB_HALF_WIDTH.items()}
         lines += [f"Perturbed start (scale {s.perturb_start:g}): each trial's nominal values moved by uniform draws "

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 
 from lrfcal.errors import InputError
 from lrfsim.scenario.file import Scenario, parse_scenario
-from lrfsim.scenario.sections import DHConfig, PoseConfig
+from lrfsim.scenario.sections import DHConfig, DHToleranceConfig, PoseConfig
 
 #: --perturb-start 1: half-widths of the uniform perturbation of each nominal value (SI units: m, rad)
 PERTURB_HALF_WIDTH: dict[str, float] = {
@@ -94,8 +94,10 @@ def perturbed_start(scenario: Scenario, seed: int, scale: float) -> Scenario:
 
 def drawn_truth(scenario: Scenario, seed: int, scale: float) -> Scenario:
     """The scenario with its true DH (``rig.dh``) drawn around its nominal DH (``rig.nominal_dh``), each parameter
-    uniform in +-``scale`` x :data:`TRUTH_HALF_WIDTH`, from ``seed`` alone (a stream of its own); the mount and the
-    nominal values unchanged. ``scale`` = 0 returns ``scenario``.
+    uniform in +-``scale`` x :data:`TRUTH_HALF_WIDTH`, from ``seed`` alone (a stream of its own), and the nominal's
+    1-sigma (``rig.nominal_dh_tolerance``, the rig file's ``dh_tolerance``) that spread's: the calibration is told
+    how well the drawing knows the rig, as its user would be. The mount and the nominal values unchanged.
+    ``scale`` = 0 returns ``scenario``.
 
     Raises:
         InputError: a negative or non-finite scale.
@@ -107,7 +109,10 @@ def drawn_truth(scenario: Scenario, seed: int, scale: float) -> Scenario:
     dh = {k: float(nominal[k] + scale * w * u[i]) for i, (k, w) in enumerate(TRUTH_HALF_WIDTH.items())}
     for k in ("alpha", "beta"):
         dh[k] = math.remainder(dh[k], 2 * math.pi)
-    return scenario.model_copy(update={"rig": scenario.rig.model_copy(update={"dh": DHConfig(**dh)})})
+    # the drawing's +-scale x half width, the truth uniform within: its 1-sigma (JCGM 100:2008 4.3.7)
+    tolerance = DHToleranceConfig(**{k: scale * w / math.sqrt(3.0) for k, w in TRUTH_HALF_WIDTH.items()})
+    return scenario.model_copy(update={"rig": scenario.rig.model_copy(
+        update={"dh": DHConfig(**dh), "nominal_dh_tolerance": tolerance})})
 
 
 def _uniform(seed: int, stream: int, scale: float, n: int, option: str) -> NDArray[np.float64] | None:
