@@ -56,7 +56,7 @@ class CalibConfig(BaseModel):
     #: residuals more than 2x the stated noise: the model does not explain the data
     max_reduced_chi2: float = Field(4.0, gt=0.0)
     second_opinion_p: float = Field(1e-3, gt=0.0, lt=1.0)  # false-alarm rate of the second-opinion test
-    #: the design-drawing (nominal) DH values' 1-sigma (a, b [m], alpha, beta [rad]); None: the rig file's
+    #: the design-drawing (nominal) DH values' 1-sigma (a, alpha, b, beta [m, rad]); None: the rig file's
     #: ``dh_tolerance``, else DEFAULT_NOMINAL_TOLERANCE (lrfcal.pipeline.calibrate resolves it). Read as
     #: :attr:`nominal_tolerance`; see there for its uses
     dh_tolerance: tuple[PositiveFloat, PositiveFloat, PositiveFloat, PositiveFloat] | None = None
