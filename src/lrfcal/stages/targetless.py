@@ -295,10 +295,10 @@ def plane_returns_at(beams: Beams, seg: NDArray[np.int64], motor: MotorClock, dh
         # the labelling, and its returns are left out
         keep = _seen(np.where(footed, labels, -1), len(found))
         merged_labels, merged = _dissolved(P[seg], seg_labels, found, keep, _sigma(config))
-        if len(merged) < len(found):  # one was dissolved
+        if len(merged) < len(found):  # one was dissolved: labelled again, and judged again
             labels, footed = _labelled(P, trig, dh, seg, merged_labels, merged, rule.gate_m, loose, strict)
             found = merged
-        keep = _seen(np.where(footed, labels, -1), len(found))
+            keep = _seen(np.where(footed, labels, -1), len(found))
         labels, found = _renumbered(labels, keep, len(found)), [found[k] for k in keep]
     returns = planes.plane_returns(labels, found, beams.scan, beams.beam, lam, beams.mu_rad, beams.ranges_m,
                                    beams.times_s)
