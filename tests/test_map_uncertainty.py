@@ -72,7 +72,10 @@ def test_map_sensitivity_is_the_solutions_response(data: tuple) -> None:
     step[[7, 9]] = wrap_pi(step[[7, 9]])
     dh = [ESTIMATE_NAMES.index(p) for p in ("a", "alpha", "b", "beta")]
     predicted = (G @ dc.ravel())[dh]
-    assert np.all(np.abs(step[dh] - predicted) < 0.05 * np.abs(predicted).max() + 1e-7)
+    # within 15 %: the marker returns' lateral means (lrfcal.model.coverage) leave the sphere's range rows, which bend
+    # near the rim, more of the weight (10 % here at this dc, 4 % with each return's own offset; a wrong G is off by
+    # its own size)
+    assert np.all(np.abs(step[dh] - predicted) < 0.15 * np.abs(predicted).max() + 1e-7)
     assert np.abs(predicted).max() > 3 * np.sqrt(np.diag(exact.covariance)[dh]).min() * 0.01
 
 

@@ -272,11 +272,11 @@ def test_spinning_rig_whose_least_squares_zig_zags_converges(recording_of: Calla
 
 
 def test_a_crossing_that_turns_on_its_marker_is_found() -> None:
-    """lrfcal.model.marker._turning on synthetic lines (h: the centre's distance from the scan plane): a sweep
+    """lrfcal.model.coverage.turning on synthetic lines (h: the centre's distance from the scan plane): a sweep
     through the marker is not flagged; one that turns on it (from -0.9 R up to +0.9 R and back, as at the edge of the
     band a tilted spinning plane sweeps) crowds its lines about the turning point and is; two passes through, a
     second apart, are judged each on its own."""
-    from lrfcal.model.marker import _turning
+    from lrfcal.model.coverage import turning as _turning
 
     R = 0.005
     t = np.arange(20) * 0.025  # one line per scan, 25 ms apart
@@ -318,9 +318,9 @@ def test_tilted_spin_turning_crossings_widen_the_sigma() -> None:
 
 
 def test_crossing_ids_split_a_markers_lines_at_the_sweep_gaps() -> None:
-    """lrfcal.model.marker.crossing_ids: a marker's returns in successive scan lines (25 ms apart) are one crossing;
+    """lrfcal.model.coverage.crossing_ids: a marker's returns in successive scan lines (25 ms apart) are one crossing;
     more than CROSSING_GAP_S later, or another marker, another crossing; the order of the returns does not matter."""
-    from lrfcal.model.marker import CROSSING_GAP_S, crossing_ids
+    from lrfcal.model.coverage import CROSSING_GAP_S, crossing_ids
 
     times = np.array([0.0, 0.025, 0.05, 0.05 + 2 * CROSSING_GAP_S, 0.0, 0.025])
     marker = np.array([0, 0, 0, 0, 1, 1])

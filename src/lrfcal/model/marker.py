@@ -11,9 +11,12 @@ marker_range_bias + incidence_bias theta, lrfcal.model.scanner):
       r_hat = t - R_m s(u),   s(u) = sqrt(eta softplus((1 - u^2) / eta))   (eta = 0.05, lrfcal.model.sphere)
   s(u) ~ sqrt(1 - u^2) (the depth of the sphere's surface below the centre plane) for u < ~0.97, and is
   smooth with bounded slope near and beyond the rim (s -> 0: a grazing or mixed-pixel return reports the
-  rim). Residuals: (r - rep(r_hat)) / sigma_r and e / sigma_lat (3 components, one of them identically zero along
-  d, hence 3 independent residuals per return), sigma_lat = R_m / 2 (hits spread uniformly over the visible
-  disc: E|e|^2 = R_m^2 / 2).
+  rim). Residuals: (r - rep(r_hat)) / sigma_r per return, and the lateral offset e / sigma_lat, sigma_lat = R_m / 2
+  (a return's offset spreads over the visible disc: E|e|^2 = R_m^2 / 2), of which the calibration keeps the means
+  that locate the centre (lrfcal.model.coverage.centred): its part across the scan plane as one mean per crossing
+  of the sweep, its part along the scan line as one mean per line (the spread of the offsets is the disc's width,
+  covered by the beams and the sweep: taken as noise, it pulled the motor's angle scale 6 sigma on a board the motor
+  axis points at). The robust pass judges each return by its own offset (MarkerSet.chi).
   With a finite beam (divergence delta > 0) the footprint at the marker is a disc of radius k R_m,
   k = r delta / (2 R_m) from the measured range r, and a retroreflector outshines whatever else it covers: s(u)
   becomes S(u, k), the mean of s over the part of the footprint that hits the sphere (footprint_depth), and
@@ -29,23 +32,26 @@ Jacobian (chain rule from lrfcal.model.rays' o_j, d_j):
     sphere: v_j = -o_j; t_j = v_j.d + v.d_j; e_j = v_j - t_j d - t d_j; |e|_j = (e/|e|).e_j;
       r_hat_j = t_j - s'(u) |e|_j;  range residual_j = -(range_scale r_hat_j + incidence_bias theta'(u) |e|_j / R_m
       + drep/dtheta_j) / sigma_r;
-      lateral_j = e_j / sigma_lat.
+      lateral_j = e_j / sigma_lat, then the same means as the residual's.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from lrfcal.model.kinematics import Params, exp_so3, points_M, transform_points
-from lrfcal.model.motor import MotorClock, motor_angles
+from lrfcal.model.coverage import Coverage, crossing_ids, turning
+from lrfcal.model.coverage import centred as centred_rows
+from lrfcal.model.kinematics import Params, points_M, transform_points
+from lrfcal.model.motor import MotorAngles, MotorClock, motor_angles
 from lrfcal.model.observations import Blocks, MarkerModel, MarkerSensor, RowContext, robust_kept
 from lrfcal.model.rays import beam_rays
 from lrfcal.model.scanner import reported_range, true_range
 from lrfcal.model.sphere import footprint_depth, footprint_incidence
-from lrfcal.model.unknowns import DH_SLICE, INC, N_CORE, RSCALE
+from lrfcal.model.unknowns import INC, N_CORE, RSCALE
 
 FloatArray = NDArray[np.float64]
 
@@ -93,6 +99,10 @@ class MarkerSet:
     #: (:func:`crossings`; lrfcal.stages.markers widens the covariance by the DH difference it makes)
     in_plane_at_turns: bool = False
     scan: NDArray[np.int64] | None = None  # (K,) each return's scan (the covariance's clusters without times)
+    #: (K, 2, 3) the scan plane's unit normal and the unit direction in it across each ray (in W), at the estimate
+    #: the set was chosen at (:meth:`chosen_at`): the directions the lateral residual's means are taken along
+    #: (lrfcal.model.coverage.centred), data like ``lateral`` (None: not chosen yet, each return's own offset)
+    axes: FloatArray | None = None
 
     @property
     def model(self) -> MarkerModel:
@@ -133,24 +143,58 @@ class MarkerSet:
                        marker=None if self.marker is None else self.marker[m],
                        scan=None if self.scan is None else self.scan[m],
                        lateral=None if self.lateral is None else self.lateral[m],
-                       across=None if self.across is None else self.across[m])
+                       across=None if self.across is None else self.across[m],
+                       axes=None if self.axes is None else self.axes[m])
 
     @property
     def n_independent(self) -> int:
-        """Independent residuals: 3 per return (the paper's model, or the sphere's range and 2 lateral), 2 per
-        sphere return whose lateral residual keeps only its part in the scan plane, 1 per sphere return whose
-        lateral residual is not used."""
+        """Independent residuals: 3 per return for the paper's model; for the sphere, 1 per return (its range),
+        plus, where the lateral residual is used, 1 per scan line (its in-plane mean) and 1 per crossing (its mean
+        across the scan plane, unless only the in-plane part is kept) (:meth:`dof`)."""
         if self.model == "paper":
             return 3 * self.r.size
-        return int(self.dof().sum())
+        return round(float(self.dof().sum()))
 
-    def dof(self) -> FloatArray:
-        """(K,) independent residuals of each return (:attr:`n_independent`)."""
+    @cached_property
+    def coverage(self) -> Coverage | None:
+        """The returns' scan lines and crossings (lrfcal.model.coverage), whose means the sphere's lateral residual
+        keeps; None for the paper's model, or without the returns' markers and times, or where neither their scans
+        nor their times tell lines apart (returns made up without a scan: each return's own offset)."""
+        if self.model != MarkerModel.SPHERE or self.marker is None or self.times is None or not self.r.size:
+            return None
+        if np.ptp(self.times) == 0 and (self.scan is None or np.ptp(self.scan) == 0):
+            return None
+        return Coverage.of(self.marker, self.times, self.scan)
+
+    def return_dof(self) -> FloatArray:
+        """(K,) independent residuals of each return's own rows (``marker_rows(..., centred=False)``): 3 (the
+        paper's, or the sphere's range and 2 lateral), 2 where the lateral residual keeps only its in-plane part, 1
+        where it is not used."""
         if self.model == "paper":
             return np.full(self.r.size, 3.0)
-        lateral = np.ones(self.r.size, bool) if self.lateral is None else self.lateral
-        in_plane = np.zeros(self.r.size, bool) if self.across is None else np.any(self.across != 0.0, axis=1)
-        return np.where(lateral, np.where(in_plane, 2.0, 3.0), 1.0)
+        return np.where(self._lateral, np.where(self._in_plane_only, 2.0, 3.0), 1.0)
+
+    @property
+    def centring(self) -> Coverage | None:
+        """The coverage whose means the lateral rows keep (:attr:`coverage`), once the set is chosen at an estimate
+        (:meth:`chosen_at`: ``axes``); None before (each return's own offset)."""
+        return None if self.axes is None else self.coverage
+
+    def dof(self) -> FloatArray:
+        """(K,) independent residuals of each return (:attr:`n_independent`): :meth:`return_dof`, but where the
+        lateral residual keeps its lines' and crossings' means (:attr:`centring`), the return's share of them."""
+        cov = self.centring
+        if cov is None:
+            return self.return_dof()
+        return 1.0 + np.where(self._lateral, cov.lateral_dof(~self._in_plane_only), 0.0)
+
+    @property
+    def _lateral(self) -> NDArray[np.bool_]:
+        return np.ones(self.r.size, bool) if self.lateral is None else self.lateral
+
+    @property
+    def _in_plane_only(self) -> NDArray[np.bool_]:
+        return np.zeros(self.r.size, bool) if self.across is None else np.any(self.across != 0.0, axis=1)
 
     # -- the observation set (lrfcal.model.observations.ObservationSet) --
 
@@ -179,10 +223,12 @@ class MarkerSet:
         return Blocks.dense(res.ravel(), None if J is None else J.reshape(-1, N_CORE))
 
     def chi(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> FloatArray:
-        """(K,) each return's whitened residual norm over the square root of its independent components
-        (:meth:`dof`)."""
-        res, _ = marker_rows(th, self, ctx.sigma_r, R_ref, jac=False, clock=ctx.clock, mount_jac=ctx.mount_jac)
-        return np.sqrt((res**2).sum(1) / self.dof())
+        """(K,) each return's whitened residual norm over the square root of its independent components: its own
+        offset from its marker, not its lines' means (:meth:`return_dof`): a return far off its marker is judged
+        by where it is."""
+        res, _ = marker_rows(th, self, ctx.sigma_r, R_ref, jac=False, clock=ctx.clock, mount_jac=ctx.mount_jac,
+                             centred=False)
+        return np.sqrt((res**2).sum(1) / self.return_dof())
 
     def kept(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext, keep: NDArray[np.bool_]
              ) -> NDArray[np.bool_]:
@@ -193,20 +239,26 @@ class MarkerSet:
     def chosen_at(self, th: FloatArray, R_ref: FloatArray, ctx: RowContext) -> MarkerSet:
         """The set with the lateral residuals of the markers the scan plane crosses on one side only left out,
         and in the model variant ``in_plane_at_turns`` only their in-plane part in crossings that turn on their
-        marker (:func:`crossings`, at th)."""
+        marker (:func:`crossings`, at th); and the directions its lateral means are taken along (``axes``, at th)."""
         turns = self.in_plane_at_turns
         lateral, across = crossings(th, self, R_ref, ctx.clock, turns=turns)
-        return replace(self, lateral=lateral, across=across if turns else None)
+        axes = None
+        if self.coverage is not None:
+            motor = motor_angles(th, self.lam, self.times, ctx.clock)
+            axes = np.stack(_plane_axes(th, R_ref, motor, self.mu)[1:], 1)
+        return replace(self, lateral=lateral, across=across if turns else None, axes=axes)
 
     def clusters(self, first: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
         """Each dense row's cluster: its return's crossing (the marker's successive scan lines,
-        :func:`crossing_ids`, numbered from ``first``): a crossing's lines share where they fall on the marker, so
-        they count as one sample, not one each; without the returns' times, each scan's returns are one cluster."""
+        lrfcal.model.coverage.crossing_ids, numbered from ``first``): a crossing's lines share where they fall on
+        the marker, so they count as one sample, not one each; without the returns' times, each scan's returns are
+        one cluster."""
         if self.times is None or self.marker is None:
             assert self.scan is not None, "the covariance's clusters need the returns' times or scans"
             base = self.scan
         else:
-            base = first + crossing_ids(self.marker, self.times)
+            cov = self.coverage
+            base = first + (cov.crossing if cov is not None else crossing_ids(self.marker, self.times))
         return np.repeat(base, self.n_res), np.zeros(0, dtype=np.int64)
 
     def groups(self) -> NDArray[np.int64] | None:
@@ -215,10 +267,12 @@ class MarkerSet:
 
 
 def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray, *, jac: bool = True,
-                clock: MotorClock | None = None, mount_jac: bool = True, chart: FloatArray | None = None
-                ) -> tuple[FloatArray, FloatArray | None]:
+                clock: MotorClock | None = None, mount_jac: bool = True, chart: FloatArray | None = None,
+                centred: bool = True) -> tuple[FloatArray, FloatArray | None]:
     """Whitened residuals (K, n_res) and their Jacobian (K, n_res, N_CORE) (None when jac is False) at th;
-    ``chart``: what the scan-plane columns are derivatives by (lrfcal.model.rays.beam_rays)."""
+    ``chart``: what the scan-plane columns are derivatives by (lrfcal.model.rays.beam_rays). The sphere's lateral
+    rows keep their lines' and crossings' means (lrfcal.model.coverage.centred, where the set has its returns'
+    markers and times); ``centred=False``: each return's own offset (the robust pass judges a return by it)."""
     motor = motor_angles(th, ms.lam, ms.times, clock)
     o, d, Jo, Jd = beam_rays(th, R_ref, motor, ms.mu, jac=jac, mount_jac=mount_jac, chart=chart)
     if ms.model == "paper":  # the return point: the true range of the reported one
@@ -245,6 +299,10 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
         res[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
         res[:, 1:] = _in_plane(res[:, 1:], ms.across)
+    cov = ms.centring if centred else None
+    if cov is not None and ms.axes is not None:
+        n, along = ms.axes[:, 0], ms.axes[:, 1]
+        res[:, 1:] = centred_rows(res[:, 1:], n, along, cov)
     if Jo is None or Jd is None:
         return res, None
     Jv = -Jo
@@ -262,7 +320,21 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
         J[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
         J[:, 1:] = _in_plane(J[:, 1:], ms.across)
+    if cov is not None and ms.axes is not None:
+        J[:, 1:] = centred_rows(J[:, 1:], ms.axes[:, 0], ms.axes[:, 1], cov)
     return res, J
+
+
+def _plane_axes(th: FloatArray, R_ref: FloatArray, motor: MotorAngles, mu: FloatArray
+                ) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The rays' origins (K, 3), the scan plane's unit normal (K, 3, the scanner's z axis) and the unit direction in
+    it across each ray (K, 3), in W: the normal from the ray and the one a quarter turn further in the scan
+    (lrfcal.model.rays.beam_rays)."""
+    o, d, _, _ = beam_rays(th, R_ref, motor, mu, jac=False)
+    _, d2, _, _ = beam_rays(th, R_ref, motor, mu + 0.5 * np.pi, jac=False)
+    c = np.cross(d, d2)
+    n = c / np.linalg.norm(c, axis=1)[:, None]
+    return o, n, np.cross(n, d)
 
 
 def _in_plane(lateral: FloatArray, across: FloatArray) -> FloatArray:
@@ -298,6 +370,8 @@ def centre_jacobian(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatA
         Jc[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
         Jc[:, 1:] = _in_plane(Jc[:, 1:], ms.across)
+    if ms.centring is not None and ms.axes is not None:  # the rows' means (marker_rows): each group one marker's
+        Jc[:, 1:] = centred_rows(Jc[:, 1:], ms.axes[:, 0], ms.axes[:, 1], ms.centring)
     return Jc
 
 
@@ -312,8 +386,8 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
               turns: bool = True) -> tuple[NDArray[np.bool_], FloatArray]:
     """Which part of each return's lateral residual is used: (K,) whether its marker is crossed by the scan plane on
     both sides of its centre (else none of it), and (K, 3) the scan plane's unit normal where only its part in
-    the scan plane is (a crossing that turns on its marker, :func:`_turning`), 0 elsewhere (everywhere when not
-    ``turns``: only the first part is wanted).
+    the scan plane is (a crossing that turns on its marker, lrfcal.model.coverage.turning), 0 elsewhere (everywhere
+    when not ``turns``: only the first part is wanted).
 
     A return's lateral residual says "the marker's centre is on my ray, give or take a filled disc": unbiased
     when the scan lines that hit the marker pass on both sides of its centre. A marker the scan plane only grazes
@@ -324,12 +398,7 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
     if ms.model != MarkerModel.SPHERE or ms.marker is None or ms.r.size == 0:
         return np.ones(ms.r.size, dtype=bool), np.zeros((ms.r.size, 3))
     motor = motor_angles(th, ms.lam, ms.times, clock)
-    o, _, _, _ = beam_rays(th, R_ref, motor, ms.mu, jac=False)
-    al = th[DH_SLICE][1]
-    cl, sl = np.cos(motor.lam), np.sin(motor.lam)
-    z_M = np.stack([sl * np.sin(al), -cl * np.sin(al), np.full_like(cl, np.cos(al))], -1)  # Rz(lam) [0, -sa, ca]
-    R = R_ref @ exp_so3(th[3:6])
-    n = z_M @ R.T
+    o, n, _ = _plane_axes(th, R_ref, motor, ms.mu)
     h = ((ms.c - o) * n).sum(1)
     side = np.sign(h)
     lo = np.full(int(ms.marker.max()) + 1, 2.0)
@@ -337,63 +406,9 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
     np.minimum.at(lo, ms.marker, side)
     np.maximum.at(hi, ms.marker, side)
     both = (lo < 0)[ms.marker] & (hi > 0)[ms.marker]
-    turning = (_turning(h, ms.marker, ms.times, ms.radius) if turns and ms.times is not None
-               else np.zeros(h.size, bool))
-    return both, np.where(turning[:, None], n, 0.0)
-
-
-#: returns of one marker closer in time than this belong to one scan line [s] (a line crosses a marker in a few
-#: beams, 17 us apart on the UTM-30LX; scans are 25 ms apart)
-LINE_GAP_S = 0.005
-#: lines of one marker further apart in time than this belong to different crossings of the sweep [s]
-CROSSING_GAP_S = 0.5
-#: how far beyond its first and last line a crossing's lines must reach, in marker radii, to count as turning
-TURN_EXCURSION = 0.25
-
-
-def crossing_ids(marker: NDArray[np.int64], times: FloatArray) -> NDArray[np.int64]:
-    """(K,) the crossing of each return: its marker's successive scan lines, a new crossing where the lines of one
-    marker are more than CROSSING_GAP_S apart."""
-    order = np.lexsort((times, marker))
-    m, t = marker[order], times[order]
-    new = np.r_[True, (m[1:] != m[:-1]) | (np.diff(t) > CROSSING_GAP_S)]
-    out = np.empty(marker.size, dtype=np.int64)
-    out[order] = np.cumsum(new) - 1
-    return out
-
-
-def _turning(h: FloatArray, marker: NDArray[np.int64], times: FloatArray, radius: float) -> NDArray[np.bool_]:
-    """(K,) whether each return belongs to a crossing in which the scan plane turns back on its marker.
-
-    ``h`` (K,): the centre's distance from the scan plane at each return. The lines of one crossing (successive
-    scan lines on one marker) move across it monotonically where the sweep goes through, at the sweep's speed:
-    uniformly over the disc. Where the sweep turns on the marker (the end of a nodding sweep, or the edge of the
-    band a tilted spinning plane sweeps, where a marker's distance from the plane passes its extremum), the lines
-    crowd about the turning point and their mean is off the centre towards it: every such marker pulls the scan
-    plane's tilt the same way. A crossing turns when its lines reach TURN_EXCURSION radii beyond both its first and
-    its last line on one side."""
-    out = np.zeros(h.size, dtype=bool)
-    order = np.lexsort((times, marker))
-    m, t, hh = marker[order], times[order], h[order]
-    new_line = np.r_[True, (m[1:] != m[:-1]) | (np.diff(t) > LINE_GAP_S)]
-    line = np.cumsum(new_line) - 1
-    n_lines = int(line[-1]) + 1 if line.size else 0
-    h_line = np.bincount(line, hh, n_lines) / np.bincount(line, minlength=n_lines)
-    t_line = np.bincount(line, t, n_lines) / np.bincount(line, minlength=n_lines)
-    m_line = m[new_line]
-    new_crossing = np.r_[True, (m_line[1:] != m_line[:-1]) | (np.diff(t_line) > CROSSING_GAP_S)]
-    crossing = np.cumsum(new_crossing) - 1
-    n_cross = int(crossing[-1]) + 1 if crossing.size else 0
-    first = h_line[new_crossing]
-    last = h_line[np.r_[new_crossing[1:], True]]
-    top = np.full(n_cross, -np.inf)
-    bottom = np.full(n_cross, np.inf)
-    np.maximum.at(top, crossing, h_line)
-    np.minimum.at(bottom, crossing, h_line)
-    tol = TURN_EXCURSION * radius
-    turns = (top > np.maximum(first, last) + tol) | (bottom < np.minimum(first, last) - tol)
-    out[order] = turns[crossing[line]]
-    return out
+    turns_on = (turning(h, ms.marker, ms.times, ms.radius) if turns and ms.times is not None
+                else np.zeros(h.size, bool))
+    return both, np.where(turns_on[:, None], n, 0.0)
 
 
 def residuals_3d(params: Params, ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, centres_W: ArrayLike,
