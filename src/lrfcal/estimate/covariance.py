@@ -129,7 +129,10 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
                    ) / np.outer(col, col)
         ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane, normal.pattern)
         scores = scores if live.all() else scores[:, live]
-        cov = inflate_for_correlation(s2 * JtJ_inv, scores, JtJ_inv)
+        # the stated noise is the floor of the statistical part: a reduced chi-square below 1 says some rows' stated
+        # sigma is conservative (the marker returns' lateral means, lrfcal.model.coverage: 0.38 on a rig whose
+        # lines hold one or two beams), not that the range noise is smaller than the rig file states
+        cov = inflate_for_correlation(max(s2, 1.0) * JtJ_inv, scores, JtJ_inv)
         V = JtJ_inv[np.ix_(core_pos, core_pos)]
         spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan),
                         plane_pulls(b, normal, core, V, max(s2, 1.0), core_names))
