@@ -175,17 +175,19 @@ class MarkerSet:
         return np.where(self._lateral, np.where(self._in_plane_only, 2.0, 3.0), 1.0)
 
     @property
-    def centring(self) -> Coverage | None:
-        """The coverage whose means the lateral rows keep (:attr:`coverage`), once the set is chosen at an estimate
-        (:meth:`chosen_at`: ``axes``); None before (each return's own offset)."""
-        return None if self.axes is None else self.coverage
+    def centring(self) -> tuple[Coverage, FloatArray] | None:
+        """The coverage whose means the lateral rows keep (:attr:`coverage`) and the directions they are taken along
+        (``axes``), once the set is chosen at an estimate (:meth:`chosen_at`); None before (each return's own
+        offset)."""
+        cov = self.coverage
+        return None if self.axes is None or cov is None else (cov, self.axes)
 
     def dof(self) -> FloatArray:
         """(K,) independent residuals of each return (:attr:`n_independent`): :meth:`return_dof`, but where the
         lateral residual keeps its lines' and crossings' means (:attr:`centring`), the return's share of them."""
-        cov = self.centring
-        if cov is None:
+        if self.centring is None:
             return self.return_dof()
+        cov = self.centring[0]
         return 1.0 + np.where(self._lateral, cov.lateral_dof(~self._in_plane_only), 0.0)
 
     @property
@@ -241,11 +243,7 @@ class MarkerSet:
         and in the model variant ``in_plane_at_turns`` only their in-plane part in crossings that turn on their
         marker (:func:`crossings`, at th); and the directions its lateral means are taken along (``axes``, at th)."""
         turns = self.in_plane_at_turns
-        lateral, across = crossings(th, self, R_ref, ctx.clock, turns=turns)
-        axes = None
-        if self.coverage is not None:
-            motor = motor_angles(th, self.lam, self.times, ctx.clock)
-            axes = np.stack(_plane_axes(th, R_ref, motor, self.mu)[1:], 1)
+        lateral, across, axes = _chosen(th, self, R_ref, ctx.clock, turns)
         return replace(self, lateral=lateral, across=across if turns else None, axes=axes)
 
     def clusters(self, first: int) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
@@ -299,10 +297,10 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
         res[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
         res[:, 1:] = _in_plane(res[:, 1:], ms.across)
-    cov = ms.centring if centred else None
-    if cov is not None and ms.axes is not None:
-        n, along = ms.axes[:, 0], ms.axes[:, 1]
-        res[:, 1:] = centred_rows(res[:, 1:], n, along, cov)
+    centring = ms.centring if centred else None
+    if centring is not None:
+        cov, axes = centring
+        res[:, 1:] = centred_rows(res[:, 1:], axes[:, 0], axes[:, 1], cov)
     if Jo is None or Jd is None:
         return res, None
     Jv = -Jo
@@ -320,8 +318,8 @@ def marker_rows(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatArray
         J[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
         J[:, 1:] = _in_plane(J[:, 1:], ms.across)
-    if cov is not None and ms.axes is not None:
-        J[:, 1:] = centred_rows(J[:, 1:], ms.axes[:, 0], ms.axes[:, 1], cov)
+    if centring is not None:
+        J[:, 1:] = centred_rows(J[:, 1:], axes[:, 0], axes[:, 1], cov)
     return res, J
 
 
@@ -370,8 +368,9 @@ def centre_jacobian(th: FloatArray, ms: MarkerSet, sigma_r: float, R_ref: FloatA
         Jc[~ms.lateral, 1:] = 0.0
     if ms.across is not None:
         Jc[:, 1:] = _in_plane(Jc[:, 1:], ms.across)
-    if ms.centring is not None and ms.axes is not None:  # the rows' means (marker_rows): each group one marker's
-        Jc[:, 1:] = centred_rows(Jc[:, 1:], ms.axes[:, 0], ms.axes[:, 1], ms.centring)
+    if ms.centring is not None:  # the rows' means (marker_rows): each group is one marker's
+        cov, axes = ms.centring
+        Jc[:, 1:] = centred_rows(Jc[:, 1:], axes[:, 0], axes[:, 1], cov)
     return Jc
 
 
@@ -395,10 +394,17 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
     lateral offsets is not its centre: a spinning scan plane tilted 28 deg came back 4 sigma off in alpha that way.
     Its returns keep their range residual; their lateral one is dropped (MarkerSet.lateral). The side of a return
     is the sign of the centre's distance from the scan plane, (c - o) . z_L, z_L the scanner's axis in W."""
+    return _chosen(th, ms, R_ref, clock, turns)[:2]
+
+
+def _chosen(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorClock | None, turns: bool
+            ) -> tuple[NDArray[np.bool_], FloatArray, FloatArray | None]:
+    """:func:`crossings`' two parts and the directions the set's lateral means are taken along (MarkerSet.axes;
+    None without its coverage), from one evaluation of the rays."""
     if ms.model != MarkerModel.SPHERE or ms.marker is None or ms.r.size == 0:
-        return np.ones(ms.r.size, dtype=bool), np.zeros((ms.r.size, 3))
+        return np.ones(ms.r.size, dtype=bool), np.zeros((ms.r.size, 3)), None
     motor = motor_angles(th, ms.lam, ms.times, clock)
-    o, n, _ = _plane_axes(th, R_ref, motor, ms.mu)
+    o, n, along = _plane_axes(th, R_ref, motor, ms.mu)
     h = ((ms.c - o) * n).sum(1)
     side = np.sign(h)
     lo = np.full(int(ms.marker.max()) + 1, 2.0)
@@ -408,7 +414,8 @@ def crossings(th: FloatArray, ms: MarkerSet, R_ref: FloatArray, clock: MotorCloc
     both = (lo < 0)[ms.marker] & (hi > 0)[ms.marker]
     turns_on = (turning(h, ms.marker, ms.times, ms.radius) if turns and ms.times is not None
                 else np.zeros(h.size, bool))
-    return both, np.where(turns_on[:, None], n, 0.0)
+    axes = None if ms.coverage is None else np.stack([n, along], 1)
+    return both, np.where(turns_on[:, None], n, 0.0), axes
 
 
 def residuals_3d(params: Params, ranges_m: ArrayLike, lambda_rad: ArrayLike, mu_rad: ArrayLike, centres_W: ArrayLike,

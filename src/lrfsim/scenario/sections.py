@@ -14,6 +14,7 @@ from typing import Annotated, Literal
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, model_validator
 
+from lrfcal.io.rig import MAX_DH_TOLERANCE_M, MAX_DH_TOLERANCE_RAD
 from lrfcal.model.kinematics import DH, Pose
 
 PositiveFloat = Annotated[float, Field(gt=0)]
@@ -47,10 +48,10 @@ class DHConfig(Section):
 class DHToleranceConfig(Section):
     """The design DH values' 1-sigma, written to nominal.yaml as ``dh_tolerance`` (lrfcal.io.rig.DHToleranceModel)."""
 
-    a: Annotated[float, doc("a's 1-sigma [m]", gt=0, le=0.5)]
-    alpha: Annotated[float, doc("alpha's 1-sigma [rad] (not degrees)", gt=0, le=math.pi / 2)]
-    b: Annotated[float, doc("b's 1-sigma [m]", gt=0, le=0.5)]
-    beta: Annotated[float, doc("beta's 1-sigma [rad] (not degrees)", gt=0, le=math.pi / 2)]
+    a: Annotated[float, doc("a's 1-sigma [m]", gt=0, le=MAX_DH_TOLERANCE_M)]
+    alpha: Annotated[float, doc("alpha's 1-sigma [rad] (not degrees)", gt=0, le=MAX_DH_TOLERANCE_RAD)]
+    b: Annotated[float, doc("b's 1-sigma [m]", gt=0, le=MAX_DH_TOLERANCE_M)]
+    beta: Annotated[float, doc("beta's 1-sigma [rad] (not degrees)", gt=0, le=MAX_DH_TOLERANCE_RAD)]
 
 
 class PoseConfig(Section):

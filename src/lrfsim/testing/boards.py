@@ -14,7 +14,8 @@ straight across the axis it still puts them all at one distance along it, where 
 the calibration's score test would free the motor's angle scale on a third of the seeds (the marker returns' lateral
 residuals pull it below 1 to shrink the crossings of markers near the axis), and b went undetermined on 5 of 40;
 turned 40-65 deg, the axis meeting it anywhere within 60 % of its half sizes from its centre, plan determines 40 of
-seeds 2000-2039 (the scale freed on 11).
+seeds 2000-2039 (the scale freed on 11 while the marker model took each return's lateral offset as noise; on none
+since it keeps their means, lrfcal.model.coverage).
 """
 
 from __future__ import annotations
