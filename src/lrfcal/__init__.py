@@ -71,6 +71,7 @@ _EXPORTS: dict[str, str] = {
     "correlation_error_at": "lrfcal.estimate.information",
     "map_error_at": "lrfcal.estimate.information",
     "model_error_at": "lrfcal.estimate.information",
+    "lateral_scatter_at": "lrfcal.estimate.information",
     "held_steps_at": "lrfcal.estimate.information",
     "turning_error_at": "lrfcal.estimate.information",
     "scaled_pinv": "lrfcal.estimate.information",
@@ -116,9 +117,10 @@ __all__ = ["CalibConfig", "CalibrationError", "CalibrationResult", "CheckOutcome
            "SurfaceReturns", "SurfaceSelection", "TunnelGeometry", "Verdict", "analyse", "apply_memory_policy",
            "apply_thread_policy", "calibrate", "calibrate_folder", "call_with_thread_policy", "cores",
            "correlation_error_at", "detect", "estimated", "finite_between", "held_steps_at", "information_at",
-           "keep_freed_memory", "make_app", "map_covariance", "map_error_at", "mirror_check", "model_error_at",
-           "most_contradicted", "observe_surfaces", "of_covariance", "one_blas_thread", "print_summary",
-           "progress_display", "read_recording", "run_app", "scaled_pinv", "turning_error_at", "viewer_can_spawn"]
+           "keep_freed_memory", "lateral_scatter_at", "make_app", "map_covariance", "map_error_at", "mirror_check",
+           "model_error_at", "most_contradicted", "observe_surfaces", "of_covariance", "one_blas_thread",
+           "print_summary", "progress_display", "read_recording", "run_app", "scaled_pinv", "turning_error_at",
+           "viewer_can_spawn"]
 
 
 def __getattr__(name: str) -> Any:
@@ -146,6 +148,7 @@ if TYPE_CHECKING:  # the same names for type checkers and editors
         estimated,
         held_steps_at,
         information_at,
+        lateral_scatter_at,
         map_error_at,
         model_error_at,
         scaled_pinv,

@@ -1,7 +1,8 @@
-"""The uncertainty of a solution of lrfcal.estimate.solve: its covariance s^2 (J^T J)^-1, widened where errors shared
-within
-a scan or by the returns of one marker make it optimistic (cluster-robust sandwiches), plus the marker map's own
-uncertainty carried through the solution (:func:`uncertainty`); and the score tests of the unknowns the model holds
+"""The uncertainty of a solution of lrfcal.estimate.solve: its statistical covariance at the noise its residuals show
+(lrfcal.estimate.scatter: s^2 (J^T J)^-1 with the lateral means at their own scatter and the range noise's
+correlation along the scan), widened where errors shared within a scan or by the returns of one marker make it
+optimistic (cluster-robust sandwiches), plus the marker map's own uncertainty carried through the solution
+(:func:`uncertainty`); and the score tests of the unknowns the model holds
 by default (:func:`held_score`), whose sigma is the one the estimate would have.
 """
 
@@ -17,6 +18,7 @@ from lrfcal.estimate.influence import plane_pulls
 from lrfcal.estimate.normal_equations import RANK_TOL, Blocks, assemble, schur, scores_by_cluster, solve_step
 from lrfcal.estimate.observability import marginal_information
 from lrfcal.estimate.problem import Problem
+from lrfcal.estimate.scatter import statistical
 from lrfcal.model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
 from lrfcal.types import Spread
 
@@ -129,14 +131,17 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
                    ) / np.outer(col, col)
         ids, scores = scores_by_cluster(b, core, cluster_dense, cluster_plane, normal.pattern)
         scores = scores if live.all() else scores[:, live]
-        # the stated noise is the floor of the statistical part: a reduced chi-square below 1 says some rows' stated
-        # sigma is conservative (the marker returns' lateral means, lrfcal.model.coverage: 0.38 on a rig whose
-        # lines hold one or two beams), not that the range noise is smaller than the rig file states
-        cov = inflate_for_correlation(max(s2, 1.0) * JtJ_inv, scores, JtJ_inv)
+        # the noise the residuals show (lrfcal.estimate.scatter): the stated noise is the floor of the rows' (a
+        # reduced chi-square below 1 said the lateral means' bound was loose, 0.38 on a rig whose lines hold one or
+        # two beams, not that the range noise is smaller than the rig file states); the lateral means at their own
+        # scatter; the range noise's correlation along the scan
+        noise = statistical(pb, b, core, JtJ_inv, core.size + np.cumsum(live[core.size:]) - 1, n_rows,
+                            n_par + n_pattern)
+        cov = inflate_for_correlation(noise.covariance, scores, JtJ_inv)
         V = JtJ_inv[np.ix_(core_pos, core_pos)]
         spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan),
-                        plane_pulls(b, normal, core, V, max(s2, 1.0), core_names))
-        spread.statistical[np.ix_(core, core)] = max(s2, 1.0) * V
+                        plane_pulls(b, normal, core, V, noise.s2, core_names))
+        spread.statistical[np.ix_(core, core)] = noise.covariance[np.ix_(core_pos, core_pos)]
         spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:
             # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the

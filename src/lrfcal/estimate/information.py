@@ -14,11 +14,12 @@ from lrfcal.estimate import engine
 from lrfcal.estimate.engine import State
 from lrfcal.estimate.normal_equations import assemble, scores_by_cluster, solve_step
 from lrfcal.estimate.problem import OnPlanes, Problem, marker_set, plane_problem, plane_set
+from lrfcal.estimate.scatter import correlation_excess, lateral_scatter, range_rows
 from lrfcal.estimate.solve import plane_free
 from lrfcal.model.kinematics import Params
 from lrfcal.model.marker import MarkerModel, MarkerSensor
 from lrfcal.model.motor import NO_CLOCK, Clock, MotorClock
-from lrfcal.model.noise import correlated_range_excess
+from lrfcal.model.observations import Blocks
 from lrfcal.model.unknowns import BY_NAME, CORE_NAMES, DH_SLICE, MBIAS, N_CORE, ROFF, TAU, free_by_default, pack
 from lrfcal.types import Observations, SurfaceReturns
 
@@ -111,6 +112,16 @@ def information_at(
     return engine.information(pb, State(th, R_ref), idx)
 
 
+def _noise_free_optimum(pb: Problem, th: FloatArray, R_ref: FloatArray, idx: IntArray) -> Blocks:
+    """The blocks one Gauss-Newton step from the truth ``th`` over ``idx`` (and the planes' nuisances): at the
+    noise-free optimum, where what the unknowns absorb (the marker range bias of a footprint, the planes' offsets)
+    is a shift of the estimate, not a scatter."""
+    step = solve_step(assemble(pb.blocks(th, R_ref), idx), 0.0)
+    th = th.copy()
+    th[np.concatenate([idx, np.arange(N_CORE, th.size)])] += step
+    return pb.blocks(th, R_ref)
+
+
 def model_error_at(
     obs: Observations, markers_W: ArrayLike, params: Params, *, sensor: MarkerSensor, clock: Clock = NO_CLOCK,
     surfaces: OnPlanes | None = None, estimate: Sequence[str] = (),
@@ -120,21 +131,17 @@ def model_error_at(
     the true ``params``): their range residuals are then what the model does not explain (the footprint on the
     markers and on an oblique wall, the joint states' interpolation). It is the cluster-robust (sandwich)
     covariance H^-1 (sum_c g_c g_c^T) H^-1 of those residuals, g_c the score of cluster c (a marker's crossing, a
-    scan's surface returns: lrfcal.estimate.problem.Problem.clusters), one Gauss-Newton step from
-    the truth (at the noise-free optimum): the part of the calibration's per-scan widening (lrfcal.estimate.solve) that
+    scan's surface returns: lrfcal.estimate.problem.Problem.clusters), at the noise-free optimum
+    (:func:`_noise_free_optimum`): the part of the calibration's per-scan widening (lrfcal.estimate.solve) that
     noise does not explain. ``lrfsim plan`` adds it to the statistical covariance, as a noisy recording's sandwich
     holds both. ``estimate``: unknowns held by default that are estimated (those the data contradict,
     :func:`held_steps_at`)."""
     pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, estimate=estimate)
-    # one Gauss-Newton step to the noise-free optimum: what the unknowns absorb (the marker range bias of a
-    # footprint, the planes' offsets) is a shift of the estimate, not a scatter
-    step = solve_step(assemble(pb.blocks(th, R_ref), idx), 0.0)
-    th = th.copy()
-    th[np.concatenate([idx, np.arange(N_CORE, th.size)])] += step
-    b = pb.blocks(th, R_ref)
+    b = _noise_free_optimum(pb, th, R_ref, idx)
     H, _ = assemble(b, idx).dense()
-    # a marker return's lateral residual is where its beam passes the marker's centre: noise to the model (the
-    # sigma of a filled disc, in the statistical covariance already), so only its range residual is model error
+    # a marker return's lateral residual is where its beam passes the marker's centre: noise to the model (in the
+    # statistical covariance already, at the scatter its means show: :func:`lateral_scatter_at`), so only its range
+    # residual is model error
     ms = pb.markers
     assert ms is not None
     r_m = b.r_dense.reshape(-1, ms.n_res).copy()
@@ -146,6 +153,28 @@ def model_error_at(
     k = idx.size
     sandwich = H_inv @ (G.T @ G) @ H_inv
     return 0.5 * (sandwich[:k, :k] + sandwich[:k, :k].T)
+
+
+def lateral_scatter_at(
+    obs: Observations, markers_W: ArrayLike, params: Params, *, sensor: MarkerSensor, clock: Clock = NO_CLOCK,
+    surfaces: OnPlanes | None = None, estimate: Sequence[str] = (),
+) -> FloatArray:
+    """What the lateral means' own scatter changes in the covariance (k, k) over the unknowns (and in the order) of
+    :func:`information_at`: H^-1 (sum over kinds (s2_kind - 1) H_kind) H^-1, each kind of mean (the crossings'
+    across the scan plane, the lines' along it) at the variance its residuals show at the noise-free optimum, as the
+    calibration measures it on its own residuals (lrfcal.estimate.scatter.lateral_scatter; the lines' regular
+    spacing over the disc, not the noise, makes that scatter). Usually negative: the model's sigma of a mean is its
+    bound."""
+    pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, estimate=estimate)
+    b = _noise_free_optimum(pb, th, R_ref, idx)
+    k = idx.size
+    V = scaled_pinv(assemble(b, idx).dense()[0])[:k, :k]
+    middle = np.zeros((k, k))
+    for s in lateral_scatter(pb, b, idx, V):
+        if not np.isnan(s.s2):
+            middle += (s.s2 - 1.0) * s.H
+    out = V @ middle @ V
+    return 0.5 * (out + out.T)
 
 
 def held_steps_at(
@@ -188,21 +217,8 @@ def correlation_error_at(
         return np.zeros((k, k))
     b = pb.blocks(th, R_ref)
     H, _ = assemble(b, idx).dense()
-    assert b.J_dense is not None and b.Jc_plane is not None and b.Jn_plane is not None
-    use = marker_set(obs, markers_W, sensor)[1]
-    # [H^-1 Delta H^-1] over the core = the excess of the rows u_i H^-1[:, :k] (K, k): cheap where 3P is large
-    A = scaled_pinv(H)[:, :k]
-    assert pb.markers is not None
-    n_res, K = pb.markers.n_res, int(np.count_nonzero(use))
-    v_markers = b.J_dense[:K * n_res:n_res][:, idx] @ A[:k]  # the range row of each return (the first)
-    v_planes = b.Jc_plane[:, idx] @ A[:k]
-    for i in range(3):  # the plane nuisances' columns: 3 per plane
-        v_planes += b.Jn_plane[:, i:i + 1] * A[k + 3 * b.plane + i]
-    none = np.zeros(0, np.int64)
-    scan = np.concatenate([np.asarray(obs.scan)[use], none if surfaces is None else surfaces.returns.scan])
-    beam = np.concatenate([np.asarray(obs.beam)[use], none if surfaces is None else surfaces.returns.beam])
-    extra = correlated_range_excess(np.vstack([v_markers, v_planes]), scan, beam, rho)
-    return 0.5 * (extra + extra.T)
+    _, u, scan, beam, _ = range_rows(pb, b, idx, scaled_pinv(H)[:, :k], k + np.arange(H.shape[0] - k))
+    return correlation_excess(u, scan, beam, rho)
 
 
 def turning_error_at(

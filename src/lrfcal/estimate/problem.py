@@ -130,6 +130,14 @@ class Problem:
         return marker_rows(th, self.markers, self.sigma_r, R_ref, jac=jac, clock=self.clock, mount_jac=self.mount_jac,
                            chart=chart)
 
+    def markers_in(self, dense: FloatArray) -> FloatArray:
+        """The marker returns' part of :meth:`blocks`' dense rows ``dense`` (m,) or (m, p): (K, n_res) or (K, n_res, p)
+        (the marker set is the first set: its rows come first)."""
+        ms = self.markers
+        assert ms is not None and self.sets[0] is ms, "the marker returns must be the first set"
+        n = ms.r.size * ms.n_res
+        return dense[:n].reshape(ms.r.size, ms.n_res, *dense.shape[1:])
+
     def centre_cross(self, th: FloatArray, R_ref: FloatArray, core: NDArray[np.intp], n_markers: int,
                      J_dense: FloatArray | None = None) -> FloatArray:
         """J_m^T J_c (len(core), 3 n_markers): the marker rows' core columns against their derivatives with respect
@@ -139,11 +147,7 @@ class Problem:
         computed (its first rows are the marker rows)."""
         ms = self.markers
         assert ms is not None, "the marker map's uncertainty needs marker returns"
-        if J_dense is None:
-            _, J = self.marker_rows(th, R_ref)
-        else:  # the marker set's dense rows come first (the first set)
-            assert self.sets[0] is ms, "the marker returns must be the first set"
-            J = J_dense[:ms.r.size * ms.n_res].reshape(ms.r.size, ms.n_res, N_CORE)
+        J = self.marker_rows(th, R_ref)[1] if J_dense is None else self.markers_in(J_dense)
         assert J is not None and ms.marker is not None
         Jc = centre_jacobian(th, ms, self.sigma_r, R_ref, self.clock)
         per_return = np.einsum("kri,krj->kij", J[:, :, core], Jc)  # (K, len(core), 3)
@@ -201,7 +205,7 @@ def marker_set(obs: Observations, markers_W: ArrayLike, sensor: MarkerSensor) ->
     ms = MarkerSet(np.asarray(obs.lambda_rad, dtype=float)[use], np.asarray(obs.mu_rad, dtype=float)[use],
                    np.asarray(obs.ranges_m, dtype=float)[use], X[marker[use]], sensor,
                    np.asarray(obs.times_s, dtype=float)[use], marker[use].astype(np.int64),
-                   scan=np.asarray(obs.scan)[use].astype(np.int64))
+                   scan=np.asarray(obs.scan)[use].astype(np.int64), beam=np.asarray(obs.beam)[use].astype(np.int64))
     return ms, use
 
 
@@ -245,7 +249,7 @@ def plane_set(surfaces: SurfaceReturns, planes: Sequence[Surface] | None) -> tup
             prior_jacobian = np.vstack(jacobians)
     surf = PlaneSet(surfaces.lambda_rad, surfaces.mu_rad, surfaces.ranges_m, plane_idx.astype(np.int64), n0, t1, t2,
                     nu0.copy(), prior_sigma, times=surfaces.times_s, prior_jacobian=prior_jacobian,
-                    scan=np.asarray(surfaces.scan).astype(np.int64))
+                    scan=np.asarray(surfaces.scan).astype(np.int64), beam=np.asarray(surfaces.beam).astype(np.int64))
     return surf, nu0
 
 

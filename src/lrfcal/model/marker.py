@@ -99,6 +99,7 @@ class MarkerSet:
     #: (:func:`crossings`; lrfcal.stages.markers widens the covariance by the DH difference it makes)
     in_plane_at_turns: bool = False
     scan: NDArray[np.int64] | None = None  # (K,) each return's scan (the covariance's clusters without times)
+    beam: NDArray[np.int64] | None = None  # (K,) each return's beam in its scan (the range noise's neighbours)
     #: (K, 2, 3) the scan plane's unit normal and the unit direction in it across each ray (in W), at the estimate
     #: the set was chosen at (:meth:`chosen_at`): the directions the lateral residual's means are taken along
     #: (lrfcal.model.coverage.centred), data like ``lateral`` (None: not chosen yet, each return's own offset)
@@ -142,6 +143,7 @@ class MarkerSet:
                        times=None if self.times is None else self.times[m],
                        marker=None if self.marker is None else self.marker[m],
                        scan=None if self.scan is None else self.scan[m],
+                       beam=None if self.beam is None else self.beam[m],
                        lateral=None if self.lateral is None else self.lateral[m],
                        across=None if self.across is None else self.across[m],
                        axes=None if self.axes is None else self.axes[m])
@@ -181,6 +183,35 @@ class MarkerSet:
         offset)."""
         cov = self.coverage
         return None if self.axes is None or cov is None else (cov, self.axes)
+
+    def lateral_means(self, res: FloatArray, J: FloatArray) -> tuple[tuple[FloatArray, FloatArray, int], ...]:
+        """The lateral means among this set's rows ``res`` (K, n_res) and Jacobian ``J`` (K, n_res, p), where the
+        lateral rows keep them (:attr:`centring`; else none), one whitened residual per crossing for each part: the
+        crossing's mean across the scan plane, and the mean of its lines' means along it, each times the root of
+        its lines (C,) and its Jacobian (C, p). The lines of one crossing share their in-plane mean's error (the
+        beams' bearings against the marker's: the same in every line while the plane tilts across the marker), so a
+        crossing is the unit of both. Their sigma, R_m sqrt(1 + k^2) / 2 over the root of the lines (or beams)
+        averaged, is the most such a mean can miss the centre by; lines and beams at a regular spacing miss it by
+        far less, and lrfcal.estimate.scatter measures by how much from these residuals' own scatter."""
+        if self.centring is None:
+            return ()
+        cov, axes = self.centring
+        lat = self._lateral
+        out: list[tuple[FloatArray, FloatArray, int]] = []
+        # a return's row holds its crossing's (line's) mean times sqrt(L / K_crossing) (1 / sqrt(K_line)): these
+        # weights sum each crossing's rows to sqrt(L) times the mean of its lines' means
+        for axis, keep, weight in ((axes[:, 0], lat & ~self._in_plane_only, 1.0 / np.sqrt(cov.per_crossing)),
+                                   (axes[:, 1], lat, 1.0 / np.sqrt(cov.per_line * cov.lines_in_crossing))):
+            if not np.any(keep):
+                continue
+            ids, unit = np.unique(cov.crossing[keep], return_inverse=True)
+            w = weight[keep]
+            rows = (res[keep, 1:] * axis[keep]).sum(1) * w
+            Jr = np.einsum("ki,kij->kj", axis[keep], J[keep, 1:]) * w[:, None]
+            z = np.bincount(unit, rows, ids.size).astype(np.float64)
+            Jz = np.stack([np.bincount(unit, Jr[:, j], ids.size) for j in range(Jr.shape[1])], 1).astype(np.float64)
+            out.append((z, Jz, int(ids.size)))
+        return tuple(out)
 
     def dof(self) -> FloatArray:
         """(K,) independent residuals of each return (:attr:`n_independent`): :meth:`return_dof`, but where the

@@ -11,10 +11,15 @@ row, a surface return's ray-plane row) with unit whitened variance, J^T C J = H 
     Delta = sum over pairs i != j of returns in the same scan  rho^|beam_i - beam_j| u_i u_j^T,
 
 u_i (p,) the Jacobian row of return i's range residual: :func:`correlated_range_excess` computes Delta.
+
+rho is a property of the scanner, measured on its own recording: :func:`neighbour_correlation`, the correlation of
+the whitened range residuals of neighbouring beams (lrfcal.estimate.covariance uses it; `lrfsim plan` takes the
+scenario's ``sensor.noise_correlation``).
 """
 
 from __future__ import annotations
 
+import math
 from collections.abc import Iterator
 
 import numpy as np
@@ -79,4 +84,26 @@ def correlated_range_excess(u: FloatArray, scan: IntArray, beam: IntArray, rho: 
     return cross + cross.T
 
 
-__all__ = ["MIN_PAIR_CORRELATION", "correlated_pairs", "correlated_range_excess"]
+#: the largest correlation of neighbouring beams taken from a recording (an AR(1) process needs rho < 1)
+MAX_RHO = 0.95
+
+
+def neighbour_correlation(residuals: FloatArray, scan: IntArray, beam: IntArray) -> tuple[float, int]:
+    """The correlation of the range residuals (K,) of returns on neighbouring beams of one scan (scan, beam (K,)
+    each), clipped to [0, MAX_RHO], and the number of neighbouring pairs it is taken from (0: rho 0). The residuals of
+    a fit are slightly less correlated than the noise (the fit takes up a little of what neighbours share); on
+    lrfsim recordings drawn with rho 0.7 it is 0.69-0.70 from the surface returns' 34 000 pairs (points layout
+    2010) and 0.56-0.79 from a V's 60 pairs of marker returns."""
+    r = np.asarray(residuals, dtype=float)
+    order = np.lexsort((beam, scan))
+    s, b, x = np.asarray(scan)[order], np.asarray(beam)[order], r[order]
+    near = (s[1:] == s[:-1]) & (b[1:] - b[:-1] == 1)
+    if not np.any(near):
+        return 0.0, 0
+    x1, x2 = x[1:][near], x[:-1][near]
+    denom = math.sqrt(float(x1 @ x1) * float(x2 @ x2))
+    rho = float(x1 @ x2) / denom if denom > 0 else 0.0
+    return min(max(rho, 0.0), MAX_RHO), int(near.sum())
+
+
+__all__ = ["MAX_RHO", "MIN_PAIR_CORRELATION", "correlated_pairs", "correlated_range_excess", "neighbour_correlation"]

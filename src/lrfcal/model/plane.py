@@ -80,6 +80,7 @@ class PlaneSet:
     times: FloatArray | None = None  # (K2,) laser-clock beam times (for the clock offset)
     prior_jacobian: FloatArray | None = None  # (3P, 3n) d prior_mean / d marker coordinates (the map's uncertainty)
     scan: NDArray[np.int64] | None = None  # (K2,) each return's scan (each scan's returns one cluster)
+    beam: NDArray[np.int64] | None = None  # (K2,) each return's beam in its scan (the range noise's neighbours)
     footing: Footing | None = None  # where a return counts, judged at every estimate (None: every return may)
     #: (K2,) each return's bin of beams for the range pattern along the scan (lrfcal.model.range_pattern), a nuisance
     #: of the cost eliminated beside the core unknowns (None: no pattern)
@@ -91,6 +92,7 @@ class PlaneSet:
         out = replace(self, lam=self.lam[m], mu=self.mu[m], r=self.r[m], plane=self.plane[m],
                       times=None if self.times is None else self.times[m],
                       scan=None if self.scan is None else self.scan[m],
+                      beam=None if self.beam is None else self.beam[m],
                       pattern_bins=None if self.pattern_bins is None else self.pattern_bins[m])
         for name in ("trig_lam", "trig_mu"):
             if name in self.__dict__:  # a cached_property computed on this set

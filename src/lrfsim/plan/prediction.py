@@ -13,6 +13,8 @@ R_m sqrt(1 + k^2) / 2, k the sensor's footprint in marker radii (lrfcal.model.sp
 offset is an unknown when the sweep goes both ways).
 The inverse of that Fisher information is the covariance a calibration of this layout and sweep reaches (the
 Cramer-Rao bound of the model), in ESTIMATE_NAMES order plus clock_offset when it is estimated. Added to it: what
+the lateral means' scatter changes (``lrfcal.estimate.information.lateral_scatter_at``: each kind of mean at the
+variance the noise-free residuals show, where the model's sigma is its bound; lrfcal.estimate.scatter), what
 the model's own errors contribute (``lrfcal.estimate.information.model_error_at``: the per-scan sandwich of the
 noise-free
 returns' range residuals; negligible beside 10 mm range noise, most of the sigma of a precise scanner: issue 18,
@@ -62,6 +64,7 @@ from lrfcal import (
     estimated,
     held_steps_at,
     information_at,
+    lateral_scatter_at,
     map_covariance,
     map_error_at,
     mirror_check,
@@ -300,6 +303,9 @@ def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ev
     # the truth: lrfcal.estimate.information.model_error_at), as the calibration's per-scan widening holds both
     at = (ev.obs, ev.markers_W, ev.params)
     model_cov = model_error_at(*at, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces, estimate=freed)
+    # the lateral means at the scatter their regular spacing gives them, as the calibration measures it on its own
+    # residuals (lrfcal.estimate.scatter)
+    scatter_cov = lateral_scatter_at(*at, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces, estimate=freed)
     rho = float(scenario.sensor.noise_correlation)  # range noise correlated along the scan: its sandwich term
     corr_cov = correlation_error_at(*at, rho, sensor=ev.sensor, clock=ev.clock, surfaces=ev.surfaces, estimate=freed)
     # and what the tape's noise adds through the marker map (the calibration's covariance holds it too)
@@ -316,7 +322,7 @@ def _covariance(scenario: Scenario, info: FloatArray, names: tuple[str, ...], ev
     def sigmas(c: FloatArray) -> dict[str, float]:
         return {n: float(math.sqrt(max(c[i, i], 0.0))) for i, n in enumerate(names)}
 
-    stat = np.linalg.inv(scaled) / np.outer(col, col) + corr_cov
+    stat = np.linalg.inv(scaled) / np.outer(col, col) + scatter_cov + corr_cov
     return stat + model_cov + tape_cov, sigmas(model_cov), sigmas(tape_cov)
 
 
