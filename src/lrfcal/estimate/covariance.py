@@ -74,11 +74,13 @@ def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], mark
 def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_],
                  map_cov: FloatArray | None = None, blocks: Blocks | None = None
                  ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread]:
-    """The covariance at the solution: s^2 (J^T J)^-1 over the free unknowns, widened for errors shared within a
-    cluster (its sets' clusters, Problem.clusters: the cluster of each dense and plane residual row, a marker's
-    crossing (lrfcal.model.marker.MarkerSet.clusters) and a scan's surface returns; each prior row is a cluster of
-    its own), with its sets' independent residuals (ObservationSet.n_independent), plus the marker map's own
-    uncertainty ``map_cov`` (3n, 3n) carried through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c
+    """The covariance at the solution: the statistical covariance over the free unknowns at the noise the residuals
+    show (lrfcal.estimate.scatter.statistical: s^2 (J^T J)^-1, the lateral means at their own scatter, the range
+    noise's correlation along the scan), widened for errors shared within a cluster (its sets' clusters,
+    Problem.clusters: the cluster of each dense and plane residual row, a marker's crossing
+    (lrfcal.model.marker.MarkerSet.clusters) and a scan's surface returns; each prior row is a cluster of its own),
+    with its sets' independent residuals (ObservationSet.n_independent), plus the marker map's own uncertainty
+    ``map_cov`` (3n, 3n) carried through the solution: G map_cov G^T, G = -(J^T J)^-1 J^T J_c
     (lrfcal.estimate.problem.Problem.centre_cross). Then widened again where the errors shared by all returns of one
     marker (the sets' groups: the marker of each dense row) say more: where the beams cover a marker unevenly (lines
     fanning across it, or the same lines in every pass), the mean of its returns' lateral offsets is not its centre,
@@ -86,9 +88,10 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     column-scaled; an eigenvalue below RANK_TOL of the largest is rank loss.
 
     Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
-    singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2,
-    the rank in words, G (N_CORE, 3n) (None without ``map_cov`` or with rank loss) and the Spread (each cluster's
-    influence and the statistical covariance; empty with rank loss) for lrfcal.estimate.checks.difference_covariance.
+    singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2 of
+    every row at its stated sigma, the rank in words, G (N_CORE, 3n) (None without ``map_cov`` or with rank loss)
+    and the Spread (each cluster's influence and the statistical covariance at the stated noise times the floor of
+    its reduced chi-square; empty with rank loss) for lrfcal.estimate.checks.difference_covariance.
     ``blocks``: ``pb.blocks(th, R_ref)`` when the caller has them already (they are read, not changed)."""
     b = pb.blocks(th, R_ref) if blocks is None else blocks
     core = np.flatnonzero(free[:N_CORE])
@@ -141,7 +144,12 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
         V = JtJ_inv[np.ix_(core_pos, core_pos)]
         spread = Spread(ids, np.zeros((ids.size, N_CORE)), np.full((N_CORE, N_CORE), np.nan),
                         plane_pulls(b, normal, core, V, noise.s2, core_names))
-        spread.statistical[np.ix_(core, core)] = noise.covariance[np.ix_(core_pos, core_pos)]
+        # the difference of two nested solutions (a part of the data and the whole) is judged at one noise for
+        # both: the rows at their stated sigma, scaled by the floor (each solution's own measured scatter of the
+        # lateral means would make C_part - C_joint shrink where only the whole has enough crossings to measure it:
+        # a tilted rig's means scattered 4.7x their bound, its parts' too few to say, and the parts' agreement was
+        # refused at chi2 51); what the data show beyond it enters as each cluster's influence
+        spread.statistical[np.ix_(core, core)] = noise.s2 * V
         spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:
             # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the
