@@ -15,11 +15,12 @@ statistical covariance of lrfcal.estimate.covariance.uncertainty (and of `lrfsim
   row (the surface returns' too) enters the covariance as `lrfsim plan` adds it from the scenario's rho. The
   per-crossing sandwich (lrfcal.estimate.covariance) sees the same correlation, but from the few crossings that
   determine b it is a noisy estimate, too narrow on average (b's sigma 1.46x too narrow on scattered points at rho
-  0.7, layout 2010: docs/study.md). Only the marker returns measure rho: a sphere's residual is the scanner's noise,
-  a wall's also holds the wall's unevenness and the scanner's range error along the scan, correlated over many
-  beams, which the per-scan sandwich (hundreds of scans) takes as it is. Measured on the surface returns of the real
-  recordings of docs/real-data.md, rho moved room_240's verdict (its halves' chi2 376 -> 147, one half refused
-  for another reason). A recording without markers (the targetless calibration) keeps the per-scan sandwich alone.
+  0.7, layout 2010: docs/study.md). It counts where the marker returns show it (:data:`RHO_Z`). Only the marker
+  returns measure rho: a sphere's residual is the scanner's noise, a wall's also holds the wall's unevenness and
+  the scanner's range error along the scan, correlated over many beams, which the per-scan sandwich (hundreds of
+  scans) takes as it is. Measured on the surface returns of the real recordings of docs/real-data.md, rho moved
+  room_240's verdict (its halves' chi2 376 -> 147, one half refused for another reason). A recording without
+  markers (the targetless calibration) keeps the per-scan sandwich alone.
 
 The estimate itself weights the rows as the model states (the lateral means at their bound): what changes is the
 covariance, H^-1 (sum over kinds of s2_kind H_kind) H^-1, the sandwich of an estimate whose weights are not the
@@ -45,9 +46,11 @@ from lrfcal.model.plane import PlaneSet
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-#: the range noise's correlation is taken from at least this many neighbouring pairs of marker returns (fewer: 0,
-#: the per-crossing sandwich of lrfcal.estimate.covariance alone)
-MIN_PAIRS = 20
+#: the range noise's correlation counts where the marker returns show it: rho measured from n neighbouring pairs at
+#: least this many of its standard errors (1 / sqrt(n)) from 0; below, 0 (the per-crossing sandwich of
+#: lrfcal.estimate.covariance alone). Taken as measured from 24 pairs at rho 0, it came out 0.16 and 0.38 and
+#: refused a points layout (seed 2014) for observability; the sigma only ever widens with it
+RHO_Z = 2.0
 #: a kind of lateral mean gets the variance its residuals show only with at least this many redundant means (its
 #: count less the unknowns it determines); with fewer, the estimate of a variance is too loose to narrow a sigma by
 MIN_REDUNDANT = 10
@@ -133,7 +136,7 @@ class Noise(NamedTuple):
 
     covariance: FloatArray  #: (n, n) the statistical covariance of every unknown (column-unscaled)
     s2: float  #: the reduced chi-square of the rows at the stated noise (the lateral means measured apart), >= 1
-    rho: float  #: the range noise's correlation of neighbouring beams (0: fewer than MIN_PAIRS pairs of marker returns)
+    rho: float  #: the range noise's correlation of neighbouring beams (0: not shown by the marker returns, RHO_Z)
     pairs: int  #: the neighbouring pairs of marker returns rho is measured from
 
 
@@ -158,11 +161,11 @@ def statistical(pb: Problem, b: Blocks, core: NDArray[np.intp], JtJ_inv: FloatAr
         cov[:k, :k] += V @ sum((s.s2 - s2) * s.H for s in kinds) @ V
     r, u, scan, beam, n_markers = range_rows(pb, b, core, JtJ_inv[:, :k], nu_rows)
     rho, pairs = neighbour_correlation(r[:n_markers], scan[:n_markers], beam[:n_markers])
-    if pairs < MIN_PAIRS:
+    if rho * math.sqrt(pairs) < RHO_Z:
         rho = 0.0
     cov[:k, :k] += s2 * correlation_excess(u, scan, beam, rho)
     return Noise(cov, s2, rho, pairs)
 
 
-__all__ = ["MIN_PAIRS", "MIN_REDUNDANT", "Noise", "Scatter", "correlation_excess", "lateral_scatter", "range_rows",
+__all__ = ["MIN_REDUNDANT", "RHO_Z", "Noise", "Scatter", "correlation_excess", "lateral_scatter", "range_rows",
            "statistical"]
