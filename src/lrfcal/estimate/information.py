@@ -160,11 +160,11 @@ def lateral_scatter_at(
     surfaces: OnPlanes | None = None, estimate: Sequence[str] = (),
 ) -> FloatArray:
     """What the lateral means' own scatter changes in the covariance (k, k) over the unknowns (and in the order) of
-    :func:`information_at`: H^-1 (sum over kinds (s2_kind - 1) H_kind) H^-1, each kind of mean (the crossings'
-    across the scan plane, the lines' along it) at the variance its residuals show at the noise-free optimum, as the
-    calibration measures it on its own residuals (lrfcal.estimate.scatter.lateral_scatter; the lines' regular
-    spacing over the disc, not the noise, makes that scatter). Usually negative: the model's sigma of a mean is its
-    bound."""
+    :func:`information_at`: H^-1 (sum over kinds (s2_kind - 1) H_kind) H^-1, each kind of mean (a crossing's across
+    the scan plane, the mean of its lines' means along it) at the variance its residuals show at the noise-free
+    optimum, as the calibration measures it on its own residuals (lrfcal.estimate.scatter.lateral_scatter; the
+    lines' regular spacing over the disc, not the noise, makes that scatter). Usually negative: the model's sigma of
+    a mean is its bound."""
     pb, th, R_ref, idx = _problem_at(obs, markers_W, params, sensor, clock, surfaces, estimate=estimate)
     b = _noise_free_optimum(pb, th, R_ref, idx)
     k = idx.size

@@ -13,8 +13,8 @@ row, a surface return's ray-plane row) with unit whitened variance, J^T C J = H 
 u_i (p,) the Jacobian row of return i's range residual: :func:`correlated_range_excess` computes Delta.
 
 rho is a property of the scanner, measured on its own recording: :func:`neighbour_correlation`, the correlation of
-the whitened range residuals of neighbouring beams (lrfcal.estimate.covariance uses it; `lrfsim plan` takes the
-scenario's ``sensor.noise_correlation``).
+the whitened range residuals of neighbouring beams (lrfcal.estimate.scatter measures it on the marker returns;
+`lrfsim plan` takes the scenario's ``sensor.noise_correlation``).
 """
 
 from __future__ import annotations
