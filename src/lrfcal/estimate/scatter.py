@@ -85,14 +85,14 @@ def lateral_scatter(pb: Problem, b: Blocks, core: NDArray[np.intp], V: FloatArra
     return tuple(out)
 
 
-def range_rows(pb: Problem, b: Blocks, core: NDArray[np.intp], A: FloatArray, nu_rows: IntArray
-               ) -> tuple[FloatArray, FloatArray, IntArray, IntArray, int]:
+def range_rows(pb: Problem, b: Blocks, core: NDArray[np.intp], A: FloatArray | None = None,
+               nu_rows: IntArray | None = None) -> tuple[FloatArray, FloatArray, IntArray, IntArray, int]:
     """The rows the range noise enters once per return: each marker return's range row (the sphere model's) and each
     surface return's ray-plane row of ``b``: their whitened residuals (R,), their effect on the core estimate
     u_i = J_i A (R, nc) (``A`` (n, nc): (J^T J)^-1's columns of the core unknowns, its first nc rows the core's;
-    ``nu_rows`` (3P,): the row of A of each plane nuisance), their scans and beams (R,), and how many of them, first,
-    are marker returns. Rows whose beams are not known, and plane rows with the range pattern taken out of them
-    (lrfcal.model.range_pattern), are left out."""
+    ``nu_rows`` (3P,): the row of A of each plane nuisance; without A, u is (R, 0)), their scans and beams (R,), and
+    how many of them, first, are marker returns. Rows whose beams are not known, and plane rows with the range
+    pattern taken out of them (lrfcal.model.range_pattern), are left out."""
     k = core.size
     res, U, scan, beam = [], [], [], []
     n_markers = 0
@@ -100,7 +100,7 @@ def range_rows(pb: Problem, b: Blocks, core: NDArray[np.intp], A: FloatArray, nu
     if (ms is not None and ms.model == MarkerModel.SPHERE and ms.scan is not None and ms.beam is not None
             and b.J_dense is not None and ms.r.size):
         res.append(pb.markers_in(b.r_dense)[:, 0])
-        U.append(pb.markers_in(b.J_dense)[:, 0][:, core] @ A[:k])
+        U.append(np.zeros((ms.r.size, 0)) if A is None else pb.markers_in(b.J_dense)[:, 0][:, core] @ A[:k])
         scan.append(ms.scan)
         beam.append(ms.beam)
         n_markers = ms.r.size
@@ -108,15 +108,18 @@ def range_rows(pb: Problem, b: Blocks, core: NDArray[np.intp], A: FloatArray, nu
     if (planes and b.pattern is None and b.Jc_plane is not None and b.Jn_plane is not None
             and all(s.scan is not None and s.beam is not None for s in planes)
             and sum(s.size for s in planes) == b.r_plane.size and b.r_plane.size):
-        u = b.Jc_plane[:, core] @ A[:k]
-        for i in range(3):  # the plane nuisances' columns: 3 per plane
-            u += b.Jn_plane[:, i:i + 1] * A[nu_rows[3 * b.plane + i]]
+        if A is None or nu_rows is None:
+            u = np.zeros((b.r_plane.size, 0))
+        else:
+            u = b.Jc_plane[:, core] @ A[:k]
+            for i in range(3):  # the plane nuisances' columns: 3 per plane
+                u += b.Jn_plane[:, i:i + 1] * A[nu_rows[3 * b.plane + i]]
         res.append(b.r_plane)
         U.append(u)
         scan.extend(s.scan for s in planes if s.scan is not None)
         beam.extend(s.beam for s in planes if s.beam is not None)
     if not res:
-        return np.zeros(0), np.zeros((0, k)), np.zeros(0, np.int64), np.zeros(0, np.int64), 0
+        return np.zeros(0), np.zeros((0, 0 if A is None else k)), np.zeros(0, np.int64), np.zeros(0, np.int64), 0
     return (np.concatenate(res), np.vstack(U), np.concatenate(scan).astype(np.int64),
             np.concatenate(beam).astype(np.int64), n_markers)
 
@@ -159,11 +162,13 @@ def statistical(pb: Problem, b: Blocks, core: NDArray[np.intp], JtJ_inv: FloatAr
     cov = s2 * JtJ_inv
     if kinds:
         cov[:k, :k] += V @ sum((s.s2 - s2) * s.H for s in kinds) @ V
-    r, u, scan, beam, n_markers = range_rows(pb, b, core, JtJ_inv[:, :k], nu_rows)
+    r, _, scan, beam, n_markers = range_rows(pb, b, core)
     rho, pairs = neighbour_correlation(r[:n_markers], scan[:n_markers], beam[:n_markers])
     if rho * math.sqrt(pairs) < RHO_Z:
         rho = 0.0
-    cov[:k, :k] += s2 * correlation_excess(u, scan, beam, rho)
+    else:  # the rows' effects on the estimate only where they count
+        _, u, scan, beam, _ = range_rows(pb, b, core, JtJ_inv[:, :k], nu_rows)
+        cov[:k, :k] += s2 * correlation_excess(u, scan, beam, rho)
     return Noise(cov, s2, rho, pairs)
 
 
