@@ -71,6 +71,18 @@ def inflate_for_markers(cov: FloatArray, b: Blocks, core: NDArray[np.intp], mark
     return widen(cov, JtJ_inv @ (G.T @ G) @ JtJ_inv * (n_markers / (n_markers - 1)))
 
 
+def map_sensitivity(pb: Problem, th: FloatArray, R_ref: FloatArray, b: Blocks, core: NDArray[np.intp],
+                    live: NDArray[np.bool_], JtJ_inv: FloatArray, n_markers: int) -> FloatArray:
+    """How the estimate moves with the marker map, G (len(core), 3 n_markers): by G dc, G = -(J^T J)^-1 J^T J_c (one
+    Gauss-Newton step), through the marker rows (core columns) and the planes' priors (the ``live`` nuisance
+    columns of ``JtJ_inv``)."""
+    cross = pb.centre_cross(th, R_ref, core, n_markers, b.J_dense)
+    prior = pb.prior_cross(n_markers)  # one row per nuisance, in H's order after the core
+    if prior is not None:
+        cross = np.vstack([cross, prior[live[core.size:]]])
+    return -JtJ_inv[:core.size, :cross.shape[0]] @ cross
+
+
 def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_],
                  map_cov: FloatArray | None = None, blocks: Blocks | None = None
                  ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread]:
@@ -152,14 +164,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
         spread.statistical[np.ix_(core, core)] = noise.s2 * V
         spread.influence[:, core] = (scores @ JtJ_inv)[:, core_pos]
         if map_cov is not None:
-            # the estimate moves with the map by G dc, G = -(J^T J)^-1 J^T J_c (one Gauss-Newton step): through the
-            # marker rows (core columns) and the planes' priors (nuisance columns)
-            n_m = len(map_cov) // 3
-            cross = pb.centre_cross(th, R_ref, core, n_m, b.J_dense)
-            prior = pb.prior_cross(n_m)  # one row per nuisance, in H's order after the core
-            if prior is not None:
-                cross = np.vstack([cross, prior[live[core.size:]]])
-            G_free = -JtJ_inv[core_pos, :cross.shape[0]] @ cross
+            G_free = map_sensitivity(pb, th, R_ref, b, core, live, JtJ_inv, len(map_cov) // 3)
             cov[np.ix_(core_pos, core_pos)] += G_free @ map_cov @ G_free.T
             G = np.zeros((N_CORE, len(map_cov)))
             G[core] = G_free
