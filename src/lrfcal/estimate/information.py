@@ -171,8 +171,7 @@ def lateral_scatter_at(
     V = scaled_pinv(assemble(b, idx).dense()[0])[:k, :k]
     middle = np.zeros((k, k))
     for s in lateral_scatter(pb, b, idx, V):
-        if not np.isnan(s.s2):
-            middle += (s.s2 - 1.0) * s.H
+        middle += (s.s2 - 1.0) * s.H
     out = V @ middle @ V
     return 0.5 * (out + out.T)
 

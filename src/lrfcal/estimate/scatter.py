@@ -59,7 +59,7 @@ MIN_REDUNDANT = 10
 class Scatter(NamedTuple):
     """One kind of residual whose variance is measured from its own residuals."""
 
-    s2: float  #: its variance in units of the model's (NaN: too few redundant residuals to measure it)
+    s2: float  #: its variance in units of the model's
     H: FloatArray  #: (nc, nc) its information J^T J over the core unknowns
     ss: float  #: its sum of squared whitened residuals
     n_means: float  #: its independent residuals (the means)
@@ -70,7 +70,7 @@ def lateral_scatter(pb: Problem, b: Blocks, core: NDArray[np.intp], V: FloatArra
     """The crossings' means across the scan plane and the lines' means along it (lrfcal.model.marker.MarkerSet.
     lateral_means) of the marker rows among ``b``'s, each with the variance its residuals show: their sum of squares
     over their redundancy nu less 2, nu their count less tr(V H) (``V`` (nc, nc): the core block of (J^T J)^-1 over
-    ``core``)."""
+    ``core``); a kind with fewer than MIN_REDUNDANT redundant means is left out (the model's sigma stands)."""
     ms = pb.markers
     if ms is None or b.J_dense is None:
         return ()
@@ -81,7 +81,8 @@ def lateral_scatter(pb: Problem, b: Blocks, core: NDArray[np.intp], V: FloatArra
         redundant = count - share
         # over nu - 2, not nu: a variance measured from nu means makes err / sigma a Student t, whose mean square is
         # nu / (nu - 2); so stated, the sigma holds its own uncertainty (1.25x the variance at nu = 10)
-        out.append(Scatter(ss / (redundant - 2.0) if redundant >= MIN_REDUNDANT else math.nan, H, ss, count, share))
+        if redundant >= MIN_REDUNDANT:
+            out.append(Scatter(ss / (redundant - 2.0), H, ss, count, share))
     return tuple(out)
 
 
@@ -139,8 +140,6 @@ class Noise(NamedTuple):
 
     covariance: FloatArray  #: (n, n) the statistical covariance of every unknown (column-unscaled)
     s2: float  #: the reduced chi-square of the rows at the stated noise (the lateral means measured apart), >= 1
-    rho: float  #: the range noise's correlation of neighbouring beams (0: not shown by the marker returns, RHO_Z)
-    pairs: int  #: the neighbouring pairs of marker returns rho is measured from
 
 
 def statistical(pb: Problem, b: Blocks, core: NDArray[np.intp], JtJ_inv: FloatArray, nu_rows: IntArray,
@@ -155,7 +154,7 @@ def statistical(pb: Problem, b: Blocks, core: NDArray[np.intp], JtJ_inv: FloatAr
     k = core.size
     V = JtJ_inv[:k, :k]
     res = b.residuals()
-    kinds = [s for s in lateral_scatter(pb, b, core, V) if not math.isnan(s.s2)]
+    kinds = lateral_scatter(pb, b, core, V)
     ss = float(res @ res) - sum(s.ss for s in kinds)
     redundant = n_rows - sum(s.n_means for s in kinds) - (n_unknowns - sum(s.share for s in kinds))
     s2 = max(ss / max(redundant, 1.0), 1.0)
@@ -164,12 +163,10 @@ def statistical(pb: Problem, b: Blocks, core: NDArray[np.intp], JtJ_inv: FloatAr
         cov[:k, :k] += V @ sum((s.s2 - s2) * s.H for s in kinds) @ V
     r, _, scan, beam, n_markers = range_rows(pb, b, core)
     rho, pairs = neighbour_correlation(r[:n_markers], scan[:n_markers], beam[:n_markers])
-    if rho * math.sqrt(pairs) < RHO_Z:
-        rho = 0.0
-    else:  # the rows' effects on the estimate only where they count
+    if rho * math.sqrt(pairs) >= RHO_Z:  # the rows' effects on the estimate only where they count
         _, u, scan, beam, _ = range_rows(pb, b, core, JtJ_inv[:, :k], nu_rows)
         cov[:k, :k] += s2 * correlation_excess(u, scan, beam, rho)
-    return Noise(cov, s2, rho, pairs)
+    return Noise(cov, s2)
 
 
 __all__ = ["MIN_REDUNDANT", "RHO_Z", "Noise", "Scatter", "correlation_excess", "lateral_scatter", "range_rows",
