@@ -15,7 +15,7 @@ def test_the_users_of_a_shared_run_are_one_group() -> None:
     together = [
         ["tests/test_real_walkthrough.py::test_inspect_proposes_a_rig_file[cardboard_box]",
          "tests/test_inspect_dh.py::test_real_urg_stand_proposes_alpha_90[room_240]",
-         "tests/test_targetless.py::test_real_urg04lx_box_gives_one_verdict_for_either_half_of_its_scans"],
+         "tests/test_targetless.py::test_real_urg04lx_box_gives_one_verdict_for_all_or_half_of_its_scans"],
         ["tests/test_start_dependence.py::test_shipped_targetless_scenes_calibrate_with_the_starts_agreeing[room_box]",
          "tests/test_targetless.py::test_room_box_recovers_the_truth_within_4_sigma"],
         ["tests/test_cli_sim.py::test_run_closes_the_loop",

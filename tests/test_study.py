@@ -170,7 +170,8 @@ def test_no_wasted_casting(tiny) -> None:
 
 def test_new_layout_per_trial(tiny) -> None:
     """--new-layout: each trial's V is jittered from its own seed (a new layout, a new cast), so the same seeds give
-    other errors than with the scenario's one layout; the process pool gives the same table."""
+    other errors than with the scenario's one layout (the design reaches a process pool's workers as one
+    TrialDesign: test_perturbed_start_reaches_nominal_yaml_and_pool_gives_the_same_table)."""
     sc = with_field(tiny, "markers.layout.jitter_m", 0.02)
     same = run_trials(sc, 2, seed0=10, recast=True)  # the seeds of this module's other trials of tiny
     new = run_trials(sc, 2, seed0=10, new_layout=True)
@@ -180,8 +181,6 @@ def test_new_layout_per_trial(tiny) -> None:
     assert any(r.status == "calibrated" for r in same + new), [r.reason for r in same + new]
     for a, b in zip(same, new, strict=True):  # the same seed, another layout: another trial (errors or reason)
         assert a.seed == b.seed and a.csv_row()[2:] != b.csv_row()[2:]
-    pooled = run_trials(sc, 2, seed0=10, new_layout=True, workers=2)
-    assert [r.csv_row() for r in pooled] == [r.csv_row() for r in new]
 
 
 def _nominal(sc) -> dict[str, float]:
