@@ -7,9 +7,11 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import pytest
 from test_solve import R_M, SIGMA, TRUE, _err, _markers, simulate
 
 from lrfcal.estimate.problem import marker_problem
+from lrfcal.estimate.scatter import MIN_REDUNDANT, Scatter, measured
 from lrfcal.estimate.solve import solve
 from lrfcal.model.kinematics import ESTIMATE_NAMES
 from lrfcal.model.marker import MarkerSensor
@@ -34,6 +36,29 @@ def _ar1(obs: Observations, rng: np.random.Generator, rho: float, sigma: float =
         e[i] = prev
         prev_scan, prev_beam = int(obs.scan[i]), int(obs.beam[i])
     return e
+
+
+def _kind(ss: float, count: float, share: float) -> Scatter:
+    return Scatter(float("nan"), np.eye(2), ss, count, share)
+
+
+def test_each_kind_is_measured_from_enough_redundant_means_alone_or_pooled() -> None:
+    """A kind with MIN_REDUNDANT redundant means gets its own sum of squares over nu - 2; two kinds with fewer share
+    their pooled scatter where the pool has enough, never below a kind's own; one kind with too few, alone, is left
+    out (the model's sigma stands)."""
+    assert MIN_REDUNDANT == 10
+    alone = measured([_kind(3.0, 14.0, 2.0)])  # nu 12
+    assert len(alone) == 1 and alone[0].s2 == 3.0 / 10.0
+    # the V of 6 markers (layout seed 2003): 12 crossings, nu 6.6 and 9.5: 0.40 and 0.25 on their own
+    across, along = _kind(1.85, 12.0, 5.36), _kind(1.88, 12.0, 2.48)
+    pooled = (1.85 + 1.88) / (6.64 + 9.52 - 2.0)
+    a, b = measured([across, along])
+    assert a.s2 == pytest.approx(1.85 / (6.64 - 2.0)) and a.s2 > pooled  # its own: the pool would lower it
+    assert b.s2 == pytest.approx(pooled) and pooled > 1.88 / (9.52 - 2.0)
+    assert measured([across]) == ()  # 6.6 redundant means alone: too few
+    assert measured([_kind(0.5, 4.0, 3.0), _kind(0.5, 5.0, 3.0)]) == ()  # a pool of 3: too few
+    mixed = measured([_kind(3.0, 14.0, 2.0), across])  # one measured, the other alone below: left out
+    assert len(mixed) == 1 and mixed[0].ss == 3.0
 
 
 def test_neighbour_correlation_measures_the_scans_rho() -> None:

@@ -9,14 +9,16 @@ statistical covariance of lrfcal.estimate.covariance.uncertainty (and of `lrfsim
   0.1-0.4 of the stated variance and the lines' with 0.1, and the stated sigma of a and alpha was 1.8x and 1.6x
   their errors' spread (docs/study.md). Each kind of mean is therefore given the variance its own residuals show
   (:func:`lateral_scatter`: their sum of squares over their redundancy less 2), where it has at least
-  MIN_REDUNDANT redundant means; fewer keep the model's sigma.
+  MIN_REDUNDANT redundant means; kinds with fewer share the scatter of both where together they have as many (a V
+  of 6 markers, 12 crossings: 0.67-0.89 of the spread at the bound, 0.80-0.99 so; docs/study.md); else the model's
+  sigma stands.
 * **The range noise's correlation along the scan** (lrfcal.model.noise): measured from the residuals of neighbouring
   marker returns (:func:`range_rows`, lrfcal.model.noise.neighbour_correlation), its sandwich term over every range
   row (the surface returns' too) enters the covariance as `lrfsim plan` adds it from the scenario's rho. The
   per-crossing sandwich (lrfcal.estimate.covariance) sees the same correlation, but from the few crossings that
   determine b it is a noisy estimate, too narrow on average (b's sigma 1.46x too narrow on scattered points at rho
-  0.7, layout 2010: docs/study.md). It counts where the marker returns show it (:data:`RHO_Z`). Only the marker
-  returns measure rho: a sphere's residual is the scanner's noise, a wall's also holds the wall's unevenness and
+  0.7, layout 2010: docs/study.md). It counts where the marker returns show it (lrfcal.model.noise.shown). Only the
+  marker returns measure rho: a sphere's residual is the scanner's noise, a wall's also holds the wall's unevenness and
   the scanner's range error along the scan, correlated over many beams, which the per-scan sandwich (hundreds of
   scans) takes as it is. Measured on the surface returns of the real recordings of docs/real-data.md, rho moved
   room_240's verdict (its halves' chi2 376 -> 147, one half refused for another reason). A recording without
@@ -32,6 +34,7 @@ Array shapes: nc core unknowns estimated; R range rows.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -39,20 +42,16 @@ from numpy.typing import NDArray
 
 from lrfcal.estimate.problem import Problem
 from lrfcal.model.marker import MarkerModel
-from lrfcal.model.noise import correlated_range_excess, neighbour_correlation
+from lrfcal.model.noise import correlated_range_excess, neighbour_correlation, shown
 from lrfcal.model.observations import Blocks
 from lrfcal.model.plane import PlaneSet
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.int64]
 
-#: the range noise's correlation counts where the marker returns show it: rho measured from n neighbouring pairs at
-#: least this many of its standard errors (1 / sqrt(n)) from 0; below, 0 (the per-crossing sandwich of
-#: lrfcal.estimate.covariance alone). Taken as measured from 24 pairs at rho 0, it came out 0.16 and 0.38 and
-#: refused a points layout (seed 2014) for observability; the sigma only ever widens with it
-RHO_Z = 2.0
 #: a kind of lateral mean gets the variance its residuals show only with at least this many redundant means (its
-#: count less the unknowns it determines); with fewer, the estimate of a variance is too loose to narrow a sigma by
+#: count less the unknowns it determines), alone or pooled with the other kind; with fewer, the estimate of a
+#: variance is too loose to narrow a sigma by
 MIN_REDUNDANT = 10
 
 
@@ -67,22 +66,35 @@ class Scatter(NamedTuple):
 
 
 def lateral_scatter(pb: Problem, b: Blocks, core: NDArray[np.intp], V: FloatArray) -> tuple[Scatter, ...]:
-    """The crossings' means across the scan plane and the lines' means along it (lrfcal.model.marker.MarkerSet.
-    lateral_means) of the marker rows among ``b``'s, each with the variance its residuals show: their sum of squares
-    over their redundancy nu less 2, nu their count less tr(V H) (``V`` (nc, nc): the core block of (J^T J)^-1 over
-    ``core``); a kind with fewer than MIN_REDUNDANT redundant means is left out (the model's sigma stands)."""
+    """The crossings' means across the scan plane and along it (lrfcal.model.marker.MarkerSet.lateral_means) of the
+    marker rows among ``b``'s, each kind with the variance the residuals show (:func:`measured`; ``V`` (nc, nc): the
+    core block of (J^T J)^-1 over ``core``); a kind they cannot measure is left out (the model's sigma stands)."""
     ms = pb.markers
     if ms is None or b.J_dense is None:
         return ()
-    out = []
+    kinds = []
     for rows, J, count in ms.lateral_means(pb.markers_in(b.r_dense), pb.markers_in(b.J_dense)[:, :, core]):
         H = J.T @ J
-        ss, share = float(rows @ rows), float(np.trace(V @ H))
-        redundant = count - share
-        # over nu - 2, not nu: a variance measured from nu means makes err / sigma a Student t, whose mean square is
-        # nu / (nu - 2); so stated, the sigma holds its own uncertainty (1.25x the variance at nu = 10)
-        if redundant >= MIN_REDUNDANT:
-            out.append(Scatter(ss / (redundant - 2.0), H, ss, count, share))
+        kinds.append(Scatter(math.nan, H, float(rows @ rows), count, float(np.trace(V @ H))))
+    return measured(kinds)
+
+
+def measured(kinds: Sequence[Scatter]) -> tuple[Scatter, ...]:
+    """The kinds (their ``s2`` not yet set) whose variance their residuals measure, with it: their sum of squares
+    over their redundancy nu (count less tr(V H)) less 2, where nu >= MIN_REDUNDANT. Kinds with fewer redundant
+    means share the scatter of all of them where their pool has MIN_REDUNDANT (both kinds are means of one marker's
+    coverage, lines or beams at a regular spacing: on a V of 6 markers, 12 crossings, the two kinds measured 0.40 and
+    0.25 of the bound, each from 7-10 redundant means), a kind never below its own (where its nu > 2): the pool
+    must not lower the kind that scatters more."""
+    # over nu - 2, not nu: a variance measured from nu means makes err / sigma a Student t, whose mean square is
+    # nu / (nu - 2); so stated, the sigma holds its own uncertainty (1.25x the variance at nu = 10)
+    nu = [k.n_means - k.share for k in kinds]
+    out = [k._replace(s2=k.ss / (n - 2.0)) for k, n in zip(kinds, nu, strict=True) if n >= MIN_REDUNDANT]
+    few = [(k, n) for k, n in zip(kinds, nu, strict=True) if n < MIN_REDUNDANT]
+    pooled_nu = sum(n for _, n in few)
+    if len(few) > 1 and pooled_nu >= MIN_REDUNDANT:
+        pooled = sum(k.ss for k, _ in few) / (pooled_nu - 2.0)
+        out += [k._replace(s2=max(pooled, k.ss / (n - 2.0) if n > 2.0 else 0.0)) for k, n in few]
     return tuple(out)
 
 
@@ -140,6 +152,7 @@ class Noise(NamedTuple):
 
     covariance: FloatArray  #: (n, n) the statistical covariance of every unknown (column-unscaled)
     s2: float  #: the reduced chi-square of the rows at the stated noise (the lateral means measured apart), >= 1
+    correlation: tuple[float, int]  #: the range noise's rho along the scan and the neighbouring pairs it is from
 
 
 def statistical(pb: Problem, b: Blocks, core: NDArray[np.intp], JtJ_inv: FloatArray, nu_rows: IntArray,
@@ -163,11 +176,11 @@ def statistical(pb: Problem, b: Blocks, core: NDArray[np.intp], JtJ_inv: FloatAr
         cov[:k, :k] += V @ sum((s.s2 - s2) * s.H for s in kinds) @ V
     r, _, scan, beam, n_markers = range_rows(pb, b, core)
     rho, pairs = neighbour_correlation(r[:n_markers], scan[:n_markers], beam[:n_markers])
-    if rho * math.sqrt(pairs) >= RHO_Z:  # the rows' effects on the estimate only where they count
+    if shown(rho, pairs):  # the rows' effects on the estimate only where they count
         _, u, scan, beam, _ = range_rows(pb, b, core, JtJ_inv[:, :k], nu_rows)
         cov[:k, :k] += s2 * correlation_excess(u, scan, beam, rho)
-    return Noise(cov, s2)
+    return Noise(cov, s2, (rho, pairs))
 
 
-__all__ = ["MIN_REDUNDANT", "RHO_Z", "Noise", "Scatter", "correlation_excess", "lateral_scatter", "range_rows",
-           "statistical"]
+__all__ = ["MIN_REDUNDANT", "Noise", "Scatter", "correlation_excess", "lateral_scatter", "measured",
+           "range_rows", "statistical"]

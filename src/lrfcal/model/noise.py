@@ -86,6 +86,17 @@ def correlated_range_excess(u: FloatArray, scan: IntArray, beam: IntArray, rho: 
 
 #: the largest correlation of neighbouring beams taken from a recording (an AR(1) process needs rho < 1)
 MAX_RHO = 0.95
+#: a correlation measured from n neighbouring pairs counts where it is at least this many of its standard errors
+#: (1 / sqrt(n)) from 0; below, it is taken as 0. Taken as measured from 24 pairs at rho 0, it came out 0.16 and 0.38
+#: and refused a points layout (seed 2014) for observability: the sigma only ever widens with it
+RHO_Z = 2.0
+
+
+def shown(rho: float, pairs: int) -> bool:
+    """Whether a correlation ``rho`` measured from ``pairs`` neighbouring pairs (:func:`neighbour_correlation`) is
+    shown by them (:data:`RHO_Z`): the one rule the covariance (lrfcal.estimate.scatter) and the calibration file
+    follow."""
+    return pairs > 0 and rho * math.sqrt(pairs) >= RHO_Z
 
 
 def neighbour_correlation(residuals: FloatArray, scan: IntArray, beam: IntArray) -> tuple[float, int]:
@@ -106,4 +117,5 @@ def neighbour_correlation(residuals: FloatArray, scan: IntArray, beam: IntArray)
     return min(max(rho, 0.0), MAX_RHO), int(near.sum())
 
 
-__all__ = ["MAX_RHO", "MIN_PAIR_CORRELATION", "correlated_pairs", "correlated_range_excess", "neighbour_correlation"]
+__all__ = ["MAX_RHO", "MIN_PAIR_CORRELATION", "RHO_Z", "correlated_pairs", "correlated_range_excess",
+           "neighbour_correlation", "shown"]
