@@ -75,6 +75,9 @@ def test_run_closes_the_loop(full_sweep_run: tuple[subprocess.CompletedProcess, 
     assert sorted(p.name for p in (run_dir / "recording").iterdir()) == FILES
     for name in ("calibration.yaml", "rig.urdf", "cloud_before.ply", "cloud_after.ply", "report.md"):
         assert (run_dir / "calibration" / name).is_file(), name
+    # independent range noise: the marker returns' neighbouring beams show no correlation the covariance would hold
+    rho = yaml.safe_load((run_dir / "calibration" / "calibration.yaml").read_text())["range_noise_correlation"]
+    assert rho["pairs"] > 0 and rho["rho"] < 0.3 and rho["in_covariance"] is False, rho
     for words in ("Table I", "Table III", "estimate", "paper's method", "width", "plate"):
         assert words in proc.stdout, words
     # one line says the simulated scanner was idealised and where the systematic errors' cost is measured

@@ -85,7 +85,8 @@ def map_sensitivity(pb: Problem, th: FloatArray, R_ref: FloatArray, b: Blocks, c
 
 def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_],
                  map_cov: FloatArray | None = None, blocks: Blocks | None = None
-                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread]:
+                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread,
+                            tuple[float, int]]:
     """The covariance at the solution: the statistical covariance over the free unknowns at the noise the residuals
     show (lrfcal.estimate.scatter.statistical: s^2 (J^T J)^-1, the lateral means at their own scatter, the range
     noise's correlation along the scan), widened for errors shared within a cluster (its sets' clusters,
@@ -101,9 +102,9 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
 
     Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
     singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2 of
-    every row at its stated sigma, the rank in words, G (N_CORE, 3n) (None without ``map_cov`` or with rank loss)
-    and the Spread (each cluster's influence and the statistical covariance at the stated noise times the floor of
-    its reduced chi-square; empty with rank loss) for lrfcal.estimate.checks.difference_covariance.
+    every row at its stated sigma, the rank in words, G (N_CORE, 3n; None without map_cov), the Spread (each
+    cluster's influence, the statistical covariance at the stated noise times the floor of its reduced chi-square)
+    and the range noise's (rho, pairs) along the scan (scatter.Noise); None, empty and (0, 0) with rank loss.
     ``blocks``: ``pb.blocks(th, R_ref)`` when the caller has them already (they are read, not changed)."""
     b = pb.blocks(th, R_ref) if blocks is None else blocks
     core = np.flatnonzero(free[:N_CORE])
@@ -176,10 +177,11 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
             "" if rank == n_par else f"; {n_par - rank} direction(s) of the planes alone undetermined")
     cov_core = np.full((N_CORE, N_CORE), np.nan)
     cov_core[np.ix_(core, core)] = cov[np.ix_(core_pos, core_pos)]
+    correlation = (0.0, 0) if core_rank_loss else noise.correlation
     if core_rank_loss:
         # a covariance from a singular information would be meaningless (and can be 0): none is reported
         cov_core[np.ix_(core, core)] = np.inf
-    return cov_core, info, core_names, s2, rank_txt, G, spread
+    return cov_core, info, core_names, s2, rank_txt, G, spread, correlation
 
 
 #: a score test's widened sigma (the estimate's own, at the stepped solution) is computed only where the plain one

@@ -118,8 +118,9 @@ class Unknowns:
 class Uncertainty:
     """The covariance at the solution (lrfcal.estimate.covariance.uncertainty): the core covariance (N_CORE, N_CORE)
     (NaN rows held, inf with rank loss), the marginal information over the free core unknowns and their names, the
-    reduced chi-square, the rank in words, the map sensitivity G (N_CORE, 3n) or None, the Spread, and the score
-    tests of held unknowns (name -> (value, sigma))."""
+    reduced chi-square, the rank in words, the map sensitivity G (N_CORE, 3n) or None, the Spread, the score
+    tests of held unknowns (name -> (value, sigma)) and the range noise's correlation along the scan the marker
+    returns show (rho, neighbouring pairs)."""
 
     covariance: FloatArray
     information: FloatArray
@@ -129,6 +130,7 @@ class Uncertainty:
     map_sensitivity: FloatArray | None
     spread: Spread
     held_score: dict[str, tuple[float, float]]
+    range_correlation: tuple[float, int] = (0.0, 0)
 
 
 @dataclass(frozen=True)
@@ -210,9 +212,9 @@ def _uncertainty(pb: Problem, state: State, free: BoolArray, map_cov: FloatArray
     (Problem.clusters), and the score tests of ``held_scores``."""
     unc = partial(uncertainty, pb, R_ref=state.R_ref, map_cov=map_cov)
     at_solution = pb.blocks(state.th, state.R_ref)  # the residuals and Jacobian at the solution, once for both
-    cov, info, names, s2, rank, G, spread = unc(th=state.th, free=free, blocks=at_solution)
+    cov, info, names, s2, rank, G, spread, correlation = unc(th=state.th, free=free, blocks=at_solution)
     score = held_score(pb, state.th, state.R_ref, free, s2, unc, held_scores, blocks=at_solution)
-    return Uncertainty(cov, info, names, s2, rank, G, spread, score)
+    return Uncertainty(cov, info, names, s2, rank, G, spread, score, correlation)
 
 
 def estimate(pb: Problem, start: State, unknowns: Unknowns, passes: Passes = MARKER_PASSES, *,

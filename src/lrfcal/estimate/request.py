@@ -197,7 +197,8 @@ class _MarkerPosed(_Posed):
                          status=status, information=unc.information, information_names=unc.names,
                          reduced_chi2=unc.reduced_chi2, converged=est.status is Status.CONVERGED, chi=chi_all,
                          inlier=inl, lambda_rad=lam_all, n_surface_returns=k_s, held_score=unc.held_score,
-                         map_sensitivity=None if G is None else G[:10], spread=unc.spread, iterations=est.log)
+                         map_sensitivity=None if G is None else G[:10], spread=unc.spread, iterations=est.log,
+                         range_correlation=unc.range_correlation)
 
 
 def _solution(th: FloatArray, R_ref: FloatArray, cov_core: FloatArray, free: BoolArray, **fields: object

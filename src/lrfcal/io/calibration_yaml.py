@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from lrfcal.model.kinematics import DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES
+from lrfcal.model.noise import shown
 from lrfcal.model.unknowns import BY_NAME
 from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence
 from lrfcal.types import MarkerMap, Nominal, Scans, Solution, TunnelGeometry
@@ -63,6 +64,10 @@ def _solution_dict(sol: Solution) -> dict[str, Any]:
         "residual_rms_m": _f(sol.residual_rms_m),
         "n_observations": int(sol.n_observations),
         "reduced_chi2": _f(sol.reduced_chi2),
+        # the range noise's correlation between neighbouring beams the marker returns show (a scenario's
+        # sensor.noise_correlation for `lrfsim plan`), and whether the covariance holds it (lrfcal.model.noise.shown)
+        "range_noise_correlation": {"rho": _f(sol.range_correlation[0]), "pairs": int(sol.range_correlation[1]),
+                                    "in_covariance": shown(*sol.range_correlation)},
         "status": str(sol.status),
     }
 

@@ -103,6 +103,10 @@ class Solution:
     spread: Spread | None = None
     #: each accepted Levenberg-Marquardt iteration of every pass (lrfcal.estimate.engine.Estimate.log)
     iterations: tuple[Iteration, ...] = ()
+    #: the range noise's correlation between neighbouring beams as the marker returns' residuals show it, and the
+    #: neighbouring pairs it is measured from (0, 0: no marker returns); the covariance holds it where it counts
+    #: (lrfcal.model.noise.shown)
+    range_correlation: tuple[float, int] = (0.0, 0)
 
     @property
     def dh_sigma(self) -> FloatArray:
