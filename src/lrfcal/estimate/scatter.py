@@ -10,8 +10,8 @@ statistical covariance of lrfcal.estimate.covariance.uncertainty (and of `lrfsim
   their errors' spread (docs/study.md). Each kind of mean is therefore given the variance its own residuals show
   (:func:`lateral_scatter`: their sum of squares over their redundancy less 2), where it has at least
   MIN_REDUNDANT redundant means; kinds with fewer share the scatter of both where together they have as many (a V
-  of 6 markers, 12 crossings: 0.67-0.89 of the spread at the bound, 0.80-0.99 so; docs/study.md); else the model's
-  sigma stands.
+  of 6 markers, 12 crossings: RMS of error / sigma 0.54-0.89 at the bound, 0.70-0.98 so; docs/study.md); else the
+  model's sigma stands.
 * **The range noise's correlation along the scan** (lrfcal.model.noise): measured from the residuals of neighbouring
   marker returns (:func:`range_rows`, lrfcal.model.noise.neighbour_correlation), its sandwich term over every range
   row (the surface returns' too) enters the covariance as `lrfsim plan` adds it from the scenario's rho. The
@@ -84,7 +84,7 @@ def measured(kinds: Sequence[Scatter]) -> tuple[Scatter, ...]:
     over their redundancy nu (count less tr(V H)) less 2, where nu >= MIN_REDUNDANT. Kinds with fewer redundant
     means share the scatter of all of them where their pool has MIN_REDUNDANT (both kinds are means of one marker's
     coverage, lines or beams at a regular spacing: on a V of 6 markers, 12 crossings, the two kinds measured 0.40 and
-    0.25 of the bound, each from 7-10 redundant means), a kind never below its own (where its nu > 2): the pool
+    0.25 of the bound from 6.6 and 9.5 redundant means), a kind never below its own (where its nu > 2): the pool
     must not lower the kind that scatters more."""
     # over nu - 2, not nu: a variance measured from nu means makes err / sigma a Student t, whose mean square is
     # nu / (nu - 2); so stated, the sigma holds its own uncertainty (1.25x the variance at nu = 10)
