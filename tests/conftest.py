@@ -108,8 +108,8 @@ def group_of(nodeid: str) -> str:
 
 #: the longest groups, longest first (seconds of their tests summed by :func:`group_of` from `python -m pytest
 #: --durations=0` on 2 cores, 2026-12-08): the scheduler hands out groups in collection order, and the longest ones
-#: sat late in the alphabet (test_study, test_targetless, test_trust), so one worker ran them alone at the end (4:17
-#: of tests, against about 3:40 of work per worker); handed out first, the two workers end together
+#: sat late in the alphabet (test_study, test_targetless, test_trust), so one worker ran them alone at the end; handed
+#: out first, the two workers end together (a fresh clone's tests, docs/tests.md: 4:17 -> 3:56)
 LONGEST_FIRST = ("real bags", "test_study", "test_plan", "room_box targetless", "test_cli_faults",
                  "test_recovery_shipped",
                  "test_targetless::test_tunnel_v_with_its_markers_ignored_beside_the_marker_method", "lrfsim run",
