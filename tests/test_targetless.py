@@ -274,8 +274,8 @@ def test_real_urg04lx_box_gives_one_verdict_for_all_or_half_of_its_scans(real_bo
     assignment fixed) gives both the same verdict, naming the same property of the data, never the method's own
     rounds; the estimates agree within 2 of their combined sigma on every DH parameter both estimate. Measured
     (docs/real-data.md; all, even, odd): a -40, -41, -31 mm (+-4.4), alpha 87.0, 86.5, 87.4 deg (+-0.37), b 46, 48, 52
-    mm (+-2.6), beta 5.5, 5.8, 4.9 deg (+-0.4); refused by the held-out planes, 0.3-0.6 mm thicker with the
-    calibrated DH than with the nominal."""
+    mm (+-2.6), beta 5.5, 5.8, 4.9 deg (+-0.4); refused by "planes agree" (one plane pulls the estimate beyond the
+    noise), the held-out planes 0.3-0.6 mm thicker with the calibrated DH than with the nominal."""
     from lrfcal.stages.timing import subset_scans
     from lrfcal.types import JointStates
 

@@ -16,7 +16,7 @@ from lrfcal.io.calibration_yaml import map_sigma, param_sigma
 from lrfcal.io.calibration_yaml import plain_float as _f
 from lrfcal.io.truth import truth_frame
 from lrfcal.model.kinematics import ANGLE_NAMES, DH_NAMES, ESTIMATE_NAMES, MOUNT_NAMES, PARAM_NAMES, Pose
-from lrfcal.model.noise import shown
+from lrfcal.model.noise import RHO_Z, shown
 from lrfcal.result import CalibrationResult, MarkerEvidence, PlaneEvidence
 from lrfcal.types import Solution
 
@@ -110,7 +110,7 @@ def _marker_lines(sol: Solution, ev: MarkerEvidence) -> list[str]:
     if pairs:
         lines.append(f"- range noise along the scan: neighbouring beams correlate {rho:.2f} (from {pairs} pairs of "
                      "marker returns; " + ("held in the covariance)" if shown(rho, pairs) else
-                                          "within 2 standard errors of 0: taken as 0)"))
+                                          f"within {RHO_Z:g} standard errors of 0: taken as 0)"))
     for p in markers.dropped_pairs:
         lines.append(f"- tape pair {p.id_i}-{p.id_j} dropped: measured {p.measured_m:.3f} m, the other pairs put it "
                      f"at {p.predicted_m:.3f} m ({p.error_m * 1000:+.0f} mm); re-measure it")
