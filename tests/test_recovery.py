@@ -35,7 +35,7 @@ from lrfsim.trials.compare import Comparison, compare, load_truth
 SCENARIOS = {p.stem: p for p in sorted((Path(__file__).resolve().parents[1] / "scenarios").glob("*.yaml"))}
 MARKERLESS = {name for name, path in SCENARIOS.items() if load_scenario(path).markers is None}
 #: the shipped scenarios with markers; the marker-less ones (room_box, cardboard_box) are calibrated targetless once
-#: in tests/test_targetless.py, which checks their 4 sigma and their scenario's tolerances
+#: in tests/test_targetless.py, which checks their 4 sigma and their scenario's tolerances (cardboard_box with -m slow)
 SHIPPED = [name for name in SCENARIOS if name not in MARKERLESS]
 SEEDS = tuple(range(20))
 IN_SUITE = 8  # the random truths the suite runs (the rest with -m slow: tests/conftest.py, tiered)

@@ -181,7 +181,10 @@ def test_tunnel_v_with_its_markers_ignored_beside_the_marker_method(shipped_reco
     assert "## The methods side by side" in report and "| targetless (markers ignored) |" in report
 
 
+@pytest.mark.slow  # 12 s: in the suite, a box is calibrated targetless by tests/test_replicas.py (urg_box_60)
 def test_cardboard_box_recovers_the_truth_within_4_sigma(shipped_recording: Callable[[str], Path]) -> None:
+    """The shipped cardboard_box scene, calibrated targetless: within 4 sigma and within its own tolerances (what
+    `lrfsim run scenarios/cardboard_box.yaml` checks)."""
     folder = shipped_recording("cardboard_box")
     result = _calibrate(folder, range_sigma_m=0.0035)  # the scenario's range noise below 1 m
     z = _z(result, folder)
