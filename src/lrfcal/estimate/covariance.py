@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -83,10 +84,25 @@ def map_sensitivity(pb: Problem, th: FloatArray, R_ref: FloatArray, b: Blocks, c
     return -JtJ_inv[:core.size, :cross.shape[0]] @ cross
 
 
+class Covariance(NamedTuple):
+    """The covariance at a solution (:func:`uncertainty`)."""
+
+    covariance: FloatArray  #: (N_CORE, N_CORE) the core's: NaN rows held, inf where the information is singular
+    information: FloatArray  #: the marginal information over the free core unknowns
+    names: tuple[str, ...]  #: their names
+    reduced_chi2: float  #: s^2 of every row at its stated sigma
+    rank: str  #: the rank in words
+    map_sensitivity: FloatArray | None  #: G (N_CORE, 3n); None without the map's covariance or with rank loss
+    #: each cluster's influence and the statistical covariance at the stated noise times the floor of its reduced
+    #: chi-square (lrfcal.estimate.checks); empty with rank loss
+    spread: Spread
+    #: the range noise's rho along the scan the marker returns show and its pairs (scatter.Noise); (0, 0) with rank
+    #: loss
+    range_correlation: tuple[float, int]
+
+
 def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_],
-                 map_cov: FloatArray | None = None, blocks: Blocks | None = None
-                 ) -> tuple[FloatArray, FloatArray, tuple[str, ...], float, str, FloatArray | None, Spread,
-                            tuple[float, int]]:
+                 map_cov: FloatArray | None = None, blocks: Blocks | None = None) -> Covariance:
     """The covariance at the solution: the statistical covariance over the free unknowns at the noise the residuals
     show (lrfcal.estimate.scatter.statistical: s^2 (J^T J)^-1, the lateral means at their own scatter, the range
     noise's correlation along the scan), widened for errors shared within a cluster (its sets' clusters,
@@ -98,13 +114,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     marker (the sets' groups: the marker of each dense row) say more: where the beams cover a marker unevenly (lines
     fanning across it, or the same lines in every pass), the mean of its returns' lateral offsets is not its centre,
     and that error is common to the marker (:func:`inflate_for_markers`). J^T J from the normal equations,
-    column-scaled; an eigenvalue below RANK_TOL of the largest is rank loss.
-
-    Returns the core covariance (N_CORE, N_CORE) (NaN rows for held unknowns, inf when the information is
-    singular), the marginal information over the free core unknowns, their names, the reduced chi-square s^2 of
-    every row at its stated sigma, the rank in words, G (N_CORE, 3n; None without map_cov), the Spread (each
-    cluster's influence, the statistical covariance at the stated noise times the floor of its reduced chi-square)
-    and the range noise's (rho, pairs) along the scan (scatter.Noise); None, empty and (0, 0) with rank loss.
+    column-scaled; an eigenvalue below RANK_TOL of the largest is rank loss. Returns :class:`Covariance`.
     ``blocks``: ``pb.blocks(th, R_ref)`` when the caller has them already (they are read, not changed)."""
     b = pb.blocks(th, R_ref) if blocks is None else blocks
     core = np.flatnonzero(free[:N_CORE])
@@ -181,7 +191,7 @@ def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np
     if core_rank_loss:
         # a covariance from a singular information would be meaningless (and can be 0): none is reported
         cov_core[np.ix_(core, core)] = np.inf
-    return cov_core, info, core_names, s2, rank_txt, G, spread, correlation
+    return Covariance(cov_core, info, core_names, s2, rank_txt, G, spread, correlation)
 
 
 #: a score test's widened sigma (the estimate's own, at the stepped solution) is computed only where the plain one
@@ -191,7 +201,7 @@ SCREEN_Z = 2.0
 
 
 def held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_], s2: float,
-                covariance_at: Callable[..., tuple], names: Sequence[str], blocks: Blocks | None = None
+                covariance_at: Callable[..., Covariance], names: Sequence[str], blocks: Blocks | None = None
                 ) -> dict[str, tuple[float, float]]:
     """The score test of every unknown of ``names`` the model holds by default and this solve held
     (lrfcal.model.unknowns), each on its own (with its ``tested_with`` companion where that is held too): one
@@ -234,11 +244,11 @@ def held_score(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.
             stepped = th.copy()
             stepped[at] += full[:at.size]
             stepped[N_CORE:] += full[at.size:]
-            var = covariance_at(th=stepped, free=freed)[0][i, i] * max(s2, 1.0) / max(s2, 1e-12)
+            var = covariance_at(th=stepped, free=freed).covariance[i, i] * max(s2, 1.0) / max(s2, 1e-12)
             sigma = float(np.sqrt(var)) if np.isfinite(var) else math.inf
         out[CORE_NAMES[i]] = (float(th[i] + step), sigma)
     return out
 
 
-__all__ = ["SCREEN_Z", "held_score", "inflate_for_correlation", "inflate_for_markers",
+__all__ = ["SCREEN_Z", "Covariance", "held_score", "inflate_for_correlation", "inflate_for_markers",
            "uncertainty", "widen"]

@@ -212,9 +212,10 @@ def _uncertainty(pb: Problem, state: State, free: BoolArray, map_cov: FloatArray
     (Problem.clusters), and the score tests of ``held_scores``."""
     unc = partial(uncertainty, pb, R_ref=state.R_ref, map_cov=map_cov)
     at_solution = pb.blocks(state.th, state.R_ref)  # the residuals and Jacobian at the solution, once for both
-    cov, info, names, s2, rank, G, spread, correlation = unc(th=state.th, free=free, blocks=at_solution)
-    score = held_score(pb, state.th, state.R_ref, free, s2, unc, held_scores, blocks=at_solution)
-    return Uncertainty(cov, info, names, s2, rank, G, spread, score, correlation)
+    at = unc(th=state.th, free=free, blocks=at_solution)
+    score = held_score(pb, state.th, state.R_ref, free, at.reduced_chi2, unc, held_scores, blocks=at_solution)
+    return Uncertainty(at.covariance, at.information, at.names, at.reduced_chi2, at.rank, at.map_sensitivity,
+                       at.spread, score, at.range_correlation)
 
 
 def estimate(pb: Problem, start: State, unknowns: Unknowns, passes: Passes = MARKER_PASSES, *,
