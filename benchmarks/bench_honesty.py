@@ -18,10 +18,10 @@ The band is narrower than the RMS's own sampling spread: from 24 trials of an ex
 sqrt(chi2_24 / 24), 0.72-1.28 in 95 % of draws, below 0.8 in 9.0 % and above 1.25 in 3.9 %, so about 13 % of the
 parameters and (with four parameters a case) 12-22 of 40 cases fall outside it by chance alone. Each row therefore
 also gives, per parameter, how likely an RMS that far from 1 is with an exact sigma (the two-sided chi-square
-p-value of the n calibrated trials: `p_exact`), and the summary: the count outside the band that exact sigmas would
-give on the same trial counts (a Monte Carlo of normal errors, :func:`chance_outside`), the parameters whose
-p-value is below 1 % (an RMS that far from 1 is then the sigma's, not the draw's), and the RMS over all cases per
-parameter.
+p-value of the n calibrated trials: lrfsim.trials.study_result.p_exact), and the summary: the count outside the
+band that exact sigmas would give on the same trial counts (a Monte Carlo of normal errors,
+:func:`chance_outside`), the parameters whose p-value is below 1 % (an RMS that far from 1 is then the sigma's,
+not the draw's), and the RMS over all cases per parameter.
 
     python benchmarks/bench_honesty.py [--trials 24] [--layouts 5] [--workers 2] [--only NAME]
 """
@@ -34,12 +34,12 @@ from pathlib import Path
 
 import numpy as np
 import yaml
-from scipy import stats
 
 from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.scenario.file import Scenario, parse_scenario
 from lrfsim.testing.random_scenarios import random_scenario_wide
 from lrfsim.trials.study import study
+from lrfsim.trials.study_result import p_exact
 
 ROOT = Path(__file__).resolve().parents[1]
 SHIPPED = ("tunnel_v", "plane_0deg", "plane_30deg", "spinning_tilted", "tunnel_v_systematic")
@@ -69,15 +69,6 @@ def cases(n_layouts: int) -> list[tuple[str, Scenario]]:
 #: the band RMS error / sigma is judged against, and the p-value below which an RMS is called the sigma's
 BAND = (0.8, 1.25)
 SIGNIFICANT = 0.01
-
-
-def p_exact(rms: float, n: int) -> float:
-    """How likely an RMS of error / sigma at least this far from 1 is over ``n`` trials whose sigma is exact
-    (errors normal): two-sided, n rms^2 against chi-square with n degrees of freedom."""
-    if not (n > 0 and math.isfinite(rms)):
-        return math.nan
-    lower = float(stats.chi2.cdf(n * rms * rms, n))
-    return min(1.0, 2.0 * min(lower, 1.0 - lower))
 
 
 def chance_outside(counts: list[int], n_params: int = 4, draws: int = 4000, seed: int = 0) -> tuple[float, int, int]:

@@ -9,6 +9,7 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -17,7 +18,15 @@ from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan.prediction import plan
 from lrfsim.scenario.file import parse_scenario
 from lrfsim.trials.study import run_trials, study
-from lrfsim.trials.study_result import CSV_COLUMNS, DRAWS, summary_markdown, trials_csv, write_study
+from lrfsim.trials.study_result import (
+    CSV_COLUMNS,
+    DRAWS,
+    exact_interval,
+    p_exact,
+    summary_markdown,
+    trials_csv,
+    write_study,
+)
 from lrfsim.trials.variants import PERTURB_HALF_WIDTH, parse_vary, perturbed_start, with_field
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -70,11 +79,29 @@ def test_study_table(serial, tmp_path: Path) -> None:
     summary = (out / "summary.md").read_text()
     assert "RMSE / predicted" in summary and f"refusal rate {100 * len(refused) / 3:.0f} %" in summary
     assert DRAWS["noise"] in summary  # one cast for every trial: says what that hides and how to measure it
+    # what the calibrated trials can tell: an exact sigma's RMS spread over as many trials
+    lo, hi = exact_interval(len(calibrated))
+    assert f"over {len(calibrated)} trials lies in {lo:.2f}-{hi:.2f}" in summary
     recast = summary_markdown(replace(serial, draws="cast"))
     assert DRAWS["cast"] in recast and DRAWS["noise"] not in recast
     for p in DH_NAMES:
         assert (out / f"hist_{p}.png").read_bytes()[:4] == b"\x89PNG"
     assert serial.parts[0].plan is not None and serial.parts[0].plan.sigma["a"] > 0
+
+
+def test_exact_sigma_interval_and_p_value() -> None:
+    """An exact sigma's RMS of error / sigma over n trials is sqrt(chi2_n / n): 0.72-1.28 over 24 (95 %), 0.90-1.10
+    over 200; the two-sided p-value of an RMS at the interval's ends is 0.05, of 1 about 0.9, of 0.54 over 24
+    (V 2003's beta at the bound) 0.0006; over 24 normal draws it falls below 0.05 in about 5 % of the draws."""
+    assert exact_interval(24) == pytest.approx((0.7188, 1.2807), abs=1e-4)
+    assert exact_interval(200) == pytest.approx((0.902, 1.098), abs=1e-3)
+    lo, hi = exact_interval(24)
+    assert p_exact(lo, 24) == pytest.approx(0.05) and p_exact(hi, 24) == pytest.approx(0.05)
+    assert p_exact(1.0, 24) > 0.9 and p_exact(0.54, 24) == pytest.approx(0.00058, abs=2e-5)
+    assert math.isnan(p_exact(1.0, 0))
+    rng = np.random.default_rng(3)
+    rms = np.sqrt((rng.standard_normal((4000, 24)) ** 2).mean(1))
+    assert 0.04 <= np.mean([p_exact(float(v), 24) < 0.05 for v in rms]) <= 0.06
 
 
 def test_process_pool_gives_the_same_table(tiny, serial, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy import stats
 
 from lrfcal.io.files import atomic_folder, check_replaceable
 from lrfcal.model.kinematics import DH_NAMES
@@ -29,6 +30,24 @@ CSV_COLUMNS: tuple[str, ...] = (
     "value", "trial", "seed", "status", "reason", "exit_code",
     *(f"{p}_{k}" for p in DH_NAMES for k in ("error", "sigma")), "clock_offset_error",
 )
+
+
+def exact_interval(n: int, level: float = 0.95) -> tuple[float, float]:
+    """Where an RMS of error / sigma over ``n`` trials falls with probability ``level`` when the sigma is exact and
+    the errors normal: sqrt(chi2_n / n) at its two tails (24 trials: 0.72-1.28). An RMS outside says the sigma, one
+    inside cannot tell it from exact."""
+    tail = (1.0 - level) / 2.0
+    lo, hi = stats.chi2.ppf([tail, 1.0 - tail], n)
+    return float(np.sqrt(lo / n)), float(np.sqrt(hi / n))
+
+
+def p_exact(rms: float, n: int) -> float:
+    """How likely an RMS of error / sigma at least this far from 1 is over ``n`` trials whose sigma is exact (errors
+    normal): two-sided, n rms^2 against chi-square with n degrees of freedom (NaN without trials)."""
+    if not (n > 0 and math.isfinite(rms)):
+        return math.nan
+    lower = float(stats.chi2.cdf(n * rms * rms, n))
+    return min(1.0, 2.0 * min(lower, 1.0 - lower))
 
 
 @dataclass(frozen=True)
@@ -200,6 +219,11 @@ def summary_markdown(s: Study) -> str:
                          f"{_fmt(p, d['std'])} | {_fmt(p, d['rmse'])} | "
                          f"{_fmt(p, d['predicted'])} | {_ratio(d['rmse_over_predicted'])} | "
                          f"{_ratio(d['std_over_predicted'])} | {_ratio(d['rms_z'])} | {_fmt(p, d['mean_sigma'])} |")
+        if n > 1:  # what the trials can tell: an exact sigma's RMS spreads this much over n trials
+            lo, hi = exact_interval(n)
+            lines += ["", f"With an exact sigma, the RMS of error / sigma over {n} trials lies in {lo:.2f}-{hi:.2f} "
+                          "(95 %: sqrt(chi2_n / n)): a value inside cannot tell the sigma from an exact one (nor "
+                          "RMSE / predicted the plan's)."]
         reasons: dict[str, int] = {}
         for r in part.rows:
             if r.status != "calibrated":
@@ -226,4 +250,5 @@ def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Pa
         write_figures(s, tmp)
     return out
 
-__all__ = ["CSV_COLUMNS", "DRAWS", "Study", "StudyPart", "TrialRow", "summary_markdown", "trials_csv", "write_study"]
+__all__ = ["CSV_COLUMNS", "DRAWS", "Study", "StudyPart", "TrialRow", "exact_interval", "p_exact", "summary_markdown",
+           "trials_csv", "write_study"]
