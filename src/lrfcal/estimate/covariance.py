@@ -9,7 +9,8 @@ by default (:func:`held_score`), whose sigma is the one the estimate would have.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
@@ -99,6 +100,9 @@ class Covariance(NamedTuple):
     #: the range noise's rho along the scan the marker returns show and its pairs (scatter.Noise); (0, 0) with rank
     #: loss
     range_correlation: tuple[float, int]
+    #: the score tests of held unknowns, name -> (value, sigma) (:func:`held_score`; the engine adds them, lrfcal.
+    #: estimate.engine.estimate)
+    held_score: Mapping[str, tuple[float, float]] = MappingProxyType({})
 
 
 def uncertainty(pb: Problem, th: FloatArray, R_ref: FloatArray, free: NDArray[np.bool_],

@@ -34,13 +34,13 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from lrfcal.estimate.covariance import held_score, uncertainty
+from lrfcal.estimate.covariance import Covariance, held_score, uncertainty
 from lrfcal.estimate.normal_equations import Limits, assemble, levenberg_marquardt, schur
 from lrfcal.estimate.problem import Problem
 from lrfcal.model.chart import regular_chart_at, regular_step
 from lrfcal.model.kinematics import exp_so3
 from lrfcal.model.unknowns import CORE_NAMES, N_CORE, UNKNOWNS
-from lrfcal.types import Iteration, Solution, Spread
+from lrfcal.types import Iteration, Solution
 
 FloatArray = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -115,28 +115,10 @@ class Unknowns:
 
 
 @dataclass(frozen=True)
-class Uncertainty:
-    """The covariance at the solution (lrfcal.estimate.covariance.uncertainty): the core covariance (N_CORE, N_CORE)
-    (NaN rows held, inf with rank loss), the marginal information over the free core unknowns and their names, the
-    reduced chi-square, the rank in words, the map sensitivity G (N_CORE, 3n) or None, the Spread, the score
-    tests of held unknowns (name -> (value, sigma)) and the range noise's correlation along the scan the marker
-    returns show (rho, neighbouring pairs)."""
-
-    covariance: FloatArray
-    information: FloatArray
-    names: tuple[str, ...]
-    reduced_chi2: float
-    rank: str
-    map_sensitivity: FloatArray | None
-    spread: Spread
-    held_score: dict[str, tuple[float, float]]
-    range_correlation: tuple[float, int] = (0.0, 0)
-
-
-@dataclass(frozen=True)
 class Estimate:
     """One estimate: the state, the problem as last chosen (all returns), which returns of each set were kept, how
-    the last pass ended, the evaluations of all passes, each accepted iteration of every pass, and the uncertainty."""
+    the last pass ended, the evaluations of all passes, each accepted iteration of every pass, and the covariance at
+    the solution with the score tests of held unknowns (lrfcal.estimate.covariance.uncertainty, held_score)."""
 
     state: State
     problem: Problem
@@ -144,7 +126,7 @@ class Estimate:
     status: Status
     n_evaluations: int
     log: tuple[Iteration, ...]
-    uncertainty: Uncertainty
+    uncertainty: Covariance
 
     @property
     def kept(self) -> Problem:
@@ -207,15 +189,14 @@ def _robust_passes(pb: Problem, start: State, free: BoolArray, passes: Passes, l
 
 
 def _uncertainty(pb: Problem, state: State, free: BoolArray, map_cov: FloatArray | None,
-                 held_scores: Sequence[str]) -> Uncertainty:
+                 held_scores: Sequence[str]) -> Covariance:
     """The covariance of the kept problem ``pb`` at ``state`` with its sets' clusters and groups
     (Problem.clusters), and the score tests of ``held_scores``."""
     unc = partial(uncertainty, pb, R_ref=state.R_ref, map_cov=map_cov)
     at_solution = pb.blocks(state.th, state.R_ref)  # the residuals and Jacobian at the solution, once for both
     at = unc(th=state.th, free=free, blocks=at_solution)
     score = held_score(pb, state.th, state.R_ref, free, at.reduced_chi2, unc, held_scores, blocks=at_solution)
-    return Uncertainty(at.covariance, at.information, at.names, at.reduced_chi2, at.rank, at.map_sensitivity,
-                       at.spread, score, at.range_correlation)
+    return at._replace(held_score=score)
 
 
 def estimate(pb: Problem, start: State, unknowns: Unknowns, passes: Passes = MARKER_PASSES, *,
@@ -273,4 +254,4 @@ def information(pb: Problem, state: State, core: IntArray) -> tuple[FloatArray, 
 
 
 __all__ = ["MARKER_PASSES", "PLANE_PASSES", "Estimate", "Passes", "Posed", "Request", "State", "Status", "Stop",
-           "Uncertainty", "Unknowns", "estimate", "information", "solved"]
+           "Unknowns", "estimate", "information", "solved"]

@@ -196,7 +196,7 @@ class _MarkerPosed(_Posed):
                          residuals_m=res3, per_marker_rms_m=per, n_observations=k_in, n_iterations=est.n_evaluations,
                          status=status, information=unc.information, information_names=unc.names,
                          reduced_chi2=unc.reduced_chi2, converged=est.status is Status.CONVERGED, chi=chi_all,
-                         inlier=inl, lambda_rad=lam_all, n_surface_returns=k_s, held_score=unc.held_score,
+                         inlier=inl, lambda_rad=lam_all, n_surface_returns=k_s, held_score=dict(unc.held_score),
                          map_sensitivity=None if G is None else G[:10], spread=unc.spread, iterations=est.log,
                          range_correlation=unc.range_correlation)
 
