@@ -20,10 +20,16 @@ parameters and (with four parameters a case) 12-22 of 40 cases fall outside it b
 also gives, per parameter, how likely an RMS that far from 1 is with an exact sigma (the two-sided chi-square
 p-value of the n calibrated trials: lrfsim.trials.study_result.p_exact), and the summary: the count outside the
 band that exact sigmas would give on the same trial counts (a Monte Carlo of normal errors,
-:func:`chance_outside`), the parameters whose p-value is below 1 % (an RMS that far from 1 is then the sigma's,
-not the draw's), and the RMS over all cases per parameter.
+:func:`chance_outside`), the parameters whose p-value is below 1 % and the RMS over all cases per parameter. Of
+156 parameters, 1.6 fall below 1 % by chance, so each is then measured again on fresh trials of its case
+(``--confirm``, 96 by default: RMS 0.86-1.14 in 95 % of draws of an exact sigma) and judged on those alone: a
+sigma that is wrong shows it again, an extreme draw does not (:func:`replicate`).
 
-    python benchmarks/bench_honesty.py [--trials 24] [--layouts 5] [--workers 2] [--only NAME]
+Where a case refuses some trials, the RMS is over the calibrated ones, and a refusal that the data decide can select
+them: on points 2014 (b's sigma near its limit) the trials refused had the larger errors, and the RMS over the 9
+calibrated of 24 was 0.40 where all 24, calibrated with --force, gave 0.64 (docs/study.md).
+
+    python benchmarks/bench_honesty.py [--trials 24] [--layouts 5] [--workers 2] [--only NAME] [--confirm 96]
 """
 
 from __future__ import annotations
@@ -69,6 +75,8 @@ def cases(n_layouts: int) -> list[tuple[str, Scenario]]:
 #: the band RMS error / sigma is judged against, and the p-value below which an RMS is called the sigma's
 BAND = (0.8, 1.25)
 SIGNIFICANT = 0.01
+#: the replication's seeds start this far past a case's own (its 24 trials use the case's seed on)
+CONFIRM_SEED = 10_000
 
 
 def chance_outside(counts: list[int], n_params: int = 4, draws: int = 4000, seed: int = 0) -> tuple[float, int, int]:
@@ -89,6 +97,8 @@ def main() -> None:
     ap.add_argument("--layouts", type=int, default=5)
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--only", default=None, help="run only the cases whose label starts with this")
+    ap.add_argument("--confirm", type=int, default=96,
+                    help="fresh trials for each parameter below p = 0.01 (0: no replication)")
     args = ap.parse_args()
     print("| case | rho | calibrated | RMS error / sigma (a, alpha, b, beta) "
           "| RMSE / plan's sigma (a, alpha, b, beta) | p_exact (a, alpha, b, beta) |")
@@ -96,6 +106,7 @@ def main() -> None:
     off_z, off_plan, n, refused = 0, 0, 0, 0
     counts: list[int] = []
     significant: list[str] = []
+    flagged: dict[tuple[str, str], tuple[Scenario, list[str]]] = {}
     pooled: dict[str, list[tuple[float, int]]] = {name: [] for name in DH_NAMES}
     for label, sc in cases(args.layouts):
         if args.only and not label.startswith(args.only):
@@ -122,6 +133,7 @@ def main() -> None:
                 pooled[name].append((v, k))
                 if pv < SIGNIFICANT:
                     significant.append(f"{label} rho {part.value} {name} {v:.2f} (p {pv:.4f})")
+                    flagged.setdefault((label, part.value), (sc, []))[1].append(name)
             print(f"| {label} | {part.value} | {cal}/{len(part.rows)} | "
                   + ", ".join(f"{v:.2f}" for v in z) + (" **out**" if bad_z else "") + " | "
                   + ", ".join(f"{v:.2f}" for v in plan) + (" **out**" if bad_p else "") + " | "
@@ -135,6 +147,30 @@ def main() -> None:
     print("RMS error / sigma over every case: " + ", ".join(
         f"{name} {math.sqrt(sum(v * v * k for v, k in rows) / max(sum(k for _, k in rows), 1)):.3f}"
         for name, rows in pooled.items()))
+    if args.confirm > 0 and flagged:
+        replicate(flagged, args.confirm, args.workers)
+
+
+def replicate(flagged: dict[tuple[str, str], tuple[Scenario, list[str]]], trials: int, workers: int) -> None:
+    """Each parameter below p = SIGNIFICANT measured again on ``trials`` fresh trials of its case (seeds from
+    CONFIRM_SEED on past the case's own, cast anew), judged on those alone: of the 156 parameters, 1.6 fall below
+    p = 0.01 by chance, and one chosen for being extreme says little about its sigma until fresh data show the same
+    (a miss that is the sigma's replicates; one that was the draw does not)."""
+    print(f"\nReplication: each parameter below p = {SIGNIFICANT} on {trials} fresh trials (seeds from the case's "
+          f"seed + {CONFIRM_SEED})")
+    for (label, rho), (sc, names) in flagged.items():
+        s = study(sc, trials, seed0=sc.seed + CONFIRM_SEED, workers=workers, recast=True,
+                  vary=("sensor.noise_correlation", [float(rho)]))
+        part = s.parts[0]
+        st = part.stats()
+        cal = sum(r.status == "calibrated" for r in part.rows)
+        for name in names:
+            v, n = st[name]["rms_z"], int(st[name]["n"])
+            pv = p_exact(v, n)
+            verdict = "replicates: the sigma's" if pv < SIGNIFICANT else "does not replicate: the first was the draw"
+            print(f"- {label} rho {rho} {name}: RMS error / sigma {v:.2f} over {n} calibrated of {cal}/"
+                  f"{len(part.rows)} (p {pv:.4f}), plan {st[name]['rmse_over_predicted']:.2f}: {verdict}",
+                  flush=True)
 
 
 if __name__ == "__main__":
