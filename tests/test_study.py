@@ -21,6 +21,7 @@ from lrfsim.trials.study import run_trials, study
 from lrfsim.trials.study_result import (
     CSV_COLUMNS,
     DRAWS,
+    SELECTED,
     exact_interval,
     p_exact,
     summary_markdown,
@@ -84,6 +85,13 @@ def test_study_table(serial, tmp_path: Path) -> None:
     assert f"over {len(calibrated)} trials lies in {lo:.2f}-{hi:.2f}" in summary
     recast = summary_markdown(replace(serial, draws="cast"))
     assert DRAWS["cast"] in recast and DRAWS["noise"] not in recast
+    # with some trials refused, the summary says the RMS is over the calibrated ones, which a refusal can select
+    assert (SELECTED.format(n=len(calibrated)) in summary) == bool(refused)
+    part = serial.parts[0]
+    one_refused = (replace(part.rows[0], status="refused", reason="observability: b"), *part.rows[1:])
+    mixed = summary_markdown(replace(serial, parts=(replace(part, rows=one_refused),)))
+    n_mixed = sum(r.status == "calibrated" for r in one_refused)
+    assert n_mixed > 0 and SELECTED.format(n=n_mixed) in mixed
     for p in DH_NAMES:
         assert (out / f"hist_{p}.png").read_bytes()[:4] == b"\x89PNG"
     assert serial.parts[0].plan is not None and serial.parts[0].plan.sigma["a"] > 0
