@@ -17,11 +17,15 @@ from lrfcal.errors import InputError
 from lrfcal.model.kinematics import DH_NAMES
 from lrfsim.plan.prediction import plan
 from lrfsim.scenario.file import parse_scenario
+from lrfsim.testing.random_scenarios import random_scenario_wide
 from lrfsim.trials.study import run_trials, study
 from lrfsim.trials.study_result import (
     CSV_COLUMNS,
     DRAWS,
+    FORCED,
     SELECTED,
+    Study,
+    StudyPart,
     exact_interval,
     p_exact,
     summary_markdown,
@@ -110,6 +114,23 @@ def test_exact_sigma_interval_and_p_value() -> None:
     rng = np.random.default_rng(3)
     rms = np.sqrt((rng.standard_normal((4000, 24)) ** 2).mean(1))
     assert 0.04 <= np.mean([p_exact(float(v), 24) < 0.05 for v in rms]) <= 0.06
+
+
+def test_a_forced_study_calibrates_the_trials_the_checks_refuse() -> None:
+    """Near a limit the checks' refusals can select the calibrated trials (those refused had the larger errors on
+    points 2014: docs/study.md); ``force`` calibrates them as `lrfcal calibrate --force` does, and the summary says
+    so. On points 2014's shared cast, seed 2015's b is over its 5 mm limit: refused for observability, then
+    calibrated with that sigma."""
+    sc = random_scenario_wide(2014, layout="scattered")
+    (kept,) = run_trials(sc, 1, seed0=2015)
+    (forced,) = run_trials(sc, 1, seed0=2015, force=True)
+    assert kept.status == "refused" and kept.reason.startswith("observability"), kept.reason
+    b = DH_NAMES.index("b")
+    assert forced.status == "calibrated" and forced.sigma[b] > 0.005, forced
+    assert all(math.isfinite(v) for v in forced.errors)
+    part = StudyPart(value="", scenario=sc, plan=None, rows=(forced,))
+    summary = summary_markdown(Study(name=sc.name, key=None, parts=(part,), seconds=0.0, forced=True))
+    assert FORCED in summary and "calibrated 1 of 1" in summary
 
 
 def test_process_pool_gives_the_same_table(tiny, serial, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -256,6 +256,10 @@ def study(
         help="Draw each trial's true DH around the nominal DH, uniform in +-S x (a, b: 5 mm; alpha, beta: 1.5 "
              "deg), from the trial's seed (each trial builds its scene and casts anew)  [default: 0, the "
              "scenario's truth]")] = 0.0,
+    force: Annotated[bool, typer.Option(
+        "--force", help="Calibrate every trial as 'lrfcal calibrate --force' does: a failed check recorded, not "
+                        "refused, so RMS of error / sigma is over the trials the checks would refuse too (near a "
+                        "limit, those with the larger errors)")] = False,
     quiet: QuietOpt = False,
 ) -> None:
     """Monte-Carlo study: calibrate N noisy recordings of SCENARIO.
@@ -299,7 +303,8 @@ def study(
                            progress=lambda value, done, _n: hooks.trials(values.index(value) * trials + done,
                                                                         len(values) * trials),
                            perturb_start=perturb_start, new_layout=new_layout, truth_spread=truth_spread,
-                           meanwhile=import_figures)  # while the workers run, not after them with one core idle
+                           # the figures' imports while the workers run, not after them with one core idle
+                           force=force, meanwhile=import_figures)
         hooks.stage("trials.csv, summary.md and figures")
         path = write_study(result, out, overwrite=overwrite)
     print(summary_markdown(result).split("## Figures")[0].rstrip())

@@ -117,7 +117,7 @@ def run_batch(scenario: Scenario, value: str, trials: Sequence[tuple[int, int]],
             label = f"{scenario.name}#{trial}"
             # a marker-less recording: calibrated targetless as `lrfcal calibrate REC --targetless` does
             t = (calibrate_as_user(folder, name=label, force=design.force) if sc.markers is None
-                 else calibrate_recording(folder, name=label))
+                 else calibrate_recording(folder, name=label, force=design.force))
             shutil.rmtree(folder, ignore_errors=True)
             rows.append(TrialRow(value=value, trial=int(trial), seed=int(seed), status=t.status,
                                  reason=" ".join(t.reason.split()), exit_code=int(t.exit_code),
@@ -273,7 +273,7 @@ def study(
     """A Monte-Carlo study of ``scenario`` (module docstring); ``vary = (dotted key, values)`` repeats it for each
     value of one field (the same seeds for every value); ``perturb_start``: the scale of each trial's perturbed
     start (:func:`perturbed_start`); ``truth_spread``: the scale of each trial's drawn truth (:func:`drawn_truth`);
-    ``force``: marker-less trials calibrate with ``--force`` (:class:`TrialDesign`);
+    ``force``: every trial calibrates as with ``lrfcal calibrate --force`` (:class:`TrialDesign`);
     ``recast``, ``new_layout``: see :class:`TrialDesign` (the predicted sigma is then the scenario's own layout's and
     truth's). The plan's prediction (none for a marker-less scenario) is made while the workers run the trials, and
     so is ``meanwhile()`` (once, during the first part's trials; e.g. the figures' imports)."""
@@ -297,7 +297,7 @@ def study(
     return Study(name=scenario.name, key=None if vary is None else vary[0], parts=tuple(parts),
                  seconds=time.perf_counter() - t0, workers=where, perturb_start=perturb_start,
                  draws="layout" if new_layout else "truth" if truth_spread > 0 else "cast" if recast else "noise",
-                 truth_spread=truth_spread)
+                 truth_spread=truth_spread, forced=force)
 
 
 def _predict(scenario: Scenario, geometry: Geometry | None, into: list[Plan | None],

@@ -143,6 +143,7 @@ class Study:
     perturb_start: float = 0.0
     draws: str = "noise"
     truth_spread: float = 0.0
+    forced: bool = False  #: every trial calibrated with --force (a failed check recorded, not refused)
 
     @property
     def rows(self) -> tuple[TrialRow, ...]:
@@ -187,7 +188,11 @@ def _ratio(v: float, spec: str = ".2f") -> str:
 SELECTED = ("The RMS is over the {n} calibrated trials alone: where the data decide a refusal (a sigma near its "
             "limit), the refused trials can be those with the larger errors, and the RMS then reads low (a points "
             "layout with b near its limit: 0.40 over the 9 of 24 trials it calibrated, 0.64 over all 24 with the "
-            "checks recorded instead of refusing; docs/study.md).")
+            "checks recorded instead of refusing; docs/study.md). `lrfsim study --force` calibrates every trial so.")
+#: what a forced study's summary says
+FORCED = ("Forced (`--force`): every trial calibrated as `lrfcal calibrate --force` does, a failed check recorded "
+          "instead of refusing, so the RMS of error / sigma is over the trials the checks would have refused too; "
+          "the refusal rate counts the trials no estimate came out of.")
 
 
 def summary_markdown(s: Study) -> str:
@@ -203,6 +208,8 @@ def summary_markdown(s: Study) -> str:
         lines += [f"Drawn truth (scale {s.truth_spread:g}): each trial's true DH drawn around the nominal, uniform in "
                   f"+-{h['a'] * 1000:g} mm (a, b) and +-{math.degrees(h['alpha']):g} deg (alpha, beta), from the "
                   "trial's seed; its nominal.yaml declares that spread (dh_tolerance: the half width / sqrt 3).", ""]
+    if s.forced:
+        lines += [FORCED, ""]
     if s.perturb_start > 0:
         h = {k: s.perturb_start * v for k, v in PERTURB_HALF_WIDTH.items()}
         lines += [f"Perturbed start (scale {s.perturb_start:g}): each trial's nominal values moved by uniform draws "
@@ -231,7 +238,7 @@ def summary_markdown(s: Study) -> str:
             lines += ["", f"With an exact sigma, the RMS of error / sigma over {n} trials lies in {lo:.2f}-{hi:.2f} "
                           "(95 %: sqrt(chi2_n / n)): a value inside cannot tell the sigma from an exact one (nor "
                           "RMSE / predicted the plan's)."]
-        if 0 < n < len(part.rows):
+        if 0 < n < len(part.rows) and not s.forced:
             lines += ["", SELECTED.format(n=n)]
         reasons: dict[str, int] = {}
         for r in part.rows:
@@ -259,5 +266,5 @@ def write_study(s: Study, out_dir: str | Path, *, overwrite: bool = False) -> Pa
         write_figures(s, tmp)
     return out
 
-__all__ = ["CSV_COLUMNS", "DRAWS", "SELECTED", "Study", "StudyPart", "TrialRow", "exact_interval", "p_exact",
+__all__ = ["CSV_COLUMNS", "DRAWS", "FORCED", "SELECTED", "Study", "StudyPart", "TrialRow", "exact_interval", "p_exact",
            "summary_markdown", "trials_csv", "write_study"]

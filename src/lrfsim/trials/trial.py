@@ -74,7 +74,7 @@ def record(scenario: Scenario, folder: Path) -> Path:
 def calibrate_recording(
     folder: Path, config: CalibConfig | None = None, *, name: str | None = None,
     mutate: Callable[[Recording], Recording] | None = None, keep_result: bool = False, paper: bool = False,
-    bag_reader: BagReader | None = None,
+    bag_reader: BagReader | None = None, force: bool = False,
 ) -> Trial:
     """Read a recording folder written by lrfsim, calibrate it (``mutate`` may change the Recording first, e.g. the
     nominal values), and compare the DH parameters with its ground_truth.yaml.
@@ -83,14 +83,15 @@ def calibrate_recording(
     one motor angle per scan, on our detections and association). ``config`` then runs with ``baseline=True`` and
     ``force=True``: the consistency checks are ours, the paper's method has none, so a check that our solution
     fails does not withhold the paper's estimate. ``bag_reader``: the bag's data from memory
-    (lrfsim.simulation.recording.in_memory_bag; the folder then needs no bag)."""
+    (lrfsim.simulation.recording.in_memory_bag; the folder then needs no bag). ``force``: as ``lrfcal calibrate
+    --force``, a failed check recorded in the result instead of refusing (``config``'s own when given)."""
     truth = load_truth(folder / "ground_truth.yaml")
     recording = read_recording(folder, bag_reader=bag_reader)
     if mutate is not None:
         recording = mutate(recording)
     label = name or folder.name
     nan4 = np.full(4, np.nan)
-    config = config or CalibConfig(baseline=False, geometry=False, clouds=False)  # a trial needs the estimate
+    config = config or CalibConfig(baseline=False, geometry=False, clouds=False, force=force)  # the estimate alone
     if paper:
         config = config.replace(baseline=True, force=True)
     t0 = time.perf_counter()

@@ -137,8 +137,9 @@ class TrialDesign:
     own seed too (a board's jittered grid, a random layout: a new marker layout per trial; implies ``recast``), to
     average over layouts rather than over the noise of one. ``truth_spread``: the scale of each trial's true DH drawn
     around the nominal (:func:`drawn_truth`; 0: the scenario's truth); a drawn truth builds its own scene and cast
-    (the true DH is in the scene's model). ``force``: a marker-less trial calibrates as ``lrfcal calibrate
-    --targetless --force`` does (a failed check recorded, not refused: what the refusals would have reported)."""
+    (the true DH is in the scene's model). ``force``: every trial calibrates as ``lrfcal calibrate --force`` does
+    (a marker-less one with ``--targetless``): a failed check recorded, not refused, so the RMS of error / sigma is
+    over the trials the checks would have refused too, not only over those they passed."""
 
     recast: bool = False
     perturb_start: float = 0.0
